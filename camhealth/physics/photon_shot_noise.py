@@ -1,0 +1,39 @@
+"""Photon shot noise (thesis Sec. 3.2.2.1, γ = 1) under the "digital gain" model of conventions.md.
+
+At gain factor g the scene delivers N = I · FW / g photo-electrons for an output intensity I ∈ [0, 1]
+(full well FW [e⁻] maps to 255 DN after gain). N is Poisson distributed; the gain amplifies signal and
+noise back to I, so
+
+    σ_PN(I) = 255 · √(g · I / FW)   [DN]
+
+per pixel. Doubling the gain (to compensate half the light) raises σ_PN by √2.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from camhealth.physics.metadata import CameraMetadata
+
+__all__ = ["photo_electrons", "photon_shot_sigma_dn", "photon_shot_sigma_patch_dn"]
+
+
+def _per_sample(v: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    return v.to(device=ref.device, dtype=ref.dtype).view(-1, *([1] * (ref.ndim - 1)))
+
+
+def photo_electrons(intensity: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
+    """Expected photo-electrons per pixel, N = I · FW / g [e⁻]; ``intensity`` is B×… in [0, 1]."""
+    return intensity.clamp_min(0) * _per_sample(meta.full_well_e / meta.gain_factor, intensity)
+
+
+def photon_shot_sigma_dn(intensity: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
+    """Per-pixel σ_PN [DN] = 255·√(g·I/FW) for intensities I ∈ [0, 1] of shape B×…."""
+    return 255.0 * (intensity.clamp_min(0) * _per_sample(meta.gain_factor / meta.full_well_e, intensity)).sqrt()
+
+
+def photon_shot_sigma_patch_dn(intensity: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
+    """Patch-level σ_PN [DN], shape (B,): the root-mean-square of the per-pixel σ over each sample,
+    i.e. √(mean σ²) = 255·√(g·mean(I)/FW) (clipping ignored)."""
+    mean_i = intensity.clamp_min(0).flatten(1).mean(1)
+    return 255.0 * (mean_i * (meta.gain_factor / meta.full_well_e).to(mean_i)).sqrt()
