@@ -1,0 +1,185 @@
+"""Shared machinery of the camhealth corruption modules (one deterministic ``apply_transform``)."""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Sequence
+
+import torch
+from kornia.augmentation import IntensityAugmentationBase2D
+
+from camhealth._validation import check_finite, check_float
+from camhealth.augment._generators import metadata_to_params, params_to_metadata
+from camhealth.physics.defocus_psf import defocus_psf
+from camhealth.physics.image_formation import NOISE_SOURCES, ImageFormation, form_image
+from camhealth.physics.metadata import CameraMetadata
+from camhealth.physics.motion_psf import linear_motion_psf, nonlinear_motion_psf
+from camhealth.physics.mtf import mtf_hv
+from camhealth.physics.readout_noise import source_follower_sigma_e
+
+__all__ = ["CorruptionBase"]
+
+
+class CorruptionBase(IntensityAugmentationBase2D):
+    """Base of every camhealth corruption: builds PSFs and noise from ``params`` deterministically.
+
+    Subclasses set ``_defocus_ks`` / ``_motion_ks`` (kernel sizes, ``None`` = component absent) and
+    ``_sources`` (noise sources, empty = no noise) and provide a parameter generator. Per-component
+    gates ``<component>_gate`` in ``params`` (used by :class:`CameraCorruption`) switch a component off
+    per sample; Kornia's ``batch_prob`` switches the whole module off per sample.
+    """
+
+    _defocus_ks: Optional[int] = None
+    _motion_ks: Optional[int] = None
+    _sources: tuple[str, ...] = ()
+    _quantize: bool = False
+
+    def __init__(self, p: float, same_on_batch: bool, keepdim: bool) -> None:
+        super().__init__(p=p, same_on_batch=same_on_batch, p_batch=1.0, keepdim=keepdim)
+        self._formation: ImageFormation | None = None
+        self._sf_cache: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    # ------------------------------------------------------------------ helpers
+    def validate_tensor(self, input: torch.Tensor) -> None:  # noqa: D102 (Kornia hook)
+        check_float(input, "input")
+        if input.ndim != 4:
+            raise ValueError(f"input must have shape B×C×H×W (or C×H×W / H×W), got {tuple(input.shape)}")
+        check_finite(input, "input")
+        lo, hi = float(input.detach().min()), float(input.detach().max())
+        if lo < 0 or hi > 1:
+            raise ValueError(f"input must lie in [0, 1] (DN/255), got values in [{lo:g}, {hi:g}]")
+
+    @staticmethod
+    def _gate(params: Dict[str, torch.Tensor], name: str, b: int, device: torch.device) -> torch.Tensor:
+        g = torch.ones(b, dtype=torch.bool, device=device)
+        if f"{name}_gate" in params:
+            g = g & (params[f"{name}_gate"].to(device) > 0.5)
+        if "batch_prob" in params:
+            g = g & (params["batch_prob"].to(device).reshape(-1).expand(b) > 0.5)
+        return g
+
+    def defocus_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None) -> torch.Tensor:
+        """(B, k, k) defocus kernels of ``params`` (delta where the component is gated off)."""
+        d = params["diameter"].to(device=device, dtype=torch.float32)
+        if "defocus_gate" in params:
+            d = torch.where(params["defocus_gate"].to(d.device) > 0.5, d, torch.zeros_like(d))
+        return defocus_psf(d, self._defocus_ks)
+
+    def motion_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None) -> torch.Tensor:
+        """(B, k, k) motion kernels of ``params`` (delta where the component is gated off)."""
+        length = params["length"].to(device=device, dtype=torch.float32)
+        if "motion_gate" in params:
+            length = torch.where(params["motion_gate"].to(length.device) > 0.5, length, torch.zeros_like(length))
+        angle = params["angle"].to(device=length.device, dtype=torch.float32)
+        intensity = params["intensity"].to(device=length.device, dtype=torch.float32)
+        if bool((intensity == 0).all()):
+            return linear_motion_psf(length, angle, self._motion_ks)
+        shake = params["shake_noise"].to(device=length.device, dtype=torch.float32)
+        return nonlinear_motion_psf(length, angle, intensity, shake, self._motion_ks)
+
+    def _source_follower(self, meta: CameraMetadata) -> torch.Tensor:
+        """σ_SF depends only on (W, f_clock, A_SN, sensor type): cache it across batches with fixed sensors."""
+        key = torch.stack([meta.white_noise_v_per_rthz, meta.pixel_clock_hz, meta.sense_node_gain_v_per_e, meta.is_cmos])
+        if self._sf_cache is not None and self._sf_cache[0].shape == key.shape and torch.equal(self._sf_cache[0], key):
+            return self._sf_cache[1]
+        sf = source_follower_sigma_e(meta)
+        self._sf_cache = (key, sf)
+        return sf
+
+    # ------------------------------------------------------------------ the transform
+    def apply_transform(
+        self,
+        input: torch.Tensor,
+        params: Dict[str, torch.Tensor],
+        flags: Dict[str, Any],
+        transform: Optional[torch.Tensor] = None,
+    ) -> torch.Tensor:
+        b, dev = input.shape[0], input.device
+        dpsf = self.defocus_psf(params, dev) if self._defocus_ks is not None else None
+        mpsf = self.motion_psf(params, dev) if self._motion_ks is not None else None
+        meta = None
+        generator = None
+        if self._sources:
+            meta = params_to_metadata(params).to(device=dev)
+            generator = torch.Generator(device=dev)
+            generator.manual_seed(int(params["noise_seed"].reshape(-1)[0]))
+        result = form_image(
+            input,
+            meta,
+            defocus_psf=dpsf,
+            motion_psf=mpsf,
+            sources=self._sources,
+            generator=generator,
+            quantize=self._quantize,
+            source_follower_e=self._source_follower(meta) if meta is not None else None,
+        )
+        out = result.image
+        if self._sources and "noise_gate" in params:
+            keep = (params["noise_gate"].to(dev) > 0.5).view(-1, 1, 1, 1)
+            out = torch.where(keep, out, result.blurred.clamp(0, 1).to(out.dtype))
+        self._formation = result
+        return out
+
+    # ------------------------------------------------------------------ labels
+    def labels(self, params: Dict[str, torch.Tensor] | None = None) -> Dict[str, Any]:
+        """Labels of the last call (or of ``params``): what a learner needs.
+
+        Returns a dict with, as present: ``mtf`` (B, 16) — H then V at the 8 normalised frequencies of
+        the applied PSF (1 where no blur was applied); ``sigma_dn`` (B, 3) realised σ of (PN, DCSN, RN)
+        after clipping; ``sigma_total_dn`` (B,); ``sigma_expected_dn`` (B, 3) and
+        ``sigma_total_expected_dn`` (B,) analytic; ``clipped_fraction`` (B,); ``metadata``
+        (:class:`CameraMetadata`). Noise labels need the last forward call (they depend on the image).
+        """
+        params = self._params if params is None else params
+        if not params:
+            raise RuntimeError("no parameters yet: call the module on a batch first, or pass params")
+        b = int(params["forward_input_shape"][0]) if "forward_input_shape" in params else int(params["batch_prob"].numel())
+        out: Dict[str, Any] = {}
+        if self._defocus_ks is not None or self._motion_ks is not None:
+            mtf = None
+            if self._defocus_ks is not None:
+                mtf = mtf_hv(self.defocus_psf(params))
+                mtf = torch.where(self._gate(params, "defocus", b, mtf.device)[:, None], mtf, torch.ones_like(mtf))
+            if self._motion_ks is not None:
+                m = mtf_hv(self.motion_psf(params))
+                m = torch.where(self._gate(params, "motion", b, m.device)[:, None], m, torch.ones_like(m))
+                mtf = m if mtf is None else mtf * m
+            out["mtf"] = mtf
+        if self._sources:
+            meta = params_to_metadata(params)
+            out["metadata"] = meta
+            f = self._formation
+            if f is None or f.sigma_dn.shape[0] != b:
+                raise RuntimeError("noise labels need a forward call on this batch before labels()")
+            on = self._gate(params, "noise", b, f.sigma_dn.device)
+            for name in ("sigma_dn", "sigma_total_dn", "sigma_expected_dn", "sigma_total_expected_dn", "clipped_fraction"):
+                v = getattr(f, name)
+                mask = on.view(-1, *([1] * (v.ndim - 1)))
+                out[name] = torch.where(mask, v, torch.zeros_like(v)) if name != "clipped_fraction" else v
+        return out
+
+    @staticmethod
+    def params_from_metadata(
+        meta: CameraMetadata, seed: int | None = None, device: torch.device | str | None = None
+    ) -> Dict[str, torch.Tensor]:
+        """Noise parameters for given per-sample metadata, to corrupt with ``aug(x, params=...)``.
+
+        Only valid for noise-only modules (:class:`RandomSensorNoise`); for :class:`CameraCorruption`
+        update the ``meta_<field>`` entries of ``forward_parameters`` output instead.
+        """
+        params = metadata_to_params(meta, device=device)
+        s = int(torch.randint(0, 2**62, (1,))) if seed is None else int(seed)
+        params["noise_seed"] = torch.full((meta.batch_size,), s, dtype=torch.int64, device=device)
+        params["batch_prob"] = torch.ones(meta.batch_size, device=device)
+        params["forward_input_shape"] = torch.tensor([meta.batch_size, 1, 0, 0])
+        return params
+
+
+def check_sources(sources: Sequence[str]) -> tuple[str, ...]:
+    """Validate a selection of noise sources (subset of ``("photon", "dark", "readout")``)."""
+    if isinstance(sources, str):
+        sources = (sources,)
+    sources = tuple(sources)
+    bad = [s for s in sources if s not in NOISE_SOURCES]
+    if bad:
+        raise ValueError(f"unknown noise source(s) {bad}; choose from {list(NOISE_SOURCES)}")
+    return tuple(s for s in NOISE_SOURCES if s in sources)

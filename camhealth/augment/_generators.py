@@ -1,0 +1,155 @@
+"""Parameter generators: all randomness of the corruption modules lives here (Kornia convention).
+
+Each generator returns a dict of per-sample tensors (first dim B). Replaying a corruption with
+``aug(x, params=aug._params)`` reproduces it exactly, including the noise field (drawn from a torch
+generator seeded with ``params["noise_seed"]``). Sampling uses torch's global RNG, so
+``torch.manual_seed`` makes a run reproducible, as in Kornia.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import torch
+from kornia.augmentation.random_generator.base import RandomGeneratorBase
+from kornia.augmentation.utils import _adapted_rsampling
+from torch.distributions import Uniform
+
+from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
+from camhealth.physics.motion_psf import sample_shake_noise
+
+__all__ = [
+    "DefocusGenerator",
+    "MotionGenerator",
+    "SensorNoiseGenerator",
+    "as_range",
+    "metadata_to_params",
+    "params_to_metadata",
+]
+
+
+def as_range(value: float | tuple[float, float] | list[float], name: str, bounds: tuple[float, float]) -> tuple[float, float]:
+    """A scalar → (value, value); a pair is checked to lie ordered inside ``bounds``."""
+    if isinstance(value, (int, float)):
+        lo = hi = float(value)
+    else:
+        if len(value) != 2:
+            raise ValueError(f"{name} must be a number or a (low, high) pair, got {value!r}")
+        lo, hi = float(value[0]), float(value[1])
+    if not (bounds[0] <= lo <= hi <= bounds[1]):
+        raise ValueError(f"{name} = ({lo:g}, {hi:g}) must satisfy {bounds[0]:g} ≤ low ≤ high ≤ {bounds[1]:g}")
+    return lo, hi
+
+
+class _UniformFieldsGenerator(RandomGeneratorBase):
+    """Samples named scalar parameters uniformly from their (low, high) ranges."""
+
+    def __init__(self, ranges: Mapping[str, tuple[float, float]]) -> None:
+        super().__init__()
+        self.ranges = dict(ranges)
+
+    def __repr__(self) -> str:
+        return ", ".join(f"{k}={v}" for k, v in self.ranges.items())
+
+    def make_samplers(self, device: torch.device, dtype: torch.dtype) -> None:
+        self._samplers = {}
+        for k, (lo, hi) in self.ranges.items():
+            lo_t = torch.tensor(lo, device=device, dtype=dtype)
+            hi_t = torch.tensor(hi, device=device, dtype=dtype)
+            self._samplers[k] = None if lo == hi else Uniform(lo_t, hi_t, validate_args=False)
+
+    def _sample(self, batch_size: int, same_on_batch: bool) -> dict[str, torch.Tensor]:
+        out = {}
+        for k, (lo, _) in self.ranges.items():
+            sampler = self._samplers[k]
+            if sampler is None:
+                out[k] = torch.full((batch_size,), lo, device=self.device, dtype=self.dtype)
+            else:
+                out[k] = _adapted_rsampling((batch_size,), sampler, same_on_batch)
+        return out
+
+    def forward(self, batch_shape: tuple[int, ...], same_on_batch: bool = False) -> dict[str, torch.Tensor]:
+        return self._sample(batch_shape[0], same_on_batch)
+
+
+class DefocusGenerator(_UniformFieldsGenerator):
+    """``diameter`` [px] per sample, uniform in ``diameter_px``."""
+
+    def __init__(self, diameter_px: tuple[float, float]) -> None:
+        super().__init__({"diameter": diameter_px})
+
+
+class MotionGenerator(_UniformFieldsGenerator):
+    """``length`` [px], ``angle`` [deg], ``intensity`` [0, 1] and ``shake_noise`` (B, n_steps, 2)."""
+
+    def __init__(
+        self, length_px: tuple[float, float], angle_deg: tuple[float, float], intensity: tuple[float, float], n_steps: int = 64
+    ) -> None:
+        super().__init__({"length": length_px, "angle": angle_deg, "intensity": intensity})
+        self.n_steps = n_steps
+
+    def forward(self, batch_shape: tuple[int, ...], same_on_batch: bool = False) -> dict[str, torch.Tensor]:
+        out = self._sample(batch_shape[0], same_on_batch)
+        n = 1 if same_on_batch else batch_shape[0]
+        noise = sample_shake_noise(n, self.n_steps, device=self.device, dtype=torch.float32)
+        out["shake_noise"] = noise.expand(batch_shape[0], -1, -1).contiguous()
+        return out
+
+
+class SensorNoiseGenerator(RandomGeneratorBase):
+    """Camera metadata per sample (keys ``meta_<field>``) and the ``noise_seed`` of the noise field.
+
+    Args:
+        metadata: fixed metadata (a preset name, :class:`CameraMetadata` of batch 1, or a dict of
+            fields). Fields named in ``ranges`` are sampled instead. ``None`` samples every field.
+        ranges: per-field (low, high) sampling ranges inside ``METADATA_RANGES``.
+        gain_uniform_in: ``"factor"`` (thesis) or ``"db"``.
+    """
+
+    def __init__(
+        self,
+        metadata: CameraMetadata | str | Mapping[str, Any] | None = None,
+        ranges: Mapping[str, tuple[float, float]] | None = None,
+        gain_uniform_in: str = "factor",
+    ) -> None:
+        super().__init__()
+        if isinstance(metadata, CameraMetadata) and metadata.batch_size != 1:
+            raise ValueError(
+                f"RandomSensorNoise takes metadata of batch size 1 (got {metadata.batch_size}); to corrupt with "
+                "per-sample metadata, pass params=RandomSensorNoise.params_from_metadata(meta)"
+            )
+        self.metadata = metadata
+        self.ranges = dict(ranges or {})
+        self.gain_uniform_in = gain_uniform_in
+        # Validate eagerly (a bad range or preset should fail at construction, not at the first batch).
+        CameraMetadata.sample(1, ranges=self.ranges, fixed=self.metadata, gain_uniform_in=gain_uniform_in)
+
+    def __repr__(self) -> str:
+        return f"metadata={self.metadata!r}, ranges={self.ranges}"
+
+    def make_samplers(self, device: torch.device, dtype: torch.dtype) -> None:
+        pass
+
+    def forward(self, batch_shape: tuple[int, ...], same_on_batch: bool = False) -> dict[str, torch.Tensor]:
+        b = batch_shape[0]
+        n = 1 if same_on_batch else b
+        meta = CameraMetadata.sample(n, ranges=self.ranges, fixed=self.metadata, gain_uniform_in=self.gain_uniform_in)
+        params = metadata_to_params(meta.expand(b) if n == 1 else meta, device=self.device)
+        seed = torch.randint(0, 2**62, (1,), dtype=torch.int64)
+        params["noise_seed"] = seed.expand(b).to(self.device)
+        return params
+
+
+def metadata_to_params(meta: CameraMetadata, device: torch.device | str | None = None) -> dict[str, torch.Tensor]:
+    """Flatten metadata into ``meta_<field>`` parameter tensors of shape (B,)."""
+    return {f"meta_{n}": getattr(meta, n).to(device=device, dtype=torch.float32) for n in FULL_FIELDS}
+
+
+def params_to_metadata(params: Mapping[str, torch.Tensor], prefix: str = "") -> CameraMetadata:
+    """Rebuild :class:`CameraMetadata` from ``meta_<field>`` parameters (validated)."""
+    try:
+        data = {n: params[f"{prefix}meta_{n}"] for n in FULL_FIELDS}
+    except KeyError as err:
+        raise ValueError(f"params lack the metadata entry {err.args[0]!r}; expected keys meta_<field> for {list(FULL_FIELDS)}") from None
+    return CameraMetadata(**data)
+

@@ -1,0 +1,98 @@
+"""Kornia-style random blur modules with physically defined PSFs and MTF labels."""
+
+from __future__ import annotations
+
+import math
+
+from camhealth._validation import check_odd_kernel_size
+from camhealth.augment._base import CorruptionBase
+from camhealth.augment._generators import DefocusGenerator, MotionGenerator, as_range
+from camhealth.physics.defocus_psf import default_kernel_size
+
+__all__ = ["RandomDefocusBlur", "RandomMotionBlur", "motion_kernel_size"]
+
+
+def motion_kernel_size(max_length_px: float, nonlinear: bool) -> int:
+    """Smallest odd kernel that holds a motion path of arc length ``max_length_px`` with 1 px margin.
+
+    A straight path centred on the kernel needs L + 3 px; a curved path of arc length L, centred on
+    its bounding box, can reach L/√2… L from the centre, so it gets 2·L + 3 px.
+    """
+    extent = (2.0 if nonlinear else 1.0) * float(max_length_px)
+    k = int(math.ceil(extent)) + 3
+    return k if k % 2 == 1 else k + 1
+
+
+class RandomDefocusBlur(CorruptionBase):
+    r"""Defocus blur with a uniform-disk PSF of random diameter (circle of confusion, thesis Eq. 3.6).
+
+    Args:
+        diameter: disk diameter [px], a number or (low, high) sampled uniformly per sample; sub-pixel
+            diameters are anti-aliased. Default (1, 21).
+        kernel_size: odd kernel size; default: smallest that holds the largest disk.
+        p: probability to blur a sample. Default 1 (a camera always images through its optics).
+        same_on_batch: one diameter for the whole batch.
+        keepdim: keep the input's shape (C×H×W in → C×H×W out).
+
+    Parameters (``aug._params``): ``diameter`` (B,). Labels (``aug.labels()``): ``mtf`` (B, 16).
+    The transform is differentiable w.r.t. the image (a convolution).
+
+    Example:
+        >>> aug = RandomDefocusBlur(diameter=(3.0, 11.0))
+        >>> y = aug(torch.rand(8, 1, 64, 64))
+        >>> aug.labels()["mtf"].shape
+        torch.Size([8, 16])
+    """
+
+    def __init__(
+        self,
+        diameter: float | tuple[float, float] = (1.0, 21.0),
+        kernel_size: int | None = None,
+        p: float = 1.0,
+        same_on_batch: bool = False,
+        keepdim: bool = False,
+    ) -> None:
+        super().__init__(p=p, same_on_batch=same_on_batch, keepdim=keepdim)
+        lo, hi = as_range(diameter, "diameter", (0.0, 255.0))
+        self._defocus_ks = check_odd_kernel_size(kernel_size) if kernel_size is not None else default_kernel_size(hi)
+        if hi > self._defocus_ks:
+            raise ValueError(f"diameter up to {hi:g} px does not fit kernel_size = {self._defocus_ks}")
+        self._param_generator = DefocusGenerator((lo, hi))
+
+
+class RandomMotionBlur(CorruptionBase):
+    r"""Linear or non-linear (camera-shake) motion blur with sub-pixel PSFs (thesis Eq. 3.10).
+
+    Args:
+        length: path length L = v·t_exp [px], number or (low, high). Default (1, 21).
+        angle: direction Φ [deg], number or (low, high); 0° horizontal, 90° vertical. Default (0, 180).
+        intensity: shake intensity in [0, 1]: 0 → straight line, 1 → strongly curved, jerky path.
+            Default 0 (linear motion).
+        kernel_size: odd kernel size; default from the largest length (see :func:`motion_kernel_size`).
+        p, same_on_batch, keepdim: as in Kornia.
+
+    Parameters: ``length``, ``angle``, ``intensity`` (B,) and ``shake_noise`` (B, 64, 2).
+    Labels: ``mtf`` (B, 16). Differentiable w.r.t. the image.
+    """
+
+    def __init__(
+        self,
+        length: float | tuple[float, float] = (1.0, 21.0),
+        angle: float | tuple[float, float] = (0.0, 180.0),
+        intensity: float | tuple[float, float] = 0.0,
+        kernel_size: int | None = None,
+        p: float = 1.0,
+        same_on_batch: bool = False,
+        keepdim: bool = False,
+    ) -> None:
+        super().__init__(p=p, same_on_batch=same_on_batch, keepdim=keepdim)
+        length_r = as_range(length, "length", (0.0, 255.0))
+        angle_r = as_range(angle, "angle", (-360.0, 360.0))
+        intensity_r = as_range(intensity, "intensity", (0.0, 1.0))
+        nonlinear = intensity_r[1] > 0
+        self._motion_ks = (
+            check_odd_kernel_size(kernel_size) if kernel_size is not None else motion_kernel_size(length_r[1], nonlinear)
+        )
+        if length_r[1] > self._motion_ks - 1:
+            raise ValueError(f"length up to {length_r[1]:g} px does not fit kernel_size = {self._motion_ks}")
+        self._param_generator = MotionGenerator(length_r, angle_r, intensity_r)

@@ -1,0 +1,153 @@
+import pytest
+import torch
+
+from camhealth.physics.defocus_psf import defocus_psf
+from camhealth.physics.image_formation import apply_psf, form_image
+from camhealth.physics.metadata import CameraMetadata
+from camhealth.physics.motion_psf import linear_motion_psf
+
+
+def _gen(seed=0):
+    return torch.Generator().manual_seed(seed)
+
+
+@pytest.mark.parametrize("source,idx", [("photon", 0), ("dark", 1), ("readout", 2)])
+def test_each_source_realised_sigma_matches_analytic(source, idx):
+    m = CameraMetadata.preset("EV76C661", batch_size=3, gain_db=[0.0, 12.0, 18.0], temperature_c=[20.0, 50.0, 70.0],
+                              exposure_s=[0.01, 0.1, 0.2])
+    x = torch.full((3, 1, 128, 128), 0.45)
+    r = form_image(x, m, sources=(source,), generator=_gen())
+    assert torch.allclose(r.sigma_dn[:, idx], r.sigma_expected_dn[:, idx], rtol=0.04)
+    others = [j for j in range(3) if j != idx]
+    assert torch.all(r.sigma_dn[:, others] == 0)
+    assert torch.allclose(r.sigma_total_dn, r.sigma_dn[:, idx], rtol=1e-4)
+
+
+def test_sources_add_in_quadrature():
+    m = CameraMetadata.preset("EV76C661", batch_size=2, gain_db=12.0, temperature_c=60.0, exposure_s=0.1)
+    r = form_image(torch.full((2, 1, 128, 128), 0.5), m, generator=_gen())
+    assert torch.allclose(r.sigma_total_dn, r.sigma_dn.pow(2).sum(1).sqrt(), rtol=0.03)
+    assert torch.allclose(r.sigma_total_expected_dn, r.sigma_expected_dn.pow(2).sum(1).sqrt())
+
+
+def test_zero_noise_is_identity_and_black_frame_is_finite():
+    # full well 100 000 e⁻, 0 dB, no dark current, short exposure: photon σ of a black frame is 0
+    m = CameraMetadata.preset("ICX285", full_well_e=100_000.0, dark_fom_na_per_cm2=0.0, exposure_s=0.001)
+    black = torch.zeros(1, 1, 32, 32)
+    r = form_image(black, m, sources=("photon", "dark"), generator=_gen())
+    assert torch.equal(r.image, black)
+    assert torch.all(r.sigma_dn == 0) and torch.all(r.sigma_expected_dn == 0)
+    r = form_image(black, m, generator=_gen())  # readout noise on black: half clipped at 0
+    assert torch.isfinite(r.image).all() and r.image.min() >= 0
+    assert 0.3 < r.clipped_fraction.item() < 0.7
+    assert r.sigma_dn[0, 2] < r.sigma_expected_dn[0, 2]
+
+
+def test_saturated_frame_clips_and_labels_shrink():
+    m = CameraMetadata.preset("EV76C661", gain_db=24.0, full_well_e=2000.0, temperature_c=80.0, exposure_s=0.2)
+    white = torch.ones(1, 1, 64, 64)
+    r = form_image(white, m, generator=_gen())
+    assert r.image.max() <= 1 and torch.isfinite(r.sigma_dn).all()
+    assert r.clipped_fraction.item() > 0.4
+    assert torch.all(r.sigma_dn <= r.sigma_expected_dn * 1.05)
+
+
+def test_large_sigma_above_30_dn():
+    m = CameraMetadata.preset("EV76C661", gain_db=24.0, full_well_e=2000.0, temperature_c=80.0, exposure_s=0.2)
+    r = form_image(torch.full((2, 1, 128, 128), 0.5), m, generator=_gen())
+    assert (r.sigma_total_expected_dn > 30).all()
+    assert torch.isfinite(r.image).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+def test_dtypes_preserved_and_statistics_agree(dtype):
+    m = CameraMetadata.preset("ICX285", gain_db=18.0)
+    x = torch.full((2, 1, 64, 64), 0.5, dtype=dtype)
+    r = form_image(x, m, defocus_psf=defocus_psf(torch.tensor([3.0, 5.0]), 7), generator=_gen())
+    assert r.image.dtype == dtype and torch.isfinite(r.image.float()).all()
+    assert torch.allclose(r.sigma_dn[:, 0].float(), r.sigma_expected_dn[:, 0].float(), rtol=0.05)
+
+
+@pytest.mark.parametrize("batch", [1, 256])
+def test_batch_sizes(batch):
+    m = CameraMetadata.sample(batch, _gen(1))
+    r = form_image(torch.rand(batch, 1, 16, 16, generator=_gen(2)), m, generator=_gen(3))
+    assert r.image.shape == (batch, 1, 16, 16) and r.sigma_dn.shape == (batch, 3)
+    assert torch.isfinite(r.sigma_dn).all()
+
+
+def test_seeded_reproducibility():
+    m = CameraMetadata.sample(4, _gen(1))
+    x = torch.rand(4, 1, 32, 32, generator=_gen(2))
+    a = form_image(x, m, generator=_gen(7)).image
+    b = form_image(x, m, generator=_gen(7)).image
+    c = form_image(x, m, generator=_gen(8)).image
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_photon_noise_is_motion_blurred_and_directional():
+    """PN before a horizontal motion blur becomes horizontally correlated (Sec. 5.4)."""
+    m = CameraMetadata.preset("EV76C661", gain_db=24.0)
+    psf = linear_motion_psf(torch.tensor([9.0]), torch.tensor([0.0]), 11)
+    r = form_image(torch.full((1, 1, 128, 128), 0.5), m, motion_psf=psf, sources=("photon",), generator=_gen())
+    n = r.image[0, 0] - 0.5
+    corr_h = (n[:, 1:] * n[:, :-1]).mean() / n.var()
+    corr_v = (n[1:, :] * n[:-1, :]).mean() / n.var()
+    assert corr_h > 0.7 and abs(corr_v) < 0.1
+    # the analytic PN label accounts for the averaging: √Σh² of the kernel
+    assert r.sigma_dn[0, 0].item() == pytest.approx(r.sigma_expected_dn[0, 0].item(), rel=0.1)
+
+
+def test_quantize_gives_whole_dn():
+    m = CameraMetadata.preset("ICX285", gain_db=12.0)
+    r = form_image(torch.full((1, 1, 16, 16), 0.3), m, generator=_gen(), quantize=True)
+    dn = r.image * 255
+    assert torch.allclose(dn, dn.round(), atol=1e-4)
+
+
+def test_gradient_flows_through_blur_and_noise():
+    m = CameraMetadata.preset("ICX285", gain_db=6.0)
+    x = torch.full((1, 1, 16, 16), 0.5, dtype=torch.float64, requires_grad=True)
+    psf = defocus_psf(torch.tensor([3.0], dtype=torch.float64), 5)
+    y = form_image(x, m, defocus_psf=psf, generator=_gen()).image
+    y.sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_apply_psf_gradcheck_and_delta():
+    x = torch.rand(2, 1, 9, 9, dtype=torch.float64, requires_grad=True)
+    psf = defocus_psf(torch.tensor([2.5, 4.0], dtype=torch.float64), 5)
+    assert torch.autograd.gradcheck(lambda t: apply_psf(t, psf), (x,))
+    delta = torch.ones(2, 1, 1, dtype=torch.float64)
+    assert torch.equal(apply_psf(x, delta), x)
+
+
+def test_large_kernel_on_small_image_uses_replicate_padding():
+    psf = defocus_psf(torch.tensor([39.0]), 41)
+    y = apply_psf(torch.full((1, 1, 16, 16), 0.7), psf)
+    assert torch.allclose(y, torch.full_like(y, 0.7), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "bad,exc,match",
+    [
+        (torch.full((1, 1, 8, 8), float("nan")), ValueError, "finite"),
+        (torch.zeros(8, 8), ValueError, "B×C×H×W"),
+        (torch.zeros(1, 1, 8, 8, dtype=torch.uint8), TypeError, "floating"),
+        (torch.full((1, 1, 8, 8), 2.0), ValueError, r"\[0, 1\]"),
+        ([[0.5]], TypeError, "torch.Tensor"),
+    ],
+)
+def test_bad_input_errors(bad, exc, match):
+    with pytest.raises(exc, match=match):
+        form_image(bad, CameraMetadata.preset("ICX285"))
+
+
+def test_bad_sources_and_missing_metadata():
+    x = torch.zeros(1, 1, 8, 8)
+    with pytest.raises(ValueError, match="unknown noise source"):
+        form_image(x, CameraMetadata.preset("ICX285"), sources=("thermal",))
+    with pytest.raises(ValueError, match="metadata"):
+        form_image(x, None)
+    with pytest.raises(ValueError, match="batch"):
+        form_image(torch.zeros(3, 1, 8, 8), CameraMetadata.sample(2))

@@ -1,0 +1,128 @@
+import math
+
+import pytest
+import torch
+
+from camhealth.physics.metadata import (
+    FULL_FIELDS,
+    METADATA_RANGES,
+    MINIMAL_FIELDS,
+    CameraMetadata,
+    celsius_to_kelvin,
+    db_to_factor,
+    factor_to_db,
+    kelvin_to_celsius,
+)
+
+
+def test_gain_conversion_closed_form():
+    assert db_to_factor(0.0).item() == pytest.approx(1.0)
+    assert db_to_factor(24.0).item() == pytest.approx(15.8489, rel=1e-4)
+    assert db_to_factor(20.0).item() == pytest.approx(10.0)
+    g = torch.tensor([1.0, 2.0, 15.0])
+    assert torch.allclose(db_to_factor(factor_to_db(g)), g)
+
+
+def test_temperature_conversion():
+    assert celsius_to_kelvin(0.0).item() == pytest.approx(273.15)
+    assert kelvin_to_celsius(celsius_to_kelvin(80.0)).item() == pytest.approx(80.0)
+
+
+@pytest.mark.parametrize("name", ["ICX285", "EV76C661", "icx285"])
+def test_presets(name):
+    m = CameraMetadata.preset(name, batch_size=3, gain_db=12.0)
+    assert m.batch_size == 3
+    assert torch.all(m.gain_db == 12.0)
+    assert m.is_cmos[0].item() == (1.0 if name.upper() == "EV76C661" else 0.0)
+
+
+def test_unknown_preset_lists_known():
+    with pytest.raises(ValueError, match="ICX285"):
+        CameraMetadata.preset("nope")
+
+
+@pytest.mark.parametrize(
+    "field,value",
+    [("temperature_c", 90.0), ("temperature_c", -1.0), ("gain_db", 24.5), ("full_well_e", 1999.0), ("exposure_s", 0.0),
+     ("is_cmos", 0.5), ("gain_db", float("nan")), ("pixel_clock_hz", float("inf"))],
+)
+def test_out_of_range_names_field_value_and_range(field, value):
+    lo, hi = METADATA_RANGES[field]
+    with pytest.raises(ValueError) as err:
+        CameraMetadata.preset("ICX285", **{field: value})
+    msg = str(err.value)
+    assert field in msg and f"{lo:g}" in msg and f"{hi:g}" in msg
+
+
+def test_extremes_are_valid():
+    m = CameraMetadata.preset("EV76C661", batch_size=4, gain_db=[0.0, 24.0, 0.0, 24.0], temperature_c=[0.0, 80.0, 80.0, 0.0],
+                              full_well_e=2000.0, exposure_s=[0.001, 0.2, 0.2, 0.001])
+    assert m.batch_size == 4
+
+
+def test_incompatible_batch_sizes():
+    with pytest.raises(ValueError, match="incompatible batch"):
+        CameraMetadata.preset("ICX285", gain_db=[0.0, 1.0], temperature_c=[1.0, 2.0, 3.0])
+
+
+def test_normalize_roundtrip_full_and_minimal():
+    m = CameraMetadata.sample(16, torch.Generator().manual_seed(1))
+    full = m.normalize("full")
+    assert full.shape == (16, len(FULL_FIELDS))
+    assert full.min() >= 0 and full.max() <= 1
+    back = CameraMetadata.denormalize(full, "full")
+    for n in FULL_FIELDS:
+        assert torch.allclose(getattr(back, n), getattr(m, n), rtol=1e-5, atol=1e-12), n
+    mini = m.normalize("minimal")
+    assert mini.shape == (16, len(MINIMAL_FIELDS))
+    back = CameraMetadata.denormalize(mini, "minimal", base=m)
+    assert torch.allclose(back.gain_db, m.gain_db, atol=1e-5)
+    assert m.normalize("none").shape == (16, 0)
+
+
+def test_sample_reproducible_and_in_range():
+    a = CameraMetadata.sample(256, torch.Generator().manual_seed(3))
+    b = CameraMetadata.sample(256, torch.Generator().manual_seed(3))
+    for n in FULL_FIELDS:
+        assert torch.equal(getattr(a, n), getattr(b, n))
+        lo, hi = METADATA_RANGES[n]
+        assert getattr(a, n).min() >= lo and getattr(a, n).max() <= hi
+    # gain uniform in the factor: the median factor is near (1 + 15.85) / 2
+    assert a.gain_factor.median().item() == pytest.approx((1 + 10 ** 1.2) / 2, rel=0.15)
+
+
+def test_sample_with_fixed_preset_and_ranges():
+    m = CameraMetadata.sample(8, torch.Generator().manual_seed(0), fixed="ICX285", ranges={"gain_db": (6.0, 12.0)})
+    assert torch.all(m.full_well_e == 14000)
+    assert m.gain_db.min() >= 6 and m.gain_db.max() <= 12
+    with pytest.raises(ValueError, match="gain_db"):
+        CameraMetadata.sample(2, ranges={"gain_db": (0.0, 30.0)})
+
+
+def test_dict_roundtrip_and_sensor_type():
+    m = CameraMetadata.preset("EV76C661", temperature_c=40.0)
+    d = m.to_dict()
+    assert CameraMetadata.from_dict(d).temperature_c.item() == pytest.approx(40.0)
+    m2 = CameraMetadata.from_dict({"sensor_type": "CCD", "gain_db": 6.0}, base="EV76C661")
+    assert m2.is_cmos.item() == 0.0 and m2.gain_db.item() == pytest.approx(6.0)
+    with pytest.raises(ValueError, match="unknown metadata"):
+        CameraMetadata.from_dict({"colour": 1}, base="ICX285")
+    with pytest.raises(ValueError, match="missing"):
+        CameraMetadata.from_dict({"gain_db": 1.0})
+
+
+def test_indexing_cat_expand_to():
+    m = CameraMetadata.sample(6)
+    assert m[2].batch_size == 1 and m[:4].batch_size == 4
+    assert CameraMetadata.cat([m[:2], m[2:]]).batch_size == 6
+    assert m[0].expand(5).batch_size == 5
+    with pytest.raises(ValueError):
+        m.expand(3)
+    assert m.to(dtype=torch.float64).dtype == torch.float64
+
+
+def test_gain_factor_and_dn_per_electron():
+    m = CameraMetadata.preset("ICX285", gain_db=20.0)
+    assert m.dn_per_electron.item() == pytest.approx(10 * 255 / 14000, rel=1e-5)
+    assert m.temperature_k.item() == pytest.approx(298.15)
+    assert not math.isnan(m.gain_factor.item())

@@ -1,0 +1,43 @@
+import pytest
+import torch
+
+from camhealth.physics.image_formation import form_image, sample_poisson
+from camhealth.physics.metadata import CameraMetadata
+from camhealth.physics.photon_shot_noise import photo_electrons, photon_shot_sigma_dn, photon_shot_sigma_patch_dn
+
+
+def test_closed_form_sigma():
+    m = CameraMetadata.preset("ICX285", batch_size=2, gain_db=[0.0, 20.0])
+    i = torch.full((2, 1, 4, 4), 0.5)
+    s = photon_shot_sigma_dn(i, m)
+    assert s[0, 0, 0, 0].item() == pytest.approx(255 * (0.5 / 14000) ** 0.5, rel=1e-5)
+    assert s[1, 0, 0, 0].item() == pytest.approx(255 * (10 * 0.5 / 14000) ** 0.5, rel=1e-5)
+    assert torch.allclose(photon_shot_sigma_patch_dn(i, m), s[:, 0, 0, 0])
+    assert photo_electrons(i, m)[0, 0, 0, 0].item() == pytest.approx(7000.0)
+
+
+def test_gain_doubles_variance():
+    m = CameraMetadata.preset("ICX285", batch_size=2, gain_db=[0.0, 20 * torch.log10(torch.tensor(2.0)).item()])
+    s = photon_shot_sigma_patch_dn(torch.full((2, 1, 2, 2), 0.3), m)
+    assert (s[1] / s[0]).item() ** 2 == pytest.approx(2.0, rel=1e-4)
+
+
+@pytest.mark.parametrize("rate", [0.5, 3.0, 40.0, 5000.0])
+def test_poisson_variance_equals_mean(rate):
+    g = torch.Generator().manual_seed(5)
+    x = sample_poisson(torch.full((200_000,), rate), g)
+    n = x.numel()
+    assert x.mean().item() == pytest.approx(rate, abs=5 * (rate / n) ** 0.5)
+    # var of the sample variance of a Poisson ≈ (μ + 2μ²)/n
+    assert x.var().item() == pytest.approx(rate, abs=5 * ((rate + 2 * rate**2) / n) ** 0.5)
+    if rate < 1e3:  # exact Poisson: integer counts
+        assert torch.equal(x, x.round())
+
+
+def test_realised_photon_noise_matches_analytic():
+    m = CameraMetadata.preset("EV76C661", batch_size=3, gain_db=[0.0, 12.0, 24.0])
+    x = torch.full((3, 1, 128, 128), 0.4)
+    r = form_image(x, m, sources=("photon",), generator=torch.Generator().manual_seed(0))
+    # std of a 16384-pixel sample: relative standard error ≈ 1/√(2n) ≈ 0.6 %
+    assert torch.allclose(r.sigma_dn[:, 0], r.sigma_expected_dn[:, 0], rtol=0.03)
+    assert torch.all(r.sigma_dn[:, 1:] == 0)
