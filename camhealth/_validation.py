@@ -26,8 +26,8 @@ def check_float(x: torch.Tensor, name: str) -> torch.Tensor:
     check_tensor(x, name)
     if x.dtype not in FLOAT_DTYPES:
         raise TypeError(
-            f"{name} must be a floating tensor (float16, bfloat16, float32 or float64) with values in "
-            f"[0, 1], got dtype {x.dtype}; convert integer DN images with x.float() / 255"
+            f"{name} must be a floating tensor (float16, bfloat16, float32 or float64), got dtype {x.dtype}"
+            + ("; convert integer DN images with x.float() / 255" if not x.dtype.is_floating_point else "")
         )
     return x
 

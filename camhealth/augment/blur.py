@@ -15,11 +15,11 @@ __all__ = ["RandomDefocusBlur", "RandomMotionBlur", "motion_kernel_size"]
 def motion_kernel_size(max_length_px: float, nonlinear: bool) -> int:
     """Smallest odd kernel that holds a motion path of arc length ``max_length_px`` with 1 px margin.
 
-    A straight path centred on the kernel needs L + 3 px; a curved path of arc length L, centred on
-    its bounding box, can reach L/√2… L from the centre, so it gets 2·L + 3 px.
+    A path of arc length L centred on its bounding box never reaches further than L/2 from the centre
+    (straight or curved), so L + 3 px suffice for both; ``nonlinear`` is kept for API symmetry.
     """
-    extent = (2.0 if nonlinear else 1.0) * float(max_length_px)
-    k = int(math.ceil(extent)) + 3
+    del nonlinear
+    k = int(math.ceil(float(max_length_px))) + 3
     return k if k % 2 == 1 else k + 1
 
 

@@ -1,0 +1,47 @@
+"""Image-formation physics: camera metadata, sensor noise, optics, PSFs and MTF (one model per file).
+
+- :mod:`~camhealth.physics.metadata` — batched camera metadata (Table 4.1), presets, normalisation.
+- :mod:`~camhealth.physics.photon_shot_noise`, :mod:`~camhealth.physics.dark_current`,
+  :mod:`~camhealth.physics.readout_noise` — the three noise sources of Konnik & Welsh (2014).
+- :mod:`~camhealth.physics.image_formation` — the Fig. 3.7 chain with per-source labels.
+- :mod:`~camhealth.physics.thin_lens` — circle of confusion, hyperfocal distance, blur-size conversion.
+- :mod:`~camhealth.physics.defocus_psf`, :mod:`~camhealth.physics.motion_psf` — PSFs.
+- :mod:`~camhealth.physics.mtf` — MTF at the 8 normalised frequencies, H/V and any angle.
+"""
+
+from camhealth.physics.dark_current import dark_current_e_per_s, dark_current_shot_sigma_dn, dark_signal_e
+from camhealth.physics.defocus_psf import default_kernel_size, defocus_psf
+from camhealth.physics.image_formation import NOISE_SOURCES, ImageFormation, apply_psf, form_image
+from camhealth.physics.metadata import (
+    FULL_FIELDS,
+    METADATA_RANGES,
+    MINIMAL_FIELDS,
+    PRESETS,
+    CameraMetadata,
+    SensorConstants,
+    celsius_to_kelvin,
+    db_to_factor,
+    factor_to_db,
+    kelvin_to_celsius,
+)
+from camhealth.physics.motion_psf import linear_motion_psf, nonlinear_motion_psf, sample_shake_noise
+from camhealth.physics.mtf import NORMALIZED_FREQUENCIES, mtf_from_psf, mtf_hv
+from camhealth.physics.photon_shot_noise import photon_shot_sigma_dn
+from camhealth.physics.readout_noise import readout_sigma_dn, readout_sigma_e, source_follower_sigma_e
+from camhealth.physics.thin_lens import (
+    circle_of_confusion_mm,
+    circle_of_confusion_px,
+    convert_blur_size_px,
+    hyperfocal_distance_mm,
+    motion_length_px,
+)
+
+__all__ = [
+    "NOISE_SOURCES", "NORMALIZED_FREQUENCIES", "FULL_FIELDS", "MINIMAL_FIELDS", "METADATA_RANGES", "PRESETS",
+    "CameraMetadata", "SensorConstants", "ImageFormation", "form_image", "apply_psf",
+    "defocus_psf", "default_kernel_size", "linear_motion_psf", "nonlinear_motion_psf", "sample_shake_noise",
+    "mtf_from_psf", "mtf_hv", "photon_shot_sigma_dn", "dark_current_e_per_s", "dark_signal_e",
+    "dark_current_shot_sigma_dn", "source_follower_sigma_e", "readout_sigma_e", "readout_sigma_dn",
+    "circle_of_confusion_mm", "circle_of_confusion_px", "hyperfocal_distance_mm", "convert_blur_size_px",
+    "motion_length_px", "db_to_factor", "factor_to_db", "celsius_to_kelvin", "kelvin_to_celsius",
+]

@@ -26,6 +26,8 @@ the result cast back, so half-precision batches never see overflowing electron c
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -71,6 +73,61 @@ def _work_dtype(dtype: torch.dtype) -> torch.dtype:
     return torch.float64 if dtype == torch.float64 else torch.float32
 
 
+#: Kernels at least this large are applied by FFT (reflect-padded, so the result equals the direct
+#: convolution up to float rounding); smaller ones by Kornia's grouped ``filter2d``.
+FFT_MIN_KERNEL = 11
+
+
+def _fft_size(n: int) -> int:
+    """Smallest integer >= n whose only prime factors are 2, 3 and 5 (fast FFT lengths)."""
+    m = n
+    while True:
+        r = m
+        for f in (2, 3, 5):
+            while r % f == 0:
+                r //= f
+        if r == 1:
+            return m
+        m += 1
+
+
+@functools.lru_cache(maxsize=32)
+def _dft_factors(n: int, k: int, half: bool, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """DFT matrix exp(−2πi·u·(j − k//2)/n) of a centred length-k kernel: (n, k), or (k, n//2 + 1) if half."""
+    real = torch.float64
+    u = torch.arange(n // 2 + 1 if half else n, dtype=real)
+    j = torch.arange(k, dtype=real) - k // 2
+    phase = -2.0 * math.pi * torch.remainder(u[:, None] * j[None, :], n) / n
+    mat = torch.polar(torch.ones_like(phase), phase).to(device=device, dtype=dtype)
+    return mat.transpose(0, 1).contiguous() if half else mat
+
+
+def _psf_spectrum(psf: torch.Tensor, nh: int, nw: int) -> torch.Tensor:
+    """rfft2 of the centred kernels zero-padded to nh×nw, by two small DFT matmuls: (B, nh, nw//2 + 1)."""
+    k = psf.shape[-1]
+    cdtype = torch.complex128 if psf.dtype == torch.float64 else torch.complex64
+    ey = _dft_factors(nh, k, False, cdtype, psf.device)  # (nh, k)
+    ex = _dft_factors(nw, k, True, cdtype, psf.device)  # (k, nw//2+1)
+    return torch.matmul(ey, torch.matmul(psf.to(cdtype), ex))
+
+
+def _fft_convolve(image: torch.Tensor, psf: torch.Tensor, border: str) -> torch.Tensor:
+    """True convolution with per-sample odd kernels via reflect/replicate padding and a zero-padded rfft2.
+
+    With p = k//2 border pixels on each side the circular convolution never wraps into the output window,
+    so the result equals the padded direct convolution (``filter2d``) up to float rounding.
+    """
+    h, w = image.shape[-2:]
+    k = psf.shape[-1]
+    p = k // 2
+    padded = torch.nn.functional.pad(image, (p, p, p, p), mode=border)
+    nh, nw = _fft_size(h + 2 * p), _fft_size(w + 2 * p)
+    spec = torch.fft.rfft2(padded, s=(nh, nw))
+    spec = spec * _psf_spectrum(psf, nh, nw).unsqueeze(1)
+    out = torch.fft.irfft2(spec, s=(nh, nw))
+    return out[..., p : p + h, p : p + w]
+
+
 def apply_psf(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     """Convolve every sample with its own PSF in one grouped call (Kornia ``filter2d``).
 
@@ -79,6 +136,9 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
         psf: (B, k, k) or (1, k, k) kernels (true convolution: the kernel is flipped for the
             correlation ``filter2d`` computes). Reflect padding keeps the mean; when the kernel is larger
             than the image, replicate padding is used instead.
+
+    Odd kernels of size >= ``FFT_MIN_KERNEL`` are applied in the Fourier domain (same padding, same
+    result up to float rounding, several times faster for the 21–45 px kernels of the corruptions).
     """
     check_tensor(psf, "psf")
     if psf.ndim != 3 or psf.shape[-1] != psf.shape[-2]:
@@ -89,20 +149,9 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     if k == 1:
         return image * psf.to(image.dtype).view(-1, 1, 1, 1)
     border = "reflect" if k // 2 < min(image.shape[-2:]) else "replicate"
+    if k >= FFT_MIN_KERNEL and k % 2 == 1 and image.dtype in (torch.float32, torch.float64):
+        return _fft_convolve(image, psf.to(device=image.device, dtype=image.dtype), border)
     return kornia.filters.filter2d(image, psf.flip(-1, -2).to(image.dtype), border_type=border)
-
-
-def sample_poisson(rate: torch.Tensor, generator: torch.Generator | None = None, exact_below: float = 1e3) -> torch.Tensor:
-    """Poisson samples of ``rate`` (≥ 0). Rates ≥ ``exact_below`` use the normal approximation
-    N(λ, λ) (skewness 1/√λ ≤ 0.03 there); smaller rates are drawn exactly with ``torch.poisson``."""
-    small = rate < exact_below
-    if bool(small.all()):
-        return torch.poisson(rate, generator=generator)
-    gauss = rate + rate.clamp_min(0).sqrt() * torch.randn(rate.shape, generator=generator, device=rate.device, dtype=rate.dtype)
-    if bool(small.any()):
-        exact = torch.poisson(rate[small], generator=generator)
-        gauss = gauss.masked_scatter(small, exact)
-    return gauss
 
 
 def _per_sample(v: torch.Tensor, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
