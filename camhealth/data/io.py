@@ -1,0 +1,221 @@
+"""Reading images from disk as camhealth tensors, and the one colour → gray rule of the package.
+
+Convention (``docs/data.md``): an image is a float32 tensor ``1×H×W`` (add the batch dimension
+yourself) with values in [0, 1] = DN / (dtype max): DN/255 for 8-bit files, DN/65535 for 16-bit
+files. Colour is converted to gray with the ITU-R BT.601 luma weights
+
+    Y = 0.299 R + 0.587 G + 0.114 B
+
+applied to the stored (gamma-encoded) values, exactly as Pillow's ``convert("L")``, OpenCV's
+``COLOR_RGB2GRAY`` and ``kornia.color.rgb_to_grayscale`` do, but in floating point (no rounding to 8
+bits). An alpha channel is dropped (not composited); a palette image is expanded to its colours first.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+import torch
+
+__all__ = ["BT601_WEIGHTS", "IMAGE_EXTENSIONS", "to_gray", "read_image"]
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+#: ITU-R BT.601 luma weights for (R, G, B); they sum to 1.
+BT601_WEIGHTS = (0.299, 0.587, 0.114)
+
+#: File extensions :func:`read_image` accepts (lower case; matching is case-insensitive).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+
+
+def to_gray(image):
+    """Convert an image to a single gray channel with the BT.601 luma weights.
+
+    Works on numpy arrays (channels **last**, as images come from files) and on torch tensors
+    (channels **first**, Kornia layout). Values are not rescaled: the weights sum to 1, so an input in
+    [0, 1] stays in [0, 1] (and 0..255 stays 0..255).
+
+    Channel rules: 1 channel → unchanged; 2 channels → gray + alpha, alpha dropped; 3 channels → RGB;
+    4 channels → RGBA, alpha dropped.
+
+    Args:
+        image: numpy ``H×W`` or ``H×W×C``; or torch ``C×H×W`` or ``B×C×H×W``; ``C`` in {1, 2, 3, 4}.
+
+    Returns:
+        numpy: ``H×W`` floating array (float32 for integer/float32 input, float64 for float64 input).
+        torch: same rank as the input with ``C = 1`` (``1×H×W`` or ``B×1×H×W``), floating dtype.
+    """
+    if isinstance(image, torch.Tensor):
+        if image.ndim not in (3, 4):
+            raise ValueError(
+                f"to_gray expects a torch tensor C×H×W or B×C×H×W (channels first), got shape {tuple(image.shape)}"
+            )
+        c = image.shape[-3]
+        if c not in (1, 2, 3, 4):
+            raise ValueError(f"to_gray expects 1, 2, 3 or 4 channels, got C = {c} (shape {tuple(image.shape)})")
+        x = image if image.is_floating_point() else image.to(torch.float32)
+        if c in (1, 2):
+            return x[..., :1, :, :].clone()
+        w = torch.tensor(BT601_WEIGHTS, dtype=x.dtype, device=x.device).view(3, 1, 1)
+        return (x[..., :3, :, :] * w).sum(dim=-3, keepdim=True)
+
+    arr = np.asarray(image)
+    if arr.ndim == 2:
+        out_dtype = np.float64 if arr.dtype == np.float64 else np.float32
+        return arr.astype(out_dtype, copy=True)
+    if arr.ndim != 3:
+        raise ValueError(f"to_gray expects a numpy array H×W or H×W×C (channels last), got shape {arr.shape}")
+    c = arr.shape[-1]
+    if c not in (1, 2, 3, 4):
+        raise ValueError(f"to_gray expects 1, 2, 3 or 4 channels (last axis), got C = {c} (shape {arr.shape})")
+    out_dtype = np.float64 if arr.dtype == np.float64 else np.float32
+    if c in (1, 2):
+        return arr[..., 0].astype(out_dtype, copy=True)
+    rgb = arr[..., :3].astype(np.float64)
+    gray = rgb[..., 0] * BT601_WEIGHTS[0] + rgb[..., 1] * BT601_WEIGHTS[1] + rgb[..., 2] * BT601_WEIGHTS[2]
+    return gray.astype(out_dtype)
+
+
+def _normalise(arr: np.ndarray, path: Path) -> np.ndarray:
+    """Integer DN → [0, 1] by the dtype's maximum; float data must already be in [0, 1]."""
+    if arr.dtype == np.bool_:
+        return arr.astype(np.float64)
+    if arr.dtype in (np.uint8, np.uint16):
+        return arr.astype(np.float64) / float(np.iinfo(arr.dtype).max)
+    if np.issubdtype(arr.dtype, np.floating):
+        arr = arr.astype(np.float64)
+        if not np.isfinite(arr).all() or arr.min() < 0.0 or arr.max() > 1.0:
+            raise ValueError(
+                f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got range "
+                f"[{np.nanmin(arr):g}, {np.nanmax(arr):g}]"
+            )
+        return arr
+    raise ValueError(
+        f"cannot read image {path}: unsupported pixel type {arr.dtype} (supported: 8-bit and 16-bit unsigned "
+        "integers, floats in [0, 1])"
+    )
+
+
+def _png_header(path: Path) -> tuple[int, int] | None:
+    """(bit depth, colour type) from a PNG's IHDR chunk, or None if the file is not a PNG."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return head[24], head[25]
+
+
+def _read_16bit_colour_png(path: Path) -> np.ndarray:
+    """Pillow truncates 16-bit colour / gray+alpha PNGs to 8 bits; OpenCV reads them losslessly."""
+    try:
+        import cv2
+    except ImportError:  # pragma: no cover - cv2 is a dependency; fall back to 8-bit precision
+        return _read_pillow(path)
+    data = np.fromfile(str(path), dtype=np.uint8)
+    arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise ValueError(f"cannot read image {path}: OpenCV could not decode the 16-bit colour PNG")
+    if arr.ndim == 3 and arr.shape[-1] >= 3:  # OpenCV gives BGR(A)
+        arr = np.concatenate([arr[..., 2::-1], arr[..., 3:]], axis=-1)
+    return arr
+
+
+def _read_pillow(path: Path) -> np.ndarray:
+    from PIL import Image, ImageOps
+
+    with Image.open(path) as im:
+        fmt = im.format
+        im.load()
+        im = ImageOps.exif_transpose(im)  # camera JPEGs: show the image upright, as a viewer would
+        mode = im.mode
+        if mode == "1":
+            im = im.convert("L")
+        elif mode in ("P", "PA"):
+            im = im.convert("RGBA")
+        elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+            im = im.convert("RGB")
+        elif mode == "I":
+            # 32-bit integer mode: only 16-bit PNG data land here (older Pillow); anything else is ambiguous.
+            if fmt != "PNG":
+                raise ValueError(f"cannot read image {path}: unsupported 32-bit integer pixel data")
+            arr = np.asarray(im, dtype=np.int64)
+            return np.clip(arr, 0, 65535).astype(np.uint16)
+        arr = np.array(im)
+    if arr.dtype.byteorder == ">":  # I;16B
+        arr = arr.astype(arr.dtype.newbyteorder("="))
+    return arr
+
+
+def _read_tiff(path: Path) -> np.ndarray:
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        arr = page.asarray()
+        photometric = int(page.photometric)
+        planar = int(page.planarconfig)
+        colormap = page.colormap
+    if planar == 2 and arr.ndim == 3:  # separate planes → channels last
+        arr = np.moveaxis(arr, 0, -1)
+    if photometric == 3 and colormap is not None:  # palette
+        cmap = np.asarray(colormap)  # 3×N, 16-bit
+        arr = np.moveaxis(cmap[:, arr], 0, -1).astype(np.uint16)
+    elif photometric == 0 and arr.dtype in (np.uint8, np.uint16):  # MINISWHITE
+        arr = np.iinfo(arr.dtype).max - arr
+    elif photometric not in (0, 1, 2, 3):
+        raise ValueError(f"cannot read image {path}: unsupported TIFF photometric interpretation {photometric}")
+    return arr
+
+
+def read_image(path: PathLike) -> torch.Tensor:
+    """Read an image file as a gray float32 tensor ``1×H×W`` in [0, 1].
+
+    Formats: PNG, JPEG, TIFF (first page), BMP; 8-bit (÷255) or 16-bit (÷65535) samples, gray, gray+alpha,
+    palette, RGB or RGBA. Colour → gray by BT.601 luma (:func:`to_gray`); alpha is dropped. JPEG EXIF
+    orientation is applied.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist (the message names it).
+        ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), or the file is
+            corrupt/unreadable or has an unsupported pixel type (the message names the file).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"image file not found: {p}")
+    if p.is_dir():
+        raise ValueError(f"cannot read image {p}: it is a directory, not an image file")
+    ext = p.suffix.lower()
+    if ext not in IMAGE_EXTENSIONS:
+        raise ValueError(
+            f"cannot read image {p}: unsupported extension {p.suffix!r}; allowed: {', '.join(IMAGE_EXTENSIONS)}"
+        )
+    try:
+        if ext in (".tif", ".tiff"):
+            arr = _read_tiff(p)
+        else:
+            header = _png_header(p) if ext == ".png" else None
+            if header is not None and header[0] == 16 and header[1] in (2, 4, 6):
+                arr = _read_16bit_colour_png(p)
+            else:
+                arr = _read_pillow(p)
+    except ValueError as e:
+        if str(p) in str(e):
+            raise
+        raise ValueError(f"cannot read image {p}: {e}") from e
+    except (FileNotFoundError, PermissionError):
+        raise
+    except Exception as e:  # PIL.UnidentifiedImageError, truncated data, tifffile errors, ...
+        raise ValueError(f"cannot read image {p} (corrupt or not a valid {ext[1:].upper()} file): {e}") from e
+
+    if arr.ndim == 3 and arr.shape[-1] == 1:
+        arr = arr[..., 0]
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] not in (2, 3, 4)):
+        raise ValueError(f"cannot read image {p}: unsupported array shape {arr.shape}")
+    if arr.shape[0] == 0 or arr.shape[1] == 0:
+        raise ValueError(f"cannot read image {p}: the image is empty (shape {arr.shape})")
+    gray = to_gray(_normalise(arr, p))
+    out = torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32)).clamp_(0.0, 1.0)
+    return out.unsqueeze(0)

@@ -1,0 +1,205 @@
+"""Combining image sources, building one from a spec string, and the leak-free train/val/test split.
+
+Split rule (``split_ids``): every id is mapped to a **group key** and every group to a split by a hash of
+``(seed, group key)`` alone, so an image always lands in the same split whatever other images are in the
+list and in whatever order. Frames of one clip share a group and therefore a split:
+
+* ids of the form ``"<clip>#<digits>"`` (street frames ``"street:vtest#000123"``, video/frame-folder frames
+  ``"video:run1.avi#000042"``) → group ``"<clip>"``;
+* any other id (``"skimage:camera"``, ``"deadleaves-000042"``, ``"sub/img.png"``) is its own group.
+
+Pass ``group_key=`` to group differently (e.g. by sub-folder for a folder of several clips' frames).
+"""
+
+from __future__ import annotations
+
+import bisect
+import hashlib
+import math
+import re
+from pathlib import Path
+from typing import Callable, Sequence
+
+import torch
+
+from camhealth.data._common import check_index, check_int
+from camhealth.data.dead_leaves import DeadLeavesSource
+from camhealth.data.image_folder import ImageFolderSource
+from camhealth.data.skimage_photos import SkimagePhotosSource
+from camhealth.data.street_sample import StreetSampleSource
+from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
+
+__all__ = ["ConcatSource", "DefaultSource", "build_source", "group_key", "split_ids", "SPLITS"]
+
+#: Split names returned by :func:`split_ids`, in order.
+SPLITS = ("train", "val", "test")
+
+_FRAME_ID = re.compile(r"^(.+)#\d+$")
+
+
+class ConcatSource(torch.utils.data.Dataset):
+    """Several image sources one after another; ids must be unique across them."""
+
+    def __init__(self, sources: Sequence[torch.utils.data.Dataset]) -> None:
+        sources = list(sources)
+        if not sources:
+            raise ValueError("ConcatSource needs at least one source")
+        for s in sources:
+            if not hasattr(s, "ids") or not hasattr(s, "__getitem__"):
+                raise TypeError(f"{type(s).__name__} is not an image source (needs .ids and __getitem__)")
+        self.sources = sources
+        self.ids: list[str] = [i for s in sources for i in s.ids]
+        if len(set(self.ids)) != len(self.ids):
+            seen: set[str] = set()
+            dup = next(i for i in self.ids if i in seen or seen.add(i))  # type: ignore[func-returns-value]
+            raise ValueError(f"duplicate image id {dup!r} across sources")
+        self._ends = []
+        total = 0
+        for s in sources:
+            total += len(s)
+            self._ends.append(total)
+
+    def __len__(self) -> int:
+        return self._ends[-1]
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
+        i = check_index(index, len(self), type(self).__name__)
+        k = bisect.bisect_right(self._ends, i)
+        offset = self._ends[k - 1] if k else 0
+        return self.sources[k][i - offset]
+
+    def __repr__(self) -> str:
+        inner = ", ".join(repr(s) for s in self.sources)
+        return f"{type(self).__name__}([{inner}])"
+
+
+class DefaultSource(ConcatSource):
+    """The offline default training images: scikit-image photos + street frames (+ dead-leaves images).
+
+    Args:
+        deadleaves: number of procedural dead-leaves images to append (0: none).
+        deadleaves_size: their ``(H, W)``.
+        seed: seed of the dead-leaves images.
+        street_stride: keep every n-th street frame (1: all 50).
+        include_skimage, include_street: switch those parts off.
+        deadleaves_kwargs: further :class:`DeadLeavesSource` arguments (``r_min``, ``r_max``, ...).
+    """
+
+    def __init__(
+        self,
+        deadleaves: int = 0,
+        deadleaves_size: int | Sequence[int] = (256, 256),
+        seed: int = 0,
+        street_stride: int = 1,
+        include_skimage: bool = True,
+        include_street: bool = True,
+        **deadleaves_kwargs,
+    ) -> None:
+        deadleaves = check_int(deadleaves, "deadleaves", 0)
+        parts: list[torch.utils.data.Dataset] = []
+        if include_skimage:
+            parts.append(SkimagePhotosSource())
+        if include_street:
+            parts.append(StreetSampleSource(stride=street_stride))
+        if deadleaves:
+            parts.append(DeadLeavesSource(deadleaves, size=deadleaves_size, seed=seed, **deadleaves_kwargs))
+        if not parts:
+            raise ValueError("DefaultSource is empty: enable skimage/street photos or ask for deadleaves > 0")
+        super().__init__(parts)
+
+
+def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
+    """Build an image source from a spec.
+
+    * ``"default"`` → :class:`DefaultSource` (kwargs passed on);
+    * ``"deadleaves"`` → :class:`DeadLeavesSource` (kwargs; ``n_images`` defaults to 1000);
+    * ``"skimage"`` → :class:`SkimagePhotosSource`; ``"street"`` → :class:`StreetSampleSource`;
+    * a folder → :class:`ImageFolderSource` (``recursive``, ``extensions``); ``"frames:<folder>"`` → the folder
+      as one clip of frames (one split group);
+    * a video file → its frames (``stride``, ``max_frames``, ``start``) as one clip.
+
+    Every result has ``len()``, ``source[i] -> (image 1×H×W float32 in [0, 1], id)`` and ``.ids``.
+    """
+    if isinstance(spec, str):
+        key = spec.strip().lower()
+        if key == "default":
+            return DefaultSource(**kwargs)
+        if key == "deadleaves":
+            kwargs.setdefault("n_images", 1000)
+            return DeadLeavesSource(**kwargs)
+        if key == "skimage":
+            return SkimagePhotosSource(**kwargs)
+        if key == "street":
+            return StreetSampleSource(**kwargs)
+        if spec.startswith("frames:"):
+            return FrameSequence(spec[len("frames:"):], **kwargs).as_source()
+    elif not isinstance(spec, Path):
+        raise TypeError(f"spec must be a str or a Path, got {type(spec).__name__}")
+    path = Path(spec)
+    if not path.exists():
+        raise FileNotFoundError(
+            f"image source {str(spec)!r} is neither a built-in source ('default', 'deadleaves', 'skimage', "
+            "'street') nor an existing folder or video file"
+        )
+    if path.is_dir():
+        return ImageFolderSource(path, **kwargs)
+    if path.suffix.lower() in VIDEO_EXTENSIONS:
+        return FrameSequence(path, **kwargs).as_source()
+    raise ValueError(
+        f"cannot use {path} as an image source: expected a folder of images or a video file "
+        f"({', '.join(VIDEO_EXTENSIONS)}); for a single image use camhealth.data.read_image"
+    )
+
+
+def group_key(image_id: str) -> str:
+    """Default split group of an id: ``"<clip>"`` for ``"<clip>#<digits>"`` frame ids, else the id itself."""
+    m = _FRAME_ID.match(image_id)
+    return m.group(1) if m else image_id
+
+
+def _unit_hash(seed: int, key: str) -> float:
+    digest = hashlib.blake2b(f"{seed}\x1f{key}".encode("utf-8"), digest_size=8).digest()
+    return int.from_bytes(digest, "big") / 2.0**64
+
+
+def split_ids(
+    ids: Sequence[str],
+    val_fraction: float = 0.1,
+    test_fraction: float = 0.1,
+    seed: int = 0,
+    group_key: Callable[[str], str] = group_key,
+) -> dict[str, list[int]]:
+    """Deterministic, leak-free train/val/test split by source image (or clip).
+
+    Each group key ``g`` gets ``u = blake2b(f"{seed}␟{g}") / 2⁶⁴ ∈ [0, 1)``; ``u < test_fraction`` → test,
+    ``u < test_fraction + val_fraction`` → val, else train. The assignment of an id depends only on its
+    group key and ``seed`` — adding, removing or reordering other ids never moves it — and all ids of a
+    group share one split. The fractions are therefore expected values: with few groups (the default
+    source has 11: 10 photos + 1 street clip) the realised split sizes vary, and a split may be empty.
+
+    Returns:
+        ``{"train": [...], "val": [...], "test": [...]}``: ascending indices into ``ids``.
+    """
+    if isinstance(ids, str):
+        raise TypeError("ids must be a sequence of id strings, not a single string")
+    for name, f in (("val_fraction", val_fraction), ("test_fraction", test_fraction)):
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f) or not 0.0 <= f <= 1.0:
+            raise ValueError(f"{name} = {f!r} must be a number in [0, 1]")
+    if val_fraction + test_fraction > 1.0:
+        raise ValueError(
+            f"val_fraction + test_fraction = {val_fraction + test_fraction:g} must be <= 1"
+        )
+    seed = check_int(seed, "seed", 0)
+    out: dict[str, list[int]] = {s: [] for s in SPLITS}
+    cache: dict[str, str] = {}
+    for i, image_id in enumerate(ids):
+        if not isinstance(image_id, str):
+            raise TypeError(f"ids[{i}] must be a str, got {type(image_id).__name__}")
+        g = group_key(image_id)
+        split = cache.get(g)
+        if split is None:
+            u = _unit_hash(seed, g)
+            split = "test" if u < test_fraction else "val" if u < test_fraction + val_fraction else "train"
+            cache[g] = split
+        out[split].append(i)
+    return out

@@ -1,0 +1,286 @@
+"""Ordered frame sequences: a folder of frame images or a video file, read as gray frames.
+
+``FrameSequence`` iterates ``(frame 1×H×W float32 in [0, 1], index)`` where ``index`` is the frame's
+position in the original sequence (file number in the natural sort order of the folder, or frame number
+in the video), before ``start``/``stride``/``max_frames`` are applied. Colour video frames are converted
+to gray with the same BT.601 luma weights as :func:`camhealth.data.to_gray`.
+
+Video decoding uses OpenCV (``cv2.VideoCapture``, package ``opencv-python-headless``), imported only when
+a video is opened.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Iterator, Sequence, Union
+
+import numpy as np
+import torch
+
+from camhealth.data._common import check_index, check_int
+from camhealth.data.image_folder import _normalise_extensions, list_images
+from camhealth.data.io import IMAGE_EXTENSIONS, read_image, to_gray
+
+__all__ = ["VIDEO_EXTENSIONS", "FrameSequence", "FrameSequenceSource"]
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+# Video handles inherited through fork() (DataLoader workers) are unusable in the child and releasing them
+# there can hang; they are parked here, never touched again, and a fresh handle is opened per process.
+_INHERITED_CAPS: list = []
+
+#: File extensions :class:`FrameSequence` treats as video files (case-insensitive).
+VIDEO_EXTENSIONS = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv", ".webm", ".ogv", ".flv")
+
+
+def _import_cv2():
+    try:
+        import cv2
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            "reading video files needs OpenCV: pip install 'opencv-python-headless<5'"
+        ) from e
+    return cv2
+
+
+def _bgr_to_tensor(frame: np.ndarray) -> torch.Tensor:
+    """OpenCV frame (H×W or H×W×3 BGR / H×W×4 BGRA, 8 or 16 bit) → gray float32 1×H×W in [0, 1]."""
+    if frame.ndim == 3 and frame.shape[-1] >= 3:
+        frame = np.concatenate([frame[..., 2::-1], frame[..., 3:]], axis=-1)  # → RGB(A)
+    scale = float(np.iinfo(frame.dtype).max) if np.issubdtype(frame.dtype, np.integer) else 1.0
+    gray = to_gray(frame.astype(np.float64) / scale)
+    return torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32)).clamp_(0.0, 1.0).unsqueeze(0)
+
+
+class FrameSequence:
+    """An ordered sequence of gray frames from a folder of images or from a video file.
+
+    Args:
+        path: a folder of frame images (non-recursive; natural sort order of the file names, so
+            ``frame2.png`` comes before ``frame10.png``) or a video file (one of :data:`VIDEO_EXTENSIONS`).
+        stride: keep every ``stride``-th frame (>= 1).
+        max_frames: stop after this many kept frames (``None``: all).
+        start: index of the first frame to consider (>= 0).
+        extensions: image extensions for a folder of frames.
+
+    Iterating yields ``(frame, index)`` with ``frame`` a float32 tensor ``1×H×W`` in [0, 1] and ``index`` the
+    original frame index. ``len()`` is exact for a folder; for a video it comes from the container's frame
+    count (``CAP_PROP_FRAME_COUNT``), which most formats store exactly; if the container does not report
+    one, ``len()`` raises ``TypeError`` and :attr:`length` is ``None``. ``seq[k]`` returns the ``k``-th kept
+    frame as ``(frame, index)`` (for a video by seeking, which is slower than iterating).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: a folder without frame images, an unsupported file type, or a video OpenCV cannot open
+            or decode (the message names the file).
+    """
+
+    def __init__(
+        self,
+        path: PathLike,
+        stride: int = 1,
+        max_frames: int | None = None,
+        start: int = 0,
+        extensions: Sequence[str] = IMAGE_EXTENSIONS,
+    ) -> None:
+        self.path = Path(path)
+        self.stride = check_int(stride, "stride", 1)
+        self.max_frames = check_int(max_frames, "max_frames", 1, allow_none=True)
+        self.start = check_int(start, "start", 0)
+        self._cap = None
+        self._cap_pid = -1
+        self._cap_next = -1
+        if not self.path.exists():
+            raise FileNotFoundError(f"frame folder or video file not found: {self.path}")
+        if self.path.is_dir():
+            self.kind = "folder"
+            exts = _normalise_extensions(extensions)
+            self.frame_paths: list[Path] | None = list_images(self.path, recursive=False, extensions=exts)
+            if not self.frame_paths:
+                raise ValueError(
+                    f"no frame images found in folder {self.path} (looked for extensions: {', '.join(exts)})"
+                )
+            self.total_frames: int | None = len(self.frame_paths)
+        else:
+            if self.path.suffix.lower() not in VIDEO_EXTENSIONS:
+                raise ValueError(
+                    f"cannot read {self.path} as a frame sequence: expected a folder of frames or a video file "
+                    f"with one of the extensions {', '.join(VIDEO_EXTENSIONS)}"
+                )
+            self.kind = "video"
+            self.frame_paths = None
+            self.total_frames = self._probe_video()
+
+    # -- video helpers ---------------------------------------------------------------------------
+    def _open(self):
+        cv2 = _import_cv2()
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            cap.release()
+            raise ValueError(f"cannot open video {self.path}: OpenCV could not open it (corrupt or unsupported codec)")
+        return cap
+
+    def _probe_video(self) -> int | None:
+        cv2 = _import_cv2()
+        cap = self._open()
+        try:
+            n = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+            ok, frame = cap.read()
+            if not ok or frame is None:
+                raise ValueError(f"cannot read video {self.path}: no frame could be decoded (corrupt or empty file)")
+            self.frame_shape = tuple(frame.shape[:2])
+            self.fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
+        finally:
+            cap.release()
+        if not math.isfinite(n) or n < 1:
+            return None
+        return int(round(n))
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_cap"] = None  # cv2.VideoCapture cannot be pickled (DataLoader workers reopen it)
+        state["_cap_pid"] = -1
+        state["_cap_next"] = -1
+        return state
+
+    def close(self) -> None:
+        """Release the video handle kept open by random access (``seq[k]``); iteration opens its own."""
+        if self._cap is not None:
+            if self._cap_pid == os.getpid():
+                self._cap.release()
+            else:
+                _INHERITED_CAPS.append(self._cap)
+            self._cap = None
+            self._cap_next = -1
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # -- sizes -----------------------------------------------------------------------------------
+    @property
+    def length(self) -> int | None:
+        """Number of frames iteration yields (``None`` if the video does not report its frame count)."""
+        if self.total_frames is None:
+            return None
+        avail = max(0, self.total_frames - self.start)
+        n = -(-avail // self.stride)
+        return n if self.max_frames is None else min(n, self.max_frames)
+
+    def __len__(self) -> int:
+        n = self.length
+        if n is None:
+            raise TypeError(f"the frame count of video {self.path} is unknown; iterate instead")
+        return n
+
+    def frame_index(self, k: int) -> int:
+        """Original index of the ``k``-th kept frame."""
+        return self.start + k * self.stride
+
+    # -- access ----------------------------------------------------------------------------------
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, int]]:
+        limit = self.length if self.length is not None else self.max_frames
+        if self.kind == "folder":
+            assert self.frame_paths is not None
+            for k in range(limit or 0):
+                idx = self.frame_index(k)
+                yield read_image(self.frame_paths[idx]), idx
+            return
+        cap = self._open()
+        try:
+            for _ in range(self.start):  # skip to start without converting
+                if not cap.grab():
+                    return
+            k = 0
+            while limit is None or k < limit:
+                ok, frame = cap.read()
+                if not ok or frame is None:
+                    return
+                yield _bgr_to_tensor(frame), self.frame_index(k)
+                k += 1
+                for _ in range(self.stride - 1):
+                    if not cap.grab():
+                        return
+        finally:
+            cap.release()
+
+    def __getitem__(self, k: int) -> tuple[torch.Tensor, int]:
+        n = self.length
+        if n is None:
+            raise TypeError(f"random access needs a known frame count; video {self.path} has none — iterate instead")
+        k = check_index(k, n, f"FrameSequence({self.path})")
+        idx = self.frame_index(k)
+        if self.kind == "folder":
+            assert self.frame_paths is not None
+            return read_image(self.frame_paths[idx]), idx
+        cv2 = _import_cv2()
+        if self._cap is not None and self._cap_pid != os.getpid():  # inherited through fork
+            self.close()
+        if self._cap is None:
+            self._cap = self._open()
+            self._cap_pid = os.getpid()
+            self._cap_next = 0
+        if idx != self._cap_next:
+            if idx > self._cap_next and idx - self._cap_next <= 64:
+                for _ in range(idx - self._cap_next):
+                    self._cap.grab()
+            else:
+                self._cap.set(cv2.CAP_PROP_POS_FRAMES, idx)
+        ok, frame = self._cap.read()
+        if not ok or frame is None:
+            self.close()
+            raise ValueError(f"cannot decode frame {idx} of video {self.path}")
+        self._cap_next = idx + 1
+        return _bgr_to_tensor(frame), idx
+
+    def as_source(self, name: str | None = None) -> "FrameSequenceSource":
+        """This sequence as an image source (``source[i] -> (frame, id)``) whose frames form one split group."""
+        return FrameSequenceSource(self, name)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(path={str(self.path)!r}, kind={self.kind!r}, start={self.start}, "
+            f"stride={self.stride}, max_frames={self.max_frames}, length={self.length})"
+        )
+
+
+class FrameSequenceSource(torch.utils.data.Dataset):
+    """A :class:`FrameSequence` with the image-source interface: ``source[i] -> (frame 1×H×W, id)``.
+
+    Ids are ``"<name>#<frame index, 6 digits>"`` (``name`` defaults to ``"video:<file name>"`` or
+    ``"frames:<folder name>"``), so :func:`camhealth.data.split_ids` keeps all frames of the clip in one
+    split (consecutive frames are nearly identical and must never straddle train/val/test).
+    """
+
+    def __init__(self, sequence: FrameSequence, name: str | None = None) -> None:
+        if not isinstance(sequence, FrameSequence):
+            raise TypeError(f"sequence must be a FrameSequence, got {type(sequence).__name__}")
+        n = sequence.length
+        if n is None:
+            raise ValueError(
+                f"{sequence.path}: the video does not report its frame count, so it cannot be indexed; "
+                "iterate the FrameSequence instead"
+            )
+        self.sequence = sequence
+        if name is None:
+            prefix = "video" if sequence.kind == "video" else "frames"
+            name = f"{prefix}:{sequence.path.name}"
+        if "#" in name:
+            raise ValueError(f"name must not contain '#', got {name!r}")
+        self.name = name
+        self.ids = [f"{name}#{sequence.frame_index(k):06d}" for k in range(n)]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
+        k = check_index(index, len(self), f"FrameSequenceSource({self.name})")
+        frame, _ = self.sequence[k]
+        return frame, self.ids[k]
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, n={len(self)})"

@@ -1,0 +1,125 @@
+"""read_image / to_gray: bit depths, colour, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+import torch
+from PIL import Image
+
+from camhealth.data import BT601_WEIGHTS, IMAGE_EXTENSIONS, read_image, to_gray
+
+
+def _bt601(rgb: np.ndarray) -> np.ndarray:
+    return rgb[..., 0] * 0.299 + rgb[..., 1] * 0.587 + rgb[..., 2] * 0.114
+
+
+def test_16bit_png_full_scale_reads_as_one(tmp_path):
+    a = np.array([[65535, 32768], [0, 1]], dtype=np.uint16)
+    p = tmp_path / "g16.png"
+    Image.fromarray(a).save(p)
+    x = read_image(p)
+    assert x.shape == (1, 2, 2) and x.dtype == torch.float32
+    assert x[0, 0, 0].item() == 1.0
+    assert x[0, 0, 1].item() == pytest.approx(32768 / 65535, abs=1e-7)
+    assert x[0, 1, 0].item() == 0.0
+
+
+def test_8bit_gray_png_and_bmp(tmp_path):
+    a = np.arange(12, dtype=np.uint8).reshape(3, 4) * 20
+    for ext in (".png", ".bmp"):
+        p = tmp_path / f"g8{ext}"
+        Image.fromarray(a).save(p)
+        x = read_image(p)
+        assert torch.equal(x[0], torch.from_numpy(a.astype(np.float32) / 255))
+
+
+def test_16bit_tiff_gray_and_rgb(tmp_path):
+    g = np.full((3, 5), 65535, dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "g.tif", g)
+    assert read_image(tmp_path / "g.tif").max().item() == 1.0
+    rgb = np.zeros((3, 5, 3), dtype=np.uint16)
+    rgb[..., 1] = 65535
+    tifffile.imwrite(tmp_path / "c.tiff", rgb, photometric="rgb")
+    assert read_image(tmp_path / "c.tiff")[0, 0, 0].item() == pytest.approx(0.587, abs=1e-6)
+
+
+def test_colour_png_uses_bt601_and_drops_alpha(tmp_path):
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (6, 7, 3), dtype=np.uint8)
+    Image.fromarray(rgb).save(tmp_path / "c.png")
+    expected = _bt601(rgb.astype(np.float64) / 255)
+    assert np.allclose(read_image(tmp_path / "c.png")[0].numpy(), expected, atol=1e-6)
+    rgba = np.dstack([rgb, np.full((6, 7), 10, np.uint8)])  # nearly transparent: alpha must be ignored
+    Image.fromarray(rgba).save(tmp_path / "ca.png")
+    assert np.allclose(read_image(tmp_path / "ca.png")[0].numpy(), expected, atol=1e-6)
+
+
+def test_16bit_colour_png_keeps_16bit_precision(tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    rgb = np.array([[[1000, 30000, 65535], [65535, 65535, 65535]]], dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "c16.png"), rgb[..., ::-1])  # cv2 writes BGR
+    x = read_image(tmp_path / "c16.png")
+    assert np.allclose(x[0].numpy(), _bt601(rgb / 65535.0), atol=1e-6)
+    assert x[0, 0, 1].item() == 1.0
+
+
+def test_jpeg_colour_reads_close_to_bt601(tmp_path):
+    Image.fromarray(np.full((8, 8, 3), (200, 100, 50), np.uint8)).save(tmp_path / "c.jpg", quality=100)
+    x = read_image(tmp_path / "c.jpg")
+    assert x.shape == (1, 8, 8)
+    assert x.mean().item() == pytest.approx((0.299 * 200 + 0.587 * 100 + 0.114 * 50) / 255, abs=3 / 255)
+
+
+def test_palette_png(tmp_path):
+    Image.fromarray(np.full((4, 4), 77, np.uint8)).convert("P").save(tmp_path / "p.png")
+    assert read_image(tmp_path / "p.png")[0, 0, 0].item() == pytest.approx(77 / 255, abs=1e-6)
+
+
+def test_missing_file_names_path(tmp_path):
+    p = tmp_path / "nope.png"
+    with pytest.raises(FileNotFoundError, match="nope.png"):
+        read_image(p)
+
+
+@pytest.mark.parametrize("name", ["bad.png", "bad.jpg", "bad.tif", "bad.bmp"])
+def test_corrupt_file_is_valueerror_naming_file(tmp_path, name):
+    p = tmp_path / name
+    p.write_bytes(b"this is not an image" * 5)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        read_image(p)
+
+
+def test_truncated_png_is_valueerror(tmp_path):
+    p = tmp_path / "t.png"
+    Image.fromarray(np.random.default_rng(1).integers(0, 256, (64, 64), dtype=np.uint8)).save(p)
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="t.png"):
+        read_image(p)
+
+
+def test_unsupported_extension_lists_allowed(tmp_path):
+    p = tmp_path / "x.gif"
+    p.write_bytes(b"GIF89a")
+    with pytest.raises(ValueError) as e:
+        read_image(p)
+    for ext in IMAGE_EXTENSIONS:
+        assert ext in str(e.value)
+
+
+def test_to_gray_numpy_and_torch_agree_with_kornia():
+    kornia = pytest.importorskip("kornia")
+    rng = np.random.default_rng(2)
+    rgb = rng.random((5, 6, 3))
+    g = to_gray(rgb)
+    assert g.shape == (5, 6) and np.allclose(g, _bt601(rgb))
+    assert np.allclose(to_gray(np.dstack([rgb, np.zeros((5, 6))])), g)  # RGBA: alpha dropped
+    t = torch.from_numpy(rgb).permute(2, 0, 1).unsqueeze(0).float()  # 1×3×H×W
+    tg = to_gray(t)
+    assert tg.shape == (1, 1, 5, 6)
+    assert torch.allclose(tg, kornia.color.rgb_to_grayscale(t), atol=1e-6)
+    assert sum(BT601_WEIGHTS) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="channels"):
+        to_gray(torch.zeros(1, 5, 4, 4))

@@ -1,0 +1,174 @@
+"""Offline built-in sources (scikit-image photos, street sample), DefaultSource, build_source, split_ids."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from camhealth.data import (
+    SKIMAGE_PHOTOS,
+    STREET_DIR,
+    DefaultSource,
+    DeadLeavesSource,
+    ImageFolderSource,
+    SkimagePhotosSource,
+    StreetSampleSource,
+    build_source,
+    group_key,
+    split_ids,
+    street_sequence,
+)
+
+N_STREET = 50
+
+
+@pytest.fixture
+def no_network(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise OSError("network access attempted during an offline test")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket, "create_connection", refuse)
+    monkeypatch.setattr(socket, "getaddrinfo", refuse)
+
+
+def test_skimage_photos_load_offline(no_network):
+    src = SkimagePhotosSource()
+    assert len(src) == len(SKIMAGE_PHOTOS) == 10
+    for i in range(len(src)):
+        img, image_id = src[i]
+        assert image_id == f"skimage:{SKIMAGE_PHOTOS[i]}"
+        assert img.dtype == torch.float32 and img.ndim == 3 and img.shape[0] == 1
+        assert min(img.shape[1:]) >= 192, f"{image_id} too small for a 192×192 patch"
+        assert 0.0 <= img.min().item() and img.max().item() <= 1.0 and img.std().item() > 0.05
+    with pytest.raises(ValueError, match="unknown"):
+        SkimagePhotosSource(["moon"])
+
+
+def test_street_sample_present():
+    assert STREET_DIR.is_dir() and (STREET_DIR / "README.md").is_file()
+    src = StreetSampleSource()
+    assert len(src) == N_STREET
+    assert src.ids[0] == "street:vtest#000100" and src.ids[-1] == "street:vtest#000149"
+    for i in (0, N_STREET - 1):
+        img, _ = src[i]
+        assert img.shape == (1, 576, 768) and img.dtype == torch.float32
+        assert 0.0 <= img.min().item() and img.max().item() <= 1.0
+    assert len(StreetSampleSource(stride=2)) == 25
+    with Image.open(src.paths[0]) as im:  # committed as lossless 8-bit gray PNG
+        assert im.format == "PNG" and im.mode == "L"
+    total_bytes = sum(p.stat().st_size for p in STREET_DIR.iterdir())
+    assert total_bytes < 12.5e6
+
+
+def test_street_sequence_is_consecutive():
+    seq = street_sequence(stride=10)
+    assert len(seq) == 5
+    out = list(seq)
+    assert [i for _, i in out] == [0, 10, 20, 30, 40]
+    first, _ = out[0]
+    assert torch.equal(first, StreetSampleSource()[0][0])
+    # consecutive frames are similar (same scene), not identical
+    a, b = StreetSampleSource(max_frames=2)[0][0], StreetSampleSource(max_frames=2)[1][0]
+    diff = (a - b).abs().mean().item()
+    assert 0.0 < diff < 0.05
+
+
+def test_default_source_concatenates_with_unique_ids():
+    src = DefaultSource(deadleaves=3, deadleaves_size=(32, 32))
+    assert len(src) == len(SKIMAGE_PHOTOS) + N_STREET + 3
+    assert len(set(src.ids)) == len(src.ids)
+    assert src[0][1] == "skimage:astronaut"
+    assert src[len(SKIMAGE_PHOTOS)][1] == "street:vtest#000100"
+    img, image_id = src[-1]
+    assert image_id == "deadleaves-000002" and img.shape == (1, 32, 32)
+    assert len(DefaultSource(include_street=False)) == len(SKIMAGE_PHOTOS)
+
+
+def test_build_source_specs(tmp_path):
+    assert isinstance(build_source("default"), DefaultSource)
+    dl = build_source("deadleaves", n_images=4, size=(16, 16))
+    assert isinstance(dl, DeadLeavesSource) and len(dl) == 4
+    assert isinstance(build_source("skimage"), SkimagePhotosSource)
+    assert isinstance(build_source("street"), StreetSampleSource)
+    for k in range(3):
+        Image.fromarray(np.full((5, 5), k, np.uint8)).save(tmp_path / f"f{k}.png")
+    assert isinstance(build_source(str(tmp_path)), ImageFolderSource)
+    frames = build_source(f"frames:{tmp_path}")
+    assert len(frames) == 3 and group_key(frames.ids[0]) == group_key(frames.ids[2])
+    with pytest.raises(FileNotFoundError, match="neither a built-in source"):
+        build_source(str(tmp_path / "nothing_here"))
+    with pytest.raises(ValueError, match="video file"):
+        build_source(str(tmp_path / "f0.png"))
+
+
+def test_group_key():
+    assert group_key("street:vtest#000123") == "street:vtest"
+    assert group_key("video:a#b.avi#000001") == "video:a#b.avi"
+    assert group_key("skimage:camera") == "skimage:camera"
+    assert group_key("deadleaves-000042") == "deadleaves-000042"
+    assert group_key("sub/img#3.png") == "sub/img#3.png"
+
+
+def _ids(n_photos=200):
+    return (
+        [f"photo_{k:04d}.png" for k in range(n_photos)]
+        + [f"clip{c}#{f:06d}" for c in range(20) for f in range(30)]
+        + [f"deadleaves-{k:06d}" for k in range(100)]
+    )
+
+
+def test_split_never_leaks_and_covers_everything():
+    ids = _ids()
+    parts = split_ids(ids, 0.15, 0.15, seed=3)
+    allidx = sorted(i for v in parts.values() for i in v)
+    assert allidx == list(range(len(ids)))
+    groups = {name: {group_key(ids[i]) for i in idx} for name, idx in parts.items()}
+    assert not groups["train"] & groups["val"]
+    assert not groups["train"] & groups["test"]
+    assert not groups["val"] & groups["test"]
+    assert all(parts[name] == sorted(parts[name]) for name in parts)
+
+
+def test_split_is_stable_when_images_are_added_or_reordered():
+    ids = _ids()
+
+    def assignment(id_list, seed=0):
+        parts = split_ids(id_list, 0.2, 0.1, seed=seed)
+        return {id_list[i]: name for name, idx in parts.items() for i in idx}
+
+    base = assignment(ids)
+    grown = assignment(ids + ["new_photo.png", "clip3#000030"])
+    assert all(grown[k] == v for k, v in base.items())
+    assert grown["clip3#000030"] == base["clip3#000000"]  # a new frame joins its clip's split
+    assert assignment(ids[::-1]) == base
+    assert assignment(ids, seed=1) != base
+
+
+def test_split_fractions_are_about_right():
+    ids = [f"img{k}" for k in range(4000)]
+    parts = split_ids(ids, 0.2, 0.1, seed=0)
+    assert len(parts["val"]) / 4000 == pytest.approx(0.2, abs=0.03)
+    assert len(parts["test"]) / 4000 == pytest.approx(0.1, abs=0.03)
+    assert split_ids(ids, 0.0, 0.0)["train"] == list(range(4000))
+
+
+def test_split_bad_arguments():
+    with pytest.raises(ValueError, match="val_fraction"):
+        split_ids(["a"], -0.1, 0.1)
+    with pytest.raises(ValueError, match="<= 1"):
+        split_ids(["a"], 0.6, 0.5)
+    with pytest.raises(TypeError):
+        split_ids("abc", 0.1, 0.1)
+
+
+def test_street_frames_share_one_split():
+    ids = DefaultSource().ids
+    for seed in range(5):
+        parts = split_ids(ids, 0.3, 0.3, seed=seed)
+        street_splits = {name for name, idx in parts.items() for i in idx if ids[i].startswith("street:")}
+        assert len(street_splits) == 1

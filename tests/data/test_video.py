@@ -1,0 +1,114 @@
+"""FrameSequence over frame folders and (if OpenCV is installed) video files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from camhealth.data import FrameSequence, build_source, split_ids
+
+
+def _frames_folder(tmp_path, n=12):
+    d = tmp_path / "frames"
+    d.mkdir()
+    for k in range(n):  # frame k has gray level 10*k; names without zero padding
+        Image.fromarray(np.full((6, 8), 10 * k, np.uint8)).save(d / f"frame{k}.png")
+    return d
+
+
+def test_folder_natural_order_stride_and_max_frames(tmp_path):
+    d = _frames_folder(tmp_path)
+    seq = FrameSequence(d)
+    assert len(seq) == 12
+    levels = [round(f.mean().item() * 255) for f, _ in seq]
+    assert levels == [10 * k for k in range(12)]  # frame2 before frame10
+    assert [i for _, i in seq] == list(range(12))
+    seq = FrameSequence(d, stride=5, max_frames=2, start=1)
+    out = list(seq)
+    assert len(seq) == 2 and [i for _, i in out] == [1, 6]
+    assert out[1][0].shape == (1, 6, 8) and out[1][0].dtype == torch.float32
+    frame, idx = FrameSequence(d, stride=3)[-1]
+    assert idx == 9 and round(frame.mean().item() * 255) == 90
+
+
+def test_folder_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing_frames"):
+        FrameSequence(tmp_path / "missing_frames")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="empty"):
+        FrameSequence(tmp_path / "empty")
+    with pytest.raises(ValueError, match="stride"):
+        FrameSequence(tmp_path, stride=0)
+
+
+def _write_avi(path, n=10, size=(48, 32)):
+    cv2 = pytest.importorskip("cv2")
+    w, h = size
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (w, h))
+    if not writer.isOpened():
+        pytest.skip("OpenCV has no MJPG writer")
+    for k in range(n):
+        frame = np.zeros((h, w, 3), np.uint8)
+        frame[..., 1] = 20 * k + 10  # green only: gray = 0.587 * G
+        writer.write(frame)
+    writer.release()
+    return path
+
+
+def test_video_frames_in_order(tmp_path):
+    p = _write_avi(tmp_path / "clip.avi")
+    seq = FrameSequence(p)
+    assert len(seq) == 10
+    frames = list(seq)
+    assert [i for _, i in frames] == list(range(10))
+    assert frames[0][0].shape == (1, 32, 48) and frames[0][0].dtype == torch.float32
+    means = [f.mean().item() * 255 for f, _ in frames]
+    assert np.allclose(means, [0.587 * (20 * k + 10) for k in range(10)], atol=3.0)
+    strided = FrameSequence(p, stride=3, max_frames=3)
+    assert len(strided) == 3 and [i for _, i in strided] == [0, 3, 6]
+    f6, i6 = strided[2]  # random access
+    assert i6 == 6 and torch.allclose(f6, frames[6][0])
+    f3, _ = strided[1]  # backwards seek
+    assert torch.allclose(f3, frames[3][0])
+    strided.close()
+
+
+def test_video_as_source_is_one_split_group(tmp_path):
+    p = _write_avi(tmp_path / "run1.avi", n=6)
+    src = build_source(str(p))
+    assert len(src) == 6 and src.ids[0] == "video:run1.avi#000000"
+    img, image_id = src[5]
+    assert image_id == "video:run1.avi#000005" and img.shape == (1, 32, 48)
+    for seed in range(5):
+        parts = split_ids(src.ids, 0.3, 0.3, seed=seed)
+        assert sorted(len(v) for v in parts.values()) == [0, 0, 6]
+
+
+def test_video_errors(tmp_path):
+    pytest.importorskip("cv2")
+    with pytest.raises(FileNotFoundError, match="gone.avi"):
+        FrameSequence(tmp_path / "gone.avi")
+    bad = tmp_path / "broken.avi"
+    bad.write_bytes(b"RIFF" + b"\x00" * 200)
+    with pytest.raises(ValueError, match="broken.avi"):
+        FrameSequence(bad)
+    txt = tmp_path / "notes.txt"
+    txt.write_text("x")
+    with pytest.raises(ValueError, match="video file"):
+        FrameSequence(txt)
+
+
+def test_video_source_works_in_dataloader_workers_after_parent_access(tmp_path):
+    # a capture opened in the parent must not be reused by forked workers (it would hang)
+    p = _write_avi(tmp_path / "w.avi", n=4)
+    src = build_source(str(p))
+    src[1]  # opens a handle in this process
+    loader = torch.utils.data.DataLoader(src, batch_size=2, num_workers=1, timeout=30)
+    batches = list(loader)
+    assert [b[1] for b in batches] == [
+        ("video:w.avi#000000", "video:w.avi#000001"),
+        ("video:w.avi#000002", "video:w.avi#000003"),
+    ]
+    assert batches[0][0].shape == (2, 1, 32, 48)
