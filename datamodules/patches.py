@@ -1,0 +1,502 @@
+"""Patch extraction from clean image sources, and the shared base of the corruption DataModules.
+
+:class:`PatchDataset` cuts square patches from the (cached, in-memory) images of one split:
+
+* ``stage="train"``: ``patches_per_image`` random crops per image and epoch, each with a random flip /
+  rot90 (the 8 symmetries of the square) and a uniform brightness offset of ±``brightness_dn`` DN (the
+  thesis's ±20 DN augmentation; the result is clipped to [0, 1]). Randomness: torch's global RNG (in
+  DataLoader workers, PyTorch seeds each worker from the main process, so ``seed_everything`` makes runs
+  reproducible).
+* ``stage="val"``/``"test"``: a FIXED list of crops decided at construction by a ``torch.Generator``
+  seeded with ``seed`` (no flips, no brightness change), so the same seed gives the same patches.
+
+Hard patches: a crop is *near-uniform* when its standard deviation is below ``min_std_dn`` DN and
+*clipped* when more than ``max_clipped_fraction`` of its pixels are at 0 or 255 DN (after the brightness
+offset). Unless ``keep_hard_patches`` is set, such crops are redrawn up to ``max_tries`` times; when an
+image yields no acceptable crop in ``max_tries`` draws, the last draw is kept (and counted in
+``n_fallback``), so an epoch always has its full length.
+
+:class:`PatchDataModule` is the shared machinery of :class:`~datamodules.NoiseDataModule` and
+:class:`~datamodules.BlurDataModule`: source, leak-free split, image cache, loaders, the
+``on_after_batch_transfer`` corruption hook and throughput measurement.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+import warnings
+from typing import Any, Callable, Mapping, Sequence
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from camhealth.data import build_source, group_key, split_ids
+
+__all__ = ["PatchDataset", "PatchDataModule", "is_hard_patch", "STAGES", "batch_seed"]
+
+#: Dataset stages. ``"predict"`` uses the test split.
+STAGES = ("train", "val", "test")
+
+_LOW = 0.5 / 255.0  # a pixel at 0 DN (after rounding to 8 bits)
+_HIGH = 254.5 / 255.0  # a pixel at 255 DN
+
+
+def is_hard_patch(patch: torch.Tensor, min_std_dn: float = 2.0, max_clipped_fraction: float = 0.05) -> bool:
+    """True if ``patch`` (C×H×W in [0, 1]) is near-uniform (std < ``min_std_dn`` DN) or clipped (more than
+    ``max_clipped_fraction`` of its pixels at 0 or 255 DN)."""
+    if float(patch.std()) * 255.0 < min_std_dn:
+        return True
+    clipped = ((patch <= _LOW) | (patch >= _HIGH)).float().mean()
+    return float(clipped) > max_clipped_fraction
+
+
+def batch_seed(seed: int, stage: str, first_index: int, batch_size: int) -> int:
+    """Seed of the fixed corruption of one validation/test batch: a hash of (seed, stage, first dataset
+    index of the batch, batch size), so a batch is corrupted identically in every epoch and every run."""
+    key = f"{int(seed)}\x1f{stage}\x1f{int(first_index)}\x1f{int(batch_size)}".encode()
+    return int.from_bytes(hashlib.blake2b(key, digest_size=8).digest(), "big") >> 2
+
+
+class PatchDataset(Dataset):
+    """Square patches from in-memory images of one split.
+
+    Args:
+        images: gray images ``1×H×W`` in [0, 1], each at least ``patch_size`` on both sides.
+        ids: their source ids (same length), reported per sample as ``image_id``.
+        patch_size: side P of the square patches [px].
+        stage: ``"train"`` (random crops + augmentation) or ``"val"``/``"test"`` (fixed crops).
+        patches_per_image: patches per image and epoch (train) / fixed crops per image (val, test).
+        seed: seed of the fixed val/test crops (unused for training, which uses torch's global RNG).
+        flips: random horizontal/vertical flips (train only).
+        rot90: random rotations by multiples of 90° (train only).
+        brightness_dn: uniform brightness offset in [−b, b] DN, then clipped to [0, 255] DN (train only).
+        min_std_dn: crops with a standard deviation below this [DN] are near-uniform.
+        max_clipped_fraction: crops with more pixels than this fraction at 0 or 255 DN are clipped.
+        keep_hard_patches: keep near-uniform and clipped crops (robustness tests) instead of redrawing.
+        max_tries: redraws per patch before the last draw is kept.
+
+    Each sample is a dict ``{"clean": 1×P×P float32, "index": int, "image_id": str, "stage": str}``.
+    """
+
+    def __init__(
+        self,
+        images: Sequence[torch.Tensor],
+        ids: Sequence[str],
+        patch_size: int,
+        stage: str = "train",
+        patches_per_image: int = 64,
+        seed: int = 0,
+        flips: bool = True,
+        rot90: bool = True,
+        brightness_dn: float = 20.0,
+        min_std_dn: float = 2.0,
+        max_clipped_fraction: float = 0.05,
+        keep_hard_patches: bool = False,
+        max_tries: int = 20,
+    ) -> None:
+        if stage not in STAGES:
+            raise ValueError(f"stage = {stage!r} must be one of {list(STAGES)}")
+        if len(images) != len(ids):
+            raise ValueError(f"got {len(images)} images but {len(ids)} ids")
+        if not images:
+            raise ValueError(f"the {stage} split has no images")
+        _check_positive_int(patch_size, "patch_size")
+        _check_positive_int(patches_per_image, "patches_per_image")
+        _check_positive_int(max_tries, "max_tries")
+        if not (math.isfinite(brightness_dn) and 0.0 <= brightness_dn <= 255.0):
+            raise ValueError(f"brightness_dn = {brightness_dn!r} must be in [0, 255]")
+        if not (0.0 <= max_clipped_fraction <= 1.0):
+            raise ValueError(f"max_clipped_fraction = {max_clipped_fraction!r} must be in [0, 1]")
+        if not (math.isfinite(min_std_dn) and min_std_dn >= 0.0):
+            raise ValueError(f"min_std_dn = {min_std_dn!r} must be >= 0")
+        for img, image_id in zip(images, ids):
+            if img.ndim != 3 or img.shape[0] != 1:
+                raise ValueError(f"image {image_id!r} must be a gray 1×H×W tensor, got shape {tuple(img.shape)}")
+            if min(img.shape[-2:]) < patch_size:
+                raise ValueError(
+                    f"image {image_id!r} is {img.shape[-2]}×{img.shape[-1]} px, smaller than the patch size {patch_size}"
+                )
+        self.images = list(images)
+        self.ids = list(ids)
+        self.patch_size = int(patch_size)
+        self.stage = stage
+        self.patches_per_image = int(patches_per_image)
+        self.seed = int(seed)
+        self.flips, self.rot90 = bool(flips), bool(rot90)
+        self.brightness_dn = float(brightness_dn)
+        self.min_std_dn = float(min_std_dn)
+        self.max_clipped_fraction = float(max_clipped_fraction)
+        self.keep_hard_patches = bool(keep_hard_patches)
+        self.max_tries = int(max_tries)
+        self.n_fallback = 0
+        #: fixed crops (N, 3): image, top, left (val/test only)
+        self.crops: torch.Tensor | None = None
+        if stage != "train":
+            self.crops = self._fixed_crops()
+
+    # ------------------------------------------------------------------ helpers
+    def __len__(self) -> int:
+        return len(self.images) * self.patches_per_image
+
+    def _hard(self, patch: torch.Tensor) -> bool:
+        return not self.keep_hard_patches and is_hard_patch(patch, self.min_std_dn, self.max_clipped_fraction)
+
+    def _crop(self, i: int, top: int, left: int) -> torch.Tensor:
+        p = self.patch_size
+        return self.images[i][:, top : top + p, left : left + p]
+
+    def _random_corner(self, i: int, generator: torch.Generator | None) -> tuple[int, int]:
+        h, w = self.images[i].shape[-2:]
+        top = int(torch.randint(h - self.patch_size + 1, (1,), generator=generator))
+        left = int(torch.randint(w - self.patch_size + 1, (1,), generator=generator))
+        return top, left
+
+    def _fixed_crops(self) -> torch.Tensor:
+        g = torch.Generator().manual_seed(self.seed)
+        rows = []
+        for i in range(len(self.images)):
+            for _ in range(self.patches_per_image):
+                for _ in range(self.max_tries):
+                    top, left = self._random_corner(i, g)
+                    if not self._hard(self._crop(i, top, left)):
+                        break
+                else:
+                    self.n_fallback += 1
+                rows.append((i, top, left))
+        return torch.tensor(rows, dtype=torch.int64)
+
+    def _augment(self, patch: torch.Tensor) -> torch.Tensor:
+        if self.flips:
+            if bool(torch.rand(()) < 0.5):
+                patch = patch.flip(-1)
+            if bool(torch.rand(()) < 0.5):
+                patch = patch.flip(-2)
+        if self.rot90:
+            k = int(torch.randint(4, (1,)))
+            if k:
+                patch = torch.rot90(patch, k, (-2, -1))
+        if self.brightness_dn > 0:
+            offset = (2.0 * float(torch.rand(())) - 1.0) * self.brightness_dn / 255.0
+            patch = (patch + offset).clamp(0.0, 1.0)
+        return patch
+
+    # ------------------------------------------------------------------ access
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"index {index} out of range for a {self.stage} PatchDataset of {n} patches")
+        index %= n
+        if self.crops is not None:
+            i, top, left = (int(v) for v in self.crops[index])
+            patch = self._crop(i, top, left)
+        else:
+            i = index % len(self.images)
+            for _ in range(self.max_tries):
+                top, left = self._random_corner(i, None)
+                patch = self._augment(self._crop(i, top, left))
+                if not self._hard(patch):
+                    break
+            else:
+                self.n_fallback += 1
+        return {
+            "clean": patch.contiguous().clone(),
+            "index": index,
+            "image_id": self.ids[i],
+            "stage": self.stage,
+        }
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(stage={self.stage!r}, images={len(self.images)}, patch_size={self.patch_size}, "
+            f"patches={len(self)})"
+        )
+
+
+def _check_positive_int(v: Any, name: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"{name} = {v!r} must be a positive int")
+    return v
+
+
+def _folder_group(image_id: str) -> str:
+    """Group by sub-folder: ``"clipA/0001.png"`` → ``"clipA"``; files at the root are their own group."""
+    return image_id.rsplit("/", 1)[0] if "/" in image_id else group_key(image_id)
+
+
+GROUP_KEYS: dict[str, Callable[[str], str]] = {"id": group_key, "folder": _folder_group}
+
+
+class PatchDataModule(L.LightningDataModule):
+    """Shared base of the corruption DataModules (see the subclasses for the options).
+
+    The DataLoaders yield *clean* patches; :meth:`on_after_batch_transfer` corrupts them on the device
+    the batch was moved to (so a GPU run corrupts on the GPU) and returns the labelled dict batch.
+    Training batches draw their corruption from torch's global RNG (seeded by Lightning's
+    ``seed_everything``); validation/test batches from a ``torch.Generator`` seeded with
+    :func:`batch_seed` ``(seed, stage, first patch index, batch size)``: the same seed and batch size give
+    the same validation batches in every epoch and every run.
+
+    Which split a batch belongs to is read from its ``stage`` entry (set by :class:`PatchDataset`), so the
+    hook also works without a Trainer (tests, notebooks); a batch without it counts as training when a
+    Trainer is training, else as validation.
+    """
+
+    #: default patch size of the subclass
+    default_patch_size = 128
+
+    def __init__(
+        self,
+        source: str = "default",
+        source_kwargs: dict[str, Any] | None = None,
+        patch_size: int | None = None,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        patches_per_image: int = 64,
+        val_patches_per_image: int = 8,
+        val_fraction: float = 0.15,
+        test_fraction: float = 0.15,
+        seed: int = 0,
+        group_by: str = "id",
+        flips: bool = True,
+        rot90: bool = True,
+        brightness_dn: float = 20.0,
+        min_std_dn: float = 2.0,
+        max_clipped_fraction: float = 0.05,
+        keep_hard_patches: bool = False,
+        max_tries: int = 20,
+        pin_memory: bool = False,
+    ) -> None:
+        super().__init__()
+        if group_by not in GROUP_KEYS:
+            raise ValueError(f"group_by = {group_by!r} must be one of {list(GROUP_KEYS)}")
+        self.source_spec = source
+        self.source_kwargs = dict(source_kwargs or {})
+        self.patch_size = _check_positive_int(self.default_patch_size if patch_size is None else patch_size, "patch_size")
+        self.batch_size = _check_positive_int(batch_size, "batch_size")
+        if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
+            raise ValueError(f"num_workers = {num_workers!r} must be an int >= 0")
+        self.num_workers = num_workers
+        self.patches_per_image = _check_positive_int(patches_per_image, "patches_per_image")
+        self.val_patches_per_image = _check_positive_int(val_patches_per_image, "val_patches_per_image")
+        self.val_fraction, self.test_fraction = val_fraction, test_fraction
+        self.seed = int(seed)
+        self.group_by = group_by
+        self.pin_memory = bool(pin_memory)
+        self._patch_kwargs = dict(
+            flips=flips,
+            rot90=rot90,
+            brightness_dn=brightness_dn,
+            min_std_dn=min_std_dn,
+            max_clipped_fraction=max_clipped_fraction,
+            keep_hard_patches=keep_hard_patches,
+            max_tries=max_tries,
+        )
+        self._source = None
+        self.splits: dict[str, list[int]] | None = None
+        self._cache: dict[int, torch.Tensor] = {}
+        self.datasets: dict[str, PatchDataset | None] = {}
+        self.stats = {"batches": 0, "patches": 0, "corruption_s": 0.0}
+
+    # ------------------------------------------------------------------ data
+    @property
+    def source(self):
+        """The image source (built on first use from ``source``/``source_kwargs``)."""
+        if self._source is None:
+            self._source = build_source(self.source_spec, **self.source_kwargs)
+            if len(self._source) == 0:
+                raise ValueError(f"image source {self.source_spec!r} has no images")
+        return self._source
+
+    def _split(self) -> dict[str, list[int]]:
+        if self.splits is None:
+            self.splits = split_ids(
+                self.source.ids, self.val_fraction, self.test_fraction, self.seed, group_key=GROUP_KEYS[self.group_by]
+            )
+        return self.splits
+
+    def _load(self, index: int) -> torch.Tensor:
+        if index not in self._cache:
+            image_id = self.source.ids[index]
+            try:
+                img, _ = self.source[index]
+            except Exception as e:  # name the image (read_image names the file)
+                raise ValueError(
+                    f"cannot load image {image_id!r} (#{index}) of source {str(self.source_spec)!r}: {e}"
+                ) from e
+            self._cache[index] = img.float().contiguous()
+        return self._cache[index]
+
+    def _build(self, stage: str) -> PatchDataset | None:
+        indices = self._split()[stage]
+        images, ids = [], []
+        small = []
+        for i in indices:
+            img = self._load(i)
+            if min(img.shape[-2:]) < self.patch_size:
+                small.append(f"{self.source.ids[i]} ({img.shape[-2]}×{img.shape[-1]})")
+                continue
+            images.append(img)
+            ids.append(self.source.ids[i])
+        if small:
+            warnings.warn(
+                f"{type(self).__name__}: skipping {len(small)} {stage} image(s) smaller than the patch size "
+                f"{self.patch_size}: {', '.join(small[:5])}{' …' if len(small) > 5 else ''}",
+                stacklevel=3,
+            )
+        if not images:
+            if indices:
+                raise ValueError(
+                    f"no {stage} image of source {str(self.source_spec)!r} is at least {self.patch_size}×"
+                    f"{self.patch_size} px (the patch size)"
+                )
+            if stage == "train":
+                raise ValueError(
+                    f"the train split of source {str(self.source_spec)!r} is empty ({len(self.source)} images, "
+                    f"val_fraction={self.val_fraction}, test_fraction={self.test_fraction}, seed={self.seed})"
+                )
+            frac = self.val_fraction if stage == "val" else self.test_fraction
+            if frac > 0:
+                warnings.warn(
+                    f"{type(self).__name__}: the {stage} split of source {str(self.source_spec)!r} is empty "
+                    f"({len(self.source)} images); its DataLoader yields nothing. Use more images or another seed.",
+                    stacklevel=3,
+                )
+            return None
+        ppi = self.patches_per_image if stage == "train" else self.val_patches_per_image
+        seed = self.seed + (1 if stage == "val" else 2 if stage == "test" else 0)
+        return PatchDataset(images, ids, self.patch_size, stage, ppi, seed, **self._patch_kwargs)
+
+    def setup(self, stage: str | None = None) -> None:
+        """Split the source and load (once) the images of the splits ``stage`` needs."""
+        need = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}.get(
+            stage or "", STAGES
+        )
+        for s in need:
+            if s not in self.datasets:
+                self.datasets[s] = self._build(s)
+
+    def _loader(self, stage: str) -> DataLoader | list:
+        if stage not in self.datasets:
+            self.setup({"train": "fit", "val": "validate", "test": "test"}[stage])
+        ds = self.datasets[stage]
+        if ds is None:
+            return []
+        train = stage == "train"
+        return DataLoader(
+            ds,
+            batch_size=self.batch_size,
+            shuffle=train,
+            drop_last=train and len(ds) >= self.batch_size,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            pin_memory=self.pin_memory,
+        )
+
+    def train_dataloader(self):
+        return self._loader("train")
+
+    def val_dataloader(self):
+        return self._loader("val")
+
+    def test_dataloader(self):
+        return self._loader("test")
+
+    def predict_dataloader(self):
+        return self._loader("test")
+
+    # ------------------------------------------------------------------ corruption
+    def _stage_of(self, batch: Mapping[str, Any]) -> str:
+        st = batch.get("stage")
+        if st is not None:
+            return st[0] if isinstance(st, (list, tuple)) else str(st)
+        trainer = self.trainer
+        return "train" if trainer is not None and trainer.training else "val"
+
+    def generator_for(self, batch: Mapping[str, Any]) -> torch.Generator | None:
+        """``None`` (global RNG) for a training batch, else a CPU generator seeded by :func:`batch_seed`."""
+        stage = self._stage_of(batch)
+        if stage == "train":
+            return None
+        index = batch.get("index")
+        first = int(index[0]) if index is not None and len(index) else 0
+        b = int(batch["clean"].shape[0])
+        return torch.Generator().manual_seed(batch_seed(self.seed, stage, first, b))
+
+    def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None) -> dict[str, torch.Tensor]:
+        """Corrupt a clean batch B×1×P×P and return the labelled entries (implemented by subclasses)."""
+        raise NotImplementedError
+
+    def on_after_batch_transfer(self, batch: Any, dataloader_idx: int = 0) -> Any:
+        """Corrupt the clean patches on their device; returns the dict batch (see the subclass)."""
+        if not isinstance(batch, Mapping) or "clean" not in batch or "image" in batch:
+            return batch  # not ours, or already corrupted
+        t0 = time.perf_counter()
+        clean = batch["clean"]
+        out = self.corrupt(clean, self.generator_for(batch))
+        if clean.is_cuda:
+            torch.cuda.synchronize(clean.device)
+        self.stats["batches"] += 1
+        self.stats["patches"] += int(clean.shape[0])
+        self.stats["corruption_s"] += time.perf_counter() - t0
+        result = {"image": out.pop("image"), "clean": clean, **out}
+        for k in ("index", "image_id", "stage"):
+            if k in batch:
+                result[k] = batch[k]
+        return result
+
+    # ------------------------------------------------------------------ throughput
+    def measure_throughput(
+        self, n_batches: int = 10, stage: str = "train", device: str | torch.device = "cpu", warmup: int = 1
+    ) -> dict[str, float]:
+        """Patches per second delivered by the ``stage`` loader *including* the corruption on ``device``.
+
+        Iterates ``warmup + n_batches`` batches (cycling the loader if needed), moves each to ``device``,
+        runs :meth:`on_after_batch_transfer` and times the last ``n_batches``. Returns
+        ``{"patches_per_s", "corruption_patches_per_s", "loading_s", "corruption_s", "patches"}``.
+        """
+        device = torch.device(device)
+        loader = self._loader(stage)
+        if not loader:
+            raise ValueError(f"the {stage} split is empty: nothing to measure")
+        it = iter(loader)
+
+        def next_batch():
+            nonlocal it
+            try:
+                return next(it)
+            except StopIteration:
+                it = iter(loader)
+                return next(it)
+
+        load_s = corr_s = 0.0
+        patches = 0
+        for k in range(warmup + n_batches):
+            t0 = time.perf_counter()
+            batch = next_batch()
+            batch = {key: v.to(device) if isinstance(v, torch.Tensor) else v for key, v in batch.items()}
+            t1 = time.perf_counter()
+            out = self.on_after_batch_transfer(batch, 0)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            t2 = time.perf_counter()
+            if k >= warmup:
+                load_s += t1 - t0
+                corr_s += t2 - t1
+                patches += int(out["image"].shape[0])
+        total = load_s + corr_s
+        return {
+            "patches_per_s": patches / total if total > 0 else float("inf"),
+            "corruption_patches_per_s": patches / corr_s if corr_s > 0 else float("inf"),
+            "loading_s": load_s,
+            "corruption_s": corr_s,
+            "patches": float(patches),
+        }
+
+    def throughput_stats(self) -> dict[str, float]:
+        """Running totals of the hook: batches and patches corrupted and the corruption's patches/s."""
+        s = dict(self.stats)
+        s["corruption_patches_per_s"] = s["patches"] / s["corruption_s"] if s["corruption_s"] > 0 else float("nan")
+        return s

@@ -1,0 +1,133 @@
+"""BlurDataModule: real MTF-labelled batches, labels equal to the physics core, determinism, options."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+
+from camhealth.physics import defocus_psf, form_image, linear_motion_psf, mtf_hv, nonlinear_motion_psf
+from datamodules import BlurDataModule
+from tests.datamodules.conftest import SMALL, textured
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def _clean(b: int = 6, size: int = 48) -> torch.Tensor:
+    return torch.stack([torch.from_numpy(textured(size, i)).float()[None] for i in range(b)])
+
+
+def test_default_source_yields_real_mtf_batches():
+    dm = BlurDataModule(batch_size=8)  # embedded default data, 192 px, sizes up to 31 px
+    dm.setup("validate")
+    batch = dm.on_after_batch_transfer(next(iter(dm.val_dataloader())), 0)
+    assert batch["image"].shape == batch["clean"].shape == (8, 1, 192, 192)
+    assert batch["mtf"].shape == (8, 16) and batch["family"].dtype == torch.long
+    assert batch["size"].shape == (8,) and float(batch["size"].max()) <= 31.0
+    assert (batch["mtf"] >= 0).all() and (batch["mtf"] <= 1 + 1e-5).all()
+    assert set(batch["family"].tolist()) <= {0, 1, 2}
+    assert dm.kernel_size == 35
+    # a blurred patch has less high-frequency energy than the clean one
+    def hf(x):
+        return (x[..., 1:] - x[..., :-1]).abs().mean()
+
+    assert float(hf(batch["image"])) < float(hf(batch["clean"]))
+
+
+def test_labels_match_the_physics_core(image_folder):
+    dm = BlurDataModule(source=str(image_folder), size_range=(2.0, 15.0), return_psf=True, **{**SMALL, "batch_size": 8})
+    dm.setup("validate")
+    batch = next(iter(dm.val_dataloader()))
+    out = dm.on_after_batch_transfer(batch)
+    p = dm.sample_params(batch["clean"].shape[0], dm.generator_for(batch))  # replay this batch's draws
+    k = dm.kernel_size
+    for i, fam in enumerate(p["family"].tolist()):
+        s, a = p["size"][i : i + 1], p["angle"][i : i + 1]
+        if fam == 0:
+            psf = defocus_psf(s, k)
+        elif fam == 1:
+            psf = linear_motion_psf(s, a, k)
+        else:
+            psf = nonlinear_motion_psf(s, a, p["intensity"][i : i + 1], p["shake_noise"][i : i + 1], k)
+        assert torch.allclose(out["psf"][i : i + 1], psf)
+        assert torch.allclose(out["mtf"][i : i + 1], mtf_hv(psf), atol=1e-6)
+    assert torch.equal(out["family"], p["family"]) and torch.equal(out["size"], p["size"])
+    ref = form_image(batch["clean"], None, defocus_psf=out["psf"], sources=())
+    assert torch.equal(out["image"], ref.image)
+
+
+def test_same_seed_gives_same_validation_batch(image_folder):
+    def first_val():
+        dm = BlurDataModule(source=str(image_folder), size_range=(1.0, 11.0), **SMALL)
+        dm.setup("validate")
+        torch.manual_seed(torch.seed() % 1000)  # the global RNG must not matter for validation
+        return dm.on_after_batch_transfer(next(iter(dm.val_dataloader())))
+
+    a, b = first_val(), first_val()
+    for key in ("image", "mtf", "family", "size"):
+        assert torch.equal(a[key], b[key]), key
+
+
+def test_family_mix_and_sizes():
+    clean = _clean(16)
+    only = BlurDataModule(source="unused", patch_size=48, families={"linear": 1.0}, size_range=(31.0, 31.0))
+    out = only.corrupt(clean, None)
+    assert (out["family"] == 1).all() and torch.equal(out["size"], torch.full((16,), 31.0))
+    assert (out["intensity"] == 0).all()
+    mix = BlurDataModule(source="unused", patch_size=48, families={"defocus": 1, "nonlinear": 3})
+    fams = mix.corrupt(_clean(32), torch.Generator().manual_seed(0))["family"]
+    assert set(fams.tolist()) == {0, 2}
+    with pytest.raises(ValueError, match="famil"):
+        BlurDataModule(families={"gaussian": 1.0})
+    with pytest.raises(ValueError, match="kernel_size"):
+        BlurDataModule(kernel_size=21)
+
+
+def test_noise_after_blur():
+    clean = _clean(6)
+    g = torch.Generator().manual_seed(0)
+    dm = BlurDataModule(source="unused", patch_size=48, noise=True, families={"defocus": 1.0, "linear": 1.0})
+    out = dm.corrupt(clean, g)
+    assert out["sigma"].shape == (6, 3) and out["meta_raw"].shape == (6, 11) and out["noisy"].all()
+    assert (out["sigma_total"] > 0).all()
+    # the MTF label is the blur's alone, the image has noise on top of the blur
+    quiet = BlurDataModule(source="unused", patch_size=48, families={"defocus": 1.0, "linear": 1.0})
+    ref = quiet.corrupt(clean, torch.Generator().manual_seed(0))
+    assert torch.equal(ref["mtf"], out["mtf"]) and not torch.equal(ref["image"], out["image"])
+    after = BlurDataModule(source="unused", patch_size=48, noise=True, noise_order="after_blur", noise_probability=0.0)
+    out2 = after.corrupt(clean, None)
+    assert not out2["noisy"].any() and torch.equal(out2["sigma"], torch.zeros(6, 3))
+
+
+def test_yaml_config_instantiates_with_lightning_cli():
+    from lightning.pytorch import cli as lcli
+
+    if not lcli._JSONARGPARSE_SIGNATURES_AVAILABLE:
+        pytest.skip("jsonargparse[signatures] is not installed (it is a declared dependency)")
+
+    class Tiny(L.LightningModule):
+        pass
+
+    cli = lcli.LightningCLI(Tiny, run=False, args=["--config", str(CONFIGS / "data_blur.yaml"), "--trainer.logger=false"])
+    dm = cli.datamodule
+    assert isinstance(dm, BlurDataModule) and dm.patch_size == 192 and dm.size_range == (1.0, 31.0)
+
+
+def test_corruption_runs_on_the_batch_device(device):
+    dm = BlurDataModule(source="unused", patch_size=48, noise=True)
+    batch = {"clean": _clean(4).to(device), "index": torch.arange(4, device=device), "stage": ["test"] * 4}
+    out = dm.on_after_batch_transfer(batch, 0)
+    assert all(v.device.type == device.type for v in out.values() if isinstance(v, torch.Tensor))
+    assert torch.equal(out["image"], dm.on_after_batch_transfer({**batch}, 0)["image"])
+
+
+def test_bench_data_subcommand_reports_patches_per_second(image_folder, capsys):
+    from camhealth.bench.__main__ import main
+
+    argv = ["data", "--source", str(image_folder), "--batch", "4", "--repeats", "1", "--warmup", "0",
+            "--noise-patch", "32", "--blur-patch", "48"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "BlurDataModule train + noise" in out and "patches/s delivered incl. corruption" in out

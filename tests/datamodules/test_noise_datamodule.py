@@ -1,0 +1,197 @@
+"""NoiseDataModule: real labelled batches, physics-consistent labels, ξ, determinism, Lightning/CLI use."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+
+from camhealth.augment import RandomSensorNoise
+from camhealth.physics import FULL_FIELDS, CameraMetadata, form_image
+from datamodules import NoiseDataModule, expected_sigma_dn
+from tests.datamodules.conftest import SMALL, textured
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def _clean(b: int = 8, size: int = 32) -> torch.Tensor:
+    return torch.stack([torch.from_numpy(textured(size, i)).float()[None] for i in range(b)])
+
+
+def test_default_source_yields_real_labelled_batches():
+    dm = NoiseDataModule(batch_size=8, val_patches_per_image=8)  # embedded default data, no network
+    dm.setup("validate")  # only the validation image(s): fast
+    batch = dm.on_after_batch_transfer(next(iter(dm.val_dataloader())), 0)
+    b = 8
+    assert batch["image"].shape == batch["clean"].shape == (b, 1, 128, 128)
+    assert batch["meta_raw"].shape == batch["meta_image_raw"].shape == (b, 11)
+    assert batch["meta"].shape == (b, 11)  # full metadata set by default
+    assert batch["sigma"].shape == batch["sigma_expected"].shape == (b, 3)
+    for k in ("sigma_total", "xi", "xi_norm", "altered"):
+        assert batch[k].shape == (b,)
+    assert batch["altered"].dtype == torch.bool
+    assert 0 <= float(batch["image"].min()) and float(batch["image"].max()) <= 1
+    assert (batch["sigma"] >= 0).all() and (batch["sigma_total"] > 0).all()
+    assert not torch.equal(batch["image"], batch["clean"])
+    assert torch.allclose(batch["xi_norm"] * 255, batch["xi"])
+    assert all(s == "val" for s in batch["stage"])
+
+
+def test_default_source_training_batch():
+    dm = NoiseDataModule(batch_size=4, patches_per_image=1)
+    batch = dm.on_after_batch_transfer(next(iter(dm.train_dataloader())), 0)
+    assert batch["image"].shape == (4, 1, 128, 128) and batch["stage"] == ["train"] * 4
+    assert torch.isfinite(batch["sigma"]).all()
+
+
+def test_same_seed_gives_same_validation_batch(image_folder):
+    def first_val(seed):
+        dm = NoiseDataModule(source=str(image_folder), seed=seed, **SMALL)
+        dm.setup("validate")
+        torch.manual_seed(seed + 123)  # the global RNG must not matter for validation
+        return dm.on_after_batch_transfer(next(iter(dm.val_dataloader())))
+
+    a, b = first_val(0), first_val(0)
+    for k in ("image", "clean", "meta_raw", "sigma", "xi", "altered"):
+        assert torch.equal(a[k], b[k]), k
+    assert a["image_id"] == b["image_id"]
+    c = first_val(0)
+    torch.manual_seed(999)
+    assert torch.equal(c["image"], a["image"])
+
+
+def test_training_corruption_is_random():
+    dm = NoiseDataModule(source="unused", **SMALL)
+    clean = _clean(4)
+    a, b = dm.corrupt(clean, None), dm.corrupt(clean, None)
+    assert not torch.equal(a["meta_raw"], b["meta_raw"]) and not torch.equal(a["image"], b["image"])
+
+
+def test_labels_match_the_physics_core(image_folder):
+    dm = NoiseDataModule(source=str(image_folder), xi_probability=0.5, **{**SMALL, "batch_size": 8})
+    dm.setup("validate")
+    batch = next(iter(dm.val_dataloader()))
+    out = dm.on_after_batch_transfer(batch)
+    # replay the parameter draws of this validation batch
+    g = dm.generator_for(batch)
+    meta, meta_img, altered = dm.sample_metadata(batch["clean"].shape[0], g)
+    seed = int(torch.randint(0, 2**62, (1,), generator=g))
+    ref = form_image(batch["clean"], meta_img, generator=torch.Generator().manual_seed(seed))
+    assert torch.equal(out["image"], ref.image)
+    aug = RandomSensorNoise()  # the Kornia module on the same parameters gives the same image
+    assert torch.allclose(aug(batch["clean"], params=RandomSensorNoise.params_from_metadata(meta_img, seed)), out["image"])
+    assert torch.allclose(out["sigma"], ref.sigma_dn.float())
+    assert torch.allclose(out["sigma_total"], ref.sigma_total_dn.float())
+    assert torch.allclose(out["sigma_expected"], ref.sigma_expected_dn.float())  # labels refer to M'
+    assert torch.equal(out["altered"], altered)
+    raw = torch.stack([getattr(meta, n) for n in FULL_FIELDS], 1)
+    assert torch.equal(out["meta_raw"], raw) and torch.equal(out["meta"], meta.normalize("full"))
+    # ξ = analytic total under M − analytic total under M' (thesis Eq. 4.3)
+    ref_m = form_image(batch["clean"], meta, generator=torch.Generator().manual_seed(1))
+    xi = ref_m.sigma_total_expected_dn - ref.sigma_total_expected_dn
+    assert torch.allclose(out["xi"], xi.float(), rtol=1e-4, atol=1e-4)
+
+
+def test_expected_sigma_matches_form_image():
+    meta = CameraMetadata.sample(6, generator=torch.Generator().manual_seed(0))
+    clean = _clean(6)
+    ref = form_image(clean, meta).sigma_expected_dn
+    assert torch.allclose(expected_sigma_dn(clean, meta), ref)
+    only = expected_sigma_dn(clean, meta, ("photon",))
+    assert torch.equal(only[:, 1:], torch.zeros(6, 2)) and torch.allclose(only[:, 0], ref[:, 0])
+
+
+def test_xi_is_zero_when_metadata_agree_and_negative_when_the_image_is_noisier():
+    dm = NoiseDataModule(source="unused", **SMALL)
+    clean = _clean(8)
+    meta = CameraMetadata.sample(8, generator=torch.Generator().manual_seed(1), ranges={"gain_db": (0.0, 12.0)})
+    same = dm.corrupt_with(clean, meta, meta, noise_seed=3)
+    assert torch.equal(same["xi"], torch.zeros(8)) and not same["altered"].any()
+    noisier = dm.corrupt_with(clean, meta, meta.replace(gain_db=meta.gain_db + 6.0), noise_seed=3)
+    assert (noisier["xi"] < 0).all() and noisier["altered"].all()
+    assert (noisier["sigma_total"] > same["sigma_total"]).all()  # the image really is noisier
+    colder = dm.corrupt_with(clean, meta, meta.replace(temperature_c=torch.zeros(8)), 3)
+    # a colder sensor than reported: less dark-current noise than the metadata say → ξ ≥ 0
+    assert (colder["xi"] >= 0).all() and float(colder["xi"].max()) > 0
+
+    # the sampled ξ cases: sign follows the altered gain
+    dm1 = NoiseDataModule(source="unused", xi_probability=1.0, xi_fields=["gain_db"], **SMALL)
+    out = dm1.corrupt(_clean(32), torch.Generator().manual_seed(0))
+    dg = out["meta_image_raw"][:, 0] - out["meta_raw"][:, 0]
+    assert out["altered"].all()
+    assert (out["xi"][dg > 0.1] < 0).all() and (out["xi"][dg < -0.1] > 0).all()
+    assert torch.equal(out["meta_image_raw"][:, 1:], out["meta_raw"][:, 1:])  # only the gain differs
+    dm0 = NoiseDataModule(source="unused", xi_probability=0.0, **SMALL)
+    out0 = dm0.corrupt(_clean(8), None)
+    assert torch.equal(out0["xi"], torch.zeros(8)) and torch.equal(out0["meta_raw"], out0["meta_image_raw"])
+
+
+def test_metadata_sets_and_sensor_preset():
+    clean = _clean(4)
+    for name, k in (("none", 0), ("minimal", 3), ("full", 11)):
+        out = NoiseDataModule(source="unused", metadata_set=name, **SMALL).corrupt(clean, None)
+        assert out["meta"].shape == (4, k)
+    dm = NoiseDataModule(source="unused", sensor="ICX285", xi_probability=0.0, metadata_ranges={"gain_db": (0.0, 6.0)}, **SMALL)
+    out = dm.corrupt(clean, None)
+    fw = FULL_FIELDS.index("full_well_e")
+    assert torch.equal(out["meta_raw"][:, fw], torch.full((4,), 14000.0))
+    assert (out["meta_raw"][:, 0] <= 6.0).all()
+    with pytest.raises(ValueError, match="metadata_set"):
+        NoiseDataModule(metadata_set="some")
+    with pytest.raises(ValueError, match="xi_fields"):
+        NoiseDataModule(xi_fields=["colour"])
+
+
+def test_trainer_calls_the_hook_and_validation_repeats(image_folder):
+    seen = {"train": [], "val": []}
+
+    class Probe(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1))
+
+        def training_step(self, batch, i):
+            seen["train"].append(batch["xi"].clone())
+            return (self.w * batch["image"].mean()).sum()
+
+        def validation_step(self, batch, i):
+            seen["val"].append(batch["image"].clone())
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.0)
+
+    dm = NoiseDataModule(source=str(image_folder), **SMALL)
+    trainer = L.Trainer(
+        max_epochs=2, limit_train_batches=2, limit_val_batches=1, num_sanity_val_steps=0, logger=False,
+        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, accelerator="cpu",
+    )
+    trainer.fit(Probe(), datamodule=dm)
+    assert len(seen["train"]) == 4 and len(seen["val"]) == 2
+    assert torch.equal(seen["val"][0], seen["val"][1])  # fixed validation corruption across epochs
+    assert dm.throughput_stats()["patches"] == 6 * 4
+
+
+def test_yaml_config_instantiates_with_lightning_cli():
+    from lightning.pytorch import cli as lcli
+
+    if not lcli._JSONARGPARSE_SIGNATURES_AVAILABLE:
+        pytest.skip("jsonargparse[signatures] is not installed (it is a declared dependency)")
+    LightningCLI = lcli.LightningCLI
+
+    class Tiny(L.LightningModule):
+        pass
+
+    cli = LightningCLI(Tiny, run=False, args=["--config", str(CONFIGS / "data_noise.yaml"), "--trainer.logger=false"])
+    assert isinstance(cli.datamodule, NoiseDataModule)
+    assert cli.datamodule.patch_size == 128 and cli.datamodule.metadata_set == "full"
+
+
+def test_corruption_runs_on_the_batch_device(device):
+    dm = NoiseDataModule(source="unused", **SMALL)
+    batch = {"clean": _clean(4).to(device), "index": torch.arange(4, device=device), "stage": ["val"] * 4}
+    out = dm.on_after_batch_transfer(batch, 0)
+    assert all(v.device.type == device.type for v in out.values() if isinstance(v, torch.Tensor))
+    again = dm.on_after_batch_transfer({**batch}, 0)
+    assert torch.equal(out["image"], again["image"])
