@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any, Dict, Optional, Sequence
 
 import torch
@@ -43,8 +44,9 @@ class CorruptionBase(IntensityAugmentationBase2D):
         check_float(input, "input")
         if input.ndim != 4:
             raise ValueError(f"input must have shape B×C×H×W (or C×H×W / H×W), got {tuple(input.shape)}")
-        check_finite(input, "input")
-        lo, hi = float(input.detach().min()), float(input.detach().max())
+        lo, hi = (float(v) for v in torch.aminmax(input.detach()))  # one pass; NaN propagates into lo/hi
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            check_finite(input, "input")
         if lo < 0 or hi > 1:
             raise ValueError(f"input must lie in [0, 1] (DN/255), got values in [{lo:g}, {hi:g}]")
 
@@ -99,7 +101,9 @@ class CorruptionBase(IntensityAugmentationBase2D):
         meta = None
         generator = None
         if self._sources:
-            meta = params_to_metadata(params).to(device=dev)
+            meta = params_to_metadata(params)
+            if meta.device != dev:
+                meta = meta.to(device=dev)
             generator = torch.Generator(device=dev)
             generator.manual_seed(int(params["noise_seed"].reshape(-1)[0]))
         result = form_image(

@@ -197,7 +197,10 @@ class CameraMetadata:
         for name in FULL_FIELDS:
             v = getattr(self, name)
             low, high = METADATA_RANGES[name]
-            bad = ~torch.isfinite(v) | (v < low) | (v > high)
+            # A relative slack of 1e-6 absorbs float32 rounding of the range ends (0.2 s stored in
+            # float32 is 0.2000000030 in float64) without admitting physically different values.
+            slack = 1e-6 * max(abs(low), abs(high))
+            bad = ~torch.isfinite(v) | (v < low - slack) | (v > high + slack)
             if name == "is_cmos":
                 bad = bad | ((v != 0) & (v != 1))
             if bool(bad.any()):

@@ -126,3 +126,10 @@ def test_gain_factor_and_dn_per_electron():
     assert m.dn_per_electron.item() == pytest.approx(10 * 255 / 14000, rel=1e-5)
     assert m.temperature_k.item() == pytest.approx(298.15)
     assert not math.isnan(m.gain_factor.item())
+
+
+def test_float32_range_ends_survive_float64_conversion():
+    m = CameraMetadata.preset("ICX285", exposure_s=0.2, pixel_size_um=0.9, gain_db=24.0)
+    assert m.to(dtype=torch.float64).exposure_s.item() == pytest.approx(0.2)
+    with pytest.raises(ValueError, match="exposure_s"):
+        CameraMetadata.preset("ICX285", exposure_s=0.2001)

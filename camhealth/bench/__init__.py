@@ -1,0 +1,120 @@
+"""Benchmarks: ``python -m camhealth.bench <name> [options]``.
+
+Each benchmark is a module registered in :data:`BENCHMARKS` (name → module path) that provides
+
+* ``HELP`` — one line for ``--help``;
+* ``add_arguments(parser)`` — its own options (the common ones are added by the CLI);
+* ``run(args) -> BenchResult`` — the measurement.
+
+Add a benchmark (e.g. ``estimators``, ``data``) by writing such a module and adding one line here. The
+table formatting (plain text and markdown) is shared.
+"""
+
+from __future__ import annotations
+
+import importlib
+import statistics
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import Sequence
+
+__all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_table"]
+
+#: Registered benchmarks: CLI name → module implementing ``HELP``, ``add_arguments`` and ``run``.
+BENCHMARKS: dict[str, str] = {
+    "corruption": "camhealth.bench.corruption",
+    "data": "camhealth.bench.data",
+}
+
+
+def load(name: str) -> ModuleType:
+    """Import the module of benchmark ``name`` (``ValueError`` listing the known ones otherwise)."""
+    if name not in BENCHMARKS:
+        raise ValueError(f"unknown benchmark {name!r}; known: {sorted(BENCHMARKS)}")
+    return importlib.import_module(BENCHMARKS[name])
+
+
+def timing_stats(times_ms: Sequence[float]) -> tuple[float, float, float]:
+    """(median, first quartile, third quartile) of a list of timings [ms]."""
+    xs = sorted(times_ms)
+    if not xs:
+        return float("nan"), float("nan"), float("nan")
+    if len(xs) == 1:
+        return xs[0], xs[0], xs[0]
+    q1, _, q3 = statistics.quantiles(xs, n=4, method="inclusive")
+    return statistics.median(xs), q1, q3
+
+
+@dataclass
+class Row:
+    """One timed item: ``times_ms`` per repeat (already scaled to the full batch), a ``ratio`` to the
+    baseline row (filled by :class:`BenchResult`), an optional ``speedup`` (loop time / vectorised time)
+    with what it compares in ``speedup_of``, and a free-text ``note``."""
+
+    name: str
+    times_ms: list[float]
+    note: str = ""
+    speedup: float | None = None
+    speedup_of: str = ""
+    ratio: float | None = None
+
+    @property
+    def median_ms(self) -> float:
+        return timing_stats(self.times_ms)[0]
+
+    @property
+    def iqr_ms(self) -> tuple[float, float]:
+        _, q1, q3 = timing_stats(self.times_ms)
+        return q1, q3
+
+
+@dataclass
+class BenchResult:
+    """Rows plus the name of the baseline row for the ratio column, header lines and summary lines."""
+
+    title: str
+    rows: list[Row]
+    baseline: str
+    header: list[str] = field(default_factory=list)
+    summary: list[str] = field(default_factory=list)
+
+    def row(self, name: str) -> Row:
+        for r in self.rows:
+            if r.name == name:
+                return r
+        raise KeyError(name)
+
+    def fill_ratios(self) -> None:
+        base = self.row(self.baseline).median_ms
+        for r in self.rows:
+            r.ratio = r.median_ms / base if base > 0 else float("nan")
+
+
+def _fmt(x: float | None, spec: str) -> str:
+    return "–" if x is None or x != x else format(x, spec)
+
+
+def format_table(result: BenchResult, markdown: bool = False) -> str:
+    """The result as a plain-text or markdown table, with header and summary lines."""
+    result.fill_ratios()
+    cols = ["row", "ms/batch (median)", "IQR [ms]", f"× {result.baseline}", "speed-up", "note"]
+    body = []
+    for r in result.rows:
+        q1, q3 = r.iqr_ms
+        speed = "" if r.speedup is None else f"{r.speedup:.0f}× ({r.speedup_of})" if r.speedup >= 10 else f"{r.speedup:.1f}× ({r.speedup_of})"
+        body.append([r.name, _fmt(r.median_ms, ".1f"), f"{_fmt(q1, '.1f')}–{_fmt(q3, '.1f')}", _fmt(r.ratio, ".2f"), speed, r.note])
+    lines: list[str] = []
+    if markdown:
+        lines += [f"### {result.title}", ""] + [f"{h}  " for h in result.header] + [""]
+        lines.append("| " + " | ".join(cols) + " |")
+        lines.append("|" + "|".join(["---", "---:", "---:", "---:", "---:", "---"]) + "|")
+        lines += ["| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in body]
+        lines += [""] + [f"- {s}" for s in result.summary]
+    else:
+        widths = [max(len(cols[i]), *(len(row[i]) for row in body)) for i in range(len(cols))]
+        align = ["<", ">", ">", ">", "<", "<"]
+        fmt_row = lambda row: "  ".join(f"{c:{a}{w}}" for c, a, w in zip(row, align, widths)).rstrip()  # noqa: E731
+        lines += [result.title, "=" * len(result.title)] + result.header + [""]
+        lines += [fmt_row(cols), fmt_row(["-" * w for w in widths])] + [fmt_row(row) for row in body]
+        lines += [""] + result.summary
+    return "\n".join(lines)

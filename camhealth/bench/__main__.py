@@ -1,0 +1,64 @@
+"""Command line: ``python -m camhealth.bench <benchmark> [--batch B --size S --repeats N --warmup N
+--threads T --markdown --out FILE]``. Benchmarks are listed in :data:`camhealth.bench.BENCHMARKS`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from camhealth.bench import BENCHMARKS, format_table, load
+
+
+def _positive(value: str) -> int:
+    n = int(value)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be ≥ 1, got {n}")
+    return n
+
+
+def _non_negative(value: str) -> int:
+    n = int(value)
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {n}")
+    return n
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m camhealth.bench", description=__doc__)
+    sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
+    for name in BENCHMARKS:
+        module = load(name)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        p.add_argument("--batch", type=_positive, default=32, help="batch size B (default 32)")
+        p.add_argument("--size", type=_positive, default=192, help="image side H = W in px (default 192)")
+        p.add_argument("--repeats", type=_positive, default=20, help="timed repeats per row (default 20)")
+        p.add_argument("--warmup", type=_non_negative, default=2, help="untimed warm-up calls per row (default 2)")
+        p.add_argument("--threads", type=_positive, default=None, help="torch intra-op threads (default: torch's)")
+        p.add_argument("--seed", type=int, default=0, help="seed of the batch and of the parameters (default 0)")
+        p.add_argument("--markdown", action="store_true", help="print a markdown table")
+        p.add_argument("--out", type=Path, default=None, help="append the markdown table to FILE (created if missing)")
+        module.add_arguments(p)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    import torch
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    args.command_line = "python -m camhealth.bench " + " ".join(sys.argv[1:] if argv is None else argv)
+    result = load(args.benchmark).run(args)
+    print(format_table(result, markdown=args.markdown), flush=True)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with args.out.open("a", encoding="utf-8") as fh:
+            fh.write(format_table(result, markdown=True) + "\n\n")
+        print(f"\nappended the markdown table to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

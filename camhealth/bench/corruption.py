@@ -1,0 +1,190 @@
+"""``python -m camhealth.bench corruption``: ms per batch of the corruption modules on this machine.
+
+Rows, all on the same B×1×S×S batch (uniform random intensities, fixed seed):
+
+* camhealth: :class:`~camhealth.augment.RandomDefocusBlur` (diameters 1–21 px),
+  :class:`~camhealth.augment.RandomMotionBlur` linear and non-linear (lengths 1–21 px),
+  :class:`~camhealth.augment.RandomSensorNoise` (all sources, metadata sampled from Table 4.1) and the full
+  :class:`~camhealth.augment.CameraCorruption` (defaults: all three components, p = 1);
+* Kornia: ``RandomMotionBlur(kernel_size=21)`` with random angle and direction, and ``RandomGaussianNoise``,
+  both p = 1 — the baseline of the ratio column is Kornia's ``RandomMotionBlur``;
+* the per-image NumPy/SciPy loop of :mod:`camhealth.bench.reference_loop` doing the same physics with the
+  parameters of a ``CameraCorruption`` call (timed on a few images, scaled to the batch);
+* the source-follower σ of Eq. 3.17: vectorised for the batch vs a Python loop over 15 000 frequencies per
+  sample (timed on a few samples, scaled to the batch).
+
+Timing: the torch rows are timed round-robin (one call of each row per repeat), so that load from other
+processes on a shared machine hits all rows alike; median and inter-quartile range over the repeats.
+Every call draws fresh random parameters, as in training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import os
+import platform
+import shutil
+import subprocess
+import time
+from typing import Callable
+
+import numpy as np
+import torch
+
+from camhealth.bench import BenchResult, Row
+from camhealth.bench.reference_loop import N_FREQUENCIES, corrupt_batch, params_from_torch, source_follower_sigma_e_loop
+
+HELP = "ms per batch of the camhealth corruption modules vs Kornia and a per-image NumPy/SciPy loop"
+
+CAMERA = "camhealth CameraCorruption (full chain)"
+KORNIA_MOTION = "kornia RandomMotionBlur"
+LOOP = "NumPy/SciPy per-image loop (same chain)"
+SF_VEC = "σ_SF vectorised (Eq. 3.17)"
+SF_LOOP = "σ_SF Python loop over frequencies"
+
+#: Targets of the issue: full chain ≤ 2× Kornia's motion blur; ≥ 20× faster than the per-image loop.
+TARGET_RATIO_TO_KORNIA = 2.0
+TARGET_SPEEDUP_VS_LOOP = 20.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--loop-images", type=int, default=4, help="images the reference loop is timed on (default 4)")
+    parser.add_argument("--loop-repeats", type=int, default=3, help="timed repeats of the loop rows (default 3)")
+    parser.add_argument(
+        "--sf-frequencies", type=int, default=N_FREQUENCIES, help=f"length of the σ_SF loop (default {N_FREQUENCIES})"
+    )
+
+
+def machine_description() -> str:
+    """CPU model (``lscpu``), core count and library versions, one line."""
+    model = ""
+    if shutil.which("lscpu"):
+        try:
+            out = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=10).stdout
+            model = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model name")), "")
+        except (OSError, subprocess.SubprocessError):
+            model = ""
+    if not model and os.path.exists("/proc/cpuinfo"):
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), "")
+    model = model or platform.processor() or platform.machine()
+    import kornia
+    import scipy
+
+    return (
+        f"{model}, {os.cpu_count()} cores; torch {torch.__version__} ({torch.get_num_threads()} threads), "
+        f"kornia {kornia.__version__}, numpy {np.__version__}, scipy {scipy.__version__}, Python {platform.python_version()}"
+    )
+
+
+def _time_round_robin(fns: dict[str, Callable[[], object]], repeats: int, warmup: int) -> dict[str, list[float]]:
+    for fn in fns.values():
+        for _ in range(warmup):
+            fn()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
+def _load() -> str:
+    try:
+        return "/".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def run(args: argparse.Namespace) -> BenchResult:
+    import kornia.augmentation as K
+
+    from camhealth.augment import CameraCorruption, RandomDefocusBlur, RandomMotionBlur, RandomSensorNoise
+    from camhealth.physics.metadata import CameraMetadata
+    from camhealth.physics.readout_noise import source_follower_sigma_e
+
+    b, s = args.batch, args.size
+    load_before = _load()
+    torch.manual_seed(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    x = torch.rand(b, 1, s, s, generator=gen)
+
+    modules: dict[str, torch.nn.Module] = {
+        "camhealth RandomDefocusBlur (d 1–21 px)": RandomDefocusBlur(diameter=(1.0, 21.0)),
+        "camhealth RandomMotionBlur linear (L 1–21 px)": RandomMotionBlur(length=(1.0, 21.0)),
+        "camhealth RandomMotionBlur non-linear (L 1–21 px)": RandomMotionBlur(length=(1.0, 21.0), intensity=(0.0, 1.0)),
+        "camhealth RandomSensorNoise (PN+DCSN+RN)": RandomSensorNoise(),
+        CAMERA: CameraCorruption(),
+        KORNIA_MOTION: K.RandomMotionBlur(kernel_size=21, angle=(0.0, 180.0), direction=(-1.0, 1.0), p=1.0),
+        "kornia RandomGaussianNoise": K.RandomGaussianNoise(mean=0.0, std=10.0 / 255.0, p=1.0),
+    }
+    meta = CameraMetadata.sample(b, generator=gen)
+    fns: dict[str, Callable[[], object]] = {name: (lambda m=m: m(x)) for name, m in modules.items()}
+    fns[SF_VEC] = lambda: source_follower_sigma_e(meta)
+    with torch.inference_mode():
+        times = _time_round_robin(fns, args.repeats, args.warmup)
+
+    # --- the per-image loop redoes a CameraCorruption call (same images, parameters and metadata)
+    cam: CameraCorruption = modules[CAMERA]  # type: ignore[assignment]
+    n_loop = max(1, min(args.loop_images, b))
+    with torch.inference_mode():
+        cam(x)
+    kw = params_from_torch(cam._params, cam._defocus_ks, cam._motion_ks)
+    sub = {k: (v[:n_loop] if isinstance(v, np.ndarray) else v) for k, v in kw.items() if k != "meta"}
+    sub_meta = {k: v[:n_loop] for k, v in kw["meta"].items()}
+    images = x[:n_loop, 0].double().numpy()
+    loop_times = []
+    for r in range(max(1, args.loop_repeats)):
+        t0 = time.perf_counter()
+        corrupt_batch(images, sub_meta, seed=args.seed + r, n_frequencies=args.sf_frequencies, **sub)
+        loop_times.append((time.perf_counter() - t0) * 1e3 * b / n_loop)
+
+    sf_times = []
+    cols = [meta.white_noise_v_per_rthz, meta.pixel_clock_hz, meta.sense_node_gain_v_per_e, meta.is_cmos]
+    vals = [c.double().tolist() for c in cols]
+    for _ in range(max(1, args.loop_repeats)):
+        t0 = time.perf_counter()
+        for i in range(n_loop):
+            source_follower_sigma_e_loop(vals[0][i], vals[1][i], vals[2][i], vals[3][i] > 0.5, meta.constants, args.sf_frequencies)
+        sf_times.append((time.perf_counter() - t0) * 1e3 * b / n_loop)
+
+    rows = [Row(name, times[name]) for name in modules]
+    cam_ms = rows[4].median_ms
+    sf_row = Row(SF_VEC, times[SF_VEC], note=f"batch of {b} samples")
+    loop_row = Row(LOOP, loop_times, note=f"timed on {n_loop} image(s) × {b // n_loop if b % n_loop == 0 else f'{b / n_loop:.2f}'}")
+    loop_row.speedup, loop_row.speedup_of = loop_row.median_ms / cam_ms, "CameraCorruption"
+    sfl_row = Row(
+        SF_LOOP,
+        sf_times,
+        note=f"{args.sf_frequencies} frequencies per sample; timed on {n_loop} sample(s), scaled to {b}",
+    )
+    sfl_row.speedup, sfl_row.speedup_of = sfl_row.median_ms / sf_row.median_ms, "vectorised σ_SF"
+    rows += [loop_row, sf_row, sfl_row]
+
+    result = BenchResult(
+        title=f"Corruption benchmark: batch {b}×1×{s}×{s}, float32, CPU",
+        rows=rows,
+        baseline=KORNIA_MOTION,
+    )
+    result.fill_ratios()
+    ratio = result.row(CAMERA).ratio or float("nan")
+    speedup = loop_row.speedup or float("nan")
+    result.header = [
+        f"machine: {machine_description()}",
+        f"command: `{getattr(args, 'command_line', 'python -m camhealth.bench corruption')}`",
+        f"date: {_dt.datetime.now().isoformat(timespec='seconds')}; load average before/after: {load_before} → {_load()}",
+        f"torch rows: median over {args.repeats} round-robin repeats after {args.warmup} warm-up calls; loop rows: "
+        f"{max(1, args.loop_repeats)} repeats",
+    ]
+    result.summary = [
+        f"CameraCorruption = {ratio:.2f}× kornia RandomMotionBlur (target ≤ {TARGET_RATIO_TO_KORNIA:g}×: "
+        f"{'met' if ratio <= TARGET_RATIO_TO_KORNIA else 'NOT met'})",
+        f"CameraCorruption is {speedup:.0f}× faster than the per-image NumPy/SciPy loop (target ≥ "
+        f"{TARGET_SPEEDUP_VS_LOOP:g}×: {'met' if speedup >= TARGET_SPEEDUP_VS_LOOP else 'NOT met'})",
+        f"σ_SF: the vectorised integral is {sfl_row.speedup:.0f}× faster than the loop over "
+        f"{args.sf_frequencies} frequencies",
+        f"loop rows are timed on {n_loop} image(s)/sample(s) and scaled linearly to the batch of {b}",
+    ]
+    return result

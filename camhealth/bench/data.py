@@ -1,0 +1,106 @@
+"""``python -m camhealth.bench data``: patches per second delivered by the training DataModules.
+
+Rows (embedded default images unless ``--source``; ``--batch`` patches per batch):
+
+* :class:`~datamodules.NoiseDataModule` training batches (128 px, all noise sources, ξ probability 0.5) and
+  validation batches (fixed, seeded corruption);
+* :class:`~datamodules.BlurDataModule` training batches (192 px, defocus / linear / non-linear motion, sizes
+  up to 31 px), without and with noise after the blur (Fig. 3.7 order).
+
+One timed call = fetch the next clean batch from the DataLoader (patch extraction, augmentation, collation)
++ ``on_after_batch_transfer`` (the corruption and labels) on the CPU, i.e. what a training loop waits for.
+Rows are timed round-robin so that load from other processes hits all rows alike. ``--size`` is not used
+(the patch sizes are ``--noise-patch`` and ``--blur-patch``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import time
+from typing import Any, Callable
+
+import torch
+
+from camhealth.bench import BenchResult, Row
+
+HELP = "patches/s delivered by NoiseDataModule and BlurDataModule (loading + on-the-fly corruption)"
+
+NOISE_TRAIN = "NoiseDataModule train"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--source", default="default", help="image source spec (default: the embedded images)")
+    parser.add_argument("--workers", type=int, default=0, help="DataLoader workers (default 0)")
+    parser.add_argument("--noise-patch", type=int, default=128, help="noise patch size in px (default 128)")
+    parser.add_argument("--blur-patch", type=int, default=192, help="blur patch size in px (default 192)")
+
+
+def _cycle(loader: Any) -> Callable[[], Any]:
+    it = iter(loader)
+
+    def next_batch():
+        nonlocal it
+        try:
+            return next(it)
+        except StopIteration:
+            it = iter(loader)
+            return next(it)
+
+    return next_batch
+
+
+def run(args: argparse.Namespace) -> BenchResult:
+    from camhealth.bench.corruption import _load, machine_description
+    from datamodules import BlurDataModule, NoiseDataModule
+
+    b = args.batch
+    load_before = _load()
+    torch.manual_seed(args.seed)
+    common = dict(source=args.source, batch_size=b, num_workers=args.workers, seed=args.seed, val_patches_per_image=b)
+    specs = {
+        NOISE_TRAIN: (NoiseDataModule(patch_size=args.noise_patch, **common), "train", f"{args.noise_patch} px, PN+DCSN+RN, ξ p = 0.5"),
+        "NoiseDataModule val": (NoiseDataModule(patch_size=args.noise_patch, **common), "val", "fixed seeded crops + corruption"),
+        "BlurDataModule train": (BlurDataModule(patch_size=args.blur_patch, **common), "train", f"{args.blur_patch} px, 3 families, size ≤ 31 px"),
+        "BlurDataModule train + noise": (
+            BlurDataModule(patch_size=args.blur_patch, noise=True, **common), "train", "blur, then noise in Fig. 3.7 order",
+        ),
+    }
+    nexts, corr = {}, {}
+    for name, (dm, stage, _) in specs.items():
+        dm.setup("fit" if stage == "train" else "validate")
+        nexts[name] = _cycle(dm.train_dataloader() if stage == "train" else dm.val_dataloader())
+        corr[name] = []
+    times: dict[str, list[float]] = {name: [] for name in specs}
+    sizes: dict[str, int] = {}
+    for rep in range(args.warmup + args.repeats):
+        for name, (dm, _, _) in specs.items():
+            t0 = time.perf_counter()
+            batch = nexts[name]()
+            t1 = time.perf_counter()
+            out = dm.on_after_batch_transfer(batch, 0)
+            t2 = time.perf_counter()
+            sizes[name] = int(out["image"].shape[0])
+            if rep >= args.warmup:
+                times[name].append((t2 - t0) * 1e3)
+                corr[name].append((t2 - t1) * 1e3)
+    rows = []
+    summary = []
+    for name, (_, _, what) in specs.items():
+        row = Row(name, times[name])
+        n = sizes[name]
+        pps = n * 1e3 / row.median_ms
+        cps = n * 1e3 / sorted(corr[name])[len(corr[name]) // 2]
+        row.note = f"{pps:.0f} patches/s ({what}; corruption alone {cps:.0f}/s; {n} per batch)"
+        rows.append(row)
+        summary.append(f"{name}: {pps:.0f} patches/s delivered incl. corruption")
+    result = BenchResult(title=f"Data benchmark: batches of {b} patches, CPU, {args.workers} workers", rows=rows, baseline=NOISE_TRAIN)
+    result.header = [
+        f"machine: {machine_description()}",
+        f"command: `{getattr(args, 'command_line', 'python -m camhealth.bench data')}`",
+        f"date: {_dt.datetime.now().isoformat(timespec='seconds')}; load average before/after: {load_before} → {_load()}",
+        f"median over {args.repeats} round-robin repeats after {args.warmup} warm-up batches; one call = next clean batch "
+        "from the DataLoader + on_after_batch_transfer (corruption + labels)",
+    ]
+    result.summary = summary
+    return result
