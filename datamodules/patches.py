@@ -461,16 +461,7 @@ class PatchDataModule(L.LightningDataModule):
         loader = self._loader(stage)
         if not loader:
             raise ValueError(f"the {stage} split is empty: nothing to measure")
-        it = iter(loader)
-
-        def next_batch():
-            nonlocal it
-            try:
-                return next(it)
-            except StopIteration:
-                it = iter(loader)
-                return next(it)
-
+        next_batch = cycle_batches(loader)
         load_s = corr_s = 0.0
         patches = 0
         for k in range(warmup + n_batches):
@@ -500,3 +491,18 @@ class PatchDataModule(L.LightningDataModule):
         s = dict(self.stats)
         s["corruption_patches_per_s"] = s["patches"] / s["corruption_s"] if s["corruption_s"] > 0 else float("nan")
         return s
+
+
+def cycle_batches(loader: Any) -> Callable[[], Any]:
+    """A function returning the loader's next batch, restarting the loader when it is exhausted."""
+    it = iter(loader)
+
+    def next_batch() -> Any:
+        nonlocal it
+        try:
+            return next(it)
+        except StopIteration:
+            it = iter(loader)
+            return next(it)
+
+    return next_batch

@@ -95,7 +95,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
         flags: Dict[str, Any],
         transform: Optional[torch.Tensor] = None,
     ) -> torch.Tensor:
-        b, dev = input.shape[0], input.device
+        dev = input.device
         dpsf = self.defocus_psf(params, dev) if self._defocus_ks is not None else None
         mpsf = self.motion_psf(params, dev) if self._motion_ks is not None else None
         meta = None

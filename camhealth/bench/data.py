@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import time
-from typing import Any, Callable
 
 import torch
 
@@ -36,23 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blur-patch", type=int, default=192, help="blur patch size in px (default 192)")
 
 
-def _cycle(loader: Any) -> Callable[[], Any]:
-    it = iter(loader)
-
-    def next_batch():
-        nonlocal it
-        try:
-            return next(it)
-        except StopIteration:
-            it = iter(loader)
-            return next(it)
-
-    return next_batch
-
-
 def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load, machine_description
     from datamodules import BlurDataModule, NoiseDataModule
+    from datamodules.patches import cycle_batches
 
     b = args.batch
     load_before = _load()
@@ -69,7 +55,7 @@ def run(args: argparse.Namespace) -> BenchResult:
     nexts, corr = {}, {}
     for name, (dm, stage, _) in specs.items():
         dm.setup("fit" if stage == "train" else "validate")
-        nexts[name] = _cycle(dm.train_dataloader() if stage == "train" else dm.val_dataloader())
+        nexts[name] = cycle_batches(dm.train_dataloader() if stage == "train" else dm.val_dataloader())
         corr[name] = []
     times: dict[str, list[float]] = {name: [] for name in specs}
     sizes: dict[str, int] = {}

@@ -13,7 +13,7 @@ Units are in the field names: ``gain_db`` [dB], ``exposure_s`` [s], ``temperatur
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import torch

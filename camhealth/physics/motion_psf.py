@@ -31,7 +31,6 @@ rescaled so the arc length is exactly L. Intensity 0 gives exactly the straight 
 
 from __future__ import annotations
 
-import math
 
 import torch
 
