@@ -24,6 +24,7 @@ __all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_t
 BENCHMARKS: dict[str, str] = {
     "corruption": "camhealth.bench.corruption",
     "data": "camhealth.bench.data",
+    "classical": "camhealth.bench.classical",
 }
 
 

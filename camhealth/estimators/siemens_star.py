@@ -1,0 +1,307 @@
+"""Siemens-star MTF measurement after ISO 15775 (thesis Sec. 3.3.1.2, Eq. 3.22–3.25), batched.
+
+A Siemens star of f_s bright/dark pairs has, on the circle of radius r around its centre, a square wave
+of normalised frequency (Eq. 3.22)
+
+    f_n = f_s / (π r)        (fraction of Nyquist; f = f_s / (2π r) cycles/px).
+
+The measurement, for every image of a batch:
+
+1. **Discrete CTF per radius** (Eq. 3.23). The star is cut into rings of 1 px (pixel centres, no
+   interpolation) and ``n_sectors`` angular sectors. In each ring and sector
+   ``CTF_D = (I_max − I_min) / (I_max + I_min)``, normalised by the chart's own modulation
+   ``(I_w − I_b)/(I_w + I_b)`` measured in the uniform reference areas (median intensities; see
+   :func:`~camhealth.estimators.charts.siemens_star_chart`). On a ring the stripes run radially, so a
+   sector around the top or bottom of the star (tangent horizontal) measures the **horizontal** MTF and
+   a sector around the left or right the **vertical** MTF; the two opposite sectors are averaged.
+2. **Gaussian fit** (Eq. 3.24). A Gaussian ``CTF(f) = exp(−(f − μ)² / (2 s²))`` in f_n is fitted to the
+   CTF_D samples by least squares — each ring weighted by the frequency interval it covers,
+   ``|df/dr|·1 px ∝ f²``, so the sum approximates the integral over f of Eq. 3.24 — with a batched
+   Levenberg–Marquardt iteration started from a log-quadratic fit.
+3. **CTF → MTF** (Eq. 3.25; Coltman 1954). A square wave is a series of odd harmonics, so the
+   square-wave response CTF relates to the sine-wave response MTF by
+   ``MTF(f) = π/4 · Σ_k B_k · CTF(k f)`` over odd k with ``B_k = (−1)^{m + (k−1)/2} / k`` for k square-free
+   with m prime factors and B_k = 0 otherwise: ``π/4 [CTF(f) + CTF(3f)/3 − CTF(5f)/5 + CTF(7f)/7 +
+   CTF(11f)/11 − CTF(13f)/13 − CTF(15f)/15 + …]``. (Eq. 3.25 in the thesis prints the first terms with
+   plus signs; the signs here are Coltman's, which make the series the exact inverse of
+   ``CTF(f) = 4/π Σ_{k odd} (−1)^{(k−1)/2} MTF(k f)/k`` — checked in the tests.) The series runs to
+   k = 99 (the fitted Gaussian extrapolates the CTF beyond the measured rings) and is divided by its
+   value for CTF ≡ 1, π/4·Σ_{k ≤ 99} B_k = 1.011, so that an unblurred chart gives MTF ≡ 1. (Normalising
+   by the series at f = 0 instead would inflate the MTF whenever the fit puts μ > 0, which it does to
+   follow the flat top of a square-wave response, CTF_D = 1 while the stripes are wider than the blur.)
+
+With ``aperture=True`` the pixel aperture of an area-rendered chart, sinc(f), is divided out (H and V).
+The Gaussian model is smooth and cannot follow the zeros and contrast reversals of large defocus
+(|jinc| side lobes), which bounds the accuracy for large blur; see ``docs/estimators_classical.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Sequence, Union
+
+import torch
+
+from camhealth._validation import check_image, check_range
+from camhealth.estimators.charts import siemens_star_geometry
+from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
+
+__all__ = [
+    "SiemensStarResult",
+    "coltman_coefficients",
+    "ctf_from_mtf",
+    "mtf_from_ctf",
+    "gaussian_ctf_fit",
+    "siemens_star_ctf",
+    "siemens_star_mtf",
+]
+
+_K_MAX = 99
+
+
+@functools.lru_cache(maxsize=4)
+def _coltman(k_max: int) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    ks, bs = [], []
+    for k in range(1, k_max + 1, 2):
+        n, m, p, square_free = k, 0, 3, True
+        while n > 1 and p * p <= n:
+            if n % p == 0:
+                n //= p
+                m += 1
+                if n % p == 0:
+                    square_free = False
+                    break
+            else:
+                p += 2
+        if not square_free:
+            continue
+        if n > 1:
+            m += 1
+        ks.append(k)
+        bs.append((-1.0) ** (m + (k - 1) // 2) / k)
+    return tuple(ks), tuple(bs)
+
+
+def coltman_coefficients(k_max: int = _K_MAX) -> tuple[torch.Tensor, torch.Tensor]:
+    """Odd harmonics k ≤ k_max and Coltman's coefficients B_k of ``MTF = π/4 Σ B_k CTF(k f)`` (float64)."""
+    ks, bs = _coltman(int(k_max))
+    return torch.tensor(ks, dtype=torch.float64), torch.tensor(bs, dtype=torch.float64)
+
+
+def ctf_from_mtf(mtf_fn, f: torch.Tensor, k_max: int = _K_MAX) -> torch.Tensor:
+    """Square-wave response of a system: ``CTF(f) = 4/π Σ_{k odd ≤ k_max} (−1)^{(k−1)/2} MTF(k f)/k``.
+
+    ``mtf_fn`` maps a tensor of frequencies to MTF values (any unit, used consistently with ``f``).
+    """
+    k = torch.arange(1, k_max + 1, 2, dtype=torch.float64, device=f.device)
+    sign = torch.where(((k - 1) / 2) % 2 == 0, 1.0, -1.0)
+    vals = mtf_fn(f.double()[..., None] * k)
+    return 4.0 / math.pi * (sign / k * vals).sum(dim=-1)
+
+
+def mtf_from_ctf(ctf_fn, f: torch.Tensor, k_max: int = _K_MAX) -> torch.Tensor:
+    """Coltman's inversion (Eq. 3.25): ``MTF(f) = π/4 Σ_k B_k CTF(k f)`` for a callable CTF."""
+    k, bk = coltman_coefficients(k_max)
+    k, bk = k.to(f.device), bk.to(f.device)
+    return math.pi / 4.0 * (bk * ctf_fn(f.double()[..., None] * k)).sum(dim=-1)
+
+
+def _gauss(f: torch.Tensor, mu: torch.Tensor, log_s: torch.Tensor) -> torch.Tensor:
+    return torch.exp(-0.5 * ((f - mu[..., None]) / torch.exp(log_s)[..., None]).square())
+
+
+def gaussian_ctf_fit(
+    f: torch.Tensor, ctf: torch.Tensor, weight: torch.Tensor | None = None, iterations: int = 60
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted least-squares fit of ``exp(−(f − μ)²/(2 s²))`` to CTF samples (Eq. 3.24), batched.
+
+    Args:
+        f: (N,) or (…, N) frequencies; ctf: (…, N) samples (NaN = no sample); weight: like ``ctf`` or None.
+        iterations: Levenberg–Marquardt iterations.
+
+    Returns:
+        μ and s (each (…)), in the unit of ``f``.
+    """
+    f = f.double().expand_as(ctf) if f.ndim == 1 else f.double()
+    y = ctf.double()
+    w = torch.ones_like(y) if weight is None else weight.double().expand_as(y).clone()
+    valid = torch.isfinite(y)
+    w = torch.where(valid, w, torch.zeros_like(w))
+    y = torch.where(valid, y, torch.zeros_like(y))
+    # start: log-quadratic fit ln y ≈ c0 + c1 f + c2 f² on the samples above 0.05 (weighted by y²)
+    pos = (y > 0.05) & valid
+    wl = torch.where(pos, w * y.square(), torch.zeros_like(w))
+    ly = torch.where(pos, torch.log(y.clamp_min(1e-6)), torch.zeros_like(y))
+    basis = torch.stack([torch.ones_like(f), f, f.square()], dim=-1)  # (…, N, 3)
+    ata = (basis * wl[..., None]).transpose(-1, -2) @ basis + 1e-9 * torch.eye(3, dtype=f.dtype, device=f.device)
+    atb = ((basis * wl[..., None]) * ly[..., None]).sum(dim=-2)
+    coef = torch.linalg.solve(ata, atb)
+    c2 = coef[..., 2].clamp(max=-1e-3)
+    s0 = torch.sqrt(-0.5 / c2)
+    mu0 = (-coef[..., 1] / (2 * c2)).clamp(-3.0 * s0, 3.0 * s0)
+    fmax = torch.where(valid, f, torch.zeros_like(f)).amax(dim=-1)
+    mu = torch.where(torch.isfinite(mu0), mu0, torch.zeros_like(mu0))
+    log_s = torch.log(torch.where(torch.isfinite(s0), s0, fmax).clamp(1e-3, 1e3))
+    lam = torch.full_like(mu, 1e-2)
+
+    def loss(m: torch.Tensor, ls: torch.Tensor) -> torch.Tensor:
+        return (w * (_gauss(f, m, ls) - y).square()).sum(dim=-1)
+
+    cur = loss(mu, log_s)
+    for _ in range(iterations):  # a fixed number of batched LM steps (not a loop over samples)
+        s = torch.exp(log_s)[..., None]
+        g = _gauss(f, mu, log_s)
+        z = (f - mu[..., None]) / s
+        j_mu = g * z / s  # ∂g/∂μ
+        j_ls = g * z.square()  # ∂g/∂ln s
+        jac = torch.stack([j_mu, j_ls], dim=-1)  # (…, N, 2)
+        r = g - y
+        jtj = (jac * w[..., None]).transpose(-1, -2) @ jac
+        jtr = ((jac * w[..., None]) * r[..., None]).sum(dim=-2)
+        damp = jtj + lam[..., None, None] * torch.diag_embed(torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-12)
+        step = torch.linalg.solve(damp, jtr)
+        mu_new, ls_new = mu - step[..., 0], (log_s - step[..., 1]).clamp(-8.0, 8.0)
+        new = loss(mu_new, ls_new)
+        better = new < cur
+        mu = torch.where(better, mu_new, mu)
+        log_s = torch.where(better, ls_new, log_s)
+        cur = torch.where(better, new, cur)
+        lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-9, 1e9)
+    return mu, torch.exp(log_s)
+
+
+@dataclass
+class SiemensStarResult:
+    """Result of :func:`siemens_star_mtf` for B images.
+
+    Attributes:
+        mtf: (B, 2F) ``[H×F, V×F]`` MTF at the requested normalised frequencies.
+        frequencies: (R,) normalised frequency of every ring (f_n = f_s / (π r)).
+        ctf_d: (B, 2, R) discrete CTF (Eq. 3.23) per ring, H and V (NaN where a ring was not used).
+        mu, s: (B, 2) Gaussian parameters (in f_n) of the fitted CTF, H and V.
+    """
+
+    mtf: torch.Tensor
+    frequencies: torch.Tensor
+    ctf_d: torch.Tensor
+    mu: torch.Tensor
+    s: torch.Tensor
+
+
+def siemens_star_ctf(
+    images: torch.Tensor,
+    centre: tuple[float, float] | None = None,
+    radius: float | None = None,
+    n_cycles: int = 32,
+    n_sectors: int = 16,
+    margin: float = 24.0,
+    levels: tuple[float, float] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Discrete CTF (Eq. 3.23) per 1-px ring, H and V: returns (f_n (R,), ctf_d (B, 2, R), ring radius (R,)).
+
+    Args:
+        images: ``B×1×S×S`` images of a Siemens star (default geometry: the star of
+            :func:`~camhealth.estimators.charts.siemens_star_chart` for that size).
+        centre: (row, col) of the star centre, px; radius: star radius, px.
+        n_cycles: f_s, the number of bright/dark pairs.
+        n_sectors: angular sectors (multiple of 4); H uses the two sectors centred at 90° and 270°.
+        margin: px kept away from the star's rim (where the blur mixes in the reference areas) and, for the
+            reference levels, from the rim and the quadrant borders.
+        levels: (dark, bright) chart levels; default: measured in the reference corners.
+    """
+    x = check_image(images, "images", channels=1)
+    b, _, h, w = x.shape
+    if centre is None or radius is None:
+        if h != w:
+            raise ValueError(f"the default star geometry needs a square image, got {h}×{w}; pass centre= and radius=")
+        cy, cx, rad = siemens_star_geometry(h)
+        centre = centre if centre is not None else (cy, cx)
+        radius = radius if radius is not None else rad
+    if isinstance(n_sectors, bool) or not isinstance(n_sectors, int) or n_sectors < 4 or n_sectors % 4:
+        raise ValueError(f"n_sectors = {n_sectors!r} must be a multiple of 4, >= 4")
+    dev = x.device
+    img = x[:, 0].double().reshape(b, -1)
+    yy, xx = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float64), torch.arange(w, device=dev, dtype=torch.float64), indexing="ij")
+    dx, dy = (xx - centre[1]).reshape(-1), (yy - centre[0]).reshape(-1)
+    r = torch.sqrt(dx * dx + dy * dy)
+    phi = torch.atan2(-dy, dx) % (2 * math.pi)
+    # reference levels from the uniform corners: bright where x·y > 0 (y down), beyond the rim + margin
+    if levels is None:
+        far = (r > radius + margin) & (dx.abs() > margin) & (dy.abs() > margin)
+        if int(far.sum()) < 16:
+            raise ValueError("the image has no reference corners beyond the star (radius + margin); pass levels=(dark, bright)")
+        bright_px = img[:, far & (dx * dy > 0)]
+        dark_px = img[:, far & (dx * dy < 0)]
+        i_w, i_b = bright_px.median(dim=1).values, dark_px.median(dim=1).values
+    else:
+        i_b = torch.full((b,), float(levels[0]), dtype=torch.float64, device=dev)
+        i_w = torch.full((b,), float(levels[1]), dtype=torch.float64, device=dev)
+    m0 = (i_w - i_b) / (i_w + i_b)
+    if bool((m0 <= 0.05).any()):
+        raise ValueError(f"chart modulation (I_w − I_b)/(I_w + I_b) = {float(m0.min()):.3f} is too low (<= 0.05): is this a Siemens star chart?")
+    r_lo = n_cycles / math.pi  # f_n = 1 (Nyquist)
+    r_hi = radius - margin
+    if r_hi <= r_lo + 4:
+        raise ValueError(f"star radius {radius:g} px is too small for n_cycles = {n_cycles} and margin = {margin:g} px")
+    use = (r >= r_lo) & (r < r_hi)
+    n_rings = int(math.floor(r_hi - r_lo))
+    ring = torch.floor(r[use] - r_lo).long().clamp(max=n_rings - 1)
+    width = 2 * math.pi / n_sectors
+    sector = torch.round(phi[use] / width).long() % n_sectors
+    cell = ring * n_sectors + sector
+    vals = img[:, use]
+    n_cells = n_rings * n_sectors
+    idx = cell.expand(b, -1)
+    i_max = torch.full((b, n_cells), -math.inf, dtype=torch.float64, device=dev).scatter_reduce(1, idx, vals, "amax")
+    i_min = torch.full((b, n_cells), math.inf, dtype=torch.float64, device=dev).scatter_reduce(1, idx, vals, "amin")
+    ctf = ((i_max - i_min) / (i_max + i_min).clamp_min(1e-12)) / m0[:, None]
+    ctf = torch.where(torch.isfinite(i_max) & torch.isfinite(i_min), ctf, torch.full_like(ctf, float("nan")))
+    ctf = ctf.reshape(b, n_rings, n_sectors)
+    q = n_sectors // 4
+    ctf_h = 0.5 * (ctf[..., q] + ctf[..., 3 * q])  # sectors at 90° and 270°: tangent horizontal
+    ctf_v = 0.5 * (ctf[..., 0] + ctf[..., 2 * q])  # sectors at 0° and 180°
+    r_sum = torch.zeros(n_rings, dtype=torch.float64, device=dev).scatter_add_(0, ring, r[use])
+    r_cnt = torch.zeros(n_rings, dtype=torch.float64, device=dev).scatter_add_(0, ring, torch.ones_like(r[use]))
+    r_mean = r_sum / r_cnt.clamp_min(1)
+    fn = n_cycles / (math.pi * r_mean)
+    return fn, torch.stack([ctf_h, ctf_v], dim=1), r_mean
+
+
+def siemens_star_mtf(
+    images: torch.Tensor,
+    frequencies: Union[Sequence[float], torch.Tensor] = NORMALIZED_FREQUENCIES,
+    aperture: bool = True,
+    **kwargs,
+) -> SiemensStarResult:
+    """H/V MTF of Siemens-star images (ISO 15775 method of Sec. 3.3.1.2): ``B×1×S×S`` → (B, 2F).
+
+    Args:
+        images: star images (see :func:`siemens_star_ctf` for the geometry keywords, passed via ``kwargs``).
+        frequencies: F normalised frequencies in [0, 1].
+        aperture: divide out the pixel aperture sinc(f) of an area-rendered chart (default True, for the
+            charts of :mod:`~camhealth.estimators.charts`).
+
+    Returns:
+        :class:`SiemensStarResult`; ``mtf`` float32 (float64 for float64 input).
+    """
+    out_dtype = torch.float64 if images.dtype == torch.float64 else torch.float32
+    fq = torch.as_tensor(frequencies, dtype=torch.float64, device=images.device).reshape(-1)
+    check_range(fq, "frequencies", 0.0, 1.0, "× Nyquist")
+    fn, ctf_d, r_mean = siemens_star_ctf(images, **kwargs)
+    weight = fn.square()  # |df/dr| per 1-px ring ∝ f²: the sum approximates ∫ … df (Eq. 3.24)
+    mu, s = gaussian_ctf_fit(fn, ctf_d, weight)  # (B, 2)
+
+    def ctf_fn(f: torch.Tensor) -> torch.Tensor:  # f (F, K) → (B, 2, F, K)
+        return torch.exp(-0.5 * ((f - mu[..., None, None]) / s[..., None, None]).square())
+
+    _, bk = coltman_coefficients()
+    mtf = mtf_from_ctf(ctf_fn, fq) / (math.pi / 4.0 * float(bk.sum()))  # a CTF ≡ 1 gives MTF ≡ 1
+    if aperture:
+        mtf = mtf / torch.sinc(0.5 * fq).abs()
+    b = mtf.shape[0]
+    return SiemensStarResult(
+        mtf=mtf.reshape(b, -1).to(out_dtype), frequencies=fn.to(out_dtype), ctf_d=ctf_d.to(out_dtype),
+        mu=mu.to(out_dtype), s=s.to(out_dtype),
+    )

@@ -1,0 +1,102 @@
+"""Error metrics of the thesis: AMAE for MTF estimates (Eq. 5.1) and Bias/Std/RMS for noise levels (Eq. 6.2).
+
+**AMAE** (Eq. 5.1). For an estimated and a ground-truth MTF sampled at the 8 normalised frequencies
+f_i in the horizontal (H) and vertical (V) direction — camhealth's ``(…, 16)`` layout ``[H×8, V×8]``::
+
+    MAE(w) = 1/8 · Σ_i |MTF_w^GT(f_i) − MTF^_w(f_i)|,   w ∈ {H, V}
+    AMAE   = 1/2 · (MAE(H) + MAE(V))
+
+reported in **%** (× 100; MTF values are dimensionless in [0, 1]). Frequencies whose estimate is NaN
+(e.g. omitted by the preconditions of :mod:`camhealth.estimators.blur_under_noise`) are left out of the
+mean of their direction; a direction without any valid frequency gives NaN.
+
+**Bias / Std / RMS** (Eq. 6.2 as fixed in ``conventions.md``). For true levels σ and estimates σ̂ in DN::
+
+    Bias = |E[σ − σ̂]|,   Std = std(σ̂ − σ),   RMS = √(Bias² + Std²)
+
+with E the mean over the samples and std the population standard deviation (normalised by N, the
+``E[(·)²]`` form of Eq. 6.2), so RMS equals the root-mean-square error √E[(σ̂ − σ)²].
+
+All functions are batched, NaN-aware where documented, and reject bad input with a clear error.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from camhealth._validation import check_float, check_tensor
+from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
+
+__all__ = ["N_MTF", "mae_hv", "amae", "bias_std_rms", "noise_errors"]
+
+#: Number of MTF values per direction (8) — a label vector holds ``2 * N_MTF`` = 16 values.
+N_MTF: int = len(NORMALIZED_FREQUENCIES)
+
+
+def _pair(pred: object, target: object, name_pred: str, name_target: str) -> tuple[torch.Tensor, torch.Tensor]:
+    p = check_float(check_tensor(pred, name_pred), name_pred)
+    t = check_float(check_tensor(target, name_target), name_target)
+    try:
+        p, t = torch.broadcast_tensors(p, t)
+    except RuntimeError as err:
+        raise ValueError(
+            f"{name_pred} {tuple(p.shape)} and {name_target} {tuple(t.shape)} cannot be broadcast together"
+        ) from err
+    return p, t
+
+
+def mae_hv(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """MAE of Eq. 5.1 per direction, in %: ``(…, 16)`` → ``(…, 2)`` = ``[MAE(H), MAE(V)]``.
+
+    ``target`` (the ground truth) must be finite; NaN entries of ``pred`` are skipped (see module doc).
+    """
+    p, t = _pair(pred, target, "pred", "target")
+    if p.ndim < 1 or p.shape[-1] != 2 * N_MTF:
+        raise ValueError(f"MTF tensors must have shape (..., {2 * N_MTF}) ([H×{N_MTF}, V×{N_MTF}]), got {tuple(p.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError("target MTF must be finite (NaN/inf found in the ground truth)")
+    if bool(torch.isinf(p).any()):
+        raise ValueError("pred MTF must not hold ±inf (NaN marks an omitted frequency)")
+    err = (p.double() - t.double()).abs().reshape(*p.shape[:-1], 2, N_MTF)
+    return (100.0 * torch.nanmean(err, dim=-1)).to(p.dtype)
+
+
+def amae(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """AMAE of Eq. 5.1 in %: ``(…, 16)`` → ``(…)``, the mean of MAE(H) and MAE(V)."""
+    return mae_hv(pred, target).mean(dim=-1)
+
+
+def bias_std_rms(estimate: torch.Tensor, truth: torch.Tensor, dim: int | tuple[int, ...] | None = None) -> dict[str, torch.Tensor]:
+    """Bias, Std and RMS of Eq. 6.2 in the unit of the inputs (DN for noise levels).
+
+    Args:
+        estimate: σ̂, any shape; truth: σ, broadcastable to it. Both finite.
+        dim: dimension(s) to reduce (the samples); ``None`` reduces everything.
+
+    Returns:
+        dict with ``bias`` = |mean(σ − σ̂)|, ``std`` = population std of (σ̂ − σ), ``rms`` = √(bias² + std²)
+        and ``n`` (number of samples reduced), computed in float64 and returned in the input dtype.
+    """
+    e, t = _pair(estimate, truth, "estimate", "truth")
+    for x, name in ((e, "estimate"), (t, "truth")):
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError(f"{name} must be finite for Bias/Std/RMS (found NaN/inf); drop unassessable samples first")
+    if e.numel() == 0:
+        raise ValueError("bias_std_rms needs at least one sample, got an empty tensor")
+    err = e.double() - t.double()
+    dims = tuple(range(err.ndim)) if dim is None else dim
+    mean = err.mean(dim=dims)
+    std = (err - err.mean(dim=dims, keepdim=True)).square().mean(dim=dims).sqrt()
+    n = err.numel() // max(mean.numel(), 1)
+    return {
+        "bias": mean.abs().to(e.dtype),
+        "std": std.to(e.dtype),
+        "rms": torch.sqrt(mean.square() + std.square()).to(e.dtype),
+        "n": torch.tensor(n),
+    }
+
+
+def noise_errors(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
+    """Bias/Std/RMS (DN) of a flat set of samples as plain floats (for tables and JSON)."""
+    r = bias_std_rms(estimate.reshape(-1), truth.reshape(-1))
+    return {"bias": float(r["bias"]), "std": float(r["std"]), "rms": float(r["rms"]), "n": int(r["n"])}

@@ -1,0 +1,90 @@
+"""ISO 15775 Siemens star: Coltman's CTF↔MTF series, Gaussian fit, and the measured MTF within a stated
+AMAE of the analytic disk / line MTFs on the synthetic star."""
+
+import math
+
+import pytest
+import torch
+
+from camhealth.estimators.charts import siemens_star_chart, siemens_star_geometry
+from camhealth.estimators.siemens_star import (
+    coltman_coefficients,
+    ctf_from_mtf,
+    gaussian_ctf_fit,
+    mtf_from_ctf,
+    siemens_star_ctf,
+    siemens_star_mtf,
+)
+from camhealth.metrics import amae
+from camhealth.physics import NORMALIZED_FREQUENCIES, apply_psf, defocus_psf, linear_motion_psf
+from camhealth.physics.mtf import disk_mtf, line_mtf
+
+F = torch.tensor(NORMALIZED_FREQUENCIES, dtype=torch.float64) / 2.0
+SIZES = torch.tensor([3.0, 7.0, 11.0], dtype=torch.float64)
+
+
+@pytest.fixture(scope="module")
+def star():
+    return siemens_star_chart(512)
+
+
+def test_coltman_coefficients():
+    k, b = coltman_coefficients(15)
+    assert k.tolist() == [1, 3, 5, 7, 11, 13, 15]  # 9 is not square-free
+    assert (b * k).tolist() == [1, 1, -1, 1, 1, -1, -1]
+    assert math.pi / 4 * float(coltman_coefficients(99)[1].sum()) == pytest.approx(1.0, abs=0.02)
+
+
+def test_series_round_trip():
+    """CTF from a known MTF by the square-wave series, then Eq. 3.25 gives the MTF back."""
+    mtf = lambda f: torch.exp(-(f / 0.3) ** 2)  # noqa: E731
+    f = torch.tensor([0.05, 0.1, 0.2, 0.3, 0.5], dtype=torch.float64)
+    ctf = lambda q: ctf_from_mtf(mtf, q)  # noqa: E731
+    assert torch.allclose(mtf_from_ctf(ctf, f, k_max=49), mtf(f), atol=2e-3)
+    assert bool((ctf(f) > mtf(f)).all())  # a square wave keeps more contrast than a sine
+
+
+def test_gaussian_fit_recovers_parameters():
+    f = torch.linspace(0.05, 1.0, 60, dtype=torch.float64)
+    ctf = torch.stack([torch.exp(-0.5 * ((f - 0.1) / 0.2) ** 2), torch.exp(-0.5 * (f / 0.4) ** 2)])
+    mu, s = gaussian_ctf_fit(f, ctf)
+    assert mu.tolist() == pytest.approx([0.1, 0.0], abs=1e-4) and s.tolist() == pytest.approx([0.2, 0.4], abs=1e-4)
+
+
+def test_defocus_matches_analytic_disk_within_5_percent(star):
+    img = apply_psf(star.expand(3, -1, -1, -1).contiguous(), defocus_psf(SIZES.float(), 13))
+    res = siemens_star_mtf(img.double())
+    analytic = torch.stack([disk_mtf(float(d), F) * torch.sinc(F) for d in SIZES]).repeat(1, 2)
+    assert res.mtf.shape == (3, 16) and res.ctf_d.shape[:2] == (3, 2)
+    assert float(amae(res.mtf, analytic).max()) < 5.0
+    # isotropic blur: H and V agree
+    assert float((res.mtf[:, :8] - res.mtf[:, 8:]).abs().max()) < 0.03
+
+
+def test_linear_motion_matches_analytic_line_within_8_percent(star):
+    img = apply_psf(star.expand(3, -1, -1, -1).contiguous(), linear_motion_psf(SIZES.float(), torch.zeros(3), 13))
+    res = siemens_star_mtf(img)
+    an = torch.stack([torch.cat([line_mtf(float(d), F) * torch.sinc(F), torch.ones(8, dtype=torch.float64)]) for d in SIZES])
+    assert float(amae(res.mtf, an).max()) < 8.0
+    assert bool((res.mtf[:, :8].mean(1) < res.mtf[:, 8:].mean(1)).all())  # horizontal motion: H blurrier than V
+
+
+def test_ctf_geometry_and_reference_levels(star):
+    fn, ctf, r = siemens_star_ctf(star)
+    assert fn.max() <= 1.0 and fn.min() < 0.05
+    assert torch.allclose(fn, 32 / (math.pi * r))  # Eq. 3.22
+    assert float(torch.nanmean(ctf)) == pytest.approx(1.0, abs=0.02)  # sharp chart: full contrast
+    fn2, ctf2, _ = siemens_star_ctf(star, levels=(0.2, 0.8))
+    assert torch.allclose(ctf, ctf2, equal_nan=True)
+    assert siemens_star_geometry(512) == (255.5, 255.5, 0.47 * 512)
+
+
+def test_errors(star):
+    with pytest.raises(ValueError, match="n_sectors"):
+        siemens_star_ctf(star, n_sectors=6)
+    with pytest.raises(ValueError, match="modulation"):
+        siemens_star_ctf(torch.full((1, 1, 512, 512), 0.5))
+    with pytest.raises(ValueError, match="square"):
+        siemens_star_ctf(torch.rand(1, 1, 64, 80))
+    with pytest.raises(ValueError, match="frequencies"):
+        siemens_star_mtf(star, frequencies=[2.0])

@@ -1,0 +1,195 @@
+"""``python -m camhealth.evaluate``: metrics on hand-computed examples, ``--quick`` end to end on the embedded
+data (classical methods), ``--resume``, learned rows through a fake estimator with the inference interface."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+
+import pytest
+import torch
+
+from camhealth import evaluate as ev
+from camhealth.estimators import pca_noise_sigma
+from camhealth.metrics import amae, bias_std_rms, mae_hv, noise_errors
+from camhealth.physics import CameraMetadata
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+# ---------------------------------------------------------------------------------------------- metrics
+def test_amae_by_hand():
+    gt = torch.zeros(1, 16)
+    est = torch.zeros(1, 16)
+    est[0, :8] = torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.3])  # MAE(H) = 0.4/8 = 5 %
+    est[0, 8:] = -0.02  # MAE(V) = 2 %
+    assert mae_hv(est, gt)[0].tolist() == pytest.approx([5.0, 2.0])
+    assert float(amae(est, gt)) == pytest.approx(3.5)
+    est[0, 0] = float("nan")  # an omitted frequency: MAE(H) over the other 7 = 0.3/7
+    assert float(amae(est, gt)) == pytest.approx(0.5 * (100 * 0.3 / 7 + 2.0))
+
+
+def test_bias_std_rms_by_hand():
+    truth = torch.tensor([10.0, 10.0, 20.0, 20.0])
+    est = torch.tensor([11.0, 13.0, 19.0, 21.0])  # errors +1, +3, −1, +1: mean 1, population std √2
+    r = bias_std_rms(est, truth)
+    assert float(r["bias"]) == pytest.approx(1.0)
+    assert float(r["std"]) == pytest.approx(math.sqrt(2.0))
+    assert float(r["rms"]) == pytest.approx(math.sqrt(3.0))  # = √mean(err²) = √(12/4)
+    assert int(r["n"]) == 4
+    per_col = bias_std_rms(torch.stack([est, truth], 1), torch.stack([truth, truth], 1), dim=0)
+    assert per_col["rms"].tolist() == pytest.approx([math.sqrt(3.0), 0.0])
+    assert noise_errors(est, truth) == pytest.approx({"bias": 1.0, "std": math.sqrt(2.0), "rms": math.sqrt(3.0), "n": 4})
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: amae(torch.zeros(2, 8), torch.zeros(2, 8)), r"\(\.\.\., 16\)"),
+        (lambda: amae(torch.zeros(1, 16), torch.full((1, 16), float("nan"))), "target"),
+        (lambda: bias_std_rms(torch.tensor([1.0, float("nan")]), torch.ones(2)), "finite"),
+        (lambda: bias_std_rms(torch.zeros(3), torch.zeros(2)), "broadcast"),
+        (lambda: amae(torch.zeros(1, 16, dtype=torch.long), torch.zeros(1, 16)), "floating"),
+    ],
+)
+def test_metric_errors(call, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        call()
+
+
+# ------------------------------------------------------------------------------------ --quick end to end
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("evaluate_quick")
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rc = ev.main(["--quick", "--methods", "classical", "--out", str(out), "--no-progress", "--docs", str(out / "docs" / "results.md")])
+    finally:
+        torch.set_num_threads(n)
+    return rc, out
+
+
+def test_quick_run_writes_tables_json_and_plots(quick_run):
+    rc, out = quick_run
+    assert rc == 0
+    md = (out / "results.md").read_text()
+    for title in ("like Tab. 5.1", "like Tab. 6.1", "like Tab. 5.2", "like Tab. 5.3", "Speed: every method in the same run"):
+        assert title in md
+    for method in ("PCA", "B+F", "wavelet", "slanted edge", "Siemens star"):
+        assert f"| {method} |" in md
+    assert "--quick" in md and "machine:" in md
+    assert (out / "docs" / "results.md").read_text() == md
+    report = json.loads((out / "results.json").read_text())
+    assert {r["method"] for r in report["speed"]} == {"PCA", "B+F", "wavelet", "slanted edge", "Siemens star"}
+    assert all(r["ms_per_item"] > 0 and r["items"] > 0 for r in report["speed"])
+    # the standard measurement agrees with the labels: slanted edge ≤ 2 % AMAE for defocus d ≤ 11 px
+    sle = report["blur"]["amae"]["slanted edge"]
+    assert max(sle[f"defocus {d:g}"] for d in (3, 7, 11)) < 2.0
+    assert max(v for v in report["blur"]["amae"]["slanted edge vs. exact MTF at 5°/95°"].values()) < 2.0
+    # classical noise estimators on the isolated sources are in a sane range
+    assert all(v < 8.0 for v in report["noise"]["isolated"]["PCA"].values())
+    assert set(report["aggregation"]["PCA"]) == {"1", "2", "4", "10"}
+    for png in ("error_vs_time.png", "mtf_curves.png", "noise_isolated.png", "aggregation.png"):
+        assert (out / "plots" / png).stat().st_size > 1000
+    assert report["config"]["noise_patches"] == ev.QUICK.noise_patches
+
+
+def test_resume_reuses_every_cached_unit(quick_run, capsys):
+    _, out = quick_run
+    before = json.loads((out / "results.json").read_text())
+    assert ev.main(["--quick", "--methods", "classical", "--out", str(out), "--no-progress", "--no-plots", "--resume"]) == 0
+    after = json.loads((out / "results.json").read_text())
+    assert any("reused from the cache" in n for n in after["notes"])
+    assert after["blur"] == before["blur"] and after["noise"] == before["noise"]
+    assert [r["ms_per_item"] for r in after["speed"]] == [r["ms_per_item"] for r in before["speed"]]
+
+
+def test_cli_rejects_unknown_methods():
+    with pytest.raises(SystemExit, match="unknown"):
+        ev.main(["--methods", "pca,gbb", "--out", "/nonexistent"])
+
+
+# --------------------------------------------------------------------------------- learned rows (fake)
+class FakeEstimator:
+    """Stands in for camhealth.inference.Estimator: same attributes and predict() contract."""
+
+    def __init__(self, kind: str, patch_size: int, metadata_set: str = "none") -> None:
+        self.kind, self.patch_size, self.metadata_set = kind, patch_size, metadata_set
+        self.calls = 0
+
+    def predict(self, patches, metadata=None):
+        self.calls += 1
+        assert patches.ndim == 4 and patches.shape[-1] == self.patch_size
+        b = patches.shape[0]
+        if self.metadata_set != "none":
+            assert isinstance(metadata, CameraMetadata) and metadata.batch_size == b
+        else:
+            assert metadata is None
+        out = {"assessable": torch.ones(b, dtype=torch.bool)}
+        if self.kind == "mtf":
+            out["mtf"] = torch.full((b, 16), 0.5)
+            return out
+        total = pca_noise_sigma(patches)
+        out["sigma_total"] = total
+        if self.kind == "noise_source":
+            out["sigma"] = (total / math.sqrt(3.0))[:, None].expand(b, 3).clone()
+            out["xi"] = torch.zeros(b)
+        return out
+
+
+TINY = dataclasses.replace(
+    ev.QUICK, noise_patches=1, combined_patches=3, blur_patches=1, bun_patches=1, bun_sizes=(3.0,), bun_levels=(0.0, 10.0),
+    agg_frames=3, agg_patches=2, agg_windows=(1, 2), charts=False,
+)  # fmt: skip
+
+
+def test_learned_rows_through_the_inference_interface(tmp_path):
+    fakes = {"mtf": FakeEstimator("mtf", 192), "ns": FakeEstimator("noise_source", 128, "full"), "drne": FakeEstimator("drne", 128)}
+    methods = [m for m in ev.classical_methods() if m.name in ("PCA", "B+F")]
+    methods += [ev._wrap_learned(f"learned {k}", v) for k, v in fakes.items()]
+    report = ev.run_evaluation(TINY, tmp_path, methods, progress=False, plots=False)
+    assert all(f.calls > 0 for f in fakes.values())
+    comb = report["noise"]["combined"]["natural"]
+    assert set(comb["learned ns"]) == {"Total", "PN", "DCSN", "RN"} and set(comb["learned drne"]) == {"Total"}
+    assert comb["learned drne"]["Total"] == comb["PCA"]["Total"]  # the fake runs PCA: same numbers
+    assert "learned mtf" in report["blur"]["amae"] and "learned mtf + b₂ (7 px)" in report["blur_under_noise"]["blur"]
+    speed = {r["method"]: r for r in report["speed"]}
+    assert speed["learned mtf"]["learned"] and speed["learned mtf"]["unit"] == "patch"
+    assert any(s.startswith("learned ns on dead leaves") for s in report["summary"])
+    md = (tmp_path / "results.md").read_text()
+    assert "| natural | learned ns |" in md
+
+
+def test_learned_methods_note_when_unavailable(monkeypatch):
+    notes: list[str] = []
+    monkeypatch.setitem(sys.modules, "camhealth.inference", None)  # import fails
+    assert ev.learned_methods(["mtf"], log=notes.append) == []
+    assert "not importable" in notes[0]
+    monkeypatch.delitem(sys.modules, "camhealth.inference")
+    import camhealth.inference as inf
+
+    def missing(name):
+        raise FileNotFoundError(f"no weights for {name}")
+
+    monkeypatch.setattr(inf, "load_estimator", missing)
+    notes.clear()
+    assert ev.learned_methods(["drne"], log=notes.append) == []
+    assert "'drne' not available" in notes[0]
+    with pytest.raises(FileNotFoundError):  # an explicit --checkpoint must load
+        ev.learned_methods([], ["/tmp/none.pt"], log=notes.append)
+
+
+def test_config_errors(tmp_path):
+    with pytest.raises(ValueError, match="charts"):
+        ev.run_evaluation(TINY, tmp_path, ev.classical_methods(), progress=False)
+    with pytest.raises(ValueError, match="no method"):
+        ev.run_evaluation(TINY, tmp_path, [], progress=False)
