@@ -25,6 +25,8 @@ BENCHMARKS: dict[str, str] = {
     "corruption": "camhealth.bench.corruption",
     "data": "camhealth.bench.data",
     "classical": "camhealth.bench.classical",
+    "estimators": "camhealth.bench.estimators",
+    "monitor": "camhealth.bench.monitor",
 }
 
 

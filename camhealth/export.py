@@ -1,0 +1,185 @@
+"""Export a trained estimator: ``python -m camhealth.export CKPT --format {weights,pt2,onnx} [--out PATH]``.
+
+Formats (every file carries the same JSON description: kind, patch size, metadata set, architecture
+arguments, params, FLOPs, metrics — read back by :func:`camhealth.load_estimator`):
+
+- ``weights`` (``.pt``): the state dict plus the description, a file that :func:`torch.load` opens with
+  ``weights_only=True`` (tensors and plain containers only, no pickled code). The shipped models are these.
+- ``pt2``: :func:`torch.export.export` of the bare network with a dynamic batch dimension, saved with
+  :func:`torch.export.save` (description in the archive's ``extra_files``).
+- ``onnx``: :func:`torch.onnx.export` (dynamo exporter) of the same network, dynamic batch, description in
+  the model's ``metadata_props``; runs with ONNX Runtime.
+
+The exported network takes exactly the inputs of :meth:`EstimatorModule.export_inputs` (for the
+noise-source network: patches, normalised metadata and the closed-form σ prior; the loader computes the
+last two from raw metadata with :mod:`camhealth.physics`). TorchScript is not offered (deprecated).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import torch
+
+__all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_module", "main", "ALLOWED_CLASSES"]
+
+FORMAT_TAG = "camhealth-estimator"
+FORMAT_VERSION = 1
+
+#: Classes a camhealth file may name (nothing else is ever instantiated from a file).
+ALLOWED_CLASSES: dict[str, str] = {
+    "lightning_modules.noise_source.NoiseSourceEstimator": "noise_source",
+    "lightning_modules.drne.NoiseLevelEstimator": "drne",
+    "lightning_modules.mtf.MTFEstimator": "mtf",
+}
+
+
+def _class_for(class_path: str):
+    if class_path not in ALLOWED_CLASSES:
+        raise ValueError(f"class {class_path!r} is not a camhealth estimator; allowed: {sorted(ALLOWED_CLASSES)}")
+    import importlib
+
+    module, name = class_path.rsplit(".", 1)
+    return getattr(importlib.import_module(module), name)
+
+
+def _safe_load(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file: {path}")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickle with code, not a torch file, truncated file, ...
+        raise ValueError(
+            f"{path} is not a camhealth checkpoint or weights file that loads as plain tensors "
+            f"(torch.load(weights_only=True) refused it: {str(exc).splitlines()[0][:200]})"
+        ) from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path} is not a camhealth checkpoint: it holds a {type(obj).__name__}, not a dict")
+    return obj
+
+
+def _description_and_state(obj: Mapping[str, Any], path: Path) -> tuple[dict, dict]:
+    """Description + state dict of the network from a camhealth weights file or a Lightning checkpoint."""
+    if obj.get("format") == FORMAT_TAG:  # weights file
+        desc = json.loads(obj["description"])
+        return desc, dict(obj["state_dict"])
+    info = obj.get("camhealth")
+    if isinstance(info, Mapping) and info.get("format") == FORMAT_TAG and "state_dict" in obj:
+        state = {k[len("net."):]: v for k, v in obj["state_dict"].items() if k.startswith("net.")}
+        return dict(info), state
+    raise ValueError(
+        f"{path} is not a camhealth checkpoint: expected a weights file (format {FORMAT_TAG!r}) or a Lightning "
+        f"checkpoint written by a camhealth estimator (key 'camhealth'), found keys {sorted(obj)[:8]}"
+    )
+
+
+def load_module(source: str | Path):
+    """Rebuild the :class:`EstimatorModule` of a weights file or Lightning checkpoint (eval mode), plus its
+    description. Only allow-listed classes are built and only tensors are loaded."""
+    path = Path(source)
+    desc, state = _description_and_state(_safe_load(path), path)
+    cls = _class_for(desc.get("class_path", ""))
+    init_args = {k: v for k, v in dict(desc.get("init_args", {})).items() if not str(k).startswith("_")}
+    module = cls(**init_args)
+    missing, unexpected = module.net.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValueError(f"{path}: weights do not fit {desc['class_path']} (missing {missing[:4]}, unexpected {unexpected[:4]})")
+    return module.eval(), desc
+
+
+def _description(module, metrics: Mapping[str, float] | None) -> dict:
+    desc = module.describe()
+    desc["format"] = FORMAT_TAG
+    desc["version"] = FORMAT_VERSION
+    desc["init_args"] = json.loads(json.dumps(desc["init_args"], default=list))
+    if metrics:
+        desc["metrics"] = {k: float(v) for k, v in metrics.items()}
+    return desc
+
+
+def _module_and_metrics(source, metrics):
+    if isinstance(source, (str, Path)):
+        module, desc = load_module(source)
+        return module, metrics if metrics is not None else desc.get("metrics")
+    return source.eval(), metrics
+
+
+def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
+    """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file."""
+    module, metrics = _module_and_metrics(source, metrics)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().contiguous() for k, v in module.net.state_dict().items()}
+    payload = {"format": FORMAT_TAG, "version": FORMAT_VERSION, "description": json.dumps(_description(module, metrics)), "state_dict": state}
+    torch.save(payload, out)
+    return out
+
+
+def _dynamic_batch(inputs: Sequence[torch.Tensor]):
+    batch = torch.export.Dim("batch", min=1, max=4096)
+    return tuple({0: batch} for _ in inputs)
+
+
+def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
+    """torch.export the bare network (dynamic batch) to a ``.pt2`` archive with the description."""
+    module, metrics = _module_and_metrics(source, metrics)
+    inputs = module.export_inputs(2)
+    net = module.export_module()
+    ep = torch.export.export(net, inputs, dynamic_shapes=_dynamic_batch(inputs))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torch.export.save(ep, out, extra_files={"camhealth.json": json.dumps(_description(module, metrics))})
+    return out
+
+
+def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
+    """ONNX export (dynamo exporter, dynamic batch) with the description in ``metadata_props``."""
+    import onnx
+
+    module, metrics = _module_and_metrics(source, metrics)
+    inputs = module.export_inputs(2)
+    net = module.export_module()
+    names = [f"input_{i}" for i in range(len(inputs))]
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    program = torch.onnx.export(
+        net, inputs, dynamo=True, input_names=names, output_names=["output"], dynamic_shapes=_dynamic_batch(inputs),
+        verbose=False,
+    )
+    program.save(str(out))
+    model = onnx.load(str(out))
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "camhealth.json", json.dumps(_description(module, metrics))
+    onnx.save(model, str(out))
+    return out
+
+
+EXPORTERS = {"weights": (export_weights, ".pt"), "pt2": (export_pt2, ".pt2"), "onnx": (export_onnx, ".onnx")}
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(prog="python -m camhealth.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) of a camhealth estimator, or a weights file (.pt)")
+    parser.add_argument("--format", choices=sorted(EXPORTERS), default="pt2", help="output format (default pt2)")
+    parser.add_argument("--out", default=None, help="output path (default: next to the checkpoint, with the format's suffix)")
+    args = parser.parse_args(argv)
+    fn, suffix = EXPORTERS[args.format]
+    src = Path(args.checkpoint)
+    out = Path(args.out) if args.out else src.with_suffix(suffix)
+    if out.resolve() == src.resolve():
+        parser.error(f"--out {out} would overwrite the input; give another path")
+    try:
+        path = fn(src, out)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    print(path)
+    return path
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

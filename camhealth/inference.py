@@ -1,0 +1,321 @@
+"""Inference with trained estimators: :func:`load_estimator` → :class:`Estimator` with ``predict``.
+
+``load_estimator(path_or_name)`` accepts
+
+- a **shipped model name** (no network access): ``"mtf"``, ``"drne"``, ``"noise_source_full"``,
+  ``"noise_source_min"`` (see :func:`shipped_models`; files in ``camhealth/weights/`` with model cards);
+- a **weights file** (``.pt``, :func:`camhealth.export.export_weights`) or a **Lightning checkpoint**
+  (``.ckpt``) written by ``python -m camhealth.fit`` — loaded with ``torch.load(weights_only=True)``:
+  tensors only, never arbitrary pickled code; anything else is rejected with a clear error;
+- an **exported program** (``.pt2``, run with :func:`torch.export.load`) or an **ONNX** file (``.onnx``,
+  run with ONNX Runtime).
+
+``Estimator.predict(images, metadata=None)``:
+
+- ``images``: B×1×P×P patches (also B×P×P or P×P) as a torch tensor or NumPy array, P = ``patch_size``
+  (128 for noise, 192 for MTF). Integer arrays (uint8/uint16 …) are **DN**; floating arrays are
+  **[0, 1]** (= DN/255) unless ``input_range="dn"``; a float input above 1 with the default
+  ``input_range="auto"`` is refused with a hint, never silently rescaled.
+- ``metadata``: required when ``metadata_set`` is ``"minimal"`` or ``"full"``:
+  a :class:`~camhealth.physics.CameraMetadata` (batch 1 or B), a dict of fields in physical units
+  (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``
+  with ``base_preset="ICX285"``), or a preset name. Out-of-range values raise, naming field and range.
+- returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V [kind ``mtf``]; ``sigma_total`` (B,) DN
+  [noise kinds]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
+  ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
+  ``"black"``, ``"saturated"``, ``"featureless"``). Not-assessable patches still get finite numbers; do not
+  trust them.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import torch
+
+from camhealth.export import FORMAT_TAG, load_module
+from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
+
+__all__ = ["Estimator", "load_estimator", "shipped_models", "WEIGHTS_DIR", "assess_patches"]
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+#: Fraction of clipped pixels above which a patch is "black"/"saturated" (not assessable).
+MAX_CLIPPED_FRACTION = 0.5
+#: Contrast (std, DN) below which a patch carries no blur information ("featureless"; MTF only).
+MIN_CONTRAST_DN = 2.0
+
+
+def shipped_models() -> dict[str, Path]:
+    """Names and files of the weights shipped inside the package (``camhealth/weights/*.pt``)."""
+    return {p.stem: p for p in sorted(WEIGHTS_DIR.glob("*.pt"))}
+
+
+def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list[str]]:
+    """Which B×1×P×P patches (in [0, 1]) an estimator of ``kind`` can assess, and why not.
+
+    black / saturated: more than half of the pixels within 0.5 DN of 0 / 255 (noise is clipped away,
+    blur invisible); featureless (MTF only): contrast below 2 DN (no edges to measure blur on)."""
+    x = patches.float().flatten(1)
+    tol = 0.5 / 255.0
+    low = (x <= tol).float().mean(1)
+    high = (x >= 1 - tol).float().mean(1)
+    std_dn = x.std(1, unbiased=False) * 255.0
+    reason = []
+    for lo, hi, s in zip(low.tolist(), high.tolist(), std_dn.tolist()):
+        if lo > MAX_CLIPPED_FRACTION:
+            reason.append("black")
+        elif hi > MAX_CLIPPED_FRACTION:
+            reason.append("saturated")
+        elif kind == "mtf" and s < MIN_CONTRAST_DN:
+            reason.append("featureless")
+        else:
+            reason.append("")
+    return torch.tensor([r == "" for r in reason], dtype=torch.bool), reason
+
+
+def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
+    if input_range not in ("auto", "unit", "dn"):
+        raise ValueError(f"input_range = {input_range!r} must be 'auto', 'unit' or 'dn'")
+    if isinstance(images, np.ndarray):
+        if images.dtype == object or images.dtype.kind not in "uif":
+            raise TypeError(f"images must be a numeric array, got dtype {images.dtype}")
+        is_int = images.dtype.kind in "ui"
+        t = torch.from_numpy(np.ascontiguousarray(images))
+    elif isinstance(images, torch.Tensor):
+        if images.dtype == torch.bool or images.is_complex():
+            raise TypeError(f"images must be a real numeric tensor, got dtype {images.dtype}")
+        is_int = not images.is_floating_point()
+        t = images.detach().cpu()
+    else:
+        raise TypeError(f"images must be a torch.Tensor or numpy.ndarray, got {type(images).__name__}")
+    if t.ndim == 2:
+        t = t[None, None]
+    elif t.ndim == 3:
+        t = t[:, None]
+    if t.ndim != 4 or t.shape[1] != 1:
+        raise ValueError(f"images must be B×1×H×W (or B×H×W, H×W) gray patches, got shape {tuple(t.shape)}")
+    if tuple(t.shape[-2:]) != (patch_size, patch_size):
+        raise ValueError(
+            f"patches must be {patch_size}×{patch_size} px for this estimator, got {t.shape[-2]}×{t.shape[-1]}; "
+            f"tile larger images (camhealth.monitor does)"
+        )
+    if t.shape[0] == 0:
+        raise ValueError("images is an empty batch")
+    t = t.to(torch.float64 if t.dtype == torch.float64 else torch.float32)
+    if not bool(torch.isfinite(t).all()):
+        bad = int((~torch.isfinite(t)).sum())
+        raise ValueError(f"images contain {bad} non-finite value(s) (NaN/Inf); allowed: finite DN 0…255 or [0, 1]")
+    if is_int or input_range == "dn":
+        lo, hi = float(t.min()), float(t.max())
+        if lo < 0 or hi > 255:
+            raise ValueError(f"images in DN must lie in [0, 255], got min {lo:g}, max {hi:g} (8-bit DN only)")
+        t = t / 255.0
+    else:
+        lo, hi = float(t.min()), float(t.max())
+        if lo < -1e-6 or hi > 1 + 1e-6:
+            hint = " (looks like DN: pass input_range='dn')" if hi <= 255 and lo >= 0 else ""
+            raise ValueError(f"float images must lie in [0, 1], got min {lo:g}, max {hi:g}{hint}")
+    return t.clamp(0, 1).float()
+
+
+def _to_metadata(metadata: Any, batch: int, base_preset: str | None) -> CameraMetadata:
+    if isinstance(metadata, str):
+        meta = CameraMetadata.preset(metadata)
+    elif isinstance(metadata, CameraMetadata):
+        meta = metadata
+    elif isinstance(metadata, Mapping):
+        meta = CameraMetadata.from_dict(dict(metadata), base=base_preset)
+    else:
+        raise TypeError(f"metadata must be CameraMetadata, a dict of fields or a preset name, got {type(metadata).__name__}")
+    if meta.batch_size not in (1, batch):
+        raise ValueError(f"metadata has batch size {meta.batch_size}; it must be 1 or the number of patches {batch}")
+    return meta.expand(batch)
+
+
+@dataclass
+class Estimator:
+    """A loaded estimator (see the module docstring for :meth:`predict`).
+
+    Attributes:
+        kind: ``"mtf"``, ``"drne"`` or ``"noise_source"``.
+        patch_size: patch side in px the network was trained on.
+        metadata_set: metadata :meth:`predict` needs: ``"none"``, ``"minimal"`` or ``"full"``.
+        physics_prior: whether the closed-form σ per source is computed and passed to the network.
+        description: the file's JSON description (architecture, params, FLOPs, metrics, ...).
+        source: where it was loaded from.
+        backend: ``"torch"``, ``"pt2"`` or ``"onnx"``.
+    """
+
+    kind: str
+    patch_size: int
+    metadata_set: str
+    physics_prior: bool
+    description: dict
+    source: str
+    backend: str
+    _run: Callable[..., torch.Tensor] = field(repr=False)
+    _module: Any = field(default=None, repr=False)
+
+    @property
+    def name(self) -> str:
+        return Path(self.source).stem
+
+    def network_inputs(self, patches: torch.Tensor, meta: CameraMetadata | None) -> tuple[torch.Tensor, ...]:
+        """Inputs of the bare network: patches, and for noise-source models normalised metadata + prior."""
+        if self.kind != "noise_source":
+            return (patches,)
+        from lightning_modules.noise_features import physics_prior_dn
+
+        b = patches.shape[0]
+        if meta is None:
+            return patches, patches.new_zeros(b, len(FULL_FIELDS)), patches.new_zeros(b, 4)
+        norm = meta.normalize("full").float()
+        prior = physics_prior_dn(patches, meta) if self.physics_prior else patches.new_zeros(b, 4)
+        return patches, norm, prior
+
+    @torch.inference_mode()
+    def predict(
+        self,
+        images: Any,
+        metadata: Any = None,
+        *,
+        input_range: str = "auto",
+        base_preset: str | None = None,
+        batch_size: int = 256,
+        precision: str = "fp32",
+    ) -> dict[str, Any]:
+        """Estimate blur or noise of patches; see the module docstring for inputs and outputs.
+
+        ``precision``: ``"fp32"`` or ``"bf16"`` (CPU autocast; torch backend only)."""
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
+        if batch_size < 1:
+            raise ValueError(f"batch_size = {batch_size} must be ≥ 1")
+        patches = _to_patches(images, self.patch_size, input_range)
+        b = patches.shape[0]
+        meta = None
+        if self.metadata_set != "none":
+            if metadata is None:
+                raise ValueError(
+                    f"estimator {self.name!r} reads {self.metadata_set!r} metadata: pass metadata= (CameraMetadata, "
+                    f"a dict of fields in physical units, or a preset name)"
+                )
+            # Min-Meta networks read only gain, exposure and temperature: other fields may come from any preset.
+            base = base_preset or ("ICX285" if self.metadata_set == "minimal" else None)
+            meta = _to_metadata(metadata, b, base)
+        outs = []
+        for start in range(0, b, batch_size):
+            sl = slice(start, start + batch_size)
+            inputs = self.network_inputs(patches[sl], None if meta is None else meta[sl])
+            if precision == "bf16" and self.backend == "torch":
+                with torch.autocast("cpu", dtype=torch.bfloat16):
+                    outs.append(self._run(*inputs).float())
+            else:
+                outs.append(self._run(*inputs).float())
+        raw = torch.cat(outs)
+        if not bool(torch.isfinite(raw).all()):
+            raise FloatingPointError(f"estimator {self.name!r} produced non-finite outputs; please report this input")
+        assessable, reason = assess_patches(patches, self.kind)
+        result: dict[str, Any] = {"assessable": assessable, "reason": reason}
+        if self.kind == "mtf":
+            result["mtf"] = raw.clamp(0, 1)
+        elif self.kind == "drne":
+            flat = raw.flatten(1)
+            result.update(sigma_map=raw, sigma_total=flat.pow(2).mean(1).sqrt(), sigma_median=flat.median(1).values)
+        else:
+            sigma = raw[:, :3].clamp_min(0)
+            result.update(sigma=sigma, sigma_total=sigma.pow(2).sum(1).sqrt(), xi=raw[:, 3])
+        return result
+
+
+def _torch_runner(module) -> Callable[..., torch.Tensor]:
+    net = module.export_module().float()
+    if getattr(module, "channels_last", False):
+        net = net.to(memory_format=torch.channels_last)
+
+    def run(*inputs: torch.Tensor) -> torch.Tensor:
+        x = list(inputs)
+        if getattr(module, "channels_last", False):
+            x[0] = x[0].contiguous(memory_format=torch.channels_last)
+        return net(*x)
+
+    return run
+
+
+def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
+    extra = {"camhealth.json": ""}
+    try:
+        ep = torch.export.load(str(path), extra_files=extra)
+    except Exception as exc:
+        raise ValueError(f"{path} is not a readable torch.export archive: {str(exc).splitlines()[0][:200]}") from None
+    if not extra["camhealth.json"]:
+        raise ValueError(f"{path} is an exported program but not a camhealth estimator (no camhealth.json inside)")
+    desc = json.loads(extra["camhealth.json"])
+    module = ep.module()
+    return desc, lambda *x: module(*x)
+
+
+def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
+    import onnxruntime as ort
+
+    try:
+        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    except Exception as exc:
+        raise ValueError(f"{path} is not a readable ONNX model: {str(exc).splitlines()[0][:200]}") from None
+    meta = session.get_modelmeta().custom_metadata_map
+    if "camhealth.json" not in meta:
+        raise ValueError(f"{path} is an ONNX model but not a camhealth estimator (no camhealth.json metadata)")
+    names = [i.name for i in session.get_inputs()]
+
+    def run(*inputs: torch.Tensor) -> torch.Tensor:
+        feeds = {n: t.detach().cpu().float().numpy() for n, t in zip(names, inputs)}
+        return torch.from_numpy(session.run(None, feeds)[0])
+
+    return json.loads(meta["camhealth.json"]), run
+
+
+def load_estimator(path_or_name: str | Path) -> Estimator:
+    """Load a shipped model by name, or a weights/checkpoint/pt2/onnx file (see the module docstring)."""
+    shipped = shipped_models()
+    if isinstance(path_or_name, str) and path_or_name in shipped:
+        path = shipped[path_or_name]
+    else:
+        path = Path(path_or_name)
+        if not path.exists():
+            raise FileNotFoundError(
+                f"no estimator named or at {str(path_or_name)!r}: shipped names are {sorted(shipped)}; "
+                f"files may be .pt/.ckpt (weights, Lightning checkpoint), .pt2 or .onnx"
+            )
+        if path.is_dir():
+            raise ValueError(f"{path} is a folder; give a .pt, .ckpt, .pt2 or .onnx file")
+    suffix = path.suffix.lower()
+    module = None
+    if suffix == ".pt2":
+        desc, run = _read_pt2(path)
+        backend = "pt2"
+    elif suffix == ".onnx":
+        desc, run = _read_onnx(path)
+        backend = "onnx"
+    else:
+        module, desc = load_module(path)
+        run = _torch_runner(module)
+        backend = "torch"
+    if desc.get("format", FORMAT_TAG) != FORMAT_TAG or desc.get("kind") not in ("mtf", "drne", "noise_source"):
+        raise ValueError(f"{path}: unknown estimator description (kind {desc.get('kind')!r})")
+    init_args = desc.get("init_args", {})
+    return Estimator(
+        kind=desc["kind"],
+        patch_size=int(desc["patch_size"]),
+        metadata_set=str(desc.get("metadata_set", "none")),
+        physics_prior=bool(init_args.get("physics_prior", False)),
+        description=desc,
+        source=str(path),
+        backend=backend,
+        _run=run,
+        _module=module,
+    )

@@ -1,0 +1,112 @@
+"""Common LightningModule plumbing of the three estimators: optimiser and schedule, channels_last,
+TensorBoard figures, export hooks and the description stored with checkpoints and shipped weights."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+from torch import nn
+
+from lightning_modules.blocks import count_flops, count_parameters
+
+__all__ = ["EstimatorModule"]
+
+
+class EstimatorModule(L.LightningModule):
+    """Base class: subclasses set ``kind``, ``patch_size``, build ``self.net`` and implement
+    :meth:`export_inputs` (example inputs of ``self.net``) and the steps.
+
+    Args:
+        lr: peak learning rate of AdamW (one-cycle schedule over the run's optimiser steps).
+        weight_decay: AdamW weight decay.
+        channels_last: train and run the convolutions in channels-last memory format (faster on CPU).
+        log_figures: log figures (estimate vs truth) to TensorBoard after each validation epoch.
+        max_figure_samples: validation samples kept for the figures.
+    """
+
+    kind: str = ""
+    metadata_set: str = "none"
+
+    def __init__(
+        self,
+        lr: float = 2e-3,
+        weight_decay: float = 1e-4,
+        channels_last: bool = True,
+        log_figures: bool = True,
+        max_figure_samples: int = 512,
+    ) -> None:
+        super().__init__()
+        if not lr > 0:
+            raise ValueError(f"lr = {lr!r} must be > 0")
+        if weight_decay < 0:
+            raise ValueError(f"weight_decay = {weight_decay!r} must be ≥ 0")
+        self.lr = float(lr)
+        self.weight_decay = float(weight_decay)
+        self.channels_last = bool(channels_last)
+        self.log_figures = bool(log_figures)
+        self.max_figure_samples = int(max_figure_samples)
+        self._figure_cache: dict[str, list[torch.Tensor]] = {}
+
+    # ------------------------------------------------------------------ optimisation
+    def configure_optimizers(self) -> Any:
+        opt = torch.optim.AdamW(self.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        total = None
+        if self._trainer is not None:
+            total = self.trainer.estimated_stepping_batches
+        if total is None or not (0 < float(total) < float("inf")):
+            return opt
+        sched = torch.optim.lr_scheduler.OneCycleLR(
+            opt, max_lr=self.lr, total_steps=int(total) + 1, pct_start=0.15, div_factor=10.0, final_div_factor=100.0
+        )
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def _prepare(self, image: torch.Tensor) -> torch.Tensor:
+        return image.contiguous(memory_format=torch.channels_last) if self.channels_last else image
+
+    # ------------------------------------------------------------------ figures
+    def _cache_for_figures(self, **tensors: torch.Tensor) -> None:
+        if not self.log_figures:
+            return
+        n_have = sum(t.shape[0] for t in self._figure_cache.get(next(iter(tensors)), []))
+        if n_have >= self.max_figure_samples:
+            return
+        for k, v in tensors.items():
+            self._figure_cache.setdefault(k, []).append(v.detach().float().cpu())
+
+    def _take_figure_cache(self) -> dict[str, torch.Tensor]:
+        cache = {k: torch.cat(v)[: self.max_figure_samples] for k, v in self._figure_cache.items() if v}
+        self._figure_cache = {}
+        return cache
+
+    def _tensorboard(self):
+        logger = self.logger
+        if logger is None or getattr(self._trainer, "sanity_checking", False):
+            return None
+        exp = getattr(logger, "experiment", None)
+        return exp if hasattr(exp, "add_figure") else None
+
+    # ------------------------------------------------------------------ export / description
+    def export_inputs(self, batch_size: int = 2) -> tuple[torch.Tensor, ...]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def export_module(self) -> nn.Module:
+        """The bare network that is exported (eval mode; inputs :meth:`export_inputs`)."""
+        return self.net.eval()
+
+    def describe(self) -> dict[str, Any]:
+        """Plain-data description stored in checkpoints, exported files and shipped weights."""
+        inputs = self.export_inputs(1)
+        return {
+            "kind": self.kind,
+            "class_path": f"{type(self).__module__}.{type(self).__name__}",
+            "init_args": {k: v for k, v in self.hparams.items() if not str(k).startswith("_")},
+            "patch_size": self.patch_size,
+            "metadata_set": self.metadata_set,
+            "params": count_parameters(self.net),
+            "flops_per_patch": count_flops(self.net, *inputs),
+        }
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["camhealth"] = {"format": "camhealth-estimator", "version": 1, **self.describe()}

@@ -1,0 +1,75 @@
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from camhealth.physics.dark_current import dark_current_shot_sigma_dn
+from camhealth.physics.metadata import CameraMetadata
+from camhealth.physics.readout_noise import readout_sigma_dn
+from lightning_modules.noise_features import image_statistics, metadata_from_matrix, physics_prior_dn
+
+
+@pytest.mark.parametrize("temperature_c", [0.0, 80.0])
+@pytest.mark.parametrize("gain_db", [0.0, 24.0])
+def test_prior_matches_closed_forms(gain_db, temperature_c):
+    meta = CameraMetadata.preset("EV76C661", gain_db=gain_db, temperature_c=temperature_c, exposure_s=0.05)
+    image = torch.full((1, 1, 16, 16), 0.4)
+    prior = physics_prior_dn(image, meta)[0].double()
+    g = 10 ** (gain_db / 20)
+    assert prior[0].item() == pytest.approx(255 * math.sqrt(g * 0.4 / 8400), rel=1e-5)
+    assert prior[1].item() == pytest.approx(dark_current_shot_sigma_dn(meta.to(dtype=torch.float64)).item(), rel=1e-5)
+    assert prior[2].item() == pytest.approx(readout_sigma_dn(meta.to(dtype=torch.float64)).item(), rel=1e-4)
+    assert prior[3].item() == pytest.approx(prior[:3].pow(2).sum().sqrt().item(), rel=1e-6)
+    assert torch.isfinite(prior).all()
+
+
+def test_prior_full_well_2000_black_and_white():
+    meta = CameraMetadata.preset("ICX285", batch_size=2, full_well_e=2000.0, gain_db=24.0)
+    image = torch.stack([torch.zeros(1, 8, 8), torch.ones(1, 8, 8)])
+    prior = physics_prior_dn(image, meta)
+    assert torch.isfinite(prior).all()
+    assert prior[0, 0] == 0  # no light, no photon noise
+    assert prior[1, 0] == pytest.approx(255 * math.sqrt(10 ** (24 / 20) / 2000), rel=1e-5)
+
+
+def test_metadata_from_matrix_rejects_bad_shape_and_range(meta_raw):
+    with pytest.raises(ValueError, match=r"\(B, 11\)"):
+        metadata_from_matrix(meta_raw[:, :5])
+    bad = meta_raw.clone()
+    bad[0, 0] = 30.0  # gain 30 dB
+    with pytest.raises(ValueError, match="gain_db"):
+        metadata_from_matrix(bad)
+
+
+@pytest.mark.parametrize("sigma_dn", [0.0, 2.0, 5.0, 35.0])
+def test_immerkaer_recovers_gaussian_sigma_on_flat_image(sigma_dn):
+    g = torch.Generator().manual_seed(3)
+    x = 0.5 + sigma_dn / 255 * torch.randn(2, 1, 128, 128, generator=g, dtype=torch.float64)
+    stats = image_statistics(x.float())
+    assert stats[:, 4].tolist() == pytest.approx([sigma_dn] * 2, rel=0.03, abs=1e-3)
+    assert stats[:, 0].tolist() == pytest.approx([0.5] * 2, abs=0.01)
+
+
+def test_image_statistics_clip_fractions_and_bf16_autocast():
+    x = torch.zeros(1, 1, 10, 10)
+    x[..., :3, :] = 1.0
+    s = image_statistics(x)
+    assert s[0, 2].item() == pytest.approx(0.7) and s[0, 3].item() == pytest.approx(0.3)
+    g = torch.Generator().manual_seed(0)
+    y = (0.8 + 3 / 255 * torch.randn(1, 1, 64, 64, generator=g)).clamp(0, 1)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        s_bf = image_statistics(y)
+    assert s_bf.dtype == torch.float32
+    assert torch.allclose(s_bf, image_statistics(y))
+
+
+@pytest.mark.parametrize("sigma_dn", [1.0, 5.0, 35.0])
+def test_haar_mad_is_robust_to_edges(sigma_dn):
+    g = torch.Generator().manual_seed(4)
+    x = torch.zeros(1, 1, 128, 128, dtype=torch.float64)
+    x[..., :, 64:] = 0.6  # a strong vertical edge
+    x = x + 0.2 + sigma_dn / 255 * torch.randn(x.shape, generator=g, dtype=torch.float64)
+    stats = image_statistics(x.float())
+    assert stats[0, 5].item() == pytest.approx(sigma_dn, rel=0.06)

@@ -1,0 +1,112 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lightning_modules import NoiseSourceEstimator, ThesisNoiseNet
+from lightning_modules.blocks import count_flops
+
+
+@pytest.mark.parametrize("metadata_set,prior", [("none", False), ("minimal", False), ("full", False), ("full", True)])
+@pytest.mark.parametrize("batch", [1, 3])
+def test_outputs_shape_finite(metadata_set, prior, batch, meta_raw):
+    torch.manual_seed(0)
+    m = NoiseSourceEstimator(metadata_set=metadata_set, physics_prior=prior).eval()
+    x = torch.rand(batch, 1, 32, 32)
+    with torch.no_grad():
+        out = m(x, meta_raw[:1].expand(batch, -1))
+    assert out["sigma"].shape == (batch, 3) and out["xi"].shape == (batch,) and out["sigma_total"].shape == (batch,)
+    assert all(torch.isfinite(v).all() for v in out.values())
+    assert (out["sigma"] >= 0).all()
+
+
+def test_untrained_hybrid_is_the_noise_model_scaled_to_the_image(meta_raw):
+    """Zero-initialised output layers: σ̂_s = σ_s(M)·(σ̂_MAD + 0.1)/(σ_Model(M) + 0.1) — the physics split
+    of the sources, scaled to the noise level the image shows; ξ̂ = σ_Model(M) − that total."""
+    from lightning_modules.noise_features import image_statistics
+
+    m = NoiseSourceEstimator(metadata_set="full", physics_prior=True).eval()
+    g = torch.Generator().manual_seed(0)
+    x = (0.5 + 4 / 255 * torch.randn(3, 1, 64, 64, generator=g)).clamp(0, 1)
+    with torch.no_grad():
+        out = m(x, meta_raw)
+    prior = out["prior"]
+    scale = (image_statistics(x)[:, 5] + 0.1) / (prior[:, 3] + 0.1)
+    assert torch.allclose(out["sigma"], prior[:, :3] * scale[:, None], rtol=1e-4)
+    assert torch.allclose(out["xi"], prior[:, 3] * (1 - scale), rtol=1e-4, atol=1e-4)
+    # the ratios between the sources are exactly the physics
+    assert torch.allclose(out["sigma"][:, 1] / out["sigma"][:, 0], prior[:, 1] / prior[:, 0], rtol=1e-4)
+
+
+def test_prior_needs_full_metadata_and_metadata_is_required():
+    with pytest.raises(ValueError, match="physics_prior needs metadata_set 'full'"):
+        NoiseSourceEstimator(metadata_set="minimal", physics_prior=True)
+    with pytest.raises(ValueError, match="metadata_set"):
+        NoiseSourceEstimator(metadata_set="some", physics_prior=False)
+    m = NoiseSourceEstimator(metadata_set="minimal", physics_prior=False)
+    with pytest.raises(ValueError, match="pass metadata"):
+        m(torch.rand(1, 1, 32, 32), None)
+
+
+def test_branches_read_only_their_metadata(meta_raw):
+    """Min-Meta ignores the full-only fields; w/o-Meta ignores all metadata."""
+    torch.manual_seed(1)
+    x = torch.rand(3, 1, 32, 32)
+    changed = meta_raw.clone()
+    changed[:, 4] = 50_000.0  # full well: not minimal metadata
+    for ms in ("none", "minimal"):
+        m = NoiseSourceEstimator(metadata_set=ms, physics_prior=False).eval()
+        with torch.no_grad():
+            a, b = m(x, meta_raw), m(x, changed)
+        assert torch.equal(a["sigma"], b["sigma"]) and torch.equal(a["xi"], b["xi"])
+    m = NoiseSourceEstimator(metadata_set="full", physics_prior=False).eval()
+    with torch.no_grad():
+        assert not torch.equal(m(x, meta_raw)["sigma"], m(x, changed)["sigma"])
+
+
+@pytest.mark.parametrize("fill", [0.0, 1.0])
+def test_black_and_saturated_patches_are_finite(fill, meta_raw):
+    m = NoiseSourceEstimator().eval()
+    with torch.no_grad():
+        out = m(torch.full((3, 1, 32, 32), fill), meta_raw)
+    assert all(torch.isfinite(v).all() for v in out.values())
+
+
+def test_bf16_autocast_agrees_with_fp32(meta_raw):
+    torch.manual_seed(2)
+    m = NoiseSourceEstimator(physics_prior=False).eval()
+    x = torch.rand(3, 1, 32, 32)
+    with torch.no_grad():
+        ref = m(x, meta_raw)["sigma"]
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = m(x, meta_raw)["sigma"]
+    assert torch.allclose(low.float(), ref, rtol=0.05, atol=0.05)
+
+
+def test_ten_times_fewer_flops_than_thesis_trunk():
+    m = NoiseSourceEstimator()
+    ours = count_flops(m.net, *m.export_inputs(1))
+    thesis = count_flops(ThesisNoiseNet(), torch.rand(1, 1, 128, 128))
+    assert thesis > 15e9
+    assert ours * 10 <= thesis
+
+
+def test_training_steps_reduce_the_loss(noisy_batch):
+    torch.manual_seed(0)
+    m = NoiseSourceEstimator(physics_prior=False, lr=3e-3)
+    opt = torch.optim.Adam(m.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(30):
+        est, truth, _ = m._estimates_and_truth(noisy_batch)
+        loss, _ = m._loss(est, truth)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert all(torch.isfinite(torch.tensor(losses)))
+    assert min(losses[-5:]) < 0.5 * losses[0]
+
+
+def test_loss_weights_are_checked():
+    with pytest.raises(ValueError, match="unknown key"):
+        NoiseSourceEstimator(loss_weights={"photon": 1.0})

@@ -1,0 +1,140 @@
+"""`camhealth.load_estimator(...).predict`: input conventions, metadata handling, flags, precision."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from camhealth import load_estimator
+from camhealth.export import export_weights
+from camhealth.inference import assess_patches, shipped_models
+from camhealth.physics.metadata import CameraMetadata
+from lightning_modules import MTFEstimator, NoiseSourceEstimator
+
+
+@pytest.fixture(scope="module")
+def noise_est(tmp_path_factory):
+    torch.manual_seed(0)
+    m = NoiseSourceEstimator(patch_size=32)
+    with torch.no_grad():
+        for p in m.net.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    return load_estimator(export_weights(m, tmp_path_factory.mktemp("w") / "ns.pt"))
+
+
+@pytest.fixture(scope="module")
+def min_est(tmp_path_factory):
+    m = NoiseSourceEstimator(patch_size=32, metadata_set="minimal", physics_prior=False)
+    return load_estimator(export_weights(m, tmp_path_factory.mktemp("w") / "min.pt"))
+
+
+def _patches(batch=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(batch, 1, 32, 32, generator=g) * 0.6 + 0.2
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_outputs_and_shapes(noise_est, batch):
+    out = noise_est.predict(_patches(batch), "ICX285")
+    assert out["sigma"].shape == (batch, 3) and out["xi"].shape == (batch,) and out["sigma_total"].shape == (batch,)
+    assert out["assessable"].dtype == torch.bool and len(out["reason"]) == batch
+    assert torch.allclose(out["sigma_total"], out["sigma"].pow(2).sum(1).sqrt())
+
+
+def test_dn_uint8_float_and_numpy_inputs_agree(noise_est):
+    x = (_patches(2) * 255).round()
+    ref = noise_est.predict(x / 255, "ICX285")["sigma"]
+    u8 = noise_est.predict(x.to(torch.uint8).numpy(), "ICX285")["sigma"]
+    dn = noise_est.predict(x, "ICX285", input_range="dn")["sigma"]
+    assert torch.allclose(ref, u8, atol=1e-5) and torch.allclose(ref, dn, atol=1e-5)
+    hw = noise_est.predict(x[0, 0].to(torch.uint8), "ICX285")["sigma"]  # H×W
+    assert torch.allclose(hw, ref[:1], atol=1e-5)
+
+
+def test_bad_inputs_get_clear_errors(noise_est):
+    x = _patches(2)
+    with pytest.raises(ValueError, match="looks like DN"):
+        noise_est.predict(x * 255, "ICX285")
+    nan = x.clone()
+    nan[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        noise_est.predict(nan, "ICX285")
+    with pytest.raises(ValueError, match="32×32"):
+        noise_est.predict(torch.rand(2, 1, 40, 40), "ICX285")
+    with pytest.raises(ValueError, match="B×1×H×W"):
+        noise_est.predict(torch.rand(2, 3, 32, 32), "ICX285")
+    with pytest.raises(TypeError, match="numeric"):
+        noise_est.predict(np.array([["a"]]), "ICX285")
+    with pytest.raises(ValueError, match="pass metadata"):
+        noise_est.predict(x)
+    with pytest.raises(ValueError, match="in DN must lie in"):
+        noise_est.predict(x * 400, "ICX285", input_range="dn")
+
+
+@pytest.mark.parametrize("field,value", [("gain_db", 30.0), ("temperature_c", -5.0), ("full_well_e", 1000.0)])
+def test_metadata_out_of_range_names_field(noise_est, field, value):
+    with pytest.raises(ValueError, match=field):
+        noise_est.predict(_patches(1), {field: value}, base_preset="ICX285")
+
+
+def test_metadata_batch_and_dict(noise_est, min_est):
+    x = _patches(3)
+    meta = CameraMetadata.preset("EV76C661", batch_size=3, gain_db=torch.tensor([0.0, 12.0, 24.0]))
+    full = noise_est.predict(x, meta)
+    one = noise_est.predict(x[1:2], meta[1:2])
+    assert torch.allclose(full["sigma"][1:2], one["sigma"], atol=1e-5)
+    with pytest.raises(ValueError, match="batch size 2"):
+        noise_est.predict(x, meta[:2])
+    # Min-Meta: gain/exposure/temperature suffice
+    out = min_est.predict(x, {"gain_db": 6.0, "exposure_s": 0.01, "temperature_c": 30.0})
+    assert torch.isfinite(out["sigma"]).all()
+
+
+@pytest.mark.parametrize("fill,reason", [(0.0, "black"), (1.0, "saturated")])
+def test_black_and_saturated_are_finite_and_flagged(noise_est, fill, reason):
+    out = noise_est.predict(torch.full((2, 1, 32, 32), fill), "ICX285")
+    assert torch.isfinite(out["sigma"]).all() and torch.isfinite(out["xi"]).all()
+    assert not out["assessable"].any() and out["reason"] == [reason, reason]
+
+
+def test_featureless_only_for_mtf():
+    flat = torch.full((1, 1, 16, 16), 0.5)
+    assert assess_patches(flat, "mtf")[1] == ["featureless"]
+    assert assess_patches(flat, "noise_source")[1] == [""]
+
+
+def test_fp32_and_bf16_agree(noise_est, tmp_path):
+    """bf16 autocast inference stays within 5 % + 0.1 DN of fp32 (noise) and 0.03 of MTF."""
+    x = _patches(4, seed=3)
+    a = noise_est.predict(x, "ICX285", precision="fp32")["sigma"]
+    b = noise_est.predict(x, "ICX285", precision="bf16")["sigma"]
+    assert torch.allclose(a, b, rtol=0.05, atol=0.1)
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
+    y = torch.rand(4, 1, 32, 32)
+    assert torch.allclose(mtf.predict(y, precision="fp32")["mtf"], mtf.predict(y, precision="bf16")["mtf"], atol=0.03)
+    with pytest.raises(ValueError, match="precision"):
+        mtf.predict(y, precision="fp16")
+
+
+@pytest.mark.parametrize("batch", [1, 256])
+def test_large_and_single_batches(noise_est, batch):
+    x = torch.rand(batch, 1, 32, 32)
+    out = noise_est.predict(x, "ICX285", batch_size=100)
+    assert out["sigma"].shape == (batch, 3) and torch.isfinite(out["sigma"]).all()
+
+
+def test_shipped_models_load_by_name():
+    shipped = shipped_models()
+    for name in shipped:
+        est = load_estimator(name)
+        assert est.kind in ("mtf", "drne", "noise_source")
+        assert "metrics" in est.description  # every shipped model carries its held-out metrics
+
+
+def test_model_card_lists_metrics_and_command(tmp_path):
+    from camhealth.model_card import card_text
+
+    path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt", metrics={"test/rms_total": 0.42})
+    text = card_text(path, "python -m camhealth.fit --config configs/noise_source.yaml", timing={"fp32": 1.0, "bf16": 0.5})
+    assert "test/rms_total | 0.420" in text and "configs/noise_source.yaml" in text and "GFLOP" in text
