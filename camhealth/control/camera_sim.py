@@ -1,0 +1,197 @@
+"""A simulated camera that renders clean frames through the physics core at any exposure and gain.
+
+Radiometry (linear sensor, thesis Sec. 4.4.2 assumption (i)): a clean frame value c ∈ [0, 1] is the
+scene radiance relative to the frame's white. With scene illumination E [1/s] — the reciprocal of the
+exposure time that fills the full well at a radiance of 1 — the sensor collects
+
+    electrons = c · E · t_exp · FW,     output intensity (noise-free) I = c · E · t_exp · g
+
+with g = 10^(gain_dB/20) the digital gain of the conventions' gain model ("the scene delivers I·FW/g
+electrons for an output intensity I"). I is clipped at 1 (the ADC's 255 DN; the full well saturates
+later, at I = g). Scene/camera motion of v [px/s] in direction Φ blurs the frame with the sub-pixel
+linear-motion PSF of length L = v · t_exp (thesis Eq. 3.10 / Sec. 7.2), and the full Fig. 3.7 chain of
+:func:`camhealth.physics.form_image` adds photon shot noise (before the motion blur), dark-current shot
+noise and readout noise of the sensor preset at its temperature, then clips and quantises to 8 bit.
+
+Several captures (e.g. the same frame for three controllers) are requested together; radiometry, PSFs
+and MTF labels are computed for the batch at once, and the noise of each request is drawn from its own
+generator seeded by (seed, frame index, exposure, gain), so equal requests give equal images whatever
+else is in the batch (common random numbers: controllers are compared on the same noise).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from camhealth._validation import check_choice, check_image
+from camhealth.physics.image_formation import NOISE_SOURCES, form_image
+from camhealth.physics.metadata import CameraMetadata
+from camhealth.physics.motion_psf import linear_motion_psf
+from camhealth.physics.mtf import mtf_hv
+
+__all__ = ["Capture", "SimulatedCamera", "motion_kernel_for"]
+
+
+@dataclass
+class Capture:
+    """Result of :meth:`SimulatedCamera.capture` for B requests.
+
+    Attributes:
+        image: B×1×H×W rendered frames in [0, 1].
+        blurred: B×1×H×W noise-free signal after motion blur (for physics labels).
+        mtf: (B, 16) MTF of the motion PSF (H then V at the 8 normalised frequencies).
+        meta: camera metadata of each capture (physical units).
+        exposure_s, gain_db: (B,) the parameters used.
+        blur_length_px: (B,) motion length L = v·t_exp [px].
+        sigma_dn: (B, 3) realised σ of PN/DCSN/RN [DN]; sigma_total_dn (B,) all together.
+        mean_intensity: (B,) mean of the rendered frame in [0, 1].
+        clipped_fraction: (B,) fraction of pixels at 0 or 255 DN.
+        frame_index: (B,) which clean frame.
+    """
+
+    image: torch.Tensor
+    blurred: torch.Tensor
+    mtf: torch.Tensor
+    meta: CameraMetadata
+    exposure_s: torch.Tensor
+    gain_db: torch.Tensor
+    blur_length_px: torch.Tensor
+    sigma_dn: torch.Tensor
+    sigma_total_dn: torch.Tensor
+    mean_intensity: torch.Tensor
+    clipped_fraction: torch.Tensor
+    frame_index: torch.Tensor
+
+    def __getitem__(self, i: int) -> "Capture":
+        """Capture ``i`` as a batch of one."""
+        sl = slice(i, i + 1)
+        return Capture(self.image[sl], self.blurred[sl], self.mtf[sl], self.meta[i], self.exposure_s[sl],
+                       self.gain_db[sl], self.blur_length_px[sl], self.sigma_dn[sl], self.sigma_total_dn[sl],
+                       self.mean_intensity[sl], self.clipped_fraction[sl], self.frame_index[sl])
+
+
+def motion_kernel_for(length_px: float) -> int:
+    """Smallest odd kernel size that holds a linear motion path of ``length_px`` with a 1 px margin."""
+    k = int(math.ceil(max(float(length_px), 1.0))) + 2
+    return k + 1 - k % 2
+
+
+class SimulatedCamera:
+    """Renders clean frames at requested exposure/gain through the physics core.
+
+    Args:
+        frames: clean frames N×1×H×W in [0, 1] (e.g. the embedded street clip).
+        sensor: sensor preset, ``"ICX285"`` or ``"EV76C661"``.
+        illumination_per_s: scene illumination E [1/s] (see the module docstring); e.g. 40/s means a
+            radiance of 1 fills the well in 25 ms at 0 dB.
+        motion_px_per_s: relative speed of scene and camera v [px/s] (>= 0).
+        motion_angle_deg: its direction Φ [deg] (0 = horizontal).
+        temperature_c: sensor temperature [°C].
+        sources: noise sources to render.
+        quantize: round the output to whole DN (8-bit camera).
+        seed: noise seed.
+    """
+
+    def __init__(
+        self,
+        frames: torch.Tensor,
+        sensor: str = "ICX285",
+        illumination_per_s: float = 40.0,
+        motion_px_per_s: float = 800.0,
+        motion_angle_deg: float = 0.0,
+        temperature_c: float = 25.0,
+        sources: Sequence[str] = NOISE_SOURCES,
+        quantize: bool = True,
+        seed: int = 0,
+    ) -> None:
+        check_image(frames, "frames")
+        lo, hi = torch.aminmax(frames)
+        if lo < 0 or hi > 1:
+            raise ValueError(f"frames must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
+        for nm, v, low in (("illumination_per_s", illumination_per_s, 0.0), ("motion_px_per_s", motion_px_per_s, 0.0)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= low):
+                raise ValueError(f"{nm} = {v!r} must be a finite number >= {low:g}")
+        if illumination_per_s <= 0:
+            raise ValueError(f"illumination_per_s = {illumination_per_s!r} must be > 0")
+        if not math.isfinite(motion_angle_deg):
+            raise ValueError(f"motion_angle_deg = {motion_angle_deg!r} must be finite")
+        for s in sources:
+            check_choice(s, "noise source", NOISE_SOURCES)
+        self.frames = frames.detach()
+        self.sensor = sensor
+        self.base = CameraMetadata.preset(sensor, temperature_c=temperature_c)  # validates preset/temperature
+        self.illumination = float(illumination_per_s)
+        self.speed = float(motion_px_per_s)
+        self.angle = float(motion_angle_deg)
+        self.temperature_c = float(temperature_c)
+        self.sources = tuple(sources)
+        self.quantize = bool(quantize)
+        self.seed = int(seed)
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+    def _seed(self, index: Sequence[int], t: Sequence[float], g: Sequence[float]) -> int:
+        key = f"{self.seed}|" + ";".join(f"{i},{a:.9g},{b:.9g}" for i, a, b in zip(index, t, g))
+        return int.from_bytes(hashlib.blake2b(key.encode(), digest_size=8).digest(), "big") >> 2
+
+    def capture(
+        self,
+        frame_index: int | Sequence[int],
+        exposure_s: float | Sequence[float] | torch.Tensor,
+        gain_db: float | Sequence[float] | torch.Tensor,
+    ) -> Capture:
+        """Render frames ``frame_index`` at ``exposure_s`` [s] and ``gain_db`` [dB] (scalars broadcast).
+
+        Exposure and gain must lie in the metadata ranges (Table 4.1: 0.001–0.2 s, 0–24 dB); a value
+        outside raises ``ValueError`` naming it.
+        """
+        idx = torch.as_tensor(frame_index, dtype=torch.long).reshape(-1)
+        t = torch.as_tensor(exposure_s, dtype=torch.float64).reshape(-1)
+        g = torch.as_tensor(gain_db, dtype=torch.float64).reshape(-1)
+        b = max(idx.numel(), t.numel(), g.numel())
+        for nm, v in (("frame_index", idx), ("exposure_s", t), ("gain_db", g)):
+            if v.numel() not in (1, b):
+                raise ValueError(f"{nm} has {v.numel()} values for a batch of {b}")
+        idx, t, g = idx.expand(b), t.expand(b), g.expand(b)
+        if bool(((idx < 0) | (idx >= len(self))).any()):
+            raise IndexError(f"frame_index {idx.tolist()} out of range for {len(self)} frames")
+        meta = CameraMetadata.preset(self.sensor, batch_size=b, temperature_c=self.temperature_c,
+                                     exposure_s=t.float(), gain_db=g.float())  # validates the ranges
+        dev = self.frames.device
+        clean = self.frames[idx.to(dev)]
+        scale = (self.illumination * t * torch.pow(10.0, g / 20.0)).to(device=dev, dtype=clean.dtype)
+        signal = (clean * scale.view(-1, 1, 1, 1)).clamp_(0.0, 1.0)
+        length = self.speed * t
+        k = motion_kernel_for(float(length.max()))
+        psf = linear_motion_psf(length.float(), torch.full((b,), self.angle), k).to(dev)
+        mtf = mtf_hv(psf.double()).float()
+        meta_dev = meta.to(device=dev)
+        parts = []
+        with torch.no_grad():
+            # one generator per request (common random numbers): a request's noise never depends on the
+            # other requests in the batch — torch generators have no per-sample streams, and the exact
+            # Poisson sampler consumes a data-dependent number of draws, so this loop is what makes it so
+            for i in range(b):
+                gen = torch.Generator(device=dev).manual_seed(self._seed([int(idx[i])], [float(t[i])], [float(g[i])]))
+                parts.append(form_image(signal[i : i + 1], meta_dev[i], motion_psf=psf[i : i + 1], sources=self.sources,
+                                        generator=gen, quantize=self.quantize))
+        image = torch.cat([f.image for f in parts])
+        return Capture(
+            image=image, blurred=torch.cat([f.blurred for f in parts]).to(image.dtype), mtf=mtf.cpu(), meta=meta,
+            exposure_s=t.float(), gain_db=g.float(), blur_length_px=length.float(),
+            sigma_dn=torch.cat([f.sigma_dn for f in parts]).float().cpu(),
+            sigma_total_dn=torch.cat([f.sigma_total_dn for f in parts]).float().cpu(),
+            mean_intensity=image.mean(dim=(1, 2, 3)).float().cpu(),
+            clipped_fraction=torch.cat([f.clipped_fraction for f in parts]).float().cpu(),
+            frame_index=idx.clone(),
+        )
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(n={len(self)}, sensor={self.sensor}, E={self.illumination:g}/s, "
+                f"v={self.speed:g} px/s @ {self.angle:g}°, T={self.temperature_c:g} °C)")

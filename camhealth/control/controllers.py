@@ -1,0 +1,182 @@
+"""Exposure/gain controllers for the closed loop: fixed, intensity-tracking auto-exposure, IOPC policy.
+
+Every controller sees, after each frame, an :class:`Observation` (the rendered frame, its metadata and
+the detector's output) and returns the (exposure [s], gain [dB]) for the next frame.
+
+* :class:`FixedController` — constant parameters (the thesis's "fixed" configuration).
+* :class:`AutoExposureController` — a built-in-camera style controller (thesis Sec. 7.3: it "tracks a
+  mean image intensity level of 50 % and prioritizes changing t_exp over ISO gain"). In the log domain
+  it moves the total exposure E = t·g towards the target, E ← E·(target/mean)^k with damping k and a
+  dead band, and allocates E to the exposure time first (up to the longest exposure) and to the gain
+  only beyond it (and takes gain back first when the image is too bright).
+* :class:`IOPCController` — the framework: estimates σ̂ and MTF̂ on the tiles overlapping the current
+  detections (Eq. 4.4 medians; all tiles when nothing is detected), asks the
+  :class:`~camhealth.control.policy.ExposurePolicy` for α* and applies it (exposure ÷ α, gain × α, so
+  the intensity stays). It decides after the first frame it sees (as in the thesis's Parking Lot run)
+  and, with ``decide_every = n``, again every n frames (the policy's ``min_gain`` is the hysteresis).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Protocol, Sequence
+
+import torch
+
+from camhealth.control.camera_sim import Capture
+from camhealth.control.policy import CameraLimits, Decision, ExposurePolicy
+from camhealth.detection.protocol import Detection
+from camhealth.iopc.estimation import PHYSICS, estimate_regions, median_estimates
+
+__all__ = ["Observation", "Controller", "FixedController", "AutoExposureController", "IOPCController"]
+
+
+@dataclass
+class Observation:
+    """What a controller sees after frame ``frame``: the capture (batch of one), the detector's output
+    on it, and the parameters it was taken with."""
+
+    frame: int
+    capture: Capture
+    detections: Detection
+    exposure_s: float
+    gain_db: float
+
+
+class Controller(Protocol):
+    """``reset(exposure_s, gain_db)`` then ``update(observation) -> (exposure_s, gain_db)`` per frame."""
+
+    name: str
+
+    def reset(self, exposure_s: float, gain_db: float) -> tuple[float, float]: ...
+
+    def update(self, obs: Observation) -> tuple[float, float]: ...
+
+
+class FixedController:
+    """Constant exposure [s] and gain [dB]."""
+
+    def __init__(self, exposure_s: float, gain_db: float = 0.0, name: str = "fixed") -> None:
+        self.exposure_s, self.gain_db, self.name = float(exposure_s), float(gain_db), name
+
+    def reset(self, exposure_s: float | None = None, gain_db: float | None = None) -> tuple[float, float]:
+        return self.exposure_s, self.gain_db
+
+    def update(self, obs: Observation) -> tuple[float, float]:
+        return self.exposure_s, self.gain_db
+
+
+class AutoExposureController:
+    """Intensity-tracking auto-exposure that prefers exposure over gain.
+
+    Args:
+        target_mean: target mean intensity in (0, 1) (0.5 = 50 %, as the thesis's camera).
+        limits: camera limits; exposure is used up to ``limits.exposure_s[1]`` before any gain.
+        damping: exponent k of the log-domain step (1 = jump to the target in one frame).
+        deadband: no change while |mean/target − 1| < deadband.
+        max_step: largest factor of E per frame.
+    """
+
+    def __init__(self, target_mean: float = 0.5, limits: CameraLimits | None = None, damping: float = 0.7,
+                 deadband: float = 0.05, max_step: float = 4.0, name: str = "auto-exposure") -> None:
+        if not 0 < target_mean < 1:
+            raise ValueError(f"target_mean = {target_mean!r} must lie in (0, 1)")
+        if not 0 < damping <= 1:
+            raise ValueError(f"damping = {damping!r} must lie in (0, 1]")
+        if not (deadband >= 0 and max_step > 1):
+            raise ValueError("deadband must be >= 0 and max_step > 1")
+        self.target, self.limits, self.damping = float(target_mean), limits or CameraLimits(), float(damping)
+        self.deadband, self.max_step, self.name = float(deadband), float(max_step), name
+
+    def reset(self, exposure_s: float, gain_db: float) -> tuple[float, float]:
+        return self.limits.clamp(exposure_s, gain_db)
+
+    def allocate(self, total: float) -> tuple[float, float]:
+        """Split a total exposure E = t·g [s] into (t [s], gain [dB]), exposure first."""
+        (t0, t1), (g0, g1) = self.limits.exposure_s, self.limits.gain_db
+        gmin = 10 ** (g0 / 20)
+        t = min(max(total / gmin, t0), t1)
+        g = min(max(total / t, gmin), 10 ** (g1 / 20))
+        return t, 20 * math.log10(g)
+
+    def update(self, obs: Observation) -> tuple[float, float]:
+        mean = float(obs.capture.mean_intensity[0])
+        ratio = self.target / max(mean, 1e-4)
+        if abs(mean / self.target - 1) < self.deadband:
+            return obs.exposure_s, obs.gain_db
+        step = min(max(ratio**self.damping, 1 / self.max_step), self.max_step)
+        total = obs.exposure_s * 10 ** (obs.gain_db / 20) * step
+        return self.allocate(total)
+
+
+class IOPCController:
+    """The IOPC policy in the loop.
+
+    Args:
+        policy: :class:`~camhealth.control.policy.ExposurePolicy`.
+        noise_estimator, mtf_estimator: resolved estimators or ``"physics"`` (the simulator's labels).
+        decide_every: decide after frame 0 and then every n frames (``None``: only after frame 0).
+        score_threshold: detections that define the regions to estimate on.
+        use_sources: pass the per-source σ̂ (noise-source estimators, physics labels) to the policy.
+        reference_intensity: optional mean intensity of the frames the IOPC was measured on (the
+            sweep's provenance ``frames.mean_intensity``). When given, σ̂ is rescaled to that brightness,
+            σ_eff = σ̂ · reference / mean, before the IOPC is consulted: for a contrast-invariant detector
+            (HOG's block normalisation, CNNs with normalisation) a darker image with the same σ̂ is as
+            hard as a brighter one with proportionally more noise. This is an extension of the thesis,
+            whose IOPCs and policy ignore the image intensity (Sec. 7.2: "we did not investigate the
+            influence of image intensity"); default ``None`` = the thesis's policy.
+    """
+
+    def __init__(self, policy: ExposurePolicy, noise_estimator: Any = PHYSICS, mtf_estimator: Any = PHYSICS,
+                 decide_every: int | None = None, score_threshold: float = 0.5, use_sources: bool = True,
+                 reference_intensity: float | None = None, name: str = "IOPC policy") -> None:
+        if decide_every is not None and (int(decide_every) != decide_every or decide_every < 1):
+            raise ValueError(f"decide_every = {decide_every!r} must be a positive integer or None")
+        self.policy, self.noise, self.mtf = policy, noise_estimator, mtf_estimator
+        self.decide_every, self.score_threshold, self.use_sources, self.name = decide_every, score_threshold, use_sources, name
+        if reference_intensity is not None and not 0 < reference_intensity <= 1:
+            raise ValueError(f"reference_intensity = {reference_intensity!r} must lie in (0, 1]")
+        self.reference_intensity = reference_intensity
+        self.decisions: list[tuple[int, Decision, dict[str, Any]]] = []
+        self._n_updates = 0
+
+    def reset(self, exposure_s: float, gain_db: float) -> tuple[float, float]:
+        self.decisions = []
+        self._n_updates = 0
+        return self.policy.limits.clamp(exposure_s, gain_db)
+
+    def _due(self) -> bool:
+        n = self._n_updates
+        self._n_updates += 1
+        return n == 0 if self.decide_every is None else n % self.decide_every == 0
+
+    def estimate(self, obs: Observation) -> dict[str, Any]:
+        """Eq. 4.4 medians of σ̂ and MTF̂ over the tiles overlapping the current detections."""
+        cap = obs.capture
+        keep = obs.detections["scores"] >= self.score_threshold
+        regions = [obs.detections["boxes"][keep]]
+        physics = {"blurred": cap.blurred, "mtf": cap.mtf, "sigma_dn": cap.sigma_dn}
+        est = estimate_regions(cap.image, regions, self.noise, self.mtf, metadata=cap.meta, physics=physics,
+                               fallback_all=True)
+        med = median_estimates(est)
+        med["n_regions"] = int(keep.sum())
+        return med
+
+    def update(self, obs: Observation) -> tuple[float, float]:
+        if not self._due():
+            return obs.exposure_s, obs.gain_db
+        med = self.estimate(obs)
+        if not (math.isfinite(med["sigma_tilde"]) and math.isfinite(med["mtf_tilde"])):
+            return obs.exposure_s, obs.gain_db  # nothing assessable: keep
+        sources = med["sigma_sources_tilde"] if self.use_sources else None
+        sigma = med["sigma_tilde"]
+        if self.reference_intensity is not None:
+            scale = self.reference_intensity / max(float(obs.capture.mean_intensity[0]), 1e-3)
+            med["intensity_scale"] = scale
+            sigma = sigma * scale
+            sources = [v * scale for v in sources] if sources is not None else None
+        d = self.policy.decide(sigma, min(med["mtf_tilde"], 1.0), obs.exposure_s, obs.gain_db,
+                               sigma_sources=sources)
+        self.decisions.append((obs.frame, d, med))
+        return d.exposure_s, d.gain_db

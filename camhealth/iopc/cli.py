@@ -1,0 +1,237 @@
+"""``python -m camhealth.iopc --config configs/iopc.yaml``: the standalone IOPC sweep.
+
+The command line is a jsonargparse parser (the library LightningCLI is built on): every option below can
+come from a YAML ``--config`` and be overridden on the command line in dotted form, e.g.
+``--estimators.noise physics --sweep.grid.lengths_px [0,7,15] --trainer.accelerator gpu``;
+``--print_config`` prints the full resolved configuration. Sections:
+
+* ``source`` / ``frames`` — clean images (``camhealth.data.build_source`` spec: ``street`` is the
+  embedded clip) and which of them (``start``, ``stop``, ``stride``); all must have the same size.
+* ``ground_truth`` — a COCO annotation JSON (``annotations``, matched by file name) or, when ``null``,
+  pseudo ground truth from the detector on the clean frames with score >= ``pseudo_score``.
+* ``detector`` — ``kind: hog`` (OpenCV people detector, settings under ``hog``) or ``kind: torch``
+  (``torch.class_path`` + ``init_args``, optional ``checkpoint`` state dict, see
+  :class:`~camhealth.detection.TorchDetector`).
+* ``estimators`` — ``noise`` and ``mtf``: names for ``camhealth.inference.load_estimator`` (defaults
+  ``noise_source_min`` and ``mtf``), or the stand-ins ``physics`` / ``immerkaer``.
+* ``sweep`` — :class:`~camhealth.iopc.sweep.SweepConfig` (grid, sensor, valid ranges, bins, seed).
+* ``trainer`` — keyword arguments of the ``lightning.Trainer`` that runs the cells (``accelerator``,
+  ``devices``, ``strategy``, ``num_nodes``, …).
+* ``out_dir`` (``iopc.json``, ``iopc.npz``, ``iopc.png``, TensorBoard events under ``tensorboard/``) and
+  ``cache_dir`` (per-cell results; rerunning the same command resumes).
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import torch
+
+from camhealth.iopc.curves import IOPC
+from camhealth.iopc.estimation import resolve_estimator
+from camhealth.iopc.sweep import IOPCSweep, SweepConfig, log_iopc
+
+__all__ = [
+    "FrameSelection",
+    "GroundTruthSettings",
+    "HOGSettings",
+    "TorchDetectorSettings",
+    "DetectorSettings",
+    "EstimatorSettings",
+    "build_parser",
+    "build_detector",
+    "load_frames",
+    "main",
+]
+
+
+@dataclass
+class FrameSelection:
+    """Which images of the source: ``source[start:stop:stride]``."""
+
+    start: int = 0
+    stop: Optional[int] = None
+    stride: int = 1
+
+
+@dataclass
+class GroundTruthSettings:
+    """``annotations``: COCO JSON path (``null``: pseudo ground truth); ``category_ids``: keep these
+    categories; ``pseudo_score``: score a clean detection needs to become pseudo ground truth."""
+
+    annotations: Optional[str] = None
+    category_ids: Optional[list[int]] = None
+    pseudo_score: float = 0.6
+
+
+@dataclass
+class HOGSettings:
+    """:class:`~camhealth.detection.HOGPeopleDetector` arguments."""
+
+    win_stride: list[int] = field(default_factory=lambda: [8, 8])
+    padding: list[int] = field(default_factory=lambda: [8, 8])
+    scale: float = 1.05
+    hit_threshold: float = 0.0
+    group_threshold: int = 2
+    upscale: float = 1.0
+
+
+@dataclass
+class TorchDetectorSettings:
+    """A user's ``nn.Module`` detector: ``class_path`` (``package.module.Class``), ``init_args``, an
+    optional ``checkpoint`` (state dict file, loaded with ``weights_only=True``), and the
+    :class:`~camhealth.detection.TorchDetector` options."""
+
+    class_path: Optional[str] = None
+    init_args: dict = field(default_factory=dict)
+    checkpoint: Optional[str] = None
+    channels: int = 1
+    input_scale: float = 1.0
+    box_format: str = "xyxy"
+    normalized_boxes: bool = False
+
+
+@dataclass
+class DetectorSettings:
+    """``kind``: ``hog`` or ``torch``."""
+
+    kind: str = "hog"
+    hog: HOGSettings = field(default_factory=HOGSettings)
+    torch: TorchDetectorSettings = field(default_factory=TorchDetectorSettings)
+
+
+@dataclass
+class EstimatorSettings:
+    """Estimator specs (see :func:`camhealth.iopc.estimation.resolve_estimator`)."""
+
+    noise: str = "noise_source_min"
+    mtf: str = "mtf"
+
+
+def build_detector(settings: DetectorSettings) -> Any:
+    """The frozen detector described by ``settings``."""
+    from camhealth.detection import HOGPeopleDetector, TorchDetector
+
+    if settings.kind == "hog":
+        h = settings.hog
+        return HOGPeopleDetector(tuple(h.win_stride), tuple(h.padding), h.scale, h.hit_threshold, h.group_threshold,
+                                 h.upscale)
+    if settings.kind == "torch":
+        t = settings.torch
+        if not t.class_path or "." not in t.class_path:
+            raise ValueError("detector.torch.class_path must name the module class, e.g. 'mypkg.models.Detector'")
+        mod_name, cls_name = t.class_path.rsplit(".", 1)
+        cls = getattr(importlib.import_module(mod_name), cls_name, None)
+        if cls is None:
+            raise ValueError(f"detector.torch.class_path {t.class_path!r}: {mod_name} has no {cls_name!r}")
+        module = cls(**t.init_args)
+        if t.checkpoint:
+            state = torch.load(t.checkpoint, map_location="cpu", weights_only=True)
+            module.load_state_dict(state.get("state_dict", state) if isinstance(state, dict) else state)
+        return TorchDetector(module, t.channels, t.input_scale, t.box_format, t.normalized_boxes,
+                             name=cls_name)
+    raise ValueError(f"detector.kind = {settings.kind!r} must be 'hog' or 'torch'")
+
+
+def load_frames(source: str, selection: FrameSelection) -> tuple[torch.Tensor, list[str], list[str]]:
+    """Frames N×1×H×W of ``build_source(source)[start:stop:stride]``, their ids and, where the source
+    has files, their paths (for annotation matching; else the ids)."""
+    from camhealth.data import build_source
+
+    src = build_source(source)
+    idx = list(range(len(src)))[selection.start : selection.stop : selection.stride]
+    if not idx:
+        raise ValueError(f"frames {selection} select no image of {source!r} ({len(src)} images)")
+    images, ids = [], []
+    for i in idx:
+        img, img_id = src[i]
+        images.append(img)
+        ids.append(img_id)
+    sizes = {tuple(im.shape) for im in images}
+    if len(sizes) != 1:
+        raise ValueError(f"all frames of a sweep must have the same size, got {sorted(sizes)}")
+    paths = [str(src.paths[i]) for i in idx] if hasattr(src, "paths") else list(ids)
+    return torch.stack(images), ids, paths
+
+
+def build_parser():
+    from jsonargparse import ActionConfigFile, ArgumentParser
+
+    p = ArgumentParser(prog="python -m camhealth.iopc", description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", action=ActionConfigFile, help="YAML config (configs/iopc.yaml)")
+    p.add_argument("--source", type=str, default="street", help="image source spec (camhealth.data.build_source)")
+    p.add_argument("--frames", type=FrameSelection, default=FrameSelection())
+    p.add_argument("--ground_truth", type=GroundTruthSettings, default=GroundTruthSettings())
+    p.add_argument("--detector", type=DetectorSettings, default=DetectorSettings())
+    p.add_argument("--estimators", type=EstimatorSettings, default=EstimatorSettings())
+    p.add_argument("--sweep", type=SweepConfig, default=SweepConfig())
+    p.add_argument("--trainer", type=dict, default={"accelerator": "auto", "devices": 1})
+    p.add_argument("--out_dir", type=str, default="runs/iopc")
+    p.add_argument("--cache_dir", type=Optional[str], default="runs/iopc/cache")
+    p.add_argument("--tensorboard", type=bool, default=True, help="log heat maps to out_dir/tensorboard")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> IOPC:
+    """Run the sweep described by the command line / config; returns the IOPC (also written to disk)."""
+    from camhealth.detection import ground_truth_for, load_coco_annotations, pseudo_ground_truth
+
+    parser = build_parser()
+    cfg = parser.parse_args(list(argv) if argv is not None else None)
+    instantiate = getattr(parser, "instantiate", None) or parser.instantiate_classes  # jsonargparse ≥ 4.49 / older
+    init = instantiate(cfg)
+    frames_sel: FrameSelection = init.frames
+    gt_cfg: GroundTruthSettings = init.ground_truth
+    sweep_cfg: SweepConfig = init.sweep
+    frames, ids, paths = load_frames(init.source, frames_sel)
+    detector = build_detector(init.detector)
+    if gt_cfg.annotations:
+        ann = load_coco_annotations(gt_cfg.annotations, gt_cfg.category_ids)
+        gt = ground_truth_for(paths, ann)
+        gt_note = {"ground_truth": f"COCO annotations {gt_cfg.annotations}"}
+    else:
+        gt = pseudo_ground_truth(detector, frames, gt_cfg.pseudo_score)
+        gt_note = {"ground_truth": f"pseudo: detector on the clean frames, score >= {gt_cfg.pseudo_score:g}"}
+    noise = resolve_estimator(init.estimators.noise, "noise")
+    mtf = resolve_estimator(init.estimators.mtf, "mtf")
+    sweep = IOPCSweep(frames, gt, detector, noise, mtf, sweep_cfg, cache_dir=init.cache_dir, frame_ids=ids,
+                      provenance={**gt_note, "source": init.source, "frame_selection": vars(frames_sel),
+                                  "estimator_specs": {"noise": init.estimators.noise, "mtf": init.estimators.mtf}})
+    trainer_kw = {"logger": False, "enable_checkpointing": False, "enable_model_summary": False, **dict(init.trainer)}
+    import lightning as L
+
+    iopc = sweep.run(L.Trainer(**trainer_kw))
+    out = Path(init.out_dir)
+    if L.fabric.utilities.rank_zero.rank_zero_only.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        iopc.save(out / "iopc.json")
+        iopc.save(out / "iopc.npz")
+        import matplotlib.pyplot as plt
+
+        fig = iopc.figure()
+        fig.savefig(out / "iopc.png", dpi=110)
+        plt.close(fig)
+        if init.tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            with SummaryWriter(str(out / "tensorboard")) as w:
+                log_iopc(w, iopc)
+        _print_summary(iopc, out)
+    return iopc
+
+
+def _print_summary(iopc: IOPC, out: Path) -> None:
+    n, marked = len(iopc.records), iopc.marked_records
+    print(f"IOPC ({iopc.name}): {n} cells, {len(marked)} marked; written to {out}/iopc.json|.npz|.png")
+    header = "σ̃\\MTF̃ " + " ".join(f"{m:5.1f}" for m in iopc.mtf_bins)
+    print(header)
+    for i, s in enumerate(iopc.sigma_bins):
+        row = " ".join("    ·" if not c else f"{a:5.2f}" for a, c in zip(iopc.ap_2d[i], iopc.count_2d[i]))
+        print(f"{s:6g}  {row}")
+    for r in marked[:10]:
+        print(f"  marked {r['key']}: {r['reason']}")
+    if len(marked) > 10:
+        print(f"  … and {len(marked) - 10} more marked cells (see records in iopc.json)")

@@ -1,0 +1,443 @@
+"""Input–output performance curves (IOPCs): detector AP as a function of estimated noise and blur.
+
+Thesis Sec. 4.4.1. Every grid cell of a sweep (one blur × one noise corruption applied to N_I images)
+yields one tuple (σ̃, MTF̃, AP): σ̃ and MTF̃ are the medians of the patch-wise estimates over the patches
+that overlap ground-truth boxes (Eq. 4.4), AP the detector's average precision on the corrupted images.
+The tuples are quantised into bins
+
+    σ̃ ∈ {0, 5, …, 30} DN,   MTF̃ ∈ {0.1, 0.2, …, 1.0}   (MTF̃ = mean of H and V MTF at f_n = 0.1)
+
+— a tuple goes to the *nearest* bin; a value farther than half a bin spacing beyond the first/last bin is
+outside the curve and the cell is *marked* (not clipped into the edge bin) — and collected as
+
+* the **2-D IOPC** ``ap_2d[i, j]`` = mean AP of the cells in σ-bin i and MTF-bin j (NaN where empty),
+  with ``count_2d``;
+* the **1-D IOPCs** of isolated corruptions (thesis Fig. 7.1): ``ap_sigma`` from the cells without blur
+  (motion length 0) and ``ap_mtf`` from the cells without noise (noise level 0), with counts;
+* the **MTF → motion-length relation** MB_L used by the policy (Eq. 4.7): for every swept length L the
+  median MTF̃ over directions (and images) of the noise-free cells, made non-increasing in L.
+
+Cells are kept as ``records`` (one dict per cell, the full sweep result) with a ``marked`` flag and a
+``reason`` when a cell's corruption lies outside the estimators' valid range, its noise level cannot be
+produced by the sensor within the metadata ranges, no patch was assessable, or its σ̃/MTF̃ falls outside the
+bins. Marked cells never enter the curves — nothing is silently filled. :meth:`IOPC.surface` gives a
+dense 2-D surface for the policy, with a ``measured`` mask that says which bins were filled from the
+nearest measured bin.
+
+Files: JSON (human-readable, NaN → null) and NPZ (arrays + the JSON of records/provenance), both
+round-trip exactly through :meth:`IOPC.save` / :meth:`IOPC.load`. ``provenance`` records how the curves
+were made (detector, estimators, frames, grid, sensor, seed, versions, git commit, date).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+__all__ = [
+    "SIGMA_BINS_DN",
+    "MTF_BINS",
+    "IOPC",
+    "bin_index",
+    "blur_relation",
+    "FORMAT_VERSION",
+]
+
+#: Noise bins of the thesis [DN].
+SIGMA_BINS_DN: tuple[float, ...] = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
+#: Blur-indicator bins of the thesis (MTF̃ at f_n = 0.1, dimensionless).
+MTF_BINS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+#: Version of the file layout written by :meth:`IOPC.save`.
+FORMAT_VERSION = 1
+
+
+def _check_bins(bins: Sequence[float], name: str) -> np.ndarray:
+    b = np.asarray(bins, dtype=np.float64).reshape(-1)
+    if b.size < 2:
+        raise ValueError(f"{name} needs at least 2 bin centres, got {b.tolist()}")
+    if not np.all(np.isfinite(b)) or not np.all(np.diff(b) > 0):
+        raise ValueError(f"{name} must be finite and strictly increasing, got {b.tolist()}")
+    return b
+
+
+def bin_index(values: np.ndarray | Sequence[float] | float, bins: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest-bin index of each value and whether it lies within the bins.
+
+    A value is inside when it is at most half the first/last bin spacing beyond the first/last centre;
+    NaN is never inside. Returns ``(index, inside)`` (index is clipped to a valid bin for outside values).
+    """
+    b = _check_bins(bins, "bins")
+    v = np.asarray(values, dtype=np.float64)
+    edges = np.concatenate([[b[0] - 0.5 * (b[1] - b[0])], 0.5 * (b[1:] + b[:-1]), [b[-1] + 0.5 * (b[-1] - b[-2])]])
+    idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, b.size - 1)
+    inside = np.isfinite(v) & (v >= edges[0]) & (v <= edges[-1])
+    # a value exactly on an inner edge goes to the upper bin (searchsorted right); keep that convention
+    return idx.astype(np.int64), inside
+
+
+def blur_relation(records: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, np.ndarray]:
+    """MTF → motion-length relation from sweep records: (lengths [px], MTF̃) with MTF̃ non-increasing.
+
+    Uses the unmarked cells with finite MTF̃ at the lowest swept noise level; per length the median MTF̃
+    over directions. A running minimum makes it non-increasing so that it can be inverted (MB_L).
+    """
+    rows = [r for r in records if not r.get("marked") and _finite(r.get("mtf_tilde"))]
+    if not rows:
+        return np.zeros(0), np.zeros(0)
+    low = min(float(r["noise_level_dn"]) for r in rows)
+    rows = [r for r in rows if float(r["noise_level_dn"]) == low]
+    lengths = sorted({float(r["length_px"]) for r in rows})
+    mtf = np.array([np.median([float(r["mtf_tilde"]) for r in rows if float(r["length_px"]) == L]) for L in lengths])
+    return np.asarray(lengths, dtype=np.float64), np.minimum.accumulate(mtf)
+
+
+def _finite(x: Any) -> bool:
+    try:
+        return x is not None and math.isfinite(float(x))
+    except (TypeError, ValueError):
+        return False
+
+
+def _mean_by_bin(i: np.ndarray, j: np.ndarray | None, ap: np.ndarray, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    total = np.zeros(shape)
+    count = np.zeros(shape, dtype=np.int64)
+    key = (i,) if j is None else (i, j)
+    np.add.at(total, key, ap)
+    np.add.at(count, key, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return mean, count
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        return None if not math.isfinite(float(x)) else float(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    if isinstance(x, Mapping):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return x
+
+
+def _array(x: Any, dtype: Any = np.float64) -> np.ndarray:
+    """JSON list (null = NaN) → array."""
+    if dtype is np.float64:
+        return np.asarray(_none_to_nan(x), dtype=np.float64)
+    return np.asarray(x, dtype=dtype)
+
+
+def _none_to_nan(x: Any) -> Any:
+    if isinstance(x, list):
+        return [_none_to_nan(v) for v in x]
+    return float("nan") if x is None else x
+
+
+@dataclass
+class IOPC:
+    """1-D and 2-D input–output performance curves of one application (detector), with provenance.
+
+    Attributes:
+        sigma_bins: (S,) σ̃ bin centres [DN].
+        mtf_bins: (M,) MTF̃ bin centres [–].
+        ap_2d: (S, M) mean AP per bin, NaN where no cell fell.
+        count_2d: (S, M) cells per bin.
+        ap_sigma, count_sigma: (S,) 1-D curve of isolated noise (cells without blur).
+        ap_mtf, count_mtf: (M,) 1-D curve of isolated blur (cells without noise).
+        blur_length_px, blur_mtf: (K,) the MTF → motion-length relation (see :func:`blur_relation`).
+        records: every sweep cell (dicts with ``length_px``, ``angle_deg``, ``noise_level_dn``,
+            ``sigma_tilde``, ``mtf_tilde``, ``ap``, ``marked``, ``reason``, …).
+        provenance: how the curves were made.
+        name: the application metric, e.g. ``"AP@0.5 opencv-hog-people"``.
+    """
+
+    sigma_bins: np.ndarray
+    mtf_bins: np.ndarray
+    ap_2d: np.ndarray
+    count_2d: np.ndarray
+    ap_sigma: np.ndarray
+    count_sigma: np.ndarray
+    ap_mtf: np.ndarray
+    count_mtf: np.ndarray
+    blur_length_px: np.ndarray
+    blur_mtf: np.ndarray
+    records: list[dict[str, Any]] = field(default_factory=list)
+    provenance: dict[str, Any] = field(default_factory=dict)
+    name: str = "AP"
+
+    def __post_init__(self) -> None:
+        self.sigma_bins = _check_bins(self.sigma_bins, "sigma_bins")
+        self.mtf_bins = _check_bins(self.mtf_bins, "mtf_bins")
+        s, m = self.sigma_bins.size, self.mtf_bins.size
+        for nm, shape in (
+            ("ap_2d", (s, m)), ("count_2d", (s, m)), ("ap_sigma", (s,)), ("count_sigma", (s,)),
+            ("ap_mtf", (m,)), ("count_mtf", (m,)),
+        ):
+            arr = np.asarray(getattr(self, nm), dtype=np.int64 if nm.startswith("count") else np.float64)
+            if arr.shape != shape:
+                raise ValueError(f"IOPC.{nm} must have shape {shape} for {s} σ bins × {m} MTF bins, got {arr.shape}")
+            setattr(self, nm, arr)
+        for nm in ("ap_2d", "ap_sigma", "ap_mtf"):
+            a = getattr(self, nm)
+            if bool(np.any((a[np.isfinite(a)] < 0) | (a[np.isfinite(a)] > 1))):
+                raise ValueError(f"IOPC.{nm} holds AP values outside [0, 1]")
+        self.blur_length_px = np.asarray(self.blur_length_px, dtype=np.float64).reshape(-1)
+        self.blur_mtf = np.asarray(self.blur_mtf, dtype=np.float64).reshape(-1)
+        if self.blur_length_px.shape != self.blur_mtf.shape:
+            raise ValueError("blur_length_px and blur_mtf must have the same length")
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_records(
+        cls,
+        records: Sequence[Mapping[str, Any]],
+        sigma_bins: Sequence[float] = SIGMA_BINS_DN,
+        mtf_bins: Sequence[float] = MTF_BINS,
+        provenance: Mapping[str, Any] | None = None,
+        name: str = "AP",
+    ) -> "IOPC":
+        """Bin sweep records (one per grid cell) into curves; cells outside the bins get marked.
+
+        Each record needs ``sigma_tilde`` [DN], ``mtf_tilde``, ``ap`` in [0, 1], ``length_px`` and
+        ``noise_level_dn``; ``marked`` records are kept but not binned. Returns a new IOPC whose
+        ``records`` are copies with the bin indices (``sigma_bin``, ``mtf_bin``) filled in.
+        """
+        sb, mb = _check_bins(sigma_bins, "sigma_bins"), _check_bins(mtf_bins, "mtf_bins")
+        recs = [dict(r) for r in records]
+        for k, r in enumerate(recs):
+            for key in ("sigma_tilde", "mtf_tilde", "ap", "length_px", "noise_level_dn"):
+                if key not in r:
+                    raise ValueError(f"record {k} is missing {key!r}; it has {sorted(r)}")
+            r.setdefault("marked", False)
+            r.setdefault("reason", "")
+            r["sigma_bin"], r["mtf_bin"] = None, None
+            if r["marked"]:
+                continue
+            if not _finite(r["ap"]):
+                r["marked"], r["reason"] = True, "AP undefined (no ground truth)"
+                continue
+            if not (_finite(r["sigma_tilde"]) and _finite(r["mtf_tilde"])):
+                r["marked"], r["reason"] = True, "no estimate (no assessable patch overlapping an object)"
+                continue
+            (i,), (ins_s,) = bin_index([r["sigma_tilde"]], sb)
+            (j,), (ins_m,) = bin_index([r["mtf_tilde"]], mb)
+            if not ins_s or not ins_m:
+                r["marked"] = True
+                r["reason"] = (
+                    f"outside the IOPC bins (σ̃ = {float(r['sigma_tilde']):.2f} DN, MTF̃ = {float(r['mtf_tilde']):.3f})"
+                )
+                continue
+            r["sigma_bin"], r["mtf_bin"] = int(i), int(j)
+        used = [r for r in recs if not r["marked"]]
+        i = np.array([r["sigma_bin"] for r in used], dtype=np.int64)
+        j = np.array([r["mtf_bin"] for r in used], dtype=np.int64)
+        ap = np.array([float(r["ap"]) for r in used], dtype=np.float64)
+        ap2, c2 = _mean_by_bin(i, j, ap, (sb.size, mb.size))
+        no_blur = np.array([float(r["length_px"]) == 0.0 for r in used], dtype=bool)
+        no_noise = np.array([float(r["noise_level_dn"]) == 0.0 for r in used], dtype=bool)
+        aps, cs = _mean_by_bin(i[no_blur], None, ap[no_blur], (sb.size,))
+        apm, cm = _mean_by_bin(j[no_noise], None, ap[no_noise], (mb.size,))
+        lengths, mtf = blur_relation(recs)
+        return cls(sb, mb, ap2, c2, aps, cs, apm, cm, lengths, mtf, recs, dict(provenance or {}), name)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def marked_records(self) -> list[dict[str, Any]]:
+        """The cells that were marked (not in the curves), each with its ``reason``."""
+        return [r for r in self.records if r.get("marked")]
+
+    def surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """Dense (S, M) AP surface for the policy and the ``measured`` mask.
+
+        Empty bins take the AP of the nearest measured bin (distance in bin steps, ties to the lower σ
+        and higher MTF, i.e. the milder corruption); ``measured`` is False there. Raises ``ValueError``
+        if no bin was measured.
+        """
+        key = (self.ap_2d.tobytes(), self.count_2d.tobytes())
+        cache = getattr(self, "_surface_cache", None)
+        if cache is not None and cache[0] == key:
+            return cache[1].copy(), cache[2].copy()
+        measured = self.count_2d > 0
+        if not measured.any():
+            raise ValueError(f"IOPC {self.name!r} has no measured bin; cannot build a surface")
+        si, mj = np.nonzero(measured)
+        gi, gj = np.meshgrid(np.arange(self.sigma_bins.size), np.arange(self.mtf_bins.size), indexing="ij")
+        d = (gi[..., None] - si) ** 2 + (gj[..., None] - mj) ** 2 + 1e-6 * si - 1e-9 * mj  # ties: milder bin
+        k = np.argmin(d, axis=-1)
+        filled = self.ap_2d[si[k], mj[k]]
+        surf = np.where(measured, self.ap_2d, filled)
+        self._surface_cache = (key, surf, measured)
+        return surf.copy(), measured.copy()
+
+    def interpolate(self, sigma: np.ndarray | float, mtf: np.ndarray | float) -> np.ndarray:
+        """AP at continuous (σ [DN], MTF̃): bilinear between bin centres of :meth:`surface`, clamped to
+        the outermost bins. Vectorised over any broadcastable shapes."""
+        surf, _ = self.surface()
+        return _bilinear(surf, self.sigma_bins, self.mtf_bins, np.asarray(sigma, float), np.asarray(mtf, float))
+
+    def length_from_mtf(self, mtf: np.ndarray | float) -> np.ndarray:
+        """MB_L(MTF̃): motion length [px] of a blur indicator value, by inverting the relation (linear
+        interpolation; clamped to the swept lengths)."""
+        if self.blur_length_px.size < 2:
+            raise ValueError(f"IOPC {self.name!r} has no MTF → motion-length relation (needs ≥ 2 swept lengths)")
+        # xp must increase: MTF decreases with L, so reverse; flat stretches keep their smallest length
+        m, L = self.blur_mtf[::-1], self.blur_length_px[::-1]
+        m_u = np.unique(m)
+        Lu = np.array([L[m == v].min() for v in m_u])
+        return np.interp(np.asarray(mtf, float), m_u, Lu)
+
+    def mtf_from_length(self, length_px: np.ndarray | float) -> np.ndarray:
+        """The relation's MTF̃ at a motion length [px] (linear interpolation, clamped)."""
+        if self.blur_length_px.size < 2:
+            raise ValueError(f"IOPC {self.name!r} has no MTF → motion-length relation (needs ≥ 2 swept lengths)")
+        return np.interp(np.asarray(length_px, float), self.blur_length_px, self.blur_mtf)
+
+    # ------------------------------------------------------------------ files
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (NaN → null)."""
+        return _jsonable(
+            {
+                "format": "camhealth-iopc",
+                "version": FORMAT_VERSION,
+                "name": self.name,
+                "sigma_bins_dn": self.sigma_bins,
+                "mtf_bins": self.mtf_bins,
+                "ap_2d": self.ap_2d,
+                "count_2d": self.count_2d,
+                "ap_sigma": self.ap_sigma,
+                "count_sigma": self.count_sigma,
+                "ap_mtf": self.ap_mtf,
+                "count_mtf": self.count_mtf,
+                "blur_relation": {"length_px": self.blur_length_px, "mtf": self.blur_mtf},
+                "records": self.records,
+                "provenance": self.provenance,
+            }
+        )
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "IOPC":
+        """Inverse of :meth:`to_dict`."""
+        if data.get("format") != "camhealth-iopc":
+            raise ValueError("not a camhealth IOPC file (missing format: camhealth-iopc)")
+        if int(data.get("version", 0)) > FORMAT_VERSION:
+            raise ValueError(f"IOPC file version {data.get('version')} is newer than this camhealth ({FORMAT_VERSION})")
+        rel = data.get("blur_relation", {"length_px": [], "mtf": []})
+        records = [{k: (float("nan") if v is None and k in ("sigma_tilde", "mtf_tilde", "ap") else v) for k, v in r.items()}
+                   for r in data.get("records", [])]
+        return cls(
+            sigma_bins=_array(data["sigma_bins_dn"]),
+            mtf_bins=_array(data["mtf_bins"]),
+            ap_2d=_array(data["ap_2d"]),
+            count_2d=_array(data["count_2d"], np.int64),
+            ap_sigma=_array(data["ap_sigma"]),
+            count_sigma=_array(data["count_sigma"], np.int64),
+            ap_mtf=_array(data["ap_mtf"]),
+            count_mtf=_array(data["count_mtf"], np.int64),
+            blur_length_px=_array(rel["length_px"]),
+            blur_mtf=_array(rel["mtf"]),
+            records=records,
+            provenance=dict(data.get("provenance", {})),
+            name=str(data.get("name", "AP")),
+        )
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``.json`` or ``.npz`` (by suffix). Returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.suffix == ".json":
+            path.write_text(json.dumps(self.to_dict(), indent=1, ensure_ascii=False))
+        elif path.suffix == ".npz":
+            d = self.to_dict()
+            np.savez(
+                path,
+                sigma_bins_dn=self.sigma_bins, mtf_bins=self.mtf_bins, ap_2d=self.ap_2d, count_2d=self.count_2d,
+                ap_sigma=self.ap_sigma, count_sigma=self.count_sigma, ap_mtf=self.ap_mtf, count_mtf=self.count_mtf,
+                blur_length_px=self.blur_length_px, blur_mtf=self.blur_mtf,
+                meta_json=np.array(json.dumps({k: d[k] for k in ("format", "version", "name", "records", "provenance")},
+                                              ensure_ascii=False)),
+            )
+        else:
+            raise ValueError(f"IOPC files are .json or .npz, got {path.name!r}")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "IOPC":
+        """Read a file written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"IOPC file not found: {path}")
+        if path.suffix == ".json":
+            return cls.from_dict(json.loads(path.read_text()))
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta_json"]))
+                data = {k: z[k] for k in z.files if k != "meta_json"}
+            d = dict(meta)
+            d.update({k: v for k, v in data.items() if k not in ("blur_length_px", "blur_mtf")})
+            d["blur_relation"] = {"length_px": data["blur_length_px"], "mtf": data["blur_mtf"]}
+            for k in ("ap_2d", "ap_sigma", "ap_mtf", "sigma_bins_dn", "mtf_bins"):
+                d[k] = d[k].tolist()
+            return cls.from_dict(d)
+        raise ValueError(f"IOPC files are .json or .npz, got {path.name!r}")
+
+    # ------------------------------------------------------------------ plots
+    def figure(self, title: str | None = None):
+        """Matplotlib figure: 2-D heat map (empty bins hatched, marked cells listed) and both 1-D curves."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, 3, figsize=(14, 4.2), gridspec_kw={"width_ratios": [1.4, 1, 1]})
+        ax = axes[0]
+        data = np.ma.masked_invalid(self.ap_2d)
+        im = ax.imshow(data, origin="lower", cmap="viridis", vmin=0, vmax=1, aspect="auto",
+                       extent=(-0.5, self.mtf_bins.size - 0.5, -0.5, self.sigma_bins.size - 0.5))
+        ax.set_facecolor("#dddddd")
+        for (i, j), c in np.ndenumerate(self.count_2d):
+            if c:
+                ax.text(j, i, f"{self.ap_2d[i, j]:.2f}", ha="center", va="center", fontsize=7,
+                        color="white" if self.ap_2d[i, j] < 0.6 else "black")
+        ax.set_xticks(range(self.mtf_bins.size), [f"{v:.1f}" for v in self.mtf_bins])
+        ax.set_yticks(range(self.sigma_bins.size), [f"{v:g}" for v in self.sigma_bins])
+        ax.set_xlabel("MTF̃ (mean H/V at f_n = 0.1)")
+        ax.set_ylabel("σ̃ [DN]")
+        ax.set_title("2-D IOPC: AP (grey = no cell)")
+        fig.colorbar(im, ax=ax, label="AP")
+        ax = axes[1]
+        ok = self.count_sigma > 0
+        ax.plot(self.sigma_bins[ok], self.ap_sigma[ok], "o-")
+        ax.set_xlabel("σ̃ [DN]"), ax.set_ylabel("AP"), ax.set_ylim(-0.02, 1.02), ax.set_title("isolated noise")
+        ax.grid(alpha=0.3)
+        ax = axes[2]
+        ok = self.count_mtf > 0
+        ax.plot(self.mtf_bins[ok], self.ap_mtf[ok], "o-")
+        ax.set_xlabel("MTF̃"), ax.set_ylabel("AP"), ax.set_ylim(-0.02, 1.02), ax.set_title("isolated motion blur")
+        ax.grid(alpha=0.3)
+        n_marked = len(self.marked_records)
+        fig.suptitle((title or self.name) + (f"  ({n_marked} marked cell(s) not in the curves)" if n_marked else ""))
+        fig.tight_layout()
+        return fig
+
+
+def _bilinear(surf: np.ndarray, xs: np.ndarray, ys: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of ``surf[i, j]`` given at (xs[i], ys[j]); clamped outside."""
+    x, y = np.broadcast_arrays(np.clip(x, xs[0], xs[-1]), np.clip(y, ys[0], ys[-1]))
+    i = np.clip(np.searchsorted(xs, x, side="right") - 1, 0, xs.size - 2)
+    j = np.clip(np.searchsorted(ys, y, side="right") - 1, 0, ys.size - 2)
+    tx = (x - xs[i]) / (xs[i + 1] - xs[i])
+    ty = (y - ys[j]) / (ys[j + 1] - ys[j])
+    return (
+        surf[i, j] * (1 - tx) * (1 - ty) + surf[i + 1, j] * tx * (1 - ty)
+        + surf[i, j + 1] * (1 - tx) * ty + surf[i + 1, j + 1] * tx * ty
+    )

@@ -1,0 +1,67 @@
+"""Controllers: auto-exposure prefers exposure over gain; the IOPC controller applies the policy."""
+
+import pytest
+import torch
+
+from camhealth.control import (
+    AutoExposureController,
+    CameraLimits,
+    ExposurePolicy,
+    FixedController,
+    IOPCController,
+    Observation,
+    SimulatedCamera,
+)
+from camhealth.detection import Detection
+from tests.control.test_policy import BLUR_HATER, FAST
+from tests.iopc.fakes import smooth_frames
+
+
+def _obs(cam, t, g, frame=0, boxes=((10.0, 10.0, 60.0, 50.0),)):
+    cap = cam.capture(frame, t, g)
+    det = Detection(boxes=torch.tensor(boxes), scores=torch.full((len(boxes),), 0.9),
+                    labels=torch.ones(len(boxes), dtype=torch.long))
+    return Observation(frame, cap[0], det, t, g)
+
+
+def test_auto_exposure_uses_exposure_first_then_gain():
+    limits = CameraLimits((0.001, 0.02), (0.0, 24.0))
+    ae = AutoExposureController(0.5, limits, damping=1.0)
+    cam = SimulatedCamera(smooth_frames(1, 64, 64), illumination_per_s=10.0, motion_px_per_s=0.0, sources=())
+    t, g = ae.reset(0.005, 0.0)
+    trace = []
+    for _ in range(8):
+        t, g = ae.update(_obs(cam, t, g))
+        trace.append((t, g))
+    # dark scene (mean ≈ 0.025 at 5 ms): exposure rises to its 20 ms limit before any gain is used
+    assert trace[0][1] == 0.0 and trace[0][0] > 0.005
+    assert all(g == 0.0 for t, g in trace if t < 0.02 - 1e-9)
+    assert trace[-1][0] == pytest.approx(0.02) and trace[-1][1] > 0
+    assert cam.capture(0, *trace[-1]).mean_intensity.item() == pytest.approx(0.5, rel=0.1)
+    # too bright: gain goes first
+    t, g = ae.allocate(0.02 * 10 ** (12 / 20) / 2)  # half the light at 20 ms, 12 dB
+    assert t == pytest.approx(0.02) and g == pytest.approx(12 - 20 * torch.log10(torch.tensor(2.0)).item(), abs=1e-5)
+    assert ae.allocate(0.005) == (pytest.approx(0.005), 0.0)
+
+
+def test_fixed_controller():
+    c = FixedController(0.008, 3.0)
+    assert c.reset() == (0.008, 3.0)
+    cam = SimulatedCamera(smooth_frames(1, 64, 64), sources=())
+    assert c.update(_obs(cam, 0.008, 3.0)) == (0.008, 3.0)
+
+
+@pytest.mark.parametrize("decide_every, n_decisions", [(None, 1), (2, 2)])
+def test_iopc_controller_shortens_exposure_against_blur(decide_every, n_decisions):
+    frames = smooth_frames(2, 192, 192)
+    cam = SimulatedCamera(frames, illumination_per_s=60.0, motion_px_per_s=1200.0, temperature_c=25.0)
+    ctrl = IOPCController(ExposurePolicy(BLUR_HATER, **FAST), "physics", "physics", decide_every=decide_every)
+    t, g = ctrl.reset(0.01, 0.0)
+    for k in range(3):
+        t, g = ctrl.update(_obs(cam, t, g, frame=k % 2))
+    assert len(ctrl.decisions) == n_decisions
+    frame, d, med = ctrl.decisions[0]
+    assert frame == 0 and med["n_regions"] == 1
+    assert med["mtf_tilde"] == pytest.approx(0.5 * (1 + abs(float(torch.sinc(torch.tensor(0.6))))), abs=0.03)
+    assert d.alpha > 1 and t < 0.01 and g > 0
+    assert t * 10 ** (g / 20) == pytest.approx(0.01, rel=1e-6)  # intensity kept

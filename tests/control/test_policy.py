@@ -1,0 +1,141 @@
+"""ExposurePolicy (Eq. 4.5–4.8): direction of the trade-off, limits, LUT = direct argmax, weights."""
+
+import math
+
+import numpy as np
+import pytest
+
+from camhealth.control import Application, CameraLimits, ExposurePolicy, noise_scale
+from camhealth.iopc import IOPC
+
+LENGTHS = (0.0, 3.0, 7.0, 11.0, 15.0, 21.0)
+LEVELS = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
+
+
+def _mtf_of_length(L):
+    return 0.5 * (1.0 + abs(np.sinc(0.05 * L)))  # horizontal motion: H sinc, V = 1
+
+
+def synthetic_iopc(ap, name="synthetic"):
+    """IOPC from a grid of cells whose AP is ap(σ [DN], MTF̃)."""
+    recs = []
+    for s in LEVELS:
+        for L in LENGTHS:
+            m = _mtf_of_length(L)
+            recs.append({"index": len(recs), "key": f"L{L}_s{s}", "length_px": L, "angle_deg": 0.0,
+                         "noise_level_dn": s, "sigma_tilde": s, "mtf_tilde": m, "ap": float(ap(s, m))})
+    return IOPC.from_records(recs, name=name)
+
+
+#: a coarser table for the tests that only check the direction of a decision (faster to build)
+FAST = {"sigma_step_dn": 1.0, "mtf_step": 0.02, "rho_levels": 3}
+
+BLUR_HATER = synthetic_iopc(lambda s, m: np.clip((m - 0.5) * 2.0, 0, 1), "blur-sensitive")
+NOISE_HATER = synthetic_iopc(lambda s, m: 1.0 - s / 30.0, "noise-sensitive")
+
+
+def test_blur_penalised_means_shorter_exposure():
+    pol = ExposurePolicy(BLUR_HATER)
+    d = pol.decide(sigma_hat=5.0, mtf_hat=_mtf_of_length(15.0), exposure_s=0.02, gain_db=0.0)
+    assert d.alpha > 1 and d.exposure_s < 0.02 and d.gain_db > 0 and d.changed
+    assert d.expected_gain > 0.2
+    assert d.exposure_s * 10 ** (d.gain_db / 20) == pytest.approx(0.02)  # intensity kept
+
+
+def test_noise_penalised_means_longer_exposure():
+    pol = ExposurePolicy(NOISE_HATER)
+    d = pol.decide(sigma_hat=10.0, mtf_hat=_mtf_of_length(3.0), exposure_s=0.01, gain_db=12.0)
+    assert d.alpha < 1 and d.exposure_s > 0.01 and d.gain_db < 12.0
+    assert d.gain_db == pytest.approx(0.0, abs=1e-6)  # all the way to the gain limit (exactly)
+    assert d.details["limits_reached"] == ["lowest gain"]
+    assert d.sigma_new_dn < 10.0 and d.expected_gain > 0
+
+
+@pytest.mark.parametrize("limits", [
+    CameraLimits((0.001, 0.2), (0.0, 6.0)),
+    CameraLimits((0.008, 0.2), (0.0, 24.0)),
+    CameraLimits((0.0005, 0.05), (3.0, 9.0)),
+])
+@pytest.mark.parametrize("iopc", [BLUR_HATER, NOISE_HATER], ids=["blur", "noise"])
+def test_limits_respected(limits, iopc):
+    pol = ExposurePolicy(iopc, limits, **FAST)
+    for t, g in ((0.02, 3.0), (0.01, 6.0), (0.03, 4.0)):
+        d = pol.decide(8.0, _mtf_of_length(11.0), t, g)
+        assert limits.exposure_s[0] * (1 - 1e-6) <= d.exposure_s <= limits.exposure_s[1] * (1 + 1e-6)
+        assert limits.gain_db[0] - 1e-6 <= d.gain_db <= limits.gain_db[1] + 1e-6
+
+
+def test_infeasible_and_bad_inputs():
+    pol = ExposurePolicy(BLUR_HATER, CameraLimits((0.001, 0.01), (0.0, 24.0)), alpha_range=(0.5, 2.0), n_alpha=9)
+    with pytest.raises(ValueError, match="no α"):
+        pol.decide(1.0, 0.9, 0.1, 0.0)  # 100 ms can only get to 50 ms within α >= 0.5
+    with pytest.raises(ValueError, match="sigma_hat"):
+        pol.decide(-1.0, 0.9, 0.01, 0.0)
+    with pytest.raises(ValueError, match="mtf_hat"):
+        pol.decide(1.0, 1.5, 0.01, 0.0)
+    with pytest.raises(ValueError, match="exposure_s"):
+        pol.decide(1.0, 0.9, float("nan"), 0.0)
+    with pytest.raises(ValueError, match="odd"):
+        ExposurePolicy(BLUR_HATER, n_alpha=10)
+    with pytest.raises(ValueError, match="0 < low <= high"):
+        CameraLimits((0.0, 0.1), (0.0, 24.0))
+
+
+def test_table_agrees_with_direct_argmax():
+    pol = ExposurePolicy([BLUR_HATER, (NOISE_HATER, 0.7)])
+    rng = np.random.default_rng(0)
+    for _ in range(25):
+        s = float(rng.choice(pol.sigma_grid[:50]))  # on the table grid: no rounding of the inputs
+        m = float(rng.choice(pol.mtf_grid[40:]))
+        t, g = float(rng.uniform(0.002, 0.05)), float(rng.uniform(0, 20))
+        rho = float(rng.choice(pol.rho_grid))
+        d = pol.decide(s, m, t, g, rho=rho)
+        direct = pol.objective(s, m, pol.alphas, rho)
+        ok = pol.feasible(t, g)
+        assert d.expected_ap >= float(direct[ok].max()) - 1e-5  # grid candidates (+ the exact limits)
+        on_grid = bool(np.isclose(pol.alphas, d.alpha, rtol=1e-12, atol=0).any())
+        tol = 1e-5 if on_grid else 0.02  # off-grid: the limit α, interpolated in log α
+        assert d.expected_ap == pytest.approx(float(pol.objective(s, m, d.alpha, rho)), abs=tol)
+
+
+def test_multi_application_weights():
+    args = (8.0, _mtf_of_length(11.0), 0.02, 6.0)
+    blur_first = ExposurePolicy([Application(BLUR_HATER, 1.0), Application(NOISE_HATER, 0.0)], **FAST).decide(*args)
+    noise_first = ExposurePolicy([Application(BLUR_HATER, 0.0), Application(NOISE_HATER, 1.0)], **FAST).decide(*args)
+    assert blur_first.alpha > 1 > noise_first.alpha
+    both = ExposurePolicy([(BLUR_HATER, 1.0), (NOISE_HATER, 1.0)], **FAST).decide(*args)
+    assert len(both.details["applications"]) == 2
+    with pytest.raises(ValueError, match="at least one application weight"):
+        ExposurePolicy([(BLUR_HATER, 0.0)])
+
+
+def test_noise_scaling_per_source():
+    assert noise_scale(4.0, 1.0) == pytest.approx(4.0)  # readout (gain-linear): σ ∝ α
+    assert noise_scale(4.0, 0.0) == pytest.approx(2.0)  # photon / dark: σ ∝ √α (σ²_DCSN ∝ t_exp)
+    pol = ExposurePolicy(NOISE_HATER)
+    d_rn = pol.decide(10.0, 0.99, 0.01, 12.0, sigma_sources=[0.0, 0.0, 10.0])
+    assert d_rn.details["rho"] == 1.0
+    d_pn = pol.decide(10.0, 0.99, 0.01, 12.0, sigma_sources=[8.0, 6.0, 0.0])
+    assert d_pn.details["rho"] == 0.0
+    # lengthening the exposure removes less noise when it is photon/dark noise (√α) than readout (α)
+    assert d_pn.sigma_new_dn > d_rn.sigma_new_dn
+    with pytest.raises(ValueError, match="either sigma_sources or rho"):
+        pol.decide(1.0, 0.9, 0.01, 0.0, sigma_sources=[1, 1, 1], rho=0.5)
+
+
+def test_flat_curve_and_hysteresis_keep_the_parameters():
+    flat = synthetic_iopc(lambda s, m: 0.5)
+    d = ExposurePolicy(flat).decide(5.0, 0.8, 0.01, 6.0)
+    assert d.alpha == 1.0 and not d.changed and d.expected_gain == 0.0
+    d = ExposurePolicy(BLUR_HATER, min_gain=0.9).decide(5.0, _mtf_of_length(7.0), 0.02, 0.0)
+    assert not d.changed and "min_gain" in d.explanation
+
+
+def test_explanation_names_bins_curve_and_limit():
+    pol = ExposurePolicy(BLUR_HATER, CameraLimits((0.001, 0.2), (0.0, 6.0)))
+    d = pol.decide(5.0, _mtf_of_length(15.0), 0.02, 0.0)
+    text = d.explanation
+    assert "blur-sensitive" in text and "σ̃ 5 DN" in text and "[measured]" in text
+    assert "highest gain" in text and d.details["limits_reached"] == ["highest gain"]
+    assert d.length_px == pytest.approx(15.0, abs=0.5) and d.length_new_px < d.length_px
+    assert math.isfinite(d.mtf_new[0]) and d.mtf_new[0] > _mtf_of_length(15.0)

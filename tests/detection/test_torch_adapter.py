@@ -1,0 +1,91 @@
+"""TorchDetector: frozen module, output formats, clear errors."""
+
+import pytest
+import torch
+
+from camhealth.detection import TorchDetector
+
+
+class TensorOut(torch.nn.Module):
+    """Returns (B, N, 6) rows [x, y, w, h, score, label] with one padding row (score −1)."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(1, 1, 3)
+        self.dropout = torch.nn.Dropout(0.5)
+
+    def forward(self, x):
+        b = x.shape[0]
+        rows = torch.tensor([[2.0, 3.0, 10.0, 20.0, 0.8, 1.0], [0.0, 0.0, 0.0, 0.0, -1.0, 0.0]])
+        return rows.expand(b, 2, 6).clone()
+
+
+def test_module_is_frozen_and_stays_frozen():
+    m = TensorOut()
+    det = TorchDetector(m, box_format="xywh")
+    assert not m.training and all(not p.requires_grad for p in m.parameters())
+    m.train()  # someone flips it back
+    det(torch.rand(1, 1, 32, 32))
+    assert not m.training
+    assert det.config()["parameters"] == sum(p.numel() for p in m.parameters())
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_tensor_output_padding_and_xywh(batch):
+    det = TorchDetector(TensorOut(), box_format="xywh")
+    out = det(torch.rand(batch, 1, 32, 32))
+    assert len(out) == batch
+    assert out[0]["boxes"].tolist() == [[2.0, 3.0, 12.0, 23.0]]
+    out[0]["boxes"] += 1  # caller may modify (not an inference tensor)
+
+
+def test_tuple_output_normalised_cxcywh_and_rgb():
+    class M(torch.nn.Module):
+        def forward(self, x):
+            assert x.shape[1] == 3 and float(x.max()) > 1.5  # RGB and DN
+            b = x.shape[0]
+            return (torch.tensor([[[0.5, 0.5, 0.5, 0.25]]]).expand(b, 1, 4), torch.full((b, 1), 0.9),
+                    torch.ones(b, 1, dtype=torch.long))
+
+    det = TorchDetector(M(), channels=3, input_scale=255.0, box_format="cxcywh", normalized_boxes=True)
+    (out,) = det(torch.rand(1, 1, 40, 80) * 0.5 + 0.25)
+    assert out["boxes"].tolist() == [[20.0, 15.0, 60.0, 25.0]]
+
+
+def test_postprocess_hook():
+    class M(torch.nn.Module):
+        def forward(self, x):
+            return {"b": torch.tensor([[0.0, 0, 4, 4]])}
+
+    det = TorchDetector(M(), postprocess=lambda raw, imgs: [{"boxes": raw["b"], "scores": [0.7], "labels": [2]}])
+    assert det(torch.rand(1, 1, 8, 8))[0]["labels"].tolist() == [2]
+
+
+@pytest.mark.parametrize(
+    "output, match",
+    [
+        ({"boxes": torch.zeros(1, 4)}, "expected a list of dicts"),
+        (torch.zeros(1, 2, 5), r"\(B=1, N, 6\)"),
+        ([{"boxes": torch.zeros(1, 4), "scores": torch.ones(1)}], "missing key"),
+        ([{"boxes": torch.tensor([[0.0, 0, 999, 5]]), "scores": torch.ones(1), "labels": torch.ones(1)}], "outside the 16×16"),
+    ],
+)
+def test_malformed_module_output(output, match):
+    class M(torch.nn.Module):
+        def forward(self, x):
+            return output
+
+    with pytest.raises((TypeError, ValueError), match=match):
+        TorchDetector(M(), name="bad")(torch.rand(1, 1, 16, 16))
+
+
+def test_bad_input_and_args():
+    det = TorchDetector(TensorOut())
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        det(torch.full((1, 1, 8, 8), 2.0))
+    with pytest.raises(ValueError, match="C = 1"):
+        det(torch.rand(1, 3, 8, 8))
+    with pytest.raises(ValueError, match="box_format"):
+        TorchDetector(TensorOut(), box_format="yxyx")
+    with pytest.raises(TypeError, match="nn.Module"):
+        TorchDetector(lambda x: x)

@@ -1,0 +1,97 @@
+"""IOPC binning, 1-D/2-D curves, marked cells, MTF→length relation, JSON/NPZ round trip."""
+
+import math
+
+import numpy as np
+import pytest
+
+from camhealth.iopc import IOPC, MTF_BINS, SIGMA_BINS_DN, bin_index
+
+
+def _records():
+    """Noise 0/5/10 DN × motion 0/7/15 px; AP falls with both; MTF̃ from the sinc at f = 0.05 c/px."""
+    recs = []
+    for s in (0.0, 5.0, 10.0):
+        for L, mtf in ((0.0, 1.0), (7.0, 0.81), (15.0, 0.62)):
+            recs.append({"index": len(recs), "key": f"L{L}_s{s}", "length_px": L, "angle_deg": 0.0,
+                         "noise_level_dn": s, "sigma_tilde": s + 0.3, "mtf_tilde": mtf,
+                         "ap": max(0.0, 1.0 - 0.05 * s - 0.03 * L), "marked": False, "reason": ""})
+    recs.append({"index": 9, "key": "far", "length_px": 0.0, "angle_deg": 0.0, "noise_level_dn": 40.0,
+                 "sigma_tilde": 41.0, "mtf_tilde": 1.0, "ap": 0.0})
+    recs.append({"index": 10, "key": "pre", "length_px": 0.0, "angle_deg": 0.0, "noise_level_dn": 50.0,
+                 "sigma_tilde": float("nan"), "mtf_tilde": float("nan"), "ap": float("nan"), "marked": True,
+                 "reason": "noise level not reachable"})
+    return recs
+
+
+def test_bin_index_nearest_and_outside():
+    idx, inside = bin_index([0.0, 2.4, 2.6, 31.0, 32.6, -3.0, float("nan")], SIGMA_BINS_DN)
+    assert idx.tolist()[:4] == [0, 0, 1, 6]
+    assert inside.tolist() == [True, True, True, True, False, False, False]
+    idx, inside = bin_index([0.04, 0.06, 1.0, 1.06], MTF_BINS)
+    assert inside.tolist() == [False, True, True, False] and idx[1] == 0
+
+
+def test_from_records_curves_and_marks():
+    iopc = IOPC.from_records(_records(), provenance={"who": "test"}, name="AP test")
+    assert iopc.ap_2d.shape == (7, 10) and iopc.count_2d.sum() == 9
+    assert iopc.ap_2d[0, 9] == 1.0 and iopc.ap_2d[2, 5] == pytest.approx(1.0 - 0.5 - 0.45)
+    assert iopc.ap_2d[0, 7] == pytest.approx(1 - 0.21)  # MTF̃ 0.81 → bin 0.8
+    assert np.isnan(iopc.ap_2d[3, 0])
+    # 1-D curves: isolated noise (L = 0) and isolated blur (σ = 0)
+    assert iopc.count_sigma.tolist() == [1, 1, 1, 0, 0, 0, 0]
+    assert iopc.ap_sigma[:3].tolist() == pytest.approx([1.0, 0.75, 0.5])
+    assert iopc.count_mtf[[5, 7, 9]].tolist() == [1, 1, 1]
+    marked = {r["key"]: r["reason"] for r in iopc.marked_records}
+    assert set(marked) == {"far", "pre"} and "outside the IOPC bins" in marked["far"]
+    assert marked["pre"] == "noise level not reachable"
+    # MTF → motion-length relation from the noise-free cells, non-increasing
+    assert iopc.blur_length_px.tolist() == [0.0, 7.0, 15.0]
+    assert iopc.blur_mtf.tolist() == pytest.approx([1.0, 0.81, 0.62])
+    assert iopc.length_from_mtf(0.81) == pytest.approx(7.0)
+    assert iopc.mtf_from_length(iopc.length_from_mtf(0.7)) == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize("suffix", [".json", ".npz"])
+def test_round_trip(tmp_path, suffix):
+    iopc = IOPC.from_records(_records(), provenance={"grid": [1, 2], "nested": {"a": None}}, name="AP x")
+    back = IOPC.load(iopc.save(tmp_path / f"curves{suffix}"))
+    assert back.to_dict() == iopc.to_dict()
+    np.testing.assert_array_equal(back.count_2d, iopc.count_2d)
+    np.testing.assert_allclose(back.ap_2d, iopc.ap_2d, equal_nan=True)
+    assert back.name == "AP x" and back.provenance["grid"] == [1, 2]
+    assert math.isnan(next(r for r in back.records if r["key"] == "pre")["ap"])
+
+
+def test_surface_fill_and_interpolation():
+    iopc = IOPC.from_records(_records())
+    surf, measured = iopc.surface()
+    assert measured.sum() == 9 and np.isfinite(surf).all()
+    assert surf[6, 9] == iopc.ap_2d[2, 9]  # nearest measured bin
+    assert float(iopc.interpolate(10.0, 0.6)) == pytest.approx(iopc.ap_2d[2, 5])
+    mid = float(iopc.interpolate(2.5, 1.0))
+    assert mid == pytest.approx(0.5 * (iopc.ap_2d[0, 9] + iopc.ap_2d[1, 9]))
+    assert iopc.interpolate(np.zeros((2, 3)), np.ones((2, 3))).shape == (2, 3)
+
+
+def test_validation_errors(tmp_path):
+    with pytest.raises(ValueError, match="missing 'ap'"):
+        IOPC.from_records([{"sigma_tilde": 1, "mtf_tilde": 1, "length_px": 0, "noise_level_dn": 0}])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        IOPC.from_records(_records(), sigma_bins=[0, 5, 5])
+    iopc = IOPC.from_records(_records())
+    with pytest.raises(ValueError, match=".json or .npz"):
+        iopc.save(tmp_path / "x.txt")
+    (tmp_path / "y.json").write_text('{"format": "other"}')
+    with pytest.raises(ValueError, match="not a camhealth IOPC"):
+        IOPC.load(tmp_path / "y.json")
+    with pytest.raises(ValueError, match="no measured bin"):
+        IOPC.from_records(_records()[-1:]).surface()
+
+
+def test_figure():
+    import matplotlib.pyplot as plt
+
+    fig = IOPC.from_records(_records()).figure()
+    assert len(fig.axes) >= 3
+    plt.close(fig)
