@@ -1,0 +1,388 @@
+"""``python -m camhealth.bench monitor``: ms per 1280×1024 8-bit frame of the real-time monitor, the saving
+of scene-adaptive patch selection, its accuracy, and the thesis-size noise network on the same patches.
+
+Frames: the embedded street clip (``--scene street``; 768×576, people walking past a static background)
+upscaled bilinearly to ``--width``×``--height`` (default 1280×1024), or a static dead-leaves scene
+(``--scene deadleaves``), optionally over-exposed (``--brightness`` > 1 scales the scene and clips it, so
+that saturated patches appear and the saving of skipping them shows), blurred by a defocus disk of
+``--defocus-px`` px and corrupted with the full sensor-noise chain of :func:`camhealth.physics.form_image`
+(``--sensor`` at ``--gain-db``, ``--exposure-s``, ``--temperature-c``; a fresh noise realisation per
+frame), quantised to 8 bits (uint8 DN, what a camera delivers). The monitor gets the matching metadata.
+
+Rows (round-robin per frame, so every row sees the same frames under the same machine load; each time is
+``Monitor.process`` of one uint8 frame plus its JSON line, i.e. conversion, tiling, patch statistics,
+selection, batched inference, aggregation and report):
+
+* ``every patch`` — all 128-px and 192-px patches estimated, no skipping (``skip_uninformative=False``);
+* ``informative patches`` — every informative patch of every frame ("fully monitored": noise sources on
+  every informative 128-px patch, MTF on every informative 192-px patch) — the baseline of the ratio column;
+* ``adaptive`` — the monitor's default: skip + static-region reuse + coarse lattice → refine; the first
+  timed frame is cold (state reset), the rest are a stream;
+* ``informative, fp32`` — as ``informative`` with fp32 networks (first ``--slow-frames`` frames);
+* the note of the monitor rows gives the median **CPU time** per frame (``time.process_time``, all threads):
+  on a machine shared with other jobs it is what the frame costs independent of the load (with one thread it
+  is the wall time on an idle core);
+* ``thesis-size noise net`` — :class:`lightning_modules.drne.ThesisNoiseNet` (16 full-resolution
+  64-channel layers, fp32) on ``--thesis-patches`` of the same informative noise patches, scaled to all
+  of them (first ``--slow-frames`` frames); the note gives the speed ratio to the camhealth noise
+  estimator on the same patches.
+
+Summary lines: patches estimated per frame (saving of skipping and of the adaptive scheme, skip reasons);
+accuracy on the informative patches of ``adaptive`` vs ``informative`` against the truth — σ_total
+Bias/Std/RMS (Eq. 6.2, DN; truth: the realised σ of the noise in each patch, ``image − noise-free``,
+including quantisation) and MTF AMAE (Eq. 5.1, %; truth: the MTF of the applied defocus disk; the street
+frames carry their own camera and upscaling blur on top, so AMAE is a consistency measure there) and the
+RMS difference between the two; bf16 vs fp32 differences; peak resident memory (``VmHWM``) of one adaptive
+monitor alone in a fresh interpreter (the frames, models, Python and torch included), and of this process
+after the three monitor rows and after the slow rows; the machine and its load average before and after.
+``--batch``/``--size``/``--repeats`` of the common options are not used (the frame count is ``--frames``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from camhealth.bench import BenchResult, Row
+
+HELP = "ms per 1280×1024 frame of the monitor (every / informative / adaptive patches), accuracy, thesis-size net"
+
+ALL = "every patch (no skipping)"
+INFORMATIVE = "informative patches (fully monitored)"
+ADAPTIVE = "adaptive (skip + reuse static + coarse→refine)"
+FP32 = "informative patches, fp32"
+THESIS = "thesis-size noise net, same noise patches"
+TARGET_MS = 100.0
+TARGET_RSS_MB = 1024.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--frames", type=int, default=16, help="frames in the timed stream (default 16)")
+    parser.add_argument("--width", type=int, default=1280, help="frame width in px (default 1280)")
+    parser.add_argument("--height", type=int, default=1024, help="frame height in px (default 1024)")
+    parser.add_argument("--scene", choices=("street", "deadleaves"), default="street", help="frame content (default street)")
+    parser.add_argument("--noise-model", default="noise_source_full",
+                        help="noise estimator name or file (default noise_source_full)")
+    parser.add_argument("--mtf-model", default="mtf", help="MTF estimator name or file (default mtf)")
+    parser.add_argument("--untrained", action="store_true",
+                        help="use freshly initialised networks of the shipped architectures (timing only; accuracy meaningless)")
+    parser.add_argument("--sensor", default="ICX285", help="sensor preset of the noise and the metadata (default ICX285)")
+    parser.add_argument("--gain-db", type=float, default=12.0, help="gain in dB (default 12)")
+    parser.add_argument("--exposure-s", type=float, default=0.01, help="exposure in s (default 0.01)")
+    parser.add_argument("--temperature-c", type=float, default=40.0, help="sensor temperature in °C (default 40)")
+    parser.add_argument("--brightness", type=float, default=1.0,
+                        help="scale the clean scene's intensity (>1 over-exposes: saturated patches to skip; default 1)")
+    parser.add_argument("--defocus-px", type=float, default=3.0,
+                        help="defocus disk diameter in px applied to every frame (default 3)")
+    parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
+                        help="precision of the monitor rows (default bf16)")
+    parser.add_argument("--no-memory-probe", dest="memory_probe", action="store_false",
+                        help="skip the peak-memory run of one monitor in a fresh interpreter")
+    parser.add_argument("--slow-frames", type=int, default=2,
+                        help="frames timed for the fp32 and thesis-size rows (default 2; 0: no such rows)")
+    parser.add_argument("--thesis-patches", type=int, default=4,
+                        help="patches the thesis-size net is timed on (default 4; 0: no thesis row)")
+
+
+def _frames(args: argparse.Namespace, meta) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(uint8 frames T×H×W, noise-free blurred frames T×H×W in [0, 1], true MTF (16,))."""
+    import kornia
+
+    from camhealth.physics import defocus_psf, form_image, mtf_hv
+
+    t, h, w = args.frames, args.height, args.width
+    if args.scene == "street":
+        from camhealth.data import street_sequence
+
+        clean = torch.stack([f for f, _ in street_sequence(max_frames=t)])
+        if clean.shape[0] < t:
+            raise ValueError(f"--frames {t} exceeds the {clean.shape[0]} frames of the street clip")
+        clean = kornia.geometry.resize(clean, (h, w), interpolation="bilinear", antialias=False).clamp(0, 1)
+    else:
+        from camhealth.data import dead_leaves
+
+        clean = dead_leaves((h, w), r_min=3.0, seed=args.seed)[None].expand(t, -1, -1, -1).contiguous()
+    if args.brightness != 1.0:
+        clean = (clean * args.brightness).clamp(0, 1)
+    k = max(3, int(2 * (args.defocus_px // 2) + 3))
+    psf = defocus_psf(torch.tensor([float(args.defocus_px)]), k)
+    gen = torch.Generator().manual_seed(args.seed)
+    noisy, blurred = [], []
+    for i in range(t):  # one frame at a time keeps the peak memory of the set-up low
+        out = form_image(clean[i : i + 1], meta, defocus_psf=psf, generator=gen)
+        noisy.append((out.image[0, 0] * 255.0).round().clamp(0, 255).to(torch.uint8))
+        blurred.append(out.blurred[0, 0].float())
+    return torch.stack(noisy), torch.stack(blurred), mtf_hv(psf)[0].float()
+
+
+def _models(args: argparse.Namespace, tmp: Path) -> tuple[Any, Any]:
+    if not args.untrained:
+        return args.noise_model, args.mtf_model
+    from camhealth.export import export_weights
+    from lightning_modules import MTFEstimator, NoiseSourceEstimator
+
+    torch.manual_seed(args.seed)
+    return (export_weights(NoiseSourceEstimator(), tmp / "noise_source_untrained.pt"),
+            export_weights(MTFEstimator(), tmp / "mtf_untrained.pt"))
+
+
+def _truth_sigma(noisy: torch.Tensor, blurred: torch.Tensor, grid) -> torch.Tensor:
+    """Realised σ_total [DN] of every noise patch: std of (8-bit image − noise-free image)."""
+    diff = noisy.float() - blurred * 255.0
+    return grid.extract(diff).flatten(1).std(1, unbiased=False)
+
+
+def _has_value(report) -> torch.Tensor:
+    from camhealth.monitor.tiling import ESTIMATED, INTERPOLATED, REUSED
+
+    code = report.code
+    return ((code == ESTIMATED) | (code == INTERPOLATED) | (code == REUSED)) & torch.isfinite(report.values[:, -1])
+
+
+def run(args: argparse.Namespace) -> BenchResult:
+    from camhealth.bench.corruption import _load
+    from camhealth.physics import CameraMetadata
+
+    checks = ((args.frames, "--frames", 1), (args.slow_frames, "--slow-frames", 0), (args.thesis_patches, "--thesis-patches", 0),
+              (args.width, "--width", 1), (args.height, "--height", 1))
+    for v, name, lo in checks:
+        if v < lo:
+            raise ValueError(f"{name} must be >= {lo}, got {v}")
+    if not args.brightness > 0:
+        raise ValueError(f"--brightness must be > 0, got {args.brightness}")
+    load_before = _load()
+    rss_start = peak_rss_mb()
+    meta = CameraMetadata.preset(args.sensor, gain_db=args.gain_db, exposure_s=args.exposure_s, temperature_c=args.temperature_c)
+    frames, blurred, mtf_true = _frames(args, meta)
+    tmpdir = Path(tempfile.mkdtemp(prefix="camhealth_bench_monitor_"))
+    try:
+        return _run(args, meta, frames, blurred, mtf_true, tmpdir, load_before, rss_start)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process [MB]: ``VmHWM`` of ``/proc/self/status`` (the high-water mark of
+    this address space, reset by ``exec``), else ``ru_maxrss`` (which a child inherits from its parent)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def rss_probe(config_path: str) -> dict[str, float]:
+    """Peak resident memory of one adaptive :class:`Monitor` alone: run in a fresh interpreter by the
+    benchmark (``config_path``: JSON with the frames file, models, metadata, precision, threads)."""
+    import json
+
+    from camhealth.monitor import Monitor
+    from camhealth.physics import CameraMetadata
+
+    cfg = json.loads(Path(config_path).read_text())
+    torch.set_num_threads(int(cfg["threads"]))
+    frames = torch.load(cfg["frames"], weights_only=True)
+    start = peak_rss_mb()
+    mon = Monitor(cfg["noise_model"], cfg["mtf_model"], metadata=CameraMetadata(**cfg["metadata"]), precision=cfg["precision"])
+    for f in frames:
+        mon.process(f).to_json()
+    return {"start_mb": start, "peak_mb": peak_rss_mb()}
+
+
+def _probe_memory(
+    args: argparse.Namespace, frames: torch.Tensor, meta, noise_model: Any, mtf_model: Any, tmpdir: Path
+) -> dict[str, float] | None:
+    import json
+    import os
+    import subprocess
+    import sys
+
+    torch.save(frames, tmpdir / "frames.pt")
+    cfg = {"frames": str(tmpdir / "frames.pt"), "noise_model": str(noise_model), "mtf_model": str(mtf_model),
+           "metadata": {k: v[0] for k, v in meta.to_dict().items()}, "precision": args.precision,
+           "threads": torch.get_num_threads()}
+    (tmpdir / "probe.json").write_text(json.dumps(cfg))
+    code = "import json, sys; from camhealth.bench.monitor import rss_probe; print(json.dumps(rss_probe(sys.argv[1])))"
+    try:
+        r = subprocess.run([sys.executable, "-c", code, str(tmpdir / "probe.json")], capture_output=True, text=True,
+                           timeout=900, env={**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())})
+        return json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError, ValueError, IndexError):
+        return None
+
+
+def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Tensor, mtf_true: torch.Tensor, tmpdir: Path,
+         load_before: str, rss_start: float) -> BenchResult:
+    from camhealth.bench.corruption import _load, machine_description
+    from camhealth.metrics import amae, noise_errors
+    from camhealth.monitor import Monitor
+    from camhealth.monitor.api import NOISE_FIELDS
+    from lightning_modules.drne import ThesisNoiseNet
+
+    noise_model, mtf_model = _models(args, tmpdir)
+    common = dict(noise_model=noise_model, mtf_model=mtf_model, metadata=meta, precision=args.precision)
+    monitors = {
+        ALL: Monitor(**common, adaptive=False, skip_uninformative=False),
+        INFORMATIVE: Monitor(**common, adaptive=False),
+        ADAPTIVE: Monitor(**common),
+    }
+    fp32 = Monitor(**{**common, "precision": "fp32"}, adaptive=False)
+    thesis = ThesisNoiseNet().eval()
+    noise_est = monitors[INFORMATIVE].estimators["noise"].est
+    for m in (*monitors.values(), fp32):  # warm-up (oneDNN kernels), then forget the state
+        for _ in range(args.warmup):
+            m.process(frames[0])
+        m.reset()
+    times: dict[str, list[float]] = {name: [] for name in (*monitors, FP32, THESIS)}
+    cpu: dict[str, list[float]] = {name: [] for name in monitors}
+    reports: dict[str, list[Any]] = {name: [] for name in monitors}
+    thesis_ratio: list[float] = []
+    bf16_vs_fp32: dict[str, float] = {}
+    with torch.inference_mode():
+        for i in range(args.frames):
+            for name, m in monitors.items():
+                c0, t0 = time.process_time(), time.perf_counter()
+                r = m.process(frames[i], index=i)
+                r.to_json()
+                times[name].append((time.perf_counter() - t0) * 1e3)
+                cpu[name].append((time.process_time() - c0) * 1e3)
+                reports[name].append(r)
+        rss_peak = peak_rss_mb()  # before the slow rows
+        for i in range(min(args.slow_frames, args.frames)):
+            t0 = time.perf_counter()
+            rf = fp32.process(frames[i], index=i)
+            rf.to_json()
+            times[FP32].append((time.perf_counter() - t0) * 1e3)
+            rb = reports[INFORMATIVE][i]
+            both = _has_value(rb.noise) & _has_value(rf.noise)
+            d_sigma = (rb.noise.values[both, -1] - rf.noise.values[both, -1]).abs()
+            bothm = _has_value(rb.mtf) & _has_value(rf.mtf)
+            d_mtf = (rb.mtf.values[bothm] - rf.mtf.values[bothm]).abs()
+            bf16_vs_fp32["sigma_max"] = max(bf16_vs_fp32.get("sigma_max", 0.0), float(d_sigma.max()) if d_sigma.numel() else 0.0)
+            bf16_vs_fp32["mtf_max"] = max(bf16_vs_fp32.get("mtf_max", 0.0), float(d_mtf.max()) if d_mtf.numel() else 0.0)
+            # thesis-size net on the same informative noise patches (a subset, scaled)
+            grid = rb.noise.grid_obj
+            inf_idx = _has_value(rb.noise).nonzero()[:, 0]
+            n_inf = int(inf_idx.numel())
+            if n_inf and args.thesis_patches:
+                sub = inf_idx[: args.thesis_patches]
+                patches = grid.extract(frames[i].float() / 255.0)[sub].contiguous()
+                t0 = time.perf_counter()
+                thesis(patches)
+                t_thesis = (time.perf_counter() - t0) * 1e3
+                t0 = time.perf_counter()
+                noise_est.predict(patches, metadata=meta, precision=args.precision)
+                t_ours = (time.perf_counter() - t0) * 1e3
+                times[THESIS].append(t_thesis * n_inf / sub.numel())
+                thesis_ratio.append(t_thesis / max(t_ours, 1e-6))
+    rss_all = peak_rss_mb()
+    probe = _probe_memory(args, frames, meta, noise_model, mtf_model, tmpdir) if args.memory_probe else None
+
+    # ---- patches estimated per frame, accuracy
+    def per_frame(name: str, task: str, key: str) -> float:
+        return sum(getattr(r, task).counts.get(key, 0) for r in reports[name]) / len(reports[name])
+
+    def fresh(name: str, task: str) -> float:  # patches sent to the network
+        return per_frame(name, task, "estimated") + per_frame(name, task, "not_assessable")
+
+    grid_n = reports[ALL][0].noise.grid_obj
+    err_full, err_adapt, diff, mtf_full, mtf_adapt = [], [], [], [], []
+    truth_sig, xi_adapt = [], []
+    for i in range(args.frames):
+        rf, ra = reports[INFORMATIVE][i], reports[ADAPTIVE][i]
+        both = _has_value(rf.noise) & _has_value(ra.noise)
+        truth = _truth_sigma(frames[i], blurred[i], grid_n)[both]
+        err_full.append(rf.noise.values[both, -1])
+        err_adapt.append(ra.noise.values[both, -1])
+        truth_sig.append(truth)
+        diff.append(ra.noise.values[both, -1] - rf.noise.values[both, -1])
+        xi_adapt.append(ra.noise.values[both, NOISE_FIELDS.index("xi")])
+        bm = _has_value(rf.mtf) & _has_value(ra.mtf)
+        mtf_full.append(rf.mtf.values[bm])
+        mtf_adapt.append(ra.mtf.values[bm])
+    truth_all = torch.cat(truth_sig)
+    full_e = noise_errors(torch.cat(err_full), truth_all) if truth_all.numel() else None
+    adapt_e = noise_errors(torch.cat(err_adapt), truth_all) if truth_all.numel() else None
+    d_all = torch.cat(diff)
+    mf, ma = torch.cat(mtf_full), torch.cat(mtf_adapt)
+    amae_full = float(amae(mf, mtf_true.expand_as(mf)).mean()) if mf.numel() else float("nan")
+    amae_adapt = float(amae(ma, mtf_true.expand_as(ma)).mean()) if ma.numel() else float("nan")
+    amae_diff = float(amae(ma, mf).mean()) if ma.numel() else float("nan")
+    xi_all = torch.cat(xi_adapt)
+
+    # ---- rows
+    n_noise, n_mtf = reports[ALL][0].noise.counts["total"], reports[ALL][0].mtf.counts["total"]
+    rows = []
+    for name in (ALL, INFORMATIVE, ADAPTIVE):
+        rn, rm = fresh(name, "noise"), fresh(name, "mtf")
+        note = (f"CPU {Row(name, cpu[name]).median_ms:.0f} ms/frame; {rn:.1f}/{n_noise} noise + {rm:.1f}/{n_mtf} MTF patches "
+                f"through the networks per frame")
+        if name == ADAPTIVE:
+            note += (f" (+{per_frame(name, 'noise', 'reused'):.1f}+{per_frame(name, 'mtf', 'reused'):.1f} reused, "
+                     f"{per_frame(name, 'noise', 'interpolated'):.1f}+{per_frame(name, 'mtf', 'interpolated'):.1f} interpolated; "
+                     f"cold first frame {times[name][0]:.0f} ms)")
+        rows.append(Row(name, times[name], note=note))
+    if times[FP32]:
+        d_s, d_m = bf16_vs_fp32.get("sigma_max", float("nan")), bf16_vs_fp32.get("mtf_max", float("nan"))
+        rows.append(Row(FP32, times[FP32], note=f"{len(times[FP32])} frame(s); bf16 − fp32: max |Δσ_total| "
+                        f"{d_s:.3f} DN, max |ΔMTF| {d_m:.4f}"))
+    if times[THESIS]:
+        ratio = sorted(thesis_ratio)[len(thesis_ratio) // 2]
+        rows.append(Row(THESIS, times[THESIS], note=f"fp32, timed on {args.thesis_patches} patch(es) and scaled to the "
+                        f"{fresh(INFORMATIVE, 'noise'):.1f} informative ones; {ratio:.0f}× the camhealth noise estimator's time "
+                        f"on the same patches ({args.precision})", speedup=ratio, speedup_of="thesis net / camhealth noise"))
+    adaptive_ms = Row(ADAPTIVE, times[ADAPTIVE]).median_ms
+    informative_ms = Row(INFORMATIVE, times[INFORMATIVE]).median_ms
+    skip_noise = {k: per_frame(INFORMATIVE, "noise", k) for k in ("black", "saturated")}
+    skip_mtf = {k: per_frame(INFORMATIVE, "mtf", k) for k in ("black", "saturated", "featureless")}
+    model_note = f"{noise_model}, {mtf_model}"
+    if args.untrained:
+        model_note = "UNTRAINED networks (timing only; accuracy numbers are not meaningful)"
+    header = [
+        f"machine: {machine_description()}",
+        f"load average before: {load_before} (1/5/15 min); date {_dt.date.today().isoformat()}",
+        f"frames: {args.frames} × {args.width}×{args.height} uint8, scene {args.scene} (brightness ×{args.brightness:g}), "
+        f"defocus {args.defocus_px:g} px, "
+        f"{args.sensor} at {args.gain_db:g} dB / {args.exposure_s * 1e3:g} ms / {args.temperature_c:g} °C (metadata given); "
+        f"models: {model_note}; precision {args.precision}; warm-up {args.warmup} frame(s)",
+        f"command: {getattr(args, 'command_line', 'python -m camhealth.bench monitor')}",
+    ]
+    def fmt(e: dict | None) -> str:
+        return "–" if e is None else f"Bias {e['bias']:.3f} / Std {e['std']:.3f} / RMS {e['rms']:.3f} DN (n = {e['n']})"
+
+    verdict = (lambda ms: ("met" if ms <= TARGET_MS else "NOT met")) if (args.width, args.height) == (1280, 1024) else \
+        (lambda ms: "defined for 1280×1024 only")
+    summary = [
+        f"adaptive: median {adaptive_ms:.1f} ms/frame, CPU {Row(ADAPTIVE, cpu[ADAPTIVE]).median_ms:.1f} ms/frame "
+        f"(target ≤ {TARGET_MS:.0f} ms: {verdict(adaptive_ms)}); every informative patch every frame: {informative_ms:.1f} ms, "
+        f"CPU {Row(INFORMATIVE, cpu[INFORMATIVE]).median_ms:.1f} ms ({verdict(informative_ms)})",
+        (f"peak resident memory of one adaptive monitor alone (fresh interpreter, VmHWM): {probe['peak_mb']:.0f} MB "
+         f"(Python + torch + camhealth before the monitor: {probe['start_mb']:.0f} MB; target ≤ {TARGET_RSS_MB:.0f} MB: "
+         f"{'met' if probe['peak_mb'] <= TARGET_RSS_MB else 'NOT met'}); " if probe else "")
+        + f"this benchmark process: {rss_peak:.0f} MB after the three monitor rows (all three monitors, their models, all "
+        f"frames; {rss_start:.0f} MB at start), {rss_all:.0f} MB after the fp32 and thesis-size rows",
+        f"skipped as uninformative per frame: noise {skip_noise}, MTF {skip_mtf}; network patches per frame "
+        f"{fresh(ALL, 'noise') + fresh(ALL, 'mtf'):.1f} (every) → "
+        f"{fresh(INFORMATIVE, 'noise') + fresh(INFORMATIVE, 'mtf'):.1f} "
+        f"(informative) → {fresh(ADAPTIVE, 'noise') + fresh(ADAPTIVE, 'mtf'):.1f} (adaptive)",
+        f"σ_total on informative patches vs realised σ — informative: {fmt(full_e)}; adaptive: {fmt(adapt_e)}; "
+        f"adaptive − informative RMS {float(d_all.pow(2).mean().sqrt()) if d_all.numel() else float('nan'):.3f} DN",
+        f"MTF AMAE vs the applied defocus — informative {amae_full:.2f} %, adaptive {amae_adapt:.2f} %; "
+        f"adaptive vs informative {amae_diff:.2f} %",
+        f"ξ on informative patches (metadata correct, truth 0): median "
+        f"{float(xi_all.median()) if xi_all.numel() else float('nan'):+.3f} DN",
+        f"load average after: {_load()}",
+    ]
+    title = f"Monitor, {args.width}×{args.height} frames (ms per frame)"
+    return BenchResult(title, rows, INFORMATIVE, header=header, summary=summary)

@@ -1,0 +1,327 @@
+"""Command line: ``python -m camhealth.monitor SOURCE [--metadata FILE] [--sensor NAME] [--out DIR] …``.
+
+Runs :class:`camhealth.monitor.Monitor` on every frame of SOURCE and writes one JSON line per frame
+(stdout, or ``DIR/monitor.jsonl``), optional overlay PNGs, a progress bar (stderr) and a summary at the
+end (``DIR/summary.json`` too). Exit status: 0 on success (unreadable frames in a folder are reported and
+skipped), 2 on a usage or input error (missing/unreadable source, undecodable video, bad metadata, missing
+model), with a one-line message.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence, TextIO
+
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS
+
+__all__ = ["build_parser", "main"]
+
+DESCRIPTION = """\
+Monitor a camera's image quality frame by frame: patch-wise blur (MTF, horizontal and vertical, at the
+normalised frequencies 0.05…0.6 of Nyquist) and noise (σ of photon shot, dark-current shot and readout
+noise, the metadata residual ξ and the total, in DN of 255), aggregated over time by a temporal median
+with its spread (thesis Eq. 5.4), an alarm when ξ says the image is noisier (or cleaner) than the camera
+metadata allow, and, with --iopc, the exposure/gain advice of the IOPC policy (Eq. 4.5-4.8).
+
+Only what the scene needs is estimated: black, saturated and (for blur) featureless patches are skipped,
+static regions reuse their last estimate, and patches are estimated on a coarse lattice first and refined
+only where the estimates or the patch content change. Every skip is counted in the JSON line.
+"""
+
+EPILOG = f"""\
+SOURCE kinds: an image file (.png .jpg .tif .bmp …), a folder of frame images (natural file order), a
+video file (.mp4 .avi .mkv …; OpenCV) or the word 'street' (the 50-frame clip embedded in camhealth).
+
+Metadata file (--metadata), JSON or YAML, physical units (thesis Table 4.1):
+    sensor: ICX285          # optional preset that fills fields not given ({', '.join(sorted(PRESETS))})
+    gain_db: 12.0           # {METADATA_RANGES['gain_db'][0]:g} … {METADATA_RANGES['gain_db'][1]:g} dB
+    exposure_s: 0.01        # {METADATA_RANGES['exposure_s'][0]:g} … {METADATA_RANGES['exposure_s'][1]:g} s
+    temperature_c: 40       # {METADATA_RANGES['temperature_c'][0]:g} … {METADATA_RANGES['temperature_c'][1]:g} °C
+  all fields: {', '.join(FULL_FIELDS)} (sensor_type: CCD|CMOS for is_cmos).
+  A Full-Meta noise model needs all 11 (from the file or a preset); a missing or out-of-range field is an
+  error that names the field and its range.
+
+Output, one JSON object per frame (keys): frame, index, source_id, size, assessable, metadata,
+  noise {{estimator, patch_px, grid, assessable, sigma_dn {{pn, dcsn, rn, xi, total: {{median, spread,
+  temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
+  not_assessable, total}}}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
+  ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
+  Unreadable frames of a folder give {{"frame_error": …}} lines. See docs/monitor.md.
+
+Examples:
+  python -m camhealth.monitor street --sensor ICX285 --max-frames 10 --out runs/monitor
+  python -m camhealth.monitor clip.mp4 --metadata meta.yaml --overlay --out runs/clip
+  python -m camhealth.monitor frame.png --sensor EV76C661 --set gain_db=18 --iopc runs/iopc/iopc.json
+"""
+
+
+def _positive(value: str) -> int:
+    try:
+        n = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {value!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    return n
+
+
+def _non_negative_int(value: str) -> int:
+    try:
+        n = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {value!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
+    return n
+
+
+def _non_negative(value: str) -> float:
+    try:
+        x = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {value!r}") from None
+    if not x >= 0 or x == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {value}")
+    return x
+
+
+def _assignment(value: str) -> tuple[str, float]:
+    if "=" not in value:
+        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {value!r}")
+    key, _, raw = value.partition("=")
+    key = key.strip()
+    if key not in FULL_FIELDS:
+        raise argparse.ArgumentTypeError(f"unknown metadata field {key!r}; known: {', '.join(FULL_FIELDS)}")
+    try:
+        return key, float(raw)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{key} must be a number, got {raw!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m camhealth.monitor", description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("source", metavar="SOURCE", help="image file, folder of frames, video file, or 'street' (embedded clip)")
+    g = p.add_argument_group("camera metadata")
+    g.add_argument("--metadata", metavar="FILE", help="JSON/YAML file of metadata fields in physical units (see below)")
+    g.add_argument("--sensor", metavar="NAME", choices=sorted(PRESETS),
+                   help=f"sensor preset ({', '.join(sorted(PRESETS))}) that fills fields the file does not give, "
+                        "or is the metadata (at 0 dB, 10 ms, 25 °C) when there is no file")
+    g.add_argument("--set", metavar="FIELD=VALUE", action="append", type=_assignment, default=[],
+                   help="override one metadata field, e.g. --set gain_db=12 (repeatable)")
+    g = p.add_argument_group("estimators")
+    g.add_argument("--noise-model", metavar="NAME|FILE", default="noise_source_full",
+                   help="noise estimator: shipped name (noise_source_full, noise_source_min, drne) or a "
+                        ".pt/.ckpt/.pt2/.onnx file (default: noise_source_full)")
+    g.add_argument("--mtf-model", metavar="NAME|FILE", default="mtf",
+                   help="MTF estimator: shipped name 'mtf' or a file (default: mtf)")
+    g.add_argument("--no-noise", action="store_true", help="do not estimate noise (no ξ alarm, no advice)")
+    g.add_argument("--no-mtf", action="store_true", help="do not estimate blur (no advice)")
+    g.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
+                   help="network precision: bf16 (CPU autocast, default; ~2x faster) or fp32 (reference)")
+    g.add_argument("--batch-size", type=_positive, default=128, metavar="N", help="patches per network call (default 128)")
+    g.add_argument("--threads", type=_positive, default=1, metavar="N",
+                   help="torch intra-op threads (default 1: leaves the other core to the application and cannot "
+                        "spin-wait against other jobs; on an idle machine 2 is faster — with other jobs on the cores "
+                        "also set OMP_WAIT_POLICY=PASSIVE, or 2 threads can be 20x slower)")
+    g = p.add_argument_group("scene-adaptive selection")
+    g.add_argument("--no-adaptive", action="store_true",
+                   help="estimate every informative patch of every frame (no static reuse, no coarse-to-fine)")
+    g.add_argument("--no-reuse", action="store_true", help="do not reuse estimates of static regions across frames")
+    g.add_argument("--no-refine", action="store_true",
+                   help="estimate all changed patches at once, without the coarse lattice first")
+    g.add_argument("--no-skip", action="store_true",
+                   help="also estimate black, saturated and featureless patches (not recommended)")
+    g.add_argument("--max-age", type=_positive, default=16, metavar="N",
+                   help="re-estimate a static patch at least every N frames (default 16; staggered over the grid)")
+    g.add_argument("--max-clipped", type=_non_negative, default=0.5, metavar="F",
+                   help="skip a patch with more than this fraction of pixels at 0 or 255 DN (default 0.5)")
+    g.add_argument("--min-structure-dn", type=_non_negative, default=2.0, metavar="DN",
+                   help="blur: skip a patch whose noise-corrected structure contrast is below this (default 2 DN)")
+    g = p.add_argument_group("aggregation and alarm")
+    g.add_argument("--window", type=_positive, default=5, metavar="N",
+                   help="temporal median over the last N estimates of each patch (default 5)")
+    g.add_argument("--xi-threshold-dn", type=_non_negative, default=1.0, metavar="DN",
+                   help="alarm when |ξ| exceeds this (and 3 standard errors of the median; default 1 DN)")
+    g.add_argument("--xi-sigmas", type=_non_negative, default=3.0, metavar="K",
+                   help="significance of the alarm in standard errors (default 3)")
+    g = p.add_argument_group("exposure/gain advice")
+    g.add_argument("--iopc", metavar="FILE", action="append", default=[],
+                   help="IOPC file (.json/.npz from python -m camhealth.iopc); repeat for several applications. "
+                        "Enables the policy's advice (needs camhealth.control)")
+    g.add_argument("--iopc-weights", type=_non_negative, nargs="+", metavar="W",
+                   help="weights λ of the IOPCs (Eq. 4.8), one per --iopc")
+    g.add_argument("--exposure-limits", type=float, nargs=2, default=(0.001, 0.2), metavar=("LO", "HI"),
+                   help="camera exposure limits in s (default 0.001 0.2)")
+    g.add_argument("--gain-limits", type=float, nargs=2, default=(0.0, 24.0), metavar=("LO", "HI"),
+                   help="camera gain limits in dB (default 0 24)")
+    g = p.add_argument_group("frames")
+    g.add_argument("--start", type=_non_negative_int, default=0, metavar="N", help="first frame index (default 0)")
+    g.add_argument("--stride", type=_positive, default=1, metavar="N", help="use every N-th frame (default 1)")
+    g.add_argument("--max-frames", type=_positive, default=None, metavar="N", help="stop after N frames (default: all)")
+    g = p.add_argument_group("output")
+    g.add_argument("--out", type=Path, metavar="DIR",
+                   help="write DIR/monitor.jsonl, DIR/summary.json and overlays there (default: JSON lines on stdout)")
+    g.add_argument("--overlay", action="store_true",
+                   help="write overlay PNGs (noise and blur heat maps) to DIR/overlays/ (needs --out)")
+    g.add_argument("--overlay-every", type=_positive, default=1, metavar="N", help="overlay every N-th frame (default 1)")
+    g.add_argument("--sigma-max-dn", type=_non_negative, default=20.0, metavar="DN",
+                   help="top of the overlay's σ colour scale (default 20 DN)")
+    g.add_argument("--per-patch", action="store_true", help="include every patch's status and values in the JSON lines")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    return p
+
+
+class _Progress:
+    def __init__(self, total: int | None, enabled: bool) -> None:
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=total, unit="frame", file=sys.stderr, dynamic_ncols=True)
+            except ImportError:  # pragma: no cover - tqdm ships with lightning
+                self.bar = None
+
+    def update(self, text: str) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix_str(text, refresh=False)
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _fmt(x: Any, spec: str = ".2f") -> str:
+    return "–" if x is None else format(x, spec)
+
+
+def _human_summary(summary: dict, out: TextIO) -> None:
+    ms = summary["ms_per_frame"]
+    print(
+        f"camhealth.monitor: {summary['frames']} frame(s) from {summary['source']} "
+        f"({summary['unreadable_frames']} unreadable) in {summary['wall_s']:.1f} s; "
+        f"median {_fmt(ms['median'], '.1f')} ms/frame (max {_fmt(ms['max'], '.1f')})",
+        file=out,
+    )
+    for task, counts in summary["patches"].items():
+        parts = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
+        print(f"  {task} [{summary['estimators'][task]}]: {parts or 'no patches'}", file=out)
+    last = summary.get("last") or {}
+    noise, mtf = last.get("noise"), last.get("mtf")
+    if noise and noise.get("sigma_dn"):
+        s = noise["sigma_dn"]
+        print(
+            f"  last frame noise: total {_fmt(s['total']['median'])} ± {_fmt(s['total']['spread'])} DN; "
+            f"PN {_fmt(s['pn']['median'])}, DCSN {_fmt(s['dcsn']['median'])}, RN {_fmt(s['rn']['median'])}, "
+            f"ξ {_fmt(s['xi']['median'], '+.2f')} DN",
+            file=out,
+        )
+    if mtf and mtf.get("indicator"):
+        print(f"  last frame blur: MTF̃ (f_n = 0.1) {_fmt(mtf['indicator']['median'], '.3f')}", file=out)
+    if summary["alarms"]:
+        print("  ξ alarm states: " + ", ".join(f"{k} {v}" for k, v in summary["alarms"].items()), file=out)
+    advice = last.get("advice")
+    if advice and advice.get("available"):
+        print(f"  advice: {advice['explanation']}", file=out)
+    for key in ("jsonl", "overlays"):
+        if summary.get(key):
+            print(f"  {key}: {summary[key]}", file=out)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from camhealth.monitor.api import Monitor, _read_mapping, load_policy
+    from camhealth.monitor.overlay import save_overlay
+    from camhealth.monitor.sources import open_source
+    from camhealth.monitor.tiling import SelectionConfig
+
+    torch.set_num_threads(args.threads)
+    if args.overlay and args.out is None:
+        raise ValueError("--overlay needs --out DIR (the PNGs go to DIR/overlays/)")
+    if args.no_noise and args.no_mtf:
+        raise ValueError("--no-noise and --no-mtf together leave nothing to monitor")
+    if args.max_clipped > 1:
+        raise ValueError(f"--max-clipped = {args.max_clipped:g} must lie in [0, 1]")
+    if args.iopc_weights is not None and len(args.iopc_weights) != len(args.iopc):
+        raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
+    source = open_source(args.source, args.start, args.stride, args.max_frames)
+    noise_model = None if args.no_noise else args.noise_model
+    mtf_model = None if args.no_mtf else args.mtf_model
+    metadata: Any = args.metadata
+    if args.set:  # overrides go on top of the file's fields; the preset (if any) fills the rest
+        metadata = {**(_read_mapping(Path(args.metadata)) if args.metadata else {}), **dict(args.set)}
+    policy = None
+    if args.iopc:
+        policy = load_policy(args.iopc, tuple(args.exposure_limits), tuple(args.gain_limits), args.iopc_weights)
+    selection = SelectionConfig(max_clipped_fraction=args.max_clipped, min_structure_dn=args.min_structure_dn,
+                                max_age=args.max_age)
+    monitor = Monitor(
+        noise_model=noise_model, mtf_model=mtf_model, metadata=metadata,
+        sensor=args.sensor,
+        window=args.window, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
+        skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, batch_size=args.batch_size,
+        xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
+    )
+    out_dir: Path | None = args.out
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        sink: TextIO = (out_dir / "monitor.jsonl").open("w", encoding="utf-8")
+        report_to: TextIO = sys.stdout
+    else:
+        sink, report_to = sys.stdout, sys.stderr
+    progress = _Progress(source.length, not args.no_progress)
+    unreadable: list[str] = []
+    overlays = 0
+    t0 = time.perf_counter()
+    try:
+        for item in source:
+            if item.error is not None:
+                unreadable.append(f"{item.source_id}: {item.error}")
+                line = {"frame_error": item.error, "index": item.index, "source_id": item.source_id}
+                sink.write(json.dumps(line, ensure_ascii=False) + "\n")
+                progress.update("unreadable frame")
+                continue
+            report = monitor.process(item.frame, index=item.index, source_id=item.source_id)
+            sink.write(report.to_json() + "\n")
+            sink.flush()
+            if args.overlay and report.frame % args.overlay_every == 0:
+                png = out_dir / "overlays" / f"frame_{item.index:06d}.png"
+                save_overlay(png, item.frame, report, sigma_max_dn=args.sigma_max_dn)
+                overlays += 1
+            progress.update(f"{report.timing_ms['total']:.0f} ms, ξ {report.alarm['state']}")
+    finally:
+        progress.close()
+        if out_dir is not None:
+            sink.close()
+    summary = monitor.summary()
+    summary.update(source=str(source.path), kind=source.kind, unreadable_frames=len(unreadable), unreadable=unreadable[:20],
+                   wall_s=time.perf_counter() - t0)
+    if out_dir is not None:
+        summary["jsonl"] = str(out_dir / "monitor.jsonl")
+        if overlays:
+            summary["overlays"] = f"{out_dir / 'overlays'} ({overlays} PNG)"
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, ensure_ascii=False, allow_nan=False, default=str))
+    _human_summary(summary, report_to)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except (FileNotFoundError, NotADirectoryError, ValueError, TypeError, ImportError) as exc:
+        print(f"python -m camhealth.monitor: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,908 @@
+"""Real-time camera monitor: frames in, condition (blur, noise per source, ξ alarm) and advice out.
+
+:class:`Monitor` runs the learned estimators of :mod:`camhealth.inference` patch-wise on every frame,
+but only where the scene needs it (:mod:`camhealth.monitor.tiling`: skip black/saturated/featureless
+patches, reuse estimates of static regions, coarse lattice first and refine only where it changes), and
+reports one :class:`FrameReport` per frame (a JSON line):
+
+- **MTF** (H and V at the 8 normalised frequencies f_n ∈ {0.05, …, 0.6}, dimensionless) on the informative
+  192-px patches and the IOPC blur indicator MTF̃ (mean of H and V at f_n = 0.1);
+- **noise** σ of photon shot (PN), dark-current shot (DCSN) and readout noise (RN), the residual ξ
+  (Eq. 4.3: ξ = σ_Model(M) − σ_Image(M'), DN) and the total σ (√(σ_PN² + σ_DCSN² + σ_RN²), Eq. 4.2 without
+  ξ), all in DN of 255, on the informative 128-px patches;
+- **uncertainty by temporal median aggregation** (thesis Sec. 5.6, Eq. 5.4): every patch keeps its last
+  ``window`` new values (network estimates, or interpolations from freshly estimated neighbours; a reused
+  value adds no new information and is not added again); its value is their median σ̃_n and its temporal
+  spread 1.4826·MAD (:func:`camhealth.estimators.aggregation.temporal_median`). The frame value is the median
+  over the informative patches (the spatial median of Sec. 5.7, as in Eq. 4.4 but over the whole frame,
+  :func:`~camhealth.estimators.aggregation.spatial_median`) with its spatial spread; ``temporal_spread``
+  is the median of the patches' temporal spreads, ``current`` the spatial median of this frame alone.
+  A change of metadata (gain, exposure, …) starts the aggregation afresh.
+- **ξ alarm**: ξ̃ < −limit → the image is *noisier* than the metadata allow (wrong gain/temperature in
+  the metadata, a defective sensor, or noise added downstream); ξ̃ > +limit → *cleaner* (e.g. a denoiser
+  in the pipeline, or metadata that overstate gain). limit = max(``xi_threshold_dn``,
+  k·1.2533·spread/√n) — the absolute threshold or k standard errors of the median, whichever is larger.
+- **advice** of an :class:`camhealth.control.ExposurePolicy` (Eq. 4.5–4.8) built from IOPC files:
+  α* and the new exposure/gain for σ̃ and MTF̃ at the current metadata.
+
+Frames are gray float tensors in [0, 1] (DN/255), or arrays of 8-bit DN; colour is converted with the
+BT.601 luma of :func:`camhealth.data.to_gray`. Everything runs under :func:`torch.inference_mode` with
+batched network calls (``precision="bf16"`` by default, CPU autocast; ``"fp32"`` for reference).
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from camhealth.estimators.aggregation import spatial_median, temporal_median
+from camhealth.monitor.tiling import (
+    ESTIMATED,
+    INTERPOLATED,
+    NOT_ASSESSABLE,
+    REUSED,
+    STATUS_NAMES,
+    PatchGrid,
+    SelectionConfig,
+    StaticRegions,
+    coarse_lattice,
+    grid_statistics,
+    refine_plan,
+    select_patches,
+    status_counts,
+)
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS, MINIMAL_FIELDS, PRESETS, CameraMetadata
+from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
+
+__all__ = [
+    "NOISE_FIELDS",
+    "TASKS",
+    "Monitor",
+    "FrameReport",
+    "TaskReport",
+    "as_frame",
+    "load_metadata",
+    "load_policy",
+    "xi_alarm",
+]
+
+#: Columns of the per-patch noise values (DN): σ per source, ξ, total.
+NOISE_FIELDS: tuple[str, ...] = ("pn", "dcsn", "rn", "xi", "total")
+#: The monitor's tasks and the estimator kinds each accepts.
+TASKS: dict[str, tuple[str, ...]] = {"noise": ("noise_source", "drne"), "mtf": ("mtf",)}
+#: Standard error of a median = √(π/2)·σ/√n for Gaussian scatter.
+_MEDIAN_SE = math.sqrt(math.pi / 2.0)
+_VALUE_STATUS = (ESTIMATED, INTERPOLATED, REUSED)
+
+
+# ---------------------------------------------------------------------------------------------- inputs
+def as_frame(frame: Any) -> torch.Tensor:
+    """A frame as a 1×1×H×W float32 tensor in [0, 1].
+
+    Accepts a torch tensor (H×W, C×H×W or 1×C×H×W, channels first) or a NumPy array (H×W or H×W×C,
+    channels last, RGB order), C ∈ {1, 2, 3, 4} (colour → BT.601 luma, alpha dropped). uint8 is DN/255,
+    uint16 DN/65535 (as :func:`camhealth.data.read_image`), other integers are 8-bit DN that must lie in
+    [0, 255]; floats must lie in [0, 1]. Raises ``TypeError``/``ValueError`` naming the problem.
+    """
+    from camhealth.data.io import to_gray
+
+    from_integers = False
+    if isinstance(frame, np.ndarray):
+        if frame.dtype == np.bool_ or frame.dtype.kind not in "uif":
+            raise TypeError(f"frame must be a numeric array (uint8 DN or float in [0, 1]), got dtype {frame.dtype}")
+        arr = frame
+        if arr.ndim == 3 and arr.shape[-1] not in (1, 2, 3, 4) and arr.shape[0] == 1:
+            arr = arr[0]
+        if arr.ndim not in (2, 3):
+            raise ValueError(f"frame must be H×W or H×W×C (channels last), got shape {arr.shape}")
+        if arr.dtype.kind in "ui":
+            scale = 65535.0 if arr.dtype == np.uint16 else 255.0
+            hi = float(arr.max()) if arr.size else 0.0
+            lo = float(arr.min()) if arr.size else 0.0
+            if arr.dtype not in (np.uint8, np.uint16) and (lo < 0 or hi > 255):
+                raise ValueError(f"integer frame values are 8-bit DN and must lie in [0, 255], got min {lo:g}, max {hi:g}")
+            arr = arr.astype(np.float32) / np.float32(scale)
+            from_integers = True
+        gray = to_gray(arr) if arr.ndim == 3 else arr
+        x = torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32))
+    elif isinstance(frame, torch.Tensor):
+        if frame.dtype == torch.bool or frame.is_complex():
+            raise TypeError(f"frame must be a real numeric tensor, got dtype {frame.dtype}")
+        x = frame.detach().cpu()
+        if x.ndim == 4:
+            if x.shape[0] != 1:
+                raise ValueError(f"process one frame at a time: got a batch of {x.shape[0]} (shape {tuple(x.shape)})")
+            x = x[0]
+        if not x.is_floating_point():
+            scale = 65535.0 if x.dtype == torch.uint16 else 255.0
+            lo, hi = (float(x.min()), float(x.max())) if x.numel() else (0.0, 0.0)
+            if x.dtype not in (torch.uint8, torch.uint16) and (lo < 0 or hi > 255):
+                raise ValueError(f"integer frame values are 8-bit DN and must lie in [0, 255], got min {lo:g}, max {hi:g}")
+            x = x.float().div_(scale)
+            from_integers = True
+        if x.ndim == 3:
+            if x.shape[0] not in (1, 2, 3, 4):
+                raise ValueError(f"frame must be C×H×W with C in 1…4 (channels first), got shape {tuple(frame.shape)}")
+            x = to_gray(x)[0]
+        elif x.ndim != 2:
+            raise ValueError(f"frame must be H×W, C×H×W or 1×C×H×W, got shape {tuple(frame.shape)}")
+        x = x.float()
+    else:
+        raise TypeError(f"frame must be a torch.Tensor or numpy.ndarray, got {type(frame).__name__}")
+    if x.numel() == 0:
+        raise ValueError(f"frame is empty (shape {tuple(x.shape)})")
+    if from_integers:  # DN / max: finite and in [0, 1] by construction
+        return x.contiguous()[None, None]
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"frame holds {int((~torch.isfinite(x)).sum())} non-finite value(s) (NaN/inf)")
+    lo, hi = float(x.min()), float(x.max())
+    if lo < -1e-6 or hi > 1 + 1e-6:
+        hint = " (looks like DN: pass a uint8 array or divide by 255)" if hi <= 255 and lo >= 0 else ""
+        raise ValueError(f"float frame values must lie in [0, 1], got min {lo:g}, max {hi:g}{hint}")
+    return x.clamp(0, 1).contiguous()[None, None]
+
+
+def _read_mapping(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"metadata file not found: {path}")
+    text = path.read_text(encoding="utf-8")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".json":
+            data = json.loads(text)
+        elif suffix in (".yaml", ".yml"):
+            import yaml
+
+            data = yaml.safe_load(text)
+        else:
+            raise ValueError(f"metadata file {path} must be .json, .yaml or .yml, got {path.suffix!r}")
+    except (json.JSONDecodeError, ValueError) as exc:
+        if isinstance(exc, ValueError) and "must be .json" in str(exc):
+            raise
+        raise ValueError(f"cannot parse metadata file {path}: {str(exc).splitlines()[0]}") from None
+    except Exception as exc:  # yaml.YAMLError
+        raise ValueError(f"cannot parse metadata file {path}: {str(exc).splitlines()[0]}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"metadata file {path} must hold a mapping of field: value, got {type(data).__name__}")
+    return data
+
+
+def load_metadata(
+    source: CameraMetadata | Mapping[str, Any] | str | Path | None = None,
+    sensor: str | None = None,
+    required: str = "full",
+) -> CameraMetadata | None:
+    """Camera metadata (batch 1, physical units) from a file, a mapping or a preset, validated.
+
+    Args:
+        source: ``None``; a :class:`CameraMetadata`; a mapping of fields (``gain_db``, ``exposure_s``, …,
+            see :data:`camhealth.physics.metadata.FULL_FIELDS`; ``sensor_type: CCD|CMOS`` for ``is_cmos``;
+            ``sensor: ICX285`` names a preset that fills the missing fields); or a ``.json``/``.yaml`` file
+            holding such a mapping.
+        sensor: preset (``"ICX285"``, ``"EV76C661"``) that fills fields the source does not give (and the
+            metadata when ``source`` is ``None``).
+        required: the metadata set the estimator reads: ``"full"`` (all 11 fields must be known),
+            ``"minimal"`` (gain, exposure, temperature; the other fields, which such a network does not
+            read, default to the ICX285 preset) or ``"none"``.
+
+    Returns:
+        the metadata, or ``None`` if neither ``source`` nor ``sensor`` is given.
+
+    Raises:
+        FileNotFoundError / ValueError naming the file, the missing fields or the field, value and allowed
+        range (:data:`camhealth.physics.metadata.METADATA_RANGES`).
+    """
+    if required not in METADATA_SETS:
+        raise ValueError(f"required = {required!r} must be one of {list(METADATA_SETS)}")
+    if sensor is not None and str(sensor).upper() not in PRESETS:
+        raise ValueError(f"unknown sensor preset {sensor!r}; known presets: {sorted(PRESETS)}")
+    if isinstance(source, CameraMetadata):
+        if source.batch_size != 1:
+            raise ValueError(f"monitor metadata must describe one camera state (batch 1), got batch {source.batch_size}")
+        return source
+    if source is None:
+        return None if sensor is None else CameraMetadata.preset(sensor)
+    origin = "metadata"
+    if isinstance(source, (str, Path)):
+        origin = f"metadata file {source}"
+        data = _read_mapping(Path(source))
+    elif isinstance(source, Mapping):
+        data = dict(source)
+    else:
+        raise TypeError(f"metadata must be CameraMetadata, a mapping or a .json/.yaml path, got {type(source).__name__}")
+    base = data.pop("sensor", None)
+    if sensor is not None:
+        if base is not None and str(base).upper() != str(sensor).upper():
+            raise ValueError(f"{origin} names sensor {base!r} but sensor={sensor!r} was given; use one")
+        base = sensor
+    if base is not None and str(base).upper() not in PRESETS:
+        raise ValueError(f"{origin}: unknown sensor preset {base!r}; known presets: {sorted(PRESETS)}")
+    for key, value in data.items():
+        if key == "sensor_type" or (key == "is_cmos" and isinstance(value, bool)):
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{origin}: field {key} = {value!r} must be a number in physical units")
+    given = set(data) | ({"is_cmos"} if "sensor_type" in data else set())
+    if base is None:
+        need = FULL_FIELDS if required == "full" else MINIMAL_FIELDS if required == "minimal" else ()
+        missing = [f for f in need if f not in given]
+        if missing:
+            raise ValueError(
+                f"{origin} is missing field(s) {missing} that the noise estimator reads ({required!r} metadata set); "
+                f"add them or name a sensor preset ({sorted(PRESETS)}) that fills them"
+            )
+        if required != "full" and any(f not in given for f in FULL_FIELDS):
+            base = "ICX285"  # fields a Min-Meta network (or none) never reads
+    try:
+        return CameraMetadata.from_dict(data, base=base)
+    except ValueError as exc:
+        raise ValueError(f"{origin}: {exc}") from None
+
+
+def load_policy(
+    iopc_files: Sequence[str | Path],
+    exposure_limits_s: tuple[float, float] = (0.001, 0.2),
+    gain_limits_db: tuple[float, float] = (0.0, 24.0),
+    weights: Sequence[float] | None = None,
+) -> Any:
+    """An :class:`camhealth.control.ExposurePolicy` from IOPC files (``.json``/``.npz`` written by
+    ``python -m camhealth.iopc``), with the camera's exposure [s] and gain [dB] limits and optional
+    application weights λ (Eq. 4.8). Raises ``ImportError`` if :mod:`camhealth.control` is not available."""
+    try:
+        from camhealth.control import CameraLimits, ExposurePolicy
+        from camhealth.iopc import IOPC
+    except ImportError as exc:
+        raise ImportError(
+            f"an IOPC policy needs camhealth.control and camhealth.iopc, which cannot be imported here ({exc})"
+        ) from None
+    files = [Path(p) for p in iopc_files]
+    if not files:
+        raise ValueError("load_policy needs at least one IOPC file")
+    if weights is not None and len(weights) != len(files):
+        raise ValueError(f"{len(weights)} weight(s) for {len(files)} IOPC file(s); give one per file")
+    curves = [IOPC.load(p) for p in files]
+    apps = list(zip(curves, [float(w) for w in weights])) if weights is not None else curves
+    return ExposurePolicy(apps, limits=CameraLimits(tuple(exposure_limits_s), tuple(gain_limits_db)))
+
+
+# ---------------------------------------------------------------------------------------------- reports
+def _num(x: Any, nd: int = 4) -> Any:
+    """JSON-safe rounded float (NaN/inf → None); lists recursively."""
+    if isinstance(x, torch.Tensor):
+        x = x.tolist()
+    if isinstance(x, (list, tuple)):
+        return [_num(v, nd) for v in x]
+    if x is None:
+        return None
+    v = float(x)
+    return round(v, nd) if math.isfinite(v) else None
+
+
+@dataclass
+class TaskReport:
+    """One task's result for one frame (see :meth:`to_dict` for the JSON layout).
+
+    Attributes:
+        task: ``"noise"`` or ``"mtf"``.
+        estimator: description of the estimator.
+        patch: patch side [px]; grid: (rows, cols).
+        assessable: at least one informative patch had a value.
+        median, spread, temporal_spread, current: (K,) frame values (see the module docstring); K = 5
+            (:data:`NOISE_FIELDS`, DN) or 16 (MTF H then V).
+        indicator: MTF only: (median, spread) of the per-patch blur indicator MTF̃.
+        counts: patches per status (:data:`~camhealth.monitor.tiling.STATUS_NAMES`) and ``total``.
+        note: why a task could not be assessed, if it could not.
+        grid_obj, values, code: per-patch maps (not serialised unless asked).
+    """
+
+    task: str
+    estimator: str
+    patch: int
+    grid: tuple[int, int]
+    assessable: bool
+    median: torch.Tensor | None = None
+    spread: torch.Tensor | None = None
+    temporal_spread: torch.Tensor | None = None
+    current: torch.Tensor | None = None
+    indicator: tuple[float, float] | None = None
+    counts: dict[str, int] = field(default_factory=dict)
+    note: str = ""
+    grid_obj: PatchGrid | None = field(default=None, repr=False)
+    values: torch.Tensor | None = field(default=None, repr=False)
+    code: torch.Tensor | None = field(default=None, repr=False)
+
+    def value(self, name: str) -> float:
+        """Frame value (temporal + spatial median) of a noise field or ``"indicator"``; NaN if none."""
+        if name == "indicator":
+            return float("nan") if self.indicator is None else self.indicator[0]
+        if self.median is None:
+            return float("nan")
+        return float(self.median[NOISE_FIELDS.index(name)])
+
+    def _stats(self, sl: slice | int) -> dict[str, Any]:
+        return {
+            key: None if t is None else _num(t[sl])
+            for key, t in (("median", self.median), ("spread", self.spread), ("temporal_spread", self.temporal_spread),
+                           ("current", self.current))
+        }
+
+    def to_dict(self, per_patch: bool = False) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "estimator": self.estimator, "patch_px": self.patch, "grid": list(self.grid), "assessable": self.assessable,
+        }
+        if self.task == "noise":
+            out["sigma_dn"] = {name: self._stats(i) for i, name in enumerate(NOISE_FIELDS)} if self.assessable else None
+        else:
+            n = len(NORMALIZED_FREQUENCIES)
+            if self.assessable:
+                out["h"] = self._stats(slice(0, n))
+                out["v"] = self._stats(slice(n, 2 * n))
+                ind = self.indicator
+                out["indicator"] = {"median": _num(ind[0]), "spread": _num(ind[1])} if ind else None
+            else:
+                out["h"] = out["v"] = out["indicator"] = None
+        out["patches"] = dict(self.counts)
+        if self.note:
+            out["note"] = self.note
+        if per_patch and self.grid_obj is not None and self.values is not None and self.code is not None:
+            out["per_patch"] = {
+                "x0": self.grid_obj.x0, "y0": self.grid_obj.y0,
+                "status": [STATUS_NAMES[int(c)] for c in self.code.tolist()],
+                "values": _num(self.values),
+            }
+        return out
+
+
+@dataclass
+class FrameReport:
+    """Everything the monitor says about one frame; :meth:`to_json` gives the JSON line.
+
+    Attributes:
+        frame: running number of the frame in this monitor (0-based).
+        index: index of the frame in its source (file order / video frame), if known.
+        source_id: file or stream name, if known.
+        height, width: frame size [px].
+        metadata: gain [dB], exposure [s], temperature [°C] used (``None`` without metadata).
+        noise, mtf: :class:`TaskReport` (``None`` when the task is disabled).
+        alarm: ξ alarm (state, ξ̃, limit, message).
+        advice: policy decision, or why there is none (``None`` without a policy).
+        timing_ms: convert / noise / mtf / aggregate / total [ms].
+    """
+
+    frame: int
+    index: int | None
+    source_id: str | None
+    height: int
+    width: int
+    metadata: dict[str, float] | None
+    noise: TaskReport | None
+    mtf: TaskReport | None
+    alarm: dict[str, Any]
+    advice: dict[str, Any] | None
+    timing_ms: dict[str, float]
+    per_patch: bool = False
+
+    @property
+    def assessable(self) -> bool:
+        """True if at least one task produced numbers."""
+        return any(t is not None and t.assessable for t in (self.noise, self.mtf))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "frame": self.frame,
+            "index": self.index,
+            "source_id": self.source_id,
+            "size": [self.width, self.height],
+            "assessable": self.assessable,
+            "metadata": None if self.metadata is None else {k: _num(v, 6) for k, v in self.metadata.items()},
+            "noise": None if self.noise is None else self.noise.to_dict(self.per_patch),
+            "mtf": None if self.mtf is None else self.mtf.to_dict(self.per_patch),
+            "alarm": self.alarm,
+            "advice": self.advice,
+            "timing_ms": {k: _num(v, 2) for k, v in self.timing_ms.items()},
+        }
+
+    def to_json(self) -> str:
+        """One line of strict JSON (no NaN: missing numbers are ``null``)."""
+        return json.dumps(self.to_dict(), ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+
+
+def xi_alarm(xi_dn: float, spread_dn: float, count: int, threshold_dn: float = 1.0, k: float = 3.0,
+             total_dn: float | None = None) -> dict[str, Any]:
+    """ξ alarm for a frame value ξ̃ [DN] (Eq. 4.3: ξ = σ_Model(M) − σ_Image(M')).
+
+    ``limit = max(threshold_dn, k·1.2533·spread/√count)``; ξ̃ < −limit → ``"noisier"`` (the image is
+    noisier than the metadata allow), ξ̃ > limit → ``"cleaner"``, else ``"ok"``; NaN → ``"not_assessable"``.
+    """
+    if not math.isfinite(xi_dn) or count < 1:
+        return {"state": "not_assessable", "xi_dn": None, "limit_dn": None,
+                "message": "no informative noise patch: ξ cannot be assessed"}
+    se = _MEDIAN_SE * spread_dn / math.sqrt(count) if math.isfinite(spread_dn) else 0.0
+    limit = max(threshold_dn, k * se)
+    model = ""
+    if total_dn is not None and math.isfinite(total_dn):
+        model = f" (σ from the metadata ≈ {total_dn + xi_dn:.2f} DN, in the image ≈ {total_dn:.2f} DN)"
+    if xi_dn < -limit:
+        state = "noisier"
+        msg = (f"image is noisier than the metadata allow: ξ̃ = {xi_dn:+.2f} DN < −{limit:.2f} DN{model}; "
+               "check gain/temperature metadata, the sensor, or noise added downstream")
+    elif xi_dn > limit:
+        state = "cleaner"
+        msg = (f"image is cleaner than the metadata allow: ξ̃ = {xi_dn:+.2f} DN > {limit:.2f} DN{model}; "
+               "check the gain metadata or a denoiser in the pipeline")
+    else:
+        state, msg = "ok", f"noise agrees with the metadata: |ξ̃| = {abs(xi_dn):.2f} DN ≤ {limit:.2f} DN"
+    return {"state": state, "xi_dn": _num(xi_dn), "limit_dn": _num(limit), "message": msg}
+
+
+# ---------------------------------------------------------------------------------------------- monitor
+@dataclass
+class _EstimatorHandle:
+    est: Any
+    name: str
+    kwargs: dict[str, Any]
+
+
+@dataclass
+class _TaskState:
+    grid: PatchGrid
+    k: int
+    window: int
+    config: SelectionConfig
+    values: torch.Tensor = field(init=False)
+    code: torch.Tensor = field(init=False)
+    history: torch.Tensor = field(init=False)
+    ptr: torch.Tensor = field(init=False)
+    static: StaticRegions = field(init=False)
+
+    def __post_init__(self) -> None:
+        n = self.grid.n
+        self.static = StaticRegions(n, self.config)
+        self.reset()
+
+    def reset(self) -> None:
+        n = self.grid.n
+        self.values = torch.full((n, self.k), float("nan"))
+        self.code = torch.full((n,), NOT_ASSESSABLE, dtype=torch.int8)
+        self.history = torch.full((self.window, n, self.k), float("nan"))
+        self.ptr = torch.zeros(n, dtype=torch.long)
+        self.static.reset()
+
+    def push(self, index: torch.Tensor, vals: torch.Tensor) -> None:
+        """Append fresh estimates to the patches' ring buffers."""
+        if index.numel() == 0:
+            return
+        self.history[self.ptr[index], index] = vals
+        self.ptr[index] = (self.ptr[index] + 1) % self.window
+
+
+def _describe(est: Any) -> str:
+    name = getattr(est, "name", None) or Path(str(getattr(est, "source", type(est).__name__))).stem
+    kind, size, meta = getattr(est, "kind", "?"), getattr(est, "patch_size", "?"), getattr(est, "metadata_set", "none")
+    return f"{name} ({kind}, {size} px, {meta} metadata)"
+
+
+class Monitor:
+    """Scene-adaptive patch-wise blur and noise monitor (see the module docstring).
+
+    Args:
+        noise_model: noise estimator — a shipped name or file for :func:`camhealth.inference.load_estimator`
+            (kind ``noise_source`` or ``drne``), an object with the same interface, or ``None`` to skip noise.
+        mtf_model: MTF estimator (kind ``mtf``), same forms, or ``None``.
+        metadata: camera metadata (see :func:`load_metadata`: CameraMetadata, mapping, .json/.yaml path);
+            required when the noise estimator reads metadata.
+        sensor: sensor preset that fills missing metadata fields (or is the metadata).
+        window: n of the temporal median (Eq. 5.4), frames (>= 1).
+        adaptive: reuse static patches and interpolate on the coarse lattice (``False``: estimate every
+            informative patch of every frame).
+        reuse_static, coarse_refine: the two parts of ``adaptive`` separately.
+        skip_uninformative: ``False`` also estimates black/saturated/featureless patches (for benchmarks;
+            their results are then discarded by the estimator's own ``assessable``).
+        selection: thresholds (:class:`~camhealth.monitor.tiling.SelectionConfig`).
+        precision: ``"bf16"`` (CPU autocast) or ``"fp32"``.
+        batch_size: patches per network call.
+        xi_threshold_dn, xi_sigmas: ξ alarm threshold [DN] and significance k (:func:`xi_alarm`).
+        policy: an :class:`camhealth.control.ExposurePolicy` (or IOPC file path(s), :func:`load_policy`).
+        per_patch: include per-patch status and values in the JSON lines.
+    """
+
+    def __init__(
+        self,
+        noise_model: Any = "noise_source_full",
+        mtf_model: Any = "mtf",
+        metadata: Any = None,
+        sensor: str | None = None,
+        window: int = 5,
+        adaptive: bool = True,
+        reuse_static: bool = True,
+        coarse_refine: bool = True,
+        skip_uninformative: bool = True,
+        selection: SelectionConfig | None = None,
+        precision: str = "bf16",
+        batch_size: int = 128,
+        xi_threshold_dn: float = 1.0,
+        xi_sigmas: float = 3.0,
+        policy: Any = None,
+        per_patch: bool = False,
+    ) -> None:
+        if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+            raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
+        if precision not in ("bf16", "fp32"):
+            raise ValueError(f"precision = {precision!r} must be 'bf16' or 'fp32'")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size = {batch_size!r} must be an integer >= 1")
+        for v, name in ((xi_threshold_dn, "xi_threshold_dn"), (xi_sigmas, "xi_sigmas")):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} = {v!r} must be a finite number >= 0")
+        self.window = window
+        self.reuse_static = bool(adaptive and reuse_static)
+        self.coarse_refine = bool(adaptive and coarse_refine)
+        self.skip_uninformative = bool(skip_uninformative)
+        self.selection = selection or SelectionConfig()
+        self.precision = precision
+        self.batch_size = batch_size
+        self.xi_threshold_dn = float(xi_threshold_dn)
+        self.xi_sigmas = float(xi_sigmas)
+        self.per_patch = bool(per_patch)
+        self.estimators: dict[str, _EstimatorHandle] = {}
+        for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
+            if spec is not None:
+                self.estimators[task] = self._resolve(task, spec)
+        if not self.estimators:
+            raise ValueError("nothing to monitor: noise_model and mtf_model are both None")
+        noise = self.estimators.get("noise")
+        required = getattr(noise.est, "metadata_set", "none") if noise else "none"
+        self.metadata = load_metadata(metadata, sensor, required if required in METADATA_SETS else "full")
+        self.sensor = sensor
+        if noise is not None and required != "none" and self.metadata is None:
+            raise ValueError(
+                f"the noise estimator {noise.name} reads {required!r} metadata: give metadata (a .json/.yaml file or "
+                f"a mapping of fields) or a sensor preset ({sorted(PRESETS)})"
+            )
+        if isinstance(policy, (str, Path)):
+            policy = load_policy([policy])
+        elif isinstance(policy, (list, tuple)) and policy and isinstance(policy[0], (str, Path)):
+            policy = load_policy(list(policy))
+        if policy is not None:
+            if not callable(getattr(policy, "decide", None)):
+                raise TypeError(
+                    f"policy must provide decide(...) (camhealth.control.ExposurePolicy), got {type(policy).__name__}"
+                )
+            if self.metadata is None:
+                raise ValueError("exposure/gain advice needs the current exposure and gain: give metadata or a sensor preset")
+            if "noise" not in self.estimators or "mtf" not in self.estimators:
+                raise ValueError("exposure/gain advice needs both the noise and the MTF estimator")
+        self.policy = policy
+        self._states: dict[str, _TaskState] = {}
+        self._shape: tuple[int, int] | None = None
+        self._meta_key: tuple | None = None
+        self._prior_cache: tuple | None = None
+        self._counter = 0
+        self._times: list[float] = []
+        self._counts: dict[str, dict[str, int]] = {t: {n: 0 for n in STATUS_NAMES} for t in self.estimators}
+        self._alarms: dict[str, int] = {}
+        self._last: FrameReport | None = None
+
+    # ------------------------------------------------------------------ set-up
+    @staticmethod
+    def _resolve(task: str, spec: Any) -> _EstimatorHandle:
+        if isinstance(spec, (str, Path)):
+            from camhealth.inference import load_estimator
+
+            est = load_estimator(spec)
+        else:
+            est = spec
+        for attr in ("kind", "patch_size", "predict"):
+            if not hasattr(est, attr):
+                raise TypeError(f"{task} estimator {type(est).__name__} lacks {attr!r} (see camhealth.inference.Estimator)")
+        if est.kind not in TASKS[task]:
+            kinds = " or ".join(TASKS[task])
+            raise ValueError(f"the {task} estimator must be of kind {kinds}, got {est.kind!r} ({_describe(est)})")
+        p = est.patch_size
+        if isinstance(p, bool) or not isinstance(p, int) or p < 8 or p % 8:
+            raise ValueError(f"{task} estimator patch_size = {p!r} must be a positive multiple of 8 px")
+        try:
+            params = inspect.signature(est.predict).parameters
+        except (TypeError, ValueError):
+            params = {}
+        var_kw = any(v.kind is inspect.Parameter.VAR_KEYWORD for v in params.values())
+        kwargs = {name: None for name in ("precision", "batch_size") if name in params or var_kw}
+        return _EstimatorHandle(est, _describe(est), kwargs)
+
+    def reset(self) -> None:
+        """Forget all history (temporal aggregation, static references); counters and timing stay."""
+        for st in self._states.values():
+            st.reset()
+
+    def _prepare(self, h: int, w: int) -> None:
+        if self._shape == (h, w):
+            return
+        self._shape = (h, w)
+        self._states = {
+            task: _TaskState(PatchGrid.fit(h, w, int(handle.est.patch_size)), 5 if task == "noise" else 16, self.window,
+                             self.selection)
+            for task, handle in self.estimators.items()
+        }
+
+    def _frame_metadata(self, metadata: Any) -> CameraMetadata | None:
+        if metadata is None:
+            return self.metadata
+        if isinstance(metadata, CameraMetadata):
+            return load_metadata(metadata)
+        if isinstance(metadata, Mapping) and self.metadata is not None:
+            try:
+                return self.metadata.replace(**dict(metadata))
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"per-frame metadata {dict(metadata)}: {exc}") from None
+        noise = self.estimators.get("noise")
+        required = getattr(noise.est, "metadata_set", "none") if noise else "none"
+        return load_metadata(metadata, self.sensor, required)
+
+    # ------------------------------------------------------------------ estimation
+    def _noise_scale(self, stats: Any, meta: CameraMetadata | None) -> torch.Tensor | None:
+        """(N, 5) model σ [DN] of (PN, DCSN, RN, total, total) per patch for the metadata — the closed-form
+        noise model (conventions.md: σ_PN = 255·√(g·Ī/FW), σ_DCSN and σ_RN from Eq. 3.14–3.19, the same prior
+        as :func:`lightning_modules.noise_features.physics_prior_dn`) — or ``None`` when the noise estimator
+        gives no per-source σ or there is no metadata. DCSN and RN depend only on the metadata: cached."""
+        if meta is None or getattr(self.estimators["noise"].est, "kind", "") != "noise_source":
+            return None
+        key = self._meta_key
+        if self._prior_cache is None or self._prior_cache[0] != key:
+            from camhealth.physics.dark_current import dark_current_shot_sigma_e
+            from camhealth.physics.readout_noise import readout_sigma_e
+
+            m64 = meta.to(dtype=torch.float64)
+            dn = float(m64.dn_per_electron[0])
+            self._prior_cache = (key, float(dark_current_shot_sigma_e(m64)[0]) * dn, float(readout_sigma_e(m64)[0]) * dn,
+                                 float(m64.gain_factor[0] / m64.full_well_e[0]))
+        _, dc, rn, g_fw = self._prior_cache
+        pn = 255.0 * (stats.mean_dn.double().clamp(0, 255) / 255.0 * g_fw).sqrt()
+        total = (pn.pow(2) + dc * dc + rn * rn).sqrt()
+        scale = torch.stack([pn, torch.full_like(pn, dc), torch.full_like(pn, rn), total, total], 1).float()
+        return scale.clamp_min(1e-3)
+
+    def _estimate(
+        self, task: str, patches: torch.Tensor, index: torch.Tensor, meta: CameraMetadata | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Run the estimator on ``patches[index]`` → (values (n, K), ok (n,) bool)."""
+        handle = self.estimators[task]
+        k = 5 if task == "noise" else 16
+        n = int(index.numel())
+        if n == 0:
+            return torch.zeros(0, k), torch.zeros(0, dtype=torch.bool)
+        kwargs = {}
+        if "precision" in handle.kwargs:
+            kwargs["precision"] = self.precision
+        if "batch_size" in handle.kwargs:
+            kwargs["batch_size"] = self.batch_size
+        use_meta = meta if getattr(handle.est, "metadata_set", "none") != "none" else None
+        out = handle.est.predict(patches[index], metadata=use_meta, **kwargs)
+        if task == "noise":
+            if "sigma_total" not in out:
+                raise ValueError(f"noise estimator {handle.name} returned no 'sigma_total' (keys {sorted(out)})")
+            total = torch.as_tensor(out["sigma_total"]).float().reshape(n, 1)
+            if "sigma" in out and "xi" in out:
+                sigma = torch.as_tensor(out["sigma"]).float().reshape(n, 3)
+                vals = torch.cat([sigma, torch.as_tensor(out["xi"]).float().reshape(n, 1), total], 1)
+            else:
+                vals = torch.cat([torch.full((n, 4), float("nan")), total], 1)
+        else:
+            if "mtf" not in out:
+                raise ValueError(f"MTF estimator {handle.name} returned no 'mtf' (keys {sorted(out)})")
+            vals = torch.as_tensor(out["mtf"]).float().reshape(n, 16)
+        ok = torch.as_tensor(out.get("assessable", torch.ones(n, dtype=torch.bool))).bool().reshape(n)
+        ok &= torch.isfinite(vals[:, -1])
+        vals[~ok] = float("nan")
+        return vals, ok
+
+    def _run_task(self, task: str, frame: torch.Tensor, meta: CameraMetadata | None) -> TaskReport:
+        st = self._states[task]
+        grid, cfg = st.grid, self.selection
+        handle = self.estimators[task]
+        base = dict(task=task, estimator=handle.name, patch=grid.patch, grid=(grid.rows, grid.cols))
+        if grid.empty:
+            counts = {**{n: 0 for n in STATUS_NAMES}, "total": 0}
+            note = f"frame {grid.width}×{grid.height} px is smaller than one {grid.patch}-px patch: {task} not estimated"
+            return TaskReport(**base, assessable=False, counts=counts, note=note)
+        patches = grid.extract(frame)
+        stats = grid_statistics(frame, grid)
+        informative, code = select_patches(stats, task, cfg)
+        if not self.skip_uninformative:
+            informative = torch.ones_like(informative)
+            code = torch.full_like(code, ESTIMATED)
+        values = torch.full((grid.n, st.k), float("nan"))
+        if self.reuse_static:
+            had = torch.isfinite(st.values).any(1) & torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8))
+            reuse = informative & had & ~st.static.changed(stats) & ~st.static.due(self._counter)
+            values[reuse] = st.values[reuse]
+            code[reuse] = REUSED
+            candidates = informative & ~reuse
+        else:
+            candidates = informative
+        first = coarse_lattice(grid, candidates, informative) if self.coarse_refine else candidates
+        fresh = torch.zeros(grid.n, dtype=torch.bool)
+        idx = first.nonzero()[:, 0]
+        vals, ok = self._estimate(task, patches, idx, meta)
+        values[idx] = vals
+        code[idx[~ok]] = NOT_ASSESSABLE
+        fresh[idx[ok]] = True
+        interpolated = torch.zeros(grid.n, dtype=torch.bool)
+        remaining = candidates & ~first
+        if bool(remaining.any()):
+            valid = torch.isfinite(values).any(1) & torch.isin(code, torch.tensor((ESTIMATED, REUSED), dtype=torch.int8))
+            scale = self._noise_scale(stats, meta) if task == "noise" else None
+            if scale is not None:  # physics-normalised: σ_s / σ_s,model(M, Ī), ξ / σ_model(M, Ī)
+                clipped = stats.clipped_low + stats.clipped_high
+                cues = [(stats.noise_dn / scale[:, 4], *cfg.cue_tol_noise_rel), (clipped, 0.02, 0.0)]
+                interpolated, ivals = refine_plan(grid, remaining, values / scale, valid, cfg.value_tol_noise_rel, cues)
+                ivals = ivals * scale
+                ivals[:, 4] = ivals[:, :3].pow(2).sum(1).sqrt()
+            elif task == "noise":
+                cues = [(stats.mean_dn, cfg.cue_tol_mean_dn, 0.0), (stats.noise_dn, *cfg.cue_tol_noise)]
+                interpolated, ivals = refine_plan(grid, remaining, values, valid, cfg.value_tol_noise_dn, cues)
+            else:
+                cues = [(stats.detail_dn, *cfg.cue_tol_detail)]
+                interpolated, ivals = refine_plan(grid, remaining, values, valid, cfg.value_tol_mtf, cues)
+            values[interpolated] = ivals[interpolated]
+            code[interpolated] = INTERPOLATED
+            idx2 = (remaining & ~interpolated).nonzero()[:, 0]
+            vals2, ok2 = self._estimate(task, patches, idx2, meta)
+            values[idx2] = vals2
+            code[idx2[~ok2]] = NOT_ASSESSABLE
+            fresh[idx2[ok2]] = True
+        new_idx = (fresh | interpolated).nonzero()[:, 0]  # values computed this frame (not reused)
+        if self.reuse_static:
+            st.static.update(new_idx, stats, self._counter)
+        st.push(new_idx, values[new_idx])
+        st.values, st.code = values, code
+        return self._aggregate(task, st, handle.name)
+
+    def _aggregate(self, task: str, st: _TaskState, name: str) -> TaskReport:
+        grid = st.grid
+        counts = status_counts(st.code)
+        counts["total"] = grid.n
+        base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
+                    grid_obj=grid, values=st.values.clone(), code=st.code.clone())
+        has = torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8)) & torch.isfinite(st.values).any(1)
+        if not bool(has.any()):
+            skipped = {k: v for k, v in counts.items() if k not in ("estimated", "interpolated", "reused", "total") and v}
+            why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
+            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why})")
+        agg = temporal_median(st.history, st.window, dim=0)  # (1, N, K)
+        tm = agg.median[0]
+        per_patch = torch.where(torch.isfinite(tm), tm, st.values)[has]
+        spatial = spatial_median(per_patch, dim=0)
+        tspread = agg.spread[0][has]
+        tspread = torch.nanmedian(tspread, dim=0).values if tspread.numel() else torch.full((st.k,), float("nan"))
+        current = spatial_median(st.values[has], dim=0).median
+        indicator = None
+        if task == "mtf":
+            from camhealth.physics.mtf import mtf_indicator
+
+            ind = spatial_median(mtf_indicator(per_patch), dim=0)
+            indicator = (float(ind.median), float(ind.spread))
+        return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread,
+                          temporal_spread=tspread, current=current, indicator=indicator)
+
+    # ------------------------------------------------------------------ public
+    def process(self, frame: Any, metadata: Any = None, index: int | None = None, source_id: str | None = None) -> FrameReport:
+        """Monitor one frame (see :func:`as_frame` for accepted inputs) → :class:`FrameReport`.
+
+        ``metadata``: this frame's metadata if it differs from the monitor's (CameraMetadata, a mapping of
+        changed fields such as ``{"gain_db": 12}``, or a file); a change restarts the aggregation."""
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            x = as_frame(frame)
+            meta = self._frame_metadata(metadata)
+            h, w = int(x.shape[-2]), int(x.shape[-1])
+            self._prepare(h, w)
+            key = None if meta is None else tuple(round(float(v[0]), 12) for v in meta.to_dict().values())
+            if key != self._meta_key:
+                if self._meta_key is not None:
+                    self.reset()
+                self._meta_key = key
+            timing = {"convert": (time.perf_counter() - t0) * 1e3}
+            reports: dict[str, TaskReport] = {}
+            for task in ("noise", "mtf"):
+                if task in self.estimators:
+                    t1 = time.perf_counter()
+                    reports[task] = self._run_task(task, x, meta)
+                    timing[task] = (time.perf_counter() - t1) * 1e3
+            t2 = time.perf_counter()
+            noise = reports.get("noise")
+            alarm = self._alarm(noise, meta)
+            advice = self._advice(noise, reports.get("mtf"), meta)
+            timing["aggregate"] = (time.perf_counter() - t2) * 1e3
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        md = None if meta is None else {k: float(getattr(meta, k)[0]) for k in MINIMAL_FIELDS}
+        report = FrameReport(self._counter, index, source_id, h, w, md, noise, reports.get("mtf"), alarm, advice,
+                             timing, self.per_patch)
+        self._counter += 1
+        self._times.append(timing["total"])
+        for task, r in reports.items():
+            for name in STATUS_NAMES:
+                self._counts[task][name] += int(r.counts.get(name, 0))
+        self._alarms[alarm["state"]] = self._alarms.get(alarm["state"], 0) + 1
+        self._last = report
+        return report
+
+    def _alarm(self, noise: TaskReport | None, meta: CameraMetadata | None) -> dict[str, Any]:
+        if noise is None:
+            return {"state": "unavailable", "xi_dn": None, "limit_dn": None, "message": "noise monitoring is off"}
+        if meta is None or getattr(self.estimators["noise"].est, "kind", "") != "noise_source":
+            return {"state": "unavailable", "xi_dn": None, "limit_dn": None,
+                    "message": "ξ needs a noise-source estimator with metadata"}
+        if not noise.assessable or noise.median is None:
+            return xi_alarm(float("nan"), float("nan"), 0)
+        i = NOISE_FIELDS.index("xi")
+        count = int(noise.counts.get("estimated", 0) + noise.counts.get("interpolated", 0) + noise.counts.get("reused", 0))
+        return xi_alarm(float(noise.median[i]), float(noise.spread[i]), count, self.xi_threshold_dn, self.xi_sigmas,
+                        total_dn=noise.value("total"))
+
+    def _advice(self, noise: TaskReport | None, mtf: TaskReport | None, meta: CameraMetadata | None) -> dict[str, Any] | None:
+        if self.policy is None:
+            return None
+        if noise is None or mtf is None or not noise.assessable or not mtf.assessable or meta is None:
+            return {"available": False, "reason": "blur or noise not assessable in this frame"}
+        sigma = noise.value("total")
+        mtf_hat = min(max(mtf.value("indicator"), 0.0), 1.0)
+        src = [noise.value(n) for n in ("pn", "dcsn", "rn")]
+        kwargs = {"sigma_sources": src} if all(math.isfinite(v) and v >= 0 for v in src) else {}
+        try:
+            d = self.policy.decide(sigma, mtf_hat, float(meta.exposure_s[0]), float(meta.gain_db[0]), **kwargs)
+        except ValueError as exc:
+            return {"available": False, "reason": str(exc)}
+        return {
+            "available": True, "alpha": _num(d.alpha), "exposure_s": _num(d.exposure_s, 6), "gain_db": _num(d.gain_db, 3),
+            "expected_ap": _num(d.expected_ap), "current_ap": _num(d.current_ap), "changed": bool(d.changed),
+            "explanation": d.explanation,
+        }
+
+    def run(
+        self, source: Any, start: int = 0, stride: int = 1, max_frames: int | None = None
+    ) -> Iterator[tuple[Any, FrameReport | None]]:
+        """Monitor every frame of ``source`` (an image, a folder of frames, a video file or ``"street"``, see
+        :func:`camhealth.monitor.sources.open_source`) as the CLI does: yields ``(item, report)`` per frame,
+        with ``report = None`` for a frame of a folder that could not be read (``item.error`` says why)."""
+        from camhealth.monitor.sources import open_source
+
+        for item in open_source(source, start, stride, max_frames):
+            if item.error is not None:
+                yield item, None
+            else:
+                yield item, self.process(item.frame, index=item.index, source_id=item.source_id)
+
+    @property
+    def frames(self) -> int:
+        """Frames processed so far."""
+        return self._counter
+
+    def summary(self) -> dict[str, Any]:
+        """Frames, timing (median/mean/max ms), patch counts per task and status, alarm states, last values."""
+        t = sorted(self._times)
+        out: dict[str, Any] = {
+            "frames": self._counter,
+            "ms_per_frame": {
+                "median": _num(float(np.median(t)), 2) if t else None,
+                "mean": _num(float(np.mean(t)), 2) if t else None,
+                "max": _num(t[-1], 2) if t else None,
+            },
+            "estimators": {task: h.name for task, h in self.estimators.items()},
+            "patches": {task: dict(c) for task, c in self._counts.items()},
+            "alarms": dict(self._alarms),
+            "precision": self.precision, "window": self.window,
+            "adaptive": {"reuse_static": self.reuse_static, "coarse_refine": self.coarse_refine,
+                         "skip_uninformative": self.skip_uninformative},
+        }
+        if self._last is not None:
+            last = self._last.to_dict()
+            out["last"] = {"noise": last["noise"], "mtf": last["mtf"], "alarm": last["alarm"], "advice": last["advice"]}
+        return out

@@ -1,0 +1,118 @@
+"""Frame sources of the monitor CLI: one image, a folder of frames, a video file, or the embedded clip.
+
+:func:`open_source` resolves ``SOURCE`` and returns a :class:`FrameSource` whose iteration yields
+:class:`SourceFrame` items in order. Reading reuses :mod:`camhealth.data` (``read_image`` for image files,
+``FrameSequence`` for videos, BT.601 gray). Error policy (documented in ``docs/monitor.md``):
+
+- a missing path, an unsupported extension, a single image that cannot be read, a folder without frame
+  images, or a video OpenCV cannot open or decode: a clear ``FileNotFoundError``/``ValueError`` at
+  :func:`open_source` (the CLI exits with status 2);
+- one unreadable frame inside a folder: the item carries ``error`` instead of a frame (the CLI writes a JSON
+  line with the error, counts it and goes on);
+- a video whose stream ends early (truncated file): iteration stops there, as OpenCV reports the end.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import torch
+
+from camhealth.data.image_folder import list_images
+from camhealth.data.io import IMAGE_EXTENSIONS, read_image
+from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
+
+__all__ = ["SourceFrame", "FrameSource", "open_source", "STREET"]
+
+#: SOURCE name of the embedded street clip (50 frames, 768×576).
+STREET = "street"
+
+
+@dataclass
+class SourceFrame:
+    """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read."""
+
+    index: int
+    source_id: str
+    frame: torch.Tensor | None = None
+    error: str | None = None
+
+
+class FrameSource:
+    """Ordered frames of an image, a folder or a video (``kind``), with ``start``/``stride``/``max_frames``."""
+
+    def __init__(self, path: Path, kind: str, start: int = 0, stride: int = 1, max_frames: int | None = None) -> None:
+        self.path, self.kind = path, kind
+        self.start, self.stride, self.max_frames = start, stride, max_frames
+        self._files: list[Path] = []
+        self._video: FrameSequence | None = None
+        if kind == "image":
+            self._files = [path] if start == 0 else []
+            self._single = read_image(path)  # a single unreadable image is a fatal, clear error
+        elif kind == "folder":
+            files = list_images(path, recursive=False)
+            if not files:
+                raise ValueError(f"no frame images found in folder {path} (extensions: {', '.join(IMAGE_EXTENSIONS)})")
+            picked = files[start::stride]
+            self._files = picked if max_frames is None else picked[:max_frames]
+            self._indices = list(range(start, len(files), stride))[: len(self._files)]
+        else:
+            self._video = FrameSequence(path, stride=stride, max_frames=max_frames, start=start)
+
+    @property
+    def length(self) -> int | None:
+        """Number of frames iteration yields (``None`` if a video does not report its frame count)."""
+        if self._video is not None:
+            return self._video.length
+        return len(self._files)
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        if self.kind == "image":
+            if self._files:
+                yield SourceFrame(0, str(self.path), self._single)
+            return
+        if self.kind == "folder":
+            for idx, p in zip(self._indices, self._files):
+                try:
+                    frame = read_image(p)
+                except (OSError, ValueError) as exc:
+                    yield SourceFrame(idx, str(p), None, str(exc).splitlines()[0])
+                    continue
+                yield SourceFrame(idx, str(p), frame)
+            return
+        assert self._video is not None
+        for frame, idx in self._video:
+            yield SourceFrame(int(idx), f"{self.path}#{int(idx)}", frame)
+
+
+def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames: int | None = None) -> FrameSource:
+    """Resolve ``source``: an image file, a folder of frames, a video file, or ``"street"`` (embedded clip).
+
+    Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unsupported extension, an
+    unreadable image or an undecodable video (messages name the file and the allowed kinds)."""
+    for v, name, lo in ((start, "start", 0), (stride, "stride", 1)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise ValueError(f"{name} = {v!r} must be an integer >= {lo}")
+    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
+        raise ValueError(f"max_frames = {max_frames!r} must be an integer >= 1 or None")
+    path = Path(source)
+    if not path.exists() and str(source) == STREET:
+        from camhealth.data.street_sample import STREET_DIR, street_frame_paths
+
+        street_frame_paths()
+        path = STREET_DIR
+    if not path.exists():
+        raise FileNotFoundError(f"source not found: {source} (give an image, a folder of frames, a video file or '{STREET}')")
+    if path.is_dir():
+        return FrameSource(path, "folder", start, stride, max_frames)
+    ext = path.suffix.lower()
+    if ext in IMAGE_EXTENSIONS:
+        return FrameSource(path, "image", start, stride, max_frames)
+    if ext in VIDEO_EXTENSIONS:
+        return FrameSource(path, "video", start, stride, max_frames)
+    raise ValueError(
+        f"cannot monitor {path}: unsupported extension {path.suffix!r}; images: {', '.join(IMAGE_EXTENSIONS)}; "
+        f"videos: {', '.join(VIDEO_EXTENSIONS)}; or a folder of frames"
+    )

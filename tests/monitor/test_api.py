@@ -1,0 +1,345 @@
+"""Monitor API: frames in, FrameReport/JSON out; skips, reuse, aggregation, ξ alarm, advice, clear errors."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from camhealth.monitor import Monitor, as_frame, load_metadata, xi_alarm
+from camhealth.physics import CameraMetadata
+from tests.monitor.conftest import FakeMTF, FakeNoise, noisy
+
+
+def _strict(line: str) -> dict:
+    def bad(x):
+        raise ValueError(f"non-strict JSON constant {x}")
+
+    return json.loads(line, parse_constant=bad)
+
+
+# ------------------------------------------------------------------ frames
+@pytest.mark.parametrize("kind", ["uint8", "uint16", "float32", "float64", "rgb_uint8", "torch_chw", "torch_1chw", "torch_uint8"])
+def test_as_frame_accepts(kind):
+    g = np.random.default_rng(0)
+    base = g.random((40, 60))
+    x = {
+        "uint8": (base * 255).round().astype(np.uint8),
+        "uint16": (base * 65535).round().astype(np.uint16),
+        "float32": base.astype(np.float32),
+        "float64": base,
+        "rgb_uint8": np.repeat((base * 255).round().astype(np.uint8)[..., None], 3, axis=2),
+        "torch_chw": torch.from_numpy(base).float()[None].repeat(3, 1, 1),
+        "torch_1chw": torch.from_numpy(base).float()[None, None],
+        "torch_uint8": torch.from_numpy((base * 255).round().astype(np.uint8)),
+    }[kind]
+    f = as_frame(x)
+    assert f.shape == (1, 1, 40, 60) and f.dtype == torch.float32
+    assert torch.allclose(f[0, 0], torch.from_numpy(base).float(), atol=0.5 / 255 + 1e-6)
+
+
+@pytest.mark.parametrize("x,err,match", [
+    (np.full((8, 8), np.nan, dtype=np.float32), ValueError, "non-finite"),
+    (np.full((8, 8), 3.0, dtype=np.float32), ValueError, r"\[0, 1\].*DN"),
+    (np.full((8, 8), 300, dtype=np.int32), ValueError, "8-bit DN"),
+    (np.zeros((8, 8), dtype=bool), TypeError, "numeric"),
+    (np.zeros((2, 3, 8, 8), dtype=np.uint8), ValueError, "H×W"),
+    (torch.zeros(2, 1, 8, 8), ValueError, "one frame at a time"),
+    (torch.zeros(0, 8), ValueError, "empty"),
+    ([[0.5]], TypeError, "torch.Tensor or numpy"),
+])
+def test_as_frame_rejects(x, err, match):
+    with pytest.raises(err, match=match):
+        as_frame(x)
+
+
+# ------------------------------------------------------------------ metadata
+def test_load_metadata_forms(tmp_path):
+    full = CameraMetadata.preset("ICX285", gain_db=6.0).to_dict()
+    full = {k: v[0] for k, v in full.items()}
+    m = load_metadata(full)
+    assert float(m.gain_db[0]) == 6.0 and m.batch_size == 1
+    (tmp_path / "m.json").write_text(json.dumps(full))
+    assert float(load_metadata(tmp_path / "m.json").gain_db[0]) == 6.0
+    (tmp_path / "m.yaml").write_text("sensor: EV76C661\ngain_db: 18\nexposure_s: 0.02\n")
+    m = load_metadata(tmp_path / "m.yaml")
+    assert float(m.gain_db[0]) == 18.0 and float(m.is_cmos[0]) == 1.0
+    assert float(load_metadata(None, "ICX285").gain_db[0]) == 0.0
+    assert load_metadata(None) is None
+    m = load_metadata({"gain_db": 3.0, "exposure_s": 0.01, "temperature_c": 30.0}, required="minimal")
+    assert float(m.gain_db[0]) == 3.0  # other fields are not read by a Min-Meta network
+
+
+@pytest.mark.parametrize("data,required,match", [
+    ({"gain_db": 3.0}, "full", r"missing field\(s\) \['exposure_s'"),
+    ({"gain_db": 3.0}, "minimal", r"missing field\(s\) \['exposure_s', 'temperature_c'\]"),
+    ({"sensor": "ICX285", "gain_db": 40.0}, "full", r"gain_db\[0\] = 40 dB is out of the allowed range \[0, 24\] dB"),
+    ({"sensor": "ICX285", "exposure_s": 5}, "full", r"exposure_s.*\[0.001, 0.2\] s"),
+    ({"sensor": "ICX285", "gain": 3.0}, "full", "unknown metadata field"),
+    ({"sensor": "ICX285", "gain_db": "high"}, "full", "must be a number"),
+    ({"sensor": "NOPE"}, "full", "unknown sensor preset"),
+])
+def test_load_metadata_errors(data, required, match):
+    with pytest.raises(ValueError, match=match):
+        load_metadata(data, required=required)
+
+
+def test_load_metadata_file_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        load_metadata(tmp_path / "missing.yaml")
+    (tmp_path / "bad.json").write_text("{gain_db: ")
+    with pytest.raises(ValueError, match="cannot parse"):
+        load_metadata(tmp_path / "bad.json")
+    (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+    with pytest.raises(ValueError, match="mapping"):
+        load_metadata(tmp_path / "list.yaml")
+    (tmp_path / "m.txt").write_text("gain_db: 1")
+    with pytest.raises(ValueError, match=".json, .yaml"):
+        load_metadata(tmp_path / "m.txt")
+
+
+# ------------------------------------------------------------------ monitor behaviour
+def _monitor(noise=None, mtf=None, **kw):
+    kw.setdefault("sensor", "ICX285")
+    return Monitor(noise_model=noise if noise is not None else FakeNoise(), mtf_model=mtf if mtf is not None else FakeMTF(), **kw)
+
+
+def test_report_on_street_frames(street_frames):
+    mon = _monitor(precision="fp32")
+    for i, f in enumerate(street_frames[:2]):
+        r = mon.process(noisy(f, 3.0, seed=i), index=i, source_id="street")
+        d = _strict(r.to_json())
+        assert d["frame"] == i and d["size"] == [768, 576] and d["assessable"]
+        n, m = d["noise"], d["mtf"]
+        assert n["grid"] == [4, 6] and m["grid"] == [3, 4]
+        assert sum(v for k, v in n["patches"].items() if k != "total") == n["patches"]["total"] == 24
+        for name in ("pn", "dcsn", "rn", "xi", "total"):
+            assert set(n["sigma_dn"][name]) == {"median", "spread", "temporal_spread", "current"}
+        assert n["sigma_dn"]["total"]["median"] == pytest.approx(3.0, rel=0.35)  # fake = robust σ of the patch
+        assert len(m["h"]["median"]) == 8 and len(m["v"]["median"]) == 8 and 0 < m["indicator"]["median"] <= 1
+        assert d["alarm"]["state"] == "ok" and d["advice"] is None
+        assert d["metadata"] == {"gain_db": 0.0, "exposure_s": 0.01, "temperature_c": 25.0}
+        assert set(d["timing_ms"]) == {"convert", "noise", "mtf", "aggregate", "total"}
+    s = mon.summary()
+    assert s["frames"] == 2 and s["alarms"] == {"ok": 2} and s["patches"]["noise"]["estimated"] > 0
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+@pytest.mark.parametrize("dtype", ["uint8", "float32"])
+def test_black_and_white_frames_are_not_assessable(value, dtype):
+    fn, fm = FakeNoise(), FakeMTF()
+    mon = _monitor(fn, fm)
+    x = np.full((576, 768), value, dtype=np.float32)
+    if dtype == "uint8":
+        x = (x * 255).astype(np.uint8)
+    d = _strict(mon.process(x).to_json())
+    assert d["assessable"] is False
+    assert d["noise"]["assessable"] is False and d["noise"]["sigma_dn"] is None
+    assert d["mtf"]["assessable"] is False and d["mtf"]["h"] is None and d["mtf"]["indicator"] is None
+    reason = "black" if value == 0 else "saturated"
+    assert d["noise"]["patches"][reason] == 24 and d["mtf"]["patches"][reason] == 12
+    assert reason in d["noise"]["note"]
+    assert d["alarm"]["state"] == "not_assessable"
+    assert fn.patches == 0 and fm.patches == 0  # nothing was sent to a network
+
+
+def test_frame_smaller_than_one_patch_is_a_documented_skip():
+    mon = _monitor()
+    d = _strict(mon.process(torch.rand(100, 150)).to_json())
+    assert d["assessable"] is False and d["noise"]["grid"] == [0, 1] and d["mtf"]["grid"] == [0, 0]
+    assert "smaller than one 128-px patch" in d["noise"]["note"] and "192-px" in d["mtf"]["note"]
+    # noise fits, MTF does not
+    d = _strict(mon.process(noisy(torch.full((1, 150, 170), 0.5), 3.0, seed=0)).to_json())
+    assert d["noise"]["assessable"] and not d["mtf"]["assessable"]
+
+
+def test_skips_are_counted_and_featureless_only_for_blur(street_frames):
+    fn, fm = FakeNoise(), FakeMTF()
+    mon = _monitor(fn, fm, adaptive=False)
+    x = noisy(street_frames[0], 2.0, seed=0).clone()
+    x[..., :, :384] = 0.0  # left half black
+    x[..., 384:, 384:] = 0.45  # flat bottom-right: two MTF patches (192 px), noise added below
+    x = noisy(x, 2.0, seed=1)
+    x[..., :, :384] = 0.0
+    d = mon.process(x).to_dict()
+    assert d["noise"]["patches"]["black"] == 12 and d["mtf"]["patches"]["black"] == 6
+    assert d["mtf"]["patches"]["featureless"] == 2 and d["noise"]["patches"]["featureless"] == 0
+    informative = d["noise"]["patches"]["estimated"]
+    assert fn.patches == informative == 12
+    assert fm.patches == d["mtf"]["patches"]["estimated"]
+
+
+def test_static_regions_are_reused_and_refreshed(street_frames):
+    fn = FakeNoise()
+    mon = _monitor(fn, FakeMTF(), selection=None)
+    scene = street_frames[0]
+    mon.process(noisy(scene, 3.0, seed=0))
+    first = fn.patches
+    assert first == 24 - mon._last.noise.counts["interpolated"]
+    r = mon.process(noisy(scene, 3.0, seed=1))  # same scene, new noise realisation
+    c = r.noise.counts
+    assert c["reused"] >= 18 and fn.patches - first == c["estimated"] <= 6
+    assert c["estimated"] + c["interpolated"] + c["reused"] == 24
+    # a change of metadata restarts everything
+    r = mon.process(noisy(scene, 3.0, seed=2), metadata={"gain_db": 12.0})
+    assert r.noise.counts["reused"] == 0 and r.metadata["gain_db"] == 12.0
+    assert float(fn.last_metadata.gain_db[0]) == 12.0
+
+
+def test_run_over_a_source(tmp_path):
+    import cv2
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    g = np.random.default_rng(0)
+    assert cv2.imwrite(str(folder / "f1.png"), g.integers(30, 220, (200, 260), dtype=np.uint8))
+    (folder / "f2.png").write_bytes(b"broken")
+    mon = _monitor(FakeNoise(), None)
+    out = list(mon.run(folder))
+    assert [item.index for item, _ in out] == [0, 1]
+    assert out[0][1].noise.assessable and out[1][1] is None and "cannot read image" in out[1][0].error
+    assert mon.frames == 1
+
+
+def test_not_adaptive_estimates_every_informative_patch(street_frames):
+    fn = FakeNoise()
+    mon = _monitor(fn, FakeMTF(), adaptive=False)
+    for i in range(2):
+        r = mon.process(noisy(street_frames[0], 3.0, seed=i))
+        assert r.noise.counts["estimated"] == 24 and r.noise.counts["reused"] == 0
+    assert fn.patches == 48
+
+
+def test_no_skipping_sends_black_patches_to_the_estimator():
+    fn = FakeNoise()
+    mon = _monitor(fn, FakeMTF(), skip_uninformative=False, adaptive=False)
+    d = mon.process(np.zeros((300, 300), np.uint8)).to_dict()
+    assert fn.patches == 4 and d["noise"]["patches"]["not_assessable"] == 4 and not d["noise"]["assessable"]
+
+
+def test_temporal_median_ignores_an_outlier_frame():
+    # the fake returns σ_total 2, 2, 9, 2, 2 … per call: the window-3 median stays 2, the spread shows it
+    fn = FakeNoise(values=[2.0, 2.0, 9.0, 2.0, 2.0])
+    mon = _monitor(fn, FakeMTF(), adaptive=False, window=3)
+    x = noisy(torch.full((1, 256, 256), 0.5), 3.0, seed=0)
+    out = [mon.process(x).noise for _ in range(4)]
+    assert out[2].value("total") == pytest.approx(2.0) and out[2].current[4] == pytest.approx(9.0)
+    assert float(out[2].temporal_spread[4]) == pytest.approx(0.0)  # MAD of (2, 2, 9) is 0
+    assert out[3].value("total") == pytest.approx(2.0)
+    assert out[1].value("total") == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("xi,state", [(0.0, "ok"), (-3.0, "noisier"), (3.0, "cleaner")])
+def test_xi_alarm_states(street_frames, xi, state):
+    mon = _monitor(FakeNoise(xi_dn=xi), FakeMTF())
+    d = mon.process(noisy(street_frames[0], 3.0, seed=0)).to_dict()
+    assert d["alarm"]["state"] == state and d["alarm"]["xi_dn"] == pytest.approx(xi)
+    if state != "ok":
+        assert ("noisier" if xi < 0 else "cleaner") in d["alarm"]["message"]
+
+
+def test_xi_alarm_function():
+    assert xi_alarm(-2.0, 0.1, 20)["state"] == "noisier"
+    assert xi_alarm(-2.0, 10.0, 20)["state"] == "ok"  # not significant: 3 standard errors ≈ 8.4 DN
+    assert xi_alarm(0.5, 0.1, 20, threshold_dn=1.0)["state"] == "ok"
+    a = xi_alarm(float("nan"), float("nan"), 0)
+    assert a["state"] == "not_assessable" and a["xi_dn"] is None
+
+
+def test_drne_kind_gives_total_only(street_frames):
+    class FakeDRNE(FakeNoise):
+        kind = "drne"
+        metadata_set = "none"
+
+        def predict(self, patches, metadata=None, **kw):
+            out = super().predict(patches, metadata, **kw)
+            return {"sigma_total": out["sigma_total"], "assessable": out["assessable"]}
+
+    mon = Monitor(FakeDRNE(), FakeMTF())  # no metadata needed
+    d = _strict(mon.process(noisy(street_frames[0], 3.0, seed=0)).to_json())
+    s = d["noise"]["sigma_dn"]
+    assert s["total"]["median"] > 0 and s["pn"]["median"] is None and s["xi"]["median"] is None
+    assert d["alarm"]["state"] == "unavailable"
+
+
+def noise_sensitive_iopc(tmp_path):
+    """An IOPC file whose AP falls with σ only (horizontal motion: MTF̃ = (1 + |sinc(0.05 L)|)/2)."""
+    from camhealth.iopc import IOPC
+
+    recs = []
+    for s in (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0):
+        for length in (0.0, 3.0, 7.0, 11.0, 15.0, 21.0):
+            m = 0.5 * (1.0 + abs(float(np.sinc(0.05 * length))))
+            recs.append({"index": len(recs), "key": f"L{length}_s{s}", "length_px": length, "angle_deg": 0.0,
+                         "noise_level_dn": s, "sigma_tilde": s, "mtf_tilde": m, "ap": 1.0 - s / 30.0})
+    return IOPC.from_records(recs, name="noise-sensitive").save(tmp_path / "iopc.json")
+
+
+def test_advice_from_an_iopc_policy(street_frames, tmp_path):
+    from camhealth.iopc import IOPC
+
+    path = noise_sensitive_iopc(tmp_path)
+    assert isinstance(IOPC.load(path), IOPC)
+    mon = _monitor(policy=path, metadata={"gain_db": 18.0}, sensor="ICX285")
+    d = _strict(mon.process(noisy(street_frames[0], 6.0, seed=0)).to_json())
+    a = d["advice"]
+    assert a["available"] and a["alpha"] < 1 and a["gain_db"] < 18.0 and a["exposure_s"] > 0.01  # less gain, longer exposure
+    assert "IOPC" in a["explanation"]
+    d = _strict(mon.process(np.zeros((576, 768), np.uint8)).to_json())
+    assert d["advice"] == {"available": False, "reason": "blur or noise not assessable in this frame"}
+
+
+def test_monitor_errors(model_files):
+    ns, mtf = model_files
+    with pytest.raises(ValueError, match="reads 'full' metadata"):
+        Monitor(ns, mtf)
+    with pytest.raises(ValueError, match="kind noise_source or drne"):
+        Monitor(mtf, None, sensor="ICX285")
+    with pytest.raises(ValueError, match="kind mtf"):
+        Monitor(None, FakeNoise())
+    with pytest.raises(ValueError, match="nothing to monitor"):
+        Monitor(None, None)
+    with pytest.raises(ValueError, match="window"):
+        Monitor(FakeNoise(), None, sensor="ICX285", window=0)
+    with pytest.raises(ValueError, match="precision"):
+        Monitor(FakeNoise(), None, sensor="ICX285", precision="fp16")
+    with pytest.raises(FileNotFoundError, match="shipped names"):
+        Monitor("no_such_model", None, sensor="ICX285")
+    class BlindNoise(FakeNoise):
+        metadata_set = "none"
+
+    class Policy:
+        def decide(self, *args, **kwargs):
+            raise AssertionError("not reached")
+
+    with pytest.raises(ValueError, match="needs the current exposure"):
+        Monitor(BlindNoise(), FakeMTF(), policy=Policy())
+    with pytest.raises(TypeError, match="decide"):
+        Monitor(FakeNoise(), FakeMTF(), sensor="ICX285", policy=object())
+    mon = Monitor(FakeNoise(), None, sensor="ICX285")
+    with pytest.raises(ValueError, match="per-frame metadata"):
+        mon.process(torch.rand(128, 128), metadata={"gain_db": 99.0})
+
+
+@pytest.mark.parametrize("precision", ["bf16", "fp32"])
+def test_real_exported_models(model_files, street_frames, precision):
+    """The monitor drives the real Estimator (untrained weights: behaviour only) end to end."""
+    ns, mtf = model_files
+    mon = Monitor(ns, mtf, sensor="ICX285", precision=precision, per_patch=True)
+    d = _strict(mon.process(noisy(street_frames[0], 3.0, seed=0)).to_json())
+    assert d["noise"]["assessable"] and d["mtf"]["assessable"]
+    assert d["noise"]["estimator"].startswith("ns (noise_source, 128 px, full")
+    assert all(math.isfinite(v) for v in d["mtf"]["h"]["median"])
+    pp = d["noise"]["per_patch"]
+    assert len(pp["status"]) == 24 and len(pp["values"]) == 24 and len(pp["values"][0]) == 5
+
+
+def test_policy_option_errors_clearly_without_camhealth_control(monkeypatch, tmp_path):
+    import sys
+
+    from camhealth.monitor import load_policy
+
+    monkeypatch.setitem(sys.modules, "camhealth.control", None)  # as if the package were not importable
+    with pytest.raises(ImportError, match="needs camhealth.control"):
+        load_policy([tmp_path / "iopc.json"])

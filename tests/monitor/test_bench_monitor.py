@@ -1,0 +1,53 @@
+"""``python -m camhealth.bench monitor``: registered, rows and summary lines present (tiny run, untrained
+networks; no wall-clock assertions)."""
+
+import pytest
+import torch
+
+from camhealth.bench import BENCHMARKS
+from camhealth.bench.__main__ import main
+
+TINY = ["monitor", "--untrained", "--frames", "2", "--warmup", "0", "--width", "384", "--height", "320",
+        "--slow-frames", "1", "--thesis-patches", "1", "--threads", "1", "--brightness", "1.6", "--no-memory-probe"]
+
+
+def test_registered():
+    assert BENCHMARKS["monitor"] == "camhealth.bench.monitor"
+
+
+def test_tiny_run_prints_rows_and_summary(capsys, tmp_path):
+    n = torch.get_num_threads()
+    try:
+        assert main(TINY + ["--out", str(tmp_path / "b.md")]) == 0
+    finally:
+        torch.set_num_threads(n)
+    text = capsys.readouterr().out
+    for row in ("every patch (no skipping)", "informative patches (fully monitored)", "adaptive (skip + reuse static",
+                "informative patches, fp32", "thesis-size noise net, same noise patches"):
+        assert row in text
+    for line in ("target ≤ 100 ms", "this benchmark process", "skipped as uninformative", "σ_total on informative patches",
+                 "MTF AMAE", "UNTRAINED", "load average"):
+        assert line in text
+    assert "CPU" in text and "noise + " in text and "thesis net / camhealth noise" in text and "bf16 − fp32" in text
+    assert "| adaptive (skip + reuse static + coarse→refine) |" in (tmp_path / "b.md").read_text()
+
+
+@pytest.mark.parametrize("bad", [["--frames", "0"], ["--thesis-patches", "-1"]])
+def test_bad_options(bad):
+    with pytest.raises(ValueError, match=bad[0]):
+        main(TINY + bad)
+
+
+def test_rss_probe_runs_one_monitor(model_files, tmp_path):
+    import json
+
+    from camhealth.bench.monitor import rss_probe
+    from camhealth.physics import CameraMetadata
+
+    torch.save(torch.randint(30, 220, (2, 256, 320), dtype=torch.uint8), tmp_path / "frames.pt")
+    meta = {k: v[0] for k, v in CameraMetadata.preset("ICX285").to_dict().items()}
+    cfg = {"frames": str(tmp_path / "frames.pt"), "noise_model": str(model_files[0]), "mtf_model": str(model_files[1]),
+           "metadata": meta, "precision": "bf16", "threads": torch.get_num_threads()}
+    (tmp_path / "probe.json").write_text(json.dumps(cfg))
+    out = rss_probe(str(tmp_path / "probe.json"))
+    assert 0 < out["start_mb"] <= out["peak_mb"]

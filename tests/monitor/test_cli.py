@@ -1,0 +1,171 @@
+"""``python -m camhealth.monitor``: JSON lines on the embedded street clip, --help, and clear errors (exit 2) or
+documented skips — never a crash — for bad sources, videos, metadata and frames."""
+
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from camhealth.monitor.__main__ import build_parser, main
+
+
+def _lines(text: str) -> list[dict]:
+    def bad(x):
+        raise ValueError(f"non-strict JSON constant {x}")
+
+    return [json.loads(ln, parse_constant=bad) for ln in text.splitlines() if ln.strip()]
+
+
+@pytest.fixture
+def models(model_files):
+    ns, mtf = model_files
+    return ["--noise-model", str(ns), "--mtf-model", str(mtf), "--no-progress", "--threads", "1"]
+
+
+def _run(argv, capsys):
+    n = torch.get_num_threads()
+    try:
+        code = main(argv)
+    finally:
+        torch.set_num_threads(n)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _png(path, array):
+    import cv2
+
+    assert cv2.imwrite(str(path), array)
+    return path
+
+
+def test_help_explains_every_option(capsys):
+    parser = build_parser()
+    with pytest.raises(SystemExit) as exc:
+        parser.parse_args(["--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    for action in parser._actions:
+        for opt in action.option_strings:
+            assert opt in text, opt
+        assert action.help, action.dest  # every option has an explanation
+    for word in ("SOURCE", "street", "JSON", "gain_db", "ξ", "IOPC", "noisier"):
+        assert word in text
+
+
+def test_street_clip_writes_valid_json_lines(models, tmp_path, capsys):
+    argv = ["street", "--sensor", "ICX285", "--max-frames", "2", "--out", str(tmp_path / "o"), "--overlay", *models]
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    lines = _lines((tmp_path / "o" / "monitor.jsonl").read_text())
+    assert [d["index"] for d in lines] == [0, 1]
+    for d in lines:
+        assert d["assessable"] and d["noise"]["grid"] == [4, 6] and d["mtf"]["grid"] == [3, 4]
+        assert d["noise"]["sigma_dn"]["total"]["median"] >= 0 and d["alarm"]["state"] in ("ok", "noisier", "cleaner")
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == 2 and summary["unreadable_frames"] == 0 and summary["kind"] == "folder"
+    assert len(list((tmp_path / "o" / "overlays").glob("*.png"))) == 2
+    assert "2 frame(s)" in out and "median" in out
+
+
+def test_json_lines_go_to_stdout_without_out(models, capsys):
+    argv = ["street", "--sensor", "ICX285", "--max-frames", "1", "--stride", "10", "--start", "5", "--no-mtf", *models]
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    (d,) = _lines(out)
+    assert d["index"] == 5 and d["mtf"] is None and "1 frame(s)" in err
+
+
+def test_folder_with_an_unreadable_frame_skips_it(models, tmp_path, capsys):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    g = np.random.default_rng(0)
+    _png(folder / "f001.png", g.integers(40, 200, (256, 256), dtype=np.uint8))
+    (folder / "f002.png").write_bytes(b"not a png at all")
+    _png(folder / "f003.png", g.integers(40, 200, (256, 256), dtype=np.uint8))
+    code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", *models], capsys)
+    assert code == 0, err
+    lines = _lines(out)
+    assert len(lines) == 3 and "frame_error" in lines[1] and "f002.png" in lines[1]["source_id"]
+    assert lines[0]["noise"]["assessable"] and lines[2]["noise"]["assessable"]
+    assert "1 unreadable" in err
+
+
+def test_black_white_and_tiny_frames(models, tmp_path, capsys):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    _png(folder / "a_black.png", np.zeros((300, 400), np.uint8))
+    _png(folder / "b_white.png", np.full((300, 400), 255, np.uint8))
+    _png(folder / "c_tiny.png", np.full((60, 90), 128, np.uint8))
+    code, out, err = _run([str(folder), "--sensor", "ICX285", *models], capsys)
+    assert code == 0, err
+    black, white, tiny = _lines(out)
+    for d, reason in ((black, "black"), (white, "saturated")):
+        assert d["assessable"] is False and d["noise"]["sigma_dn"] is None and d["mtf"]["h"] is None
+        assert d["noise"]["patches"][reason] == d["noise"]["patches"]["total"] == 6
+        assert d["alarm"]["state"] == "not_assessable"
+    assert tiny["assessable"] is False and "smaller than one 128-px patch" in tiny["noise"]["note"]
+
+
+def test_video_file(models, tmp_path, capsys):
+    import cv2
+
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (256, 256))
+    if not writer.isOpened():
+        pytest.skip("OpenCV cannot write MJPG here")
+    g = np.random.default_rng(1)
+    base = g.integers(40, 200, (256, 256), dtype=np.uint8)
+    for _ in range(3):
+        writer.write(np.repeat(base[..., None], 3, axis=2))
+    writer.release()
+    code, out, err = _run([str(path), "--sensor", "ICX285", "--no-mtf", *models], capsys)
+    assert code == 0, err
+    lines = _lines(out)
+    assert [d["index"] for d in lines] == [0, 1, 2] and lines[0]["source_id"].endswith("clip.avi#0")
+    assert lines[2]["noise"]["patches"]["reused"] >= 1  # a static video reuses its patches
+
+
+@pytest.mark.parametrize("setup,match", [
+    (lambda p: str(p / "missing.png"), "source not found"),
+    (lambda p: (p / "broken.png").write_bytes(b"garbage") and str(p / "broken.png"), "cannot read image"),
+    (lambda p: (p / "broken.mp4").write_bytes(b"\x00" * 2048) and str(p / "broken.mp4"), "video"),
+    (lambda p: (p / "notes.txt").write_text("hi") and str(p / "notes.txt"), "unsupported extension"),
+    (lambda p: (p / "empty").mkdir() or str(p / "empty"), "no frame images"),
+])
+def test_bad_sources_exit_2_with_a_message(setup, match, models, tmp_path, capsys):
+    code, out, err = _run([setup(tmp_path), "--sensor", "ICX285", *models], capsys)
+    assert code == 2 and out == ""
+    assert "error:" in err and match in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("content,match", [
+    ("gain_db: 6\nexposure_s: 0.01\n", r"missing field\(s\) \['temperature_c', 'dark_fom_na_per_cm2'"),
+    ("sensor: ICX285\ngain_db: 30\n", r"gain_db\[0\] = 30 dB is out of the allowed range \[0, 24\] dB"),
+    ("sensor: ICX285\ntemperature_c: -20\n", r"temperature_c.*\[0, 80\]"),
+    ("sensor: ICX285\ngain_db: [1, 2\n", "cannot parse"),
+])
+def test_bad_metadata_exit_2_naming_the_field(content, match, models, tmp_path, capsys):
+    meta = tmp_path / "meta.yaml"
+    meta.write_text(content)
+    code, _, err = _run(["street", "--metadata", str(meta), "--max-frames", "1", *models], capsys)
+    assert code == 2 and "error:" in err
+    assert re.search(match, err), err
+
+
+def test_metadata_overrides_and_option_errors(models, tmp_path, capsys):
+    argv = ["street", "--sensor", "EV76C661", "--set", "gain_db=18", "--max-frames", "1", "--no-mtf", *models]
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    assert _lines(out)[0]["metadata"]["gain_db"] == 18.0
+    code, _, err = _run(["street", "--max-frames", "1", *models], capsys)
+    assert code == 2 and "reads 'full' metadata" in err
+    code, _, err = _run(["street", "--sensor", "ICX285", "--overlay", *models], capsys)
+    assert code == 2 and "--overlay needs --out" in err
+    code, _, err = _run(["street", "--sensor", "ICX285", "--iopc", str(tmp_path / "nope.json"), *models], capsys)
+    assert code == 2 and "IOPC file not found" in err
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["street", "--set", "gain=3"])
+
