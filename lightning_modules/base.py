@@ -62,6 +62,11 @@ class EstimatorModule(L.LightningModule):
         )
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
+    def _set_patch_size(self, patch_size: int) -> None:
+        if int(patch_size) != patch_size or patch_size < 16 or patch_size % 16:
+            raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
+        self.patch_size = int(patch_size)
+
     def _prepare(self, image: torch.Tensor) -> torch.Tensor:
         return image.contiguous(memory_format=torch.channels_last) if self.channels_last else image
 

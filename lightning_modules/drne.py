@@ -108,9 +108,7 @@ class NoiseLevelEstimator(EstimatorModule):
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
-        if patch_size < 16 or patch_size % 16:
-            raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
-        self.patch_size = int(patch_size)
+        self._set_patch_size(patch_size)
         self.net = NoiseLevelNet(width, tuple(dilations))
         self.map_weight = float(map_weight)
         self.huber_beta_dn = float(huber_beta_dn)

@@ -211,14 +211,7 @@ class IOPCCallback(Callback):
         if not trainer.is_global_zero:
             return None
         iopc = sweep.to_iopc(sweep.collect())
-        out.mkdir(parents=True, exist_ok=True)
-        iopc.save(out / "iopc.json")
-        iopc.save(out / "iopc.npz")
-        import matplotlib.pyplot as plt
-
-        fig = iopc.figure()
-        fig.savefig(out / "iopc.png", dpi=110)
-        plt.close(fig)
+        iopc.save_all(out)
         for logger in trainer.loggers:
             log_iopc(getattr(logger, "experiment", None), iopc, step=int(trainer.global_step), tag=tag)
         self.iopc = iopc

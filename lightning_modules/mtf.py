@@ -111,9 +111,7 @@ class MTFEstimator(EstimatorModule):
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
-        if patch_size < 16 or patch_size % 16:
-            raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
-        self.patch_size = int(patch_size)
+        self._set_patch_size(patch_size)
         self.net = MTFNet(tuple(widths), tuple(hidden), downsample)
         self.val_amae = AMAEPerFamily(FAMILIES)
         self.test_amae = AMAEPerFamily(FAMILIES)

@@ -189,9 +189,7 @@ class NoiseSourceEstimator(EstimatorModule):
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
-        if patch_size < 16 or patch_size % 16:
-            raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
-        self.patch_size = int(patch_size)
+        self._set_patch_size(patch_size)
         self.metadata_set = metadata_set
         self.physics_prior = bool(physics_prior)
         self.net = NoiseSourceNet(metadata_set, physics_prior, width, tuple(hidden))

@@ -19,10 +19,9 @@ the detector's output) and returns the (exposure [s], gain [dB]) for the next fr
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Protocol, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
 
-import torch
 
 from camhealth.control.camera_sim import Capture
 from camhealth.control.policy import CameraLimits, Decision, ExposurePolicy

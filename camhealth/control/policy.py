@@ -363,7 +363,7 @@ class ExposurePolicy:
                 "length_px": length, "length_new_px": length / alpha, "mtf_new": float(mtf_new),
                 "bin_now": self._bin(app.iopc, sigma_hat, mtf_hat), "bin_new": self._bin(app.iopc, sigma_new, float(mtf_new)),
             })
-        (t0, t1), (g0, g1) = self.limits.exposure_s, self.limits.gain_db
+        t0, t1 = self.limits.exposure_s
         at_limit = []
         lo, hi = interval
         if alpha >= hi * (1 - 1e-6):  # cannot shorten further

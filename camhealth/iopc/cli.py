@@ -206,14 +206,7 @@ def main(argv: Sequence[str] | None = None) -> IOPC:
     iopc = sweep.run(L.Trainer(**trainer_kw))
     out = Path(init.out_dir)
     if L.fabric.utilities.rank_zero.rank_zero_only.rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
-        iopc.save(out / "iopc.json")
-        iopc.save(out / "iopc.npz")
-        import matplotlib.pyplot as plt
-
-        fig = iopc.figure()
-        fig.savefig(out / "iopc.png", dpi=110)
-        plt.close(fig)
+        iopc.save_all(out)
         if init.tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 

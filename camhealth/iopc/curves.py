@@ -391,6 +391,19 @@ class IOPC:
         raise ValueError(f"IOPC files are .json or .npz, got {path.name!r}")
 
     # ------------------------------------------------------------------ plots
+    def save_all(self, out_dir: str | Path) -> Path:
+        """Write ``iopc.json``, ``iopc.npz`` and the heat-map figure ``iopc.png`` into ``out_dir``."""
+        import matplotlib.pyplot as plt
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        self.save(out / "iopc.json")
+        self.save(out / "iopc.npz")
+        fig = self.figure()
+        fig.savefig(out / "iopc.png", dpi=110)
+        plt.close(fig)
+        return out
+
     def figure(self, title: str | None = None):
         """Matplotlib figure: 2-D heat map (empty bins hatched, marked cells listed) and both 1-D curves."""
         import matplotlib

@@ -53,7 +53,7 @@ from camhealth.detection.average_precision import GroundTruth, evaluate_detectio
 from camhealth.detection.protocol import Detector, validate_detections
 from camhealth.detection.torch_adapter import TorchDetector
 from camhealth.iopc.curves import IOPC, MTF_BINS, SIGMA_BINS_DN
-from camhealth.iopc.estimation import PHYSICS, estimate_regions, estimator_name, median_estimates
+from camhealth.iopc.estimation import estimate_regions, estimator_name, median_estimates
 from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.image_formation import NOISE_SOURCES, form_image
 from camhealth.physics.metadata import METADATA_RANGES, CameraMetadata, factor_to_db

@@ -110,3 +110,9 @@ def test_training_steps_reduce_the_loss(noisy_batch):
 def test_loss_weights_are_checked():
     with pytest.raises(ValueError, match="unknown key"):
         NoiseSourceEstimator(loss_weights={"photon": 1.0})
+
+
+@pytest.mark.parametrize("size", [0, 40, 100])
+def test_patch_size_must_be_a_multiple_of_16(size):
+    with pytest.raises(ValueError, match="multiple of 16"):
+        NoiseSourceEstimator(patch_size=size)
