@@ -56,11 +56,22 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
     """
     b = image.shape[0]
     meta = meta.expand(b).to(device=image.device, dtype=torch.float64)
-    mean_i = image.detach().double().clamp(0, 1).flatten(1).mean(1)
+    mean_i = image.detach().float().clamp(0, 1).flatten(1).mean(1).double()
     dn = meta.dn_per_electron
     pn = 255.0 * (mean_i * meta.gain_factor / meta.full_well_e).sqrt()
-    dc = dark_current_shot_sigma_e(meta) * dn
-    rn = readout_sigma_e(meta) * dn
+    # Dark-current and readout σ depend on the metadata only: evaluate them once per distinct metadata row
+    # (a monitored frame's patches share one camera state; the readout integral is the costly part).
+    rows = torch.stack([getattr(meta, n) for n in FULL_FIELDS], dim=1)
+    unique, inverse = torch.unique(rows, dim=0, return_inverse=True)
+    if unique.shape[0] < b:
+        first = torch.full((unique.shape[0],), b, dtype=torch.long, device=rows.device)
+        first = first.scatter_reduce(0, inverse, torch.arange(b, device=rows.device), reduce="amin")
+        distinct = meta[first]
+        dc = (dark_current_shot_sigma_e(distinct) * distinct.dn_per_electron)[inverse]
+        rn = (readout_sigma_e(distinct) * distinct.dn_per_electron)[inverse]
+    else:
+        dc = dark_current_shot_sigma_e(meta) * dn
+        rn = readout_sigma_e(meta) * dn
     total = (pn.pow(2) + dc.pow(2) + rn.pow(2)).sqrt()
     return torch.stack([pn, dc, rn, total], dim=1).float()
 

@@ -73,3 +73,13 @@ def test_haar_mad_is_robust_to_edges(sigma_dn):
     x = x + 0.2 + sigma_dn / 255 * torch.randn(x.shape, generator=g, dtype=torch.float64)
     stats = image_statistics(x.float())
     assert stats[0, 5].item() == pytest.approx(sigma_dn, rel=0.06)
+
+
+def test_prior_of_repeated_metadata_equals_per_row_prior():
+    """Distinct metadata rows are integrated once; the result is identical to evaluating every row."""
+    base = CameraMetadata.preset("EV76C661", batch_size=2, gain_db=torch.tensor([3.0, 18.0]))
+    meta = base[torch.tensor([0, 1, 0, 0, 1])]
+    image = torch.rand(5, 1, 16, 16, generator=torch.Generator().manual_seed(0))
+    fast = physics_prior_dn(image, meta)
+    slow = torch.cat([physics_prior_dn(image[i : i + 1], meta[i : i + 1]) for i in range(5)])
+    assert torch.allclose(fast, slow, rtol=1e-6)
