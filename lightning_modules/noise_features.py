@@ -28,7 +28,10 @@ from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
-__all__ = ["metadata_from_matrix", "physics_prior_dn", "image_statistics", "IMAGE_STATISTICS", "CLIP_TOLERANCE"]
+__all__ = [
+    "metadata_from_matrix", "physics_prior_dn", "image_statistics", "laplace_difference", "box_mean3", "IMAGE_STATISTICS",
+    "CLIP_TOLERANCE",
+]
 
 #: Names of the columns of :func:`image_statistics`.
 IMAGE_STATISTICS: tuple[str, ...] = (
@@ -47,36 +50,71 @@ def metadata_from_matrix(meta_raw: torch.Tensor) -> CameraMetadata:
     return CameraMetadata(**{n: meta_raw[:, i] for i, n in enumerate(FULL_FIELDS)})
 
 
-def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
+def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | None = None) -> torch.Tensor:
     """Closed-form σ [DN] of (PN, DCSN, RN, total) for the metadata ``meta``, shape (B, 4), float32.
 
     Args:
         image: B×1×H×W noisy patches in [0, 1]; only their mean intensity is used (for σ_PN).
         meta: metadata of batch 1 or B, physical units.
+        cache: optional dict that keeps (σ_DCSN, σ_RN) [DN] per distinct metadata row between calls (an
+            inference loop that sees the same camera state on every frame integrates the readout noise
+            once); at most 64 rows are kept.
     """
     b = image.shape[0]
-    meta = meta.expand(b).to(device=image.device, dtype=torch.float64)
+    if meta.batch_size not in (1, b):
+        raise ValueError(f"metadata batch {meta.batch_size} does not match the {b} patches")
     mean_i = image.detach().float().clamp(0, 1).flatten(1).mean(1).double()
-    dn = meta.dn_per_electron
-    pn = 255.0 * (mean_i * meta.gain_factor / meta.full_well_e).sqrt()
     # Dark-current and readout σ depend on the metadata only: evaluate them once per distinct metadata row
     # (a monitored frame's patches share one camera state; the readout integral is the costly part).
-    rows = torch.stack([getattr(meta, n) for n in FULL_FIELDS], dim=1)
-    unique, inverse = torch.unique(rows, dim=0, return_inverse=True)
-    if unique.shape[0] < b:
-        first = torch.full((unique.shape[0],), b, dtype=torch.long, device=rows.device)
-        first = first.scatter_reduce(0, inverse, torch.arange(b, device=rows.device), reduce="amin")
-        distinct = meta[first]
-        dc = (dark_current_shot_sigma_e(distinct) * distinct.dn_per_electron)[inverse]
-        rn = (readout_sigma_e(distinct) * distinct.dn_per_electron)[inverse]
+    rows = torch.stack([getattr(meta, n).to(device=image.device, dtype=torch.float64) for n in FULL_FIELDS], dim=1)
+    if rows.shape[0] == 1:
+        unique, inverse = rows, torch.zeros(1, dtype=torch.long, device=rows.device)
     else:
-        dc = dark_current_shot_sigma_e(meta) * dn
-        rn = readout_sigma_e(meta) * dn
+        unique, inverse = torch.unique(rows, dim=0, return_inverse=True)
+    keys = [(tuple(r), meta.constants) for r in unique.tolist()]  # the fixed sensor constants are part of the key
+    found = [cache.get(k) if cache is not None else None for k in keys]
+    todo = [i for i, f in enumerate(found) if f is None]
+    if todo:
+        meta64 = meta.to(device=image.device, dtype=torch.float64)
+        first = torch.full((unique.shape[0],), rows.shape[0], dtype=torch.long, device=rows.device)
+        first = first.scatter_reduce(0, inverse, torch.arange(rows.shape[0], device=rows.device), reduce="amin")
+        distinct = meta64[first[torch.tensor(todo, dtype=torch.long, device=rows.device)]]
+        dn = distinct.dn_per_electron
+        values = torch.stack([dark_current_shot_sigma_e(distinct) * dn, readout_sigma_e(distinct) * dn,
+                              distinct.gain_factor / distinct.full_well_e], dim=1).tolist()
+        for i, v in zip(todo, values):
+            found[i] = tuple(v)
+            if cache is not None:
+                if len(cache) >= 64:
+                    cache.pop(next(iter(cache)))
+                cache[keys[i]] = found[i]
+    dc_u, rn_u, g_fw_u = torch.tensor(found, dtype=torch.float64, device=rows.device).unbind(1)
+    dc, rn, g_fw = dc_u[inverse], rn_u[inverse], g_fw_u[inverse]
+    if meta.batch_size == 1:
+        dc, rn, g_fw = dc.expand(b), rn.expand(b), g_fw.expand(b)
+    pn = 255.0 * (mean_i * g_fw).sqrt()
     total = (pn.pow(2) + dc.pow(2) + rn.pow(2)).sqrt()
     return torch.stack([pn, dc, rn, total], dim=1).float()
 
 
 _LAPLACE_DIFF = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
+
+
+def laplace_difference(x: torch.Tensor) -> torch.Tensor:
+    """Immerkær's mask N = [[1, −2, 1], [−2, 4, −2], [1, −2, 1]] over B×C×H×W without padding → (H−2)×(W−2).
+
+    N is the outer product of [1, −2, 1] with itself, so it is applied as two second differences of shifted
+    slices (exactly the 3×3 correlation, ~5× faster on CPU than a one-channel ``conv2d``)."""
+    r = x[..., :, :-2] - 2.0 * x[..., :, 1:-1] + x[..., :, 2:]
+    return r[..., :-2, :] - 2.0 * r[..., 1:-1, :] + r[..., 2:, :]
+
+
+def box_mean3(x: torch.Tensor) -> torch.Tensor:
+    """3×3 mean of B×C×H×W with replicate borders (= ``avg_pool2d(pad(x, 1, "replicate"), 3, stride=1)``),
+    separably from shifted slices (~5× faster on CPU than ``avg_pool2d``)."""
+    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    r = p[..., :, :-2] + p[..., :, 1:-1] + p[..., :, 2:]
+    return (r[..., :-2, :] + r[..., 1:-1, :] + r[..., 2:, :]) / 9.0
 
 
 def image_statistics(image: torch.Tensor) -> torch.Tensor:
@@ -93,13 +131,15 @@ def _image_statistics(x: torch.Tensor) -> torch.Tensor:
     mean = x.flatten(1).mean(1)
     low = (x <= CLIP_TOLERANCE).float().flatten(1).mean(1)
     high = (x >= 1.0 - CLIP_TOLERANCE).float().flatten(1).mean(1)
-    kernel = _LAPLACE_DIFF.to(device=x.device, dtype=x.dtype).view(1, 1, 3, 3)
-    resp = F.conv2d(x * 255.0, kernel).abs().flatten(1).mean(1)
+    resp = laplace_difference(x * 255.0).abs().flatten(1).mean(1)
     immerkaer = math.sqrt(math.pi / 2.0) * resp / 6.0
     h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
     q = x[..., :h, :w] * 255.0
     d = (q[..., 0::2, 0::2] - q[..., 0::2, 1::2] - q[..., 1::2, 0::2] + q[..., 1::2, 1::2]) / 2.0
     flat = d.abs().flatten(1)
-    # lower median via top-k (= torch.median; exports to ONNX, which has no median operator)
-    mad = flat.topk((flat.shape[1] - 1) // 2 + 1, dim=1, largest=False).values[:, -1] / 0.6745
+    if torch.onnx.is_in_onnx_export():  # ONNX has no median operator: the lower median via top-k (3–4× slower)
+        med = flat.topk((flat.shape[1] - 1) // 2 + 1, dim=1, largest=False).values[:, -1]
+    else:  # torch.median returns the lower median for an even count, the same value as the top-k form
+        med = flat.median(dim=1).values
+    mad = med / 0.6745
     return torch.stack([mean, mean.clamp_min(0).sqrt(), low, high, immerkaer, mad], dim=1)

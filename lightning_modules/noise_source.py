@@ -40,7 +40,9 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS
 from lightning_modules.base import EstimatorModule
 from lightning_modules.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
-from lightning_modules.noise_features import IMAGE_STATISTICS, image_statistics, metadata_from_matrix, physics_prior_dn
+from lightning_modules.noise_features import (
+    IMAGE_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, physics_prior_dn,
+)
 
 __all__ = ["NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "OUTPUTS"]
 
@@ -81,7 +83,7 @@ class NoiseTrunk(nn.Module):
         self.out_features = 12 * width
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        local_mean = F.avg_pool2d(F.pad(image, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+        local_mean = box_mean3(image)
         x = torch.cat([image * 2.0 - 1.0, (image - local_mean) * self.highpass_gain], dim=1)
         return self.pool(self.stages(self.stem(self.unshuffle(x))))
 

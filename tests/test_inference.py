@@ -138,3 +138,22 @@ def test_model_card_lists_metrics_and_command(tmp_path):
     path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt", metrics={"test/rms_total": 0.42})
     text = card_text(path, "python -m camhealth.fit --config configs/noise_source.yaml", timing={"fp32": 1.0, "bf16": 0.5})
     assert "test/rms_total | 0.420" in text and "configs/noise_source.yaml" in text and "GFLOP" in text
+
+
+def test_bucket_sizes():
+    from camhealth.inference import bucket_size
+
+    assert [bucket_size(n) for n in (1, 4, 5, 31, 32, 33, 80, 129)] == [4, 4, 8, 32, 32, 48, 80, 144]
+    with pytest.raises(ValueError):
+        bucket_size(0)
+
+
+def test_padding_to_a_bucket_does_not_change_results(noise_est):
+    """Batches are padded to bucket sizes: every patch's estimate is the one it gets alone (fp32)."""
+    x = _patches(7, seed=3)
+    meta = CameraMetadata.preset("ICX285", batch_size=7, gain_db=torch.linspace(0, 24, 7).tolist())
+    together = noise_est.predict(x, meta)
+    for i in (0, 6):
+        alone = noise_est.predict(x[i : i + 1], meta[i])
+        assert torch.allclose(alone["sigma"], together["sigma"][i : i + 1], atol=1e-5)
+        assert torch.allclose(alone["xi"], together["xi"][i : i + 1], atol=1e-5)

@@ -245,6 +245,9 @@ def run(args: argparse.Namespace) -> int:
     from camhealth.monitor.tiling import SelectionConfig
 
     torch.set_num_threads(args.threads)
+    from camhealth.runtime import keep_freed_memory
+
+    keep_freed_memory()  # reuse freed activation memory across frames (see camhealth.runtime)
     if args.overlay and args.out is None:
         raise ValueError("--overlay needs --out DIR (the PNGs go to DIR/overlays/)")
     if args.no_noise and args.no_mtf:

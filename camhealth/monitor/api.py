@@ -512,6 +512,9 @@ class Monitor:
         xi_threshold_dn, xi_sigmas: ξ alarm threshold [DN] and significance k (:func:`xi_alarm`).
         policy: an :class:`camhealth.control.ExposurePolicy` (or IOPC file path(s), :func:`load_policy`).
         per_patch: include per-patch status and values in the JSON lines.
+        warmup: on the first frame of a new size, run each network once on every batch size the frame can
+            need (:func:`camhealth.inference.bucket_size` buckets up to the grid size), so that oneDNN builds its
+            kernels then and not on later frames (≈ 0.5 s once for 1280×1024; the "cold first frame").
     """
 
     def __init__(
@@ -532,6 +535,7 @@ class Monitor:
         xi_sigmas: float = 3.0,
         policy: Any = None,
         per_patch: bool = False,
+        warmup: bool = True,
     ) -> None:
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
             raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
@@ -552,6 +556,7 @@ class Monitor:
         self.xi_threshold_dn = float(xi_threshold_dn)
         self.xi_sigmas = float(xi_sigmas)
         self.per_patch = bool(per_patch)
+        self.warmup = bool(warmup)
         self.estimators: dict[str, _EstimatorHandle] = {}
         for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
             if spec is not None:
@@ -631,6 +636,24 @@ class Monitor:
                              self.selection)
             for task, handle in self.estimators.items()
         }
+        if self.warmup:
+            self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Run every network once per padded batch size a frame of this size can send it."""
+        from camhealth.inference import Estimator, bucket_size
+
+        for task, st in self._states.items():
+            handle = self.estimators[task]
+            if st.grid.empty or not isinstance(handle.est, Estimator) or handle.est.backend != "torch":
+                continue  # oneDNN kernels: torch-backend camhealth estimators only
+            n_max = min(st.grid.n, self.batch_size)
+            sizes = sorted({min(bucket_size(k), n_max) for k in range(1, n_max + 1)})
+            meta = self.metadata if getattr(handle.est, "metadata_set", "none") != "none" else None
+            p = st.grid.patch
+            for size in sizes:
+                dummy = torch.full((size, 1, p, p), 0.5)
+                handle.est.predict(dummy, metadata=meta, precision=self.precision, batch_size=self.batch_size)
 
     def _frame_metadata(self, metadata: Any) -> CameraMetadata | None:
         if metadata is None:

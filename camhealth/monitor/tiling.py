@@ -186,17 +186,13 @@ class PatchStats:
 
 
 def _clipped_fraction(v: torch.Tensor, extreme: torch.Tensor, level: float, low: bool) -> torch.Tensor:
-    """Fraction of pixels <= ``level`` (``low``) or >= ``level`` per patch of (R, P, C, P) ``v``; pixels are
-    counted only in patches whose min (max) reaches the level — usually none, so this costs one min/max."""
+    """Fraction of pixels <= ``level`` (``low``) or >= ``level`` per patch of (R, P, C, P) ``v``, given the
+    per-patch extreme (R, C); one counting pass over the frame only when some patch reaches the level."""
     r, p, c, _ = v.shape
-    out = torch.zeros(r * c)
-    hit = (extreme <= level) if low else (extreme >= level)
-    if bool(hit.any()):
-        ri, ci = hit.nonzero(as_tuple=True)
-        sel = v[ri, :, ci, :]  # (k, P, P)
-        mask = (sel <= level) if low else (sel >= level)
-        out[ri * c + ci] = mask.view(torch.uint8).sum((1, 2), dtype=torch.int32).float() / (p * p)
-    return out
+    if not bool(((extreme <= level) if low else (extreme >= level)).any()):
+        return torch.zeros(r * c)
+    mask = (v <= level) if low else (v >= level)
+    return mask.view(torch.uint8).sum((1, 3), dtype=torch.int32).reshape(r * c).float() / (p * p)
 
 
 def _statistics(v: torch.Tensor, patch: int) -> PatchStats:
@@ -204,9 +200,9 @@ def _statistics(v: torch.Tensor, patch: int) -> PatchStats:
     r, _, c, _ = v.shape
     n, h = r * c, patch // 2
     tol = 0.5 / 255.0
-    lo, hi = torch.aminmax(v, dim=3)  # one pass for both extremes
-    clipped_low = _clipped_fraction(v, lo.amin(1), tol, low=True)
-    clipped_high = _clipped_fraction(v, hi.amax(1), 1.0 - tol, low=False)
+    # (two reductions over (P, P) are ~10× faster here than one aminmax along the last dim)
+    clipped_low = _clipped_fraction(v, v.amin((1, 3)), tol, low=True)
+    clipped_high = _clipped_fraction(v, v.amax((1, 3)), 1.0 - tol, low=False)
     a, b = v[:, 0::2, :, 0::2], v[:, 0::2, :, 1::2]
     cc, d = v[:, 1::2, :, 0::2], v[:, 1::2, :, 1::2]
     ab, cd = a - b, cc - d

@@ -58,3 +58,19 @@ def test_training_step_learns_on_blurred_batch():
         opt.step()
         losses.append(loss.item())
     assert min(losses[-5:]) < 0.5 * losses[0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(1, 1, 5, 7), (3, 2, 32, 24)])
+def test_sobel_equals_kornia_spatial_gradient(dtype, shape):
+    import kornia
+
+    from lightning_modules.mtf import sobel
+
+    x = torch.rand(*shape, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    ref = kornia.filters.spatial_gradient(x, mode="sobel", order=1, normalized=True)
+    gx, gy = sobel(x)
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert torch.allclose(gx, ref[:, :, 0], atol=tol) and torch.allclose(gy, ref[:, :, 1], atol=tol)
+    xg = x[:1, :1, :5, :5].double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: sobel(t)[0] + sobel(t)[1], (xg,))

@@ -83,3 +83,15 @@ def test_prior_of_repeated_metadata_equals_per_row_prior():
     fast = physics_prior_dn(image, meta)
     slow = torch.cat([physics_prior_dn(image[i : i + 1], meta[i : i + 1]) for i in range(5)])
     assert torch.allclose(fast, slow, rtol=1e-6)
+
+
+def test_prior_cache_gives_the_uncached_values_and_tracks_the_metadata():
+    x = torch.rand(5, 1, 32, 32, generator=torch.Generator().manual_seed(0))
+    cache: dict = {}
+    for gain in (0.0, 12.0, 0.0):
+        m = CameraMetadata.preset("EV76C661", gain_db=gain)
+        assert torch.equal(physics_prior_dn(x, m, cache), physics_prior_dn(x, m))
+    assert len(cache) == 2
+    many = CameraMetadata.preset("ICX285", batch_size=5, temperature_c=[0.0, 20.0, 20.0, 60.0, 80.0])
+    assert torch.allclose(physics_prior_dn(x, many, cache), physics_prior_dn(x, many))
+    assert len(cache) == 6

@@ -343,3 +343,20 @@ def test_policy_option_errors_clearly_without_camhealth_control(monkeypatch, tmp
     monkeypatch.setitem(sys.modules, "camhealth.control", None)  # as if the package were not importable
     with pytest.raises(ImportError, match="needs camhealth.control"):
         load_policy([tmp_path / "iopc.json"])
+
+
+def test_warm_up_runs_every_bucket_once_before_the_first_frame(model_files, monkeypatch):
+    from camhealth.inference import Estimator, bucket_size
+
+    ns, mtf = model_files
+    sizes = []
+    orig = Estimator.predict
+    monkeypatch.setattr(Estimator, "predict", lambda self, x, *a, **k: sizes.append((self.kind, x.shape[0])) or orig(self, x, *a, **k))
+    mon = Monitor(ns, mtf, sensor="ICX285")  # 384×576 frame: 3×4 noise patches, 2×3 MTF patches
+    mon.process(torch.full((384, 576), 0.5))
+    # warm-up first: each network once per bucket size up to its grid (12 noise, 6 MTF patches), then the frame
+    assert sizes[:5] == [("noise_source", 4), ("noise_source", 8), ("noise_source", 12), ("mtf", 4), ("mtf", 6)]
+    assert {min(bucket_size(n), 12) for n in range(1, 13)} == {4, 8, 12}
+    sizes.clear()
+    Monitor(ns, mtf, sensor="ICX285", warmup=False).process(torch.full((384, 576), 0.5))
+    assert len(sizes) <= 4  # only the frame's own network calls

@@ -51,3 +51,4 @@ def test_rss_probe_runs_one_monitor(model_files, tmp_path):
     (tmp_path / "probe.json").write_text(json.dumps(cfg))
     out = rss_probe(str(tmp_path / "probe.json"))
     assert 0 < out["start_mb"] <= out["peak_mb"]
+    assert len(out["ms"]) == len(out["cpu_ms"]) == 2 and all(t > 0 for t in out["ms"])
