@@ -151,3 +151,34 @@ def test_bad_sources_and_missing_metadata():
         form_image(x, None)
     with pytest.raises(ValueError, match="batch"):
         form_image(torch.zeros(3, 1, 8, 8), CameraMetadata.sample(2))
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.4, 5.0, 37.0, 640.0, 5000.0])
+def test_poisson_per_sample_rate_mean_variance_and_fit(lam):
+    import numpy as np
+    from scipy import stats
+
+    from camhealth.physics.image_formation import sample_poisson_per_sample
+
+    x = sample_poisson_per_sample(torch.tensor([lam, 1.0]), (2, 1, 200, 200), _gen(11))
+    assert x.shape == (2, 1, 200, 200) and x.dtype == torch.float32
+    v = x[0].flatten().double()
+    tol = 5 * (lam / v.numel()) ** 0.5 + 1e-9
+    assert abs(float(v.mean()) - lam) < tol and abs(float(v.var()) - lam) < 0.05 * lam + 1e-9
+    if 0 < lam < 1000:
+        assert torch.equal(v, v.round())
+        ks = np.arange(0, int(lam + 8 * lam**0.5 + 10))
+        obs = np.array([(v.numpy() == k).sum() for k in ks])
+        exp = stats.poisson.pmf(ks, lam) * v.numel()
+        keep = exp > 5
+        chi2 = ((obs[keep] - exp[keep]) ** 2 / exp[keep]).sum()
+        assert stats.chi2.sf(chi2, keep.sum() - 1) > 1e-3
+
+
+def test_poisson_per_sample_rate_rejects_bad_rates():
+    from camhealth.physics.image_formation import sample_poisson_per_sample
+
+    with pytest.raises(ValueError, match="rate"):
+        sample_poisson_per_sample(torch.tensor([1.0]), (2, 4))
+    with pytest.raises(ValueError, match=">= 0"):
+        sample_poisson_per_sample(torch.tensor([-1.0, float("nan")]), (2, 4))
