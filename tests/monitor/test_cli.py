@@ -169,3 +169,15 @@ def test_metadata_overrides_and_option_errors(models, tmp_path, capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["street", "--set", "gain=3"])
 
+
+
+def test_default_threads_is_two_or_the_cores_available(monkeypatch):
+    import os
+
+    from camhealth.monitor.__main__ import build_parser, default_threads
+
+    assert build_parser().parse_args(["street"]).threads is None
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert default_threads() == 1
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    assert default_threads() == 2
