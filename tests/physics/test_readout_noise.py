@@ -82,3 +82,17 @@ def test_readout_dn_extremes_finite():
                               reset_factor=1.0)
     s = readout_sigma_dn(m)
     assert torch.isfinite(s).all() and s[1] > s[0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tabulated_integral_equals_the_per_sample_integral(dtype):
+    m = CameraMetadata.sample(64, torch.Generator().manual_seed(3)).to(dtype=dtype)
+    ends = CameraMetadata.preset("EV76C661", batch_size=2, pixel_clock_hz=[8e6, 150e6]).to(dtype=dtype)
+    for meta in (m, ends):
+        tab = source_follower_sigma_e(meta)
+        ref = source_follower_sigma_e(meta, tabulated=False)
+        assert tab.dtype == dtype and torch.allclose(tab, ref, rtol=1e-5)
+    custom = SensorConstants(flicker_corner_hz=5e3)  # another set of constants gets its own table
+    mc = CameraMetadata(**{n: getattr(ends, n) for n in ends.to_dict()}, constants=custom)
+    assert torch.allclose(source_follower_sigma_e(mc), source_follower_sigma_e(mc, tabulated=False), rtol=1e-5)
+    assert not torch.allclose(source_follower_sigma_e(mc), source_follower_sigma_e(ends), rtol=1e-3)
