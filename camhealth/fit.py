@@ -40,6 +40,11 @@ class FitCLI(LightningCLI):
         parser.add_argument("--test_after_fit", type=bool, default=True, help="test the best checkpoint after fit")
         parser.add_argument("--export_weights", type=str | None, default=None, help="write the best model as camhealth weights here")
         parser.add_argument("--threads", type=int | None, default=None, help="torch intra-op threads (default: torch's)")
+        parser.add_argument(
+            "--init_from", type=str | None, default=None,
+            help="fine-tune: start from the weights of this camhealth weights file or checkpoint (same architecture; "
+                 "optimiser and schedule start afresh)",
+        )
         parser.set_defaults(  # plain defaults; every config may override them
             {
                 "trainer.logger": {
@@ -80,6 +85,20 @@ def _add_default_callbacks(cli: FitCLI) -> None:
         trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
 
 
+def _init_from(model: EstimatorModule, path: str) -> None:
+    """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
+    ``model``; the architectures must match (a clear error names the first mismatch)."""
+    from camhealth.export import load_module
+
+    source, _ = load_module(Path(path))
+    if type(source) is not type(model):
+        raise ValueError(f"--init_from {path}: holds a {type(source).__name__}, the config trains a {type(model).__name__}")
+    try:
+        model.net.load_state_dict(source.net.state_dict())
+    except RuntimeError as exc:
+        raise ValueError(f"--init_from {path}: architecture differs from the config's: {str(exc).splitlines()[0]}") from None
+
+
 def main(args: Sequence[str] | None = None) -> FitCLI:
     """Parse ``args`` (default: ``sys.argv[1:]``), fit, test the best checkpoint, optionally export it."""
     cli = FitCLI(
@@ -96,6 +115,8 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
     if cli.config["threads"]:
         torch.set_num_threads(int(cli.config["threads"]))
     _add_default_callbacks(cli)
+    if cli.config["init_from"]:
+        _init_from(cli.model, cli.config["init_from"])
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     best = cli.trainer.checkpoint_callback.best_model_path if cli.trainer.checkpoint_callback else ""
     results: dict = {"best_checkpoint": best}

@@ -71,3 +71,21 @@ def test_configs_parse_with_full_variants(name, capsys):
         with pytest.raises(SystemExit):
             main(["--config", cfg, "--print_config"])
         assert "trainer:" in capsys.readouterr().out
+
+
+def test_init_from_fine_tunes_from_weights_and_rejects_another_kind(tmp_path):
+    import torch
+
+    from camhealth.export import export_weights
+    from lightning_modules import MTFEstimator, NoiseSourceEstimator
+
+    torch.manual_seed(1)
+    start = NoiseSourceEstimator(patch_size=32)
+    path = export_weights(start, tmp_path / "start.pt")
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--trainer.max_steps", "0",
+                         "--test_after_fit", "false"))
+    for a, b in zip(cli.model.net.state_dict().values(), start.net.state_dict().values()):
+        assert torch.equal(a, b)  # no step taken: the weights are the ones loaded
+    other = export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt")
+    with pytest.raises(ValueError, match="MTFEstimator"):
+        main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(other), "--trainer.max_steps", "0"))
