@@ -40,7 +40,10 @@ from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.photon_shot_noise import photon_shot_sigma_patch_dn
 from camhealth.physics.readout_noise import readout_sigma_e
 
-__all__ = ["NOISE_SOURCES", "ImageFormation", "apply_psf", "form_image", "sample_poisson", "sample_poisson_per_sample"]
+__all__ = [
+    "NOISE_SOURCES", "ImageFormation", "apply_psf", "form_image", "kernel_support_radii", "plan_support_groups",
+    "sample_poisson", "sample_poisson_per_sample",
+]
 
 #: Noise sources in label order: photon shot noise, dark-current shot noise, readout noise.
 NOISE_SOURCES: tuple[str, ...] = ("photon", "dark", "readout")
@@ -128,7 +131,89 @@ def _fft_convolve(image: torch.Tensor, psf: torch.Tensor, border: str) -> torch.
     return out[..., p : p + h, p : p + w]
 
 
-def apply_psf(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+#: Cost model of one grouped convolution on the CPU (oneDNN), in multiply-adds per image pixel: a kernel
+#: of area a costs about a + ``_PIXEL_OVERHEAD_MACS`` (padding, gather, scatter), and every extra call a
+#: fixed ``_CALL_OVERHEAD_MACS`` (Python, dispatch). oneDNN's depthwise convolution vectorises over
+#: channels: below 16 channels per call its cost per image rises 5–20× (measured on the 2-core EPYC of
+#: docs/benchmarks.md), so groups hold at least ``_MIN_GROUP_CHANNELS`` channels.
+_PIXEL_OVERHEAD_MACS = 40.0
+_CALL_OVERHEAD_MACS = 3e6
+_MIN_GROUP_CHANNELS = 16
+
+
+def kernel_support_radii(psf: torch.Tensor) -> torch.Tensor:
+    """Half-extents (r_y, r_x) [px] of each kernel's non-zero support about its centre: (B, 2) int64.
+
+    A (B, k, k) kernel centred at (k//2, k//2) equals its crop to (2·r_y + 1)×(2·r_x + 1).
+    """
+    k = psf.shape[-1]
+    nz = psf != 0
+    dist = (torch.arange(k, device=psf.device) - k // 2).abs()
+    ry = torch.where(nz.any(2), dist, torch.zeros_like(dist)).amax(1)
+    rx = torch.where(nz.any(1), dist, torch.zeros_like(dist)).amax(1)
+    return torch.stack([ry, rx], 1)
+
+
+def plan_support_groups(radii: torch.Tensor, channels: int = 1, pixels: int = 1) -> list[tuple[torch.Tensor, int, int]]:
+    """Split a batch into groups that each convolve with one kernel crop, minimising the estimated cost.
+
+    Samples are ordered by orientation (wide, square, tall support) and size, cut into blocks of at least
+    ``_MIN_GROUP_CHANNELS`` channels, and consecutive blocks are joined into groups by dynamic
+    programming under the cost model above (a group convolves all its samples with the largest crop of
+    its members in each axis).
+
+    Args:
+        radii: (B, 2) support half-extents from :func:`kernel_support_radii`.
+        channels: image channels C (a group's channel count is C × its samples).
+        pixels: H·W per channel.
+
+    Returns:
+        ``[(indices, r_y, r_x), …]``: sample indices (int64, on the radii's device) and the crop radii.
+    """
+    r = radii.detach().to("cpu", torch.int64)
+    b = r.shape[0]
+    ry, rx = r[:, 0], r[:, 1]
+    # orientation class first (−1 wide, 0 near-square, +1 tall), then the larger radius
+    orient = torch.sign(ry - rx) * ((ry - rx).abs() * 2 > torch.maximum(ry, rx)).long()
+    order = torch.argsort(orient * 4096 + torch.maximum(ry, rx) * 64 + torch.minimum(ry, rx), stable=True)
+    block = max(1, -(-_MIN_GROUP_CHANNELS // max(int(channels), 1)))
+    starts = list(range(0, b, block))
+    if len(starts) > 1 and b - starts[-1] < block:  # a short last block joins its neighbour
+        starts.pop()
+    bounds = starts + [b]
+    ry_o, rx_o = ry[order].tolist(), rx[order].tolist()
+    nb = len(starts)
+    # best[j]: least cost of the first j blocks; prefix maxima per candidate group computed on the fly
+    best = [0.0] + [float("inf")] * nb
+    cut = [0] * (nb + 1)
+    for j in range(1, nb + 1):
+        my = mx = 0
+        for i in range(j - 1, -1, -1):  # group = blocks i..j-1
+            lo, hi = bounds[i], bounds[i + 1]
+            my, mx = max(my, max(ry_o[lo:hi])), max(mx, max(rx_o[lo:hi]))
+            n = bounds[j] - bounds[i]
+            c = best[i] + n * channels * pixels * ((2 * my + 1) * (2 * mx + 1) + _PIXEL_OVERHEAD_MACS) + _CALL_OVERHEAD_MACS
+            if c < best[j]:
+                best[j], cut[j] = c, i
+    groups = []
+    j = nb
+    while j > 0:
+        i = cut[j]
+        idx = order[bounds[i] : bounds[j]]
+        groups.append((idx.to(radii.device), int(ry[idx].max()), int(rx[idx].max())))
+        j = i
+    return groups[::-1]
+
+
+def _convolve_same(image: torch.Tensor, psf: torch.Tensor, border: str) -> torch.Tensor:
+    """True convolution of every sample with its own (B, kh, kw) odd kernel, output of the input's size."""
+    kh, kw = psf.shape[-2:]
+    if kh == kw and kh >= FFT_MIN_KERNEL and kh % 2 == 1 and image.dtype in (torch.float32, torch.float64):
+        return _fft_convolve(image, psf.to(device=image.device, dtype=image.dtype), border)
+    return kornia.filters.filter2d(image, psf.flip(-1, -2).to(image.dtype), border_type=border)
+
+
+def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = True) -> torch.Tensor:
     """Convolve every sample with its own PSF in one grouped call (Kornia ``filter2d``).
 
     Args:
@@ -136,6 +221,11 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
         psf: (B, k, k) or (1, k, k) kernels (true convolution: the kernel is flipped for the
             correlation ``filter2d`` computes). Reflect padding keeps the mean; when the kernel is larger
             than the image, replicate padding is used instead.
+        group_by_support: crop each kernel to its non-zero support and convolve the batch in a few
+            groups of equal crop size (:func:`plan_support_groups`), instead of every sample with the full
+            k×k kernel. A 5 px disk or a horizontal motion line then costs a fraction of the 23×23 kernel
+            the batch's largest blur needs. Same result up to float summation order (the dropped taps
+            are exact zeros; the padding is chosen from the full kernel size either way).
 
     Odd kernels of size >= ``FFT_MIN_KERNEL`` are applied in the Fourier domain (same padding, same
     result up to float rounding; faster than the direct convolution for the 45 px kernels of non-linear
@@ -150,9 +240,22 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     if k == 1:
         return image * psf.to(image.dtype).view(-1, 1, 1, 1)
     border = "reflect" if k // 2 < min(image.shape[-2:]) else "replicate"
-    if k >= FFT_MIN_KERNEL and k % 2 == 1 and image.dtype in (torch.float32, torch.float64):
-        return _fft_convolve(image, psf.to(device=image.device, dtype=image.dtype), border)
-    return kornia.filters.filter2d(image, psf.flip(-1, -2).to(image.dtype), border_type=border)
+    if not group_by_support or psf.shape[0] == 1 or (k >= FFT_MIN_KERNEL and k % 2 == 1):
+        return _convolve_same(image, psf, border)
+    groups = plan_support_groups(kernel_support_radii(psf), image.shape[1], image.shape[-2] * image.shape[-1])
+    c = k // 2
+    if len(groups) == 1:
+        _, ry, rx = groups[0]
+        return _convolve_same(image, psf[:, c - ry : c + ry + 1, c - rx : c + rx + 1], border)
+    out = None
+    for idx, ry, rx in groups:
+        part = image.index_select(0, idx)
+        kern = psf.index_select(0, idx.to(psf.device))[:, c - ry : c + ry + 1, c - rx : c + rx + 1]
+        res = part * kern.to(part.dtype).view(-1, 1, 1, 1) if ry == rx == 0 else _convolve_same(part, kern, border)
+        if out is None:
+            out = res.new_empty(image.shape)
+        out = out.index_copy(0, idx, res) if res.requires_grad else out.index_copy_(0, idx, res)
+    return out
 
 
 #: Poisson rates below this are drawn with ``torch.poisson``; from it up to ``exact_below`` by exact
@@ -240,28 +343,24 @@ def sample_poisson(rate: torch.Tensor, generator: torch.Generator | None = None,
     if hi < small_below:  # all small: exact scalar sampler
         return torch.poisson(work, generator=generator).to(rate.dtype).view_as(rate)
     z = torch.randn(work.shape, generator=generator, device=work.device, dtype=work.dtype)
-    if lo >= exact_below:  # all normal
-        return z.mul_(work.sqrt()).add_(work).to(rate.dtype).view_as(rate)
-    if hi >= _EXPANSION_MIN_RATE:
-        y, margin = _poisson_quantile_expansion(work, z)
-        out = torch.floor(y)
-        frac = y.sub_(out)
-        check = torch.sub(frac, 0.5).abs_() > margin  # y within the error envelope of an integer
-        if lo < _EXPANSION_MIN_RATE:
-            check &= work >= _EXPANSION_MIN_RATE
-    else:
-        out, check = torch.empty_like(work), None
-    if hi >= exact_below:
-        large = work >= exact_below
-        normal = (work.clamp_min(0) if lo < 0 else work).sqrt().mul_(z).add_(work)
-        out = torch.where(large, normal, out, out=out) if out.dtype == work.dtype else torch.where(large, normal, out)
-        del normal
-        if check is not None:
-            check &= ~large
-    if check is not None:
-        i = check.nonzero().squeeze(1)
+    # N(λ, λ) everywhere first (the answer for λ ≥ exact_below); the exact regimes overwrite their entries
+    out = (work.clamp_min(0) if lo < 0 else work).sqrt().mul_(z).add_(work)
+    if lo < exact_below and hi >= _EXPANSION_MIN_RATE:
+        # the expansion runs only on its own entries (a gather costs less than ~25 full-size passes)
+        mid = work >= _EXPANSION_MIN_RATE
+        if hi >= exact_below:
+            mid &= work < exact_below
+        i = mid.nonzero().squeeze(1)
+        del mid
         if i.numel():
-            out.index_copy_(0, i, _poisson_fixup(work[i], z[i], out[i], frac[i], margin[i]))
+            lam, zi = work[i], z[i]
+            y, margin = _poisson_quantile_expansion(lam, zi.clone())
+            k = torch.floor(y)
+            frac = y.sub_(k)
+            check = (torch.sub(frac, 0.5).abs_() > margin).nonzero().squeeze(1)  # within the error envelope
+            if check.numel():
+                k.index_copy_(0, check, _poisson_fixup(lam[check], zi[check], k[check], frac[check], margin[check]))
+            out.index_copy_(0, i, k)
     if lo < small_below:
         i = (work < small_below).nonzero().squeeze(1)
         out.index_copy_(0, i, torch.poisson(work[i], generator=generator))
@@ -315,11 +414,14 @@ def sample_poisson_per_sample(
         guide = torch.searchsorted(cdf, edges.expand(lam_s.shape[0], -1).contiguous())  # smallest k: F(k) ≥ j/cells
         # one table of (k, F32(k)) pairs per cell, packed as int64 so that a single gather fetches both
         pairs = torch.stack([guide.float(), torch.gather(cdf32, 1, guide)], dim=2).view(torch.int64).squeeze(2)
-        u = torch.rand(int(i.numel()), n, generator=generator, dtype=torch.float32, device=rate.device)
-        cell = u.mul(cells).long().clamp_(max=cells - 1)
-        got = torch.gather(pairs, 1, cell).view(torch.float32).view(int(i.numel()), n, 2)
+        bs = int(i.numel())
+        u = torch.rand(bs, n, generator=generator, dtype=torch.float32, device=rate.device)
+        # flat int32 cell index into the (bs, cells) table: index_select is ~5× faster than a 2-D gather here
+        cell = u.mul(cells).to(torch.int32).clamp_(max=cells - 1)
+        cell += torch.arange(0, bs * cells, cells, dtype=torch.int32, device=rate.device)[:, None]
+        got = pairs.view(-1).index_select(0, cell.view(-1)).view(torch.float32).view(bs, n, 2)
         del cell
-        k = got[..., 0].contiguous()
+        k = got[..., 0]  # a strided view: the few corrections below write into ``got``
         rows, cols = (u > got[..., 1]).nonzero(as_tuple=True)  # u beyond F(k): the quantile is larger
         for _ in range(2):  # usually one step; a cell can hold several boundaries only in the far tail
             if not rows.numel():

@@ -2,7 +2,8 @@ import pytest
 import torch
 
 from camhealth.physics.defocus_psf import defocus_psf
-from camhealth.physics.image_formation import apply_psf, form_image
+from camhealth.physics import image_formation
+from camhealth.physics.image_formation import apply_psf, form_image, kernel_support_radii, plan_support_groups
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.motion_psf import linear_motion_psf
 
@@ -120,6 +121,42 @@ def test_apply_psf_gradcheck_and_delta():
     assert torch.autograd.gradcheck(lambda t: apply_psf(t, psf), (x,))
     delta = torch.ones(2, 1, 1, dtype=torch.float64)
     assert torch.equal(apply_psf(x, delta), x)
+
+
+@pytest.mark.parametrize("channels", [1, 2])
+@pytest.mark.parametrize("batch", [1, 5, 40])
+def test_apply_psf_support_groups_equal_the_full_kernel(batch, channels):
+    """Cropping every kernel to its support and convolving in groups gives the full k×k convolution."""
+    g = torch.Generator().manual_seed(11)
+    x = torch.rand(batch, channels, 40, 36, generator=g, dtype=torch.float64)
+    size = torch.rand(batch, generator=g, dtype=torch.float64) * 20 + 0.5
+    angle = torch.rand(batch, generator=g, dtype=torch.float64) * 180
+    for psf in (defocus_psf(size, 23), linear_motion_psf(size, angle, 23)):
+        grouped, full = apply_psf(x, psf), apply_psf(x, psf, group_by_support=False)
+        assert torch.allclose(grouped, full, rtol=0, atol=1e-12)
+
+
+def test_support_radii_and_group_plan():
+    psf = linear_motion_psf(torch.tensor([9.0, 9.0, 1.0, 15.0]), torch.tensor([0.0, 90.0, 0.0, 45.0]), 17)
+    r = kernel_support_radii(psf)
+    assert r[0, 0] <= 1 and r[0, 1] >= 4 and r[1, 1] <= 1 and r[1, 0] >= 4 and r[2].tolist() == [0, 0]
+    assert r[3, 0] == r[3, 1] >= 5
+    radii = kernel_support_radii(defocus_psf(torch.linspace(1, 21, 64), 23))
+    groups = plan_support_groups(radii, channels=1, pixels=192 * 192)
+    idx = torch.cat([i for i, _, _ in groups])
+    assert sorted(idx.tolist()) == list(range(64))  # every sample exactly once
+    for i, ry, rx in groups:
+        assert len(i) >= 16 and int(radii[i, 0].max()) == ry and int(radii[i, 1].max()) == rx
+    assert len(groups) > 1  # 1–21 px disks are worth splitting at this size
+
+
+def test_apply_psf_grouped_gradcheck(monkeypatch):
+    monkeypatch.setattr(image_formation, "_CALL_OVERHEAD_MACS", 0.0)  # split even tiny images into groups
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(32, 1, 6, 6, dtype=torch.float64, generator=g).requires_grad_()
+    psf = defocus_psf(torch.cat([torch.full((16,), 1.5), torch.full((16,), 4.5)]).double(), 5)
+    assert len(plan_support_groups(kernel_support_radii(psf), 1, 36)) == 2
+    assert torch.autograd.gradcheck(lambda t: apply_psf(t, psf), (x,))
 
 
 def test_large_kernel_on_small_image_uses_replicate_padding():
