@@ -345,25 +345,25 @@ def sample_poisson(rate: torch.Tensor, generator: torch.Generator | None = None,
     z = torch.randn(work.shape, generator=generator, device=work.device, dtype=work.dtype)
     # N(λ, λ) everywhere first (the answer for λ ≥ exact_below); the exact regimes overwrite their entries
     out = (work.clamp_min(0) if lo < 0 else work).sqrt().mul_(z).add_(work)
-    if lo < exact_below and hi >= _EXPANSION_MIN_RATE:
-        # the expansion runs only on its own entries (a gather costs less than ~25 full-size passes)
-        mid = work >= _EXPANSION_MIN_RATE
-        if hi >= exact_below:
-            mid &= work < exact_below
-        i = mid.nonzero().squeeze(1)
-        del mid
-        if i.numel():
-            lam, zi = work[i], z[i]
-            y, margin = _poisson_quantile_expansion(lam, zi.clone())
+    if lo < exact_below:
+        # the exact regimes run only on their own entries, found by one nonzero (a gather costs less than
+        # the expansion's ~25 full-size passes); then split into expansion (λ ≥ 10) and scalar (λ < 10) draws
+        i = (work < exact_below).nonzero().squeeze(1)
+        lam = work[i]
+        small = lam < small_below
+        mid = (~small).nonzero().squeeze(1)
+        if mid.numel():
+            lam_m, zi = lam[mid], z[i[mid]]
+            y, margin = _poisson_quantile_expansion(lam_m, zi.clone())
             k = torch.floor(y)
             frac = y.sub_(k)
             check = (torch.sub(frac, 0.5).abs_() > margin).nonzero().squeeze(1)  # within the error envelope
             if check.numel():
-                k.index_copy_(0, check, _poisson_fixup(lam[check], zi[check], k[check], frac[check], margin[check]))
-            out.index_copy_(0, i, k)
-    if lo < small_below:
-        i = (work < small_below).nonzero().squeeze(1)
-        out.index_copy_(0, i, torch.poisson(work[i], generator=generator))
+                k.index_copy_(0, check, _poisson_fixup(lam_m[check], zi[check], k[check], frac[check], margin[check]))
+            out.index_copy_(0, i[mid], k)
+        if lo < small_below:
+            j = small.nonzero().squeeze(1)
+            out.index_copy_(0, i[j], torch.poisson(lam[j], generator=generator))
     return out.to(rate.dtype).view_as(rate)
 
 
