@@ -20,6 +20,7 @@ from typing import Sequence
 import torch
 from lightning.pytorch.cli import LightningCLI
 
+from camhealth.runtime import keep_freed_memory
 from datamodules.patches import PatchDataModule
 from lightning_modules.base import EstimatorModule
 
@@ -114,6 +115,9 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
     )
     if cli.config["threads"]:
         torch.set_num_threads(int(cli.config["threads"]))
+    # reuse freed tensor memory instead of page-faulting it in again every step (glibc; camhealth.runtime):
+    # the on-the-fly corruption and the training step allocate the same large buffers every batch
+    keep_freed_memory()
     _add_default_callbacks(cli)
     if cli.config["init_from"]:
         _init_from(cli.model, cli.config["init_from"])

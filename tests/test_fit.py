@@ -89,3 +89,12 @@ def test_init_from_fine_tunes_from_weights_and_rejects_another_kind(tmp_path):
     other = export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt")
     with pytest.raises(ValueError, match="MTFEstimator"):
         main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(other), "--trainer.max_steps", "0"))
+
+
+def test_fit_keeps_freed_memory_for_reuse(tmp_path, monkeypatch):
+    import camhealth.fit as fit
+
+    calls = []
+    monkeypatch.setattr(fit, "keep_freed_memory", lambda: calls.append(1) or True)
+    fit.main(tiny_args("noise_source.yaml", tmp_path, "--trainer.max_steps", "0", "--test_after_fit", "false"))
+    assert calls == [1]  # the allocator setting of camhealth.runtime, once per run

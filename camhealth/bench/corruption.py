@@ -55,6 +55,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sf-frequencies", type=int, default=N_FREQUENCIES, help=f"length of the σ_SF loop (default {N_FREQUENCIES})"
     )
+    parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="leave glibc's allocator settings alone (default: keep freed memory for reuse, as camhealth.fit does)",
+    )
 
 
 def machine_description() -> str:
@@ -99,6 +104,15 @@ def _load() -> str:
         return "n/a"
 
 
+def _minor_faults() -> int:
+    """Minor page faults of this process so far (0 where ``resource`` is unavailable)."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return 0
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_minflt)
+
+
 def run(args: argparse.Namespace) -> BenchResult:
     import kornia.augmentation as K
 
@@ -107,6 +121,11 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.physics.readout_noise import source_follower_sigma_e
 
     b, s = args.batch, args.size
+    kept = False
+    if not getattr(args, "default_malloc", False):
+        from camhealth.runtime import keep_freed_memory
+
+        kept = keep_freed_memory()  # as python -m camhealth.fit does (camhealth.runtime)
     load_before = _load()
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -132,7 +151,10 @@ def run(args: argparse.Namespace) -> BenchResult:
     cam: CameraCorruption = modules[CAMERA]  # type: ignore[assignment]
     n_loop = max(1, min(args.loop_images, b))
     with torch.inference_mode():
-        cam(x)
+        faults = _minor_faults()
+        for _ in range(4):
+            cam(x)
+        faults_per_call = (_minor_faults() - faults) / 4
     kw = params_from_torch(cam._params, cam._defocus_ks, cam._motion_ks)
     sub = {k: (v[:n_loop] if isinstance(v, np.ndarray) else v) for k, v in kw.items() if k != "meta"}
     sub_meta = {k: v[:n_loop] for k, v in kw["meta"].items()}
@@ -181,6 +203,8 @@ def run(args: argparse.Namespace) -> BenchResult:
         f"date: {_dt.datetime.now().isoformat(timespec='seconds')}; load average before/after: {load_before} → {_load()}",
         f"torch rows: median over {args.repeats} round-robin repeats after {args.warmup} warm-up calls; loop rows: "
         f"{max(1, args.loop_repeats)} repeats",
+        f"allocator: {'freed memory kept for reuse (camhealth.runtime.keep_freed_memory, as in camhealth.fit)' if kept else 'glibc defaults'}; "
+        f"{faults_per_call:.0f} minor page faults per CameraCorruption call",
     ]
     result.summary = [
         f"CameraCorruption = {ratio:.2f}× kornia RandomMotionBlur (target ≤ {TARGET_RATIO_TO_KORNIA:g}×: "

@@ -55,6 +55,10 @@ def test_cli_as_module_with_threads():
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert "| kornia RandomMotionBlur |" in res.stdout and "(1 threads)" in res.stdout
+    assert "freed memory kept for reuse" in res.stdout and "minor page faults per CameraCorruption call" in res.stdout
+    res = subprocess.run(cmd + ["--default-malloc"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "allocator: glibc defaults" in res.stdout
 
 
 def test_cli_rejects_unknown_benchmark_and_bad_options(capsys):
