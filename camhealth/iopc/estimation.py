@@ -44,6 +44,7 @@ __all__ = [
     "ImmerkaerNoiseEstimator",
     "resolve_estimator",
     "estimator_name",
+    "estimator_fingerprint",
     "tile_grid",
     "overlap_mask",
     "extract_tiles",
@@ -156,6 +157,25 @@ def estimator_name(est: Any) -> str:
     name = getattr(est, "name", None) or type(est).__name__
     return f"{name} (kind={getattr(est, 'kind', '?')}, patch={getattr(est, 'patch_size', '?')}, " \
            f"metadata={getattr(est, 'metadata_set', '?')})"
+
+
+def estimator_fingerprint(est: Any) -> str:
+    """:func:`estimator_name` plus a hash of the weights a learned estimator was loaded from (the file's bytes,
+    else its description), so that retrained weights under the same name never match an old cache entry."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    name = estimator_name(est)
+    if est is None or isinstance(est, str):
+        return name
+    h = hashlib.blake2b(digest_size=8)
+    source = getattr(est, "source", None)
+    if source and Path(source).is_file():
+        h.update(Path(source).read_bytes())
+    else:
+        h.update(json.dumps(getattr(est, "description", {}), sort_keys=True, default=str).encode())
+    return f"{name} [weights {h.hexdigest()}]"
 
 
 def tile_grid(height: int, width: int, patch: int, device: torch.device | None = None) -> torch.Tensor:

@@ -53,7 +53,7 @@ from camhealth.detection.average_precision import GroundTruth, evaluate_detectio
 from camhealth.detection.protocol import Detector, validate_detections
 from camhealth.detection.torch_adapter import TorchDetector
 from camhealth.iopc.curves import IOPC, MTF_BINS, SIGMA_BINS_DN
-from camhealth.iopc.estimation import estimate_regions, estimator_name, median_estimates
+from camhealth.iopc.estimation import estimate_regions, estimator_fingerprint, estimator_name, median_estimates
 from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.image_formation import NOISE_SOURCES, form_image
 from camhealth.physics.metadata import METADATA_RANGES, CameraMetadata, factor_to_db
@@ -271,7 +271,7 @@ class IOPCSweep:
         h = hashlib.blake2b(digest_size=8)
         h.update(json.dumps(asdict(self.config), sort_keys=True).encode())
         h.update(json.dumps(self._detector_config(), sort_keys=True, default=str).encode())
-        h.update(estimator_name(self.noise_estimator).encode() + b"|" + estimator_name(self.mtf_estimator).encode())
+        h.update(estimator_fingerprint(self.noise_estimator).encode() + b"|" + estimator_fingerprint(self.mtf_estimator).encode())
         h.update("\x1f".join(self.frame_ids).encode())
         h.update(hashlib.blake2b(self.frames.numpy().tobytes(), digest_size=8).digest())
         for g in self.ground_truth:

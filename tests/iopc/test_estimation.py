@@ -114,3 +114,27 @@ def test_resolve_estimator():
         resolve_estimator(object(), "noise")
     with pytest.raises(ValueError, match="role"):
         resolve_estimator(fake, "blur")
+
+
+def test_estimator_fingerprint_changes_with_the_weights_not_the_name(tmp_path):
+    """Retrained weights under the same file name must not reuse an IOPC sweep's cached cells."""
+    import shutil
+    from pathlib import Path
+
+    import camhealth
+    from camhealth import load_estimator
+    from camhealth.export import export_weights
+    from camhealth.iopc.estimation import estimator_fingerprint, estimator_name
+    from lightning_modules import MTFEstimator
+
+    a, b = tmp_path / "a" / "mtf.pt", tmp_path / "b" / "mtf.pt"
+    a.parent.mkdir()
+    b.parent.mkdir()
+    shutil.copy(Path(camhealth.__file__).parent / "weights" / "mtf.pt", a)
+    ea = load_estimator(str(a))
+    torch.manual_seed(0)
+    export_weights(MTFEstimator(**ea.description["init_args"]), b)  # same architecture, untrained weights
+    eb = load_estimator(str(b))
+    assert estimator_fingerprint(ea) == estimator_fingerprint(load_estimator(str(a)))  # stable
+    assert estimator_name(ea) == estimator_name(eb) and estimator_fingerprint(ea) != estimator_fingerprint(eb)
+    assert estimator_fingerprint("physics") == "physics" and estimator_fingerprint(None) == "none"
