@@ -131,3 +131,5 @@ def test_bench_data_subcommand_reports_patches_per_second(image_folder, capsys):
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "BlurDataModule train + noise" in out and "patches/s delivered incl. corruption" in out
+    assert "allocator: freed memory kept for reuse" in out
+    assert main(argv + ["--default-malloc"]) == 0 and "allocator: glibc defaults" in capsys.readouterr().out
