@@ -249,8 +249,9 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = T
         return _convolve_same(image, psf[:, c - ry : c + ry + 1, c - rx : c + rx + 1], border)
     out = None
     for idx, ry, rx in groups:
+        kern = psf.index_select(0, idx)[:, c - ry : c + ry + 1, c - rx : c + rx + 1]
+        idx = idx.to(image.device)  # the kernels may live on another device than the images (filter2d moves them)
         part = image.index_select(0, idx)
-        kern = psf.index_select(0, idx.to(psf.device))[:, c - ry : c + ry + 1, c - rx : c + rx + 1]
         res = part * kern.to(part.dtype).view(-1, 1, 1, 1) if ry == rx == 0 else _convolve_same(part, kern, border)
         if out is None:
             out = res.new_empty(image.shape)
