@@ -214,7 +214,8 @@ def _convolve_same(image: torch.Tensor, psf: torch.Tensor, border: str) -> torch
 
 
 def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = True) -> torch.Tensor:
-    """Convolve every sample with its own PSF in one grouped call (Kornia ``filter2d``).
+    """Convolve every sample with its own PSF in a few grouped calls (Kornia ``filter2d``, the batch folded
+    into channels; never a loop over samples).
 
     Args:
         image: B×C×H×W.
