@@ -136,6 +136,17 @@ def test_apply_psf_support_groups_equal_the_full_kernel(batch, channels):
         assert torch.allclose(grouped, full, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype,tol", [(torch.float16, 2e-3), (torch.bfloat16, 1.6e-2), (torch.float64, 1e-6)])
+def test_apply_psf_grouped_in_every_dtype_and_batch_256(dtype, tol):
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand(256, 1, 24, 24, generator=g)
+    psf = defocus_psf(torch.rand(256, generator=g) * 9 + 1, 11)
+    ref = apply_psf(x, psf)
+    y = apply_psf(x.to(dtype), psf)
+    assert y.dtype == dtype and y.shape == x.shape and bool(torch.isfinite(y).all())
+    assert (y.float() - ref).abs().max() < tol
+
+
 def test_support_radii_and_group_plan():
     psf = linear_motion_psf(torch.tensor([9.0, 9.0, 1.0, 15.0]), torch.tensor([0.0, 90.0, 0.0, 45.0]), 17)
     r = kernel_support_radii(psf)
