@@ -44,7 +44,7 @@ from lightning_modules.noise_features import (
     IMAGE_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, physics_prior_dn,
 )
 
-__all__ = ["NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "OUTPUTS"]
+__all__ = ["NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "OUTPUTS", "PRIOR_ANCHORS"]
 
 #: Outputs of the noise-source network, in order (all in DN).
 OUTPUTS: tuple[str, ...] = ("pn", "dcsn", "rn", "xi")
@@ -63,6 +63,11 @@ BRANCH_FIELDS: dict[str, tuple[str, ...]] = {
 }
 
 _MAX_LOG_CORRECTION = 5.0
+
+#: Starting points of the hybrid's log-correction: ``"image"`` — the closed-form σ per source rescaled by the
+#: ratio r of a robust classical noise estimate of the patch to the closed-form total (the default);
+#: ``"metadata"`` — the closed-form σ itself (r is still an input of every branch).
+PRIOR_ANCHORS: tuple[str, ...] = ("image", "metadata")
 
 
 class NoiseTrunk(nn.Module):
@@ -99,9 +104,13 @@ class NoiseSourceNet(nn.Module):
     """
 
     def __init__(
-        self, metadata_set: str = "full", physics_prior: bool = True, width: int = 32, hidden: Sequence[int] = (64, 32, 16)
+        self, metadata_set: str = "full", physics_prior: bool = True, width: int = 32, hidden: Sequence[int] = (64, 32, 16),
+        prior_anchor: str = "image",
     ) -> None:
         super().__init__()
+        if prior_anchor not in PRIOR_ANCHORS:
+            raise ValueError(f"prior_anchor = {prior_anchor!r} must be one of {list(PRIOR_ANCHORS)}")
+        self.prior_anchor = prior_anchor
         if metadata_set not in METADATA_SETS:
             raise ValueError(f"metadata_set = {metadata_set!r} must be one of {list(METADATA_SETS)}")
         if physics_prior and metadata_set != "full":
@@ -145,8 +154,10 @@ class NoiseSourceNet(nn.Module):
             raw.append(branch(torch.cat(parts, dim=1)).float())
         raw_t = torch.cat(raw, dim=1)
         if self.physics_prior:
-            # Start from the noise model rescaled to the robust image estimate (ratio), learn the rest.
-            delta = (ratio + _MAX_LOG_CORRECTION * torch.tanh(raw_t / _MAX_LOG_CORRECTION)).clamp(-8.0, 8.0)
+            # Start from the noise model — rescaled to the robust image estimate (anchor "image") or as the
+            # metadata give it (anchor "metadata") — and learn the rest.
+            start = ratio if self.prior_anchor == "image" else torch.zeros_like(ratio)
+            delta = (start + _MAX_LOG_CORRECTION * torch.tanh(raw_t / _MAX_LOG_CORRECTION)).clamp(-8.0, 8.0)
             sigma = prior[:, :3].float() * torch.exp(delta[:, :3])
             total = prior[:, 3:4].float()
             xi = total - total * torch.exp(delta[:, 3:4])
@@ -169,6 +180,10 @@ class NoiseSourceEstimator(EstimatorModule):
         loss_weights: weights of the smooth-L1 terms ``pn``, ``dcsn``, ``rn``, ``total``, ``xi``.
         huber_beta_dn: smooth-L1 transition [DN].
         lr, weight_decay, channels_last, log_figures, max_figure_samples: see :class:`EstimatorModule`.
+        prior_anchor: starting point of the hybrid's correction (:data:`PRIOR_ANCHORS`): ``"image"`` (default,
+            the shipped weights) starts from the closed-form σ rescaled to the patch's robust noise estimate;
+            ``"metadata"`` starts from the closed-form σ itself, so texture that the robust estimate mistakes
+            for noise does not move the start (experimental, session 4: docs/estimators.md).
     """
 
     kind = "noise_source"
@@ -188,13 +203,14 @@ class NoiseSourceEstimator(EstimatorModule):
         channels_last: bool = True,
         log_figures: bool = True,
         max_figure_samples: int = 512,
+        prior_anchor: str = "image",
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
         self._set_patch_size(patch_size)
         self.metadata_set = metadata_set
         self.physics_prior = bool(physics_prior)
-        self.net = NoiseSourceNet(metadata_set, physics_prior, width, tuple(hidden))
+        self.net = NoiseSourceNet(metadata_set, physics_prior, width, tuple(hidden), prior_anchor)
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)
         if unknown:

@@ -38,6 +38,19 @@ def test_untrained_hybrid_is_the_noise_model_scaled_to_the_image(meta_raw):
     assert torch.allclose(out["sigma"][:, 1] / out["sigma"][:, 0], prior[:, 1] / prior[:, 0], rtol=1e-4)
 
 
+def test_untrained_hybrid_anchored_at_the_metadata_is_the_noise_model(meta_raw):
+    """prior_anchor='metadata': zero-initialised output layers give the closed-form σ per source exactly and
+    ξ̂ = 0, whatever the image shows (texture cannot move the starting point)."""
+    m = NoiseSourceEstimator(metadata_set="full", physics_prior=True, prior_anchor="metadata").eval()
+    x = torch.rand(3, 1, 64, 64, generator=torch.Generator().manual_seed(1))  # strong texture
+    with torch.no_grad():
+        out = m(x, meta_raw)
+    assert torch.allclose(out["sigma"], out["prior"][:, :3], rtol=1e-5)
+    assert torch.allclose(out["xi"], torch.zeros(3), atol=1e-5)
+    with pytest.raises(ValueError, match="prior_anchor"):
+        NoiseSourceEstimator(prior_anchor="texture")
+
+
 def test_prior_needs_full_metadata_and_metadata_is_required():
     with pytest.raises(ValueError, match="physics_prior needs metadata_set 'full'"):
         NoiseSourceEstimator(metadata_set="minimal", physics_prior=True)
