@@ -7,8 +7,8 @@ allocates and frees the same activation buffers again and again, so this costs i
 time (measured: "every informative patch" 329 → 209 ms per 1280×1024 frame, docs/benchmarks.md). Raising
 the mmap and trim thresholds keeps freed blocks in the process heap for reuse: the steady-state resident
 memory becomes the peak one, which the monitor reports and keeps under 1 GB. ``python -m camhealth.fit`` calls
-it too: the on-the-fly corruption of a 32×1×192×192 batch (``CameraCorruption``) took ~1 700–2 900 minor page
-faults and 5–16 ms of system time per call with glibc's defaults, ~200 faults and ~1 ms with freed memory kept
+it too: the on-the-fly corruption of a 32×1×192×192 batch (``CameraCorruption``) took ~1 700–4 000 minor page
+faults and 5–16 ms of system time per call with glibc's defaults, 0–270 faults and ~1 ms with freed memory kept
 (``python -m camhealth.bench corruption`` prints the fault count; ``--default-malloc`` switches it off).
 
 This is what ``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_`` in the environment do, set from inside
@@ -21,7 +21,7 @@ import ctypes
 import ctypes.util
 import sys
 
-__all__ = ["keep_freed_memory"]
+__all__ = ["keep_freed_memory", "freed_memory_kept"]
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
@@ -59,3 +59,8 @@ def keep_freed_memory(mmap_threshold_bytes: int = _MMAP_THRESHOLD_MAX, trim_thre
     trim_threshold = int(min(max(trim_threshold_bytes, 128 * 1024), 2**31 - 1))
     _applied = bool(mallopt(_M_MMAP_THRESHOLD, mmap_threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, trim_threshold))
     return _applied
+
+
+def freed_memory_kept() -> bool:
+    """Whether :func:`keep_freed_memory` has changed this process's allocator settings (they cannot be undone)."""
+    return bool(_applied)

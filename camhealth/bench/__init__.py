@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Sequence
 
-__all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_table"]
+__all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_table", "add_allocator_argument", "apply_allocator"]
 
 #: Registered benchmarks: CLI name → module implementing ``HELP``, ``add_arguments`` and ``run``.
 BENCHMARKS: dict[str, str] = {
@@ -35,6 +35,28 @@ def load(name: str) -> ModuleType:
     if name not in BENCHMARKS:
         raise ValueError(f"unknown benchmark {name!r}; known: {sorted(BENCHMARKS)}")
     return importlib.import_module(BENCHMARKS[name])
+
+
+def add_allocator_argument(parser) -> None:
+    """``--default-malloc`` of the benchmarks that time the training data path (as ``camhealth.fit`` runs it)."""
+    parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="leave glibc's allocator settings alone (default: keep freed memory for reuse, as camhealth.fit does)",
+    )
+
+
+def apply_allocator(args) -> str:
+    """Keep freed memory for reuse unless ``--default-malloc`` (``camhealth.runtime``); returns the header line
+    with the process's actual setting (it cannot be undone once applied, e.g. by an earlier run in-process)."""
+    from camhealth.runtime import freed_memory_kept, keep_freed_memory
+
+    if not getattr(args, "default_malloc", False):
+        keep_freed_memory()
+    if freed_memory_kept():
+        how = "" if not getattr(args, "default_malloc", False) else " (set earlier in this process; --default-malloc cannot undo it)"
+        return f"allocator: freed memory kept for reuse (camhealth.runtime.keep_freed_memory, as in camhealth.fit){how}"
+    return "allocator: glibc defaults"
 
 
 def timing_stats(times_ms: Sequence[float]) -> tuple[float, float, float]:

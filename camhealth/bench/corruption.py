@@ -32,7 +32,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from camhealth.bench import BenchResult, Row
+from camhealth.bench import BenchResult, Row, add_allocator_argument, apply_allocator
 from camhealth.bench.reference_loop import N_FREQUENCIES, corrupt_batch, params_from_torch, source_follower_sigma_e_loop
 
 HELP = "ms per batch of the camhealth corruption modules vs Kornia and a per-image NumPy/SciPy loop"
@@ -55,11 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sf-frequencies", type=int, default=N_FREQUENCIES, help=f"length of the σ_SF loop (default {N_FREQUENCIES})"
     )
-    parser.add_argument(
-        "--default-malloc",
-        action="store_true",
-        help="leave glibc's allocator settings alone (default: keep freed memory for reuse, as camhealth.fit does)",
-    )
+    add_allocator_argument(parser)
 
 
 def machine_description() -> str:
@@ -121,11 +117,7 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.physics.readout_noise import source_follower_sigma_e
 
     b, s = args.batch, args.size
-    kept = False
-    if not getattr(args, "default_malloc", False):
-        from camhealth.runtime import keep_freed_memory
-
-        kept = keep_freed_memory()  # as python -m camhealth.fit does (camhealth.runtime)
+    allocator = apply_allocator(args)  # as python -m camhealth.fit runs the corruption (camhealth.runtime)
     load_before = _load()
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -203,8 +195,7 @@ def run(args: argparse.Namespace) -> BenchResult:
         f"date: {_dt.datetime.now().isoformat(timespec='seconds')}; load average before/after: {load_before} → {_load()}",
         f"torch rows: median over {args.repeats} round-robin repeats after {args.warmup} warm-up calls; loop rows: "
         f"{max(1, args.loop_repeats)} repeats",
-        f"allocator: {'freed memory kept for reuse (camhealth.runtime.keep_freed_memory, as in camhealth.fit)' if kept else 'glibc defaults'}; "
-        f"{faults_per_call:.0f} minor page faults per CameraCorruption call",
+        f"{allocator}; {faults_per_call:.0f} minor page faults per CameraCorruption call",
     ]
     result.summary = [
         f"CameraCorruption = {ratio:.2f}× kornia RandomMotionBlur (target ≤ {TARGET_RATIO_TO_KORNIA:g}×: "

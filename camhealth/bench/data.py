@@ -21,7 +21,7 @@ import time
 
 import torch
 
-from camhealth.bench import BenchResult, Row
+from camhealth.bench import BenchResult, Row, add_allocator_argument, apply_allocator
 
 HELP = "patches/s delivered by NoiseDataModule and BlurDataModule (loading + on-the-fly corruption)"
 
@@ -33,11 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=0, help="DataLoader workers (default 0)")
     parser.add_argument("--noise-patch", type=int, default=128, help="noise patch size in px (default 128)")
     parser.add_argument("--blur-patch", type=int, default=192, help="blur patch size in px (default 192)")
-    parser.add_argument(
-        "--default-malloc",
-        action="store_true",
-        help="leave glibc's allocator settings alone (default: keep freed memory for reuse, as camhealth.fit does)",
-    )
+    add_allocator_argument(parser)
 
 
 def run(args: argparse.Namespace) -> BenchResult:
@@ -46,11 +42,7 @@ def run(args: argparse.Namespace) -> BenchResult:
     from datamodules.patches import cycle_batches
 
     b = args.batch
-    kept = False
-    if not getattr(args, "default_malloc", False):
-        from camhealth.runtime import keep_freed_memory
-
-        kept = keep_freed_memory()  # the DataModules run inside camhealth.fit, which sets it
+    allocator = apply_allocator(args)  # as python -m camhealth.fit runs the corruption (camhealth.runtime)
     load_before = _load()
     torch.manual_seed(args.seed)
     common = dict(source=args.source, batch_size=b, num_workers=args.workers, seed=args.seed, val_patches_per_image=b)
@@ -97,7 +89,7 @@ def run(args: argparse.Namespace) -> BenchResult:
         f"date: {_dt.datetime.now().isoformat(timespec='seconds')}; load average before/after: {load_before} → {_load()}",
         f"median over {args.repeats} round-robin repeats after {args.warmup} warm-up batches; one call = next clean batch "
         "from the DataLoader + on_after_batch_transfer (corruption + labels)",
-        f"allocator: {'freed memory kept for reuse (as in camhealth.fit)' if kept else 'glibc defaults'}",
+        allocator,
     ]
     result.summary = summary
     return result

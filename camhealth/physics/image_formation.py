@@ -170,6 +170,10 @@ def plan_support_groups(radii: torch.Tensor, channels: int = 1, pixels: int = 1)
     Returns:
         ``[(indices, r_y, r_x), …]``: sample indices (int64, on the radii's device) and the crop radii.
     """
+    if radii.ndim != 2 or radii.shape[1] != 2 or radii.shape[0] == 0:
+        raise ValueError(f"radii must have shape (B, 2) with B >= 1, got {tuple(radii.shape)}")
+    if int(channels) < 1 or int(pixels) < 1:
+        raise ValueError(f"channels = {channels} and pixels = {pixels} must be >= 1")
     r = radii.detach().to("cpu", torch.int64)
     b = r.shape[0]
     ry, rx = r[:, 0], r[:, 1]
@@ -379,7 +383,7 @@ def sample_poisson_per_sample(
     Rates ≥ ``exact_below`` use the normal approximation N(λ, λ), as :func:`sample_poisson`. Smaller rates are
     drawn by inverting each sample's tabulated CDF F(k) = Q(k + 1, λ) (float64, k up to λ + 12√λ + 24, beyond
     which the tail mass is < 1e-15) at a uniform u: a guide table of 4·K cells gives the smallest candidate k
-    for u's cell in one gather, and the few draws whose u lies above F(k) are advanced to the exact quantile.
+    for u's cell in one table lookup, and the few draws whose u lies above F(k) are advanced to the exact quantile.
     u is a float32 uniform (multiples of 2⁻²⁴), so the draw is the exact inverse-CDF draw on that grid. Costs
     about one ``rand`` plus three gathers per element, ~10× less than ``torch.poisson`` (a scalar sampler per
     element) at λ ≈ 5.
@@ -414,13 +418,14 @@ def sample_poisson_per_sample(
         cells = 4 * k_len
         edges = torch.arange(cells, dtype=torch.float64, device=rate.device) / cells
         guide = torch.searchsorted(cdf, edges.expand(lam_s.shape[0], -1).contiguous())  # smallest k: F(k) ≥ j/cells
-        # one table of (k, F32(k)) pairs per cell, packed as int64 so that a single gather fetches both
+        # one table of (k, F32(k)) pairs per cell, packed as int64 so that a single lookup fetches both
         pairs = torch.stack([guide.float(), torch.gather(cdf32, 1, guide)], dim=2).view(torch.int64).squeeze(2)
         bs = int(i.numel())
         u = torch.rand(bs, n, generator=generator, dtype=torch.float32, device=rate.device)
-        # flat int32 cell index into the (bs, cells) table: index_select is ~5× faster than a 2-D gather here
-        cell = u.mul(cells).to(torch.int32).clamp_(max=cells - 1)
-        cell += torch.arange(0, bs * cells, cells, dtype=torch.int32, device=rate.device)[:, None]
+        # flat cell index into the (bs, cells) table: index_select is ~5× faster than a 2-D gather here
+        itype = torch.int32 if bs * cells < 2**31 else torch.int64
+        cell = u.mul(cells).to(itype).clamp_(max=cells - 1)
+        cell += torch.arange(0, bs * cells, cells, dtype=itype, device=rate.device)[:, None]
         got = pairs.view(-1).index_select(0, cell.view(-1)).view(torch.float32).view(bs, n, 2)
         del cell
         k = got[..., 0]  # a strided view: the few corrections below write into ``got``

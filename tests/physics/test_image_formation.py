@@ -159,6 +159,10 @@ def test_support_radii_and_group_plan():
     for i, ry, rx in groups:
         assert len(i) >= 16 and int(radii[i, 0].max()) == ry and int(radii[i, 1].max()) == rx
     assert len(groups) > 1  # 1–21 px disks are worth splitting at this size
+    with pytest.raises(ValueError, match=r"radii must have shape \(B, 2\)"):
+        plan_support_groups(radii[:, :1])
+    with pytest.raises(ValueError, match="channels = 0"):
+        plan_support_groups(radii, channels=0)
 
 
 def test_apply_psf_grouped_gradcheck(monkeypatch):
