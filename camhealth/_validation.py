@@ -34,6 +34,12 @@ def check_float(x: torch.Tensor, name: str) -> torch.Tensor:
 
 def check_finite(x: torch.Tensor, name: str) -> torch.Tensor:
     """Raise ``ValueError`` if ``x`` holds NaN or ±inf, naming how many and the first bad value."""
+    if x.numel() == 0:
+        return x
+    if x.is_floating_point():  # one reduction (NaN propagates into min and max) instead of a boolean mask
+        lo, hi = torch.aminmax(x.detach())
+        if bool(torch.isfinite(lo) & torch.isfinite(hi)):
+            return x
     finite = torch.isfinite(x)
     if not bool(finite.all()):
         bad = x[~finite]
