@@ -33,6 +33,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
     _motion_ks: Optional[int] = None
     _sources: tuple[str, ...] = ()
     _quantize: bool = False
+    _rng: str = "torch"
 
     def __init__(self, p: float, same_on_batch: bool, keepdim: bool) -> None:
         super().__init__(p=p, same_on_batch=same_on_batch, p_batch=1.0, keepdim=keepdim)
@@ -115,6 +116,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
             generator=generator,
             quantize=self._quantize,
             source_follower_e=self._source_follower(meta) if meta is not None else None,
+            rng=self._rng,
         )
         out = result.image
         if self._sources and "noise_gate" in params:

@@ -52,7 +52,8 @@ class CameraCorruption(CorruptionBase):
     Args:
         defocus: a :class:`RandomDefocusBlur` or ``None``. Default: diameters 1–21 px.
         motion: a :class:`RandomMotionBlur` or ``None``. Default: linear, lengths 1–21 px.
-        noise: a :class:`RandomSensorNoise` or ``None``. Default: all sources, metadata sampled.
+        noise: a :class:`RandomSensorNoise` or ``None``. Default: all sources, metadata sampled. Its
+            ``quantize`` and ``rng`` settings apply to the chain.
         p, same_on_batch, keepdim: as in Kornia (``p`` gates the whole camera per sample).
 
     Labels (``aug.labels()``): ``mtf`` (B, 16) of the combined PSF (product of the components' MTFs),
@@ -87,4 +88,5 @@ class CameraCorruption(CorruptionBase):
         self._motion_ks = motion._motion_ks if motion is not None else None
         self._sources = noise._sources if noise is not None else ()
         self._quantize = noise._quantize if noise is not None else False
+        self._rng = noise._rng if noise is not None else "torch"
         self._param_generator = _CameraGenerator({"defocus": defocus, "motion": motion, "noise": noise})

@@ -6,7 +6,7 @@ from typing import Any, Mapping, Sequence
 
 from camhealth.augment._base import CorruptionBase, check_sources
 from camhealth.augment._generators import SensorNoiseGenerator
-from camhealth.physics.image_formation import NOISE_SOURCES
+from camhealth.physics.image_formation import NOISE_SOURCES, check_rng
 from camhealth.physics.metadata import CameraMetadata
 
 __all__ = ["RandomSensorNoise"]
@@ -28,6 +28,10 @@ class RandomSensorNoise(CorruptionBase):
             ``{"gain_db": (0, 24), "temperature_c": (0, 80)}``.
         quantize: round to whole DN (straight-through gradient). Default False.
         gain_uniform_in: sample the gain uniformly in ``"factor"`` (thesis) or ``"db"``.
+        rng: random numbers of the noise fields: ``"torch"`` (default; torch's generator) or ``"counter"``
+            (compiled counter-based draws, :mod:`camhealth.physics.counter_rng`: the same distributions in
+            about a third of the time on CPU; a different stream, so the same ``noise_seed`` gives other
+            draws than ``"torch"``).
         p, same_on_batch, keepdim: as in Kornia; ``same_on_batch`` shares the metadata, the noise field
             stays independent per sample (as two frames of one camera would be).
 
@@ -50,6 +54,7 @@ class RandomSensorNoise(CorruptionBase):
         ranges: Mapping[str, tuple[float, float]] | None = None,
         quantize: bool = False,
         gain_uniform_in: str = "factor",
+        rng: str = "torch",
         p: float = 1.0,
         same_on_batch: bool = False,
         keepdim: bool = False,
@@ -59,4 +64,5 @@ class RandomSensorNoise(CorruptionBase):
         if not self._sources:
             raise ValueError(f"RandomSensorNoise needs at least one source from {list(NOISE_SOURCES)}")
         self._quantize = bool(quantize)
+        self._rng = check_rng(rng)
         self._param_generator = SensorNoiseGenerator(metadata, ranges, gain_uniform_in)

@@ -16,6 +16,11 @@ def _modules():
         "camera": lambda **kw: CameraCorruption(
             RandomDefocusBlur((1.0, 7.0)), RandomMotionBlur((1.0, 7.0), intensity=(0.0, 1.0)), RandomSensorNoise(), **kw
         ),
+        "noise_counter": lambda **kw: RandomSensorNoise(rng="counter", **kw),
+        "camera_counter": lambda **kw: CameraCorruption(
+            RandomDefocusBlur((1.0, 7.0)), RandomMotionBlur((1.0, 7.0), intensity=(0.0, 1.0)),
+            RandomSensorNoise(rng="counter"), **kw
+        ),
     }
 
 
@@ -147,8 +152,9 @@ def test_blur_gradcheck():
     assert torch.autograd.gradcheck(lambda t: mb(t, params=mp), (x,))
 
 
-def test_noise_gradient_is_identity_on_unclipped_pixels():
-    aug = RandomSensorNoise(metadata="ICX285")
+@pytest.mark.parametrize("rng", ["torch", "counter"])
+def test_noise_gradient_is_identity_on_unclipped_pixels(rng):
+    aug = RandomSensorNoise(metadata="ICX285", rng=rng)
     x = torch.full((1, 1, 16, 16), 0.5, requires_grad=True)
     aug(x).sum().backward()
     assert torch.allclose(x.grad, torch.ones_like(x))
@@ -163,6 +169,7 @@ def test_noise_gradient_is_identity_on_unclipped_pixels():
         (lambda: RandomMotionBlur(intensity=(0.0, 2.0)), "intensity"),
         (lambda: RandomSensorNoise(sources=("cosmic",)), "unknown noise source"),
         (lambda: RandomSensorNoise(metadata="nope"), "unknown sensor preset"),
+        (lambda: RandomSensorNoise(rng="philox"), "rng must be one of"),
         (lambda: RandomSensorNoise(ranges={"gain_db": (0.0, 40.0)}), "gain_db"),
         (lambda: CameraCorruption(defocus=RandomSensorNoise()), "RandomDefocusBlur"),
     ],

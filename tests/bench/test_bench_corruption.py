@@ -26,6 +26,8 @@ ROWS = [
     "camhealth RandomMotionBlur non-linear",
     "camhealth RandomSensorNoise",
     "camhealth CameraCorruption",
+    "camhealth RandomSensorNoise, rng='counter'",
+    "camhealth CameraCorruption, rng='counter'",
     "kornia RandomMotionBlur",
     "kornia RandomGaussianNoise",
     "NumPy/SciPy per-image loop",
@@ -45,7 +47,8 @@ def test_cli_prints_every_row_and_appends_markdown(capsys, tmp_path):
     assert "timed on 1 image(s)" in text  # the loop rows say they are scaled
     assert "target ≤ 2×" in text and "target ≥ 20×" in text
     md = out.read_text()
-    assert md.count("| camhealth ") == 5 and "|---|---:|" in md
+    assert md.count("| camhealth ") == 7 and "|---|---:|" in md
+    assert "with rng='counter':" in text and "torch.compile of its kernels" in text
     main(TINY + ["--out", str(out), "--markdown"])  # appends, keeps the first table
     assert out.read_text().count("### Corruption benchmark") == 2
 
@@ -177,9 +180,24 @@ def test_poisson_sampler_is_exact_inversion():
     np.testing.assert_array_equal(k, stats.poisson.ppf(u, lam.double().numpy()))
 
 
+def test_poisson_sampler_counter_rng_is_exact_inversion():
+    """With counter-based normals too, the draw is the Poisson quantile at Φ(z) of the field's own z."""
+    from camhealth.physics.counter_rng import counter_keys, counter_normal_at
+
+    lam = torch.cat([torch.full((20_000,), v) for v in (10.0, 12.7, 33.0, 150.0, 640.0, 999.0)])
+    k = sample_poisson(lam, torch.Generator().manual_seed(5), rng="counter").numpy()
+    z = counter_normal_at(torch.arange(lam.numel()), counter_keys(torch.Generator().manual_seed(5)))
+    want = stats.poisson.ppf(special.ndtr(z.double().numpy()), lam.double().numpy())
+    # z recomputed here may differ from the sampler's own by float rounding of log/cos: a draw can then sit on
+    # the other side of a quantile boundary (probability ~1e-7 each), never further
+    diff = np.abs(k - want)
+    assert diff.max() <= 1 and (diff > 0).mean() < 1e-4
+
+
+@pytest.mark.parametrize("rng", ["torch", "counter"])
 @pytest.mark.parametrize("lam", [0.3, 4.0, 10.0, 27.5, 400.0])
-def test_poisson_sampler_goodness_of_fit(lam):
-    x = sample_poisson(torch.full((200_000,), lam), torch.Generator().manual_seed(7)).numpy().astype(int)
+def test_poisson_sampler_goodness_of_fit(lam, rng):
+    x = sample_poisson(torch.full((200_000,), lam), torch.Generator().manual_seed(7), rng=rng).numpy().astype(int)
     lo, hi = int(stats.poisson.ppf(1e-4, lam)), int(stats.poisson.ppf(1 - 1e-4, lam))
     obs = np.array([(x <= lo).sum()] + [(x == k).sum() for k in range(lo + 1, hi)] + [(x >= hi).sum()])
     pr = np.array([stats.poisson.cdf(lo, lam)] + [stats.poisson.pmf(k, lam) for k in range(lo + 1, hi)] + [stats.poisson.sf(hi - 1, lam)])

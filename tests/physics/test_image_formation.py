@@ -12,85 +12,91 @@ def _gen(seed=0):
     return torch.Generator().manual_seed(seed)
 
 
+@pytest.fixture(params=["torch", "counter"])
+def rng(request):
+    """Both random-number sources of the noise fields (torch's generator, counter-based draws)."""
+    return request.param
+
+
 @pytest.mark.parametrize("source,idx", [("photon", 0), ("dark", 1), ("readout", 2)])
-def test_each_source_realised_sigma_matches_analytic(source, idx):
+def test_each_source_realised_sigma_matches_analytic(source, idx, rng):
     m = CameraMetadata.preset("EV76C661", batch_size=3, gain_db=[0.0, 12.0, 18.0], temperature_c=[20.0, 50.0, 70.0],
                               exposure_s=[0.01, 0.1, 0.2])
     x = torch.full((3, 1, 128, 128), 0.45)
-    r = form_image(x, m, sources=(source,), generator=_gen())
+    r = form_image(x, m, sources=(source,), generator=_gen(), rng=rng)
     assert torch.allclose(r.sigma_dn[:, idx], r.sigma_expected_dn[:, idx], rtol=0.04)
     others = [j for j in range(3) if j != idx]
     assert torch.all(r.sigma_dn[:, others] == 0)
     assert torch.allclose(r.sigma_total_dn, r.sigma_dn[:, idx], rtol=1e-4)
 
 
-def test_sources_add_in_quadrature():
+def test_sources_add_in_quadrature(rng):
     m = CameraMetadata.preset("EV76C661", batch_size=2, gain_db=12.0, temperature_c=60.0, exposure_s=0.1)
-    r = form_image(torch.full((2, 1, 128, 128), 0.5), m, generator=_gen())
+    r = form_image(torch.full((2, 1, 128, 128), 0.5), m, generator=_gen(), rng=rng)
     assert torch.allclose(r.sigma_total_dn, r.sigma_dn.pow(2).sum(1).sqrt(), rtol=0.03)
     assert torch.allclose(r.sigma_total_expected_dn, r.sigma_expected_dn.pow(2).sum(1).sqrt())
 
 
-def test_zero_noise_is_identity_and_black_frame_is_finite():
+def test_zero_noise_is_identity_and_black_frame_is_finite(rng):
     # full well 100 000 e⁻, 0 dB, no dark current, short exposure: photon σ of a black frame is 0
     m = CameraMetadata.preset("ICX285", full_well_e=100_000.0, dark_fom_na_per_cm2=0.0, exposure_s=0.001)
     black = torch.zeros(1, 1, 32, 32)
-    r = form_image(black, m, sources=("photon", "dark"), generator=_gen())
+    r = form_image(black, m, sources=("photon", "dark"), generator=_gen(), rng=rng)
     assert torch.equal(r.image, black)
     assert torch.all(r.sigma_dn == 0) and torch.all(r.sigma_expected_dn == 0)
-    r = form_image(black, m, generator=_gen())  # readout noise on black: half clipped at 0
+    r = form_image(black, m, generator=_gen(), rng=rng)  # readout noise on black: half clipped at 0
     assert torch.isfinite(r.image).all() and r.image.min() >= 0
     assert 0.3 < r.clipped_fraction.item() < 0.7
     assert r.sigma_dn[0, 2] < r.sigma_expected_dn[0, 2]
 
 
-def test_saturated_frame_clips_and_labels_shrink():
+def test_saturated_frame_clips_and_labels_shrink(rng):
     m = CameraMetadata.preset("EV76C661", gain_db=24.0, full_well_e=2000.0, temperature_c=80.0, exposure_s=0.2)
     white = torch.ones(1, 1, 64, 64)
-    r = form_image(white, m, generator=_gen())
+    r = form_image(white, m, generator=_gen(), rng=rng)
     assert r.image.max() <= 1 and torch.isfinite(r.sigma_dn).all()
     assert r.clipped_fraction.item() > 0.4
     assert torch.all(r.sigma_dn <= r.sigma_expected_dn * 1.05)
 
 
-def test_large_sigma_above_30_dn():
+def test_large_sigma_above_30_dn(rng):
     m = CameraMetadata.preset("EV76C661", gain_db=24.0, full_well_e=2000.0, temperature_c=80.0, exposure_s=0.2)
-    r = form_image(torch.full((2, 1, 128, 128), 0.5), m, generator=_gen())
+    r = form_image(torch.full((2, 1, 128, 128), 0.5), m, generator=_gen(), rng=rng)
     assert (r.sigma_total_expected_dn > 30).all()
     assert torch.isfinite(r.image).all()
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
-def test_dtypes_preserved_and_statistics_agree(dtype):
+def test_dtypes_preserved_and_statistics_agree(dtype, rng):
     m = CameraMetadata.preset("ICX285", gain_db=18.0)
     x = torch.full((2, 1, 64, 64), 0.5, dtype=dtype)
-    r = form_image(x, m, defocus_psf=defocus_psf(torch.tensor([3.0, 5.0]), 7), generator=_gen())
+    r = form_image(x, m, defocus_psf=defocus_psf(torch.tensor([3.0, 5.0]), 7), generator=_gen(), rng=rng)
     assert r.image.dtype == dtype and torch.isfinite(r.image.float()).all()
     assert torch.allclose(r.sigma_dn[:, 0].float(), r.sigma_expected_dn[:, 0].float(), rtol=0.05)
 
 
 @pytest.mark.parametrize("batch", [1, 256])
-def test_batch_sizes(batch):
+def test_batch_sizes(batch, rng):
     m = CameraMetadata.sample(batch, _gen(1))
-    r = form_image(torch.rand(batch, 1, 16, 16, generator=_gen(2)), m, generator=_gen(3))
+    r = form_image(torch.rand(batch, 1, 16, 16, generator=_gen(2)), m, generator=_gen(3), rng=rng)
     assert r.image.shape == (batch, 1, 16, 16) and r.sigma_dn.shape == (batch, 3)
     assert torch.isfinite(r.sigma_dn).all()
 
 
-def test_seeded_reproducibility():
+def test_seeded_reproducibility(rng):
     m = CameraMetadata.sample(4, _gen(1))
     x = torch.rand(4, 1, 32, 32, generator=_gen(2))
-    a = form_image(x, m, generator=_gen(7)).image
-    b = form_image(x, m, generator=_gen(7)).image
-    c = form_image(x, m, generator=_gen(8)).image
+    a = form_image(x, m, generator=_gen(7), rng=rng).image
+    b = form_image(x, m, generator=_gen(7), rng=rng).image
+    c = form_image(x, m, generator=_gen(8), rng=rng).image
     assert torch.equal(a, b) and not torch.equal(a, c)
 
 
-def test_photon_noise_is_motion_blurred_and_directional():
+def test_photon_noise_is_motion_blurred_and_directional(rng):
     """PN before a horizontal motion blur becomes horizontally correlated (Sec. 5.4)."""
     m = CameraMetadata.preset("EV76C661", gain_db=24.0)
     psf = linear_motion_psf(torch.tensor([9.0]), torch.tensor([0.0]), 11)
-    r = form_image(torch.full((1, 1, 128, 128), 0.5), m, motion_psf=psf, sources=("photon",), generator=_gen())
+    r = form_image(torch.full((1, 1, 128, 128), 0.5), m, motion_psf=psf, sources=("photon",), generator=_gen(), rng=rng)
     n = r.image[0, 0] - 0.5
     corr_h = (n[:, 1:] * n[:, :-1]).mean() / n.var()
     corr_v = (n[1:, :] * n[:-1, :]).mean() / n.var()
@@ -106,11 +112,11 @@ def test_quantize_gives_whole_dn():
     assert torch.allclose(dn, dn.round(), atol=1e-4)
 
 
-def test_gradient_flows_through_blur_and_noise():
+def test_gradient_flows_through_blur_and_noise(rng):
     m = CameraMetadata.preset("ICX285", gain_db=6.0)
     x = torch.full((1, 1, 16, 16), 0.5, dtype=torch.float64, requires_grad=True)
     psf = defocus_psf(torch.tensor([3.0], dtype=torch.float64), 5)
-    y = form_image(x, m, defocus_psf=psf, generator=_gen()).image
+    y = form_image(x, m, defocus_psf=psf, generator=_gen(), rng=rng).image
     y.sum().backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
 
@@ -206,13 +212,13 @@ def test_bad_sources_and_missing_metadata():
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.4, 5.0, 37.0, 640.0, 5000.0])
-def test_poisson_per_sample_rate_mean_variance_and_fit(lam):
+def test_poisson_per_sample_rate_mean_variance_and_fit(lam, rng):
     import numpy as np
     from scipy import stats
 
     from camhealth.physics.image_formation import sample_poisson_per_sample
 
-    x = sample_poisson_per_sample(torch.tensor([lam, 1.0]), (2, 1, 200, 200), _gen(11))
+    x = sample_poisson_per_sample(torch.tensor([lam, 1.0]), (2, 1, 200, 200), _gen(11), rng=rng)
     assert x.shape == (2, 1, 200, 200) and x.dtype == torch.float32
     v = x[0].flatten().double()
     tol = 5 * (lam / v.numel()) ** 0.5 + 1e-9
