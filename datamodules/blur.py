@@ -98,7 +98,7 @@ class BlurDataModule(PatchDataModule):
 
     Noise options (combined corruption): ``noise`` (switch), ``noise_probability`` (fraction of samples),
     ``noise_order`` (``"physical"`` Fig. 3.7 order or ``"after_blur"``), ``noise_sources``, ``sensor``,
-    ``metadata_ranges``, ``gain_uniform_in`` (as in NoiseDataModule).
+    ``metadata_ranges``, ``gain_uniform_in``, ``train_rng`` (as in NoiseDataModule).
     """
 
     default_patch_size = 192
@@ -124,6 +124,7 @@ class BlurDataModule(PatchDataModule):
         keep_hard_patches: bool = False,
         max_tries: int = 20,
         pin_memory: bool = False,
+        train_rng: str = "torch",
         families: dict[str, float] | None = None,
         size_range: tuple[float, float] = (1.0, 31.0),
         angle_range: tuple[float, float] = (0.0, 180.0),
@@ -158,6 +159,7 @@ class BlurDataModule(PatchDataModule):
             keep_hard_patches=keep_hard_patches,
             max_tries=max_tries,
             pin_memory=pin_memory,
+            train_rng=train_rng,
         )
         self.save_hyperparameters()
         weights = {"defocus": 1.0, "linear": 1.0, "nonlinear": 1.0} if families is None else dict(families)
@@ -226,6 +228,7 @@ class BlurDataModule(PatchDataModule):
         meta: CameraMetadata | None = None,
         noisy: torch.Tensor | None = None,
         noise_seed: int = 0,
+        rng: str = "torch",
     ) -> dict[str, torch.Tensor]:
         """Blur ``clean`` with the PSFs of ``params`` (and add noise under ``meta`` where ``noisy``)."""
         dev = clean.device
@@ -252,7 +255,9 @@ class BlurDataModule(PatchDataModule):
             else:
                 dpsf, mpsf = psf, None
             g = torch.Generator(device=dev).manual_seed(int(noise_seed))
-            formed = form_image(clean, meta, defocus_psf=dpsf, motion_psf=mpsf, sources=self.noise_sources, generator=g)
+            formed = form_image(
+                clean, meta, defocus_psf=dpsf, motion_psf=mpsf, sources=self.noise_sources, generator=g, rng=rng
+            )
             noisy = torch.ones(b, dtype=torch.bool, device=dev) if noisy is None else noisy.to(dev)
             m = noisy.view(-1, 1, 1, 1)
             out["image"] = torch.where(m, formed.image, formed.blurred.clamp(0, 1).to(formed.image.dtype))
@@ -266,7 +271,7 @@ class BlurDataModule(PatchDataModule):
             out["psf"] = psf
         return out
 
-    def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None) -> dict[str, torch.Tensor]:
+    def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None, rng: str = "torch") -> dict[str, torch.Tensor]:
         b = clean.shape[0]
         params = self.sample_params(b, generator)
         if not self.noise:
@@ -276,7 +281,7 @@ class BlurDataModule(PatchDataModule):
         )
         noisy = torch.rand(b, generator=generator) < self.noise_probability
         seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-        return self.corrupt_with(clean, params, meta, noisy, seed)
+        return self.corrupt_with(clean, params, meta, noisy, seed, rng)
 
 
 def _pair(v: Any, name: str, low: float, high: float) -> tuple[float, float]:

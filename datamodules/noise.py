@@ -114,6 +114,8 @@ class NoiseDataModule(PatchDataModule):
             (std < min_std_dn DN) and clipped (> max_clipped_fraction of pixels at 0/255 DN) patches;
             ``keep_hard_patches: true`` keeps them (robustness tests).
         pin_memory: pin host memory of the clean batches (for GPU training).
+        train_rng: random numbers of the training batches' noise fields, ``"torch"`` (default) or ``"counter"``
+            (compiled counter-based draws: same physics, faster on CPU; val/test batches always use torch's).
 
     Noise options:
         metadata_set: which normalised metadata the network gets in ``meta``: ``"none"``, ``"minimal"``
@@ -154,6 +156,7 @@ class NoiseDataModule(PatchDataModule):
         keep_hard_patches: bool = False,
         max_tries: int = 20,
         pin_memory: bool = False,
+        train_rng: str = "torch",
         metadata_set: str = "full",
         sensor: str | None = None,
         metadata_ranges: dict[str, tuple[float, float]] | None = None,
@@ -183,6 +186,7 @@ class NoiseDataModule(PatchDataModule):
             keep_hard_patches=keep_hard_patches,
             max_tries=max_tries,
             pin_memory=pin_memory,
+            train_rng=train_rng,
         )
         self.save_hyperparameters()
         if metadata_set not in METADATA_SETS:
@@ -232,7 +236,7 @@ class NoiseDataModule(PatchDataModule):
 
     # ------------------------------------------------------------------ corruption
     def corrupt_with(
-        self, clean: torch.Tensor, meta: CameraMetadata, meta_image: CameraMetadata, noise_seed: int
+        self, clean: torch.Tensor, meta: CameraMetadata, meta_image: CameraMetadata, noise_seed: int, rng: str = "torch"
     ) -> dict[str, torch.Tensor]:
         """Corrupt ``clean`` with ``meta_image`` (noise field from ``noise_seed``), label it, and compute ξ
         against the metadata ``meta`` the network is given. Deterministic: the image equals
@@ -247,7 +251,7 @@ class NoiseDataModule(PatchDataModule):
         generator = torch.Generator(device=dev).manual_seed(int(noise_seed))
         formed = form_image(
             clean, meta_image, sources=self.noise_sources, generator=generator, quantize=self.quantize,
-            source_follower_e=None if sf is None else sf[b:],
+            source_follower_e=None if sf is None else sf[b:], rng=rng,
         )
         # σ_Model(M) and σ_Image(M') from the analytic model, in one call (same numerical footing).
         both = expected_sigma_dn(torch.cat([clean, clean]), both_meta, self.noise_sources, source_follower_e=sf)
@@ -269,7 +273,7 @@ class NoiseDataModule(PatchDataModule):
             "altered": ~same,
         }
 
-    def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None) -> dict[str, torch.Tensor]:
+    def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None, rng: str = "torch") -> dict[str, torch.Tensor]:
         meta, meta_image, _ = self.sample_metadata(clean.shape[0], generator)
         seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-        return self.corrupt_with(clean, meta, meta_image, seed)
+        return self.corrupt_with(clean, meta, meta_image, seed, rng)

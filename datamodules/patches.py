@@ -33,6 +33,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from camhealth.physics.image_formation import check_rng
 from camhealth.data import build_source, group_key, split_ids
 
 __all__ = ["PatchDataset", "PatchDataModule", "is_hard_patch", "STAGES", "batch_seed"]
@@ -237,7 +238,10 @@ class PatchDataModule(L.LightningDataModule):
     Training batches draw their corruption from torch's global RNG (seeded by Lightning's
     ``seed_everything``); validation/test batches from a ``torch.Generator`` seeded with
     :func:`batch_seed` ``(seed, stage, first patch index, batch size)``: the same seed and batch size give
-    the same validation batches in every epoch and every run.
+    the same validation batches in every epoch and every run. ``train_rng: counter`` draws the training
+    batches' noise fields with counter-based random numbers (:mod:`camhealth.physics.counter_rng`: the same
+    physics, about half the noise time on CPU); validation and test batches always use torch's generators, so
+    the held-out sets do not depend on it.
 
     Which split a batch belongs to is read from its ``stage`` entry (set by :class:`PatchDataset`), so the
     hook also works without a Trainer (tests, notebooks); a batch without it counts as training when a
@@ -268,6 +272,7 @@ class PatchDataModule(L.LightningDataModule):
         keep_hard_patches: bool = False,
         max_tries: int = 20,
         pin_memory: bool = False,
+        train_rng: str = "torch",
     ) -> None:
         super().__init__()
         if group_by not in GROUP_KEYS:
@@ -285,6 +290,7 @@ class PatchDataModule(L.LightningDataModule):
         self.seed = int(seed)
         self.group_by = group_by
         self.pin_memory = bool(pin_memory)
+        self.train_rng = check_rng(train_rng)
         self._patch_kwargs = dict(
             flips=flips,
             rot90=rot90,
@@ -425,7 +431,11 @@ class PatchDataModule(L.LightningDataModule):
         b = int(batch["clean"].shape[0])
         return torch.Generator().manual_seed(batch_seed(self.seed, stage, first, b))
 
-    def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None) -> dict[str, torch.Tensor]:
+    def rng_for(self, batch: Mapping[str, Any]) -> str:
+        """Random numbers of the batch's noise fields: ``train_rng`` for a training batch, else ``"torch"``."""
+        return self.train_rng if self._stage_of(batch) == "train" else "torch"
+
+    def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None, rng: str = "torch") -> dict[str, torch.Tensor]:
         """Corrupt a clean batch B×1×P×P and return the labelled entries (implemented by subclasses)."""
         raise NotImplementedError
 
@@ -435,7 +445,7 @@ class PatchDataModule(L.LightningDataModule):
             return batch  # not ours, or already corrupted
         t0 = time.perf_counter()
         clean = batch["clean"]
-        out = self.corrupt(clean, self.generator_for(batch))
+        out = self.corrupt(clean, self.generator_for(batch), rng=self.rng_for(batch))
         if clean.is_cuda:
             torch.cuda.synchronize(clean.device)
         self.stats["batches"] += 1

@@ -96,6 +96,14 @@ def test_noise_after_blur():
     quiet = BlurDataModule(source="unused", patch_size=48, families={"defocus": 1.0, "linear": 1.0})
     ref = quiet.corrupt(clean, torch.Generator().manual_seed(0))
     assert torch.equal(ref["mtf"], out["mtf"]) and not torch.equal(ref["image"], out["image"])
+    fast = BlurDataModule(source="unused", patch_size=48, noise=True, families={"defocus": 1.0, "linear": 1.0},
+                          train_rng="counter")
+    torch.manual_seed(1)
+    a = fast.on_after_batch_transfer({"clean": clean, "stage": ["train"] * 6})
+    torch.manual_seed(1)
+    b = dm.on_after_batch_transfer({"clean": clean, "stage": ["train"] * 6})
+    assert torch.equal(a["mtf"], b["mtf"]) and not torch.equal(a["image"], b["image"])  # same blur, other noise draws
+    assert torch.allclose(a["sigma"].sum(0), b["sigma"].sum(0), rtol=0.1)
     after = BlurDataModule(source="unused", patch_size=48, noise=True, noise_order="after_blur", noise_probability=0.0)
     out2 = after.corrupt(clean, None)
     assert not out2["noisy"].any() and torch.equal(out2["sigma"], torch.zeros(6, 3))
@@ -131,6 +139,7 @@ def test_bench_data_subcommand_reports_patches_per_second(image_folder, capsys):
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "BlurDataModule train + noise" in out and "patches/s delivered incl. corruption" in out
+    assert "NoiseDataModule train, train_rng=counter" in out and "BlurDataModule train + noise, train_rng=counter" in out
     assert "allocator: freed memory kept for reuse" in out
     # the setting is process-wide and cannot be undone: the header says so instead of claiming glibc defaults
     assert main(argv + ["--default-malloc"]) == 0

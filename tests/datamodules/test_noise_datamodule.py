@@ -195,3 +195,22 @@ def test_corruption_runs_on_the_batch_device(device):
     assert all(v.device.type == device.type for v in out.values() if isinstance(v, torch.Tensor))
     again = dm.on_after_batch_transfer({**batch}, 0)
     assert torch.equal(out["image"], again["image"])
+
+
+def test_train_rng_counter_applies_to_training_batches_only():
+    clean = _clean(8)
+    fast, plain = NoiseDataModule(source="unused", train_rng="counter", **SMALL), NoiseDataModule(source="unused", **SMALL)
+    torch.manual_seed(0)
+    a = fast.on_after_batch_transfer({"clean": clean, "stage": ["train"] * 8})
+    torch.manual_seed(0)
+    assert torch.equal(a["image"], fast.corrupt(clean, None, rng="counter")["image"])
+    torch.manual_seed(0)
+    b = plain.on_after_batch_transfer({"clean": clean, "stage": ["train"] * 8})
+    assert not torch.equal(a["image"], b["image"])  # other random numbers ...
+    assert torch.equal(a["meta_raw"], b["meta_raw"])  # ... for the same metadata draw
+    ratio = a["sigma"].sum(0) / a["sigma_expected"].sum(0)  # and the same physics
+    assert torch.allclose(ratio, b["sigma"].sum(0) / b["sigma_expected"].sum(0), rtol=0.05)
+    val = {"clean": clean, "index": torch.arange(8), "stage": ["val"] * 8}
+    assert torch.equal(fast.on_after_batch_transfer(dict(val))["image"], plain.on_after_batch_transfer(dict(val))["image"])
+    with pytest.raises(ValueError, match="rng must be one of"):
+        NoiseDataModule(source="unused", train_rng="philox", **SMALL)
