@@ -121,7 +121,8 @@ class CorruptionBase(IntensityAugmentationBase2D):
         out = result.image
         if self._sources and "noise_gate" in params:
             keep = (params["noise_gate"].to(dev) > 0.5).view(-1, 1, 1, 1)
-            out = torch.where(keep, out, result.blurred.clamp(0, 1).to(out.dtype))
+            if not bool(keep.all()):  # (p = 1, the default, keeps every sample: no pass needed)
+                out = torch.where(keep, out, result.blurred.clamp(0, 1).to(out.dtype))
         self._formation = result
         return out
 

@@ -372,7 +372,8 @@ def sample_poisson(
     if hi < small_below:  # all small: exact scalar sampler
         return torch.poisson(work, generator=generator).to(rate.dtype).view_as(rate)
     if check_rng(rng) == "counter":
-        out = _sample_poisson_counter(work.view(1, -1), work.numel(), generator, exact_below, small_below)
+        one = torch.ones(1, 1, dtype=work.dtype, device=work.device)
+        out = _sample_poisson_counter(work.view(1, -1), one, work.numel(), generator, exact_below, small_below)
         return out.to(rate.dtype).view_as(rate)
     # N(λ, λ) everywhere first (the answer for λ ≥ exact_below); the exact regimes overwrite their entries
     z = torch.randn(work.shape, generator=generator, device=work.device, dtype=work.dtype)
@@ -400,48 +401,95 @@ def sample_poisson(
 
 
 def _k_poisson_counter(
-    rate: torch.Tensor, keys: torch.Tensor, n: int, exact_below: float, small_below: float
+    signal: torch.Tensor, unit: torch.Tensor, keys: torch.Tensor, n: int, exact_below: float, small_below: float,
+    centred: bool,
 ) -> torch.Tensor:
-    """One pass of :func:`sample_poisson` with counter normals for (R, n) draws of rates (R, n) or (R, 1):
-    N(λ, λ) for λ ≥ ``exact_below``, the quantile expansion's floor where it is reliable, NaN where the entry
-    needs the exact CDF or ``torch.poisson``."""
-    r = rate.shape[0]
+    """One pass of :func:`sample_poisson` with counter normals for (R, n) draws of the rates
+    λ = max(signal, 0)/unit (signal (R, n) or (R, 1), unit broadcastable): N(λ, λ) for λ ≥ ``exact_below``, the
+    quantile expansion's floor where it is reliable, NaN where the entry needs the exact CDF or
+    ``torch.poisson``. ``centred``: return the noise (draw − λ)·unit instead of the draw."""
+    r = signal.shape[0]
+    rate = signal.clamp_min(0) / unit
     z = counter_normal_expr(torch.arange(r * n, dtype=torch.int32, device=keys.device).view(r, n), keys, rate.dtype)
-    approx = rate + rate.clamp_min(0).sqrt() * z
+    approx = rate + rate.sqrt() * z
     y, margin = _poisson_quantile_expansion(rate.expand(r, n), z)
     k = torch.floor(y)
     exact = torch.where(((y - k) - 0.5).abs() < margin, k, torch.nan)
     exact = torch.where(rate < small_below, torch.nan, exact)
-    return torch.where(rate >= exact_below, approx, exact)
+    draw = torch.where(rate >= exact_below, approx, exact)
+    return (draw - rate) * unit if centred else draw
 
 
 _poisson_counter = LazyCompiled(_k_poisson_counter)
 
 
 def _sample_poisson_counter(
-    rate: torch.Tensor, n: int, generator: torch.Generator | None, exact_below: float, small_below: float
+    signal: torch.Tensor, unit: torch.Tensor, n: int, generator: torch.Generator | None, exact_below: float,
+    small_below: float, centred: bool = False,
 ) -> torch.Tensor:
-    """(R, n) Poisson draws of float32/64 rates (R, n) or (R, 1) with counter-based normals (see
-    :func:`sample_poisson`)."""
-    r = rate.shape[0]
+    """(R, n) Poisson draws of the float32/64 rates λ = max(signal, 0)/unit (signal (R, n) or (R, 1), unit (R, 1)
+    or (1, 1)) with counter-based normals (see :func:`sample_poisson`); ``centred``: the noise (draw − λ)·unit."""
+    r = signal.shape[0]
     _check_counter_size(r * n)
-    keys = counter_keys(generator, rate.device)
-    out = _poisson_counter(rate, keys, n, float(exact_below), float(small_below))
+    keys = counter_keys(generator, signal.device)
+    out = _poisson_counter(signal, unit, keys, n, float(exact_below), float(small_below), bool(centred))
     j = torch.isnan(out).view(-1).nonzero().squeeze(1)
     if j.numel():
         flat = out.view(-1)
-        lam = rate.expand(r, n)[j // n, j % n]
+        rows, cols = j // n, j % n
+        unit_j = unit.expand(r, n)[rows, cols]
+        lam = signal.expand(r, n)[rows, cols].clamp_min(0) / unit_j  # the kernel's λ, element by element
+        draw = torch.empty_like(lam)
         small = lam < small_below
         mid = (~small).nonzero().squeeze(1)
         if mid.numel():  # the expansion is within its error bound of a boundary (or |z| > 5): exact CDF
-            lam_m, zi = lam[mid], counter_normal_at(j[mid], keys, rate.dtype)
+            lam_m, zi = lam[mid], counter_normal_at(j[mid], keys, lam.dtype)
             y, margin = _poisson_quantile_expansion(lam_m, zi)
             k = torch.floor(y)
-            flat.index_copy_(0, j[mid], _poisson_fixup(lam_m, zi, k, y.sub_(k), margin))
+            draw[mid] = _poisson_fixup(lam_m, zi, k, y.sub_(k), margin)
         if bool(small.any()):
-            s_idx = small.nonzero().squeeze(1)
-            flat.index_copy_(0, j[s_idx], torch.poisson(lam[s_idx], generator=generator))
+            draw[small] = torch.poisson(lam[small], generator=generator)
+        flat.index_copy_(0, j, (draw - lam) * unit_j if centred else draw)
     return out
+
+
+def _photon_noise_counter(
+    x: torch.Tensor, to_int: torch.Tensor, generator: torch.Generator | None, exact_below: float
+) -> torch.Tensor:
+    """Photon shot noise in intensity units of B×C×H×W intensities ``x`` with ``to_int`` (B, 1, 1, 1) intensity
+    per electron: (Poisson(x/to_int) − x/to_int)·to_int in one compiled pass (plus the few exact settlements)."""
+    b = x.shape[0]
+    n = x[0].numel()
+    small_below = min(_EXPANSION_MIN_RATE, exact_below)
+    return _sample_poisson_counter(x.reshape(b, n), to_int.reshape(b, 1), n, generator, exact_below, small_below, True).view_as(x)
+
+
+def _dark_noise_counter(
+    dark_e: torch.Tensor, to_int: torch.Tensor, shape: Sequence[int], generator: torch.Generator | None,
+    exact_below: float, dtype: torch.dtype,
+) -> torch.Tensor:
+    """Dark-current shot noise in intensity units, (Poisson(λ_b) − λ_b)·to_int_b for every pixel of sample b,
+    ``dark_e`` (B,) float64 dark electrons, ``to_int`` (B, 1, 1, 1): samples with λ ≥ 10 in one compiled pass,
+    the others from their (short) tabulated CDFs."""
+    b = int(shape[0])
+    n = 1
+    for d in shape[1:]:
+        n *= int(d)
+    unit = to_int.reshape(b, 1).to(dtype)
+    big = dark_e >= _EXPANSION_MIN_RATE
+    if bool(big.all()):
+        signal = (dark_e.to(dtype)[:, None] * unit)
+        return _sample_poisson_counter(signal, unit, n, generator, exact_below, _EXPANSION_MIN_RATE, True).view(*shape)
+    out = torch.empty(b, n, dtype=dtype, device=unit.device)
+    if bool(big.any()):
+        i = big.nonzero().squeeze(1)
+        signal = dark_e[i].to(dtype)[:, None] * unit[i]
+        out[i] = _sample_poisson_counter(signal, unit[i], n, generator, exact_below, _EXPANSION_MIN_RATE, True)
+    i = (~big).nonzero().squeeze(1)
+    lam = dark_e[i]
+    counts = sample_poisson_per_sample(lam, (int(i.numel()), n), generator, exact_below, dtype, "counter")
+    out[i] = counts.sub_(lam.to(dtype)[:, None]).mul_(unit[i])
+    return out.view(*shape)
 
 
 def sample_poisson_per_sample(
@@ -479,7 +527,10 @@ def sample_poisson_per_sample(
         # sample's rate broadcast, no table; smaller rates: the tables below (short, as λ < 10)
         work_dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
         big = (lam >= _EXPANSION_MIN_RATE).nonzero().squeeze(1)
-        drawn = _sample_poisson_counter(lam[big].to(work_dtype)[:, None], n, generator, exact_below, _EXPANSION_MIN_RATE)
+        one = torch.ones(1, 1, dtype=work_dtype, device=rate.device)
+        drawn = _sample_poisson_counter(
+            lam[big].to(work_dtype)[:, None], one, n, generator, exact_below, _EXPANSION_MIN_RATE
+        )
         if big.numel() == b:
             return drawn.to(dtype).view(*shape)
         out[big] = drawn.to(dtype)
@@ -677,9 +728,12 @@ def form_image(
     # --- photon shot noise (before motion blur)
     if "photon" in sources:
         with torch.no_grad():
-            electrons = x.detach().clamp_min(0).div_(to_int)
-            n_pn = sample_poisson(electrons, generator, poisson_exact_below, rng).sub_(electrons).mul_(to_int)
-            del electrons
+            if rng == "counter":
+                n_pn = _photon_noise_counter(x.detach(), to_int, generator, poisson_exact_below)
+            else:
+                electrons = x.detach().clamp_min(0).div_(to_int)
+                n_pn = sample_poisson(electrons, generator, poisson_exact_below, rng).sub_(electrons).mul_(to_int)
+                del electrons
         exp_pn = photon_shot_sigma_patch_dn(x.detach(), meta).to(wd)
     else:
         n_pn, exp_pn = None, zeros
@@ -702,9 +756,12 @@ def form_image(
     if "dark" in sources:
         with torch.no_grad():  # the same dark-electron rate at every pixel of a sample: tabulated CDF per sample
             dark = dark_signal_e(meta).to(device=dev, dtype=torch.float64)
-            drawn = sample_poisson_per_sample(dark, signal.shape, generator, poisson_exact_below, wd, rng)
-            noise["dark"] = drawn.sub_(_per_sample(dark, wd, dev)).mul_(to_int)
-            del drawn
+            if rng == "counter":
+                noise["dark"] = _dark_noise_counter(dark, to_int, signal.shape, generator, poisson_exact_below, wd)
+            else:
+                drawn = sample_poisson_per_sample(dark, signal.shape, generator, poisson_exact_below, wd, rng)
+                noise["dark"] = drawn.sub_(_per_sample(dark, wd, dev)).mul_(to_int)
+                del drawn
         expected.append(dark_current_shot_sigma_e(meta).to(wd) * dn_per_e)
     else:
         expected.append(zeros)

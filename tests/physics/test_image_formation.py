@@ -240,3 +240,25 @@ def test_poisson_per_sample_rate_rejects_bad_rates():
         sample_poisson_per_sample(torch.tensor([1.0]), (2, 4))
     with pytest.raises(ValueError, match=">= 0"):
         sample_poisson_per_sample(torch.tensor([-1.0, float("nan")]), (2, 4))
+
+
+def test_counter_photon_and_dark_noise_are_the_centred_draws_of_the_samplers():
+    """The fused noise passes of rng='counter' equal (draw − λ)·unit of the public samplers with the same keys."""
+    from camhealth.physics.image_formation import (
+        _dark_noise_counter, _photon_noise_counter, sample_poisson, sample_poisson_per_sample,
+    )
+
+    x = torch.rand(3, 1, 40, 40, generator=_gen(1)) * torch.tensor([1.0, 0.01, 0.3]).view(3, 1, 1, 1)
+    to_int = torch.tensor([1e-3, 2e-4, 5e-2]).view(3, 1, 1, 1)  # rates up to 1000, 50 and 6 e⁻ (all regimes)
+    noise = _photon_noise_counter(x, to_int, _gen(5), 1e3)
+    electrons = x / to_int
+    ref = (sample_poisson(electrons, _gen(5), rng="counter") - electrons) * to_int
+    assert torch.allclose(noise, ref, atol=1e-6)
+    dark = torch.tensor([0.7, 40.0, 2500.0], dtype=torch.float64)
+    dn = _dark_noise_counter(dark, to_int, (3, 1, 40, 40), _gen(6), 1e3, torch.float32)
+    assert dn.shape == (3, 1, 40, 40)
+    rows = dn.flatten(1) / to_int.view(3, 1) + dark.float()[:, None]  # back to electron counts
+    assert torch.allclose(rows[:2], rows[:2].round(), atol=1e-3)  # exact (integer) draws below exact_below
+    big = _dark_noise_counter(dark[1:], to_int[1:], (2, 1, 40, 40), _gen(6), 1e3, torch.float32)
+    ref = sample_poisson_per_sample(dark[1:], (2, 1, 40, 40), _gen(6), rng="counter") - dark[1:].float().view(2, 1, 1, 1)
+    assert torch.allclose(big, ref * to_int[1:], atol=1e-4)
