@@ -402,12 +402,14 @@ def sample_poisson(
 
 def _k_poisson_counter(
     signal: torch.Tensor, unit: torch.Tensor, keys: torch.Tensor, n: int, exact_below: float, small_below: float,
-    centred: bool,
+    centred: bool, small_value: float, with_signal: bool,
 ) -> torch.Tensor:
     """One pass of :func:`sample_poisson` with counter normals for (R, n) draws of the rates
     λ = max(signal, 0)/unit (signal (R, n) or (R, 1), unit broadcastable): N(λ, λ) for λ ≥ ``exact_below``, the
-    quantile expansion's floor where it is reliable, NaN where the entry needs the exact CDF or
-    ``torch.poisson``. ``centred``: return the noise (draw − λ)·unit instead of the draw."""
+    quantile expansion's floor where it is reliable, NaN where the entry needs the exact CDF, and
+    ``small_value`` for λ < ``small_below`` (NaN: settle them with ``torch.poisson``; a number: the caller
+    draws them otherwise). ``centred``: return the noise (draw − λ)·unit instead of the draw.
+    ``with_signal``: return ``cat([signal, result], 1)`` (R, 2n), the input of the two-channel motion blur."""
     r = signal.shape[0]
     rate = signal.clamp_min(0) / unit
     z = counter_normal_expr(torch.arange(r * n, dtype=torch.int32, device=keys.device).view(r, n), keys, rate.dtype)
@@ -415,9 +417,10 @@ def _k_poisson_counter(
     y, margin = _poisson_quantile_expansion(rate.expand(r, n), z)
     k = torch.floor(y)
     exact = torch.where(((y - k) - 0.5).abs() < margin, k, torch.nan)
-    exact = torch.where(rate < small_below, torch.nan, exact)
     draw = torch.where(rate >= exact_below, approx, exact)
-    return (draw - rate) * unit if centred else draw
+    out = (draw - rate) * unit if centred else draw
+    out = torch.where(rate < small_below, small_value, out)
+    return torch.cat([signal.expand(r, n), out], 1) if with_signal else out
 
 
 _poisson_counter = LazyCompiled(_k_poisson_counter)
@@ -425,43 +428,50 @@ _poisson_counter = LazyCompiled(_k_poisson_counter)
 
 def _sample_poisson_counter(
     signal: torch.Tensor, unit: torch.Tensor, n: int, generator: torch.Generator | None, exact_below: float,
-    small_below: float, centred: bool = False,
+    small_below: float, centred: bool = False, small_value: float = math.nan, with_signal: bool = False,
 ) -> torch.Tensor:
     """(R, n) Poisson draws of the float32/64 rates λ = max(signal, 0)/unit (signal (R, n) or (R, 1), unit (R, 1)
-    or (1, 1)) with counter-based normals (see :func:`sample_poisson`); ``centred``: the noise (draw − λ)·unit."""
+    or (1, 1)) with counter-based normals (see :func:`sample_poisson` and :func:`_k_poisson_counter`)."""
     r = signal.shape[0]
     _check_counter_size(r * n)
     keys = counter_keys(generator, signal.device)
-    out = _poisson_counter(signal, unit, keys, n, float(exact_below), float(small_below), bool(centred))
-    j = torch.isnan(out).view(-1).nonzero().squeeze(1)
-    if j.numel():
-        flat = out.view(-1)
-        rows, cols = j // n, j % n
+    out = _poisson_counter(
+        signal, unit, keys, n, float(exact_below), float(small_below), bool(centred), float(small_value), bool(with_signal)
+    )
+    res = out[:, n:] if with_signal else out
+    rows, cols = torch.isnan(res).nonzero(as_tuple=True)
+    if rows.numel():
         unit_j = unit.expand(r, n)[rows, cols]
         lam = signal.expand(r, n)[rows, cols].clamp_min(0) / unit_j  # the kernel's λ, element by element
         draw = torch.empty_like(lam)
         small = lam < small_below
         mid = (~small).nonzero().squeeze(1)
         if mid.numel():  # the expansion is within its error bound of a boundary (or |z| > 5): exact CDF
-            lam_m, zi = lam[mid], counter_normal_at(j[mid], keys, lam.dtype)
+            flat = rows[mid].to(torch.int32) * n + cols[mid].to(torch.int32)
+            lam_m, zi = lam[mid], counter_normal_at(flat, keys, lam.dtype)
             y, margin = _poisson_quantile_expansion(lam_m, zi)
             k = torch.floor(y)
             draw[mid] = _poisson_fixup(lam_m, zi, k, y.sub_(k), margin)
         if bool(small.any()):
             draw[small] = torch.poisson(lam[small], generator=generator)
-        flat.index_copy_(0, j, (draw - lam) * unit_j if centred else draw)
+        res[rows, cols] = (draw - lam) * unit_j if centred else draw
     return out
 
 
 def _photon_noise_counter(
-    x: torch.Tensor, to_int: torch.Tensor, generator: torch.Generator | None, exact_below: float
+    x: torch.Tensor, to_int: torch.Tensor, generator: torch.Generator | None, exact_below: float,
+    with_signal: bool = False,
 ) -> torch.Tensor:
     """Photon shot noise in intensity units of B×C×H×W intensities ``x`` with ``to_int`` (B, 1, 1, 1) intensity
-    per electron: (Poisson(x/to_int) − x/to_int)·to_int in one compiled pass (plus the few exact settlements)."""
-    b = x.shape[0]
+    per electron: (Poisson(x/to_int) − x/to_int)·to_int in one compiled pass (plus the few exact settlements);
+    ``with_signal``: ``cat([x, noise], 1)``, B×2C×H×W, written by the same pass."""
+    b, c = x.shape[:2]
     n = x[0].numel()
     small_below = min(_EXPANSION_MIN_RATE, exact_below)
-    return _sample_poisson_counter(x.reshape(b, n), to_int.reshape(b, 1), n, generator, exact_below, small_below, True).view_as(x)
+    out = _sample_poisson_counter(
+        x.reshape(b, n), to_int.reshape(b, 1), n, generator, exact_below, small_below, True, with_signal=with_signal
+    )
+    return out.view(b, 2 * c, *x.shape[2:]) if with_signal else out.view_as(x)
 
 
 def _dark_noise_counter(
@@ -469,26 +479,21 @@ def _dark_noise_counter(
     exact_below: float, dtype: torch.dtype,
 ) -> torch.Tensor:
     """Dark-current shot noise in intensity units, (Poisson(λ_b) − λ_b)·to_int_b for every pixel of sample b,
-    ``dark_e`` (B,) float64 dark electrons, ``to_int`` (B, 1, 1, 1): samples with λ ≥ 10 in one compiled pass,
-    the others from their (short) tabulated CDFs."""
+    ``dark_e`` (B,) float64 dark electrons, ``to_int`` (B, 1, 1, 1): one compiled pass for the samples with
+    λ ≥ 10; the others are then overwritten with draws from their (short) tabulated CDFs."""
     b = int(shape[0])
     n = 1
     for d in shape[1:]:
         n *= int(d)
     unit = to_int.reshape(b, 1).to(dtype)
-    big = dark_e >= _EXPANSION_MIN_RATE
-    if bool(big.all()):
-        signal = (dark_e.to(dtype)[:, None] * unit)
-        return _sample_poisson_counter(signal, unit, n, generator, exact_below, _EXPANSION_MIN_RATE, True).view(*shape)
-    out = torch.empty(b, n, dtype=dtype, device=unit.device)
-    if bool(big.any()):
-        i = big.nonzero().squeeze(1)
-        signal = dark_e[i].to(dtype)[:, None] * unit[i]
-        out[i] = _sample_poisson_counter(signal, unit[i], n, generator, exact_below, _EXPANSION_MIN_RATE, True)
-    i = (~big).nonzero().squeeze(1)
-    lam = dark_e[i]
-    counts = sample_poisson_per_sample(lam, (int(i.numel()), n), generator, exact_below, dtype, "counter")
-    out[i] = counts.sub_(lam.to(dtype)[:, None]).mul_(unit[i])
+    signal = dark_e.to(dtype)[:, None] * unit
+    out = _sample_poisson_counter(signal, unit, n, generator, exact_below, _EXPANSION_MIN_RATE, True, small_value=0.0)
+    small = dark_e < _EXPANSION_MIN_RATE
+    if bool(small.any()):
+        i = small.nonzero().squeeze(1)
+        lam = dark_e[i]
+        counts = sample_poisson_per_sample(lam, (int(i.numel()), n), generator, exact_below, dtype, "counter")
+        out[i] = counts.sub_(lam.to(dtype)[:, None]).mul_(unit[i])
     return out.view(*shape)
 
 
@@ -724,12 +729,14 @@ def form_image(
         to_int = _per_sample(meta.gain_factor / meta.full_well_e, wd, dev)  # intensity per electron
         dn_per_e = meta.dn_per_electron.to(wd)
     noise = {}  # per-source realised noise in intensity units (before clipping)
+    fused_cat = False  # photon noise returned as cat([x, noise], 1) for the motion blur
     expected = []
     # --- photon shot noise (before motion blur)
     if "photon" in sources:
         with torch.no_grad():
-            if rng == "counter":
-                n_pn = _photon_noise_counter(x.detach(), to_int, generator, poisson_exact_below)
+            if rng == "counter":  # with a motion blur to follow (and no gradient), the pass also writes cat([x, n])
+                fused_cat = motion_psf is not None and not x.requires_grad
+                n_pn = _photon_noise_counter(x.detach(), to_int, generator, poisson_exact_below, with_signal=fused_cat)
             else:
                 electrons = x.detach().clamp_min(0).div_(to_int)
                 n_pn = sample_poisson(electrons, generator, poisson_exact_below, rng).sub_(electrons).mul_(to_int)
@@ -740,7 +747,7 @@ def form_image(
     # --- motion blur of signal (and of the photon noise it carries)
     if motion_psf is not None:
         if n_pn is not None:
-            both = apply_psf(torch.cat([x, n_pn], dim=1), motion_psf)
+            both = apply_psf(n_pn if fused_cat else torch.cat([x, n_pn], dim=1), motion_psf)
             c = x.shape[1]
             x, n_pn = both[:, :c], both[:, c:].detach()
             if both.requires_grad:  # n_pn is scaled in place below: do not touch a tensor autograd may hold
