@@ -30,8 +30,8 @@ class RandomSensorNoise(CorruptionBase):
         gain_uniform_in: sample the gain uniformly in ``"factor"`` (thesis) or ``"db"``.
         rng: random numbers of the noise fields: ``"torch"`` (default; torch's generator) or ``"counter"``
             (compiled counter-based draws, :mod:`camhealth.physics.counter_rng`: the same distributions in
-            about a third of the time on CPU; a different stream, so the same ``noise_seed`` gives other
-            draws than ``"torch"``).
+            about half the time on CPU; a different stream, so the same ``noise_seed`` gives other draws than
+            ``"torch"``). The first call compiles its kernels (~10 s).
         p, same_on_batch, keepdim: as in Kornia; ``same_on_batch`` shares the metadata, the noise field
             stays independent per sample (as two frames of one camera would be).
 

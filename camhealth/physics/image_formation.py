@@ -695,7 +695,8 @@ def form_image(
             normal approximation.
         rng: random numbers of the noise fields: ``"torch"`` (default; torch's generator streams) or
             ``"counter"`` (:mod:`~camhealth.physics.counter_rng`: compiled counter-based draws keyed from
-            ``generator``, same distributions, ~3× less time for the three noise fields on CPU).
+            ``generator``, one compiled pass per source: same distributions, about half the time of the
+            noise stage on CPU, but other draws than ``"torch"`` for the same generator state).
 
     Returns:
         :class:`ImageFormation` with the image and the labels.
