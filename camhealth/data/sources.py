@@ -82,6 +82,10 @@ class DefaultSource(ConcatSource):
         seed: seed of the dead-leaves images.
         street_stride: keep every n-th street frame (1: all 50).
         include_skimage, include_street: switch those parts off.
+        deadleaves_antialiased: also append the first N dead-leaves images rendered with 2× supersampling
+            (anti-aliased edges, as a lens and a pixel aperture would render them; the plain ones have hard
+            one-pixel steps). Ids ``"deadleaves-000042#2"``: the same split group as the plain rendering, so
+            a scene never sits in two splits.
         deadleaves_kwargs: further :class:`DeadLeavesSource` arguments (``r_min``, ``r_max``, ...).
     """
 
@@ -93,9 +97,15 @@ class DefaultSource(ConcatSource):
         street_stride: int = 1,
         include_skimage: bool = True,
         include_street: bool = True,
+        deadleaves_antialiased: int = 0,
         **deadleaves_kwargs,
     ) -> None:
         deadleaves = check_int(deadleaves, "deadleaves", 0)
+        n_aa = check_int(deadleaves_antialiased, "deadleaves_antialiased", 0)
+        if n_aa > deadleaves:
+            raise ValueError(f"deadleaves_antialiased = {n_aa} must be <= deadleaves = {deadleaves} (it re-renders those images)")
+        if n_aa and int(deadleaves_kwargs.get("supersample", 1)) != 1:
+            raise ValueError("deadleaves_antialiased re-renders the plain (supersample 1) images; do not pass supersample too")
         parts: list[torch.utils.data.Dataset] = []
         if include_skimage:
             parts.append(SkimagePhotosSource())
@@ -103,6 +113,10 @@ class DefaultSource(ConcatSource):
             parts.append(StreetSampleSource(stride=street_stride))
         if deadleaves:
             parts.append(DeadLeavesSource(deadleaves, size=deadleaves_size, seed=seed, **deadleaves_kwargs))
+        if n_aa:
+            aa = DeadLeavesSource(n_aa, size=deadleaves_size, seed=seed, **{**deadleaves_kwargs, "supersample": 2})
+            aa.ids = [f"{i}#2" for i in aa.ids]
+            parts.append(aa)
         if not parts:
             raise ValueError("DefaultSource is empty: enable skimage/street photos or ask for deadleaves > 0")
         super().__init__(parts)

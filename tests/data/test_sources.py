@@ -89,6 +89,29 @@ def test_default_source_concatenates_with_unique_ids():
     assert len(DefaultSource(include_street=False)) == len(SKIMAGE_PHOTOS)
 
 
+def test_default_source_antialiased_dead_leaves_share_the_split_group():
+    from camhealth.data import group_key, split_ids
+
+    src = DefaultSource(deadleaves=4, deadleaves_size=(48, 48), deadleaves_antialiased=2, include_street=False)
+    assert len(src) == len(SKIMAGE_PHOTOS) + 4 + 2 and len(set(src.ids)) == len(src.ids)
+    plain, aa = src[len(SKIMAGE_PHOTOS) + 1], src[len(src) - 1]
+    assert aa[1] == "deadleaves-000001#2" and group_key(aa[1]) == plain[1] == "deadleaves-000001"
+    # the same scene, rendered with anti-aliased edges: more distinct grey levels, the same mean
+    assert len(torch.unique(aa[0])) > len(torch.unique(plain[0]))
+    assert abs(float(aa[0].mean() - plain[0].mean())) < 0.02
+    splits = split_ids(src.ids, 0.25, 0.25, seed=0)
+    where = {i: name for name, idx in splits.items() for i in idx}
+    ids = list(src.ids)
+    twins = [k for k, image_id in enumerate(ids) if image_id.endswith("#2")]
+    assert len(twins) == 2
+    for k in twins:
+        assert where[k] == where[ids.index(ids[k][:-2])]
+    with pytest.raises(ValueError, match="deadleaves_antialiased"):
+        DefaultSource(deadleaves=1, deadleaves_antialiased=2)
+    with pytest.raises(ValueError, match="supersample"):
+        DefaultSource(deadleaves=2, deadleaves_antialiased=1, supersample=2)
+
+
 def test_build_source_specs(tmp_path):
     assert isinstance(build_source("default"), DefaultSource)
     dl = build_source("deadleaves", n_images=4, size=(16, 16))
