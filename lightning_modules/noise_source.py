@@ -181,9 +181,9 @@ class NoiseSourceEstimator(EstimatorModule):
         huber_beta_dn: smooth-L1 transition [DN].
         lr, weight_decay, channels_last, log_figures, max_figure_samples: see :class:`EstimatorModule`.
         prior_anchor: starting point of the hybrid's correction (:data:`PRIOR_ANCHORS`): ``"image"`` (default,
-            the shipped weights) starts from the closed-form σ rescaled to the patch's robust noise estimate;
+            the shipped ``noise_source_full``) starts from the closed-form σ rescaled to the patch's robust noise estimate;
             ``"metadata"`` starts from the closed-form σ itself, so texture that the robust estimate mistakes
-            for noise does not move the start (experimental, session 4: docs/estimators.md).
+            for noise does not move the start (the shipped ``noise_source_full_meta``; docs/estimators.md).
     """
 
     kind = "noise_source"

@@ -187,9 +187,9 @@ def run(args: argparse.Namespace) -> BenchResult:
         sf_times.append((time.perf_counter() - t0) * 1e3 * b / n_loop)
 
     rows = [Row(name, times[name]) for name in modules]
-    cam_ms = rows[4].median_ms
-    rows[5].note = "same physics, counter-based random fields (camhealth.physics.counter_rng), compiled"
-    rows[6].note = rows[5].note
+    for r in rows:
+        if r.name in (NOISE_COUNTER, CAMERA_COUNTER):
+            r.note = "same physics, counter-based random fields (camhealth.physics.counter_rng), compiled"
     sf_row = Row(SF_VEC, times[SF_VEC], note=f"batch of {b} samples, one trapezoidal integral per sample")
     tab_row = Row(SF_TAB, times[SF_TAB], note=f"batch of {b} samples, read from the per-constants table (the default)")
     loop_row = Row(LOOP, loop_times, note=f"timed on {n_loop} image(s) × {b // n_loop if b % n_loop == 0 else f'{b / n_loop:.2f}'}")

@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 import torch
 
 __all__ = [
-    "LazyCompiled", "compiled", "counter_bits24", "counter_keys", "counter_normal", "counter_normal_at", "counter_normal_expr", "counter_uniform",
+    "LazyCompiled", "check_counter_size", "compiled", "counter_bits24", "counter_keys", "counter_normal", "counter_normal_at", "counter_normal_expr", "counter_uniform",
     "counter_uniform_at",
 ]
 
@@ -151,7 +151,8 @@ def counter_keys(generator: torch.Generator | None = None, device: torch.device 
     return keys.to(torch.int32).to(device if device is not None else gdev)
 
 
-def _check_size(n: int) -> int:
+def check_counter_size(n: int) -> int:
+    """``n`` if a counter-based field of ``n`` elements fits the int32 element indices, else a ValueError."""
     if n > MAX_ELEMENTS:
         raise ValueError(f"counter-based fields hold at most {MAX_ELEMENTS} elements (int32 indices), got {n}; "
                          "use rng='torch' for larger batches")
@@ -162,7 +163,7 @@ def _numel(shape: Sequence[int]) -> int:
     n = 1
     for d in shape:
         n *= int(d)
-    return _check_size(n)
+    return check_counter_size(n)
 
 
 def counter_uniform(shape: Sequence[int], keys: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:

@@ -36,7 +36,7 @@ import torch
 
 from camhealth._validation import check_image, check_tensor
 from camhealth.physics.counter_rng import (
-    MAX_ELEMENTS, LazyCompiled, counter_bits24, counter_keys, counter_normal, counter_normal_at, counter_normal_expr,
+    LazyCompiled, check_counter_size, counter_bits24, counter_keys, counter_normal, counter_normal_at, counter_normal_expr,
     counter_uniform_at,
 )
 from camhealth.physics.dark_current import dark_current_shot_sigma_e, dark_signal_e
@@ -433,7 +433,7 @@ def _sample_poisson_counter(
     """(R, n) Poisson draws of the float32/64 rates λ = max(signal, 0)/unit (signal (R, n) or (R, 1), unit (R, 1)
     or (1, 1)) with counter-based normals (see :func:`sample_poisson` and :func:`_k_poisson_counter`)."""
     r = signal.shape[0]
-    _check_counter_size(r * n)
+    check_counter_size(r * n)
     keys = counter_keys(generator, signal.device)
     out = _poisson_counter(
         signal, unit, keys, n, float(exact_below), float(small_below), bool(centred), float(small_value), bool(with_signal)
@@ -569,7 +569,7 @@ def sample_poisson_per_sample(
         pairs = torch.stack([guide.float(), torch.gather(cdf32, 1, guide)], dim=2).view(torch.int64).squeeze(2)
         bs = int(i.numel())
         if rng == "counter":  # the same lookup and corrections as below, as one compiled pass
-            _check_counter_size(bs * n)
+            check_counter_size(bs * n)
             keys = counter_keys(generator, rate.device)
             kmax = cdf32.shape[1] - 1
             tables = torch.stack([guide.float()] + [torch.gather(cdf32, 1, (guide + d).clamp(max=kmax)) for d in range(3)])
@@ -645,12 +645,6 @@ def _k_clip_and_label(signal: torch.Tensor, *noise: torch.Tensor) -> tuple[torch
 
 
 _clip_and_label = LazyCompiled(_k_clip_and_label)
-
-
-def _check_counter_size(n: int) -> None:
-    if n > MAX_ELEMENTS:
-        raise ValueError(f"rng='counter' draws fields of at most {MAX_ELEMENTS} elements (int32 indices), got {n}; "
-                         "use rng='torch'")
 
 
 def _sample_std(t: torch.Tensor) -> torch.Tensor:
