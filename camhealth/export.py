@@ -84,6 +84,8 @@ def load_module(source: str | Path):
     desc, state = _description_and_state(_safe_load(path), path)
     cls = _class_for(desc.get("class_path", ""))
     init_args = {k: v for k, v in dict(desc.get("init_args", {})).items() if not str(k).startswith("_")}
+    if desc.get("kind") == "noise_source" and "total_branch" not in init_args:
+        init_args["total_branch"] = False  # written before the total head existed: total = √(Σ σ̂_s²)
     module = cls(**init_args)
     missing, unexpected = module.net.load_state_dict(state, strict=False)
     if missing or unexpected:

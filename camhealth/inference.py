@@ -244,7 +244,9 @@ class Estimator:
             result.update(sigma_map=raw, sigma_total=flat.pow(2).mean(1).sqrt(), sigma_median=flat.median(1).values)
         else:
             sigma = raw[:, :3].clamp_min(0)
-            result.update(sigma=sigma, sigma_total=sigma.pow(2).sum(1).sqrt(), xi=raw[:, 3])
+            # networks with the total head (total_branch) give the realised total after clipping as a fifth output
+            total = raw[:, 4].clamp_min(0) if raw.shape[1] > 4 else sigma.pow(2).sum(1).sqrt()
+            result.update(sigma=sigma, sigma_total=total, xi=raw[:, 3])
         return result
 
 

@@ -91,6 +91,30 @@ def test_init_from_fine_tunes_from_weights_and_rejects_another_kind(tmp_path):
         main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(other), "--trainer.max_steps", "0"))
 
 
+def test_init_from_a_file_without_the_total_head_starts_as_that_network(tmp_path):
+    import torch
+
+    from camhealth.export import export_weights
+    from lightning_modules import NoiseSourceEstimator
+
+    torch.manual_seed(2)
+    start = NoiseSourceEstimator(patch_size=32, total_branch=False)
+    with torch.no_grad():
+        for p in start.net.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    path = export_weights(start, tmp_path / "legacy.pt")
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--trainer.max_steps", "0",
+                         "--test_after_fit", "false"))
+    net = cli.model.net.eval()
+    assert net.total_branch and not start.net.total_branch
+    g = torch.Generator().manual_seed(0)
+    image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    with torch.no_grad():
+        old, new = start.net.eval()(image, meta, prior), net(image, meta, prior)
+    assert new.shape == (4, 5) and torch.allclose(new[:, :4], old)
+    assert torch.allclose(new[:, 4], old[:, :3].pow(2).sum(1).sqrt(), rtol=1e-5)  # the new head starts at Eq. 4.2
+
+
 def test_fit_keeps_freed_memory_for_reuse(tmp_path, monkeypatch):
     import camhealth.fit as fit
 

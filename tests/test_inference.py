@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -39,7 +41,24 @@ def test_outputs_and_shapes(noise_est, batch):
     out = noise_est.predict(_patches(batch), "ICX285")
     assert out["sigma"].shape == (batch, 3) and out["xi"].shape == (batch,) and out["sigma_total"].shape == (batch,)
     assert out["assessable"].dtype == torch.bool and len(out["reason"]) == batch
-    assert torch.allclose(out["sigma_total"], out["sigma"].pow(2).sum(1).sqrt())
+    # the total head corrects √(Σ σ_s²) by a bounded factor exp(±5) (realised total after clipping)
+    ratio = out["sigma_total"] / out["sigma"].pow(2).sum(1).sqrt()
+    assert torch.isfinite(ratio).all() and (ratio > math.exp(-5.0)).all() and (ratio < math.exp(5.0)).all()
+
+
+@pytest.mark.parametrize("total_branch", [False, True])
+def test_total_is_quadrature_without_or_before_training_the_total_head(tmp_path, total_branch):
+    torch.manual_seed(1)
+    m = NoiseSourceEstimator(patch_size=32, total_branch=total_branch)
+    keep = {id(p) for p in m.net.total_head[-1].parameters()} if total_branch else set()
+    with torch.no_grad():  # perturb everything except the zero-initialised output layer of the total head
+        for p in m.net.parameters():
+            if id(p) not in keep:
+                p.add_(0.01 * torch.randn_like(p))
+    est = load_estimator(export_weights(m, tmp_path / "ns.pt"))
+    out = est.predict(_patches(3), "ICX285")
+    assert torch.allclose(out["sigma_total"], out["sigma"].pow(2).sum(1).sqrt(), rtol=1e-5)
+    assert est._module.net.total_branch is total_branch
 
 
 def test_dn_uint8_float_and_numpy_inputs_agree(noise_est):

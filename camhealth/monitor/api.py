@@ -766,8 +766,9 @@ class Monitor:
                 clipped = stats.clipped_low + stats.clipped_high
                 cues = [(stats.noise_dn / scale[:, 4], *cfg.cue_tol_noise_rel), (clipped, 0.02, 0.0)]
                 interpolated, ivals = refine_plan(grid, remaining, values / scale, valid, cfg.value_tol_noise_rel, cues)
+                # the total is interpolated like the sources (not re-derived as √(Σ σ_s²)): with the total head
+                # of the noise-source network it is the realised total after clipping, not the quadrature sum
                 ivals = ivals * scale
-                ivals[:, 4] = ivals[:, :3].pow(2).sum(1).sqrt()
             elif task == "noise":
                 cues = [(stats.mean_dn, cfg.cue_tol_mean_dn, 0.0), (stats.noise_dn, *cfg.cue_tol_noise)]
                 interpolated, ivals = refine_plan(grid, remaining, values, valid, cfg.value_tol_noise_dn, cues)

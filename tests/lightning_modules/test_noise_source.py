@@ -129,3 +129,35 @@ def test_loss_weights_are_checked():
 def test_patch_size_must_be_a_multiple_of_16(size):
     with pytest.raises(ValueError, match="multiple of 16"):
         NoiseSourceEstimator(patch_size=size)
+
+
+def test_total_head_learns_a_clipping_correction_of_the_quadrature_sum(meta_raw):
+    """The total head (total_branch) starts at √(Σ σ̂_s²) and can learn the realised total after clipping,
+    which is smaller (tests/physics: ≈ 0.8 × on half-clipped patches); here trained alone towards 0.8 ×."""
+    torch.manual_seed(0)
+    m = NoiseSourceEstimator(metadata_set="full", physics_prior=True, prior_anchor="metadata").train()
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(8, 1, 32, 32, generator=g)
+    meta = meta_raw[:1].expand(8, -1)
+    with torch.no_grad():
+        out0 = m(x, meta)
+    quad0 = out0["sigma"].pow(2).sum(1).sqrt()
+    assert torch.allclose(out0["sigma_total"], quad0, rtol=1e-5)  # zero-initialised: Eq. 4.2 exactly
+    opt = torch.optim.Adam(m.net.total_head.parameters(), lr=1e-2)
+    for _ in range(60):
+        opt.zero_grad()
+        loss = (m(x, meta)["sigma_total"] / quad0 - 0.8).pow(2).mean()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        out = m(x, meta)
+    assert torch.allclose(out["sigma"], out0["sigma"])  # only the head moved
+    assert torch.allclose(out["sigma_total"] / quad0, torch.full((8,), 0.8), atol=0.02)
+
+
+def test_without_the_total_head_the_network_has_four_outputs(meta_raw):
+    m = NoiseSourceEstimator(total_branch=False).eval()
+    assert not hasattr(m.net, "total_head")
+    with torch.no_grad():
+        raw = m.net(*m.network_inputs(torch.rand(2, 1, 32, 32), meta_raw[:1].expand(2, -1)))
+    assert raw.shape == (2, 4)

@@ -37,6 +37,22 @@ def test_sources_add_in_quadrature(rng):
     assert torch.allclose(r.sigma_total_expected_dn, r.sigma_expected_dn.pow(2).sum(1).sqrt())
 
 
+def test_clipping_makes_the_realised_total_smaller_than_the_quadrature_of_the_attributed_sources(rng):
+    """At a clipped pixel every source's noise is scaled by the same factor (the attribution rule), so the
+    attributed sources are correlated and √(Σ σ_s²) overstates the realised total (why the noise-source
+    network has a total head); without clipping they agree (test above)."""
+    # a small full well at high gain and temperature (a camera of the held-out split): σ ≈ 170 DN before clipping
+    m = CameraMetadata.preset(
+        "EV76C661", batch_size=2, gain_db=22.0, exposure_s=0.17, temperature_c=65.0, dark_fom_na_per_cm2=0.8,
+        full_well_e=2500.0, pixel_clock_hz=4.1e7, sense_node_gain_v_per_e=1.13e-6, reset_factor=0.38,
+        pixel_size_um=8.8, white_noise_v_per_rthz=3.6e-8,
+    )
+    r = form_image(torch.full((2, 1, 128, 128), 0.45), m, generator=_gen(), rng=rng)
+    quad = r.sigma_dn.pow(2).sum(1).sqrt()
+    assert (r.clipped_fraction > 0.3).all()
+    assert (r.sigma_total_dn < 0.95 * quad).all() and (r.sigma_total_dn > 0.5 * quad).all()
+
+
 def test_zero_noise_is_identity_and_black_frame_is_finite(rng):
     # full well 100 000 e⁻, 0 dB, no dark current, short exposure: photon σ of a black frame is 0
     m = CameraMetadata.preset("ICX285", full_well_e=100_000.0, dark_fom_na_per_cm2=0.0, exposure_s=0.001)
