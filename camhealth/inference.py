@@ -21,7 +21,8 @@
   (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``
   with ``base_preset="ICX285"``), or a preset name. Out-of-range values raise, naming field and range.
 - returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V [kind ``mtf``]; ``sigma_total`` (B,) DN
-  [noise kinds]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
+  [noise kinds; for noise-source networks √(Σ σ_s²), or the learned realised total after clipping when the
+  network has the total head, ``total_branch``]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
   ``"black"``, ``"saturated"``, ``"featureless"``). Not-assessable patches still get finite numbers; do not
   trust them.
