@@ -270,12 +270,20 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = T
     for idx, ry, rx in groups:
         kern = psf.index_select(0, idx)[:, c - ry : c + ry + 1, c - rx : c + rx + 1]
         idx = idx.to(image.device)  # the kernels may live on another device than the images (filter2d moves them)
-        part = image.index_select(0, idx)
+        part = _take_samples(image, idx)
         res = part * kern.to(part.dtype).view(-1, 1, 1, 1) if ry == rx == 0 else _convolve_same(part, kern, border)
         if out is None:
             out = res.new_empty(image.shape)
         out = out.index_copy(0, idx, res) if res.requires_grad else out.index_copy_(0, idx, res)
     return out
+
+
+def _take_samples(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``t.index_select(0, idx)`` for a B×… tensor, as an index_select of whole rows of a (1, B, N) view: on CPU
+    the dim-0 form gathers element by element (≈ 1 ms for 16 of 32 192² images on one thread, and one parallel
+    region per row), the row form copies contiguous rows (≈ 0.06 ms). Same values, differentiable."""
+    n = idx.numel()
+    return t.reshape(1, t.shape[0], -1).index_select(1, idx).view(n, *t.shape[1:])
 
 
 #: Poisson rates below this are drawn with ``torch.poisson``; from it up to ``exact_below`` by exact
