@@ -26,9 +26,9 @@ Architecture (:class:`NoiseSourceNet`), sized for a 2-core CPU:
 - **Total head** (``total_branch: true``, the default): the realised total after clipping is *not* the quadrature
   sum of the per-source σ once pixels clip — clipping scales every source's noise at a clipped pixel by the
   same factor (the attribution rule of :func:`~camhealth.physics.image_formation.form_image`), which
-  correlates the attributed sources, so √(Σ σ_s²) overstates the realised total (by 1 % at a few clipped
-  pixels, by 17 % on a half-clipped patch; even exact per-source σ give 0.9 DN total RMS on the 592-patch
-  held-out set). A fifth branch (all metadata, the pooled features, the clipped fractions, log √(Σ σ̂_s²))
+  correlates the attributed sources, so √(Σ σ_s²) overstates the realised total (by ≈ 1 % at a few clipped
+  pixels, by a fifth or more on half-clipped patches; even the true per-source σ give 0.8–0.9 DN total RMS on
+  the 592-patch held-out set). A fifth branch (all metadata, the pooled features, the clipped fractions, log √(Σ σ̂_s²))
   learns a bounded log-correction: σ̂_total = √(Σ σ̂_s²) · exp(5·tanh(Δ_T/5)), zero-initialised, so without
   training it is Eq. 4.2's quadrature sum. Weights files written before it existed load with
   ``total_branch: false`` (total = √(Σ σ̂_s²)).

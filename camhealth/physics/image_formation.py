@@ -280,8 +280,9 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = T
 
 def _take_samples(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """``t.index_select(0, idx)`` for a B×… tensor, as an index_select of whole rows of a (1, B, N) view: on CPU
-    the dim-0 form gathers element by element (≈ 1 ms for 16 of 32 192² images on one thread, and one parallel
-    region per row), the row form copies contiguous rows (≈ 0.06 ms). Same values, differentiable."""
+    the dim-0 form gathers element by element (≈ 1 ms for 16 of 32 192² images on one thread; ≈ 130 ms with two
+    threads while another process keeps both cores busy), the row form copies contiguous rows (≈ 0.06 ms).
+    Same values, differentiable."""
     n = idx.numel()
     return t.reshape(1, t.shape[0], -1).index_select(1, idx).view(n, *t.shape[1:])
 
