@@ -38,8 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--per-image", type=int, default=16, help="held-out crops per test image (default 16)")
     parser.add_argument("--sizes", type=float, nargs=2, default=(3.0, 21.0), help="blur size range of the MTF test set, px")
     parser.add_argument("--deadleaves", type=int, default=60, help="dead-leaves images added to the default source (as in the configs)")
+    from camhealth.physics.metadata import FULL_FIELDS
+
     parser.add_argument(
-        "--xi-fields", nargs="+", default=None, metavar="FIELD",
+        "--xi-fields", nargs="+", default=None, metavar="FIELD", choices=FULL_FIELDS,
         help="metadata fields altered for the ξ samples of the noise set (default: the configs' gain_db temperature_c "
         "white_noise_v_per_rthz; the thesis's protocol alters the gain only: --xi-fields gain_db)",
     )
@@ -127,6 +129,7 @@ def split_floor(
         s = analytic(rows).view(n, grid, 3)
         hyps.append((math.log(xi_probability / len(xi_fields)), s[..., 1], s[..., 2]))
     v_true = truth[:, 1] ** 2 + truth[:, 2] ** 2
+    v0 = base[:, 1] ** 2 + base[:, 2] ** 2  # what M predicts
     gen = torch.Generator().manual_seed(seed)
     eps = torch.randn(n, generator=gen, dtype=torch.float64)
     results = []
@@ -134,7 +137,6 @@ def split_floor(
         v_obs = v_true * torch.exp(2.0 * rel * eps)
         width = max(2.0 * rel, 0.005)  # std of log V, at least 0.5 % (keeps the consistent hypothesis finite)
         lv = torch.log(v_obs + 1e-9)
-        v0 = base[:, 1] ** 2 + base[:, 2] ** 2
         comps = [(math.log(1.0 - xi_probability) - 0.5 * ((lv - torch.log(v0 + 1e-9)) / width) ** 2, base[:, 1], base[:, 2])]
         for log_prior, d, r in hyps:
             ll = -0.5 * ((lv[:, None] - torch.log(d**2 + r**2 + 1e-9)) / width) ** 2

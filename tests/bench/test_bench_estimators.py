@@ -35,3 +35,14 @@ def test_split_floor_is_exact_without_signal_independent_alterations_and_grows_w
     three = held_out_noise(parser.parse_args(["--deadleaves", "20", "--per-image", "8"]))
     exact = split_floor(three, ("gain_db", "temperature_c", "white_noise_v_per_rthz"), rel_errors=(0.0,))[0]
     assert exact["rms_dcsn"] + exact["rms_rn"] > 1e-3  # temperature vs white noise: a real ambiguity remains
+
+
+def test_an_unknown_xi_field_is_refused_with_the_allowed_names(capsys):
+    import pytest
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--xi-fields", "gain"])
+    err = capsys.readouterr().err
+    assert "'gain'" in err and "gain_db" in err and "white_noise_v_per_rthz" in err
