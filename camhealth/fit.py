@@ -89,19 +89,19 @@ def _add_default_callbacks(cli: FitCLI) -> None:
 def _init_from(model: EstimatorModule, path: str) -> None:
     """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
     ``model``; the architectures must match (a clear error names the first mismatch). One exception: a
-    noise-source file without the total head (``total_branch: false``) may start a model with it — the head
-    keeps its zero-initialised output, so the model starts as the file's network exactly."""
+    noise-source network may read more than the file's (the total head, ``branch_inputs: all``,
+    ``nlf_statistics``; :meth:`~lightning_modules.noise_source.NoiseSourceNet.state_from`) — the new inputs
+    get zero weights and the head its zero-initialised output, so the model starts as the file's network
+    exactly."""
     from camhealth.export import load_module
 
     source, _ = load_module(Path(path))
     if type(source) is not type(model):
         raise ValueError(f"--init_from {path}: holds a {type(source).__name__}, the config trains a {type(model).__name__}")
-    state = source.net.state_dict()
-    if getattr(model.net, "total_branch", False) and not getattr(source.net, "total_branch", True):
-        state.update({f"total_head.{k}": v for k, v in model.net.total_head.state_dict().items()})
     try:
+        state = model.net.state_from(source.net) if hasattr(model.net, "state_from") else source.net.state_dict()
         model.net.load_state_dict(state)
-    except RuntimeError as exc:
+    except (RuntimeError, ValueError) as exc:
         raise ValueError(f"--init_from {path}: architecture differs from the config's: {str(exc).splitlines()[0]}") from None
 
 

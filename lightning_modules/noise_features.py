@@ -15,6 +15,10 @@
   and Donoho's robust median-absolute-deviation estimate on the finest diagonal Haar detail,
   d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 over 2×2 blocks (var d = σ² for white noise), σ ≈ median|d| / 0.6745,
   which edges barely move.
+- :func:`nlf_statistics` — a coarse noise-level function of the patch: the 2×2 blocks sorted by their mean
+  and cut into three equal-count intensity terciles, the Haar-MAD σ and the mean intensity of each. Photon
+  noise grows with intensity (σ_PN² ∝ I), dark-current and readout noise do not, so the three points tell the
+  signal-dependent from the signal-independent part of the noise where the patch spans a range of intensities.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
     "metadata_from_matrix", "physics_prior_dn", "image_statistics", "laplace_difference", "box_mean3", "IMAGE_STATISTICS",
-    "CLIP_TOLERANCE",
+    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS",
 ]
 
 #: Names of the columns of :func:`image_statistics`.
@@ -143,3 +147,48 @@ def _image_statistics(x: torch.Tensor) -> torch.Tensor:
         med = flat.median(dim=1).values
     mad = med / 0.6745
     return torch.stack([mean, mean.clamp_min(0).sqrt(), low, high, immerkaer, mad], dim=1)
+
+
+#: Names of the columns of :func:`nlf_statistics`.
+NLF_STATISTICS: tuple[str, ...] = (
+    "nlf_log_mad_dark", "nlf_log_mad_mid", "nlf_log_mad_bright", "nlf_mean_dark", "nlf_mean_mid", "nlf_mean_bright",
+)
+
+
+def nlf_statistics(image: torch.Tensor) -> torch.Tensor:
+    """A three-point noise-level function of each patch, (B, 6) float32 in the order of :data:`NLF_STATISTICS`.
+
+    The finest diagonal Haar details d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 of the 2×2 blocks (I in DN; var d = σ² for
+    white noise) are ordered by their block's mean intensity and cut into three equal-count terciles (dark, mid,
+    bright; a remainder of one or two blocks is dropped). Per tercile: log(σ̂ + 0.1) with σ̂ = median|d| / 0.6745
+    [DN], and the mean intensity of its blocks in [0, 1]. Clipped blocks are kept (their σ̂ drops toward 0,
+    which the network reads together with the clipped fractions). Needs at least 3 blocks (H, W ≥ 2 px and
+    H·W ≥ 12 px). Always float32, also under bf16 autocast."""
+    if torch.is_autocast_enabled(image.device.type):
+        with torch.autocast(device_type=image.device.type, enabled=False):
+            return _nlf_statistics(image.float())
+    return _nlf_statistics(image.float())
+
+
+def _lower_median(x: torch.Tensor) -> torch.Tensor:
+    """Lower median along the last dimension (ONNX has no median operator: top-k there)."""
+    if torch.onnx.is_in_onnx_export():
+        return x.topk((x.shape[-1] - 1) // 2 + 1, dim=-1, largest=False).values[..., -1]
+    return x.median(dim=-1).values
+
+
+def _nlf_statistics(x: torch.Tensor) -> torch.Tensor:
+    b = x.shape[0]
+    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
+    q = x[..., :h, :w] * 255.0
+    a, bb, c, e = q[..., 0::2, 0::2], q[..., 0::2, 1::2], q[..., 1::2, 0::2], q[..., 1::2, 1::2]
+    d = ((a - bb - c + e) / 2.0).abs().reshape(b, -1)
+    m = ((a + bb + c + e) / 4.0).reshape(b, -1)
+    n3 = d.shape[1] // 3
+    if n3 < 1:
+        raise ValueError(f"nlf_statistics needs at least 3 blocks of 2×2 px, got a {tuple(x.shape[-2:])} patch")
+    order = m.argsort(dim=1)[:, : 3 * n3]
+    d = d.gather(1, order).view(b, 3, n3)
+    m = m.gather(1, order).view(b, 3, n3)
+    sigma = _lower_median(d) / 0.6745
+    return torch.cat([torch.log(sigma + 0.1), m.mean(2) / 255.0], dim=1)

@@ -33,6 +33,15 @@ Architecture (:class:`NoiseSourceNet`), sized for a 2-core CPU:
   training it is Eq. 4.2's quadrature sum. Weights files written before it existed load with
   ``total_branch: false`` (total = √(Σ σ̂_s²)).
 
+- **Wider branch inputs** (options, off by default and in the shipped files written before them):
+  ``branch_inputs: all`` feeds every source branch all metadata fields and the closed-form σ of every source
+  and the total (the split of an excess between DCSN and RN depends on what a temperature change and what a
+  white-noise change could explain, i.e. on both sources' metadata); ``nlf_statistics: true`` adds the Haar-MAD σ
+  and mean intensity of three intensity terciles of the patch
+  (:func:`~lightning_modules.noise_features.nlf_statistics`: photon noise grows with intensity, dark-current and
+  readout noise do not). :meth:`NoiseSourceNet.state_from` carries the weights of a network that reads less
+  into one that reads more with zero weights on the new inputs, so ``--init_from`` starts exactly there.
+
 Training targets (from :class:`datamodules.NoiseDataModule`): realised σ per source after gain and
 clipping (``sigma``), the realised total (``sigma_total``) and ξ (``xi``), all in DN, with a smooth-L1
 loss. Metrics: Bias/Std/RMS (Eq. 6.2) per source, total and ξ.
@@ -51,10 +60,13 @@ from lightning_modules.base import EstimatorModule
 from lightning_modules.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
 from lightning_modules.noise_features import (
-    IMAGE_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, physics_prior_dn,
+    IMAGE_STATISTICS, NLF_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, nlf_statistics,
+    physics_prior_dn,
 )
 
-__all__ = ["NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "OUTPUTS", "PRIOR_ANCHORS"]
+__all__ = [
+    "NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "BRANCH_INPUTS", "OUTPUTS", "PRIOR_ANCHORS",
+]
 
 #: Outputs of the noise-source network, in order (all in DN).
 OUTPUTS: tuple[str, ...] = ("pn", "dcsn", "rn", "xi")
@@ -78,6 +90,12 @@ _MAX_LOG_CORRECTION = 5.0
 #: ratio r of a robust classical noise estimate of the patch to the closed-form total (the default);
 #: ``"metadata"`` — the closed-form σ itself (r is still an input of every branch).
 PRIOR_ANCHORS: tuple[str, ...] = ("image", "metadata")
+
+#: What the source branches read besides the shared features: ``"own"`` — the metadata that drive their source
+#: (:data:`BRANCH_FIELDS`) and their own closed-form σ (the default, as the thesis's FCBs); ``"all"`` — every
+#: available metadata field and the closed-form σ of all sources and the total, so the DCSN branch can weigh
+#: an excess of signal-independent noise against what a readout-noise change would explain, and vice versa.
+BRANCH_INPUTS: tuple[str, ...] = ("own", "all")
 
 
 class NoiseTrunk(nn.Module):
@@ -116,9 +134,13 @@ class NoiseSourceNet(nn.Module):
 
     def __init__(
         self, metadata_set: str = "full", physics_prior: bool = True, width: int = 32, hidden: Sequence[int] = (64, 32, 16),
-        prior_anchor: str = "image", total_branch: bool = True,
+        prior_anchor: str = "image", total_branch: bool = True, branch_inputs: str = "own", nlf_statistics: bool = False,
     ) -> None:
         super().__init__()
+        if branch_inputs not in BRANCH_INPUTS:
+            raise ValueError(f"branch_inputs = {branch_inputs!r} must be one of {list(BRANCH_INPUTS)}")
+        self.branch_inputs = branch_inputs
+        self.nlf_statistics = bool(nlf_statistics)
         if prior_anchor not in PRIOR_ANCHORS:
             raise ValueError(f"prior_anchor = {prior_anchor!r} must be one of {list(PRIOR_ANCHORS)}")
         self.prior_anchor = prior_anchor
@@ -133,13 +155,18 @@ class NoiseSourceNet(nn.Module):
         self.physics_prior = bool(physics_prior)
         self.trunk = NoiseTrunk(width)
         available = set(METADATA_SETS[metadata_set])
+        fields = FULL_FIELDS if branch_inputs == "all" else None
         self.branch_columns: list[list[int]] = [
-            [FULL_FIELDS.index(f) for f in BRANCH_FIELDS[name] if f in available] for name in OUTPUTS
+            [FULL_FIELDS.index(f) for f in (fields or BRANCH_FIELDS[name]) if f in available] for name in OUTPUTS
         ]
-        n_base = self.trunk.out_features + len(IMAGE_STATISTICS) + 1 + (1 if self.physics_prior else 0)
+        #: closed-form σ (columns of ``prior``: PN, DCSN, RN, total) each branch reads, as log σ
+        self.prior_columns: list[list[int]] = [
+            ([0, 1, 2, 3] if branch_inputs == "all" else [i]) if self.physics_prior else [] for i in range(len(OUTPUTS))
+        ]
+        n_base = len(self._base_names())
         self.branches = nn.ModuleList(
-            FullyConnectedBlock(n_base + len(cols) + (1 if self.physics_prior else 0), tuple(hidden), 1)
-            for cols in self.branch_columns
+            FullyConnectedBlock(n_base + len(cols) + len(pcols), tuple(hidden), 1)
+            for cols, pcols in zip(self.branch_columns, self.prior_columns)
         )
         if self.physics_prior:  # start from the noise model exactly: δ = 0
             for branch in self.branches:
@@ -152,6 +179,55 @@ class NoiseSourceNet(nn.Module):
             nn.init.zeros_(self.total_head[-1].weight)
             nn.init.zeros_(self.total_head[-1].bias)
 
+    def _base_names(self) -> list[str]:
+        names = [f"trunk{i}" for i in range(self.trunk.out_features)]
+        names += [*IMAGE_STATISTICS, "log_haar_mad"] + (["log_ratio_to_model"] if self.physics_prior else [])
+        return names + (list(NLF_STATISTICS) if self.nlf_statistics else [])
+
+    def input_names(self) -> dict[str, list[str]]:
+        """Names of the input columns of the first layer of every branch (and of the total head), by the
+        prefix of its weight in the state dict. Used to carry weights between input layouts."""
+        base = self._base_names()
+        out = {
+            f"branches.{i}.0": base + [f"meta:{FULL_FIELDS[c]}" for c in cols] + [f"log_prior:{k}" for k in pcols]
+            for i, (cols, pcols) in enumerate(zip(self.branch_columns, self.prior_columns))
+        }
+        if self.total_branch:
+            out["total_head.0"] = base + [f"meta:{FULL_FIELDS[c]}" for c in self.total_columns] + ["log_quadrature_sum"]
+        return out
+
+    def state_from(self, source: "NoiseSourceNet") -> dict[str, torch.Tensor]:
+        """``source``'s weights laid out for this network, so that it starts as ``source`` exactly.
+
+        The networks may differ in what their branches read (``branch_inputs``, ``nlf_statistics``) and in the
+        total head: an input this network has and ``source`` lacks gets a zero weight column (it does not move
+        the output until training moves it); a total head ``source`` lacks keeps its zero-initialised output
+        (σ̂_total = √(Σ σ̂_s²), which is what ``source`` returns). Raises ``ValueError`` if ``source`` reads an
+        input this network does not, or if anything else differs (trunk width, hidden sizes, prior, metadata)."""
+        state = dict(source.state_dict())
+        mine = self.state_dict()
+        if self.total_branch and not source.total_branch:
+            state.update({k: v for k, v in mine.items() if k.startswith("total_head.")})
+        old_names, new_names = source.input_names(), self.input_names()
+        for prefix, names in new_names.items():
+            key = f"{prefix}.weight"
+            if prefix not in old_names or key not in state:
+                continue
+            old = old_names[prefix]
+            if old == names:
+                continue
+            dropped = sorted(set(old) - set(names))
+            if dropped:
+                raise ValueError(f"{prefix} of the source reads inputs this network does not: {dropped[:4]}")
+            w_old = state[key]
+            w_new = torch.zeros(w_old.shape[0], len(names), dtype=w_old.dtype)
+            where = {n: j for j, n in enumerate(old)}
+            for j, n in enumerate(names):
+                if n in where:
+                    w_new[:, j] = w_old[:, where[n]]
+            state[key] = w_new
+        return state
+
     def forward(self, image: torch.Tensor, meta: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
         feats = self.trunk(image).float()
         stats = image_statistics(image)
@@ -160,14 +236,16 @@ class NoiseSourceNet(nn.Module):
         ratio = log_mad - torch.log(prior[:, 3:4].float() + 0.1)
         if self.physics_prior:  # how much noisier the image looks than the metadata say (robust estimate)
             scalars.append(ratio)
+        if self.nlf_statistics:  # the noise level in three intensity terciles
+            scalars.append(nlf_statistics(image))
         base = torch.cat([feats, *scalars], dim=1)
         raw = []
-        for i, (branch, cols) in enumerate(zip(self.branches, self.branch_columns)):
+        for branch, cols, pcols in zip(self.branches, self.branch_columns, self.prior_columns):
             parts = [base]
             if cols:
                 parts.append(meta[:, cols].float())
-            if self.physics_prior:  # PN, DCSN, RN see their own closed-form σ; ξ sees the total
-                parts.append(torch.log(prior[:, i : i + 1].float() + 0.01))
+            if pcols:  # "own": PN, DCSN, RN see their own closed-form σ and ξ the total; "all": every one
+                parts.append(torch.log(prior[:, pcols].float() + 0.01))
             raw.append(branch(torch.cat(parts, dim=1)).float())
         raw_t = torch.cat(raw, dim=1)
         if self.physics_prior:
@@ -210,6 +288,10 @@ class NoiseSourceEstimator(EstimatorModule):
             for noise does not move the start (the shipped ``noise_source_full_meta``; docs/estimators.md).
         total_branch: learn the realised total after clipping with a fifth, zero-initialised branch instead of
             taking √(Σ σ̂_s²) (module docstring; default ``True``; weights files without the key load as ``False``).
+        branch_inputs: what the source branches read (:data:`BRANCH_INPUTS`): ``"own"`` (default) their
+            source's metadata and closed-form σ, ``"all"`` every metadata field and every closed-form σ.
+        nlf_statistics: also feed every branch the three-point noise-level function of the patch
+            (:func:`~lightning_modules.noise_features.nlf_statistics`; default ``False``).
     """
 
     kind = "noise_source"
@@ -231,13 +313,17 @@ class NoiseSourceEstimator(EstimatorModule):
         max_figure_samples: int = 512,
         prior_anchor: str = "image",
         total_branch: bool = True,
+        branch_inputs: str = "own",
+        nlf_statistics: bool = False,
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
         self._set_patch_size(patch_size)
         self.metadata_set = metadata_set
         self.physics_prior = bool(physics_prior)
-        self.net = NoiseSourceNet(metadata_set, physics_prior, width, tuple(hidden), prior_anchor, total_branch)
+        self.net = NoiseSourceNet(
+            metadata_set, physics_prior, width, tuple(hidden), prior_anchor, total_branch, branch_inputs, nlf_statistics,
+        )
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)
         if unknown:

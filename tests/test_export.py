@@ -15,6 +15,7 @@ from lightning_modules import MTFEstimator, NoiseLevelEstimator, NoiseSourceEsti
 
 MODELS = {
     "noise_source": lambda: NoiseSourceEstimator(patch_size=32),
+    "noise_source_all_nlf": lambda: NoiseSourceEstimator(patch_size=32, branch_inputs="all", nlf_statistics=True),
     "drne": lambda: NoiseLevelEstimator(patch_size=32),
     "mtf": lambda: MTFEstimator(patch_size=32),
 }
@@ -41,7 +42,7 @@ def test_weights_round_trip_identical(kind, tmp_path):
     m = _perturbed(kind)
     path = export_weights(m, tmp_path / "w.pt", metrics={"rms_total": 0.5})
     again, desc = load_module(path)
-    assert desc["kind"] == kind and desc["metrics"] == {"rms_total": 0.5}
+    assert desc["kind"] == kind.split("_all")[0] and desc["metrics"] == {"rms_total": 0.5}
     inputs = m.export_inputs(3)
     with torch.no_grad():
         assert torch.equal(m.export_module()(*inputs), again.export_module()(*inputs))
@@ -56,15 +57,16 @@ def test_exported_program_matches_torch(kind, fmt, tmp_path):
     ref = load_estimator(export_weights(m, tmp_path / "w.pt"))
     path = (export_pt2 if fmt == "pt2" else export_onnx)(m, tmp_path / f"m.{fmt}")
     est = load_estimator(path)
-    assert est.backend == fmt and est.kind == kind and est.patch_size == 32
+    noise = kind.startswith("noise_source")
+    assert est.backend == fmt and est.kind == kind.split("_all")[0] and est.patch_size == 32
     x, meta = _inputs(3)
-    a = ref.predict(x, meta if kind == "noise_source" else None)
-    b = est.predict(x, meta if kind == "noise_source" else None)
+    a = ref.predict(x, meta if noise else None)
+    b = est.predict(x, meta if noise else None)
     for key in ("sigma", "xi", "sigma_total", "mtf"):
         if key in a:
             assert torch.allclose(a[key], b[key], rtol=1e-4, atol=1e-4), key
     # dynamic batch: a batch of 1 works too
-    est.predict(x[:1], meta[:1] if kind == "noise_source" else None)
+    est.predict(x[:1], meta[:1] if noise else None)
 
 
 def test_export_cli(tmp_path, capsys):

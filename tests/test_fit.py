@@ -115,6 +115,32 @@ def test_init_from_a_file_without_the_total_head_starts_as_that_network(tmp_path
     assert torch.allclose(new[:, 4], old[:, :3].pow(2).sum(1).sqrt(), rtol=1e-5)  # the new head starts at Eq. 4.2
 
 
+def test_init_from_into_a_network_that_reads_more_starts_as_that_network(tmp_path):
+    import torch
+
+    from camhealth.export import export_weights
+    from lightning_modules import NoiseSourceEstimator
+
+    torch.manual_seed(3)
+    start = NoiseSourceEstimator(patch_size=32)
+    with torch.no_grad():
+        for p in start.net.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    path = export_weights(start, tmp_path / "own.pt")
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--trainer.max_steps", "0",
+                         "--test_after_fit", "false", "--model.init_args.branch_inputs", "all",
+                         "--model.init_args.nlf_statistics", "true"))
+    net = cli.model.net.eval()
+    assert net.branch_inputs == "all" and net.nlf_statistics
+    g = torch.Generator().manual_seed(0)
+    image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    with torch.no_grad():
+        assert torch.equal(net(image, meta, prior), start.net.eval()(image, meta, prior))
+    back = export_weights(cli.model, tmp_path / "all.pt")
+    with pytest.raises(ValueError, match="reads inputs this network does not"):  # the other way round is refused
+        main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(back), "--trainer.max_steps", "0"))
+
+
 def test_fit_keeps_freed_memory_for_reuse(tmp_path, monkeypatch):
     import camhealth.fit as fit
 

@@ -8,7 +8,9 @@ import torch
 from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_dn
-from lightning_modules.noise_features import image_statistics, metadata_from_matrix, physics_prior_dn
+from lightning_modules.noise_features import (
+    NLF_STATISTICS, image_statistics, metadata_from_matrix, nlf_statistics, physics_prior_dn,
+)
 
 
 @pytest.mark.parametrize("temperature_c", [0.0, 80.0])
@@ -95,3 +97,36 @@ def test_prior_cache_gives_the_uncached_values_and_tracks_the_metadata():
     many = CameraMetadata.preset("ICX285", batch_size=5, temperature_c=[0.0, 20.0, 20.0, 60.0, 80.0])
     assert torch.allclose(physics_prior_dn(x, many, cache), physics_prior_dn(x, many))
     assert len(cache) == 6
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_nlf_statistics_recover_a_poisson_gaussian_noise_level_function(dtype):
+    """On a ramp with σ² = a·I + b (I in DN), each tercile's σ̂ is √(a·Ī + b) of its mean intensity Ī (to the
+    MAD's spread over 1 365 blocks and its bias on a mixture of σ within the tercile: ≈ 5 %)."""
+    g = torch.Generator().manual_seed(3)
+    a, b = 0.2, 4.0  # DN per DN, DN²
+    clean = torch.linspace(20, 235, 128, dtype=torch.float64).view(1, 1, 1, 128).expand(4, 1, 128, 128)
+    noisy = clean + torch.randn(clean.shape, generator=g, dtype=torch.float64) * (a * clean + b).sqrt()
+    stats = nlf_statistics((noisy / 255).to(dtype))
+    assert stats.shape == (4, len(NLF_STATISTICS)) and stats.dtype == torch.float32
+    sigma = stats[:, :3].double().exp() - 0.1
+    mean_dn = stats[:, 3:].double() * 255
+    assert torch.allclose(mean_dn.mean(0), torch.tensor([56.0, 127.5, 199.0], dtype=torch.float64), atol=1.5)
+    expected = (a * mean_dn + b).sqrt()
+    assert torch.allclose(sigma, expected, rtol=0.1)
+    assert torch.allclose(sigma.mean(0), expected.mean(0), rtol=0.05)
+    assert (sigma[:, 0] < sigma[:, 1]).all() and (sigma[:, 1] < sigma[:, 2]).all()  # photon noise grows with I
+
+
+def test_nlf_statistics_flat_black_saturated_bf16_and_too_small():
+    g = torch.Generator().manual_seed(4)
+    flat = 0.5 + torch.randn(2, 1, 128, 128, generator=g) * (3 / 255)
+    sigma = nlf_statistics(flat)[:, :3].exp() - 0.1
+    assert torch.allclose(sigma, torch.full_like(sigma, 3.0), rtol=0.1)  # white noise: the same in every tercile
+    ends = nlf_statistics(torch.stack([torch.zeros(1, 16, 16), torch.ones(1, 16, 16)]))
+    assert torch.isfinite(ends).all() and torch.allclose(ends[:, :3], torch.full((2, 3), math.log(0.1)))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = nlf_statistics(flat.bfloat16())
+    assert low.dtype == torch.float32 and torch.allclose(low[:, 3:], nlf_statistics(flat)[:, 3:], atol=0.01)
+    with pytest.raises(ValueError, match="at least 3 blocks"):
+        nlf_statistics(torch.rand(1, 1, 2, 4))

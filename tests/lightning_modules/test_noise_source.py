@@ -161,3 +161,37 @@ def test_without_the_total_head_the_network_has_four_outputs(meta_raw):
     with torch.no_grad():
         raw = m.net(*m.network_inputs(torch.rand(2, 1, 32, 32), meta_raw[:1].expand(2, -1)))
     assert raw.shape == (2, 4)
+
+
+def test_branch_inputs_all_lets_every_branch_read_every_field(meta_raw):
+    """``own``: the DCSN branch ignores the white-noise density (a readout field); ``all``: it reads it."""
+    torch.manual_seed(5)
+    x = torch.rand(3, 1, 32, 32)
+    changed = meta_raw.clone()
+    changed[:, 10] = 5e-8  # white noise W
+    for inputs, moves in (("own", False), ("all", True)):
+        m = NoiseSourceEstimator(physics_prior=False, branch_inputs=inputs).eval()
+        with torch.no_grad():
+            a, b = m(x, meta_raw)["sigma"][:, 1], m(x, changed)["sigma"][:, 1]
+        assert (not torch.equal(a, b)) is moves
+    with pytest.raises(ValueError, match="branch_inputs"):
+        NoiseSourceEstimator(branch_inputs="some")
+
+
+@pytest.mark.parametrize("inputs,nlf", [("all", False), ("own", True), ("all", True)])
+def test_state_from_a_network_that_reads_less_starts_as_that_network(inputs, nlf):
+    torch.manual_seed(6)
+    src = NoiseSourceEstimator(patch_size=32, prior_anchor="metadata", total_branch=False)
+    with torch.no_grad():
+        for p in src.net.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    dst = NoiseSourceEstimator(patch_size=32, prior_anchor="metadata", branch_inputs=inputs, nlf_statistics=nlf)
+    dst.net.load_state_dict(dst.net.state_from(src.net))
+    g = torch.Generator().manual_seed(0)
+    image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    with torch.no_grad():
+        old, new = src.net.eval()(image, meta, prior), dst.net.eval()(image, meta, prior)
+    assert torch.equal(new[:, :4], old)
+    assert torch.allclose(new[:, 4], old[:, :3].pow(2).sum(1).sqrt(), rtol=1e-5)
+    with pytest.raises(ValueError, match="reads inputs this network does not"):
+        src.net.state_from(dst.net)  # dropping inputs would change the function
