@@ -46,6 +46,12 @@ class FitCLI(LightningCLI):
             help="fine-tune: start from the weights of this camhealth weights file or checkpoint (same architecture; "
                  "optimiser and schedule start afresh)",
         )
+        parser.add_argument(
+            "--revive_trunk", type=bool, default=False,
+            help="after --init_from: re-initialise a dead noise-source trunk (constant pooled features) with its "
+                 "constant contribution folded into the branches' biases, so the model starts unchanged "
+                 "(NoiseSourceNet.revive_trunk)",
+        )
         parser.set_defaults(  # plain defaults; every config may override them
             {
                 "trainer.logger": {
@@ -126,6 +132,10 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
     _add_default_callbacks(cli)
     if cli.config["init_from"]:
         _init_from(cli.model, cli.config["init_from"])
+    if cli.config["revive_trunk"]:
+        if not hasattr(cli.model.net, "revive_trunk"):
+            raise ValueError(f"--revive_trunk: {type(cli.model).__name__} has no noise-source trunk to revive")
+        cli.model.net.revive_trunk(seed=int(cli.config["seed_everything"] or 0))
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     best = cli.trainer.checkpoint_callback.best_model_path if cli.trainer.checkpoint_callback else ""
     results: dict = {"best_checkpoint": best}

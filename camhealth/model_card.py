@@ -67,6 +67,7 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
         f"- **Speed** (`Estimator.predict`, batch 32, {platform.processor() or platform.machine()}, "
         f"{torch.get_num_threads()} threads, {_dt.date.today().isoformat()}): {timing['fp32']:.2f} ms/patch fp32, "
         f"{timing['bf16']:.2f} ms/patch bf16.",
+        *_trunk_line(est),
         f"- **Data**: {_DATA[est.kind]}",
         f"- **Reproduce**: `{command}`",
         "",
@@ -81,6 +82,15 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
     if notes:
         lines += ["", "## Notes", "", notes]
     return "\n".join(lines) + "\n"
+
+
+def _trunk_line(est) -> list[str]:
+    net = getattr(getattr(est, "_module", None), "net", None)
+    if net is None or not hasattr(net, "trunk_activity"):
+        return []
+    act = net.trunk_activity()
+    dead = " — dead: the branches see the image only through the scalar statistics" if act == 0 else ""
+    return [f"- **Trunk activity**: {act:.0%} of the pooled trunk features vary over a probe batch{dead}."]
 
 
 def write_card(weights: str | Path, command: str, notes: str = "") -> Path:

@@ -228,6 +228,49 @@ class NoiseSourceNet(nn.Module):
             state[key] = w_new
         return state
 
+    @torch.no_grad()
+    def trunk_activity(self, patch_size: int = 64, batch: int = 16, seed: int = 0) -> float:
+        """Fraction of the trunk's pooled features that vary over a probe batch (random ramps, flats and edges
+        with 0–20 DN of noise). 0 means the trunk is dead: every ReLU of its last stage is off for every input,
+        the pooled features are constants and the branches see the image only through the scalar statistics."""
+        g = torch.Generator().manual_seed(seed)
+        ramp = torch.linspace(0, 1, patch_size).view(1, 1, 1, -1)
+        level = torch.rand(batch, 1, 1, 1, generator=g)
+        slope = torch.rand(batch, 1, 1, 1, generator=g) - 0.5
+        edge = (torch.rand(batch, 1, patch_size, patch_size, generator=g) > 0.5).float() * (torch.rand(batch, 1, 1, 1, generator=g) > 0.5)
+        x = level + slope * ramp + 0.3 * edge + torch.randn(batch, 1, patch_size, patch_size, generator=g) * torch.rand(batch, 1, 1, 1, generator=g) * (20 / 255)
+        was = self.training
+        self.eval()
+        feats = self.trunk(x.clamp(0, 1)).float()
+        self.train(was)
+        return float((feats.std(0) > 1e-6).float().mean())
+
+    @torch.no_grad()
+    def revive_trunk(self, seed: int = 0) -> None:
+        """Re-initialise a dead trunk (:meth:`trunk_activity` 0) without changing the network's function.
+
+        A trunk without normalisation can die in long training (dying ReLUs): its pooled features become
+        constants. Their contribution to every branch (and the total head) is folded into the first layer's bias,
+        the weights on the trunk's columns are set to zero, and the trunk gets a fresh initialisation (seeded):
+        the outputs are unchanged, and fine-tuning can learn to use the image again. Raises ``ValueError`` when
+        the trunk is alive (re-initialising it would change the function)."""
+        activity = self.trunk_activity()
+        if activity > 0:
+            raise ValueError(f"the trunk is alive ({activity:.0%} of its pooled features vary); nothing to revive")
+        const = self.trunk(torch.full((1, 1, 64, 64), 0.5)).float()[0]  # the same for every input
+        n = self.trunk.out_features
+        heads = list(self.branches) + ([self.total_head] if self.total_branch else [])
+        for head in heads:
+            first = head[0]
+            first.bias += first.weight[:, :n] @ const.to(first.weight.dtype)
+            first.weight[:, :n] = 0.0
+        state = torch.random.get_rng_state()
+        torch.manual_seed(seed)
+        for mod in self.trunk.modules():
+            if isinstance(mod, nn.Conv2d):
+                mod.reset_parameters()
+        torch.random.set_rng_state(state)
+
     def forward(self, image: torch.Tensor, meta: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
         feats = self.trunk(image).float()
         stats = image_statistics(image)

@@ -148,3 +148,14 @@ def test_fit_keeps_freed_memory_for_reuse(tmp_path, monkeypatch):
     monkeypatch.setattr(fit, "keep_freed_memory", lambda: calls.append(1) or True)
     fit.main(tiny_args("noise_source.yaml", tmp_path, "--trainer.max_steps", "0", "--test_after_fit", "false"))
     assert calls == [1]  # the allocator setting of camhealth.runtime, once per run
+
+
+def test_revive_trunk_flag_refuses_a_live_trunk(tmp_path):
+    """--revive_trunk re-initialises only a dead trunk; on a live one it refuses instead of changing the model."""
+    from camhealth.export import export_weights
+    from lightning_modules import NoiseSourceEstimator
+
+    path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "live.pt")
+    with pytest.raises(ValueError, match="alive"):
+        main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--revive_trunk", "true",
+                       "--trainer.max_steps", "0", "--test_after_fit", "false"))

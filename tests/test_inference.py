@@ -157,6 +157,7 @@ def test_model_card_lists_metrics_and_command(tmp_path):
     path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt", metrics={"test/rms_total": 0.42})
     text = card_text(path, "python -m camhealth.fit --config configs/noise_source.yaml", timing={"fp32": 1.0, "bf16": 0.5})
     assert "test/rms_total | 0.420" in text and "configs/noise_source.yaml" in text and "GFLOP" in text
+    assert "Trunk activity" in text and "— dead" not in text  # a fresh trunk is alive
 
 
 def test_bucket_sizes():

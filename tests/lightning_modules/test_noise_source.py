@@ -195,3 +195,31 @@ def test_state_from_a_network_that_reads_less_starts_as_that_network(inputs, nlf
     assert torch.allclose(new[:, 4], old[:, :3].pow(2).sum(1).sqrt(), rtol=1e-5)
     with pytest.raises(ValueError, match="reads inputs this network does not"):
         src.net.state_from(dst.net)  # dropping inputs would change the function
+
+
+def test_a_dead_trunk_is_found_and_revived_without_changing_the_outputs(meta_raw):
+    """A trunk whose last ReLUs are off for every input gives constant features (activity 0); revive_trunk folds
+    them into the branches' biases and re-initialises the trunk: same outputs, a live trunk."""
+    torch.manual_seed(7)
+    m = NoiseSourceEstimator(patch_size=32).eval()
+    with torch.no_grad():
+        for p in m.net.branches.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+        for p in m.net.total_head.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    assert m.net.trunk_activity() > 0.5  # a fresh trunk is alive
+    with pytest.raises(ValueError, match="alive"):
+        m.net.revive_trunk()
+    last = m.net.trunk.stages[-1]
+    with torch.no_grad():  # kill it: the last block's output is ReLU(y + shortcut) with a large negative bias
+        last.conv2.bias.fill_(-1e3)
+        last.shortcut.bias.fill_(-1e3)
+    assert m.net.trunk_activity() == 0.0
+    x = torch.rand(5, 1, 32, 32)
+    with torch.no_grad():
+        before = m(x, meta_raw[:1].expand(5, -1))
+        m.net.revive_trunk(seed=1)
+        after = m(x, meta_raw[:1].expand(5, -1))
+    for k in ("sigma", "sigma_total", "xi"):
+        assert torch.allclose(after[k], before[k], rtol=1e-5, atol=1e-6), k
+    assert m.net.trunk_activity() > 0.5
