@@ -48,8 +48,8 @@ class FitCLI(LightningCLI):
         )
         parser.add_argument(
             "--revive_trunk", type=bool, default=False,
-            help="after --init_from: re-initialise a dead noise-source trunk (constant pooled features) with its "
-                 "constant contribution folded into the branches' biases, so the model starts unchanged "
+            help="with --init_from: re-initialise the file's dead noise-source trunk (constant pooled features) with "
+                 "its constant contribution folded into the branches' biases, so the model starts unchanged "
                  "(NoiseSourceNet.revive_trunk)",
         )
         parser.set_defaults(  # plain defaults; every config may override them
@@ -92,18 +92,26 @@ def _add_default_callbacks(cli: FitCLI) -> None:
         trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
 
 
-def _init_from(model: EstimatorModule, path: str) -> None:
+def _init_from(model: EstimatorModule, path: str, revive_seed: int | None = None) -> None:
     """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
     ``model``; the architectures must match (a clear error names the first mismatch). One exception: a
     noise-source network may read more than the file's (the total head, ``branch_inputs: all``,
     ``nlf_statistics``; :meth:`~lightning_modules.noise_source.NoiseSourceNet.state_from`) — the new inputs
     get zero weights and the head its zero-initialised output, so the model starts as the file's network
-    exactly."""
+    exactly. With ``revive_seed``, the file's dead trunk is first revived
+    (:meth:`~lightning_modules.noise_source.NoiseSourceNet.revive_trunk`, seeded), in the file's own architecture."""
     from camhealth.export import load_module
 
     source, _ = load_module(Path(path))
     if type(source) is not type(model):
         raise ValueError(f"--init_from {path}: holds a {type(source).__name__}, the config trains a {type(model).__name__}")
+    if revive_seed is not None:
+        if not hasattr(source.net, "revive_trunk"):
+            raise ValueError(f"--revive_trunk: {type(source).__name__} has no noise-source trunk to revive")
+        try:
+            source.net.revive_trunk(seed=revive_seed)
+        except ValueError as exc:
+            raise ValueError(f"--revive_trunk {path}: {exc}") from None
     try:
         state = model.net.state_from(source.net) if hasattr(model.net, "state_from") else source.net.state_dict()
         model.net.load_state_dict(state)
@@ -130,12 +138,11 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
     # the on-the-fly corruption and the training step allocate the same large buffers every batch
     keep_freed_memory()
     _add_default_callbacks(cli)
+    if cli.config["revive_trunk"] and not cli.config["init_from"]:
+        raise ValueError("--revive_trunk revives the trunk of the --init_from file; pass --init_from")
     if cli.config["init_from"]:
-        _init_from(cli.model, cli.config["init_from"])
-    if cli.config["revive_trunk"]:
-        if not hasattr(cli.model.net, "revive_trunk"):
-            raise ValueError(f"--revive_trunk: {type(cli.model).__name__} has no noise-source trunk to revive")
-        cli.model.net.revive_trunk(seed=int(cli.config["seed_everything"] or 0))
+        revive = int(cli.config["seed_everything"] or 0) if cli.config["revive_trunk"] else None
+        _init_from(cli.model, cli.config["init_from"], revive_seed=revive)
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     best = cli.trainer.checkpoint_callback.best_model_path if cli.trainer.checkpoint_callback else ""
     results: dict = {"best_checkpoint": best}

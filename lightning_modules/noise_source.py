@@ -66,6 +66,7 @@ from lightning_modules.noise_features import (
 
 __all__ = [
     "NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "BRANCH_INPUTS", "OUTPUTS", "PRIOR_ANCHORS",
+    "TRUNK_ACTIVATIONS",
 ]
 
 #: Outputs of the noise-source network, in order (all in DN).
@@ -98,11 +99,18 @@ PRIOR_ANCHORS: tuple[str, ...] = ("image", "metadata")
 BRANCH_INPUTS: tuple[str, ...] = ("own", "all")
 
 
+#: Activations of the trunk: ``"relu"`` (the shipped files written before the option) or ``"leaky_relu"``
+#: (slope 0.05 below zero: a unit that is off for every input still gets a gradient, so the trunk cannot die).
+TRUNK_ACTIVATIONS: tuple[str, ...] = ("relu", "leaky_relu")
+
+
 class NoiseTrunk(nn.Module):
     """Shared image trunk: B×1×P×P in [0, 1] → (B, 12·width) pooled features (P divisible by 8)."""
 
-    def __init__(self, width: int = 32, highpass_gain: float = 32.0) -> None:
+    def __init__(self, width: int = 32, highpass_gain: float = 32.0, activation: str = "relu") -> None:
         super().__init__()
+        if activation not in TRUNK_ACTIVATIONS:
+            raise ValueError(f"trunk_activation = {activation!r} must be one of {list(TRUNK_ACTIVATIONS)}")
         self.highpass_gain = float(highpass_gain)
         self.unshuffle = nn.PixelUnshuffle(2)
         self.stem = ConvAct(8, width)
@@ -114,6 +122,11 @@ class NoiseTrunk(nn.Module):
         )
         self.pool = GlobalStatsPool()
         self.out_features = 12 * width
+        if activation == "leaky_relu":  # same parameters, so weights files stay interchangeable
+            for module in list(self.modules()):
+                for name, child in module.named_children():
+                    if isinstance(child, nn.ReLU):
+                        setattr(module, name, nn.LeakyReLU(0.05, inplace=True))
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         local_mean = box_mean3(image)
@@ -135,6 +148,7 @@ class NoiseSourceNet(nn.Module):
     def __init__(
         self, metadata_set: str = "full", physics_prior: bool = True, width: int = 32, hidden: Sequence[int] = (64, 32, 16),
         prior_anchor: str = "image", total_branch: bool = True, branch_inputs: str = "own", nlf_statistics: bool = False,
+        trunk_activation: str = "relu",
     ) -> None:
         super().__init__()
         if branch_inputs not in BRANCH_INPUTS:
@@ -153,7 +167,7 @@ class NoiseSourceNet(nn.Module):
             )
         self.metadata_set = metadata_set
         self.physics_prior = bool(physics_prior)
-        self.trunk = NoiseTrunk(width)
+        self.trunk = NoiseTrunk(width, activation=trunk_activation)
         available = set(METADATA_SETS[metadata_set])
         fields = FULL_FIELDS if branch_inputs == "all" else None
         self.branch_columns: list[list[int]] = [
@@ -335,6 +349,8 @@ class NoiseSourceEstimator(EstimatorModule):
             source's metadata and closed-form σ, ``"all"`` every metadata field and every closed-form σ.
         nlf_statistics: also feed every branch the three-point noise-level function of the patch
             (:func:`~lightning_modules.noise_features.nlf_statistics`; default ``False``).
+        trunk_activation: ``"relu"`` (default) or ``"leaky_relu"`` (:data:`TRUNK_ACTIVATIONS`; a trunk without
+            normalisation can die with ReLU — :meth:`NoiseSourceNet.trunk_activity`).
     """
 
     kind = "noise_source"
@@ -358,6 +374,7 @@ class NoiseSourceEstimator(EstimatorModule):
         total_branch: bool = True,
         branch_inputs: str = "own",
         nlf_statistics: bool = False,
+        trunk_activation: str = "relu",
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
@@ -366,6 +383,7 @@ class NoiseSourceEstimator(EstimatorModule):
         self.physics_prior = bool(physics_prior)
         self.net = NoiseSourceNet(
             metadata_set, physics_prior, width, tuple(hidden), prior_anchor, total_branch, branch_inputs, nlf_statistics,
+            trunk_activation,
         )
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)

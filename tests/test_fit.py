@@ -159,3 +159,31 @@ def test_revive_trunk_flag_refuses_a_live_trunk(tmp_path):
     with pytest.raises(ValueError, match="alive"):
         main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--revive_trunk", "true",
                        "--trainer.max_steps", "0", "--test_after_fit", "false"))
+    with pytest.raises(ValueError, match="pass --init_from"):
+        main(tiny_args("noise_source.yaml", tmp_path, "--revive_trunk", "true", "--trainer.max_steps", "0"))
+
+
+def test_revive_trunk_of_a_dead_file_into_a_leaky_trunk_starts_as_that_network(tmp_path):
+    import torch
+
+    from camhealth.export import export_weights
+    from lightning_modules import NoiseSourceEstimator
+
+    torch.manual_seed(4)
+    start = NoiseSourceEstimator(patch_size=32)
+    with torch.no_grad():
+        for p in start.net.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+        start.net.trunk.stages[-1].conv2.bias.fill_(-1e3)  # a dead trunk: its last ReLUs are off for every input
+        start.net.trunk.stages[-1].shortcut.bias.fill_(-1e3)
+    assert start.net.trunk_activity() == 0.0
+    path = export_weights(start, tmp_path / "dead.pt")
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--revive_trunk", "true",
+                         "--model.init_args.trunk_activation", "leaky_relu", "--trainer.max_steps", "0",
+                         "--test_after_fit", "false"))
+    net = cli.model.net.eval()
+    assert net.trunk_activity() > 0.5
+    g = torch.Generator().manual_seed(0)
+    image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    with torch.no_grad():
+        assert torch.allclose(net(image, meta, prior), start.net.eval()(image, meta, prior), rtol=1e-5, atol=1e-6)

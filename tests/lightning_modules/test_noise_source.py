@@ -223,3 +223,12 @@ def test_a_dead_trunk_is_found_and_revived_without_changing_the_outputs(meta_raw
     for k in ("sigma", "sigma_total", "xi"):
         assert torch.allclose(after[k], before[k], rtol=1e-5, atol=1e-6), k
     assert m.net.trunk_activity() > 0.5
+
+
+def test_leaky_trunk_has_the_same_parameters_and_is_checked():
+    relu, leaky = NoiseSourceEstimator(patch_size=32), NoiseSourceEstimator(patch_size=32, trunk_activation="leaky_relu")
+    assert list(relu.net.state_dict()) == list(leaky.net.state_dict())
+    assert any(isinstance(m, torch.nn.LeakyReLU) for m in leaky.net.trunk.modules())
+    assert not any(isinstance(m, torch.nn.ReLU) for m in leaky.net.trunk.modules())
+    with pytest.raises(ValueError, match="trunk_activation"):
+        NoiseSourceEstimator(trunk_activation="gelu")
