@@ -57,6 +57,28 @@ def test_tiny_fit_writes_checkpoint_results_and_weights(config, tmp_path):
     assert list((tmp_path / "runs").rglob("events.out.tfevents.*"))
 
 
+def _perturbed_noise_source(seed: int, **kwargs):
+    """A 32-px noise-source model with every weight moved off its initialisation (zero-initialised outputs too)."""
+    import torch
+
+    from lightning_modules import NoiseSourceEstimator
+
+    torch.manual_seed(seed)
+    model = NoiseSourceEstimator(patch_size=32, **kwargs)
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    return model
+
+
+def _net_inputs():
+    """(image, normalised metadata, prior) for NoiseSourceNet, seeded."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    return torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+
+
 def test_print_config_and_link(capsys):
     with pytest.raises(SystemExit):
         main(["--config", "configs/noise_source.yaml", "--data.init_args.patch_size", "64", "--print_config"])
@@ -95,20 +117,14 @@ def test_init_from_a_file_without_the_total_head_starts_as_that_network(tmp_path
     import torch
 
     from camhealth.export import export_weights
-    from lightning_modules import NoiseSourceEstimator
 
-    torch.manual_seed(2)
-    start = NoiseSourceEstimator(patch_size=32, total_branch=False)
-    with torch.no_grad():
-        for p in start.net.parameters():
-            p.add_(0.01 * torch.randn_like(p))
+    start = _perturbed_noise_source(2, total_branch=False)
     path = export_weights(start, tmp_path / "legacy.pt")
     cli = main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--trainer.max_steps", "0",
                          "--test_after_fit", "false"))
     net = cli.model.net.eval()
     assert net.total_branch and not start.net.total_branch
-    g = torch.Generator().manual_seed(0)
-    image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    image, meta, prior = _net_inputs()
     with torch.no_grad():
         old, new = start.net.eval()(image, meta, prior), net(image, meta, prior)
     assert new.shape == (4, 5) and torch.allclose(new[:, :4], old)
@@ -119,21 +135,15 @@ def test_init_from_into_a_network_that_reads_more_starts_as_that_network(tmp_pat
     import torch
 
     from camhealth.export import export_weights
-    from lightning_modules import NoiseSourceEstimator
 
-    torch.manual_seed(3)
-    start = NoiseSourceEstimator(patch_size=32)
-    with torch.no_grad():
-        for p in start.net.parameters():
-            p.add_(0.01 * torch.randn_like(p))
+    start = _perturbed_noise_source(3)
     path = export_weights(start, tmp_path / "own.pt")
     cli = main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(path), "--trainer.max_steps", "0",
                          "--test_after_fit", "false", "--model.init_args.branch_inputs", "all",
                          "--model.init_args.nlf_statistics", "true"))
     net = cli.model.net.eval()
     assert net.branch_inputs == "all" and net.nlf_statistics
-    g = torch.Generator().manual_seed(0)
-    image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    image, meta, prior = _net_inputs()
     with torch.no_grad():
         assert torch.equal(net(image, meta, prior), start.net.eval()(image, meta, prior))
     back = export_weights(cli.model, tmp_path / "all.pt")
@@ -167,13 +177,9 @@ def test_revive_trunk_of_a_dead_file_into_a_leaky_trunk_starts_as_that_network(t
     import torch
 
     from camhealth.export import export_weights
-    from lightning_modules import NoiseSourceEstimator
 
-    torch.manual_seed(4)
-    start = NoiseSourceEstimator(patch_size=32)
+    start = _perturbed_noise_source(4)
     with torch.no_grad():
-        for p in start.net.parameters():
-            p.add_(0.01 * torch.randn_like(p))
         start.net.trunk.stages[-1].conv2.bias.fill_(-1e3)  # a dead trunk: its last ReLUs are off for every input
         start.net.trunk.stages[-1].shortcut.bias.fill_(-1e3)
     assert start.net.trunk_activity() == 0.0
@@ -183,7 +189,6 @@ def test_revive_trunk_of_a_dead_file_into_a_leaky_trunk_starts_as_that_network(t
                          "--test_after_fit", "false"))
     net = cli.model.net.eval()
     assert net.trunk_activity() > 0.5
-    g = torch.Generator().manual_seed(0)
-    image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    image, meta, prior = _net_inputs()
     with torch.no_grad():
         assert torch.allclose(net(image, meta, prior), start.net.eval()(image, meta, prior), rtol=1e-5, atol=1e-6)
