@@ -248,14 +248,16 @@ class NoiseSourceNet(nn.Module):
         with 0–20 DN of noise). 0 means the trunk is dead: every ReLU of its last stage is off for every input,
         the pooled features are constants and the branches see the image only through the scalar statistics."""
         g = torch.Generator().manual_seed(seed)
+        shape = (batch, 1, patch_size, patch_size)
         ramp = torch.linspace(0, 1, patch_size).view(1, 1, 1, -1)
-        level = torch.rand(batch, 1, 1, 1, generator=g)
-        slope = torch.rand(batch, 1, 1, 1, generator=g) - 0.5
-        edge = (torch.rand(batch, 1, patch_size, patch_size, generator=g) > 0.5).float() * (torch.rand(batch, 1, 1, 1, generator=g) > 0.5)
-        x = level + slope * ramp + 0.3 * edge + torch.randn(batch, 1, patch_size, patch_size, generator=g) * torch.rand(batch, 1, 1, 1, generator=g) * (20 / 255)
+        level, slope = torch.rand(batch, 1, 1, 1, generator=g), torch.rand(batch, 1, 1, 1, generator=g) - 0.5
+        edge = (torch.rand(shape, generator=g) > 0.5).float() * (torch.rand(batch, 1, 1, 1, generator=g) > 0.5)
+        noise = torch.randn(shape, generator=g) * torch.rand(batch, 1, 1, 1, generator=g) * (20 / 255)
+        x = (level + slope * ramp + 0.3 * edge + noise).clamp(0, 1)
+        weight = next(self.trunk.parameters())
         was = self.training
         self.eval()
-        feats = self.trunk(x.clamp(0, 1)).float()
+        feats = self.trunk(x.to(device=weight.device, dtype=weight.dtype)).float()
         self.train(was)
         return float((feats.std(0) > 1e-6).float().mean())
 
@@ -271,7 +273,9 @@ class NoiseSourceNet(nn.Module):
         activity = self.trunk_activity()
         if activity > 0:
             raise ValueError(f"the trunk is alive ({activity:.0%} of its pooled features vary); nothing to revive")
-        const = self.trunk(torch.full((1, 1, 64, 64), 0.5)).float()[0]  # the same for every input
+        weight = next(self.trunk.parameters())
+        probe = torch.full((1, 1, 64, 64), 0.5, device=weight.device, dtype=weight.dtype)
+        const = self.trunk(probe).float()[0]  # the same for every input
         n = self.trunk.out_features
         heads = list(self.branches) + ([self.total_head] if self.total_branch else [])
         for head in heads:
