@@ -131,21 +131,30 @@ def image_statistics(image: torch.Tensor) -> torch.Tensor:
     return _image_statistics(image.float())
 
 
+def _haar_blocks(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """|d| and the mean [DN] of every 2×2 block of B×1×H×W patches in [0, 1], each (B, ⌊H/2⌋·⌊W/2⌋), with
+    d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 the finest diagonal Haar detail (var d = σ² for white noise)."""
+    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
+    q = x[..., :h, :w] * 255.0
+    a, b, c, e = q[..., 0::2, 0::2], q[..., 0::2, 1::2], q[..., 1::2, 0::2], q[..., 1::2, 1::2]
+    return ((a - b - c + e) / 2.0).abs().flatten(1), ((a + b + c + e) / 4.0).flatten(1)
+
+
+def _lower_median(x: torch.Tensor) -> torch.Tensor:
+    """Lower median along the last dimension. ONNX has no median operator: there it is the top-k form (3–4×
+    slower); torch.median returns the lower median for an even count, the same value."""
+    if torch.onnx.is_in_onnx_export():
+        return x.topk((x.shape[-1] - 1) // 2 + 1, dim=-1, largest=False).values[..., -1]
+    return x.median(dim=-1).values
+
+
 def _image_statistics(x: torch.Tensor) -> torch.Tensor:
     mean = x.flatten(1).mean(1)
     low = (x <= CLIP_TOLERANCE).float().flatten(1).mean(1)
     high = (x >= 1.0 - CLIP_TOLERANCE).float().flatten(1).mean(1)
     resp = laplace_difference(x * 255.0).abs().flatten(1).mean(1)
     immerkaer = math.sqrt(math.pi / 2.0) * resp / 6.0
-    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
-    q = x[..., :h, :w] * 255.0
-    d = (q[..., 0::2, 0::2] - q[..., 0::2, 1::2] - q[..., 1::2, 0::2] + q[..., 1::2, 1::2]) / 2.0
-    flat = d.abs().flatten(1)
-    if torch.onnx.is_in_onnx_export():  # ONNX has no median operator: the lower median via top-k (3–4× slower)
-        med = flat.topk((flat.shape[1] - 1) // 2 + 1, dim=1, largest=False).values[:, -1]
-    else:  # torch.median returns the lower median for an even count, the same value as the top-k form
-        med = flat.median(dim=1).values
-    mad = med / 0.6745
+    mad = _lower_median(_haar_blocks(x)[0]) / 0.6745
     return torch.stack([mean, mean.clamp_min(0).sqrt(), low, high, immerkaer, mad], dim=1)
 
 
@@ -170,21 +179,9 @@ def nlf_statistics(image: torch.Tensor) -> torch.Tensor:
     return _nlf_statistics(image.float())
 
 
-def _lower_median(x: torch.Tensor) -> torch.Tensor:
-    """Lower median along the last dimension (ONNX has no median operator: top-k there)."""
-    if torch.onnx.is_in_onnx_export():
-        return x.topk((x.shape[-1] - 1) // 2 + 1, dim=-1, largest=False).values[..., -1]
-    return x.median(dim=-1).values
-
-
 def _nlf_statistics(x: torch.Tensor) -> torch.Tensor:
-    b = x.shape[0]
-    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
-    q = x[..., :h, :w] * 255.0
-    a, bb, c, e = q[..., 0::2, 0::2], q[..., 0::2, 1::2], q[..., 1::2, 0::2], q[..., 1::2, 1::2]
-    d = ((a - bb - c + e) / 2.0).abs().reshape(b, -1)
-    m = ((a + bb + c + e) / 4.0).reshape(b, -1)
-    n3 = d.shape[1] // 3
+    d, m = _haar_blocks(x)
+    b, n3 = d.shape[0], d.shape[1] // 3
     if n3 < 1:
         raise ValueError(f"nlf_statistics needs at least 3 blocks of 2×2 px, got a {tuple(x.shape[-2:])} patch")
     order = m.argsort(dim=1)[:, : 3 * n3]
