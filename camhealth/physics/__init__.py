@@ -4,11 +4,13 @@
 - :mod:`~camhealth.physics.photon_shot_noise`, :mod:`~camhealth.physics.dark_current`,
   :mod:`~camhealth.physics.readout_noise` — the three noise sources of Konnik & Welsh (2014).
 - :mod:`~camhealth.physics.image_formation` — the Fig. 3.7 chain with per-source labels.
+- :mod:`~camhealth.physics.clipping` — each source's σ after clipping to [0, 255] DN, in closed form.
 - :mod:`~camhealth.physics.thin_lens` — circle of confusion, hyperfocal distance, blur-size conversion.
 - :mod:`~camhealth.physics.defocus_psf`, :mod:`~camhealth.physics.motion_psf` — PSFs.
 - :mod:`~camhealth.physics.mtf` — MTF at the 8 normalised frequencies, H/V and any angle.
 """
 
+from camhealth.physics.clipping import clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_e_per_s, dark_current_shot_sigma_dn, dark_signal_e
 from camhealth.physics.defocus_psf import default_kernel_size, defocus_psf
 from camhealth.physics.image_formation import NOISE_SOURCES, ImageFormation, apply_psf, form_image
@@ -37,6 +39,7 @@ from camhealth.physics.thin_lens import (
 )
 
 __all__ = [
+    "clipped_sigma_dn", "estimate_clean_dn",
     "NOISE_SOURCES", "NORMALIZED_FREQUENCIES", "FULL_FIELDS", "MINIMAL_FIELDS", "METADATA_RANGES", "PRESETS",
     "CameraMetadata", "SensorConstants", "ImageFormation", "form_image", "apply_psf",
     "defocus_psf", "default_kernel_size", "linear_motion_psf", "nonlinear_motion_psf", "sample_shake_noise",
