@@ -154,6 +154,8 @@ class Estimator:
         patch_size: patch side in px the network was trained on.
         metadata_set: metadata :meth:`predict` needs: ``"none"``, ``"minimal"`` or ``"full"``.
         physics_prior: whether the closed-form σ per source is computed and passed to the network.
+        prior_clipping: whether that prior also carries the σ after clipping (``prior_clipping`` models).
+        noise_fit_statistics: whether it also carries the noise fits (``noise_fit_statistics`` models).
         description: the file's JSON description (architecture, params, FLOPs, metrics, ...).
         source: where it was loaded from.
         backend: ``"torch"``, ``"pt2"`` or ``"onnx"``.
@@ -169,6 +171,8 @@ class Estimator:
     _run: Callable[..., torch.Tensor] = field(repr=False)
     _module: Any = field(default=None, repr=False)
     _prior_cache: dict = field(default_factory=dict, repr=False)  # (σ_DCSN, σ_RN) per metadata row
+    prior_clipping: bool = False
+    noise_fit_statistics: bool = False
 
     @property
     def name(self) -> str:
@@ -186,7 +190,10 @@ class Estimator:
         if meta.batch_size not in (1, b):
             raise ValueError(f"metadata has batch size {meta.batch_size}; it must be 1 or the number of patches {b}")
         norm = meta.normalize("full").float().expand(b, -1)
-        prior = physics_prior_dn(patches, meta, self._prior_cache) if self.physics_prior else patches.new_zeros(b, 4)
+        prior = (
+            physics_prior_dn(patches, meta, self._prior_cache, clipping=self.prior_clipping, noise_fit=self.noise_fit_statistics)
+            if self.physics_prior else patches.new_zeros(b, 4)
+        )
         return patches, norm, prior
 
     @torch.inference_mode()
@@ -361,6 +368,8 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         patch_size=int(desc["patch_size"]),
         metadata_set=str(desc.get("metadata_set", "none")),
         physics_prior=bool(init_args.get("physics_prior", False)),
+        prior_clipping=bool(init_args.get("prior_clipping", False)),
+        noise_fit_statistics=bool(init_args.get("noise_fit_statistics", False)),
         description=desc,
         source=str(path),
         backend=backend,

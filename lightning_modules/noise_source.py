@@ -60,7 +60,7 @@ from lightning_modules.base import EstimatorModule
 from lightning_modules.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
 from lightning_modules.noise_features import (
-    IMAGE_STATISTICS, NLF_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, nlf_statistics,
+    IMAGE_STATISTICS, NLF_STATISTICS, NOISE_FIT_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, nlf_statistics,
     physics_prior_dn,
 )
 
@@ -148,9 +148,15 @@ class NoiseSourceNet(nn.Module):
     def __init__(
         self, metadata_set: str = "full", physics_prior: bool = True, width: int = 32, hidden: Sequence[int] = (64, 32, 16),
         prior_anchor: str = "image", total_branch: bool = True, branch_inputs: str = "own", nlf_statistics: bool = False,
-        trunk_activation: str = "relu",
+        trunk_activation: str = "relu", prior_clipping: bool = False, noise_fit_statistics: bool = False,
     ) -> None:
         super().__init__()
+        if prior_clipping and not physics_prior:
+            raise ValueError("prior_clipping needs physics_prior: true (it is the clipped closed-form σ the hybrid starts from)")
+        if noise_fit_statistics and not physics_prior:
+            raise ValueError("noise_fit_statistics needs physics_prior: true (the fits are conditioned on the metadata's noise model)")
+        self.prior_clipping = bool(prior_clipping)
+        self.noise_fit_statistics = bool(noise_fit_statistics)
         if branch_inputs not in BRANCH_INPUTS:
             raise ValueError(f"branch_inputs = {branch_inputs!r} must be one of {list(BRANCH_INPUTS)}")
         self.branch_inputs = branch_inputs
@@ -196,7 +202,14 @@ class NoiseSourceNet(nn.Module):
     def _base_names(self) -> list[str]:
         names = [f"trunk{i}" for i in range(self.trunk.out_features)]
         names += [*IMAGE_STATISTICS, "log_haar_mad"] + (["log_ratio_to_model"] if self.physics_prior else [])
-        return names + (list(NLF_STATISTICS) if self.nlf_statistics else [])
+        names += list(NLF_STATISTICS) if self.nlf_statistics else []
+        return names + (list(NOISE_FIT_STATISTICS) if self.noise_fit_statistics else [])
+
+    @property
+    def prior_width(self) -> int:
+        """Columns of the ``prior`` input: the closed-form σ (4), after clipping (4 with ``prior_clipping``), the
+        noise fits (3 with ``noise_fit_statistics``)."""
+        return 4 + 4 * self.prior_clipping + len(NOISE_FIT_STATISTICS) * self.noise_fit_statistics
 
     def input_names(self) -> dict[str, list[str]]:
         """Names of the input columns of the first layer of every branch (and of the total head), by the
@@ -299,6 +312,8 @@ class NoiseSourceNet(nn.Module):
             scalars.append(ratio)
         if self.nlf_statistics:  # the noise level in three intensity terciles
             scalars.append(nlf_statistics(image))
+        if self.noise_fit_statistics:  # the metadata-conditioned noise fits, computed with the prior
+            scalars.append(prior[:, -len(NOISE_FIT_STATISTICS):].float())
         base = torch.cat([feats, *scalars], dim=1)
         raw = []
         for branch, cols, pcols in zip(self.branches, self.branch_columns, self.prior_columns):
@@ -314,7 +329,9 @@ class NoiseSourceNet(nn.Module):
             # metadata give it (anchor "metadata") — and learn the rest.
             start = ratio if self.prior_anchor == "image" else torch.zeros_like(ratio)
             delta = (start + _MAX_LOG_CORRECTION * torch.tanh(raw_t / _MAX_LOG_CORRECTION)).clamp(-8.0, 8.0)
-            sigma = prior[:, :3].float() * torch.exp(delta[:, :3])
+            # with prior_clipping the sources start from their σ after clipping (columns 4–6); ξ keeps the
+            # unclipped model total, as its label does (Eq. 4.3)
+            sigma = (prior[:, 4:7] if self.prior_clipping else prior[:, :3]).float() * torch.exp(delta[:, :3])
             total = prior[:, 3:4].float()
             xi = total - total * torch.exp(delta[:, 3:4])
         else:
@@ -327,6 +344,10 @@ class NoiseSourceNet(nn.Module):
         if self.total_columns:
             parts.insert(1, meta[:, self.total_columns].float())
         delta_t = _MAX_LOG_CORRECTION * torch.tanh(self.total_head(torch.cat(parts, dim=1)).float() / _MAX_LOG_CORRECTION)
+        if self.prior_clipping:  # start from the clipped model total, moved as the sources are: the clipped
+            # sources' noise is correlated, so their quadrature sum overstates the total (module docstring)
+            clipped = prior[:, 4:8].float()
+            quad = quad * (clipped[:, 3:4] + 1e-6) / (clipped[:, :3].pow(2).sum(1, keepdim=True).add(1e-12).sqrt() + 1e-6)
         return torch.cat([sigma, xi, quad * torch.exp(delta_t)], dim=1)
 
 
@@ -355,6 +376,14 @@ class NoiseSourceEstimator(EstimatorModule):
             (:func:`~lightning_modules.noise_features.nlf_statistics`; default ``False``).
         trunk_activation: ``"relu"`` (default) or ``"leaky_relu"`` (:data:`TRUNK_ACTIVATIONS`; a trunk without
             normalisation can die with ReLU — :meth:`NoiseSourceNet.trunk_activity`).
+        prior_clipping: start the source branches (and the total head) from the closed-form σ *after clipping*
+            to [0, 255] DN (:func:`~lightning_modules.noise_features.clipped_prior_dn`) instead of before it, so the
+            network no longer has to learn what saturation does to each source (default ``False``; needs
+            ``physics_prior``). The prior input is then (B, 8).
+        noise_fit_statistics: also feed every branch how far the image's noise is from the metadata's, by two
+            one-parameter fits of its noise-level function on flat, unclipped blocks
+            (:func:`~lightning_modules.noise_features.noise_fit_statistics`; default ``False``; needs
+            ``physics_prior``; three more prior columns).
     """
 
     kind = "noise_source"
@@ -379,6 +408,8 @@ class NoiseSourceEstimator(EstimatorModule):
         branch_inputs: str = "own",
         nlf_statistics: bool = False,
         trunk_activation: str = "relu",
+        prior_clipping: bool = False,
+        noise_fit_statistics: bool = False,
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
@@ -387,8 +418,10 @@ class NoiseSourceEstimator(EstimatorModule):
         self.physics_prior = bool(physics_prior)
         self.net = NoiseSourceNet(
             metadata_set, physics_prior, width, tuple(hidden), prior_anchor, total_branch, branch_inputs, nlf_statistics,
-            trunk_activation,
+            trunk_activation, prior_clipping, noise_fit_statistics,
         )
+        self.prior_clipping = self.net.prior_clipping
+        self.noise_fit_statistics = self.net.noise_fit_statistics
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)
         if unknown:
@@ -408,7 +441,10 @@ class NoiseSourceEstimator(EstimatorModule):
             raise ValueError(f"this estimator reads {self.metadata_set!r} metadata; pass metadata")
         meta = metadata_from_matrix(meta_raw.to(image.device))
         norm = meta.normalize("full").to(image.dtype)
-        prior = physics_prior_dn(image, meta) if self.physics_prior else image.new_zeros(b, 4)
+        prior = (
+            physics_prior_dn(image, meta, clipping=self.prior_clipping, noise_fit=self.noise_fit_statistics)
+            if self.physics_prior else image.new_zeros(b, 4)
+        )
         return image, norm, prior
 
     def forward(self, image: torch.Tensor, meta_raw: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -426,7 +462,8 @@ class NoiseSourceEstimator(EstimatorModule):
     def export_inputs(self, batch_size: int = 2) -> tuple[torch.Tensor, ...]:
         g = torch.Generator().manual_seed(0)
         image = torch.rand(batch_size, 1, self.patch_size, self.patch_size, generator=g)
-        return image, torch.rand(batch_size, len(FULL_FIELDS), generator=g), torch.rand(batch_size, 4, generator=g) * 5
+        width = self.net.prior_width
+        return image, torch.rand(batch_size, len(FULL_FIELDS), generator=g), torch.rand(batch_size, width, generator=g) * 5
 
     # ------------------------------------------------------------------ training
     def _estimates_and_truth(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor, dict]:

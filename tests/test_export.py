@@ -16,9 +16,15 @@ from lightning_modules import MTFEstimator, NoiseLevelEstimator, NoiseSourceEsti
 MODELS = {
     "noise_source": lambda: NoiseSourceEstimator(patch_size=32),
     "noise_source_all_nlf": lambda: NoiseSourceEstimator(patch_size=32, branch_inputs="all", nlf_statistics=True),
+    "noise_source_clipping": lambda: NoiseSourceEstimator(patch_size=32, prior_clipping=True),
+    "noise_source_clipping_fit": lambda: NoiseSourceEstimator(patch_size=32, prior_clipping=True, noise_fit_statistics=True),
     "drne": lambda: NoiseLevelEstimator(patch_size=32),
     "mtf": lambda: MTFEstimator(patch_size=32),
 }
+
+
+def _kind(name: str) -> str:
+    return "noise_source" if name.startswith("noise_source") else name
 
 
 def _perturbed(kind: str):
@@ -33,6 +39,8 @@ def _perturbed(kind: str):
 def _inputs(batch: int = 3):
     g = torch.Generator().manual_seed(1)
     x = torch.rand(batch, 1, 32, 32, generator=g) * 0.8 + 0.1
+    x[:, :, :6] = 0.0  # black and saturated rows: the clipped prior of prior_clipping models differs there
+    x[:, :, -4:] = 1.0
     meta = CameraMetadata.preset("ICX285", batch_size=batch, gain_db=torch.tensor([0.0, 12.0, 24.0])[:batch])
     return x, meta
 
@@ -42,7 +50,7 @@ def test_weights_round_trip_identical(kind, tmp_path):
     m = _perturbed(kind)
     path = export_weights(m, tmp_path / "w.pt", metrics={"rms_total": 0.5})
     again, desc = load_module(path)
-    assert desc["kind"] == kind.split("_all")[0] and desc["metrics"] == {"rms_total": 0.5}
+    assert desc["kind"] == _kind(kind) and desc["metrics"] == {"rms_total": 0.5}
     inputs = m.export_inputs(3)
     with torch.no_grad():
         assert torch.equal(m.export_module()(*inputs), again.export_module()(*inputs))
@@ -58,7 +66,8 @@ def test_exported_program_matches_torch(kind, fmt, tmp_path):
     path = (export_pt2 if fmt == "pt2" else export_onnx)(m, tmp_path / f"m.{fmt}")
     est = load_estimator(path)
     noise = kind.startswith("noise_source")
-    assert est.backend == fmt and est.kind == kind.split("_all")[0] and est.patch_size == 32
+    assert est.backend == fmt and est.kind == _kind(kind) and est.patch_size == 32
+    assert est.prior_clipping == ("clipping" in kind) and est.noise_fit_statistics == kind.endswith("fit")
     x, meta = _inputs(3)
     a = ref.predict(x, meta if noise else None)
     b = est.predict(x, meta if noise else None)

@@ -192,3 +192,27 @@ def test_revive_trunk_of_a_dead_file_into_a_leaky_trunk_starts_as_that_network(t
     image, meta, prior = _net_inputs()
     with torch.no_grad():
         assert torch.allclose(net(image, meta, prior), start.net.eval()(image, meta, prior), rtol=1e-5, atol=1e-6)
+
+
+def test_clipped_prior_and_noise_fits_train_from_a_file_without_them(tmp_path):
+    """The session-8 recipe in miniature: weights without the options → --init_from into a network with
+    prior_clipping and noise_fit_statistics (fit columns at zero weight) → a few steps → exported weights that
+    load and give finite, flagged estimates on black and saturated patches."""
+    import torch
+
+    from camhealth.inference import load_estimator
+    from camhealth.physics.metadata import CameraMetadata
+
+    first = tmp_path / "plain.pt"
+    main(tiny_args("noise_source.yaml", tmp_path / "a", "--export_weights", str(first), "--test_after_fit", "false"))
+    weights = tmp_path / "clip_fit.pt"
+    main(tiny_args(
+        "noise_source.yaml", tmp_path / "b", "--init_from", str(first), "--model.init_args.prior_clipping", "true",
+        "--model.init_args.noise_fit_statistics", "true", "--export_weights", str(weights), "--test_after_fit", "false",
+    ))
+    est = load_estimator(weights)
+    assert est.prior_clipping and est.noise_fit_statistics
+    x = torch.stack([torch.zeros(1, 32, 32), torch.ones(1, 32, 32), torch.full((1, 32, 32), 0.5)])
+    out = est.predict(x, CameraMetadata.preset("ICX285", batch_size=3))
+    assert torch.isfinite(out["sigma"]).all() and torch.isfinite(out["sigma_total"]).all()
+    assert not out["assessable"][0] and not out["assessable"][1] and out["assessable"][2]

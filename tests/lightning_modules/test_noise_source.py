@@ -178,17 +178,24 @@ def test_branch_inputs_all_lets_every_branch_read_every_field(meta_raw):
         NoiseSourceEstimator(branch_inputs="some")
 
 
-@pytest.mark.parametrize("inputs,nlf", [("all", False), ("own", True), ("all", True)])
-def test_state_from_a_network_that_reads_less_starts_as_that_network(inputs, nlf):
+@pytest.mark.parametrize("inputs,nlf,fit", [("all", False, False), ("own", True, False), ("all", True, False), ("own", False, True)])
+def test_state_from_a_network_that_reads_less_starts_as_that_network(inputs, nlf, fit):
     torch.manual_seed(6)
     src = NoiseSourceEstimator(patch_size=32, prior_anchor="metadata", total_branch=False)
     with torch.no_grad():
         for p in src.net.parameters():
             p.add_(0.02 * torch.randn_like(p))
-    dst = NoiseSourceEstimator(patch_size=32, prior_anchor="metadata", branch_inputs=inputs, nlf_statistics=nlf)
+    dst = NoiseSourceEstimator(
+        patch_size=32, prior_anchor="metadata", branch_inputs=inputs, nlf_statistics=nlf, noise_fit_statistics=fit,
+    )
     dst.net.load_state_dict(dst.net.state_from(src.net))
     g = torch.Generator().manual_seed(0)
     image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
+    if fit:  # the fit columns follow the closed-form σ; src reads only the first four
+        from lightning_modules.noise_features import NOISE_FIT_STATISTICS
+
+        prior = torch.cat([prior, torch.randn(4, len(NOISE_FIT_STATISTICS), generator=g)], 1)
+        assert dst.net.prior_width == 4 + len(NOISE_FIT_STATISTICS)
     with torch.no_grad():
         old, new = src.net.eval()(image, meta, prior), dst.net.eval()(image, meta, prior)
     assert torch.equal(new[:, :4], old)
@@ -232,3 +239,38 @@ def test_leaky_trunk_has_the_same_parameters_and_is_checked():
     assert not any(isinstance(m, torch.nn.ReLU) for m in leaky.net.trunk.modules())
     with pytest.raises(ValueError, match="trunk_activation"):
         NoiseSourceEstimator(trunk_activation="gelu")
+
+
+def test_prior_clipping_starts_from_the_clipped_model(meta_raw):
+    """prior_clipping: zero-initialised branches give the closed-form σ *after clipping* per source and the
+    clipped model total; ξ̂ stays anchored at the unclipped model total (its label's definition)."""
+    m = NoiseSourceEstimator(metadata_set="full", physics_prior=True, prior_anchor="metadata", prior_clipping=True).eval()
+    x = torch.full((3, 1, 64, 64), 0.5)
+    x[:, :, :, :32] = 0.0  # half black
+    x = (x + 0.02 * torch.randn(x.shape, generator=torch.Generator().manual_seed(2))).clamp(0, 1)
+    with torch.no_grad():
+        out = m(x, meta_raw)
+    prior = out["prior"]
+    assert prior.shape == (3, 8)
+    assert torch.allclose(out["sigma"], prior[:, 4:7], rtol=1e-5)
+    assert torch.allclose(out["sigma_total"], prior[:, 7], rtol=1e-4)
+    assert torch.allclose(out["xi"], torch.zeros(3), atol=1e-5)
+    assert (prior[:, 4:7] < prior[:, :3]).all()  # half the patch clips
+    with pytest.raises(ValueError, match="prior_clipping needs physics_prior"):
+        NoiseSourceEstimator(metadata_set="full", physics_prior=False, prior_clipping=True)
+
+
+def test_noise_fit_statistics_reach_the_branches_and_need_the_prior(meta_raw):
+    m = NoiseSourceEstimator(metadata_set="full", physics_prior=True, prior_anchor="metadata", noise_fit_statistics=True).eval()
+    x = (0.4 + 3 / 255 * torch.randn(3, 1, 64, 64, generator=torch.Generator().manual_seed(4))).clamp(0, 1)
+    with torch.no_grad():
+        for branch in m.net.branches:  # move the zero-initialised outputs so the inputs matter
+            branch[-1].weight.add_(0.1)
+        out = m(x, meta_raw)
+        prior = out["prior"].clone()
+        prior[:, 4] += 1.0  # another signal-independent fit (the first fit column) changes the estimate
+        moved = m.net(x, m.network_inputs(x, meta_raw)[1], prior)
+    assert out["prior"].shape == (3, m.net.prior_width) and m.net.prior_width == 10
+    assert not torch.allclose(moved[:, :3], out["sigma"])
+    with pytest.raises(ValueError, match="noise_fit_statistics needs physics_prior"):
+        NoiseSourceEstimator(metadata_set="full", physics_prior=False, noise_fit_statistics=True)
