@@ -42,6 +42,17 @@ Architecture (:class:`NoiseSourceNet`), sized for a 2-core CPU:
   readout noise do not). :meth:`NoiseSourceNet.state_from` carries the weights of a network that reads less
   into one that reads more with zero weights on the new inputs, so ``--init_from`` starts exactly there.
 
+- **Clipping and the image's noise level from physics** (options, off by default; on in the shipped
+  ``noise_source_full_meta`` since session 8): ``prior_clipping: true`` starts the source branches from σ_s(M)
+  *after clipping* to [0, 255] DN and the total head from the clipped total
+  (:func:`~lightning_modules.noise_features.clipped_prior_dn`: the clean scene recovered near the bounds, the
+  per-pixel variances carried through the clipping in closed form), so the network no longer learns what saturation
+  does to each source; ``noise_fit_statistics: true`` feeds every branch two metadata-conditioned fits of the
+  patch's noise-level function on its flat, unclipped blocks — the signal-independent variance with the photon
+  slope fixed, the gain ratio with the metadata's split fixed — their likelihood ratio and what σ_DCSN and σ_RN
+  would be if one of them alone took up the change (:func:`~lightning_modules.noise_features.noise_fit_statistics`).
+  Both are computed with the prior, outside the exported graph; the prior input is then (B, 8), (B, 10) or (B, 14).
+
 Training targets (from :class:`datamodules.NoiseDataModule`): realised σ per source after gain and
 clipping (``sigma``), the realised total (``sigma_total``) and ξ (``xi``), all in DN, with a smooth-L1
 loss. Metrics: Bias/Std/RMS (Eq. 6.2) per source, total and ξ.
