@@ -219,7 +219,7 @@ class NoiseSourceNet(nn.Module):
     @property
     def prior_width(self) -> int:
         """Columns of the ``prior`` input: the closed-form σ (4), after clipping (4 with ``prior_clipping``), the
-        noise fits (3 with ``noise_fit_statistics``)."""
+        noise fits (6 with ``noise_fit_statistics``, :data:`~lightning_modules.noise_features.NOISE_FIT_STATISTICS`)."""
         return 4 + 4 * self.prior_clipping + len(NOISE_FIT_STATISTICS) * self.noise_fit_statistics
 
     def input_names(self) -> dict[str, list[str]]:
@@ -392,9 +392,10 @@ class NoiseSourceEstimator(EstimatorModule):
             network no longer has to learn what saturation does to each source (default ``False``; needs
             ``physics_prior``). The prior input is then (B, 8).
         noise_fit_statistics: also feed every branch how far the image's noise is from the metadata's, by two
-            one-parameter fits of its noise-level function on flat, unclipped blocks
+            one-parameter fits of its noise-level function on flat, unclipped blocks, their likelihood ratio and the
+            σ_DCSN or σ_RN that would take up the change alone
             (:func:`~lightning_modules.noise_features.noise_fit_statistics`; default ``False``; needs
-            ``physics_prior``; three more prior columns).
+            ``physics_prior``; six more prior columns).
     """
 
     kind = "noise_source"
