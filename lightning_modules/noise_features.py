@@ -60,7 +60,8 @@ def physics_prior_dn(
     image: torch.Tensor, meta: CameraMetadata, cache: dict | None = None, clipping: bool = False,
     noise_fit: bool = False,
 ) -> torch.Tensor:
-    """Closed-form σ [DN] of (PN, DCSN, RN, total) for the metadata ``meta``, shape (B, 4), float32.
+    """Closed-form σ [DN] of (PN, DCSN, RN, total) for the metadata ``meta``, shape (B, 4), float32 (more
+    columns with ``clipping`` / ``noise_fit``).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1]; only their mean intensity is used (for σ_PN).
@@ -70,7 +71,7 @@ def physics_prior_dn(
             once); at most 64 rows are kept.
         clipping: also return, as columns 4–7, the σ [DN] of (PN, DCSN, RN, total) that the metadata predict
             *after* clipping to [0, 255] DN (:func:`clipped_prior_dn`), shape (B, 8).
-        noise_fit: append the three columns of :func:`noise_fit_statistics` (how far the image's noise is from
+        noise_fit: append the six columns of :func:`noise_fit_statistics` (how far the image's noise is from
             the metadata's), shape (B, 10) or (B, 14) with ``clipping``.
     """
     b = image.shape[0]
@@ -168,9 +169,7 @@ def noise_fit_statistics(
         x = image.detach().float()
         if x.shape[-1] < 8 or x.shape[-2] < 8:
             raise ValueError(f"noise_fit_statistics needs patches of at least 8×8 px, got {tuple(x.shape[-2:])}")
-        h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
-        q = x[..., :h, :w] * 255.0
-        p00, p01, p10, p11 = q[..., 0::2, 0::2], q[..., 0::2, 1::2], q[..., 1::2, 0::2], q[..., 1::2, 1::2]
+        p00, p01, p10, p11 = _block_pixels(x)
         m = (p00 + p01 + p10 + p11) / 4.0
         lo = torch.minimum(torch.minimum(p00, p01), torch.minimum(p10, p11))
         hi = torch.maximum(torch.maximum(p00, p01), torch.maximum(p10, p11))
@@ -285,12 +284,18 @@ def image_statistics(image: torch.Tensor) -> torch.Tensor:
     return _image_statistics(image.float())
 
 
+def _block_pixels(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The four pixels I₀₀, I₀₁, I₁₀, I₁₁ [DN] of every 2×2 block of B×1×H×W patches in [0, 1], each
+    B×1×⌊H/2⌋×⌊W/2⌋ (an odd last row or column is dropped)."""
+    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
+    q = x[..., :h, :w] * 255.0
+    return q[..., 0::2, 0::2], q[..., 0::2, 1::2], q[..., 1::2, 0::2], q[..., 1::2, 1::2]
+
+
 def _haar_blocks(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """|d| and the mean [DN] of every 2×2 block of B×1×H×W patches in [0, 1], each (B, ⌊H/2⌋·⌊W/2⌋), with
     d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 the finest diagonal Haar detail (var d = σ² for white noise)."""
-    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
-    q = x[..., :h, :w] * 255.0
-    a, b, c, e = q[..., 0::2, 0::2], q[..., 0::2, 1::2], q[..., 1::2, 0::2], q[..., 1::2, 1::2]
+    a, b, c, e = _block_pixels(x)
     return ((a - b - c + e) / 2.0).abs().flatten(1), ((a + b + c + e) / 4.0).flatten(1)
 
 

@@ -36,6 +36,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from camhealth._validation import check_finite, check_range, check_tensor
+
 __all__ = ["censored_noise_moments", "clipped_sigma_dn", "censored_mean_dn", "estimate_clean_dn", "FULL_SCALE_DN"]
 
 #: Upper clipping bound [DN] of the 8-bit output (the lower bound is 0 DN).
@@ -70,6 +72,8 @@ def censored_noise_moments(
     Returns:
         (E[y] [DN], E[y²] [DN²], E[f²]) in the broadcast shape and ``dtype``.
     """
+    check_finite(check_tensor(x, "x"), "x")
+    _check_variance(var, "var")
     x, var = torch.broadcast_tensors(x.to(dtype), var.to(dtype))
     s = var.clamp_min(0).sqrt()
     zero = s <= 0
@@ -109,11 +113,14 @@ def clipped_sigma_dn(
     """
     if not variances:
         raise ValueError("clipped_sigma_dn needs at least one source variance")
+    check_finite(check_tensor(clean_dn, "clean_dn"), "clean_dn")
+    if clean_dn.ndim < 2:
+        raise ValueError(f"clean_dn must be B×C×H×W or B×N, got shape {tuple(clean_dn.shape)}")
     x = clean_dn.to(dtype).flatten(1)
     b, n = x.shape
     vs = []
     for k, v in enumerate(variances):
-        v = torch.as_tensor(v, dtype=dtype, device=x.device)
+        v = _check_variance(torch.as_tensor(v, device=x.device), f"variance {k}").to(dtype)
         if v.numel() == b * n:
             vs.append(v.reshape(b, n))
         elif v.numel() in (1, b):
@@ -185,8 +192,15 @@ def estimate_clean_dn(
     """
     if window < 1 or window % 2 == 0:
         raise ValueError(f"window = {window} must be an odd number ≥ 1")
+    check_finite(check_tensor(image_dn, "image_dn"), "image_dn")
+    if image_dn.ndim != 4:
+        raise ValueError(f"image_dn must be B×1×H×W, got shape {tuple(image_dn.shape)}")
+    b = image_dn.shape[0]
+    for name, v in (("slope", slope), ("offset", offset)):
+        _check_variance(check_tensor(v, name), name)
+        if v.numel() != b:
+            raise ValueError(f"{name} must hold one value per sample ({b}), got {v.numel()}")
     img = image_dn.to(dtype)
-    b = img.shape[0]
     m = _box_mean(img, window // 2)
     a = slope.to(dtype).reshape(b, 1, 1, 1).clamp_min(0)
     c = offset.to(dtype).reshape(b, 1, 1, 1).clamp_min(1e-12)
@@ -227,3 +241,8 @@ def _box_mean(x: torch.Tensor, r: int) -> torch.Tensor:
     h, w = x.shape[-2], x.shape[-1]
     rows = sum(p[..., :, j:j + w] for j in range(k))
     return sum(rows[..., i:i + h, :] for i in range(k)) / (k * k)
+
+
+def _check_variance(v: torch.Tensor, name: str) -> torch.Tensor:
+    """Variances [DN²] (or slopes [DN²/DN]) must be finite and ≥ 0."""
+    return check_range(v, name, 0.0, float("inf"), "DN²")

@@ -144,3 +144,23 @@ def test_clean_estimate_is_the_local_mean_away_from_the_bounds():
     x = estimate_clean_dn(img, torch.tensor([0.01, 0.01]), torch.tensor([25.0, 25.0]))
     ref = torch.nn.functional.avg_pool2d(torch.nn.functional.pad(img.double(), (1, 1, 1, 1), mode="replicate"), 3, 1)
     assert torch.allclose(x, ref)
+
+
+def test_bad_values_are_named():
+    """NaN scenes, negative or non-finite variances and wrong shapes get a ValueError naming the value."""
+    with pytest.raises(ValueError, match="clean_dn must be finite"):
+        clipped_sigma_dn(torch.tensor([[float("nan"), 1.0]]), [torch.ones(1)])
+    with pytest.raises(ValueError, match=r"variance 1 = -2 DN² is out of the allowed range \[0, inf\]"):
+        clipped_sigma_dn(torch.zeros(1, 4), [torch.ones(1), torch.tensor([-2.0])])
+    with pytest.raises(ValueError, match="B×C×H×W or B×N"):
+        clipped_sigma_dn(torch.zeros(4), [torch.ones(1)])
+    with pytest.raises(ValueError, match="var must be finite"):
+        censored_noise_moments(torch.zeros(2), torch.tensor([1.0, float("inf")]))
+    with pytest.raises(ValueError, match="image_dn must be finite"):
+        estimate_clean_dn(torch.full((1, 1, 4, 4), float("nan")), torch.ones(1), torch.ones(1))
+    with pytest.raises(ValueError, match="offset = -1 DN²"):
+        estimate_clean_dn(torch.zeros(1, 1, 4, 4), torch.ones(1), -torch.ones(1))
+    with pytest.raises(ValueError, match="one value per sample"):
+        estimate_clean_dn(torch.zeros(2, 1, 4, 4), torch.ones(3), torch.ones(2))
+    with pytest.raises(ValueError, match="B×1×H×W"):
+        estimate_clean_dn(torch.zeros(4, 4), torch.ones(4), torch.ones(4))
