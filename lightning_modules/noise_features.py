@@ -36,7 +36,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
     "metadata_from_matrix", "physics_prior_dn", "clipped_prior_dn", "image_statistics", "laplace_difference", "box_mean3", "IMAGE_STATISTICS",
-    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS", "noise_fit_statistics", "NOISE_FIT_STATISTICS",
+    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS", "noise_fit_statistics", "noise_fits", "NOISE_FIT_STATISTICS",
 ]
 
 #: Names of the columns of :func:`image_statistics`.
@@ -58,7 +58,7 @@ def metadata_from_matrix(meta_raw: torch.Tensor) -> CameraMetadata:
 
 def physics_prior_dn(
     image: torch.Tensor, meta: CameraMetadata, cache: dict | None = None, clipping: bool = False,
-    noise_fit: bool = False,
+    noise_fit: bool = False, posterior: bool = False,
 ) -> torch.Tensor:
     """Closed-form σ [DN] of (PN, DCSN, RN, total) for the metadata ``meta``, shape (B, 4), float32 (more
     columns with ``clipping`` / ``noise_fit``).
@@ -73,6 +73,9 @@ def physics_prior_dn(
             *after* clipping to [0, 255] DN (:func:`clipped_prior_dn`), shape (B, 8).
         noise_fit: append the six columns of :func:`noise_fit_statistics` (how far the image's noise is from
             the metadata's), shape (B, 10) or (B, 14) with ``clipping``.
+        posterior: append the nine columns of
+            :func:`~lightning_modules.mismatch_posterior.mismatch_posterior` (the noise model of each patch after
+            weighing every single-field mismatch of the metadata against the patch's noise-level function).
     """
     b = image.shape[0]
     if meta.batch_size not in (1, b):
@@ -113,6 +116,10 @@ def physics_prior_dn(
         prior = torch.cat([prior, clipped_prior_dn(image, 255.0 * g_fw, dc, rn)], dim=1)
     if noise_fit:
         prior = torch.cat([prior, noise_fit_statistics(image, 255.0 * g_fw, dc, rn).double()], dim=1)
+    if posterior:
+        from lightning_modules.mismatch_posterior import mismatch_posterior  # imports this module
+
+        prior = torch.cat([prior, mismatch_posterior(image, meta).double()], dim=1)
     return prior.float()
 
 
@@ -165,6 +172,34 @@ def noise_fit_statistics(
         pn_slope: (B,) photon-noise variance per DN of signal, 255·g/FW [DN²/DN].
         dcsn_dn, rn_dn: (B,) σ_DCSN and σ_RN [DN] of the metadata.
     """
+    fits = noise_fits(image, pn_slope, dcsn_dn, rn_dn, iterations)
+    c, s, n, llr = fits["c"], fits["s"], fits["n"], fits["llr"]
+    c0 = dcsn_dn.float().to(c.device).square() + rn_dn.float().to(c.device).square()
+    # too few flat, unclipped blocks (a clipped, textured or tiny patch): no evidence, the logs 0
+    enough = n >= _MIN_FIT_BLOCKS
+    zero = torch.zeros_like(llr)
+    ratio = torch.where(enough, torch.log((c.sqrt() + 0.1) / (c0.sqrt() + 0.1)), zero)
+    log_s = torch.where(enough, s.log().clamp(-4.0, 4.0), zero)
+    llr = torch.where(enough, llr.sign() * llr.abs().log1p(), zero)
+    dc0, rn0 = dcsn_dn.float().to(c.device), rn_dn.float().to(c.device)
+    dc_alone = torch.log(((c - rn0.square()).clamp_min(0).sqrt() + 0.1) / (dc0 + 0.1))
+    rn_alone = torch.log(((c - dc0.square()).clamp_min(0).sqrt() + 0.1) / (rn0 + 0.1))
+    dc_alone, rn_alone = torch.where(enough, dc_alone, zero), torch.where(enough, rn_alone, zero)
+    return torch.stack([ratio, log_s, fits["kept"], llr, dc_alone, rn_alone], dim=1)
+
+
+def noise_fits(
+    image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor, iterations: int = 3,
+) -> dict[str, torch.Tensor]:
+    """The two fits of :func:`noise_fit_statistics` and what they were made from (float32, no gradient).
+
+    Returns a dict: ``c`` (B,) the signal-independent variance ĉ [DN²] (slope fixed by the metadata); ``s`` (B,)
+    the gain ratio ŝ; ``n`` (B,) the number of inlier details of the last gain fit; ``kept`` (B,) the fraction of
+    blocks used; ``llr`` (B,) ℓ_signal-independent − ℓ_gain on the common inliers (raw, not compressed);
+    ``mean`` (B, 1, h, w) the block means [DN]; ``d2`` (3, B, 1, h, w) the squared Haar details [DN²];
+    ``inliers`` (3, B, 1, h, w) float mask of the common inliers (flat, unclipped, within 3 σ of the larger of the
+    two fitted variances). Arguments as :func:`noise_fit_statistics`.
+    """
     with torch.autocast(device_type=image.device.type, enabled=False):
         x = image.detach().float()
         if x.shape[-1] < 8 or x.shape[-2] < 8:
@@ -212,18 +247,7 @@ def noise_fit_statistics(
         flat = F.max_pool2d((g2 > _TEXTURE_CHI2 * v_max / 2.0).float(), 3, 1, 1) == 0
         inl = (usable & flat & (d2 < _INLIER_Z**2 * v_max)).float()
         llr = 0.5 * ((d2 / v_gain + v_gain.log() - d2 / v_ind - v_ind.log()) * inl).sum((0, 2, 3, 4))
-        # too few flat, unclipped blocks (a clipped, textured or tiny patch): no evidence, the logs 0
-        enough = n >= _MIN_FIT_BLOCKS
-        zero = torch.zeros_like(llr)
-        c_f, c0_f = c.flatten(), c0.flatten()
-        ratio = torch.where(enough, torch.log((c_f.sqrt() + 0.1) / (c0_f.sqrt() + 0.1)), zero)
-        log_s = torch.where(enough, s.flatten().log().clamp(-4.0, 4.0), zero)
-        llr = torch.where(enough, llr.sign() * llr.abs().log1p(), zero)
-        dc0, rn0 = dcsn_dn.float().to(x.device), rn_dn.float().to(x.device)
-        dc_alone = torch.log(((c_f - rn0.square()).clamp_min(0).sqrt() + 0.1) / (dc0 + 0.1))
-        rn_alone = torch.log(((c_f - dc0.square()).clamp_min(0).sqrt() + 0.1) / (rn0 + 0.1))
-        dc_alone, rn_alone = torch.where(enough, dc_alone, zero), torch.where(enough, rn_alone, zero)
-        return torch.stack([ratio, log_s, kept, llr, dc_alone, rn_alone], dim=1)
+        return {"c": c.flatten(), "s": s.flatten(), "n": n, "kept": kept, "llr": llr, "mean": m, "d2": d2, "inliers": inl}
 
 
 def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor) -> torch.Tensor:
