@@ -11,6 +11,8 @@ For every shipped model (``camhealth/weights/*.pt``; or ``--models``) and every 
   family over sizes ``--sizes`` (default 3–21 px);
 * **speed**: ``Estimator.predict`` on a batch of ``--batch`` patches in fp32 and bf16 (closed-form physics prior
   and input checks included), median over ``--repeats``; params and FLOPs per patch;
+* **closed form**: the mismatch posterior alone (:mod:`lightning_modules.mismatch_posterior`, no network) on
+  the same noise patches, as a last row of the noise table;
 * **reference**: the thesis-size noise network (16 full-resolution 64-channel layers, ≈ 17 GFLOP per 128-px patch,
   :class:`lightning_modules.ThesisNoiseNet`, untrained — timing only) on the same batch; the ratio column is
   relative to it.
@@ -185,6 +187,37 @@ def noise_accuracy(est, data: dict[str, torch.Tensor]) -> dict[str, float]:
     return res
 
 
+def posterior_accuracy(data: dict[str, torch.Tensor], fields: tuple[str, ...], batch: int = 64) -> tuple[dict[str, float], float]:
+    """Bias/Std/RMS [DN] and ms/patch of the closed-form mismatch posterior alone (no network): σ per source and
+    total after clipping, ξ = σ_Total(M) − E[σ_Total(M')] (:func:`lightning_modules.mismatch_posterior.mismatch_posterior`,
+    the alteration prior of the held-out set's ``fields``)."""
+    from lightning_modules.metrics import bias_std_rms
+    from lightning_modules.mismatch_posterior import mismatch_posterior
+    from lightning_modules.noise_features import physics_prior_dn
+
+    n = data["image"].shape[0]
+    t = time.perf_counter()
+    outs = []
+    for i in range(0, n, batch):
+        sl = slice(i, min(n, i + batch))
+        meta = _meta(data, sl)
+        post = mismatch_posterior(data["image"][sl], meta, fields=fields)
+        total_m = physics_prior_dn(data["image"][sl], meta)[:, 3]
+        outs.append(torch.cat([post[:, :4], (total_m - post[:, 4]).unsqueeze(1)], dim=1))
+    ms = (time.perf_counter() - t) * 1e3 / n
+    est = torch.cat(outs).double()
+    res: dict[str, float] = {"n": float(n)}
+    truth = {"pn": data["sigma"][:, 0], "dcsn": data["sigma"][:, 1], "rn": data["sigma"][:, 2], "total": data["sigma_total"], "xi": data["xi"]}
+    cols = {"pn": 0, "dcsn": 1, "rn": 2, "total": 3, "xi": 4}
+    keep = ~data["altered"]
+    for name, j in cols.items():
+        b, s, r = bias_std_rms(est[:, j], truth[name].double())
+        res.update({f"bias_{name}": b.item(), f"std_{name}": s.item(), f"rms_{name}": r.item()})
+        if bool(keep.any()):
+            res[f"rms_{name}_consistent"] = bias_std_rms(est[keep, j], truth[name][keep].double())[2].item()
+    return res, ms
+
+
 def mtf_accuracy(est, data: dict[str, torch.Tensor]) -> dict[str, float]:
     from lightning_modules.metrics import amae_percent
 
@@ -264,6 +297,17 @@ def run(args: argparse.Namespace) -> BenchResult:
                 f"{g('rms_pn_consistent'):.2f} / {g('rms_dcsn_consistent'):.2f} / {g('rms_rn_consistent'):.2f} / "
                 f"{g('rms_total_consistent'):.2f} |"
             )
+    if noise_data is not None:  # the closed-form posterior alone, on the same patches
+        from datamodules.noise import XI_FIELDS
+
+        acc, ms = posterior_accuracy(noise_data, tuple(getattr(args, "xi_fields", None) or XI_FIELDS))
+        g = lambda k: acc.get(k, float("nan"))  # noqa: E731
+        noise_table.append(
+            f"| mismatch posterior (closed form, no network; {ms:.2f} ms/patch) | {int(acc['n'])} | {g('rms_pn'):.2f} | "
+            f"{g('rms_dcsn'):.2f} | {g('rms_rn'):.2f} | {g('bias_total'):.2f} / {g('std_total'):.2f} / {g('rms_total'):.2f} | "
+            f"{g('rms_xi'):.2f} | {g('rms_pn_consistent'):.2f} / {g('rms_dcsn_consistent'):.2f} / "
+            f"{g('rms_rn_consistent'):.2f} / {g('rms_total_consistent'):.2f} |"
+        )
     baseline = rows[0].name
     header = [
         f"{_dt.date.today().isoformat()}, {platform.processor() or platform.machine()}, torch {torch.__version__}, "
