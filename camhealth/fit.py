@@ -96,7 +96,7 @@ def _init_from(model: EstimatorModule, path: str, revive_seed: int | None = None
     """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
     ``model``; the architectures must match (a clear error names the first mismatch). One exception: a
     noise-source network may read more than the file's (the total head, ``branch_inputs: all``,
-    ``nlf_statistics``, ``noise_fit_statistics``; :meth:`~lightning_modules.noise_source.NoiseSourceNet.state_from`;
+    ``nlf_statistics``, ``noise_fit_statistics``, ``mismatch_posterior`` (whose trust head starts at λ = 0.05); :meth:`~lightning_modules.noise_source.NoiseSourceNet.state_from`;
     ``prior_clipping`` adds no weights, it moves the starting point) — the new inputs
     get zero weights and the head its zero-initialised output, so the model starts as the file's network
     exactly. With ``revive_seed``, the file's dead trunk is first revived

@@ -156,6 +156,7 @@ class Estimator:
         physics_prior: whether the closed-form σ per source is computed and passed to the network.
         prior_clipping: whether that prior also carries the σ after clipping (``prior_clipping`` models).
         noise_fit_statistics: whether it also carries the noise fits (``noise_fit_statistics`` models).
+        mismatch_posterior: whether it also carries the mismatch posterior (``mismatch_posterior`` models).
         description: the file's JSON description (architecture, params, FLOPs, metrics, ...).
         source: where it was loaded from.
         backend: ``"torch"``, ``"pt2"`` or ``"onnx"``.
@@ -173,6 +174,7 @@ class Estimator:
     _prior_cache: dict = field(default_factory=dict, repr=False)  # (σ_DCSN, σ_RN) per metadata row
     prior_clipping: bool = False
     noise_fit_statistics: bool = False
+    mismatch_posterior: bool = False
 
     @property
     def name(self) -> str:
@@ -191,7 +193,10 @@ class Estimator:
             raise ValueError(f"metadata has batch size {meta.batch_size}; it must be 1 or the number of patches {b}")
         norm = meta.normalize("full").float().expand(b, -1)
         prior = (
-            physics_prior_dn(patches, meta, self._prior_cache, clipping=self.prior_clipping, noise_fit=self.noise_fit_statistics)
+            physics_prior_dn(
+                patches, meta, self._prior_cache, clipping=self.prior_clipping, noise_fit=self.noise_fit_statistics,
+                posterior=self.mismatch_posterior,
+            )
             if self.physics_prior else patches.new_zeros(b, 4)
         )
         return patches, norm, prior
@@ -370,6 +375,7 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         physics_prior=bool(init_args.get("physics_prior", False)),
         prior_clipping=bool(init_args.get("prior_clipping", False)),
         noise_fit_statistics=bool(init_args.get("noise_fit_statistics", False)),
+        mismatch_posterior=bool(init_args.get("mismatch_posterior", False)),
         description=desc,
         source=str(path),
         backend=backend,

@@ -53,6 +53,13 @@ Architecture (:class:`NoiseSourceNet`), sized for a 2-core CPU:
   would be if one of them alone took up the change (:func:`~lightning_modules.noise_features.noise_fit_statistics`).
   Both are computed with the prior, outside the exported graph; the prior input is then (B, 8), (B, 10) or (B, 14).
 
+- **Which field is wrong, from physics** (option ``mismatch_posterior``, session 9; needs ``prior_clipping``): the
+  Bayesian posterior over single-field mismatches of the metadata (:mod:`lightning_modules.mismatch_posterior`) —
+  every candidate's σ from the physics, weighed by the likelihood of the patch's flat-block details — appended to
+  the prior (eleven columns), and a trust head that blends each output with it,
+  log σ̂ = log σ̂_own + λ·(log σ_post − log σ̂_own), λ = sigmoid(·) ∈ (0, 1) learned per patch and output, 0 where the
+  posterior abstains. The branches are unchanged, so ``--init_from`` a file without it starts at λ = 0.05.
+
 Training targets (from :class:`datamodules.NoiseDataModule`): realised σ per source after gain and
 clipping (``sigma``), the realised total (``sigma_total``) and ξ (``xi``), all in DN, with a smooth-L1
 loss. Metrics: Bias/Std/RMS (Eq. 6.2) per source, total and ξ.
@@ -74,6 +81,7 @@ from lightning_modules.noise_features import (
     IMAGE_STATISTICS, NLF_STATISTICS, NOISE_FIT_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, nlf_statistics,
     physics_prior_dn,
 )
+from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR
 
 __all__ = [
     "NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "BRANCH_INPUTS", "OUTPUTS", "PRIOR_ANCHORS",
@@ -97,6 +105,18 @@ BRANCH_FIELDS: dict[str, tuple[str, ...]] = {
 }
 
 _MAX_LOG_CORRECTION = 5.0
+# Initial output bias of the trust head: λ = sigmoid(−3) ≈ 0.05 (a small, non-zero gradient toward the posterior).
+_TRUST_START = -3.0
+#: What the trust head reads besides the branches' inputs: the posterior's σ as log ratios to the metadata's
+#: (clipped PN, DCSN, RN, total; unclipped total), its four probabilities, log(1 + details used)/10 and its texture check.
+_TRUST_INPUTS: tuple[str, ...] = (
+    *(f"log_ratio:{n}" for n in MISMATCH_POSTERIOR[:5]), *MISMATCH_POSTERIOR[5:9], "log1p_posterior_details",
+    "posterior_texture",
+)
+# The posterior abstains (λ = 0) below this many inlier details (its no-evidence threshold).
+_MIN_POSTERIOR_DETAILS = 32
+# Offset [DN] of the trust head's log ratio: full trust (λ = 1) gives the posterior's σ (relative error ≤ 1e-6 DN / σ_clipped(M)).
+_TRUST_EPS_DN = 1e-6
 
 #: Starting points of the hybrid's log-correction: ``"image"`` — the closed-form σ per source rescaled by the
 #: ratio r of a robust classical noise estimate of the patch to the closed-form total (the default);
@@ -160,8 +180,12 @@ class NoiseSourceNet(nn.Module):
         self, metadata_set: str = "full", physics_prior: bool = True, width: int = 32, hidden: Sequence[int] = (64, 32, 16),
         prior_anchor: str = "image", total_branch: bool = True, branch_inputs: str = "own", nlf_statistics: bool = False,
         trunk_activation: str = "relu", prior_clipping: bool = False, noise_fit_statistics: bool = False,
+        mismatch_posterior: bool = False,
     ) -> None:
         super().__init__()
+        if mismatch_posterior and not prior_clipping:
+            raise ValueError("mismatch_posterior needs prior_clipping: true (the posterior's clipped σ is read against the clipped prior)")
+        self.mismatch_posterior = bool(mismatch_posterior)
         if prior_clipping and not physics_prior:
             raise ValueError("prior_clipping needs physics_prior: true (it is the clipped closed-form σ the hybrid starts from)")
         if noise_fit_statistics and not physics_prior:
@@ -209,6 +233,10 @@ class NoiseSourceNet(nn.Module):
             self.total_head = FullyConnectedBlock(n_base + len(self.total_columns) + 1, tuple(hidden), 1)
             nn.init.zeros_(self.total_head[-1].weight)
             nn.init.zeros_(self.total_head[-1].bias)
+        if self.mismatch_posterior:  # how far each output follows the posterior: λ = sigmoid(·), starts at 0.05
+            self.trust_head = FullyConnectedBlock(n_base + len(_TRUST_INPUTS), tuple(hidden), len(OUTPUTS))
+            nn.init.zeros_(self.trust_head[-1].weight)
+            nn.init.constant_(self.trust_head[-1].bias, _TRUST_START)
 
     def _base_names(self) -> list[str]:
         names = [f"trunk{i}" for i in range(self.trunk.out_features)]
@@ -220,7 +248,8 @@ class NoiseSourceNet(nn.Module):
     def prior_width(self) -> int:
         """Columns of the ``prior`` input: the closed-form σ (4), after clipping (4 with ``prior_clipping``), the
         noise fits (6 with ``noise_fit_statistics``, :data:`~lightning_modules.noise_features.NOISE_FIT_STATISTICS`)."""
-        return 4 + 4 * self.prior_clipping + len(NOISE_FIT_STATISTICS) * self.noise_fit_statistics
+        return (4 + 4 * self.prior_clipping + len(NOISE_FIT_STATISTICS) * self.noise_fit_statistics
+                + len(MISMATCH_POSTERIOR) * self.mismatch_posterior)
 
     def input_names(self) -> dict[str, list[str]]:
         """Names of the input columns of the first layer of every branch (and of the total head), by the
@@ -232,6 +261,8 @@ class NoiseSourceNet(nn.Module):
         }
         if self.total_branch:
             out["total_head.0"] = base + [f"meta:{FULL_FIELDS[c]}" for c in self.total_columns] + ["log_quadrature_sum"]
+        if self.mismatch_posterior:
+            out["trust_head.0"] = base + list(_TRUST_INPUTS)
         return out
 
     def state_from(self, source: "NoiseSourceNet") -> dict[str, torch.Tensor]:
@@ -246,6 +277,8 @@ class NoiseSourceNet(nn.Module):
         mine = self.state_dict()
         if self.total_branch and not source.total_branch:
             state.update({k: v for k, v in mine.items() if k.startswith("total_head.")})
+        if self.mismatch_posterior and not getattr(source, "mismatch_posterior", False):  # λ starts at 0.05
+            state.update({k: v for k, v in mine.items() if k.startswith("trust_head.")})
         old_names, new_names = source.input_names(), self.input_names()
         for prefix, names in new_names.items():
             key = f"{prefix}.weight"
@@ -324,7 +357,8 @@ class NoiseSourceNet(nn.Module):
         if self.nlf_statistics:  # the noise level in three intensity terciles
             scalars.append(nlf_statistics(image))
         if self.noise_fit_statistics:  # the metadata-conditioned noise fits, computed with the prior
-            scalars.append(prior[:, -len(NOISE_FIT_STATISTICS):].float())
+            lo = 8 if self.prior_clipping else 4
+            scalars.append(prior[:, lo:lo + len(NOISE_FIT_STATISTICS)].float())
         base = torch.cat([feats, *scalars], dim=1)
         raw = []
         for branch, cols, pcols in zip(self.branches, self.branch_columns, self.prior_columns):
@@ -339,7 +373,18 @@ class NoiseSourceNet(nn.Module):
             # Start from the noise model — rescaled to the robust image estimate (anchor "image") or as the
             # metadata give it (anchor "metadata") — and learn the rest.
             start = ratio if self.prior_anchor == "image" else torch.zeros_like(ratio)
-            delta = (start + _MAX_LOG_CORRECTION * torch.tanh(raw_t / _MAX_LOG_CORRECTION)).clamp(-8.0, 8.0)
+            delta = start + _MAX_LOG_CORRECTION * torch.tanh(raw_t / _MAX_LOG_CORRECTION)
+            if self.mismatch_posterior:  # blend with the posterior by the learned trust λ ∈ (0, 1), 0 where it abstains
+                post = prior[:, -len(MISMATCH_POSTERIOR):].float()
+                anchor = torch.cat([prior[:, 4:8], prior[:, 3:4]], dim=1).float()
+                log_post = torch.log((post[:, :5] + 0.1) / (anchor + 0.1))  # inputs of the trust head
+                evidence = (post[:, 9:10] >= _MIN_POSTERIOR_DETAILS).float()
+                trust_in = torch.cat([base, log_post, post[:, 5:9], torch.log1p(post[:, 9:10]) / 10.0, post[:, 10:11]], dim=1)
+                trust = torch.sigmoid(self.trust_head(trust_in).float()) * evidence
+                target = torch.log((torch.cat([post[:, :3], post[:, 4:5]], dim=1) + _TRUST_EPS_DN)
+                                   / (torch.cat([anchor[:, :3], anchor[:, 4:5]], dim=1) + _TRUST_EPS_DN))
+                delta = delta + trust * (target - delta)
+            delta = delta.clamp(-8.0, 8.0)
             # with prior_clipping the sources start from their σ after clipping (columns 4–6); ξ keeps the
             # unclipped model total, as its label does (Eq. 4.3)
             sigma = (prior[:, 4:7] if self.prior_clipping else prior[:, :3]).float() * torch.exp(delta[:, :3])
@@ -396,6 +441,13 @@ class NoiseSourceEstimator(EstimatorModule):
             σ_DCSN or σ_RN that would take up the change alone
             (:func:`~lightning_modules.noise_features.noise_fit_statistics`; default ``False``; needs
             ``physics_prior``; six more prior columns).
+        mismatch_posterior: also compute, outside the network, the Bayesian posterior over single-field metadata
+            mismatches (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`: gain, temperature or
+            white noise redrawn, each candidate's σ from the physics, weighed by the likelihood of the patch's
+            flat-block Haar details), and let a trust head (reading the branches' inputs and the posterior's σ,
+            probabilities and evidence) blend each output with it: log σ̂ = log σ̂_own + λ·(log σ_post − log σ̂_own),
+            λ = sigmoid(·) per patch and output, 0.05 at the start, 0 where the posterior abstains; λ = 1 is the
+            posterior's σ. Default ``False``; needs ``prior_clipping``; eleven more prior columns. Default ``False``; needs ``prior_clipping``; nine more prior columns.
     """
 
     kind = "noise_source"
@@ -422,6 +474,7 @@ class NoiseSourceEstimator(EstimatorModule):
         trunk_activation: str = "relu",
         prior_clipping: bool = False,
         noise_fit_statistics: bool = False,
+        mismatch_posterior: bool = False,
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
@@ -430,10 +483,11 @@ class NoiseSourceEstimator(EstimatorModule):
         self.physics_prior = bool(physics_prior)
         self.net = NoiseSourceNet(
             metadata_set, physics_prior, width, tuple(hidden), prior_anchor, total_branch, branch_inputs, nlf_statistics,
-            trunk_activation, prior_clipping, noise_fit_statistics,
+            trunk_activation, prior_clipping, noise_fit_statistics, mismatch_posterior,
         )
         self.prior_clipping = self.net.prior_clipping
         self.noise_fit_statistics = self.net.noise_fit_statistics
+        self.mismatch_posterior = self.net.mismatch_posterior
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)
         if unknown:
@@ -454,7 +508,8 @@ class NoiseSourceEstimator(EstimatorModule):
         meta = metadata_from_matrix(meta_raw.to(image.device))
         norm = meta.normalize("full").to(image.dtype)
         prior = (
-            physics_prior_dn(image, meta, clipping=self.prior_clipping, noise_fit=self.noise_fit_statistics)
+            physics_prior_dn(image, meta, clipping=self.prior_clipping, noise_fit=self.noise_fit_statistics,
+                             posterior=self.mismatch_posterior)
             if self.physics_prior else image.new_zeros(b, 4)
         )
         return image, norm, prior

@@ -18,6 +18,9 @@ MODELS = {
     "noise_source_all_nlf": lambda: NoiseSourceEstimator(patch_size=32, branch_inputs="all", nlf_statistics=True),
     "noise_source_clipping": lambda: NoiseSourceEstimator(patch_size=32, prior_clipping=True),
     "noise_source_clipping_fit": lambda: NoiseSourceEstimator(patch_size=32, prior_clipping=True, noise_fit_statistics=True),
+    "noise_source_clipping_fit_post": lambda: NoiseSourceEstimator(
+        patch_size=32, prior_clipping=True, noise_fit_statistics=True, mismatch_posterior=True,
+    ),
     "drne": lambda: NoiseLevelEstimator(patch_size=32),
     "mtf": lambda: MTFEstimator(patch_size=32),
 }
@@ -67,7 +70,8 @@ def test_exported_program_matches_torch(kind, fmt, tmp_path):
     est = load_estimator(path)
     noise = kind.startswith("noise_source")
     assert est.backend == fmt and est.kind == _kind(kind) and est.patch_size == 32
-    assert est.prior_clipping == ("clipping" in kind) and est.noise_fit_statistics == kind.endswith("fit")
+    assert est.prior_clipping == ("clipping" in kind) and est.noise_fit_statistics == ("fit" in kind)
+    assert est.mismatch_posterior == kind.endswith("post")
     x, meta = _inputs(3)
     a = ref.predict(x, meta if noise else None)
     b = est.predict(x, meta if noise else None)

@@ -196,7 +196,7 @@ def test_revive_trunk_of_a_dead_file_into_a_leaky_trunk_starts_as_that_network(t
 
 def test_clipped_prior_and_noise_fits_train_from_a_file_without_them(tmp_path):
     """The session-8 recipe in miniature: weights without the options → --init_from into a network with
-    prior_clipping and noise_fit_statistics (fit columns at zero weight) → a few steps → exported weights that
+    prior_clipping, noise_fit_statistics and mismatch_posterior (new columns at zero weight) → a few steps → exported weights that
     load and give finite, flagged estimates on black and saturated patches."""
     import torch
 
@@ -208,10 +208,11 @@ def test_clipped_prior_and_noise_fits_train_from_a_file_without_them(tmp_path):
     weights = tmp_path / "clip_fit.pt"
     main(tiny_args(
         "noise_source.yaml", tmp_path / "b", "--init_from", str(first), "--model.init_args.prior_clipping", "true",
-        "--model.init_args.noise_fit_statistics", "true", "--export_weights", str(weights), "--test_after_fit", "false",
+        "--model.init_args.noise_fit_statistics", "true", "--model.init_args.mismatch_posterior", "true",
+        "--export_weights", str(weights), "--test_after_fit", "false",
     ))
     est = load_estimator(weights)
-    assert est.prior_clipping and est.noise_fit_statistics
+    assert est.prior_clipping and est.noise_fit_statistics and est.mismatch_posterior
     x = torch.stack([torch.zeros(1, 32, 32), torch.ones(1, 32, 32), torch.full((1, 32, 32), 0.5)])
     out = est.predict(x, CameraMetadata.preset("ICX285", batch_size=3))
     assert torch.isfinite(out["sigma"]).all() and torch.isfinite(out["sigma_total"]).all()

@@ -274,3 +274,56 @@ def test_noise_fit_statistics_reach_the_branches_and_need_the_prior(meta_raw):
     assert not torch.allclose(moved[:, :3], out["sigma"])
     with pytest.raises(ValueError, match="noise_fit_statistics needs physics_prior"):
         NoiseSourceEstimator(metadata_set="full", physics_prior=False, noise_fit_statistics=True)
+
+
+def test_mismatch_posterior_blends_each_output_by_the_learned_trust(meta_raw):
+    """mismatch_posterior: ten more prior columns (the posterior's σ, probabilities and details used); each output is
+    the network's own estimate moved toward the posterior's by λ: log σ̂ = log σ̂_own + λ·(log σ_post − log σ̂_own),
+    λ = sigmoid(−3) at the start, the posterior's σ with full trust, and the network's own where the posterior
+    abstains (too few details: a saturated patch)."""
+    from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR
+
+    m = NoiseSourceEstimator(metadata_set="full", physics_prior=True, prior_anchor="metadata", prior_clipping=True, mismatch_posterior=True).eval()
+    g = torch.Generator().manual_seed(4)
+    x = (0.4 + 6 / 255 * torch.randn(3, 1, 64, 64, generator=g)).clamp(0, 1)  # noisier than most metadata say
+    x[2] = 1.0  # saturated: the posterior abstains
+    with torch.no_grad():
+        out = m(x, meta_raw)
+    prior = out["prior"]
+    assert prior.shape == (3, m.net.prior_width) and m.net.prior_width == 8 + len(MISMATCH_POSTERIOR)
+    post, clipped = prior[:, 8:11], prior[:, 4:7]
+    assert prior[2, 17] == 0 and (prior[:2, 17] > 32).all()
+    lam = torch.sigmoid(torch.tensor(-3.0))
+    own = clipped  # zero-initialised branches: the network's own estimate is the clipped closed form
+    assert torch.allclose(out["sigma"][:2], own[:2] * ((post[:2] + 1e-6) / (own[:2] + 1e-6)) ** lam, rtol=1e-4)
+    assert torch.allclose(out["sigma"][2], own[2], rtol=1e-5, atol=1e-6)
+    with torch.no_grad():
+        m.net.trust_head[-1].bias.fill_(30.0)  # full trust
+        for branch in m.net.branches:  # an own estimate that differs from the closed form
+            branch[-1].bias.fill_(0.3)
+        trusted = m(x, meta_raw)
+    assert torch.allclose(trusted["sigma"][:2], post[:2], rtol=1e-4, atol=1e-3)
+    assert torch.allclose(trusted["xi"][:2], prior[:2, 3] - prior[:2, 12], rtol=1e-4, atol=1e-3)
+    own_delta = 5.0 * torch.tanh(torch.tensor(0.3 / 5.0))  # the bounded log-correction of the branches
+    assert torch.allclose(trusted["sigma"][2], own[2] * torch.exp(own_delta), rtol=1e-4)  # abstained: its own
+    with pytest.raises(ValueError, match="mismatch_posterior needs prior_clipping"):
+        NoiseSourceEstimator(metadata_set="full", physics_prior=True, mismatch_posterior=True)
+
+
+def test_state_from_into_a_posterior_network_starts_near_the_source():
+    """A file without the posterior carried into a network with it: the branches read what they read before and the
+    trust head starts at its initial bias, so with the trust switched off (λ → 0) the outputs are the file's exactly."""
+    torch.manual_seed(6)
+    src = NoiseSourceEstimator(patch_size=32, prior_anchor="metadata", prior_clipping=True, noise_fit_statistics=True)
+    with torch.no_grad():
+        for p in src.net.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    dst = NoiseSourceEstimator(patch_size=32, prior_anchor="metadata", prior_clipping=True, noise_fit_statistics=True, mismatch_posterior=True)
+    dst.net.load_state_dict(dst.net.state_from(src.net))
+    g = torch.Generator().manual_seed(0)
+    image, meta = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g)
+    prior = torch.cat([torch.rand(4, 8, generator=g) * 5, torch.randn(4, 6, generator=g), torch.rand(4, 11, generator=g) * 50], 1)
+    with torch.no_grad():
+        dst.net.trust_head[-1].bias.fill_(-60.0)
+        old, new = src.net.eval()(image, meta, prior[:, :14]), dst.net.eval()(image, meta, prior)
+    assert torch.allclose(new, old, rtol=1e-6, atol=1e-6)
