@@ -51,7 +51,8 @@ class EstimatorModule(L.LightningModule):
 
     # ------------------------------------------------------------------ optimisation
     def configure_optimizers(self) -> Any:
-        opt = torch.optim.AdamW(self.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        params = [p for p in self.parameters() if p.requires_grad]  # frozen parts (e.g. ``train_only``) stay as they are
+        opt = torch.optim.AdamW(params, lr=self.lr, weight_decay=self.weight_decay)
         total = None
         if self._trainer is not None:
             total = self.trainer.estimated_stepping_batches

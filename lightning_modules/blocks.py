@@ -79,8 +79,8 @@ class FullyConnectedBlock(nn.Sequential):
 
 
 def count_parameters(module: nn.Module) -> int:
-    """Number of trainable parameters."""
-    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+    """Number of parameters, frozen ones included (a network fine-tuned with ``train_only`` still has them all)."""
+    return sum(p.numel() for p in module.parameters())
 
 
 @torch.no_grad()

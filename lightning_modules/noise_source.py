@@ -447,7 +447,10 @@ class NoiseSourceEstimator(EstimatorModule):
             flat-block Haar details), and let a trust head (reading the branches' inputs and the posterior's σ,
             probabilities and evidence) blend each output with it: log σ̂ = log σ̂_own + λ·(log σ_post − log σ̂_own),
             λ = sigmoid(·) per patch and output, 0.05 at the start, 0 where the posterior abstains; λ = 1 is the
-            posterior's σ. Default ``False``; needs ``prior_clipping``; eleven more prior columns. Default ``False``; needs ``prior_clipping``; nine more prior columns.
+            posterior's σ. Default ``False``; needs ``prior_clipping``; eleven more prior columns.
+        train_only: optimise only the parts of the network whose parameter names start with these prefixes (e.g.
+            ``[trust_head]`` to fit the trust head of a network carried in by ``--init_from`` while its branches keep
+            their function); default ``None``, everything. Default ``False``; needs ``prior_clipping``; nine more prior columns.
     """
 
     kind = "noise_source"
@@ -475,6 +478,7 @@ class NoiseSourceEstimator(EstimatorModule):
         prior_clipping: bool = False,
         noise_fit_statistics: bool = False,
         mismatch_posterior: bool = False,
+        train_only: Sequence[str] | None = None,
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
@@ -488,6 +492,15 @@ class NoiseSourceEstimator(EstimatorModule):
         self.prior_clipping = self.net.prior_clipping
         self.noise_fit_statistics = self.net.noise_fit_statistics
         self.mismatch_posterior = self.net.mismatch_posterior
+        if train_only:  # optimise only these parts of the network (prefixes of its parameter names); freeze the rest
+            prefixes = tuple(str(t) for t in train_only)
+            names = [n for n, _ in self.net.named_parameters()]
+            unknown = [t for t in prefixes if not any(n.startswith(t) for n in names)]
+            if unknown:
+                tops = sorted({n.split(".")[0] for n in names})
+                raise ValueError(f"train_only {unknown} match no parameter of the network; its parts are {tops}")
+            for n, p in self.net.named_parameters():
+                p.requires_grad_(n.startswith(prefixes))
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)
         if unknown:

@@ -327,3 +327,14 @@ def test_state_from_into_a_posterior_network_starts_near_the_source():
         dst.net.trust_head[-1].bias.fill_(-60.0)
         old, new = src.net.eval()(image, meta, prior[:, :14]), dst.net.eval()(image, meta, prior)
     assert torch.allclose(new, old, rtol=1e-6, atol=1e-6)
+
+
+def test_train_only_freezes_everything_else():
+    m = NoiseSourceEstimator(patch_size=32, prior_anchor="metadata", prior_clipping=True, mismatch_posterior=True, train_only=["trust_head"])
+    trainable = {n for n, p in m.net.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith("trust_head.") for n in trainable)
+    opt = m.configure_optimizers()
+    opt = opt["optimizer"] if isinstance(opt, dict) else opt
+    assert sum(p.numel() for g in opt.param_groups for p in g["params"]) == sum(p.numel() for p in m.net.trust_head.parameters())
+    with pytest.raises(ValueError, match=r"train_only \['trunk_head'\] match no parameter.*trust_head"):
+        NoiseSourceEstimator(patch_size=32, prior_clipping=True, mismatch_posterior=True, train_only=["trunk_head"])
