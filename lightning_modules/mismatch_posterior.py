@@ -51,7 +51,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 import torch.nn.functional as F
 
 from lightning_modules.noise_features import (
-    _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, metadata_from_matrix,
+    _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, block_details, metadata_from_matrix,
 )
 
 __all__ = ["mismatch_posterior", "MISMATCH_POSTERIOR", "POSTERIOR_FIELDS"]
@@ -77,29 +77,6 @@ def _grid_values(field: str, low: float, high: float, grid: int, gain_uniform_in
         f_lo, f_hi = 10.0 ** (low / 20.0), 10.0 ** (high / 20.0)
         return 20.0 * torch.log10(f_lo + t * (f_hi - f_lo))
     return low + t * (high - low)
-
-
-def _blocks(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Block means m [DN] (B, 1, h, w), the squared Haar details d² [DN²] (diagonal, horizontal, vertical;
-    (3, B, 1, h, w)), the usable mask (no pixel within ½ DN of 0 or 255, not on the patch border) and the
-    squared central differences of the block means g² (the next coarser scale's gradient), float32."""
-    x = image.detach().float()
-    if x.shape[-1] < 8 or x.shape[-2] < 8:
-        raise ValueError(f"mismatch_posterior needs patches of at least 8×8 px, got {tuple(x.shape[-2:])}")
-    p00, p01, p10, p11 = _block_pixels(x)
-    m = (p00 + p01 + p10 + p11) / 4.0
-    lo = torch.minimum(torch.minimum(p00, p01), torch.minimum(p10, p11))
-    hi = torch.maximum(torch.maximum(p00, p01), torch.maximum(p10, p11))
-    usable = (lo > 0.5) & (hi < 254.5)
-    usable[..., 0, :] = False
-    usable[..., -1, :] = False
-    usable[..., :, 0] = False
-    usable[..., :, -1] = False
-    d2 = torch.stack([(p00 - p01 - p10 + p11) / 2.0, (p00 + p01 - p10 - p11) / 2.0, (p00 - p01 + p10 - p11) / 2.0]).square()
-    g2 = torch.zeros_like(m)
-    g2[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
-    g2[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
-    return m, d2, usable, g2
 
 
 def _inliers(
@@ -202,7 +179,7 @@ def mismatch_posterior(
             variances.append(dcrn.view(b, grid, 2))
             logp.append(torch.full((b, grid), math.log(max(mismatch_probability, 1e-300) / len(fields)) - math.log(grid), dtype=f64, device=dev))
         a_all, var_all, prior = torch.cat(slopes, 1), torch.cat(variances, 1), torch.cat(logp, 1)
-        m, d2, usable, g2 = _blocks(image)
+        m, d2, usable, g2 = block_details(image, "mismatch_posterior")
         kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)  # (B, h·w)
         idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
         m_flat = m.flatten()

@@ -36,7 +36,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
     "metadata_from_matrix", "physics_prior_dn", "clipped_prior_dn", "image_statistics", "laplace_difference", "box_mean3", "IMAGE_STATISTICS",
-    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS", "noise_fit_statistics", "noise_fits", "NOISE_FIT_STATISTICS",
+    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS", "noise_fit_statistics", "noise_fits", "block_details", "NOISE_FIT_STATISTICS",
 ]
 
 #: Names of the columns of :func:`image_statistics`.
@@ -188,6 +188,30 @@ def noise_fit_statistics(
     return torch.stack([ratio, log_s, fits["kept"], llr, dc_alone, rn_alone], dim=1)
 
 
+def block_details(image: torch.Tensor, caller: str = "block_details") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The 2×2-block quantities the noise fits are made from, float32 (B×1×H×W patches in [0, 1], H, W ≥ 8):
+    block means m [DN] (B, 1, h, w); squared Haar details d² [DN²] (diagonal, horizontal, vertical; (3, B, 1, h, w));
+    the usable mask (no pixel within ½ DN of 0 or 255, not on the patch border); and g², the squared central
+    differences of the block means (the next coarser scale's gradient; noise variance v/2 each)."""
+    x = image.detach().float()
+    if x.shape[-1] < 8 or x.shape[-2] < 8:
+        raise ValueError(f"{caller} needs patches of at least 8×8 px, got {tuple(x.shape[-2:])}")
+    p00, p01, p10, p11 = _block_pixels(x)
+    m = (p00 + p01 + p10 + p11) / 4.0
+    lo = torch.minimum(torch.minimum(p00, p01), torch.minimum(p10, p11))
+    hi = torch.maximum(torch.maximum(p00, p01), torch.maximum(p10, p11))
+    usable = (lo > 0.5) & (hi < 254.5)
+    usable[..., 0, :] = False
+    usable[..., -1, :] = False
+    usable[..., :, 0] = False
+    usable[..., :, -1] = False
+    d2 = torch.stack([(p00 - p01 - p10 + p11) / 2.0, (p00 + p01 - p10 - p11) / 2.0, (p00 - p01 + p10 - p11) / 2.0]).square()
+    g2 = torch.zeros_like(m)
+    g2[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
+    g2[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
+    return m, d2, usable, g2
+
+
 def noise_fits(
     image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor, iterations: int = 3,
 ) -> dict[str, torch.Tensor]:
@@ -202,21 +226,7 @@ def noise_fits(
     """
     with torch.autocast(device_type=image.device.type, enabled=False):
         x = image.detach().float()
-        if x.shape[-1] < 8 or x.shape[-2] < 8:
-            raise ValueError(f"noise_fit_statistics needs patches of at least 8×8 px, got {tuple(x.shape[-2:])}")
-        p00, p01, p10, p11 = _block_pixels(x)
-        m = (p00 + p01 + p10 + p11) / 4.0
-        lo = torch.minimum(torch.minimum(p00, p01), torch.minimum(p10, p11))
-        hi = torch.maximum(torch.maximum(p00, p01), torch.maximum(p10, p11))
-        usable = (lo > 0.5) & (hi < 254.5)
-        usable[..., 0, :] = False
-        usable[..., -1, :] = False
-        usable[..., :, 0] = False
-        usable[..., :, -1] = False
-        d2 = torch.stack([(p00 - p01 - p10 + p11) / 2.0, (p00 + p01 - p10 - p11) / 2.0, (p00 - p01 + p10 - p11) / 2.0]).square()
-        g2 = torch.zeros_like(m)
-        g2[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
-        g2[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
+        m, d2, usable, g2 = block_details(x, "noise_fit_statistics")
         b = x.shape[0]
         a = pn_slope.to(x.device).float().view(b, 1, 1, 1)
         c0 = (dcsn_dn.float().square() + rn_dn.float().square()).to(x.device).view(b, 1, 1, 1)
