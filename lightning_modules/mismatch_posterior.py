@@ -144,6 +144,9 @@ def mismatch_posterior(
         bins: intensity bins of the likelihood's sufficient statistics.
         ranges: per-field sampling ranges (default: conventions.md Table 4.1, ``METADATA_RANGES``).
         gain_uniform_in: ``"factor"`` (the data's default: the linear gain factor is uniform) or ``"db"``.
+        bound_margin: blocks nearer than this many reference σ to 0 or 255 DN are dropped (default 3).
+        passes: inlier masks: the first against a metadata-free per-bin median, each further one against the
+            previous pass's posterior noise-level function (default 2).
     """
     if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 1:
         raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
@@ -156,8 +159,8 @@ def mismatch_posterior(
         raise ValueError(f"fields {list(fields)} must be a non-empty list of fields from {list(FULL_FIELDS)}")
     if not 0.0 <= mismatch_probability < 1.0:
         raise ValueError(f"mismatch_probability = {mismatch_probability!r} must be in [0, 1)")
-    if grid < 2 or bins < 1:
-        raise ValueError(f"grid = {grid} must be ≥ 2 and bins = {bins} ≥ 1")
+    if grid < 2 or bins < 1 or passes < 1:
+        raise ValueError(f"grid = {grid} must be ≥ 2, bins = {bins} ≥ 1 and passes = {passes} ≥ 1")
     if gain_uniform_in not in ("factor", "db"):
         raise ValueError(f"gain_uniform_in = {gain_uniform_in!r} must be 'factor' or 'db'")
     b, dev = image.shape[0], image.device
@@ -184,6 +187,7 @@ def mismatch_posterior(
         idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
         m_flat = m.flatten()
         v_ref = _median_variance(m, d2[0], usable, _REFERENCE_BINS)
+        w = torch.softmax(prior, dim=1)  # replaced by each pass's posterior
         for step in range(passes):
             if step:  # the posterior's own noise-level function v = E[a′]·m + E[c′]
                 v_ref = ((w * a_all).sum(1).float().view(b, 1, 1, 1) * m.clamp_min(0)
