@@ -9,12 +9,13 @@ noise at every intensity m [DN]:
 
     v(m | M') = a'·m + c',   a' = 255·g'/FW  [DN²/DN],   c' = σ_DCSN(M')² + σ_RN(M')²  [DN²]
 
-and the patch measures it: the three Haar details of each flat, unclipped 2×2 block are N(0, v(m)) at the
-block mean m. Inliers are chosen without the metadata — a first pass against a per-intensity median of the
+and the patch measures it: the Haar details of each flat, unclipped 2×2 block are N(0, v(m)) at the block mean
+m; the likelihood reads the diagonal one (linear gradients do not reach it; with all three, texture leaked into
+the estimate about twice as often on the held-out patches), the horizontal and vertical ones serve as a texture check. Inliers are chosen without the metadata — a first pass against a per-intensity median of the
 diagonal detail (which linear gradients do not reach), a second against the first pass's posterior noise-level
 function — and blocks within ``bound_margin`` σ of 0 or 255 DN are dropped (the clipping of their neighbours
 biases them low). Binned by block mean
-(``bins`` equal intervals of [0, 255] DN; per bin the number of details N_k, Σd² and the mean intensity M_k),
+(``bins`` equal intervals of [0, 255] DN; per bin the number of inlier details N_k, Σd² and the mean intensity M_k),
 the Gaussian log-likelihood of a candidate is
 
     ℓ(M') = −½ Σ_k [ Σd²_k / v(M_k | M') + N_k · ln v(M_k | M') ]
@@ -43,13 +44,12 @@ import math
 from typing import Sequence
 
 import torch
+import torch.nn.functional as F
 
 from camhealth.physics.clipping import clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
-import torch.nn.functional as F
-
 from lightning_modules.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, block_details, metadata_from_matrix,
 )
@@ -211,10 +211,11 @@ def mismatch_posterior(
             ll = loglik(a_all, var_all.sum(-1))
             ll = torch.where(evidence.unsqueeze(1), ll, torch.zeros_like(ll))
             w = torch.softmax(ll + prior, dim=1)  # (B, 1 + F·G)
-            group = torch.cat([w[:, :1], w[:, 1:].view(b, len(fields), grid).sum(-1)], dim=1)
-        # no evidence: the posterior abstains — the metadata's σ and P(match) = 1
-        w_sigma = torch.where(evidence.unsqueeze(1), w, torch.nn.functional.one_hot(torch.zeros(b, dtype=torch.long, device=dev), w.shape[1]).to(f64))
-        group = torch.where(evidence.unsqueeze(1), group, torch.nn.functional.one_hot(torch.zeros(b, dtype=torch.long, device=dev), group.shape[1]).to(f64))
+        # no evidence: the posterior abstains — all weight on the metadata themselves (their σ, P(match) = 1)
+        metadata_only = torch.zeros_like(w)
+        metadata_only[:, 0] = 1.0
+        w_sigma = torch.where(evidence.unsqueeze(1), w, metadata_only)
+        group = torch.cat([w_sigma[:, :1], w_sigma[:, 1:].view(b, len(fields), grid).sum(-1)], dim=1)
         mean_i = image.detach().to(f64).clamp(0, 1).flatten(1).mean(1) * 255.0
         var_src = torch.stack([a_all * mean_i.unsqueeze(1), var_all[..., 0], var_all[..., 1]], dim=-1)  # (B, G', 3)
         e_sigma = (w_sigma.unsqueeze(-1) * var_src.sqrt()).sum(1)

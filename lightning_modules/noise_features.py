@@ -36,7 +36,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
     "metadata_from_matrix", "physics_prior_dn", "clipped_prior_dn", "image_statistics", "laplace_difference", "box_mean3", "IMAGE_STATISTICS",
-    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS", "noise_fit_statistics", "noise_fits", "block_details", "NOISE_FIT_STATISTICS",
+    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS", "noise_fit_statistics", "block_details", "NOISE_FIT_STATISTICS",
 ]
 
 #: Names of the columns of :func:`image_statistics`.
@@ -172,58 +172,6 @@ def noise_fit_statistics(
         pn_slope: (B,) photon-noise variance per DN of signal, 255·g/FW [DN²/DN].
         dcsn_dn, rn_dn: (B,) σ_DCSN and σ_RN [DN] of the metadata.
     """
-    fits = noise_fits(image, pn_slope, dcsn_dn, rn_dn, iterations)
-    c, s, n, llr = fits["c"], fits["s"], fits["n"], fits["llr"]
-    c0 = dcsn_dn.float().to(c.device).square() + rn_dn.float().to(c.device).square()
-    # too few flat, unclipped blocks (a clipped, textured or tiny patch): no evidence, the logs 0
-    enough = n >= _MIN_FIT_BLOCKS
-    zero = torch.zeros_like(llr)
-    ratio = torch.where(enough, torch.log((c.sqrt() + 0.1) / (c0.sqrt() + 0.1)), zero)
-    log_s = torch.where(enough, s.log().clamp(-4.0, 4.0), zero)
-    llr = torch.where(enough, llr.sign() * llr.abs().log1p(), zero)
-    dc0, rn0 = dcsn_dn.float().to(c.device), rn_dn.float().to(c.device)
-    dc_alone = torch.log(((c - rn0.square()).clamp_min(0).sqrt() + 0.1) / (dc0 + 0.1))
-    rn_alone = torch.log(((c - dc0.square()).clamp_min(0).sqrt() + 0.1) / (rn0 + 0.1))
-    dc_alone, rn_alone = torch.where(enough, dc_alone, zero), torch.where(enough, rn_alone, zero)
-    return torch.stack([ratio, log_s, fits["kept"], llr, dc_alone, rn_alone], dim=1)
-
-
-def block_details(image: torch.Tensor, caller: str = "block_details") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The 2×2-block quantities the noise fits are made from, float32 (B×1×H×W patches in [0, 1], H, W ≥ 8):
-    block means m [DN] (B, 1, h, w); squared Haar details d² [DN²] (diagonal, horizontal, vertical; (3, B, 1, h, w));
-    the usable mask (no pixel within ½ DN of 0 or 255, not on the patch border); and g², the squared central
-    differences of the block means (the next coarser scale's gradient; noise variance v/2 each)."""
-    x = image.detach().float()
-    if x.shape[-1] < 8 or x.shape[-2] < 8:
-        raise ValueError(f"{caller} needs patches of at least 8×8 px, got {tuple(x.shape[-2:])}")
-    p00, p01, p10, p11 = _block_pixels(x)
-    m = (p00 + p01 + p10 + p11) / 4.0
-    lo = torch.minimum(torch.minimum(p00, p01), torch.minimum(p10, p11))
-    hi = torch.maximum(torch.maximum(p00, p01), torch.maximum(p10, p11))
-    usable = (lo > 0.5) & (hi < 254.5)
-    usable[..., 0, :] = False
-    usable[..., -1, :] = False
-    usable[..., :, 0] = False
-    usable[..., :, -1] = False
-    d2 = torch.stack([(p00 - p01 - p10 + p11) / 2.0, (p00 + p01 - p10 - p11) / 2.0, (p00 - p01 + p10 - p11) / 2.0]).square()
-    g2 = torch.zeros_like(m)
-    g2[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
-    g2[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
-    return m, d2, usable, g2
-
-
-def noise_fits(
-    image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor, iterations: int = 3,
-) -> dict[str, torch.Tensor]:
-    """The two fits of :func:`noise_fit_statistics` and what they were made from (float32, no gradient).
-
-    Returns a dict: ``c`` (B,) the signal-independent variance ĉ [DN²] (slope fixed by the metadata); ``s`` (B,)
-    the gain ratio ŝ; ``n`` (B,) the number of inlier details of the last gain fit; ``kept`` (B,) the fraction of
-    blocks used; ``llr`` (B,) ℓ_signal-independent − ℓ_gain on the common inliers (raw, not compressed);
-    ``mean`` (B, 1, h, w) the block means [DN]; ``d2`` (3, B, 1, h, w) the squared Haar details [DN²];
-    ``inliers`` (3, B, 1, h, w) float mask of the common inliers (flat, unclipped, within 3 σ of the larger of the
-    two fitted variances). Arguments as :func:`noise_fit_statistics`.
-    """
     with torch.autocast(device_type=image.device.type, enabled=False):
         x = image.detach().float()
         m, d2, usable, g2 = block_details(x, "noise_fit_statistics")
@@ -257,7 +205,44 @@ def noise_fits(
         flat = F.max_pool2d((g2 > _TEXTURE_CHI2 * v_max / 2.0).float(), 3, 1, 1) == 0
         inl = (usable & flat & (d2 < _INLIER_Z**2 * v_max)).float()
         llr = 0.5 * ((d2 / v_gain + v_gain.log() - d2 / v_ind - v_ind.log()) * inl).sum((0, 2, 3, 4))
-        return {"c": c.flatten(), "s": s.flatten(), "n": n, "kept": kept, "llr": llr, "mean": m, "d2": d2, "inliers": inl}
+        # too few flat, unclipped blocks (a clipped, textured or tiny patch): no evidence, the logs 0
+        enough = n >= _MIN_FIT_BLOCKS
+        zero = torch.zeros_like(llr)
+        c_f, c0_f = c.flatten(), c0.flatten()
+        ratio = torch.where(enough, torch.log((c_f.sqrt() + 0.1) / (c0_f.sqrt() + 0.1)), zero)
+        log_s = torch.where(enough, s.flatten().log().clamp(-4.0, 4.0), zero)
+        llr = torch.where(enough, llr.sign() * llr.abs().log1p(), zero)
+        dc0, rn0 = dcsn_dn.float().to(x.device), rn_dn.float().to(x.device)
+        dc_alone = torch.log(((c_f - rn0.square()).clamp_min(0).sqrt() + 0.1) / (dc0 + 0.1))
+        rn_alone = torch.log(((c_f - dc0.square()).clamp_min(0).sqrt() + 0.1) / (rn0 + 0.1))
+        dc_alone, rn_alone = torch.where(enough, dc_alone, zero), torch.where(enough, rn_alone, zero)
+        return torch.stack([ratio, log_s, kept, llr, dc_alone, rn_alone], dim=1)
+
+
+
+
+def block_details(image: torch.Tensor, caller: str = "block_details") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The 2×2-block quantities the noise fits are made from, float32 (B×1×H×W patches in [0, 1], H, W ≥ 8):
+    block means m [DN] (B, 1, h, w); squared Haar details d² [DN²] (diagonal, horizontal, vertical; (3, B, 1, h, w));
+    the usable mask (no pixel within ½ DN of 0 or 255, not on the patch border); and g², the squared central
+    differences of the block means (the next coarser scale's gradient; noise variance v/2 each)."""
+    x = image.detach().float()
+    if x.shape[-1] < 8 or x.shape[-2] < 8:
+        raise ValueError(f"{caller} needs patches of at least 8×8 px, got {tuple(x.shape[-2:])}")
+    p00, p01, p10, p11 = _block_pixels(x)
+    m = (p00 + p01 + p10 + p11) / 4.0
+    lo = torch.minimum(torch.minimum(p00, p01), torch.minimum(p10, p11))
+    hi = torch.maximum(torch.maximum(p00, p01), torch.maximum(p10, p11))
+    usable = (lo > 0.5) & (hi < 254.5)
+    usable[..., 0, :] = False
+    usable[..., -1, :] = False
+    usable[..., :, 0] = False
+    usable[..., :, -1] = False
+    d2 = torch.stack([(p00 - p01 - p10 + p11) / 2.0, (p00 + p01 - p10 - p11) / 2.0, (p00 - p01 + p10 - p11) / 2.0]).square()
+    g2 = torch.zeros_like(m)
+    g2[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
+    g2[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
+    return m, d2, usable, g2
 
 
 def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor) -> torch.Tensor:

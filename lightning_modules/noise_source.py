@@ -78,8 +78,8 @@ from lightning_modules.base import EstimatorModule
 from lightning_modules.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
 from lightning_modules.noise_features import (
-    IMAGE_STATISTICS, NLF_STATISTICS, NOISE_FIT_STATISTICS, box_mean3, image_statistics, metadata_from_matrix, nlf_statistics,
-    physics_prior_dn,
+    _MIN_FIT_BLOCKS, IMAGE_STATISTICS, NLF_STATISTICS, NOISE_FIT_STATISTICS, box_mean3, image_statistics, metadata_from_matrix,
+    nlf_statistics, physics_prior_dn,
 )
 from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR
 
@@ -113,8 +113,6 @@ _TRUST_INPUTS: tuple[str, ...] = (
     *(f"log_ratio:{n}" for n in MISMATCH_POSTERIOR[:5]), *MISMATCH_POSTERIOR[5:9], "log1p_posterior_details",
     "posterior_texture",
 )
-# The posterior abstains (λ = 0) below this many inlier details (its no-evidence threshold).
-_MIN_POSTERIOR_DETAILS = 32
 # Offset [DN] of the trust head's log ratio: full trust (λ = 1) gives the posterior's σ (relative error ≤ 1e-6 DN / σ_clipped(M)).
 _TRUST_EPS_DN = 1e-6
 
@@ -247,7 +245,8 @@ class NoiseSourceNet(nn.Module):
     @property
     def prior_width(self) -> int:
         """Columns of the ``prior`` input: the closed-form σ (4), after clipping (4 with ``prior_clipping``), the
-        noise fits (6 with ``noise_fit_statistics``, :data:`~lightning_modules.noise_features.NOISE_FIT_STATISTICS`)."""
+        noise fits (6 with ``noise_fit_statistics``, :data:`~lightning_modules.noise_features.NOISE_FIT_STATISTICS`),
+        the mismatch posterior (11 with ``mismatch_posterior``, :data:`~lightning_modules.mismatch_posterior.MISMATCH_POSTERIOR`)."""
         return (4 + 4 * self.prior_clipping + len(NOISE_FIT_STATISTICS) * self.noise_fit_statistics
                 + len(MISMATCH_POSTERIOR) * self.mismatch_posterior)
 
@@ -378,7 +377,7 @@ class NoiseSourceNet(nn.Module):
                 post = prior[:, -len(MISMATCH_POSTERIOR):].float()
                 anchor = torch.cat([prior[:, 4:8], prior[:, 3:4]], dim=1).float()
                 log_post = torch.log((post[:, :5] + 0.1) / (anchor + 0.1))  # inputs of the trust head
-                evidence = (post[:, 9:10] >= _MIN_POSTERIOR_DETAILS).float()
+                evidence = (post[:, 9:10] >= _MIN_FIT_BLOCKS).float()  # the posterior's own no-evidence threshold
                 trust_in = torch.cat([base, log_post, post[:, 5:9], torch.log1p(post[:, 9:10]) / 10.0, post[:, 10:11]], dim=1)
                 trust = torch.sigmoid(self.trust_head(trust_in).float()) * evidence
                 target = torch.log((torch.cat([post[:, :3], post[:, 4:5]], dim=1) + _TRUST_EPS_DN)
@@ -450,7 +449,7 @@ class NoiseSourceEstimator(EstimatorModule):
             posterior's σ. Default ``False``; needs ``prior_clipping``; eleven more prior columns.
         train_only: optimise only the parts of the network whose parameter names start with these prefixes (e.g.
             ``[trust_head]`` to fit the trust head of a network carried in by ``--init_from`` while its branches keep
-            their function); default ``None``, everything. Default ``False``; needs ``prior_clipping``; nine more prior columns.
+            their function); default ``None``, everything.
     """
 
     kind = "noise_source"

@@ -113,3 +113,23 @@ def test_posterior_rejects_bad_input():
         mismatch_posterior(torch.rand(1, 1, 4, 16), told)
     with pytest.raises(ValueError, match="NaN"):
         mismatch_posterior(torch.full((1, 1, 16, 16), float("nan")), told)
+
+
+def test_posterior_at_extreme_metadata_and_batch_256():
+    """The corners of Table 4.1 (0 and 80 °C, 0 and 24 dB, full well 2 000 e⁻, exposure 0.2 s) on a batch of 256
+    small patches, heavily clipped at high gain: finite, non-negative σ and probabilities that sum to 1."""
+    g = torch.Generator().manual_seed(9)
+    b = 256
+    corners = {
+        "temperature_c": torch.where(torch.arange(b) % 2 == 0, 0.0, 80.0),
+        "gain_db": torch.where(torch.arange(b) % 4 < 2, 0.0, 24.0),
+        "full_well_e": torch.full((b,), 2000.0),
+        "exposure_s": torch.full((b,), 0.2),
+    }
+    meta = CameraMetadata.sample(b, generator=g).replace(**corners)
+    clean = torch.nn.functional.interpolate(torch.rand(b, 1, 4, 4, generator=g), size=(32, 32), mode="nearest")
+    formed = form_image(clean, meta, generator=g)
+    post = mismatch_posterior(formed.image, meta)
+    assert post.shape == (b, len(MISMATCH_POSTERIOR)) and torch.isfinite(post).all()
+    assert (post[:, :5] >= 0).all()
+    assert torch.allclose(post[:, 5:9].sum(1), torch.ones(b), atol=1e-5)
