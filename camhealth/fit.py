@@ -99,7 +99,8 @@ def _init_from(model: EstimatorModule, path: str, revive_seed: int | None = None
     ``nlf_statistics``, ``noise_fit_statistics``, ``mismatch_posterior`` (whose trust head starts at λ = 0.05); :meth:`~lightning_modules.noise_source.NoiseSourceNet.state_from`;
     ``prior_clipping`` adds no weights, it moves the starting point) — the new inputs
     get zero weights and the head its zero-initialised output, so the model starts as the file's network
-    exactly. With ``revive_seed``, the file's dead trunk is first revived
+    exactly. Likewise an MTF network with ``joint_directions`` starts from a one-direction file exactly
+    (:meth:`~lightning_modules.mtf.MTFNet.state_from`). With ``revive_seed``, the file's dead trunk is first revived
     (:meth:`~lightning_modules.noise_source.NoiseSourceNet.revive_trunk`, seeded), in the file's own architecture."""
     from camhealth.export import load_module
 

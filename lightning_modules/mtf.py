@@ -12,18 +12,27 @@ layers while keeping every pixel (the finest frequencies are still there).
 **feature averaging over the T patches of a stack** (the thesis's intermediate representation layer), and a
 three-layer fully connected regressor with a sigmoid output. ≈ 0.6 GFLOP per 192-px patch (both directions).
 
+**Both directions at once** (``joint_directions``): the H and V passes share the convolutional body, and by
+default the regressor of each direction reads only its own pooled features, so the H and V estimates are made
+independently — a disk (H = V exactly) comes out with |H − V| ≈ 1.4 % at the median, and the coupling of the two
+directions of a motion line (both are |sinc(L·f·cos θ)|, |sinc(L·f·sin θ)| of one length) is not used. With
+``joint_directions=True`` the regressor reads [own, other] features: H = head([f_H, f_V]), V = head([f_V, f_H]);
+the head's first layer doubles its inputs (≈ 0.04 M parameters, ≈ 0.1 MFLOP), nothing else changes.
+:meth:`MTFNet.state_from` carries a one-direction network over with zero weights on the other direction's
+features, so ``--init_from`` starts exactly at its outputs.
+
 Loss: L1 on the 16 MTF values; metric: AMAE (Eq. 5.1) in % per blur family.
 """
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lightning_modules.base import EstimatorModule
+from lightning_modules.base import EstimatorModule, freeze_all_but
 from lightning_modules.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
 from lightning_modules.metrics import AMAEPerFamily
 
@@ -70,9 +79,13 @@ def sobel(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 class MTFNet(nn.Module):
     """``forward(image) -> (B, 16)`` MTF (H then V) for B×T×P×P stacks in [0, 1] (T = 1: one patch)."""
 
-    def __init__(self, widths: tuple[int, int, int] = (32, 64, 96), hidden: tuple[int, ...] = (128, 64), downsample: int = 4) -> None:
+    def __init__(
+        self, widths: tuple[int, int, int] = (32, 64, 96), hidden: tuple[int, ...] = (128, 64), downsample: int = 4,
+        joint_directions: bool = False,
+    ) -> None:
         super().__init__()
         w1, w2, w3 = widths
+        self.joint_directions = bool(joint_directions)
         self.pre = MTFPreprocess(downsample)
         self.stem = ConvAct(3 * downsample * downsample, w1)
         self.body = nn.Sequential(
@@ -83,7 +96,7 @@ class MTFNet(nn.Module):
             ResidualBlock(w3, w3, rezero=True),
         )
         self.pool = GlobalStatsPool()
-        self.head = FullyConnectedBlock(3 * w3, hidden, 8)
+        self.head = FullyConnectedBlock((6 if self.joint_directions else 3) * w3, hidden, 8)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         b, t = image.shape[:2]
@@ -92,8 +105,23 @@ class MTFNet(nn.Module):
             x = x.contiguous(memory_format=torch.channels_last)
         feats = self.pool(self.body(self.stem(x))).float()  # (2·B·T, F)
         feats = feats.view(2, b, t, -1).mean(2)  # average the T patches of a stack
+        if self.joint_directions:  # each direction's regressor reads [own, other] features
+            feats = torch.cat([feats, feats.flip(0)], dim=-1)
         mtf = torch.sigmoid(self.head(feats).float())  # (2, B, 8)
         return torch.cat([mtf[0], mtf[1]], dim=1)
+
+    def state_from(self, source: "MTFNet") -> dict[str, torch.Tensor]:
+        """``source``'s weights laid out for this network, so that it starts as ``source`` exactly: a
+        one-direction ``source`` carried into a ``joint_directions`` network gets zero weights on the other
+        direction's features. Raises ``ValueError`` for the reverse (the other direction's weights would be lost)."""
+        state = dict(source.state_dict())
+        if self.joint_directions == source.joint_directions:
+            return state
+        if source.joint_directions:
+            raise ValueError("the source regressor reads both directions (joint_directions) and this network does not")
+        w_old = state["head.0.weight"]
+        state["head.0.weight"] = torch.cat([w_old, torch.zeros_like(w_old)], dim=1)
+        return state
 
 
 class MTFEstimator(EstimatorModule):
@@ -104,6 +132,10 @@ class MTFEstimator(EstimatorModule):
         widths: channels of the three resolution stages.
         hidden: hidden layers of the fully connected regressor.
         downsample: space-to-depth factor of the pre-processing.
+        joint_directions: the regressor of each direction also reads the other direction's features (see the
+            module docstring; default False, the layout of weights files before it existed).
+        train_only: optimise only the parts of the network whose parameter names start with these prefixes
+            (e.g. ``[head]``), the rest frozen (:func:`lightning_modules.base.freeze_all_but`); default: all.
         lr, weight_decay, channels_last, log_figures, max_figure_samples: see :class:`EstimatorModule`.
     """
 
@@ -115,6 +147,8 @@ class MTFEstimator(EstimatorModule):
         widths: tuple[int, int, int] = (32, 64, 96),
         hidden: tuple[int, ...] = (128, 64),
         downsample: int = 4,
+        joint_directions: bool = False,
+        train_only: Sequence[str] | None = None,
         lr: float = 2e-3,
         weight_decay: float = 1e-4,
         channels_last: bool = True,
@@ -124,7 +158,8 @@ class MTFEstimator(EstimatorModule):
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
         self._set_patch_size(patch_size)
-        self.net = MTFNet(tuple(widths), tuple(hidden), downsample)
+        self.net = MTFNet(tuple(widths), tuple(hidden), downsample, joint_directions)
+        freeze_all_but(self.net, train_only)
         self.val_amae = AMAEPerFamily(FAMILIES)
         self.test_amae = AMAEPerFamily(FAMILIES)
 

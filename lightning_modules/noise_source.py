@@ -74,7 +74,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS
-from lightning_modules.base import EstimatorModule
+from lightning_modules.base import EstimatorModule, freeze_all_but
 from lightning_modules.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
 from lightning_modules.noise_features import (
@@ -491,15 +491,7 @@ class NoiseSourceEstimator(EstimatorModule):
         self.prior_clipping = self.net.prior_clipping
         self.noise_fit_statistics = self.net.noise_fit_statistics
         self.mismatch_posterior = self.net.mismatch_posterior
-        if train_only:  # optimise only these parts of the network (prefixes of its parameter names); freeze the rest
-            prefixes = tuple(str(t) for t in train_only)
-            names = [n for n, _ in self.net.named_parameters()]
-            unknown = [t for t in prefixes if not any(n.startswith(t) for n in names)]
-            if unknown:
-                tops = sorted({n.split(".")[0] for n in names})
-                raise ValueError(f"train_only {unknown} match no parameter of the network; its parts are {tops}")
-            for n, p in self.net.named_parameters():
-                p.requires_grad_(n.startswith(prefixes))
+        freeze_all_but(self.net, train_only)  # optimise only these parts of the network; freeze the rest
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)
         if unknown:

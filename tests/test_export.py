@@ -23,11 +23,12 @@ MODELS = {
     ),
     "drne": lambda: NoiseLevelEstimator(patch_size=32),
     "mtf": lambda: MTFEstimator(patch_size=32),
+    "mtf_joint": lambda: MTFEstimator(patch_size=32, joint_directions=True),
 }
 
 
 def _kind(name: str) -> str:
-    return "noise_source" if name.startswith("noise_source") else name
+    return "noise_source" if name.startswith("noise_source") else "mtf" if name.startswith("mtf") else name
 
 
 def _perturbed(kind: str):
@@ -80,6 +81,8 @@ def test_exported_program_matches_torch(kind, fmt, tmp_path):
             assert torch.allclose(a[key], b[key], rtol=1e-4, atol=1e-4), key
     # dynamic batch: a batch of 1 works too
     est.predict(x[:1], meta[:1] if noise else None)
+    if kind.startswith("mtf"):  # and the flipped copies of views=4 go through the exported program as one batch
+        assert torch.allclose(ref.predict(x, views=4)["mtf"], est.predict(x, views=4)["mtf"], rtol=1e-4, atol=1e-4)
 
 
 def test_export_cli(tmp_path, capsys):

@@ -151,6 +151,28 @@ def test_init_from_into_a_network_that_reads_more_starts_as_that_network(tmp_pat
         main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(back), "--trainer.max_steps", "0"))
 
 
+def test_mtf_joint_directions_fine_tune_from_a_one_direction_file_with_the_head_only(tmp_path):
+    import torch
+
+    from camhealth.export import export_weights
+    from lightning_modules import MTFEstimator
+
+    torch.manual_seed(4)
+    start = MTFEstimator(patch_size=32)
+    path = export_weights(start, tmp_path / "one.pt")
+    cli = main(tiny_args("mtf.yaml", tmp_path, "--init_from", str(path), "--model.init_args.joint_directions", "true",
+                         "--model.init_args.train_only", "[head]", "--test_after_fit", "false"))
+    net = cli.model.net.eval()
+    assert net.joint_directions
+    for name, p in net.named_parameters():  # two steps taken: only the regressor moved
+        same = torch.equal(p, start.net.state_dict()[name]) if not name.startswith("head.0.weight") else None
+        if name.startswith("head."):
+            assert p.requires_grad
+        else:
+            assert same and not p.requires_grad
+    assert net.head[0].weight[:, 3 * 96:].abs().sum() > 0  # the other direction's weights were trained from zero
+
+
 def test_fit_keeps_freed_memory_for_reuse(tmp_path, monkeypatch):
     import camhealth.fit as fit
 

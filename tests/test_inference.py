@@ -177,3 +177,24 @@ def test_padding_to_a_bucket_does_not_change_results(noise_est):
         alone = noise_est.predict(x[i : i + 1], meta[i])
         assert torch.allclose(alone["sigma"], together["sigma"][i : i + 1], atol=1e-5)
         assert torch.allclose(alone["xi"], together["xi"][i : i + 1], atol=1e-5)
+
+
+@pytest.mark.parametrize("views", [2, 4])
+def test_mtf_views_average_the_flipped_copies(tmp_path, views):
+    torch.manual_seed(0)
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32, joint_directions=True), tmp_path / "mtf.pt"))
+    y = torch.rand(3, 1, 32, 32)
+    flips = [(-2, -1)] if views == 2 else [(-1,), (-2,), (-2, -1)]
+    expected = torch.stack([mtf.predict(y)["mtf"]] + [mtf.predict(y.flip(d))["mtf"] for d in flips]).mean(0)
+    out = mtf.predict(y, views=views)
+    assert out["mtf"].shape == (3, 16) and torch.allclose(out["mtf"], expected, atol=1e-6)
+    assert out["assessable"].shape == (3,) and len(out["reason"]) == 3
+    assert not torch.allclose(out["mtf"], mtf.predict(y)["mtf"])  # the flipped copies do add estimates
+
+
+def test_views_are_checked(noise_est, tmp_path):
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
+    with pytest.raises(ValueError, match="views = 3 must be 1, 2 or 4"):
+        mtf.predict(torch.rand(1, 1, 32, 32), views=3)
+    with pytest.raises(ValueError, match="views = 2 averages flipped copies of MTF patches"):
+        noise_est.predict(_patches(1), "ICX285", views=2)

@@ -8,7 +8,8 @@ For every shipped model (``camhealth/weights/*.pt``; or ``--models``) and every 
   images, ``seed: 0``), ``--per-image`` fixed crops per test image, corrupted with the DataModule's seeded test
   corruption: noise models — Bias/Std/RMS (Eq. 6.2, DN) of PN, DCSN, RN, total and ξ (total also on the
   samples whose metadata agree with the image, ``altered = False``); MTF models — AMAE (Eq. 5.1, %) per blur
-  family over sizes ``--sizes`` (default 3–21 px);
+  family over sizes ``--sizes`` (default 3–21 px), with ``--mtf-views 1 2 4`` also for the averaged estimates of
+  flipped copies (``Estimator.predict(views=...)``), timed alike;
 * **speed**: ``Estimator.predict`` on a batch of ``--batch`` patches in fp32 and bf16 (closed-form physics prior
   and input checks included), median over ``--repeats``; params and FLOPs per patch;
 * **closed form**: the mismatch posterior alone (:mod:`lightning_modules.mismatch_posterior`, no network) on
@@ -38,6 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", nargs="*", default=None, help="shipped model names (default: all shipped)")
     parser.add_argument("--checkpoint", action="append", default=[], help="extra model file (.pt/.ckpt/.pt2/.onnx); repeatable")
     parser.add_argument("--per-image", type=int, default=16, help="held-out crops per test image (default 16)")
+    parser.add_argument(
+        "--mtf-views", type=int, nargs="+", default=[1], choices=(1, 2, 4),
+        help="for MTF models, also rows with the estimates of 2 or 4 flipped copies averaged (Estimator.predict views=); default 1",
+    )
     parser.add_argument("--sizes", type=float, nargs=2, default=(3.0, 21.0), help="blur size range of the MTF test set, px")
     parser.add_argument("--deadleaves", type=int, default=60, help="dead-leaves images added to the default source (as in the configs)")
     from camhealth.physics.metadata import FULL_FIELDS
@@ -218,10 +223,10 @@ def posterior_accuracy(data: dict[str, torch.Tensor], fields: tuple[str, ...], b
     return res, ms
 
 
-def mtf_accuracy(est, data: dict[str, torch.Tensor]) -> dict[str, float]:
+def mtf_accuracy(est, data: dict[str, torch.Tensor], views: int = 1) -> dict[str, float]:
     from lightning_modules.metrics import amae_percent
 
-    out = est.predict(data["image"], batch_size=64)
+    out = est.predict(data["image"], batch_size=64, views=views)
     a = amae_percent(out["mtf"].double(), data["mtf"].double())
     res = {"n": float(a.numel()), "amae": a.mean().item()}
     for i, fam in enumerate(("defocus", "linear", "nonlinear")):
@@ -260,9 +265,11 @@ def run(args: argparse.Namespace) -> BenchResult:
         "| model | n | PN RMS | DCSN RMS | RN RMS | total Bias / Std / RMS | ξ RMS | M = M′ only: PN / DCSN / RN / total RMS |",
         "|---|---:|---:|---:|---:|---|---:|---|",
     ]
-    for est in estimators:
+    jobs = [(est, v) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])]
+    for est, views in jobs:
         data = blur_data if est.kind == "mtf" else noise_data
-        acc = mtf_accuracy(est, data) if est.kind == "mtf" else noise_accuracy(est, data)
+        acc = mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data)
+        label = est.name if views == 1 else f"{est.name} ×{views} views"
         reps = max(1, b // data["image"].shape[0] + 1)
         x = data["image"].repeat(reps, 1, 1, 1)[:b]
         meta = None
@@ -272,21 +279,22 @@ def run(args: argparse.Namespace) -> BenchResult:
         for prec in ("fp32", "bf16"):
             if prec == "bf16" and est.backend != "torch":
                 continue
-            times = _time(lambda: est.predict(x, meta, precision=prec, batch_size=b), args.repeats, args.warmup)
+            kw = {"views": views} if est.kind == "mtf" else {}
+            times = _time(lambda: est.predict(x, meta, precision=prec, batch_size=b, **kw), args.repeats, args.warmup)
             if est.kind == "mtf":
                 note = f"AMAE {acc['amae']:.2f} % (defocus {acc.get('amae_defocus', float('nan')):.2f}, linear {acc.get('amae_linear', float('nan')):.2f}, non-linear {acc.get('amae_nonlinear', float('nan')):.2f})"
             elif est.kind == "drne":
                 note = f"total RMS {acc['rms_total']:.2f} DN"
             else:
                 note = f"total RMS {acc['rms_total']:.2f} DN, PN {acc['rms_pn']:.2f}, DCSN {acc['rms_dcsn']:.2f}, RN {acc['rms_rn']:.2f}, ξ {acc['rms_xi']:.2f}"
-            row = Row(f"{est.name} ({est.kind}, {prec})", times, note=f"{statistics_ms(times) / b:.2f} ms/patch; {note}")
+            row = Row(f"{label} ({est.kind}, {prec})", times, note=f"{statistics_ms(times) / b:.2f} ms/patch; {note}")
             rows.append(row)
             per[prec] = statistics_ms(times) / b
         flops = est.description.get("flops_per_patch", float("nan"))
         acc_txt = rows[-1].note.split("; ", 1)[1]
         table.append(
-            f"| {est.name} | {est.kind} | {est.metadata_set}{' + physics prior' if est.physics_prior else ''} | "
-            f"{est.description.get('params', 0):,} | {flops / 1e9:.2f} | {per.get('fp32', float('nan')):.2f} | "
+            f"| {label} | {est.kind} | {est.metadata_set}{' + physics prior' if est.physics_prior else ''} | "
+            f"{est.description.get('params', 0):,} | {flops * views / 1e9:.2f} | {per.get('fp32', float('nan')):.2f} | "
             f"{per.get('bf16', float('nan')):.2f} | {acc_txt} |"
         )
         if est.kind != "mtf":

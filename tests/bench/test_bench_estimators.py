@@ -64,3 +64,26 @@ def test_the_closed_form_posterior_beats_the_metadata_on_altered_samples():
     for j, name in enumerate(("pn", "dcsn", "rn")):
         metadata_rms = bias_std_rms(prior[:, j], data["sigma"][:, j].double())[2].item()
         assert acc[f"rms_{name}"] < metadata_rms, name
+
+
+def test_mtf_views_rows_use_the_averaged_flipped_estimates(tmp_path):
+    """`--mtf-views 1 2`: the MTF accuracy of the second row is that of Estimator.predict(views=2)."""
+    from camhealth import load_estimator
+    from camhealth.bench.estimators import mtf_accuracy
+    from camhealth.export import export_weights
+    from lightning_modules import MTFEstimator
+    from lightning_modules.metrics import amae_percent
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert parser.parse_args(["--mtf-views", "1", "2"]).mtf_views == [1, 2]
+    assert parser.parse_args([]).mtf_views == [1]
+    torch.manual_seed(0)
+    est = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
+    g = torch.Generator().manual_seed(0)
+    data = {"image": torch.rand(6, 1, 32, 32, generator=g), "mtf": torch.rand(6, 16, generator=g), "family": torch.tensor([0, 1, 2, 0, 1, 2])}
+    for views in (1, 2):
+        acc = mtf_accuracy(est, data, views)
+        expected = amae_percent(est.predict(data["image"], views=views)["mtf"].double(), data["mtf"].double())
+        assert abs(acc["amae"] - expected.mean().item()) < 1e-9
+    assert mtf_accuracy(est, data, 1)["amae"] != mtf_accuracy(est, data, 2)["amae"]

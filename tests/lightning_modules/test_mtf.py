@@ -74,3 +74,39 @@ def test_sobel_equals_kornia_spatial_gradient(dtype, shape):
     assert torch.allclose(gx, ref[:, :, 0], atol=tol) and torch.allclose(gy, ref[:, :, 1], atol=tol)
     xg = x[:1, :1, :5, :5].double().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda t: sobel(t)[0] + sobel(t)[1], (xg,))
+
+
+def test_joint_directions_starts_as_the_one_direction_network():
+    torch.manual_seed(0)
+    one = MTFEstimator(patch_size=64).eval()
+    joint = MTFEstimator(patch_size=64, joint_directions=True).eval()
+    joint.net.load_state_dict(joint.net.state_from(one.net))
+    x = torch.rand(3, 1, 64, 64)
+    with torch.no_grad():
+        assert torch.allclose(joint(x)["mtf"], one(x)["mtf"], atol=1e-6)
+        assert torch.allclose(joint(x.expand(3, 2, 64, 64).contiguous())["mtf"], one(x)["mtf"], atol=1e-5)
+    with pytest.raises(ValueError, match="joint_directions"):
+        one.net.state_from(joint.net)
+
+
+def test_joint_head_h_estimate_changes_with_the_v_features_only_when_joint():
+    torch.manual_seed(1)
+    for joint in (False, True):
+        net = MTFEstimator(patch_size=64, joint_directions=joint).net.eval()
+        feats = torch.randn(2, 3, 3 * 96)
+        other = feats.clone()
+        other[1] += 1.0  # change only the V direction's features
+        def h(f):
+            f = torch.cat([f, f.flip(0)], dim=-1) if joint else f
+            return torch.sigmoid(net.head(f))[0]
+        with torch.no_grad():
+            changed = not torch.allclose(h(feats), h(other))
+        assert changed == joint
+
+
+def test_train_only_head_freezes_the_body():
+    m = MTFEstimator(patch_size=64, joint_directions=True, train_only=["head"])
+    trainable = {n for n, p in m.net.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith("head.") for n in trainable)
+    with pytest.raises(ValueError, match=r"train_only \['heda'\] match no parameter.*head"):
+        MTFEstimator(patch_size=64, train_only=["heda"])
