@@ -17,7 +17,7 @@ default the regressor of each direction reads only its own pooled features, so t
 independently — a disk (H = V exactly) comes out with |H − V| ≈ 1.4 % at the median, and the coupling of the two
 directions of a motion line (both are |sinc(L·f·cos θ)|, |sinc(L·f·sin θ)| of one length) is not used. With
 ``joint_directions=True`` the regressor reads [own, other] features: H = head([f_H, f_V]), V = head([f_V, f_H]);
-the head's first layer doubles its inputs (≈ 0.04 M parameters, ≈ 0.1 MFLOP), nothing else changes.
+the head's first layer doubles its inputs (36 864 parameters, ≈ 0.15 MFLOP per patch), nothing else changes.
 :meth:`MTFNet.state_from` carries a one-direction network over with zero weights on the other direction's
 features, so ``--init_from`` starts exactly at its outputs.
 
