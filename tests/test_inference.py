@@ -198,3 +198,12 @@ def test_views_are_checked(noise_est, tmp_path):
         mtf.predict(torch.rand(1, 1, 32, 32), views=3)
     with pytest.raises(ValueError, match="views = 2 averages flipped copies of MTF patches"):
         noise_est.predict(_patches(1), "ICX285", views=2)
+
+
+@pytest.mark.parametrize("fill,reason", [(0.0, "black"), (1.0, "saturated"), (0.5, "featureless")])
+def test_mtf_views_keep_the_flags_of_hard_patches(tmp_path, fill, reason):
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32, joint_directions=True), tmp_path / "mtf.pt"))
+    x = torch.cat([torch.full((1, 1, 32, 32), fill), torch.rand(1, 1, 32, 32, generator=torch.Generator().manual_seed(2))])
+    out = mtf.predict(x, views=4, precision="bf16")
+    assert torch.isfinite(out["mtf"]).all() and out["mtf"].shape == (2, 16)
+    assert out["reason"] == [reason, ""] and out["assessable"].tolist() == [False, True]
