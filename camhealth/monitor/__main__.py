@@ -124,6 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--no-mtf", action="store_true", help="do not estimate blur (no advice)")
     g.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
                    help="network precision: bf16 (CPU autocast, default; ~2x faster) or fp32 (reference)")
+    g.add_argument("--mtf-views", type=int, choices=(1, 2, 4), default=1,
+                   help="MTF estimates of the patch and 1 or 3 flipped copies averaged (default 1; 2: ~5%% lower error, 2x MTF time)")
     g.add_argument("--batch-size", type=_positive, default=128, metavar="N", help="patches per network call (default 128)")
     g.add_argument("--threads", type=_positive, default=None, metavar="N",
                    help="torch intra-op threads (default: 2, or 1 on a single-core machine — the 10 frames/s of a "
@@ -271,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
         noise_model=noise_model, mtf_model=mtf_model, metadata=metadata,
         sensor=args.sensor,
         window=args.window, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
-        skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, batch_size=args.batch_size,
+        skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, batch_size=args.batch_size,
         xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
     )
     out_dir: Path | None = args.out

@@ -508,6 +508,9 @@ class Monitor:
             their results are then discarded by the estimator's own ``assessable``).
         selection: thresholds (:class:`~camhealth.monitor.tiling.SelectionConfig`).
         precision: ``"bf16"`` (CPU autocast) or ``"fp32"``.
+        mtf_views: 1 (default), 2 or 4 — the MTF estimator also runs flipped copies of each patch and averages
+            the estimates (:meth:`camhealth.inference.Estimator.predict` ``views``: ≈ 5 % lower AMAE for 2× the
+            MTF time with 2 views); ignored by MTF estimators whose ``predict`` has no ``views``.
         batch_size: patches per network call.
         xi_threshold_dn, xi_sigmas: ξ alarm threshold [DN] and significance k (:func:`xi_alarm`).
         policy: an :class:`camhealth.control.ExposurePolicy` (or IOPC file path(s), :func:`load_policy`).
@@ -530,6 +533,7 @@ class Monitor:
         skip_uninformative: bool = True,
         selection: SelectionConfig | None = None,
         precision: str = "bf16",
+        mtf_views: int = 1,
         batch_size: int = 128,
         xi_threshold_dn: float = 1.0,
         xi_sigmas: float = 3.0,
@@ -541,6 +545,8 @@ class Monitor:
             raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
         if precision not in ("bf16", "fp32"):
             raise ValueError(f"precision = {precision!r} must be 'bf16' or 'fp32'")
+        if mtf_views not in (1, 2, 4) or isinstance(mtf_views, bool):
+            raise ValueError(f"mtf_views = {mtf_views!r} must be 1, 2 or 4")
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size = {batch_size!r} must be an integer >= 1")
         for v, name in ((xi_threshold_dn, "xi_threshold_dn"), (xi_sigmas, "xi_sigmas")):
@@ -552,6 +558,7 @@ class Monitor:
         self.skip_uninformative = bool(skip_uninformative)
         self.selection = selection or SelectionConfig()
         self.precision = precision
+        self.mtf_views = int(mtf_views)
         self.batch_size = batch_size
         self.xi_threshold_dn = float(xi_threshold_dn)
         self.xi_sigmas = float(xi_sigmas)
@@ -619,7 +626,7 @@ class Monitor:
         except (TypeError, ValueError):
             params = {}
         var_kw = any(v.kind is inspect.Parameter.VAR_KEYWORD for v in params.values())
-        kwargs = {name: None for name in ("precision", "batch_size") if name in params or var_kw}
+        kwargs = {name: None for name in ("precision", "batch_size", "views") if name in params or var_kw}
         return _EstimatorHandle(est, _describe(est), kwargs)
 
     def reset(self) -> None:
@@ -653,7 +660,8 @@ class Monitor:
             p = st.grid.patch
             for size in sizes:
                 dummy = torch.full((size, 1, p, p), 0.5)
-                handle.est.predict(dummy, metadata=meta, precision=self.precision, batch_size=self.batch_size)
+                views = {"views": self.mtf_views} if task == "mtf" and self.mtf_views > 1 else {}
+                handle.est.predict(dummy, metadata=meta, precision=self.precision, batch_size=self.batch_size, **views)
 
     def _frame_metadata(self, metadata: Any) -> CameraMetadata | None:
         if metadata is None:
@@ -706,6 +714,8 @@ class Monitor:
             kwargs["precision"] = self.precision
         if "batch_size" in handle.kwargs:
             kwargs["batch_size"] = self.batch_size
+        if task == "mtf" and self.mtf_views > 1 and "views" in handle.kwargs:
+            kwargs["views"] = self.mtf_views
         use_meta = meta if getattr(handle.est, "metadata_set", "none") != "none" else None
         out = handle.est.predict(patches[index], metadata=use_meta, **kwargs)
         if task == "noise":
@@ -922,7 +932,7 @@ class Monitor:
             "estimators": {task: h.name for task, h in self.estimators.items()},
             "patches": {task: dict(c) for task, c in self._counts.items()},
             "alarms": dict(self._alarms),
-            "precision": self.precision, "window": self.window,
+            "precision": self.precision, "mtf_views": self.mtf_views, "window": self.window,
             "adaptive": {"reuse_static": self.reuse_static, "coarse_refine": self.coarse_refine,
                          "skip_uninformative": self.skip_uninformative},
         }

@@ -304,6 +304,8 @@ def test_monitor_errors(model_files):
         Monitor(FakeNoise(), None, sensor="ICX285", window=0)
     with pytest.raises(ValueError, match="precision"):
         Monitor(FakeNoise(), None, sensor="ICX285", precision="fp16")
+    with pytest.raises(ValueError, match="mtf_views = 3 must be 1, 2 or 4"):
+        Monitor(FakeNoise(), None, sensor="ICX285", mtf_views=3)
     with pytest.raises(FileNotFoundError, match="shipped names"):
         Monitor("no_such_model", None, sensor="ICX285")
     class BlindNoise(FakeNoise):
@@ -360,3 +362,23 @@ def test_warm_up_runs_every_bucket_once_before_the_first_frame(model_files, monk
     sizes.clear()
     Monitor(ns, mtf, sensor="ICX285", warmup=False).process(torch.full((384, 576), 0.5))
     assert len(sizes) <= 4  # only the frame's own network calls
+
+
+def test_mtf_views_reach_the_mtf_estimator_and_its_warm_up(model_files, street_frames, monkeypatch):
+    """``mtf_views=2``: every MTF call (warm-up included) averages the patch and its 180° rotation; the noise
+    estimator is called as before; the per-patch MTF equals ``predict(views=2)`` on the same patches."""
+    from camhealth.inference import Estimator
+
+    ns, mtf = model_files
+    calls = []
+    orig = Estimator.predict
+    monkeypatch.setattr(Estimator, "predict", lambda self, x, *a, **k: calls.append((self.kind, k.get("views"))) or orig(self, x, *a, **k))
+    frame = noisy(street_frames[0], 3.0, seed=0)
+    mon = Monitor(ns, mtf, sensor="ICX285", mtf_views=2, per_patch=True, adaptive=False)
+    d = _strict(mon.process(frame).to_json())
+    assert {v for kind, v in calls if kind == "mtf"} == {2} and {v for kind, v in calls if kind != "mtf"} == {None}
+    assert d["mtf"]["assessable"]
+    one = _strict(Monitor(ns, mtf, sensor="ICX285", per_patch=True, adaptive=False).process(frame).to_json())
+    assert d["mtf"]["h"]["median"] != one["mtf"]["h"]["median"]  # the views do change the estimate
+    assert d["noise"]["per_patch"]["values"] == one["noise"]["per_patch"]["values"]  # and only the MTF
+    assert mon.summary()["mtf_views"] == 2
