@@ -90,18 +90,29 @@ def test_joint_directions_starts_as_the_one_direction_network():
 
 
 def test_joint_head_h_estimate_changes_with_the_v_features_only_when_joint():
+    """Through the network's own forward: pooled features are injected, and only the V pass's are changed."""
+
+    class Given(torch.nn.Module):
+        def __init__(self, f):
+            super().__init__()
+            self.f = f
+
+        def forward(self, _x):
+            return self.f
+
     torch.manual_seed(1)
+    x = torch.rand(3, 1, 64, 64)
     for joint in (False, True):
         net = MTFEstimator(patch_size=64, joint_directions=joint).net.eval()
-        feats = torch.randn(2, 3, 3 * 96)
+        feats = torch.randn(2 * 3, 3 * 96)  # (2·B·T, F): the H passes of the 3 patches, then their V passes
         other = feats.clone()
-        other[1] += 1.0  # change only the V direction's features
-        def h(f):
-            f = torch.cat([f, f.flip(0)], dim=-1) if joint else f
-            return torch.sigmoid(net.head(f))[0]
+        other[3:] += 1.0
         with torch.no_grad():
-            changed = not torch.allclose(h(feats), h(other))
-        assert changed == joint
+            net.pool = Given(feats)
+            h = net(x)[:, :8]
+            net.pool = Given(other)
+            h_other = net(x)[:, :8]
+        assert (not torch.allclose(h, h_other)) == joint
 
 
 def test_train_only_head_freezes_the_body():

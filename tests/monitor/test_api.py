@@ -365,8 +365,8 @@ def test_warm_up_runs_every_bucket_once_before_the_first_frame(model_files, monk
 
 
 def test_mtf_views_reach_the_mtf_estimator_and_its_warm_up(model_files, street_frames, monkeypatch):
-    """``mtf_views=2``: every MTF call (warm-up included) averages the patch and its 180° rotation; the noise
-    estimator is called as before; the per-patch MTF equals ``predict(views=2)`` on the same patches."""
+    """``mtf_views=2``: every MTF call (warm-up included) asks for 2 views, the noise estimator is called as
+    before, and only the MTF result changes."""
     from camhealth.inference import Estimator
 
     ns, mtf = model_files
