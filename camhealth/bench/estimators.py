@@ -247,6 +247,21 @@ def _time(fn, repeats: int, warmup: int) -> list[float]:
     return times
 
 
+def _time_round_robin(fns, repeats: int, warmup: int) -> list[list[float]]:
+    """Times [ms] of each call in ``fns``, ``repeats`` rounds that call every one once (after ``warmup`` rounds), so
+    that a drift of the machine's speed hits all of them alike."""
+    for _ in range(warmup):
+        for fn in fns:
+            fn()
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(repeats):
+        for i, fn in enumerate(fns):
+            t = time.perf_counter()
+            fn()
+            times[i].append((time.perf_counter() - t) * 1e3)
+    return times
+
+
 def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.inference import load_estimator, shipped_models
     from lightning_modules import ThesisNoiseNet
@@ -266,36 +281,42 @@ def run(args: argparse.Namespace) -> BenchResult:
         "|---|---:|---:|---:|---:|---|---:|---|",
     ]
     jobs = [(est, v) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])]
+    # accuracy first, then every (model, views, precision) timed round-robin: the VM's speed drifts within minutes,
+    # and rows timed one after the other could differ by 1.6× for two models of the same architecture (session 11)
+    accs, calls = [], []
     for est, views in jobs:
         data = blur_data if est.kind == "mtf" else noise_data
-        acc = mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data)
-        label = est.name if views == 1 else f"{est.name} ×{views} views"
+        accs.append(mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data))
         reps = max(1, b // data["image"].shape[0] + 1)
         x = data["image"].repeat(reps, 1, 1, 1)[:b]
         meta = None
         if est.metadata_set != "none":
             meta = _meta({"meta_raw": data["meta_raw"].repeat(reps, 1)[:b]}, slice(None))
-        per = {}
+        kw = {"views": views} if est.kind == "mtf" else {}
         for prec in ("fp32", "bf16"):
             if prec == "bf16" and est.backend != "torch":
                 continue
-            kw = {"views": views} if est.kind == "mtf" else {}
-            times = _time(lambda: est.predict(x, meta, precision=prec, batch_size=b, **kw), args.repeats, args.warmup)
-            if est.kind == "mtf":
-                note = f"AMAE {acc['amae']:.2f} % (defocus {acc.get('amae_defocus', float('nan')):.2f}, linear {acc.get('amae_linear', float('nan')):.2f}, non-linear {acc.get('amae_nonlinear', float('nan')):.2f})"
-            elif est.kind == "drne":
-                note = f"total RMS {acc['rms_total']:.2f} DN"
-            else:
-                note = f"total RMS {acc['rms_total']:.2f} DN, PN {acc['rms_pn']:.2f}, DCSN {acc['rms_dcsn']:.2f}, RN {acc['rms_rn']:.2f}, ξ {acc['rms_xi']:.2f}"
-            row = Row(f"{label} ({est.kind}, {prec})", times, note=f"{statistics_ms(times) / b:.2f} ms/patch; {note}")
-            rows.append(row)
+            calls.append((len(accs) - 1, prec, lambda est=est, x=x, meta=meta, prec=prec, kw=kw: est.predict(x, meta, precision=prec, batch_size=b, **kw)))
+    timed = _time_round_robin([fn for _, _, fn in calls], args.repeats, args.warmup)
+    for j, ((est, views), acc) in enumerate(zip(jobs, accs)):
+        label = est.name if views == 1 else f"{est.name} ×{views} views"
+        if est.kind == "mtf":
+            note = f"AMAE {acc['amae']:.2f} % (defocus {acc.get('amae_defocus', float('nan')):.2f}, linear {acc.get('amae_linear', float('nan')):.2f}, non-linear {acc.get('amae_nonlinear', float('nan')):.2f})"
+        elif est.kind == "drne":
+            note = f"total RMS {acc['rms_total']:.2f} DN"
+        else:
+            note = f"total RMS {acc['rms_total']:.2f} DN, PN {acc['rms_pn']:.2f}, DCSN {acc['rms_dcsn']:.2f}, RN {acc['rms_rn']:.2f}, ξ {acc['rms_xi']:.2f}"
+        per = {}
+        for (k, prec, _), times in zip(calls, timed):
+            if k != j:
+                continue
+            rows.append(Row(f"{label} ({est.kind}, {prec})", times, note=f"{statistics_ms(times) / b:.2f} ms/patch; {note}"))
             per[prec] = statistics_ms(times) / b
         flops = est.description.get("flops_per_patch", float("nan"))
-        acc_txt = rows[-1].note.split("; ", 1)[1]
         table.append(
             f"| {label} | {est.kind} | {est.metadata_set}{' + physics prior' if est.physics_prior else ''} | "
             f"{est.description.get('params', 0):,} | {flops * views / 1e9:.2f} | {per.get('fp32', float('nan')):.2f} | "
-            f"{per.get('bf16', float('nan')):.2f} | {acc_txt} |"
+            f"{per.get('bf16', float('nan')):.2f} | {note} |"
         )
         if est.kind != "mtf":
             g = lambda k: acc.get(k, float("nan"))  # noqa: E731

@@ -87,3 +87,34 @@ def test_mtf_views_rows_use_the_averaged_flipped_estimates(tmp_path):
         expected = amae_percent(est.predict(data["image"], views=views)["mtf"].double(), data["mtf"].double())
         assert abs(acc["amae"] - expected.mean().item()) < 1e-9
     assert mtf_accuracy(est, data, 1)["amae"] != mtf_accuracy(est, data, 2)["amae"]
+
+
+def test_round_robin_timing_calls_every_row_once_per_round():
+    from camhealth.bench.estimators import _time_round_robin
+
+    order: list[str] = []
+    times = _time_round_robin([lambda: order.append("a"), lambda: order.append("b")], repeats=3, warmup=1)
+    assert order == ["a", "b"] * 4  # one warm-up round, then three timed rounds, interleaved
+    assert [len(t) for t in times] == [3, 3] and all(v >= 0 for t in times for v in t)
+
+
+def test_run_reports_accuracy_and_time_for_each_model_and_precision(tmp_path):
+    """End to end on two tiny exported models (one noise-source, one MTF): a row per model and precision, in the
+    order of the models, each with its own held-out accuracy (no timing asserted)."""
+    from camhealth.bench.estimators import run
+    from camhealth.export import export_weights
+    from lightning_modules import MTFEstimator, NoiseSourceEstimator
+
+    torch.manual_seed(0)
+    noise = export_weights(NoiseSourceEstimator(), tmp_path / "noise.pt")
+    mtf = export_weights(MTFEstimator(), tmp_path / "mtf.pt")
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--models", "--checkpoint", str(noise), "--checkpoint", str(mtf), "--deadleaves", "2",
+                              "--per-image", "1", "--no-reference"])
+    args.batch, args.repeats, args.warmup = 4, 2, 0  # the options every benchmark shares (camhealth.bench.__main__)
+    res = run(args)
+    names = [r.name for r in res.rows]
+    assert names == ["noise (noise_source, fp32)", "noise (noise_source, bf16)", "mtf (mtf, fp32)", "mtf (mtf, bf16)"]
+    assert all(len(r.times_ms) == 2 for r in res.rows)
+    assert "total RMS" in res.rows[0].note and "AMAE" in res.rows[2].note
