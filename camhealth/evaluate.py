@@ -83,7 +83,7 @@ BLUR_PATCH = 192
 SLE_CHART = 256
 STAR_CHART = 512
 AGG_SIGMA_DN = 25.0
-SHIPPED = ("mtf", "drne", "noise_source_min", "noise_source_full", "noise_source_full_meta")
+SHIPPED = ("mtf", "drne", "noise_source_min", "noise_source_full", "noise_source_full_meta", "noise_source_full_gain")
 
 
 @dataclass(frozen=True)
