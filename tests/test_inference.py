@@ -207,3 +207,53 @@ def test_mtf_views_keep_the_flags_of_hard_patches(tmp_path, fill, reason):
     out = mtf.predict(x, views=4, precision="bf16")
     assert torch.isfinite(out["mtf"]).all() and out["mtf"].shape == (2, 16)
     assert out["reason"] == [reason, ""] and out["assessable"].tolist() == [False, True]
+
+
+def _split_case(seed=0):
+    """Two 128-px ramps of the EV76C661 at 50 °C, 0.05 s, 12 dB, reporting its W = 59 nV/√Hz: the first made with
+    W′ = 10 nV/√Hz (readout noise far below what the metadata say, dark current unchanged), the second with M′ = M.
+    Realised DCSN / RN of the first: 2.66 / 0.49 DN; the shipped network alone reads 1.40 / 2.05."""
+    from camhealth.physics import form_image
+
+    kw = dict(batch_size=2, gain_db=12.0, exposure_s=0.05, temperature_c=50.0)
+    told = CameraMetadata.preset("EV76C661", white_noise_v_per_rthz=59e-9, **kw)
+    made = CameraMetadata.preset("EV76C661", white_noise_v_per_rthz=[10e-9, 59e-9], **kw)
+    clean = torch.linspace(0.2, 0.8, 128).view(1, 1, 1, 128).expand(2, 1, 128, 128).contiguous()
+    formed = form_image(clean, made, generator=torch.Generator().manual_seed(seed))
+    return formed.image.float(), told, formed.sigma_dn
+
+
+def test_posterior_split_resplits_only_where_the_posterior_is_sure():
+    """posterior_split keeps the network's DCSN² + RN², PN, total and ξ, and moves the split toward the truth on the
+    white-noise-altered ramp; the consistent ramp is left exactly as the network gives it."""
+    est = load_estimator("noise_source_full_meta")
+    x, meta, truth = _split_case()
+    plain = est.predict(x, meta)
+    split = est.predict(x, meta, posterior_split=0.9)
+    assert split["resplit"].tolist() == [True, False] and "resplit" not in plain
+    for k in ("sigma_total", "xi"):
+        assert torch.equal(split[k], plain[k])
+    assert torch.equal(split["sigma"][:, 0], plain["sigma"][:, 0]) and torch.equal(split["sigma"][1], plain["sigma"][1])
+    level = lambda s: s[:, 1].double().square() + s[:, 2].double().square()  # noqa: E731
+    assert torch.allclose(level(split["sigma"]), level(plain["sigma"]), rtol=1e-5)
+    err = lambda s: (s[0, 1:] - truth[0, 1:]).abs().sum().item()  # noqa: E731
+    assert err(split["sigma"]) < 0.5 * err(plain["sigma"])  # 0.40 vs 2.82 DN (DCSN + RN absolute error)
+    assert torch.isfinite(split["sigma"]).all()
+    # black and saturated patches carry no evidence: the posterior abstains, nothing is re-split, all finite
+    hard = torch.stack([torch.zeros(1, 128, 128), torch.ones(1, 128, 128)])
+    out = est.predict(hard, meta, posterior_split=0.9)
+    assert out["resplit"].tolist() == [False, False] and torch.isfinite(out["sigma"]).all()
+    assert torch.equal(out["sigma"], est.predict(hard, meta)["sigma"])
+
+
+def test_posterior_split_is_checked(noise_est, min_est, tmp_path):
+    x, meta, _ = _split_case()
+    est = load_estimator("noise_source_full_meta")
+    for bad in (0.0, 1.0, 1.5, -0.1, True, "0.9"):
+        with pytest.raises(ValueError, match="posterior_split = .* must be a probability in \\(0, 1\\)"):
+            est.predict(x, meta, posterior_split=bad)
+    with pytest.raises(ValueError, match="Full-Meta noise-source estimator with the physics prior"):
+        min_est.predict(_patches(1), {"gain_db": 6.0, "exposure_s": 0.01, "temperature_c": 30.0}, base_preset="ICX285", posterior_split=0.9)
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
+    with pytest.raises(ValueError, match="Full-Meta noise-source estimator"):
+        mtf.predict(torch.rand(1, 1, 32, 32), posterior_split=0.9)
