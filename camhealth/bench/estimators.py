@@ -56,6 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--split-floor", action="store_true",
         help="also print the Bayes-optimal DCSN/RN split's RMS on the noise set for a noise level known to 0/1/2/5 %%",
     )
+    parser.add_argument(
+        "--posterior-split", type=float, default=None, metavar="TAU",
+        help="for Full-Meta noise-source models with the physics prior, also rows with Estimator.predict("
+        "posterior_split=TAU): the DCSN/RN split from the mismatch posterior where it is sure of a temperature or "
+        "white-noise error (e.g. 0.9)",
+    )
     parser.add_argument("--no-reference", action="store_true", help="skip the thesis-size reference network")
 
 
@@ -171,12 +177,14 @@ def _meta(data: dict[str, torch.Tensor], sl: slice):
     return metadata_from_matrix(data["meta_raw"][sl])
 
 
-def noise_accuracy(est, data: dict[str, torch.Tensor]) -> dict[str, float]:
-    """Bias/Std/RMS [DN] of an estimator's outputs on held-out noise data."""
+def noise_accuracy(est, data: dict[str, torch.Tensor], posterior_split: float | None = None) -> dict[str, float]:
+    """Bias/Std/RMS [DN] of an estimator's outputs on held-out noise data (``posterior_split``: passed to
+    ``Estimator.predict``)."""
     from lightning_modules.metrics import bias_std_rms
 
     meta = _meta(data, slice(None)) if est.metadata_set != "none" else None
-    out = est.predict(data["image"], meta, batch_size=64)
+    kw = {} if posterior_split is None else {"posterior_split": posterior_split}
+    out = est.predict(data["image"], meta, batch_size=64, **kw)
     res: dict[str, float] = {"n": float(data["image"].shape[0])}
     pairs = [("total", out["sigma_total"], data["sigma_total"])]
     if "sigma" in out:
@@ -280,26 +288,34 @@ def run(args: argparse.Namespace) -> BenchResult:
         "| model | n | PN RMS | DCSN RMS | RN RMS | total Bias / Std / RMS | ξ RMS | M = M′ only: PN / DCSN / RN / total RMS |",
         "|---|---:|---:|---:|---:|---|---:|---|",
     ]
-    jobs = [(est, v) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])]
+    split = getattr(args, "posterior_split", None)
+    if split is not None and not 0.0 < split < 1.0:
+        raise SystemExit(f"--posterior-split {split} must be in (0, 1)")
+    jobs = [(est, v, None) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])]
+    if split is not None:  # a second row for every model the re-split applies to
+        jobs = [j for est, v, s in jobs for j in ([(est, v, s), (est, v, split)] if est.kind == "noise_source"
+                and est.metadata_set == "full" and est.physics_prior else [(est, v, s)])]
     # accuracy first, then every (model, views, precision) timed round-robin: the VM's speed drifts within minutes,
     # and rows timed one after the other could differ by 1.6× for two models of the same architecture (session 11)
     accs, calls = [], []
-    for est, views in jobs:
+    for est, views, tau in jobs:
         data = blur_data if est.kind == "mtf" else noise_data
-        accs.append(mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data))
+        accs.append(mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data, tau))
         reps = max(1, b // data["image"].shape[0] + 1)
         x = data["image"].repeat(reps, 1, 1, 1)[:b]
         meta = None
         if est.metadata_set != "none":
             meta = _meta({"meta_raw": data["meta_raw"].repeat(reps, 1)[:b]}, slice(None))
-        kw = {"views": views} if est.kind == "mtf" else {}
+        kw = {"views": views} if est.kind == "mtf" else ({} if tau is None else {"posterior_split": tau})
         for prec in ("fp32", "bf16"):
             if prec == "bf16" and est.backend != "torch":
                 continue
             calls.append((len(accs) - 1, prec, lambda est=est, x=x, meta=meta, prec=prec, kw=kw: est.predict(x, meta, precision=prec, batch_size=b, **kw)))
     timed = _time_round_robin([fn for _, _, fn in calls], args.repeats, args.warmup)
-    for j, ((est, views), acc) in enumerate(zip(jobs, accs)):
+    for j, ((est, views, tau), acc) in enumerate(zip(jobs, accs)):
         label = est.name if views == 1 else f"{est.name} ×{views} views"
+        if tau is not None:
+            label = f"{label} + posterior split {tau:g}"
         if est.kind == "mtf":
             note = f"AMAE {acc['amae']:.2f} % (defocus {acc.get('amae_defocus', float('nan')):.2f}, linear {acc.get('amae_linear', float('nan')):.2f}, non-linear {acc.get('amae_nonlinear', float('nan')):.2f})"
         elif est.kind == "drne":
@@ -321,7 +337,7 @@ def run(args: argparse.Namespace) -> BenchResult:
         if est.kind != "mtf":
             g = lambda k: acc.get(k, float("nan"))  # noqa: E731
             noise_table.append(
-                f"| {est.name} | {int(acc['n'])} | {g('rms_pn'):.2f} | {g('rms_dcsn'):.2f} | {g('rms_rn'):.2f} | "
+                f"| {label} | {int(acc['n'])} | {g('rms_pn'):.2f} | {g('rms_dcsn'):.2f} | {g('rms_rn'):.2f} | "
                 f"{g('bias_total'):.2f} / {g('std_total'):.2f} / {g('rms_total'):.2f} | {g('rms_xi'):.2f} | "
                 f"{g('rms_pn_consistent'):.2f} / {g('rms_dcsn_consistent'):.2f} / {g('rms_rn_consistent'):.2f} / "
                 f"{g('rms_total_consistent'):.2f} |"

@@ -100,7 +100,8 @@ def test_round_robin_timing_calls_every_row_once_per_round():
 
 def test_run_reports_accuracy_and_time_for_each_model_and_precision(tmp_path):
     """End to end on two tiny exported models (one noise-source, one MTF): a row per model and precision, in the
-    order of the models, each with its own held-out accuracy (no timing asserted)."""
+    order of the models, each with its own held-out accuracy, and a posterior-split row for the Full-Meta noise model
+    (no timing asserted)."""
     from camhealth.bench.estimators import run
     from camhealth.export import export_weights
     from lightning_modules import MTFEstimator, NoiseSourceEstimator
@@ -111,10 +112,13 @@ def test_run_reports_accuracy_and_time_for_each_model_and_precision(tmp_path):
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     args = parser.parse_args(["--models", "--checkpoint", str(noise), "--checkpoint", str(mtf), "--deadleaves", "2",
-                              "--per-image", "1", "--no-reference"])
+                              "--per-image", "1", "--no-reference", "--posterior-split", "0.9"])
     args.batch, args.repeats, args.warmup = 4, 2, 0  # the options every benchmark shares (camhealth.bench.__main__)
     res = run(args)
     names = [r.name for r in res.rows]
-    assert names == ["noise (noise_source, fp32)", "noise (noise_source, bf16)", "mtf (mtf, fp32)", "mtf (mtf, bf16)"]
+    assert names == ["noise (noise_source, fp32)", "noise (noise_source, bf16)", "noise + posterior split 0.9 (noise_source, fp32)",
+                     "noise + posterior split 0.9 (noise_source, bf16)", "mtf (mtf, fp32)", "mtf (mtf, bf16)"]
     assert all(len(r.times_ms) == 2 for r in res.rows)
-    assert "total RMS" in res.rows[0].note and "AMAE" in res.rows[2].note
+    assert "total RMS" in res.rows[0].note and "AMAE" in res.rows[4].note
+    # the re-split keeps PN and the total: the two noise rows differ at most in DCSN and RN
+    assert res.rows[0].note.split("; ")[1].split(", DCSN")[0] == res.rows[2].note.split("; ")[1].split(", DCSN")[0]
