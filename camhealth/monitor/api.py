@@ -511,6 +511,10 @@ class Monitor:
         mtf_views: 1 (default), 2 or 4 — the MTF estimator also runs flipped copies of each patch and averages
             the estimates (:meth:`camhealth.inference.Estimator.predict` ``views``: ≈ 5 % lower AMAE for 2× the
             MTF time with 2 views); ignored by MTF estimators whose ``predict`` has no ``views``.
+        noise_posterior_split: ``None`` (default) or τ in (0, 1) — the noise-source estimator's DCSN/RN split follows the
+            closed-form mismatch posterior where it puts more than τ on a temperature or white-noise error
+            (:meth:`camhealth.inference.Estimator.predict` ``posterior_split``; Full-Meta noise-source estimators with
+            the physics prior only; ≈ 2 ms per noise patch).
         batch_size: patches per network call.
         xi_threshold_dn, xi_sigmas: ξ alarm threshold [DN] and significance k (:func:`xi_alarm`).
         policy: an :class:`camhealth.control.ExposurePolicy` (or IOPC file path(s), :func:`load_policy`).
@@ -534,6 +538,7 @@ class Monitor:
         selection: SelectionConfig | None = None,
         precision: str = "bf16",
         mtf_views: int = 1,
+        noise_posterior_split: float | None = None,
         batch_size: int = 128,
         xi_threshold_dn: float = 1.0,
         xi_sigmas: float = 3.0,
@@ -549,6 +554,11 @@ class Monitor:
             raise ValueError(f"mtf_views = {mtf_views!r} must be 1, 2 or 4")
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size = {batch_size!r} must be an integer >= 1")
+        if noise_posterior_split is not None and (
+            isinstance(noise_posterior_split, bool) or not isinstance(noise_posterior_split, (int, float))
+            or not 0.0 < float(noise_posterior_split) < 1.0
+        ):
+            raise ValueError(f"noise_posterior_split = {noise_posterior_split!r} must be a probability in (0, 1) (e.g. 0.9) or None")
         for v, name in ((xi_threshold_dn, "xi_threshold_dn"), (xi_sigmas, "xi_sigmas")):
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} = {v!r} must be a finite number >= 0")
@@ -568,6 +578,16 @@ class Monitor:
         for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
             if spec is not None:
                 self.estimators[task] = self._resolve(task, spec)
+        self.noise_posterior_split = None if noise_posterior_split is None else float(noise_posterior_split)
+        if self.noise_posterior_split is not None:
+            noise = self.estimators.get("noise")
+            est = noise.est if noise else None
+            if est is None or "posterior_split" not in noise.kwargs or getattr(est, "kind", "") != "noise_source" \
+                    or getattr(est, "metadata_set", "") != "full" or not getattr(est, "physics_prior", False):
+                raise ValueError(
+                    "noise_posterior_split needs a Full-Meta noise-source estimator with the physics prior (e.g. "
+                    f"'noise_source_full_meta'); the noise estimator is {noise.name if noise else None!r}"
+                )
         if not self.estimators:
             raise ValueError("nothing to monitor: noise_model and mtf_model are both None")
         noise = self.estimators.get("noise")
@@ -626,7 +646,7 @@ class Monitor:
         except (TypeError, ValueError):
             params = {}
         var_kw = any(v.kind is inspect.Parameter.VAR_KEYWORD for v in params.values())
-        kwargs = {name: None for name in ("precision", "batch_size", "views") if name in params or var_kw}
+        kwargs = {name: None for name in ("precision", "batch_size", "views", "posterior_split") if name in params or var_kw}
         return _EstimatorHandle(est, _describe(est), kwargs)
 
     def reset(self) -> None:
@@ -716,6 +736,8 @@ class Monitor:
             kwargs["batch_size"] = self.batch_size
         if task == "mtf" and self.mtf_views > 1 and "views" in handle.kwargs:
             kwargs["views"] = self.mtf_views
+        if task == "noise" and self.noise_posterior_split is not None:
+            kwargs["posterior_split"] = self.noise_posterior_split
         use_meta = meta if getattr(handle.est, "metadata_set", "none") != "none" else None
         out = handle.est.predict(patches[index], metadata=use_meta, **kwargs)
         if task == "noise":
@@ -932,7 +954,8 @@ class Monitor:
             "estimators": {task: h.name for task, h in self.estimators.items()},
             "patches": {task: dict(c) for task, c in self._counts.items()},
             "alarms": dict(self._alarms),
-            "precision": self.precision, "mtf_views": self.mtf_views, "window": self.window,
+            "precision": self.precision, "mtf_views": self.mtf_views, "noise_posterior_split": self.noise_posterior_split,
+            "window": self.window,
             "adaptive": {"reuse_static": self.reuse_static, "coarse_refine": self.coarse_refine,
                          "skip_uninformative": self.skip_uninformative},
         }

@@ -382,3 +382,25 @@ def test_mtf_views_reach_the_mtf_estimator_and_its_warm_up(model_files, street_f
     assert d["mtf"]["h"]["median"] != one["mtf"]["h"]["median"]  # the views do change the estimate
     assert d["noise"]["per_patch"]["values"] == one["noise"]["per_patch"]["values"]  # and only the MTF
     assert mon.summary()["mtf_views"] == 2
+
+
+def test_noise_posterior_split_reaches_the_noise_estimator(model_files, street_frames, monkeypatch):
+    """``noise_posterior_split=0.9``: every frame's noise call asks for the re-split, the MTF calls do not; the summary
+    reports it; it is refused for values outside (0, 1) and for noise estimators it cannot apply to."""
+    from camhealth.inference import Estimator
+
+    ns, mtf = model_files
+    calls = []
+    orig = Estimator.predict
+    monkeypatch.setattr(Estimator, "predict", lambda self, x, *a, **k: calls.append((self.kind, k.get("posterior_split"))) or orig(self, x, *a, **k))
+    mon = Monitor(ns, mtf, sensor="ICX285", noise_posterior_split=0.9, adaptive=False, warmup=False)
+    d = _strict(mon.process(noisy(street_frames[0], 3.0, seed=0)).to_json())
+    assert {v for kind, v in calls if kind == "noise_source"} == {0.9} and {v for kind, v in calls if kind == "mtf"} == {None}
+    assert d["noise"]["assessable"] and mon.summary()["noise_posterior_split"] == 0.9
+    for bad in (0.0, 1.0, True, "0.9"):
+        with pytest.raises(ValueError, match="noise_posterior_split = .* must be a probability in \\(0, 1\\)"):
+            Monitor(ns, None, sensor="ICX285", noise_posterior_split=bad)
+    with pytest.raises(ValueError, match="needs a Full-Meta noise-source estimator with the physics prior"):
+        Monitor(FakeNoise(), None, sensor="ICX285", noise_posterior_split=0.9)
+    with pytest.raises(ValueError, match="needs a Full-Meta noise-source estimator"):
+        Monitor(None, mtf, noise_posterior_split=0.9)
