@@ -312,7 +312,7 @@ def posterior_resplit(
     the network's σ [DN]; ``threshold``: τ in (0, 1). A temperature or white-noise error changes only the
     signal-independent noise, and which of the two sources took the change is what the network finds hardest (the
     DCSN/RN split floor, docs/estimators.md session 6); where the posterior
-    (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`) puts more than τ on one of those two fields
+    (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`) puts more than τ on those two fields together
     and has evidence (≥ 32 flat-block details), σ̂_DCSN² + σ̂_RN² is kept and divided in the posterior's DCSN : RN
     variance ratio. PN, the total and ξ are not touched."""
     from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR, mismatch_posterior
