@@ -54,7 +54,8 @@ import torch
 from camhealth.export import FORMAT_TAG, load_module
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 
-__all__ = ["Estimator", "load_estimator", "shipped_models", "WEIGHTS_DIR", "assess_patches", "bucket_size"]
+__all__ = ["Estimator", "load_estimator", "shipped_models", "WEIGHTS_DIR", "assess_patches", "bucket_size",
+           "posterior_resplit", "posterior_split_applies", "check_posterior_split"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
@@ -241,14 +242,7 @@ class Estimator:
         if views > 1 and self.kind != "mtf":
             raise ValueError(f"views = {views} averages flipped copies of MTF patches; estimator {self.name!r} is {self.kind!r}")
         if posterior_split is not None:
-            if isinstance(posterior_split, bool) or not isinstance(posterior_split, (int, float)) or not 0.0 < float(posterior_split) < 1.0:
-                raise ValueError(f"posterior_split = {posterior_split!r} must be a probability in (0, 1) (e.g. 0.9) or None")
-            if self.kind != "noise_source" or self.metadata_set != "full" or not self.physics_prior:
-                raise ValueError(
-                    f"posterior_split re-splits the dark-current and readout σ of a Full-Meta noise-source estimator with the "
-                    f"physics prior; estimator {self.name!r} is {self.kind!r} with {self.metadata_set!r} metadata"
-                    f"{' and the physics prior' if self.physics_prior else ' and no physics prior'}"
-                )
+            check_posterior_split(posterior_split, self)
         patches = _to_patches(images, self.patch_size, input_range)
         if views > 1:  # estimates of flipped copies are averaged below; the MTF along H and V is flip-invariant
             flips = [(-2, -1)] if views == 2 else [(-1,), (-2,), (-2, -1)]
@@ -300,6 +294,29 @@ class Estimator:
                 sigma, result["resplit"] = posterior_resplit(patches, meta, sigma, float(posterior_split))
             result.update(sigma=sigma, sigma_total=total, xi=raw[:, 3])
         return result
+
+
+def posterior_split_applies(est: Any) -> bool:
+    """Whether :meth:`Estimator.predict` ``posterior_split`` applies to ``est``: a Full-Meta noise-source estimator with
+    the physics prior (the posterior needs every metadata field, and the re-split the network's per-source σ)."""
+    return (getattr(est, "kind", "") == "noise_source" and getattr(est, "metadata_set", "") == "full"
+            and bool(getattr(est, "physics_prior", False)))
+
+
+def check_posterior_split(value: Any, est: Any, name: str = "posterior_split") -> float:
+    """``value`` as a float τ in (0, 1) for estimator ``est``, or ``ValueError`` naming the value and the allowed
+    range, or why ``est`` cannot take it (:func:`posterior_split_applies`)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < float(value) < 1.0:
+        raise ValueError(f"{name} = {value!r} must be a probability in (0, 1) (e.g. 0.9) or None")
+    if not posterior_split_applies(est):
+        desc = (f"{getattr(est, 'name', type(est).__name__)!r} ({getattr(est, 'kind', '?')!r}, "
+                f"{getattr(est, 'metadata_set', '?')!r} metadata, physics prior {bool(getattr(est, 'physics_prior', False))})"
+                if est is not None else "None")
+        raise ValueError(
+            f"{name} re-splits the dark-current and readout σ of a Full-Meta noise-source estimator with the physics "
+            f"prior (e.g. 'noise_source_full_meta'); the estimator is {desc}"
+        )
+    return float(value)
 
 
 def posterior_resplit(

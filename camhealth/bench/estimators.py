@@ -271,7 +271,7 @@ def _time_round_robin(fns, repeats: int, warmup: int) -> list[list[float]]:
 
 
 def run(args: argparse.Namespace) -> BenchResult:
-    from camhealth.inference import load_estimator, shipped_models
+    from camhealth.inference import load_estimator, posterior_split_applies, shipped_models
     from lightning_modules import ThesisNoiseNet
     from lightning_modules.blocks import count_flops
 
@@ -293,8 +293,7 @@ def run(args: argparse.Namespace) -> BenchResult:
         raise SystemExit(f"--posterior-split {split} must be in (0, 1)")
     jobs = [(est, v, None) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])]
     if split is not None:  # a second row for every model the re-split applies to
-        jobs = [j for est, v, s in jobs for j in ([(est, v, s), (est, v, split)] if est.kind == "noise_source"
-                and est.metadata_set == "full" and est.physics_prior else [(est, v, s)])]
+        jobs = [j for est, v, s in jobs for j in ([(est, v, s), (est, v, split)] if posterior_split_applies(est) else [(est, v, s)])]
     # accuracy first, then every (model, views, precision) timed round-robin: the VM's speed drifts within minutes,
     # and rows timed one after the other could differ by 1.6× for two models of the same architecture (session 11)
     accs, calls = [], []

@@ -554,11 +554,6 @@ class Monitor:
             raise ValueError(f"mtf_views = {mtf_views!r} must be 1, 2 or 4")
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size = {batch_size!r} must be an integer >= 1")
-        if noise_posterior_split is not None and (
-            isinstance(noise_posterior_split, bool) or not isinstance(noise_posterior_split, (int, float))
-            or not 0.0 < float(noise_posterior_split) < 1.0
-        ):
-            raise ValueError(f"noise_posterior_split = {noise_posterior_split!r} must be a probability in (0, 1) (e.g. 0.9) or None")
         for v, name in ((xi_threshold_dn, "xi_threshold_dn"), (xi_sigmas, "xi_sigmas")):
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} = {v!r} must be a finite number >= 0")
@@ -578,16 +573,13 @@ class Monitor:
         for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
             if spec is not None:
                 self.estimators[task] = self._resolve(task, spec)
-        self.noise_posterior_split = None if noise_posterior_split is None else float(noise_posterior_split)
-        if self.noise_posterior_split is not None:
+        self.noise_posterior_split = None
+        if noise_posterior_split is not None:
+            from camhealth.inference import check_posterior_split
+
             noise = self.estimators.get("noise")
-            est = noise.est if noise else None
-            if est is None or "posterior_split" not in noise.kwargs or getattr(est, "kind", "") != "noise_source" \
-                    or getattr(est, "metadata_set", "") != "full" or not getattr(est, "physics_prior", False):
-                raise ValueError(
-                    "noise_posterior_split needs a Full-Meta noise-source estimator with the physics prior (e.g. "
-                    f"'noise_source_full_meta'); the noise estimator is {noise.name if noise else None!r}"
-                )
+            self.noise_posterior_split = check_posterior_split(
+                noise_posterior_split, noise.est if noise and "posterior_split" in noise.kwargs else None, "noise_posterior_split")
         if not self.estimators:
             raise ValueError("nothing to monitor: noise_model and mtf_model are both None")
         noise = self.estimators.get("noise")
