@@ -36,8 +36,7 @@ import torch
 
 from camhealth._validation import check_image, check_tensor
 from camhealth.physics.counter_rng import (
-    LazyCompiled, check_counter_size, counter_bits24, counter_keys, counter_normal, counter_normal_at, counter_normal_expr,
-    counter_uniform_at,
+    LazyCompiled, check_counter_size, counter_keys, counter_normal, counter_normal_at, counter_normal_expr,
 )
 from camhealth.physics.dark_current import dark_current_shot_sigma_e, dark_signal_e
 from camhealth.physics.metadata import CameraMetadata
@@ -46,7 +45,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
     "NOISE_SOURCES", "RNG_KINDS", "ImageFormation", "check_rng", "apply_psf", "form_image", "kernel_support_radii", "plan_support_groups",
-    "sample_poisson", "sample_poisson_per_sample",
+    "poisson_z_table", "sample_poisson", "sample_poisson_per_sample",
 ]
 
 #: Noise sources in label order: photon shot noise, dark-current shot noise, readout noise.
@@ -488,22 +487,110 @@ def _dark_noise_counter(
     exact_below: float, dtype: torch.dtype,
 ) -> torch.Tensor:
     """Dark-current shot noise in intensity units, (Poisson(λ_b) − λ_b)·to_int_b for every pixel of sample b,
-    ``dark_e`` (B,) float64 dark electrons, ``to_int`` (B, 1, 1, 1): one compiled pass for the samples with
-    λ ≥ 10; the others are then overwritten with draws from their (short) tabulated CDFs."""
+    ``dark_e`` (B,) float64 dark electrons, ``to_int`` (B, 1, 1, 1): the counter path of
+    :func:`sample_poisson_per_sample` (one per-sample z-space table, one compiled pass), centred and scaled in
+    the same pass."""
     b = int(shape[0])
     n = 1
     for d in shape[1:]:
         n *= int(d)
     unit = to_int.reshape(b, 1).to(dtype)
-    signal = dark_e.to(dtype)[:, None] * unit
-    out = _sample_poisson_counter(signal, unit, n, generator, exact_below, _EXPANSION_MIN_RATE, True, small_value=0.0)
-    small = dark_e < _EXPANSION_MIN_RATE
-    if bool(small.any()):
-        i = small.nonzero().squeeze(1)
-        lam = dark_e[i]
-        counts = sample_poisson_per_sample(lam, (int(i.numel()), n), generator, exact_below, dtype, "counter")
-        out[i] = counts.sub_(lam.to(dtype)[:, None]).mul_(unit[i])
-    return out.view(*shape)
+    return _poisson_per_sample_counter(dark_e, b, n, generator, exact_below, dtype, unit).view(*shape)
+
+
+#: Half-width of the z range of the per-sample inversion tables: counter normals have |z| ≤ 5.9.
+_Z_TABLE_HALF_RANGE = 6.0
+#: Fewest cells of a per-sample inversion table (doubled until no cell holds two quantile boundaries).
+_Z_TABLE_MIN_CELLS = 1024
+
+
+def poisson_z_table(rate: torch.Tensor, exact_below: float = 1e3, cells: int = _Z_TABLE_MIN_CELLS) -> torch.Tensor:
+    """Per-sample inversion tables of the Poisson quantile in the normal deviate z: (B, cells') float64.
+
+    For a rate λ the draw of the inverse-CDF method at u = Φ(z) is k(z) = min{k : F(k) ≥ Φ(z)} = #{j : t_j < z}
+    with the boundaries t_j = Φ⁻¹(F(j)), F(j) = Q(j + 1, λ) (computed as Φ⁻¹(F) below the median and
+    −Φ⁻¹(1 − F) above it, so that neither tail loses precision). The range |z| ≤ 6 is cut into ``cells'`` equal
+    cells (``cells`` doubled until no cell holds two boundaries; the boundaries are ≈ 1/√λ apart near the mode,
+    so 1 024 cells suffice up to λ ≈ 7 000). Cell c stores ``base + s/2``: ``base`` = #{j : t_j < z_c} at its
+    left edge z_c, and s ∈ [0, 1) the position (t − z_c)/w of the one boundary t inside the cell (s = 1.5 if
+    none). A draw is then ``base + (frac > s)`` with frac = (z − z_c)/w — one table lookup, exact (up to the
+    float64 rounding of t) for every z of the range. Rows with λ ≥ ``exact_below`` (the normal
+    approximation) get an unused table of λ = 0.
+    """
+    lam = torch.as_tensor(rate).detach().to(torch.float64)
+    small = lam < exact_below
+    lam_t = torch.where(small, lam, torch.zeros_like(lam))
+    top = float(lam_t.max()) if lam_t.numel() else 0.0
+    # per row the counts k_lo … k_lo + K − 1 with F(k_lo − 1) < 1e-10 < Φ(−6) (lower tail ≤ exp(−49/2)) and
+    # 1 − F beyond the last < 1e-15: their boundaries are the only ones within |z| ≤ 6 (the rest fold into
+    # base = k_lo below and the last count above)
+    k_lo = (lam_t - 7.0 * lam_t.sqrt()).floor().clamp_min(0.0)
+    k_len = int(math.ceil(15.0 * math.sqrt(top) + 30.0))
+    ks = k_lo[:, None] + torch.arange(k_len, dtype=torch.float64, device=lam.device)[None, :]
+    # F and 1 − F from the probabilities of the window (one gammaincc per row for the mass below it;
+    # cumulative sums instead of an incomplete-gamma evaluation per count: ~20× faster, same values to ~1e-13)
+    pmf = torch.exp(torch.xlogy(ks, lam_t[:, None]) - lam_t[:, None] - torch.lgamma(ks + 1.0))
+    below_window = torch.where(k_lo > 0, torch.special.gammaincc(k_lo.clamp_min(1.0), lam_t), torch.zeros_like(lam_t))
+    lower = torch.cumsum(pmf, 1).add_(below_window[:, None])  # F(j) = P(X ≤ j)
+    upper = torch.cumsum(pmf.flip(1), 1).flip(1) - pmf  # 1 − F(j) = P(X > j) within the window (+ < 1e-15)
+    t = torch.special.ndtri(torch.minimum(lower, upper))
+    t = torch.where(lower < 0.5, t, -t)
+    t[:, -1] = math.inf  # the tail beyond (< 1e-15) is folded into the last count
+    t = torch.cummax(t, 1).values.contiguous()  # guard the order against rounding between the two branches
+    cells = int(cells)
+    while True:
+        w = 2.0 * _Z_TABLE_HALF_RANGE / cells
+        edges = torch.arange(cells + 1, dtype=torch.float64, device=lam.device) * w - _Z_TABLE_HALF_RANGE
+        below = torch.searchsorted(t, edges.expand(t.shape[0], -1).contiguous())  # #{t_j < edge}
+        count = below[:, 1:] - below[:, :-1]
+        if int(count.max()) <= 1 or cells >= 2**22:
+            break
+        cells *= 2
+    if int(count.max()) > 1:
+        raise ValueError(f"Poisson rate {top:g} too large for the z-table sampler; lower exact_below ({exact_below:g})")
+    base = below[:, :-1]
+    inner = torch.gather(t, 1, base.clamp(max=k_len - 1))
+    s = torch.where(count == 1, (inner - edges[:-1]) / w, torch.full_like(inner, 1.5)).clamp(0.0, 1.5)
+    return base.to(torch.float64) + k_lo[:, None] + 0.5 * s
+
+
+def _k_poisson_z_table(
+    table: torch.Tensor, rate: torch.Tensor, scale: torch.Tensor, keys: torch.Tensor, n: int, exact_below: float,
+    centred: bool,
+) -> torch.Tensor:
+    """(R, n) draws of the per-row rates ``rate`` (R, 1) from counter normals: the z-table lookup of
+    :func:`poisson_z_table` where λ < ``exact_below``, λ + √λ·z above; times ``scale`` (R, 1) and, if
+    ``centred``, minus λ first."""
+    r, cells = table.shape
+    z = counter_normal_expr(torch.arange(r * n, dtype=torch.int32, device=keys.device).view(r, n), keys, rate.dtype)
+    pos = (z.to(torch.float64) + _Z_TABLE_HALF_RANGE) * (cells / (2.0 * _Z_TABLE_HALF_RANGE))
+    cell = pos.floor().clamp(0, cells - 1)
+    v = torch.gather(table, 1, cell.to(torch.int64))
+    base = v.floor()
+    draw = (base + ((pos - cell) > (v - base) * 2.0).to(torch.float64)).to(rate.dtype)
+    draw = torch.where(rate >= exact_below, rate + rate.sqrt() * z, draw)
+    return (draw - rate) * scale if centred else draw * scale
+
+
+_poisson_z_draws = LazyCompiled(_k_poisson_z_table)
+
+
+def _poisson_per_sample_counter(
+    lam: torch.Tensor, b: int, n: int, generator: torch.Generator | None, exact_below: float, dtype: torch.dtype,
+    unit: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(B, n) Poisson draws of the per-sample rates ``lam`` (B,) float64 with counter normals (one compiled pass);
+    ``unit`` (B, 1): return (draw − λ)·unit instead."""
+    check_counter_size(b * n)
+    keys = counter_keys(generator, lam.device)
+    wd = dtype if dtype in (torch.float32, torch.float64) else torch.float32
+    table = poisson_z_table(lam, exact_below)
+    rate = lam.to(wd)[:, None]
+    if unit is None:
+        out = _poisson_z_draws(table, rate, torch.ones_like(rate), keys, n, float(exact_below), False)
+    else:
+        out = _poisson_z_draws(table, rate, unit.to(wd), keys, n, float(exact_below), True)
+    return out.to(dtype)
 
 
 def sample_poisson_per_sample(
@@ -521,8 +608,10 @@ def sample_poisson_per_sample(
     about one ``rand`` plus three gathers per element, ~10× less than ``torch.poisson`` (a scalar sampler per
     element) at λ ≈ 5.
 
-    ``rng``: ``"torch"`` draws u and z with ``torch.rand``/``torch.randn`` from ``generator``; ``"counter"``
-    computes them with :mod:`~camhealth.physics.counter_rng` (keys from ``generator``), the same grid of u.
+    ``rng``: ``"torch"`` draws u and z with ``torch.rand``/``torch.randn`` from ``generator``. ``"counter"``
+    inverts at the counter normal z of each element (:mod:`~camhealth.physics.counter_rng`, keys from
+    ``generator``) with a per-sample z-space table (:func:`poisson_z_table`): the draw is min{k : F(k) ≥ Φ(z)}
+    for λ < ``exact_below`` and λ + √λ·z above, in one compiled pass with a single table lookup per element.
     """
     check_rng(rng)
     rate = torch.as_tensor(rate)
@@ -535,31 +624,14 @@ def sample_poisson_per_sample(
     lam = rate.detach().to(dtype=torch.float64)
     if bool((lam < 0).any()) or not bool(torch.isfinite(lam).all()):
         raise ValueError(f"Poisson rates must be finite and >= 0, got {lam.tolist()}")
+    if rng == "counter":  # one per-sample z-space table and one compiled pass (poisson_z_table)
+        return _poisson_per_sample_counter(lam, b, n, generator, exact_below, dtype).view(*shape)
     out = torch.empty(b, n, dtype=dtype, device=rate.device)
-    if rng == "counter" and bool((lam >= _EXPANSION_MIN_RATE).any()):
-        # λ ≥ 10: the compiled pass of sample_poisson (normal approximation / quantile expansion) with the
-        # sample's rate broadcast, no table; smaller rates: the tables below (short, as λ < 10)
-        work_dtype = dtype if dtype in (torch.float32, torch.float64) else torch.float32
-        big = (lam >= _EXPANSION_MIN_RATE).nonzero().squeeze(1)
-        one = torch.ones(1, 1, dtype=work_dtype, device=rate.device)
-        drawn = _sample_poisson_counter(
-            lam[big].to(work_dtype)[:, None], one, n, generator, exact_below, _EXPANSION_MIN_RATE
-        )
-        if big.numel() == b:
-            return drawn.to(dtype).view(*shape)
-        out[big] = drawn.to(dtype)
-        rest = (lam < _EXPANSION_MIN_RATE).nonzero().squeeze(1)
-        out[rest] = sample_poisson_per_sample(lam[rest], (int(rest.numel()), n), generator, exact_below, dtype, rng)
-        return out.view(*shape)
     large = lam >= exact_below
     if bool(large.any()):
         i = large.nonzero().squeeze(1)
-        if rng == "counter":
-            z = counter_normal((int(i.numel()), n), counter_keys(generator, rate.device), dtype, lam[i].sqrt())
-            out[i] = z.add_(lam[i].to(dtype)[:, None])
-        else:
-            z = torch.randn(int(i.numel()), n, generator=generator, dtype=dtype, device=rate.device)
-            out[i] = z.mul_(lam[i].sqrt().to(dtype)[:, None]).add_(lam[i].to(dtype)[:, None])
+        z = torch.randn(int(i.numel()), n, generator=generator, dtype=dtype, device=rate.device)
+        out[i] = z.mul_(lam[i].sqrt().to(dtype)[:, None]).add_(lam[i].to(dtype)[:, None])
     if not bool(large.all()):
         i = (~large).nonzero().squeeze(1)
         lam_s = lam[i]
@@ -577,20 +649,6 @@ def sample_poisson_per_sample(
         # one table of (k, F32(k)) pairs per cell, packed as int64 so that a single lookup fetches both
         pairs = torch.stack([guide.float(), torch.gather(cdf32, 1, guide)], dim=2).view(torch.int64).squeeze(2)
         bs = int(i.numel())
-        if rng == "counter":  # the same lookup and corrections as below, as one compiled pass
-            check_counter_size(bs * n)
-            keys = counter_keys(generator, rate.device)
-            kmax = cdf32.shape[1] - 1
-            tables = torch.stack([guide.float()] + [torch.gather(cdf32, 1, (guide + d).clamp(max=kmax)) for d in range(3)])
-            k, any_miss = _guide_lookup(tables, keys, n)
-            if bool(any_miss):  # tail cells: binary search of each draw's own CDF row
-                rows, cols = (k < 0).nonzero(as_tuple=True)
-                uu = counter_uniform_at(rows.to(torch.int32) * n + cols.to(torch.int32), keys)
-                k[rows, cols] = torch.searchsorted(cdf32[rows], uu[:, None]).squeeze(1).float()
-            if bs == b:
-                return k.to(dtype).view(*shape)
-            out[i] = k.to(dtype)
-            return out.view(*shape)
         u = torch.rand(bs, n, generator=generator, dtype=torch.float32, device=rate.device)
         # flat cell index into the (bs, cells) table: index_select is ~5× faster than a 2-D gather here
         itype = torch.int32 if bs * cells < 2**31 else torch.int64
@@ -612,25 +670,6 @@ def sample_poisson_per_sample(
             k[rows, cols] = torch.searchsorted(cdf32[rows], uu[:, None]).squeeze(1).float()
         out[i] = k.to(dtype)
     return out.view(*shape)
-
-
-def _k_guide_lookup(tables: torch.Tensor, keys: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inverse-CDF draws of (bs, n) counter uniforms u from per-row guide tables ``tables`` (4, bs, cells): the
-    smallest k of each cell and F32 at k, k + 1 and k + 2. The draw is k plus the number of those F32 below u
-    (two corrections cover all but the far tail); −1 marks a draw that needs more, and the second output says
-    whether any does. (A float sentinel: a separate boolean output costs 5× the whole pass here.)"""
-    cells = tables.shape[2]
-    bs = tables.shape[1]
-    a, _ = counter_bits24(torch.arange(bs * n, dtype=torch.int32, device=keys.device).view(bs, n), keys)
-    u = a.to(torch.float32) * (1.0 / 16777216.0)
-    cell = (u * cells).to(torch.int64).clamp(max=cells - 1)
-    k = torch.gather(tables[0], 1, cell)
-    k = k + (u > torch.gather(tables[1], 1, cell)).to(k.dtype) + (u > torch.gather(tables[2], 1, cell)).to(k.dtype)
-    miss = u > torch.gather(tables[3], 1, cell)
-    return torch.where(miss, -1.0, k), miss.any()
-
-
-_guide_lookup = LazyCompiled(_k_guide_lookup)
 
 
 def _k_clip_and_label(signal: torch.Tensor, *noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -299,3 +299,50 @@ def test_extreme_metadata_labels_match_physics_for_both_rngs(fields, rng):
         assert torch.allclose(got, want, rtol=0.05, atol=0.02)
     else:  # clipping only shrinks the realised noise
         assert torch.all(r.sigma_dn <= r.sigma_expected_dn * 1.05 + 0.02)
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.07, 3.0, 9.99, 37.0, 640.0, 999.0])
+def test_counter_per_sample_draws_are_the_exact_inverse_cdf_at_their_normal(lam):
+    """rng='counter': a per-sample-rate draw is min{k : F(k) ≥ Φ(z)} for the field's own normal z (SciPy's ppf),
+    via the z-space table of poisson_z_table; above exact_below it is λ + √λ·z."""
+    import numpy as np
+    from scipy import special, stats
+
+    from camhealth.physics.counter_rng import counter_keys, counter_normal
+    from camhealth.physics.image_formation import sample_poisson_per_sample
+
+    shape = (2, 150 * 150)
+    x = sample_poisson_per_sample(torch.tensor([lam, 2500.0]), shape, _gen(21), rng="counter")
+    z = counter_normal(shape, counter_keys(_gen(21)), torch.float32).double().numpy()
+    ref = stats.poisson.ppf(special.ndtr(z[0]), lam) if lam > 0 else np.zeros_like(z[0])
+    off = np.abs(x[0].double().numpy() - ref)
+    assert off.max() <= 1.0 and (off > 0).mean() <= 1e-4  # z recomputed outside the kernel: float rounding only
+    assert np.allclose(x[1].double().numpy(), 2500.0 + 50.0 * z[1], atol=2e-3)  # normal approximation
+
+
+def test_poisson_z_table_cells_and_bounds():
+    """Every cell holds at most one quantile boundary (cells doubled for large rates); bases are monotone and
+    start at the count whose boundary lies below z = −6; λ = 0 gives a table of zeros."""
+    import numpy as np
+    from scipy import special, stats
+
+    from camhealth.physics.image_formation import poisson_z_table
+
+    t = poisson_z_table(torch.tensor([0.0, 0.5, 40.0, 999.0], dtype=torch.float64))
+    assert t.shape == (4, 1024) and t.dtype == torch.float64
+    assert torch.equal(t[0], torch.full_like(t[0], 0.75))  # base 0, no boundary (s = 1.5)
+    base = t.floor()
+    assert bool((base[:, 1:] >= base[:, :-1]).all())
+    assert int(base[3, 0]) == int(stats.poisson.ppf(special.ndtr(-6.0), 999.0))  # the quantile at z = −6
+    big = poisson_z_table(torch.tensor([20_000.0], dtype=torch.float64), exact_below=1e5)
+    assert big.shape[1] >= 2048  # boundaries ≈ 1/√λ = 0.007 apart: finer cells
+    s = (big - big.floor()) * 2
+    assert bool(((s < 1) | (s == 1.5)).all())
+    # the table's draw at a few z equals the exact quantile
+    z = np.array([-5.5, -1.0, 0.0, 0.3, 2.0, 5.5])
+    cells = big.shape[1]
+    pos = (z + 6.0) * cells / 12.0
+    cell = np.floor(pos).astype(int)
+    v = big[0, cell].numpy()
+    draw = np.floor(v) + ((pos - cell) > (v - np.floor(v)) * 2)
+    assert np.array_equal(draw, stats.poisson.ppf(special.ndtr(z), 20_000.0))
