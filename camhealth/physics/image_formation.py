@@ -554,21 +554,30 @@ def poisson_z_table(rate: torch.Tensor, exact_below: float = 1e3, cells: int = _
     return base.to(torch.float64) + k_lo[:, None] + 0.5 * s
 
 
-def _k_poisson_z_table(
-    table: torch.Tensor, rate: torch.Tensor, scale: torch.Tensor, keys: torch.Tensor, n: int, exact_below: float,
-    centred: bool,
+def _poisson_z_expr(
+    table: torch.Tensor, rate: torch.Tensor, keys: torch.Tensor, index: torch.Tensor, exact_below: float
 ) -> torch.Tensor:
-    """(R, n) draws of the per-row rates ``rate`` (R, 1) from counter normals: the z-table lookup of
-    :func:`poisson_z_table` where λ < ``exact_below``, λ + √λ·z above; times ``scale`` (R, 1) and, if
-    ``centred``, minus λ first."""
-    r, cells = table.shape
-    z = counter_normal_expr(torch.arange(r * n, dtype=torch.int32, device=keys.device).view(r, n), keys, rate.dtype)
+    """Draws at the counter normals z of the elements ``index`` (int32, (R, n)) for the per-row rates ``rate``
+    (R, 1): the z-table lookup of :func:`poisson_z_table` where λ < ``exact_below``, λ + √λ·z above; an
+    element-wise expression for use inside compiled kernels."""
+    cells = table.shape[1]
+    z = counter_normal_expr(index, keys, rate.dtype)
     pos = (z.to(torch.float64) + _Z_TABLE_HALF_RANGE) * (cells / (2.0 * _Z_TABLE_HALF_RANGE))
     cell = pos.floor().clamp(0, cells - 1)
     v = torch.gather(table, 1, cell.to(torch.int64))
     base = v.floor()
     draw = (base + ((pos - cell) > (v - base) * 2.0).to(torch.float64)).to(rate.dtype)
-    draw = torch.where(rate >= exact_below, rate + rate.sqrt() * z, draw)
+    return torch.where(rate >= exact_below, rate + rate.sqrt() * z, draw)
+
+
+def _k_poisson_z_table(
+    table: torch.Tensor, rate: torch.Tensor, scale: torch.Tensor, keys: torch.Tensor, n: int, exact_below: float,
+    centred: bool,
+) -> torch.Tensor:
+    """(R, n) draws of the per-row rates ``rate`` (R, 1) (:func:`_poisson_z_expr`) times ``scale`` (R, 1) and, if
+    ``centred``, minus λ first."""
+    r = table.shape[0]
+    draw = _poisson_z_expr(table, rate, keys, torch.arange(r * n, dtype=torch.int32, device=keys.device).view(r, n), exact_below)
     return (draw - rate) * scale if centred else draw * scale
 
 
@@ -672,10 +681,27 @@ def sample_poisson_per_sample(
     return out.view(*shape)
 
 
-def _k_clip_and_label(signal: torch.Tensor, *noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _k_noise_clip_and_label(
+    signal: torch.Tensor, fields: tuple[torch.Tensor, ...], dark: tuple[torch.Tensor, ...] | None,
+    readout: tuple[torch.Tensor, torch.Tensor] | None, exact_below: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Clipping and attribution of :func:`form_image` for (B, N) rows: the clipped image and, per row, the sum
     and sum of squares of each source's attributed noise, of the realised total noise, and the clipped count
-    (B, 2·S + 3)."""
+    (B, 2·S + 3). The noise is ``fields`` (realised (B, N) fields) followed by the dark-current and readout
+    noise drawn in the same pass from their specifications, so that neither is written out: ``dark`` =
+    (z-table, λ (B, 1), intensity per electron (B, 1), keys) as in :func:`_dark_noise_counter`, ``readout`` =
+    (σ in intensity (B, 1), keys) as in :func:`~camhealth.physics.counter_rng.counter_normal` — the same numbers
+    as the separate passes with the same keys."""
+    noise = list(fields)
+    if dark is not None or readout is not None:
+        r, n = signal.shape
+        index = torch.arange(r * n, dtype=torch.int32, device=signal.device).view(r, n)
+        if dark is not None:
+            table, rate, unit, keys = dark
+            noise.append((_poisson_z_expr(table, rate, keys, index, exact_below) - rate) * unit)
+        if readout is not None:
+            scale, keys = readout
+            noise.append(counter_normal_expr(index, keys, signal.dtype) * scale)
     total = noise[0]
     for n in noise[1:]:
         total = total + n
@@ -692,7 +718,7 @@ def _k_clip_and_label(signal: torch.Tensor, *noise: torch.Tensor) -> tuple[torch
     return y, torch.stack(stats, 1)
 
 
-_clip_and_label = LazyCompiled(_k_clip_and_label)
+_noise_clip_and_label = LazyCompiled(_k_noise_clip_and_label)
 
 
 def _sample_std(t: torch.Tensor) -> torch.Tensor:
@@ -802,11 +828,18 @@ def form_image(
     if n_pn is not None:
         noise["photon"] = n_pn
     expected.append(exp_pn)
+    # rng="counter" without gradient: dark and readout noise are drawn inside the clipping pass (never written out)
+    late: dict[str, tuple[torch.Tensor, ...]] = {}
+    fuse = rng == "counter" and not signal.requires_grad
     # --- dark-current shot noise (signal independent, Poisson in the dark electrons)
     if "dark" in sources:
         with torch.no_grad():  # the same dark-electron rate at every pixel of a sample: tabulated CDF per sample
             dark = dark_signal_e(meta).to(device=dev, dtype=torch.float64)
-            if rng == "counter":
+            if fuse:  # the specification of _dark_noise_counter, drawn in the clipping pass
+                check_counter_size(signal.numel())
+                keys = counter_keys(generator, dev)
+                late["dark"] = (poisson_z_table(dark, poisson_exact_below), dark.to(wd)[:, None], to_int.reshape(b, 1), keys)
+            elif rng == "counter":
                 noise["dark"] = _dark_noise_counter(dark, to_int, signal.shape, generator, poisson_exact_below, wd)
             else:
                 drawn = sample_poisson_per_sample(dark, signal.shape, generator, poisson_exact_below, wd, rng)
@@ -820,7 +853,9 @@ def form_image(
         rn_e = readout_sigma_e(meta, source_follower_e).to(wd)
         with torch.no_grad():
             scale = _per_sample(rn_e, wd, dev) * to_int
-            if rng == "counter":
+            if fuse:  # the specification of counter_normal(signal.shape, keys, wd, scale), drawn in the clipping pass
+                late["readout"] = (scale.reshape(b, 1), counter_keys(generator, dev))
+            elif rng == "counter":
                 noise["readout"] = counter_normal(signal.shape, counter_keys(generator, dev), wd, scale)
             else:
                 eps = torch.randn(signal.shape, generator=generator, device=dev, dtype=wd)
@@ -830,17 +865,20 @@ def form_image(
         expected.append(zeros)
 
     # --- gain is folded into to_int; clipping (saturation) and attribution of the clipped noise
-    if noise and rng == "counter":  # the same arithmetic as below, one compiled pass plus row sums
+    if (noise or late) and rng == "counter":  # the same arithmetic as below, one compiled pass plus row sums
         with torch.no_grad():
             flat = [n.reshape(b, -1) for n in noise.values()]
-            y_flat, stats = _clip_and_label(signal.detach().reshape(b, -1), *flat)
-            n_px = flat[0].shape[1]
+            y_flat, stats = _noise_clip_and_label(
+                signal.detach().reshape(b, -1), tuple(flat), late.get("dark"), late.get("readout"), float(poisson_exact_below)
+            )
+            names = list(noise) + list(late)
+            n_px = signal[0].numel()
             s = stats.double()
             var = ((s[:, 1::2] - s[:, 0:-1:2].square() / n_px) / max(n_px - 1, 1)).clamp_min(0)
             sd_all = var.sqrt().mul(255.0).to(wd)
-            sd = dict(zip(noise, sd_all.unbind(1)))
+            sd = dict(zip(names, sd_all.unbind(1)))
             sigma = torch.stack([sd.get(name, zeros) for name in NOISE_SOURCES], 1)
-            sigma_total = sd_all[:, len(noise)]
+            sigma_total = sd_all[:, len(names)]
             clipped_fraction = stats[:, -1].to(wd) / n_px
         if signal.requires_grad:  # the differentiable path: identity through the additive noise, 0 where clipped
             total_noise = torch.stack(flat).sum(0).view_as(signal)

@@ -346,3 +346,23 @@ def test_poisson_z_table_cells_and_bounds():
     v = big[0, cell].numpy()
     draw = np.floor(v) + ((pos - cell) > (v - np.floor(v)) * 2)
     assert np.array_equal(draw, stats.poisson.ppf(special.ndtr(z), 20_000.0))
+
+
+def test_counter_noise_drawn_in_the_clipping_pass_equals_the_separate_fields():
+    """rng='counter' without gradient draws dark and readout noise inside the clipping pass; with gradient the fields
+    are realised separately: same keys, same image and labels (to float rounding)."""
+    from camhealth.physics.motion_psf import linear_motion_psf
+
+    x = torch.rand(4, 1, 48, 48, generator=_gen(2)) * 0.98 + 0.01
+    x[1] = 1.0  # saturated: clipping attribution
+    meta = CameraMetadata.sample(4, generator=_gen(3))
+    dpsf = defocus_psf(torch.tensor([1.0, 3.0, 5.0, 0.0]), 7)
+    mpsf = linear_motion_psf(torch.tensor([3.0, 1.0, 7.0, 2.0]), torch.tensor([0.0, 30.0, 90.0, 45.0]), 9)
+    fused = form_image(x, meta, dpsf, mpsf, generator=_gen(7), rng="counter")
+    xg = x.clone().requires_grad_(True)
+    separate = form_image(xg, meta, dpsf, mpsf, generator=_gen(7), rng="counter")
+    assert torch.allclose(fused.image, separate.image.detach(), atol=1e-6)
+    assert torch.allclose(fused.sigma_dn, separate.sigma_dn, rtol=1e-4, atol=1e-5)
+    assert torch.allclose(fused.sigma_total_dn, separate.sigma_total_dn, rtol=1e-4, atol=1e-5)
+    assert torch.equal(fused.clipped_fraction, separate.clipped_fraction)
+    assert bool((fused.sigma_dn > 0).all())
