@@ -502,6 +502,8 @@ def _dark_noise_counter(
 _Z_TABLE_HALF_RANGE = 6.0
 #: Fewest cells of a per-sample inversion table (doubled until no cell holds two quantile boundaries).
 _Z_TABLE_MIN_CELLS = 1024
+#: Most cells (2 MB per sample): enough for boundaries 1/√λ apart up to λ ≈ 4.8e8.
+_Z_TABLE_MAX_CELLS = 2**18
 
 
 def poisson_z_table(rate: torch.Tensor, exact_below: float = 1e3, cells: int = _Z_TABLE_MIN_CELLS) -> torch.Tensor:
@@ -543,11 +545,15 @@ def poisson_z_table(rate: torch.Tensor, exact_below: float = 1e3, cells: int = _
         edges = torch.arange(cells + 1, dtype=torch.float64, device=lam.device) * w - _Z_TABLE_HALF_RANGE
         below = torch.searchsorted(t, edges.expand(t.shape[0], -1).contiguous())  # #{t_j < edge}
         count = below[:, 1:] - below[:, :-1]
-        if int(count.max()) <= 1 or cells >= 2**22:
+        if int(count.max()) <= 1 or cells >= _Z_TABLE_MAX_CELLS:
             break
         cells *= 2
     if int(count.max()) > 1:
-        raise ValueError(f"Poisson rate {top:g} too large for the z-table sampler; lower exact_below ({exact_below:g})")
+        raise ValueError(
+            f"Poisson rate {top:g} e⁻ is too large for exact per-sample draws (at most ≈ {(_Z_TABLE_MAX_CELLS / 12) ** 2:.2g} "
+            f"e⁻ with {_Z_TABLE_MAX_CELLS} table cells); lower exact_below ({exact_below:g}) so that such rates use "
+            "the normal approximation"
+        )
     base = below[:, :-1]
     inner = torch.gather(t, 1, base.clamp(max=k_len - 1))
     s = torch.where(count == 1, (inner - edges[:-1]) / w, torch.full_like(inner, 1.5)).clamp(0.0, 1.5)

@@ -366,3 +366,10 @@ def test_counter_noise_drawn_in_the_clipping_pass_equals_the_separate_fields():
     assert torch.allclose(fused.sigma_total_dn, separate.sigma_total_dn, rtol=1e-4, atol=1e-5)
     assert torch.equal(fused.clipped_fraction, separate.clipped_fraction)
     assert bool((fused.sigma_dn > 0).all())
+
+
+def test_poisson_z_table_rejects_rates_beyond_its_resolution():
+    from camhealth.physics.image_formation import poisson_z_table
+
+    with pytest.raises(ValueError, match="exact_below"):
+        poisson_z_table(torch.tensor([1e9], dtype=torch.float64), exact_below=1e10)
