@@ -520,6 +520,10 @@ def poisson_z_table(rate: torch.Tensor, exact_below: float = 1e3, cells: int = _
     approximation) get an unused table of λ = 0.
     """
     lam = torch.as_tensor(rate).detach().to(torch.float64)
+    if lam.ndim != 1:
+        raise ValueError(f"rate must have shape (B,), got {tuple(lam.shape)}")
+    if bool((lam < 0).any()) or not bool(torch.isfinite(lam).all()):
+        raise ValueError(f"Poisson rates must be finite and >= 0, got {lam.tolist()}")
     small = lam < exact_below
     lam_t = torch.where(small, lam, torch.zeros_like(lam))
     top = float(lam_t.max()) if lam_t.numel() else 0.0
@@ -545,10 +549,11 @@ def poisson_z_table(rate: torch.Tensor, exact_below: float = 1e3, cells: int = _
         edges = torch.arange(cells + 1, dtype=torch.float64, device=lam.device) * w - _Z_TABLE_HALF_RANGE
         below = torch.searchsorted(t, edges.expand(t.shape[0], -1).contiguous())  # #{t_j < edge}
         count = below[:, 1:] - below[:, :-1]
-        if int(count.max()) <= 1 or cells >= _Z_TABLE_MAX_CELLS:
+        crowded = int(count.max()) > 1
+        if not crowded or cells >= _Z_TABLE_MAX_CELLS:
             break
         cells *= 2
-    if int(count.max()) > 1:
+    if crowded:
         raise ValueError(
             f"Poisson rate {top:g} e⁻ is too large for exact per-sample draws (at most ≈ {(_Z_TABLE_MAX_CELLS / 12) ** 2:.2g} "
             f"e⁻ with {_Z_TABLE_MAX_CELLS} table cells); lower exact_below ({exact_below:g}) so that such rates use "
@@ -590,22 +595,29 @@ def _k_poisson_z_table(
 _poisson_z_draws = LazyCompiled(_k_poisson_z_table)
 
 
+def _poisson_per_sample_spec(
+    lam: torch.Tensor, b: int, n: int, generator: torch.Generator | None, exact_below: float, wd: torch.dtype,
+    unit: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(z-table, λ (B, 1), unit (B, 1), keys) of B×n counter draws of the per-sample rates ``lam`` (B,) float64 in
+    the work dtype ``wd``: what the compiled passes (:func:`_k_poisson_z_table`, :func:`_k_noise_clip_and_label`)
+    evaluate. Draws the field's keys from ``generator``."""
+    check_counter_size(b * n)
+    keys = counter_keys(generator, lam.device)
+    rate = lam.to(wd)[:, None]
+    scale = torch.ones_like(rate) if unit is None else unit.reshape(b, 1).to(wd)
+    return poisson_z_table(lam, exact_below), rate, scale, keys
+
+
 def _poisson_per_sample_counter(
     lam: torch.Tensor, b: int, n: int, generator: torch.Generator | None, exact_below: float, dtype: torch.dtype,
     unit: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(B, n) Poisson draws of the per-sample rates ``lam`` (B,) float64 with counter normals (one compiled pass);
     ``unit`` (B, 1): return (draw − λ)·unit instead."""
-    check_counter_size(b * n)
-    keys = counter_keys(generator, lam.device)
     wd = dtype if dtype in (torch.float32, torch.float64) else torch.float32
-    table = poisson_z_table(lam, exact_below)
-    rate = lam.to(wd)[:, None]
-    if unit is None:
-        out = _poisson_z_draws(table, rate, torch.ones_like(rate), keys, n, float(exact_below), False)
-    else:
-        out = _poisson_z_draws(table, rate, unit.to(wd), keys, n, float(exact_below), True)
-    return out.to(dtype)
+    table, rate, scale, keys = _poisson_per_sample_spec(lam, b, n, generator, exact_below, wd, unit)
+    return _poisson_z_draws(table, rate, scale, keys, n, float(exact_below), unit is not None).to(dtype)
 
 
 def sample_poisson_per_sample(
@@ -842,9 +854,7 @@ def form_image(
         with torch.no_grad():  # the same dark-electron rate at every pixel of a sample: tabulated CDF per sample
             dark = dark_signal_e(meta).to(device=dev, dtype=torch.float64)
             if fuse:  # the specification of _dark_noise_counter, drawn in the clipping pass
-                check_counter_size(signal.numel())
-                keys = counter_keys(generator, dev)
-                late["dark"] = (poisson_z_table(dark, poisson_exact_below), dark.to(wd)[:, None], to_int.reshape(b, 1), keys)
+                late["dark"] = _poisson_per_sample_spec(dark, b, signal[0].numel(), generator, poisson_exact_below, wd, to_int)
             elif rng == "counter":
                 noise["dark"] = _dark_noise_counter(dark, to_int, signal.shape, generator, poisson_exact_below, wd)
             else:

@@ -373,3 +373,11 @@ def test_poisson_z_table_rejects_rates_beyond_its_resolution():
 
     with pytest.raises(ValueError, match="exact_below"):
         poisson_z_table(torch.tensor([1e9], dtype=torch.float64), exact_below=1e10)
+
+
+@pytest.mark.parametrize("bad", [[-1.0], [float("nan")], [float("inf")]])
+def test_poisson_z_table_rejects_bad_rates(bad):
+    from camhealth.physics.image_formation import poisson_z_table
+
+    with pytest.raises(ValueError, match=">= 0"):
+        poisson_z_table(torch.tensor(bad, dtype=torch.float64))
