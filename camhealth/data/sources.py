@@ -86,6 +86,10 @@ class DefaultSource(ConcatSource):
             (anti-aliased edges, as a lens and a pixel aperture would render them; the plain ones have hard
             one-pixel steps). Ids ``"deadleaves-000042#2"``: the same split group as the plain rendering, so
             a scene never sits in two splits.
+        photo_repeat: list the scikit-image photos this many times (1: once). The copies have ids
+            ``"skimage:grass#1"`` … — the same split group as the photo, so a photo never sits in two splits —
+            and give the few natural photos (fine texture such as grass and gravel) more weight among the
+            dead-leaves images without leaving any of those out. Each copy draws its own crops.
         deadleaves_kwargs: further :class:`DeadLeavesSource` arguments (``r_min``, ``r_max``, ...).
     """
 
@@ -98,10 +102,14 @@ class DefaultSource(ConcatSource):
         include_skimage: bool = True,
         include_street: bool = True,
         deadleaves_antialiased: int = 0,
+        photo_repeat: int = 1,
         **deadleaves_kwargs,
     ) -> None:
         deadleaves = check_int(deadleaves, "deadleaves", 0)
         n_aa = check_int(deadleaves_antialiased, "deadleaves_antialiased", 0)
+        repeat = check_int(photo_repeat, "photo_repeat", 1)
+        if repeat > 1 and not include_skimage:
+            raise ValueError(f"photo_repeat = {repeat} repeats the scikit-image photos; they are switched off (include_skimage=False)")
         if n_aa > deadleaves:
             raise ValueError(f"deadleaves_antialiased = {n_aa} must be <= deadleaves = {deadleaves} (it re-renders those images)")
         if n_aa and int(deadleaves_kwargs.get("supersample", 1)) != 1:
@@ -109,6 +117,10 @@ class DefaultSource(ConcatSource):
         parts: list[torch.utils.data.Dataset] = []
         if include_skimage:
             parts.append(SkimagePhotosSource())
+            for k in range(1, repeat):
+                copy = SkimagePhotosSource()
+                copy.ids = [f"{i}#{k}" for i in copy.ids]
+                parts.append(copy)
         if include_street:
             parts.append(StreetSampleSource(stride=street_stride))
         if deadleaves:

@@ -112,6 +112,25 @@ def test_default_source_antialiased_dead_leaves_share_the_split_group():
         DefaultSource(deadleaves=2, deadleaves_antialiased=1, supersample=2)
 
 
+def test_default_source_photo_repeat_keeps_each_photo_in_one_split():
+    from camhealth.data import group_key, split_ids
+
+    src = DefaultSource(include_street=False, photo_repeat=3)
+    n = len(SKIMAGE_PHOTOS)
+    assert len(src) == 3 * n and len(set(src.ids)) == 3 * n
+    assert src.ids[n] == f"skimage:{SKIMAGE_PHOTOS[0]}#1" and src.ids[2 * n + 1] == f"skimage:{SKIMAGE_PHOTOS[1]}#2"
+    assert torch.equal(src[0][0], src[n][0])  # the same pixels; the datamodule draws each copy's own crops
+    where = {i: name for name, idx in split_ids(src.ids, 0.3, 0.3, seed=0).items() for i in idx}
+    for k, image_id in enumerate(src.ids):
+        assert group_key(image_id) == src.ids[k % n]
+        assert where[k] == where[k % n]
+    assert len(DefaultSource(photo_repeat=1).ids) == len(DefaultSource().ids)
+    with pytest.raises(ValueError, match="photo_repeat = 0"):
+        DefaultSource(photo_repeat=0)
+    with pytest.raises(ValueError, match="include_skimage"):
+        DefaultSource(photo_repeat=2, include_skimage=False)
+
+
 def test_build_source_specs(tmp_path):
     assert isinstance(build_source("default"), DefaultSource)
     dl = build_source("deadleaves", n_images=4, size=(16, 16))
