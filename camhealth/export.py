@@ -13,6 +13,12 @@ arguments, params, FLOPs, metrics — read back by :func:`camhealth.load_estimat
 The exported network takes exactly the inputs of :meth:`EstimatorModule.export_inputs` (for the
 noise-source network: patches, normalised metadata and the closed-form σ prior; the loader computes the
 last two from raw metadata with :mod:`camhealth.physics`). TorchScript is not offered (deprecated).
+
+**Inference settings.** A file may also carry settings that :meth:`camhealth.inference.Estimator.predict` applies by
+default, under ``inference`` in the description; today ``posterior_blend`` (Full-Meta noise-source networks with the
+physics prior, :class:`camhealth.inference.PosteriorBlend`). ``--posterior-blend JSON`` stores one (``'{}'`` for the
+defaults, e.g. ``'{"fields": ["gain_db"], "weight": 0.7}'``), ``--posterior-blend off`` removes it; without the option
+an input file's settings are kept. They change no weight: ``predict(posterior_blend=None)`` gives the network alone.
 """
 
 from __future__ import annotations
@@ -93,30 +99,66 @@ def load_module(source: str | Path):
     return module.eval(), desc
 
 
-def _description(module, metrics: Mapping[str, float] | None) -> dict:
+def _check_inference(module, inference: Mapping[str, Any] | None) -> dict | None:
+    """The ``inference`` settings as JSON-ready data, validated against ``module``; ``None`` when empty."""
+    if not inference:
+        return None
+    if not isinstance(inference, Mapping):
+        raise ValueError(f"inference settings must be a mapping, got {type(inference).__name__}")
+    unknown = sorted(set(inference) - {"posterior_blend"})
+    if unknown:
+        raise ValueError(f"unknown inference setting(s) {unknown}; allowed: ['posterior_blend']")
+    from camhealth.inference import PosteriorBlend  # camhealth.inference imports this module
+
+    blend = PosteriorBlend.from_value(inference.get("posterior_blend"))
+    if blend is None:
+        return None
+    hp = getattr(module, "hparams", {})
+    if not (getattr(module, "kind", None) == "noise_source" and hp.get("metadata_set") == "full" and hp.get("physics_prior")):
+        raise ValueError(
+            "posterior_blend applies to Full-Meta noise-source networks with the physics prior; this network is "
+            f"{getattr(module, 'kind', type(module).__name__)!r} with {hp.get('metadata_set')!r} metadata, physics prior "
+            f"{bool(hp.get('physics_prior'))}"
+        )
+    return {"posterior_blend": blend.as_dict()}
+
+
+def _description(module, metrics: Mapping[str, float] | None, inference: Mapping[str, Any] | None = None) -> dict:
     desc = module.describe()
     desc["format"] = FORMAT_TAG
     desc["version"] = FORMAT_VERSION
     desc["init_args"] = json.loads(json.dumps(desc["init_args"], default=list))
     if metrics:
         desc["metrics"] = {k: float(v) for k, v in metrics.items()}
+    settings = _check_inference(module, inference)
+    if settings:
+        desc["inference"] = settings
     return desc
 
 
-def _module_and_metrics(source, metrics):
+#: ``inference`` argument of the exporters: keep what the input file carries.
+KEEP = "keep"
+
+
+def _module_and_metrics(source, metrics, inference=KEEP):
     if isinstance(source, (str, Path)):
         module, desc = load_module(source)
-        return module, metrics if metrics is not None else desc.get("metrics")
-    return source.eval(), metrics
+        if isinstance(inference, str) and inference == KEEP:
+            inference = desc.get("inference")
+        return module, metrics if metrics is not None else desc.get("metrics"), inference
+    return source.eval(), metrics, (None if isinstance(inference, str) and inference == KEEP else inference)
 
 
-def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
-    """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file."""
-    module, metrics = _module_and_metrics(source, metrics)
+def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None, inference: Any = KEEP) -> Path:
+    """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file.
+
+    ``inference``: settings :meth:`camhealth.inference.Estimator.predict` applies by default (``{"posterior_blend":
+    {...}}``), ``None`` for none, or ``"keep"`` (default) for those of an input file."""
+    module, metrics, inference = _module_and_metrics(source, metrics, inference)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in module.net.state_dict().items()}
-    payload = {"format": FORMAT_TAG, "version": FORMAT_VERSION, "description": json.dumps(_description(module, metrics)), "state_dict": state}
+    payload = {"format": FORMAT_TAG, "version": FORMAT_VERSION, "description": json.dumps(_description(module, metrics, inference)), "state_dict": state}
     torch.save(payload, out)
     return out
 
@@ -126,23 +168,23 @@ def _dynamic_batch(inputs: Sequence[torch.Tensor]):
     return tuple({0: batch} for _ in inputs)
 
 
-def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
+def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = None, inference: Any = KEEP) -> Path:
     """torch.export the bare network (dynamic batch) to a ``.pt2`` archive with the description."""
-    module, metrics = _module_and_metrics(source, metrics)
+    module, metrics, inference = _module_and_metrics(source, metrics, inference)
     inputs = module.export_inputs(2)
     net = module.export_module()
     ep = torch.export.export(net, inputs, dynamic_shapes=_dynamic_batch(inputs))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.export.save(ep, out, extra_files={"camhealth.json": json.dumps(_description(module, metrics))})
+    torch.export.save(ep, out, extra_files={"camhealth.json": json.dumps(_description(module, metrics, inference))})
     return out
 
 
-def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
+def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = None, inference: Any = KEEP) -> Path:
     """ONNX export (dynamo exporter, dynamic batch) with the description in ``metadata_props``."""
     import onnx
 
-    module, metrics = _module_and_metrics(source, metrics)
+    module, metrics, inference = _module_and_metrics(source, metrics, inference)
     inputs = module.export_inputs(2)
     net = module.export_module()
     names = [f"input_{i}" for i in range(len(inputs))]
@@ -155,7 +197,7 @@ def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = N
     program.save(str(out))
     model = onnx.load(str(out))
     entry = model.metadata_props.add()
-    entry.key, entry.value = "camhealth.json", json.dumps(_description(module, metrics))
+    entry.key, entry.value = "camhealth.json", json.dumps(_description(module, metrics, inference))
     onnx.save(model, str(out))
     return out
 
@@ -168,14 +210,31 @@ def main(argv: Sequence[str] | None = None) -> Path:
     parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) of a camhealth estimator, or a weights file (.pt)")
     parser.add_argument("--format", choices=sorted(EXPORTERS), default="pt2", help="output format (default pt2)")
     parser.add_argument("--out", default=None, help="output path (default: next to the checkpoint, with the format's suffix)")
+    parser.add_argument(
+        "--posterior-blend", default=None, metavar="JSON|off",
+        help="store a default posterior blend for Estimator.predict (Full-Meta noise-source networks): a JSON object of "
+        "camhealth.inference.PosteriorBlend fields ('{}' for its defaults), or 'off' to remove one; default: keep the input's",
+    )
     args = parser.parse_args(argv)
     fn, suffix = EXPORTERS[args.format]
+    inference: Any = KEEP
+    if args.posterior_blend is not None:
+        if args.posterior_blend.strip().lower() == "off":
+            inference = None
+        else:
+            try:
+                value = json.loads(args.posterior_blend)
+            except json.JSONDecodeError as exc:
+                parser.error(f"--posterior-blend {args.posterior_blend!r} is not JSON ({exc.msg}); give e.g. '{{}}' or 'off'")
+            if not isinstance(value, dict):
+                parser.error(f"--posterior-blend {args.posterior_blend!r} must be a JSON object (e.g. '{{}}') or 'off'")
+            inference = {"posterior_blend": value}
     src = Path(args.checkpoint)
     out = Path(args.out) if args.out else src.with_suffix(suffix)
     if out.resolve() == src.resolve():
         parser.error(f"--out {out} would overwrite the input; give another path")
     try:
-        path = fn(src, out)
+        path = fn(src, out, inference=inference)
     except (FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -38,12 +38,20 @@
   else is the network's. Adds ``resplit`` (B,) bool to the output and ≈ 2 ms per patch. τ = 0.9 (chosen on the
   validation split): DCSN / RN RMS 0.56 / 0.56 → 0.48 / 0.41 DN on the 592-patch held-out set with mismatches of
   any field, unchanged within 0.01 DN with gain-only mismatches (``docs/estimators.md``, session 11).
+- ``posterior_blend`` (Full-Meta noise-source models with the physics prior): ``"auto"`` (default: the setting stored
+  in the weights file, off where it has none), ``None``/``False`` (off), ``True`` (:class:`PosteriorBlend`'s
+  defaults), or a :class:`PosteriorBlend` / dict of its fields. Every output — σ per source, total, ξ — moves toward
+  the closed-form mismatch posterior by a per-patch weight that is high only where the posterior has evidence (many
+  flat-block details) and its texture check says the details are white noise: log σ̂ ← log σ̂ + w·(log σ_post −
+  log σ̂), ξ̂ ← ξ̂ + w·(ξ_post − ξ̂). Adds ``posterior_weight`` (B,) (w; 0 = the network alone) and ≈ 2–3 ms per patch.
+  ``noise_source_full_gain`` ships with it on (gain-only posterior, chosen on the validation split; session 14).
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -55,7 +63,7 @@ from camhealth.export import FORMAT_TAG, load_module
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 
 __all__ = ["Estimator", "load_estimator", "shipped_models", "WEIGHTS_DIR", "assess_patches", "bucket_size",
-           "posterior_resplit", "posterior_split_applies", "check_posterior_split"]
+           "posterior_resplit", "posterior_split_applies", "check_posterior_split", "PosteriorBlend", "blend_with_posterior"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
@@ -170,6 +178,8 @@ class Estimator:
         prior_clipping: whether that prior also carries the σ after clipping (``prior_clipping`` models).
         noise_fit_statistics: whether it also carries the noise fits (``noise_fit_statistics`` models).
         mismatch_posterior: whether it also carries the mismatch posterior (``mismatch_posterior`` models).
+        posterior_blend: the :class:`PosteriorBlend` :meth:`predict` applies by default (``posterior_blend="auto"``),
+            from the file's ``inference`` settings; ``None`` where it has none.
         description: the file's JSON description (architecture, params, FLOPs, metrics, ...).
         source: where it was loaded from.
         backend: ``"torch"``, ``"pt2"`` or ``"onnx"``.
@@ -188,6 +198,7 @@ class Estimator:
     prior_clipping: bool = False
     noise_fit_statistics: bool = False
     mismatch_posterior: bool = False
+    posterior_blend: PosteriorBlend | None = None
 
     @property
     def name(self) -> str:
@@ -226,13 +237,18 @@ class Estimator:
         precision: str = "fp32",
         views: int = 1,
         posterior_split: float | None = None,
+        posterior_blend: Any = "auto",
     ) -> dict[str, Any]:
         """Estimate blur or noise of patches; see the module docstring for inputs and outputs.
 
         ``precision``: ``"fp32"`` or ``"bf16"`` (CPU autocast; torch backend only). ``views`` (MTF only): 1, 2 or
         4 flipped copies of each patch whose estimates are averaged (module docstring). ``posterior_split``
         (Full-Meta noise-source models with the physics prior): τ in (0, 1), the mismatch-posterior probability of a
-        temperature or white-noise error above which the DCSN/RN split follows the posterior (module docstring)."""
+        temperature or white-noise error above which the DCSN/RN split follows the posterior (module docstring).
+        ``posterior_blend`` (the same models): ``"auto"`` (the file's setting, :attr:`posterior_blend`), ``None``/
+        ``False`` (off), ``True`` or a :class:`PosteriorBlend`/dict — every output moves toward the closed-form
+        mismatch posterior where it has evidence and no texture (module docstring); applied before
+        ``posterior_split``."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         if batch_size < 1:
@@ -243,6 +259,12 @@ class Estimator:
             raise ValueError(f"views = {views} averages flipped copies of MTF patches; estimator {self.name!r} is {self.kind!r}")
         if posterior_split is not None:
             check_posterior_split(posterior_split, self)
+        blend = self.posterior_blend if isinstance(posterior_blend, str) and posterior_blend == "auto" else PosteriorBlend.from_value(posterior_blend)
+        if blend is not None and not posterior_split_applies(self):
+            raise ValueError(
+                f"posterior_blend blends the outputs of a Full-Meta noise-source estimator with the physics prior with the "
+                f"mismatch posterior; estimator {self.name!r} is {self.kind!r} with {self.metadata_set!r} metadata"
+            )
         patches = _to_patches(images, self.patch_size, input_range)
         if views > 1:  # estimates of flipped copies are averaged below; the MTF along H and V is flip-invariant
             flips = [(-2, -1)] if views == 2 else [(-1,), (-2,), (-2, -1)]
@@ -290,9 +312,12 @@ class Estimator:
             sigma = raw[:, :3].clamp_min(0)
             # networks with the total head (total_branch) give the realised total after clipping as a fifth output
             total = raw[:, 4].clamp_min(0) if raw.shape[1] > 4 else sigma.pow(2).sum(1).sqrt()
+            xi = raw[:, 3]
+            if blend is not None:
+                sigma, total, xi, result["posterior_weight"] = blend_with_posterior(patches, meta, sigma, total, xi, blend, batch_size)
             if posterior_split is not None:
                 sigma, result["resplit"] = posterior_resplit(patches, meta, sigma, float(posterior_split))
-            result.update(sigma=sigma, sigma_total=total, xi=raw[:, 3])
+            result.update(sigma=sigma, sigma_total=total, xi=xi)
         return result
 
 
@@ -346,6 +371,128 @@ def posterior_resplit(
     out[:, 1] = torch.where(moved, (level * share).sqrt(), sigma[:, 1].double()).to(sigma.dtype)
     out[:, 2] = torch.where(moved, (level * (1.0 - share)).sqrt(), sigma[:, 2].double()).to(sigma.dtype)
     return out, moved
+
+
+@dataclass(frozen=True)
+class PosteriorBlend:
+    """How far a noise-source estimate follows the closed-form mismatch posterior, per patch.
+
+    The posterior (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`, the physics of Eq. 3.14–3.19 and
+    a Gaussian likelihood of the diagonal Haar details of the patch's flat blocks) is better than the network where its
+    assumptions hold — enough flat blocks, white noise in them — and worse where texture passes its flatness tests
+    (fine grass reads as noise) or clipping leaves few blocks. The weight w ∈ [0, ``weight``] of a patch is
+
+        w = weight · ramp(texture; texture_hi → texture_lo) · ramp(details; details_lo → details_hi),
+
+    with ``ramp`` linear from 0 to 1 between the two values and constant outside; ``details`` is the number of
+    diagonal Haar details the likelihood used (the posterior abstains below 32), ``texture`` its texture check,
+    log(horizontal-and-vertical / diagonal detail energy) on the kept blocks (≈ 0 for white noise). The outputs then
+    move toward the posterior's: log σ̂_s ← log σ̂_s + w·(log σ_post,s − log σ̂_s) for PN, DCSN, RN and the total
+    after clipping, ξ̂ ← ξ̂ + w·(ξ_post − ξ̂) with ξ_post = σ_Total(M) − E[σ_Total(M′)] (DN).
+
+    Attributes:
+        fields: the metadata fields the posterior may find wrong (one at a time): those a mismatch of the data can
+            alter — ``("gain_db",)`` under the thesis's protocol (the default), all three of
+            :data:`~lightning_modules.mismatch_posterior.POSTERIOR_FIELDS` for the configs' default data.
+        weight: the largest w, in (0, 1] (default 0.7).
+        texture_lo, texture_hi: texture check [log energy ratio] below which the ramp is 1 and above which it is 0
+            (defaults 0.1 and 0.25).
+        details_lo, details_hi: details count at or below which the ramp is 0 (≥ 32) and from which it is 1
+            (defaults 100 and 150).
+
+    The defaults were chosen for ``noise_source_full_gain`` on the validation split (1 536 patches with gain-only
+    mismatches; ``docs/estimators.md``, session 14).
+    """
+
+    fields: tuple[str, ...] = ("gain_db",)
+    weight: float = 0.7
+    texture_lo: float = 0.1
+    texture_hi: float = 0.25
+    details_lo: float = 100.0
+    details_hi: float = 150.0
+
+    def __post_init__(self) -> None:
+        from lightning_modules.noise_features import _MIN_FIT_BLOCKS
+
+        fields = (self.fields,) if isinstance(self.fields, str) else tuple(self.fields)
+        bad = [f for f in fields if f not in FULL_FIELDS]
+        if bad or not fields or len(set(fields)) != len(fields):
+            raise ValueError(f"PosteriorBlend fields = {list(fields)} must be distinct names from {list(FULL_FIELDS)} (at least one)")
+        object.__setattr__(self, "fields", fields)
+        for name in ("weight", "texture_lo", "texture_hi", "details_lo", "details_hi"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+                raise ValueError(f"PosteriorBlend {name} = {v!r} must be a finite number")
+            object.__setattr__(self, name, float(v))
+        if not 0.0 < self.weight <= 1.0:
+            raise ValueError(f"PosteriorBlend weight = {self.weight!r} must be in (0, 1]")
+        if not self.texture_lo < self.texture_hi:
+            raise ValueError(f"PosteriorBlend texture_lo = {self.texture_lo!r} must be below texture_hi = {self.texture_hi!r}")
+        if not _MIN_FIT_BLOCKS <= self.details_lo < self.details_hi:
+            raise ValueError(
+                f"PosteriorBlend details_lo = {self.details_lo!r} must be in [{_MIN_FIT_BLOCKS}, details_hi = {self.details_hi!r})"
+                f" (the posterior abstains below {_MIN_FIT_BLOCKS} details)"
+            )
+
+    @classmethod
+    def from_value(cls, value: Any) -> PosteriorBlend | None:
+        """A :class:`PosteriorBlend` from ``True`` (the defaults), a dict of its fields or an instance; ``None`` for
+        ``None``/``False``. Anything else is a ``ValueError`` naming the value."""
+        if value is None or value is False:
+            return None
+        if value is True:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, Mapping):
+            unknown = sorted(set(value) - set(cls.__dataclass_fields__))
+            if unknown:
+                raise ValueError(f"posterior_blend has unknown key(s) {unknown}; allowed: {sorted(cls.__dataclass_fields__)}")
+            return cls(**dict(value))
+        raise ValueError(f"posterior_blend = {value!r} must be 'auto', None/False, True, a PosteriorBlend or a dict of its fields")
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready fields (what a weights file stores under ``inference.posterior_blend``)."""
+        return {"fields": list(self.fields), "weight": self.weight, "texture_lo": self.texture_lo,
+                "texture_hi": self.texture_hi, "details_lo": self.details_lo, "details_hi": self.details_hi}
+
+    def weights(self, details: torch.Tensor, texture: torch.Tensor) -> torch.Tensor:
+        """Per-patch w (float64) from the posterior's details count and texture check."""
+        d, t = details.double(), texture.double()
+        ramp_t = ((self.texture_hi - t) / (self.texture_hi - self.texture_lo)).clamp(0.0, 1.0)
+        ramp_d = ((d - self.details_lo) / (self.details_hi - self.details_lo)).clamp(0.0, 1.0)
+        return self.weight * ramp_t * ramp_d
+
+
+def blend_with_posterior(
+    patches: torch.Tensor, meta: CameraMetadata, sigma: torch.Tensor, total: torch.Tensor, xi: torch.Tensor,
+    blend: PosteriorBlend, batch_size: int = 256,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Move noise-source estimates toward the mismatch posterior by :class:`PosteriorBlend`'s per-patch weight.
+
+    ``patches``: B×1×P×P in [0, 1]; ``meta``: the metadata the estimator was given (batch 1 or B); ``sigma`` (B, 3)
+    σ of PN, DCSN, RN, ``total`` (B,) the realised total after clipping and ``xi`` (B,) ξ, all in DN. Returns the
+    blended (sigma, total, xi) in their dtypes and the weights w (B,) float32."""
+    from lightning_modules.mismatch_posterior import mismatch_posterior
+    from lightning_modules.noise_features import physics_prior_dn
+
+    b = patches.shape[0]
+    posts, totals_m = [], []
+    for start in range(0, b, batch_size):
+        sl = slice(start, start + batch_size)
+        m = meta if meta.batch_size == 1 else meta[sl]
+        posts.append(mismatch_posterior(patches[sl].float(), m, fields=blend.fields).double())
+        totals_m.append(physics_prior_dn(patches[sl].float(), m)[:, 3].double())
+    post, total_m = torch.cat(posts), torch.cat(totals_m)
+    w = blend.weights(post[:, -2], post[:, -1])
+    tiny = 1e-3  # DN; σ below it are zero for every purpose here, and the log stays finite
+    own = torch.cat([sigma.double(), total.double().unsqueeze(1)], dim=1).clamp_min(tiny)
+    target = post[:, :4].clamp_min(tiny)
+    original = torch.cat([sigma.double(), total.double().unsqueeze(1)], dim=1)
+    mixed = torch.where(w.unsqueeze(1) > 0, (own.log() + w.unsqueeze(1) * (target.log() - own.log())).exp(), original)
+    xi_post = total_m - post[:, 4]
+    xi_new = xi.double() + w * (xi_post - xi.double())
+    return mixed[:, :3].to(sigma.dtype), mixed[:, 3].to(total.dtype), xi_new.to(xi.dtype), w.float()
 
 
 def bucket_size(n: int) -> int:
@@ -453,6 +600,13 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
     if desc.get("format", FORMAT_TAG) != FORMAT_TAG or desc.get("kind") not in ("mtf", "drne", "noise_source"):
         raise ValueError(f"{path}: unknown estimator description (kind {desc.get('kind')!r})")
     init_args = desc.get("init_args", {})
+    inference = desc.get("inference") or {}
+    if not isinstance(inference, Mapping):
+        raise ValueError(f"{path}: 'inference' settings must be a mapping, got {type(inference).__name__}")
+    try:
+        blend = PosteriorBlend.from_value(inference.get("posterior_blend"))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: bad inference.posterior_blend: {exc}") from None
     return Estimator(
         kind=desc["kind"],
         patch_size=int(desc["patch_size"]),
@@ -461,6 +615,7 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         prior_clipping=bool(init_args.get("prior_clipping", False)),
         noise_fit_statistics=bool(init_args.get("noise_fit_statistics", False)),
         mismatch_posterior=bool(init_args.get("mismatch_posterior", False)),
+        posterior_blend=blend,
         description=desc,
         source=str(path),
         backend=backend,

@@ -68,6 +68,7 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
         f"{torch.get_num_threads()} threads, {_dt.date.today().isoformat()}): {timing['fp32']:.2f} ms/patch fp32, "
         f"{timing['bf16']:.2f} ms/patch bf16.",
         *_trunk_line(est),
+        *_inference_line(est),
         f"- **Data**: {_DATA[est.kind]}",
         f"- **Reproduce**: `{command}`",
         "",
@@ -82,6 +83,14 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
     if notes:
         lines += ["", "## Notes", "", notes]
     return "\n".join(lines) + "\n"
+
+
+def _inference_line(est) -> list[str]:
+    blend = getattr(est, "posterior_blend", None)
+    if blend is None:
+        return []
+    return [f"- **Inference default**: `predict` blends with the mismatch posterior, `posterior_blend = {json.dumps(blend.as_dict())}` "
+            "(`camhealth.inference.PosteriorBlend`; the speed above includes it; `predict(posterior_blend=None)` runs the network alone)."]
 
 
 def _trunk_line(est) -> list[str]:

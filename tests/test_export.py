@@ -126,3 +126,38 @@ def test_loader_refuses_unknown_class(tmp_path):
     torch.save(payload, path)
     with pytest.raises(ValueError, match="not a camhealth estimator"):
         load_estimator(path)
+
+
+def test_inference_settings_travel_with_the_file(tmp_path, capsys):
+    """--posterior-blend stores a default posterior blend in the description (weights and pt2), an input's settings
+    are kept, 'off' removes them, and bad values or a network the blend does not apply to are refused."""
+    import json
+
+    from camhealth.inference import PosteriorBlend
+
+    src = export_weights(NoiseSourceEstimator(patch_size=32, prior_clipping=True), tmp_path / "ns.pt")
+    assert load_estimator(src).posterior_blend is None
+    blended = main([str(src), "--format", "weights", "--out", str(tmp_path / "b.pt"), "--posterior-blend", '{"weight": 0.5}'])
+    assert load_estimator(blended).posterior_blend == PosteriorBlend(weight=0.5)
+    kept = main([str(blended), "--format", "pt2", "--out", str(tmp_path / "b.pt2")])
+    assert load_estimator(kept).posterior_blend == PosteriorBlend(weight=0.5)
+    off = main([str(blended), "--format", "weights", "--out", str(tmp_path / "off.pt"), "--posterior-blend", "off"])
+    assert load_estimator(off).posterior_blend is None
+    sd = lambda p: torch.load(p, weights_only=True)["state_dict"]  # noqa: E731
+    assert all(torch.equal(v, sd(blended)[k]) for k, v in sd(src).items())  # no weight changes
+    for value, msg in (('{"weight": 2}', "weight = 2.0 must be in"), ("[1]", "must be a JSON object"), ("{", "is not JSON")):
+        with pytest.raises(SystemExit):
+            main([str(src), "--format", "weights", "--out", str(tmp_path / "x.pt"), "--posterior-blend", value])
+        assert msg in capsys.readouterr().err
+    drne = export_weights(_perturbed("drne"), tmp_path / "d.pt")
+    with pytest.raises(SystemExit):
+        main([str(drne), "--format", "weights", "--out", str(tmp_path / "x.pt"), "--posterior-blend", "{}"])
+    assert "posterior_blend applies to Full-Meta noise-source networks" in capsys.readouterr().err
+    # a file whose stored setting is broken is refused by the loader, naming the problem
+    obj = torch.load(blended, weights_only=True)
+    desc = json.loads(obj["description"])
+    desc["inference"] = {"posterior_blend": {"weight": -1}}
+    obj["description"] = json.dumps(desc)
+    torch.save(obj, tmp_path / "broken.pt")
+    with pytest.raises(ValueError, match="bad inference.posterior_blend: PosteriorBlend weight = -1.0 must be in"):
+        load_estimator(tmp_path / "broken.pt")

@@ -12,6 +12,8 @@ For every shipped model (``camhealth/weights/*.pt``; or ``--models``) and every 
   flipped copies (``Estimator.predict(views=...)``), timed alike;
 * **speed**: ``Estimator.predict`` on a batch of ``--batch`` patches in fp32 and bf16 (closed-form physics prior
   and input checks included), median over ``--repeats``; params and FLOPs per patch;
+* **hybrid vs network**: a model file with a default posterior blend (``Estimator.posterior_blend``, e.g.
+  ``noise_source_full_gain``) gets a second row with ``predict(posterior_blend=None)``, the network alone;
 * **closed form**: the mismatch posterior alone (:mod:`lightning_modules.mismatch_posterior`, no network) on
   the same noise patches, as a last row of the noise table;
 * **reference**: the thesis-size noise network (16 full-resolution 64-channel layers, ≈ 17 GFLOP per 128-px patch,
@@ -26,6 +28,8 @@ import datetime as _dt
 import math
 import platform
 import time
+
+from typing import Any
 
 import torch
 
@@ -177,13 +181,13 @@ def _meta(data: dict[str, torch.Tensor], sl: slice):
     return metadata_from_matrix(data["meta_raw"][sl])
 
 
-def noise_accuracy(est, data: dict[str, torch.Tensor], posterior_split: float | None = None) -> dict[str, float]:
-    """Bias/Std/RMS [DN] of an estimator's outputs on held-out noise data (``posterior_split``: passed to
-    ``Estimator.predict``)."""
+def noise_accuracy(est, data: dict[str, torch.Tensor], posterior_split: float | None = None, **predict_kw: Any) -> dict[str, float]:
+    """Bias/Std/RMS [DN] of an estimator's outputs on held-out noise data (``posterior_split`` and ``predict_kw``,
+    e.g. ``posterior_blend=None``: passed to ``Estimator.predict``)."""
     from lightning_modules.metrics import bias_std_rms
 
     meta = _meta(data, slice(None)) if est.metadata_set != "none" else None
-    kw = {} if posterior_split is None else {"posterior_split": posterior_split}
+    kw = dict(predict_kw) if posterior_split is None else {"posterior_split": posterior_split, **predict_kw}
     out = est.predict(data["image"], meta, batch_size=64, **kw)
     res: dict[str, float] = {"n": float(data["image"].shape[0])}
     pairs = [("total", out["sigma_total"], data["sigma_total"])]
@@ -291,30 +295,39 @@ def run(args: argparse.Namespace) -> BenchResult:
     split = getattr(args, "posterior_split", None)
     if split is not None and not 0.0 < split < 1.0:
         raise SystemExit(f"--posterior-split {split} must be in (0, 1)")
-    jobs = [(est, v, None) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])]
+    # (estimator, views, predict kwargs of the noise row)
+    jobs: list[tuple[Any, int, dict[str, Any]]] = [
+        (est, v, {}) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])
+    ]
+    # a file with a default posterior blend: also the network alone, the hybrid's ablation
+    jobs = [j for est, v, k in jobs for j in ([(est, v, k), (est, v, {"posterior_blend": None})]
+                                               if getattr(est, "posterior_blend", None) is not None else [(est, v, k)])]
     if split is not None:  # a second row for every model the re-split applies to
-        jobs = [j for est, v, s in jobs for j in ([(est, v, s), (est, v, split)] if posterior_split_applies(est) else [(est, v, s)])]
+        jobs = [j for est, v, k in jobs for j in ([(est, v, k), (est, v, {**k, "posterior_split": split})]
+                                                   if posterior_split_applies(est) else [(est, v, k)])]
     # accuracy first, then every (model, views, precision) timed round-robin: the VM's speed drifts within minutes,
     # and rows timed one after the other could differ by 1.6× for two models of the same architecture (session 11)
     accs, calls = [], []
-    for est, views, tau in jobs:
+    for est, views, nkw in jobs:
         data = blur_data if est.kind == "mtf" else noise_data
-        accs.append(mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data, tau))
+        accs.append(mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data, **nkw))
         reps = max(1, b // data["image"].shape[0] + 1)
         x = data["image"].repeat(reps, 1, 1, 1)[:b]
         meta = None
         if est.metadata_set != "none":
             meta = _meta({"meta_raw": data["meta_raw"].repeat(reps, 1)[:b]}, slice(None))
-        kw = {"views": views} if est.kind == "mtf" else ({} if tau is None else {"posterior_split": tau})
+        kw = {"views": views} if est.kind == "mtf" else nkw
         for prec in ("fp32", "bf16"):
             if prec == "bf16" and est.backend != "torch":
                 continue
             calls.append((len(accs) - 1, prec, lambda est=est, x=x, meta=meta, prec=prec, kw=kw: est.predict(x, meta, precision=prec, batch_size=b, **kw)))
     timed = _time_round_robin([fn for _, _, fn in calls], args.repeats, args.warmup)
-    for j, ((est, views, tau), acc) in enumerate(zip(jobs, accs)):
+    for j, ((est, views, nkw), acc) in enumerate(zip(jobs, accs)):
         label = est.name if views == 1 else f"{est.name} ×{views} views"
-        if tau is not None:
-            label = f"{label} + posterior split {tau:g}"
+        if getattr(est, "posterior_blend", None) is not None:
+            label = f"{label} (network alone)" if "posterior_blend" in nkw else f"{label} + posterior blend"
+        if nkw.get("posterior_split") is not None:
+            label = f"{label} + posterior split {nkw['posterior_split']:g}"
         if est.kind == "mtf":
             note = f"AMAE {acc['amae']:.2f} % (defocus {acc.get('amae_defocus', float('nan')):.2f}, linear {acc.get('amae_linear', float('nan')):.2f}, non-linear {acc.get('amae_nonlinear', float('nan')):.2f})"
         elif est.kind == "drne":

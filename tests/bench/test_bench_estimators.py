@@ -122,3 +122,20 @@ def test_run_reports_accuracy_and_time_for_each_model_and_precision(tmp_path):
     assert "total RMS" in res.rows[0].note and "AMAE" in res.rows[4].note
     # the re-split keeps PN and the total: the two noise rows differ at most in DCSN and RN
     assert res.rows[0].note.split("; ")[1].split(", DCSN")[0] == res.rows[2].note.split("; ")[1].split(", DCSN")[0]
+
+
+def test_run_adds_the_network_alone_for_a_file_with_a_posterior_blend(tmp_path):
+    """A model file with a default posterior blend gets its hybrid row and a 'network alone' row (no timing asserted)."""
+    from camhealth.bench.estimators import run
+    from camhealth.export import export_weights
+    from lightning_modules import NoiseSourceEstimator
+
+    torch.manual_seed(0)
+    noise = export_weights(NoiseSourceEstimator(), tmp_path / "nb.pt", inference={"posterior_blend": {}})
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--models", "--checkpoint", str(noise), "--deadleaves", "2", "--per-image", "1", "--no-reference"])
+    args.batch, args.repeats, args.warmup = 4, 1, 0
+    names = [r.name for r in run(args).rows]
+    assert names == ["nb + posterior blend (noise_source, fp32)", "nb + posterior blend (noise_source, bf16)",
+                     "nb (network alone) (noise_source, fp32)", "nb (network alone) (noise_source, bf16)"]
