@@ -281,7 +281,7 @@ class Estimator:
             # Min-Meta networks read only gain, exposure and temperature: other fields may come from any preset.
             base = base_preset or ("ICX285" if self.metadata_set == "minimal" else None)
             meta = _to_metadata(metadata, b, base)
-        outs = []
+        outs, prior_totals = [], []
         for start in range(0, b, batch_size):
             sl = slice(start, start + batch_size)
             chunk = patches[sl]
@@ -290,6 +290,8 @@ class Estimator:
                 chunk = _pad_batch(chunk, bucket_size(n))
             chunk_meta = meta if meta is None or meta.batch_size == 1 else _pad_meta(meta[sl], chunk.shape[0])
             inputs = self.network_inputs(chunk, chunk_meta)
+            if blend is not None:  # σ_Total(M) before clipping: the prior's total column, for the blend's ξ
+                prior_totals.append(inputs[2][:n, 3])
             if precision == "bf16" and self.backend == "torch":
                 with torch.autocast("cpu", dtype=torch.bfloat16):
                     outs.append(self._run(*inputs, bf16=True)[:n].float())
@@ -314,7 +316,8 @@ class Estimator:
             total = raw[:, 4].clamp_min(0) if raw.shape[1] > 4 else sigma.pow(2).sum(1).sqrt()
             xi = raw[:, 3]
             if blend is not None:
-                sigma, total, xi, result["posterior_weight"] = blend_with_posterior(patches, meta, sigma, total, xi, blend, batch_size)
+                sigma, total, xi, result["posterior_weight"] = blend_with_posterior(
+                    patches, meta, sigma, total, xi, blend, batch_size, total_model=torch.cat(prior_totals))
             if posterior_split is not None:
                 sigma, result["resplit"] = posterior_resplit(patches, meta, sigma, float(posterior_split))
             result.update(sigma=sigma, sigma_total=total, xi=xi)
@@ -466,13 +469,15 @@ class PosteriorBlend:
 
 def blend_with_posterior(
     patches: torch.Tensor, meta: CameraMetadata, sigma: torch.Tensor, total: torch.Tensor, xi: torch.Tensor,
-    blend: PosteriorBlend, batch_size: int = 256,
+    blend: PosteriorBlend, batch_size: int = 256, total_model: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Move noise-source estimates toward the mismatch posterior by :class:`PosteriorBlend`'s per-patch weight.
 
     ``patches``: B×1×P×P in [0, 1]; ``meta``: the metadata the estimator was given (batch 1 or B); ``sigma`` (B, 3)
-    σ of PN, DCSN, RN, ``total`` (B,) the realised total after clipping and ``xi`` (B,) ξ, all in DN. Returns the
-    blended (sigma, total, xi) in their dtypes and the weights w (B,) float32."""
+    σ of PN, DCSN, RN, ``total`` (B,) the realised total after clipping and ``xi`` (B,) ξ, all in DN;
+    ``total_model`` (B,): σ_Total(M) [DN] before clipping, the closed-form prior's total column — :meth:`Estimator.predict`
+    passes the one its network inputs already hold; computed here when ``None``. Returns the blended (sigma, total,
+    xi) in their dtypes and the weights w (B,) float32."""
     from lightning_modules.mismatch_posterior import mismatch_posterior
     from lightning_modules.noise_features import physics_prior_dn
 
@@ -482,13 +487,15 @@ def blend_with_posterior(
         sl = slice(start, start + batch_size)
         m = meta if meta.batch_size == 1 else meta[sl]
         posts.append(mismatch_posterior(patches[sl].float(), m, fields=blend.fields).double())
-        totals_m.append(physics_prior_dn(patches[sl].float(), m)[:, 3].double())
-    post, total_m = torch.cat(posts), torch.cat(totals_m)
+        if total_model is None:
+            totals_m.append(physics_prior_dn(patches[sl].float(), m)[:, 3].double())
+    post = torch.cat(posts)
+    total_m = torch.cat(totals_m) if total_model is None else total_model.double()
     w = blend.weights(post[:, -2], post[:, -1])
     tiny = 1e-3  # DN; σ below it are zero for every purpose here, and the log stays finite
-    own = torch.cat([sigma.double(), total.double().unsqueeze(1)], dim=1).clamp_min(tiny)
-    target = post[:, :4].clamp_min(tiny)
     original = torch.cat([sigma.double(), total.double().unsqueeze(1)], dim=1)
+    own = original.clamp_min(tiny)
+    target = post[:, :4].clamp_min(tiny)
     mixed = torch.where(w.unsqueeze(1) > 0, (own.log() + w.unsqueeze(1) * (target.log() - own.log())).exp(), original)
     xi_post = total_m - post[:, 4]
     xi_new = xi.double() + w * (xi_post - xi.double())

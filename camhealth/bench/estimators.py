@@ -28,7 +28,6 @@ import datetime as _dt
 import math
 import platform
 import time
-
 from typing import Any
 
 import torch
