@@ -28,7 +28,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 from lightning_modules.base import EstimatorModule
 from lightning_modules.blocks import ConvAct, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
-from lightning_modules.noise_features import metadata_from_matrix
+from camhealth.estimators.noise_features import metadata_from_matrix
 
 __all__ = ["NoiseLevelNet", "ThesisNoiseNet", "NoiseLevelEstimator", "sigma_map_target_dn"]
 

@@ -9,12 +9,12 @@ Architecture (:class:`NoiseSourceNet`), sized for a 2-core CPU:
   resolution; global max/mean/std pooling. With ``width = 32`` this is ≈ 0.55 GFLOP per 128-px patch,
   ≈ 30× fewer than the thesis's 16 full-resolution 64-channel layers (≈ 17 GFLOP).
 - **Four fully connected branches** (PN, DCSN, RN, ξ; the thesis's FCBs) fed the pooled features, cheap
-  image statistics (:func:`~lightning_modules.noise_features.image_statistics`, including a robust
+  image statistics (:func:`~camhealth.estimators.noise_features.image_statistics`, including a robust
   classical σ estimate and, for the hybrid, its log-ratio to the closed-form total) and the normalised
   metadata that physically drive their source (:data:`BRANCH_FIELDS`, intersected with the configured
   ``metadata_set``: ``none`` = w/o-Meta, ``minimal`` = Min-Meta, ``full`` = Full-Meta).
 - **Physics at inference** (``physics_prior: true``, Full-Meta only): the closed-form σ of each source
-  under the given metadata (:func:`~lightning_modules.noise_features.physics_prior_dn`) enters each
+  under the given metadata (:func:`~camhealth.estimators.noise_features.physics_prior_dn`) enters each
   branch (as log σ) and the branch outputs a bounded log-correction: σ̂_s = σ_s(M) · exp(δ_s),
   δ_s = r + 5·tanh(Δ_s/5) (clamped to ±8), where r = log((σ̂_MAD + 0.1)/(σ_Model(M) + 0.1)) is the log-ratio of a robust
   classical estimate of the noise in the image (Haar-MAD) to the noise the metadata predict, and Δ_s is
@@ -38,23 +38,23 @@ Architecture (:class:`NoiseSourceNet`), sized for a 2-core CPU:
   and the total (the split of an excess between DCSN and RN depends on what a temperature change and what a
   white-noise change could explain, i.e. on both sources' metadata); ``nlf_statistics: true`` adds the Haar-MAD σ
   and mean intensity of three intensity terciles of the patch
-  (:func:`~lightning_modules.noise_features.nlf_statistics`: photon noise grows with intensity, dark-current and
+  (:func:`~camhealth.estimators.noise_features.nlf_statistics`: photon noise grows with intensity, dark-current and
   readout noise do not). :meth:`NoiseSourceNet.state_from` carries the weights of a network that reads less
   into one that reads more with zero weights on the new inputs, so ``--init_from`` starts exactly there.
 
 - **Clipping and the image's noise level from physics** (options, off by default; on in the shipped
   ``noise_source_full_meta`` since session 8): ``prior_clipping: true`` starts the source branches from σ_s(M)
   *after clipping* to [0, 255] DN and the total head from the clipped total
-  (:func:`~lightning_modules.noise_features.clipped_prior_dn`: the clean scene recovered near the bounds, the
+  (:func:`~camhealth.estimators.noise_features.clipped_prior_dn`: the clean scene recovered near the bounds, the
   per-pixel variances carried through the clipping in closed form), so the network no longer learns what saturation
   does to each source; ``noise_fit_statistics: true`` feeds every branch two metadata-conditioned fits of the
   patch's noise-level function on its flat, unclipped blocks — the signal-independent variance with the photon
   slope fixed, the gain ratio with the metadata's split fixed — their likelihood ratio and what σ_DCSN and σ_RN
-  would be if one of them alone took up the change (:func:`~lightning_modules.noise_features.noise_fit_statistics`).
+  would be if one of them alone took up the change (:func:`~camhealth.estimators.noise_features.noise_fit_statistics`).
   Both are computed with the prior, outside the exported graph; the prior input is then (B, 8), (B, 10) or (B, 14).
 
 - **Which field is wrong, from physics** (option ``mismatch_posterior``, session 9; needs ``prior_clipping``): the
-  Bayesian posterior over single-field mismatches of the metadata (:mod:`lightning_modules.mismatch_posterior`) —
+  Bayesian posterior over single-field mismatches of the metadata (:mod:`camhealth.estimators.mismatch_posterior`) —
   every candidate's σ from the physics, weighed by the likelihood of the patch's flat-block details — appended to
   the prior (eleven columns), and a trust head that blends each output with it,
   log σ̂ = log σ̂_own + λ·(log σ_post − log σ̂_own), λ = sigmoid(·) ∈ (0, 1) learned per patch and output, 0 where the
@@ -77,11 +77,11 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS
 from lightning_modules.base import EstimatorModule, freeze_all_but
 from lightning_modules.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
-from lightning_modules.noise_features import (
+from camhealth.estimators.noise_features import (
     _MIN_FIT_BLOCKS, IMAGE_STATISTICS, NLF_STATISTICS, NOISE_FIT_STATISTICS, box_mean3, image_statistics, metadata_from_matrix,
     nlf_statistics, physics_prior_dn,
 )
-from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR
+from camhealth.estimators.mismatch_posterior import MISMATCH_POSTERIOR
 
 __all__ = [
     "NoiseTrunk", "NoiseSourceNet", "NoiseSourceEstimator", "BRANCH_FIELDS", "BRANCH_INPUTS", "OUTPUTS", "PRIOR_ANCHORS",
@@ -245,8 +245,8 @@ class NoiseSourceNet(nn.Module):
     @property
     def prior_width(self) -> int:
         """Columns of the ``prior`` input: the closed-form σ (4), after clipping (4 with ``prior_clipping``), the
-        noise fits (6 with ``noise_fit_statistics``, :data:`~lightning_modules.noise_features.NOISE_FIT_STATISTICS`),
-        the mismatch posterior (11 with ``mismatch_posterior``, :data:`~lightning_modules.mismatch_posterior.MISMATCH_POSTERIOR`)."""
+        noise fits (6 with ``noise_fit_statistics``, :data:`~camhealth.estimators.noise_features.NOISE_FIT_STATISTICS`),
+        the mismatch posterior (11 with ``mismatch_posterior``, :data:`~camhealth.estimators.mismatch_posterior.MISMATCH_POSTERIOR`)."""
         return (4 + 4 * self.prior_clipping + len(NOISE_FIT_STATISTICS) * self.noise_fit_statistics
                 + len(MISMATCH_POSTERIOR) * self.mismatch_posterior)
 
@@ -428,20 +428,20 @@ class NoiseSourceEstimator(EstimatorModule):
         branch_inputs: what the source branches read (:data:`BRANCH_INPUTS`): ``"own"`` (default) their
             source's metadata and closed-form σ, ``"all"`` every metadata field and every closed-form σ.
         nlf_statistics: also feed every branch the three-point noise-level function of the patch
-            (:func:`~lightning_modules.noise_features.nlf_statistics`; default ``False``).
+            (:func:`~camhealth.estimators.noise_features.nlf_statistics`; default ``False``).
         trunk_activation: ``"relu"`` (default) or ``"leaky_relu"`` (:data:`TRUNK_ACTIVATIONS`; a trunk without
             normalisation can die with ReLU — :meth:`NoiseSourceNet.trunk_activity`).
         prior_clipping: start the source branches (and the total head) from the closed-form σ *after clipping*
-            to [0, 255] DN (:func:`~lightning_modules.noise_features.clipped_prior_dn`) instead of before it, so the
+            to [0, 255] DN (:func:`~camhealth.estimators.noise_features.clipped_prior_dn`) instead of before it, so the
             network no longer has to learn what saturation does to each source (default ``False``; needs
             ``physics_prior``). The prior input is then (B, 8).
         noise_fit_statistics: also feed every branch how far the image's noise is from the metadata's, by two
             one-parameter fits of its noise-level function on flat, unclipped blocks, their likelihood ratio and the
             σ_DCSN or σ_RN that would take up the change alone
-            (:func:`~lightning_modules.noise_features.noise_fit_statistics`; default ``False``; needs
+            (:func:`~camhealth.estimators.noise_features.noise_fit_statistics`; default ``False``; needs
             ``physics_prior``; six more prior columns).
         mismatch_posterior: also compute, outside the network, the Bayesian posterior over single-field metadata
-            mismatches (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`: gain, temperature or
+            mismatches (:func:`~camhealth.estimators.mismatch_posterior.mismatch_posterior`: gain, temperature or
             white noise redrawn, each candidate's σ from the physics, weighed by the likelihood of the patch's
             flat-block Haar details), and let a trust head (reading the branches' inputs and the posterior's σ,
             probabilities and evidence) blend each output with it: log σ̂ = log σ̂_own + λ·(log σ_post − log σ̂_own),

@@ -297,11 +297,11 @@ def _gain_case(seed=0):
 
 def test_posterior_blend_follows_the_closed_form_where_the_patch_is_flat():
     """On a white-noise ramp the blend is exactly log σ̂ + w·(log σ_post − log σ̂) with the posterior of
-    lightning_modules.mismatch_posterior, and ξ̂ + w·(ξ_post − ξ̂); it is on by default for noise_source_full_gain,
+    camhealth.estimators.mismatch_posterior, and ξ̂ + w·(ξ_post − ξ̂); it is on by default for noise_source_full_gain,
     and ``posterior_blend=None`` gives the network alone."""
     from camhealth.inference import PosteriorBlend
-    from lightning_modules.mismatch_posterior import mismatch_posterior
-    from lightning_modules.noise_features import physics_prior_dn
+    from camhealth.estimators.mismatch_posterior import mismatch_posterior
+    from camhealth.estimators.noise_features import physics_prior_dn
 
     est = load_estimator("noise_source_full_gain")
     assert est.posterior_blend == PosteriorBlend()  # the shipped setting is the documented default
@@ -346,7 +346,7 @@ def test_posterior_blend_on_hard_patches(precision, batch):
         assert torch.isfinite(out[k]).all() and torch.equal(out[k][~grey], alone[k][~grey])
     if not bool(grey.any()):
         return
-    from lightning_modules.mismatch_posterior import mismatch_posterior
+    from camhealth.estimators.mismatch_posterior import mismatch_posterior
 
     post = mismatch_posterior(x[grey][:1], meta, fields=["gain_db"])[0, :4]
     got = torch.cat([out["sigma"][grey], out["sigma_total"][grey, None]], 1)

@@ -14,7 +14,7 @@ For every shipped model (``camhealth/weights/*.pt``; or ``--models``) and every 
   and input checks included), median over ``--repeats``; params and FLOPs per patch;
 * **hybrid vs network**: a model file with a default posterior blend (``Estimator.posterior_blend``, e.g.
   ``noise_source_full_gain``) gets a second row with ``predict(posterior_blend=None)``, the network alone;
-* **closed form**: the mismatch posterior alone (:mod:`lightning_modules.mismatch_posterior`, no network) on
+* **closed form**: the mismatch posterior alone (:mod:`camhealth.estimators.mismatch_posterior`, no network) on
   the same noise patches, as a last row of the noise table;
 * **reference**: the thesis-size noise network (16 full-resolution 64-channel layers, ≈ 17 GFLOP per 128-px patch,
   :class:`lightning_modules.ThesisNoiseNet`, untrained — timing only) on the same batch; the ratio column is
@@ -122,7 +122,7 @@ def split_floor(
     """
     from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES
     from datamodules.noise import expected_sigma_dn
-    from lightning_modules.noise_features import metadata_from_matrix
+    from camhealth.estimators.noise_features import metadata_from_matrix
 
     meta_m, meta_i = data["meta_raw"].double(), data["meta_image_raw"].double()
     truth = data["sigma_expected"].double()
@@ -175,7 +175,7 @@ def split_floor(
 
 
 def _meta(data: dict[str, torch.Tensor], sl: slice):
-    from lightning_modules.noise_features import metadata_from_matrix
+    from camhealth.estimators.noise_features import metadata_from_matrix
 
     return metadata_from_matrix(data["meta_raw"][sl])
 
@@ -205,11 +205,11 @@ def noise_accuracy(est, data: dict[str, torch.Tensor], posterior_split: float | 
 
 def posterior_accuracy(data: dict[str, torch.Tensor], fields: tuple[str, ...], batch: int = 64) -> tuple[dict[str, float], float]:
     """Bias/Std/RMS [DN] and ms/patch of the closed-form mismatch posterior alone (no network): σ per source and
-    total after clipping, ξ = σ_Total(M) − E[σ_Total(M')] (:func:`lightning_modules.mismatch_posterior.mismatch_posterior`,
+    total after clipping, ξ = σ_Total(M) − E[σ_Total(M')] (:func:`camhealth.estimators.mismatch_posterior.mismatch_posterior`,
     the alteration prior of the held-out set's ``fields``)."""
     from lightning_modules.metrics import bias_std_rms
-    from lightning_modules.mismatch_posterior import mismatch_posterior
-    from lightning_modules.noise_features import physics_prior_dn
+    from camhealth.estimators.mismatch_posterior import mismatch_posterior
+    from camhealth.estimators.noise_features import physics_prior_dn
 
     n = data["image"].shape[0]
     t = time.perf_counter()

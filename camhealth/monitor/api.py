@@ -693,7 +693,7 @@ class Monitor:
     def _noise_scale(self, stats: Any, meta: CameraMetadata | None) -> torch.Tensor | None:
         """(N, 5) model σ [DN] of (PN, DCSN, RN, total, total) per patch for the metadata — the closed-form
         noise model (conventions.md: σ_PN = 255·√(g·Ī/FW), σ_DCSN and σ_RN from Eq. 3.14–3.19, the same prior
-        as :func:`lightning_modules.noise_features.physics_prior_dn`) — or ``None`` when the noise estimator
+        as :func:`camhealth.estimators.noise_features.physics_prior_dn`) — or ``None`` when the noise estimator
         gives no per-source σ or there is no metadata. DCSN and RN depend only on the metadata: cached."""
         if meta is None or getattr(self.estimators["noise"].est, "kind", "") != "noise_source":
             return None

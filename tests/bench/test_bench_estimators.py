@@ -53,7 +53,7 @@ def test_the_closed_form_posterior_beats_the_metadata_on_altered_samples():
     the posterior's σ per source are closer to the labels than the metadata's closed form after clipping."""
     from camhealth.bench.estimators import _meta, posterior_accuracy
     from lightning_modules.metrics import bias_std_rms
-    from lightning_modules.noise_features import physics_prior_dn
+    from camhealth.estimators.noise_features import physics_prior_dn
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

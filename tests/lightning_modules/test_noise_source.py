@@ -23,7 +23,7 @@ def test_outputs_shape_finite(metadata_set, prior, batch, meta_raw):
 def test_untrained_hybrid_is_the_noise_model_scaled_to_the_image(meta_raw):
     """Zero-initialised output layers: σ̂_s = σ_s(M)·(σ̂_MAD + 0.1)/(σ_Model(M) + 0.1) — the physics split
     of the sources, scaled to the noise level the image shows; ξ̂ = σ_Model(M) − that total."""
-    from lightning_modules.noise_features import image_statistics
+    from camhealth.estimators.noise_features import image_statistics
 
     m = NoiseSourceEstimator(metadata_set="full", physics_prior=True).eval()
     g = torch.Generator().manual_seed(0)
@@ -192,7 +192,7 @@ def test_state_from_a_network_that_reads_less_starts_as_that_network(inputs, nlf
     g = torch.Generator().manual_seed(0)
     image, meta, prior = torch.rand(4, 1, 32, 32, generator=g), torch.rand(4, 11, generator=g), torch.rand(4, 4, generator=g) * 5
     if fit:  # the fit columns follow the closed-form σ; src reads only the first four
-        from lightning_modules.noise_features import NOISE_FIT_STATISTICS
+        from camhealth.estimators.noise_features import NOISE_FIT_STATISTICS
 
         prior = torch.cat([prior, torch.randn(4, len(NOISE_FIT_STATISTICS), generator=g)], 1)
         assert dst.net.prior_width == 4 + len(NOISE_FIT_STATISTICS)
@@ -281,7 +281,7 @@ def test_mismatch_posterior_blends_each_output_by_the_learned_trust(meta_raw):
     the network's own estimate moved toward the posterior's by λ: log σ̂ = log σ̂_own + λ·(log σ_post − log σ̂_own),
     λ = sigmoid(−3) at the start, the posterior's σ with full trust, and the network's own where the posterior
     abstains (too few details: a saturated patch)."""
-    from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR
+    from camhealth.estimators.mismatch_posterior import MISMATCH_POSTERIOR
 
     m = NoiseSourceEstimator(metadata_set="full", physics_prior=True, prior_anchor="metadata", prior_clipping=True, mismatch_posterior=True).eval()
     g = torch.Generator().manual_seed(4)

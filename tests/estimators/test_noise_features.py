@@ -8,7 +8,7 @@ import torch
 from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_dn
-from lightning_modules.noise_features import (
+from camhealth.estimators.noise_features import (
     NLF_STATISTICS, NOISE_FIT_STATISTICS, image_statistics, metadata_from_matrix, nlf_statistics, noise_fit_statistics,
     physics_prior_dn,
 )

@@ -8,8 +8,8 @@ import torch
 from camhealth.physics import form_image
 from camhealth.physics.metadata import CameraMetadata
 from datamodules.noise import expected_sigma_dn
-from lightning_modules.noise_features import physics_prior_dn
-from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR, POSTERIOR_FIELDS, mismatch_posterior
+from camhealth.estimators.noise_features import physics_prior_dn
+from camhealth.estimators.mismatch_posterior import MISMATCH_POSTERIOR, POSTERIOR_FIELDS, mismatch_posterior
 
 
 def _leaves(b: int, seed: int) -> torch.Tensor:

@@ -74,7 +74,7 @@ def physics_prior_dn(
         noise_fit: append the six columns of :func:`noise_fit_statistics` (how far the image's noise is from
             the metadata's), shape (B, 10) or (B, 14) with ``clipping``.
         posterior: append the nine columns of
-            :func:`~lightning_modules.mismatch_posterior.mismatch_posterior` (the noise model of each patch after
+            :func:`~camhealth.estimators.mismatch_posterior.mismatch_posterior` (the noise model of each patch after
             weighing every single-field mismatch of the metadata against the patch's noise-level function).
     """
     b = image.shape[0]
@@ -117,7 +117,7 @@ def physics_prior_dn(
     if noise_fit:
         prior = torch.cat([prior, noise_fit_statistics(image, 255.0 * g_fw, dc, rn).double()], dim=1)
     if posterior:
-        from lightning_modules.mismatch_posterior import mismatch_posterior  # imports this module
+        from camhealth.estimators.mismatch_posterior import mismatch_posterior  # imports this module
 
         prior = torch.cat([prior, mismatch_posterior(image, meta).double()], dim=1)
     return prior.float()
