@@ -32,7 +32,7 @@
   independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``, session 10).
 - ``posterior_split`` (Full-Meta noise-source models with the physics prior): a probability τ in (0, 1), default
   ``None`` (off). Where the closed-form mismatch posterior
-  (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`) gives more than τ to "temperature or thermal
+  (:func:`~camhealth.estimators.mismatch_posterior.mismatch_posterior`) gives more than τ to "temperature or thermal
   white noise is wrong" and has evidence (≥ 32 flat-block details), the network's signal-independent noise
   σ̂_DCSN² + σ̂_RN² is kept and split between dark-current and readout noise in the posterior's ratio; everything
   else is the network's. Adds ``resplit`` (B,) bool to the output and ≈ 2 ms per patch. τ = 0.9 (chosen on the
@@ -71,6 +71,11 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 MAX_CLIPPED_FRACTION = 0.5
 #: Contrast (std, DN) below which a patch carries no blur information ("featureless"; MTF only).
 MIN_CONTRAST_DN = 2.0
+
+
+#: The Full-Meta noise-source estimator that has no weights: the physics-first posterior
+#: (:class:`~camhealth.estimators.physics_noise.PhysicsNoiseEstimator`).
+PHYSICS_NOISE_MODEL = "noise_source_physics"
 
 
 def shipped_models() -> dict[str, Path]:
@@ -208,7 +213,7 @@ class Estimator:
         """Inputs of the bare network: patches, and for noise-source models normalised metadata + prior."""
         if self.kind != "noise_source":
             return (patches,)
-        from lightning_modules.noise_features import physics_prior_dn
+        from camhealth.estimators.noise_features import physics_prior_dn
 
         b = patches.shape[0]
         if meta is None:
@@ -357,11 +362,11 @@ def posterior_resplit(
     the network's σ [DN]; ``threshold``: τ in (0, 1). A temperature or white-noise error changes only the
     signal-independent noise, and which of the two sources took the change is what the network finds hardest (the
     DCSN/RN split floor, docs/estimators.md session 6); where the posterior
-    (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`) puts more than τ on those two fields together
+    (:func:`~camhealth.estimators.mismatch_posterior.mismatch_posterior`) puts more than τ on those two fields together
     and has evidence (≥ 32 flat-block details), σ̂_DCSN² + σ̂_RN² is kept and divided in the posterior's DCSN : RN
     variance ratio. PN, the total and ξ are not touched."""
-    from lightning_modules.mismatch_posterior import MISMATCH_POSTERIOR, mismatch_posterior
-    from lightning_modules.noise_features import _MIN_FIT_BLOCKS
+    from camhealth.estimators.mismatch_posterior import MISMATCH_POSTERIOR, mismatch_posterior
+    from camhealth.estimators.noise_features import _MIN_FIT_BLOCKS
 
     col = {name: i for i, name in enumerate(MISMATCH_POSTERIOR)}
     post = mismatch_posterior(patches.float(), meta).to(sigma.device)
@@ -380,7 +385,7 @@ def posterior_resplit(
 class PosteriorBlend:
     """How far a noise-source estimate follows the closed-form mismatch posterior, per patch.
 
-    The posterior (:func:`~lightning_modules.mismatch_posterior.mismatch_posterior`, the physics of Eq. 3.14–3.19 and
+    The posterior (:func:`~camhealth.estimators.mismatch_posterior.mismatch_posterior`, the physics of Eq. 3.14–3.19 and
     a Gaussian likelihood of the diagonal Haar details of the patch's flat blocks) is better than the network where its
     assumptions hold — enough flat blocks, white noise in them — and worse where texture passes its flatness tests
     (fine grass reads as noise) or clipping leaves few blocks. The weight w ∈ [0, ``weight``] of a patch is
@@ -396,7 +401,7 @@ class PosteriorBlend:
     Attributes:
         fields: the metadata fields the posterior may find wrong (one at a time): those a mismatch of the data can
             alter — ``("gain_db",)`` under the thesis's protocol (the default), all three of
-            :data:`~lightning_modules.mismatch_posterior.POSTERIOR_FIELDS` for the configs' default data.
+            :data:`~camhealth.estimators.mismatch_posterior.POSTERIOR_FIELDS` for the configs' default data.
         weight: the largest w, in (0, 1] (default 0.7).
         texture_lo, texture_hi: texture check [log energy ratio] below which the ramp is 1 and above which it is 0
             (defaults 0.1 and 0.25).
@@ -415,7 +420,7 @@ class PosteriorBlend:
     details_hi: float = 150.0
 
     def __post_init__(self) -> None:
-        from lightning_modules.noise_features import _MIN_FIT_BLOCKS
+        from camhealth.estimators.noise_features import _MIN_FIT_BLOCKS
 
         fields = (self.fields,) if isinstance(self.fields, str) else tuple(self.fields)
         bad = [f for f in fields if f not in FULL_FIELDS]
@@ -478,8 +483,8 @@ def blend_with_posterior(
     ``total_model`` (B,): σ_Total(M) [DN] before clipping, the closed-form prior's total column — :meth:`Estimator.predict`
     passes the one its network inputs already hold; computed here when ``None``. Returns the blended (sigma, total,
     xi) in their dtypes and the weights w (B,) float32."""
-    from lightning_modules.mismatch_posterior import mismatch_posterior
-    from lightning_modules.noise_features import physics_prior_dn
+    from camhealth.estimators.mismatch_posterior import mismatch_posterior
+    from camhealth.estimators.noise_features import physics_prior_dn
 
     b = patches.shape[0]
     posts, totals_m = [], []
@@ -580,6 +585,10 @@ def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
 
 def load_estimator(path_or_name: str | Path) -> Estimator:
     """Load a shipped model by name, or a weights/checkpoint/pt2/onnx file (see the module docstring)."""
+    if isinstance(path_or_name, str) and path_or_name == PHYSICS_NOISE_MODEL:
+        from camhealth.estimators.physics_noise import PhysicsNoiseEstimator
+
+        return PhysicsNoiseEstimator(source=PHYSICS_NOISE_MODEL)
     shipped = shipped_models()
     if isinstance(path_or_name, str) and path_or_name in shipped:
         path = shipped[path_or_name]

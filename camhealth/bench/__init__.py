@@ -27,6 +27,7 @@ BENCHMARKS: dict[str, str] = {
     "classical": "camhealth.bench.classical",
     "estimators": "camhealth.bench.estimators",
     "monitor": "camhealth.bench.monitor",
+    "robustness": "camhealth.bench.robustness",
 }
 
 

@@ -1,0 +1,292 @@
+"""Noise sources on data camhealth's simulator did not make: ``python -m camhealth.bench robustness``.
+
+Every noise estimator is scored beside the closed form of the metadata alone on a matrix its training never saw:
+
+- **simulator**: :mod:`camhealth.bench.sensor_variants`, an independent NumPy implementation of the sensor model,
+  as it is and with each of its variants (whole electrons, readout rounded to whole electrons, log-normal kTC,
+  clipping after every source, reverse source order, 8-bit rounding) and all of them at once;
+- **scenes**: the scikit-image photographs at full resolution and frames of the committed street clip (no dead
+  leaves), 16 random 128-px patches per frame; JPEG (quality 75–95, OpenCV) after the noise;
+- **metadata**: matched; and one field altered while the estimator is told the unaltered value — gain +6…12 dB,
+  temperature +15…30 K, thermal white noise ×2…4 (thesis Sec. 6.3.2);
+- **strong noise**: extra white noise that brings σ_Total to 10–60 DN while the metadata are unchanged.
+
+The cameras are the two presets and random sensors (every field uniform over conventions.md Table 4.1), told
+gain 0–12 dB, exposure 1–200 ms, temperature 0–50 °C. Truth per source is the simulator's realised σ after
+clipping; ξ = σ_Total(image made with the told metadata) − σ_Total(image made with the real ones), the same
+random numbers in both, so ξ is exactly 0 where the metadata are right. A mismatch is *visible* where
+|ξ| ≥ max(0.5 DN, 15 % of σ_Total); detection is scored by ROC AUC of |ξ̂| per patch and of |median ξ̂| per frame
+(16 patches, one camera state) between the matched conditions and the visible mismatches.
+
+Printed per estimator: per-source Bias / Std / RMS [DN] per condition group, ξ RMS, the AUCs, the strong-noise
+rows (median |σ̂_Total/σ_Total − 1| and the fraction of patches with the right sign of ξ) and ms per patch
+(fp32, one camera state per batch of 16, the threads set by ``--threads``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from camhealth.bench import BenchResult, Row
+from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
+from camhealth.physics.metadata import CameraMetadata
+
+HELP = "noise estimators vs the closed form on an independent simulator, real scenes, JPEG, mismatches and σ ≤ 60 DN"
+
+MATCHED = ("reference", *VARIANTS, "all_variants", "jpeg")
+MISMATCH = ("gain", "temperature", "white_noise")
+STRONG = ("strong",)
+CONDITIONS = MATCHED + MISMATCH + STRONG
+CLOSED_FORM = "closed_form"
+PATCH = 128
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--frames", type=int, default=6, help="frames per condition (16 patches each; default 6)")
+    parser.add_argument("--models", nargs="*", default=None,
+                        help=f"estimators (shipped names or files; default every shipped noise model) beside '{CLOSED_FORM}'")
+    parser.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
+
+
+@dataclass
+class Frame:
+    condition: str
+    clean: torch.Tensor  # 16×1×128×128
+    noisy: torch.Tensor
+    told: CameraMetadata  # batch 1
+    sigma: torch.Tensor  # (16, 3) truth [DN]
+    total: torch.Tensor  # (16,) realised σ_Total after clipping [DN]
+    xi: torch.Tensor  # (16,) truth [DN]
+
+
+def _scenes() -> list[torch.Tensor]:
+    from camhealth.data.skimage_photos import SKIMAGE_PHOTOS, load_skimage_photo
+    from camhealth.data.street_sample import StreetSampleSource
+
+    photos = [load_skimage_photo(n) for n in SKIMAGE_PHOTOS]
+    street = StreetSampleSource(stride=5)
+    return [p for p in photos if min(p.shape[-2:]) >= PATCH] + [street[i][0] for i in range(len(street))]
+
+
+def _told_camera(gen: torch.Generator, k: int) -> CameraMetadata:
+    op = {"gain_db": float(torch.empty(1).uniform_(0.0, 12.0, generator=gen)),
+          "exposure_s": float(10 ** torch.empty(1).uniform_(-3.0, np.log10(0.2), generator=gen)),
+          "temperature_c": float(torch.empty(1).uniform_(0.0, 50.0, generator=gen))}
+    if k % 3 == 0:
+        return CameraMetadata.preset("ICX285", **op)
+    if k % 3 == 1:
+        return CameraMetadata.preset("EV76C661", **op)
+    return CameraMetadata.sample(1, generator=gen, ranges={n: (v, v) for n, v in op.items()})
+
+
+def _total(noisy: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
+    return ((noisy.double() - clean.double()) * 255.0).flatten(1).std(1).float()
+
+
+def make_frames(frames: int, seed: int = 0) -> list[Frame]:
+    """``frames`` frames of 16 patches for every condition of :data:`CONDITIONS` (module docstring)."""
+    gen = torch.Generator().manual_seed(seed)
+    scenes = _scenes()
+    out = []
+    k = 0
+    for cond in CONDITIONS:
+        for _ in range(frames):
+            scene = scenes[k % len(scenes)]
+            told = _told_camera(gen, k)
+            k += 1
+            h, w = scene.shape[-2:]
+            ys = torch.randint(0, h - PATCH + 1, (16,), generator=gen).tolist()
+            xs = torch.randint(0, w - PATCH + 1, (16,), generator=gen).tolist()
+            clean = torch.stack([scene[:, y:y + PATCH, x:x + PATCH] for y, x in zip(ys, xs)]).float().clamp(0, 1)
+            variants = VARIANTS if cond == "all_variants" else (cond,) if cond in VARIANTS else ()
+            overrides, extra = None, None
+            if cond == "gain":
+                overrides = {"gain_db": float(told.gain_db) + float(torch.empty(1).uniform_(6.0, 12.0, generator=gen))}
+            elif cond == "temperature":
+                overrides = {"temperature_c": float(told.temperature_c) + float(torch.empty(1).uniform_(15.0, 30.0, generator=gen))}
+            elif cond == "white_noise":
+                overrides = {"white_noise_v_per_rthz": float(told.white_noise_v_per_rthz) * float(torch.empty(1).uniform_(2.0, 4.0, generator=gen))}
+            seed_k = int(torch.randint(0, 2**62, (1,), generator=gen))
+            if cond == "strong":  # extra white noise to a σ_Total of 10–60 DN (mid-grey clean level)
+                _, base = simulate_variant(clean, told, (), torch.Generator().manual_seed(seed_k))
+                target = float(torch.empty(1).uniform_(10.0, 60.0, generator=gen))
+                extra = float(np.sqrt(max(target**2 - float(base.square().sum(1).mean()), 1.0)))
+            noisy, sigma = simulate_variant(clean, told, variants, torch.Generator().manual_seed(seed_k), overrides, extra)
+            total = _total(noisy, clean)
+            if overrides is None and extra is None:
+                xi = torch.zeros(16)
+            else:  # the image the told metadata would have made, with the same random numbers
+                as_told, _ = simulate_variant(clean, told, variants, torch.Generator().manual_seed(seed_k))
+                xi = _total(as_told, clean) - total
+            if cond == "jpeg":
+                q = int(torch.randint(75, 96, (1,), generator=gen))
+                noisy = torch.stack([_jpeg(p, q) for p in noisy])
+            out.append(Frame(cond, clean, noisy, told, sigma, total, xi))
+    return out
+
+
+def _jpeg(patch: torch.Tensor, quality: int) -> torch.Tensor:
+    u8 = (patch[0].numpy() * 255.0).round().astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", u8, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a JPEG")
+    return torch.from_numpy(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0).unsqueeze(0)
+
+
+class _ClosedForm:
+    """The metadata's σ per source after clipping (``clipped_prior_dn``), ξ = 0: what any estimator must not undercut."""
+
+    kind, metadata_set, name = "noise_source", "full", CLOSED_FORM
+
+    def predict(self, noisy: torch.Tensor, meta: CameraMetadata) -> dict[str, Any]:
+        from camhealth.estimators.noise_features import physics_prior_dn
+
+        prior = physics_prior_dn(noisy, meta, clipping=True)[:, 4:8]
+        return {"sigma": prior[:, :3], "sigma_total": prior[:, 3], "xi": torch.zeros(noisy.shape[0])}
+
+
+def _estimators(names: list[str] | None) -> list[Any]:
+    """The closed form, then the estimators named (default: the physics-first one and every shipped noise network); the
+    physics-first estimator also pooled over each frame's 16 patches (one camera state)."""
+    from camhealth.estimators.physics_noise import PhysicsNoiseEstimator
+    from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator, shipped_models
+
+    if names is None:
+        names = [PHYSICS_NOISE_MODEL] + [n for n in shipped_models() if n != "mtf"]
+    out: list[Any] = [_ClosedForm()]
+    for n in names:
+        out.append(load_estimator(n))
+        if n == PHYSICS_NOISE_MODEL:
+            out.append(PhysicsNoiseEstimator(settings={"pool": True}, source=f"{PHYSICS_NOISE_MODEL} (pooled per frame)"))
+    return out
+
+
+def _predict(est: Any, frame: Frame) -> tuple[dict[str, Any], float]:
+    meta = frame.told if getattr(est, "metadata_set", "none") != "none" else None
+    t = time.perf_counter()
+    out = est.predict(frame.noisy, meta) if meta is not None else est.predict(frame.noisy)
+    return out, (time.perf_counter() - t) * 1e3 / frame.noisy.shape[0]
+
+
+def _bsr(err: torch.Tensor) -> tuple[float, float, float]:
+    bias, std = float(err.mean()), float(err.std(unbiased=False)) if err.numel() > 1 else 0.0
+    return abs(bias), std, float(np.hypot(bias, std))
+
+
+def _auc(score: torch.Tensor, label: torch.Tensor) -> float:
+    from torchmetrics.functional.classification import binary_auroc
+
+    if label.all() or not label.any():
+        return float("nan")
+    return float(binary_auroc(score.double(), label.long()))
+
+
+def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
+    """Every number of one estimator on ``frames`` (module docstring)."""
+    rows: dict[str, list] = {c: [] for c in CONDITIONS}
+    times = []
+    for fr in frames:
+        out, ms = _predict(est, fr)
+        times.append(ms)
+        has_sources = "sigma" in out
+        sig = out["sigma"].float() if has_sources else torch.full((16, 3), float("nan"))
+        xi = out["xi"].float() if "xi" in out else torch.zeros(16)
+        rows[fr.condition].append((sig, out["sigma_total"].float(), xi, fr))
+    res: dict[str, Any] = {"ms_per_patch": float(np.median(times)), "groups": {}}
+
+    def group(conds: tuple[str, ...]) -> dict[str, Any]:
+        items = [r for c in conds for r in rows[c]]
+        sig = torch.cat([r[0] for r in items])
+        tot = torch.cat([r[1] for r in items])
+        xi = torch.cat([r[2] for r in items])
+        t_sig = torch.cat([r[3].sigma for r in items])
+        t_tot = torch.cat([r[3].total for r in items])
+        t_xi = torch.cat([r[3].xi for r in items])
+        g = {f"{s}": _bsr(sig[:, i] - t_sig[:, i]) for i, s in enumerate(("PN", "DCSN", "RN"))}
+        g["total"] = _bsr(tot - t_tot)
+        g["xi_rms"] = float((xi - t_xi).square().mean().sqrt())
+        g["n"] = int(t_xi.numel())
+        return g
+
+    for name, conds in [("matched", MATCHED), *[(c, (c,)) for c in MATCHED], ("mismatched", MISMATCH),
+                        *[(c, (c,)) for c in MISMATCH], ("strong", STRONG)]:
+        res["groups"][name] = group(conds)
+    # detection: matched patches/frames against visible mismatches
+    neg = [r for c in MATCHED for r in rows[c]]
+    pos = [r for c in MISMATCH for r in rows[c]]
+
+    def visible(fr: Frame, xi: torch.Tensor) -> torch.Tensor:
+        return xi.abs() >= torch.maximum(torch.full_like(xi, 0.5), 0.15 * fr.total)
+
+    p_score = torch.cat([r[2].abs() for r in neg] + [r[2].abs() for r in pos])
+    p_label = torch.cat([torch.zeros(16, dtype=torch.bool) for _ in neg] + [visible(r[3], r[3].xi) for r in pos])
+    keep = torch.cat([torch.ones(16, dtype=torch.bool) for _ in neg] + [visible(r[3], r[3].xi) for r in pos])
+    res["auc_patch"] = _auc(p_score[keep], p_label[keep])
+    f_score = torch.tensor([float(r[2].median().abs()) for r in neg + pos])
+    f_vis = [float(r[3].xi.median().abs()) >= max(0.5, 0.15 * float(r[3].total.median())) for r in pos]
+    f_label = torch.tensor([False] * len(neg) + f_vis)
+    f_keep = torch.tensor([True] * len(neg) + f_vis)
+    res["auc_frame"] = _auc(f_score[f_keep], f_label[f_keep])
+    res["visible_patches"] = int(p_label.sum())
+    res["visible_frames"] = int(f_label.sum())
+    strong = rows["strong"]
+    tot = torch.cat([r[1] for r in strong])
+    t_tot = torch.cat([r[3].total for r in strong])
+    xi = torch.cat([r[2] for r in strong])
+    t_xi = torch.cat([r[3].xi for r in strong])
+    rel = (tot / t_tot - 1).abs()
+    res["strong_total_rel_median"] = float(rel.median())
+    res["strong_total_rel_p90"] = float(rel.quantile(0.9))
+    res["strong_xi_sign_right"] = float(((xi < 0) == (t_xi < 0)).float().mean())
+    return res
+
+
+def _fmt3(t: tuple[float, float, float]) -> str:
+    return f"{t[0]:.2f} / {t[1]:.2f} / **{t[2]:.2f}**"
+
+
+def run(args: argparse.Namespace) -> BenchResult:
+    if args.frames < 2:
+        raise SystemExit(f"--frames {args.frames} must be ≥ 2")
+    t0 = time.perf_counter()
+    frames = make_frames(args.frames, args.seed)
+    ests = _estimators(args.models)
+    results = {getattr(e, "name", str(e)): score(e, frames) for e in ests}
+    header = [f"{len(frames)} frames × 16 patches of 128 px ({args.frames} per condition), seed {args.seed}; "
+              f"data made in {time.perf_counter() - t0:.0f} s", f"command: {args.command_line}"]
+    summary = ["", "Per-source Bias / Std / RMS [DN] (matched: every simulator variant and JPEG; mismatched: gain, temperature, white noise):", "",
+               "| estimator | set | PN | DCSN | RN | total | ξ RMS |", "|---|---|---|---|---|---|---:|"]
+    for name, r in results.items():
+        for gname in ("matched", "mismatched", "strong"):
+            g = r["groups"][gname]
+            summary.append(f"| {name} | {gname} ({g['n']}) | {_fmt3(g['PN'])} | {_fmt3(g['DCSN'])} | {_fmt3(g['RN'])} | "
+                           f"{_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
+    summary += ["", "Per-source RMS [DN] by condition (PN / DCSN / RN / total):", "",
+                "| estimator | " + " | ".join(MATCHED + MISMATCH) + " |", "|---|" + "---|" * (len(MATCHED) + len(MISMATCH))]
+    for name, r in results.items():
+        cells = [f"{r['groups'][c]['PN'][2]:.2f}/{r['groups'][c]['DCSN'][2]:.2f}/{r['groups'][c]['RN'][2]:.2f}/{r['groups'][c]['total'][2]:.2f}"
+                 for c in MATCHED + MISMATCH]
+        summary.append(f"| {name} | " + " | ".join(cells) + " |")
+    summary += ["", "Detection of a visible mismatch and strong noise:", "",
+                "| estimator | AUC per patch | AUC per frame | σ ≥ 10 DN: median / p90 abs. rel. error of σ_Total | ξ sign right | ms/patch fp32 |",
+                "|---|---:|---:|---|---:|---:|"]
+    for name, r in results.items():
+        summary.append(f"| {name} | {r['auc_patch']:.3f} | {r['auc_frame']:.3f} | {100 * r['strong_total_rel_median']:.1f} % / "
+                       f"{100 * r['strong_total_rel_p90']:.1f} % | {100 * r['strong_xi_sign_right']:.0f} % | {r['ms_per_patch']:.2f} |")
+    any_r = next(iter(results.values()))
+    summary.append(f"\n{any_r['visible_patches']} visible-mismatch patches and {any_r['visible_frames']} frames against "
+                   f"{sum(len(f.xi) for f in frames if f.condition in MATCHED)} matched patches.")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(results, indent=1))
+    rows = [Row(name, [r["ms_per_patch"]], note="ms per patch (fp32)") for name, r in results.items()]
+    return BenchResult(title="robustness of the noise-source estimators", rows=rows, baseline=CLOSED_FORM, header=header, summary=summary)

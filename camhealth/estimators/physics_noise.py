@@ -1,0 +1,302 @@
+"""Noise sources from one patch and its metadata, physics first: the closed form unless the image contradicts it.
+
+The metadata M fix every source's σ in closed form (conventions.md Eq. 3.14–3.19, carried through the clipping
+by :func:`~camhealth.estimators.noise_features.clipped_prior_dn`). The patch measures its own noise-level
+function (NLF): on flat, unclipped 2×2 blocks the diagonal Haar detail d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 is
+N(0, v(m)) with
+
+    v(m) = a·m + σ_DCSN² + σ_RN² + q,   a = 255·g/FW [DN²/DN],   q = 1/12 DN² for 8-bit (integer) input
+
+at the block mean m [DN]. The details are binned by intensity (``bins`` intervals of [0, 255] DN); bin k gives
+N_k details and a variance ŝ_k (their truncated second moment). Each hypothesis H for the camera's state
+predicts v_k(H), and the evidence is read in log space, where a bin's sampling error is ≈ 2/N_k:
+
+    r_k = ln ŝ_k − ln v_k(H),   ℓ(H) = −½ rᵀ Σ⁻¹ r,   Σ = diag(2/N_k + η_b²) + η²·11ᵀ.
+
+η is the **model error** that is common to all bins — what an NLF measured on real data differs by from the
+ideal model even when the metadata are right (another simulator's details, compression, demosaicking, slight
+texture): a relative error of the variance of about η. η_b is the same per bin (texture that passed the
+flatness tests in one intensity range). With them, no number of details makes a 5 % deviation decisive: the
+image contradicts the metadata only where it deviates by more than the model error — which is what "do no
+harm" needs. Σ⁻¹ is applied in closed form (Sherman–Morrison), so ℓ costs O(bins) per hypothesis.
+
+Hypotheses (the thesis's mismatch model, Sec. 6.3.2: one field of M is wrong at a time):
+
+- H₀: M is right (prior 1 − ``mismatch_probability``);
+- gain, temperature or thermal white noise W wrong: each field on a grid of ``grid`` values uniform over its
+  range (gain uniform in the linear factor), the σ of every candidate from the physics (Eq. 3.14–3.19), so a
+  field explains only what its physical range allows;
+- noise that no metadata in range explain: extra white noise of σ_x on a log grid up to 128 DN, counted as
+  readout noise (prior ``beyond_probability``).
+
+The answer: where P(H₀ | patch) ≥ ½ the closed form exactly (σ per source after clipping, ξ = 0); elsewhere
+the posterior over the mismatch hypotheses, its σ per source after clipping (at the posterior-mean variances)
+and ξ = σ_Total(M) − σ_Total(posterior) (Eq. 4.3, both after clipping). ``xi_std`` is the posterior standard
+deviation of σ_Total. Inliers are chosen in two passes — against a metadata-free per-intensity median of the
+details, then against the first pass's posterior NLF — so a camera far noisier than its metadata keeps its
+details.
+
+Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
+``"no flat area"`` (fewer than 32 usable details: texture or clipping everywhere — the metadata cannot be
+checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
+more energy than the diagonal one on the inliers, so texture leaked into the evidence: the closed form is
+returned and ξ is not trusted), and ``"noise beyond validated range"`` (σ_Total before clipping above
+:data:`VALIDATED_SIGMA_DN`: there the clipping takes so much of the noise that the closed-form correction is
+not validated).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from camhealth.estimators.mismatch_posterior import _grid_values, _inliers, _median_variance, _noise_model
+from camhealth.estimators.noise_features import _MIN_FIT_BLOCKS, _TRUNCATED_CHI2, block_details, clipped_prior_dn
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
+
+__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "PHYSICS_NOISE_COLUMNS"]
+
+#: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
+VALIDATED_SIGMA_DN = 64.0
+#: Texture check above which ξ is not trusted: ln(E[d_H² + d_V²]/2 / E[d_D²]) on the inliers (0 for white noise).
+TEXTURE_LIMIT = 0.25
+#: A mismatch is visible where it moves σ_Total by at least max(VISIBLE_XI_DN, VISIBLE_XI_FRACTION · σ_Total).
+VISIBLE_XI_DN = 0.5
+VISIBLE_XI_FRACTION = 0.15
+#: Fields whose mismatch the posterior weighs (thesis Sec. 6.3.2).
+MISMATCH_FIELDS: tuple[str, ...] = ("gain_db", "temperature_c", "white_noise_v_per_rthz")
+#: Columns of :func:`physics_noise_posterior`.
+PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
+    "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
+    "total_unclipped_dn",
+)
+# the bound margin leaves at least 100…155 DN usable however noisy the patch (≥ 2.3 σ at 43 DN, 1.7 σ at 60 DN)
+_MAX_MARGIN_DN = 100.0
+# bins with fewer details than this carry no evidence (their ŝ is too rough for the log-normal approximation)
+_MIN_BIN_DETAILS = 8
+
+
+def _quantisation_variance(image: torch.Tensor) -> torch.Tensor:
+    """1/12 DN² for patches whose values are whole DN (8-bit data), else 0, (B,) float64."""
+    dn = image.detach().double().flatten(1) * 255.0
+    whole = (dn - dn.round()).abs().amax(1) < 1e-3
+    return whole.double() / 12.0
+
+
+def physics_noise_posterior(
+    image: torch.Tensor,
+    meta: CameraMetadata,
+    eta: float = 0.12,
+    eta_bin: float = 0.05,
+    mismatch_probability: float = 0.5,
+    beyond_probability: float = 0.02,
+    grid: int = 96,
+    bins: int = 16,
+    bound_margin: float = 3.0,
+    pool: bool = False,
+) -> torch.Tensor:
+    """Physics-first noise sources of each patch, (B, 10) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+
+    Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
+    standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
+    check; 1 where the answer follows the image (P(match) < ½), else 0; σ_Total before clipping [DN] of the answer.
+
+    Args:
+        image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
+        meta: the camera's metadata, batch 1 or B, physical units.
+        eta: model error of the NLF common to all bins (relative, of the variance).
+        eta_bin: model error of one bin (relative).
+        mismatch_probability: prior probability that one field of the metadata is wrong.
+        beyond_probability: prior probability of noise no metadata in range explain (part of the mismatch prior).
+        grid: candidate values per field.
+        bins: intensity bins of [0, 255] DN.
+        bound_margin: blocks nearer than this many σ (at most 100 DN) to 0 or 255 DN are not used (clipping biases them low).
+        pool: the patches show one camera state (``meta`` of batch 1, e.g. the patches of one frame): add up their
+            NLF evidence and texture check, so that every patch gets the posterior of the whole frame (noise is a
+            property of the camera, not of the scene); σ after clipping stays per patch.
+    """
+    if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 1:
+        raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
+    if not image.is_floating_point():
+        raise TypeError(f"image must be a floating-point tensor in [0, 1], got {image.dtype}")
+    if not bool(torch.isfinite(image).all()):
+        raise ValueError("image contains NaN or inf; physics_noise_posterior needs finite intensities in [0, 1]")
+    for name, value, low, high in (("eta", eta, 0.0, 10.0), ("eta_bin", eta_bin, 0.0, 10.0),
+                                   ("mismatch_probability", mismatch_probability, 0.0, 1.0),
+                                   ("beyond_probability", beyond_probability, 0.0, 1.0)):
+        if not low <= value <= high or not math.isfinite(value):
+            raise ValueError(f"{name} = {value!r} must be in [{low:g}, {high:g}]")
+    if beyond_probability > mismatch_probability or mismatch_probability >= 1.0:
+        raise ValueError(f"beyond_probability = {beyond_probability} must be ≤ mismatch_probability = {mismatch_probability} < 1")
+    if grid < 2 or bins < 1:
+        raise ValueError(f"grid = {grid} must be ≥ 2 and bins = {bins} ≥ 1")
+    b, dev, f64 = image.shape[0], image.device, torch.float64
+    if meta.batch_size not in (1, b):
+        raise ValueError(f"metadata batch {meta.batch_size} does not match the {b} patches")
+    if pool and meta.batch_size != 1:
+        raise ValueError(f"pool=True adds up the evidence of patches of one camera state: metadata must have batch 1, got {meta.batch_size}")
+    with torch.autocast(device_type=dev.type, enabled=False):
+        x = image.detach().float()
+        rows = torch.stack([getattr(meta, n).to(device=dev, dtype=f64).expand(b) for n in FULL_FIELDS], dim=1)
+        a0, var0 = _noise_model(rows)  # (B,), (B, 2) = σ_DCSN², σ_RN² [DN²]
+        # hypotheses: M itself, each field on its grid, extra white noise beyond the ranges
+        slopes, variances, logp = [a0.unsqueeze(1)], [var0.unsqueeze(1)], [torch.full((b, 1), math.log1p(-mismatch_probability), dtype=f64, device=dev)]
+        p_field = (mismatch_probability - beyond_probability) / len(MISMATCH_FIELDS)
+        for fname in MISMATCH_FIELDS:
+            low, high = METADATA_RANGES[fname]
+            values = _grid_values(fname, float(low), float(high), grid, "factor").to(dev)
+            cand = rows.repeat_interleave(grid, 0)
+            cand[:, FULL_FIELDS.index(fname)] = values.repeat(b)
+            a, var = _noise_model(cand)
+            slopes.append(a.view(b, grid))
+            variances.append(var.view(b, grid, 2))
+            logp.append(torch.full((b, grid), math.log(max(p_field, 1e-300) / grid), dtype=f64, device=dev))
+        extra = torch.logspace(math.log10(0.5), math.log10(128.0), grid, dtype=f64, device=dev).square()  # σ_x² [DN²]
+        slopes.append(a0.unsqueeze(1).expand(b, grid))
+        variances.append(torch.stack([var0[:, :1].expand(b, grid), var0[:, 1:] + extra], dim=-1))
+        logp.append(torch.full((b, grid), math.log(max(beyond_probability, 1e-300) / grid), dtype=f64, device=dev))
+        a_all, var_all, prior = torch.cat(slopes, 1), torch.cat(variances, 1), torch.cat(logp, 1)
+        c_all = var_all.sum(-1)
+        q = _quantisation_variance(x)
+
+        m, d2, usable, g2 = block_details(x, "physics_noise_posterior")
+        kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
+        idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
+        m_flat = m.flatten().to(f64)
+        v_ref = _median_variance(m, d2[0], usable, 4)
+        post = torch.softmax(prior, 1)
+        for step in range(2):
+            if step:  # the first pass's posterior NLF
+                v_ref = ((post * a_all).sum(1).float().view(b, 1, 1, 1) * m.clamp_min(0)
+                         + ((post * c_all).sum(1) + q).float().view(b, 1, 1, 1)).clamp_min(1e-6)
+            inl_all = _inliers(m, d2, usable, g2, v_ref, bound_margin, _MAX_MARGIN_DN)
+            inl = inl_all[0].flatten().to(f64)
+
+            def per_bin(values: torch.Tensor) -> torch.Tensor:
+                return torch.zeros(b * bins, dtype=f64, device=dev).index_add_(0, idx, values).view(b, bins)
+
+            count, sq, sm = per_bin(inl), per_bin(d2[0].flatten().to(f64) * inl), per_bin(m_flat * inl)
+            if pool:  # one camera state: the frame's evidence for every patch
+                count, sq, sm = (t.sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
+            s_hat = sq / _TRUNCATED_CHI2 / count.clamp_min(1.0)
+            mk = sm / count.clamp_min(1.0)
+            used = count >= _MIN_BIN_DETAILS
+            inv_d = torch.where(used, 1.0 / (2.0 / count.clamp_min(1.0) + eta_bin**2), torch.zeros_like(count))  # D⁻¹
+            v = (a_all.unsqueeze(-1) * mk.unsqueeze(1) + c_all.unsqueeze(-1) + q.view(b, 1, 1)).clamp_min(1e-9)
+            r = torch.where(used.unsqueeze(1), s_hat.clamp_min(1e-9).log().unsqueeze(1) - v.log(), torch.zeros_like(v))
+            quad = (r.square() * inv_d.unsqueeze(1)).sum(-1)
+            lin = (r * inv_d.unsqueeze(1)).sum(-1)
+            ll = -0.5 * (quad - eta**2 * lin.square() / (1.0 + eta**2 * inv_d.sum(-1, keepdim=True)))
+            evidence = count.sum(1) >= _MIN_FIT_BLOCKS
+            ll = torch.where(evidence.unsqueeze(1), ll, torch.zeros_like(ll))
+            post = torch.softmax(ll + prior, 1)
+        # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
+        mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
+        tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
+        visible = (tot - tot[:, :1]).abs() >= torch.maximum(torch.full_like(tot[:, :1], VISIBLE_XI_DN), VISIBLE_XI_FRACTION * tot[:, :1])
+        p_match = 1.0 - (post * visible).sum(1)
+        # the visible mismatch hypotheses alone (renormalised): what the image says where it contradicts M
+        w = (post * visible)[:, 1:]
+        w = w / w.sum(1, keepdim=True).clamp_min(1e-300)
+        e_a = (w * a_all[:, 1:]).sum(1)
+        e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
+        # σ after clipping of the metadata's model and of the image's (posterior-mean variances): one batched call
+        clipped = clipped_prior_dn(
+            torch.cat([x, x]), torch.cat([a0, e_a]), torch.cat([var0[:, 0], e_var[:, 0]]).sqrt(),
+            torch.cat([var0[:, 1], e_var[:, 1]]).sqrt(),
+        ).view(2, b, 4)
+        prior_clipped, image_clipped = clipped[0], clipped[1]
+        # texture check on the blocks whose three details are all inliers: texture that passed the flatness tests
+        # adds to the horizontal and vertical details first; such evidence says "noisier" without being noise
+        all3 = inl_all.prod(0)
+        hv = ((d2[1] + d2[2]) * all3).flatten(1).sum(1).to(f64) / 2.0
+        dd = (d2[0] * all3).flatten(1).sum(1).to(f64)
+        n3 = all3.flatten(1).sum(1).to(f64)
+        if pool:
+            hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
+        texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
+        follows = evidence & (p_match < 0.5) & (texture <= TEXTURE_LIMIT)
+        out_sigma = torch.where(follows.unsqueeze(1), image_clipped, prior_clipped)
+        xi = torch.where(follows, prior_clipped[:, 3] - image_clipped[:, 3], torch.zeros_like(p_match))
+        # posterior spread of σ_Total (before clipping) over all hypotheses, scaled to the clipped total
+        e_tot = (post * tot).sum(1)
+        sd_tot = ((post * tot.square()).sum(1) - e_tot.square()).clamp_min(0).sqrt()
+        scale = (prior_clipped[:, 3] / tot[:, 0].clamp_min(1e-12)).clamp(0, 1)
+        xi_std = torch.where(evidence, sd_tot * scale, torch.full_like(sd_tot, float("inf")))
+        e_tot_image = (w * tot[:, 1:]).sum(1)
+        unclipped_answer = torch.where(follows, e_tot_image, tot[:, 0])
+        out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
+                         texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1)], dim=1)
+    return out.float()
+
+
+@dataclass
+class PhysicsNoiseEstimator:
+    """The shipped Full-Meta noise-source estimator: :func:`physics_noise_posterior` behind the
+    :class:`~camhealth.inference.Estimator` interface (``predict(images, metadata)``), no network, no weights.
+
+    Attributes:
+        kind: ``"noise_source"``. patch_size: 128 (any size ≥ 8 works through :func:`physics_noise_posterior`).
+        metadata_set: ``"full"`` (every field of :class:`~camhealth.physics.CameraMetadata` enters the closed form).
+        settings: keyword arguments of :func:`physics_noise_posterior`.
+        source: the name it was loaded by.
+    """
+
+    kind: str = "noise_source"
+    patch_size: int = 128
+    metadata_set: str = "full"
+    settings: dict = field(default_factory=dict)
+    source: str = "noise_source_full"
+    backend: str = "torch"
+    physics_prior: bool = True
+    description: dict = field(default_factory=lambda: {
+        "kind": "noise_source", "metadata_set": "full", "architecture": "physics_noise_posterior (no network)",
+        "params": 0})
+
+    @property
+    def name(self) -> str:
+        return self.source
+
+    @torch.inference_mode()
+    def predict(self, images: Any, metadata: Any = None, *, input_range: str = "auto", base_preset: str | None = None,
+                batch_size: int = 256, precision: str = "fp32", views: int = 1) -> dict[str, Any]:
+        """σ per source, total, ξ, its uncertainty and P(match) of B×1×128×128 patches (module docstring).
+
+        ``precision`` is accepted for interface compatibility: the statistics always run in float32/float64 (bf16
+        cannot resolve 1 DN at 255 DN). ``views`` must be 1."""
+        from camhealth.inference import _to_metadata, _to_patches, assess_patches
+
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
+        if batch_size < 1:
+            raise ValueError(f"batch_size = {batch_size} must be ≥ 1")
+        if views != 1:
+            raise ValueError(f"views = {views!r}: flipped views are for MTF estimators; {self.name!r} is a noise estimator")
+        patches = _to_patches(images, self.patch_size, input_range)
+        if metadata is None:
+            raise ValueError(f"estimator {self.name!r} reads 'full' metadata: pass metadata= (CameraMetadata, a dict of "
+                             f"fields in physical units, or a preset name)")
+        b = patches.shape[0]
+        meta = _to_metadata(metadata, b, base_preset)
+        outs = []
+        for start in range(0, b, batch_size):
+            sl = slice(start, start + batch_size)
+            outs.append(physics_noise_posterior(patches[sl], meta if meta.batch_size == 1 else meta[sl], **self.settings))
+        raw = torch.cat(outs)
+        assessable, reason = assess_patches(patches, "noise_source")
+        reason = list(reason)
+        for i in range(b):
+            if reason[i]:
+                continue
+            if raw[i, 7] < _MIN_FIT_BLOCKS:
+                reason[i] = "no flat area"
+            elif raw[i, 8] > TEXTURE_LIMIT:
+                reason[i] = "textured"
+            elif raw[i, 10] > VALIDATED_SIGMA_DN:
+                reason[i] = "noise beyond validated range"
+        assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
+        return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_total": raw[:, 3], "xi": raw[:, 4],
+                "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5}

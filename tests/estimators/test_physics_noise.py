@@ -1,0 +1,129 @@
+"""The physics-first noise-source estimator: the closed form where the image agrees, the image where it does not."""
+
+import pytest
+import torch
+
+from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
+from camhealth.estimators.noise_features import physics_prior_dn
+from camhealth.estimators.physics_noise import (
+    PHYSICS_NOISE_COLUMNS, VALIDATED_SIGMA_DN, PhysicsNoiseEstimator, physics_noise_posterior,
+)
+from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
+from camhealth.physics import CameraMetadata
+
+
+def _ramp(b: int = 4, size: int = 128) -> torch.Tensor:
+    """Smooth scenes spanning 0.15…0.85: flat at the 2×2 scale, many intensities."""
+    x = torch.linspace(0.15, 0.85, size).view(1, 1, 1, size).expand(b, 1, size, size)
+    return x.contiguous()
+
+
+@pytest.mark.parametrize("variants", [(), *[(v,) for v in VARIANTS], VARIANTS])
+def test_do_no_harm_matched_patch_of_every_simulator_variant_is_the_closed_form(variants):
+    meta = CameraMetadata.preset("EV76C661", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    clean = _ramp()
+    noisy, _ = simulate_variant(clean, meta, variants, torch.Generator().manual_seed(3))
+    out = physics_noise_posterior(noisy, meta)
+    prior = physics_prior_dn(noisy, meta, clipping=True)[:, 4:8]
+    assert torch.allclose(out[:, :4], prior, atol=1e-4)
+    assert (out[:, 4] == 0).all() and (out[:, 9] == 0).all()
+    assert (out[:, 6] > 0.5).all()
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_flat_patch_with_40_dn_of_noise_is_caught(pool):
+    """ICX285 at 24 dB / 80 °C predicts a few DN; the patch has 40 DN: ξ < 0, σ_Total followed within 5 %."""
+    meta = CameraMetadata.preset("ICX285", gain_db=24.0, exposure_s=0.05, temperature_c=80.0)
+    clean = torch.full((2, 1, 128, 128), 0.5)
+    noisy, sigma = simulate_variant(clean, meta, (), torch.Generator().manual_seed(0), extra_read_noise_dn=40.0)
+    out = physics_noise_posterior(noisy, meta, pool=pool)
+    truth = ((noisy - clean) * 255).flatten(1).std(1)
+    assert (out[:, 4] < -30).all()
+    assert torch.allclose(out[:, 3], truth, rtol=0.05)
+    assert torch.allclose(out[:, 2], sigma[:, 2], rtol=0.06)  # the excess is readout-like white noise
+    assert (out[:, 9] == 1).all() and (out[:, 6] < 0.01).all()
+
+
+@pytest.mark.parametrize("target", [10.0, 30.0, 60.0])
+def test_xi_sign_and_size_up_to_60_dn(target):
+    meta = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.01, temperature_c=20.0)
+    clean = _ramp(2)
+    noisy, _ = simulate_variant(clean, meta, ("round8",), torch.Generator().manual_seed(1), extra_read_noise_dn=target)
+    as_told, _ = simulate_variant(clean, meta, ("round8",), torch.Generator().manual_seed(1))
+    truth_xi = ((as_told - clean) * 255).flatten(1).std(1) - ((noisy - clean) * 255).flatten(1).std(1)
+    out = physics_noise_posterior(noisy, meta)
+    assert (out[:, 4] < 0).all()
+    assert torch.allclose(out[:, 4], truth_xi, rtol=0.08)
+
+
+def test_gain_mismatch_is_followed_and_pooling_shares_the_answer():
+    told = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    clean = _ramp(4)
+    noisy, sigma = simulate_variant(clean, told, (), torch.Generator().manual_seed(2), overrides={"gain_db": 16.0})
+    for pool in (False, True):
+        out = physics_noise_posterior(noisy, told, pool=pool)
+        assert (out[:, 9] == 1).all()
+        assert torch.allclose(out[:, 0], sigma[:, 0], rtol=0.1)  # photon noise follows the real gain
+        assert (out[:, 4] < 0).all()
+    pooled = physics_noise_posterior(noisy, told, pool=True)
+    assert torch.equal(pooled[:, 6], pooled[:1, 6].expand(4))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [1, 256])
+def test_dtypes_batches_and_hard_patches(dtype, batch):
+    meta = CameraMetadata.preset("ICX285", gain_db=12.0)
+    x = torch.rand(batch, 1, 128, 128, generator=torch.Generator().manual_seed(0)).to(dtype)
+    x[0] = 0.0  # black
+    if batch > 1:
+        x[1] = 1.0  # saturated
+        x[2] = 0.5  # noiseless grey
+    out = physics_noise_posterior(x, meta)
+    assert out.shape == (batch, len(PHYSICS_NOISE_COLUMNS)) and out.dtype == torch.float32
+    assert torch.isfinite(out[:, :5]).all()
+    assert out[0, 7] == 0  # no usable detail in a black patch: no evidence, the closed form
+    res = PhysicsNoiseEstimator().predict(x.float(), meta)
+    assert res["reason"][0] == "black" and not res["assessable"][0]
+    if batch > 1:
+        assert res["reason"][1] == "saturated"
+
+
+def test_estimator_interface_reasons_and_loader():
+    est = load_estimator(PHYSICS_NOISE_MODEL)
+    assert isinstance(est, PhysicsNoiseEstimator) and est.kind == "noise_source" and est.metadata_set == "full"
+    meta = CameraMetadata.preset("ICX285", gain_db=24.0, temperature_c=80.0)
+    clean = torch.full((3, 1, 128, 128), 0.5)
+    u = torch.arange(128.0) * 2 * torch.pi / 6
+    clean[1, 0] = 0.5 + 0.2 * torch.sin(u).view(1, -1) + 0.2 * torch.sin(u).view(-1, 1)  # strong fine texture everywhere
+    noisy, _ = simulate_variant(clean, meta, (), torch.Generator().manual_seed(0), extra_read_noise_dn=torch.tensor([3.0, 3.0, 90.0]))
+    out = est.predict(noisy, meta)
+    assert out["reason"][0] == "" and out["assessable"][0]
+    assert out["reason"][1] == "no flat area"
+    assert out["reason"][2] == "noise beyond validated range" and -out["xi"][2] > VALIDATED_SIGMA_DN - 10
+    assert set(out) >= {"sigma", "sigma_total", "xi", "xi_std", "p_match", "assessable", "reason"}
+    assert torch.isinf(out["xi_std"][1])  # no evidence: ξ unknown
+
+
+def test_bad_input_is_refused():
+    meta = CameraMetadata.preset("ICX285")
+    x = torch.rand(2, 1, 32, 32)
+    with pytest.raises(ValueError, match="B×1×H×W"):
+        physics_noise_posterior(x[:, 0], meta)
+    with pytest.raises(TypeError, match="floating-point"):
+        physics_noise_posterior((x * 255).to(torch.uint8), meta)
+    bad = x.clone()
+    bad[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        physics_noise_posterior(bad, meta)
+    with pytest.raises(ValueError, match=r"eta = -0.1 must be in \[0, 10\]"):
+        physics_noise_posterior(x, meta, eta=-0.1)
+    with pytest.raises(ValueError, match="beyond_probability"):
+        physics_noise_posterior(x, meta, mismatch_probability=0.1, beyond_probability=0.2)
+    with pytest.raises(ValueError, match="metadata batch 3"):
+        physics_noise_posterior(x, CameraMetadata.preset("ICX285", batch_size=3))
+    with pytest.raises(ValueError, match="pool=True"):
+        physics_noise_posterior(x, CameraMetadata.preset("ICX285", batch_size=2), pool=True)
+    with pytest.raises(ValueError, match="pass metadata"):
+        PhysicsNoiseEstimator().predict(torch.rand(1, 1, 128, 128))
+    with pytest.raises(ValueError, match="views"):
+        PhysicsNoiseEstimator().predict(torch.rand(1, 1, 128, 128), meta, views=2)
