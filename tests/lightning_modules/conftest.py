@@ -19,8 +19,3 @@ def noisy_batch():
     batch = dm.corrupt_with(clean, meta, meta, noise_seed=1)
     batch["clean"] = clean
     return batch
-
-
-@pytest.fixture
-def meta_raw():
-    return metadata_matrix(CameraMetadata.preset("EV76C661", batch_size=3, gain_db=torch.tensor([0.0, 12.0, 24.0]))).float()
