@@ -37,8 +37,8 @@ details, then against the first pass's posterior NLF — so a camera far noisier
 details.
 
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
-``"no flat area"`` (fewer than 32 usable details: texture or clipping everywhere — the metadata cannot be
-checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
+``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
+the metadata cannot be checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
 more energy than the diagonal one on the inliers, so texture leaked into the evidence: the closed form is
 returned and ξ is not trusted), and ``"noise beyond validated range"`` (σ_Total before clipping above
 :data:`VALIDATED_SIGMA_DN`: there the clipping takes so much of the noise that the closed-form correction is
@@ -63,6 +63,9 @@ __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_
 VALIDATED_SIGMA_DN = 64.0
 #: Texture check above which ξ is not trusted: ln(E[d_H² + d_V²]/2 / E[d_D²]) on the inliers (0 for white noise).
 TEXTURE_LIMIT = 0.25
+#: Fewest diagonal details (flat, unclipped 2×2 blocks; a 128-px patch has 4 096) on which the answer may leave the
+#: closed form: below it the patch is mostly texture, whose few flat-looking blocks say "noisier" without being noise.
+MIN_FOLLOW_DETAILS = 256
 #: A mismatch is visible where it moves σ_Total by at least max(VISIBLE_XI_DN, VISIBLE_XI_FRACTION · σ_Total).
 VISIBLE_XI_DN = 0.5
 VISIBLE_XI_FRACTION = 0.15
@@ -178,9 +181,19 @@ def physics_noise_posterior(
             def per_bin(values: torch.Tensor) -> torch.Tensor:
                 return torch.zeros(b * bins, dtype=f64, device=dev).index_add_(0, idx, values).view(b, bins)
 
+            # texture check on the blocks whose three details are all inliers: texture that passed the flatness tests
+            # adds to the horizontal and vertical details first; it bounds what it may have added to the diagonal
+            # one, so it widens the common model error: η_eff² = η² + max(texture, 0)²
+            all3 = inl_all.prod(0)
+            hv = ((d2[1] + d2[2]) * all3).flatten(1).sum(1).to(f64) / 2.0
+            dd = (d2[0] * all3).flatten(1).sum(1).to(f64)
+            n3 = all3.flatten(1).sum(1).to(f64)
             count, sq, sm = per_bin(inl), per_bin(d2[0].flatten().to(f64) * inl), per_bin(m_flat * inl)
             if pool:  # one camera state: the frame's evidence for every patch
+                hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
                 count, sq, sm = (t.sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
+            texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
+            eta2 = (eta**2 + texture.clamp_min(0).square()).unsqueeze(1)
             s_hat = sq / _TRUNCATED_CHI2 / count.clamp_min(1.0)
             mk = sm / count.clamp_min(1.0)
             used = count >= _MIN_BIN_DETAILS
@@ -189,7 +202,7 @@ def physics_noise_posterior(
             r = torch.where(used.unsqueeze(1), s_hat.clamp_min(1e-9).log().unsqueeze(1) - v.log(), torch.zeros_like(v))
             quad = (r.square() * inv_d.unsqueeze(1)).sum(-1)
             lin = (r * inv_d.unsqueeze(1)).sum(-1)
-            ll = -0.5 * (quad - eta**2 * lin.square() / (1.0 + eta**2 * inv_d.sum(-1, keepdim=True)))
+            ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv_d.sum(-1, keepdim=True)))
             evidence = count.sum(1) >= _MIN_FIT_BLOCKS
             ll = torch.where(evidence.unsqueeze(1), ll, torch.zeros_like(ll))
             post = torch.softmax(ll + prior, 1)
@@ -209,16 +222,7 @@ def physics_noise_posterior(
             torch.cat([var0[:, 1], e_var[:, 1]]).sqrt(),
         ).view(2, b, 4)
         prior_clipped, image_clipped = clipped[0], clipped[1]
-        # texture check on the blocks whose three details are all inliers: texture that passed the flatness tests
-        # adds to the horizontal and vertical details first; such evidence says "noisier" without being noise
-        all3 = inl_all.prod(0)
-        hv = ((d2[1] + d2[2]) * all3).flatten(1).sum(1).to(f64) / 2.0
-        dd = (d2[0] * all3).flatten(1).sum(1).to(f64)
-        n3 = all3.flatten(1).sum(1).to(f64)
-        if pool:
-            hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
-        texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
-        follows = evidence & (p_match < 0.5) & (texture <= TEXTURE_LIMIT)
+        follows = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & (texture <= TEXTURE_LIMIT)
         out_sigma = torch.where(follows.unsqueeze(1), image_clipped, prior_clipped)
         xi = torch.where(follows, prior_clipped[:, 3] - image_clipped[:, 3], torch.zeros_like(p_match))
         # posterior spread of σ_Total (before clipping) over all hypotheses, scaled to the clipped total
@@ -291,7 +295,7 @@ class PhysicsNoiseEstimator:
         for i in range(b):
             if reason[i]:
                 continue
-            if raw[i, 7] < _MIN_FIT_BLOCKS:
+            if raw[i, 7] < MIN_FOLLOW_DETAILS:
                 reason[i] = "no flat area"
             elif raw[i, 8] > TEXTURE_LIMIT:
                 reason[i] = "textured"
