@@ -83,7 +83,7 @@ BLUR_PATCH = 192
 SLE_CHART = 256
 STAR_CHART = 512
 AGG_SIGMA_DN = 25.0
-SHIPPED = ("mtf", "drne", "noise_source_min", "noise_source_full", "noise_source_full_meta", "noise_source_full_gain")
+SHIPPED = ("mtf", "drne", "noise_source_none", "noise_source_min", "noise_source_full")
 
 
 @dataclass(frozen=True)
@@ -474,7 +474,9 @@ def learned_methods(names: Sequence[str] = SHIPPED, checkpoints: Sequence[str | 
     out = []
     for name in names:
         try:
-            out.append(_wrap_learned(f"learned {name}", load_estimator(name)))
+            est = load_estimator(name)
+            kind = "learned" if est.description.get("params", 1) else "physics-first"  # noise_source_full has no network
+            out.append(_wrap_learned(f"{kind} {name}", est))
         except Exception as err:  # a shipped model that is not there (yet) is skipped, with the reason
             log(f"note: learned estimator {name!r} not available ({type(err).__name__}: {err}); its rows are left out")
     for path in checkpoints:

@@ -11,14 +11,11 @@ arguments, params, FLOPs, metrics — read back by :func:`camhealth.load_estimat
   the model's ``metadata_props``; runs with ONNX Runtime.
 
 The exported network takes exactly the inputs of :meth:`EstimatorModule.export_inputs` (for the
-noise-source network: patches, normalised metadata and the closed-form σ prior; the loader computes the
-last two from raw metadata with :mod:`camhealth.physics`). TorchScript is not offered (deprecated).
+noise-source network: patches and normalised metadata, which the loader computes from raw metadata with
+:mod:`camhealth.physics`). TorchScript is not offered (deprecated).
 
-**Inference settings.** A file may also carry settings that :meth:`camhealth.inference.Estimator.predict` applies by
-default, under ``inference`` in the description; today ``posterior_blend`` (Full-Meta noise-source networks with the
-physics prior, :class:`camhealth.inference.PosteriorBlend`). ``--posterior-blend JSON`` stores one (``'{}'`` for the
-defaults, e.g. ``'{"fields": ["gain_db"], "weight": 0.7}'``), ``--posterior-blend off`` removes it; without the option
-an input file's settings are kept. They change no weight: ``predict(posterior_blend=None)`` gives the network alone.
+Noise-source files written with options that are retired (a Full-Meta hybrid network, a posterior blend, …) are
+refused at load with a message that names the option and what replaced it (:func:`check_retired`).
 """
 
 from __future__ import annotations
@@ -31,7 +28,7 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-__all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_module", "main", "ALLOWED_CLASSES"]
+__all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_module", "main", "ALLOWED_CLASSES", "check_retired"]
 
 FORMAT_TAG = "camhealth-estimator"
 FORMAT_VERSION = 1
@@ -42,6 +39,33 @@ ALLOWED_CLASSES: dict[str, str] = {
     "lightning_modules.drne.NoiseLevelEstimator": "drne",
     "lightning_modules.mtf.MTFEstimator": "mtf",
 }
+
+
+BY_PHYSICS = ("replaced by 'noise_source_full', the physics-first estimator (the closed form unless the image "
+              "contradicts it; docs/estimators.md): the Full-Meta networks were worse than the closed form on data "
+              "camhealth did not make (python -m camhealth.bench robustness)")
+#: Retired noise-source network options → the value every file now has (older files that carry it are read as if
+#: they did not); another value is refused by :func:`check_retired`.
+RETIRED_OPTIONS: dict[str, Any] = {
+    "physics_prior": False, "total_branch": False, "branch_inputs": "own", "nlf_statistics": False,
+    "trunk_activation": "relu", "prior_clipping": False, "noise_fit_statistics": False, "mismatch_posterior": False,
+    "train_only": None, "prior_anchor": "image",
+}
+
+
+def check_retired(desc: Mapping[str, Any], path: Any) -> None:
+    """Refuse a noise-source description written with a retired option (a Full-Meta network, a posterior blend, …),
+    naming the option and what replaced it."""
+    if desc.get("kind") != "noise_source":
+        return
+    args = desc.get("init_args", {}) or {}
+    if args.get("metadata_set") == "full" or args.get("physics_prior"):
+        raise ValueError(f"{path}: a Full-Meta noise-source network is retired: {BY_PHYSICS}")
+    bad = [f"{k}={v!r}" for k, v in args.items() if k in RETIRED_OPTIONS and v not in (RETIRED_OPTIONS[k], None)]
+    if desc.get("inference"):
+        bad.append(f"inference settings {sorted(desc['inference'])}")
+    if bad:
+        raise ValueError(f"{path}: written with the retired noise-source option(s) {', '.join(bad)}: {BY_PHYSICS}")
 
 
 def _class_for(class_path: str):
@@ -89,9 +113,10 @@ def load_module(source: str | Path):
     path = Path(source)
     desc, state = _description_and_state(_safe_load(path), path)
     cls = _class_for(desc.get("class_path", ""))
+    check_retired(desc, path)
     init_args = {k: v for k, v in dict(desc.get("init_args", {})).items() if not str(k).startswith("_")}
-    if desc.get("kind") == "noise_source" and "total_branch" not in init_args:
-        init_args["total_branch"] = False  # written before the total head existed: total = √(Σ σ̂_s²)
+    if desc.get("kind") == "noise_source":  # retired options at their only remaining value: as if absent
+        init_args = {k: v for k, v in init_args.items() if k not in RETIRED_OPTIONS}
     module = cls(**init_args)
     missing, unexpected = module.net.load_state_dict(state, strict=False)
     if missing or unexpected:
@@ -99,66 +124,30 @@ def load_module(source: str | Path):
     return module.eval(), desc
 
 
-def _check_inference(module, inference: Mapping[str, Any] | None) -> dict | None:
-    """The ``inference`` settings as JSON-ready data, validated against ``module``; ``None`` when empty."""
-    if not inference:
-        return None
-    if not isinstance(inference, Mapping):
-        raise ValueError(f"inference settings must be a mapping, got {type(inference).__name__}")
-    unknown = sorted(set(inference) - {"posterior_blend"})
-    if unknown:
-        raise ValueError(f"unknown inference setting(s) {unknown}; allowed: ['posterior_blend']")
-    from camhealth.inference import PosteriorBlend  # camhealth.inference imports this module
-
-    blend = PosteriorBlend.from_value(inference.get("posterior_blend"))
-    if blend is None:
-        return None
-    hp = getattr(module, "hparams", {})
-    if not (getattr(module, "kind", None) == "noise_source" and hp.get("metadata_set") == "full" and hp.get("physics_prior")):
-        raise ValueError(
-            "posterior_blend applies to Full-Meta noise-source networks with the physics prior; this network is "
-            f"{getattr(module, 'kind', type(module).__name__)!r} with {hp.get('metadata_set')!r} metadata, physics prior "
-            f"{bool(hp.get('physics_prior'))}"
-        )
-    return {"posterior_blend": blend.as_dict()}
-
-
-def _description(module, metrics: Mapping[str, float] | None, inference: Mapping[str, Any] | None = None) -> dict:
+def _description(module, metrics: Mapping[str, float] | None) -> dict:
     desc = module.describe()
     desc["format"] = FORMAT_TAG
     desc["version"] = FORMAT_VERSION
     desc["init_args"] = json.loads(json.dumps(desc["init_args"], default=list))
     if metrics:
         desc["metrics"] = {k: float(v) for k, v in metrics.items()}
-    settings = _check_inference(module, inference)
-    if settings:
-        desc["inference"] = settings
     return desc
 
 
-#: ``inference`` argument of the exporters: keep what the input file carries.
-KEEP = "keep"
-
-
-def _module_and_metrics(source, metrics, inference=KEEP):
+def _module_and_metrics(source, metrics):
     if isinstance(source, (str, Path)):
         module, desc = load_module(source)
-        if isinstance(inference, str) and inference == KEEP:
-            inference = desc.get("inference")
-        return module, metrics if metrics is not None else desc.get("metrics"), inference
-    return source.eval(), metrics, (None if isinstance(inference, str) and inference == KEEP else inference)
+        return module, metrics if metrics is not None else desc.get("metrics")
+    return source.eval(), metrics
 
 
-def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None, inference: Any = KEEP) -> Path:
-    """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file.
-
-    ``inference``: settings :meth:`camhealth.inference.Estimator.predict` applies by default (``{"posterior_blend":
-    {...}}``), ``None`` for none, or ``"keep"`` (default) for those of an input file."""
-    module, metrics, inference = _module_and_metrics(source, metrics, inference)
+def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
+    """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file."""
+    module, metrics = _module_and_metrics(source, metrics)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in module.net.state_dict().items()}
-    payload = {"format": FORMAT_TAG, "version": FORMAT_VERSION, "description": json.dumps(_description(module, metrics, inference)), "state_dict": state}
+    payload = {"format": FORMAT_TAG, "version": FORMAT_VERSION, "description": json.dumps(_description(module, metrics)), "state_dict": state}
     torch.save(payload, out)
     return out
 
@@ -168,23 +157,23 @@ def _dynamic_batch(inputs: Sequence[torch.Tensor]):
     return tuple({0: batch} for _ in inputs)
 
 
-def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = None, inference: Any = KEEP) -> Path:
+def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
     """torch.export the bare network (dynamic batch) to a ``.pt2`` archive with the description."""
-    module, metrics, inference = _module_and_metrics(source, metrics, inference)
+    module, metrics = _module_and_metrics(source, metrics)
     inputs = module.export_inputs(2)
     net = module.export_module()
     ep = torch.export.export(net, inputs, dynamic_shapes=_dynamic_batch(inputs))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.export.save(ep, out, extra_files={"camhealth.json": json.dumps(_description(module, metrics, inference))})
+    torch.export.save(ep, out, extra_files={"camhealth.json": json.dumps(_description(module, metrics))})
     return out
 
 
-def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = None, inference: Any = KEEP) -> Path:
+def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
     """ONNX export (dynamo exporter, dynamic batch) with the description in ``metadata_props``."""
     import onnx
 
-    module, metrics, inference = _module_and_metrics(source, metrics, inference)
+    module, metrics = _module_and_metrics(source, metrics)
     inputs = module.export_inputs(2)
     net = module.export_module()
     names = [f"input_{i}" for i in range(len(inputs))]
@@ -197,7 +186,7 @@ def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = N
     program.save(str(out))
     model = onnx.load(str(out))
     entry = model.metadata_props.add()
-    entry.key, entry.value = "camhealth.json", json.dumps(_description(module, metrics, inference))
+    entry.key, entry.value = "camhealth.json", json.dumps(_description(module, metrics))
     onnx.save(model, str(out))
     return out
 
@@ -210,31 +199,14 @@ def main(argv: Sequence[str] | None = None) -> Path:
     parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) of a camhealth estimator, or a weights file (.pt)")
     parser.add_argument("--format", choices=sorted(EXPORTERS), default="pt2", help="output format (default pt2)")
     parser.add_argument("--out", default=None, help="output path (default: next to the checkpoint, with the format's suffix)")
-    parser.add_argument(
-        "--posterior-blend", default=None, metavar="JSON|off",
-        help="store a default posterior blend for Estimator.predict (Full-Meta noise-source networks): a JSON object of "
-        "camhealth.inference.PosteriorBlend fields ('{}' for its defaults), or 'off' to remove one; default: keep the input's",
-    )
     args = parser.parse_args(argv)
     fn, suffix = EXPORTERS[args.format]
-    inference: Any = KEEP
-    if args.posterior_blend is not None:
-        if args.posterior_blend.strip().lower() == "off":
-            inference = None
-        else:
-            try:
-                value = json.loads(args.posterior_blend)
-            except json.JSONDecodeError as exc:
-                parser.error(f"--posterior-blend {args.posterior_blend!r} is not JSON ({exc.msg}); give e.g. '{{}}' or 'off'")
-            if not isinstance(value, dict):
-                parser.error(f"--posterior-blend {args.posterior_blend!r} must be a JSON object (e.g. '{{}}') or 'off'")
-            inference = {"posterior_blend": value}
     src = Path(args.checkpoint)
     out = Path(args.out) if args.out else src.with_suffix(suffix)
     if out.resolve() == src.resolve():
         parser.error(f"--out {out} would overwrite the input; give another path")
     try:
-        path = fn(src, out, inference=inference)
+        path = fn(src, out)
     except (FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None

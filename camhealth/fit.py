@@ -46,12 +46,6 @@ class FitCLI(LightningCLI):
             help="fine-tune: start from the weights of this camhealth weights file or checkpoint (same architecture; "
                  "optimiser and schedule start afresh)",
         )
-        parser.add_argument(
-            "--revive_trunk", type=bool, default=False,
-            help="with --init_from: re-initialise the file's dead noise-source trunk (constant pooled features) with "
-                 "its constant contribution folded into the branches' biases, so the model starts unchanged "
-                 "(NoiseSourceNet.revive_trunk)",
-        )
         parser.set_defaults(  # plain defaults; every config may override them
             {
                 "trainer.logger": {
@@ -92,28 +86,15 @@ def _add_default_callbacks(cli: FitCLI) -> None:
         trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
 
 
-def _init_from(model: EstimatorModule, path: str, revive_seed: int | None = None) -> None:
+def _init_from(model: EstimatorModule, path: str) -> None:
     """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
-    ``model``; the architectures must match (a clear error names the first mismatch). One exception: a
-    noise-source network may read more than the file's (the total head, ``branch_inputs: all``,
-    ``nlf_statistics``, ``noise_fit_statistics``, ``mismatch_posterior`` (whose trust head starts at λ = 0.05); :meth:`~lightning_modules.noise_source.NoiseSourceNet.state_from`;
-    ``prior_clipping`` adds no weights, it moves the starting point) — the new inputs
-    get zero weights and the head its zero-initialised output, so the model starts as the file's network
-    exactly. Likewise an MTF network with ``joint_directions`` starts from a one-direction file exactly
-    (:meth:`~lightning_modules.mtf.MTFNet.state_from`). With ``revive_seed``, the file's dead trunk is first revived
-    (:meth:`~lightning_modules.noise_source.NoiseSourceNet.revive_trunk`, seeded), in the file's own architecture."""
+    ``model``; the architectures must match (a clear error names the first mismatch). One exception: an MTF network
+    with ``joint_directions`` starts from a one-direction file exactly (:meth:`~lightning_modules.mtf.MTFNet.state_from`)."""
     from camhealth.export import load_module
 
     source, _ = load_module(Path(path))
     if type(source) is not type(model):
         raise ValueError(f"--init_from {path}: holds a {type(source).__name__}, the config trains a {type(model).__name__}")
-    if revive_seed is not None:
-        if not hasattr(source.net, "revive_trunk"):
-            raise ValueError(f"--revive_trunk: {type(source).__name__} has no noise-source trunk to revive")
-        try:
-            source.net.revive_trunk(seed=revive_seed)
-        except ValueError as exc:
-            raise ValueError(f"--revive_trunk {path}: {exc}") from None
     try:
         state = model.net.state_from(source.net) if hasattr(model.net, "state_from") else source.net.state_dict()
         model.net.load_state_dict(state)
@@ -140,11 +121,8 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
     # the on-the-fly corruption and the training step allocate the same large buffers every batch
     keep_freed_memory()
     _add_default_callbacks(cli)
-    if cli.config["revive_trunk"] and not cli.config["init_from"]:
-        raise ValueError("--revive_trunk revives the trunk of the --init_from file; pass --init_from")
     if cli.config["init_from"]:
-        revive = int(cli.config["seed_everything"] or 0) if cli.config["revive_trunk"] else None
-        _init_from(cli.model, cli.config["init_from"], revive_seed=revive)
+        _init_from(cli.model, cli.config["init_from"])
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     best = cli.trainer.checkpoint_callback.best_model_path if cli.trainer.checkpoint_callback else ""
     results: dict = {"best_checkpoint": best}

@@ -59,8 +59,7 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
     lines = [
         f"# Model card: `{est.name}`",
         "",
-        f"- **Kind**: {est.kind} ({d['class_path']}); patch {est.patch_size} px; metadata: {est.metadata_set}"
-        + (" + closed-form physics prior" if est.physics_prior else ""),
+        f"- **Kind**: {est.kind} ({d['class_path']}); patch {est.patch_size} px; metadata: {est.metadata_set}",
         f"- **Load**: `camhealth.load_estimator({est.name!r})` (no network access; tensors only).",
         f"- **Architecture arguments**: `{json.dumps(d.get('init_args', {}))}`",
         f"- **Size**: {d.get('params', 0):,} parameters, {d.get('flops_per_patch', 0) / 1e9:.2f} GFLOP per patch.",
@@ -68,7 +67,6 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
         f"{torch.get_num_threads()} threads, {_dt.date.today().isoformat()}): {timing['fp32']:.2f} ms/patch fp32, "
         f"{timing['bf16']:.2f} ms/patch bf16.",
         *_trunk_line(est),
-        *_inference_line(est),
         f"- **Data**: {_DATA[est.kind]}",
         f"- **Reproduce**: `{command}`",
         "",
@@ -83,14 +81,6 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
     if notes:
         lines += ["", "## Notes", "", notes]
     return "\n".join(lines) + "\n"
-
-
-def _inference_line(est) -> list[str]:
-    blend = getattr(est, "posterior_blend", None)
-    if blend is None:
-        return []
-    return [f"- **Inference default**: `predict` blends with the mismatch posterior, `posterior_blend = {json.dumps(blend.as_dict())}` "
-            "(`camhealth.inference.PosteriorBlend`; the speed above includes it; `predict(posterior_blend=None)` runs the network alone)."]
 
 
 def _trunk_line(est) -> list[str]:

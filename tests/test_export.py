@@ -14,13 +14,8 @@ from camhealth.physics.metadata import CameraMetadata
 from lightning_modules import MTFEstimator, NoiseLevelEstimator, NoiseSourceEstimator
 
 MODELS = {
-    "noise_source": lambda: NoiseSourceEstimator(patch_size=32),
-    "noise_source_all_nlf": lambda: NoiseSourceEstimator(patch_size=32, branch_inputs="all", nlf_statistics=True),
-    "noise_source_clipping": lambda: NoiseSourceEstimator(patch_size=32, prior_clipping=True),
-    "noise_source_clipping_fit": lambda: NoiseSourceEstimator(patch_size=32, prior_clipping=True, noise_fit_statistics=True),
-    "noise_source_clipping_fit_post": lambda: NoiseSourceEstimator(
-        patch_size=32, prior_clipping=True, noise_fit_statistics=True, mismatch_posterior=True,
-    ),
+    "noise_source": lambda: NoiseSourceEstimator(patch_size=32, metadata_set="minimal"),
+    "noise_source_none": lambda: NoiseSourceEstimator(patch_size=32, metadata_set="none"),
     "drne": lambda: NoiseLevelEstimator(patch_size=32),
     "mtf": lambda: MTFEstimator(patch_size=32),
     "mtf_joint": lambda: MTFEstimator(patch_size=32, joint_directions=True),
@@ -43,7 +38,7 @@ def _perturbed(kind: str):
 def _inputs(batch: int = 3):
     g = torch.Generator().manual_seed(1)
     x = torch.rand(batch, 1, 32, 32, generator=g) * 0.8 + 0.1
-    x[:, :, :6] = 0.0  # black and saturated rows: the clipped prior of prior_clipping models differs there
+    x[:, :, :6] = 0.0  # black and saturated rows
     x[:, :, -4:] = 1.0
     meta = CameraMetadata.preset("ICX285", batch_size=batch, gain_db=torch.tensor([0.0, 12.0, 24.0])[:batch])
     return x, meta
@@ -71,8 +66,6 @@ def test_exported_program_matches_torch(kind, fmt, tmp_path):
     est = load_estimator(path)
     noise = kind.startswith("noise_source")
     assert est.backend == fmt and est.kind == _kind(kind) and est.patch_size == 32
-    assert est.prior_clipping == ("clipping" in kind) and est.noise_fit_statistics == ("fit" in kind)
-    assert est.mismatch_posterior == kind.endswith("post")
     x, meta = _inputs(3)
     a = ref.predict(x, meta if noise else None)
     b = est.predict(x, meta if noise else None)
@@ -126,38 +119,3 @@ def test_loader_refuses_unknown_class(tmp_path):
     torch.save(payload, path)
     with pytest.raises(ValueError, match="not a camhealth estimator"):
         load_estimator(path)
-
-
-def test_inference_settings_travel_with_the_file(tmp_path, capsys):
-    """--posterior-blend stores a default posterior blend in the description (weights and pt2), an input's settings
-    are kept, 'off' removes them, and bad values or a network the blend does not apply to are refused."""
-    import json
-
-    from camhealth.inference import PosteriorBlend
-
-    src = export_weights(NoiseSourceEstimator(patch_size=32, prior_clipping=True), tmp_path / "ns.pt")
-    assert load_estimator(src).posterior_blend is None
-    blended = main([str(src), "--format", "weights", "--out", str(tmp_path / "b.pt"), "--posterior-blend", '{"weight": 0.5}'])
-    assert load_estimator(blended).posterior_blend == PosteriorBlend(weight=0.5)
-    kept = main([str(blended), "--format", "pt2", "--out", str(tmp_path / "b.pt2")])
-    assert load_estimator(kept).posterior_blend == PosteriorBlend(weight=0.5)
-    off = main([str(blended), "--format", "weights", "--out", str(tmp_path / "off.pt"), "--posterior-blend", "off"])
-    assert load_estimator(off).posterior_blend is None
-    sd = lambda p: torch.load(p, weights_only=True)["state_dict"]  # noqa: E731
-    assert all(torch.equal(v, sd(blended)[k]) for k, v in sd(src).items())  # no weight changes
-    for value, msg in (('{"weight": 2}', "weight = 2.0 must be in"), ("[1]", "must be a JSON object"), ("{", "is not JSON")):
-        with pytest.raises(SystemExit):
-            main([str(src), "--format", "weights", "--out", str(tmp_path / "x.pt"), "--posterior-blend", value])
-        assert msg in capsys.readouterr().err
-    drne = export_weights(_perturbed("drne"), tmp_path / "d.pt")
-    with pytest.raises(SystemExit):
-        main([str(drne), "--format", "weights", "--out", str(tmp_path / "x.pt"), "--posterior-blend", "{}"])
-    assert "posterior_blend applies to Full-Meta noise-source networks" in capsys.readouterr().err
-    # a file whose stored setting is broken is refused by the loader, naming the problem
-    obj = torch.load(blended, weights_only=True)
-    desc = json.loads(obj["description"])
-    desc["inference"] = {"posterior_blend": {"weight": -1}}
-    obj["description"] = json.dumps(desc)
-    torch.save(obj, tmp_path / "broken.pt")
-    with pytest.raises(ValueError, match="bad inference.posterior_blend: PosteriorBlend weight = -1.0 must be in"):
-        load_estimator(tmp_path / "broken.pt")

@@ -1,7 +1,8 @@
 """``python -m camhealth.bench estimators``: held-out accuracy and ms/patch of the learned estimators, side by side,
 against a thesis-size reference network on the same patches.
 
-For every shipped model (``camhealth/weights/*.pt``; or ``--models``) and every ``--checkpoint``:
+For every shipped model (``camhealth/weights/*.pt`` and ``noise_source_full``, the physics-first noise estimator; or
+``--models``) and every ``--checkpoint``:
 
 * **accuracy on held-out data** corrupted by the physics core — the *test* split (images never seen in
   training or validation) of the DataModule the shipped configs train on (``source: default`` + 60 dead-leaves
@@ -12,10 +13,6 @@ For every shipped model (``camhealth/weights/*.pt``; or ``--models``) and every 
   flipped copies (``Estimator.predict(views=...)``), timed alike;
 * **speed**: ``Estimator.predict`` on a batch of ``--batch`` patches in fp32 and bf16 (closed-form physics prior
   and input checks included), median over ``--repeats``; params and FLOPs per patch;
-* **hybrid vs network**: a model file with a default posterior blend (``Estimator.posterior_blend``, e.g.
-  ``noise_source_full_gain``) gets a second row with ``predict(posterior_blend=None)``, the network alone;
-* **closed form**: the mismatch posterior alone (:mod:`camhealth.estimators.mismatch_posterior`, no network) on
-  the same noise patches, as a last row of the noise table;
 * **reference**: the thesis-size noise network (16 full-resolution 64-channel layers, ≈ 17 GFLOP per 128-px patch,
   :class:`lightning_modules.ThesisNoiseNet`, untrained — timing only) on the same batch; the ratio column is
   relative to it.
@@ -58,12 +55,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--split-floor", action="store_true",
         help="also print the Bayes-optimal DCSN/RN split's RMS on the noise set for a noise level known to 0/1/2/5 %%",
-    )
-    parser.add_argument(
-        "--posterior-split", type=float, default=None, metavar="TAU",
-        help="for Full-Meta noise-source models with the physics prior, also rows with Estimator.predict("
-        "posterior_split=TAU): the DCSN/RN split from the mismatch posterior where it is sure of a temperature or "
-        "white-noise error (e.g. 0.9)",
     )
     parser.add_argument("--no-reference", action="store_true", help="skip the thesis-size reference network")
 
@@ -180,14 +171,12 @@ def _meta(data: dict[str, torch.Tensor], sl: slice):
     return metadata_from_matrix(data["meta_raw"][sl])
 
 
-def noise_accuracy(est, data: dict[str, torch.Tensor], posterior_split: float | None = None, **predict_kw: Any) -> dict[str, float]:
-    """Bias/Std/RMS [DN] of an estimator's outputs on held-out noise data (``posterior_split`` and ``predict_kw``,
-    e.g. ``posterior_blend=None``: passed to ``Estimator.predict``)."""
+def noise_accuracy(est, data: dict[str, torch.Tensor]) -> dict[str, float]:
+    """Bias/Std/RMS [DN] of an estimator's outputs on held-out noise data."""
     from lightning_modules.metrics import bias_std_rms
 
     meta = _meta(data, slice(None)) if est.metadata_set != "none" else None
-    kw = dict(predict_kw) if posterior_split is None else {"posterior_split": posterior_split, **predict_kw}
-    out = est.predict(data["image"], meta, batch_size=64, **kw)
+    out = est.predict(data["image"], meta, batch_size=64)
     res: dict[str, float] = {"n": float(data["image"].shape[0])}
     pairs = [("total", out["sigma_total"], data["sigma_total"])]
     if "sigma" in out:
@@ -201,37 +190,6 @@ def noise_accuracy(est, data: dict[str, torch.Tensor], posterior_split: float | 
         for name, e, t in pairs:
             res[f"rms_{name}_consistent"] = bias_std_rms(e[keep].double(), t[keep].double())[2].item()
     return res
-
-
-def posterior_accuracy(data: dict[str, torch.Tensor], fields: tuple[str, ...], batch: int = 64) -> tuple[dict[str, float], float]:
-    """Bias/Std/RMS [DN] and ms/patch of the closed-form mismatch posterior alone (no network): σ per source and
-    total after clipping, ξ = σ_Total(M) − E[σ_Total(M')] (:func:`camhealth.estimators.mismatch_posterior.mismatch_posterior`,
-    the alteration prior of the held-out set's ``fields``)."""
-    from lightning_modules.metrics import bias_std_rms
-    from camhealth.estimators.mismatch_posterior import mismatch_posterior
-    from camhealth.estimators.noise_features import physics_prior_dn
-
-    n = data["image"].shape[0]
-    t = time.perf_counter()
-    outs = []
-    for i in range(0, n, batch):
-        sl = slice(i, min(n, i + batch))
-        meta = _meta(data, sl)
-        post = mismatch_posterior(data["image"][sl], meta, fields=fields)
-        total_m = physics_prior_dn(data["image"][sl], meta)[:, 3]
-        outs.append(torch.cat([post[:, :4], (total_m - post[:, 4]).unsqueeze(1)], dim=1))
-    ms = (time.perf_counter() - t) * 1e3 / n
-    est = torch.cat(outs).double()
-    res: dict[str, float] = {"n": float(n)}
-    truth = {"pn": data["sigma"][:, 0], "dcsn": data["sigma"][:, 1], "rn": data["sigma"][:, 2], "total": data["sigma_total"], "xi": data["xi"]}
-    cols = {"pn": 0, "dcsn": 1, "rn": 2, "total": 3, "xi": 4}
-    keep = ~data["altered"]
-    for name, j in cols.items():
-        b, s, r = bias_std_rms(est[:, j], truth[name].double())
-        res.update({f"bias_{name}": b.item(), f"std_{name}": s.item(), f"rms_{name}": r.item()})
-        if bool(keep.any()):
-            res[f"rms_{name}_consistent"] = bias_std_rms(est[keep, j], truth[name][keep].double())[2].item()
-    return res, ms
 
 
 def mtf_accuracy(est, data: dict[str, torch.Tensor], views: int = 1) -> dict[str, float]:
@@ -274,11 +232,11 @@ def _time_round_robin(fns, repeats: int, warmup: int) -> list[list[float]]:
 
 
 def run(args: argparse.Namespace) -> BenchResult:
-    from camhealth.inference import load_estimator, posterior_split_applies, shipped_models
+    from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator, shipped_models
     from lightning_modules import ThesisNoiseNet
     from lightning_modules.blocks import count_flops
 
-    names = list(args.models) if args.models is not None else sorted(shipped_models())
+    names = list(args.models) if args.models is not None else sorted([*shipped_models(), PHYSICS_NOISE_MODEL])
     estimators = [load_estimator(n) for n in names] + [load_estimator(p) for p in args.checkpoint]
     if not estimators:
         raise SystemExit("no estimators: ship weights under camhealth/weights/ or pass --checkpoint")
@@ -291,25 +249,16 @@ def run(args: argparse.Namespace) -> BenchResult:
         "| model | n | PN RMS | DCSN RMS | RN RMS | total Bias / Std / RMS | ξ RMS | M = M′ only: PN / DCSN / RN / total RMS |",
         "|---|---:|---:|---:|---:|---|---:|---|",
     ]
-    split = getattr(args, "posterior_split", None)
-    if split is not None and not 0.0 < split < 1.0:
-        raise SystemExit(f"--posterior-split {split} must be in (0, 1)")
     # (estimator, views, predict kwargs of the noise row)
     jobs: list[tuple[Any, int, dict[str, Any]]] = [
         (est, v, {}) for est in estimators for v in (sorted(set(args.mtf_views)) if est.kind == "mtf" else [1])
     ]
-    # a file with a default posterior blend: also the network alone, the hybrid's ablation
-    jobs = [j for est, v, k in jobs for j in ([(est, v, k), (est, v, {"posterior_blend": None})]
-                                               if getattr(est, "posterior_blend", None) is not None else [(est, v, k)])]
-    if split is not None:  # a second row for every model the re-split applies to
-        jobs = [j for est, v, k in jobs for j in ([(est, v, k), (est, v, {**k, "posterior_split": split})]
-                                                   if posterior_split_applies(est) else [(est, v, k)])]
     # accuracy first, then every (model, views, precision) timed round-robin: the VM's speed drifts within minutes,
-    # and rows timed one after the other could differ by 1.6× for two models of the same architecture (session 11)
+    # and rows timed one after the other could differ by 1.6× for two models of the same architecture
     accs, calls = [], []
     for est, views, nkw in jobs:
         data = blur_data if est.kind == "mtf" else noise_data
-        accs.append(mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data, **nkw))
+        accs.append(mtf_accuracy(est, data, views) if est.kind == "mtf" else noise_accuracy(est, data))
         reps = max(1, b // data["image"].shape[0] + 1)
         x = data["image"].repeat(reps, 1, 1, 1)[:b]
         meta = None
@@ -323,10 +272,6 @@ def run(args: argparse.Namespace) -> BenchResult:
     timed = _time_round_robin([fn for _, _, fn in calls], args.repeats, args.warmup)
     for j, ((est, views, nkw), acc) in enumerate(zip(jobs, accs)):
         label = est.name if views == 1 else f"{est.name} ×{views} views"
-        if getattr(est, "posterior_blend", None) is not None:
-            label = f"{label} (network alone)" if "posterior_blend" in nkw else f"{label} + posterior blend"
-        if nkw.get("posterior_split") is not None:
-            label = f"{label} + posterior split {nkw['posterior_split']:g}"
         if est.kind == "mtf":
             note = f"AMAE {acc['amae']:.2f} % (defocus {acc.get('amae_defocus', float('nan')):.2f}, linear {acc.get('amae_linear', float('nan')):.2f}, non-linear {acc.get('amae_nonlinear', float('nan')):.2f})"
         elif est.kind == "drne":
@@ -341,7 +286,7 @@ def run(args: argparse.Namespace) -> BenchResult:
             per[prec] = statistics_ms(times) / b
         flops = est.description.get("flops_per_patch", float("nan"))
         table.append(
-            f"| {label} | {est.kind} | {est.metadata_set}{' + physics prior' if est.physics_prior else ''} | "
+            f"| {label} | {est.kind} | {est.metadata_set}{' (closed form first, no network)' if est.description.get('params') == 0 else ''} | "
             f"{est.description.get('params', 0):,} | {flops * views / 1e9:.2f} | {per.get('fp32', float('nan')):.2f} | "
             f"{per.get('bf16', float('nan')):.2f} | {note} |"
         )
@@ -353,17 +298,6 @@ def run(args: argparse.Namespace) -> BenchResult:
                 f"{g('rms_pn_consistent'):.2f} / {g('rms_dcsn_consistent'):.2f} / {g('rms_rn_consistent'):.2f} / "
                 f"{g('rms_total_consistent'):.2f} |"
             )
-    if noise_data is not None:  # the closed-form posterior alone, on the same patches
-        from datamodules.noise import XI_FIELDS
-
-        acc, ms = posterior_accuracy(noise_data, tuple(getattr(args, "xi_fields", None) or XI_FIELDS))
-        g = lambda k: acc.get(k, float("nan"))  # noqa: E731
-        noise_table.append(
-            f"| mismatch posterior (closed form, no network; {ms:.2f} ms/patch) | {int(acc['n'])} | {g('rms_pn'):.2f} | "
-            f"{g('rms_dcsn'):.2f} | {g('rms_rn'):.2f} | {g('bias_total'):.2f} / {g('std_total'):.2f} / {g('rms_total'):.2f} | "
-            f"{g('rms_xi'):.2f} | {g('rms_pn_consistent'):.2f} / {g('rms_dcsn_consistent'):.2f} / "
-            f"{g('rms_rn_consistent'):.2f} / {g('rms_total_consistent'):.2f} |"
-        )
     baseline = rows[0].name
     header = [
         f"{_dt.date.today().isoformat()}, {platform.processor() or platform.machine()}, torch {torch.__version__}, "

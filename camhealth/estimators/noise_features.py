@@ -7,19 +7,15 @@
   (Eq. 3.14–3.15) and σ_RN (Eq. 3.16–3.19), all in DN, before clipping; plus their root-sum-square total.
   Dark-current and readout σ are exact functions of the metadata; σ_PN is exact up to the noise in Ī.
   With ``clipping=True`` also the same σ after clipping to [0, 255] DN (:func:`clipped_prior_dn`).
-  The hybrid noise-source network learns only what these cannot give: clipping and saturation, scene
-  content, and the metadata/image mismatch ξ.
 - :func:`image_statistics` — cheap per-patch scalars: mean intensity, its square root (σ_PN ∝ √I), the
   fractions of clipped pixels at 0 and 255 DN, and Immerkær's (1996) fast noise estimate
   σ ≈ √(π/2) · Σ|I ∗ N| / (6 (W−2)(H−2)) with the Laplacian-difference mask
   N = [[1, −2, 1], [−2, 4, −2], [1, −2, 1]] (I in DN), which texture inflates and the network corrects;
   and Donoho's robust median-absolute-deviation estimate on the finest diagonal Haar detail,
   d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 over 2×2 blocks (var d = σ² for white noise), σ ≈ median|d| / 0.6745,
-  which edges barely move.
-- :func:`nlf_statistics` — a coarse noise-level function of the patch: the 2×2 blocks sorted by their mean
-  and cut into three equal-count intensity terciles, the Haar-MAD σ and the mean intensity of each. Photon
-  noise grows with intensity (σ_PN² ∝ I), dark-current and readout noise do not, so the three points tell the
-  signal-dependent from the signal-independent part of the noise where the patch spans a range of intensities.
+  which edges barely move. (The noise-source networks read them.)
+- :func:`block_details`, :func:`clipped_prior_dn` — the 2×2-block quantities of the noise-level fits and the σ the
+  metadata predict after clipping, used by :mod:`camhealth.estimators.physics_noise`.
 """
 
 from __future__ import annotations
@@ -35,8 +31,8 @@ from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
-    "metadata_from_matrix", "physics_prior_dn", "clipped_prior_dn", "image_statistics", "laplace_difference", "box_mean3", "IMAGE_STATISTICS",
-    "CLIP_TOLERANCE", "nlf_statistics", "NLF_STATISTICS", "noise_fit_statistics", "block_details", "NOISE_FIT_STATISTICS",
+    "metadata_from_matrix", "physics_prior_dn", "clipped_prior_dn", "image_statistics", "laplace_difference", "box_mean3",
+    "IMAGE_STATISTICS", "CLIP_TOLERANCE", "block_details",
 ]
 
 #: Names of the columns of :func:`image_statistics`.
@@ -56,12 +52,9 @@ def metadata_from_matrix(meta_raw: torch.Tensor) -> CameraMetadata:
     return CameraMetadata(**{n: meta_raw[:, i] for i, n in enumerate(FULL_FIELDS)})
 
 
-def physics_prior_dn(
-    image: torch.Tensor, meta: CameraMetadata, cache: dict | None = None, clipping: bool = False,
-    noise_fit: bool = False, posterior: bool = False,
-) -> torch.Tensor:
-    """Closed-form σ [DN] of (PN, DCSN, RN, total) for the metadata ``meta``, shape (B, 4), float32 (more
-    columns with ``clipping`` / ``noise_fit``).
+def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | None = None, clipping: bool = False) -> torch.Tensor:
+    """Closed-form σ [DN] of (PN, DCSN, RN, total) for the metadata ``meta``, shape (B, 4), float32 ((B, 8) with
+    ``clipping``).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1]; only their mean intensity is used (for σ_PN).
@@ -71,11 +64,6 @@ def physics_prior_dn(
             once); at most 64 rows are kept.
         clipping: also return, as columns 4–7, the σ [DN] of (PN, DCSN, RN, total) that the metadata predict
             *after* clipping to [0, 255] DN (:func:`clipped_prior_dn`), shape (B, 8).
-        noise_fit: append the six columns of :func:`noise_fit_statistics` (how far the image's noise is from
-            the metadata's), shape (B, 10) or (B, 14) with ``clipping``.
-        posterior: append the nine columns of
-            :func:`~camhealth.estimators.mismatch_posterior.mismatch_posterior` (the noise model of each patch after
-            weighing every single-field mismatch of the metadata against the patch's noise-level function).
     """
     b = image.shape[0]
     if meta.batch_size not in (1, b):
@@ -114,111 +102,16 @@ def physics_prior_dn(
     prior = torch.stack([pn, dc, rn, total], dim=1)
     if clipping:
         prior = torch.cat([prior, clipped_prior_dn(image, 255.0 * g_fw, dc, rn)], dim=1)
-    if noise_fit:
-        prior = torch.cat([prior, noise_fit_statistics(image, 255.0 * g_fw, dc, rn).double()], dim=1)
-    if posterior:
-        from camhealth.estimators.mismatch_posterior import mismatch_posterior  # imports this module
-
-        prior = torch.cat([prior, mismatch_posterior(image, meta).double()], dim=1)
     return prior.float()
 
-
-#: Names of the columns of :func:`noise_fit_statistics`.
-NOISE_FIT_STATISTICS: tuple[str, ...] = (
-    "fit_log_ratio_signal_independent", "fit_log_gain_ratio", "fit_kept_fraction", "fit_log_likelihood_ratio",
-    "fit_log_ratio_dcsn_alone", "fit_log_ratio_rn_alone",
-)
 
 # Inliers of the fits: |d| < 3 σ; E[d² | inlier] = _TRUNCATED_CHI2 · σ² for Gaussian d.
 _INLIER_Z = 3.0
 _TRUNCATED_CHI2 = 1.0 - 2.0 * _INLIER_Z * math.exp(-0.5 * _INLIER_Z**2) / math.sqrt(2.0 * math.pi) / math.erf(_INLIER_Z / math.sqrt(2.0))
 # Coarse-gradient test of the texture mask: χ²₂ at 99 %.
 _TEXTURE_CHI2 = 9.21
-# Fewer inlier details than this: the fits report no evidence (both logs 0).
+# Fewer inlier details than this: a patch carries no evidence about its noise-level function.
 _MIN_FIT_BLOCKS = 32
-
-
-def noise_fit_statistics(
-    image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor, iterations: int = 3,
-) -> torch.Tensor:
-    """How far the image's noise is from the metadata's, by two one-parameter fits of its noise-level
-    function, (B, 6) float32 in the order of :data:`NOISE_FIT_STATISTICS`.
-
-    The model: the three Haar details of a 2×2 block (diagonal, horizontal, vertical; each of variance
-    v = slope·m + c for white noise of variance slope·I + c at the block mean m [DN]) are N(0, v) where the
-    scene is flat. Blocks are used where no pixel is clipped and the scene is flat at the next coarser scale
-    (the central differences of the block means, whose noise variance is v/2, pass a χ²₂ test at 99 %, the
-    test dilated by one block; the patch border is dropped), and among those the details within 3 σ
-    (the truncated second moment E[d² | |d| < 3σ] = 0.973·v is corrected for). Two fits, each by the
-    method of moments, iterated ``iterations`` times (the mask and the inliers depend on v):
-
-    - *signal-independent*: slope fixed by the metadata, c free — the image's σ_DCSN² + σ_RN² when the
-      metadata's gain is right (temperature, dark current or readout noise wrong);
-    - *gain*: v = s·slope·m + s²·c₀ with c₀ = σ_DCSN² + σ_RN² of the metadata, s free — the ratio of the
-      image's gain to the metadata's when only the gain is wrong.
-
-    Returns, in this order: log((√ĉ + 0.1)/(√c₀ + 0.1)); log ŝ (clamped to ±4); the fraction of blocks used;
-    the log-likelihood ratio of the two fits on their common inliers, ℓ_signal-independent − ℓ_gain (Gaussian
-    details; as sign·log(1 + |Δℓ|): > 0 where the excess noise does not grow with intensity, a temperature or
-    readout mismatch, < 0 where it does, a gain mismatch); and what σ_DCSN and σ_RN would be if that source alone
-    took up the change of the signal-independent noise, log((√(ĉ − σ_RN²) + 0.1)/(σ_DCSN + 0.1)) and
-    log((√(ĉ − σ_DCSN²) + 0.1)/(σ_RN + 0.1)) (metadata's σ, in DN). All but the kept fraction are 0 (no evidence)
-    where fewer than 32 details are left (a clipped, textured or tiny patch). Where the
-    metadata are right both logs are ≈ 0: on the 592-patch held-out set, √ĉ is within 1.1 % (median) of the
-    realised σ_DCSN² + σ_RN² at 5–30 DN on unclipped patches whose temperature or white noise was altered.
-
-    Args:
-        image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
-        pn_slope: (B,) photon-noise variance per DN of signal, 255·g/FW [DN²/DN].
-        dcsn_dn, rn_dn: (B,) σ_DCSN and σ_RN [DN] of the metadata.
-    """
-    with torch.autocast(device_type=image.device.type, enabled=False):
-        x = image.detach().float()
-        m, d2, usable, g2 = block_details(x, "noise_fit_statistics")
-        b = x.shape[0]
-        a = pn_slope.to(x.device).float().view(b, 1, 1, 1)
-        c0 = (dcsn_dn.float().square() + rn_dn.float().square()).to(x.device).view(b, 1, 1, 1)
-        mpos = m.clamp_min(0)
-
-        def moments(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-            v = v.clamp_min(1e-6)
-            flat = F.max_pool2d((g2 > _TEXTURE_CHI2 * v / 2.0).float(), 3, 1, 1) == 0
-            keep = usable & flat
-            inl = (keep & (d2 < _INLIER_Z**2 * v)).float()  # (3, B, 1, h, w)
-            n = inl.sum((0, 2, 3, 4)).clamp_min(1.0)
-            return n, (d2 * inl).sum((0, 2, 3, 4)) / _TRUNCATED_CHI2, (mpos * inl).sum((0, 2, 3, 4)), keep.float().mean((1, 2, 3))
-
-        c = c0
-        for _ in range(iterations):
-            n, sd2, sm, kept = moments(a * mpos + c)
-            c = ((sd2 - a.flatten() * sm) / n).clamp_min(0).view(b, 1, 1, 1)
-        s = torch.ones_like(c0)
-        for _ in range(iterations):
-            n, sd2, sm, _ = moments(s * a * mpos + s * s * c0)
-            lin, quad = a.flatten() * sm, c0.flatten() * n
-            root = (-lin + (lin.square() + 4.0 * quad * sd2).sqrt()) / (2.0 * quad).clamp_min(1e-12)
-            s = torch.where(quad > 1e-9 * lin.clamp_min(1e-12), root, sd2 / lin.clamp_min(1e-12)).clamp_min(1e-4).view(b, 1, 1, 1)
-        # which hypothesis fits the details better: Gaussian log-likelihood of the common inliers under each
-        v_ind = (a * mpos + c).clamp_min(1e-6)
-        v_gain = (s * a * mpos + s * s * c0).clamp_min(1e-6)
-        v_max = torch.maximum(v_ind, v_gain)
-        flat = F.max_pool2d((g2 > _TEXTURE_CHI2 * v_max / 2.0).float(), 3, 1, 1) == 0
-        inl = (usable & flat & (d2 < _INLIER_Z**2 * v_max)).float()
-        llr = 0.5 * ((d2 / v_gain + v_gain.log() - d2 / v_ind - v_ind.log()) * inl).sum((0, 2, 3, 4))
-        # too few flat, unclipped blocks (a clipped, textured or tiny patch): no evidence, the logs 0
-        enough = n >= _MIN_FIT_BLOCKS
-        zero = torch.zeros_like(llr)
-        c_f, c0_f = c.flatten(), c0.flatten()
-        ratio = torch.where(enough, torch.log((c_f.sqrt() + 0.1) / (c0_f.sqrt() + 0.1)), zero)
-        log_s = torch.where(enough, s.flatten().log().clamp(-4.0, 4.0), zero)
-        llr = torch.where(enough, llr.sign() * llr.abs().log1p(), zero)
-        dc0, rn0 = dcsn_dn.float().to(x.device), rn_dn.float().to(x.device)
-        dc_alone = torch.log(((c_f - rn0.square()).clamp_min(0).sqrt() + 0.1) / (dc0 + 0.1))
-        rn_alone = torch.log(((c_f - dc0.square()).clamp_min(0).sqrt() + 0.1) / (rn0 + 0.1))
-        dc_alone, rn_alone = torch.where(enough, dc_alone, zero), torch.where(enough, rn_alone, zero)
-        return torch.stack([ratio, log_s, kept, llr, dc_alone, rn_alone], dim=1)
-
-
 
 
 def block_details(image: torch.Tensor, caller: str = "block_details") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -334,36 +227,3 @@ def _image_statistics(x: torch.Tensor) -> torch.Tensor:
     immerkaer = math.sqrt(math.pi / 2.0) * resp / 6.0
     mad = _lower_median(_haar_blocks(x)[0]) / 0.6745
     return torch.stack([mean, mean.clamp_min(0).sqrt(), low, high, immerkaer, mad], dim=1)
-
-
-#: Names of the columns of :func:`nlf_statistics`.
-NLF_STATISTICS: tuple[str, ...] = (
-    "nlf_log_mad_dark", "nlf_log_mad_mid", "nlf_log_mad_bright", "nlf_mean_dark", "nlf_mean_mid", "nlf_mean_bright",
-)
-
-
-def nlf_statistics(image: torch.Tensor) -> torch.Tensor:
-    """A three-point noise-level function of each patch, (B, 6) float32 in the order of :data:`NLF_STATISTICS`.
-
-    The finest diagonal Haar details d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 of the 2×2 blocks (I in DN; var d = σ² for
-    white noise) are ordered by their block's mean intensity and cut into three equal-count terciles (dark, mid,
-    bright; a remainder of one or two blocks is dropped). Per tercile: log(σ̂ + 0.1) with σ̂ = median|d| / 0.6745
-    [DN], and the mean intensity of its blocks in [0, 1]. Clipped blocks are kept (their σ̂ drops toward 0,
-    which the network reads together with the clipped fractions). Needs at least 3 blocks (H, W ≥ 2 px and
-    H·W ≥ 12 px). Always float32, also under bf16 autocast."""
-    if torch.is_autocast_enabled(image.device.type):
-        with torch.autocast(device_type=image.device.type, enabled=False):
-            return _nlf_statistics(image.float())
-    return _nlf_statistics(image.float())
-
-
-def _nlf_statistics(x: torch.Tensor) -> torch.Tensor:
-    d, m = _haar_blocks(x)
-    b, n3 = d.shape[0], d.shape[1] // 3
-    if n3 < 1:
-        raise ValueError(f"nlf_statistics needs at least 3 blocks of 2×2 px, got a {tuple(x.shape[-2:])} patch")
-    order = m.argsort(dim=1)[:, : 3 * n3]
-    d = d.gather(1, order).view(b, 3, n3)
-    m = m.gather(1, order).view(b, 3, n3)
-    sigma = _lower_median(d) / 0.6745
-    return torch.cat([torch.log(sigma + 0.1), m.mean(2) / 255.0], dim=1)

@@ -52,10 +52,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 
-from camhealth.estimators.mismatch_posterior import _grid_values, _inliers, _median_variance, _noise_model
-from camhealth.estimators.noise_features import _MIN_FIT_BLOCKS, _TRUNCATED_CHI2, block_details, clipped_prior_dn
+from camhealth.estimators.noise_features import (
+    _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, block_details, clipped_prior_dn, metadata_from_matrix,
+)
+from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
+from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "PHYSICS_NOISE_COLUMNS"]
 
@@ -80,6 +84,52 @@ PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
 _MAX_MARGIN_DN = 100.0
 # bins with fewer details than this carry no evidence (their ŝ is too rough for the log-normal approximation)
 _MIN_BIN_DETAILS = 8
+
+
+def _grid_values(name: str, low: float, high: float, grid: int, gain_uniform_in: str) -> torch.Tensor:
+    """Centres of ``grid`` equal cells of the field's sampling variable, in the field's unit (float64)."""
+    t = (torch.arange(grid, dtype=torch.float64) + 0.5) / grid
+    if name == "gain_db" and gain_uniform_in == "factor":
+        f_lo, f_hi = 10.0 ** (low / 20.0), 10.0 ** (high / 20.0)
+        return 20.0 * torch.log10(f_lo + t * (f_hi - f_lo))
+    return low + t * (high - low)
+
+
+def _inliers(
+    m: torch.Tensor, d2: torch.Tensor, usable: torch.Tensor, g2: torch.Tensor, v_ref: torch.Tensor, bound_margin: float,
+    max_margin_dn: float = math.inf,
+) -> torch.Tensor:
+    """Float mask (3, B, 1, h, w) of the details used: usable blocks more than ``bound_margin`` reference σ from
+    both bounds (nearer, the clipping of the noise biases the kept details low), flat at the next coarser scale
+    (χ²₂ test at 99 % on the central differences of the block means, whose noise variance is v/2, dilated by one
+    block), and within 3 reference σ. The margin is at most ``max_margin_dn`` (for a very noisy patch 3 σ from
+    both bounds would leave no intensity at all)."""
+    sd = v_ref.sqrt().clamp_max(max_margin_dn / bound_margin) if bound_margin > 0 else v_ref.sqrt()
+    flat = F.max_pool2d((g2 > _TEXTURE_CHI2 * v_ref / 2.0).float(), 3, 1, 1) == 0
+    keep = usable & flat & (m - bound_margin * sd > 0) & (m + bound_margin * sd < 255.0)
+    return (keep & (d2 < _INLIER_Z**2 * v_ref)).float()
+
+
+def _median_variance(m: torch.Tensor, diag2: torch.Tensor, usable: torch.Tensor, bins: int) -> torch.Tensor:
+    """A reference noise variance that does not depend on the metadata, at every block: per intensity bin (``bins``
+    equal intervals of [0, 255] DN), the median of the usable blocks' squared diagonal detail / 0.4549 (the median
+    of χ²₁; the diagonal detail does not see linear gradients); +inf in a bin without usable blocks."""
+    b = m.shape[0]
+    k = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)  # (B, n)
+    diag = torch.where(usable.flatten(1), diag2.flatten(1), torch.full_like(m.flatten(1), float("nan")))
+    per_bin = torch.full((b, bins, diag.shape[1]), float("nan"), device=m.device)
+    per_bin.scatter_(1, k.unsqueeze(1), diag.unsqueeze(1))
+    v_bin = torch.nanmedian(per_bin, dim=2).values / 0.4549  # (B, bins); NaN where a bin has no block
+    return v_bin.gather(1, k).view_as(m).nan_to_num(float("inf")).clamp_min(1e-6)
+
+
+def _noise_model(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(slope a [DN²/DN], signal-independent variance c [DN²]) of the raw metadata rows (N, 11), float64."""
+    meta = metadata_from_matrix(rows)
+    dn = meta.dn_per_electron
+    dc = dark_current_shot_sigma_e(meta) * dn
+    rn = readout_sigma_e(meta) * dn
+    return 255.0 * meta.gain_factor / meta.full_well_e, torch.stack([dc.square(), rn.square()], dim=-1)
 
 
 def _quantisation_variance(image: torch.Tensor) -> torch.Tensor:
@@ -266,11 +316,12 @@ class PhysicsNoiseEstimator:
 
     @torch.inference_mode()
     def predict(self, images: Any, metadata: Any = None, *, input_range: str = "auto", base_preset: str | None = None,
-                batch_size: int = 256, precision: str = "fp32", views: int = 1) -> dict[str, Any]:
+                batch_size: int = 256, precision: str = "fp32", views: int = 1, pool: bool = False) -> dict[str, Any]:
         """σ per source, total, ξ, its uncertainty and P(match) of B×1×128×128 patches (module docstring).
 
-        ``precision`` is accepted for interface compatibility: the statistics always run in float32/float64 (bf16
-        cannot resolve 1 DN at 255 DN). ``views`` must be 1."""
+        ``pool``: the patches show one camera state (metadata of batch 1): the evidence of all of them decides
+        (:func:`physics_noise_posterior`). ``precision`` is accepted for interface compatibility: the statistics
+        always run in float32/float64 (bf16 cannot resolve 1 DN at 255 DN). ``views`` must be 1."""
         from camhealth.inference import _to_metadata, _to_patches, assess_patches
 
         if precision not in ("fp32", "bf16"):
@@ -285,11 +336,12 @@ class PhysicsNoiseEstimator:
                              f"fields in physical units, or a preset name)")
         b = patches.shape[0]
         meta = _to_metadata(metadata, b, base_preset)
-        outs = []
-        for start in range(0, b, batch_size):
-            sl = slice(start, start + batch_size)
-            outs.append(physics_noise_posterior(patches[sl], meta if meta.batch_size == 1 else meta[sl], **self.settings))
-        raw = torch.cat(outs)
+        settings = {**self.settings, **({"pool": True} if pool else {})}
+        if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
+            raw = physics_noise_posterior(patches, meta, **settings)
+        else:
+            raw = torch.cat([physics_noise_posterior(patches[i:i + batch_size], meta if meta.batch_size == 1 else meta[i:i + batch_size],
+                                                     **settings) for i in range(0, b, batch_size)])
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
         for i in range(b):

@@ -126,10 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="network precision: bf16 (CPU autocast, default; ~2x faster) or fp32 (reference)")
     g.add_argument("--mtf-views", type=int, choices=(1, 2, 4), default=1,
                    help="MTF estimates of the patch and 1 or 3 flipped copies averaged (default 1; 2: ~5%% lower error, 2x MTF time)")
-    g.add_argument("--posterior-split", type=float, default=None, metavar="TAU",
-                   help="noise sources: take the DCSN/RN split from the closed-form mismatch posterior where it puts more than "
-                        "TAU on a temperature or white-noise error (e.g. 0.9; needs a Full-Meta noise model with the physics "
-                        "prior such as noise_source_full_meta; default off)")
+    g.add_argument("--per-patch-noise", action="store_true",
+                   help="judge every noise patch on its own instead of adding up the evidence of a frame's patches "
+                        "(physics-first noise_source_full; per-patch maps)")
     g.add_argument("--batch-size", type=_positive, default=128, metavar="N", help="patches per network call (default 128)")
     g.add_argument("--threads", type=_positive, default=None, metavar="N",
                    help="torch intra-op threads (default: 2, or 1 on a single-core machine — the 10 frames/s of a "
@@ -277,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
         noise_model=noise_model, mtf_model=mtf_model, metadata=metadata,
         sensor=args.sensor,
         window=args.window, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
-        skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, noise_posterior_split=args.posterior_split, batch_size=args.batch_size,
+        skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, pool_noise=not args.per_patch_noise, batch_size=args.batch_size,
         xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
     )
     out_dir: Path | None = args.out

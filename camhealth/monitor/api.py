@@ -511,10 +511,10 @@ class Monitor:
         mtf_views: 1 (default), 2 or 4 — the MTF estimator also runs flipped copies of each patch and averages
             the estimates (:meth:`camhealth.inference.Estimator.predict` ``views``: ≈ 5 % lower AMAE for 2× the
             MTF time with 2 views); ignored by MTF estimators whose ``predict`` has no ``views``.
-        noise_posterior_split: ``None`` (default) or τ in (0, 1) — the noise-source estimator's DCSN/RN split follows the
-            closed-form mismatch posterior where it puts more than τ on a temperature or white-noise error
-            (:meth:`camhealth.inference.Estimator.predict` ``posterior_split``; Full-Meta noise-source estimators with
-            the physics prior only; ≈ 2 ms per noise patch).
+        pool_noise: ``True`` (default) — a noise estimator whose ``predict`` takes ``pool`` (the physics-first
+            ``noise_source_full``) adds up the evidence of all of a frame's noise patches, which share one camera
+            state (:func:`camhealth.estimators.physics_noise.physics_noise_posterior`); ``False`` judges every patch
+            on its own (per-patch maps).
         batch_size: patches per network call.
         xi_threshold_dn, xi_sigmas: ξ alarm threshold [DN] and significance k (:func:`xi_alarm`).
         policy: an :class:`camhealth.control.ExposurePolicy` (or IOPC file path(s), :func:`load_policy`).
@@ -538,7 +538,7 @@ class Monitor:
         selection: SelectionConfig | None = None,
         precision: str = "bf16",
         mtf_views: int = 1,
-        noise_posterior_split: float | None = None,
+        pool_noise: bool = True,
         batch_size: int = 128,
         xi_threshold_dn: float = 1.0,
         xi_sigmas: float = 3.0,
@@ -573,13 +573,7 @@ class Monitor:
         for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
             if spec is not None:
                 self.estimators[task] = self._resolve(task, spec)
-        self.noise_posterior_split = None
-        if noise_posterior_split is not None:
-            from camhealth.inference import check_posterior_split
-
-            noise = self.estimators.get("noise")
-            self.noise_posterior_split = check_posterior_split(
-                noise_posterior_split, noise.est if noise and "posterior_split" in noise.kwargs else None, "noise_posterior_split")
+        self.pool_noise = bool(pool_noise)
         if not self.estimators:
             raise ValueError("nothing to monitor: noise_model and mtf_model are both None")
         noise = self.estimators.get("noise")
@@ -638,7 +632,9 @@ class Monitor:
         except (TypeError, ValueError):
             params = {}
         var_kw = any(v.kind is inspect.Parameter.VAR_KEYWORD for v in params.values())
-        kwargs = {name: None for name in ("precision", "batch_size", "views", "posterior_split") if name in params or var_kw}
+        kwargs = {name: None for name in ("precision", "batch_size", "views") if name in params or var_kw}
+        if "pool" in params:  # named, not only **kwargs: the physics-first noise estimator
+            kwargs["pool"] = None
         return _EstimatorHandle(est, _describe(est), kwargs)
 
     def reset(self) -> None:
@@ -728,8 +724,8 @@ class Monitor:
             kwargs["batch_size"] = self.batch_size
         if task == "mtf" and self.mtf_views > 1 and "views" in handle.kwargs:
             kwargs["views"] = self.mtf_views
-        if task == "noise" and self.noise_posterior_split is not None:
-            kwargs["posterior_split"] = self.noise_posterior_split
+        if task == "noise" and self.pool_noise and "pool" in handle.kwargs and meta is not None and meta.batch_size == 1:
+            kwargs["pool"] = True  # one camera state per frame: the frame's evidence for every patch
         use_meta = meta if getattr(handle.est, "metadata_set", "none") != "none" else None
         out = handle.est.predict(patches[index], metadata=use_meta, **kwargs)
         if task == "noise":
@@ -946,7 +942,7 @@ class Monitor:
             "estimators": {task: h.name for task, h in self.estimators.items()},
             "patches": {task: dict(c) for task, c in self._counts.items()},
             "alarms": dict(self._alarms),
-            "precision": self.precision, "mtf_views": self.mtf_views, "noise_posterior_split": self.noise_posterior_split,
+            "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,
             "window": self.window,
             "adaptive": {"reuse_static": self.reuse_static, "coarse_refine": self.coarse_refine,
                          "skip_uninformative": self.skip_uninformative},

@@ -48,18 +48,21 @@ def test_an_unknown_xi_field_is_refused_with_the_allowed_names(capsys):
     assert "'gain'" in err and "gain_db" in err and "white_noise_v_per_rthz" in err
 
 
-def test_the_closed_form_posterior_beats_the_metadata_on_altered_samples():
-    """The posterior row of the benchmark: on the gain-only held-out set, where a wrong gain moves every source,
-    the posterior's σ per source are closer to the labels than the metadata's closed form after clipping."""
-    from camhealth.bench.estimators import _meta, posterior_accuracy
-    from lightning_modules.metrics import bias_std_rms
+def test_the_physics_first_estimator_beats_the_metadata_on_gain_altered_samples():
+    """On the gain-only held-out set, where a wrong gain moves every source, ``noise_source_full``'s σ per source are
+    closer to the labels than the metadata's closed form after clipping, and equal to it on the consistent samples
+    it does not flag."""
+    from camhealth import load_estimator
+    from camhealth.bench.estimators import _meta, noise_accuracy
     from camhealth.estimators.noise_features import physics_prior_dn
+    from lightning_modules.metrics import bias_std_rms
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     data = held_out_noise(parser.parse_args(["--deadleaves", "20", "--per-image", "8", "--xi-fields", "gain_db"]))
-    acc, ms = posterior_accuracy(data, ("gain_db",))
-    assert ms > 0 and acc["n"] == data["image"].shape[0]
+    est = load_estimator("noise_source_full")
+    acc = noise_accuracy(est, data)
+    assert acc["n"] == data["image"].shape[0]
     prior = physics_prior_dn(data["image"], _meta(data, slice(None)), clipping=True)[:, 4:7].double()
     for j, name in enumerate(("pn", "dcsn", "rn")):
         metadata_rms = bias_std_rms(prior[:, j], data["sigma"][:, j].double())[2].item()
@@ -99,9 +102,8 @@ def test_round_robin_timing_calls_every_row_once_per_round():
 
 
 def test_run_reports_accuracy_and_time_for_each_model_and_precision(tmp_path):
-    """End to end on two tiny exported models (one noise-source, one MTF): a row per model and precision, in the
-    order of the models, each with its own held-out accuracy, and a posterior-split row for the Full-Meta noise model
-    (no timing asserted)."""
+    """End to end on the physics-first noise estimator and two tiny exported networks (noise-source, MTF): a row per
+    model and precision, in the order of the models, each with its own held-out accuracy (no timing asserted)."""
     from camhealth.bench.estimators import run
     from camhealth.export import export_weights
     from lightning_modules import MTFEstimator, NoiseSourceEstimator
@@ -111,31 +113,13 @@ def test_run_reports_accuracy_and_time_for_each_model_and_precision(tmp_path):
     mtf = export_weights(MTFEstimator(), tmp_path / "mtf.pt")
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    args = parser.parse_args(["--models", "--checkpoint", str(noise), "--checkpoint", str(mtf), "--deadleaves", "2",
-                              "--per-image", "1", "--no-reference", "--posterior-split", "0.9"])
+    args = parser.parse_args(["--models", "noise_source_full", "--checkpoint", str(noise), "--checkpoint", str(mtf),
+                              "--deadleaves", "2", "--per-image", "1", "--no-reference"])
     args.batch, args.repeats, args.warmup = 4, 2, 0  # the options every benchmark shares (camhealth.bench.__main__)
     res = run(args)
     names = [r.name for r in res.rows]
-    assert names == ["noise (noise_source, fp32)", "noise (noise_source, bf16)", "noise + posterior split 0.9 (noise_source, fp32)",
-                     "noise + posterior split 0.9 (noise_source, bf16)", "mtf (mtf, fp32)", "mtf (mtf, bf16)"]
+    assert names == ["noise_source_full (noise_source, fp32)", "noise_source_full (noise_source, bf16)",
+                     "noise (noise_source, fp32)", "noise (noise_source, bf16)", "mtf (mtf, fp32)", "mtf (mtf, bf16)"]
     assert all(len(r.times_ms) == 2 for r in res.rows)
-    assert "total RMS" in res.rows[0].note and "AMAE" in res.rows[4].note
-    # the re-split keeps PN and the total: the two noise rows differ at most in DCSN and RN
-    assert res.rows[0].note.split("; ")[1].split(", DCSN")[0] == res.rows[2].note.split("; ")[1].split(", DCSN")[0]
-
-
-def test_run_adds_the_network_alone_for_a_file_with_a_posterior_blend(tmp_path):
-    """A model file with a default posterior blend gets its hybrid row and a 'network alone' row (no timing asserted)."""
-    from camhealth.bench.estimators import run
-    from camhealth.export import export_weights
-    from lightning_modules import NoiseSourceEstimator
-
-    torch.manual_seed(0)
-    noise = export_weights(NoiseSourceEstimator(), tmp_path / "nb.pt", inference={"posterior_blend": {}})
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
-    args = parser.parse_args(["--models", "--checkpoint", str(noise), "--deadleaves", "2", "--per-image", "1", "--no-reference"])
-    args.batch, args.repeats, args.warmup = 4, 1, 0
-    names = [r.name for r in run(args).rows]
-    assert names == ["nb + posterior blend (noise_source, fp32)", "nb + posterior blend (noise_source, bf16)",
-                     "nb (network alone) (noise_source, fp32)", "nb (network alone) (noise_source, bf16)"]
+    assert "total RMS" in res.rows[0].note and "total RMS" in res.rows[2].note and "AMAE" in res.rows[4].note
+    assert any("closed form first, no network" in line for line in res.summary)

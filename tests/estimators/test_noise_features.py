@@ -8,10 +8,7 @@ import torch
 from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_dn
-from camhealth.estimators.noise_features import (
-    NLF_STATISTICS, NOISE_FIT_STATISTICS, image_statistics, metadata_from_matrix, nlf_statistics, noise_fit_statistics,
-    physics_prior_dn,
-)
+from camhealth.estimators.noise_features import image_statistics, metadata_from_matrix, physics_prior_dn
 
 
 @pytest.mark.parametrize("temperature_c", [0.0, 80.0])
@@ -100,39 +97,6 @@ def test_prior_cache_gives_the_uncached_values_and_tracks_the_metadata():
     assert len(cache) == 6
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_nlf_statistics_recover_a_poisson_gaussian_noise_level_function(dtype):
-    """On a ramp with σ² = a·I + b (I in DN), each tercile's σ̂ is √(a·Ī + b) of its mean intensity Ī (to the
-    MAD's spread over 1 365 blocks and its bias on a mixture of σ within the tercile: ≈ 5 %)."""
-    g = torch.Generator().manual_seed(3)
-    a, b = 0.2, 4.0  # DN per DN, DN²
-    clean = torch.linspace(20, 235, 128, dtype=torch.float64).view(1, 1, 1, 128).expand(4, 1, 128, 128)
-    noisy = clean + torch.randn(clean.shape, generator=g, dtype=torch.float64) * (a * clean + b).sqrt()
-    stats = nlf_statistics((noisy / 255).to(dtype))
-    assert stats.shape == (4, len(NLF_STATISTICS)) and stats.dtype == torch.float32
-    sigma = stats[:, :3].double().exp() - 0.1
-    mean_dn = stats[:, 3:].double() * 255
-    assert torch.allclose(mean_dn.mean(0), torch.tensor([56.0, 127.5, 199.0], dtype=torch.float64), atol=1.5)
-    expected = (a * mean_dn + b).sqrt()
-    assert torch.allclose(sigma, expected, rtol=0.1)
-    assert torch.allclose(sigma.mean(0), expected.mean(0), rtol=0.05)
-    assert (sigma[:, 0] < sigma[:, 1]).all() and (sigma[:, 1] < sigma[:, 2]).all()  # photon noise grows with I
-
-
-def test_nlf_statistics_flat_black_saturated_bf16_and_too_small():
-    g = torch.Generator().manual_seed(4)
-    flat = 0.5 + torch.randn(2, 1, 128, 128, generator=g) * (3 / 255)
-    sigma = nlf_statistics(flat)[:, :3].exp() - 0.1
-    assert torch.allclose(sigma, torch.full_like(sigma, 3.0), rtol=0.1)  # white noise: the same in every tercile
-    ends = nlf_statistics(torch.stack([torch.zeros(1, 16, 16), torch.ones(1, 16, 16)]))
-    assert torch.isfinite(ends).all() and torch.allclose(ends[:, :3], torch.full((2, 3), math.log(0.1)))
-    with torch.autocast("cpu", dtype=torch.bfloat16):
-        low = nlf_statistics(flat.bfloat16())
-    assert low.dtype == torch.float32 and torch.allclose(low[:, 3:], nlf_statistics(flat)[:, 3:], atol=0.01)
-    with pytest.raises(ValueError, match="at least 3 blocks"):
-        nlf_statistics(torch.rand(1, 1, 2, 4))
-
-
 def test_clipped_prior_predicts_the_labels_of_a_clipped_patch():
     """physics_prior_dn(clipping=True): columns 0–3 are the unclipped model, 4–7 the model after clipping,
     recovered from the noisy patch alone (clean scene estimated near the bounds). On a patch half black and
@@ -172,48 +136,3 @@ def _leaves(b: int, seed: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     levels = 30 + 190 * torch.rand(b, 1, 8, 8, generator=g, dtype=torch.float64)
     return torch.nn.functional.interpolate(levels, size=(128, 128), mode="nearest")
-
-
-@pytest.mark.parametrize("case", ["match", "signal_independent", "gain"])
-def test_noise_fits_recover_the_mismatch(case):
-    """σ² = a·I + c on edged scenes. Metadata right: both logs ≈ 0. Signal-independent noise 2× the metadata's σ:
-    the first fit reads log((2√c + 0.1)/(√c + 0.1)). Gain 2× the metadata's (a·2, c·4): the second reads log 2.
-    Photon noise dominates here (a·I ≫ c at mid-grey), so the likelihood ratio of the two fits is decisive."""
-    a, c = 0.4, 9.0
-    clean = _leaves(4, 2)
-    true_a, true_c = {"match": (a, c), "signal_independent": (a, 4 * c), "gain": (2 * a, 4 * c)}[case]
-    g = torch.Generator().manual_seed(5)
-    noisy = (clean + torch.randn(clean.shape, generator=g, dtype=torch.float64) * (true_a * clean + true_c).sqrt()).clamp(0, 255)
-    stats = noise_fit_statistics((noisy / 255).float(), torch.full((4,), a), torch.full((4,), math.sqrt(c / 2)), torch.full((4,), math.sqrt(c / 2)))
-    assert stats.shape == (4, len(NOISE_FIT_STATISTICS)) and stats.dtype == torch.float32
-    assert (stats[:, 2] > 0.15).all()  # a good share of the blocks is flat (edges and their neighbours are dropped)
-    expect_ratio = math.log((math.sqrt(true_c) + 0.1) / (math.sqrt(c) + 0.1)) if case != "gain" else None
-    if expect_ratio is not None:
-        assert torch.allclose(stats[:, 0], torch.full((4,), expect_ratio), atol=0.1)  # c is small beside a·I here
-    expect_gain = math.log(2.0) if case == "gain" else 0.0
-    if case != "signal_independent":
-        assert torch.allclose(stats[:, 1], torch.full((4,), expect_gain), atol=0.03)
-    # the likelihood ratio tells a gain change (noise growing with intensity) from a signal-independent one
-    if case == "gain":
-        assert (stats[:, 3] < -1).all()
-    elif case == "signal_independent":
-        assert (stats[:, 3] > 1).all()
-        # one source alone taking up the change: σ_DCSN = √(4c − c/2) (σ_RN = √(c/2) kept), and vice versa
-        alone = math.log((math.sqrt(3.5 * c) + 0.1) / (math.sqrt(c / 2) + 0.1))
-        assert torch.allclose(stats[:, 4:], torch.full((4, 2), alone), atol=0.1)
-    else:
-        assert torch.allclose(stats[:, 4:], torch.zeros(4, 2), atol=0.2)  # (ĉ − σ² of the other source amplifies the noise of ĉ)
-
-
-def test_noise_fits_without_evidence_bf16_and_too_small():
-    one = torch.ones(4)
-    ends = noise_fit_statistics(torch.stack([torch.zeros(1, 32, 32), torch.ones(1, 32, 32)]), one[:2], one[:2], one[:2])
-    assert torch.equal(ends, torch.zeros(2, len(NOISE_FIT_STATISTICS)))  # fully clipped: no usable block, no evidence
-    noisy = (0.5 + torch.randn(4, 1, 64, 64, generator=torch.Generator().manual_seed(1)) * 4 / 255).clamp(0, 1)
-    ref = noise_fit_statistics(noisy, one * 1e-6, one * math.sqrt(8), one * math.sqrt(8))
-    assert torch.allclose(ref[:, :2], torch.zeros(4, 2), atol=0.05)
-    with torch.autocast("cpu", dtype=torch.bfloat16):
-        low = noise_fit_statistics(noisy, one * 1e-6, one * math.sqrt(8), one * math.sqrt(8))
-    assert low.dtype == torch.float32 and torch.equal(low, ref)
-    with pytest.raises(ValueError, match="at least 8×8"):
-        noise_fit_statistics(torch.rand(1, 1, 4, 16), one[:1], one[:1], one[:1])

@@ -292,7 +292,7 @@ def test_advice_from_an_iopc_policy(street_frames, tmp_path):
 
 def test_monitor_errors(model_files):
     ns, mtf = model_files
-    with pytest.raises(ValueError, match="reads 'full' metadata"):
+    with pytest.raises(ValueError, match="reads 'minimal' metadata"):
         Monitor(ns, mtf)
     with pytest.raises(ValueError, match="kind noise_source or drne"):
         Monitor(mtf, None, sensor="ICX285")
@@ -331,7 +331,7 @@ def test_real_exported_models(model_files, street_frames, precision):
     mon = Monitor(ns, mtf, sensor="ICX285", precision=precision, per_patch=True)
     d = _strict(mon.process(noisy(street_frames[0], 3.0, seed=0)).to_json())
     assert d["noise"]["assessable"] and d["mtf"]["assessable"]
-    assert d["noise"]["estimator"].startswith("ns (noise_source, 128 px, full")
+    assert d["noise"]["estimator"].startswith("ns (noise_source, 128 px, minimal")
     assert all(math.isfinite(v) for v in d["mtf"]["h"]["median"])
     pp = d["noise"]["per_patch"]
     assert len(pp["status"]) == 24 and len(pp["values"]) == 24 and len(pp["values"][0]) == 5
@@ -384,23 +384,23 @@ def test_mtf_views_reach_the_mtf_estimator_and_its_warm_up(model_files, street_f
     assert mon.summary()["mtf_views"] == 2
 
 
-def test_noise_posterior_split_reaches_the_noise_estimator(model_files, street_frames, monkeypatch):
-    """``noise_posterior_split=0.9``: every frame's noise call asks for the re-split, the MTF calls do not; the summary
-    reports it; it is refused for values outside (0, 1) and for noise estimators it cannot apply to."""
-    from camhealth.inference import Estimator
+def test_physics_noise_pools_a_frame_and_catches_40_dn_of_unexplained_noise(monkeypatch):
+    """The default noise model (physics-first ``noise_source_full``) gets ``pool=True`` (one camera state per frame);
+    a flat grey frame with 40 DN of white noise at ICX285 24 dB / 80 °C — a few DN by the metadata — raises the
+    "noisier" alarm with ξ < 0; ``pool_noise=False`` judges every patch on its own and says the same."""
+    from camhealth.estimators.physics_noise import PhysicsNoiseEstimator
 
-    ns, mtf = model_files
     calls = []
-    orig = Estimator.predict
-    monkeypatch.setattr(Estimator, "predict", lambda self, x, *a, **k: calls.append((self.kind, k.get("posterior_split"))) or orig(self, x, *a, **k))
-    mon = Monitor(ns, mtf, sensor="ICX285", noise_posterior_split=0.9, adaptive=False, warmup=False)
-    d = _strict(mon.process(noisy(street_frames[0], 3.0, seed=0)).to_json())
-    assert {v for kind, v in calls if kind == "noise_source"} == {0.9} and {v for kind, v in calls if kind == "mtf"} == {None}
-    assert d["noise"]["assessable"] and mon.summary()["noise_posterior_split"] == 0.9
-    for bad in (0.0, 1.0, True, "0.9"):
-        with pytest.raises(ValueError, match="noise_posterior_split = .* must be a probability in \\(0, 1\\)"):
-            Monitor(ns, None, sensor="ICX285", noise_posterior_split=bad)
-    with pytest.raises(ValueError, match="noise_posterior_split re-splits .* Full-Meta noise-source estimator with the physics prior"):
-        Monitor(FakeNoise(), None, sensor="ICX285", noise_posterior_split=0.9)
-    with pytest.raises(ValueError, match="the estimator is None"):
-        Monitor(None, mtf, noise_posterior_split=0.9)
+    orig = PhysicsNoiseEstimator.predict
+    monkeypatch.setattr(PhysicsNoiseEstimator, "predict",
+                        lambda self, x, *a, pool=False, **k: calls.append(pool) or orig(self, x, *a, pool=pool, **k))
+    meta = {"gain_db": 24.0, "exposure_s": 0.05, "temperature_c": 80.0}
+    frame = (0.5 + 40.0 / 255.0 * torch.randn(384, 512, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
+    for pool in (True, False):
+        calls.clear()
+        mon = Monitor("noise_source_full", None, sensor="ICX285", metadata=meta, pool_noise=pool, warmup=False, adaptive=False)
+        d = _strict(mon.process(frame).to_json())
+        assert calls and set(calls) == {pool}
+        assert d["alarm"]["state"] == "noisier", d["alarm"]
+        assert d["noise"]["sigma_dn"]["xi"]["median"] < -25.0  # ξ̃ [DN]: the metadata explain a few DN of the ~40
+        assert mon.summary()["pool_noise"] is pool

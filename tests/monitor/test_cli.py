@@ -142,7 +142,7 @@ def test_bad_sources_exit_2_with_a_message(setup, match, models, tmp_path, capsy
 
 
 @pytest.mark.parametrize("content,match", [
-    ("gain_db: 6\nexposure_s: 0.01\n", r"missing field\(s\) \['temperature_c', 'dark_fom_na_per_cm2'"),
+    ("gain_db: 6\nexposure_s: 0.01\n", r"missing field\(s\) \['temperature_c'\]"),
     ("sensor: ICX285\ngain_db: 30\n", r"gain_db\[0\] = 30 dB is out of the allowed range \[0, 24\] dB"),
     ("sensor: ICX285\ntemperature_c: -20\n", r"temperature_c.*\[0, 80\]"),
     ("sensor: ICX285\ngain_db: [1, 2\n", "cannot parse"),
@@ -161,7 +161,7 @@ def test_metadata_overrides_and_option_errors(models, tmp_path, capsys):
     assert code == 0, err
     assert _lines(out)[0]["metadata"]["gain_db"] == 18.0
     code, _, err = _run(["street", "--max-frames", "1", *models], capsys)
-    assert code == 2 and "reads 'full' metadata" in err
+    assert code == 2 and "reads 'minimal' metadata" in err
     code, _, err = _run(["street", "--sensor", "ICX285", "--overlay", *models], capsys)
     assert code == 2 and "--overlay needs --out" in err
     code, _, err = _run(["street", "--sensor", "ICX285", "--iopc", str(tmp_path / "nope.json"), *models], capsys)
