@@ -365,7 +365,7 @@ class RecordedFrame:
     Attributes:
         index: position of the message in its topic (0-based, log-time order).
         log_time_ns: the recording's log (receive) time.
-        stamp_ns: ``header.stamp`` (``None`` if the message could not be decoded).
+        stamp_ns: ``header.stamp`` (``None`` if the message could not be decoded or its stamp is zero, i.e. unset).
         frame_id: ``header.frame_id``.
         frame: gray ``1×H×W`` float32 tensor in [0, 1], or ``None`` with ``error`` set.
         error: why the message could not be decoded.
@@ -390,7 +390,7 @@ class RecordingFrames:
     """Iterable of :class:`RecordedFrame` of one image topic (see :meth:`Recording.frames`), with counts.
 
     After (or during) iteration: ``decoded``, ``undecodable``, ``out_of_order`` (frames whose header stamp
-    went back in time), ``first_out_of_order`` (a sentence), ``damaged`` (why reading stopped early, or
+    went back in time), ``unstamped`` (zero header stamps, replaced by ``None``: the log time stands in), ``first_out_of_order`` (a sentence), ``damaged`` (why reading stopped early, or
     ``None``), ``missing_state`` (frames per state key that had no value yet), ``notes``."""
 
     def __init__(self, recording: "Recording", topic: str, state: Sequence[StateSeries], start: int, stride: int,
@@ -399,7 +399,7 @@ class RecordingFrames:
         self.start, self.stride, self.max_frames = start, stride, max_frames
         self.bit_depth, self.bayer = bit_depth, bayer
         self.messages = recording.topics[topic].count
-        self.decoded = self.undecodable = self.out_of_order = 0
+        self.decoded = self.undecodable = self.out_of_order = self.unstamped = 0
         self.first_out_of_order: str | None = None
         self.damaged: str | None = None
         self.missing_state = {s.spec.key: 0 for s in self.state}
@@ -458,6 +458,12 @@ class RecordingFrames:
                 yield out
                 continue
             out.stamp_ns = _header_ns(msg)
+            if out.stamp_ns == 0:  # an unset stamp: the log time stands in (said once in the notes)
+                out.stamp_ns = None
+                self.unstamped += 1
+                if self.unstamped == 1:
+                    self.notes.append(f"{self.topic} has images with a zero (unset) header stamp: their log time "
+                                      "stands in for it (state matching, diagnostics stamps)")
             out.frame_id = str(getattr(getattr(msg, "header", None), "frame_id", ""))
             out.encoding = str(getattr(msg, "encoding", getattr(msg, "format", "")))
             if previous is not None and out.stamp_ns is not None and out.stamp_ns < previous:
@@ -469,7 +475,7 @@ class RecordingFrames:
             if out.stamp_ns is not None:
                 previous = out.stamp_ns if previous is None else max(previous, out.stamp_ns)
             for series in self.state:
-                t = out.stamp_ns if series.clock == "header" else out.log_time_ns
+                t = out.stamp_ns if series.clock == "header" and out.stamp_ns is not None else out.log_time_ns
                 value = series.at(t)
                 if value is None:
                     self.missing_state[series.spec.key] += 1

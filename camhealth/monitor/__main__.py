@@ -360,7 +360,7 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         from camhealth.monitor.diagnostics import DiagnosticsWriter
 
         diagnostics = DiagnosticsWriter(args.diagnostics_out, f"camhealth: {source.topic}",
-                                        xi_threshold_dn=args.xi_threshold_dn)
+                                        xi_threshold_dn=args.xi_threshold_dn, topic=source.topic)
     progress = _Progress(source.length, not args.no_progress)
     unreadable: list[str] = []
     overlays = 0

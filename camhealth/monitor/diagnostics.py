@@ -121,10 +121,12 @@ def key_values(report: FrameReport, level: int) -> list[tuple[str, str]]:
 
 class DiagnosticsWriter:
     """Writes one ``DiagnosticArray`` per frame to ``path`` (``.mcap``: MCAP with ROS 2 CDR messages;
-    ``.bag``: ROS 1 bag). The file appears when :meth:`close` is called (written beside it first, then
+    ``.bag``: ROS 1 bag). ``hardware_id`` of every status: the one given, else the image's ``frame_id``, else
+    ``topic``. The file appears when :meth:`close` is called (written beside it first, then
     moved into place, replacing an older one). ``counts`` holds the number of statuses per level name."""
 
-    def __init__(self, path: str | Path, status_name: str, hardware_id: str = "", xi_threshold_dn: float = 1.0) -> None:
+    def __init__(self, path: str | Path, status_name: str, hardware_id: str = "", xi_threshold_dn: float = 1.0,
+                 topic: str = "") -> None:
         self.path = Path(path)
         suffix = self.path.suffix.lower()
         if suffix not in DIAGNOSTICS_SUFFIXES:
@@ -137,6 +139,7 @@ class DiagnosticsWriter:
 
         self.ros1 = suffix == ".bag"
         self.status_name, self.hardware_id, self.xi_threshold_dn = status_name, hardware_id, float(xi_threshold_dn)
+        self.topic = topic  # hardware_id when neither hardware_id nor the image's frame_id is set
         self.typestore = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.LATEST)
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
         self.counts = {name: 0 for name in ("OK", "WARN", "ERROR")}
@@ -169,7 +172,7 @@ class DiagnosticsWriter:
         header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id, **extra)
         kvs = [t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values]
         status = t["diagnostic_msgs/msg/DiagnosticStatus"](level=level, name=self.status_name, message=message,
-                                                         hardware_id=self.hardware_id or frame_id, values=kvs)
+                                                         hardware_id=self.hardware_id or frame_id or self.topic, values=kvs)
         return t[_MSGTYPE](header=header, status=[status])
 
     def _write(self, msg: Any, log_time_ns: int) -> None:

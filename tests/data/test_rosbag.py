@@ -297,3 +297,10 @@ def test_no_code_from_the_recording_runs(tmp_path, monkeypatch):
         with pytest.raises(RecordingError, match="camhealth does not decode"):
             rec.read_state(StateTopic.parse("gain_db", "/evil"))
     assert "CAMHEALTH_PWNED" not in os.environ
+
+
+def test_zero_header_stamp_falls_back_to_the_log_time(tmp_path):
+    frames, it = _one(tmp_path, lambda w: (w.add_image("/cam/image", _ramp(), 0, log_time_ns=T0),
+                                           w.add_image("/cam/image", _ramp(), T0 + MS)))
+    assert [f.stamp_ns for f in frames] == [None, T0 + MS] and it.unstamped == 1
+    assert "zero (unset) header stamp" in it.notes[0]

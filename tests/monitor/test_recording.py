@@ -254,3 +254,27 @@ def test_help_lists_the_recording_options(capsys):
     text = capsys.readouterr().out
     for opt in ("--topic", "--gain-topic", "--exposure-unit", "--bit-depth", "--bayer", "--diagnostics-out", ".mcap"):
         assert opt in text
+
+
+def test_damage_met_while_reading_keeps_the_frames_before_it(fakes, street_frames, tmp_path, capsys, monkeypatch):
+    """A reader that fails in the middle of the image stream (simulated: the readers of rosbags detect the
+    damage of a cut file when opening it) ends the stream there: the frames before it are monitored, and the
+    summary and a warning line say where reading stopped."""
+    from camhealth.data.rosbag import Recording
+
+    rec = write_street_recording(tmp_path / "run.mcap", street_frames, corrupt_last=False)
+    original = Recording._messages
+
+    def failing(self, conns):
+        for n, item in enumerate(original(self, conns)):
+            if n == 2:
+                raise OSError("chunk data ends early")
+            yield item
+
+    monkeypatch.setattr(Recording, "_messages", failing)
+    code, out, err = _run([str(rec), "--topic", TOPIC, "--sensor", "ICX285", "--noise-model", "fake_noise",
+                           "--mtf-model", "fake_mtf"], capsys)
+    assert code == 0, err
+    assert [d["index"] for d in _lines(out)] == [0, 1]
+    assert (f"warning: reading stopped after message 2 of 4 on {TOPIC}: chunk data ends early (damaged or truncated "
+            "recording)") in err
