@@ -4,8 +4,9 @@ Runs :class:`camhealth.monitor.Monitor` on every frame of SOURCE and writes one 
 (stdout, or ``DIR/monitor.jsonl``), optional overlay PNGs, a progress bar (stderr) and a summary at the
 end (``DIR/summary.json`` too). A robot recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2
 folder) is read with the camera state of its topics, and ``--diagnostics-out`` writes one
-``diagnostic_msgs/DiagnosticArray`` per frame (:mod:`camhealth.monitor.diagnostics`). Exit status: 0 on success (unreadable frames in a folder are reported and
-skipped), 2 on a usage or input error (missing/unreadable source, undecodable video, bad metadata, missing
+``diagnostic_msgs/DiagnosticArray`` per frame (:mod:`camhealth.monitor.diagnostics`). Exit status: 0 on
+success (unreadable frames in a folder or recording are reported and skipped), 2 on a usage or input error
+(missing/unreadable source, undecodable video, damaged recording, unknown topic, bad metadata, missing
 model), with a one-line message.
 """
 
