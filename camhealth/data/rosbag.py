@@ -495,7 +495,8 @@ class RecordingFrames:
 
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip() or type(exc).__name__
-    return text.splitlines()[0]
+    text = text.splitlines()[0]
+    return re.sub(r"\('([^']*)',\)", r"\1", text)  # rosbags wraps some causes as "('why',)"
 
 
 # ---------------------------------------------------------------------------------------------- recordings
@@ -525,8 +526,10 @@ def _damaged(path: Path, exc: BaseException) -> str:
     low = text.lower()
     if any(w in low for w in ("index", "end magic", "footer", "malformed", "truncat", "could not read", "got only",
                               "not a database", "summary")):
-        repair = ("; a recording cut off by a crash or a full disk lacks its index — repair it first "
-                  "(ROS 1: rosbag reindex; MCAP: mcap recover; ROS 2 .db3: ros2 bag reindex)")
+        suffix = path.suffix.lower()
+        tool = ("rosbag reindex" if suffix == ".bag" else "mcap recover" if suffix == ".mcap" else
+                "ros2 bag reindex on its rosbag2 folder")
+        repair = f"; a recording cut off by a crash or a full disk lacks its index — repair it first ({tool})"
     return f"cannot read recording {path}: {text} (damaged, truncated or not a recording{repair})"
 
 
@@ -743,7 +746,9 @@ class Recording:
                         )
                 try:
                     value = _extract(msg, path)
-                except (KeyError, TypeError) as exc:
+                except KeyError as exc:
+                    raise RecordingError(f"{who}: {exc.args[0]}") from None
+                except TypeError as exc:
                     raise RecordingError(
                         f"{who}: {exc.args[0]}; numeric fields of {conn.msgtype}: {', '.join(_numeric_fields(msg)) or 'none'}"
                     ) from None

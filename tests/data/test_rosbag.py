@@ -93,7 +93,7 @@ def test_field_paths_and_state_errors(tmp_path):
     with Recording(path) as rec:
         s = rec.read_state(StateTopic.parse("temperature_c", "/cam/temp:temperature"))
         assert (s.values, s.clock, s.field) == ([41.5], "header", "temperature")
-        with pytest.raises(RecordingError, match=r"has no field 'temprature'.*numeric fields of sensor_msgs/msg/Temperature: temperature, variance"):
+        with pytest.raises(RecordingError, match=r"--temperature-topic /cam/temp:temprature: sensor_msgs/msg/Temperature has no field 'temprature' \(fields: header, temperature, variance\)"):
             rec.read_state(StateTopic.parse("temperature_c", "/cam/temp:temprature", "--temperature-topic"))
         with pytest.raises(RecordingError, match=r"--gain-topic /nope: topic '/nope' is not in recording.*/cam/temp \(sensor_msgs/msg/Temperature"):
             rec.read_state(StateTopic.parse("gain_db", "/nope", "--gain-topic"))
@@ -265,6 +265,7 @@ def test_truncated_recording_is_a_clear_error(suffix, tmp_path):
     except RecordingError as exc:
         msg = str(exc)
         assert msg.startswith(f"cannot read recording {cut}") and "truncated" in msg and "\n" not in msg
+        assert "',)" not in msg
     empty = tmp_path / f"empty{suffix}"
     empty.write_bytes(b"")
     with pytest.raises(RecordingError, match="cannot read recording"):
