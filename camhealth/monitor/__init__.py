@@ -8,6 +8,8 @@
   reasons, static-region reuse by frame differencing, coarse-lattice-then-refine.
 - :mod:`~camhealth.monitor.overlay` — heat maps and overlay PNGs.
 - :mod:`~camhealth.monitor.sources` — images, folders of frames, videos, the embedded street clip.
+- :mod:`~camhealth.monitor.recording` — ROS 1/ROS 2/MCAP recordings with the camera state of their topics.
+- :mod:`~camhealth.monitor.diagnostics` — one ``diagnostic_msgs/DiagnosticArray`` per frame (``.mcap``/``.bag``).
 
 See ``docs/monitor.md``; the benchmark is ``python -m camhealth.bench monitor``.
 """

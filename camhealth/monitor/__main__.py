@@ -2,8 +2,11 @@
 
 Runs :class:`camhealth.monitor.Monitor` on every frame of SOURCE and writes one JSON line per frame
 (stdout, or ``DIR/monitor.jsonl``), optional overlay PNGs, a progress bar (stderr) and a summary at the
-end (``DIR/summary.json`` too). Exit status: 0 on success (unreadable frames in a folder are reported and
-skipped), 2 on a usage or input error (missing/unreadable source, undecodable video, bad metadata, missing
+end (``DIR/summary.json`` too). A robot recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2
+folder) is read with the camera state of its topics, and ``--diagnostics-out`` writes one
+``diagnostic_msgs/DiagnosticArray`` per frame (:mod:`camhealth.monitor.diagnostics`). Exit status: 0 on
+success (unreadable frames in a folder or recording are reported and skipped), 2 on a usage or input error
+(missing/unreadable source, undecodable video, damaged recording, unknown topic, bad metadata, missing
 model), with a one-line message.
 """
 
@@ -34,7 +37,13 @@ only where the estimates or the patch content change. Every skip is counted in t
 
 EPILOG = f"""\
 SOURCE kinds: an image file (.png .jpg .tif .bmp …), a folder of frame images (natural file order), a
-video file (.mp4 .avi .mkv …; OpenCV) or the word 'street' (the 50-frame clip embedded in camhealth).
+video file (.mp4 .avi .mkv …; OpenCV), a robot recording (ROS 1 .bag, ROS 2 .db3/.mcap file or rosbag2
+folder; --topic names the camera) or the word 'street' (the 50-frame clip embedded in camhealth).
+
+Recordings: sensor_msgs/Image (mono8, mono16, rgb8, bgr8, rgba8, bgra8, 16-bit colour, bayer_* 8/16 bit)
+  and CompressedImage (JPEG/PNG) become gray (BT.601 luma; Bayer: --bayer). Camera state from topics
+  (std_msgs numbers, sensor_msgs/Temperature, or TOPIC:FIELD.PATH): each frame takes the latest value at or
+  before its stamp; fields without a topic come from --metadata/--sensor; a change restarts the aggregation.
 
 Metadata file (--metadata), JSON or YAML, physical units (thesis Table 4.1):
     sensor: ICX285          # optional preset that fills fields not given ({', '.join(sorted(PRESETS))})
@@ -56,6 +65,9 @@ Examples:
   python -m camhealth.monitor street --sensor ICX285 --max-frames 10 --out runs/monitor
   python -m camhealth.monitor clip.mp4 --metadata meta.yaml --overlay --out runs/clip
   python -m camhealth.monitor frame.png --sensor EV76C661 --set gain_db=18 --iopc runs/iopc/iopc.json
+  python -m camhealth.monitor run.mcap --topic /camera/image_raw --sensor ICX285 \
+      --gain-topic /camera/gain_db --exposure-topic /camera/exposure_us --exposure-unit us \
+      --diagnostics-out runs/run_diagnostics.mcap --out runs/run
 """
 
 
@@ -106,7 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m camhealth.monitor", description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("source", metavar="SOURCE", help="image file, folder of frames, video file, or 'street' (embedded clip)")
+    p.add_argument("source", metavar="SOURCE",
+                   help="image file, folder of frames, video file, recording (.bag .db3 .mcap, rosbag2 folder), or "
+                        "'street' (embedded clip)")
     g = p.add_argument_group("camera metadata")
     g.add_argument("--metadata", metavar="FILE", help="JSON/YAML file of metadata fields in physical units (see below)")
     g.add_argument("--sensor", metavar="NAME", choices=sorted(PRESETS),
@@ -180,7 +194,49 @@ def build_parser() -> argparse.ArgumentParser:
                    help="top of the overlay's σ colour scale (default 20 DN)")
     g.add_argument("--per-patch", action="store_true", help="include every patch's status and values in the JSON lines")
     g.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    _add_recording_arguments(p)
     return p
+
+
+def _add_recording_arguments(p: argparse.ArgumentParser) -> None:
+    from camhealth.monitor.recording import EXPOSURE_UNITS, GAIN_UNITS, TEMPERATURE_UNITS
+
+    g = p.add_argument_group("robot recordings (ROS 1 .bag, ROS 2 .db3/.mcap, rosbag2 folder)")
+    g.add_argument("--topic", metavar="TOPIC",
+                   help="image topic to monitor (sensor_msgs/Image or CompressedImage); without it the image topics are listed")
+    for name, what in (("exposure", "exposure time"), ("gain", "gain"), ("temperature", "sensor temperature")):
+        g.add_argument(f"--{name}-topic", metavar="TOPIC[:FIELD]",
+                       help=f"topic of the camera's {what} (std_msgs number, sensor_msgs/Temperature, or a field path "
+                            "such as /camera/status:exposure.value); latest value at or before each frame")
+    g.add_argument("--exposure-unit", choices=list(EXPOSURE_UNITS), default="s", help="unit of --exposure-topic (default s)")
+    g.add_argument("--gain-unit", choices=list(GAIN_UNITS), default="db",
+                   help="unit of --gain-topic: db or factor (linear amplitude gain; default db)")
+    g.add_argument("--temperature-unit", choices=list(TEMPERATURE_UNITS), default="c",
+                   help="unit of --temperature-topic: c (°C) or k (kelvin; default c)")
+    g.add_argument("--bit-depth", type=_int_at_least(1), default=None, metavar="N",
+                   help="bits that carry data in 16-bit images (e.g. 12 for 12-bit values in mono16; default 16): "
+                        "DN/(2^N-1) is the [0, 1] intensity")
+    g.add_argument("--bayer", choices=("green", "luma"), default="green",
+                   help="bayer_* images: green = one green sample per 2x2 cell (half resolution, raw noise kept; default) "
+                        "or luma = OpenCV demosaic + BT.601 luma (full resolution, noise smoothed)")
+    g.add_argument("--diagnostics-out", type=Path, metavar="FILE",
+                   help="write one diagnostic_msgs/DiagnosticArray per frame on /diagnostics to FILE (.mcap: ROS 2, "
+                        ".bag: ROS 1), stamped with the image header time; level OK, WARN (uncertain) or ERROR (ξ alarm "
+                        "or not assessable)")
+
+
+def _recording_options(args: argparse.Namespace) -> Any:
+    """RecordingOptions from the CLI, or ``None`` when no recording option was given."""
+    from camhealth.monitor.recording import RecordingOptions
+
+    if args.bit_depth is not None and args.bit_depth > 16:
+        raise ValueError(f"--bit-depth {args.bit_depth} must be at most 16")
+    opts = RecordingOptions(
+        topic=args.topic, exposure_topic=args.exposure_topic, gain_topic=args.gain_topic,
+        temperature_topic=args.temperature_topic, exposure_unit=args.exposure_unit, gain_unit=args.gain_unit,
+        temperature_unit=args.temperature_unit, bit_depth=args.bit_depth, bayer=args.bayer,
+    )
+    return None if opts == RecordingOptions() else opts
 
 
 class _Progress:
@@ -244,10 +300,7 @@ def _human_summary(summary: dict, out: TextIO) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from camhealth.monitor.api import Monitor, _read_mapping, load_policy
-    from camhealth.monitor.overlay import save_overlay
     from camhealth.monitor.sources import open_source
-    from camhealth.monitor.tiling import SelectionConfig
 
     torch.set_num_threads(args.threads if args.threads is not None else default_threads())
     from camhealth.runtime import keep_freed_memory
@@ -261,7 +314,23 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--max-clipped = {args.max_clipped:g} must lie in [0, 1]")
     if args.iopc_weights is not None and len(args.iopc_weights) != len(args.iopc):
         raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
-    source = open_source(args.source, args.start, args.stride, args.max_frames)
+    source = open_source(args.source, args.start, args.stride, args.max_frames, recording=_recording_options(args))
+    try:
+        return _run_source(args, source)
+    finally:
+        close = getattr(source, "close", None)
+        if close is not None:
+            close()
+
+
+def _run_source(args: argparse.Namespace, source: Any) -> int:
+    from camhealth.monitor.api import Monitor, _read_mapping, load_policy
+    from camhealth.monitor.overlay import save_overlay
+    from camhealth.monitor.tiling import SelectionConfig
+
+    if args.diagnostics_out is not None and source.kind != "recording":
+        raise ValueError(f"--diagnostics-out needs a ROS recording as SOURCE (.bag, .db3, .mcap or a rosbag2 folder), "
+                         f"got {source.kind} {source.path}")
     noise_model = None if args.no_noise else args.noise_model
     mtf_model = None if args.no_mtf else args.mtf_model
     metadata: Any = args.metadata
@@ -286,6 +355,12 @@ def run(args: argparse.Namespace) -> int:
         report_to: TextIO = sys.stdout
     else:
         sink, report_to = sys.stdout, sys.stderr
+    diagnostics = None
+    if args.diagnostics_out is not None:
+        from camhealth.monitor.diagnostics import DiagnosticsWriter
+
+        diagnostics = DiagnosticsWriter(args.diagnostics_out, f"camhealth: {source.topic}",
+                                        xi_threshold_dn=args.xi_threshold_dn, topic=source.topic)
     progress = _Progress(source.length, not args.no_progress)
     unreadable: list[str] = []
     overlays = 0
@@ -296,9 +371,14 @@ def run(args: argparse.Namespace) -> int:
                 unreadable.append(f"{item.source_id}: {item.error}")
                 line = {"frame_error": item.error, "index": item.index, "source_id": item.source_id}
                 sink.write(json.dumps(line, ensure_ascii=False) + "\n")
+                if diagnostics is not None:
+                    diagnostics.write_error(item.error, item.index, item.source_id, item.stamp_ns, item.log_time_ns or 0,
+                                            item.frame_id)
                 progress.update("unreadable frame")
                 continue
-            report = monitor.process(item.frame, index=item.index, source_id=item.source_id)
+            report = monitor.process(item.frame, metadata=item.metadata, index=item.index, source_id=item.source_id)
+            if diagnostics is not None:
+                diagnostics.write_report(report, item.stamp_ns, item.log_time_ns or 0, item.frame_id)
             sink.write(report.to_json() + "\n")
             sink.flush()
             if args.overlay and report.frame % args.overlay_every == 0:
@@ -310,15 +390,28 @@ def run(args: argparse.Namespace) -> int:
         progress.close()
         if out_dir is not None:
             sink.close()
+        if diagnostics is not None:
+            diagnostics.close()
     summary = monitor.summary()
     summary.update(source=str(source.path), kind=source.kind, unreadable_frames=len(unreadable), unreadable=unreadable[:20],
                    wall_s=time.perf_counter() - t0)
+    if source.kind == "recording":
+        summary["recording"] = source.summary()
+    if diagnostics is not None:
+        summary["diagnostics"] = diagnostics.summary()
     if out_dir is not None:
         summary["jsonl"] = str(out_dir / "monitor.jsonl")
         if overlays:
             summary["overlays"] = f"{out_dir / 'overlays'} ({overlays} PNG)"
         (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, ensure_ascii=False, allow_nan=False, default=str))
     _human_summary(summary, report_to)
+    if source.kind == "recording":
+        for line in source.describe():
+            print(line, file=report_to)
+    if diagnostics is not None:
+        d = summary["diagnostics"]
+        print(f"  diagnostics: {d['path']} ({d['messages']} DiagnosticArray on {d['topic']}: "
+              + ", ".join(f"{v} {k}" for k, v in d["levels"].items()) + ")", file=report_to)
     return 0
 
 

@@ -911,18 +911,25 @@ class Monitor:
         }
 
     def run(
-        self, source: Any, start: int = 0, stride: int = 1, max_frames: int | None = None
+        self, source: Any, start: int = 0, stride: int = 1, max_frames: int | None = None, recording: Any = None
     ) -> Iterator[tuple[Any, FrameReport | None]]:
-        """Monitor every frame of ``source`` (an image, a folder of frames, a video file or ``"street"``, see
-        :func:`camhealth.monitor.sources.open_source`) as the CLI does: yields ``(item, report)`` per frame,
-        with ``report = None`` for a frame of a folder that could not be read (``item.error`` says why)."""
+        """Monitor every frame of ``source`` (an image, a folder of frames, a video file, ``"street"`` or a
+        recording with ``recording=RecordingOptions(topic=…)``, see :func:`camhealth.monitor.sources.open_source`)
+        as the CLI does: yields ``(item, report)`` per frame, with ``report = None`` for a frame that could not
+        be read (``item.error`` says why). A recording's camera state (``item.metadata``) is applied per frame."""
         from camhealth.monitor.sources import open_source
 
-        for item in open_source(source, start, stride, max_frames):
-            if item.error is not None:
-                yield item, None
-            else:
-                yield item, self.process(item.frame, index=item.index, source_id=item.source_id)
+        src = open_source(source, start, stride, max_frames, recording=recording)
+        try:
+            for item in src:
+                if item.error is not None:
+                    yield item, None
+                else:
+                    yield item, self.process(item.frame, metadata=item.metadata, index=item.index, source_id=item.source_id)
+        finally:
+            close = getattr(src, "close", None)
+            if close is not None:
+                close()
 
     @property
     def frames(self) -> int:

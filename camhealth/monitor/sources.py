@@ -1,4 +1,5 @@
-"""Frame sources of the monitor CLI: one image, a folder of frames, a video file, or the embedded clip.
+"""Frame sources of the monitor CLI: one image, a folder of frames, a video file, the embedded clip, or a robot
+recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2 folder: :mod:`camhealth.monitor.recording`).
 
 :func:`open_source` resolves ``SOURCE`` and returns a :class:`FrameSource` whose iteration yields
 :class:`SourceFrame` items in order. Reading reuses :mod:`camhealth.data` (``read_image`` for image files,
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import torch
 
@@ -32,12 +33,19 @@ STREET = "street"
 
 @dataclass
 class SourceFrame:
-    """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read."""
+    """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read.
+
+    Items of a recording also carry ``metadata`` (the camera state of this frame: changed metadata fields,
+    or ``None``), ``stamp_ns`` (image header stamp), ``log_time_ns`` and ``frame_id``."""
 
     index: int
     source_id: str
     frame: torch.Tensor | None = None
     error: str | None = None
+    metadata: dict[str, float] | None = None
+    stamp_ns: int | None = None
+    log_time_ns: int | None = None
+    frame_id: str = ""
 
 
 class FrameSource:
@@ -87,8 +95,11 @@ class FrameSource:
             yield SourceFrame(int(idx), f"{self.path}#{int(idx)}", frame)
 
 
-def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames: int | None = None) -> FrameSource:
-    """Resolve ``source``: an image file, a folder of frames, a video file, or ``"street"`` (embedded clip).
+def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames: int | None = None,
+                recording: Any = None) -> FrameSource:
+    """Resolve ``source``: an image file, a folder of frames, a video file, ``"street"`` (embedded clip) or a
+    recording (``.bag``/``.db3``/``.mcap`` or a rosbag2 folder; ``recording`` is its
+    :class:`~camhealth.monitor.recording.RecordingOptions`, required there for the topic, refused elsewhere).
 
     Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unsupported extension, an
     unreadable image or an undecodable video (messages name the file and the allowed kinds)."""
@@ -104,7 +115,17 @@ def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames:
         street_frame_paths()
         path = STREET_DIR
     if not path.exists():
-        raise FileNotFoundError(f"source not found: {source} (give an image, a folder of frames, a video file or '{STREET}')")
+        raise FileNotFoundError(f"source not found: {source} (give an image, a folder of frames, a video file, a "
+                                f"recording (.bag .db3 .mcap) or '{STREET}')")
+    from camhealth.data.rosbag import is_recording
+
+    if is_recording(path):
+        from camhealth.monitor.recording import RecordingOptions, RecordingSource
+
+        return RecordingSource(path, start, stride, max_frames, recording or RecordingOptions())  # type: ignore[return-value]
+    if recording is not None:
+        raise ValueError(f"--topic and the other recording options apply to ROS recordings (.bag, .db3, .mcap or a "
+                         f"rosbag2 folder), not to {path}")
     if path.is_dir():
         return FrameSource(path, "folder", start, stride, max_frames)
     ext = path.suffix.lower()
@@ -114,5 +135,5 @@ def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames:
         return FrameSource(path, "video", start, stride, max_frames)
     raise ValueError(
         f"cannot monitor {path}: unsupported extension {path.suffix!r}; images: {', '.join(IMAGE_EXTENSIONS)}; "
-        f"videos: {', '.join(VIDEO_EXTENSIONS)}; or a folder of frames"
+        f"videos: {', '.join(VIDEO_EXTENSIONS)}; recordings: .bag, .db3, .mcap; or a folder of frames"
     )

@@ -23,10 +23,11 @@ def test_tiny_run_prints_rows_and_summary(capsys, tmp_path):
         torch.set_num_threads(n)
     text = capsys.readouterr().out
     for row in ("every patch (no skipping)", "informative patches (fully monitored)", "adaptive (skip + reuse static",
-                "informative patches, fp32", "thesis-size noise net, same noise patches"):
+                "informative patches, fp32", "thesis-size noise net, same noise patches",
+                "reading the recording (.mcap)", "reading the recording (.db3)", "reading the recording (.bag)"):
         assert row in text
     for line in ("target ≤ 100 ms", "this benchmark process", "skipped as uninformative", "σ_total on informative patches",
-                 "MTF AMAE", "UNTRAINED", "load average"):
+                 "MTF AMAE", "UNTRAINED", "load average", "reading a recording adds", "of the adaptive monitor's"):
         assert line in text
     assert "CPU" in text and "noise + " in text and "thesis net / camhealth noise" in text and "bf16 − fp32" in text
     assert "| adaptive (skip + reuse static + coarse→refine) |" in (tmp_path / "b.md").read_text()
@@ -52,3 +53,14 @@ def test_rss_probe_runs_one_monitor(model_files, tmp_path):
     out = rss_probe(str(tmp_path / "probe.json"))
     assert 0 < out["start_mb"] <= out["peak_mb"]
     assert len(out["ms"]) == len(out["cpu_ms"]) == 2 and all(t > 0 for t in out["ms"])
+
+
+def test_recording_times_read_every_frame(tmp_path):
+    from camhealth.bench.monitor import recording_times
+    from camhealth.physics import CameraMetadata
+
+    frames = torch.randint(0, 256, (3, 40, 56), dtype=torch.uint8)
+    meta = CameraMetadata.preset("ICX285", gain_db=6.0)
+    for suffix in (".mcap", ".bag"):
+        times = recording_times(frames, meta, tmp_path, suffix)
+        assert len(times) == 3 and all(t > 0 for t in times)
