@@ -547,6 +547,9 @@ def _torch_runner(module) -> Callable[..., torch.Tensor]:
 
 
 def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
+    from camhealth._pt2_check import check_pt2_archive
+
+    check_pt2_archive(path)  # before torch opens it: torch's loader unpickles some entries without weights_only
     extra = {"camhealth.json": ""}
     try:
         ep = torch.export.load(str(path), extra_files=extra)
