@@ -2,9 +2,9 @@
 
 Runs :class:`camhealth.monitor.Monitor` on every frame of SOURCE and writes one JSON line per frame
 (stdout, or ``DIR/monitor.jsonl``), optional overlay PNGs, a progress bar (stderr) and a summary at the
-end (``DIR/summary.json`` too). Exit status: 0 on success (unreadable frames in a folder are reported and
-skipped), 2 on a usage or input error (missing/unreadable source, undecodable video, bad metadata, missing
-model), with a one-line message.
+end (``DIR/summary.json`` too). Exit status: 0 on success (unreadable frames in a folder and partly decoded
+video frames are reported and skipped), 2 on an error (missing/unreadable source, undecodable video, ``--start``
+past the end, bad metadata, missing or refused model, …), with a one-line message (``--debug``: the traceback).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence, TextIO
 
+from camhealth._cli import add_debug_flag, run_cli
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS
 
 __all__ = ["build_parser", "main"]
@@ -50,7 +51,9 @@ Output, one JSON object per frame (keys): frame, index, source_id, size, assessa
   temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
   not_assessable, total}}}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
   ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
-  Unreadable frames of a folder give {{"frame_error": …}} lines. See docs/monitor.md.
+  Unreadable frames of a folder and partly decoded video frames give {{"frame_error": …}} lines, never scores.
+  16-bit frames are scaled by their significant bits (--bit-depth; the summary names the scaling used).
+  See docs/monitor.md.
 
 Examples:
   python -m camhealth.monitor street --sensor ICX285 --max-frames 10 --out runs/monitor
@@ -86,6 +89,18 @@ def _non_negative(value: str) -> float:
     if not x >= 0 or x == float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {value}")
     return x
+
+
+def _bit_depth(value: str) -> int | str:
+    if value == "auto":
+        return value
+    try:
+        n = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer 8…16, got {value!r}") from None
+    if not 8 <= n <= 16:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer 8…16, got {n}")
+    return n
 
 
 def _assignment(value: str) -> tuple[str, float]:
@@ -171,6 +186,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--start", type=_non_negative_int, default=0, metavar="N", help="first frame index (default 0)")
     g.add_argument("--stride", type=_positive, default=1, metavar="N", help="use every N-th frame (default 1)")
     g.add_argument("--max-frames", type=_positive, default=None, metavar="N", help="stop after N frames (default: all)")
+    g.add_argument("--bit-depth", type=_bit_depth, default="auto", metavar="auto|N",
+                   help="significant bits of 16-bit image frames: N = 8…16 divides values by 2^N − 1 (12 for a 12-bit "
+                        "camera); auto (default): the PNG's sBIT chunk, else guessed from the largest value — the summary "
+                        "names the scaling used")
     g = p.add_argument_group("output")
     g.add_argument("--out", type=Path, metavar="DIR",
                    help="write DIR/monitor.jsonl, DIR/summary.json and overlays there (default: JSON lines on stdout)")
@@ -181,6 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="top of the overlay's σ colour scale (default 20 DN)")
     g.add_argument("--per-patch", action="store_true", help="include every patch's status and values in the JSON lines")
     g.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    add_debug_flag(p)
     return p
 
 
@@ -217,6 +237,8 @@ def _human_summary(summary: dict, out: TextIO) -> None:
         f"median {_fmt(ms['median'], '.1f')} ms/frame (max {_fmt(ms['max'], '.1f')})",
         file=out,
     )
+    for scaling, n in (summary.get("input_scaling") or {}).items():
+        print(f"  input: {scaling} ({n} frame(s))", file=out)
     for task, counts in summary["patches"].items():
         parts = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
         print(f"  {task} [{summary['estimators'][task]}]: {parts or 'no patches'}", file=out)
@@ -262,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--max-clipped = {args.max_clipped:g} must lie in [0, 1]")
     if args.iopc_weights is not None and len(args.iopc_weights) != len(args.iopc):
         raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
-    source = open_source(args.source, args.start, args.stride, args.max_frames)
+    source = open_source(args.source, args.start, args.stride, args.max_frames, bit_depth=args.bit_depth)
     noise_model = None if args.no_noise else args.noise_model
     mtf_model = None if args.no_mtf else args.mtf_model
     metadata: Any = args.metadata
@@ -289,6 +311,8 @@ def run(args: argparse.Namespace) -> int:
         sink, report_to = sys.stdout, sys.stderr
     progress = _Progress(source.length, not args.no_progress)
     unreadable: list[str] = []
+    scalings: dict[str, int] = {}
+    frames = 0
     overlays = 0
     t0 = time.perf_counter()
     try:
@@ -299,6 +323,9 @@ def run(args: argparse.Namespace) -> int:
                 sink.write(json.dumps(line, ensure_ascii=False) + "\n")
                 progress.update("unreadable frame")
                 continue
+            frames += 1
+            if item.scaling is not None:
+                scalings[item.scaling] = scalings.get(item.scaling, 0) + 1
             report = monitor.process(item.frame, index=item.index, source_id=item.source_id)
             sink.write(report.to_json() + "\n")
             sink.flush()
@@ -311,9 +338,11 @@ def run(args: argparse.Namespace) -> int:
         progress.close()
         if out_dir is not None:
             sink.close()
+    if frames == 0 and not unreadable and args.start > 0:  # a video that does not report its frame count
+        raise ValueError(f"--start {args.start} is past the end of {source.path}: no frame was read")
     summary = monitor.summary()
     summary.update(source=str(source.path), kind=source.kind, unreadable_frames=len(unreadable), unreadable=unreadable[:20],
-                   wall_s=time.perf_counter() - t0)
+                   wall_s=time.perf_counter() - t0, input_scaling=scalings)
     if out_dir is not None:
         summary["jsonl"] = str(out_dir / "monitor.jsonl")
         if overlays:
@@ -335,12 +364,8 @@ def default_threads() -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except (FileNotFoundError, NotADirectoryError, ValueError, TypeError, ImportError) as exc:
-        print(f"python -m camhealth.monitor: error: {exc}", file=sys.stderr)
-        return 2
+    """Run the CLI; an error is one line on stderr and exit status 2 (``--debug``: the traceback instead)."""
+    return run_cli(lambda a: run(build_parser().parse_args(a)), "python -m camhealth.monitor", argv)
 
 
 if __name__ == "__main__":

@@ -7,9 +7,15 @@
 - a missing path, an unsupported extension, a single image that cannot be read, a folder without frame
   images, or a video OpenCV cannot open or decode: a clear ``FileNotFoundError``/``ValueError`` at
   :func:`open_source` (the CLI exits with status 2);
-- one unreadable frame inside a folder: the item carries ``error`` instead of a frame (the CLI writes a JSON
-  line with the error, counts it and goes on);
-- a video whose stream ends early (truncated file): iteration stops there, as OpenCV reports the end.
+- one unreadable frame inside a folder, or a video frame the decoder reports damaged (partly decoded: a
+  truncated last frame, a corrupt packet): the item carries ``error`` instead of a frame (the CLI writes a JSON
+  line with the error, counts it and goes on; the frame is never scored);
+- a video whose stream ends early (truncated file): iteration stops there, as OpenCV reports the end;
+- a ``start`` past the last frame of an image, folder or video with a known frame count: ``ValueError`` at
+  :func:`open_source`.
+
+Integer frames are scaled by their significant bits (``bit_depth``: ``"auto"`` or 8…16, see
+:func:`camhealth.data.io.read_image`); each item says which scaling it used (``scaling``).
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ from typing import Iterator
 import torch
 
 from camhealth.data.image_folder import list_images
-from camhealth.data.io import IMAGE_EXTENSIONS, read_image
+from camhealth.data.io import IMAGE_EXTENSIONS, read_image_scaled
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
 
 __all__ = ["SourceFrame", "FrameSource", "open_source", "STREET"]
@@ -32,34 +38,45 @@ STREET = "street"
 
 @dataclass
 class SourceFrame:
-    """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read."""
+    """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read, and how its
+    values were scaled to [0, 1] (:meth:`camhealth.data.io.ImageScaling.describe`; ``None`` for video frames,
+    8-bit DN/255)."""
 
     index: int
     source_id: str
     frame: torch.Tensor | None = None
     error: str | None = None
+    scaling: str | None = None
 
 
 class FrameSource:
     """Ordered frames of an image, a folder or a video (``kind``), with ``start``/``stride``/``max_frames``."""
 
-    def __init__(self, path: Path, kind: str, start: int = 0, stride: int = 1, max_frames: int | None = None) -> None:
+    def __init__(self, path: Path, kind: str, start: int = 0, stride: int = 1, max_frames: int | None = None,
+                 bit_depth: int | str = "auto") -> None:
         self.path, self.kind = path, kind
         self.start, self.stride, self.max_frames = start, stride, max_frames
+        self.bit_depth = bit_depth
         self._files: list[Path] = []
         self._video: FrameSequence | None = None
         if kind == "image":
-            self._files = [path] if start == 0 else []
-            self._single = read_image(path)  # a single unreadable image is a fatal, clear error
+            _past_end(start, 1, path)
+            self._files = [path]
+            # a single unreadable image is a fatal, clear error
+            self._single, scaling = read_image_scaled(path, bit_depth)
+            self._single_scaling = scaling.describe()
         elif kind == "folder":
             files = list_images(path, recursive=False)
             if not files:
                 raise ValueError(f"no frame images found in folder {path} (extensions: {', '.join(IMAGE_EXTENSIONS)})")
+            _past_end(start, len(files), path)
             picked = files[start::stride]
             self._files = picked if max_frames is None else picked[:max_frames]
             self._indices = list(range(start, len(files), stride))[: len(self._files)]
         else:
             self._video = FrameSequence(path, stride=stride, max_frames=max_frames, start=start)
+            if self._video.total_frames is not None:
+                _past_end(start, self._video.total_frames, path)
 
     @property
     def length(self) -> int | None:
@@ -71,32 +88,42 @@ class FrameSource:
     def __iter__(self) -> Iterator[SourceFrame]:
         if self.kind == "image":
             if self._files:
-                yield SourceFrame(0, str(self.path), self._single)
+                yield SourceFrame(0, str(self.path), self._single, scaling=self._single_scaling)
             return
         if self.kind == "folder":
             for idx, p in zip(self._indices, self._files):
                 try:
-                    frame = read_image(p)
+                    frame, scaling = read_image_scaled(p, self.bit_depth)
                 except (OSError, ValueError) as exc:
                     yield SourceFrame(idx, str(p), None, str(exc).splitlines()[0])
                     continue
-                yield SourceFrame(idx, str(p), frame)
+                yield SourceFrame(idx, str(p), frame, scaling=scaling.describe())
             return
         assert self._video is not None
-        for frame, idx in self._video:
-            yield SourceFrame(int(idx), f"{self.path}#{int(idx)}", frame)
+        for frame, idx, error in self._video.frames():  # a damaged (partly decoded) frame comes with its error
+            yield SourceFrame(int(idx), f"{self.path}#{int(idx)}", frame, error)
 
 
-def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames: int | None = None) -> FrameSource:
+def _past_end(start: int, n_frames: int, path: Path) -> None:
+    if start >= n_frames:
+        raise ValueError(f"start = {start} is past the end of {path}: it has {n_frames} frame(s), indices 0…{n_frames - 1}")
+
+
+def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames: int | None = None,
+                bit_depth: int | str = "auto") -> FrameSource:
     """Resolve ``source``: an image file, a folder of frames, a video file, or ``"street"`` (embedded clip).
 
     Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unsupported extension, an
-    unreadable image or an undecodable video (messages name the file and the allowed kinds)."""
+    unreadable image, an undecodable video or a ``start`` past the last frame (messages name the file and the
+    allowed kinds or frame indices). ``bit_depth``: significant bits of 16-bit frames (``"auto"`` or 8…16)."""
     for v, name, lo in ((start, "start", 0), (stride, "stride", 1)):
         if isinstance(v, bool) or not isinstance(v, int) or v < lo:
             raise ValueError(f"{name} = {v!r} must be an integer >= {lo}")
     if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
         raise ValueError(f"max_frames = {max_frames!r} must be an integer >= 1 or None")
+    from camhealth.data.io import _check_bit_depth
+
+    bit_depth = _check_bit_depth(bit_depth)
     path = Path(source)
     if not path.exists() and str(source) == STREET:
         from camhealth.data.street_sample import STREET_DIR, street_frame_paths
@@ -106,12 +133,12 @@ def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames:
     if not path.exists():
         raise FileNotFoundError(f"source not found: {source} (give an image, a folder of frames, a video file or '{STREET}')")
     if path.is_dir():
-        return FrameSource(path, "folder", start, stride, max_frames)
+        return FrameSource(path, "folder", start, stride, max_frames, bit_depth)
     ext = path.suffix.lower()
     if ext in IMAGE_EXTENSIONS:
-        return FrameSource(path, "image", start, stride, max_frames)
+        return FrameSource(path, "image", start, stride, max_frames, bit_depth)
     if ext in VIDEO_EXTENSIONS:
-        return FrameSource(path, "video", start, stride, max_frames)
+        return FrameSource(path, "video", start, stride, max_frames, bit_depth)
     raise ValueError(
         f"cannot monitor {path}: unsupported extension {path.suffix!r}; images: {', '.join(IMAGE_EXTENSIONS)}; "
         f"videos: {', '.join(VIDEO_EXTENSIONS)}; or a folder of frames"
