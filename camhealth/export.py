@@ -32,6 +32,8 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
+from camhealth._cli import add_debug_flag, debugging, run_cli
+
 __all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_module", "main", "ALLOWED_CLASSES"]
 
 FORMAT_TAG = "camhealth-estimator"
@@ -294,6 +296,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         help="store a default posterior blend for Estimator.predict (Full-Meta noise-source networks): a JSON object of "
         "camhealth.inference.PosteriorBlend fields ('{}' for its defaults), or 'off' to remove one; default: keep the input's",
     )
+    add_debug_flag(parser)
     args = parser.parse_args(argv)
     fn, suffix = EXPORTERS[args.format]
     inference: Any = KEEP
@@ -319,9 +322,13 @@ def main(argv: Sequence[str] | None = None) -> Path:
     try:
         path = fn(src, out, inference=inference)
     except (FileNotFoundError, ValueError) as exc:
+        if debugging():
+            raise
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     except OSError as exc:
+        if debugging():
+            raise
         print(f"error: --out {out} cannot be written: {exc.strerror or exc}", file=sys.stderr)
         raise SystemExit(2) from None
     print(path)
@@ -329,4 +336,4 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    sys.exit(run_cli(main, "python -m camhealth.export"))
