@@ -44,15 +44,18 @@ def one_line(exc: BaseException) -> str:
     return text if isinstance(exc, _PLAIN) else f"{type(exc).__name__}: {text}"
 
 
-def run_cli(main: Callable[[list[str]], Any], prog: str, argv: Sequence[str] | None = None) -> int:
-    """Run ``main(args)`` with ``argv`` (default ``sys.argv[1:]``) less ``--debug``; return the exit status."""
+def run_cli(main: Callable[[list[str] | None], Any], prog: str, argv: Sequence[str] | None = None) -> int:
+    """Run ``main`` on ``argv`` less ``--debug`` and return the exit status. Without ``argv`` the command line is
+    ``sys.argv`` (the flag is taken out of it, and ``main`` gets ``None``, as when run directly)."""
     global _debug
     args = list(sys.argv[1:] if argv is None else argv)
     debug = DEBUG_FLAG in args or _debug  # (an outer run_cli may have taken the flag already)
     args = [a for a in args if a != DEBUG_FLAG]
+    if argv is None:
+        sys.argv[1:] = args
     before, _debug = _debug, debug
     try:
-        result = main(args)
+        result = main(None if argv is None else args)
     except SystemExit as exc:  # argparse usage errors and explicit exits keep their message and status
         if isinstance(exc.code, str):
             if debug:
