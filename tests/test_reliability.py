@@ -175,7 +175,8 @@ def test_mtf_hv_refuses_negative_psfs(dtype):
 CLIS = {
     "camhealth.fit": ["--config", "configs/noise_source.yaml", "--ckpt_path", "/nonexistent/last.ckpt"],
     "camhealth.export": ["/nonexistent/model.ckpt"],
-    "camhealth.evaluate": ["--quick", "--source", "/nonexistent/folder", "--methods", "pca", "--no-progress"],
+    "camhealth.evaluate": ["--quick", "--source", "/nonexistent/folder", "--methods", "pca", "--no-progress",
+                           "--out", "/tmp/never-written"],
     "camhealth.monitor": ["/nonexistent/clip.mp4"],
     "camhealth.corrupt": ["/nonexistent/folder", "--out", "/tmp/never-written"],
     "camhealth.demo": ["closed-loop", "--iopc", "/nonexistent/iopc.json"],
