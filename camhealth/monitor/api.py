@@ -915,14 +915,15 @@ class Monitor:
         }
 
     def run(
-        self, source: Any, start: int = 0, stride: int = 1, max_frames: int | None = None
+        self, source: Any, start: int = 0, stride: int = 1, max_frames: int | None = None, bit_depth: int | str = "auto"
     ) -> Iterator[tuple[Any, FrameReport | None]]:
         """Monitor every frame of ``source`` (an image, a folder of frames, a video file or ``"street"``, see
         :func:`camhealth.monitor.sources.open_source`) as the CLI does: yields ``(item, report)`` per frame,
-        with ``report = None`` for a frame of a folder that could not be read (``item.error`` says why)."""
+        with ``report = None`` for a frame of a folder that could not be read or a partly decoded video frame
+        (``item.error`` says why). ``bit_depth``: significant bits of 16-bit frames (``item.scaling`` names it)."""
         from camhealth.monitor.sources import open_source
 
-        for item in open_source(source, start, stride, max_frames):
+        for item in open_source(source, start, stride, max_frames, bit_depth=bit_depth):
             if item.error is not None:
                 yield item, None
             else:
