@@ -10,8 +10,8 @@ it unless every entry is one that :func:`camhealth.export.export_pt2` writes:
 - raw tensor payloads (``data/weights/weight_N``, ``data/constants/tensor_N``) described by JSON configs with
   ``use_pickle: false``; no custom or opaque objects, no AOTInductor/ExecuTorch/MTIA data, no legacy ``.pt``;
 - sample inputs that load with ``torch.load(weights_only=True)`` (so torch never falls back to a full unpickle);
-- graphs whose call targets are PyTorch operators (``torch.ops.*``, ``_operator.*``, ``math.*``, no dunder
-  names), whose guard code only compares input sizes, and whose symbolic shapes are sympy expressions of numbers, quoted symbol names
+- graphs whose call targets are PyTorch operators (``torch.ops.<namespace>.<op>[.<overload>]``, not the
+  library loaders of ``torch.ops``) or the arithmetic builtins torch's verifier allows, whose guard code only compares input sizes, and whose symbolic shapes are sympy expressions of numbers, quoted symbol names
   and the arithmetic functions torch serialises (no attribute access, no other names).
 
 What stays is torch's own deserialiser running on plain data. It is not designed for hostile input: prefer
@@ -41,8 +41,14 @@ _ALLOWED = [
     re.compile(r"data/sample_inputs/[A-Za-z0-9_]+\.pt"),
 ]
 _PAYLOAD_NAME = re.compile(r"(weight|tensor)_\d+")
-_TARGET_PREFIXES = ("torch.ops.", "_operator.", "math.")
 _SEGMENT = re.compile(r"[A-Za-z0-9_]+")
+#: The Python builtins torch.export's verifier lets a graph call (``_operator.*``, ``math.*``), and the attributes of
+#: ``torch.ops`` that are not operator namespaces (they load libraries and import modules).
+_OPERATOR_BUILTINS = frozenset(
+    "getitem add mul sub truediv ge le gt lt eq ne floordiv mod and_ or_ not_ pow neg abs lshift rshift".split()
+)
+_MATH_BUILTINS = frozenset({"ceil", "floor", "trunc"})
+_OPS_ATTRIBUTES = frozenset({"import_module", "load_library", "loaded_libraries"})
 #: Names a serialised symbolic shape may call: sympy's arithmetic, logic and number classes, and the functions
 #: torch.export's deserialiser provides (``torch.utils._sympy.functions``).
 _SYMPY_NAMES = frozenset(
@@ -79,9 +85,17 @@ def _walk(obj: Any, key: str = "") -> Iterator[tuple[str, Any]]:
 
 
 def _check_target(target: str) -> bool:
-    if not target.startswith(_TARGET_PREFIXES):
+    """Whether ``target`` names a PyTorch operator (``torch.ops.<namespace>.<op>[.<overload>]``) or one of the few
+    Python builtins the verifier allows."""
+    parts = target.split(".")
+    if any(not _SEGMENT.fullmatch(p) or p.startswith("__") for p in parts):
         return False
-    return all(_SEGMENT.fullmatch(s) and not s.startswith("__") for s in target.split("."))
+    if parts[0] == "_operator":
+        return len(parts) == 2 and parts[1] in _OPERATOR_BUILTINS
+    if parts[0] == "math":
+        return len(parts) == 2 and parts[1] in _MATH_BUILTINS
+    return (parts[:2] == ["torch", "ops"] and len(parts) in (4, 5) and parts[2] not in _OPS_ATTRIBUTES
+            and not parts[2].startswith("_"))
 
 
 def _check_expression(expr: str) -> str | None:

@@ -86,3 +86,14 @@ def evil_pt2(src: Path, dst: Path, kind: str, marker: Path) -> Path:
 
 
 PT2_KINDS = ["sample_inputs", "pickled_weight", "legacy_weights", "opaque_constant", "sympify", "guard_code", "target"]
+
+
+def retargeted_pt2(src: Path, dst: Path, target: str) -> Path:
+    """A copy of ``src`` whose first graph node calls ``target``."""
+
+    def edit(files: dict) -> dict:
+        def retarget(program):
+            program["graph_module"]["graph"]["nodes"][0]["target"] = target
+        return _edit_json(files, "models/model.json", retarget)
+
+    return _rewrite(src, dst, edit)

@@ -31,6 +31,17 @@ def test_hostile_pt2_is_refused_before_anything_runs(kind, mtf_pt2, tmp_path):
     assert str(evil) in str(info.value) and "weights_only" not in str(info.value)
 
 
+@pytest.mark.parametrize("target", [
+    "torch.ops.load_library", "torch.ops.import_module.x", "torch.ops.loaded_libraries.pop", "_operator.methodcaller",
+    "_operator.call", "_operator.attrgetter", "math.__loader__", "builtins.eval", "torch.ops.aten.__class__.x",
+])
+def test_graph_targets_other_than_operators_are_refused(target, mtf_pt2, tmp_path):
+    from tests._evil_files import retargeted_pt2
+
+    with pytest.raises(ValueError, match="which is not a PyTorch operator"):
+        load_estimator(retargeted_pt2(mtf_pt2, tmp_path / "t.pt2", target))
+
+
 def test_the_archives_camhealth_writes_still_load(mtf_pt2):
     est = load_estimator(mtf_pt2)
     assert est.backend == "pt2"
