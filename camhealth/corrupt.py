@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from camhealth._cli import add_debug_flag, run_cli
 from camhealth.augment import CameraCorruption, RandomDefocusBlur, RandomMotionBlur, RandomSensorNoise
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
@@ -139,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quantize", action="store_true", help="round the output to whole DN")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--overview", action="store_true", help="also write overview.png (each corruption of the most textured patch)")
+    add_debug_flag(p)
     return p
 
 
@@ -179,4 +181,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main, "python -m camhealth.corrupt"))

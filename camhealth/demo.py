@@ -37,6 +37,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from camhealth._cli import add_debug_flag, run_cli
+
 __all__ = ["main", "run_closed_loop", "parse_slice"]
 
 THESIS_AP = {"built-in auto-exposure": 0.2608, "fixed": 0.4754, "framework (IOPC policy)": 0.6056}
@@ -334,6 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--threads", type=int, default=None, help="torch threads")
     c.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     c.set_defaults(func=run_closed_loop)
+    add_debug_flag(p)
     return p
 
 
@@ -346,4 +349,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main, "python -m camhealth.demo"))

@@ -53,6 +53,8 @@ from typing import Any, Callable, Sequence
 
 import torch
 
+from camhealth._cli import add_debug_flag, run_cli
+
 __all__ = [
     "NOISE_LEVELS_DN",
     "BLUR_SIZES_PX",
@@ -398,18 +400,51 @@ def build_cases(cfg: EvalConfig, cache: Path | None = None, resume: bool = False
     cases = {}
     for name, build in builders.items():
         path = None if cache is None else cache / name / "data.pt"
-        if resume and path is not None and path.exists():
-            blob = torch.load(path, weights_only=True)
-            if blob.get("config_key") == cfg.key():
-                cases[name] = blob["data"]
-                continue
+        blob = _read_cache(path, log) if resume else None
+        if blob is not None and blob.get("config_key") == cfg.key():
+            cases[name] = blob["data"]
+            continue
         t0 = time.perf_counter()
         cases[name] = build()
         log(f"built case {name} in {time.perf_counter() - t0:.1f} s")
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            torch.save({"config_key": cfg.key(), "data": cases[name]}, path)
+            _write_cache({"config_key": cfg.key(), "data": cases[name]}, path)
     return cases
+
+
+def _write_cache(obj: Any, path: Path) -> None:
+    """``torch.save`` to a temporary file next to ``path``, then rename it there: an interrupted run leaves the old
+    entry or none, never a truncated one."""
+    import os
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _read_cache(path: Path | None, log: Callable[[str], None]) -> dict | None:
+    """A cache entry (tensors and plain data only), or ``None`` where there is none or it cannot be read (a truncated
+    or foreign file is reported and rebuilt)."""
+    if path is None or not path.exists():
+        return None
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - truncated by an interrupted run, another torch version, not a cache
+        log(f"cache entry {path} cannot be read ({type(exc).__name__}); computing it again")
+        return None
+    if not isinstance(blob, dict):
+        log(f"cache entry {path} is not a camhealth cache entry; computing it again")
+        return None
+    return blob
 
 
 # ============================================================================================ methods
@@ -514,12 +549,11 @@ class _Runner:
 
     def run(self, case: str, method: Method, variant: str, inputs: torch.Tensor, call: Callable[[torch.Tensor, slice], Any], unit: str) -> dict:
         path = None if self.cache is None else self.cache / case / f"{_slug(method.name)}{variant}.pt"
-        if self.resume and path is not None and path.exists():
-            blob = torch.load(path, weights_only=True)
-            if blob.get("config_key") == self.cfg.key():
-                self._time(method, blob["seconds"], blob["items"], unit)
-                self.reused += 1
-                return blob["out"]
+        blob = _read_cache(path, self.log) if self.resume else None
+        if blob is not None and blob.get("config_key") == self.cfg.key() and {"seconds", "items", "out"} <= set(blob):
+            self._time(method, blob["seconds"], blob["items"], unit)
+            self.reused += 1
+            return blob["out"]
         chunk = self.cfg.batch if unit == "patch" else 8
         parts: list[Any] = []
         seconds = 0.0
@@ -533,8 +567,7 @@ class _Runner:
         out = _cat(parts)
         self._time(method, seconds, len(inputs), unit)
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            torch.save({"config_key": self.cfg.key(), "out": out, "seconds": seconds, "items": len(inputs)}, path)
+            _write_cache({"config_key": self.cfg.key(), "out": out, "seconds": seconds, "items": len(inputs)}, path)
         return out
 
 
@@ -1103,6 +1136,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--docs", type=Path, default=None, help="also write the Markdown report to this file (e.g. docs/results.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    add_debug_flag(p)
     return p
 
 
@@ -1131,4 +1165,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main, "python -m camhealth.evaluate"))

@@ -22,11 +22,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import torch
+
+from camhealth._cli import add_debug_flag, debugging, run_cli
 
 __all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_module", "main", "ALLOWED_CLASSES", "check_retired"]
 
@@ -77,6 +80,18 @@ def _class_for(class_path: str):
     return getattr(importlib.import_module(module), name)
 
 
+def _load_refusal(exc: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a file, in words that do not advise loading it unsafely."""
+    text = str(exc)
+    blocked = re.search(r"(unsupported GLOBAL [^\s]+|Unsupported global: GLOBAL [^\s]+)", text)
+    if blocked:
+        return f"it holds pickled Python objects other than tensors, {blocked.group(1)}; camhealth never unpickles those"
+    detail = re.search(r"(Unsupported operand [^\s]+)", text)
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip() and "weights_only" not in ln and "PyTorch 2.6" not in ln]
+    why = detail.group(1) if detail else (lines[0][:200] if lines else type(exc).__name__)
+    return f"torch's tensors-only reader stopped: {why}"
+
+
 def _safe_load(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
@@ -84,8 +99,7 @@ def _safe_load(path: Path) -> dict:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # pickle with code, not a torch file, truncated file, ...
         raise ValueError(
-            f"{path} is not a camhealth checkpoint or weights file that loads as plain tensors "
-            f"(torch.load(weights_only=True) refused it: {str(exc).splitlines()[0][:200]})"
+            f"{path} is not a camhealth checkpoint or weights file that loads as plain tensors ({_load_refusal(exc)})"
         ) from None
     if not isinstance(obj, dict):
         raise ValueError(f"{path} is not a camhealth checkpoint: it holds a {type(obj).__name__}, not a dict")
@@ -95,21 +109,55 @@ def _safe_load(path: Path) -> dict:
 def _description_and_state(obj: Mapping[str, Any], path: Path) -> tuple[dict, dict]:
     """Description + state dict of the network from a camhealth weights file or a Lightning checkpoint."""
     if obj.get("format") == FORMAT_TAG:  # weights file
-        desc = json.loads(obj["description"])
-        return desc, dict(obj["state_dict"])
+        text = obj.get("description")
+        if not isinstance(text, str):
+            raise ValueError(f"{path}: the weights file's 'description' must be a JSON string, got {type(text).__name__}")
+        try:
+            desc = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: the weights file's description is not valid JSON ({exc.msg} at character {exc.pos})") from None
+        state = obj.get("state_dict")
+        if not isinstance(state, Mapping):
+            raise ValueError(f"{path}: the weights file has no 'state_dict' of tensors")
+        return _check_description(desc, path), dict(state)
     info = obj.get("camhealth")
     if isinstance(info, Mapping) and info.get("format") == FORMAT_TAG and "state_dict" in obj:
-        state = {k[len("net."):]: v for k, v in obj["state_dict"].items() if k.startswith("net.")}
-        return dict(info), state
+        if not isinstance(obj["state_dict"], Mapping):
+            raise ValueError(f"{path}: the checkpoint's 'state_dict' is not a mapping of tensors")
+        state = {k[len("net."):]: v for k, v in obj["state_dict"].items() if str(k).startswith("net.")}
+        return _check_description(dict(info), path), state
     raise ValueError(
         f"{path} is not a camhealth checkpoint: expected a weights file (format {FORMAT_TAG!r}) or a Lightning "
-        f"checkpoint written by a camhealth estimator (key 'camhealth'), found keys {sorted(obj)[:8]}"
+        f"checkpoint written by a camhealth estimator (key 'camhealth'), found keys {sorted(map(str, obj))[:8]}"
     )
+
+
+def _check_description(desc: Any, path: Path) -> dict:
+    """The description of a file, checked field by field (one ``ValueError`` naming the field and what it must be)."""
+    if not isinstance(desc, dict):
+        raise ValueError(f"{path}: the description must be a JSON object, got {type(desc).__name__}")
+    class_path = desc.get("class_path")
+    if class_path not in ALLOWED_CLASSES:
+        raise ValueError(f"{path}: description class_path = {class_path!r} is not a camhealth estimator; allowed: {sorted(ALLOWED_CLASSES)}")
+    if desc.get("kind") != ALLOWED_CLASSES[class_path]:
+        raise ValueError(f"{path}: description kind = {desc.get('kind')!r} must be {ALLOWED_CLASSES[class_path]!r} for {class_path}")
+    init_args = desc.get("init_args", {})
+    if not isinstance(init_args, dict):
+        raise ValueError(f"{path}: description init_args must be a JSON object, got {type(init_args).__name__}")
+    size = desc.get("patch_size")
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"{path}: description patch_size = {size!r} must be a positive integer (px)")
+    if "patch_size" in init_args and init_args["patch_size"] != size:
+        raise ValueError(f"{path}: description patch_size = {size!r} differs from init_args patch_size = {init_args['patch_size']!r}")
+    if desc.get("metadata_set", "none") not in ("none", "minimal", "full"):
+        raise ValueError(f"{path}: description metadata_set = {desc.get('metadata_set')!r} must be 'none', 'minimal' or 'full'")
+    return desc
 
 
 def load_module(source: str | Path):
     """Rebuild the :class:`EstimatorModule` of a weights file or Lightning checkpoint (eval mode), plus its
-    description. Only allow-listed classes are built and only tensors are loaded."""
+    description. Only allow-listed classes are built and only tensors are loaded; a tampered description (bad
+    JSON, an argument the class does not take, a value it refuses) is one ``ValueError`` naming the file."""
     path = Path(source)
     desc, state = _description_and_state(_safe_load(path), path)
     cls = _class_for(desc.get("class_path", ""))
@@ -117,8 +165,23 @@ def load_module(source: str | Path):
     init_args = {k: v for k, v in dict(desc.get("init_args", {})).items() if not str(k).startswith("_")}
     if desc.get("kind") == "noise_source":  # retired options at their only remaining value: as if absent
         init_args = {k: v for k, v in init_args.items() if k not in RETIRED_OPTIONS}
-    module = cls(**init_args)
-    missing, unexpected = module.net.load_state_dict(state, strict=False)
+    import inspect
+
+    accepted = inspect.signature(cls.__init__).parameters
+    unknown = sorted(k for k in init_args if k not in accepted)
+    if unknown and not any(a.kind is inspect.Parameter.VAR_KEYWORD for a in accepted.values()):
+        raise ValueError(f"{path}: description init_args {unknown} are not arguments of {desc['class_path']}")
+    try:
+        module = cls(**init_args)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{path}: description init_args do not build {desc['class_path']}: {str(exc).splitlines()[0][:200]}") from None
+    bad = [k for k, v in state.items() if not isinstance(v, torch.Tensor)]
+    if bad:
+        raise ValueError(f"{path}: state_dict entries {bad[:4]} are not tensors")
+    try:
+        missing, unexpected = module.net.load_state_dict(state, strict=False)
+    except RuntimeError as exc:
+        raise ValueError(f"{path}: weights do not fit {desc['class_path']}: {str(exc).splitlines()[-1].strip()[:200]}") from None
     if missing or unexpected:
         raise ValueError(f"{path}: weights do not fit {desc['class_path']} (missing {missing[:4]}, unexpected {unexpected[:4]})")
     return module.eval(), desc
@@ -191,6 +254,24 @@ def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = N
     return out
 
 
+def _unwritable(out: Path) -> str:
+    """Why ``out`` cannot be written (creating its folder if needed), or ``""`` — checked before the export runs."""
+    import os
+
+    if out.is_dir():
+        return "it is a folder"
+    blocking = next((a for a in out.parents if a.exists()), None)
+    if blocking is not None and not blocking.is_dir():
+        return f"{blocking} is a file, not a folder"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"its folder {out.parent} cannot be created ({exc.strerror or exc})"
+    if not os.access(out.parent, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
+        return "permission denied"
+    return ""
+
+
 EXPORTERS = {"weights": (export_weights, ".pt"), "pt2": (export_pt2, ".pt2"), "onnx": (export_onnx, ".onnx")}
 
 
@@ -199,20 +280,32 @@ def main(argv: Sequence[str] | None = None) -> Path:
     parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) of a camhealth estimator, or a weights file (.pt)")
     parser.add_argument("--format", choices=sorted(EXPORTERS), default="pt2", help="output format (default pt2)")
     parser.add_argument("--out", default=None, help="output path (default: next to the checkpoint, with the format's suffix)")
+    add_debug_flag(parser)
     args = parser.parse_args(argv)
     fn, suffix = EXPORTERS[args.format]
     src = Path(args.checkpoint)
     out = Path(args.out) if args.out else src.with_suffix(suffix)
     if out.resolve() == src.resolve():
         parser.error(f"--out {out} would overwrite the input; give another path")
+    unwritable = _unwritable(out)
+    if unwritable:
+        print(f"error: --out {out} cannot be written: {unwritable}", file=sys.stderr)
+        raise SystemExit(2)
     try:
         path = fn(src, out)
     except (FileNotFoundError, ValueError) as exc:
+        if debugging():
+            raise
         print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except OSError as exc:
+        if debugging():
+            raise
+        print(f"error: --out {out} cannot be written: {exc.strerror or exc}", file=sys.stderr)
         raise SystemExit(2) from None
     print(path)
     return path
 
 
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    sys.exit(run_cli(main, "python -m camhealth.export"))

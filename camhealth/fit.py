@@ -9,22 +9,97 @@ the best model on the validation metric (``--monitor``/``--mode``), the last che
 monitor, Lightning's progress bar. After fitting, the best checkpoint is evaluated on the held-out test
 split (``--test_after_fit false`` skips it) and, with ``--export_weights PATH``, written as a camhealth
 weights file (tensors + JSON description, loadable by :func:`camhealth.load_estimator`).
+
+**Resuming.** ``last.ckpt`` (next to the best checkpoint) is written after every validation
+(``ModelCheckpoint(save_last=True)``) and also when training stops on an exception or Ctrl-C/SIGINT, at the step
+reached (as Lightning's ``OnExceptionCheckpoint``; a plain run never resumes by itself). ``--ckpt_path PATH`` (as LightningCLI's ``fit --ckpt_path``)
+continues from it: weights, optimiser, learning-rate schedule, step/epoch and the ``max_time`` clock are restored;
+``--ckpt_path last`` takes the newest ``last.ckpt`` under the logger's folder. The file must load with
+``torch.load(weights_only=True)`` (plain data, as camhealth's own checkpoints do) before Lightning opens it.
+
+**Checks before training.** The ``--monitor`` metric must be one the model logs: a validation metric is looked for
+in the metrics of Lightning's sanity-check validation (before the first step; with ``num_sanity_val_steps: 0`` at
+the first validation), a ``train/`` metric after the first step — a typo is refused there, naming the metrics
+that are logged, not when the first checkpoint would be written.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Sequence
 
 import torch
+from lightning.pytorch.callbacks import Callback, OnExceptionCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
+from camhealth._cli import add_debug_flag, run_cli
 from camhealth.runtime import keep_freed_memory
 from datamodules.patches import PatchDataModule
 from lightning_modules.base import EstimatorModule
 
 __all__ = ["FitCLI", "main"]
+
+
+class _LastCheckpointOnException(Callback):
+    """``last.ckpt`` in the ``ModelCheckpoint`` folder when training stops on an exception (Ctrl-C/SIGINT included),
+    at the step reached — what Lightning's ``OnExceptionCheckpoint`` does, without two of its side effects that would
+    change a plain run: a trainer holding one resumes ``fit(ckpt_path=None)`` from the newest last checkpoint it
+    finds (an earlier run's, where a checkpoint folder is reused), and it deletes its file on a normal end (here
+    ``ModelCheckpoint``'s ``last.ckpt``)."""
+
+    def __init__(self) -> None:
+        self.saved: str | None = None
+
+    def on_exception(self, trainer, pl_module, exception: BaseException) -> None:  # noqa: D102
+        ckpt = _model_checkpoint(trainer)
+        if ckpt is None or not ckpt.dirpath or trainer.global_step == 0 or trainer.sanity_checking:
+            return
+        path = str(Path(ckpt.dirpath) / f"{ckpt.CHECKPOINT_NAME_LAST}{ckpt.FILE_EXTENSION}")
+        trainer.save_checkpoint(path)
+        self.saved = path
+        if isinstance(exception, KeyboardInterrupt):
+            print(f"camhealth.fit: interrupted at step {trainer.global_step}; resume with --ckpt_path {path}", file=sys.stderr)
+
+
+def _model_checkpoint(trainer):
+    """The trainer's first ``ModelCheckpoint`` (``trainer.checkpoint_callback`` may be another ``Checkpoint``)."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    return next((c for c in trainer.checkpoint_callbacks if isinstance(c, ModelCheckpoint)), None)
+
+
+class _MonitoredMetricCheck(Callback):
+    """Refuse a ``--monitor`` metric the model does not log: after the sanity-check validation (validation metrics;
+    at the first validation when there is no sanity check) or the first training step (``train/`` metrics)."""
+
+    def __init__(self, monitor: str) -> None:
+        self.monitor = monitor
+        self.checked = False
+
+    def _check(self, trainer, when: str) -> None:
+        if self.checked:
+            return
+        logged = sorted(k for k in trainer.callback_metrics if not k.startswith("train/") or self.monitor.startswith("train/"))
+        if self.monitor not in trainer.callback_metrics:
+            raise ValueError(
+                f"--monitor {self.monitor!r} names no metric the model logs ({when}: {logged}); "
+                f"set monitor: to one of them"
+            )
+        self.checked = True
+
+    def on_sanity_check_end(self, trainer, pl_module) -> None:  # noqa: D102
+        if not self.monitor.startswith("train/"):
+            self._check(trainer, "sanity-check validation")
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:  # noqa: D102
+        if self.monitor.startswith("train/"):
+            self._check(trainer, "first training step")
+
+    def on_validation_end(self, trainer, pl_module) -> None:  # noqa: D102
+        if not trainer.sanity_checking and not self.monitor.startswith("train/"):
+            self._check(trainer, "first validation")
 
 
 class FitCLI(LightningCLI):
@@ -46,6 +121,13 @@ class FitCLI(LightningCLI):
             help="fine-tune: start from the weights of this camhealth weights file or checkpoint (same architecture; "
                  "optimiser and schedule start afresh)",
         )
+        parser.add_argument(
+            "--ckpt_path", type=str | None, default=None,
+            help="resume training from this checkpoint (a last.ckpt or best-*.ckpt of camhealth.fit, or 'last': the newest "
+                 "last.ckpt under the logger's folder): weights, optimiser, LR schedule, step/epoch and the max_time clock "
+                 "are restored (LightningCLI's fit --ckpt_path)",
+        )
+        add_debug_flag(parser)
         parser.set_defaults(  # plain defaults; every config may override them
             {
                 "trainer.logger": {
@@ -67,12 +149,13 @@ def _sync_metadata_set(config) -> None:
 
 def _add_default_callbacks(cli: FitCLI) -> None:
     """Replace Lightning's default (unmonitored) checkpoint callback by one that keeps the best model on
-    ``--monitor`` and the last one; add a learning-rate monitor when logging. Callbacks configured in
-    ``trainer.callbacks`` are kept as they are."""
+    ``--monitor`` and the last one; add a learning-rate monitor when logging, ``last.ckpt`` on an exception or
+    interrupt and the check of ``--monitor``. Callbacks configured in ``trainer.callbacks`` are kept as they are."""
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 
     trainer = cli.trainer
     cfg = cli.config
+    trainer.callbacks.append(_MonitoredMetricCheck(cfg["monitor"]))
     configured = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and c.monitor is not None]
     if not configured:
         trainer.callbacks = [c for c in trainer.callbacks if not isinstance(c, ModelCheckpoint)]
@@ -84,6 +167,8 @@ def _add_default_callbacks(cli: FitCLI) -> None:
         )
     if trainer.logger is not None and not any(isinstance(c, LearningRateMonitor) for c in trainer.callbacks):
         trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
+    if not any(isinstance(c, (OnExceptionCheckpoint, _LastCheckpointOnException)) for c in trainer.callbacks):
+        trainer.callbacks.append(_LastCheckpointOnException())
 
 
 def _init_from(model: EstimatorModule, path: str) -> None:
@@ -100,6 +185,42 @@ def _init_from(model: EstimatorModule, path: str) -> None:
         model.net.load_state_dict(state)
     except (RuntimeError, ValueError) as exc:
         raise ValueError(f"--init_from {path}: architecture differs from the config's: {str(exc).splitlines()[0]}") from None
+
+
+def _resume_path(cli: FitCLI) -> str | None:
+    """The checkpoint ``--ckpt_path`` names (``last``: the newest ``last.ckpt`` under the logger's folder), checked
+    to hold plain data only; ``None`` without the option."""
+    value = cli.config["ckpt_path"]
+    if not value:
+        return None
+    if value == "last":
+        logger = cli.trainer.logger
+        root = Path(getattr(logger, "root_dir", None) or cli.trainer.default_root_dir)
+        found = sorted(root.rglob("last*.ckpt"), key=lambda p: p.stat().st_mtime)
+        if not found:
+            raise ValueError(f"--ckpt_path last: no last.ckpt under {root}")
+        path = found[-1]
+    else:
+        path = Path(value)
+        if not path.is_file():
+            raise FileNotFoundError(f"--ckpt_path {value}: no such checkpoint file")
+    try:  # a checkpoint that holds more than plain data (pickled code) is refused before Lightning unpickles it
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        from camhealth.export import _load_refusal
+
+        raise ValueError(f"--ckpt_path {path}: not a checkpoint of plain data ({_load_refusal(exc)})") from None
+    # the learning-rate schedule is restored with the step: it cannot run past the steps it was made for
+    schedules = saved.get("lr_schedulers") if isinstance(saved, dict) else None
+    total = schedules[0].get("total_steps") if schedules and isinstance(schedules[0], dict) else None
+    max_steps = cli.trainer.max_steps
+    if isinstance(total, int) and max_steps is not None and max_steps >= total:
+        raise ValueError(
+            f"--ckpt_path {path}: its learning-rate schedule ends at step {total - 1} (the run's max_steps), "
+            f"trainer.max_steps = {max_steps} goes beyond it; resume with max_steps ≤ {total - 1}, or fine-tune from "
+            f"the weights with --init_from (a new schedule)"
+        )
+    return str(path)
 
 
 def main(args: Sequence[str] | None = None) -> FitCLI:
@@ -121,10 +242,14 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
     # the on-the-fly corruption and the training step allocate the same large buffers every batch
     keep_freed_memory()
     _add_default_callbacks(cli)
+    ckpt_path = _resume_path(cli)
     if cli.config["init_from"]:
+        if ckpt_path:
+            raise ValueError("--init_from starts a new training from weights, --ckpt_path resumes one; give one of them")
         _init_from(cli.model, cli.config["init_from"])
-    cli.trainer.fit(cli.model, datamodule=cli.datamodule)
-    best = cli.trainer.checkpoint_callback.best_model_path if cli.trainer.checkpoint_callback else ""
+    cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path)
+    checkpoint = _model_checkpoint(cli.trainer)
+    best = checkpoint.best_model_path if checkpoint is not None else ""
     results: dict = {"best_checkpoint": best}
     if cli.config["test_after_fit"]:
         tested = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=best or None)
@@ -144,4 +269,4 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    sys.exit(run_cli(main, "python -m camhealth.fit"))

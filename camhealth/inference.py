@@ -8,13 +8,16 @@
 - a **weights file** (``.pt``, :func:`camhealth.export.export_weights`) or a **Lightning checkpoint**
   (``.ckpt``) written by ``python -m camhealth.fit`` — loaded with ``torch.load(weights_only=True)``:
   tensors only, never arbitrary pickled code; anything else is rejected with a clear error;
-- an **exported program** (``.pt2``, run with :func:`torch.export.load`) or an **ONNX** file (``.onnx``,
-  run with ONNX Runtime).
+- an **exported program** (``.pt2``, run with :func:`torch.export.load` after
+  :func:`camhealth._pt2_check.check_pt2_archive` has refused pickled entries, non-operator call targets, guard code
+  and symbolic shapes that are not plain arithmetic) or an **ONNX** file (``.onnx``, run with ONNX Runtime).
 
 ``Estimator.predict(images, metadata=None)``:
 
-- ``images``: B×1×P×P patches (also B×P×P or P×P) as a torch tensor or NumPy array, P = ``patch_size``
-  (128 for noise, 192 for MTF). Integer arrays (uint8/uint16 …) are **DN**; floating arrays are
+- ``images``: B×1×P×P gray patches (also B×P×P or P×P) as a torch tensor or NumPy array, P = ``patch_size``
+  (128 for noise, 192 for MTF); an empty batch gives outputs with 0 rows. Colour is refused with a message naming
+  the layout it looks like (H×W×C or B×H×W×C channels last, B×C×H×W), and so is a 3×P×P or 4×P×P array, which could
+  be gray patches or one colour image (pass B×1×P×P). Integer arrays (uint8/uint16 …) are **DN**; floating arrays are
   **[0, 1]** (= DN/255) unless ``input_range="dn"``; a float input above 1 with the default
   ``input_range="auto"`` is refused with a hint, never silently rescaled.
 - ``metadata``: required when ``metadata_set`` is ``"minimal"`` or ``"full"``:
@@ -123,20 +126,15 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         t = images.detach().cpu()
     else:
         raise TypeError(f"images must be a torch.Tensor or numpy.ndarray, got {type(images).__name__}")
-    if t.ndim == 2:
-        t = t[None, None]
-    elif t.ndim == 3:
-        t = t[:, None]
-    if t.ndim != 4 or t.shape[1] != 1:
-        raise ValueError(f"images must be B×1×H×W (or B×H×W, H×W) gray patches, got shape {tuple(t.shape)}")
+    t = _gray_patch_layout(t, patch_size)
     if tuple(t.shape[-2:]) != (patch_size, patch_size):
         raise ValueError(
             f"patches must be {patch_size}×{patch_size} px for this estimator, got {t.shape[-2]}×{t.shape[-1]}; "
             f"tile larger images (camhealth.monitor does)"
         )
-    if t.shape[0] == 0:
-        raise ValueError("images is an empty batch")
     t = t.to(torch.float64 if t.dtype == torch.float64 else torch.float32)
+    if t.shape[0] == 0:  # an empty batch: empty outputs
+        return t.float()
     lo_t, hi_t = torch.aminmax(t)  # one pass; NaN propagates into both, ±inf shows as an extreme
     lo, hi = float(lo_t), float(hi_t)
     if not (np.isfinite(lo) and np.isfinite(hi)):
@@ -151,6 +149,35 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
             hint = " (looks like DN: pass input_range='dn')" if hi <= 255 and lo >= 0 else ""
             raise ValueError(f"float images must lie in [0, 1], got min {lo:g}, max {hi:g}{hint}")
     return t.clamp(0, 1).float()
+
+
+_LAYOUTS = "B×1×H×W, B×H×W or H×W gray patches"
+
+
+def _gray_patch_layout(t: torch.Tensor, patch_size: int) -> torch.Tensor:
+    """``t`` as B×1×H×W, or a ``ValueError`` that names the layout it looks like: colour with channels last
+    (H×W×C, B×H×W×C) or first (B×C×H×W), or C×H×W colour that could as well be a few gray patches."""
+    shape = "×".join(map(str, t.shape))
+    colour = "convert colour to gray first (camhealth.data.to_gray, BT.601 luma)"
+    if t.ndim in (3, 4) and t.shape[-1] in (3, 4) and min(t.shape[-3:-1]) > 4:
+        layout = "an H×W×C" if t.ndim == 3 else "a B×H×W×C"
+        raise ValueError(f"images of shape {shape} look like {layout} colour image (channels last); the estimators take "
+                         f"{_LAYOUTS}: {colour}")
+    if t.ndim == 2:
+        return t[None, None]
+    if t.ndim == 3:
+        if t.shape[0] in (3, 4) and tuple(t.shape[1:]) == (patch_size, patch_size):
+            raise ValueError(
+                f"images of shape {shape} are ambiguous: {t.shape[0]} gray patches (B×H×W) or one colour image "
+                f"(C×H×W, channels first); pass gray patches as B×1×H×W (x[:, None]), or {colour}"
+            )
+        return t[:, None]
+    if t.ndim == 4 and t.shape[1] in (3, 4):
+        raise ValueError(f"images of shape {shape} look like a B×C×H×W colour batch (channels first); the estimators take "
+                         f"{_LAYOUTS}: {colour}")
+    if t.ndim != 4 or t.shape[1] != 1:
+        raise ValueError(f"images must be {_LAYOUTS}, got shape {shape}")
+    return t
 
 
 def _to_metadata(metadata: Any, batch: int, base_preset: str | None) -> CameraMetadata:
@@ -229,6 +256,8 @@ class Estimator:
         if views > 1 and self.kind != "mtf":
             raise ValueError(f"views = {views} averages flipped copies of MTF patches; estimator {self.name!r} is {self.kind!r}")
         patches = _to_patches(images, self.patch_size, input_range)
+        if patches.shape[0] == 0:
+            return self._empty_result(metadata)
         if views > 1:  # estimates of flipped copies are averaged below; the MTF along H and V is flip-invariant
             flips = [(-2, -1)] if views == 2 else [(-1,), (-2,), (-2, -1)]
             assessed = patches
@@ -277,6 +306,21 @@ class Estimator:
         return result
 
 
+    def _empty_result(self, metadata: Any) -> dict[str, Any]:
+        """The outputs of :meth:`predict` for an empty batch: every entry with 0 rows."""
+        if self.metadata_set != "none" and metadata is None:
+            raise ValueError(f"estimator {self.name!r} reads {self.metadata_set!r} metadata: pass metadata=")
+        z = torch.zeros(0)
+        result: dict[str, Any] = {"assessable": torch.zeros(0, dtype=torch.bool), "reason": []}
+        if self.kind == "mtf":
+            result["mtf"] = torch.zeros(0, 16)
+        elif self.kind == "drne":
+            result.update(sigma_map=torch.zeros(0, 1, self.patch_size, self.patch_size), sigma_total=z, sigma_median=z)
+        else:
+            result.update(sigma=torch.zeros(0, 3), sigma_total=z, xi=z)
+        return result
+
+
 def bucket_size(n: int) -> int:
     """Batch size a chunk of ``n`` patches is padded to before the network (torch backend): the next
     multiple of 4 up to 32, of 16 beyond. oneDNN builds (JIT-compiles) its convolution kernels per input
@@ -322,6 +366,9 @@ def _torch_runner(module) -> Callable[..., torch.Tensor]:
 
 
 def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
+    from camhealth._pt2_check import check_pt2_archive
+
+    check_pt2_archive(path)  # before torch opens it: torch's loader unpickles some entries without weights_only
     extra = {"camhealth.json": ""}
     try:
         ep = torch.export.load(str(path), extra_files=extra)

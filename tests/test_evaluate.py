@@ -193,3 +193,50 @@ def test_config_errors(tmp_path):
         ev.run_evaluation(TINY, tmp_path, ev.classical_methods(), progress=False)
     with pytest.raises(ValueError, match="no method"):
         ev.run_evaluation(TINY, tmp_path, [], progress=False)
+
+
+# ---------------------------------------------------------------------------------------------- cache faults
+def _runner(tmp_path, logs):
+    return ev._Runner(ev.QUICK, tmp_path / "cache", resume=True, log=logs.append, progress=False)
+
+
+def test_resume_survives_a_truncated_cache_entry(tmp_path):
+    """An interrupted run could leave a cut-off entry; --resume reports it, computes it again and rewrites it."""
+    logs: list[str] = []
+    method = ev.Method("fake", "noise", fn=lambda *a: None)
+    calls: list[int] = []
+
+    def call(batch, sl):
+        calls.append(len(batch))
+        return batch * 2
+
+    inputs = torch.arange(6.0)
+    first = _runner(tmp_path, logs).run("case", method, "", inputs, call, "patch")
+    (entry,) = list((tmp_path / "cache").rglob("*.pt"))
+    data = entry.read_bytes()
+    entry.write_bytes(data[: len(data) // 2])
+    again = _runner(tmp_path, logs).run("case", method, "", inputs, call, "patch")
+    assert torch.equal(again, first) and len(calls) == 2
+    assert any("cannot be read" in m and str(entry) in m for m in logs)
+    runner = _runner(tmp_path, logs)
+    assert torch.equal(runner.run("case", method, "", inputs, call, "patch"), first)
+    assert runner.reused == 1 and len(calls) == 2  # the rewritten entry is whole again
+
+
+def test_cache_entries_are_written_atomically(tmp_path, monkeypatch):
+    """A write that fails half-way leaves the previous entry intact and no temporary file behind."""
+    path = tmp_path / "case" / "entry.pt"
+    ev._write_cache({"config_key": "a", "out": torch.ones(3)}, path)
+    real_save = torch.save
+
+    def failing_save(obj, f, *args, **kwargs):
+        real_save(obj, f, *args, **kwargs)
+        f.truncate(10)
+        raise KeyboardInterrupt  # the run is stopped while writing
+
+    monkeypatch.setattr(torch, "save", failing_save)
+    with pytest.raises(KeyboardInterrupt):
+        ev._write_cache({"config_key": "b", "out": torch.zeros(3)}, path)
+    monkeypatch.undo()
+    assert [p.name for p in path.parent.iterdir()] == ["entry.pt"]
+    assert torch.load(path, weights_only=True)["config_key"] == "a"

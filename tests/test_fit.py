@@ -121,3 +121,95 @@ def test_fit_keeps_freed_memory_for_reuse(tmp_path, monkeypatch):
     assert calls == [1]  # the allocator setting of camhealth.runtime, once per run
 
 
+# ------------------------------------------------------------------ resuming, and checks before training
+@pytest.fixture
+def sigint_raises():
+    """SIGINT raises KeyboardInterrupt during the test (a shell may start a job with SIGINT ignored; Lightning
+    ignores it after one), and the handler is restored afterwards."""
+    import signal
+
+    before = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def _sigint_at(step: int) -> str:
+    return '--trainer.callbacks+={"class_path": "tests._interrupt.SigintAt", "init_args": {"step": %d}}' % step
+
+
+def test_sigint_writes_last_ckpt_at_that_step_and_ckpt_path_resumes_everything(tmp_path, sigint_raises, capsys):
+    import torch
+
+    run = ["--trainer.max_steps", "6", "--trainer.val_check_interval", "4", "--test_after_fit", "false"]
+    with pytest.raises(SystemExit):  # Lightning ends an interrupted fit with exit status 1
+        main(tiny_args("noise_source.yaml", tmp_path, *run, _sigint_at(3)))
+    (last,) = list(tmp_path.rglob("last.ckpt"))
+    assert f"resume with --ckpt_path {last}" in capsys.readouterr().err
+    saved = torch.load(last, weights_only=True)  # plain data only
+    assert saved["global_step"] == 3  # the step reached, not the last validation (there was none yet)
+    assert saved["optimizer_states"][0]["state"][0]["step"].item() == 3
+    assert saved["lr_schedulers"][0]["last_epoch"] == 3
+    elapsed = saved["callbacks"]["Timer"]["time_elapsed"]["train"]
+    assert elapsed > 0
+    cli = main(tiny_args("noise_source.yaml", tmp_path, *run, "--ckpt_path", str(last)))
+    trainer = cli.trainer
+    assert trainer.global_step == 6
+    assert trainer.optimizers[0].state_dict()["state"][0]["step"].item() == 6  # optimiser continued, not restarted
+    assert trainer.lr_scheduler_configs[0].scheduler.last_epoch == 6  # schedule continued
+    timer = next(c for c in trainer.callbacks if type(c).__name__ == "Timer")
+    assert timer.time_elapsed("train") >= elapsed  # the max_time clock counts the first run too
+
+
+def test_ckpt_path_last_takes_the_newest_last_ckpt(tmp_path, sigint_raises):
+    run = ["--trainer.max_steps", "4", "--test_after_fit", "false"]
+    main(tiny_args("noise_source.yaml", tmp_path, *run))  # a finished run: its last.ckpt is at step 4
+    with pytest.raises(SystemExit):
+        main(tiny_args("noise_source.yaml", tmp_path, *run, _sigint_at(3)))  # the newest: step 3
+    newest = max(tmp_path.rglob("last.ckpt"), key=lambda p: p.stat().st_mtime)
+    assert "version_1" in str(newest)
+    cli = main(tiny_args("noise_source.yaml", tmp_path, *run, "--ckpt_path", "last", "--trainer.max_steps", "4"))
+    assert cli.trainer.ckpt_path == str(newest) and cli.trainer.global_step == 4
+    with pytest.raises(ValueError, match="schedule ends at step 4"):
+        main(tiny_args("noise_source.yaml", tmp_path, *run, "--ckpt_path", "last", "--trainer.max_steps", "9"))
+
+
+def test_ckpt_path_is_checked(tmp_path):
+    import torch
+
+    from tests._evil_files import Payload
+
+    with pytest.raises(FileNotFoundError, match="no such checkpoint"):
+        main(tiny_args("noise_source.yaml", tmp_path, "--ckpt_path", str(tmp_path / "missing.ckpt")))
+    evil = tmp_path / "evil.ckpt"
+    marker = tmp_path / "MARKER"
+    torch.save({"state_dict": Payload(marker)}, evil)
+    with pytest.raises(ValueError, match="not a checkpoint of plain data") as info:
+        main(tiny_args("noise_source.yaml", tmp_path, "--ckpt_path", str(evil)))
+    assert not marker.exists() and "weights_only" not in str(info.value)
+    with pytest.raises(ValueError, match="no last.ckpt"):
+        main(tiny_args("noise_source.yaml", tmp_path / "fresh", "--ckpt_path", "last"))
+
+
+@pytest.mark.parametrize(
+    "monitor,extra,when",
+    [
+        ("val/rms_totl", [], "sanity-check validation"),
+        ("val/rms_totl", ["--trainer.num_sanity_val_steps", "0"], "first validation"),
+        ("train/lss", [], "first training step"),
+    ],
+)
+def test_a_monitor_that_names_no_logged_metric_is_refused_early(tmp_path, monitor, extra, when):
+    with pytest.raises(ValueError, match=f"--monitor '{monitor}' names no metric the model logs \\({when}") as info:
+        main(tiny_args("noise_source.yaml", tmp_path, "--monitor", monitor, "--trainer.max_steps", "50", *extra))
+    assert ("val/rms_total" if monitor.startswith("val") else "train/loss") in str(info.value)
+    import torch
+
+    steps = [torch.load(p, weights_only=True)["global_step"] for p in tmp_path.rglob("*.ckpt")]
+    # refused before the first step, after the first step, or at the first validation (step 2), not at step 50
+    assert steps == ([2] if when == "first validation" else [1] if when == "first training step" else [])
+
+
+def test_a_train_metric_can_be_monitored(tmp_path):
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--monitor", "train/loss", "--test_after_fit", "false"))
+    assert cli.trainer.global_step == 2

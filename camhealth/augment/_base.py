@@ -36,23 +36,39 @@ class CorruptionBase(IntensityAugmentationBase2D):
     _rng: str = "torch"
 
     def __init__(self, p: float, same_on_batch: bool, keepdim: bool) -> None:
-        super().__init__(p=p, same_on_batch=same_on_batch, p_batch=1.0, keepdim=keepdim)
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= float(p) <= 1.0:
+            raise ValueError(f"p = {p!r} must be a probability in [0, 1]")
+        super().__init__(p=float(p), same_on_batch=same_on_batch, p_batch=1.0, keepdim=keepdim)
         self._formation: ImageFormation | None = None
+        self._formation_params: Dict[str, torch.Tensor] | None = None  # the params the formation was made with
         self._sf_cache: tuple[torch.Tensor, torch.Tensor] | None = None
 
     # ------------------------------------------------------------------ helpers
     def validate_tensor(self, input: torch.Tensor) -> None:  # noqa: D102 (Kornia hook)
-        check_float(input, "input")
+        # Kornia calls this hook for images and for the masks of AugmentationSequential (which pass through an
+        # intensity augmentation unchanged and may hold any labels): only the layout is checked here, the image's
+        # values in transform_inputs.
         if input.ndim != 4:
             raise ValueError(f"input must have shape B×C×H×W (or C×H×W / H×W), got {tuple(input.shape)}")
+
+    @staticmethod
+    def _check_image(input: torch.Tensor) -> None:
+        check_float(input, "input")
+        if input.numel() == 0:
+            return
         lo, hi = (float(v) for v in torch.aminmax(input.detach()))  # one pass; NaN propagates into lo/hi
         if not (math.isfinite(lo) and math.isfinite(hi)):
             check_finite(input, "input")
         if lo < 0 or hi > 1:
             raise ValueError(f"input must lie in [0, 1] (DN/255), got values in [{lo:g}, {hi:g}]")
 
+    def transform_inputs(self, input: torch.Tensor, params: Dict[str, torch.Tensor], flags: Dict[str, Any],
+                         transform: Optional[torch.Tensor] = None, **kwargs: Any) -> torch.Tensor:  # noqa: D102
+        self._check_image(input)
+        return super().transform_inputs(input, params, flags, transform=transform, **kwargs)
+
     @staticmethod
-    def _gate(params: Dict[str, torch.Tensor], name: str, b: int, device: torch.device) -> torch.Tensor:
+    def _component_gate(params: Dict[str, torch.Tensor], name: str, b: int, device: torch.device) -> torch.Tensor:
         g = torch.ones(b, dtype=torch.bool, device=device)
         if f"{name}_gate" in params:
             g = g & (params[f"{name}_gate"].to(device) > 0.5)
@@ -97,6 +113,10 @@ class CorruptionBase(IntensityAugmentationBase2D):
         transform: Optional[torch.Tensor] = None,
     ) -> torch.Tensor:
         dev = input.device
+        self._formation_params = _snapshot(params)
+        if input.shape[0] == 0:  # an empty batch comes back empty, with empty labels
+            self._formation = _empty_formation(input)
+            return input.clone()
         dpsf = self.defocus_psf(params, dev) if self._defocus_ks is not None else None
         mpsf = self.motion_psf(params, dev) if self._motion_ks is not None else None
         meta = None
@@ -134,21 +154,30 @@ class CorruptionBase(IntensityAugmentationBase2D):
         the applied PSF (1 where no blur was applied); ``sigma_dn`` (B, 3) realised σ of (PN, DCSN, RN)
         after clipping; ``sigma_total_dn`` (B,); ``sigma_expected_dn`` (B, 3) and
         ``sigma_total_expected_dn`` (B,) analytic; ``clipped_fraction`` (B,); ``metadata``
-        (:class:`CameraMetadata`). Noise labels need the last forward call (they depend on the image).
+        (:class:`CameraMetadata`). Noise labels need the last forward call (they depend on the image): for a
+        noise module ``params`` must hold the values of that call (else ``ValueError``: replay them first with
+        ``aug(x, params=params)``); blur labels follow ``params`` alone. An empty batch gives labels with 0 rows.
         """
         params = self._params if params is None else params
         if not params:
             raise RuntimeError("no parameters yet: call the module on a batch first, or pass params")
         b = int(params["forward_input_shape"][0]) if "forward_input_shape" in params else int(params["batch_prob"].numel())
+        if self._sources and not _same_params(params, self._formation_params):
+            raise ValueError(
+                "labels(params=...): the noise labels depend on the image and are those of the last call, which used other "
+                "params; replay that call first (aug(x, params=params)), then call aug.labels()"
+            )
         out: Dict[str, Any] = {}
+        if b == 0:
+            return self._empty_labels(params)
         if self._defocus_ks is not None or self._motion_ks is not None:
             mtf = None
             if self._defocus_ks is not None:
                 mtf = mtf_hv(self.defocus_psf(params))
-                mtf = torch.where(self._gate(params, "defocus", b, mtf.device)[:, None], mtf, torch.ones_like(mtf))
+                mtf = torch.where(self._component_gate(params, "defocus", b, mtf.device)[:, None], mtf, torch.ones_like(mtf))
             if self._motion_ks is not None:
                 m = mtf_hv(self.motion_psf(params))
-                m = torch.where(self._gate(params, "motion", b, m.device)[:, None], m, torch.ones_like(m))
+                m = torch.where(self._component_gate(params, "motion", b, m.device)[:, None], m, torch.ones_like(m))
                 mtf = m if mtf is None else mtf * m
             out["mtf"] = mtf
         if self._sources:
@@ -157,11 +186,24 @@ class CorruptionBase(IntensityAugmentationBase2D):
             f = self._formation
             if f is None or f.sigma_dn.shape[0] != b:
                 raise RuntimeError("noise labels need a forward call on this batch before labels()")
-            on = self._gate(params, "noise", b, f.sigma_dn.device)
+            on = self._component_gate(params, "noise", b, f.sigma_dn.device)
             for name in ("sigma_dn", "sigma_total_dn", "sigma_expected_dn", "sigma_total_expected_dn", "clipped_fraction"):
                 v = getattr(f, name)
                 mask = on.view(-1, *([1] * (v.ndim - 1)))
                 out[name] = torch.where(mask, v, torch.zeros_like(v)) if name != "clipped_fraction" else v
+        return out
+
+    def _empty_labels(self, params: Dict[str, torch.Tensor]) -> Dict[str, Any]:
+        """The labels of an empty batch: every entry with 0 rows."""
+        out: Dict[str, Any] = {}
+        if self._defocus_ks is not None or self._motion_ks is not None:
+            out["mtf"] = torch.ones(0, 16)
+        if self._sources:
+            out["metadata"] = params_to_metadata(params)
+            f = self._formation
+            assert f is not None
+            out.update(sigma_dn=f.sigma_dn, sigma_total_dn=f.sigma_total_dn, sigma_expected_dn=f.sigma_expected_dn,
+                       sigma_total_expected_dn=f.sigma_total_expected_dn, clipped_fraction=f.clipped_fraction)
         return out
 
     @staticmethod
@@ -179,6 +221,29 @@ class CorruptionBase(IntensityAugmentationBase2D):
         params["batch_prob"] = torch.ones(meta.batch_size, device=device)
         params["forward_input_shape"] = torch.tensor([meta.batch_size, 1, 0, 0])
         return params
+
+
+def _snapshot(params: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:
+    """Copies of the tensors of ``params`` (what a call's labels were made from)."""
+    return {k: v.detach().clone() for k, v in params.items() if isinstance(v, torch.Tensor) and k != "forward_input_shape"}
+
+
+def _same_params(params: Dict[str, torch.Tensor], snapshot: Dict[str, torch.Tensor] | None) -> bool:
+    """Whether ``params`` holds the values ``snapshot`` was taken of (same keys, equal tensors)."""
+    if snapshot is None:
+        return True  # no call yet: labels() says so itself
+    mine = {k: v for k, v in params.items() if isinstance(v, torch.Tensor) and k != "forward_input_shape"}
+    if mine.keys() != snapshot.keys():
+        return False
+    return all(
+        mine[k].shape == v.shape and torch.equal(mine[k].detach().to(v.device, v.dtype), v) for k, v in snapshot.items()
+    )
+
+
+def _empty_formation(input: torch.Tensor) -> ImageFormation:
+    z = input.new_zeros(0, dtype=torch.float64 if input.dtype == torch.float64 else torch.float32)
+    return ImageFormation(image=input.clone(), sigma_dn=z.reshape(0, 3), sigma_total_dn=z, sigma_expected_dn=z.reshape(0, 3),
+                          sigma_total_expected_dn=z, clipped_fraction=z, blurred=input.clone())
 
 
 def check_sources(sources: Sequence[str]) -> tuple[str, ...]:

@@ -90,7 +90,7 @@ class MotionGenerator(_UniformFieldsGenerator):
 
     def forward(self, batch_shape: tuple[int, ...], same_on_batch: bool = False) -> dict[str, torch.Tensor]:
         out = self._sample(batch_shape[0], same_on_batch)
-        n = 1 if same_on_batch else batch_shape[0]
+        n = 1 if same_on_batch or batch_shape[0] == 0 else batch_shape[0]
         noise = sample_shake_noise(n, self.n_steps, device=self.device, dtype=torch.float32)
         out["shake_noise"] = noise.expand(batch_shape[0], -1, -1).contiguous()
         return out
@@ -132,7 +132,7 @@ class SensorNoiseGenerator(RandomGeneratorBase):
 
     def forward(self, batch_shape: tuple[int, ...], same_on_batch: bool = False) -> dict[str, torch.Tensor]:
         b = batch_shape[0]
-        n = 1 if same_on_batch else b
+        n = 1 if same_on_batch or b == 0 else b  # an empty batch: one draw, expanded to none
         meta = CameraMetadata.sample(n, ranges=self.ranges, fixed=self.metadata, gain_uniform_in=self.gain_uniform_in)
         params = metadata_to_params(meta.expand(b) if n == 1 else meta, device=self.device)
         seed = torch.randint(0, 2**62, (1,), dtype=torch.int64)

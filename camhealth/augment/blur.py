@@ -11,6 +11,13 @@ from camhealth.physics.defocus_psf import default_kernel_size
 
 __all__ = ["RandomDefocusBlur", "RandomMotionBlur", "motion_kernel_size"]
 
+#: Largest kernel of the blur modules [px], and the largest disk diameter / motion length it holds (a defocus
+#: kernel needs d + 2 px, a motion kernel L + 3 px: :func:`~camhealth.physics.defocus_psf.default_kernel_size`,
+#: :func:`motion_kernel_size`).
+MAX_KERNEL_PX = 255
+MAX_DIAMETER_PX = 253.0
+MAX_LENGTH_PX = 252.0
+
 
 def motion_kernel_size(max_length_px: float, nonlinear: bool) -> int:
     """Smallest odd kernel that holds a motion path of arc length ``max_length_px`` with 1 px margin.
@@ -27,8 +34,8 @@ class RandomDefocusBlur(CorruptionBase):
     r"""Defocus blur with a uniform-disk PSF of random diameter (circle of confusion, thesis Eq. 3.6).
 
     Args:
-        diameter: disk diameter [px], a number or (low, high) sampled uniformly per sample; sub-pixel
-            diameters are anti-aliased. Default (1, 21).
+        diameter: disk diameter [px], a number or (low, high) sampled uniformly per sample, in [0, 253] (the
+            largest disk whose kernel fits 255 px); sub-pixel diameters are anti-aliased. Default (1, 21).
         kernel_size: odd kernel size; default: smallest that holds the largest disk.
         p: probability to blur a sample. Default 1 (a camera always images through its optics).
         same_on_batch: one diameter for the whole batch.
@@ -53,7 +60,7 @@ class RandomDefocusBlur(CorruptionBase):
         keepdim: bool = False,
     ) -> None:
         super().__init__(p=p, same_on_batch=same_on_batch, keepdim=keepdim)
-        lo, hi = as_range(diameter, "diameter", (0.0, 255.0))
+        lo, hi = as_range(diameter, "diameter", (0.0, MAX_DIAMETER_PX))
         self._defocus_ks = check_odd_kernel_size(kernel_size) if kernel_size is not None else default_kernel_size(hi)
         if hi > self._defocus_ks:
             raise ValueError(f"diameter up to {hi:g} px does not fit kernel_size = {self._defocus_ks}")
@@ -64,7 +71,8 @@ class RandomMotionBlur(CorruptionBase):
     r"""Linear or non-linear (camera-shake) motion blur with sub-pixel PSFs (thesis Eq. 3.10).
 
     Args:
-        length: path length L = v·t_exp [px], number or (low, high). Default (1, 21).
+        length: path length L = v·t_exp [px], number or (low, high), in [0, 252] (the longest path whose kernel
+            fits 255 px). Default (1, 21).
         angle: direction Φ [deg], number or (low, high); 0° horizontal, 90° vertical. Default (0, 180).
         intensity: shake intensity in [0, 1]: 0 → straight line, 1 → strongly curved, jerky path.
             Default 0 (linear motion).
@@ -86,7 +94,7 @@ class RandomMotionBlur(CorruptionBase):
         keepdim: bool = False,
     ) -> None:
         super().__init__(p=p, same_on_batch=same_on_batch, keepdim=keepdim)
-        length_r = as_range(length, "length", (0.0, 255.0))
+        length_r = as_range(length, "length", (0.0, MAX_LENGTH_PX))
         angle_r = as_range(angle, "angle", (-360.0, 360.0))
         intensity_r = as_range(intensity, "intensity", (0.0, 1.0))
         nonlinear = intensity_r[1] > 0

@@ -1,8 +1,13 @@
 """Reading images from disk as camhealth tensors, and the one colour → gray rule of the package.
 
 Convention (``docs/data.md``): an image is a float32 tensor ``1×H×W`` (add the batch dimension
-yourself) with values in [0, 1] = DN / (dtype max): DN/255 for 8-bit files, DN/65535 for 16-bit
-files. Colour is converted to gray with the ITU-R BT.601 luma weights
+yourself) with values in [0, 1] = DN / (2^bits − 1): DN/255 for 8-bit files; a 16-bit file holds data of
+``bits`` ≤ 16 significant bits — a 12-bit camera's frames in a 16-bit PNG are DN/4095, not DN/65535 (which
+would read 5 DN of noise as 0.3 DN). :func:`read_image` takes ``bit_depth`` (8…16) or detects it
+(``"auto"``): from a PNG's significant-bits chunk (``sBIT``) where there is one, else from the largest
+value (the fewest of 8, 10, 12, 14, 16 bits that hold it), and warns when it had to guess;
+:func:`read_image_scaled` also returns which scaling it used (:class:`ImageScaling`).
+Colour is converted to gray with the ITU-R BT.601 luma weights
 
     Y = 0.299 R + 0.587 G + 0.114 B
 
@@ -14,13 +19,16 @@ bits). An alpha channel is dropped (not composited); a palette image is expanded
 from __future__ import annotations
 
 import os
+import struct
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Union
 
 import numpy as np
 import torch
 
-__all__ = ["BT601_WEIGHTS", "IMAGE_EXTENSIONS", "to_gray", "read_image"]
+__all__ = ["BT601_WEIGHTS", "IMAGE_EXTENSIONS", "ImageScaling", "to_gray", "read_image", "read_image_scaled"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -79,12 +87,96 @@ def to_gray(image):
     return gray.astype(out_dtype)
 
 
-def _normalise(arr: np.ndarray, path: Path) -> np.ndarray:
-    """Integer DN → [0, 1] by the dtype's maximum; float data must already be in [0, 1]."""
+@dataclass(frozen=True)
+class ImageScaling:
+    """How :func:`read_image_scaled` mapped a file's integer values to [0, 1].
+
+    Attributes:
+        file_bits: bits per sample of the file (8 or 16); ``None`` for floating-point or 1-bit data.
+        bits: significant bits the values were scaled by (value / (2^bits − 1)); ``None`` when not scaled.
+        source: where ``bits`` came from: ``"file"`` (8-bit data, or 16-bit data using the full range),
+            ``"sBIT"`` (the PNG's significant-bits chunk), ``"largest value"`` (a guess from the data) or
+            ``"given"`` (the caller's ``bit_depth``).
+        max_value: the largest value in the file (DN of the file).
+    """
+
+    file_bits: int | None
+    bits: int | None
+    source: str
+    max_value: float
+
+    @property
+    def divisor(self) -> float | None:
+        return None if self.bits is None else float(2**self.bits - 1)
+
+    def describe(self) -> str:
+        if self.bits is None:
+            return "floating-point data in [0, 1], not rescaled"
+        why = {"given": ", as given", "sBIT": ", from the PNG's sBIT chunk",
+               "largest value": f", guessed from the largest value {self.max_value:g}"}.get(self.source, "")
+        return f"{self.file_bits}-bit file read as {self.bits}-bit data (÷{2**self.bits - 1}{why})"
+
+
+_BIT_DEPTHS = (8, 10, 12, 14, 16)
+
+
+def _check_bit_depth(bit_depth: int | str) -> int | str:
+    if isinstance(bit_depth, str) and bit_depth == "auto":
+        return bit_depth
+    if isinstance(bit_depth, bool) or not isinstance(bit_depth, (int, np.integer)) or not 1 <= int(bit_depth) <= 16:
+        raise ValueError(f"bit_depth = {bit_depth!r} must be 'auto' or an integer number of bits in [1, 16]")
+    return int(bit_depth)
+
+
+def _png_sbit(path: Path) -> int | None:
+    """Largest significant-bits value of a PNG's ``sBIT`` chunk (before the image data), or ``None``."""
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != b"\x89PNG\r\n\x1a\n":
+                return None
+            while True:
+                head = f.read(8)
+                if len(head) < 8:
+                    return None
+                length, kind = struct.unpack(">I4s", head)
+                if kind in (b"IDAT", b"IEND"):
+                    return None
+                data = f.read(length)
+                f.seek(4, os.SEEK_CUR)  # CRC
+                if kind == b"sBIT" and 1 <= len(data) <= 4:
+                    return max(data)
+    except OSError:
+        return None
+
+
+def _scaling(arr: np.ndarray, path: Path, bit_depth: int | str) -> ImageScaling:
+    file_bits = 8 if arr.dtype == np.uint8 else 16
+    top = int(arr.max()) if arr.size else 0
+    if bit_depth != "auto":
+        if bit_depth > file_bits:
+            raise ValueError(f"cannot read image {path} as {bit_depth}-bit data: the file stores {file_bits}-bit values")
+        if top > 2**bit_depth - 1:
+            raise ValueError(
+                f"cannot read image {path} as {bit_depth}-bit data: it holds values up to {top} "
+                f"(more than {2**bit_depth - 1}); give a larger bit_depth or 'auto'"
+            )
+        return ImageScaling(file_bits, int(bit_depth), "given", float(top))
+    if file_bits == 8:
+        return ImageScaling(8, 8, "file", float(top))
+    sbit = _png_sbit(path) if path.suffix.lower() == ".png" else None
+    if sbit is not None and 1 <= sbit <= 16 and top <= 2**sbit - 1:
+        return ImageScaling(16, sbit, "file" if sbit == 16 else "sBIT", float(top))
+    bits = next(b for b in _BIT_DEPTHS if top <= 2**b - 1)
+    return ImageScaling(16, bits, "file" if bits == 16 else "largest value", float(top))
+
+
+def _normalise(arr: np.ndarray, path: Path, scaling: ImageScaling | None = None) -> np.ndarray:
+    """Integer DN → [0, 1] by ``scaling`` (default: the dtype's maximum); float data must already be in [0, 1]."""
     if arr.dtype == np.bool_:
         return arr.astype(np.float64)
     if arr.dtype in (np.uint8, np.uint16):
-        return arr.astype(np.float64) / float(np.iinfo(arr.dtype).max)
+        divisor = scaling.divisor if scaling is not None else float(np.iinfo(arr.dtype).max)
+        return arr.astype(np.float64) / divisor
     if np.issubdtype(arr.dtype, np.floating):
         arr = arr.astype(np.float64)
         if not np.isfinite(arr).all() or arr.min() < 0.0 or arr.max() > 1.0:
@@ -170,18 +262,33 @@ def _read_tiff(path: Path) -> np.ndarray:
     return arr
 
 
-def read_image(path: PathLike) -> torch.Tensor:
+def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
     """Read an image file as a gray float32 tensor ``1×H×W`` in [0, 1].
 
-    Formats: PNG, JPEG, TIFF (first page), BMP; 8-bit (÷255) or 16-bit (÷65535) samples, gray, gray+alpha,
-    palette, RGB or RGBA. Colour → gray by BT.601 luma (:func:`to_gray`); alpha is dropped. JPEG EXIF
-    orientation is applied.
+    Formats: PNG, JPEG, TIFF (first page), BMP; 8-bit (÷255) or 16-bit samples, gray, gray+alpha, palette, RGB
+    or RGBA. Colour → gray by BT.601 luma (:func:`to_gray`); alpha is dropped. JPEG EXIF orientation is applied.
+
+    ``bit_depth``: significant bits of 16-bit data, 1…16 (values are divided by 2^bit_depth − 1; a value above
+    that raises), or ``"auto"`` (default): the PNG's ``sBIT`` chunk where there is one, else the fewest of 8, 10,
+    12, 14 or 16 bits that hold the largest value — a guess, announced with a ``UserWarning`` that names the
+    scaling when it is not 16 bits (pass ``bit_depth=16`` for DN/65535). :func:`read_image_scaled` returns the
+    scaling with the image.
 
     Raises:
         FileNotFoundError: ``path`` does not exist (the message names it).
-        ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), or the file is
-            corrupt/unreadable or has an unsupported pixel type (the message names the file).
+        ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), the file is
+            corrupt/unreadable or has an unsupported pixel type, or holds values beyond ``bit_depth`` (the
+            message names the file).
     """
+    image, scaling = read_image_scaled(path, bit_depth)
+    if scaling.source == "largest value":
+        warnings.warn(f"{path}: {scaling.describe()}; pass bit_depth=16 to scale by 65535", UserWarning, stacklevel=2)
+    return image
+
+
+def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[torch.Tensor, ImageScaling]:
+    """:func:`read_image` without the warning, plus the :class:`ImageScaling` it used."""
+    bit_depth = _check_bit_depth(bit_depth)
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"image file not found: {p}")
@@ -216,6 +323,10 @@ def read_image(path: PathLike) -> torch.Tensor:
         raise ValueError(f"cannot read image {p}: unsupported array shape {arr.shape}")
     if arr.shape[0] == 0 or arr.shape[1] == 0:
         raise ValueError(f"cannot read image {p}: the image is empty (shape {arr.shape})")
-    gray = to_gray(_normalise(arr, p))
+    if arr.dtype in (np.uint8, np.uint16):
+        scaling = _scaling(arr, p, bit_depth)
+    else:
+        scaling = ImageScaling(None, None, "file", float(np.nanmax(arr)) if arr.size else 0.0)
+    gray = to_gray(_normalise(arr, p, scaling))
     out = torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32)).clamp_(0.0, 1.0)
-    return out.unsqueeze(0)
+    return out.unsqueeze(0), scaling

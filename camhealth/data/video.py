@@ -6,13 +6,21 @@ in the video), before ``start``/``stride``/``max_frames`` are applied. Colour vi
 to gray with the same BT.601 luma weights as :func:`camhealth.data.to_gray`.
 
 Video decoding uses OpenCV (``cv2.VideoCapture``, package ``opencv-python-headless``), imported only when
-a video is opened.
+a video is opened, with one decoder thread so that each frame comes out of the read that decoded it. A frame
+the decoder reports damage in while reading (FFmpeg's error log on the process's stderr: a truncated last frame,
+a corrupt packet, concealed macroblocks) is only partly decoded: :meth:`FrameSequence.frames` yields it with the
+decoder's message instead of pixels, iteration skips it with a warning, ``seq[k]`` raises ``ValueError``. (FFmpeg
+must log errors — OpenCV's default; ``OPENCV_FFMPEG_LOGLEVEL`` below 16 hides them.)
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
+import sys
+import tempfile
+import warnings
 from pathlib import Path
 from typing import Iterator, Sequence, Union
 
@@ -43,6 +51,50 @@ def _import_cv2():
             "reading video files needs OpenCV: pip install 'opencv-python-headless<5'"
         ) from e
     return cv2
+
+
+#: A line of FFmpeg's log: ``[mpeg4 @ 0x55d0…] ac-tex damaged at 2 6``.
+_FFMPEG_LINE = re.compile(rb"^\[[A-Za-z0-9_,]+ @ 0x[0-9a-fA-F]+\] ?(.*?)\s*$", re.M)
+
+
+class _DecoderLog:
+    """What FFmpeg, inside OpenCV, writes to the process's stderr (file descriptor 2) during one ``read``: its
+    error lines are returned, anything else is passed on to stderr."""
+
+    def __init__(self) -> None:
+        self._file = tempfile.TemporaryFile()
+
+    def read(self, cap) -> tuple[bool, np.ndarray | None, str | None]:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError):  # no usable stderr: read without the check
+            ok, frame = cap.read()
+            return ok, frame, None
+        os.dup2(self._file.fileno(), 2)
+        try:
+            ok, frame = cap.read()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        self._file.seek(0)
+        text = self._file.read()
+        self._file.seek(0)
+        self._file.truncate()
+        if not text:
+            return ok, frame, None
+        errors = [m.group(1).decode(errors="replace") for m in _FFMPEG_LINE.finditer(text)]
+        rest = _FFMPEG_LINE.sub(b"", text).strip()
+        if rest:
+            os.write(2, rest + b"\n")
+        return ok, frame, ("; ".join(e for e in errors if e) or None) if errors else None
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _damaged(idx: int, path: Path, message: str) -> str:
+    return f"frame {idx} of video {path} was only partly decoded (decoder: {message[:160]}); not used"
 
 
 def _bgr_to_tensor(frame: np.ndarray) -> torch.Tensor:
@@ -116,7 +168,8 @@ class FrameSequence:
     # -- video helpers ---------------------------------------------------------------------------
     def _open(self):
         cv2 = _import_cv2()
-        cap = cv2.VideoCapture(str(self.path))
+        # one decoder thread: with frame threading a decoder error is logged while reading a later frame
+        cap = cv2.VideoCapture(str(self.path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, 1])
         if not cap.isOpened():
             cap.release()
             raise ValueError(f"cannot open video {self.path}: OpenCV could not open it (corrupt or unsupported codec)")
@@ -183,30 +236,47 @@ class FrameSequence:
 
     # -- access ----------------------------------------------------------------------------------
     def __iter__(self) -> Iterator[tuple[torch.Tensor, int]]:
+        """``(frame, index)`` of every kept frame; a video frame the decoder reports damaged is skipped with a
+        ``UserWarning`` naming it (:meth:`frames` yields it with the message instead)."""
+        for frame, idx, error in self.frames():
+            if error is not None:
+                warnings.warn(error, UserWarning, stacklevel=2)
+                continue
+            yield frame, idx
+
+    def frames(self) -> Iterator[tuple[torch.Tensor | None, int, str | None]]:
+        """``(frame, index, None)`` for every kept frame, or ``(None, index, message)`` for a video frame the
+        decoder reported damage in while reading it (partly decoded: concealed or missing blocks)."""
         limit = self.length if self.length is not None else self.max_frames
         if self.kind == "folder":
             assert self.frame_paths is not None
             for k in range(limit or 0):
                 idx = self.frame_index(k)
-                yield read_image(self.frame_paths[idx]), idx
+                yield read_image(self.frame_paths[idx]), idx, None
             return
         cap = self._open()
+        log = _DecoderLog()
         try:
             for _ in range(self.start):  # skip to start without converting
                 if not cap.grab():
                     return
             k = 0
             while limit is None or k < limit:
-                ok, frame = cap.read()
-                if not ok or frame is None:
+                ok, frame, message = log.read(cap)
+                idx = self.frame_index(k)
+                if message is not None and ok and frame is not None:
+                    yield None, idx, _damaged(idx, self.path, message)
+                elif not ok or frame is None:
                     return
-                yield _bgr_to_tensor(frame), self.frame_index(k)
+                else:
+                    yield _bgr_to_tensor(frame), idx, None
                 k += 1
                 for _ in range(self.stride - 1):
                     if not cap.grab():
                         return
         finally:
             cap.release()
+            log.close()
 
     def __getitem__(self, k: int) -> tuple[torch.Tensor, int]:
         n = self.length
@@ -230,11 +300,17 @@ class FrameSequence:
                     self._cap.grab()
             else:
                 self._cap.set(cv2.CAP_PROP_POS_FRAMES, idx)
-        ok, frame = self._cap.read()
+        log = _DecoderLog()
+        try:
+            ok, frame, message = log.read(self._cap)
+        finally:
+            log.close()
         if not ok or frame is None:
             self.close()
             raise ValueError(f"cannot decode frame {idx} of video {self.path}")
         self._cap_next = idx + 1
+        if message is not None:
+            raise ValueError(_damaged(idx, self.path, message))
         return _bgr_to_tensor(frame), idx
 
     def as_source(self, name: str | None = None) -> "FrameSequenceSource":

@@ -305,7 +305,6 @@ class PhysicsNoiseEstimator:
     settings: dict = field(default_factory=dict)
     source: str = "noise_source_full"
     backend: str = "torch"
-    physics_prior: bool = True
     description: dict = field(default_factory=lambda: {
         "kind": "noise_source", "metadata_set": "full", "architecture": "physics_noise_posterior (no network)",
         "params": 0})
@@ -335,6 +334,10 @@ class PhysicsNoiseEstimator:
             raise ValueError(f"estimator {self.name!r} reads 'full' metadata: pass metadata= (CameraMetadata, a dict of "
                              f"fields in physical units, or a preset name)")
         b = patches.shape[0]
+        if b == 0:  # an empty batch: every output with 0 rows
+            z = torch.zeros(0)
+            return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_total": z,
+                    "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says

@@ -30,6 +30,7 @@ from typing import Any, Optional, Sequence
 
 import torch
 
+from camhealth._cli import add_debug_flag
 from camhealth.iopc.curves import IOPC
 from camhealth.iopc.estimation import resolve_estimator
 from camhealth.iopc.sweep import IOPCSweep, SweepConfig, log_iopc
@@ -172,6 +173,7 @@ def build_parser():
     p.add_argument("--out_dir", type=str, default="runs/iopc")
     p.add_argument("--cache_dir", type=Optional[str], default="runs/iopc/cache")
     p.add_argument("--tensorboard", type=bool, default=True, help="log heat maps to out_dir/tensorboard")
+    add_debug_flag(p)
     return p
 
 

@@ -5,9 +5,9 @@ Runs :class:`camhealth.monitor.Monitor` on every frame of SOURCE and writes one 
 end (``DIR/summary.json`` too). A robot recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2
 folder) is read with the camera state of its topics, and ``--diagnostics-out`` writes one
 ``diagnostic_msgs/DiagnosticArray`` per frame (:mod:`camhealth.monitor.diagnostics`). Exit status: 0 on
-success (unreadable frames in a folder or recording are reported and skipped), 2 on a usage or input error
-(missing/unreadable source, undecodable video, damaged recording, unknown topic, bad metadata, missing
-model), with a one-line message.
+success (unreadable frames in a folder or recording and partly decoded video frames are reported and skipped),
+2 on an error (missing/unreadable source, undecodable video, ``--start`` past the end, damaged recording, unknown
+topic, bad metadata, missing or refused model, …), with a one-line message (``--debug``: the traceback).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence, TextIO
 
+from camhealth._cli import add_debug_flag, run_cli
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS
 
 __all__ = ["build_parser", "main"]
@@ -59,7 +60,9 @@ Output, one JSON object per frame (keys): frame, index, source_id, size, assessa
   temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
   not_assessable, total}}}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
   ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
-  Unreadable frames of a folder give {{"frame_error": …}} lines. See docs/monitor.md.
+  Unreadable frames of a folder and partly decoded video frames give {{"frame_error": …}} lines, never scores.
+  16-bit frames are scaled by their significant bits (--bit-depth; the summary names the scaling used).
+  See docs/monitor.md.
 
 Examples:
   python -m camhealth.monitor street --sensor ICX285 --max-frames 10 --out runs/monitor
@@ -98,6 +101,18 @@ def _non_negative(value: str) -> float:
     if not x >= 0 or x == float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {value}")
     return x
+
+
+def _bit_depth(value: str) -> int | str:
+    if value == "auto":
+        return value
+    try:
+        n = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer 8…16, got {value!r}") from None
+    if not 8 <= n <= 16:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer 8…16, got {n}")
+    return n
 
 
 def _assignment(value: str) -> tuple[str, float]:
@@ -184,6 +199,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--start", type=_non_negative_int, default=0, metavar="N", help="first frame index (default 0)")
     g.add_argument("--stride", type=_positive, default=1, metavar="N", help="use every N-th frame (default 1)")
     g.add_argument("--max-frames", type=_positive, default=None, metavar="N", help="stop after N frames (default: all)")
+    g.add_argument("--bit-depth", type=_bit_depth, default="auto", metavar="auto|N",
+                   help="significant bits of 16-bit frames: N = 8…16 divides values by 2^N − 1 (12 for a 12-bit "
+                        "camera); auto (default): a PNG's sBIT chunk, else guessed from the largest value; in a recording's "
+                        "mono16/16-bit images auto means 16 — the summary names the scaling used")
     g = p.add_argument_group("output")
     g.add_argument("--out", type=Path, metavar="DIR",
                    help="write DIR/monitor.jsonl, DIR/summary.json and overlays there (default: JSON lines on stdout)")
@@ -195,6 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--per-patch", action="store_true", help="include every patch's status and values in the JSON lines")
     g.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     _add_recording_arguments(p)
+    add_debug_flag(p)
     return p
 
 
@@ -213,9 +233,6 @@ def _add_recording_arguments(p: argparse.ArgumentParser) -> None:
                    help="unit of --gain-topic: db or factor (linear amplitude gain; default db)")
     g.add_argument("--temperature-unit", choices=list(TEMPERATURE_UNITS), default="c",
                    help="unit of --temperature-topic: c (°C) or k (kelvin; default c)")
-    g.add_argument("--bit-depth", type=_int_at_least(1), default=None, metavar="N",
-                   help="bits that carry data in 16-bit images (e.g. 12 for 12-bit values in mono16; default 16): "
-                        "DN/(2^N-1) is the [0, 1] intensity")
     g.add_argument("--bayer", choices=("green", "luma"), default="green",
                    help="bayer_* images: green = one green sample per 2x2 cell (half resolution, raw noise kept; default) "
                         "or luma = OpenCV demosaic + BT.601 luma (full resolution, noise smoothed)")
@@ -226,15 +243,14 @@ def _add_recording_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _recording_options(args: argparse.Namespace) -> Any:
-    """RecordingOptions from the CLI, or ``None`` when no recording option was given."""
+    """RecordingOptions from the CLI, or ``None`` when no recording option was given (``--bit-depth`` applies to every
+    source; :func:`~camhealth.monitor.sources.open_source` passes it on to a recording)."""
     from camhealth.monitor.recording import RecordingOptions
 
-    if args.bit_depth is not None and args.bit_depth > 16:
-        raise ValueError(f"--bit-depth {args.bit_depth} must be at most 16")
     opts = RecordingOptions(
         topic=args.topic, exposure_topic=args.exposure_topic, gain_topic=args.gain_topic,
         temperature_topic=args.temperature_topic, exposure_unit=args.exposure_unit, gain_unit=args.gain_unit,
-        temperature_unit=args.temperature_unit, bit_depth=args.bit_depth, bayer=args.bayer,
+        temperature_unit=args.temperature_unit, bayer=args.bayer,
     )
     return None if opts == RecordingOptions() else opts
 
@@ -272,6 +288,8 @@ def _human_summary(summary: dict, out: TextIO) -> None:
         f"median {_fmt(ms['median'], '.1f')} ms/frame (max {_fmt(ms['max'], '.1f')})",
         file=out,
     )
+    for scaling, n in (summary.get("input_scaling") or {}).items():
+        print(f"  input: {scaling} ({n} frame(s))", file=out)
     for task, counts in summary["patches"].items():
         parts = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
         print(f"  {task} [{summary['estimators'][task]}]: {parts or 'no patches'}", file=out)
@@ -314,7 +332,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--max-clipped = {args.max_clipped:g} must lie in [0, 1]")
     if args.iopc_weights is not None and len(args.iopc_weights) != len(args.iopc):
         raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
-    source = open_source(args.source, args.start, args.stride, args.max_frames, recording=_recording_options(args))
+    source = open_source(args.source, args.start, args.stride, args.max_frames, bit_depth=args.bit_depth,
+                         recording=_recording_options(args))
     try:
         return _run_source(args, source)
     finally:
@@ -363,6 +382,8 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
                                         xi_threshold_dn=args.xi_threshold_dn, topic=source.topic)
     progress = _Progress(source.length, not args.no_progress)
     unreadable: list[str] = []
+    scalings: dict[str, int] = {}
+    frames = 0
     overlays = 0
     t0 = time.perf_counter()
     try:
@@ -376,6 +397,9 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
                                             item.frame_id)
                 progress.update("unreadable frame")
                 continue
+            frames += 1
+            if item.scaling is not None:
+                scalings[item.scaling] = scalings.get(item.scaling, 0) + 1
             report = monitor.process(item.frame, metadata=item.metadata, index=item.index, source_id=item.source_id)
             if diagnostics is not None:
                 diagnostics.write_report(report, item.stamp_ns, item.log_time_ns or 0, item.frame_id)
@@ -392,9 +416,11 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
             sink.close()
         if diagnostics is not None:
             diagnostics.close()
+    if frames == 0 and not unreadable and args.start > 0:  # a video that does not report its frame count
+        raise ValueError(f"--start {args.start} is past the end of {source.path}: no frame was read")
     summary = monitor.summary()
     summary.update(source=str(source.path), kind=source.kind, unreadable_frames=len(unreadable), unreadable=unreadable[:20],
-                   wall_s=time.perf_counter() - t0)
+                   wall_s=time.perf_counter() - t0, input_scaling=scalings)
     if source.kind == "recording":
         summary["recording"] = source.summary()
     if diagnostics is not None:
@@ -427,12 +453,8 @@ def default_threads() -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except (FileNotFoundError, NotADirectoryError, ValueError, TypeError, ImportError) as exc:
-        print(f"python -m camhealth.monitor: error: {exc}", file=sys.stderr)
-        return 2
+    """Run the CLI; an error is one line on stderr and exit status 2 (``--debug``: the traceback instead)."""
+    return run_cli(lambda a: run(build_parser().parse_args(a)), "python -m camhealth.monitor", argv)
 
 
 if __name__ == "__main__":

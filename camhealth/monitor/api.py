@@ -911,15 +911,18 @@ class Monitor:
         }
 
     def run(
-        self, source: Any, start: int = 0, stride: int = 1, max_frames: int | None = None, recording: Any = None
+        self, source: Any, start: int = 0, stride: int = 1, max_frames: int | None = None, recording: Any = None,
+        bit_depth: int | str = "auto",
     ) -> Iterator[tuple[Any, FrameReport | None]]:
         """Monitor every frame of ``source`` (an image, a folder of frames, a video file, ``"street"`` or a
         recording with ``recording=RecordingOptions(topic=…)``, see :func:`camhealth.monitor.sources.open_source`)
         as the CLI does: yields ``(item, report)`` per frame, with ``report = None`` for a frame that could not
-        be read (``item.error`` says why). A recording's camera state (``item.metadata``) is applied per frame."""
+        be read or a partly decoded video frame (``item.error`` says why). A recording's camera state
+        (``item.metadata``) is applied per frame. ``bit_depth``: significant bits of 16-bit frames (``item.scaling``
+        names it)."""
         from camhealth.monitor.sources import open_source
 
-        src = open_source(source, start, stride, max_frames, recording=recording)
+        src = open_source(source, start, stride, max_frames, bit_depth=bit_depth, recording=recording)
         try:
             for item in src:
                 if item.error is not None:

@@ -8,13 +8,20 @@ recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2 folder: :mod:`camhe
 - a missing path, an unsupported extension, a single image that cannot be read, a folder without frame
   images, or a video OpenCV cannot open or decode: a clear ``FileNotFoundError``/``ValueError`` at
   :func:`open_source` (the CLI exits with status 2);
-- one unreadable frame inside a folder: the item carries ``error`` instead of a frame (the CLI writes a JSON
-  line with the error, counts it and goes on);
-- a video whose stream ends early (truncated file): iteration stops there, as OpenCV reports the end.
+- one unreadable frame inside a folder, or a video frame the decoder reports damaged (partly decoded: a
+  truncated last frame, a corrupt packet): the item carries ``error`` instead of a frame (the CLI writes a JSON
+  line with the error, counts it and goes on; the frame is never scored);
+- a video whose stream ends early (truncated file): iteration stops there, as OpenCV reports the end;
+- a ``start`` past the last frame of an image, folder or video with a known frame count: ``ValueError`` at
+  :func:`open_source`.
+
+Integer frames are scaled by their significant bits (``bit_depth``: ``"auto"`` or 8…16, see
+:func:`camhealth.data.io.read_image`); each item says which scaling it used (``scaling``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -22,7 +29,7 @@ from typing import Any, Iterator
 import torch
 
 from camhealth.data.image_folder import list_images
-from camhealth.data.io import IMAGE_EXTENSIONS, read_image
+from camhealth.data.io import IMAGE_EXTENSIONS, read_image_scaled
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
 
 __all__ = ["SourceFrame", "FrameSource", "open_source", "STREET"]
@@ -33,7 +40,9 @@ STREET = "street"
 
 @dataclass
 class SourceFrame:
-    """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read.
+    """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read, and how its
+    values were scaled to [0, 1] (:meth:`camhealth.data.io.ImageScaling.describe`; ``None`` for video frames,
+    8-bit DN/255).
 
     Items of a recording also carry ``metadata`` (the camera state of this frame: changed metadata fields,
     or ``None``), ``stamp_ns`` (image header stamp), ``log_time_ns`` and ``frame_id``."""
@@ -46,28 +55,37 @@ class SourceFrame:
     stamp_ns: int | None = None
     log_time_ns: int | None = None
     frame_id: str = ""
+    scaling: str | None = None
 
 
 class FrameSource:
     """Ordered frames of an image, a folder or a video (``kind``), with ``start``/``stride``/``max_frames``."""
 
-    def __init__(self, path: Path, kind: str, start: int = 0, stride: int = 1, max_frames: int | None = None) -> None:
+    def __init__(self, path: Path, kind: str, start: int = 0, stride: int = 1, max_frames: int | None = None,
+                 bit_depth: int | str = "auto") -> None:
         self.path, self.kind = path, kind
         self.start, self.stride, self.max_frames = start, stride, max_frames
+        self.bit_depth = bit_depth
         self._files: list[Path] = []
         self._video: FrameSequence | None = None
         if kind == "image":
-            self._files = [path] if start == 0 else []
-            self._single = read_image(path)  # a single unreadable image is a fatal, clear error
+            _past_end(start, 1, path)
+            self._files = [path]
+            # a single unreadable image is a fatal, clear error
+            self._single, scaling = read_image_scaled(path, bit_depth)
+            self._single_scaling = scaling.describe()
         elif kind == "folder":
             files = list_images(path, recursive=False)
             if not files:
                 raise ValueError(f"no frame images found in folder {path} (extensions: {', '.join(IMAGE_EXTENSIONS)})")
+            _past_end(start, len(files), path)
             picked = files[start::stride]
             self._files = picked if max_frames is None else picked[:max_frames]
             self._indices = list(range(start, len(files), stride))[: len(self._files)]
         else:
             self._video = FrameSequence(path, stride=stride, max_frames=max_frames, start=start)
+            if self._video.total_frames is not None:
+                _past_end(start, self._video.total_frames, path)
 
     @property
     def length(self) -> int | None:
@@ -79,35 +97,44 @@ class FrameSource:
     def __iter__(self) -> Iterator[SourceFrame]:
         if self.kind == "image":
             if self._files:
-                yield SourceFrame(0, str(self.path), self._single)
+                yield SourceFrame(0, str(self.path), self._single, scaling=self._single_scaling)
             return
         if self.kind == "folder":
             for idx, p in zip(self._indices, self._files):
                 try:
-                    frame = read_image(p)
+                    frame, scaling = read_image_scaled(p, self.bit_depth)
                 except (OSError, ValueError) as exc:
                     yield SourceFrame(idx, str(p), None, str(exc).splitlines()[0])
                     continue
-                yield SourceFrame(idx, str(p), frame)
+                yield SourceFrame(idx, str(p), frame, scaling=scaling.describe())
             return
         assert self._video is not None
-        for frame, idx in self._video:
-            yield SourceFrame(int(idx), f"{self.path}#{int(idx)}", frame)
+        for frame, idx, error in self._video.frames():  # a damaged (partly decoded) frame comes with its error
+            yield SourceFrame(int(idx), f"{self.path}#{int(idx)}", frame, error)
+
+
+def _past_end(start: int, n_frames: int, path: Path) -> None:
+    if start >= n_frames:
+        raise ValueError(f"start = {start} is past the end of {path}: it has {n_frames} frame(s), indices 0…{n_frames - 1}")
 
 
 def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames: int | None = None,
-                recording: Any = None) -> FrameSource:
+                bit_depth: int | str = "auto", recording: Any = None) -> FrameSource:
     """Resolve ``source``: an image file, a folder of frames, a video file, ``"street"`` (embedded clip) or a
     recording (``.bag``/``.db3``/``.mcap`` or a rosbag2 folder; ``recording`` is its
     :class:`~camhealth.monitor.recording.RecordingOptions`, required there for the topic, refused elsewhere).
 
     Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unsupported extension, an
-    unreadable image or an undecodable video (messages name the file and the allowed kinds)."""
+    unreadable image, an undecodable video or a ``start`` past the last frame (messages name the file and the
+    allowed kinds or frame indices). ``bit_depth``: significant bits of 16-bit frames (``"auto"`` or 8…16)."""
     for v, name, lo in ((start, "start", 0), (stride, "stride", 1)):
         if isinstance(v, bool) or not isinstance(v, int) or v < lo:
             raise ValueError(f"{name} = {v!r} must be an integer >= {lo}")
     if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
         raise ValueError(f"max_frames = {max_frames!r} must be an integer >= 1 or None")
+    from camhealth.data.io import _check_bit_depth
+
+    bit_depth = _check_bit_depth(bit_depth)
     path = Path(source)
     if not path.exists() and str(source) == STREET:
         from camhealth.data.street_sample import STREET_DIR, street_frame_paths
@@ -122,17 +149,20 @@ def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames:
     if is_recording(path):
         from camhealth.monitor.recording import RecordingOptions, RecordingSource
 
-        return RecordingSource(path, start, stride, max_frames, recording or RecordingOptions())  # type: ignore[return-value]
+        options = recording or RecordingOptions()
+        if options.bit_depth is None and bit_depth != "auto":  # --bit-depth N: the data bits of 16-bit images
+            options = dataclasses.replace(options, bit_depth=bit_depth)
+        return RecordingSource(path, start, stride, max_frames, options)  # type: ignore[return-value]
     if recording is not None:
         raise ValueError(f"--topic and the other recording options apply to ROS recordings (.bag, .db3, .mcap or a "
                          f"rosbag2 folder), not to {path}")
     if path.is_dir():
-        return FrameSource(path, "folder", start, stride, max_frames)
+        return FrameSource(path, "folder", start, stride, max_frames, bit_depth)
     ext = path.suffix.lower()
     if ext in IMAGE_EXTENSIONS:
-        return FrameSource(path, "image", start, stride, max_frames)
+        return FrameSource(path, "image", start, stride, max_frames, bit_depth)
     if ext in VIDEO_EXTENSIONS:
-        return FrameSource(path, "video", start, stride, max_frames)
+        return FrameSource(path, "video", start, stride, max_frames, bit_depth)
     raise ValueError(
         f"cannot monitor {path}: unsupported extension {path.suffix!r}; images: {', '.join(IMAGE_EXTENSIONS)}; "
         f"videos: {', '.join(VIDEO_EXTENSIONS)}; recordings: .bag, .db3, .mcap; or a folder of frames"

@@ -131,9 +131,20 @@ class SensorConstants:
 def _as_vector(name: str, value: Any) -> torch.Tensor:
     if isinstance(value, bool):
         value = float(value)
-    t = value if isinstance(value, torch.Tensor) else torch.as_tensor(value)
-    if t.dtype == torch.bool or not (t.is_floating_point()):
-        t = t.to(torch.float64 if t.dtype == torch.float64 else torch.float32)
+    if not isinstance(value, torch.Tensor):
+        unit = UNITS.get(name, "")
+        expected = f"a number{f' in {unit}' if unit else ''} or a 1-D sequence/tensor of per-sample numbers"
+        if value is None or isinstance(value, (str, bytes)):
+            raise TypeError(f"camera metadata {name} must be {expected}, got {type(value).__name__} {value!r}")
+        try:
+            value = torch.as_tensor(value)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"camera metadata {name} must be {expected}, got {type(value).__name__} {value!r:.60}") from None
+    t = value
+    if t.is_complex():
+        raise TypeError(f"camera metadata {name} must hold real numbers, got dtype {t.dtype}")
+    if not t.is_floating_point():
+        t = t.to(torch.float32)
     if t.ndim == 0:
         t = t.reshape(1)
     if t.ndim != 1:
@@ -254,8 +265,11 @@ class CameraMetadata:
 
     def __getitem__(self, index: int | slice | torch.Tensor | Sequence[int]) -> "CameraMetadata":
         """Select samples, e.g. ``meta[3]``, ``meta[:4]`` or ``meta[mask]``."""
-        if isinstance(index, int):
-            index = slice(index, index + 1 if index != -1 else None)
+        if isinstance(index, int) and not isinstance(index, bool):
+            if not -self.batch_size <= index < self.batch_size:
+                raise IndexError(f"metadata index {index} is out of range for batch size {self.batch_size}")
+            index = index % self.batch_size
+            index = slice(index, index + 1)
         kw = {n: getattr(self, n)[index] for n in FULL_FIELDS}
         return CameraMetadata(**kw, constants=self.constants)
 
@@ -290,9 +304,20 @@ class CameraMetadata:
         accepted for ``is_cmos``."""
         data = dict(data)
         if "sensor_type" in data:
-            st = str(data.pop("sensor_type")).upper()
+            raw = data.pop("sensor_type")
+            if not isinstance(raw, str):
+                raise TypeError(f"camera metadata sensor_type must be 'CCD' or 'CMOS', got {type(raw).__name__} {raw!r}")
+            st = raw.upper()
             check_choice(st, "sensor_type", ("CCD", "CMOS"))
-            data["is_cmos"] = 1.0 if st == "CMOS" else 0.0
+            is_cmos = 1.0 if st == "CMOS" else 0.0
+            if "is_cmos" in data:
+                given = _as_vector("is_cmos", data["is_cmos"])
+                if not bool((given == is_cmos).all()):
+                    raise ValueError(
+                        f"camera metadata sensor_type = {raw!r} contradicts is_cmos = {data['is_cmos']!r} "
+                        f"(CMOS is is_cmos = 1, CCD is 0); give one of them"
+                    )
+            data["is_cmos"] = is_cmos
         unknown = set(data) - set(FULL_FIELDS)
         if unknown:
             raise ValueError(f"unknown metadata field(s) {sorted(unknown)}; known fields: {list(FULL_FIELDS)}")

@@ -112,7 +112,24 @@ def mtf_from_psf(
 
 
 def mtf_hv(psf: torch.Tensor) -> torch.Tensor:
-    """The 16 MTF labels: ``[H at the 8 NORMALIZED_FREQUENCIES, V at the 8]`` → (B, 16)."""
+    """The 16 MTF labels: ``[H at the 8 NORMALIZED_FREQUENCIES, V at the 8]`` → (B, 16), in [0, 1].
+
+    ``psf``: (B, H, W) blur kernels — light spread over pixels, so non-negative (values below −10⁻⁶ of the
+    kernel's largest magnitude raise ``ValueError``; :func:`mtf_from_psf` takes signed kernels)."""
+    psf = check_float(check_tensor(psf, "psf"), "psf")
+    if psf.ndim == 3 and psf.numel() > 0:
+        check_finite(psf, "psf")
+        flat = psf.detach().reshape(psf.shape[0], -1)
+        low, at = flat.min(dim=1)
+        tol = 1e-6 * flat.abs().amax(dim=1)
+        bad = low < -tol
+        if bool(bad.any()):
+            i = int(torch.nonzero(bad)[0, 0])
+            r, c = divmod(int(at[i]), psf.shape[2])
+            raise ValueError(
+                f"psf must be non-negative (a blur kernel spreads light, its MTF labels lie in [0, 1]); kernel {i} has "
+                f"{float(low[i]):g} at row {r}, column {c}"
+            )
     m = mtf_from_psf(psf, (0.0, 90.0), NORMALIZED_FREQUENCIES)
     return m.reshape(m.shape[0], 2 * len(NORMALIZED_FREQUENCIES))
 

@@ -1,0 +1,78 @@
+"""The command-line entry points' error handling: one clear line, the traceback only with ``--debug``.
+
+Every ``python -m camhealth.<tool>`` (``fit``, ``export``, ``evaluate``, ``monitor``, ``corrupt``, ``demo``,
+``iopc``) runs its ``main`` through :func:`run_cli`: an error prints ``<prog>: error: <message>`` on stderr and
+exits with status 2 (Ctrl-C: ``<prog>: interrupted``, status 130); ``--debug`` anywhere on the command line lets
+the exception and its traceback through instead. Usage errors of the argument parser keep their own message
+and status.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+from typing import Any, Callable, Sequence
+
+__all__ = ["DEBUG_FLAG", "add_debug_flag", "debugging", "one_line", "run_cli"]
+
+DEBUG_FLAG = "--debug"
+_debug = False
+_HELP = "on an error, show the Python traceback instead of one line"
+
+#: Errors whose message says everything (the type name adds nothing for a user).
+_PLAIN = (ValueError, TypeError, OSError, ImportError, KeyError, IndexError)
+
+
+def add_debug_flag(parser: Any) -> None:
+    """List ``--debug`` in an argparse/jsonargparse parser's ``--help`` (:func:`run_cli` acts on it)."""
+    parser.add_argument(DEBUG_FLAG, action="store_true", help=_HELP)
+
+
+def debugging() -> bool:
+    """Whether the running command was given ``--debug`` (a ``main`` that reports errors itself re-raises then)."""
+    return _debug
+
+
+def one_line(exc: BaseException) -> str:
+    """The first line of ``exc``'s message (with its type where the message alone would be unclear)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    text = lines[0] if lines else ""
+    if isinstance(exc, KeyError) and len(exc.args) == 1:
+        text = f"missing key {exc.args[0]!r}"
+    if not text:
+        return type(exc).__name__
+    return text if isinstance(exc, _PLAIN) else f"{type(exc).__name__}: {text}"
+
+
+def run_cli(main: Callable[[list[str] | None], Any], prog: str, argv: Sequence[str] | None = None) -> int:
+    """Run ``main`` on ``argv`` less ``--debug`` and return the exit status. Without ``argv`` the command line is
+    ``sys.argv`` (the flag is taken out of it, and ``main`` gets ``None``, as when run directly)."""
+    global _debug
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = DEBUG_FLAG in args or _debug  # (an outer run_cli may have taken the flag already)
+    args = [a for a in args if a != DEBUG_FLAG]
+    if argv is None:
+        sys.argv[1:] = args
+    before, _debug = _debug, debug
+    try:
+        result = main(None if argv is None else args)
+    except SystemExit as exc:  # argparse usage errors and explicit exits keep their message and status
+        if isinstance(exc.code, str):
+            if debug:
+                traceback.print_exc()
+            print(f"{prog}: error: {exc.code}", file=sys.stderr)
+            return 2
+        return int(exc.code or 0)
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the point of this function
+        if debug:
+            raise
+        print(f"{prog}: error: {one_line(exc)} (run with {DEBUG_FLAG} for the traceback)", file=sys.stderr)
+        return 2
+    finally:
+        _debug = before
+    return result if isinstance(result, int) and not isinstance(result, bool) else 0
