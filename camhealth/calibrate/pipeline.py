@@ -99,6 +99,17 @@ def resolve_sets(
     return sets, camera, op
 
 
+def _clamp_near_range(name: str, value: float, err: float, warnings: list[str]) -> float:
+    """A fitted value just outside its METADATA_RANGES interval (within 3σ or 3 % of the range end: a camera at the
+    end of the range, measured with noise) is set to the range end with a warning; others are returned as they are."""
+    lo, hi = METADATA_RANGES[name]
+    for end, outside in ((hi, value > hi), (lo, value < lo)):
+        if outside and abs(value - end) <= max(3 * err, 0.03 * abs(end)):
+            warnings.append(f"{name} = {value:.5g} ± {err:.2g} is just outside camhealth's range [{lo:g}, {hi:g}]; set to {end:g}")
+            return float(end)
+    return value
+
+
 def _record(fs: FrameSet, st: SetStatistics, used: bool = True, note: str = "") -> SetRecord:
     sig = st.sigma_dn
     return SetRecord(
@@ -201,15 +212,23 @@ def calibrate(
         x = _load_checked(fs, max_frames, size, size_from)
         flat_stats.append((fs, set_statistics(x, hot)))
         del x
-    # ---- dark fit
-    points = [DarkPoint(fs.exposure_s, fs.temperature_k, fs.gain_factor, st.var_dn2, st.var_err_dn2, fs.name) for fs, st in dark_stats]
+    # ---- which clipping the dark frames show, then the dark fit
+    clipping = _dark_clipping(dark_stats)
+    latent = clipping["latent"]  # id(stats) → (variance, 1σ, level) under the chosen model
+    points = [DarkPoint(fs.exposure_s, fs.temperature_k, fs.gain_factor, *latent.get(id(st), (st.var_dn2, st.var_err_dn2))[:2], fs.name)
+              for fs, st in dark_stats]
     dark = fit_dark(points)
+    if clipping["model"] == "well":
+        warnings.append(
+            "the dark frames look like charge clipped at 0 before the readout noise (sources clipped one after another; "
+            f"evidence ΔAIC = {clipping['delta_aic']:.0f} over clipping once at the end): their variance is fitted with that model"
+        )
 
     def dark_level(fs: FrameSet) -> float:
         """Mean dark level [DN] for a flat: the dark set closest in gain, then temperature, then exposure."""
         best = min(dark_stats, key=lambda d: (abs(d[0].gain_db - fs.gain_db), abs(d[0].temperature_c - fs.temperature_c),
                                               abs(math.log(d[0].exposure_s / fs.exposure_s))))
-        return best[1].mean_dn
+        return latent[id(best[1])][2] if id(best[1]) in latent else best[1].mean_dn
 
     fpoints = [
         FlatPoint(fs.name, fs.exposure_s, fs.temperature_k, fs.gain_factor, st.mean_dn, st.mean_err_dn, st.var_dn2,
@@ -223,6 +242,7 @@ def calibrate(
     full_well = 255.0 / k0
     full_well_err = full_well * k0_err / k0
     lo, hi = METADATA_RANGES["full_well_e"]
+    full_well = _clamp_near_range("full_well_e", full_well, full_well_err, warnings)
     if not lo <= full_well <= hi:
         raise ValueError(
             f"the photon transfer gives a full well of {full_well:.4g} e⁻ (K0 = {k0:.4g} DN/e⁻ at 0 dB), outside camhealth's "
@@ -251,8 +271,13 @@ def calibrate(
         sf = math.sqrt(max(rn_law.sf_var_e2, 0.0))
         sf_err = rn_law.sf_var_err_e2 / (2 * max(sf, 1e-12))
         inv = white_noise_from_sigma(sf, sf_err, clock, asn, is_cmos)
-    if not w_lo * (1 - 1e-6) <= inv.white_noise_v_per_rthz <= w_hi * (1 + 1e-6):
-        if inv.white_noise_v_per_rthz < w_lo and sf <= inv.sigma_min_e * 1.05:
+    w = inv.white_noise_v_per_rthz
+    if not w_lo * (1 - 1e-6) <= w <= w_hi * (1 + 1e-6):
+        margin = max(3 * inv.white_noise_err, 0.03 * w_hi)
+        if w_hi < w <= w_hi + margin:  # a camera at the end of the range, measured a little beyond it
+            warnings.append(f"W = {w:.4g} ± {inv.white_noise_err:.2g} V/√Hz is just above camhealth's maximum {w_hi:g}; set to {w_hi:g}")
+            inv.white_noise_v_per_rthz = w_hi
+        elif inv.white_noise_v_per_rthz < w_lo and sf <= inv.sigma_min_e * 1.05:
             warnings.append(
                 f"the source-follower noise {sf:.3g} e⁻ is at or below the model's floor {inv.sigma_min_e:.3g} e⁻ for this pixel "
                 f"clock and sense-node gain; W set to its minimum {w_lo:g} V/√Hz"
@@ -287,8 +312,8 @@ def calibrate(
             f"pixel_size_um not given: assumed {pixel:.3g} µm (the dark frames measure pixel area × D_FM; give the datasheet pitch "
             "for a meaningful D_FM)"
         )
-    dfm = dfm_from_c(c_e, pixel)
     dfm_err = dfm_from_c(c_e_err, pixel)
+    dfm = _clamp_near_range("dark_fom_na_per_cm2", dfm_from_c(c_e, pixel), dfm_err, warnings)
     if dfm > METADATA_RANGES["dark_fom_na_per_cm2"][1]:
         raise ValueError(
             f"the dark current gives D_FM = {dfm:.4g} nA/cm² with a {pixel:g} µm pixel, above camhealth's range "
@@ -357,12 +382,60 @@ def calibrate(
             "read_noise_e": np.sqrt(np.maximum(dark.intercept_dn2, 0) / k0**2).tolist(),
             "dark_current_e_per_s": (dark.free_slope_dn2_per_s / k0**2).tolist(),
             "law_c_e_per_s_per_k1_5": c_e, "law_c_err": c_e_err, "chi2_dof": dark.chi2_dof,
+            "clipping_model": {"end": "clipped once at the end (camhealth's model)",
+                               "well": "charge clipped at 0 before the readout, then again at the end"}[clipping["model"]],
+            "clipping_delta_aic_for_well": clipping["delta_aic"],
             "normalised_residuals": dark.residuals.tolist(),
         },
         "read_noise_law": {"source_follower_e": sf, "source_follower_err_e": sf_err, "reset_factor": rn_law.reset_factor,
                            "reset_factor_fitted": rn_law.reset_fitted},
     }
     return CalibrationResult(meta, fields, emva, records, fits, maps, warnings, ptc, dark, rn_law)
+
+
+#: ΔAIC in favour of "charge clipped in the well" needed before the dark sets are analysed with that model.
+WELL_CLIPPING_MIN_DELTA_AIC = 20.0
+
+
+def _dark_clipping(dark_stats: list[tuple[FrameSet, SetStatistics]]) -> dict[str, Any]:
+    """Which clipping the dark frames show (:mod:`~camhealth.calibrate.statistics`).
+
+    camhealth's model clips once, at the end: a dark set is clip(o + N(0, σ_RN² + σ_DCSN²)). A simulator or a
+    camera that clips the charge at 0 before the readout (the dark-current shot noise cannot make the well's
+    charge negative) gives clip(o + max(D, 0) + R) instead, whose variance the first model underestimates.
+    For every (temperature, gain) group with ≥ 2 exposures and clipped sets, both are fitted — the first per set
+    (µ, σ), the second jointly (o, σ_R, and σ_D² = s·t) — and compared by AIC summed over the groups. Returns
+    ``model`` ("end" or "well"), ``delta_aic`` and ``latent``: id(stats) → (σ_RN² + σ_D², 1σ, o) per set when
+    "well" wins.
+    """
+    from camhealth.calibrate.statistics import clipped_normal_nll, well_clipped_group_fit
+
+    groups: dict[tuple[float, float], list[tuple[FrameSet, SetStatistics]]] = {}
+    for fs, st in dark_stats:
+        groups.setdefault((round(fs.temperature_c, 6), round(fs.gain_db, 6)), []).append((fs, st))
+    delta, latent = 0.0, {}
+    for members in groups.values():
+        members = sorted(members, key=lambda d: d[0].exposure_s)
+        if len({fs.exposure_s for fs, _ in members}) < 2 or not any(st.method == "censored" for _, st in members):
+            continue
+        nll1 = sum(clipped_normal_nll(st.hist_edges_dn, st.hist_counts, st.mean_dn, max(st.sigma_dn, 1e-9)) for _, st in members)
+        (fb, sb), (fl, sl) = members[0], members[-1]
+        s0 = max((sl.var_dn2 - sb.var_dn2) / max(fl.exposure_s - fb.exposure_s, 1e-12), 1e-9) * 2.0
+        try:
+            p, cov, nll2 = well_clipped_group_fit([(st.hist_edges_dn, st.hist_counts) for _, st in members],
+                                                  [fs.exposure_s for fs, _ in members], (0.0, max(sb.sigma_dn, 1e-6), s0))
+        except (ValueError, FloatingPointError):
+            continue
+        delta += (2 * 2 * len(members) + 2 * nll1) - (2 * 3 + 2 * nll2)
+        o, sr, slope = p
+        for fs, st in members:
+            v = sr**2 + slope * fs.exposure_s
+            grad = np.array([0.0, 2 * sr, fs.exposure_s])
+            err = float(np.sqrt(max(grad @ cov @ grad, 0.0))) if np.all(np.isfinite(cov)) else st.var_err_dn2
+            latent[id(st)] = (v, err, o)
+    if delta > WELL_CLIPPING_MIN_DELTA_AIC:
+        return {"model": "well", "delta_aic": delta, "latent": latent}
+    return {"model": "end", "delta_aic": delta, "latent": {}}
 
 
 def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict[str, float]]:

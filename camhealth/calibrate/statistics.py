@@ -42,6 +42,10 @@ __all__ = [
     "binned_censored_normal_fit",
     "detect_hot_pixels",
     "set_statistics",
+    "clipped_normal_nll",
+    "well_clipped_cdf",
+    "well_clipped_fit",
+    "well_clipped_group_fit",
 ]
 
 #: A set whose clipped fraction (lowest + highest code) exceeds this is analysed with the censored fit.
@@ -87,6 +91,8 @@ class SetStatistics:
     width: int
     n_pixels: int
     master_dn: np.ndarray = field(repr=False)
+    hist_edges_dn: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    hist_counts: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
 
     @property
     def sigma_dn(self) -> float:
@@ -332,9 +338,121 @@ def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_d
         _, var_clipped, p_in = _censored_moments(mu, sigma, 0.0, 255.0)
         spatial = (float(master[keep].var(ddof=1)) - var_clipped / n) / max(p_in, 1e-6) ** 2
         method = "censored"
+    edges, counts = _histogram(vals, step, math.sqrt(max(var, 1e-12)))
     return SetStatistics(
         mean_dn=mean, mean_err_dn=mean_err, var_dn2=var, var_err_dn2=var_err, method=method,
         clipped_low=n_low / total, clipped_high=n_high / total, mirrored_sigma_dn=mir_sigma,
         spatial_var_dn2=max(spatial, 0.0), step_dn=step, n_frames=n, height=h, width=w, n_pixels=n_pix,
-        master_dn=master.astype(np.float32),
+        master_dn=master.astype(np.float32), hist_edges_dn=edges, hist_counts=counts,
     )
+
+
+def _histogram(vals: np.ndarray, step: float, sigma: float, max_bins: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """Interval histogram of all values [DN]: bin k holds the values in [e_k, e_{k+1}); the first bin starts at
+    −∞ (values at the lowest code) and the last ends at +∞ (values at the highest code) when those occur.
+    Quantised data: one bin per code; continuous data: bins of σ/16 (at most ``max_bins``)."""
+    v = vals.ravel()
+    lo_v, hi_v = float(v.min()), float(v.max())
+    if step > 0:
+        first, last = int(round(lo_v / step)), int(round(hi_v / step))
+        width = step * max(1, math.ceil((last - first + 1) / max_bins))
+        start = first * step - step / 2
+    else:
+        width = max(sigma / 16.0, (hi_v - lo_v) / max_bins, 1e-9)
+        start = lo_v
+    nb = max(int(math.ceil((hi_v - start) / width + 1e-9)), 1)
+    edges = start + width * np.arange(nb + 1, dtype=np.float64)
+    edges[-1] = max(edges[-1], hi_v + 1e-9)
+    counts, _ = np.histogram(v, bins=edges)
+    if lo_v <= 1e-9:  # values at 0 DN stand for everything at or below it
+        edges[0] = -np.inf
+    if hi_v >= 255.0 - 1e-9:
+        edges[-1] = np.inf
+    return edges, counts.astype(np.float64)
+
+
+def _nll_binned(cdf, edges: np.ndarray, counts: np.ndarray) -> float:
+    c = cdf(edges)
+    p = np.diff(c)
+    return float(-(counts * np.log(np.maximum(p, 1e-300))).sum())
+
+
+def clipped_normal_nll(edges: np.ndarray, counts: np.ndarray, mu: float, sigma: float) -> float:
+    """Binned negative log-likelihood of y = clip(N(µ, σ²)) on an interval histogram (:func:`_histogram`)."""
+    return _nll_binned(lambda x: special.ndtr((x - mu) / sigma), edges, counts)
+
+
+def well_clipped_cdf(x: np.ndarray, offset: float, sigma_d: float, sigma_r: float) -> np.ndarray:
+    """CDF of Y = offset + max(D, 0) + R with D ~ N(0, σ_D²), R ~ N(0, σ_R²) independent.
+
+    Half of the mass (D ≤ 0) is offset + R; the other half (D > 0) is the sum of a half-normal and a normal,
+    a skew-normal of scale σ_T = √(σ_D² + σ_R²) and shape α = σ_D/σ_R (density φ(z)Φ(αz)/σ_T, z = x/σ_T),
+    whose CDF is Φ(z) − 2·T(z, α) with Owen's T function:
+
+        F(x) = ½·Φ((x − o)/σ_R) + ½·(Φ(z) − 2·T(z, α)),   z = (x − o)/σ_T.
+    """
+    x = np.asarray(x, dtype=np.float64) - offset
+    st = math.hypot(sigma_d, sigma_r)
+    alpha = sigma_d / max(sigma_r, 1e-300)
+    with np.errstate(invalid="ignore"):
+        z = x / st
+        zr = x / max(sigma_r, 1e-300)
+        sn = special.ndtr(z) - 2.0 * special.owens_t(np.where(np.isfinite(z), z, 0.0), alpha)
+        sn = np.where(np.isposinf(z), 1.0, np.where(np.isneginf(z), 0.0, sn))
+    return 0.5 * special.ndtr(zr) + 0.5 * sn
+
+
+def well_clipped_fit(
+    edges: np.ndarray, counts: np.ndarray, sigma_r: float, start: tuple[float, float],
+) -> tuple[float, float, float, float]:
+    """Fit (offset, σ_D) of y = clip(offset + max(D, 0) + R) (:func:`well_clipped_cdf`; σ_R known) to an interval
+    histogram by maximum likelihood. Returns (offset, σ_D, 1σ of σ_D, NLL)."""
+    def nll(o: float, sd: float) -> float:
+        if sd <= 0:
+            return np.inf
+        return _nll_binned(lambda x: well_clipped_cdf(x, o, sd, sigma_r), edges, counts)
+
+    total = counts.sum()
+    x0 = np.array([start[0], math.log(max(start[1], 1e-6))])
+    res = optimize.minimize(lambda p: nll(p[0], math.exp(p[1])) / total, x0, method="Nelder-Mead",
+                            options={"xatol": 1e-9, "fatol": 1e-13, "maxiter": 4000})
+    o, sd = float(res.x[0]), float(math.exp(res.x[1]))
+    cov = _covariance(nll, o, sd)
+    return o, sd, float(math.sqrt(cov[1, 1])) if np.isfinite(cov[1, 1]) else float("nan"), nll(o, sd)
+
+
+def well_clipped_group_fit(
+    histograms: list[tuple[np.ndarray, np.ndarray]], exposures_s: list[float], start: tuple[float, float, float],
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Joint fit of dark sets taken at one temperature and gain under the "charge clipped in the well" model:
+    set i is y = clip(o + max(D_i, 0) + R) with σ_D,i² = s·t_i (dark-current shot noise grows with the exposure
+    t_i) and one offset o and readout σ_R for the group (:func:`well_clipped_cdf`).
+
+    Args:
+        histograms: interval histograms (edges [DN], counts) of the sets (:attr:`SetStatistics.hist_edges_dn`).
+        exposures_s: the sets' exposure times [s].
+        start: (o, σ_R, s) to start from [DN, DN, DN²/s].
+
+    Returns:
+        (parameters (o, σ_R, s), their covariance (3×3), NLL at the optimum).
+    """
+    ts = np.asarray(exposures_s, dtype=np.float64)
+    total = float(sum(c.sum() for _, c in histograms))
+
+    def nll(p: np.ndarray) -> float:
+        o, sr, s = p
+        if sr <= 0 or s < 0:
+            return np.inf
+        return sum(_nll_binned(lambda x, t=t: well_clipped_cdf(x, o, math.sqrt(s * t), sr), e, c)
+                   for (e, c), t in zip(histograms, ts))
+
+    x0 = np.array([start[0], math.log(max(start[1], 1e-6)), math.log(max(start[2], 1e-9))])
+    res = optimize.minimize(lambda q: nll(np.array([q[0], math.exp(q[1]), math.exp(q[2])])) / total, x0,
+                            method="Nelder-Mead", options={"xatol": 1e-8, "fatol": 1e-12, "maxiter": 6000})
+    p = np.array([res.x[0], math.exp(res.x[1]), math.exp(res.x[2])])
+    hess = _numeric_hessian(nll, p)
+    try:
+        cov = np.linalg.inv(hess)
+    except np.linalg.LinAlgError:
+        cov = np.full((3, 3), np.nan)
+    return p, cov, nll(p)
