@@ -212,30 +212,37 @@ def calibrate(
         x = _load_checked(fs, max_frames, size, size_from)
         flat_stats.append((fs, set_statistics(x, hot)))
         del x
-    # ---- which clipping the dark frames show, then the dark fit
-    clipping = _dark_clipping(dark_stats)
-    latent = clipping["latent"]  # id(stats) → (variance, 1σ, level) under the chosen model
-    points = [DarkPoint(fs.exposure_s, fs.temperature_k, fs.gain_factor, *latent.get(id(st), (st.var_dn2, st.var_err_dn2))[:2], fs.name)
-              for fs, st in dark_stats]
-    dark = fit_dark(points)
-    if clipping["model"] == "well":
-        warnings.append(
-            "the dark frames look like charge clipped at 0 before the readout noise (sources clipped one after another; "
-            f"evidence ΔAIC = {clipping['delta_aic']:.0f} over clipping once at the end): their variance is fitted with that model"
-        )
+    # ---- dark fit (Gaussian statistics), photon transfer; then the clipped dark sets refitted with their
+    # Poisson skew and the clipping model the frames show, and both fits repeated
+    def dark_points(latent: dict) -> list[DarkPoint]:
+        return [DarkPoint(fs.exposure_s, fs.temperature_k, fs.gain_factor, *latent.get(id(st), (st.var_dn2, st.var_err_dn2))[:2], fs.name)
+                for fs, st in dark_stats]
 
-    def dark_level(fs: FrameSet) -> float:
+    def dark_level(fs: FrameSet, latent: dict) -> float:
         """Mean dark level [DN] for a flat: the dark set closest in gain, then temperature, then exposure."""
         best = min(dark_stats, key=lambda d: (abs(d[0].gain_db - fs.gain_db), abs(d[0].temperature_c - fs.temperature_c),
                                               abs(math.log(d[0].exposure_s / fs.exposure_s))))
         return latent[id(best[1])][2] if id(best[1]) in latent else best[1].mean_dn
 
-    fpoints = [
-        FlatPoint(fs.name, fs.exposure_s, fs.temperature_k, fs.gain_factor, st.mean_dn, st.mean_err_dn, st.var_dn2,
-                  st.var_err_dn2, dark_level(fs), st.clipped_high, fs.gain_db)
-        for fs, st in flat_stats
-    ]
-    ptc = fit_photon_transfer(fpoints, dark.predict_dn2)
+    def photon_transfer(dark_fit, latent: dict):
+        fpoints = [
+            FlatPoint(fs.name, fs.exposure_s, fs.temperature_k, fs.gain_factor, st.mean_dn, st.mean_err_dn, st.var_dn2,
+                      st.var_err_dn2, dark_level(fs, latent), st.clipped_high, fs.gain_db)
+            for fs, st in flat_stats
+        ]
+        return fpoints, fit_photon_transfer(fpoints, dark_fit.predict_dn2)
+
+    dark = fit_dark(dark_points({}))
+    fpoints, ptc = photon_transfer(dark, {})
+    clipping = _refit_censored_darks(dark_stats, ptc.k0)
+    if clipping["latent"]:
+        dark = fit_dark(dark_points(clipping["latent"]))
+        fpoints, ptc = photon_transfer(dark, clipping["latent"])
+    if clipping["model"] == "well":
+        warnings.append(
+            "the dark frames look like charge clipped at 0 before the readout noise (sources clipped one after another; "
+            f"log-likelihood {clipping['delta_nll']:.0f} better than clipping once at the end): their variance is fitted with that model"
+        )
     for p, why in ptc.excluded:
         warnings.append(f"flat set {p.name!r} left out of the photon transfer: {why}")
     k0, k0_err = ptc.k0, ptc.k0_err
@@ -384,7 +391,7 @@ def calibrate(
             "law_c_e_per_s_per_k1_5": c_e, "law_c_err": c_e_err, "chi2_dof": dark.chi2_dof,
             "clipping_model": {"end": "clipped once at the end (camhealth's model)",
                                "well": "charge clipped at 0 before the readout, then again at the end"}[clipping["model"]],
-            "clipping_delta_aic_for_well": clipping["delta_aic"],
+            "clipping_delta_nll_for_well": clipping["delta_nll"],
             "normalised_residuals": dark.residuals.tolist(),
         },
         "read_noise_law": {"source_follower_e": sf, "source_follower_err_e": sf_err, "reset_factor": rn_law.reset_factor,
@@ -393,49 +400,55 @@ def calibrate(
     return CalibrationResult(meta, fields, emva, records, fits, maps, warnings, ptc, dark, rn_law)
 
 
-#: ΔAIC in favour of "charge clipped in the well" needed before the dark sets are analysed with that model.
-WELL_CLIPPING_MIN_DELTA_AIC = 20.0
+#: Log-likelihood advantage of "charge clipped in the well" needed before the dark sets are analysed with it.
+WELL_CLIPPING_MIN_DELTA_NLL = 10.0
 
 
-def _dark_clipping(dark_stats: list[tuple[FrameSet, SetStatistics]]) -> dict[str, Any]:
-    """Which clipping the dark frames show (:mod:`~camhealth.calibrate.statistics`).
+def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: float) -> dict[str, Any]:
+    """Refit the clipped dark sets with the dark signal's Poisson skew, and pick the clipping model they show.
 
-    camhealth's model clips once, at the end: a dark set is clip(o + N(0, σ_RN² + σ_DCSN²)). A simulator or a
-    camera that clips the charge at 0 before the readout (the dark-current shot noise cannot make the well's
-    charge negative) gives clip(o + max(D, 0) + R) instead, whose variance the first model underestimates.
-    For every (temperature, gain) group with ≥ 2 exposures and clipped sets, both are fitted — the first per set
-    (µ, σ), the second jointly (o, σ_R, and σ_D² = s·t) — and compared by AIC summed over the groups. Returns
-    ``model`` ("end" or "well"), ``delta_aic`` and ``latent``: id(stats) → (σ_RN² + σ_D², 1σ, o) per set when
-    "well" wins.
+    A Gaussian fitted to the upper half of a clipped dark frame takes the Poisson skew of the dark-current shot
+    noise for extra width (a few % of the dark variance). With K = g·K0 known, every (temperature, gain) group
+    with ≥ 2 exposures and at least one clipped set is fitted jointly by
+    :func:`~camhealth.calibrate.statistics.poisson_gaussian_group_fit` (offset o, readout σ_R, dark current DC)
+    under two models: clipped once at the end (camhealth's, :func:`~camhealth.physics.form_image`), and charge
+    clipped at 0 before the readout (a simulator or camera that clips after each source: the dark-current shot
+    noise cannot make the well's charge negative). The second is used when its log-likelihood, summed over the
+    groups, is better by more than :data:`WELL_CLIPPING_MIN_DELTA_NLL`.
+
+    Returns ``model`` ("end" or "well"), ``delta_nll`` and ``latent``: id(stats) → (σ_R² + K²·DC·t [DN²], 1σ, o [DN]).
     """
-    from camhealth.calibrate.statistics import clipped_normal_nll, well_clipped_group_fit
+    from camhealth.calibrate.statistics import poisson_gaussian_group_fit
 
     groups: dict[tuple[float, float], list[tuple[FrameSet, SetStatistics]]] = {}
     for fs, st in dark_stats:
         groups.setdefault((round(fs.temperature_c, 6), round(fs.gain_db, 6)), []).append((fs, st))
-    delta, latent = 0.0, {}
+    fits: dict[str, list] = {"end": [], "well": []}
+    delta = 0.0
     for members in groups.values():
         members = sorted(members, key=lambda d: d[0].exposure_s)
         if len({fs.exposure_s for fs, _ in members}) < 2 or not any(st.method == "censored" for _, st in members):
             continue
-        nll1 = sum(clipped_normal_nll(st.hist_edges_dn, st.hist_counts, st.mean_dn, max(st.sigma_dn, 1e-9)) for _, st in members)
+        k = members[0][0].gain_factor * k0
         (fb, sb), (fl, sl) = members[0], members[-1]
-        s0 = max((sl.var_dn2 - sb.var_dn2) / max(fl.exposure_s - fb.exposure_s, 1e-12), 1e-9) * 2.0
-        try:
-            p, cov, nll2 = well_clipped_group_fit([(st.hist_edges_dn, st.hist_counts) for _, st in members],
-                                                  [fs.exposure_s for fs, _ in members], (0.0, max(sb.sigma_dn, 1e-6), s0))
-        except (ValueError, FloatingPointError):
-            continue
-        delta += (2 * 2 * len(members) + 2 * nll1) - (2 * 3 + 2 * nll2)
-        o, sr, slope = p
+        dc0 = max((sl.var_dn2 - sb.var_dn2) / (k * k * max(fl.exposure_s - fb.exposure_s, 1e-12)), 1e-3)
+        hists = [(st.hist_edges_dn, st.hist_counts) for _, st in members]
+        ts = [fs.exposure_s for fs, _ in members]
+        nll = {}
+        for model in ("end", "well"):
+            p, cov, nll[model] = poisson_gaussian_group_fit(hists, ts, k, model == "well", (0.0, max(sb.sigma_dn, 1e-6), dc0))
+            fits[model].append((members, k, p, cov))
+        delta += nll["end"] - nll["well"]
+    model = "well" if delta > WELL_CLIPPING_MIN_DELTA_NLL else "end"
+    latent = {}
+    for members, k, p, cov in fits[model]:
+        o, sr, dc = p
         for fs, st in members:
-            v = sr**2 + slope * fs.exposure_s
-            grad = np.array([0.0, 2 * sr, fs.exposure_s])
+            var = sr**2 + k * k * dc * fs.exposure_s
+            grad = np.array([0.0, 2 * sr, k * k * fs.exposure_s])
             err = float(np.sqrt(max(grad @ cov @ grad, 0.0))) if np.all(np.isfinite(cov)) else st.var_err_dn2
-            latent[id(st)] = (v, err, o)
-    if delta > WELL_CLIPPING_MIN_DELTA_AIC:
-        return {"model": "well", "delta_aic": delta, "latent": latent}
-    return {"model": "end", "delta_aic": delta, "latent": {}}
+            latent[id(st)] = (var, err, o)
+    return {"model": model, "delta_nll": delta, "latent": latent}
 
 
 def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict[str, float]]:

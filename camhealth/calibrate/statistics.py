@@ -42,10 +42,8 @@ __all__ = [
     "binned_censored_normal_fit",
     "detect_hot_pixels",
     "set_statistics",
-    "clipped_normal_nll",
-    "well_clipped_cdf",
-    "well_clipped_fit",
-    "well_clipped_group_fit",
+    "poisson_gaussian_cdf",
+    "poisson_gaussian_group_fit",
 ]
 
 #: A set whose clipped fraction (lowest + highest code) exceeds this is analysed with the censored fit.
@@ -377,82 +375,73 @@ def _nll_binned(cdf, edges: np.ndarray, counts: np.ndarray) -> float:
     return float(-(counts * np.log(np.maximum(p, 1e-300))).sum())
 
 
-def clipped_normal_nll(edges: np.ndarray, counts: np.ndarray, mu: float, sigma: float) -> float:
-    """Binned negative log-likelihood of y = clip(N(µ, σ²)) on an interval histogram (:func:`_histogram`)."""
-    return _nll_binned(lambda x: special.ndtr((x - mu) / sigma), edges, counts)
+def _poisson_nodes(mean_e: float, max_nodes: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes N − S [e⁻] and weights of the zero-mean dark-electron count N − S, N ~ Poisson(S), covering ±8σ.
 
-
-def well_clipped_cdf(x: np.ndarray, offset: float, sigma_d: float, sigma_r: float) -> np.ndarray:
-    """CDF of Y = offset + max(D, 0) + R with D ~ N(0, σ_D²), R ~ N(0, σ_R²) independent.
-
-    Half of the mass (D ≤ 0) is offset + R; the other half (D > 0) is the sum of a half-normal and a normal,
-    a skew-normal of scale σ_T = √(σ_D² + σ_R²) and shape α = σ_D/σ_R (density φ(z)Φ(αz)/σ_T, z = x/σ_T),
-    whose CDF is Φ(z) − 2·T(z, α) with Owen's T function:
-
-        F(x) = ½·Φ((x − o)/σ_R) + ½·(Φ(z) − 2·T(z, α)),   z = (x − o)/σ_T.
+    The nodes sit at whole electrons *relative to S* (j = …, −1, 0, 1, … with the Poisson probability continued
+    to S + j, renormalised), not at whole electrons of N: the readout noise (σ_R ≫ K·1 e⁻ in practice) smears the
+    lattice anyway, and this way no node crosses 0 as S changes, so the likelihood of the clipped-charge model
+    stays smooth in the dark current. More than ``max_nodes`` nodes are merged in blocks at their weighted mean
+    (the variance lost is ≈ (block/σ)²/12 of it: < 0.1 %).
     """
-    x = np.asarray(x, dtype=np.float64) - offset
-    st = math.hypot(sigma_d, sigma_r)
-    alpha = sigma_d / max(sigma_r, 1e-300)
+    s = max(mean_e, 0.0)
+    if s <= 0:
+        return np.zeros(1), np.ones(1)
+    half = int(math.ceil(8 * math.sqrt(s) + 3))
+    j = np.arange(-min(half, int(math.floor(s))), half + 1, dtype=np.float64)
+    n = s + j
+    w = np.exp(n * math.log(s) - s - special.gammaln(n + 1))
+    if j.size > max_nodes:
+        block = int(math.ceil(j.size / max_nodes))
+        pad = (-j.size) % block
+        jj = np.concatenate([j, np.zeros(pad)]).reshape(-1, block)
+        ww = np.concatenate([w, np.zeros(pad)]).reshape(-1, block)
+        wsum = ww.sum(1)
+        j = (jj * ww).sum(1) / np.maximum(wsum, 1e-300)
+        w = wsum
+    w = w / w.sum()
+    return j - float((j * w).sum()), w  # exactly zero-mean after the truncation
+
+
+def poisson_gaussian_cdf(x: np.ndarray, offset: float, sigma_r: float, dark_e: float, k_dn_per_e: float, clip_charge: bool) -> np.ndarray:
+    """CDF of a dark pixel: Y = o + c(K·(N − S)) + R with N ~ Poisson(S) dark electrons [e⁻] (their mean S removed,
+    camhealth's offset-free model), R ~ N(0, σ_R²) readout noise [DN], K [DN/e⁻], and c the identity (clipped once,
+    at the end) or max(·, 0) (``clip_charge``: the charge is clipped at 0 before the readout)."""
+    j, w = _poisson_nodes(dark_e)
+    q = k_dn_per_e * j
+    if clip_charge:
+        q = np.maximum(q, 0.0)
+    x = np.asarray(x, dtype=np.float64)
     with np.errstate(invalid="ignore"):
-        z = x / st
-        zr = x / max(sigma_r, 1e-300)
-        sn = special.ndtr(z) - 2.0 * special.owens_t(np.where(np.isfinite(z), z, 0.0), alpha)
-        sn = np.where(np.isposinf(z), 1.0, np.where(np.isneginf(z), 0.0, sn))
-    return 0.5 * special.ndtr(zr) + 0.5 * sn
+        z = (x[:, None] - offset - q[None, :]) / sigma_r
+    return (special.ndtr(z) * w[None, :]).sum(1)
 
 
-def well_clipped_fit(
-    edges: np.ndarray, counts: np.ndarray, sigma_r: float, start: tuple[float, float],
-) -> tuple[float, float, float, float]:
-    """Fit (offset, σ_D) of y = clip(offset + max(D, 0) + R) (:func:`well_clipped_cdf`; σ_R known) to an interval
-    histogram by maximum likelihood. Returns (offset, σ_D, 1σ of σ_D, NLL)."""
-    def nll(o: float, sd: float) -> float:
-        if sd <= 0:
-            return np.inf
-        return _nll_binned(lambda x: well_clipped_cdf(x, o, sd, sigma_r), edges, counts)
-
-    total = counts.sum()
-    x0 = np.array([start[0], math.log(max(start[1], 1e-6))])
-    res = optimize.minimize(lambda p: nll(p[0], math.exp(p[1])) / total, x0, method="Nelder-Mead",
-                            options={"xatol": 1e-9, "fatol": 1e-13, "maxiter": 4000})
-    o, sd = float(res.x[0]), float(math.exp(res.x[1]))
-    cov = _covariance(nll, o, sd)
-    return o, sd, float(math.sqrt(cov[1, 1])) if np.isfinite(cov[1, 1]) else float("nan"), nll(o, sd)
-
-
-def well_clipped_group_fit(
-    histograms: list[tuple[np.ndarray, np.ndarray]], exposures_s: list[float], start: tuple[float, float, float],
+def poisson_gaussian_group_fit(
+    histograms: list[tuple[np.ndarray, np.ndarray]], exposures_s: list[float], k_dn_per_e: float, clip_charge: bool,
+    start: tuple[float, float, float],
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Joint fit of dark sets taken at one temperature and gain under the "charge clipped in the well" model:
-    set i is y = clip(o + max(D_i, 0) + R) with σ_D,i² = s·t_i (dark-current shot noise grows with the exposure
-    t_i) and one offset o and readout σ_R for the group (:func:`well_clipped_cdf`).
-
-    Args:
-        histograms: interval histograms (edges [DN], counts) of the sets (:attr:`SetStatistics.hist_edges_dn`).
-        exposures_s: the sets' exposure times [s].
-        start: (o, σ_R, s) to start from [DN, DN, DN²/s].
-
-    Returns:
-        (parameters (o, σ_R, s), their covariance (3×3), NLL at the optimum).
-    """
+    """Joint maximum-likelihood fit of the dark sets of one temperature and gain to :func:`poisson_gaussian_cdf`:
+    one offset o [DN], readout σ_R [DN] and dark current DC [e⁻/s] (S_i = DC·t_i) for the group, K known (from
+    the photon transfer). Unlike a Gaussian fit to clipped frames it has the dark signal's Poisson skew, so the
+    upper half that clipped frames show is not mistaken for a wider distribution. Returns ((o, σ_R, DC), their
+    covariance, NLL)."""
     ts = np.asarray(exposures_s, dtype=np.float64)
     total = float(sum(c.sum() for _, c in histograms))
 
     def nll(p: np.ndarray) -> float:
-        o, sr, s = p
-        if sr <= 0 or s < 0:
+        o, sr, dc = p
+        if sr <= 0 or dc < 0:
             return np.inf
-        return sum(_nll_binned(lambda x, t=t: well_clipped_cdf(x, o, math.sqrt(s * t), sr), e, c)
+        return sum(_nll_binned(lambda x, t=t: poisson_gaussian_cdf(x, o, sr, dc * t, k_dn_per_e, clip_charge), e, c)
                    for (e, c), t in zip(histograms, ts))
 
-    x0 = np.array([start[0], math.log(max(start[1], 1e-6)), math.log(max(start[2], 1e-9))])
+    x0 = np.array([start[0], math.log(max(start[1], 1e-6)), math.log(max(start[2], 1e-6))])
     res = optimize.minimize(lambda q: nll(np.array([q[0], math.exp(q[1]), math.exp(q[2])])) / total, x0,
-                            method="Nelder-Mead", options={"xatol": 1e-8, "fatol": 1e-12, "maxiter": 6000})
+                            method="Nelder-Mead", options={"xatol": 1e-7, "fatol": 1e-12, "maxiter": 3000})
     p = np.array([res.x[0], math.exp(res.x[1]), math.exp(res.x[2])])
-    hess = _numeric_hessian(nll, p)
     try:
-        cov = np.linalg.inv(hess)
+        cov = np.linalg.inv(_numeric_hessian(nll, p))
     except np.linalg.LinAlgError:
         cov = np.full((3, 3), np.nan)
     return p, cov, nll(p)
