@@ -118,6 +118,8 @@ def fit_photon_transfer(
     for p in points:
         if p.saturated:
             excluded.append((p, f"saturated: {100 * p.clipped_high:.1f} % of pixels at the top code (limit {100 * MAX_SATURATED_FRACTION:g} %)"))
+        elif not math.isfinite(p.var_dn2):
+            excluded.append((p, f"clipped: {100 * p.clipped_high:.1f} % of pixels at the top code, nothing to fit"))
         elif not p.signal_dn > 0:
             excluded.append((p, f"no signal: mean {p.mean_dn:.3g} DN is not above the dark level {p.dark_mean_dn:.3g} DN"))
         else:

@@ -136,6 +136,8 @@ def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | 
 def _stats_with_hot(x: np.ndarray, known_hot: np.ndarray | None) -> tuple[SetStatistics, np.ndarray]:
     """Statistics of a dark set with its own hot pixels (and ``known_hot``) excluded; returns the hot mask."""
     st = set_statistics(x, known_hot)
+    if st.method == "clipped":
+        return st, known_hot if known_hot is not None else np.zeros(x.shape[1:], dtype=bool)
     hot = detect_hot_pixels(st.master_dn, st.sigma_dn, st.n_frames, st.step_dn)
     if known_hot is not None:
         hot = hot | known_hot
@@ -205,6 +207,11 @@ def calibrate(
         if size is None:
             size, size_from = tuple(x.shape[1:]), fs.describe()
         st, hot = _stats_with_hot(x, hot)
+        if st.method == "clipped":
+            raise ValueError(
+                f"{fs.describe()} is clipped: {100 * st.clipped_low:.1f} % of its values at 0 DN and {100 * st.clipped_high:.1f} % at "
+                "255 DN leave nothing to fit; record it at a lower gain (or, at 0 DN, with a camera offset)"
+            )
         dark_stats.append((fs, st))
         del x
     flat_stats: list[tuple[FrameSet, SetStatistics]] = []
@@ -224,13 +231,20 @@ def calibrate(
                                               abs(math.log(d[0].exposure_s / fs.exposure_s))))
         return latent[id(best[1])][2] if id(best[1]) in latent else best[1].mean_dn
 
-    def photon_transfer(dark_fit, latent: dict):
+    def photon_transfer(dark_fit, latent: dict, law=None, k0: float = 0.0, k0_err: float = 0.0):
+        """Flats' statistics and the photon-transfer fit; with the read-noise ``law`` (and the K0 it was made with)
+        the dark variance at a flat temperature without dark sets follows the law instead of the nearest one."""
         fpoints = [
             FlatPoint(fs.name, fs.exposure_s, fs.temperature_k, fs.gain_factor, st.mean_dn, st.mean_err_dn, st.var_dn2,
                       st.var_err_dn2, dark_level(fs, latent), st.clipped_high, fs.gain_db)
             for fs, st in flat_stats
         ]
-        return fpoints, fit_photon_transfer(fpoints, dark_fit.predict_dn2)
+        intercept_at = None
+        if law is not None:
+            def intercept_at(t_k: float) -> tuple[float, float]:
+                v = law.var_e2(t_k) * k0**2
+                return v, math.sqrt((law.sf_var_err_e2 * k0**2) ** 2 + (2 * v * k0_err / k0) ** 2)
+        return fpoints, fit_photon_transfer(fpoints, lambda t, tk, g: dark_fit.predict_dn2(t, tk, g, intercept_at))
 
     dark = fit_dark(dark_points({}))
     fpoints, ptc = photon_transfer(dark, {})
@@ -238,6 +252,13 @@ def calibrate(
     if clipping["latent"]:
         dark = fit_dark(dark_points(clipping["latent"]))
         fpoints, ptc = photon_transfer(dark, clipping["latent"])
+    is_cmos = bool(cam.get("is_cmos", ASSUMED["is_cmos"]))
+    given_asn = cam.get("sense_node_gain_v_per_e")
+    asn = given_asn if given_asn is not None else ASSUMED["sense_node_gain_v_per_e"]
+    flat_temps = {round(p.temperature_k, 6) for p in fpoints}
+    if any(dark.index_of(t) is None for t in flat_temps):  # flats at a temperature without darks: the read-noise law
+        law = fit_read_noise_law(dark, ptc.k0, ptc.k0_err, is_cmos, asn, cam.get("reset_factor"))
+        fpoints, ptc = photon_transfer(dark, clipping["latent"], law, ptc.k0, ptc.k0_err)
     if clipping["model"] == "well":
         warnings.append(
             "the dark frames look like charge clipped at 0 before the readout noise (sources clipped one after another; "
@@ -256,9 +277,6 @@ def calibrate(
             f"range [{lo:g}, {hi:g}] e⁻; check the flats' gain_db (the full well is the charge at 255 DN at 0 dB)"
         )
     # ---- readout noise and W
-    is_cmos = bool(cam.get("is_cmos", ASSUMED["is_cmos"]))
-    given_asn = cam.get("sense_node_gain_v_per_e")
-    asn = given_asn if given_asn is not None else ASSUMED["sense_node_gain_v_per_e"]
     clock = cam.get("pixel_clock_hz", ASSUMED["pixel_clock_hz"])
     rn_law = fit_read_noise_law(dark, k0, k0_err, is_cmos, asn, cam.get("reset_factor"))
     sf = math.sqrt(max(rn_law.sf_var_e2, 0.0))

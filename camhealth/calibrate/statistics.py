@@ -48,6 +48,8 @@ __all__ = [
 
 #: A set whose clipped fraction (lowest + highest code) exceeds this is analysed with the censored fit.
 CENSORED_ABOVE = 1e-4
+#: A set with fewer than this fraction of its values inside (0, 255) DN is not fitted (method "clipped").
+MIN_UNCLIPPED_FRACTION = 0.02
 #: A pixel whose master-frame level lies this many robust standard deviations above the median is hot.
 HOT_PIXEL_SIGMAS = 6.0
 #: Frames are rounded to this many codes over [0, 1] to test for integer coding (16-bit resolution).
@@ -63,7 +65,8 @@ class SetStatistics:
         mean_err_dn: 1σ uncertainty of ``mean_dn`` [DN].
         var_dn2: temporal noise variance σ² [DN²].
         var_err_dn2: 1σ uncertainty of ``var_dn2`` [DN²].
-        method: ``"temporal"`` or ``"censored"`` (module docstring).
+        method: ``"temporal"``, ``"censored"`` (module docstring) or ``"clipped"`` (fewer than
+            :data:`MIN_UNCLIPPED_FRACTION` of the values inside (0, 255) DN: nothing fitted, σ² NaN).
         clipped_low, clipped_high: fraction of the values at the lowest / highest code.
         mirrored_sigma_dn: σ of the thesis's histogram rectification (Alg. 1) [DN] (reported for comparison).
         spatial_var_dn2: variance of the fixed pattern (master frame minus its mean, with the temporal
@@ -107,7 +110,8 @@ def quantisation_step(frames: np.ndarray) -> float:
     if float(np.abs(codes - rounded).max(initial=0.0)) > 0.02:
         return 0.0
     unique = np.unique(rounded.astype(np.int64))
-    step = int(np.gcd.reduce(unique[unique > 0])) if np.any(unique > 0) else 1
+    inner = unique[(unique > 0) & (unique < _CODES)]  # the clipped ends say nothing about the step
+    step = int(np.gcd.reduce(inner)) if inner.size else 1
     return 255.0 * max(step, 1) / _CODES
 
 
@@ -309,6 +313,13 @@ def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_d
     n_low, n_high = int(low.sum()), int(high.sum())
     total = vals.size
     clipped = (n_low + n_high) / total
+    if clipped > 1.0 - MIN_UNCLIPPED_FRACTION:  # (almost) every value at 0 or 255 DN: nothing to fit
+        return SetStatistics(
+            mean_dn=float(vals.mean()), mean_err_dn=float("nan"), var_dn2=float("nan"), var_err_dn2=float("nan"),
+            method="clipped", clipped_low=n_low / total, clipped_high=n_high / total, mirrored_sigma_dn=float("nan"),
+            spatial_var_dn2=float("nan"), step_dn=step, n_frames=n, height=h, width=w, n_pixels=n_pix,
+            master_dn=master.astype(np.float32),
+        )
     mir_mu, mir_sigma = mirrored_histogram_fit(vals, step)
     if clipped <= CENSORED_ABOVE:
         var_t = vals.var(axis=0, ddof=1)
