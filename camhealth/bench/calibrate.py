@@ -136,7 +136,8 @@ def run(args: argparse.Namespace) -> BenchResult:
             model = res.fits["dark"]["clipping_model"].split(" (")[0].split(",")[0]
             rows.append(Row(
                 f"{name} · {sim_name}", [ms],
-                note=f"FW {e['fw']:+.2f} % · RN {e['rn']:+.2f} % ({e['rn_e']:.3g} e⁻) · DC {e['dc']:+.2f} % ({e['dc_e']:.3g} e⁻/s) · dark model: {model}",
+                note=f"FW {e['fw']:+.2f} ± {100 * res.fields['full_well_e'].relative:.2f} % · RN {e['rn']:+.2f} % ({e['rn_e']:.3g} e⁻) · "
+                     f"DC {e['dc']:+.2f} ± {100 * res.fields['dark_fom_na_per_cm2'].relative:.2f} % ({e['dc_e']:.3g} e⁻/s) · dark model: {model}",
             ))
             if si == 0:
                 rms_t, rms_c = _noise_rms(true, res.metadata, args.patches, args.seed * 100 + ci)
@@ -161,7 +162,8 @@ def run(args: argparse.Namespace) -> BenchResult:
         f"{protocol.dark_gain_db:g} dB; flats at {len(protocol.flat_levels)} levels at {'/'.join(f'{g:g}' for g in protocol.flat_gains_db)} dB); "
         "datasheet fields given: pixel size, pixel clock, sense-node gain, sensor type",
         "time: one calibrate() call per row (statistics of every set and the fits; the stack is made beforehand); errors at the "
-        "output's operating point (50 °C); read noise σ_RN [e⁻] and dark current DC [e⁻/s] of the calibrated vs the true camera",
+        "output's operating point (50 °C); read noise σ_RN [e⁻] and dark current DC [e⁻/s] of the calibrated vs the true camera; "
+        "± the calibration's own 1σ uncertainty",
     ]
     summary = []
     for s, w in worst.items():
