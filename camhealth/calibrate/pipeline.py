@@ -22,7 +22,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from camhealth.calibrate.dark_signal import (
-    DarkPoint, dfm_from_c, doubling_temperature, fit_dark, fit_read_noise_law, model_doubling_temperature,
+    DarkPoint, arrhenius_factor, dfm_from_c, doubling_temperature, fit_dark, fit_read_noise_law, model_doubling_temperature,
 )
 from camhealth.calibrate.frames import MIN_FRAMES, FrameSet, load_frames, sets_from_paths
 from camhealth.calibrate.manifest import CAMERA_FIELDS, OPERATING_POINT_FIELDS, read_manifest
@@ -30,7 +30,7 @@ from camhealth.calibrate.photon_transfer import FlatPoint, fit_photon_transfer
 from camhealth.calibrate.readout import white_noise_from_sigma
 from camhealth.calibrate.result import CalibrationResult, FieldEstimate, SetRecord
 from camhealth.calibrate.statistics import SetStatistics, detect_hot_pixels, set_statistics
-from camhealth.physics.metadata import METADATA_RANGES, UNITS, CameraMetadata
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, UNITS, CameraMetadata
 
 __all__ = ["ASSUMED", "calibrate", "resolve_sets"]
 
@@ -381,8 +381,6 @@ def calibrate(
     for k, v in (("is_cmos", ASSUMED["is_cmos"]), ("pixel_clock_hz", clock)):
         if k not in cam:
             warnings.append(f"{k} not given: assumed {v:g}")
-    from camhealth.physics.metadata import FULL_FIELDS
-
     meta = CameraMetadata(**{k: fields[k].value for k in FULL_FIELDS})
     # ---- records, maps, EMVA figures
     for fs, st in dark_stats:
@@ -503,8 +501,6 @@ def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict
 
 
 def _emva(dark, ptc, rn_law, k0, k0_err, c_e, c_e_err, full_well, rn_ref, nonuni, hot, t_ref) -> dict[str, Any]:
-    from camhealth.calibrate.dark_signal import arrhenius_factor
-
     td, td_err = doubling_temperature(dark)
     per_t = {}
     for j, t in enumerate(dark.temperatures_k):

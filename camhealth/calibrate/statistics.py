@@ -356,10 +356,11 @@ def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_d
     )
 
 
-def _histogram(vals: np.ndarray, step: float, sigma: float, max_bins: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+def _histogram(vals: np.ndarray, step: float, sigma: float, max_bins: int = 512) -> tuple[np.ndarray, np.ndarray]:
     """Interval histogram of all values [DN]: bin k holds the values in [e_k, e_{k+1}); the first bin starts at
     −∞ (values at the lowest code) and the last ends at +∞ (values at the highest code) when those occur.
-    Quantised data: one bin per code; continuous data: bins of σ/16 (at most ``max_bins``)."""
+    Quantised data: one bin per code (whole codes merged when there would be more than ``max_bins``);
+    continuous data: bins of σ/16 (at most ``max_bins``)."""
     v = vals.ravel()
     lo_v, hi_v = float(v.min()), float(v.max())
     if step > 0:
