@@ -23,7 +23,8 @@
 - ``metadata``: required when ``metadata_set`` is ``"minimal"`` or ``"full"``:
   a :class:`~camhealth.physics.CameraMetadata` (batch 1 or B), a dict of fields in physical units
   (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``
-  with ``base_preset="ICX285"``), or a preset name. Out-of-range values raise, naming field and range.
+  with ``base_preset="ICX285"``), a preset name, or the path of a ``.yaml``/``.json`` metadata file (the
+  ``camera.yaml`` of ``python -m camhealth.calibrate``). Out-of-range values raise, naming field and range.
 - returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V [kind ``mtf``]; ``sigma_total`` (B,) DN
   [noise kinds; for noise-source networks √(Σ σ_s²)]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
@@ -181,14 +182,16 @@ def _gray_patch_layout(t: torch.Tensor, patch_size: int) -> torch.Tensor:
 
 
 def _to_metadata(metadata: Any, batch: int, base_preset: str | None) -> CameraMetadata:
-    if isinstance(metadata, str):
-        meta = CameraMetadata.preset(metadata)
+    if isinstance(metadata, (str, Path)):  # a preset name or a metadata file (camera.yaml of camhealth.calibrate)
+        meta = CameraMetadata.lookup(metadata)
     elif isinstance(metadata, CameraMetadata):
         meta = metadata
     elif isinstance(metadata, Mapping):
         meta = CameraMetadata.from_dict(dict(metadata), base=base_preset)
     else:
-        raise TypeError(f"metadata must be CameraMetadata, a dict of fields or a preset name, got {type(metadata).__name__}")
+        raise TypeError(
+            f"metadata must be CameraMetadata, a dict of fields, a preset name or a .yaml/.json file, got {type(metadata).__name__}"
+        )
     if meta.batch_size not in (1, batch):
         raise ValueError(f"metadata has batch size {meta.batch_size}; it must be 1 or the number of patches {batch}")
     return meta  # batch 1 stays batch 1 (broadcast over the patches)

@@ -189,13 +189,15 @@ class BlurDataModule(PatchDataModule):
         self.noise_order = noise_order
         self.noise_sources = check_sources(noise_sources)
         self.sensor = sensor
+        # a preset name or a metadata file (camera.yaml of camhealth.calibrate), read once
+        self._sensor_meta = CameraMetadata.lookup(sensor) if sensor is not None else None
         ranges = {k: (float(v[0]), float(v[1])) for k, v in (metadata_ranges or {}).items()}
         if sensor is not None:
             ranges = {**{n: METADATA_RANGES[n] for n in MINIMAL_FIELDS}, **ranges}
         self.metadata_ranges = ranges
         self.gain_uniform_in = gain_uniform_in
         if self.noise:
-            CameraMetadata.sample(1, ranges=self.metadata_ranges, fixed=self.sensor, gain_uniform_in=gain_uniform_in)
+            CameraMetadata.sample(1, ranges=self.metadata_ranges, fixed=self._sensor_meta, gain_uniform_in=gain_uniform_in)
 
     # ------------------------------------------------------------------ parameters
     def sample_params(self, batch_size: int, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
@@ -277,7 +279,7 @@ class BlurDataModule(PatchDataModule):
         if not self.noise:
             return self.corrupt_with(clean, params)
         meta = CameraMetadata.sample(
-            b, generator=generator, ranges=self.metadata_ranges, fixed=self.sensor, gain_uniform_in=self.gain_uniform_in
+            b, generator=generator, ranges=self.metadata_ranges, fixed=self._sensor_meta, gain_uniform_in=self.gain_uniform_in
         )
         noisy = torch.rand(b, generator=generator) < self.noise_probability
         seed = int(torch.randint(0, 2**62, (1,), generator=generator))

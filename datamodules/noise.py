@@ -120,8 +120,9 @@ class NoiseDataModule(PatchDataModule):
     Noise options:
         metadata_set: which normalised metadata the network gets in ``meta``: ``"none"``, ``"minimal"``
             (gain, exposure, temperature) or ``"full"`` (all 11).
-        sensor: ``None`` (sample every Table 4.1 field) or a preset (``"ICX285"``, ``"EV76C661"``) whose
-            sensor fields stay fixed while gain, exposure and temperature are sampled.
+        sensor: ``None`` (sample every Table 4.1 field), a preset (``"ICX285"``, ``"EV76C661"``) or a metadata
+            file (``camera.yaml`` from ``python -m camhealth.calibrate``) whose sensor fields stay fixed while gain,
+            exposure and temperature are sampled.
         metadata_ranges: per-field ``[low, high]`` sampling ranges (inside Table 4.1), e.g.
             ``{gain_db: [0, 12]}``.
         gain_uniform_in: sample the gain uniformly in the linear ``"factor"`` (thesis) or in ``"db"``.
@@ -193,6 +194,8 @@ class NoiseDataModule(PatchDataModule):
             raise ValueError(f"metadata_set = {metadata_set!r} must be one of {list(METADATA_SETS)}")
         self.metadata_set = metadata_set
         self.sensor = sensor
+        # a preset name or a metadata file (camera.yaml of camhealth.calibrate), read once
+        self._sensor_meta = CameraMetadata.lookup(sensor) if sensor is not None else None
         ranges = {k: (float(v[0]), float(v[1])) for k, v in (metadata_ranges or {}).items()}
         if sensor is not None:  # a preset fixes the sensor; the operating point is still sampled
             ranges = {**{n: METADATA_RANGES[n] for n in MINIMAL_FIELDS}, **ranges}
@@ -209,7 +212,7 @@ class NoiseDataModule(PatchDataModule):
         self.noise_sources = check_sources(noise_sources)
         self.quantize = bool(quantize)
         # Validate the sampling configuration now (a bad preset/range fails at construction).
-        CameraMetadata.sample(1, ranges=self.metadata_ranges, fixed=self.sensor, gain_uniform_in=gain_uniform_in)
+        CameraMetadata.sample(1, ranges=self.metadata_ranges, fixed=self._sensor_meta, gain_uniform_in=gain_uniform_in)
 
     # ------------------------------------------------------------------ metadata
     def sample_metadata(
@@ -218,7 +221,7 @@ class NoiseDataModule(PatchDataModule):
         """Draw (M, M', altered): the metadata given to the network, the metadata the image is corrupted
         with, and which samples differ (one ``xi_fields`` entry redrawn from its sampling range)."""
         meta = CameraMetadata.sample(
-            batch_size, generator=generator, ranges=self.metadata_ranges, fixed=self.sensor,
+            batch_size, generator=generator, ranges=self.metadata_ranges, fixed=self._sensor_meta,
             gain_uniform_in=self.gain_uniform_in,
         )
         altered = torch.rand(batch_size, generator=generator) < self.xi_probability

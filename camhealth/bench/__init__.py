@@ -22,6 +22,7 @@ __all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_t
 
 #: Registered benchmarks: CLI name → module implementing ``HELP``, ``add_arguments`` and ``run``.
 BENCHMARKS: dict[str, str] = {
+    "calibrate": "camhealth.bench.calibrate",
     "corruption": "camhealth.bench.corruption",
     "data": "camhealth.bench.data",
     "classical": "camhealth.bench.classical",

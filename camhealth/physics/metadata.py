@@ -63,6 +63,9 @@ UNITS: dict[str, str] = {
     "white_noise_v_per_rthz": "V/√Hz",
 }
 
+#: File types :meth:`CameraMetadata.from_file` reads.
+METADATA_FILE_SUFFIXES: tuple[str, ...] = (".yaml", ".yml", ".json")
+
 #: The "Min-Meta" set: what any camera driver reports.
 MINIMAL_FIELDS: tuple[str, ...] = ("gain_db", "exposure_s", "temperature_c")
 #: The "Full-Meta" set: all 11 variable parameters, in Table 4.1 order.
@@ -369,6 +372,55 @@ class CameraMetadata:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
+    def from_file(cls, path: Any) -> "CameraMetadata":
+        """Metadata (batch 1) from a ``.yaml``/``.yml``/``.json`` file holding a mapping of field: value in physical
+        units — e.g. the ``camera.yaml`` that ``python -m camhealth.calibrate`` writes. ``sensor_type: CCD|CMOS``
+        is accepted for ``is_cmos`` and ``sensor: <preset>`` fills fields the file does not give; all 11 fields
+        are needed otherwise. Read with ``yaml.safe_load``/``json`` (a file never executes code).
+
+        Raises ``FileNotFoundError`` or ``ValueError`` naming the file and what is wrong with it.
+        """
+        from pathlib import Path
+
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"metadata file not found: {p}")
+        suffix = p.suffix.lower()
+        if suffix not in METADATA_FILE_SUFFIXES:
+            raise ValueError(f"metadata file {p} must be one of {list(METADATA_FILE_SUFFIXES)}, got {p.suffix!r}")
+        text = p.read_text(encoding="utf-8")
+        try:
+            if suffix == ".json":
+                import json
+
+                data = json.loads(text)
+            else:
+                import yaml
+
+                data = yaml.safe_load(text)
+        except Exception as exc:  # json.JSONDecodeError, yaml.YAMLError
+            raise ValueError(f"cannot parse metadata file {p}: {str(exc).splitlines()[0]}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"metadata file {p} must hold a mapping of field: value, got {type(data).__name__}")
+        base = data.pop("sensor", None)
+        for key, value in data.items():
+            if key != "sensor_type" and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                raise ValueError(f"metadata file {p}: field {key} = {value!r} must be a number in physical units")
+        try:
+            return cls.from_dict(data, base=str(base) if base is not None else None)
+        except ValueError as exc:
+            raise ValueError(f"metadata file {p}: {exc}") from None
+
+    @classmethod
+    def lookup(cls, name_or_path: Any) -> "CameraMetadata":
+        """A preset by name (``"ICX285"``, ``"EV76C661"``) or the metadata of a ``.yaml``/``.yml``/``.json`` file
+        (:meth:`from_file`)."""
+        text = str(name_or_path)
+        if text.lower().endswith(METADATA_FILE_SUFFIXES):
+            return cls.from_file(text)
+        return cls.preset(text)
+
+    @classmethod
     def preset(cls, name: str, batch_size: int = 1, **operating_point: Any) -> "CameraMetadata":
         """Metadata of a known sensor (``"ICX285"`` CCD or ``"EV76C661"`` CMOS) at an operating point.
 
@@ -402,8 +454,9 @@ class CameraMetadata:
             generator: torch generator for reproducibility (CPU generator; values moved to ``device``).
             ranges: per-field (low, high) overriding ``METADATA_RANGES`` (each must lie inside it).
                 ``is_cmos`` is drawn as a fair coin unless its range is (0, 0) or (1, 1).
-            fixed: fields held fixed instead of sampled: a preset name, metadata of batch 1 or B, or a
-                dict; only fields *not* named in ``ranges`` are taken from it.
+            fixed: fields held fixed instead of sampled: a preset name or metadata file path
+                (:meth:`lookup`), metadata of batch 1 or B, or a dict; only fields *not* named in ``ranges``
+                are taken from it.
             gain_uniform_in: ``"factor"`` (the thesis: uniform in the linear gain factor, converted to dB)
                 or ``"db"``.
         """
@@ -423,7 +476,7 @@ class CameraMetadata:
         fixed_values: dict[str, Any] = {}
         constants = SensorConstants()
         if isinstance(fixed, str):
-            fixed = cls.preset(fixed)
+            fixed = cls.lookup(fixed)
         if isinstance(fixed, CameraMetadata):
             fm = fixed.expand(batch_size) if fixed.batch_size == 1 else fixed
             fixed_values = {n: getattr(fm, n).float().cpu() for n in FULL_FIELDS}

@@ -133,3 +133,27 @@ def test_float32_range_ends_survive_float64_conversion():
     assert m.to(dtype=torch.float64).exposure_s.item() == pytest.approx(0.2)
     with pytest.raises(ValueError, match="exposure_s"):
         CameraMetadata.preset("ICX285", exposure_s=0.2001)
+
+
+def test_from_file_and_lookup(tmp_path):
+    import yaml
+
+    meta = CameraMetadata.preset("EV76C661", gain_db=6.0)
+    path = tmp_path / "cam.yaml"
+    path.write_text(yaml.safe_dump({k: v[0] for k, v in meta.to_dict().items()}))
+    loaded = CameraMetadata.lookup(str(path))
+    assert torch.allclose(loaded.white_noise_v_per_rthz, meta.white_noise_v_per_rthz)
+    assert float(CameraMetadata.lookup("ICX285").full_well_e) == 14000.0
+    (tmp_path / "part.yaml").write_text("sensor: ICX285\ngain_db: 12\nsensor_type: CMOS\n")
+    part = CameraMetadata.from_file(tmp_path / "part.yaml")
+    assert float(part.gain_db) == 12.0 and float(part.is_cmos) == 1.0 and float(part.full_well_e) == 14000.0
+    (tmp_path / "bad.yaml").write_text("gain_db: 12\n")
+    with pytest.raises(ValueError, match=r"bad.yaml: metadata is missing field"):
+        CameraMetadata.from_file(tmp_path / "bad.yaml")
+    (tmp_path / "evil.yaml").write_text("gain_db: !!python/object/apply:os.system ['echo hacked']\n")
+    with pytest.raises(ValueError, match="cannot parse metadata file"):
+        CameraMetadata.from_file(tmp_path / "evil.yaml")
+    with pytest.raises(FileNotFoundError):
+        CameraMetadata.from_file(tmp_path / "missing.yaml")
+    with pytest.raises(ValueError, match="unknown sensor preset"):
+        CameraMetadata.lookup("nope")

@@ -1,0 +1,108 @@
+"""Command line: ``python -m camhealth.calibrate FRAMES... --out camera.yaml [--report DIR]``.
+
+FRAMES are manifests (``.yaml``/``.yml``/``.csv``) and/or folders, videos and image files of bias, dark and
+flat frames named by the convention ``<kind>_<exposure>_<gain>_<temperature>`` (e.g. ``dark_200ms_12dB_60C/``).
+Writes the metadata YAML (accepted as-is by ``predict``, the monitor and ``fit``), ``<out>.calibration.yaml``
+(uncertainties, EMVA 1288 figures, sets, fits) and ``<out>.maps.npz`` (hot pixels, DSNU, PRNU, masters); with
+``--report DIR`` also ``DIR/report.md`` with ``calibration.png`` and ``maps.png``. Exit status 0 on success,
+2 on an input error (one line naming what is missing and how many are needed). See docs/calibration.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+from typing import Sequence
+
+__all__ = ["build_parser", "main"]
+
+EPILOG = """\
+Recording (docs/calibration.md): ≥ 4 frames per set (20 recommended); a bias set (cap on, shortest exposure),
+dark sets at ≥ 4× longer exposures (several temperatures measure the dark current's law), and ≥ 2 flat sets
+(uniform light, 10 % … 70 % of full scale; a second gain checks K ∝ gain).
+
+Examples:
+  python -m camhealth.calibrate manifest.yaml --out camera.yaml --report calib_report
+  python -m camhealth.calibrate bias_1ms_12dB_25C/ dark_200ms_12dB_25C/ flat_10ms_0dB_25C_L1.mp4 \\
+      flat_10ms_0dB_25C_L2.mp4 --sensor-type CMOS --pixel-size-um 5.3 --out camera.yaml
+  python -m camhealth.monitor clip.mp4 --metadata camera.yaml --set gain_db=12
+"""
+
+
+def _assignment(text: str) -> tuple[str, float]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+    k, v = text.split("=", 1)
+    try:
+        return k.strip(), float(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{k.strip()} = {v!r} must be a number") from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    return n
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m camhealth.calibrate", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("frames", nargs="+", metavar="FRAMES", help="manifest(s) and/or folders, videos, image files of bias/dark/flat sets")
+    p.add_argument("--out", type=Path, required=True, metavar="FILE", help="metadata YAML to write (e.g. camera.yaml)")
+    p.add_argument("--report", type=Path, default=None, metavar="DIR", help="write report.md, calibration.png and maps.png here")
+    p.add_argument("--maps", type=Path, default=None, metavar="FILE", help="maps NPZ (default <out stem>.maps.npz)")
+    p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N", help="read at most N frames per set")
+    g = p.add_argument_group("file names without a gain or temperature token")
+    g.add_argument("--gain-db", type=float, default=0.0, metavar="DB", help="gain of sets whose names give none (default 0)")
+    g.add_argument("--temperature-c", type=float, default=None, metavar="C", help="temperature of sets whose names give none (default: an error)")
+    g = p.add_argument_group("datasheet values (override the manifest's camera section; missing ones are assumed and marked so)")
+    g.add_argument("--sensor-type", choices=("CCD", "CMOS"), default=None)
+    g.add_argument("--pixel-size-um", type=float, default=None, metavar="UM")
+    g.add_argument("--pixel-clock-hz", type=float, default=None, metavar="HZ")
+    g.add_argument("--sense-node-gain-v-per-e", type=float, default=None, metavar="V")
+    g.add_argument("--reset-factor", type=float, default=None, metavar="R", help="CMOS kTC residue 0…1 (default: fitted from ≥ 2 temperatures, else 0)")
+    p.add_argument("--operating-point", type=_assignment, action="append", default=[], metavar="FIELD=VALUE",
+                   help="gain_db, exposure_s or temperature_c written to the metadata (repeatable)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from camhealth.calibrate import calibrate
+    from camhealth.calibrate.report import write_report
+
+    camera = {k: v for k, v in {
+        "sensor_type": args.sensor_type, "pixel_size_um": args.pixel_size_um, "pixel_clock_hz": args.pixel_clock_hz,
+        "sense_node_gain_v_per_e": args.sense_node_gain_v_per_e, "reset_factor": args.reset_factor,
+    }.items() if v is not None}
+    command = "python -m camhealth.calibrate " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    try:
+        result = calibrate(args.frames, camera=camera, operating_point=dict(args.operating_point), max_frames=args.max_frames,
+                           gain_db=args.gain_db, temperature_c=args.temperature_c)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    written = result.save(args.out, maps=args.maps, header=f"command: {command}")
+    for n, fe in result.fields.items():
+        unc = f" ± {fe.uncertainty:.3g}" if fe.uncertainty else ""
+        print(f"{n:<26} {fe.value:<12.6g}{unc:<12} {fe.unit:<7} {fe.source}")
+    for w in result.warnings:
+        print(f"warning: {w}")
+    for kind, path in written.items():
+        print(f"wrote {kind}: {path}")
+    if args.report is not None:
+        print(f"wrote report: {write_report(result, args.report, command)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

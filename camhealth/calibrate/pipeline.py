@@ -1,0 +1,532 @@
+"""``calibrate(...)``: frame sets → per-set statistics → dark fit → photon transfer → camera metadata.
+
+Order of the analysis (each step's physics in its module):
+
+1. every bias/dark set: master frame, hot pixels (:func:`~camhealth.calibrate.statistics.detect_hot_pixels`),
+   temporal noise (temporal or censored estimator, :mod:`~camhealth.calibrate.statistics`);
+2. every flat set: the same, hot pixels of the darks excluded;
+3. dark fit in DN² at unit gain (:mod:`~camhealth.calibrate.dark_signal`): read noise per temperature and the
+   dark current's Eq. 3.14 law;
+4. photon transfer (:mod:`~camhealth.calibrate.photon_transfer`): K0 [DN/e⁻] → full well FW = 255/K0;
+5. in electrons: σ_RN²(T) = intercept/K0² → the readout law (σ_SF, CMOS reset factor) → W by inverting Eq.
+   3.17 (:mod:`~camhealth.calibrate.readout`); DC(T) = C/K0² → D_FM with the pixel pitch;
+6. the metadata (validated against Table 4.1's ranges), EMVA 1288 figures and the maps.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from camhealth.calibrate.dark_signal import (
+    DarkPoint, arrhenius_factor, dfm_from_c, doubling_temperature, fit_dark, fit_read_noise_law, model_doubling_temperature,
+)
+from camhealth.calibrate.frames import MIN_FRAMES, FrameSet, load_frames, sets_from_paths
+from camhealth.calibrate.manifest import CAMERA_FIELDS, OPERATING_POINT_FIELDS, read_manifest
+from camhealth.calibrate.photon_transfer import FlatPoint, fit_photon_transfer
+from camhealth.calibrate.readout import white_noise_from_sigma
+from camhealth.calibrate.result import CalibrationResult, FieldEstimate, SetRecord
+from camhealth.calibrate.statistics import SetStatistics, detect_hot_pixels, set_statistics
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, UNITS, CameraMetadata
+
+__all__ = ["ASSUMED", "calibrate", "resolve_sets"]
+
+#: Values used for datasheet fields that are not given (each is marked "assumed" in the output). The noise
+#: model's σ_RN and dark current are reproduced whatever these are: W absorbs the sense-node gain and pixel
+#: clock, D_FM the pixel area. If W or D_FM would leave their range, the sense-node gain / pixel size are
+#: moved within theirs.
+ASSUMED: dict[str, float] = {
+    "is_cmos": 1.0,
+    "pixel_size_um": 5.0,
+    "pixel_clock_hz": 50e6,
+    "sense_node_gain_v_per_e": 5e-6,
+    "reset_factor": 0.0,
+}
+
+
+def _camera_values(camera: Mapping[str, Any]) -> dict[str, float]:
+    cam = dict(camera)
+    unknown = sorted(set(cam) - set(CAMERA_FIELDS))
+    if unknown:
+        raise ValueError(f"unknown camera field(s) {unknown}; known: {list(CAMERA_FIELDS)}")
+    if "sensor_type" in cam:
+        st = str(cam.pop("sensor_type")).strip().upper()
+        if st not in ("CCD", "CMOS"):
+            raise ValueError(f"sensor_type {st!r} must be CCD or CMOS")
+        cam["is_cmos"] = 1.0 if st == "CMOS" else 0.0
+    out = {}
+    for k, v in cam.items():
+        if v is None:
+            continue
+        v = float(v)
+        lo, hi = METADATA_RANGES[k]
+        if not lo <= v <= hi:
+            raise ValueError(f"camera field {k} = {v:g} {UNITS.get(k, '')} is outside camhealth's range [{lo:g}, {hi:g}]")
+        out[k] = v
+    return out
+
+
+def resolve_sets(
+    frames: Sequence[FrameSet | str | Path] | str | Path, gain_db: float | None = None, temperature_c: float | None = None,
+) -> tuple[list[FrameSet], dict[str, Any], dict[str, float]]:
+    """Frame sets (with manifest camera fields and operating point) from FrameSets, manifests and paths.
+
+    A ``.yaml``/``.yml``/``.csv`` path is read as a manifest; other paths are folders, videos or image files
+    named by the convention of :mod:`camhealth.calibrate.frames`.
+    """
+    items = [frames] if isinstance(frames, (str, Path)) else list(frames)
+    sets: list[FrameSet] = []
+    camera: dict[str, Any] = {}
+    op: dict[str, float] = {}
+    loose: list[Path] = []
+    for item in items:
+        if isinstance(item, FrameSet):
+            sets.append(item)
+        elif Path(item).suffix.lower() in (".yaml", ".yml", ".csv"):
+            m = read_manifest(item)
+            sets.extend(m.sets)
+            camera.update(m.camera)
+            op.update(m.operating_point)
+        else:
+            loose.append(Path(item))
+    if loose:
+        sets.extend(sets_from_paths(loose, gain_db=gain_db, temperature_c=temperature_c))
+    if not sets:
+        raise ValueError("no frame sets given: pass a manifest, or folders/videos/images of bias, dark and flat frames")
+    return sets, camera, op
+
+
+def _clamp_near_range(name: str, value: float, err: float, warnings: list[str]) -> float:
+    """A fitted value just outside its METADATA_RANGES interval (within 3σ or 3 % of the range end: a camera at the
+    end of the range, measured with noise) is set to the range end with a warning; others are returned as they are."""
+    lo, hi = METADATA_RANGES[name]
+    for end, outside in ((hi, value > hi), (lo, value < lo)):
+        if outside and abs(value - end) <= max(3 * err, 0.03 * abs(end)):
+            warnings.append(f"{name} = {value:.5g} ± {err:.2g} is just outside camhealth's range [{lo:g}, {hi:g}]; set to {end:g}")
+            return float(end)
+    return value
+
+
+def _record(fs: FrameSet, st: SetStatistics, used: bool = True, note: str = "") -> SetRecord:
+    sig = st.sigma_dn
+    return SetRecord(
+        name=fs.name, kind=fs.kind, exposure_s=fs.exposure_s, gain_db=fs.gain_db, temperature_c=fs.temperature_c,
+        n_frames=st.n_frames, height=st.height, width=st.width, mean_dn=st.mean_dn, sigma_dn=sig,
+        sigma_err_dn=st.var_err_dn2 / (2 * sig) if sig > 0 else float("nan"), method=st.method,
+        clipped_low=st.clipped_low, clipped_high=st.clipped_high, mirrored_sigma_dn=st.mirrored_sigma_dn,
+        spatial_sigma_dn=math.sqrt(st.spatial_var_dn2), step_dn=st.step_dn, used=used, note=note,
+    )
+
+
+def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | None, size_from: str) -> np.ndarray:
+    x = load_frames(fs, max_frames)
+    if x.shape[0] < MIN_FRAMES:
+        raise ValueError(f"{fs.describe()} has {x.shape[0]} frame(s); at least {MIN_FRAMES} are needed per set (20 recommended)")
+    if size is not None and tuple(x.shape[1:]) != size:
+        raise ValueError(
+            f"{fs.describe()} has {x.shape[1]}×{x.shape[2]} px frames but {size_from} has {size[0]}×{size[1]} px; "
+            "every set of a calibration must have one frame size"
+        )
+    return x
+
+
+def _stats_with_hot(x: np.ndarray, known_hot: np.ndarray | None) -> tuple[SetStatistics, np.ndarray]:
+    """Statistics of a dark set with its own hot pixels (and ``known_hot``) excluded; returns the hot mask."""
+    st = set_statistics(x, known_hot)
+    if st.method == "clipped":
+        return st, known_hot if known_hot is not None else np.zeros(x.shape[1:], dtype=bool)
+    hot = detect_hot_pixels(st.master_dn, st.sigma_dn, st.n_frames, st.step_dn)
+    if known_hot is not None:
+        hot = hot | known_hot
+    if hot.any() and (known_hot is None or (hot & ~known_hot).any()):
+        st = set_statistics(x, hot, step_dn=st.step_dn)
+    return st, hot
+
+
+def calibrate(
+    frames: Sequence[FrameSet | str | Path] | str | Path,
+    camera: Mapping[str, Any] | None = None,
+    operating_point: Mapping[str, float] | None = None,
+    max_frames: int | None = None,
+    gain_db: float | None = 0.0,
+    temperature_c: float | None = None,
+) -> CalibrationResult:
+    """A camera's metadata from bias, dark and flat frames (module docstring; ``docs/calibration.md``).
+
+    Args:
+        frames: :class:`~camhealth.calibrate.frames.FrameSet` objects (in-memory or on disk), manifest files
+            (``.yaml``/``.yml``/``.csv``) and/or folders, videos and image files named by the convention.
+        camera: datasheet values (``sensor_type``/``is_cmos``, ``pixel_size_um``, ``pixel_clock_hz``,
+            ``sense_node_gain_v_per_e``, ``reset_factor``); they override a manifest's. Missing ones are
+            assumed (:data:`ASSUMED`) and marked so.
+        operating_point: ``gain_db``, ``exposure_s``, ``temperature_c`` written to the metadata (default: the
+            lowest flat gain, the median flat exposure within 1 ms … 0.2 s, the median dark temperature).
+        max_frames: read at most this many frames per set.
+        gain_db, temperature_c: values for file names that do not give them.
+
+    Returns:
+        :class:`~camhealth.calibrate.result.CalibrationResult`.
+
+    Raises:
+        FileNotFoundError: a manifest or a file it names is missing (all missing ones listed).
+        ValueError: too few frames in a set, too few sets of a kind, exposures or flat levels that do not span a
+            range, saturated flats, mixed frame sizes, a result outside camhealth's parameter ranges — each
+            message names what is missing and how many are needed.
+    """
+    sets, cam_manifest, op_manifest = resolve_sets(frames, gain_db=gain_db, temperature_c=temperature_c)
+    cam = _camera_values({**cam_manifest, **dict(camera or {})})
+    op = {**op_manifest, **dict(operating_point or {})}
+    unknown = sorted(set(op) - set(OPERATING_POINT_FIELDS))
+    if unknown:
+        raise ValueError(f"unknown operating-point field(s) {unknown}; known: {list(OPERATING_POINT_FIELDS)}")
+    darks = [s for s in sets if s.kind in ("bias", "dark")]
+    flats = [s for s in sets if s.kind == "flat"]
+    counts = {k: sum(s.kind == k for s in sets) for k in ("bias", "dark", "flat")}
+    if len(darks) < 2:
+        raise ValueError(
+            f"{len(darks)} bias/dark set(s) given ({counts['bias']} bias, {counts['dark']} dark); at least 2 are needed: "
+            "a bias set at the shortest exposure and a dark set at a ≥ 4× longer one (more exposures and temperatures "
+            "measure the dark current better)"
+        )
+    if len(flats) < 2:
+        raise ValueError(
+            f"{len(flats)} flat set(s) given; at least 2 are needed at different light levels or exposures below "
+            "saturation (e.g. 10 % … 70 % of full scale) to measure the conversion gain"
+        )
+    warnings: list[str] = []
+    records: list[SetRecord] = []
+    size: tuple[int, int] | None = None
+    size_from = ""
+    hot: np.ndarray | None = None
+    dark_stats: list[tuple[FrameSet, SetStatistics]] = []
+    for fs in sorted(darks, key=lambda s: (s.temperature_c, s.gain_db, s.exposure_s)):
+        x = _load_checked(fs, max_frames, size, size_from)
+        if size is None:
+            size, size_from = tuple(x.shape[1:]), fs.describe()
+        st, hot = _stats_with_hot(x, hot)
+        if st.method == "clipped":
+            raise ValueError(
+                f"{fs.describe()} is clipped: {100 * st.clipped_low:.1f} % of its values at 0 DN and {100 * st.clipped_high:.1f} % at "
+                "255 DN leave nothing to fit; record it at a lower gain (or, at 0 DN, with a camera offset)"
+            )
+        dark_stats.append((fs, st))
+        del x
+    flat_stats: list[tuple[FrameSet, SetStatistics]] = []
+    for fs in flats:
+        x = _load_checked(fs, max_frames, size, size_from)
+        flat_stats.append((fs, set_statistics(x, hot)))
+        del x
+    # ---- dark fit (Gaussian statistics), photon transfer; then the clipped dark sets refitted with their
+    # Poisson skew and the clipping model the frames show, and both fits repeated
+    def dark_points(latent: dict) -> list[DarkPoint]:
+        return [DarkPoint(fs.exposure_s, fs.temperature_k, fs.gain_factor, *latent.get(id(st), (st.var_dn2, st.var_err_dn2))[:2], fs.name)
+                for fs, st in dark_stats]
+
+    def dark_level(fs: FrameSet, latent: dict) -> float:
+        """Mean dark level [DN] for a flat: the dark set closest in gain, then temperature, then exposure."""
+        best = min(dark_stats, key=lambda d: (abs(d[0].gain_db - fs.gain_db), abs(d[0].temperature_c - fs.temperature_c),
+                                              abs(math.log(d[0].exposure_s / fs.exposure_s))))
+        return latent[id(best[1])][2] if id(best[1]) in latent else best[1].mean_dn
+
+    def photon_transfer(dark_fit, latent: dict, law=None, k0: float = 0.0, k0_err: float = 0.0):
+        """Flats' statistics and the photon-transfer fit; with the read-noise ``law`` (and the K0 it was made with)
+        the dark variance at a flat temperature without dark sets follows the law instead of the nearest one."""
+        fpoints = [
+            FlatPoint(fs.name, fs.exposure_s, fs.temperature_k, fs.gain_factor, st.mean_dn, st.mean_err_dn, st.var_dn2,
+                      st.var_err_dn2, dark_level(fs, latent), st.clipped_high, fs.gain_db)
+            for fs, st in flat_stats
+        ]
+        intercept_at = None
+        if law is not None:
+            def intercept_at(t_k: float) -> tuple[float, float]:
+                v = law.var_e2(t_k) * k0**2
+                return v, math.sqrt((law.sf_var_err_e2 * k0**2) ** 2 + (2 * v * k0_err / k0) ** 2)
+        return fpoints, fit_photon_transfer(fpoints, lambda t, tk, g: dark_fit.predict_dn2(t, tk, g, intercept_at))
+
+    dark = fit_dark(dark_points({}))
+    fpoints, ptc = photon_transfer(dark, {})
+    clipping = _refit_censored_darks(dark_stats, ptc.k0)
+    if clipping["latent"]:
+        dark = fit_dark(dark_points(clipping["latent"]))
+        fpoints, ptc = photon_transfer(dark, clipping["latent"])
+    is_cmos = bool(cam.get("is_cmos", ASSUMED["is_cmos"]))
+    given_asn = cam.get("sense_node_gain_v_per_e")
+    asn = given_asn if given_asn is not None else ASSUMED["sense_node_gain_v_per_e"]
+    flat_temps = {round(p.temperature_k, 6) for p in fpoints}
+    if any(dark.index_of(t) is None for t in flat_temps):  # flats at a temperature without darks: the read-noise law
+        law = fit_read_noise_law(dark, ptc.k0, ptc.k0_err, is_cmos, asn, cam.get("reset_factor"))
+        fpoints, ptc = photon_transfer(dark, clipping["latent"], law, ptc.k0, ptc.k0_err)
+    if clipping["model"] == "well":
+        warnings.append(
+            "the dark frames look like charge clipped at 0 before the readout noise (sources clipped one after another; "
+            f"log-likelihood {clipping['delta_nll']:.0f} better than clipping once at the end): their variance is fitted with that model"
+        )
+    for p, why in ptc.excluded:
+        warnings.append(f"flat set {p.name!r} left out of the photon transfer: {why}")
+    k0, k0_err = ptc.k0, ptc.k0_err
+    full_well = 255.0 / k0
+    full_well_err = full_well * k0_err / k0
+    lo, hi = METADATA_RANGES["full_well_e"]
+    full_well = _clamp_near_range("full_well_e", full_well, full_well_err, warnings)
+    if not lo <= full_well <= hi:
+        raise ValueError(
+            f"the photon transfer gives a full well of {full_well:.4g} e⁻ (K0 = {k0:.4g} DN/e⁻ at 0 dB), outside camhealth's "
+            f"range [{lo:g}, {hi:g}] e⁻; check the flats' gain_db (the full well is the charge at 255 DN at 0 dB)"
+        )
+    # ---- readout noise and W
+    clock = cam.get("pixel_clock_hz", ASSUMED["pixel_clock_hz"])
+    rn_law = fit_read_noise_law(dark, k0, k0_err, is_cmos, asn, cam.get("reset_factor"))
+    sf = math.sqrt(max(rn_law.sf_var_e2, 0.0))
+    sf_err = rn_law.sf_var_err_e2 / (2 * max(sf, 1e-12))
+    inv = white_noise_from_sigma(sf, sf_err, clock, asn, is_cmos)
+    w_lo, w_hi = METADATA_RANGES["white_noise_v_per_rthz"]
+    if not w_lo <= inv.white_noise_v_per_rthz <= w_hi and given_asn is None:
+        # σ_SF ∝ W/A_SN (the RTN part is negligible): move the assumed sense-node gain so that W lands mid-range
+        target = 30e-9
+        new_asn = float(np.clip(asn * target / max(inv.white_noise_v_per_rthz, 1e-15), *METADATA_RANGES["sense_node_gain_v_per_e"]))
+        warnings.append(
+            f"with the assumed sense-node gain {asn:g} V/e⁻ the read noise {sf:.3g} e⁻ needs W = {inv.white_noise_v_per_rthz:.3g} V/√Hz "
+            f"(range {w_lo:g} … {w_hi:g}); sense_node_gain_v_per_e assumed {new_asn:.3g} V/e⁻ instead (give the datasheet value)"
+        )
+        asn = new_asn
+        rn_law = fit_read_noise_law(dark, k0, k0_err, is_cmos, asn, cam.get("reset_factor"))
+        sf = math.sqrt(max(rn_law.sf_var_e2, 0.0))
+        sf_err = rn_law.sf_var_err_e2 / (2 * max(sf, 1e-12))
+        inv = white_noise_from_sigma(sf, sf_err, clock, asn, is_cmos)
+    w = inv.white_noise_v_per_rthz
+    if not w_lo * (1 - 1e-6) <= w <= w_hi * (1 + 1e-6):
+        margin = max(3 * inv.white_noise_err, 0.03 * w_hi)
+        if w_hi < w <= w_hi + margin:  # a camera at the end of the range, measured a little beyond it
+            warnings.append(f"W = {w:.4g} ± {inv.white_noise_err:.2g} V/√Hz is just above camhealth's maximum {w_hi:g}; set to {w_hi:g}")
+            inv.white_noise_v_per_rthz = w_hi
+        elif inv.white_noise_v_per_rthz < w_lo and sf <= inv.sigma_min_e * 1.05:
+            warnings.append(
+                f"the source-follower noise {sf:.3g} e⁻ is at or below the model's floor {inv.sigma_min_e:.3g} e⁻ for this pixel "
+                f"clock and sense-node gain; W set to its minimum {w_lo:g} V/√Hz"
+            )
+            inv.white_noise_v_per_rthz = w_lo
+        else:
+            raise ValueError(
+                f"the measured source-follower noise {sf:.4g} ± {sf_err:.2g} e⁻ needs W = {inv.white_noise_v_per_rthz:.4g} V/√Hz, outside "
+                f"camhealth's range [{w_lo:g}, {w_hi:g}] V/√Hz at a pixel clock of {clock:g} Hz and sense-node gain {asn:g} V/e⁻ "
+                f"(the model spans {inv.sigma_min_e:.3g} … {inv.sigma_max_e:.3g} e⁻ there); check the gain_db of the sets and the "
+                "camera fields"
+            )
+    # ---- dark current → D_FM
+    c_e = dark.c_dn2 / k0**2
+    c_e_err = abs(c_e) * math.sqrt((dark.c_err_dn2 / max(abs(dark.c_dn2), 1e-300)) ** 2 + (2 * k0_err / k0) ** 2) if dark.c_dn2 != 0 else dark.c_err_dn2 / k0**2
+    if c_e <= 0:
+        warnings.append(
+            f"no dark current detected (fitted {c_e:.3g} ± {c_e_err:.2g} e⁻/s/K^1.5): D_FM = 0; longer or warmer dark "
+            "frames would measure it"
+        )
+        c_e = 0.0
+    elif c_e < 2 * c_e_err:
+        warnings.append(f"the dark current is barely detected ({c_e:.3g} ± {c_e_err:.2g} e⁻/s/K^1.5, < 2σ): longer or warmer darks measure it better")
+    pixel = cam.get("pixel_size_um")
+    pixel_source = "given"
+    if pixel is None:
+        pixel, pixel_source = ASSUMED["pixel_size_um"], "assumed"
+        dfm = dfm_from_c(c_e, pixel)
+        if dfm > METADATA_RANGES["dark_fom_na_per_cm2"][1]:
+            pixel = min(pixel * math.sqrt(dfm / 0.5), METADATA_RANGES["pixel_size_um"][1])
+        warnings.append(
+            f"pixel_size_um not given: assumed {pixel:.3g} µm (the dark frames measure pixel area × D_FM; give the datasheet pitch "
+            "for a meaningful D_FM)"
+        )
+    dfm_err = dfm_from_c(c_e_err, pixel)
+    dfm = _clamp_near_range("dark_fom_na_per_cm2", dfm_from_c(c_e, pixel), dfm_err, warnings)
+    if dfm > METADATA_RANGES["dark_fom_na_per_cm2"][1]:
+        raise ValueError(
+            f"the dark current gives D_FM = {dfm:.4g} nA/cm² with a {pixel:g} µm pixel, above camhealth's range "
+            f"[0, {METADATA_RANGES['dark_fom_na_per_cm2'][1]:g}] nA/cm²; check pixel_size_um and the dark sets' temperatures"
+        )
+    # ---- operating point
+    flat_gains = sorted(p.gain_db for p in ptc.used)
+    flat_exps = sorted(p.exposure_s for p in ptc.used)
+    dark_temps = sorted(fs.temperature_c for fs, _ in dark_stats)
+    op_values = {
+        "gain_db": op.get("gain_db", flat_gains[0]),
+        "exposure_s": op.get("exposure_s", float(np.clip(flat_exps[len(flat_exps) // 2], *METADATA_RANGES["exposure_s"]))),
+        "temperature_c": op.get("temperature_c", float(np.clip(dark_temps[len(dark_temps) // 2], *METADATA_RANGES["temperature_c"]))),
+    }
+    fields: dict[str, FieldEstimate] = {}
+    for k in OPERATING_POINT_FIELDS:
+        fields[k] = FieldEstimate(float(op_values[k]), 0.0, UNITS[k], "operating point",
+                                  "from the manifest" if k in op else "default: " + {
+                                      "gain_db": "lowest flat gain", "exposure_s": "median flat exposure",
+                                      "temperature_c": "median dark-set temperature"}[k])
+    fields["dark_fom_na_per_cm2"] = FieldEstimate(dfm, dfm_err, UNITS["dark_fom_na_per_cm2"], "fitted",
+                                                  "Eq. 3.14 law through the dark sets' temporal variance")
+    fields["full_well_e"] = FieldEstimate(full_well, full_well_err, UNITS["full_well_e"], "fitted", "photon transfer, 255 DN at 0 dB")
+    fields["pixel_clock_hz"] = FieldEstimate(clock, 0.0, UNITS["pixel_clock_hz"], "given" if "pixel_clock_hz" in cam else "assumed",
+                                             "" if "pixel_clock_hz" in cam else "not given; W absorbs it")
+    fields["sense_node_gain_v_per_e"] = FieldEstimate(asn, 0.0, UNITS["sense_node_gain_v_per_e"], "given" if given_asn is not None else "assumed",
+                                                      "" if given_asn is not None else "not given; W absorbs it")
+    if rn_law.reset_fitted:
+        fields["reset_factor"] = FieldEstimate(rn_law.reset_factor, rn_law.reset_factor_err, "", "fitted",
+                                               "kTC residue from the read noise's rise with temperature (Eq. 3.16)")
+    else:
+        given_r = "reset_factor" in cam
+        fields["reset_factor"] = FieldEstimate(rn_law.reset_factor, 0.0, "", "given" if given_r else "assumed",
+                                               "" if given_r else ("CCD: CDS removes kTC" if not is_cmos else "one temperature: not separable from W"))
+    fields["pixel_size_um"] = FieldEstimate(pixel, 0.0, UNITS["pixel_size_um"], pixel_source, "" if pixel_source == "given" else "D_FM absorbs it")
+    fields["is_cmos"] = FieldEstimate(float(is_cmos), 0.0, "", "given" if "is_cmos" in cam else "assumed",
+                                      "" if "is_cmos" in cam else "sensor type not given")
+    fields["white_noise_v_per_rthz"] = FieldEstimate(inv.white_noise_v_per_rthz, inv.white_noise_err, UNITS["white_noise_v_per_rthz"], "fitted",
+                                                     f"Eq. 3.17 inverted for σ_SF = {sf:.4g} e⁻")
+    for k, v in (("is_cmos", ASSUMED["is_cmos"]), ("pixel_clock_hz", clock)):
+        if k not in cam:
+            warnings.append(f"{k} not given: assumed {v:g}")
+    meta = CameraMetadata(**{k: fields[k].value for k in FULL_FIELDS})
+    # ---- records, maps, EMVA figures
+    for fs, st in dark_stats:
+        records.append(_record(fs, st))
+    used_names = {id(p) for p in ptc.used}
+    for (fs, st), p in zip(flat_stats, fpoints):
+        why = next((w for q, w in ptc.excluded if q is p), "")
+        records.append(_record(fs, st, used=id(p) in used_names, note=why))
+    maps, nonuni = _maps(dark_stats, flat_stats, ptc, hot)
+    t_ref = op_values["temperature_c"] + 273.15
+    rn_ref = math.sqrt(max(rn_law.var_e2(t_ref), 0.0))
+    emva = _emva(dark, ptc, rn_law, k0, k0_err, c_e, c_e_err, full_well, rn_ref, nonuni, hot, t_ref)
+    fits = {
+        "photon_transfer": {
+            "k0_dn_per_e": k0, "k0_err": k0_err, "chi2_dof": ptc.chi2_dof,
+            "free_fit": {"slope_dn_per_e": ptc.free_slope, "intercept_dn2": ptc.free_intercept},
+            "per_gain_k0": {f"{g:g} dB": {"k0": v[0], "err": v[1]} for g, v in ptc.per_gain.items()},
+            "normalised_residuals": ptc.residuals.tolist(),
+        },
+        "dark": {
+            "temperatures_c": (dark.temperatures_k - 273.15).tolist(),
+            "read_noise_e": np.sqrt(np.maximum(dark.intercept_dn2, 0) / k0**2).tolist(),
+            "dark_current_e_per_s": (dark.free_slope_dn2_per_s / k0**2).tolist(),
+            "law_c_e_per_s_per_k1_5": c_e, "law_c_err": c_e_err, "chi2_dof": dark.chi2_dof,
+            "clipping_model": {"end": "clipped once at the end (camhealth's model)",
+                               "well": "charge clipped at 0 before the readout, then again at the end"}[clipping["model"]],
+            "clipping_delta_nll_for_well": clipping["delta_nll"],
+            "normalised_residuals": dark.residuals.tolist(),
+        },
+        "read_noise_law": {"source_follower_e": sf, "source_follower_err_e": sf_err, "reset_factor": rn_law.reset_factor,
+                           "reset_factor_fitted": rn_law.reset_fitted},
+    }
+    return CalibrationResult(meta, fields, emva, records, fits, maps, warnings, ptc, dark, rn_law)
+
+
+#: Log-likelihood advantage of "charge clipped in the well" needed before the dark sets are analysed with it.
+WELL_CLIPPING_MIN_DELTA_NLL = 10.0
+
+
+def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: float) -> dict[str, Any]:
+    """Refit the clipped dark sets with the dark signal's Poisson skew, and pick the clipping model they show.
+
+    A Gaussian fitted to the upper half of a clipped dark frame takes the Poisson skew of the dark-current shot
+    noise for extra width (a few % of the dark variance). With K = g·K0 known, every (temperature, gain) group
+    with ≥ 2 exposures and at least one clipped set is fitted jointly by
+    :func:`~camhealth.calibrate.statistics.poisson_gaussian_group_fit` (offset o, readout σ_R, dark current DC)
+    under two models: clipped once at the end (camhealth's, :func:`~camhealth.physics.form_image`), and charge
+    clipped at 0 before the readout (a simulator or camera that clips after each source: the dark-current shot
+    noise cannot make the well's charge negative). The second is used when its log-likelihood, summed over the
+    groups, is better by more than :data:`WELL_CLIPPING_MIN_DELTA_NLL`.
+
+    Returns ``model`` ("end" or "well"), ``delta_nll`` and ``latent``: id(stats) → (σ_R² + K²·DC·t [DN²], 1σ, o [DN]).
+    """
+    from camhealth.calibrate.statistics import poisson_gaussian_group_fit
+
+    groups: dict[tuple[float, float], list[tuple[FrameSet, SetStatistics]]] = {}
+    for fs, st in dark_stats:
+        groups.setdefault((round(fs.temperature_c, 6), round(fs.gain_db, 6)), []).append((fs, st))
+    fits: dict[str, list] = {"end": [], "well": []}
+    delta = 0.0
+    for members in groups.values():
+        members = sorted(members, key=lambda d: d[0].exposure_s)
+        if len({fs.exposure_s for fs, _ in members}) < 2 or not any(st.method == "censored" for _, st in members):
+            continue
+        k = members[0][0].gain_factor * k0
+        (fb, sb), (fl, sl) = members[0], members[-1]
+        dc0 = max((sl.var_dn2 - sb.var_dn2) / (k * k * max(fl.exposure_s - fb.exposure_s, 1e-12)), 1e-3)
+        hists = [(st.hist_edges_dn, st.hist_counts) for _, st in members]
+        ts = [fs.exposure_s for fs, _ in members]
+        nll = {}
+        for model in ("end", "well"):
+            p, cov, nll[model] = poisson_gaussian_group_fit(hists, ts, k, model == "well", (0.0, max(sb.sigma_dn, 1e-6), dc0))
+            fits[model].append((members, k, p, cov))
+        delta += nll["end"] - nll["well"]
+    model = "well" if delta > WELL_CLIPPING_MIN_DELTA_NLL else "end"
+    latent = {}
+    for members, k, p, cov in fits[model]:
+        o, sr, dc = p
+        for fs, st in members:
+            var = sr**2 + k * k * dc * fs.exposure_s
+            grad = np.array([0.0, 2 * sr, k * k * fs.exposure_s])
+            err = float(np.sqrt(max(grad @ cov @ grad, 0.0))) if np.all(np.isfinite(cov)) else st.var_err_dn2
+            latent[id(st)] = (var, err, o)
+    return {"model": model, "delta_nll": delta, "latent": latent}
+
+
+def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Hot pixels, DSNU map [DN] (master bias minus its mean), PRNU map [–] (the brightest unsaturated flat's
+    master over the dark level, relative to its mean), the masters, and the spatial non-uniformities."""
+    bias_fs, bias_st = min(dark_stats, key=lambda d: (d[0].exposure_s, d[0].temperature_c, d[0].gain_db))
+    long_fs, long_st = max(dark_stats, key=lambda d: (d[0].temperature_c, d[0].exposure_s, d[0].gain_db))
+    keep = ~hot if hot is not None else np.ones_like(bias_st.master_dn, dtype=bool)
+    dsnu = bias_st.master_dn - float(bias_st.master_dn[keep].mean())
+    used_names = {p.name for p in ptc.used}
+    cands = [(fs, st) for fs, st in flat_stats if fs.name in used_names]
+    flat_fs, flat_st = max(cands, key=lambda d: d[1].mean_dn / d[0].gain_factor)
+    flat_point = next(p for p in ptc.used if p.name == flat_fs.name)
+    signal = flat_st.master_dn - flat_point.dark_mean_dn
+    mean_signal = float(signal[keep].mean())
+    prnu = signal / mean_signal - 1.0 if mean_signal > 0 else np.zeros_like(signal)
+    maps = {
+        "hot_pixels": (hot if hot is not None else np.zeros_like(dsnu, dtype=bool)).astype(bool),
+        "dsnu_dn": dsnu.astype(np.float32),
+        "prnu": prnu.astype(np.float32),
+        "master_bias_dn": bias_st.master_dn,
+        "master_dark_dn": long_st.master_dn,
+        "master_flat_dn": flat_st.master_dn,
+    }
+    # EMVA 1288: DSNU = s_y.dark / K, PRNU = sqrt(s²_y.50 − s²_y.dark) / (µ_y.50 − µ_y.dark); temporal share removed
+    nonuni = {
+        "dsnu_dn": math.sqrt(bias_st.spatial_var_dn2),
+        "dsnu_gain_db": bias_fs.gain_db,
+        "prnu_fraction": math.sqrt(max(flat_st.spatial_var_dn2 - bias_st.spatial_var_dn2 * (flat_fs.gain_factor / bias_fs.gain_factor) ** 2, 0.0))
+        / max(flat_point.signal_dn, 1e-12),
+        "prnu_set": flat_fs.name,
+    }
+    return maps, nonuni
+
+
+def _emva(dark, ptc, rn_law, k0, k0_err, c_e, c_e_err, full_well, rn_ref, nonuni, hot, t_ref) -> dict[str, Any]:
+    td, td_err = doubling_temperature(dark)
+    per_t = {}
+    for j, t in enumerate(dark.temperatures_k):
+        s = dark.free_slope_dn2_per_s[j]
+        per_t[f"{t - 273.15:g} °C"] = {
+            "dark_current_e_per_s": float(s / k0**2) if np.isfinite(s) else None,
+            "dark_current_err": float(dark.free_slope_err[j] / k0**2) if np.isfinite(dark.free_slope_err[j]) else None,
+            "law_e_per_s": float(c_e * arrhenius_factor(t)),
+            "temporal_dark_noise_e": float(math.sqrt(max(dark.intercept_dn2[j], 0.0)) / k0),
+        }
+    return {
+        "standard": "EMVA 1288 Release 4.0 definitions (linear camera model); computed by camhealth",
+        "system_gain_k_dn_per_e_at_0db": k0,
+        "system_gain_err": k0_err,
+        "system_gain_k_per_gain": {f"{g:g} dB": {"k": v[0] * 10 ** (g / 20), "k0_from_these_flats": v[0], "err": v[1]} for g, v in ptc.per_gain.items()},
+        "saturation_capacity_e_at_0db": full_well,
+        "temporal_dark_noise_e": rn_ref,
+        "temporal_dark_noise_at_c": t_ref - 273.15,
+        "dynamic_range_db": 20 * math.log10(full_well / max(rn_ref, 1e-12)),
+        "snr_max_db": 10 * math.log10(full_well),
+        "dark_current": per_t,
+        "dark_current_law_e_per_s_at_ref": c_e * float(arrhenius_factor(t_ref)),
+        "doubling_temperature_k": td,
+        "doubling_temperature_err": td_err,
+        "doubling_temperature_of_eq_3_14_k": model_doubling_temperature(t_ref),
+        "dsnu_e": nonuni["dsnu_dn"] / (k0 * 10 ** (nonuni["dsnu_gain_db"] / 20)),
+        "prnu_percent": 100 * nonuni["prnu_fraction"],
+        "hot_pixels": int(hot.sum()) if hot is not None else 0,
+    }

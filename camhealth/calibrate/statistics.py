@@ -1,0 +1,459 @@
+"""Statistics of one set of frames: mean level, temporal noise, clipping, master frame, hot pixels.
+
+All values are in DN of the 8-bit scale (0…255, camhealth's convention): a frame in [0, 1] is multiplied by
+255 whatever the bit depth of its file.
+
+Two estimators of the temporal noise, chosen per set by how much of it is clipped:
+
+* **temporal** (EMVA 1288 Release 4.0, Sec. 6: the temporal variance of each pixel over the frames,
+  averaged over the pixels; fixed-pattern noise does not enter it) when at most
+  :data:`CENSORED_ABOVE` of the pixels sit at the lowest or highest code. The quantisation noise of the
+  input's step q, σ_q² = q²/12 (EMVA 1288 Eq. 13 [DN²]), is subtracted.
+* **censored** (a Gaussian fitted by maximum likelihood to all values of the set, with the values at the
+  lowest code treated as "at or below it" and those at the highest code as "at or above it") otherwise. A
+  camera without offset clips half of its dark noise at 0 DN (thesis Sec. 3.3.2: "the intensity
+  distribution of I_RN may be truncated with all negative intensity values set to zero"); the sample
+  variance of such frames (Eq. 3.27) is far too small, and the censored fit recovers the latent mean and
+  σ. For integer-coded input every value stands for the interval of its code (interval censoring), so the
+  quantisation needs no separate correction. The thesis's own rectification (Alg. 1, ``fixHistogram``:
+  mirror the histogram at its maximum x_max, bins x ≥ 2·x_max onto 2·x_max − x, and fit a normal
+  distribution) gives the starting point of the fit and is reported beside it.
+
+The censored fit pools pixels, so a fixed pattern (DSNU/PRNU) adds to its σ²; the temporal estimator is
+free of it. EMVA 1288 asks for an offset high enough that the dark signal is not clipped; give a camera
+that allows it such an offset and the temporal estimator is used.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize, special
+
+__all__ = [
+    "CENSORED_ABOVE",
+    "HOT_PIXEL_SIGMAS",
+    "SetStatistics",
+    "quantisation_step",
+    "mirrored_histogram_fit",
+    "censored_normal_fit",
+    "binned_censored_normal_fit",
+    "detect_hot_pixels",
+    "set_statistics",
+    "poisson_gaussian_cdf",
+    "poisson_gaussian_group_fit",
+]
+
+#: A set whose clipped fraction (lowest + highest code) exceeds this is analysed with the censored fit.
+CENSORED_ABOVE = 1e-4
+#: A set with fewer than this fraction of its values inside (0, 255) DN is not fitted (method "clipped").
+MIN_UNCLIPPED_FRACTION = 0.02
+#: A pixel whose master-frame level lies this many robust standard deviations above the median is hot.
+HOT_PIXEL_SIGMAS = 6.0
+#: Frames are rounded to this many codes over [0, 1] to test for integer coding (16-bit resolution).
+_CODES = 65535
+
+
+@dataclass
+class SetStatistics:
+    """Statistics of one set of N frames of H×W pixels, in DN (0…255 scale).
+
+    Attributes:
+        mean_dn: mean level µ [DN] (latent mean for the censored fit; fixed pattern averaged out).
+        mean_err_dn: 1σ uncertainty of ``mean_dn`` [DN].
+        var_dn2: temporal noise variance σ² [DN²].
+        var_err_dn2: 1σ uncertainty of ``var_dn2`` [DN²].
+        method: ``"temporal"``, ``"censored"`` (module docstring) or ``"clipped"`` (fewer than
+            :data:`MIN_UNCLIPPED_FRACTION` of the values inside (0, 255) DN: nothing fitted, σ² NaN).
+        clipped_low, clipped_high: fraction of the values at the lowest / highest code.
+        mirrored_sigma_dn: σ of the thesis's histogram rectification (Alg. 1) [DN] (reported for comparison).
+        spatial_var_dn2: variance of the fixed pattern (master frame minus its mean, with the temporal
+            noise's share σ²/N removed and, for clipped sets, scaled back to the latent level) [DN²].
+        step_dn: quantisation step of the input [DN] (0: continuous values).
+        n_frames, height, width: frames and their size.
+        n_pixels: pixels used (hot pixels excluded).
+        master_dn: per-pixel mean over the frames, H×W float32 [DN].
+    """
+
+    mean_dn: float
+    mean_err_dn: float
+    var_dn2: float
+    var_err_dn2: float
+    method: str
+    clipped_low: float
+    clipped_high: float
+    mirrored_sigma_dn: float
+    spatial_var_dn2: float
+    step_dn: float
+    n_frames: int
+    height: int
+    width: int
+    n_pixels: int
+    master_dn: np.ndarray = field(repr=False)
+    hist_edges_dn: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    hist_counts: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+
+    @property
+    def sigma_dn(self) -> float:
+        """Temporal noise σ [DN]."""
+        return math.sqrt(max(self.var_dn2, 0.0))
+
+
+def quantisation_step(frames: np.ndarray) -> float:
+    """Quantisation step of frames in [0, 1], in DN of 255: 1.0 for 8-bit data, 255/65535 for 16-bit data,
+    255·k/65535 for data on every k-th 16-bit code (10/12-bit data stored in 16 bits), 0.0 for continuous
+    values (floats that are not on a 16-bit code grid)."""
+    codes = frames.astype(np.float64) * _CODES
+    rounded = np.rint(codes)
+    if float(np.abs(codes - rounded).max(initial=0.0)) > 0.02:
+        return 0.0
+    unique = np.unique(rounded.astype(np.int64))
+    inner = unique[(unique > 0) & (unique < _CODES)]  # the clipped ends say nothing about the step
+    step = int(np.gcd.reduce(inner)) if inner.size else 1
+    return 255.0 * max(step, 1) / _CODES
+
+
+def mirrored_histogram_fit(values_dn: np.ndarray, step_dn: float, upper_dn: float = 255.0) -> tuple[float, float]:
+    """Thesis Alg. 1 (``fixNoiseDistr``): histogram, its maximum x_max (excluding the clipped end bins),
+    bins beyond 2·x_max (from the clipped side) mirrored at x_max, and a normal distribution fitted to
+    the rectified histogram (weighted mean and standard deviation). Returns (µ, σ) [DN].
+
+    The clipped bins themselves (values at 0 or at ``upper_dn``) are left out: their mass is what the
+    mirrored bins reconstruct.
+    """
+    v = values_dn.ravel().astype(np.float64)
+    low, high = v <= 0.0, v >= upper_dn
+    inner = v[~low & ~high]
+    if inner.size < 2:
+        return float(v.mean()), float(v.std())
+    spread = float(np.subtract(*np.percentile(inner, [75, 25])))
+    width = max(step_dn, spread / 40.0, 1e-6)
+    lo = 0.0
+    nbins = max(int(math.ceil((inner.max() - lo) / width)) + 1, 2)
+    counts, edges = np.histogram(inner, bins=nbins, range=(lo, lo + nbins * width))
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    x_max = centres[int(np.argmax(counts))]
+    xs, ws = [centres], [counts.astype(np.float64)]
+    if low.any():  # reconstruct bins ≤ 0 from bins ≥ 2·x_max
+        sel = centres >= 2.0 * x_max
+        xs.append(2.0 * x_max - centres[sel])
+        ws.append(counts[sel].astype(np.float64))
+    if high.any():  # and bins ≥ upper from bins ≤ 2·x_max − upper
+        sel = centres <= 2.0 * x_max - upper_dn
+        xs.append(2.0 * x_max - centres[sel])
+        ws.append(counts[sel].astype(np.float64))
+    x, w = np.concatenate(xs), np.concatenate(ws)
+    mu = float(np.average(x, weights=w))
+    sigma = float(math.sqrt(max(np.average((x - mu) ** 2, weights=w), 0.0)))
+    return mu, sigma
+
+
+def _numeric_hessian(fun, x: np.ndarray, rel: float = 1e-4) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    n = x.size
+    h = rel * np.maximum(np.abs(x), 1e-3)
+    hess = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            ei, ej = np.zeros(n), np.zeros(n)
+            ei[i], ej[j] = h[i], h[j]
+            val = (fun(x + ei + ej) - fun(x + ei - ej) - fun(x - ei + ej) + fun(x - ei - ej)) / (4 * h[i] * h[j])
+            hess[i, j] = hess[j, i] = val
+    return hess
+
+
+def _covariance(nll, mu: float, sigma: float) -> np.ndarray:
+    """Covariance of (µ, σ) from the inverse observed information (numeric Hessian of the NLL)."""
+    hess = _numeric_hessian(lambda p: nll(p[0], p[1]), np.array([mu, sigma]))
+    try:
+        cov = np.linalg.inv(hess)
+    except np.linalg.LinAlgError:
+        return np.full((2, 2), np.nan)
+    if not np.all(np.isfinite(cov)) or cov[0, 0] < 0 or cov[1, 1] < 0:
+        return np.full((2, 2), np.nan)
+    return cov
+
+
+def censored_normal_fit(
+    n_low: int, n_high: int, n_inner: int, sum_inner: float, sumsq_inner: float,
+    lower: float = 0.0, upper: float = 255.0, start: tuple[float, float] | None = None,
+) -> tuple[float, float, np.ndarray]:
+    """Maximum-likelihood (µ, σ) of a normal distribution clipped to [lower, upper], from sufficient statistics.
+
+    ``n_low`` values at ``lower`` (the latent value was ≤ lower), ``n_high`` at ``upper`` (≥ upper) and
+    ``n_inner`` values strictly inside with sum and sum of squares. Negative log-likelihood
+
+        −n_low·ln Φ((lower−µ)/σ) − n_high·ln Φ((µ−upper)/σ) + n_inner·ln σ + Σ(y−µ)²/(2σ²)
+
+    minimised with its analytic gradient; the covariance of (µ, σ) is the inverse of its numeric Hessian.
+    Returns (µ, σ, cov) in the units of the data.
+    """
+    m = float(n_inner)
+    if m < 2:
+        raise ValueError(f"a censored fit needs at least 2 unclipped values, got {int(m)}")
+    s1, s2 = float(sum_inner), float(sumsq_inner)
+
+    def nll(mu: float, s: float) -> float:
+        if s <= 0:
+            return np.inf
+        a, b = (lower - mu) / s, (mu - upper) / s
+        q = s2 - 2 * mu * s1 + m * mu * mu
+        return float(-n_low * special.log_ndtr(a) - n_high * special.log_ndtr(b) + m * math.log(s) + q / (2 * s * s))
+
+    def mills(x: float) -> float:  # φ(x)/Φ(x), stable
+        return math.exp(-0.5 * x * x - 0.5 * math.log(2 * math.pi) - float(special.log_ndtr(x)))
+
+    scale = 1.0 / (n_low + n_high + m)
+
+    def f(p: np.ndarray) -> tuple[float, np.ndarray]:
+        mu, s = p[0], math.exp(p[1])
+        a, b = (lower - mu) / s, (mu - upper) / s
+        q = s2 - 2 * mu * s1 + m * mu * mu
+        la, lb = (mills(a) if n_low else 0.0), (mills(b) if n_high else 0.0)
+        g_mu = n_low * la / s - n_high * lb / s + (m * mu - s1) / (s * s)
+        g_ls = n_low * la * a + n_high * lb * b + m - q / (s * s)
+        return nll(mu, s) * scale, np.array([g_mu, g_ls]) * scale
+
+    if start is None:
+        mean = s1 / m
+        start = (mean, math.sqrt(max(s2 / m - mean * mean, 1e-12)))
+    x0 = np.array([start[0], math.log(max(start[1], 1e-9))])
+    res = optimize.minimize(f, x0, jac=True, method="BFGS", options={"gtol": 1e-10, "maxiter": 500})
+    mu, sigma = float(res.x[0]), float(math.exp(res.x[1]))
+    return mu, sigma, _covariance(nll, mu, sigma)
+
+
+def binned_censored_normal_fit(
+    centres: np.ndarray, counts: np.ndarray, step: float, lower: float = 0.0, upper: float = 255.0,
+    start: tuple[float, float] | None = None,
+) -> tuple[float, float, np.ndarray]:
+    """Maximum-likelihood (µ, σ) of a normal distribution observed through a quantiser of step ``step``
+    and clipped to [lower, upper]: a value at code c stands for the interval [c − step/2, c + step/2), the
+    lowest code for (−∞, lower + step/2) and the highest for [upper − step/2, ∞). ``centres`` are the codes'
+    values and ``counts`` how often they occur. Returns (µ, σ, cov)."""
+    c = np.asarray(centres, dtype=np.float64)
+    n = np.asarray(counts, dtype=np.float64)
+    keep = n > 0
+    c, n = c[keep], n[keep]
+    if c.size < 3:
+        raise ValueError(
+            f"the noise is too small for the quantisation: the values fall on {c.size} code(s) only, at least 3 "
+            f"are needed to fit a mean and a σ (step {step:g} DN); record the set at a higher gain or bit depth"
+        )
+    lo_edge = np.where(c <= lower + 1e-9, -np.inf, c - step / 2)
+    hi_edge = np.where(c >= upper - 1e-9, np.inf, c + step / 2)
+    total = n.sum()
+
+    def nll(mu: float, s: float) -> float:
+        if s <= 0:
+            return np.inf
+        a, b = (lo_edge - mu) / s, (hi_edge - mu) / s
+        # P(a < Z < b), computed in the tail where it is accurate
+        p = np.where(a > 0, special.ndtr(-a) - special.ndtr(-b), special.ndtr(b) - special.ndtr(a))
+        return float(-(n * np.log(np.maximum(p, 1e-300))).sum())
+
+    if start is None:
+        mean = float((c * n).sum() / total)
+        start = (mean, math.sqrt(max(float(((c - mean) ** 2 * n).sum() / total), step * step / 12)))
+    x0 = np.array([start[0], math.log(max(start[1], 1e-6))])
+    res = optimize.minimize(
+        lambda p: nll(p[0], math.exp(p[1])) / total, x0, method="Nelder-Mead",
+        options={"xatol": 1e-9, "fatol": 1e-13, "maxiter": 4000},
+    )
+    mu, sigma = float(res.x[0]), float(math.exp(res.x[1]))
+    return mu, sigma, _covariance(nll, mu, sigma)
+
+
+def _censored_moments(mu: float, sigma: float, lower: float, upper: float) -> tuple[float, float, float]:
+    """Mean, variance of clip(X, lower, upper) for X ~ N(µ, σ²), and P(lower < X < upper)."""
+    a, b = (lower - mu) / sigma, (upper - mu) / sigma
+    pa, pb = special.ndtr(a), special.ndtr(b)
+    da, db = math.exp(-0.5 * a * a) / math.sqrt(2 * math.pi), math.exp(-0.5 * b * b) / math.sqrt(2 * math.pi)
+    p_in = pb - pa
+    # E[X·1{a<Z<b}] and E[X²·1{a<Z<b}] of the truncated part
+    e1 = mu * p_in + sigma * (da - db)
+    e2 = (mu * mu + sigma * sigma) * p_in + 2 * mu * sigma * (da - db) + sigma * sigma * (a * da - b * db)
+    mean = lower * pa + e1 + upper * (1 - pb)
+    second = lower * lower * pa + e2 + upper * upper * (1 - pb)
+    return float(mean), float(max(second - mean * mean, 0.0)), float(p_in)
+
+
+def detect_hot_pixels(master_dn: np.ndarray, temporal_sigma_dn: float, n_frames: int, step_dn: float) -> np.ndarray:
+    """Pixels whose master-frame level is more than :data:`HOT_PIXEL_SIGMAS` robust standard deviations
+    above the median (robust σ: 1.4826·MAD, at least the temporal σ/√N and the quantisation step/N)."""
+    med = float(np.median(master_dn))
+    mad = 1.4826 * float(np.median(np.abs(master_dn - med)))
+    scale = max(mad, temporal_sigma_dn / math.sqrt(max(n_frames, 1)), step_dn / max(n_frames, 1), 1e-9)
+    return master_dn > med + HOT_PIXEL_SIGMAS * scale
+
+
+def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_dn: float | None = None) -> SetStatistics:
+    """Statistics of a set of frames (N×H×W in [0, 1]); ``exclude`` (H×W bool) masks pixels (hot pixels).
+
+    Raises ``ValueError`` for fewer than 2 frames or an empty set.
+    """
+    x = np.asarray(frames, dtype=np.float32)
+    if x.ndim != 3:
+        raise ValueError(f"frames must be N×H×W, got shape {x.shape}")
+    n, h, w = x.shape
+    if n < 2:
+        raise ValueError(f"a set needs at least 2 frames for its temporal noise, got {n}")
+    step = quantisation_step(x) if step_dn is None else float(step_dn)
+    dn = x.astype(np.float64) * 255.0
+    master = dn.mean(axis=0)
+    keep = np.ones((h, w), dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
+    if not keep.any():
+        raise ValueError("every pixel of the set is excluded (hot)")
+    vals = dn[:, keep]  # N × P
+    n_pix = int(keep.sum())
+    low = vals <= 0.0 + 1e-9
+    high = vals >= 255.0 - 1e-9
+    n_low, n_high = int(low.sum()), int(high.sum())
+    total = vals.size
+    clipped = (n_low + n_high) / total
+    if clipped > 1.0 - MIN_UNCLIPPED_FRACTION:  # (almost) every value at 0 or 255 DN: nothing to fit
+        return SetStatistics(
+            mean_dn=float(vals.mean()), mean_err_dn=float("nan"), var_dn2=float("nan"), var_err_dn2=float("nan"),
+            method="clipped", clipped_low=n_low / total, clipped_high=n_high / total, mirrored_sigma_dn=float("nan"),
+            spatial_var_dn2=float("nan"), step_dn=step, n_frames=n, height=h, width=w, n_pixels=n_pix,
+            master_dn=master.astype(np.float32),
+        )
+    mir_mu, mir_sigma = mirrored_histogram_fit(vals, step)
+    if clipped <= CENSORED_ABOVE:
+        var_t = vals.var(axis=0, ddof=1)
+        var = float(var_t.mean()) - step * step / 12.0
+        var_err = float(math.sqrt(2.0 / (n_pix * (n - 1)))) * max(float(var_t.mean()), 1e-12)
+        mean = float(vals.mean())
+        mean_err = math.sqrt(max(var, 0.0) / total)
+        spatial = float(master[keep].var(ddof=1)) - float(var_t.mean()) / n
+        method = "temporal"
+    else:
+        start = (mir_mu, max(mir_sigma, 1e-6))
+        if step > 0:
+            codes = np.rint(vals / step).astype(np.int64).ravel()
+            counts = np.bincount(codes - codes.min())
+            centres = (np.arange(counts.size) + codes.min()) * step
+            mu, sigma, cov = binned_censored_normal_fit(centres, counts, step, 0.0, 255.0, start)
+        else:
+            inner = vals[~low & ~high]
+            mu, sigma, cov = censored_normal_fit(
+                n_low, n_high, inner.size, float(inner.sum()), float(np.square(inner).sum()), 0.0, 255.0, start
+            )
+        var = sigma * sigma
+        var_err = 2.0 * sigma * math.sqrt(cov[1, 1]) if np.isfinite(cov[1, 1]) else float("nan")
+        mean, mean_err = mu, (math.sqrt(cov[0, 0]) if np.isfinite(cov[0, 0]) else float("nan"))
+        _, var_clipped, p_in = _censored_moments(mu, sigma, 0.0, 255.0)
+        spatial = (float(master[keep].var(ddof=1)) - var_clipped / n) / max(p_in, 1e-6) ** 2
+        method = "censored"
+    edges, counts = _histogram(vals, step, math.sqrt(max(var, 1e-12)))
+    return SetStatistics(
+        mean_dn=mean, mean_err_dn=mean_err, var_dn2=var, var_err_dn2=var_err, method=method,
+        clipped_low=n_low / total, clipped_high=n_high / total, mirrored_sigma_dn=mir_sigma,
+        spatial_var_dn2=max(spatial, 0.0), step_dn=step, n_frames=n, height=h, width=w, n_pixels=n_pix,
+        master_dn=master.astype(np.float32), hist_edges_dn=edges, hist_counts=counts,
+    )
+
+
+def _histogram(vals: np.ndarray, step: float, sigma: float, max_bins: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Interval histogram of all values [DN]: bin k holds the values in [e_k, e_{k+1}); the first bin starts at
+    −∞ (values at the lowest code) and the last ends at +∞ (values at the highest code) when those occur.
+    Quantised data: one bin per code (whole codes merged when there would be more than ``max_bins``);
+    continuous data: bins of σ/16 (at most ``max_bins``)."""
+    v = vals.ravel()
+    lo_v, hi_v = float(v.min()), float(v.max())
+    if step > 0:
+        first, last = int(round(lo_v / step)), int(round(hi_v / step))
+        width = step * max(1, math.ceil((last - first + 1) / max_bins))
+        start = first * step - step / 2
+    else:
+        width = max(sigma / 16.0, (hi_v - lo_v) / max_bins, 1e-9)
+        start = lo_v
+    nb = max(int(math.ceil((hi_v - start) / width + 1e-9)), 1)
+    edges = start + width * np.arange(nb + 1, dtype=np.float64)
+    edges[-1] = max(edges[-1], hi_v + 1e-9)
+    counts, _ = np.histogram(v, bins=edges)
+    if lo_v <= 1e-9:  # values at 0 DN stand for everything at or below it
+        edges[0] = -np.inf
+    if hi_v >= 255.0 - 1e-9:
+        edges[-1] = np.inf
+    return edges, counts.astype(np.float64)
+
+
+def _nll_binned(cdf, edges: np.ndarray, counts: np.ndarray) -> float:
+    c = cdf(edges)
+    p = np.diff(c)
+    return float(-(counts * np.log(np.maximum(p, 1e-300))).sum())
+
+
+def _poisson_nodes(mean_e: float, max_nodes: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes N − S [e⁻] and weights of the zero-mean dark-electron count N − S, N ~ Poisson(S), covering ±8σ.
+
+    The nodes sit at whole electrons *relative to S* (j = …, −1, 0, 1, … with the Poisson probability continued
+    to S + j, renormalised), not at whole electrons of N: the readout noise (σ_R ≫ K·1 e⁻ in practice) smears the
+    lattice anyway, and this way no node crosses 0 as S changes, so the likelihood of the clipped-charge model
+    stays smooth in the dark current. More than ``max_nodes`` nodes are merged in blocks at their weighted mean
+    (the variance lost is ≈ (block/σ)²/12 of it: < 0.1 %).
+    """
+    s = max(mean_e, 0.0)
+    if s <= 0:
+        return np.zeros(1), np.ones(1)
+    half = int(math.ceil(8 * math.sqrt(s) + 3))
+    j = np.arange(-min(half, int(math.floor(s))), half + 1, dtype=np.float64)
+    n = s + j
+    w = np.exp(n * math.log(s) - s - special.gammaln(n + 1))
+    if j.size > max_nodes:
+        block = int(math.ceil(j.size / max_nodes))
+        pad = (-j.size) % block
+        jj = np.concatenate([j, np.zeros(pad)]).reshape(-1, block)
+        ww = np.concatenate([w, np.zeros(pad)]).reshape(-1, block)
+        wsum = ww.sum(1)
+        j = (jj * ww).sum(1) / np.maximum(wsum, 1e-300)
+        w = wsum
+    w = w / w.sum()
+    return j - float((j * w).sum()), w  # exactly zero-mean after the truncation
+
+
+def poisson_gaussian_cdf(x: np.ndarray, offset: float, sigma_r: float, dark_e: float, k_dn_per_e: float, clip_charge: bool) -> np.ndarray:
+    """CDF of a dark pixel: Y = o + c(K·(N − S)) + R with N ~ Poisson(S) dark electrons [e⁻] (their mean S removed,
+    camhealth's offset-free model), R ~ N(0, σ_R²) readout noise [DN], K [DN/e⁻], and c the identity (clipped once,
+    at the end) or max(·, 0) (``clip_charge``: the charge is clipped at 0 before the readout)."""
+    j, w = _poisson_nodes(dark_e)
+    q = k_dn_per_e * j
+    if clip_charge:
+        q = np.maximum(q, 0.0)
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        z = (x[:, None] - offset - q[None, :]) / sigma_r
+    return (special.ndtr(z) * w[None, :]).sum(1)
+
+
+def poisson_gaussian_group_fit(
+    histograms: list[tuple[np.ndarray, np.ndarray]], exposures_s: list[float], k_dn_per_e: float, clip_charge: bool,
+    start: tuple[float, float, float],
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Joint maximum-likelihood fit of the dark sets of one temperature and gain to :func:`poisson_gaussian_cdf`:
+    one offset o [DN], readout σ_R [DN] and dark current DC [e⁻/s] (S_i = DC·t_i) for the group, K known (from
+    the photon transfer). Unlike a Gaussian fit to clipped frames it has the dark signal's Poisson skew, so the
+    upper half that clipped frames show is not mistaken for a wider distribution. Returns ((o, σ_R, DC), their
+    covariance, NLL)."""
+    ts = np.asarray(exposures_s, dtype=np.float64)
+    total = float(sum(c.sum() for _, c in histograms))
+
+    def nll(p: np.ndarray) -> float:
+        o, sr, dc = p
+        if sr <= 0 or dc < 0:
+            return np.inf
+        return sum(_nll_binned(lambda x, t=t: poisson_gaussian_cdf(x, o, sr, dc * t, k_dn_per_e, clip_charge), e, c)
+                   for (e, c), t in zip(histograms, ts))
+
+    x0 = np.array([start[0], math.log(max(start[1], 1e-6)), math.log(max(start[2], 1e-6))])
+    res = optimize.minimize(lambda q: nll(np.array([q[0], math.exp(q[1]), math.exp(q[2])])) / total, x0,
+                            method="Nelder-Mead", options={"xatol": 1e-7, "fatol": 1e-12, "maxiter": 3000})
+    p = np.array([res.x[0], math.exp(res.x[1]), math.exp(res.x[2])])
+    try:
+        cov = np.linalg.inv(_numeric_hessian(nll, p))
+    except np.linalg.LinAlgError:
+        cov = np.full((3, 3), np.nan)
+    return p, cov, nll(p)

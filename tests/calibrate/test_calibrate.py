@@ -1,0 +1,247 @@
+"""``camhealth.calibrate``: recovery of known cameras from small synthetic stacks, the output YAML accepted by
+predict / the monitor / fit, the CLI with a manifest and with named files, and every bad input."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from camhealth.calibrate import FrameSet, Protocol, calibrate, parse_set_name, read_manifest, synthetic_sets
+from camhealth.calibrate.__main__ import main
+from camhealth.physics import CameraMetadata
+from camhealth.physics.dark_current import dark_current_e_per_s
+from camhealth.physics.metadata import FULL_FIELDS
+from camhealth.physics.readout_noise import readout_sigma_e
+
+DATASHEET = ("pixel_size_um", "pixel_clock_hz", "sense_node_gain_v_per_e", "is_cmos")
+SMALL = Protocol(dark_temperatures_c=(40.0, 75.0), dark_exposures_s=(0.1, 0.2), flat_levels=(0.1, 0.3, 0.6), flat_gains_db=(0.0, 12.0))
+
+
+def _datasheet(meta):
+    return {f: float(getattr(meta, f)) for f in DATASHEET}
+
+
+def _errors(true, cal):
+    t = true.replace(temperature_c=float(cal.temperature_c)).to(dtype=torch.float64)
+    c = cal.to(dtype=torch.float64)
+    return (float(c.full_well_e / t.full_well_e) - 1, float(readout_sigma_e(c) / readout_sigma_e(t)) - 1,
+            float(dark_current_e_per_s(c) / dark_current_e_per_s(t)) - 1)
+
+
+@pytest.fixture(scope="module")
+def icx_result():
+    true = CameraMetadata.preset("ICX285")
+    return true, calibrate(synthetic_sets(true, SMALL, frames=6, size=48, seed=3), camera=_datasheet(true))
+
+
+@pytest.mark.parametrize("preset", ["ICX285", "EV76C661"])
+def test_recovers_presets_from_small_stacks(preset, icx_result):
+    true = CameraMetadata.preset(preset)
+    res = icx_result[1] if preset == "ICX285" else calibrate(synthetic_sets(true, SMALL, frames=6, size=48, seed=3), camera=_datasheet(true))
+    fw, rn, dc = _errors(true, res.metadata)
+    assert abs(fw) < 0.02 and abs(rn) < 0.03
+    # the dark current within 4σ of what the fit claims (small stacks measure it to a few %)
+    assert abs(dc) < 4 * res.fields["dark_fom_na_per_cm2"].relative + 0.01
+    assert res.fields["full_well_e"].source == "fitted" and 0 < res.fields["full_well_e"].relative < 0.02
+    assert res.fits["dark"]["clipping_model"].startswith("clipped once")
+    assert res.metadata.batch_size == 1 and bool(res.metadata.is_cmos) == (preset == "EV76C661")
+
+
+def test_recovers_a_random_camera_and_a_stack_clipped_after_each_source():
+    from camhealth.bench.sensor_variants import simulate_variant
+
+    true = CameraMetadata.sample(1, generator=torch.Generator().manual_seed(5))
+    res = calibrate(synthetic_sets(true, SMALL, frames=6, size=48, seed=1), camera=_datasheet(true))
+    assert max(abs(e) for e in _errors(true, res.metadata)[:2]) < 0.03
+
+    def variant(clean, meta, g):
+        return simulate_variant(clean, meta, ("sequential_clip", "whole_electrons"), generator=g)[0]
+
+    cam = CameraMetadata.preset("EV76C661")
+    res = calibrate(synthetic_sets(cam, SMALL, frames=6, size=48, seed=2, simulate=variant), camera=_datasheet(cam))
+    assert res.fits["dark"]["clipping_model"].startswith("charge clipped")
+    fw, rn, dc = _errors(cam, res.metadata)
+    assert abs(fw) < 0.03 and abs(rn) < 0.03 and abs(dc) < 0.08
+
+
+def test_outputs_round_trip_into_predict_monitor_and_fit(icx_result, tmp_path):
+    from camhealth.inference import _to_metadata
+    from camhealth.monitor.api import load_metadata
+    from datamodules import NoiseDataModule
+
+    _, res = icx_result
+    paths = res.save(tmp_path / "camera.yaml")
+    text = paths["metadata"].read_text()
+    data = yaml.safe_load(text)
+    assert set(data) == set(FULL_FIELDS) and all(isinstance(v, float) for v in data.values())
+    assert "± " in text and "fitted" in text  # uncertainties and sources as comments
+    loaded = CameraMetadata.from_file(paths["metadata"])
+    for f in FULL_FIELDS:
+        assert float(getattr(loaded, f)) == pytest.approx(float(getattr(res.metadata, f)), rel=1e-5)
+    assert float(load_metadata(str(paths["metadata"])).full_well_e) == pytest.approx(float(loaded.full_well_e))  # monitor --metadata
+    assert float(_to_metadata(str(paths["metadata"]), 4, None).white_noise_v_per_rthz) == pytest.approx(float(loaded.white_noise_v_per_rthz))  # predict
+    dm = NoiseDataModule(sensor=str(paths["metadata"]), source="deadleaves", source_kwargs={"n": 2, "size": 64})  # fit's sensor:
+    meta, _, _ = dm.sample_metadata(8, torch.Generator().manual_seed(0))
+    assert torch.allclose(meta.full_well_e, loaded.full_well_e.expand(8)) and meta.gain_db.unique().numel() > 1
+    details = yaml.safe_load(paths["details"].read_text())
+    assert details["metadata"]["full_well_e"]["uncertainty"] > 0 and details["emva1288"]["system_gain_k_dn_per_e_at_0db"] > 0
+    maps = np.load(paths["maps"])
+    assert {"hot_pixels", "dsnu_dn", "prnu", "master_bias_dn", "master_dark_dn", "master_flat_dn"} <= set(maps.files)
+    assert maps["hot_pixels"].shape == (48, 48)
+
+
+def test_hot_pixels_are_found_and_left_out():
+    true = CameraMetadata.preset("EV76C661")
+    sets = synthetic_sets(true, SMALL, frames=6, size=48, seed=4)
+    hot = [(5, 7), (30, 11)]
+    for s in sets:
+        if s.kind != "flat":
+            for y, x in hot:
+                s.frames[:, y, x] = np.clip(s.frames[:, y, x] + 0.3 * (s.exposure_s / 0.2), 0, 1)
+    res = calibrate(sets, camera=_datasheet(true))
+    assert {tuple(p) for p in np.argwhere(res.maps["hot_pixels"])} >= set(hot)
+    assert abs(_errors(true, res.metadata)[1]) < 0.03
+
+
+def test_file_name_convention():
+    assert parse_set_name("dark_100ms_12dB_40C_L3") == {"kind": "dark", "exposure_s": pytest.approx(0.1), "gain_db": 12.0,
+                                                         "temperature_c": 40.0, "label": "L3"}
+    assert parse_set_name("bias_250us")["exposure_s"] == pytest.approx(250e-6)
+    with pytest.raises(ValueError, match="must start with one of"):
+        parse_set_name("frames_100ms")
+
+
+def _write_set(folder, frames, bits=16):
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, f in enumerate(frames):
+        arr = np.rint(f * (65535 if bits == 16 else 255)).astype(np.uint16 if bits == 16 else np.uint8)
+        Image.fromarray(arr).save(folder / f"{i:03d}.png")
+
+
+@pytest.fixture(scope="module")
+def disk_stack(tmp_path_factory):
+    """A small ICX285 stack as 16-bit PNG folders named by the convention, and a YAML manifest of the same."""
+    root = tmp_path_factory.mktemp("stack")
+    true = CameraMetadata.preset("ICX285")
+    sets = synthetic_sets(true, SMALL, frames=5, size=32, seed=7)
+    entries, folders = [], []
+    for s in sets:
+        name = f"{s.kind}_{s.exposure_s * 1e3:g}ms_{s.gain_db:g}dB_{s.temperature_c:g}C" + (f"_L{len(folders)}" if s.kind == "flat" else "")
+        _write_set(root / name, s.frames)
+        folders.append(root / name)
+        entries.append({"kind": s.kind, "path": name, "exposure_s": s.exposure_s, "gain_db": s.gain_db, "temperature_c": s.temperature_c})
+    manifest = {"camera": {"sensor_type": "CCD", "pixel_size_um": 6.45, "pixel_clock_hz": 28.64e6, "sense_node_gain_v_per_e": 5e-6},
+                "operating_point": {"gain_db": 6.0, "exposure_s": 0.02, "temperature_c": 30.0}, "sets": entries}
+    (root / "manifest.yaml").write_text(yaml.safe_dump(manifest))
+    return root, folders, true
+
+
+def test_cli_with_manifest_writes_metadata_maps_and_report(disk_stack, tmp_path, capsys):
+    root, _, true = disk_stack
+    out = tmp_path / "camera.yaml"
+    assert main([str(root / "manifest.yaml"), "--out", str(out), "--report", str(tmp_path / "report")]) == 0
+    printed = capsys.readouterr().out
+    assert "full_well_e" in printed and "wrote report" in printed
+    meta = CameraMetadata.from_file(out)
+    assert float(meta.gain_db) == 6.0 and float(meta.temperature_c) == 30.0 and float(meta.is_cmos) == 0.0
+    assert abs(float(meta.full_well_e) / 14000 - 1) < 0.05
+    assert (tmp_path / "camera.maps.npz").is_file() and (tmp_path / "camera.calibration.yaml").is_file()
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "EMVA 1288" in report and (tmp_path / "report" / "calibration.png").stat().st_size > 10_000
+    assert (tmp_path / "report" / "maps.png").is_file()
+
+
+def test_cli_with_named_folders_and_datasheet_options(disk_stack, tmp_path, capsys):
+    _, folders, _ = disk_stack
+    out = tmp_path / "cam.yaml"
+    assert main([str(f) for f in folders] + ["--out", str(out), "--sensor-type", "CCD", "--pixel-size-um", "6.45"]) == 0
+    assert "assumed" in capsys.readouterr().out  # pixel clock and sense-node gain not given
+    assert float(CameraMetadata.from_file(out).pixel_size_um) == pytest.approx(6.45)
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+def _sets(**changes):
+    true = CameraMetadata.preset("ICX285")
+    return synthetic_sets(true, Protocol(**{**SMALL.__dict__, **changes}), frames=4, size=16, seed=0)
+
+
+def test_too_few_frames():
+    sets = _sets()
+    sets[0].frames = sets[0].frames[:3]
+    with pytest.raises(ValueError, match=r"has 3 frame\(s\); at least 4 are needed"):
+        calibrate(sets)
+
+
+def test_saturated_flats():
+    sets = [s for s in _sets() if s.kind != "flat" or s.gain_db == 0.0]
+    for s in sets:
+        if s.kind == "flat" and "L0.1" not in s.name:
+            s.frames = np.clip(s.frames + 0.7, 0, 1)
+    with pytest.raises(ValueError, match=r"1 usable flat set\(s\) of 3, at least 2 are needed below saturation.*saturated"):
+        calibrate(sets)
+
+
+def test_exposures_that_do_not_span_a_range():
+    with pytest.raises(ValueError, match=r"span only 2\.00×.*at least 4×"):
+        calibrate(_sets(bias_exposure_s=0.15))
+    with pytest.raises(ValueError, match="none of their 1 temperature"):
+        calibrate([s for s in _sets(dark_temperatures_c=(40.0,)) if s.kind == "flat" or s.exposure_s == 0.2]
+                  + [s for s in _sets(dark_temperatures_c=(40.0,)) if s.kind == "dark" and s.exposure_s == 0.2])
+
+
+def test_flats_that_do_not_span_a_range_and_too_few_sets():
+    with pytest.raises(ValueError, match=r"signals span only 1\.0.*at least 2×"):
+        calibrate(_sets(flat_levels=(0.3, 0.3), flat_gains_db=(0.0,)))
+    with pytest.raises(ValueError, match=r"1 flat set\(s\) given; at least 2 are needed"):
+        calibrate(_sets(flat_levels=(0.3,), flat_gains_db=(0.0,)))
+    with pytest.raises(ValueError, match=r"1 bias/dark set\(s\) given.*at least 2 are needed"):
+        calibrate([s for s in _sets() if s.kind == "flat" or s.name.startswith("bias_1ms_12dB_40C")])
+
+
+def test_mixed_frame_sizes(tmp_path):
+    sets = _sets()
+    sets[-1].frames = np.zeros((4, 20, 16), np.float32)
+    with pytest.raises(ValueError, match=r"has 20×16 px frames but .* has 16×16 px"):
+        calibrate(sets)
+    folder = tmp_path / "dark_100ms_0dB_25C"
+    _write_set(folder, [np.zeros((16, 16))] * 3 + [np.zeros((8, 16))], bits=8)
+    fs = FrameSet("dark", 0.1, paths=[folder])
+    with pytest.raises(ValueError, match=r"mixes frame sizes \(16×16: 3 frame\(s\).*8×16: 1 frame"):
+        calibrate([fs] + _sets())
+
+
+def test_manifest_naming_missing_files(tmp_path, capsys):
+    (tmp_path / "bias").mkdir()
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"defaults": {"gain_db": 0, "temperature_c": 25}, "sets": [
+        {"kind": "bias", "path": "bias", "exposure_s": 0.001},
+        {"kind": "dark", "path": "dark_a", "exposure_s": 0.1},
+        {"kind": "flat", "path": ["f1.png", "f2.png"], "exposure_s": 0.01},
+    ]}))
+    with pytest.raises(FileNotFoundError, match=r"names 3 missing file\(s\)/folder\(s\)(.|\n)*dark_a(.|\n)*f2.png"):
+        read_manifest(tmp_path / "m.yaml")
+    assert main([str(tmp_path / "m.yaml"), "--out", str(tmp_path / "c.yaml")]) == 2
+    assert "missing" in capsys.readouterr().err
+
+
+def test_manifest_never_executes_code_and_names_bad_keys(tmp_path):
+    (tmp_path / "evil.yaml").write_text("sets: !!python/object/apply:os.system ['echo hacked']\n")
+    with pytest.raises(ValueError, match="cannot parse manifest"):
+        read_manifest(tmp_path / "evil.yaml")
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"sets": [{"kind": "dark", "path": "x", "exposure": 0.1}]}))
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['exposure'\]"):
+        read_manifest(tmp_path / "bad.yaml")
+    (tmp_path / "m.csv").write_text("kind,path,exposure_s,gain_db\ndark,x,0.1,0\n")
+    (tmp_path / "x").mkdir()
+    with pytest.raises(ValueError, match="temperature_c is missing"):
+        read_manifest(tmp_path / "m.csv")
+
+
+def test_name_without_exposure(tmp_path):
+    folder = tmp_path / "dark_12dB_25C"
+    _write_set(folder, [np.zeros((8, 8))] * 4, bits=8)
+    with pytest.raises(ValueError, match="gives no exposure time"):
+        calibrate([folder])

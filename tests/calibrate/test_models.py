@@ -1,0 +1,120 @@
+"""Closed forms of the calibration's models: censored and well-clipped fits, Alg. 1, the dark law, photon
+transfer and the W inversion."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from camhealth.calibrate.dark_signal import DarkPoint, arrhenius_factor, dfm_from_c, fit_dark, fit_read_noise_law
+from camhealth.calibrate.photon_transfer import FlatPoint, fit_photon_transfer
+from camhealth.calibrate.readout import white_noise_from_sigma
+from camhealth.calibrate.statistics import (
+    mirrored_histogram_fit, poisson_gaussian_cdf, poisson_gaussian_group_fit, quantisation_step, set_statistics,
+)
+from camhealth.physics import CameraMetadata
+from camhealth.physics.dark_current import dark_current_e_per_s
+from camhealth.physics.readout_noise import source_follower_sigma_e
+
+
+@pytest.mark.parametrize("sigma", [0.7, 3.0])
+@pytest.mark.parametrize("quantised", [False, True])
+def test_censored_fit_recovers_a_half_clipped_normal(sigma, quantised):
+    rng = np.random.default_rng(1)
+    x = np.clip(rng.normal(0.0, sigma, (8, 64, 64)), 0, 255)
+    if quantised:
+        x = np.rint(x)
+    st = set_statistics((x / 255).astype(np.float32))
+    assert st.method == "censored" and 0.3 < st.clipped_low < 0.9  # rounding adds [0, 0.5) DN to the 0 code
+    assert st.step_dn == (1.0 if quantised else 0.0)
+    assert st.sigma_dn == pytest.approx(sigma, rel=0.03)
+    assert abs(st.mean_dn) < 0.05 * sigma
+    assert st.var_err_dn2 / st.var_dn2 < 0.03
+    # the plain sample std of the clipped values (Eq. 3.27 without rectification) is far too small
+    assert x.std() < 0.7 * sigma
+
+
+def test_temporal_estimator_ignores_fixed_pattern_and_subtracts_quantisation():
+    rng = np.random.default_rng(2)
+    pattern = rng.normal(0, 5.0, (64, 64))
+    x = 100 + pattern + rng.normal(0, 2.0, (10, 64, 64))
+    st = set_statistics((np.rint(x) / 255).astype(np.float32))
+    assert st.method == "temporal"
+    assert st.sigma_dn == pytest.approx(2.0, rel=0.03)  # σ² − 1/12 DN² of the 8-bit step
+    assert math.sqrt(st.spatial_var_dn2) == pytest.approx(5.0, rel=0.05)
+
+
+def test_alg1_histogram_mirroring_recovers_sigma():
+    rng = np.random.default_rng(3)
+    v = np.clip(rng.normal(20.0, 4.0, 200_000) - 17.0, 0, 255)  # mean 3, σ 4: the lower side clipped at 0
+    mu, sigma = mirrored_histogram_fit(v, 0.0)
+    assert sigma == pytest.approx(4.0, rel=0.1) and mu == pytest.approx(3.0, abs=0.5)
+
+
+def test_quantisation_step():
+    assert quantisation_step(np.array([0, 1, 7]) / 255.0) == pytest.approx(1.0)
+    assert quantisation_step(np.array([0, 16, 48]) / 65535.0) == pytest.approx(255 * 16 / 65535)
+    assert quantisation_step(np.array([0.1234567, 0.5])) == 0.0
+
+
+@pytest.mark.parametrize("clip_charge", [False, True])
+def test_poisson_gaussian_model_matches_monte_carlo_and_recovers_dark_current(clip_charge):
+    rng = np.random.default_rng(4)
+    k, sr, dc = 0.08, 0.9, 600.0  # DN/e⁻, DN, e⁻/s
+    s = dc * 0.2
+    q = k * (rng.poisson(s, 400_000) - s)
+    y = (np.maximum(q, 0) if clip_charge else q) + rng.normal(0, sr, q.size)
+    for x in (-1.0, 0.0, 0.5, 2.0):
+        assert float(poisson_gaussian_cdf(np.array([x]), 0.0, sr, s, k, clip_charge)[0]) == pytest.approx((y <= x).mean(), abs=3e-3)
+    hists, ts = [], [0.001, 0.1, 0.2]
+    for t in ts:
+        q = k * (rng.poisson(dc * t, (8, 64, 64)) - dc * t)
+        frames = np.clip((np.maximum(q, 0) if clip_charge else q) + rng.normal(0, sr, q.shape), 0, 255)
+        st = set_statistics((frames / 255).astype(np.float32))
+        hists.append((st.hist_edges_dn, st.hist_counts))
+    p, cov, _ = poisson_gaussian_group_fit(hists, ts, k, clip_charge, (0.0, 1.0, 300.0))
+    assert p[1] == pytest.approx(sr, rel=0.02)
+    assert abs(p[2] - dc) < 4 * math.sqrt(cov[2, 2]) + 0.02 * dc
+
+
+def test_dark_fit_recovers_read_noise_and_dfm_exactly():
+    k0, rn, c = 0.02, 10.0, 1e7  # C [e⁻/s/K^1.5]: DC(25 °C) ≈ 21 e⁻/s
+    pts = [DarkPoint(t, tk, 2.0, 4.0 * k0**2 * (rn**2 + c * float(arrhenius_factor(tk)) * t), 1e-4)
+           for tk in (298.15, 323.15, 348.15) for t in (0.001, 0.05, 0.2)]
+    fit = fit_dark(pts)
+    assert fit.c_dn2 / k0**2 == pytest.approx(c, rel=1e-6)
+    assert np.sqrt(fit.intercept_dn2 / k0**2) == pytest.approx(rn, rel=1e-6)
+    law = fit_read_noise_law(fit, k0, 0.0, False, 5e-6, None)
+    assert math.sqrt(law.sf_var_e2) == pytest.approx(rn, rel=1e-6)
+    # D_FM against the physics core's dark current at one temperature
+    meta = CameraMetadata.preset("ICX285", temperature_c=50.0, dark_fom_na_per_cm2=dfm_from_c(c, 6.45)).to(dtype=torch.float64)
+    assert float(dark_current_e_per_s(meta)) == pytest.approx(c * float(arrhenius_factor(323.15)), rel=1e-6)
+
+
+def test_dark_fit_needs_a_span_of_exposures():
+    with pytest.raises(ValueError, match="at least 2 exposures at one temperature"):
+        fit_dark([DarkPoint(0.01, 300.0, 1.0, 1.0, 0.01), DarkPoint(0.01, 320.0, 1.0, 1.0, 0.01)])
+    with pytest.raises(ValueError, match="span only 2.00×.*at least 4×"):
+        fit_dark([DarkPoint(0.01, 300.0, 1.0, 1.0, 0.01), DarkPoint(0.02, 300.0, 1.0, 1.1, 0.01)])
+
+
+def test_photon_transfer_slope_is_k0():
+    k0 = 255.0 / 12000.0
+    pts = []
+    for gdb in (0.0, 12.0):
+        g = 10 ** (gdb / 20)
+        for mu in (10.0, 50.0, 120.0):
+            pts.append(FlatPoint(f"{gdb}-{mu}", 0.01, 298.15, g, mu, 0.01, g * k0 * mu + 0.3 * g * g, 1e-3, 0.0, 0.0, gdb))
+    fit = fit_photon_transfer(pts, lambda t, tk, g: (0.3 * g * g, 1e-4))
+    assert fit.k0 == pytest.approx(k0, rel=1e-6)
+    assert all(v[0] == pytest.approx(k0, rel=1e-6) for v in fit.per_gain.values())
+
+
+@pytest.mark.parametrize("preset", ["ICX285", "EV76C661"])
+def test_white_noise_inversion_round_trips_eq_3_17(preset):
+    meta = CameraMetadata.preset(preset).to(dtype=torch.float64)
+    sf = float(source_follower_sigma_e(meta))
+    inv = white_noise_from_sigma(sf, 0.01 * sf, float(meta.pixel_clock_hz), float(meta.sense_node_gain_v_per_e), bool(meta.is_cmos))
+    assert inv.white_noise_v_per_rthz == pytest.approx(float(meta.white_noise_v_per_rthz), rel=1e-6)
+    assert inv.white_noise_err / inv.white_noise_v_per_rthz == pytest.approx(0.01, rel=0.05)
