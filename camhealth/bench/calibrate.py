@@ -14,7 +14,7 @@ The calibration gets the datasheet fields (pixel size, pixel clock, sense-node g
 rest. Per row: the error of the full well, the read noise σ_RN [e⁻] and the dark current DC [e⁻/s] (both at the
 output's operating temperature, 50 °C) in %, and the calibration's wall time (statistics and fits of every
 set; the stack is made beforehand). Then the noise estimator fed the calibrated vs the true metadata: the
-closed-form prior :func:`lightning_modules.noise_features.physics_prior_dn` on ``--patches`` dead-leaves
+closed-form prior :func:`camhealth.estimators.noise_features.physics_prior_dn` on ``--patches`` dead-leaves
 patches of 128 px per camera (gain, exposure and temperature drawn at random, corrupted by ``form_image``),
 Bias/Std/RMS (Eq. 6.2) against the realised σ of PN, DCSN, RN and the total.
 
@@ -76,7 +76,7 @@ def _noise_rms(true, cal, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor
     from camhealth.physics import CameraMetadata, form_image
     from camhealth.physics.metadata import FULL_FIELDS, MINIMAL_FIELDS
     from lightning_modules.metrics import bias_std_rms
-    from lightning_modules.noise_features import physics_prior_dn
+    from camhealth.estimators.noise_features import physics_prior_dn
 
     gen = torch.Generator().manual_seed(seed)
     clean = torch.stack([dead_leaves(128, r_min=2.0, supersample=2, seed=seed * 1000 + i) for i in range(n)])

@@ -183,6 +183,18 @@ def sets_from_paths(paths: Sequence[str | Path], gain_db: float | None = None, t
     return sets
 
 
+def _file_bits(path: Path) -> int | str:
+    """The scale of an image file's integers for a calibration: the PNG's ``sBIT`` bits where it has them, else the
+    file's own (8 or 16) — never a guess from the frame's content, which would scale a dark frame and a flat frame of
+    one camera differently. ``"auto"`` for floating-point files (read as [0, 1])."""
+    from camhealth.data.io import read_image_scaled
+
+    _, scaling = read_image_scaled(path)
+    if scaling.file_bits is None:
+        return "auto"
+    return scaling.bits if scaling.source == "sBIT" else scaling.file_bits
+
+
 def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
     """The frames of a set as float32 ``N×H×W`` in [0, 1] (at most ``max_frames``).
 
@@ -202,20 +214,23 @@ def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
         if not np.isfinite(x).all() or x.min(initial=0.0) < 0 or x.max(initial=0.0) > 1:
             raise ValueError(f"{fs.describe()}: frame values must be finite and in [0, 1] (DN/255)")
         return x[:max_frames] if max_frames else x
-    from camhealth.data.io import read_image
+    from camhealth.data.io import read_image_scaled
     from camhealth.data.video import FrameSequence
 
     frames: list[np.ndarray] = []
     sources: list[str] = []
     for p in fs.paths:
         if p.is_dir() or _is_video(p):
-            for frame, idx in FrameSequence(p, max_frames=max_frames):
+            seq = FrameSequence(p, max_frames=max_frames)
+            bits = _file_bits(seq.frame_paths[0]) if seq.kind == "folder" and seq.frame_paths else "auto"
+            for frame, idx in FrameSequence(p, max_frames=max_frames, bit_depth=bits):
                 frames.append(frame[0].numpy())
                 sources.append(f"{p}#{idx}")
                 if max_frames and len(frames) >= max_frames:
                     break
         else:
-            frames.append(read_image(p)[0].numpy())
+            image, _ = read_image_scaled(p, _file_bits(p))
+            frames.append(image[0].numpy())
             sources.append(str(p))
         if max_frames and len(frames) >= max_frames:
             break

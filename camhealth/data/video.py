@@ -29,7 +29,7 @@ import torch
 
 from camhealth.data._common import check_index, check_int
 from camhealth.data.image_folder import _normalise_extensions, list_images
-from camhealth.data.io import IMAGE_EXTENSIONS, read_image, to_gray
+from camhealth.data.io import IMAGE_EXTENSIONS, read_image, read_image_scaled, to_gray
 
 __all__ = ["VIDEO_EXTENSIONS", "FrameSequence", "FrameSequenceSource"]
 
@@ -136,7 +136,11 @@ class FrameSequence:
         max_frames: int | None = None,
         start: int = 0,
         extensions: Sequence[str] = IMAGE_EXTENSIONS,
+        bit_depth: int | str = "auto",
     ) -> None:
+        from camhealth.data.io import _check_bit_depth
+
+        self.bit_depth = _check_bit_depth(bit_depth)
         self.path = Path(path)
         self.stride = check_int(stride, "stride", 1)
         self.max_frames = check_int(max_frames, "max_frames", 1, allow_none=True)
@@ -250,9 +254,13 @@ class FrameSequence:
         limit = self.length if self.length is not None else self.max_frames
         if self.kind == "folder":
             assert self.frame_paths is not None
+            bits = self.bit_depth
             for k in range(limit or 0):
                 idx = self.frame_index(k)
-                yield read_image(self.frame_paths[idx]), idx, None
+                frame, scaling = read_image_scaled(self.frame_paths[idx], bits)
+                if bits == "auto" and scaling.file_bits == 16:  # one scale for every frame: the first 16-bit frame's
+                    bits = scaling.bits
+                yield frame, idx, None
             return
         cap = self._open()
         log = _DecoderLog()
@@ -286,7 +294,7 @@ class FrameSequence:
         idx = self.frame_index(k)
         if self.kind == "folder":
             assert self.frame_paths is not None
-            return read_image(self.frame_paths[idx]), idx
+            return read_image(self.frame_paths[idx], self.bit_depth), idx
         cv2 = _import_cv2()
         if self._cap is not None and self._cap_pid != os.getpid():  # inherited through fork
             self.close()

@@ -100,12 +100,15 @@ class FrameSource:
                 yield SourceFrame(0, str(self.path), self._single, scaling=self._single_scaling)
             return
         if self.kind == "folder":
+            bits = self.bit_depth
             for idx, p in zip(self._indices, self._files):
                 try:
-                    frame, scaling = read_image_scaled(p, self.bit_depth)
+                    frame, scaling = read_image_scaled(p, bits)
                 except (OSError, ValueError) as exc:
                     yield SourceFrame(idx, str(p), None, str(exc).splitlines()[0])
                     continue
+                if bits == "auto" and scaling.file_bits == 16:  # one scale for the whole folder: the first 16-bit frame's
+                    bits = scaling.bits                          # (a darker frame would otherwise be guessed brighter)
                 yield SourceFrame(idx, str(p), frame, scaling=scaling.describe())
             return
         assert self._video is not None

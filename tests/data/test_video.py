@@ -112,3 +112,25 @@ def test_video_source_works_in_dataloader_workers_after_parent_access(tmp_path):
         ("video:w.avi#000002", "video:w.avi#000003"),
     ]
     assert batches[0][0].shape == (2, 1, 32, 48)
+
+
+def test_a_folder_of_16_bit_frames_gets_one_scale_the_first_frames(tmp_path):
+    """``bit_depth="auto"`` decides the scale once per folder (the first 16-bit frame's): a darker later frame is not
+    guessed to fewer bits, which would make it read brighter and noisier than it is."""
+    import warnings
+
+    import numpy as np
+    from PIL import Image
+
+    from camhealth.data import FrameSequence
+
+    bright = np.full((8, 8), 3000, np.uint16)  # 12 bits
+    dark = np.full((8, 8), 800, np.uint16)  # would be guessed as 10 bits on its own
+    Image.fromarray(bright).save(tmp_path / "000.png")
+    Image.fromarray(dark).save(tmp_path / "001.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        frames = [f for f, _ in FrameSequence(tmp_path)]
+    assert float(frames[0].max()) == pytest.approx(3000 / 4095)
+    assert float(frames[1].max()) == pytest.approx(800 / 4095)
+    assert float(next(iter(FrameSequence(tmp_path, bit_depth=16)))[0].max()) == pytest.approx(3000 / 65535)

@@ -146,3 +146,18 @@ def test_bit_depth_option_is_checked(capsys):
 
         build_parser().parse_args(["x.png", "--bit-depth", "20"])
     assert "must be 'auto' or an integer 8…16, got 20" in capsys.readouterr().err
+
+
+def test_a_folder_of_16_bit_frames_is_read_with_one_scale(tmp_path):
+    """The monitor's folder source decides ``bit_depth="auto"`` once, from the first 16-bit frame; a darker later frame
+    keeps that scale (guessed on its own it would read 4× brighter, with 4× its noise)."""
+    import numpy as np
+    from PIL import Image
+
+    from camhealth.monitor.sources import open_source
+
+    Image.fromarray(np.full((8, 8), 3000, np.uint16)).save(tmp_path / "000.png")
+    Image.fromarray(np.full((8, 8), 800, np.uint16)).save(tmp_path / "001.png")
+    items = list(open_source(tmp_path))
+    assert [round(float(i.frame.max()) * 4095) for i in items] == [3000, 800]
+    assert all("12-bit" in i.scaling for i in items)
