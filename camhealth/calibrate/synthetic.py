@@ -4,10 +4,16 @@
 several exposures and temperatures, flat sets at several light levels and two gains — from
 :func:`camhealth.physics.form_image` (or any other simulator with the same signature), so that the
 calibration's result can be compared with the metadata the frames were made with.
+
+The stacks draw every photon and dark electron count exactly from Poisson(S) (``form_image``'s
+``poisson_exact_below=inf``): a real sensor's shot noise is Poisson, skew included, and the calibration's
+dark fit models that skew. ``form_image``'s default normal approximation N(S, S) above 1000 e⁻ is a
+training-speed shortcut of the data generator, not a property of a camera.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -37,10 +43,11 @@ class Protocol:
 
 
 def form_image_simulator(clean: torch.Tensor, meta: CameraMetadata, generator: torch.Generator) -> torch.Tensor:
-    """camhealth's Fig. 3.7 chain (:func:`camhealth.physics.form_image`), unquantised."""
+    """camhealth's Fig. 3.7 chain (:func:`camhealth.physics.form_image`), unquantised, with exact Poisson draws
+    of every photon and dark electron count (``poisson_exact_below=inf``; see the module docstring)."""
     from camhealth.physics.image_formation import form_image
 
-    return form_image(clean, meta, generator=generator).image
+    return form_image(clean, meta, generator=generator, poisson_exact_below=math.inf).image
 
 
 def synthetic_sets(
