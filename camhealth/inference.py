@@ -33,7 +33,7 @@
 - ``views`` (MTF models): 1 (default), 2 or 4 — also run the patch flipped (2: rotated by 180°; 4: flipped
   left–right, up–down and both) and average the estimates. A flip leaves the MTF along H and V unchanged
   (|OTF(−u, v)| = |OTF(u, v)| for a real PSF), so the views are estimates of the same 16 values with partly
-  independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``, session 10).
+  independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``).
 - ``noise_source_full`` is no network: the physics-first estimator
   (:class:`~camhealth.estimators.physics_noise.PhysicsNoiseEstimator`, same ``predict`` interface, plus ``xi_std``,
   ``p_match`` and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
