@@ -21,8 +21,8 @@ __all__ = ["card_text", "write_card", "main"]
 
 _DATA = {
     "noise_source": "`datamodules.NoiseDataModule` — embedded scikit-image photos + 50 street frames + procedural "
-    "dead-leaves images (`source: default`; 60 of them with `configs/noise_source.yaml`, 200 with the `_full.yaml` "
-    "configs: `source_kwargs: {deadleaves: N}`), 128-px patches, split by image/clip with seed 0 "
+    "dead-leaves images (`source: default`; 60 of them with `configs/noise_source.yaml`, "
+    "`source_kwargs: {deadleaves: N}`), 128-px patches, split by image/clip with seed 0 "
     "(70/15/15), sensor noise of the physics core (photon, dark current, readout; gain, clipping) with metadata "
     "sampled uniformly over thesis Table 4.1, half of the samples with altered metadata M′ (ξ ≠ 0).",
     "drne": "`datamodules.NoiseDataModule` as for the noise-source models (no metadata given to the network).",
