@@ -54,6 +54,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from camhealth._inputs import _to_metadata, _to_patches, assess_patches
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, block_details, clipped_prior_dn, metadata_from_matrix,
 )
@@ -321,8 +322,6 @@ class PhysicsNoiseEstimator:
         ``pool``: the patches show one camera state (metadata of batch 1): the evidence of all of them decides
         (:func:`physics_noise_posterior`). ``precision`` is accepted for interface compatibility: the statistics
         always run in float32/float64 (bf16 cannot resolve 1 DN at 255 DN). ``views`` must be 1."""
-        from camhealth.inference import _to_metadata, _to_patches, assess_patches
-
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         if batch_size < 1:

@@ -56,7 +56,7 @@ from typing import Sequence
 import torch
 
 from camhealth._validation import check_float, check_tensor
-from camhealth.inference import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN
+from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN
 
 __all__ = [
     "STATUS_NAMES",
