@@ -29,12 +29,18 @@ Hypotheses (the thesis's mismatch model, Sec. 6.3.2: one field of M is wrong at 
 - noise that no metadata in range explain: extra white noise of σ_x on a log grid up to 128 DN, counted as
   readout noise (prior ``beyond_probability``).
 
-The answer: where P(H₀ | patch) ≥ ½ the closed form exactly (σ per source after clipping, ξ = 0); elsewhere
-the posterior over the mismatch hypotheses, its σ per source after clipping (at the posterior-mean variances)
-and ξ = σ_Total(M) − σ_Total(posterior) (Eq. 4.3, both after clipping). ``xi_std`` is the posterior standard
-deviation of σ_Total. Inliers are chosen in two passes — against a metadata-free per-intensity median of the
-details, then against the first pass's posterior NLF — so a camera far noisier than its metadata keeps its
-details.
+The texture check — ln of the horizontal-and-vertical to diagonal detail energy on the inliers, ≈ 0 for white
+noise — widens the common model error: η_eff² = η² + max(texture, 0)² (texture adds to the horizontal and vertical
+details first, so it bounds what it may have added to the diagonal one).
+
+The answer: a mismatch too small to see (it moves σ_Total by less than max(0.5 DN, 15 %)) counts as a match, and
+P(match) is H₀'s posterior plus theirs. Where P(match) ≥ ½, or fewer than :data:`MIN_FOLLOW_DETAILS` details were
+used, or the texture check exceeds :data:`TEXTURE_LIMIT`: the closed form exactly (σ per source after clipping,
+ξ = 0). Elsewhere the posterior over the visible mismatch hypotheses: its σ per source after clipping (at the
+posterior-mean variances) and ξ = σ_Total(M) − σ_Total(image) (Eq. 4.3, both after clipping). ``xi_std`` is the
+posterior standard deviation of σ_Total (∞ without evidence). Inliers are chosen in two passes — against a
+metadata-free per-intensity median of the details, then against the first pass's posterior NLF — so a camera far
+noisier than its metadata keeps its details.
 
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
