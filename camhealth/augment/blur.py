@@ -54,6 +54,7 @@ class RandomDefocusBlur(CorruptionBase):
     def __init__(
         self,
         diameter: float | tuple[float, float] = (1.0, 21.0),
+        *,
         kernel_size: int | None = None,
         p: float = 1.0,
         same_on_batch: bool = False,
@@ -86,6 +87,7 @@ class RandomMotionBlur(CorruptionBase):
     def __init__(
         self,
         length: float | tuple[float, float] = (1.0, 21.0),
+        *,
         angle: float | tuple[float, float] = (0.0, 180.0),
         intensity: float | tuple[float, float] = 0.0,
         kernel_size: int | None = None,

@@ -50,6 +50,7 @@ class RandomSensorNoise(CorruptionBase):
     def __init__(
         self,
         sources: Sequence[str] = NOISE_SOURCES,
+        *,
         metadata: CameraMetadata | str | Mapping[str, Any] | None = None,
         ranges: Mapping[str, tuple[float, float]] | None = None,
         quantize: bool = False,

@@ -196,3 +196,16 @@ def test_bad_input(bad, exc):
 def test_labels_before_call_raise():
     with pytest.raises(RuntimeError, match="call the module"):
         RandomSensorNoise().labels()
+
+
+def test_a_kornia_style_positional_call_fails_loudly():
+    """Kornia's ``RandomMotionBlur(kernel_size, angle, direction)`` must not be read as camhealth's (length, angle,
+    intensity): only the first argument is positional, the rest are keyword-only."""
+    with pytest.raises(TypeError):
+        RandomMotionBlur(3, 35.0, 0.5)
+    with pytest.raises(TypeError):
+        RandomDefocusBlur((1.0, 5.0), 7)
+    with pytest.raises(TypeError):
+        RandomSensorNoise(("photon",), "ICX285")
+    blur = RandomMotionBlur((3.0, 5.0), angle=35.0, intensity=0.5)  # the same settings by name work
+    assert blur(torch.rand(2, 1, 32, 32)).shape == (2, 1, 32, 32)
