@@ -5,7 +5,7 @@ from __future__ import annotations
 import operator
 import re
 
-__all__ = ["natural_sort_key", "check_index", "check_int"]
+__all__ = ["natural_sort_key", "check_index", "check_int", "check_frame_range"]
 
 _DIGITS = re.compile(r"(\d+)")
 
@@ -46,3 +46,13 @@ def check_int(value: object, name: str, low: int, allow_none: bool = False) -> i
     if v < low:
         raise ValueError(f"{name} = {v} must be >= {low}")
     return v
+
+
+def check_frame_range(start: object, stride: object, max_frames: object) -> None:
+    """``start`` ≥ 0 and ``stride`` ≥ 1 integers, ``max_frames`` an integer ≥ 1 or ``None`` (frame sources and
+    recordings); ``ValueError`` naming the value otherwise."""
+    for v, name, lo in ((start, "start", 0), (stride, "stride", 1)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise ValueError(f"{name} = {v!r} must be an integer >= {lo}")
+    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
+        raise ValueError(f"max_frames = {max_frames!r} must be an integer >= 1 or None")

@@ -56,6 +56,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 import torch
 
+from camhealth.data._common import check_frame_range
 from camhealth.data.io import to_gray
 
 __all__ = [
@@ -673,11 +674,7 @@ class Recording:
 
         The first message's encoding is checked now: an encoding that cannot be converted is a
         :class:`RecordingError` here (later messages with a bad encoding are per-frame errors)."""
-        for v, name, lo in ((start, "start", 0), (stride, "stride", 1)):
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f"{name} = {v!r} must be an integer >= {lo}")
-        if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
-            raise ValueError(f"max_frames = {max_frames!r} must be an integer >= 1 or None")
+        check_frame_range(start, stride, max_frames)
         bit_depth = _check_bit_depth(bit_depth)
         if bayer not in BAYER_MODES:
             raise ValueError(f"bayer = {bayer!r} must be one of {BAYER_MODES}")

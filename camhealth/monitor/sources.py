@@ -28,6 +28,7 @@ from typing import Any, Iterator
 
 import torch
 
+from camhealth.data._common import check_frame_range
 from camhealth.data.image_folder import list_images
 from camhealth.data.io import IMAGE_EXTENSIONS, read_image_scaled
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
@@ -130,11 +131,7 @@ def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames:
     Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unsupported extension, an
     unreadable image, an undecodable video or a ``start`` past the last frame (messages name the file and the
     allowed kinds or frame indices). ``bit_depth``: significant bits of 16-bit frames (``"auto"`` or 8…16)."""
-    for v, name, lo in ((start, "start", 0), (stride, "stride", 1)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise ValueError(f"{name} = {v!r} must be an integer >= {lo}")
-    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
-        raise ValueError(f"max_frames = {max_frames!r} must be an integer >= 1 or None")
+    check_frame_range(start, stride, max_frames)
     from camhealth.data.io import _check_bit_depth
 
     bit_depth = _check_bit_depth(bit_depth)

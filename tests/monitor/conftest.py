@@ -101,3 +101,25 @@ def street_frames():
 def noisy(frame: torch.Tensor, sigma_dn: float, seed: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     return (frame + torch.randn(frame.shape, generator=g) * sigma_dn / 255.0).clamp(0, 1)
+
+
+def run_monitor_cli(argv, capsys, *extra):
+    """``python -m camhealth.monitor ARGV EXTRA`` in-process: (exit code, stdout, stderr); torch's thread count is
+    restored afterwards (the CLI sets it)."""
+    from camhealth.monitor.__main__ import main
+
+    n = torch.get_num_threads()
+    try:
+        code = main([*argv, *extra])
+    finally:
+        torch.set_num_threads(n)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture
+def models(model_files):
+    """CLI options naming the untrained exported models, one thread, no progress bar."""
+    ns, mtf = model_files
+    return ["--noise-model", str(ns), "--mtf-model", str(mtf), "--no-progress", "--threads", "1"]
+

@@ -6,9 +6,9 @@ import re
 
 import numpy as np
 import pytest
-import torch
 
-from camhealth.monitor.__main__ import build_parser, main
+from camhealth.monitor.__main__ import build_parser
+from tests.monitor.conftest import run_monitor_cli as _run
 
 
 def _lines(text: str) -> list[dict]:
@@ -16,22 +16,6 @@ def _lines(text: str) -> list[dict]:
         raise ValueError(f"non-strict JSON constant {x}")
 
     return [json.loads(ln, parse_constant=bad) for ln in text.splitlines() if ln.strip()]
-
-
-@pytest.fixture
-def models(model_files):
-    ns, mtf = model_files
-    return ["--noise-model", str(ns), "--mtf-model", str(mtf), "--no-progress", "--threads", "1"]
-
-
-def _run(argv, capsys):
-    n = torch.get_num_threads()
-    try:
-        code = main(argv)
-    finally:
-        torch.set_num_threads(n)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _png(path, array):

@@ -14,10 +14,10 @@ import torch
 
 from camhealth.data.rosbag import RecordingWriter, format_stamp
 from camhealth.monitor import Monitor
-from camhealth.monitor.__main__ import build_parser, main
+from camhealth.monitor.__main__ import build_parser
 from camhealth.monitor.diagnostics import ERROR, KEYS, OK, WARN, frame_level, read_diagnostics
 from camhealth.monitor.recording import RecordingOptions
-from tests.monitor.conftest import FakeMTF, FakeNoise
+from tests.monitor.conftest import FakeMTF, FakeNoise, run_monitor_cli
 
 T0 = 1_700_000_000 * 10**9
 PERIOD = 100 * 10**6  # 10 frames/s
@@ -72,14 +72,9 @@ def write_street_recording(path, street_frames, gains=GAINS, corrupt_last=True):
     return path
 
 
+
 def _run(argv, capsys):
-    n = torch.get_num_threads()
-    try:
-        code = main([*argv, "--no-progress", "--threads", "1"])
-    finally:
-        torch.set_num_threads(n)
-    out, err = capsys.readouterr()
-    return code, out, err
+    return run_monitor_cli(argv, capsys, "--no-progress", "--threads", "1")
 
 
 def _lines(text):

@@ -7,12 +7,11 @@ import json
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
-from camhealth.monitor.__main__ import main
 from camhealth.monitor.sources import open_source
 from tests.monitor.conftest import FakeNoise
+from tests.monitor.conftest import run_monitor_cli as _run
 
 cv2 = pytest.importorskip("cv2")
 
@@ -33,21 +32,6 @@ def _truncated(src, dst, keep=0.97):
     data = src.read_bytes()
     dst.write_bytes(data[: int(len(data) * keep)])
     return dst
-
-
-def _run(argv, capsys):
-    n = torch.get_num_threads()
-    try:
-        code = main(argv)
-    finally:
-        torch.set_num_threads(n)
-    return (code, *capsys.readouterr())
-
-
-@pytest.fixture
-def models(model_files):
-    ns, mtf = model_files
-    return ["--noise-model", str(ns), "--mtf-model", str(mtf), "--no-progress", "--threads", "1"]
 
 
 def test_a_partly_decoded_video_frame_is_reported_not_scored(tmp_path, models, capsys):
