@@ -1,8 +1,11 @@
 """Model cards for shipped weights: ``python -m camhealth.model_card WEIGHTS --command "..." [--notes "..."]``.
 
-A card is a Markdown file next to the weights (``camhealth/weights/<name>.md``) written from what the weights
-file itself records (kind, architecture arguments, params, FLOPs, held-out test metrics of the fit) plus the
-command that reproduced it, and a fresh timing of ``Estimator.predict`` on this machine (fp32 and bf16).
+A card is a Markdown file next to the weights (``camhealth/weights/<name>.md``) in one template, the sections of
+Hugging Face's model cards: model details, intended use, training data, evaluation, speed, limitations, how to
+reproduce, training procedure. It is written from what the weights file itself records (kind, architecture
+arguments, params, FLOPs, held-out test metrics of the fit), the command that reproduces it, and a fresh timing of
+``Estimator.predict`` on this machine (fp32 and bf16). ``--refresh`` rewrites a card in place, keeping its command
+and training procedure.
 """
 
 from __future__ import annotations
@@ -11,13 +14,14 @@ import argparse
 import datetime as _dt
 import json
 import platform
+import re
 import time
 from pathlib import Path
 from typing import Sequence
 
 import torch
 
-__all__ = ["card_text", "write_card", "main"]
+__all__ = ["SECTIONS", "card_text", "main", "read_card", "write_card"]
 
 _DATA = {
     "noise_source": "`datamodules.NoiseDataModule` — embedded scikit-image photos + 50 street frames + procedural "
@@ -49,38 +53,120 @@ def _time_predict(est, batch: int = 32, repeats: int = 5) -> dict[str, float]:
     return out
 
 
+_INTENDED = {
+    ("noise_source", "minimal"): "σ of photon shot, dark-current shot and readout noise (DN) and the residual ξ of one "
+    "gray 128-px patch, given gain, exposure and temperature only (Min-Meta, thesis Ch. 6). For cameras whose "
+    "full metadata are known use `noise_source_full` (the closed form, physics first) instead.",
+    ("noise_source", "none"): "σ of photon shot, dark-current shot and readout noise (DN) of one gray 128-px patch "
+    "with no metadata at all (w/o-Meta, thesis Ch. 6): the thesis's comparison network.",
+    ("drne", "none"): "The total noise level σ (DN) of a gray patch and a per-pixel σ map, no metadata (a DRNE-style "
+    "network, thesis Ch. 5); the learned counterpart of the classical noise-level baselines.",
+    ("mtf", "none"): "The MTF of a gray 192-px patch, horizontal and vertical at f_n = 0.05 … 0.6 of Nyquist "
+    "(thesis Ch. 5): blur from defocus and motion, per patch, for the monitor.",
+}
+
+_LIMITATIONS = {
+    "noise_source": "Trained and tested on camhealth's own simulator only. On data it did not make "
+    "(`python -m camhealth.bench robustness --frames 6 --threads 2`: an independent implementation of the sensor "
+    "model, downsampled real photographs and street frames, JPEG) its per-source error is far above the metadata's "
+    "closed form where the metadata are right (PN / DCSN / RN RMS 0.89 / 1.01 / 2.85 DN against 0.01 / 0.00 / 0.02) "
+    "and σ of 10–60 DN is underestimated (total RMS 5.6 DN). It never says `assessable=False` for textured "
+    "patches. Use it only where the metadata it needs are unknown or untrusted.",
+    "drne": "Trained and tested on camhealth's own simulator only; on the robustness benchmark "
+    "(`python -m camhealth.bench robustness --frames 6 --threads 2`) its total-σ RMS is 1.9 DN on matched data and "
+    "it underestimates σ of 10–60 DN. Gray patches only; no noise sources, no ξ.",
+    "mtf": "Trained on the three PSF families above and on sources whose own (native) blur is not part of the label: "
+    "on frames that are natively soft it reports that softness too. Gray patches only; featureless, black or "
+    "saturated patches are flagged `assessable=False`. Accuracy on other PSF families and on real optics: "
+    "`docs/benchmarks.md`.",
+}
+
+_INDEPENDENT = {
+    "noise_source": "On data camhealth did not make (an independent sensor simulator, real photographs and frames, "
+    "JPEG, mismatched metadata): `python -m camhealth.bench robustness` (*Robustness* in `docs/benchmarks.md`).",
+    "drne": "On data camhealth did not make: `python -m camhealth.bench robustness` (*Robustness* in "
+    "`docs/benchmarks.md`).",
+    "mtf": "On PSFs and scenes it was not trained on: *Blur robustness* in `docs/benchmarks.md`.",
+}
+
+
+SECTIONS = ("Model details", "Intended use", "Training data", "Evaluation", "Speed", "Limitations",
+            "How to reproduce", "Training procedure")
+
+
 def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, float] | None = None) -> str:
+    """The Markdown model card of a weights file, in the sections of :data:`SECTIONS` (Hugging Face's model-card
+    headings): details and size from the file's own description, intended use and limitations per kind, the data
+    it was trained on, the held-out metrics stored in the file, a fresh timing of ``predict`` (or ``timing``:
+    ms/patch for ``"fp32"`` and ``"bf16"``), the command that reproduces it and ``notes`` (its training procedure).
+    """
     from camhealth.inference import load_estimator
 
     est = load_estimator(weights)
     d = est.description
     timing = timing if timing is not None else _time_predict(est)
     metrics = d.get("metrics", {})
+    intended = _INTENDED.get((est.kind, est.metadata_set), _INTENDED.get((est.kind, "none"), ""))
     lines = [
         f"# Model card: `{est.name}`",
         "",
+        "## Model details",
+        "",
         f"- **Kind**: {est.kind} ({d['class_path']}); patch {est.patch_size} px; metadata: {est.metadata_set}",
-        f"- **Load**: `camhealth.load_estimator({est.name!r})` (no network access; tensors only).",
         f"- **Architecture arguments**: `{json.dumps(d.get('init_args', {}))}`",
         f"- **Size**: {d.get('params', 0):,} parameters, {d.get('flops_per_patch', 0) / 1e9:.2f} GFLOP per patch.",
-        f"- **Speed** (`Estimator.predict`, batch 32, {platform.processor() or platform.machine()}, "
-        f"{torch.get_num_threads()} threads, {_dt.date.today().isoformat()}): {timing['fp32']:.2f} ms/patch fp32, "
-        f"{timing['bf16']:.2f} ms/patch bf16.",
         *_trunk_line(est),
-        f"- **Data**: {_DATA[est.kind]}",
-        f"- **Reproduce**: `{command}`",
+        "- **Format**: camhealth weights (`torch.load(weights_only=True)`: tensors and a JSON description, no code).",
+        f"- **Load**: `camhealth.load_estimator({est.name!r})` (no network access).",
         "",
-        "## Held-out test metrics (test split, after fit)",
+        "## Intended use",
+        "",
+        intended,
+        "",
+        "## Training data",
+        "",
+        _DATA[est.kind],
+        "",
+        "## Evaluation",
+        "",
+        "Held-out test split of the training generator, measured after fit and stored in the file; the same "
+        "simulator made it, so it is not independent evidence (again on this machine: "
+        f"`python -m camhealth.bench estimators --models {est.name}`). " + _INDEPENDENT[est.kind],
         "",
         "| metric | value |",
         "|---|---:|",
         *[f"| {k} | {v:.3f} |" for k, v in sorted(metrics.items())],
         "",
         "Units: σ metrics (bias/std/rms) in DN of 255 (Eq. 6.2); AMAE in % (Eq. 5.1).",
+        "",
+        "## Speed",
+        "",
+        f"`Estimator.predict`, batch 32, {platform.processor() or platform.machine()}, {torch.get_num_threads()} "
+        f"threads, {_dt.date.today().isoformat()}: {timing['fp32']:.2f} ms/patch fp32, {timing['bf16']:.2f} ms/patch "
+        "bf16 (`python -m camhealth.model_card WEIGHTS --refresh` measures it again).",
+        "",
+        "## Limitations",
+        "",
+        _LIMITATIONS[est.kind],
+        "",
+        "## How to reproduce",
+        "",
+        f"`{command}`",
     ]
     if notes:
-        lines += ["", "## Notes", "", notes]
+        lines += ["", "## Training procedure", "", notes]
     return "\n".join(lines) + "\n"
+
+
+def read_card(path: str | Path) -> tuple[str, str]:
+    """The reproduce command and the training-procedure notes of an existing card (``(command, notes)``); a
+    ``ValueError`` names the file when it has no command."""
+    text = Path(path).read_text(encoding="utf-8")
+    m = re.search(r"## How to reproduce\s*\n\s*`([^`]+)`", text) or re.search(r"\*\*Reproduce\*\*: `([^`]+)`", text)
+    if m is None:
+        raise ValueError(f"model card {str(path)!r} has no reproduce command ('## How to reproduce' section)")
+    n = re.search(r"## (?:Training procedure|Notes)\s*\n\n(.*)\Z", text, flags=re.S)
+    return m.group(1), (n.group(1).strip() if n else "")
 
 
 def _trunk_line(est) -> list[str]:
@@ -100,12 +186,21 @@ def write_card(weights: str | Path, command: str, notes: str = "") -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    p = argparse.ArgumentParser(prog="python -m camhealth.model_card", description=__doc__)
-    p.add_argument("weights", help="camhealth weights file (.pt)")
-    p.add_argument("--command", required=True, help="the command that trained it")
-    p.add_argument("--notes", default="", help="free text appended to the card")
+    p = argparse.ArgumentParser(prog="python -m camhealth.model_card", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("weights", help="camhealth weights file (.pt); the card is written next to it (.md)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--command", help="the command that trained it")
+    g.add_argument("--refresh", action="store_true",
+                   help="keep the existing card's command and training procedure, measure and write the rest again")
+    p.add_argument("--notes", default=None, help="the training procedure (free text); with --refresh: the card's")
     args = p.parse_args(argv)
-    out = write_card(args.weights, args.command, args.notes)
+    weights = Path(args.weights)
+    command, notes = args.command, args.notes
+    if args.refresh:
+        command, old_notes = read_card(weights.with_suffix(".md"))
+        notes = old_notes if notes is None else notes
+    out = write_card(weights, command, notes or "")
     print(out)
     return out
 

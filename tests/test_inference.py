@@ -133,15 +133,6 @@ def test_shipped_models_load_by_name():
         assert "metrics" in est.description  # every shipped model carries its held-out metrics
 
 
-def test_model_card_lists_metrics_and_command(tmp_path):
-    from camhealth.model_card import card_text
-
-    path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt", metrics={"test/rms_total": 0.42})
-    text = card_text(path, "python -m camhealth.fit --config configs/noise_source.yaml", timing={"fp32": 1.0, "bf16": 0.5})
-    assert "test/rms_total | 0.420" in text and "configs/noise_source.yaml" in text and "GFLOP" in text
-    assert "Trunk activity" in text and "— dead" not in text  # a fresh trunk is alive
-
-
 def test_bucket_sizes():
     from camhealth.inference import bucket_size
 

@@ -136,7 +136,8 @@ def format_table(result: BenchResult, markdown: bool = False) -> str:
         lines.append("| " + " | ".join(cols) + " |")
         lines.append("|" + "|".join(["---", "---:", "---:", "---:", "---:", "---"]) + "|")
         lines += ["| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in body]
-        lines += [""] + [f"- {s}" for s in result.summary]
+        tables = any(s.lstrip().startswith("|") for s in result.summary)  # summaries with their own tables print as they are
+        lines += [""] + (list(result.summary) if tables else [f"- {s}" for s in result.summary])
     else:
         widths = [max(len(cols[i]), *(len(row[i]) for row in body)) for i in range(len(cols))]
         align = ["<", ">", ">", ">", "<", "<"]

@@ -1,5 +1,9 @@
 """Command line: ``python -m camhealth.bench <benchmark> [--batch B --size S --repeats N --warmup N
---threads T --markdown --out FILE]``. Benchmarks are listed in :data:`camhealth.bench.BENCHMARKS`."""
+--threads T --markdown --out FILE --docs FILE]``. Benchmarks are listed in :data:`camhealth.bench.BENCHMARKS`.
+
+``--docs FILE`` writes the markdown table into FILE between the markers ``<!-- generated: COMMAND -->`` and
+``<!-- end generated -->`` of the block whose command is this one (without ``--docs``), so a page's tables are
+regenerated in place by the commands they name (:mod:`camhealth.docs`)."""
 
 from __future__ import annotations
 
@@ -25,6 +29,19 @@ def _non_negative(value: str) -> int:
     return n
 
 
+def _without_docs(argv: Sequence[str]) -> list[str]:
+    """The command line less ``--docs FILE`` (the block's name is the command that makes it)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--docs":
+            skip = True
+        elif not a.startswith("--docs="):
+            out.append(a)
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m camhealth.bench", description=__doc__)
     sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
@@ -39,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--seed", type=int, default=0, help="seed of the batch and of the parameters (default 0)")
         p.add_argument("--markdown", action="store_true", help="print a markdown table")
         p.add_argument("--out", type=Path, default=None, help="append the markdown table to FILE (created if missing)")
+        p.add_argument("--docs", type=Path, default=None,
+                       help="write the markdown table into FILE's generated block of this command (appended if none)")
         module.add_arguments(p)
     return parser
 
@@ -49,7 +68,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    args.command_line = "python -m camhealth.bench " + " ".join(sys.argv[1:] if argv is None else argv)
+    args.command_line = "python -m camhealth.bench " + " ".join(_without_docs(sys.argv[1:] if argv is None else argv))
     result = load(args.benchmark).run(args)
     print(format_table(result, markdown=args.markdown), flush=True)
     if args.out is not None:
@@ -57,6 +76,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         with args.out.open("a", encoding="utf-8") as fh:
             fh.write(format_table(result, markdown=True) + "\n\n")
         print(f"\nappended the markdown table to {args.out}")
+    if args.docs is not None:
+        from camhealth.docs import replace_generated
+
+        replaced = replace_generated(args.docs, args.command_line, format_table(result, markdown=True))
+        print(f"\n{'replaced' if replaced else 'added'} the generated block `{args.command_line}` in {args.docs}")
     return 0
 
 

@@ -1,0 +1,90 @@
+"""Model cards: one template for every shipped file, and the command on each card trains exactly that file."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from camhealth.export import export_weights
+from camhealth.inference import shipped_models
+from camhealth.model_card import SECTIONS, card_text, main, read_card
+from lightning_modules import NoiseSourceEstimator
+
+ROOT = Path(__file__).resolve().parents[1]
+WEIGHTS = ROOT / "camhealth" / "weights"
+SHIPPED = sorted(p for p in WEIGHTS.glob("*.pt"))
+
+
+def _fit_command(command: str) -> list[str]:
+    """The arguments of the last ``python -m camhealth.fit`` in a card's command (stages are chained with &&)."""
+    stages = [shlex.split(s) for s in command.split("&&")]
+    fits = [s for s in stages if s[:3] == ["python", "-m", "camhealth.fit"]]
+    assert fits, f"no `python -m camhealth.fit` in {command!r}"
+    return fits[-1][3:]
+
+
+def _config_init_args(args: list[str]) -> dict:
+    """model.init_args of the config named by --config with the command's --model.init_args.* overrides applied."""
+    config = ROOT / args[args.index("--config") + 1]
+    init = dict(yaml.safe_load(config.read_text())["model"]["init_args"])
+    for i, a in enumerate(args):
+        if a.startswith("--model.init_args."):
+            init[a.removeprefix("--model.init_args.")] = yaml.safe_load(args[i + 1])
+    return init
+
+
+def test_every_model_is_shipped_with_a_card():
+    assert {p.stem for p in SHIPPED} == set(shipped_models())
+    assert {p.stem for p in WEIGHTS.glob("*.md")} == {p.stem for p in SHIPPED}
+
+
+@pytest.mark.parametrize("weights", SHIPPED, ids=lambda p: p.stem)
+def test_shipped_card_follows_the_template(weights):
+    text = weights.with_suffix(".md").read_text(encoding="utf-8")
+    headings = re.findall(r"^## (.+)$", text, flags=re.M)
+    assert headings[: len(SECTIONS) - 1] == list(SECTIONS[:-1]), headings
+    assert not re.search(r"session \d", text, flags=re.I)
+
+
+@pytest.mark.parametrize("weights", SHIPPED, ids=lambda p: p.stem)
+def test_card_command_trains_the_shipped_hyper_parameters(weights):
+    """The config the card names, with the card's own overrides, gives exactly the stored architecture arguments:
+    configs train what ships."""
+    command, _ = read_card(weights.with_suffix(".md"))
+    args = _fit_command(command)
+    assert args[args.index("--export_weights") + 1] == f"camhealth/weights/{weights.name}"
+    stored = torch.load(weights, weights_only=True)["description"]
+    import json
+
+    stored = json.loads(stored) if isinstance(stored, str) else stored
+    expected = _config_init_args(args)
+    unknown = set(expected) - set(stored["init_args"])
+    assert not unknown, f"config names arguments the shipped file does not have: {unknown}"
+    for key, value in expected.items():
+        assert stored["init_args"][key] == value, (weights.name, key, stored["init_args"][key], value)
+    # every argument the file stores is fixed by the config (patch_size comes from the data, linked)
+    assert set(stored["init_args"]) - set(expected) <= {"patch_size"}
+
+
+def test_card_sections_and_refresh_keep_command_and_notes(tmp_path):
+    path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt", metrics={"test/rms_total": 0.42})
+    text = card_text(path, "python -m camhealth.fit --config configs/noise_source.yaml", "two stages",
+                     timing={"fp32": 1.0, "bf16": 0.5})
+    assert re.findall(r"^## (.+)$", text, flags=re.M) == list(SECTIONS)
+    assert "test/rms_total | 0.420" in text and "GFLOP" in text and "1.00 ms/patch fp32" in text
+    assert "Trunk activity" in text and "— dead" not in text  # a fresh trunk is alive
+    path.with_suffix(".md").write_text(text, encoding="utf-8")
+    main([str(path), "--refresh"])
+    assert read_card(path.with_suffix(".md")) == ("python -m camhealth.fit --config configs/noise_source.yaml", "two stages")
+
+
+def test_refresh_of_a_card_without_a_command_names_the_file(tmp_path):
+    path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt")
+    path.with_suffix(".md").write_text("# Model card\n\nno command here\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"m\.md.*reproduce command"):
+        main([str(path), "--refresh"])
