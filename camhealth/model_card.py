@@ -84,7 +84,7 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
 
 
 def _trunk_line(est) -> list[str]:
-    net = getattr(getattr(est, "_module", None), "net", None)
+    net = getattr(est, "_net", None)
     if net is None or not hasattr(net, "trunk_activity"):
         return []
     act = net.trunk_activity()
