@@ -11,6 +11,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+from tests.monitor.test_api import noise_sensitive_iopc
+
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN = ("lightning", "lightning_modules", "datamodules", "pytorch_lightning")
 FRAME = ROOT / "camhealth" / "data" / "street" / "vtest_0100.png"
@@ -69,17 +73,24 @@ def test_loading_every_shipped_estimator_and_the_monitor_api_import_no_lightning
     assert "camhealth" in result["top_level_modules"]  # the check looks at the right list
 
 
-def test_monitor_cli_imports_no_lightning():
-    """The real CLI process: ``python -X importtime`` lists every module it imports (on stderr)."""
+@pytest.mark.parametrize("policy", [False, True])
+def test_monitor_cli_imports_no_lightning(tmp_path, policy):
+    """The real CLI process: ``python -X importtime`` lists every module it imports (on stderr). With ``--iopc`` the
+    monitor also gives exposure/gain advice from an IOPC file (camhealth.control, camhealth.iopc's curves)."""
+    extra = ["--iopc", str(noise_sensitive_iopc(tmp_path))] if policy else []
     run = subprocess.run(
         [sys.executable, "-X", "importtime", "-m", "camhealth.monitor", str(FRAME), "--sensor", "ICX285",
-         "--noise-model", "noise_source_min", "--precision", "fp32", "--threads", "1", "--no-progress"],
+         "--noise-model", "noise_source_min", "--precision", "fp32", "--threads", "1", "--no-progress", *extra],
         cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=600,
     )
     assert run.returncode == 0, run.stderr[-3000:]
     lines = [json.loads(line) for line in run.stdout.splitlines() if line.startswith("{")]
     assert len(lines) == 1 and lines[0]["frame"] == 0 and "noise" in lines[0]
+    assert (lines[0]["advice"] is not None) == policy
     imported = {line.rsplit("|", 1)[1].strip() for line in run.stderr.splitlines() if line.startswith("import time:")}
     imported.discard("imported package")  # the header line
     assert "camhealth.monitor.api" in imported and "camhealth.nets" in imported  # the list is the CLI's imports
-    assert not {m for m in imported if m.split(".")[0] in FORBIDDEN}, sorted(m for m in imported if m.split(".")[0] in FORBIDDEN)
+    if policy:
+        assert "camhealth.control" in imported and "camhealth.iopc.curves" in imported
+    leaked = sorted(m for m in imported if m.split(".")[0] in FORBIDDEN)
+    assert not leaked, leaked
