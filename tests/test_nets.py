@@ -6,6 +6,7 @@ import importlib
 import inspect
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -100,7 +101,7 @@ def test_load_net_refuses_a_description_its_lightning_module_would_refuse(tmp_pa
     assert str(path) in str(info.value)
 
 
-@pytest.mark.parametrize("bad", [0, 8, 24, -16, 32.5, True, "128", None])
+@pytest.mark.parametrize("bad", [0, 8, 24, -16, 32.5, float("nan"), True, "128", None])
 def test_check_patch_size_names_the_value(bad):
     with pytest.raises(ValueError, match=r"patch_size = .* must be a positive multiple of 16 px"):
         nets.check_patch_size(bad)
@@ -110,6 +111,7 @@ def test_check_patch_size_names_the_value(bad):
 
 def test_check_patch_size_accepts_multiples_of_16():
     assert nets.check_patch_size(16) == 16 and nets.check_patch_size(192.0) == 192
+    assert nets.check_patch_size(np.int64(128)) == 128 and type(nets.check_patch_size(np.int64(128))) is int
 
 
 def test_network_for_an_unknown_class_lists_the_allowed_ones():

@@ -16,6 +16,8 @@ arguments shape the network and which only shape training, so a file is turned i
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -40,8 +42,8 @@ COMMON_TRAINING_ARGS: tuple[str, ...] = ("lr", "weight_decay", "channels_last", 
 def check_patch_size(patch_size: Any) -> int:
     """The estimators' patch side [px]: a positive multiple of 16 (the strided stages and space-to-depth folds of
     every network divide it by up to 16); ``ValueError`` naming the value otherwise."""
-    if isinstance(patch_size, bool) or not isinstance(patch_size, (int, float)) or int(patch_size) != patch_size \
-            or patch_size < 16 or patch_size % 16:
+    if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Real) or not math.isfinite(patch_size) \
+            or int(patch_size) != patch_size or patch_size < 16 or patch_size % 16:
         raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
     return int(patch_size)
 
