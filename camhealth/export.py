@@ -14,6 +14,10 @@ The exported network takes exactly the inputs of :meth:`EstimatorModule.export_i
 noise-source network: patches and normalised metadata, which the loader computes from raw metadata with
 :mod:`camhealth.physics`). TorchScript is not offered (deprecated).
 
+A weights file or checkpoint is read back two ways: :func:`load_net` builds the bare network
+(:mod:`camhealth.nets`, a plain ``torch.nn.Module``; inference, no Lightning import) and :func:`load_module` the
+LightningModule that trained it (exporting to pt2/ONNX, fine-tuning). Both check the file the same way.
+
 Noise-source files written with options that are retired (a Full-Meta hybrid network, a posterior blend, …) are
 refused at load with a message that names the option and what replaced it (:func:`check_retired`).
 """
@@ -30,18 +34,17 @@ from typing import Any, Mapping, Sequence
 import torch
 
 from camhealth._cli import add_debug_flag, debugging, run_cli
+from camhealth.nets import NETWORKS, network_for
 
-__all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_module", "main", "ALLOWED_CLASSES", "check_retired"]
+__all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES",
+           "check_retired"]
 
 FORMAT_TAG = "camhealth-estimator"
 FORMAT_VERSION = 1
 
-#: Classes a camhealth file may name (nothing else is ever instantiated from a file).
-ALLOWED_CLASSES: dict[str, str] = {
-    "lightning_modules.noise_source.NoiseSourceEstimator": "noise_source",
-    "lightning_modules.drne.NoiseLevelEstimator": "drne",
-    "lightning_modules.mtf.MTFEstimator": "mtf",
-}
+#: Classes a camhealth file may name → their kind (nothing else is ever instantiated from a file): the LightningModules
+#: of :data:`camhealth.nets.NETWORKS`.
+ALLOWED_CLASSES: dict[str, str] = {spec.class_path: kind for kind, spec in NETWORKS.items()}
 
 
 BY_PHYSICS = ("replaced by 'noise_source_full', the physics-first estimator (the closed form unless the image "
@@ -154,17 +157,55 @@ def _check_description(desc: Any, path: Path) -> dict:
     return desc
 
 
-def load_module(source: str | Path):
-    """Rebuild the :class:`EstimatorModule` of a weights file or Lightning checkpoint (eval mode), plus its
-    description. Only allow-listed classes are built and only tensors are loaded; a tampered description (bad
-    JSON, an argument the class does not take, a value it refuses) is one ``ValueError`` naming the file."""
+def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
+    """Path, checked description, init_args (retired options at their only value dropped) and state dict of a file."""
     path = Path(source)
     desc, state = _description_and_state(_safe_load(path), path)
-    cls = _class_for(desc.get("class_path", ""))
     check_retired(desc, path)
     init_args = {k: v for k, v in dict(desc.get("init_args", {})).items() if not str(k).startswith("_")}
     if desc.get("kind") == "noise_source":  # retired options at their only remaining value: as if absent
         init_args = {k: v for k, v in init_args.items() if k not in RETIRED_OPTIONS}
+    bad = [k for k, v in state.items() if not isinstance(v, torch.Tensor)]
+    if bad:
+        raise ValueError(f"{path}: state_dict entries {bad[:4]} are not tensors")
+    return path, desc, init_args, state
+
+
+def _load_state(net: torch.nn.Module, state: Mapping[str, torch.Tensor], path: Path, class_path: str) -> None:
+    try:
+        missing, unexpected = net.load_state_dict(state, strict=False)
+    except RuntimeError as exc:
+        raise ValueError(f"{path}: weights do not fit {class_path}: {str(exc).splitlines()[-1].strip()[:200]}") from None
+    if missing or unexpected:
+        raise ValueError(f"{path}: weights do not fit {class_path} (missing {missing[:4]}, unexpected {unexpected[:4]})")
+
+
+def load_net(source: str | Path) -> tuple[torch.nn.Module, dict]:
+    """The bare network of a weights file or Lightning checkpoint (a :mod:`camhealth.nets` module, eval mode, float32)
+    and the file's description, without importing Lightning or the LightningModule. Only allow-listed classes are
+    built and only tensors are loaded; a tampered description (bad JSON, an argument the LightningModule does not take,
+    a value the network refuses) is one ``ValueError`` naming the file."""
+    path, desc, init_args, state = _read(source)
+    class_path = desc["class_path"]
+    spec = network_for(class_path)
+    unknown = sorted(k for k in init_args if k not in spec.init_args)
+    if unknown:
+        raise ValueError(f"{path}: description init_args {unknown} are not arguments of {class_path}")
+    try:
+        net = spec.build(init_args)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{path}: description init_args do not build {class_path}: {str(exc).splitlines()[0][:200]}") from None
+    _load_state(net, state, path, class_path)
+    return net.eval(), desc
+
+
+def load_module(source: str | Path):
+    """Rebuild the :class:`EstimatorModule` (a LightningModule: imports Lightning) of a weights file or Lightning
+    checkpoint (eval mode), plus its description — for exporting and fine-tuning; inference uses :func:`load_net`.
+    Only allow-listed classes are built and only tensors are loaded; a tampered description (bad JSON, an argument
+    the class does not take, a value it refuses) is one ``ValueError`` naming the file."""
+    path, desc, init_args, state = _read(source)
+    cls = _class_for(desc.get("class_path", ""))
     import inspect
 
     accepted = inspect.signature(cls.__init__).parameters
@@ -175,15 +216,7 @@ def load_module(source: str | Path):
         module = cls(**init_args)
     except (TypeError, ValueError, RuntimeError) as exc:
         raise ValueError(f"{path}: description init_args do not build {desc['class_path']}: {str(exc).splitlines()[0][:200]}") from None
-    bad = [k for k, v in state.items() if not isinstance(v, torch.Tensor)]
-    if bad:
-        raise ValueError(f"{path}: state_dict entries {bad[:4]} are not tensors")
-    try:
-        missing, unexpected = module.net.load_state_dict(state, strict=False)
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: weights do not fit {desc['class_path']}: {str(exc).splitlines()[-1].strip()[:200]}") from None
-    if missing or unexpected:
-        raise ValueError(f"{path}: weights do not fit {desc['class_path']} (missing {missing[:4]}, unexpected {unexpected[:4]})")
+    _load_state(module.net, state, path, desc["class_path"])
     return module.eval(), desc
 
 

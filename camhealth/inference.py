@@ -51,7 +51,8 @@ from typing import Any, Callable
 import torch
 
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches  # noqa: F401
-from camhealth.export import BY_PHYSICS, FORMAT_TAG, check_retired, load_module
+from camhealth.export import BY_PHYSICS, FORMAT_TAG, check_retired, load_net
+from camhealth.nets import NetworkSpec
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 
 __all__ = ["Estimator", "load_estimator", "shipped_models", "WEIGHTS_DIR", "assess_patches", "bucket_size",
@@ -87,6 +88,8 @@ class Estimator:
         description: the file's JSON description (architecture, params, FLOPs, metrics, ...).
         source: where it was loaded from.
         backend: ``"torch"``, ``"pt2"`` or ``"onnx"``.
+
+    With the torch backend the network is a plain ``torch.nn.Module`` of :mod:`camhealth.nets` (no Lightning).
     """
 
     kind: str
@@ -96,7 +99,7 @@ class Estimator:
     source: str
     backend: str
     _run: Callable[..., torch.Tensor] = field(repr=False)
-    _module: Any = field(default=None, repr=False)
+    _net: Any = field(default=None, repr=False)
 
     @property
     def name(self) -> str:
@@ -227,9 +230,9 @@ def _pad_meta(meta: CameraMetadata, size: int) -> CameraMetadata:
     return meta[torch.cat([torch.arange(meta.batch_size), torch.full((size - meta.batch_size,), meta.batch_size - 1)])]
 
 
-def _torch_runner(module) -> Callable[..., torch.Tensor]:
-    net = module.export_module().float()
-    if getattr(module, "channels_last", False):
+def _torch_runner(net: torch.nn.Module, channels_last: bool) -> Callable[..., torch.Tensor]:
+    net = net.eval().float()
+    if channels_last:
         net = net.to(memory_format=torch.channels_last)
     nets: dict[bool, torch.nn.Module] = {False: net}
 
@@ -240,7 +243,7 @@ def _torch_runner(module) -> Callable[..., torch.Tensor]:
         if bf16 and True not in nets:
             nets[True] = copy.deepcopy(net).to(torch.bfloat16)
         x = list(inputs)
-        if getattr(module, "channels_last", False):
+        if channels_last:
             x[0] = x[0].contiguous(memory_format=torch.channels_last)
         return nets[bf16](*x)
 
@@ -303,7 +306,7 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         if path.is_dir():
             raise ValueError(f"{path} is a folder; give a .pt, .ckpt, .pt2 or .onnx file")
     suffix = path.suffix.lower()
-    module = None
+    net = None
     if suffix == ".pt2":
         desc, run = _read_pt2(path)
         backend = "pt2"
@@ -311,8 +314,8 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         desc, run = _read_onnx(path)
         backend = "onnx"
     else:
-        module, desc = load_module(path)
-        run = _torch_runner(module)
+        net, desc = load_net(path)
+        run = _torch_runner(net, NetworkSpec.channels_last(desc.get("init_args", {})))
         backend = "torch"
     if desc.get("format", FORMAT_TAG) != FORMAT_TAG or desc.get("kind") not in ("mtf", "drne", "noise_source"):
         raise ValueError(f"{path}: unknown estimator description (kind {desc.get('kind')!r})")
@@ -325,5 +328,5 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         source=str(path),
         backend=backend,
         _run=run,
-        _module=module,
+        _net=net,
     )

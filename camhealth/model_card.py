@@ -170,7 +170,7 @@ def read_card(path: str | Path) -> tuple[str, str]:
 
 
 def _trunk_line(est) -> list[str]:
-    net = getattr(getattr(est, "_module", None), "net", None)
+    net = getattr(est, "_net", None)
     if net is None or not hasattr(net, "trunk_activity"):
         return []
     act = net.trunk_activity()

@@ -1,9 +1,14 @@
-"""LightningModules of camhealth's learned estimators (thesis Sec. 4.3).
+"""LightningModules that train camhealth's learned estimators (thesis Sec. 4.3): loss, metrics, logging, figures.
 
-- :class:`NoiseSourceEstimator` — σ of photon shot, dark-current shot and readout noise plus the residual ξ
-  from a patch and camera metadata (w/o-, Min-, Full-Meta; hybrid with the closed-form noise model).
-- :class:`NoiseLevelEstimator` — DRNE-style pixel-wise total-noise σ map and its patch statistics.
-- :class:`MTFEstimator` — MTF at 8 frequencies, horizontal and vertical, from a 192-px patch.
+The networks themselves are plain ``torch.nn.Module``s in :mod:`camhealth.nets` (inference needs no Lightning);
+their names stay importable from here.
+
+- :class:`NoiseSourceEstimator` — trains :class:`~camhealth.nets.noise_source.NoiseSourceNet`: σ of photon shot,
+  dark-current shot and readout noise plus the residual ξ from a patch and camera metadata (w/o- and Min-Meta).
+- :class:`NoiseLevelEstimator` — trains :class:`~camhealth.nets.drne.NoiseLevelNet`: DRNE-style pixel-wise
+  total-noise σ map and its patch statistics.
+- :class:`MTFEstimator` — trains :class:`~camhealth.nets.mtf.MTFNet`: MTF at 8 frequencies, horizontal and
+  vertical, from a 192-px patch.
 - :class:`IOPCCallback` — input-output performance curves of a frozen detector at the end of ``fit``.
 """
 

@@ -1,5 +1,9 @@
 """Common LightningModule plumbing of the three estimators: optimiser and schedule, channels_last,
-TensorBoard figures, export hooks and the description stored with checkpoints and shipped weights."""
+TensorBoard figures, export hooks and the description stored with checkpoints and shipped weights.
+
+Each estimator trains one network of :mod:`camhealth.nets` (``self.net``, a plain ``torch.nn.Module``); its
+arguments are split there (:data:`camhealth.nets.NETWORKS`) into those that shape the network and those that only
+shape training, so inference rebuilds the network from a file without this module."""
 
 from __future__ import annotations
 
@@ -9,7 +13,8 @@ import lightning as L
 import torch
 from torch import nn
 
-from lightning_modules.blocks import count_flops, count_parameters
+from camhealth.nets import check_patch_size
+from camhealth.nets.blocks import count_flops, count_parameters
 
 __all__ = ["EstimatorModule", "freeze_all_but"]
 
@@ -83,9 +88,7 @@ class EstimatorModule(L.LightningModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def _set_patch_size(self, patch_size: int) -> None:
-        if int(patch_size) != patch_size or patch_size < 16 or patch_size % 16:
-            raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
-        self.patch_size = int(patch_size)
+        self.patch_size = check_patch_size(patch_size)
 
     def _prepare(self, image: torch.Tensor) -> torch.Tensor:
         return image.contiguous(memory_format=torch.channels_last) if self.channels_last else image

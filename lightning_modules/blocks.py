@@ -1,95 +1,13 @@
-"""Network building blocks shared by the estimators, sized for a 2-core CPU, and FLOP/parameter counting.
+"""The network building blocks live in :mod:`camhealth.nets.blocks` (plain ``torch.nn`` modules, importable without
+Lightning); this module keeps their names importable from ``lightning_modules``."""
 
-The estimators trade full-resolution layers for **space-to-depth** stems (``nn.PixelUnshuffle``): an
-s×s block of pixels becomes s² channels, so every later 3×3 convolution runs on s² fewer positions while
-no pixel (and no high frequency, which is where noise and blur live) is thrown away. FLOPs are counted
-with :class:`torch.utils.flop_counter.FlopCounterMode` (one multiply-add = 2 FLOP).
-"""
-
-from __future__ import annotations
-
-from typing import Sequence
-
-import torch
-from torch import nn
-from torch.utils.flop_counter import FlopCounterMode
+from camhealth.nets.blocks import (  # noqa: F401
+    ConvAct,
+    FullyConnectedBlock,
+    GlobalStatsPool,
+    ResidualBlock,
+    count_flops,
+    count_parameters,
+)
 
 __all__ = ["ConvAct", "ResidualBlock", "FullyConnectedBlock", "count_flops", "count_parameters", "GlobalStatsPool"]
-
-
-class ConvAct(nn.Sequential):
-    """3×3 convolution (+ optional stride/dilation) followed by ReLU."""
-
-    def __init__(self, c_in: int, c_out: int, stride: int = 1, dilation: int = 1, kernel_size: int = 3) -> None:
-        pad = dilation * (kernel_size // 2)
-        super().__init__(
-            nn.Conv2d(c_in, c_out, kernel_size, stride=stride, padding=pad, dilation=dilation, bias=True),
-            nn.ReLU(inplace=True),
-        )
-
-
-class ResidualBlock(nn.Module):
-    """Two 3×3 convolutions with an identity (or 1×1 strided projection) shortcut; no normalisation layer
-    (batch statistics would mix the noise levels of different patches of a batch).
-
-    ``rezero=True`` scales the residual branch by a learnable scalar initialised to 0 (Bachlechner et al.
-    2020), which keeps deep stacks without normalisation stable at high learning rates."""
-
-    def __init__(self, c_in: int, c_out: int, stride: int = 1, dilation: int = 1, rezero: bool = False) -> None:
-        super().__init__()
-        self.rezero = nn.Parameter(torch.zeros(1)) if rezero else None
-        self.conv1 = nn.Conv2d(c_in, c_out, 3, stride=stride, padding=dilation, dilation=dilation)
-        self.conv2 = nn.Conv2d(c_out, c_out, 3, padding=dilation, dilation=dilation)
-        self.act = nn.ReLU(inplace=True)
-        self.shortcut = (
-            nn.Identity() if stride == 1 and c_in == c_out else nn.Conv2d(c_in, c_out, 1, stride=stride)
-        )
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.conv2(self.act(self.conv1(x)))
-        if self.rezero is not None:
-            y = y * self.rezero
-        return self.act(y + self.shortcut(x))
-
-
-class GlobalStatsPool(nn.Module):
-    """Global max, mean and standard deviation over H×W: (B, C, H, W) → (B, 3C).
-
-    Max pooling is the thesis's choice (DRNE_cust); mean and std add the robust statistics a noise level
-    needs (a single max is dominated by the most textured position of the patch)."""
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        flat = x.flatten(2)
-        mean = flat.mean(2)
-        std = (flat.pow(2).mean(2) - mean.pow(2)).clamp_min(0).add(1e-8).sqrt()
-        return torch.cat([flat.amax(2), mean, std], dim=1)
-
-
-class FullyConnectedBlock(nn.Sequential):
-    """The thesis's FCB: fully connected layers with ReLU between them (e.g. 32, 16, 8 neurons) and a
-    final linear layer to ``n_out`` outputs."""
-
-    def __init__(self, n_in: int, hidden: Sequence[int] = (32, 16, 8), n_out: int = 1) -> None:
-        layers: list[nn.Module] = []
-        for h in hidden:
-            layers += [nn.Linear(n_in, h), nn.ReLU(inplace=True)]
-            n_in = h
-        layers.append(nn.Linear(n_in, n_out))
-        super().__init__(*layers)
-
-
-def count_parameters(module: nn.Module) -> int:
-    """Number of parameters, frozen ones included (a network fine-tuned with ``train_only`` still has them all)."""
-    return sum(p.numel() for p in module.parameters())
-
-
-@torch.no_grad()
-def count_flops(module: nn.Module, *inputs: torch.Tensor) -> int:
-    """FLOPs of one forward pass on ``inputs`` (counted by torch's ``FlopCounterMode``; 2 per MAC)."""
-    was_training = module.training
-    module.eval()
-    counter = FlopCounterMode(display=False)
-    with counter:
-        module(*inputs)
-    module.train(was_training)
-    return int(counter.get_total_flops())

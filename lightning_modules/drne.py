@@ -1,13 +1,7 @@
-"""Noise-level estimator (thesis Sec. 4.3.2, DRNE after Tan et al. 2019): a pixel-wise σ map of the total
-noise and its patch statistics, for signal-dependent (Poisson–Gaussian) sensor noise.
-
-:class:`NoiseLevelNet` keeps the DRNE idea — no pooling on the way to a per-pixel output, dilated
-convolutions for context, residual blocks — at CPU cost: the patch and its ×32 high-pass residual are
-folded 2×2 into 8 channels (space-to-depth), processed at half resolution by a stem, three dilated
-residual blocks (dilation 1, 2, 4) and a head, and unfolded back to full resolution with a pixel shuffle
-(depth-to-space), so the map is still per pixel. ≈ 0.5 GFLOP per 128-px patch at ``width = 32``.
-:class:`ThesisNoiseNet` is the thesis-size reference (16 full-resolution 64-channel 3×3 layers,
-≈ 17 GFLOP per 128-px patch) used by the benchmark.
+"""LightningModule that trains the noise-level network (thesis Sec. 4.3.2, DRNE after Tan et al. 2019): a pixel-wise
+σ map of the total noise and its patch statistics. The network is :class:`camhealth.nets.drne.NoiseLevelNet` (a plain
+``torch.nn.Module``, architecture described there; :class:`~camhealth.nets.drne.ThesisNoiseNet` is the thesis-size
+reference); their names stay importable from here.
 
 Targets (from :class:`datamodules.NoiseDataModule`, physics at training time): the analytic per-pixel σ
 of the image's metadata M', σ(x)² = 255²·g·I(x)/FW + σ_DCSN² + σ_RN² [DN²] with I the clean patch (before
@@ -21,50 +15,15 @@ from typing import Any, Mapping
 
 import torch
 import torch.nn.functional as F
-from torch import nn
 
+from camhealth.estimators.noise_features import metadata_from_matrix
+from camhealth.nets.drne import NoiseLevelNet, ThesisNoiseNet
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.readout_noise import readout_sigma_e
 from lightning_modules.base import EstimatorModule
-from lightning_modules.blocks import ConvAct, ResidualBlock
 from lightning_modules.metrics import NoiseErrorStats
-from camhealth.estimators.noise_features import metadata_from_matrix
 
 __all__ = ["NoiseLevelNet", "ThesisNoiseNet", "NoiseLevelEstimator", "sigma_map_target_dn"]
-
-
-class NoiseLevelNet(nn.Module):
-    """B×1×H×W in [0, 1] (H, W even) → B×1×H×W σ map [DN] (≥ 0)."""
-
-    def __init__(self, width: int = 32, dilations: tuple[int, ...] = (1, 2, 4), highpass_gain: float = 32.0) -> None:
-        super().__init__()
-        self.highpass_gain = float(highpass_gain)
-        self.unshuffle = nn.PixelUnshuffle(2)
-        self.stem = ConvAct(8, width)
-        self.body = nn.Sequential(*[ResidualBlock(width, width, dilation=d) for d in dilations])
-        self.head = nn.Sequential(ConvAct(width, width), nn.Conv2d(width, 4, 3, padding=1))
-        self.shuffle = nn.PixelShuffle(2)
-
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        local_mean = F.avg_pool2d(F.pad(image, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
-        x = torch.cat([image * 2.0 - 1.0, (image - local_mean) * self.highpass_gain], dim=1)
-        y = self.shuffle(self.head(self.body(self.stem(self.unshuffle(x)))))
-        return 5.0 * F.softplus(y.float())
-
-
-class ThesisNoiseNet(nn.Module):
-    """Thesis-size reference: 16 full-resolution 3×3 convolution layers, 64 channels (≈ 17 GFLOP per
-    128-px patch), output a σ map [DN]. Used to time the thesis's design on the same patches."""
-
-    def __init__(self, width: int = 64, layers: int = 16) -> None:
-        super().__init__()
-        mods: list[nn.Module] = [ConvAct(1, width)]
-        mods += [ConvAct(width, width) for _ in range(layers - 2)]
-        mods.append(nn.Conv2d(width, 1, 3, padding=1))
-        self.body = nn.Sequential(*mods)
-
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return 5.0 * F.softplus(self.body(image).float())
 
 
 def sigma_map_target_dn(clean: torch.Tensor, meta_image_raw: torch.Tensor) -> torch.Tensor:

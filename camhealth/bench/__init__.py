@@ -26,6 +26,7 @@ BENCHMARKS: dict[str, str] = {
     "corruption": "camhealth.bench.corruption",
     "data": "camhealth.bench.data",
     "classical": "camhealth.bench.classical",
+    "coldstart": "camhealth.bench.coldstart",
     "estimators": "camhealth.bench.estimators",
     "monitor": "camhealth.bench.monitor",
     "robustness": "camhealth.bench.robustness",

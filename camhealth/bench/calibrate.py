@@ -82,7 +82,7 @@ def _noise_rms(true, cal, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor
     from camhealth.data import dead_leaves
     from camhealth.physics import CameraMetadata, form_image
     from camhealth.physics.metadata import FULL_FIELDS, MINIMAL_FIELDS
-    from lightning_modules.metrics import bias_std_rms
+    from camhealth.metrics import bias_std_rms
     from camhealth.estimators.noise_features import physics_prior_dn
 
     gen = torch.Generator().manual_seed(seed)
@@ -97,7 +97,7 @@ def _noise_rms(true, cal, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor
     out = []
     for meta in (meta_true, meta_cal):
         est = physics_prior_dn(formed.image, meta)[:, :4].double()
-        out.append(bias_std_rms(est, truth)[2])
+        out.append(bias_std_rms(est, truth, dim=0)["rms"])
     return out[0], out[1]
 
 

@@ -14,7 +14,7 @@ For every shipped model (``camhealth/weights/*.pt`` and ``noise_source_full``, t
 * **speed**: ``Estimator.predict`` on a batch of ``--batch`` patches in fp32 and bf16 (closed-form physics prior
   and input checks included), median over ``--repeats``; params and FLOPs per patch;
 * **reference**: the thesis-size noise network (16 full-resolution 64-channel layers, ≈ 17 GFLOP per 128-px patch,
-  :class:`lightning_modules.ThesisNoiseNet`, untrained — timing only) on the same batch; the ratio column is
+  :class:`camhealth.nets.drne.ThesisNoiseNet`, untrained — timing only) on the same batch; the ratio column is
   relative to it.
 """
 
@@ -173,7 +173,7 @@ def _meta(data: dict[str, torch.Tensor], sl: slice):
 
 def noise_accuracy(est, data: dict[str, torch.Tensor]) -> dict[str, float]:
     """Bias/Std/RMS [DN] of an estimator's outputs on held-out noise data."""
-    from lightning_modules.metrics import bias_std_rms
+    from camhealth.metrics import bias_std_rms
 
     meta = _meta(data, slice(None)) if est.metadata_set != "none" else None
     out = est.predict(data["image"], meta, batch_size=64)
@@ -183,20 +183,20 @@ def noise_accuracy(est, data: dict[str, torch.Tensor]) -> dict[str, float]:
         pairs += [(n, out["sigma"][:, i], data["sigma"][:, i]) for i, n in enumerate(("pn", "dcsn", "rn"))]
         pairs.append(("xi", out["xi"], data["xi"]))
     for name, e, t in pairs:
-        b, s, r = bias_std_rms(e.double(), t.double())
-        res.update({f"bias_{name}": b.item(), f"std_{name}": s.item(), f"rms_{name}": r.item()})
+        r = bias_std_rms(e.double(), t.double(), dim=0)
+        res.update({f"{k}_{name}": r[k].item() for k in ("bias", "std", "rms")})
     keep = ~data["altered"]
     if bool(keep.any()):  # samples whose image was corrupted with the metadata the estimator is given (ξ = 0)
         for name, e, t in pairs:
-            res[f"rms_{name}_consistent"] = bias_std_rms(e[keep].double(), t[keep].double())[2].item()
+            res[f"rms_{name}_consistent"] = bias_std_rms(e[keep].double(), t[keep].double(), dim=0)["rms"].item()
     return res
 
 
 def mtf_accuracy(est, data: dict[str, torch.Tensor], views: int = 1) -> dict[str, float]:
-    from lightning_modules.metrics import amae_percent
+    from camhealth.metrics import amae
 
     out = est.predict(data["image"], batch_size=64, views=views)
-    a = amae_percent(out["mtf"].double(), data["mtf"].double())
+    a = amae(out["mtf"].double(), data["mtf"].double())
     res = {"n": float(a.numel()), "amae": a.mean().item()}
     for i, fam in enumerate(("defocus", "linear", "nonlinear")):
         sel = data["family"] == i
@@ -233,8 +233,7 @@ def _time_round_robin(fns, repeats: int, warmup: int) -> list[list[float]]:
 
 def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator, shipped_models
-    from lightning_modules import ThesisNoiseNet
-    from lightning_modules.blocks import count_flops
+    from camhealth.nets import ThesisNoiseNet, count_flops
 
     names = list(args.models) if args.models is not None else sorted([*shipped_models(), PHYSICS_NOISE_MODEL])
     estimators = [load_estimator(n) for n in names] + [load_estimator(p) for p in args.checkpoint]

@@ -26,7 +26,7 @@ selection, batched inference, aggregation and report):
 * the note of the monitor rows gives the median **CPU time** per frame (``time.process_time``, all threads):
   on a machine shared with other jobs it is what the frame costs independent of the load (with one thread it
   is the wall time on an idle core);
-* ``thesis-size noise net`` — :class:`lightning_modules.drne.ThesisNoiseNet` (16 full-resolution
+* ``thesis-size noise net`` — :class:`camhealth.nets.drne.ThesisNoiseNet` (16 full-resolution
   64-channel layers, fp32) on ``--thesis-patches`` of the same informative noise patches, scaled to all
   of them (first ``--slow-frames`` frames); the note gives the speed ratio to the camhealth noise
   estimator on the same patches.
@@ -309,7 +309,7 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
     from camhealth.metrics import amae, noise_errors
     from camhealth.monitor import Monitor
     from camhealth.monitor.api import NOISE_FIELDS
-    from lightning_modules.drne import ThesisNoiseNet
+    from camhealth.nets.drne import ThesisNoiseNet
 
     noise_model, mtf_model = _models(args, tmpdir)
     common = dict(noise_model=noise_model, mtf_model=mtf_model, metadata=meta, precision=args.precision)

@@ -25,17 +25,19 @@ from camhealth.iopc.estimation import (
     resolve_estimator,
     tile_grid,
 )
-from camhealth.iopc.sweep import (
-    CellDataset,
-    IOPCSweep,
-    IOPCSweepModule,
-    SensorSetting,
-    SweepConfig,
-    SweepGrid,
-    log_iopc,
-    make_cells,
-    noise_gain_db,
-)
+#: Names of :mod:`camhealth.iopc.sweep`, imported on first use: the sweep runs in Lightning's predict loop, and the
+#: curves and the estimation are also read where Lightning is not wanted (the monitor's exposure/gain advice).
+_SWEEP_NAMES = ("CellDataset", "IOPCSweep", "IOPCSweepModule", "SensorSetting", "SweepConfig", "SweepGrid", "log_iopc",
+                "make_cells", "noise_gain_db")
+
+
+def __getattr__(name: str):
+    if name in _SWEEP_NAMES:
+        from camhealth.iopc import sweep
+
+        return getattr(sweep, name)
+    raise AttributeError(f"module 'camhealth.iopc' has no attribute {name!r}")
+
 
 __all__ = [
     "IOPC", "SIGMA_BINS_DN", "MTF_BINS", "FORMAT_VERSION", "bin_index", "blur_relation",

@@ -31,7 +31,6 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-import kornia
 import torch
 
 from camhealth._validation import check_image, check_tensor
@@ -227,6 +226,8 @@ def _convolve_same(image: torch.Tensor, psf: torch.Tensor, border: str) -> torch
     kh, kw = psf.shape[-2:]
     if kh == kw and kh >= FFT_MIN_KERNEL and kh % 2 == 1 and image.dtype in (torch.float32, torch.float64):
         return _fft_convolve(image, psf.to(device=image.device, dtype=image.dtype), border)
+    import kornia  # here, not at the top: inference never blurs, and importing Kornia lengthens its cold start
+
     return kornia.filters.filter2d(image, psf.flip(-1, -2).to(image.dtype), border_type=border)
 
 

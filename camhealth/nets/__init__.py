@@ -1,0 +1,111 @@
+"""The networks of camhealth's learned estimators as plain ``torch.nn.Module``s, one module per network.
+
+- :mod:`camhealth.nets.blocks` — building blocks (:class:`ConvAct`, :class:`ResidualBlock`, :class:`GlobalStatsPool`,
+  :class:`FullyConnectedBlock`) and FLOP/parameter counting.
+- :mod:`camhealth.nets.noise_source` — :class:`NoiseSourceNet` (σ of PN, DCSN, RN and ξ; w/o- and Min-Meta).
+- :mod:`camhealth.nets.drne` — :class:`NoiseLevelNet` (pixel-wise total-noise σ map) and the thesis-size
+  :class:`ThesisNoiseNet`.
+- :mod:`camhealth.nets.mtf` — :class:`MTFNet` and its batched pre-processing :class:`MTFPreprocess`.
+
+Inference (:func:`camhealth.load_estimator`, ``python -m camhealth.monitor``) builds these from a weights file or
+checkpoint without importing a training framework. The LightningModules that train them (loss, metrics, logging,
+figures) live in ``lightning_modules/`` and import the networks from here; a file names its LightningModule
+(``class_path``) and that module's arguments (``init_args``). :data:`NETWORKS` says, per kind, which of those
+arguments shape the network and which only shape training, so a file is turned into its network here.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from torch import nn
+
+from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, count_flops, count_parameters
+from camhealth.nets.drne import NoiseLevelNet, ThesisNoiseNet
+from camhealth.nets.mtf import MTFNet, MTFPreprocess
+from camhealth.nets.noise_source import NoiseSourceNet, NoiseTrunk
+
+__all__ = [
+    "NoiseSourceNet", "NoiseTrunk", "NoiseLevelNet", "ThesisNoiseNet", "MTFNet", "MTFPreprocess", "ConvAct",
+    "ResidualBlock", "GlobalStatsPool", "FullyConnectedBlock", "count_flops", "count_parameters", "NetworkSpec",
+    "NETWORKS", "COMMON_TRAINING_ARGS", "check_patch_size", "network_for",
+]
+
+#: Arguments every estimator LightningModule takes that do not change its network (``channels_last`` is the memory
+#: format the network runs in, read by :meth:`NetworkSpec.channels_last`).
+COMMON_TRAINING_ARGS: tuple[str, ...] = ("lr", "weight_decay", "channels_last", "log_figures", "max_figure_samples")
+
+
+def check_patch_size(patch_size: Any) -> int:
+    """The estimators' patch side [px]: a positive multiple of 16 (the strided stages and space-to-depth folds of
+    every network divide it by up to 16); ``ValueError`` naming the value otherwise."""
+    if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Real) or not math.isfinite(patch_size) \
+            or int(patch_size) != patch_size or patch_size < 16 or patch_size % 16:
+        raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
+    return int(patch_size)
+
+
+@dataclass(frozen=True)
+class NetworkSpec:
+    """How a file of one estimator kind becomes its network.
+
+    Attributes:
+        kind: ``"noise_source"``, ``"drne"`` or ``"mtf"``.
+        class_path: the LightningModule that trains the network, as files name it.
+        network: the ``nn.Module`` class.
+        network_args: arguments of the LightningModule handed on to ``network`` under the same name.
+        training_args: its other arguments besides ``patch_size`` (loss, optimiser, logging): accepted, not used here.
+    """
+
+    kind: str
+    class_path: str
+    network: type[nn.Module]
+    network_args: tuple[str, ...]
+    training_args: tuple[str, ...]
+
+    @property
+    def init_args(self) -> tuple[str, ...]:
+        """Every argument of the LightningModule (what a file's ``init_args`` may hold)."""
+        return ("patch_size", *self.network_args, *self.training_args, *COMMON_TRAINING_ARGS)
+
+    def build(self, init_args: Mapping[str, Any]) -> nn.Module:
+        """The network (untrained, eval mode) for a file's ``init_args``; arguments it does not give take the
+        network's defaults. ``ValueError`` for an argument the LightningModule does not take or a bad patch size;
+        the network's constructor raises for values it refuses."""
+        unknown = sorted(k for k in init_args if k not in self.init_args)
+        if unknown:
+            raise ValueError(f"init_args {unknown} are not arguments of {self.class_path}")
+        if "patch_size" in init_args:
+            check_patch_size(init_args["patch_size"])
+        kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in init_args.items() if k in self.network_args}
+        return self.network(**kwargs).eval()
+
+    @staticmethod
+    def channels_last(init_args: Mapping[str, Any]) -> bool:
+        """Whether the network runs in channels-last memory format (the LightningModules' default: yes)."""
+        return bool(init_args.get("channels_last", True))
+
+
+#: The estimator kinds and their networks.
+NETWORKS: dict[str, NetworkSpec] = {
+    spec.kind: spec
+    for spec in (
+        NetworkSpec("noise_source", "lightning_modules.noise_source.NoiseSourceEstimator", NoiseSourceNet,
+                    ("metadata_set", "width", "hidden"), ("loss_weights", "huber_beta_dn")),
+        NetworkSpec("drne", "lightning_modules.drne.NoiseLevelEstimator", NoiseLevelNet,
+                    ("width", "dilations"), ("map_weight", "huber_beta_dn")),
+        NetworkSpec("mtf", "lightning_modules.mtf.MTFEstimator", MTFNet,
+                    ("widths", "hidden", "downsample", "joint_directions"), ("train_only",)),
+    )
+}
+
+
+def network_for(class_path: str) -> NetworkSpec:
+    """The :class:`NetworkSpec` of the LightningModule a file names; ``ValueError`` listing the allowed ones."""
+    for spec in NETWORKS.values():
+        if spec.class_path == class_path:
+            return spec
+    raise ValueError(f"class {class_path!r} is not a camhealth estimator; allowed: {sorted(s.class_path for s in NETWORKS.values())}")

@@ -1,0 +1,135 @@
+"""camhealth.nets: the plain networks, the split of the LightningModules' arguments, and load_net."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import lightning_modules
+from camhealth import nets
+from camhealth.export import ALLOWED_CLASSES, export_weights, load_module, load_net
+from camhealth.inference import WEIGHTS_DIR, shipped_models
+
+
+def _plain(value):
+    return tuple(value) if isinstance(value, (list, tuple)) else value
+
+
+def _trainer_class(spec: nets.NetworkSpec):
+    module, name = spec.class_path.rsplit(".", 1)
+    return getattr(importlib.import_module(module), name)
+
+
+@pytest.mark.parametrize("kind", sorted(nets.NETWORKS))
+def test_spec_lists_exactly_the_arguments_of_its_lightning_module(kind):
+    spec = nets.NETWORKS[kind]
+    cls = _trainer_class(spec)
+    params = inspect.signature(cls.__init__).parameters
+    assert set(params) - {"self"} == set(spec.init_args)
+    assert len(spec.init_args) == len(set(spec.init_args))
+    assert cls.kind == kind and ALLOWED_CLASSES[spec.class_path] == kind
+    # the LightningModule builds the same network class from the same arguments, with the same defaults
+    module = cls()
+    assert type(module.net) is spec.network
+    net_params = inspect.signature(spec.network.__init__).parameters
+    for arg in spec.network_args:
+        assert arg in net_params, (kind, arg)
+        assert _plain(params[arg].default) == _plain(net_params[arg].default), (kind, arg)
+    assert nets.NetworkSpec.channels_last({}) == params["channels_last"].default
+
+
+def test_lightning_modules_reexport_the_networks():
+    for name in ("NoiseSourceNet", "NoiseTrunk", "NoiseLevelNet", "ThesisNoiseNet", "MTFNet", "MTFPreprocess"):
+        assert getattr(lightning_modules, name) is getattr(nets, name)
+    from lightning_modules.blocks import ResidualBlock, count_flops
+    from lightning_modules.mtf import sobel
+    from lightning_modules.noise_source import BRANCH_FIELDS
+
+    assert ResidualBlock is nets.ResidualBlock and count_flops is nets.count_flops
+    assert sobel is nets.mtf.sobel and BRANCH_FIELDS is nets.noise_source.BRANCH_FIELDS
+
+
+@pytest.mark.parametrize("name", sorted(shipped_models()))
+def test_load_net_gives_the_network_of_load_module(name):
+    net, desc = load_net(WEIGHTS_DIR / f"{name}.pt")
+    module, desc2 = load_module(WEIGHTS_DIR / f"{name}.pt")
+    assert desc == desc2
+    assert type(net) is nets.NETWORKS[desc["kind"]].network and not net.training
+    assert all(p.dtype == torch.float32 for p in net.parameters())
+    for batch in (1, 5):
+        inputs = module.export_inputs(batch)
+        with torch.no_grad():
+            assert torch.equal(net(*inputs), module.export_module()(*inputs))
+
+
+def test_load_net_reads_a_lightning_checkpoint_layout(tmp_path):
+    """A Lightning checkpoint keeps the network under ``net.``; load_net strips it as load_module does."""
+    torch.manual_seed(1)
+    module = lightning_modules.NoiseLevelEstimator(patch_size=32, width=8)
+    ckpt = {"state_dict": {f"net.{k}": v for k, v in module.net.state_dict().items()},
+            "camhealth": {"format": "camhealth-estimator", "version": 1, **module.describe()}}
+    torch.save(ckpt, tmp_path / "m.ckpt")
+    net, desc = load_net(tmp_path / "m.ckpt")
+    x = torch.rand(2, 1, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(net(x), module.net.eval()(x))
+    assert desc["init_args"]["width"] == 8
+
+
+@pytest.mark.parametrize(
+    "edit,match",
+    [
+        (lambda a: a.__setitem__("highpass_gain", 5.0), r"\['highpass_gain'\] are not arguments of lightning_modules.drne"),
+        (lambda a: a.__setitem__("width", -4), "do not build"),
+        (lambda a: a.__setitem__("width", "wide"), "do not build"),
+    ],
+)
+def test_load_net_refuses_a_description_its_lightning_module_would_refuse(tmp_path, edit, match):
+    path = export_weights(lightning_modules.NoiseLevelEstimator(patch_size=32, width=8), tmp_path / "w.pt")
+    payload = torch.load(path, weights_only=True)
+    desc = json.loads(payload["description"])
+    edit(desc["init_args"])
+    payload["description"] = json.dumps(desc)
+    torch.save(payload, path)
+    with pytest.raises(ValueError, match=match) as info:
+        load_net(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("bad", [0, 8, 24, -16, 32.5, float("nan"), True, "128", None])
+def test_check_patch_size_names_the_value(bad):
+    with pytest.raises(ValueError, match=r"patch_size = .* must be a positive multiple of 16 px"):
+        nets.check_patch_size(bad)
+    with pytest.raises(ValueError, match="patch_size"):
+        nets.NETWORKS["mtf"].build({"patch_size": bad})
+
+
+def test_check_patch_size_accepts_multiples_of_16():
+    assert nets.check_patch_size(16) == 16 and nets.check_patch_size(192.0) == 192
+    assert nets.check_patch_size(np.int64(128)) == 128 and type(nets.check_patch_size(np.int64(128))) is int
+
+
+def test_network_for_an_unknown_class_lists_the_allowed_ones():
+    with pytest.raises(ValueError, match="allowed:.*MTFEstimator"):
+        nets.network_for("os.system")
+
+
+@pytest.mark.parametrize("autocast", [False, True])
+@pytest.mark.parametrize("kind", sorted(nets.NETWORKS))
+def test_built_networks_run_in_fp32_and_under_bf16_autocast(kind, autocast):
+    """The networks keep float32 weights and outputs; bf16 is CPU autocast (what ``predict(precision="bf16")`` does)."""
+    torch.manual_seed(0)
+    net = nets.NETWORKS[kind].build({"patch_size": 32})
+    x = torch.rand(3, 1, 32, 32)
+    args = (x, torch.rand(3, 11)) if kind == "noise_source" else (x,)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+        out = net(*args)
+    assert out.shape[0] == 3 and out.dtype == torch.float32 and bool(torch.isfinite(out).all())
+    with torch.no_grad():
+        ref = net(*args)
+    assert torch.allclose(out, ref, rtol=0.1, atol=0.1 * float(ref.abs().max()))
