@@ -254,14 +254,15 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
     if cli.config["test_after_fit"]:
         tested = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=best or None)
         results["test"] = {k: float(v) for k, v in (tested[0] if tested else {}).items()}
-    if cli.config["export_weights"]:
+    # trainer.log_dir is a collective in a multi-process run: every rank reads it; only rank zero writes files
+    log_dir = Path(cli.trainer.log_dir or ".")
+    if cli.config["export_weights"] and cli.trainer.is_global_zero:
         from camhealth.export import export_weights
 
         source = best or None
         path = export_weights(source if source else cli.model, cli.config["export_weights"], metrics=results.get("test"))
         results["weights"] = str(path)
     if cli.trainer.is_global_zero:
-        log_dir = Path(cli.trainer.log_dir or ".")
         log_dir.mkdir(parents=True, exist_ok=True)
         (log_dir / "fit_results.json").write_text(json.dumps(results, indent=2))
         print(json.dumps(results, indent=2))

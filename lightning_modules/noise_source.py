@@ -230,7 +230,7 @@ class NoiseSourceEstimator(EstimatorModule):
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
         est, truth, _ = self._estimates_and_truth(batch)
         loss, _ = self._loss(est, truth)
-        self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0])
+        self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0], sync_dist=True)
         self.val_stats.update(est, truth)
         if batch_idx == 0:
             self._cache_for_figures(images=batch["image"][:8], est_first=est[:8], truth_first=truth[:8])
@@ -238,8 +238,8 @@ class NoiseSourceEstimator(EstimatorModule):
 
     def on_validation_epoch_end(self) -> None:
         stats = self.val_stats.compute()
-        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "rms_total"})
-        self.log("val/rms_total", stats["rms_total"], prog_bar=True)
+        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "rms_total"}, sync_dist=True)
+        self.log("val/rms_total", stats["rms_total"], prog_bar=True, sync_dist=True)
         self.val_stats.reset()
         self._log_figures("val")
 
@@ -248,7 +248,7 @@ class NoiseSourceEstimator(EstimatorModule):
         self.test_stats.update(est, truth)
 
     def on_test_epoch_end(self) -> None:
-        self.log_dict({f"test/{k}": v for k, v in self.test_stats.compute().items()})
+        self.log_dict({f"test/{k}": v for k, v in self.test_stats.compute().items()}, sync_dist=True)
         self.test_stats.reset()
 
     def predict_step(self, batch: Mapping[str, Any], batch_idx: int) -> dict[str, torch.Tensor]:

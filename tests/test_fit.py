@@ -213,3 +213,63 @@ def test_a_monitor_that_names_no_logged_metric_is_refused_early(tmp_path, monito
 def test_a_train_metric_can_be_monitored(tmp_path):
     cli = main(tiny_args("noise_source.yaml", tmp_path, "--monitor", "train/loss", "--test_after_fit", "false"))
     assert cli.trainer.global_step == 2
+
+
+# ------------------------------------------------------------------ several processes (DDP)
+def _ddp_args(tmp: Path) -> list[str]:
+    """Tiny data with an odd number of test patches (3 images × 3), so a padding sampler would repeat one."""
+    return [
+        "--config", "configs/noise_source.yaml",
+        "--data.init_args.source", "deadleaves",
+        "--data.init_args.source_kwargs", "{n_images: 12, size: [80, 80]}",
+        "--data.init_args.patch_size", "32",
+        "--data.init_args.batch_size", "4",
+        "--data.init_args.patches_per_image", "2",
+        "--data.init_args.val_patches_per_image", "3",
+        "--data.init_args.val_fraction", "0.25",
+        "--data.init_args.test_fraction", "0.25",
+        "--trainer.max_steps", "2",
+        "--trainer.val_check_interval", "2",
+        "--trainer.precision", "32-true",
+        "--trainer.enable_progress_bar", "false",
+        "--trainer.logger.init_args.save_dir", str(tmp / "runs"),
+        "--trainer.default_root_dir", str(tmp),
+        "--model.init_args.log_figures", "false",
+        "--threads", "1",
+    ]
+
+
+def test_ddp_on_two_cpu_processes_exits_0_with_own_corruption_per_rank_and_single_process_test_metrics(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    import torch
+
+    probe = tmp_path / "probe"
+    weights = tmp_path / "ddp.pt"
+    cmd = [
+        sys.executable, "-m", "camhealth.fit", *_ddp_args(tmp_path),
+        "--trainer.strategy", "ddp", "--trainer.devices", "2", "--trainer.accelerator", "cpu",
+        "--export_weights", str(weights),
+        '--trainer.callbacks+={"class_path": "tests._ddp_probe.RecordFirstTrainingBatch", "init_args": {"out": "%s"}}' % probe,
+    ]
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stderr[-3000:]
+    # each rank corrupted its own training batch differently (not the same metadata and noise twice)
+    ranks = [torch.load(probe / f"rank{r}.pt", weights_only=True) for r in (0, 1)]
+    assert all(r["world_size"] == 2 for r in ranks)
+    assert not torch.equal(ranks[0]["meta_raw"], ranks[1]["meta_raw"])
+    # side effects once, on rank zero: one results file, the weights file
+    (results_file,) = list((tmp_path / "runs").rglob("fit_results.json"))
+    results = json.loads(results_file.read_text())
+    best = results["best_checkpoint"]
+    assert Path(best).is_file() and weights.is_file()
+    # the held-out metrics of the best checkpoint equal a single-process test of the same weights
+    cli = main(_ddp_args(tmp_path / "single") + ["--init_from", best, "--trainer.max_steps", "0"])
+    single = json.loads((Path(cli.trainer.log_dir) / "fit_results.json").read_text())["test"]
+    assert set(single) == set(results["test"])
+    for k, v in single.items():
+        assert results["test"][k] == pytest.approx(v, rel=1e-5, abs=1e-6), k
