@@ -207,6 +207,14 @@ class NoiseSourceEstimator(EstimatorModule):
         image = torch.rand(batch_size, 1, self.patch_size, self.patch_size, generator=g)
         return image, torch.rand(batch_size, len(FULL_FIELDS), generator=g)
 
+    @property
+    def example_input_array(self) -> tuple[torch.Tensor, ...]:
+        """One patch in [0, 1] and the raw metadata (1, 11) of an ICX285 at its default operating point."""
+        from camhealth.physics.metadata import CameraMetadata
+
+        meta = CameraMetadata.lookup("ICX285").expand(1)
+        return (*super().example_input_array, torch.stack([getattr(meta, n).float() for n in FULL_FIELDS], 1))
+
     # ------------------------------------------------------------------ training
     def _estimates_and_truth(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor, dict]:
         out = self(batch["image"], batch.get("meta_raw"))

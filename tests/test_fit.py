@@ -63,6 +63,47 @@ def test_print_config_and_link(capsys):
     out = capsys.readouterr().out
     assert "class_path: lightning_modules.NoiseSourceEstimator" in out
     assert "patch_size: 64" in out
+    # the callbacks are part of the configuration (and so of the config.yaml saved with each run)
+    import yaml
+
+    cfg = yaml.safe_load(out)
+    assert cfg["checkpoint"]["save_last"] is True and cfg["checkpoint"]["filename"] == "best-step{step}"
+    assert cfg["lr_monitor"]["logging_interval"] == "step"
+    assert cfg["monitor"] == "val/rms_total"
+
+
+def test_subcommands_validate_and_test_a_checkpoint_and_the_saved_config_reproduces_the_run(tmp_path):
+    cli = main(["fit", *tiny_args("noise_source.yaml", tmp_path, "--test_after_fit", "false")])
+    best = cli.trainer.checkpoint_callback.best_model_path
+    saved = Path(cli.trainer.log_dir) / "config.yaml"
+    import yaml
+
+    cfg = yaml.safe_load(saved.read_text())
+    assert cfg["checkpoint"]["save_last"] is True and cfg["monitor"] == "val/rms_total"
+    val = cli.trainer.callback_metrics["val/rms_total"].item()
+    again = main(["validate", "--config", str(saved), "--ckpt_path", best, "--trainer.logger", "false"])
+    assert again.trainer.callback_metrics["val/rms_total"].item() == pytest.approx(val, rel=1e-5)
+    tested = main(["test", "--config", str(saved), "--ckpt_path", best, "--trainer.logger", "false"])
+    assert "test/rms_total" in tested.trainer.callback_metrics
+    # TensorBoard: the monitored metric is the hparams metric
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (events,) = [e for e in Path(cli.trainer.log_dir).glob("events.out.tfevents.*") if e.stat().st_size > 200][:1]
+    acc = EventAccumulator(str(events))
+    acc.Reload()
+    hp = [e.value for e in acc.Scalars("hp_metric")]
+    assert hp[-1] == pytest.approx(val, rel=1e-5)
+
+
+@pytest.mark.parametrize("cls,n", [("NoiseSourceEstimator", 2), ("MTFEstimator", 1), ("NoiseLevelEstimator", 1)])
+def test_example_input_array_runs_through_forward(cls, n):
+    import lightning_modules
+
+    model = getattr(lightning_modules, cls)(patch_size=32)
+    x = model.example_input_array
+    assert len(x) == n and x[0].shape == (1, 1, 32, 32)
+    out = model(*x)
+    assert all(v.shape[0] == 1 and bool(v.isfinite().all()) for v in out.values())
 
 
 @pytest.mark.parametrize("name", ["noise_source", "mtf", "drne"])
@@ -268,8 +309,8 @@ def test_ddp_on_two_cpu_processes_exits_0_with_own_corruption_per_rank_and_singl
     best = results["best_checkpoint"]
     assert Path(best).is_file() and weights.is_file()
     # the held-out metrics of the best checkpoint equal a single-process test of the same weights
-    cli = main(_ddp_args(tmp_path / "single") + ["--init_from", best, "--trainer.max_steps", "0"])
-    single = json.loads((Path(cli.trainer.log_dir) / "fit_results.json").read_text())["test"]
+    cli = main(["test", *_ddp_args(tmp_path / "single"), "--ckpt_path", best])
+    single = {k: float(v) for k, v in cli.trainer.callback_metrics.items() if k.startswith("test/")}
     assert set(single) == set(results["test"])
     for k, v in single.items():
         assert results["test"][k] == pytest.approx(v, rel=1e-5, abs=1e-6), k
