@@ -39,9 +39,8 @@ from lightning.pytorch.callbacks import Callback, OnExceptionCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from camhealth._cli import add_debug_flag, run_cli
+from camhealth._packaging import check_top_level_packages, resolve_config_args
 from camhealth.runtime import keep_freed_memory
-from datamodules.patches import PatchDataModule
-from lightning_modules.base import EstimatorModule
 
 __all__ = ["FitCLI", "main"]
 
@@ -221,7 +220,7 @@ def _sync_metadata_set(config) -> None:
         data_args["metadata_set"] = model_args["metadata_set"]
 
 
-def _init_from(model: EstimatorModule, path: str) -> None:
+def _init_from(model, path: str) -> None:
     """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
     ``model``; the architectures must match (a clear error names the first mismatch). One exception: an MTF network
     with ``joint_directions`` starts from a one-direction file exactly (:meth:`~lightning_modules.mtf.MTFNet.state_from`)."""
@@ -283,9 +282,9 @@ def _checked_ckpt_path(cfg, subcommand: str) -> str:
 
 
 def with_subcommand(args: Sequence[str]) -> list[str]:
-    """``args`` with ``fit`` in front when they start with no subcommand (the bare form is ``fit``); a bare
-    ``--help`` stays the overview of the subcommands."""
-    args = list(args)
+    """``args`` with ``fit`` in front when they start with no subcommand (the bare form is ``fit``; a bare
+    ``--help`` stays the overview of the subcommands) and ``--config NAME`` resolved to the packaged config."""
+    args = resolve_config_args(args)
     if not args or (args[0] not in SUBCOMMANDS and args[0] not in ("-h", "--help")):
         return ["fit", *args]
     return args
@@ -294,6 +293,10 @@ def with_subcommand(args: Sequence[str]) -> list[str]:
 def main(args: Sequence[str] | None = None) -> FitCLI:
     """Parse ``args`` (default: ``sys.argv[1:]``; a subcommand first, else ``fit``) and run the subcommand:
     ``fit`` also tests the best checkpoint and optionally exports it."""
+    check_top_level_packages()  # a user's own datamodules/ folder would shadow ours: say so in one line
+    from datamodules.patches import PatchDataModule
+    from lightning_modules.base import EstimatorModule
+
     if args is None:  # the command line itself (DDP starts the other ranks with it: they see the subcommand too)
         sys.argv[1:] = with_subcommand(sys.argv[1:])
         argv = None
