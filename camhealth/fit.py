@@ -133,7 +133,11 @@ class FitCLI(LightningCLI):
         keep_freed_memory()
 
     def after_instantiate_classes(self) -> None:
+        from lightning.pytorch.callbacks import LearningRateMonitor
+
         cfg = self._cfg()
+        if self.trainer.logger is None:  # nothing to log the learning rate to (Lightning would refuse the run)
+            self.trainer.callbacks = [c for c in self.trainer.callbacks if not isinstance(c, LearningRateMonitor)]
         self.trainer.callbacks.insert(0, _MonitoredMetricCheck(cfg["monitor"]))  # before ModelCheckpoint looks for it
         if not any(isinstance(c, (OnExceptionCheckpoint, _LastCheckpointOnException)) for c in self.trainer.callbacks):
             self.trainer.callbacks.append(_LastCheckpointOnException())

@@ -251,6 +251,12 @@ def test_a_monitor_that_names_no_logged_metric_is_refused_early(tmp_path, monito
     assert steps == ([2] if when == "first validation" else [1] if when == "first training step" else [])
 
 
+def test_fit_without_a_logger_runs_without_the_learning_rate_monitor(tmp_path):
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--trainer.logger", "false", "--test_after_fit", "false"))
+    assert cli.trainer.global_step == 2
+    assert not any(type(c).__name__ == "LearningRateMonitor" for c in cli.trainer.callbacks)
+
+
 def test_a_train_metric_can_be_monitored(tmp_path):
     cli = main(tiny_args("noise_source.yaml", tmp_path, "--monitor", "train/loss", "--test_after_fit", "false"))
     assert cli.trainer.global_step == 2
