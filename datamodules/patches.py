@@ -6,7 +6,8 @@
   rot90 (the 8 symmetries of the square) and a uniform brightness offset of ±``brightness_dn`` DN (the
   thesis's ±20 DN augmentation; the result is clipped to [0, 1]). Randomness: torch's global RNG (in
   DataLoader workers, PyTorch seeds each worker from the main process, so ``seed_everything`` makes runs
-  reproducible).
+  reproducible), or the dataset's ``generator`` when set (the DataModule sets one per rank in a
+  multi-process run without workers).
 * ``stage="val"``/``"test"``: a FIXED list of crops decided at construction by a ``torch.Generator``
   seeded with ``seed`` (no flips, no brightness change), so the same seed gives the same patches.
 
@@ -144,6 +145,8 @@ class PatchDataset(Dataset):
         self.keep_hard_patches = bool(keep_hard_patches)
         self.max_tries = int(max_tries)
         self.n_fallback = 0
+        #: generator of the training crops and augmentation (``None``: torch's global RNG)
+        self.generator: torch.Generator | None = None
         #: fixed crops (N, 3): image, top, left (val/test only)
         self.crops: torch.Tensor | None = None
         if stage != "train":
@@ -182,16 +185,16 @@ class PatchDataset(Dataset):
 
     def _augment(self, patch: torch.Tensor) -> torch.Tensor:
         if self.flips:
-            if bool(torch.rand(()) < 0.5):
+            if bool(torch.rand((), generator=self.generator) < 0.5):
                 patch = patch.flip(-1)
-            if bool(torch.rand(()) < 0.5):
+            if bool(torch.rand((), generator=self.generator) < 0.5):
                 patch = patch.flip(-2)
         if self.rot90:
-            k = int(torch.randint(4, (1,)))
+            k = int(torch.randint(4, (1,), generator=self.generator))
             if k:
                 patch = torch.rot90(patch, k, (-2, -1))
         if self.brightness_dn > 0:
-            offset = (2.0 * float(torch.rand(())) - 1.0) * self.brightness_dn / 255.0
+            offset = (2.0 * float(torch.rand((), generator=self.generator)) - 1.0) * self.brightness_dn / 255.0
             patch = (patch + offset).clamp(0.0, 1.0)
         return patch
 
@@ -207,7 +210,7 @@ class PatchDataset(Dataset):
         else:
             i = index % len(self.images)
             for _ in range(self.max_tries):
-                top, left = self._random_corner(i, None)
+                top, left = self._random_corner(i, self.generator)
                 patch = self._augment(self._crop(i, top, left))
                 if not self._hard(patch):
                     break
@@ -408,6 +411,10 @@ class PatchDataModule(L.LightningDataModule):
         train = stage == "train"
         sampler = None
         trainer = self.trainer
+        if train and trainer is not None and trainer.world_size > 1 and self.num_workers == 0:
+            # crops and flips in this process: a generator of this rank's own (DataLoader workers are seeded per
+            # rank and worker by seed_everything(workers=True) already)
+            ds.generator = torch.Generator().manual_seed(rank_seed(torch.initial_seed(), trainer.global_rank))
         if not train and trainer is not None and trainer.world_size > 1:
             # each held-out patch on exactly one rank (Lightning's DistributedSampler would pad with repeats)
             from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
