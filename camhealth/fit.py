@@ -1,18 +1,22 @@
 """Train an estimator from a YAML file: ``python -m camhealth.fit --config configs/noise_source.yaml``.
 
 A :class:`lightning.pytorch.cli.LightningCLI` over any :class:`lightning_modules.EstimatorModule` (``model:``)
-and any :class:`datamodules.PatchDataModule` (``data:``), with the ``trainer:`` section of Lightning. Everything
-LightningCLI offers works: ``--print_config``, several ``--config`` files merged in order, dotted overrides
-(``--trainer.max_steps 200 --model.init_args.metadata_set minimal``), ``--seed_everything``.
-Defaults set here (each config can override them): TensorBoard logging under ``runs/``, a checkpoint of
-the best model on the validation metric (``--monitor``/``--mode``), the last checkpoint, a learning-rate
-monitor, Lightning's progress bar. After fitting, the best checkpoint is evaluated on the held-out test
-split (``--test_after_fit false`` skips it) and, with ``--export_weights PATH``, written as a camhealth
-weights file (tensors + JSON description, loadable by :func:`camhealth.load_estimator`).
+and any :class:`datamodules.PatchDataModule` (``data:``), with the ``trainer:`` section of Lightning and its
+subcommands ``fit``, ``validate``, ``test``, ``predict`` (``python -m camhealth.fit test --config … --ckpt_path
+best.ckpt``; a command line without a subcommand is ``fit``). Everything LightningCLI offers works:
+``--print_config``, several ``--config`` files merged in order, dotted overrides (``--trainer.max_steps 200
+--model.init_args.metadata_set minimal``), ``--seed_everything``, ``--trainer.devices N --trainer.num_nodes M``.
+Defaults set here (each config can override them): TensorBoard logging under ``runs/``; the callbacks as
+configuration (saved in each run's ``config.yaml``, shown by ``--print_config``): ``checkpoint:`` a
+``ModelCheckpoint`` of the best model on ``monitor:``/``mode:`` and the last one, ``lr_monitor:`` a
+``LearningRateMonitor``; the monitored metric is TensorBoard's hparams metric (``hp_metric``). After fitting, the
+best checkpoint is evaluated on the held-out test split (``--test_after_fit false`` skips it) and, with
+``--export_weights PATH``, written as a camhealth weights file (tensors + JSON description, loadable by
+:func:`camhealth.load_estimator`); in a multi-process run only rank zero writes files.
 
 **Resuming.** ``last.ckpt`` (next to the best checkpoint) is written after every validation
 (``ModelCheckpoint(save_last=True)``) and also when training stops on an exception or Ctrl-C/SIGINT, at the step
-reached (as Lightning's ``OnExceptionCheckpoint``; a plain run never resumes by itself). ``--ckpt_path PATH`` (as LightningCLI's ``fit --ckpt_path``)
+reached (as Lightning's ``OnExceptionCheckpoint``; a plain run never resumes by itself). ``--ckpt_path PATH`` (LightningCLI's ``fit --ckpt_path``)
 continues from it: weights, optimiser, learning-rate schedule, step/epoch and the ``max_time`` clock are restored;
 ``--ckpt_path last`` takes the newest ``last.ckpt`` under the logger's folder. The file must load with
 ``torch.load(weights_only=True)`` (plain data, as camhealth's own checkpoints do) before Lightning opens it.
@@ -35,9 +39,8 @@ from lightning.pytorch.callbacks import Callback, OnExceptionCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from camhealth._cli import add_debug_flag, run_cli
+from camhealth._packaging import check_top_level_packages, resolve_config_args
 from camhealth.runtime import keep_freed_memory
-from datamodules.patches import PatchDataModule
-from lightning_modules.base import EstimatorModule
 
 __all__ = ["FitCLI", "main"]
 
@@ -72,7 +75,8 @@ def _model_checkpoint(trainer):
 
 class _MonitoredMetricCheck(Callback):
     """Refuse a ``--monitor`` metric the model does not log: after the sanity-check validation (validation metrics;
-    at the first validation when there is no sanity check) or the first training step (``train/`` metrics)."""
+    at the first validation when there is no sanity check) or the first training step (``train/`` metrics). After
+    each validation the monitored value is also logged as ``hp_metric`` (TensorBoard's hparams metric)."""
 
     def __init__(self, monitor: str) -> None:
         self.monitor = monitor
@@ -98,36 +102,80 @@ class _MonitoredMetricCheck(Callback):
             self._check(trainer, "first training step")
 
     def on_validation_end(self, trainer, pl_module) -> None:  # noqa: D102
-        if not trainer.sanity_checking and not self.monitor.startswith("train/"):
+        if trainer.sanity_checking:
+            return
+        if not self.monitor.startswith("train/"):
             self._check(trainer, "first validation")
+        value = trainer.callback_metrics.get(self.monitor)
+        if value is not None:  # TensorBoard's HPARAMS tab shows the monitored metric as hp_metric
+            for logger in trainer.loggers:
+                logger.log_metrics({"hp_metric": float(value)}, step=trainer.global_step)
+
+
+#: LightningCLI's subcommands; a command line that starts with none of them is a ``fit``.
+SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
 
 class FitCLI(LightningCLI):
     """LightningCLI with camhealth's defaults (see module docstring)."""
 
+    def _cfg(self):
+        """The parsed configuration of the running subcommand."""
+        return self.config[self.subcommand] if self.subcommand else self.config
+
     def before_instantiate_classes(self) -> None:
-        _sync_metadata_set(self.config)
+        cfg = self._cfg()
+        _sync_metadata_set(cfg)
+        if cfg["threads"]:
+            torch.set_num_threads(int(cfg["threads"]))
+        # reuse freed tensor memory instead of page-faulting it in again every step (glibc; camhealth.runtime):
+        # the on-the-fly corruption and the training step allocate the same large buffers every batch
+        keep_freed_memory()
+
+    def after_instantiate_classes(self) -> None:
+        from lightning.pytorch.callbacks import LearningRateMonitor
+
+        cfg = self._cfg()
+        if self.trainer.logger is None:  # nothing to log the learning rate to (Lightning would refuse the run)
+            self.trainer.callbacks = [c for c in self.trainer.callbacks if not isinstance(c, LearningRateMonitor)]
+        self.trainer.callbacks.insert(0, _MonitoredMetricCheck(cfg["monitor"]))  # before ModelCheckpoint looks for it
+        if not any(isinstance(c, (OnExceptionCheckpoint, _LastCheckpointOnException)) for c in self.trainer.callbacks):
+            self.trainer.callbacks.append(_LastCheckpointOnException())
+        if cfg.get("init_from"):
+            if self.subcommand not in (None, "fit"):
+                raise ValueError(f"--init_from is an option of fit; {self.subcommand} takes the weights from --ckpt_path")
+            if cfg.get("ckpt_path"):
+                raise ValueError("--init_from starts a new training from weights, --ckpt_path resumes one; give one of them")
+            _init_from(self.model, cfg["init_from"])
+
+    def _parse_ckpt_path(self) -> None:
+        """``--ckpt_path``: ``last`` is the newest ``last.ckpt`` under the logger's folder; the file must hold plain
+        data. The model is the config's (the checkpoint gives the weights, not the hyperparameters)."""
+        sub = self.config.get("subcommand")
+        if sub and self.config[sub].get("ckpt_path"):
+            self.config[sub]["ckpt_path"] = _checked_ckpt_path(self.config[sub], sub)
 
     def add_arguments_to_parser(self, parser) -> None:  # noqa: D401
+        from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
+
         # The network's input size is the DataModule's patch size.
         parser.link_arguments("data.init_args.patch_size", "model.init_args.patch_size")
         parser.add_argument("--monitor", type=str, default="val/loss", help="validation metric of the best checkpoint")
         parser.add_argument("--mode", type=str, default="min", help="min or max for --monitor")
-        parser.add_argument("--test_after_fit", type=bool, default=True, help="test the best checkpoint after fit")
-        parser.add_argument("--export_weights", type=str | None, default=None, help="write the best model as camhealth weights here")
+        parser.add_argument("--test_after_fit", type=bool, default=True, help="fit: test the best checkpoint after fit")
+        parser.add_argument("--export_weights", type=str | None, default=None, help="fit: write the best model as camhealth weights here")
         parser.add_argument("--threads", type=int | None, default=None, help="torch intra-op threads (default: torch's)")
         parser.add_argument(
             "--init_from", type=str | None, default=None,
-            help="fine-tune: start from the weights of this camhealth weights file or checkpoint (same architecture; "
+            help="fit: start from the weights of this camhealth weights file or checkpoint (same architecture; "
                  "optimiser and schedule start afresh)",
         )
-        parser.add_argument(
-            "--ckpt_path", type=str | None, default=None,
-            help="resume training from this checkpoint (a last.ckpt or best-*.ckpt of camhealth.fit, or 'last': the newest "
-                 "last.ckpt under the logger's folder): weights, optimiser, LR schedule, step/epoch and the max_time clock "
-                 "are restored (LightningCLI's fit --ckpt_path)",
-        )
         add_debug_flag(parser)
+        # the callbacks live in the config (saved with each run, shown by --print_config)
+        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.add_lightning_class_args(LearningRateMonitor, "lr_monitor")
+        parser.link_arguments("monitor", "checkpoint.monitor")
+        parser.link_arguments("mode", "checkpoint.mode")
         parser.set_defaults(  # plain defaults; every config may override them
             {
                 "trainer.logger": {
@@ -135,8 +183,37 @@ class FitCLI(LightningCLI):
                     "init_args": {"save_dir": "runs", "name": "estimator"},
                 },
                 "trainer.log_every_n_steps": 10,
+                "checkpoint.save_last": True,
+                "checkpoint.save_top_k": 1,
+                "checkpoint.filename": "best-step{step}",
+                "checkpoint.auto_insert_metric_name": False,
+                "lr_monitor.logging_interval": "step",
             }
         )
+
+    def after_fit(self) -> None:
+        """Test the best checkpoint (``--test_after_fit``), export it (``--export_weights``), write
+        ``fit_results.json`` — files on rank zero only."""
+        cfg = self._cfg()
+        trainer = self.trainer
+        checkpoint = _model_checkpoint(trainer)
+        best = checkpoint.best_model_path if checkpoint is not None else ""
+        results: dict = {"best_checkpoint": best}
+        if cfg["test_after_fit"]:
+            tested = trainer.test(self.model, datamodule=self.datamodule, ckpt_path=best or None)
+            results["test"] = {k: float(v) for k, v in (tested[0] if tested else {}).items()}
+        # trainer.log_dir is a collective in a multi-process run: every rank reads it; only rank zero writes files
+        log_dir = Path(trainer.log_dir or ".")
+        if cfg["export_weights"] and trainer.is_global_zero:
+            from camhealth.export import export_weights
+
+            path = export_weights(best or self.model, cfg["export_weights"], metrics=results.get("test"))
+            results["weights"] = str(path)
+        if trainer.is_global_zero:
+            log_dir.mkdir(parents=True, exist_ok=True)
+            (log_dir / "fit_results.json").write_text(json.dumps(results, indent=2))
+            print(json.dumps(results, indent=2))
+        self.results = results
 
 
 def _sync_metadata_set(config) -> None:
@@ -147,31 +224,7 @@ def _sync_metadata_set(config) -> None:
         data_args["metadata_set"] = model_args["metadata_set"]
 
 
-def _add_default_callbacks(cli: FitCLI) -> None:
-    """Replace Lightning's default (unmonitored) checkpoint callback by one that keeps the best model on
-    ``--monitor`` and the last one; add a learning-rate monitor when logging, ``last.ckpt`` on an exception or
-    interrupt and the check of ``--monitor``. Callbacks configured in ``trainer.callbacks`` are kept as they are."""
-    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
-
-    trainer = cli.trainer
-    cfg = cli.config
-    trainer.callbacks.append(_MonitoredMetricCheck(cfg["monitor"]))
-    configured = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and c.monitor is not None]
-    if not configured:
-        trainer.callbacks = [c for c in trainer.callbacks if not isinstance(c, ModelCheckpoint)]
-        trainer.callbacks.append(
-            ModelCheckpoint(
-                monitor=cfg["monitor"], mode=cfg["mode"], save_last=True, save_top_k=1,
-                filename="best-step{step}", auto_insert_metric_name=False,
-            )
-        )
-    if trainer.logger is not None and not any(isinstance(c, LearningRateMonitor) for c in trainer.callbacks):
-        trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
-    if not any(isinstance(c, (OnExceptionCheckpoint, _LastCheckpointOnException)) for c in trainer.callbacks):
-        trainer.callbacks.append(_LastCheckpointOnException())
-
-
-def _init_from(model: EstimatorModule, path: str) -> None:
+def _init_from(model, path: str) -> None:
     """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
     ``model``; the architectures must match (a clear error names the first mismatch). One exception: an MTF network
     with ``joint_directions`` starts from a one-direction file exactly (:meth:`~lightning_modules.mtf.MTFNet.state_from`)."""
@@ -187,15 +240,22 @@ def _init_from(model: EstimatorModule, path: str) -> None:
         raise ValueError(f"--init_from {path}: architecture differs from the config's: {str(exc).splitlines()[0]}") from None
 
 
-def _resume_path(cli: FitCLI) -> str | None:
+def _logger_root(cfg) -> Path:
+    """The folder the configured logger writes its versions under (TensorBoard/CSV: ``save_dir/name``)."""
+    trainer = cfg.get("trainer") or {}
+    logger = trainer.get("logger")
+    init = (logger.get("init_args") or {}) if hasattr(logger, "get") else {}
+    if init.get("save_dir"):
+        return Path(init["save_dir"]) / str(init.get("name") or "")
+    return Path(trainer.get("default_root_dir") or ".")
+
+
+def _checked_ckpt_path(cfg, subcommand: str) -> str:
     """The checkpoint ``--ckpt_path`` names (``last``: the newest ``last.ckpt`` under the logger's folder), checked
-    to hold plain data only; ``None`` without the option."""
-    value = cli.config["ckpt_path"]
-    if not value:
-        return None
+    to hold plain data only, and for ``fit`` to end its learning-rate schedule after ``trainer.max_steps``."""
+    value = str(cfg["ckpt_path"])
     if value == "last":
-        logger = cli.trainer.logger
-        root = Path(getattr(logger, "root_dir", None) or cli.trainer.default_root_dir)
+        root = _logger_root(cfg)
         found = sorted(root.rglob("last*.ckpt"), key=lambda p: p.stat().st_mtime)
         if not found:
             raise ValueError(f"--ckpt_path last: no last.ckpt under {root}")
@@ -210,10 +270,12 @@ def _resume_path(cli: FitCLI) -> str | None:
         from camhealth.export import _load_refusal
 
         raise ValueError(f"--ckpt_path {path}: not a checkpoint of plain data ({_load_refusal(exc)})") from None
+    if subcommand != "fit":
+        return str(path)
     # the learning-rate schedule is restored with the step: it cannot run past the steps it was made for
     schedules = saved.get("lr_schedulers") if isinstance(saved, dict) else None
     total = schedules[0].get("total_steps") if schedules and isinstance(schedules[0], dict) else None
-    max_steps = cli.trainer.max_steps
+    max_steps = (cfg.get("trainer") or {}).get("max_steps")
     if isinstance(total, int) and max_steps is not None and max_steps >= total:
         raise ValueError(
             f"--ckpt_path {path}: its learning-rate schedule ends at step {total - 1} (the run's max_steps), "
@@ -223,49 +285,37 @@ def _resume_path(cli: FitCLI) -> str | None:
     return str(path)
 
 
+def with_subcommand(args: Sequence[str]) -> list[str]:
+    """``args`` with ``fit`` in front when they start with no subcommand (the bare form is ``fit``; a bare
+    ``--help`` stays the overview of the subcommands) and ``--config NAME`` resolved to the packaged config."""
+    args = resolve_config_args(args)
+    if not args or (args[0] not in SUBCOMMANDS and args[0] not in ("-h", "--help")):
+        return ["fit", *args]
+    return args
+
+
 def main(args: Sequence[str] | None = None) -> FitCLI:
-    """Parse ``args`` (default: ``sys.argv[1:]``), fit, test the best checkpoint, optionally export it."""
-    cli = FitCLI(
+    """Parse ``args`` (default: ``sys.argv[1:]``; a subcommand first, else ``fit``) and run the subcommand:
+    ``fit`` also tests the best checkpoint and optionally exports it."""
+    check_top_level_packages()  # a user's own datamodules/ folder would shadow ours: say so in one line
+    from datamodules.patches import PatchDataModule
+    from lightning_modules.base import EstimatorModule
+
+    if args is None:  # the command line itself (DDP starts the other ranks with it: they see the subcommand too)
+        sys.argv[1:] = with_subcommand(sys.argv[1:])
+        argv = None
+    else:
+        argv = with_subcommand(args)
+    return FitCLI(
         EstimatorModule,
         PatchDataModule,
         subclass_mode_model=True,
         subclass_mode_data=True,
-        run=False,
-        args=list(args) if args is not None else None,
+        args=argv,
         seed_everything_default=0,
         save_config_kwargs={"overwrite": True},
         parser_kwargs={"prog": "python -m camhealth.fit", "description": __doc__},
     )
-    if cli.config["threads"]:
-        torch.set_num_threads(int(cli.config["threads"]))
-    # reuse freed tensor memory instead of page-faulting it in again every step (glibc; camhealth.runtime):
-    # the on-the-fly corruption and the training step allocate the same large buffers every batch
-    keep_freed_memory()
-    _add_default_callbacks(cli)
-    ckpt_path = _resume_path(cli)
-    if cli.config["init_from"]:
-        if ckpt_path:
-            raise ValueError("--init_from starts a new training from weights, --ckpt_path resumes one; give one of them")
-        _init_from(cli.model, cli.config["init_from"])
-    cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path)
-    checkpoint = _model_checkpoint(cli.trainer)
-    best = checkpoint.best_model_path if checkpoint is not None else ""
-    results: dict = {"best_checkpoint": best}
-    if cli.config["test_after_fit"]:
-        tested = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=best or None)
-        results["test"] = {k: float(v) for k, v in (tested[0] if tested else {}).items()}
-    if cli.config["export_weights"]:
-        from camhealth.export import export_weights
-
-        source = best or None
-        path = export_weights(source if source else cli.model, cli.config["export_weights"], metrics=results.get("test"))
-        results["weights"] = str(path)
-    if cli.trainer.is_global_zero:
-        log_dir = Path(cli.trainer.log_dir or ".")
-        log_dir.mkdir(parents=True, exist_ok=True)
-        (log_dir / "fit_results.json").write_text(json.dumps(results, indent=2))
-        print(json.dumps(results, indent=2))
-    return cli
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from datamodules.blur import FAMILIES, BlurDataModule, blur_psf
 from datamodules.noise import XI_FIELDS, NoiseDataModule, expected_sigma_dn, metadata_matrix
-from datamodules.patches import PatchDataModule, PatchDataset, batch_seed, is_hard_patch
+from datamodules.patches import PatchDataModule, PatchDataset, is_hard_patch, rank_seed, sample_seed
 
 __all__ = [
     "NoiseDataModule",
@@ -22,11 +22,12 @@ __all__ = [
     "PatchDataset",
     "FAMILIES",
     "XI_FIELDS",
-    "batch_seed",
     "blur_psf",
     "expected_sigma_dn",
     "is_hard_patch",
     "metadata_matrix",
+    "rank_seed",
+    "sample_seed",
     "throughput",
 ]
 

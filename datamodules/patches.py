@@ -6,7 +6,8 @@
   rot90 (the 8 symmetries of the square) and a uniform brightness offset of ±``brightness_dn`` DN (the
   thesis's ±20 DN augmentation; the result is clipped to [0, 1]). Randomness: torch's global RNG (in
   DataLoader workers, PyTorch seeds each worker from the main process, so ``seed_everything`` makes runs
-  reproducible).
+  reproducible), or the dataset's ``generator`` when set (the DataModule sets one per rank in a
+  multi-process run without workers).
 * ``stage="val"``/``"test"``: a FIXED list of crops decided at construction by a ``torch.Generator``
   seeded with ``seed`` (no flips, no brightness change), so the same seed gives the same patches.
 
@@ -36,7 +37,7 @@ from torch.utils.data import DataLoader, Dataset
 from camhealth.physics.image_formation import check_rng
 from camhealth.data import build_source, group_key, split_ids
 
-__all__ = ["PatchDataset", "PatchDataModule", "is_hard_patch", "STAGES", "batch_seed"]
+__all__ = ["PatchDataset", "PatchDataModule", "is_hard_patch", "STAGES", "rank_seed", "sample_seed"]
 
 #: Dataset stages. ``"predict"`` uses the test split.
 STAGES = ("train", "val", "test")
@@ -54,11 +55,22 @@ def is_hard_patch(patch: torch.Tensor, min_std_dn: float = 2.0, max_clipped_frac
     return float(clipped) > max_clipped_fraction
 
 
-def batch_seed(seed: int, stage: str, first_index: int, batch_size: int) -> int:
-    """Seed of the fixed corruption of one validation/test batch: a hash of (seed, stage, first dataset
-    index of the batch, batch size), so a batch is corrupted identically in every epoch and every run."""
-    key = f"{int(seed)}\x1f{stage}\x1f{int(first_index)}\x1f{int(batch_size)}".encode()
+def _hash_seed(*parts: Any) -> int:
+    key = "\x1f".join(str(p) for p in parts).encode()
     return int.from_bytes(hashlib.blake2b(key, digest_size=8).digest(), "big") >> 2
+
+
+def sample_seed(seed: int, stage: str, index: int) -> int:
+    """Seed of the fixed corruption of one validation/test patch: a hash of (seed, stage, dataset index of the
+    patch), so a patch is corrupted identically in every epoch and run, whatever the batch size, the number of
+    DataLoader workers or of devices."""
+    return _hash_seed(int(seed), stage, int(index))
+
+
+def rank_seed(draw: int, rank: int) -> int:
+    """Seed of one training batch's corruption on one process of a multi-process run: a hash of a draw of
+    torch's global generator (the same on every rank after ``seed_everything``) and the global rank."""
+    return _hash_seed("train", int(draw), int(rank))
 
 
 class PatchDataset(Dataset):
@@ -133,6 +145,8 @@ class PatchDataset(Dataset):
         self.keep_hard_patches = bool(keep_hard_patches)
         self.max_tries = int(max_tries)
         self.n_fallback = 0
+        #: generator of the training crops and augmentation (``None``: torch's global RNG)
+        self.generator: torch.Generator | None = None
         #: fixed crops (N, 3): image, top, left (val/test only)
         self.crops: torch.Tensor | None = None
         if stage != "train":
@@ -171,16 +185,16 @@ class PatchDataset(Dataset):
 
     def _augment(self, patch: torch.Tensor) -> torch.Tensor:
         if self.flips:
-            if bool(torch.rand(()) < 0.5):
+            if bool(torch.rand((), generator=self.generator) < 0.5):
                 patch = patch.flip(-1)
-            if bool(torch.rand(()) < 0.5):
+            if bool(torch.rand((), generator=self.generator) < 0.5):
                 patch = patch.flip(-2)
         if self.rot90:
-            k = int(torch.randint(4, (1,)))
+            k = int(torch.randint(4, (1,), generator=self.generator))
             if k:
                 patch = torch.rot90(patch, k, (-2, -1))
         if self.brightness_dn > 0:
-            offset = (2.0 * float(torch.rand(())) - 1.0) * self.brightness_dn / 255.0
+            offset = (2.0 * float(torch.rand((), generator=self.generator)) - 1.0) * self.brightness_dn / 255.0
             patch = (patch + offset).clamp(0.0, 1.0)
         return patch
 
@@ -196,7 +210,7 @@ class PatchDataset(Dataset):
         else:
             i = index % len(self.images)
             for _ in range(self.max_tries):
-                top, left = self._random_corner(i, None)
+                top, left = self._random_corner(i, self.generator)
                 patch = self._augment(self._crop(i, top, left))
                 if not self._hard(patch):
                     break
@@ -236,9 +250,13 @@ class PatchDataModule(L.LightningDataModule):
     The DataLoaders yield *clean* patches; :meth:`on_after_batch_transfer` corrupts them on the device
     the batch was moved to (so a GPU run corrupts on the GPU) and returns the labelled dict batch.
     Training batches draw their corruption from torch's global RNG (seeded by Lightning's
-    ``seed_everything``); validation/test batches from a ``torch.Generator`` seeded with
-    :func:`batch_seed` ``(seed, stage, first patch index, batch size)``: the same seed and batch size give
-    the same validation batches in every epoch and every run. ``train_rng: counter`` draws the training
+    ``seed_everything``); in a multi-process run (DDP: ``trainer.world_size > 1``) each batch draws one number from
+    it and corrupts with a generator seeded by :func:`rank_seed` ``(draw, global rank)``, so every rank gets its own
+    corruption. Validation/test patches are corrupted one by one, each with a generator seeded by
+    :func:`sample_seed` ``(seed, stage, patch index)``: the held-out sets are the same in every epoch and run,
+    whatever the batch size, worker count or device count. In a multi-process run the validation/test loaders
+    split the patches without repeating any (Lightning's ``UnrepeatedDistributedSampler``), so the synced
+    held-out metrics are those of a single-process run. ``train_rng: counter`` draws the training
     batches' noise fields with counter-based random numbers (:mod:`camhealth.physics.counter_rng`: the same
     physics, about half the noise time on CPU); validation and test batches always use torch's generators, so
     the held-out sets do not depend on it.
@@ -391,10 +409,22 @@ class PatchDataModule(L.LightningDataModule):
         if ds is None:
             return []
         train = stage == "train"
+        sampler = None
+        trainer = self.trainer
+        if train and trainer is not None and trainer.world_size > 1 and self.num_workers == 0:
+            # crops and flips in this process: a generator of this rank's own (DataLoader workers are seeded per
+            # rank and worker by seed_everything(workers=True) already)
+            ds.generator = torch.Generator().manual_seed(rank_seed(torch.initial_seed(), trainer.global_rank))
+        if not train and trainer is not None and trainer.world_size > 1:
+            # each held-out patch on exactly one rank (Lightning's DistributedSampler would pad with repeats)
+            from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
+
+            sampler = UnrepeatedDistributedSampler(ds, num_replicas=trainer.world_size, rank=trainer.global_rank, shuffle=False)
         return DataLoader(
             ds,
             batch_size=self.batch_size,
             shuffle=train,
+            sampler=sampler,
             drop_last=train and len(ds) >= self.batch_size,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
@@ -421,19 +451,32 @@ class PatchDataModule(L.LightningDataModule):
         trainer = self.trainer
         return "train" if trainer is not None and trainer.training else "val"
 
-    def generator_for(self, batch: Mapping[str, Any]) -> torch.Generator | None:
-        """``None`` (global RNG) for a training batch, else a CPU generator seeded by :func:`batch_seed`."""
-        stage = self._stage_of(batch)
-        if stage == "train":
+    def train_generator(self) -> torch.Generator | None:
+        """Generator of a training batch's corruption: ``None`` (torch's global RNG) in a single-process run, a CPU
+        generator seeded by :func:`rank_seed` on each rank of a multi-process run."""
+        trainer = self.trainer
+        if trainer is None or trainer.world_size <= 1:
             return None
-        index = batch.get("index")
-        first = int(index[0]) if index is not None and len(index) else 0
-        b = int(batch["clean"].shape[0])
-        return torch.Generator().manual_seed(batch_seed(self.seed, stage, first, b))
+        draw = int(torch.randint(0, 2**62, (1,)))
+        return torch.Generator().manual_seed(rank_seed(draw, trainer.global_rank))
+
+    def sample_generator(self, stage: str, index: int) -> torch.Generator:
+        """CPU generator of the fixed corruption of validation/test patch ``index``, seeded by :func:`sample_seed`."""
+        return torch.Generator().manual_seed(sample_seed(self.seed, stage, index))
 
     def rng_for(self, batch: Mapping[str, Any]) -> str:
         """Random numbers of the batch's noise fields: ``train_rng`` for a training batch, else ``"torch"``."""
         return self.train_rng if self._stage_of(batch) == "train" else "torch"
+
+    def corrupt_held_out(self, clean: torch.Tensor, stage: str, index: Sequence[int] | torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """Corrupt validation/test patches one by one, patch ``index[i]`` with :meth:`sample_generator`; without
+        ``index`` the patches count as 0 … B−1."""
+        b = int(clean.shape[0])
+        indices = list(range(b)) if index is None else [int(i) for i in index]
+        if len(indices) != b:
+            raise ValueError(f"got {len(indices)} patch indices for a batch of {b} patches")
+        parts = [self.corrupt(clean[i : i + 1], self.sample_generator(stage, indices[i]), rng="torch") for i in range(b)]
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
     def corrupt(self, clean: torch.Tensor, generator: torch.Generator | None, rng: str = "torch") -> dict[str, torch.Tensor]:
         """Corrupt a clean batch B×1×P×P and return the labelled entries (implemented by subclasses)."""
@@ -445,7 +488,11 @@ class PatchDataModule(L.LightningDataModule):
             return batch  # not ours, or already corrupted
         t0 = time.perf_counter()
         clean = batch["clean"]
-        out = self.corrupt(clean, self.generator_for(batch), rng=self.rng_for(batch))
+        stage = self._stage_of(batch)
+        if stage == "train":
+            out = self.corrupt(clean, self.train_generator(), rng=self.train_rng)
+        else:
+            out = self.corrupt_held_out(clean, stage, batch.get("index"))
         if clean.is_cuda:
             torch.cuda.synchronize(clean.device)
         self.stats["batches"] += 1

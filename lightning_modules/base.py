@@ -115,6 +115,13 @@ class EstimatorModule(L.LightningModule):
         exp = getattr(logger, "experiment", None)
         return exp if hasattr(exp, "add_figure") else None
 
+    @property
+    def example_input_array(self) -> tuple[torch.Tensor, ...]:
+        """One patch in [0, 1] (B = 1, ``patch_size`` px) as :meth:`forward` takes it: Lightning's model summary
+        shows the input/output sizes with it and TensorBoard draws the graph from it (``log_graph: true``)."""
+        g = torch.Generator().manual_seed(0)
+        return (torch.rand(1, 1, self.patch_size, self.patch_size, generator=g),)
+
     # ------------------------------------------------------------------ export / description
     def export_inputs(self, batch_size: int = 2) -> tuple[torch.Tensor, ...]:  # pragma: no cover - abstract
         raise NotImplementedError

@@ -105,14 +105,14 @@ class NoiseLevelEstimator(EstimatorModule):
 
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
         loss, est, truth = self._step(batch)
-        self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0])
+        self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0], sync_dist=True)
         self.val_stats.update(est, truth)
         self._cache_for_figures(est=est, truth=truth)
 
     def on_validation_epoch_end(self) -> None:
         stats = self.val_stats.compute()
-        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "rms_total"})
-        self.log("val/rms_total", stats["rms_total"], prog_bar=True)
+        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "rms_total"}, sync_dist=True)
+        self.log("val/rms_total", stats["rms_total"], prog_bar=True, sync_dist=True)
         self.val_stats.reset()
         cache = self._take_figure_cache()
         tb = self._tensorboard()
@@ -126,7 +126,7 @@ class NoiseLevelEstimator(EstimatorModule):
         self.test_stats.update(est, truth)
 
     def on_test_epoch_end(self) -> None:
-        self.log_dict({f"test/{k}": v for k, v in self.test_stats.compute().items()})
+        self.log_dict({f"test/{k}": v for k, v in self.test_stats.compute().items()}, sync_dist=True)
         self.test_stats.reset()
 
     def predict_step(self, batch: Mapping[str, Any], batch_idx: int) -> dict[str, torch.Tensor]:

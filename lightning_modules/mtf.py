@@ -78,14 +78,14 @@ class MTFEstimator(EstimatorModule):
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
         est = self(batch["image"])["mtf"]
         truth = batch["mtf"].to(est)
-        self.log("val/loss", F.l1_loss(est, truth), prog_bar=True, batch_size=est.shape[0])
+        self.log("val/loss", F.l1_loss(est, truth), prog_bar=True, batch_size=est.shape[0], sync_dist=True)
         self.val_amae.update(est, truth, batch["family"])
         self._cache_for_figures(est=est, truth=truth, family=batch["family"].float(), size=batch["size"].float())
 
     def on_validation_epoch_end(self) -> None:
         stats = self.val_amae.compute()
-        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "amae"})
-        self.log("val/amae", stats["amae"], prog_bar=True)
+        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "amae"}, sync_dist=True)
+        self.log("val/amae", stats["amae"], prog_bar=True, sync_dist=True)
         self.val_amae.reset()
         cache = self._take_figure_cache()
         tb = self._tensorboard()
@@ -100,7 +100,7 @@ class MTFEstimator(EstimatorModule):
         self.test_amae.update(est, batch["mtf"].to(est), batch["family"])
 
     def on_test_epoch_end(self) -> None:
-        self.log_dict({f"test/{k}": v for k, v in self.test_amae.compute().items()})
+        self.log_dict({f"test/{k}": v for k, v in self.test_amae.compute().items()}, sync_dist=True)
         self.test_amae.reset()
 
     def predict_step(self, batch: Mapping[str, Any], batch_idx: int) -> dict[str, torch.Tensor]:

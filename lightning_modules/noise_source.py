@@ -93,6 +93,14 @@ class NoiseSourceEstimator(EstimatorModule):
         image = torch.rand(batch_size, 1, self.patch_size, self.patch_size, generator=g)
         return image, torch.rand(batch_size, len(FULL_FIELDS), generator=g)
 
+    @property
+    def example_input_array(self) -> tuple[torch.Tensor, ...]:
+        """One patch in [0, 1] and the raw metadata (1, 11) of an ICX285 at its default operating point."""
+        from camhealth.physics.metadata import CameraMetadata
+
+        meta = CameraMetadata.lookup("ICX285").expand(1)
+        return (*super().example_input_array, torch.stack([getattr(meta, n).float() for n in FULL_FIELDS], 1))
+
     # ------------------------------------------------------------------ training
     def _estimates_and_truth(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor, dict]:
         out = self(batch["image"], batch.get("meta_raw"))
@@ -116,7 +124,7 @@ class NoiseSourceEstimator(EstimatorModule):
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
         est, truth, _ = self._estimates_and_truth(batch)
         loss, _ = self._loss(est, truth)
-        self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0])
+        self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0], sync_dist=True)
         self.val_stats.update(est, truth)
         if batch_idx == 0:
             self._cache_for_figures(images=batch["image"][:8], est_first=est[:8], truth_first=truth[:8])
@@ -124,8 +132,8 @@ class NoiseSourceEstimator(EstimatorModule):
 
     def on_validation_epoch_end(self) -> None:
         stats = self.val_stats.compute()
-        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "rms_total"})
-        self.log("val/rms_total", stats["rms_total"], prog_bar=True)
+        self.log_dict({f"val/{k}": v for k, v in stats.items() if k != "rms_total"}, sync_dist=True)
+        self.log("val/rms_total", stats["rms_total"], prog_bar=True, sync_dist=True)
         self.val_stats.reset()
         self._log_figures("val")
 
@@ -134,7 +142,7 @@ class NoiseSourceEstimator(EstimatorModule):
         self.test_stats.update(est, truth)
 
     def on_test_epoch_end(self) -> None:
-        self.log_dict({f"test/{k}": v for k, v in self.test_stats.compute().items()})
+        self.log_dict({f"test/{k}": v for k, v in self.test_stats.compute().items()}, sync_dist=True)
         self.test_stats.reset()
 
     def predict_step(self, batch: Mapping[str, Any], batch_idx: int) -> dict[str, torch.Tensor]:

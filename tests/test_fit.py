@@ -63,6 +63,47 @@ def test_print_config_and_link(capsys):
     out = capsys.readouterr().out
     assert "class_path: lightning_modules.NoiseSourceEstimator" in out
     assert "patch_size: 64" in out
+    # the callbacks are part of the configuration (and so of the config.yaml saved with each run)
+    import yaml
+
+    cfg = yaml.safe_load(out)
+    assert cfg["checkpoint"]["save_last"] is True and cfg["checkpoint"]["filename"] == "best-step{step}"
+    assert cfg["lr_monitor"]["logging_interval"] == "step"
+    assert cfg["monitor"] == "val/rms_total"
+
+
+def test_subcommands_validate_and_test_a_checkpoint_and_the_saved_config_reproduces_the_run(tmp_path):
+    cli = main(["fit", *tiny_args("noise_source.yaml", tmp_path, "--test_after_fit", "false")])
+    best = cli.trainer.checkpoint_callback.best_model_path
+    saved = Path(cli.trainer.log_dir) / "config.yaml"
+    import yaml
+
+    cfg = yaml.safe_load(saved.read_text())
+    assert cfg["checkpoint"]["save_last"] is True and cfg["monitor"] == "val/rms_total"
+    val = cli.trainer.callback_metrics["val/rms_total"].item()
+    again = main(["validate", "--config", str(saved), "--ckpt_path", best, "--trainer.logger", "false"])
+    assert again.trainer.callback_metrics["val/rms_total"].item() == pytest.approx(val, rel=1e-5)
+    tested = main(["test", "--config", str(saved), "--ckpt_path", best, "--trainer.logger", "false"])
+    assert "test/rms_total" in tested.trainer.callback_metrics
+    # TensorBoard: the monitored metric is the hparams metric
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (events,) = [e for e in Path(cli.trainer.log_dir).glob("events.out.tfevents.*") if e.stat().st_size > 200][:1]
+    acc = EventAccumulator(str(events))
+    acc.Reload()
+    hp = [e.value for e in acc.Scalars("hp_metric")]
+    assert hp[-1] == pytest.approx(val, rel=1e-5)
+
+
+@pytest.mark.parametrize("cls,n", [("NoiseSourceEstimator", 2), ("MTFEstimator", 1), ("NoiseLevelEstimator", 1)])
+def test_example_input_array_runs_through_forward(cls, n):
+    import lightning_modules
+
+    model = getattr(lightning_modules, cls)(patch_size=32)
+    x = model.example_input_array
+    assert len(x) == n and x[0].shape == (1, 1, 32, 32)
+    out = model(*x)
+    assert all(v.shape[0] == 1 and bool(v.isfinite().all()) for v in out.values())
 
 
 @pytest.mark.parametrize("name", ["noise_source", "mtf", "drne"])
@@ -210,6 +251,72 @@ def test_a_monitor_that_names_no_logged_metric_is_refused_early(tmp_path, monito
     assert steps == ([2] if when == "first validation" else [1] if when == "first training step" else [])
 
 
+def test_fit_without_a_logger_runs_without_the_learning_rate_monitor(tmp_path):
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--trainer.logger", "false", "--test_after_fit", "false"))
+    assert cli.trainer.global_step == 2
+    assert not any(type(c).__name__ == "LearningRateMonitor" for c in cli.trainer.callbacks)
+
+
 def test_a_train_metric_can_be_monitored(tmp_path):
     cli = main(tiny_args("noise_source.yaml", tmp_path, "--monitor", "train/loss", "--test_after_fit", "false"))
     assert cli.trainer.global_step == 2
+
+
+# ------------------------------------------------------------------ several processes (DDP)
+def _ddp_args(tmp: Path) -> list[str]:
+    """Tiny data with an odd number of test patches (3 images × 3), so a padding sampler would repeat one."""
+    return [
+        "--config", "configs/noise_source.yaml",
+        "--data.init_args.source", "deadleaves",
+        "--data.init_args.source_kwargs", "{n_images: 12, size: [80, 80]}",
+        "--data.init_args.patch_size", "32",
+        "--data.init_args.batch_size", "4",
+        "--data.init_args.patches_per_image", "2",
+        "--data.init_args.val_patches_per_image", "3",
+        "--data.init_args.val_fraction", "0.25",
+        "--data.init_args.test_fraction", "0.25",
+        "--trainer.max_steps", "2",
+        "--trainer.val_check_interval", "2",
+        "--trainer.precision", "32-true",
+        "--trainer.enable_progress_bar", "false",
+        "--trainer.logger.init_args.save_dir", str(tmp / "runs"),
+        "--trainer.default_root_dir", str(tmp),
+        "--model.init_args.log_figures", "false",
+        "--threads", "1",
+    ]
+
+
+def test_ddp_on_two_cpu_processes_exits_0_with_own_corruption_per_rank_and_single_process_test_metrics(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    import torch
+
+    probe = tmp_path / "probe"
+    weights = tmp_path / "ddp.pt"
+    cmd = [
+        sys.executable, "-m", "camhealth.fit", *_ddp_args(tmp_path),
+        "--trainer.strategy", "ddp", "--trainer.devices", "2", "--trainer.accelerator", "cpu",
+        "--export_weights", str(weights),
+        '--trainer.callbacks+={"class_path": "tests._ddp_probe.RecordFirstTrainingBatch", "init_args": {"out": "%s"}}' % probe,
+    ]
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stderr[-3000:]
+    # each rank corrupted its own training batch differently (not the same metadata and noise twice)
+    ranks = [torch.load(probe / f"rank{r}.pt", weights_only=True) for r in (0, 1)]
+    assert all(r["world_size"] == 2 for r in ranks)
+    assert not torch.equal(ranks[0]["meta_raw"], ranks[1]["meta_raw"])
+    # side effects once, on rank zero: one results file, the weights file
+    (results_file,) = list((tmp_path / "runs").rglob("fit_results.json"))
+    results = json.loads(results_file.read_text())
+    best = results["best_checkpoint"]
+    assert Path(best).is_file() and weights.is_file()
+    # the held-out metrics of the best checkpoint equal a single-process test of the same weights
+    cli = main(["test", *_ddp_args(tmp_path / "single"), "--ckpt_path", best])
+    single = {k: float(v) for k, v in cli.trainer.callback_metrics.items() if k.startswith("test/")}
+    assert set(single) == set(results["test"])
+    for k, v in single.items():
+        assert results["test"][k] == pytest.approx(v, rel=1e-5, abs=1e-6), k

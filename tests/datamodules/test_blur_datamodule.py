@@ -41,7 +41,9 @@ def test_labels_match_the_physics_core(image_folder):
     dm.setup("validate")
     batch = next(iter(dm.val_dataloader()))
     out = dm.on_after_batch_transfer(batch)
-    p = dm.sample_params(batch["clean"].shape[0], dm.generator_for(batch))  # replay this batch's draws
+    # replay the draws: each held-out patch is corrupted on its own, from its own seed
+    draws = [dm.sample_params(1, dm.sample_generator("val", int(i))) for i in batch["index"]]
+    p = {k: torch.cat([d[k] for d in draws]) for k in draws[0]}
     k = dm.kernel_size
     for i, fam in enumerate(p["family"].tolist()):
         s, a = p["size"][i : i + 1], p["angle"][i : i + 1]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 from pathlib import Path
 
 import lightning as L
@@ -10,6 +12,7 @@ import torch
 
 from camhealth.augment import RandomSensorNoise
 from camhealth.physics import FULL_FIELDS, CameraMetadata, form_image
+from camhealth.physics.image_formation import ImageFormation
 from datamodules import NoiseDataModule, expected_sigma_dn
 from tests.datamodules.conftest import SMALL, textured
 
@@ -74,14 +77,21 @@ def test_labels_match_the_physics_core(image_folder):
     dm.setup("validate")
     batch = next(iter(dm.val_dataloader()))
     out = dm.on_after_batch_transfer(batch)
-    # replay the parameter draws of this validation batch
-    g = dm.generator_for(batch)
-    meta, meta_img, altered = dm.sample_metadata(batch["clean"].shape[0], g)
-    seed = int(torch.randint(0, 2**62, (1,), generator=g))
-    ref = form_image(batch["clean"], meta_img, generator=torch.Generator().manual_seed(seed))
+    # replay the parameter draws of this validation batch: each patch from its own seed
+    draws = []
+    for i in batch["index"]:
+        g = dm.sample_generator("val", int(i))
+        m, mi, alt = dm.sample_metadata(1, g)
+        draws.append((m, mi, alt, int(torch.randint(0, 2**62, (1,), generator=g))))
+    meta = CameraMetadata.cat([d[0] for d in draws])
+    meta_img = CameraMetadata.cat([d[1] for d in draws])
+    altered = torch.cat([d[2] for d in draws])
+    parts = [form_image(batch["clean"][k : k + 1], d[1], generator=torch.Generator().manual_seed(d[3])) for k, d in enumerate(draws)]
+    ref = ImageFormation(*(torch.cat([getattr(q, f.name) for q in parts]) for f in fields(ImageFormation)))
     assert torch.equal(out["image"], ref.image)
     aug = RandomSensorNoise()  # the Kornia module on the same parameters gives the same image
-    assert torch.allclose(aug(batch["clean"], params=RandomSensorNoise.params_from_metadata(meta_img, seed)), out["image"])
+    params = RandomSensorNoise.params_from_metadata(draws[0][1], draws[0][3])
+    assert torch.allclose(aug(batch["clean"][:1], params=params), out["image"][:1])
     assert torch.allclose(out["sigma"], ref.sigma_dn.float())
     assert torch.allclose(out["sigma_total"], ref.sigma_total_dn.float())
     assert torch.allclose(out["sigma_expected"], ref.sigma_expected_dn.float())  # labels refer to M'
@@ -214,3 +224,34 @@ def test_train_rng_counter_applies_to_training_batches_only():
     assert torch.equal(fast.on_after_batch_transfer(dict(val))["image"], plain.on_after_batch_transfer(dict(val))["image"])
     with pytest.raises(ValueError, match="rng must be one of"):
         NoiseDataModule(source="unused", train_rng="philox", **SMALL)
+
+
+def test_held_out_corruption_is_per_patch_whatever_the_batch_size(image_folder):
+    def val_by_index(batch_size):
+        dm = NoiseDataModule(source=str(image_folder), **{**SMALL, "batch_size": batch_size})
+        dm.setup("validate")
+        out = {}
+        for batch in dm.val_dataloader():
+            b = dm.on_after_batch_transfer(batch)
+            for k, i in enumerate(b["index"].tolist()):
+                out[i] = (b["image"][k], b["meta_raw"][k])
+        return out
+
+    a, b = val_by_index(4), val_by_index(3)
+    assert sorted(a) == sorted(b) and len(a) > 4
+    for i in a:
+        assert torch.equal(a[i][0], b[i][0]) and torch.equal(a[i][1], b[i][1])
+
+
+def test_training_corruption_differs_per_rank_of_a_multi_process_run():
+    from types import SimpleNamespace
+
+    dm = NoiseDataModule(source="unused", **SMALL)
+    assert dm.train_generator() is None  # single process: torch's global generator, as seeded by seed_everything
+    draws = []
+    for rank in (0, 1):
+        dm.trainer = SimpleNamespace(world_size=2, global_rank=rank, training=True)
+        torch.manual_seed(0)  # seed_everything: the same global state on every rank
+        draws.append(dm.corrupt(_clean(4), dm.train_generator()))
+    assert not torch.equal(draws[0]["meta_raw"], draws[1]["meta_raw"])
+    assert not torch.equal(draws[0]["image"], draws[1]["image"])

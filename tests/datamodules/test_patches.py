@@ -141,3 +141,25 @@ def test_16bit_and_colour_images(tmp_path):
     batch = dm.on_after_batch_transfer(next(iter(dm.train_dataloader())))
     assert batch["image"].shape == (4, 1, 32, 32)
     assert torch.isfinite(batch["image"]).all()
+
+
+def test_training_crops_differ_per_rank_of_a_multi_process_run_without_workers(image_folder):
+    from types import SimpleNamespace
+
+    from datamodules import NoiseDataModule
+    from tests.datamodules.conftest import SMALL
+
+    dm = NoiseDataModule(source=str(image_folder), **SMALL)
+    firsts = []
+    for rank in (0, 1):
+        dm.trainer = SimpleNamespace(world_size=2, global_rank=rank, training=True)
+        torch.manual_seed(0)  # seed_everything: the same global state on every rank
+        dm.train_dataloader()
+        firsts.append(torch.stack([dm.datasets["train"][i]["clean"] for i in range(4)]))
+    assert not torch.equal(firsts[0], firsts[1])
+    dm.trainer = None
+    dm.datasets["train"].generator = None  # a single process: torch's global generator, as seeded
+    torch.manual_seed(0)
+    a = dm.datasets["train"][0]["clean"]
+    torch.manual_seed(0)
+    assert torch.equal(a, dm.datasets["train"][0]["clean"])
