@@ -17,11 +17,12 @@ __all__ = ["NoiseErrorStats", "AMAEPerFamily", "bias_std_rms", "amae_percent"]
 
 
 def bias_std_rms(estimate: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(Bias, Std, RMS) of ``estimate − truth`` along dim 0 (Eq. 6.2; Std is the population std)."""
-    e = (estimate - truth).double()
-    bias = e.mean(0)
-    std = (e.pow(2).mean(0) - bias.pow(2)).clamp_min(0).sqrt()
-    return bias.abs(), std, (bias.pow(2) + std.pow(2)).sqrt()
+    """(Bias, Std, RMS) of ``estimate − truth`` along dim 0 in float64 (Eq. 6.2; Std is the population std):
+    :func:`camhealth.metrics.bias_std_rms` as a tuple."""
+    from camhealth.metrics import bias_std_rms as _bias_std_rms
+
+    r = _bias_std_rms(estimate.double(), truth.double(), dim=0)
+    return r["bias"], r["std"], r["rms"]
 
 
 def amae_percent(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
