@@ -11,7 +11,6 @@ import argparse
 import datetime as _dt
 import json
 import platform
-import time
 from pathlib import Path
 from typing import Sequence
 
@@ -32,20 +31,20 @@ _DATA = {
 }
 
 
-def _time_predict(est, batch: int = 32, repeats: int = 5) -> dict[str, float]:
+def _time_predict(est, batch: int = 32, min_run_time_s: float = 1.0) -> dict[str, float]:
+    """ms per patch of ``predict`` in fp32 and bf16 on a batch of ``batch``: the median over blocks of calls
+    (:meth:`torch.utils.benchmark.Timer.blocked_autorange`, warm-up included, at least ``min_run_time_s`` s)."""
+    from torch.utils.benchmark import Timer
+
     from camhealth.physics.metadata import CameraMetadata
 
     x = torch.rand(batch, 1, est.patch_size, est.patch_size) * 0.6 + 0.2
     meta = CameraMetadata.preset("ICX285", batch_size=batch) if est.metadata_set != "none" else None
     out = {}
     for prec in ("fp32", "bf16"):
-        est.predict(x, meta, precision=prec)
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            est.predict(x, meta, precision=prec)
-            times.append(time.perf_counter() - t)
-        out[prec] = sorted(times)[len(times) // 2] / batch * 1e3
+        timer = Timer("est.predict(x, meta, precision=prec)", globals={"est": est, "x": x, "meta": meta, "prec": prec},
+                      num_threads=torch.get_num_threads())  # all threads, as predict runs (Timer's default is 1)
+        out[prec] = timer.blocked_autorange(min_run_time=min_run_time_s).median / batch * 1e3
     return out
 
 
