@@ -53,7 +53,7 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from camhealth._cli import add_debug_flag, debugging, run_cli
+from camhealth._cli import add_debug_flag, config_parser, debugging, run_cli
 
 __all__ = ["FORMAT_TAG", "SelfContainedNoiseSource", "ONNX_NOISE_OUTPUTS", "ONNX_REASONS", "export_weights", "export_pt2", "export_onnx", "load_module", "main", "ALLOWED_CLASSES", "check_retired"]
 
@@ -391,7 +391,7 @@ EXPORTERS = {"weights": (export_weights, ".pt"), "pt2": (export_pt2, ".pt2"), "o
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(prog="python -m camhealth.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = config_parser(prog="python -m camhealth.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) of a camhealth estimator, or a weights file (.pt)")
     parser.add_argument("--format", choices=sorted(EXPORTERS), default="pt2", help="output format (default pt2)")
     parser.add_argument("--out", default=None, help="output path (default: next to the checkpoint, with the format's suffix)")

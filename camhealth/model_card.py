@@ -7,7 +7,6 @@ command that reproduced it, and a fresh timing of ``Estimator.predict`` on this 
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import json
 import platform
@@ -15,6 +14,8 @@ from pathlib import Path
 from typing import Sequence
 
 import torch
+
+from camhealth._cli import config_parser
 
 __all__ = ["card_text", "write_card", "main"]
 
@@ -99,7 +100,7 @@ def write_card(weights: str | Path, command: str, notes: str = "") -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    p = argparse.ArgumentParser(prog="python -m camhealth.model_card", description=__doc__)
+    p = config_parser(prog="python -m camhealth.model_card", description=__doc__)
     p.add_argument("weights", help="camhealth weights file (.pt)")
     p.add_argument("--command", required=True, help="the command that trained it")
     p.add_argument("--notes", default="", help="free text appended to the card")
