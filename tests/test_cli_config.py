@@ -8,7 +8,7 @@ import io
 
 import pytest
 
-from camhealth import corrupt, evaluate, export, model_card
+from camhealth import corrupt, demo, evaluate, export, model_card
 from camhealth.calibrate import __main__ as calibrate_cli
 
 
@@ -51,13 +51,16 @@ CASES = {
                                                "--operating-point", "gain_db=12", "--operating-point", "exposure_s=0.01"]),
     "export": (_export_parser, ["w.pt", "--format", "onnx", "--out", "m.onnx"]),
     "model_card": (_model_card_parser, ["w.pt", "--command", "python -m camhealth.fit", "--notes", "n"]),
+    # a subcommand: its own --config / --print_config come after its name
+    "demo": (demo.build_parser, ["closed-loop", "--frames", "0:2", "--limits-gain", "0", "12", "--normalize-intensity"]),
 }
 
 
-def _clean(ns) -> dict:
-    d = ns.as_dict()
-    d.pop("config", None)
-    return {k: (str(v) if not isinstance(v, (list, bool, int, float, type(None))) else v) for k, v in d.items()}
+def _clean(d) -> dict:
+    """Options as plain data, without the --config entries (a subcommand's options nested under its name)."""
+    d = d.as_dict() if hasattr(d, "as_dict") else d
+    return {k: (_clean(v) if isinstance(v, dict) else v if isinstance(v, (list, bool, int, float, type(None))) else str(v))
+            for k, v in d.items() if k != "config"}
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
@@ -71,7 +74,8 @@ def test_print_config_round_trips_through_config(name, tmp_path):
     assert info.value.code == 0
     path = tmp_path / "cli.yaml"
     path.write_text(out.getvalue())
-    again = build().parse_args(["--config", str(path)])
+    sub = argv[:1] if name == "demo" else []
+    again = build().parse_args(sub + ["--config", str(path)])
     assert _clean(again) == _clean(direct)
     # flags after --config override it
     if name == "corrupt":
@@ -84,6 +88,14 @@ def test_optional_positional_from_config_and_default(tmp_path):
     path.write_text("source: skimage\nout: o\n")
     assert corrupt.build_parser().parse_args(["--config", str(path)]).source == "skimage"
     assert "source" not in corrupt.build_parser().parse_args(["--out", "o"])  # main() fills in 'default'
+
+
+def test_demo_config_before_the_subcommand_covers_it(tmp_path):
+    path = tmp_path / "demo.yaml"
+    path.write_text("closed-loop:\n  frames: '3:9'\n  repeats: 2\n")
+    args = demo.build_parser().parse_args(["--config", str(path), "closed-loop", "--seed", "4"])
+    assert args.demo == "closed-loop" and args["closed-loop"].frames == "3:9" and args["closed-loop"].repeats == 2
+    assert args["closed-loop"].seed == 4
 
 
 def test_bad_values_still_exit_2_with_the_message(capsys):
