@@ -54,7 +54,7 @@ def to_gray(image):
 
     Tensors go through :func:`kornia.color.rgb_to_grayscale` (the same weights). Arrays are weighted in float64
     with NumPy: converting to a tensor and back costs more than the weighting (Kornia's float64 path is ~1.4× slower
-    on a 1280×1024 uint8 RGB frame, ~2× on a 640×480 RGBA one, ``torch.utils.benchmark.Timer``, 1 thread).
+    on a 1280×1024 uint8 RGB frame, ~2× on a 640×480 RGBA one: ``python -m camhealth.bench.library_reuse --rows gray``).
 
     Returns:
         numpy: ``H×W`` floating array (float32 for integer/float32 input, float64 for float64 input).
