@@ -53,8 +53,8 @@ def to_gray(image):
         image: numpy ``H×W`` or ``H×W×C``; or torch ``C×H×W`` or ``B×C×H×W``; ``C`` in {1, 2, 3, 4}.
 
     Tensors go through :func:`kornia.color.rgb_to_grayscale` (the same weights). Arrays are weighted in float64
-    with NumPy: converting to a tensor and back costs more than the weighting (Kornia's float64 path is ~1.4× slower
-    on a 1280×1024 uint8 RGB frame, ~2× on a 640×480 RGBA one: ``python -m camhealth.bench.library_reuse --rows gray``).
+    with NumPy: converting to a tensor and back costs more than the weighting (through Kornia, uint8 frames take
+    1.2–1.3× as long, 1280×1024 RGB and 640×480 RGBA, 1 thread: ``python -m camhealth.bench.library_reuse --rows gray``).
 
     Returns:
         numpy: ``H×W`` floating array (float32 for integer/float32 input, float64 for float64 input).

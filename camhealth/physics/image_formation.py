@@ -134,7 +134,7 @@ def _fft_convolve(image: torch.Tensor, psf: torch.Tensor, border: str) -> torch.
     so the result equals the padded direct convolution (``filter2d``) up to float rounding.
 
     It also equals :func:`kornia.filters.fft_conv` with ``behaviour="conv"`` (to roundoff; tested), which is
-    1.5–1.8× slower on these batches (16–64 patches of 128–512 px, kernels 25–63 px, 1 thread:
+    1.1–1.9× slower on these batches (16–64 patches of 128–512 px, kernels 25–63 px, 1 thread:
     ``python -m camhealth.bench.library_reuse --rows fft``): Kornia transforms the kernel with a full-size ``rfftn`` per call and the padded image at
     its own length, where this takes the kernel's spectrum from two small DFT matmuls (:func:`_psf_spectrum`) and
     pads to a 2·3·5-smooth FFT length (:func:`_fft_size`).
