@@ -49,12 +49,12 @@ def to_gray(image):
     Channel rules: 1 channel → unchanged; 2 channels → gray + alpha, alpha dropped; 3 channels → RGB;
     4 channels → RGBA, alpha dropped.
 
-    Args:
-        image: numpy ``H×W`` or ``H×W×C``; or torch ``C×H×W`` or ``B×C×H×W``; ``C`` in {1, 2, 3, 4}.
-
     Tensors go through :func:`kornia.color.rgb_to_grayscale` (the same weights). Arrays are weighted in float64
     with NumPy: converting to a tensor and back costs more than the weighting (through Kornia, uint8 frames take
     1.2–1.3× as long, 1280×1024 RGB and 640×480 RGBA, 1 thread: ``python -m camhealth.bench.library_reuse --rows gray``).
+
+    Args:
+        image: numpy ``H×W`` or ``H×W×C``; or torch ``C×H×W`` or ``B×C×H×W``; ``C`` in {1, 2, 3, 4}.
 
     Returns:
         numpy: ``H×W`` floating array (float32 for integer/float32 input, float64 for float64 input).
