@@ -13,7 +13,7 @@ import sys
 import traceback
 from typing import Any, Callable, Sequence
 
-__all__ = ["DEBUG_FLAG", "add_debug_flag", "debugging", "one_line", "run_cli"]
+__all__ = ["DEBUG_FLAG", "add_debug_flag", "config_parser", "debugging", "one_line", "run_cli"]
 
 DEBUG_FLAG = "--debug"
 _debug = False
@@ -26,6 +26,19 @@ _PLAIN = (ValueError, TypeError, OSError, ImportError, KeyError, IndexError)
 def add_debug_flag(parser: Any) -> None:
     """List ``--debug`` in an argparse/jsonargparse parser's ``--help`` (:func:`run_cli` acts on it)."""
     parser.add_argument(DEBUG_FLAG, action="store_true", help=_HELP)
+
+
+def config_parser(**kwargs: Any) -> Any:
+    """A jsonargparse ``ArgumentParser`` (the parser LightningCLI and ``python -m camhealth.iopc`` use) with
+    ``--config FILE`` (YAML or JSON of the options, keys as ``--print_config`` writes them; flags after it override
+    it) and ``--print_config`` (the resolved options as YAML, then exit). ``kwargs`` go to the parser (``prog``,
+    ``description``, ``formatter_class``, …); options are added as with argparse."""
+    from jsonargparse import ActionConfigFile, ArgumentParser
+
+    parser = ArgumentParser(**kwargs)
+    parser.add_argument("--config", action=ActionConfigFile,
+                        help="YAML/JSON file of these options (keys as --print_config writes them); later flags override it")
+    return parser
 
 
 def debugging() -> bool:

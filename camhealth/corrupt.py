@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from camhealth._cli import add_debug_flag, run_cli
+from camhealth._cli import add_debug_flag, config_parser, run_cli
 from camhealth.augment import CameraCorruption, RandomDefocusBlur, RandomMotionBlur, RandomSensorNoise
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
@@ -118,22 +118,23 @@ def _camera(args: argparse.Namespace) -> CameraCorruption:
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def build_parser():
+    """jsonargparse parser: every option may also come from ``--config FILE``; ``--print_config`` shows them."""
+    p = config_parser(
         prog="python -m camhealth.corrupt",
         description="Corrupt image patches with the camera physics (defocus, photon noise, motion blur, dark-current "
         "noise, readout noise, gain, clipping) and write PNGs plus JSON labels.",
     )
-    p.add_argument("source", nargs="?", default="default",
-                   help="'default' (embedded photos + street clip), 'street', 'skimage', 'deadleaves', a folder or a video file")
+    p.add_argument("source", nargs="?", default=argparse.SUPPRESS,  # SUPPRESS: a --config file may give it
+                   help="'default' (the default: embedded photos + street clip), 'street', 'skimage', 'deadleaves', a folder or a video file")
     p.add_argument("--out", type=Path, required=True, help="output folder (created)")
     p.add_argument("--n", type=int, default=8, help="number of patches (default 8)")
     p.add_argument("--size", type=int, default=192, help="patch size in px (default 192)")
-    p.add_argument("--defocus", type=float, nargs=2, default=(1.0, 21.0), metavar=("MIN", "MAX"),
+    p.add_argument("--defocus", type=float, nargs=2, default=[1.0, 21.0], metavar=("MIN", "MAX"),
                    help="defocus disk diameter range in px (default 1 21; 0 0 disables)")
-    p.add_argument("--motion", type=float, nargs=2, default=(1.0, 21.0), metavar=("MIN", "MAX"),
+    p.add_argument("--motion", type=float, nargs=2, default=[1.0, 21.0], metavar=("MIN", "MAX"),
                    help="motion length range in px (default 1 21; 0 0 disables)")
-    p.add_argument("--shake", type=float, nargs=2, default=(0.0, 0.0), metavar=("MIN", "MAX"),
+    p.add_argument("--shake", type=float, nargs=2, default=[0.0, 0.0], metavar=("MIN", "MAX"),
                    help="camera-shake intensity range in [0, 1] (default 0 0: linear motion)")
     p.add_argument("--sensor", default=None, help="sensor preset (ICX285, EV76C661); default: random cameras")
     p.add_argument("--no-noise", action="store_true", help="blur only")
@@ -146,6 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if "source" not in args:
+        args.source = "default"
     from camhealth.data import build_source
 
     if args.n < 1:

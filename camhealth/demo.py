@@ -37,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from camhealth._cli import add_debug_flag, run_cli
+from camhealth._cli import add_debug_flag, config_parser, run_cli
 
 __all__ = ["main", "run_closed_loop", "parse_slice"]
 
@@ -304,10 +304,16 @@ def _edges(centres: np.ndarray) -> np.ndarray:
     return np.concatenate([[c[0] - (mids[0] - c[0])], mids, [c[-1] + (c[-1] - mids[-1])]])
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m camhealth.demo", description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="demo", required=True, metavar="DEMO")
-    c = sub.add_parser("closed-loop", help="fixed vs auto-exposure vs IOPC policy on a simulated camera")
+#: The demos: subcommand → the function that runs it on its options.
+DEMOS: dict[str, Any] = {}
+
+
+def build_parser():
+    """jsonargparse parser with one subcommand per demo; ``--config FILE`` / ``--print_config`` before the
+    subcommand cover all of it, after it the demo's own options (as LightningCLI's subcommands)."""
+    p = config_parser(prog="python -m camhealth.demo", description=__doc__.split("\n\n")[0])
+    sub = p.add_subcommands(dest="demo", required=True)
+    c = config_parser(prog="python -m camhealth.demo closed-loop")
     c.add_argument("--iopc", default="runs/iopc_closed_loop/iopc.json",
                    help="IOPC file (default: the one configs/iopc_closed_loop.yaml writes, matched to this camera)")
     c.add_argument("--source", default="street", help="clean frames (camhealth.data.build_source spec)")
@@ -335,16 +341,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--repeats", type=int, default=1, help="runs with noise seeds seed, seed+1, … (AP mean ± std)")
     c.add_argument("--threads", type=int, default=None, help="torch threads")
     c.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
-    c.set_defaults(func=run_closed_loop)
+    sub.add_subcommand("closed-loop", c, help="fixed vs auto-exposure vs IOPC policy on a simulated camera")
+    DEMOS["closed-loop"] = run_closed_loop
     add_debug_flag(p)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if getattr(args, "threads", None):
-        torch.set_num_threads(args.threads)
-    args.func(args)
+    options = args[args.demo]
+    if getattr(options, "threads", None):
+        torch.set_num_threads(options.threads)
+    DEMOS[args.demo](options)
     return 0
 
 

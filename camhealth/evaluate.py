@@ -53,7 +53,7 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from camhealth._cli import add_debug_flag, run_cli
+from camhealth._cli import add_debug_flag, config_parser, run_cli
 
 __all__ = [
     "NOISE_LEVELS_DN",
@@ -1121,8 +1121,9 @@ def _select(spec: str, checkpoints: Sequence[str], log: Callable[[str], None]) -
     return chosen
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m camhealth.evaluate", description=__doc__.split("\n\n")[0],
+def build_parser():
+    """jsonargparse parser: every option may also come from ``--config FILE``; ``--print_config`` shows them."""
+    p = config_parser(prog="python -m camhealth.evaluate", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("--source", default="default", help="image source: 'default' (embedded), a folder or a video (default: default)")
     p.add_argument("--out", type=Path, default=Path("runs/evaluate"), help="output folder (default runs/evaluate)")

@@ -7,11 +7,35 @@ arguments, params, FLOPs, metrics — read back by :func:`camhealth.load_estimat
   ``weights_only=True`` (tensors and plain containers only, no pickled code). The shipped models are these.
 - ``pt2``: :func:`torch.export.export` of the bare network with a dynamic batch dimension, saved with
   :func:`torch.export.save` (description in the archive's ``extra_files``).
-- ``onnx``: :func:`torch.onnx.export` (dynamo exporter) of the same network, dynamic batch, description in
-  the model's ``metadata_props``; runs with ONNX Runtime.
+- ``onnx``: :func:`torch.onnx.export` (dynamo exporter), dynamic batch, description in the model's
+  ``metadata_props``; runs with ONNX Runtime alone. MTF and DRNE: the bare network, input ``patch``
+  (B×1×P×P in [0, 1]), output ``mtf`` (B, 16) or ``sigma_map`` (B×1×P×P, DN). Noise-source networks
+  (``noise_source_min``, ``noise_source_none``) are **self-contained** (:class:`SelfContainedNoiseSource`):
 
-The exported network takes exactly the inputs of :meth:`EstimatorModule.export_inputs` (for the
-noise-source network: patches and normalised metadata, which the loader computes from raw metadata with
+  ========================  ==========  ========================================================================
+  name                      shape       meaning
+  ========================  ==========  ========================================================================
+  in ``patch``              B×1×P×P     gray patch in [0, 1] (= DN/255), float32
+  in ``metadata``           (B, k)      raw metadata in physical units, the columns of ``metadata_fields`` in the
+                                        description (``minimal``: gain [dB], exposure [s], temperature [°C]);
+                                        absent for ``metadata_set = none``
+  out ``sigma``             (B, 3)      σ of PN, DCSN, RN [DN], ≥ 0
+  out ``xi``                (B,)        ξ [DN]
+  out ``sigma_total``       (B,)        √(Σ σ_s²) [DN]
+  out ``assessable``        (B,)        bool
+  out ``reason_code``       (B,)        int64: 0 assessable, 1 black, 2 saturated, 3 metadata outside
+                                        ``METADATA_RANGES`` (or not finite)
+  ========================  ==========  ========================================================================
+
+  The metadata normalisation (``CameraMetadata.normalize``), the clamp of σ at 0, the total and the flags of
+  :func:`camhealth._inputs.assess_patches` are inside the graph, so ONNX Runtime alone gives what
+  :meth:`Estimator.predict` gives (within 1e-3 DN). The graph cannot raise: metadata that ``predict`` refuses give
+  ``assessable = False``, ``reason_code = 3``. ``noise_source_full`` (the physics-first estimator, no network)
+  is not exported: its two-pass inlier selection, per-intensity binning of Haar details and posterior over
+  hypothesis grids with data-dependent branches are Python control flow, not a fixed graph.
+
+The ``pt2`` program takes exactly the inputs of :meth:`EstimatorModule.export_inputs` (for the noise-source
+network: patches and normalised metadata, which the loader computes from raw metadata with
 :mod:`camhealth.physics`). TorchScript is not offered (deprecated).
 
 A weights file or checkpoint is read back two ways: :func:`load_net` builds the bare network
@@ -33,11 +57,11 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from camhealth._cli import add_debug_flag, debugging, run_cli
+from camhealth._cli import add_debug_flag, config_parser, debugging, run_cli
 from camhealth.nets import NETWORKS, network_for
 
-__all__ = ["FORMAT_TAG", "export_weights", "export_pt2", "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES",
-           "check_retired"]
+__all__ = ["FORMAT_TAG", "SelfContainedNoiseSource", "ONNX_NOISE_OUTPUTS", "ONNX_REASONS", "export_weights", "export_pt2",
+           "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES", "check_retired"]
 
 FORMAT_TAG = "camhealth-estimator"
 FORMAT_VERSION = 1
@@ -265,24 +289,115 @@ def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = No
     return out
 
 
+#: Outputs of a self-contained noise-source ONNX graph, in order.
+ONNX_NOISE_OUTPUTS: tuple[str, ...] = ("sigma", "xi", "sigma_total", "assessable", "reason_code")
+#: ``reason_code`` of a self-contained noise-source ONNX graph → the ``reason`` of :meth:`Estimator.predict`
+#: (3: metadata that ``predict`` would refuse with an error).
+ONNX_REASONS: tuple[str, ...] = ("", "black", "saturated", "metadata out of range")
+
+
+class SelfContainedNoiseSource(torch.nn.Module):
+    """A noise-source network with everything :meth:`Estimator.predict` does around it, as one graph.
+
+    ``forward(patch, metadata)`` → ``(sigma, xi, sigma_total, assessable, reason_code)`` (see the module
+    docstring for shapes and units): metadata in physical units (the ``metadata_fields`` columns) are normalised
+    with ``METADATA_RANGES`` into the (B, 11) vector the network reads (zeros where the metadata set has no field),
+    σ is clamped at 0, σ_total = √(Σ σ_s²), and a patch is not assessable where more than
+    ``MAX_CLIPPED_FRACTION`` of its pixels lie within 0.5 DN of 0 (black, code 1) or of 255 (saturated, 2), or its
+    metadata lie outside their range or are not finite (3).
+
+    Args:
+        net: the bare :class:`~lightning_modules.noise_source.NoiseSourceNet` (eval mode).
+        metadata_set: ``"none"`` or ``"minimal"``: which raw fields ``metadata`` holds.
+    """
+
+    def __init__(self, net: torch.nn.Module, metadata_set: str) -> None:
+        super().__init__()
+        from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, METADATA_SETS
+
+        if metadata_set not in ("none", "minimal"):
+            raise ValueError(f"metadata_set = {metadata_set!r} must be 'none' or 'minimal' (noise-source networks)")
+        self.net = net
+        self.fields: tuple[str, ...] = METADATA_SETS[metadata_set]
+        k = len(self.fields)
+        low = torch.tensor([METADATA_RANGES[f][0] for f in self.fields], dtype=torch.float64)
+        high = torch.tensor([METADATA_RANGES[f][1] for f in self.fields], dtype=torch.float64)
+        select = torch.zeros(k, len(FULL_FIELDS), dtype=torch.float64)  # raw column j → column of FULL_FIELDS
+        for j, f in enumerate(self.fields):
+            select[j, FULL_FIELDS.index(f)] = 1.0
+        self.register_buffer("low", low.float(), persistent=False)
+        self.register_buffer("high", high.float(), persistent=False)
+        self.register_buffer("select", select.float(), persistent=False)
+        self.n_full = len(FULL_FIELDS)
+
+    def forward(self, patch: torch.Tensor, metadata: torch.Tensor | None = None):
+        from camhealth._inputs import MAX_CLIPPED_FRACTION
+
+        x = patch.float()
+        b = x.shape[0]
+        if self.fields:
+            if metadata is None:
+                raise ValueError(f"this network reads metadata {list(self.fields)}; pass metadata (B, {len(self.fields)})")
+            raw = metadata.float()
+            norm = ((raw - self.low) / (self.high - self.low)) @ self.select
+            meta_ok = ((raw >= self.low) & (raw <= self.high)).all(1)  # NaN compares False → out of range
+        else:
+            norm = x.new_zeros(b, self.n_full)
+            meta_ok = x.new_ones(b, dtype=torch.bool)
+        out = self.net(x, norm).float()
+        sigma = out[:, :3].clamp_min(0.0)
+        xi = out[:, 3]
+        total = sigma.pow(2).sum(1).sqrt()
+        flat = x.flatten(1)
+        tol = 0.5 / 255.0
+        black = (flat <= tol).float().mean(1) > MAX_CLIPPED_FRACTION
+        saturated = (flat >= 1.0 - tol).float().mean(1) > MAX_CLIPPED_FRACTION
+        zero = torch.zeros_like(black, dtype=torch.int64)
+        reason = torch.where(black, zero + 1, torch.where(saturated, zero + 2, torch.where(meta_ok, zero, zero + 3)))
+        return sigma, xi, total, reason == 0, reason
+
+
+def _onnx_graph(module) -> tuple[torch.nn.Module, tuple[torch.Tensor, ...], list[str], list[str], dict]:
+    """The module exported to ONNX, example inputs, input and output names, and what the description says of them."""
+    kind = getattr(module, "kind", "")
+    patch = module.export_inputs(2)[0]
+    if kind != "noise_source":
+        output = {"mtf": "mtf", "drne": "sigma_map"}.get(kind, "output")
+        return module.export_module(), (patch,), ["patch"], [output], {"inputs": ["patch"], "outputs": [output]}
+    from camhealth.physics.metadata import CameraMetadata
+
+    wrapper = SelfContainedNoiseSource(module.export_module(), module.metadata_set).eval()
+    inputs: tuple[torch.Tensor, ...] = (patch,)
+    names = ["patch"]
+    if wrapper.fields:
+        preset = CameraMetadata.preset("ICX285", batch_size=patch.shape[0])
+        inputs += (torch.stack([getattr(preset, f).float() for f in wrapper.fields], dim=1),)
+        names.append("metadata")
+    graph = {"inputs": names, "outputs": list(ONNX_NOISE_OUTPUTS), "self_contained": True,
+             "metadata_fields": list(wrapper.fields), "reasons": list(ONNX_REASONS)}
+    return wrapper, inputs, names, list(ONNX_NOISE_OUTPUTS), graph
+
+
 def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
-    """ONNX export (dynamo exporter, dynamic batch) with the description in ``metadata_props``."""
+    """ONNX export (dynamo exporter, dynamic batch, named inputs and outputs) with the description in
+    ``metadata_props`` (its ``onnx_graph`` entry names the inputs and outputs); noise-source networks are exported
+    self-contained (:class:`SelfContainedNoiseSource`, module docstring)."""
     import onnx
 
     module, metrics = _module_and_metrics(source, metrics)
-    inputs = module.export_inputs(2)
-    net = module.export_module()
-    names = [f"input_{i}" for i in range(len(inputs))]
+    net, inputs, names, outputs, graph = _onnx_graph(module)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     program = torch.onnx.export(
-        net, inputs, dynamo=True, input_names=names, output_names=["output"], dynamic_shapes=_dynamic_batch(inputs),
+        net, inputs, dynamo=True, input_names=names, output_names=outputs, dynamic_shapes=_dynamic_batch(inputs),
         verbose=False,
     )
     program.save(str(out))
     model = onnx.load(str(out))
+    desc = _description(module, metrics)
+    desc["onnx_graph"] = graph
     entry = model.metadata_props.add()
-    entry.key, entry.value = "camhealth.json", json.dumps(_description(module, metrics))
+    entry.key, entry.value = "camhealth.json", json.dumps(desc)
     onnx.save(model, str(out))
     return out
 
@@ -309,7 +424,7 @@ EXPORTERS = {"weights": (export_weights, ".pt"), "pt2": (export_pt2, ".pt2"), "o
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(prog="python -m camhealth.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = config_parser(prog="python -m camhealth.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", help="Lightning checkpoint (.ckpt) of a camhealth estimator, or a weights file (.pt)")
     parser.add_argument("--format", choices=sorted(EXPORTERS), default="pt2", help="output format (default pt2)")
     parser.add_argument("--out", default=None, help="output path (default: next to the checkpoint, with the format's suffix)")

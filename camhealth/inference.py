@@ -110,6 +110,16 @@ class Estimator:
         if self.kind != "noise_source":
             return (patches,)
         b = patches.shape[0]
+        graph = self.description.get("onnx_graph") or {}
+        if self.backend == "onnx" and graph.get("self_contained"):  # raw metadata in physical units, own fields
+            fields = graph.get("metadata_fields", [])
+            if not fields:
+                return (patches,)
+            if meta is None:
+                raise ValueError(f"estimator {self.name!r} reads metadata {fields}; pass metadata=")
+            if meta.batch_size not in (1, b):
+                raise ValueError(f"metadata has batch size {meta.batch_size}; it must be 1 or the number of patches {b}")
+            return patches, torch.stack([getattr(meta, f).float() for f in fields], dim=1).expand(b, -1)
         if meta is None:
             return patches, patches.new_zeros(b, len(FULL_FIELDS))
         if meta.batch_size not in (1, b):
@@ -277,12 +287,17 @@ def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
     if "camhealth.json" not in meta:
         raise ValueError(f"{path} is an ONNX model but not a camhealth estimator (no camhealth.json metadata)")
     names = [i.name for i in session.get_inputs()]
+    desc = json.loads(meta["camhealth.json"])
+    self_contained = bool((desc.get("onnx_graph") or {}).get("self_contained"))
 
     def run(*inputs: torch.Tensor) -> torch.Tensor:
         feeds = {n: t.detach().cpu().float().numpy() for n, t in zip(names, inputs)}
+        if self_contained:  # (sigma, xi, …): the (B, 4) σ_PN, σ_DCSN, σ_RN, ξ that predict reads
+            sigma, xi = session.run(["sigma", "xi"], feeds)
+            return torch.cat([torch.from_numpy(sigma), torch.from_numpy(xi)[:, None]], dim=1)
         return torch.from_numpy(session.run(None, feeds)[0])
 
-    return json.loads(meta["camhealth.json"]), run
+    return desc, run
 
 
 def load_estimator(path_or_name: str | Path) -> Estimator:

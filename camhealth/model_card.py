@@ -10,16 +10,16 @@ and training procedure.
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import json
 import platform
 import re
-import time
 from pathlib import Path
 from typing import Sequence
 
 import torch
+
+from camhealth._cli import config_parser
 
 __all__ = ["SECTIONS", "card_text", "main", "read_card", "write_card"]
 
@@ -36,20 +36,20 @@ _DATA = {
 }
 
 
-def _time_predict(est, batch: int = 32, repeats: int = 5) -> dict[str, float]:
+def _time_predict(est, batch: int = 32, min_run_time_s: float = 1.0) -> dict[str, float]:
+    """ms per patch of ``predict`` in fp32 and bf16 on a batch of ``batch``: the median over blocks of calls
+    (:meth:`torch.utils.benchmark.Timer.blocked_autorange`, warm-up included, at least ``min_run_time_s`` s)."""
+    from torch.utils.benchmark import Timer
+
     from camhealth.physics.metadata import CameraMetadata
 
     x = torch.rand(batch, 1, est.patch_size, est.patch_size) * 0.6 + 0.2
     meta = CameraMetadata.preset("ICX285", batch_size=batch) if est.metadata_set != "none" else None
     out = {}
     for prec in ("fp32", "bf16"):
-        est.predict(x, meta, precision=prec)
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            est.predict(x, meta, precision=prec)
-            times.append(time.perf_counter() - t)
-        out[prec] = sorted(times)[len(times) // 2] / batch * 1e3
+        timer = Timer("est.predict(x, meta, precision=prec)", globals={"est": est, "x": x, "meta": meta, "prec": prec},
+                      num_threads=torch.get_num_threads())  # all threads, as predict runs (Timer's default is 1)
+        out[prec] = timer.blocked_autorange(min_run_time=min_run_time_s).median / batch * 1e3
     return out
 
 
@@ -186,15 +186,15 @@ def write_card(weights: str | Path, command: str, notes: str = "") -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    p = argparse.ArgumentParser(prog="python -m camhealth.model_card", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = config_parser(prog="python -m camhealth.model_card", description=__doc__)
     p.add_argument("weights", help="camhealth weights file (.pt); the card is written next to it (.md)")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--command", help="the command that trained it")
-    g.add_argument("--refresh", action="store_true",
+    p.add_argument("--command", default=None, help="the command that trained it (or --refresh)")
+    p.add_argument("--refresh", action="store_true",
                    help="keep the existing card's command and training procedure, measure and write the rest again")
     p.add_argument("--notes", default=None, help="the training procedure (free text); with --refresh: the card's")
     args = p.parse_args(argv)
+    if (args.command is None) == (not args.refresh):
+        raise ValueError("give either --command (the command that trained the weights) or --refresh (keep the card's)")
     weights = Path(args.weights)
     command, notes = args.command, args.notes
     if args.refresh:

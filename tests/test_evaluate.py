@@ -50,6 +50,44 @@ def test_bias_std_rms_by_hand():
     assert noise_errors(est, truth) == pytest.approx({"bias": 1.0, "std": math.sqrt(2.0), "rms": math.sqrt(3.0), "n": 4})
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [1, 3, 5000])
+def test_bias_std_rms_is_one_implementation(dtype, batch):
+    """The tuple form used in training and benchmarks (lightning_modules.metrics) is camhealth.metrics's, and the
+    torchmetrics accumulator gives the same numbers, in every dtype and for one sample."""
+    from lightning_modules.metrics import NoiseErrorStats, bias_std_rms as tuple_form
+
+    g = torch.Generator().manual_seed(batch)
+    truth = (torch.rand(batch, 2, generator=g) * 20).to(dtype)
+    est = (truth.double() + 0.7 + torch.randn(batch, 2, generator=g, dtype=torch.float64)).to(dtype)
+    r = bias_std_rms(est, truth, dim=0)
+    assert r["rms"].dtype == dtype and r["rms"].shape == (2,)
+    b, s, q = tuple_form(est, truth)
+    assert b.dtype == torch.float64
+    for got, key in ((b, "bias"), (s, "std"), (q, "rms")):
+        assert torch.allclose(got, r[key].double(), rtol=1e-2 if dtype in (torch.float16, torch.bfloat16) else 1e-6, atol=1e-6), key
+    acc = NoiseErrorStats(["a", "b"])
+    acc.update(est, truth)
+    out = acc.compute()
+    half = dtype in (torch.float16, torch.bfloat16)  # the accumulator subtracts in the input dtype
+    assert torch.allclose(torch.stack([out["rms_a"], out["rms_b"]]).double(), q, rtol=1e-2 if half else 1e-5, atol=1e-6)
+    if batch == 1:
+        assert torch.equal(s, torch.zeros(2, dtype=torch.float64))
+
+
+def test_bias_std_rms_refuses_what_it_cannot_reduce():
+    from lightning_modules.metrics import bias_std_rms as tuple_form
+
+    with pytest.raises(ValueError, match="truth must be finite"):
+        tuple_form(torch.ones(3), torch.tensor([1.0, float("inf"), 1.0]))
+    with pytest.raises(ValueError, match="estimate must be finite"):
+        bias_std_rms(torch.tensor([[1.0, float("nan")]]), torch.ones(1, 2), dim=0)
+    with pytest.raises(ValueError, match="overflow"):
+        bias_std_rms(torch.tensor([1e200], dtype=torch.float64), torch.zeros(1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="at least one sample"):
+        tuple_form(torch.zeros(0), torch.zeros(0))
+
+
 @pytest.mark.parametrize(
     "call, match",
     [

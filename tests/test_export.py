@@ -120,3 +120,81 @@ def test_loader_refuses_unknown_class(tmp_path):
     torch.save(payload, path)
     with pytest.raises(ValueError, match="not a camhealth estimator"):
         load_estimator(path)
+
+
+def _ort_session(path):
+    import onnxruntime as ort
+
+    return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+
+
+def _hard_patches(batch: int = 6):
+    x, _ = _inputs(3)
+    g = torch.Generator().manual_seed(2)
+    extra = torch.rand(batch - 3, 1, 32, 32, generator=g) * 0.5 + 0.25
+    x = torch.cat([x, extra])
+    x[3] = 0.0  # black
+    x[4] = 1.0  # saturated
+    return x
+
+
+@pytest.mark.parametrize("kind", ["noise_source", "noise_source_none"])
+def test_self_contained_noise_onnx_matches_predict(kind, tmp_path):
+    """ONNX Runtime alone (raw patch in [0, 1], raw metadata in physical units) gives what predict gives."""
+    m = _perturbed(kind)
+    ref = load_estimator(export_weights(m, tmp_path / "w.pt"))
+    path = export_onnx(m, tmp_path / "m.onnx")
+    session = _ort_session(path)
+    minimal = kind == "noise_source"
+    assert [i.name for i in session.get_inputs()] == (["patch", "metadata"] if minimal else ["patch"])
+    assert [o.name for o in session.get_outputs()] == ["sigma", "xi", "sigma_total", "assessable", "reason_code"]
+    for batch in (1, 6, 37):
+        x = _hard_patches(max(batch, 6))[:batch] if batch <= 6 else torch.rand(batch, 1, 32, 32, generator=torch.Generator().manual_seed(3))
+        gain = torch.linspace(0.0, 24.0, batch)
+        meta = CameraMetadata.preset("ICX285", batch_size=batch, gain_db=gain, exposure_s=torch.full((batch,), 0.02),
+                                     temperature_c=torch.linspace(0.0, 80.0, batch))
+        feeds = {"patch": x.numpy()}
+        if minimal:
+            feeds["metadata"] = torch.stack([meta.gain_db, meta.exposure_s, meta.temperature_c], 1).float().numpy()
+        sigma, xi, total, assessable, code = (torch.from_numpy(a) for a in session.run(None, feeds))
+        want = ref.predict(x, meta if minimal else None)
+        assert sigma.shape == (batch, 3) and xi.shape == total.shape == assessable.shape == (batch,)
+        assert (sigma >= 0).all()
+        for got, key in ((sigma, "sigma"), (xi, "xi"), (total, "sigma_total")):
+            assert (got - want[key]).abs().max() < 1e-3, key  # DN
+        assert torch.equal(assessable, want["assessable"])
+        from camhealth.export import ONNX_REASONS
+
+        assert [ONNX_REASONS[int(c)] for c in code] == want["reason"]
+    # the loader runs the same file through predict
+    est = load_estimator(path)
+    x = _hard_patches()
+    meta = CameraMetadata.preset("ICX285", batch_size=6)
+    a, b = ref.predict(x, meta if minimal else None), est.predict(x, meta if minimal else None)
+    assert torch.allclose(a["sigma_total"], b["sigma_total"], atol=1e-3) and a["reason"] == b["reason"]
+
+
+def test_self_contained_noise_onnx_flags_metadata_out_of_range(tmp_path):
+    """The graph cannot raise: metadata that predict refuses (out of range, NaN) make the patch not assessable."""
+    session = _ort_session(export_onnx(_perturbed("noise_source"), tmp_path / "m.onnx"))
+    x = torch.rand(4, 1, 32, 32, generator=torch.Generator().manual_seed(4)) * 0.5 + 0.25
+    meta = torch.tensor([[12.0, 0.01, 40.0], [30.0, 0.01, 40.0], [12.0, 0.5, 40.0], [float("nan"), 0.01, 40.0]])
+    with pytest.raises(ValueError, match="gain_db"):
+        load_estimator(export_weights(_perturbed("noise_source"), tmp_path / "w.pt")).predict(
+            x[1:2], {"gain_db": 30.0, "exposure_s": 0.01, "temperature_c": 40.0})
+    _, _, _, assessable, code = session.run(None, {"patch": x.numpy(), "metadata": meta.numpy()})
+    assert assessable.tolist() == [True, False, False, False] and code.tolist() == [0, 3, 3, 3]
+
+
+def test_shipped_noise_network_exports_self_contained(tmp_path):
+    """The shipped Min-Meta network, exported: ONNX Runtime alone matches predict within 1e-3 DN."""
+    ref = load_estimator("noise_source_min")
+    session = _ort_session(export_onnx(ref.source, tmp_path / "min.onnx"))
+    g = torch.Generator().manual_seed(5)
+    x = (torch.rand(3, 1, 1, 1, generator=g) * 0.8 + 0.1 + torch.randn(3, 1, 128, 128, generator=g) * 0.02).clamp(0, 1)
+    meta = {"gain_db": 18.0, "exposure_s": 0.05, "temperature_c": 55.0}
+    sigma, xi, total, _, _ = session.run(None, {"patch": x.numpy(), "metadata": torch.tensor([[18.0, 0.05, 55.0]] * 3).numpy()})
+    want = ref.predict(x, meta)
+    assert (torch.from_numpy(sigma) - want["sigma"]).abs().max() < 1e-3
+    assert (torch.from_numpy(xi) - want["xi"]).abs().max() < 1e-3
+    assert (torch.from_numpy(total) - want["sigma_total"]).abs().max() < 1e-3

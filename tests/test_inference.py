@@ -133,6 +133,26 @@ def test_shipped_models_load_by_name():
         assert "metrics" in est.description  # every shipped model carries its held-out metrics
 
 
+def test_model_card_timing_uses_all_threads_and_restores_them(min_est, monkeypatch):
+    """The card's ms/patch come from torch.utils.benchmark.Timer at this process's thread count (not Timer's
+    default of 1), and the thread count is as before afterwards."""
+    from torch.utils import benchmark
+
+    from camhealth.model_card import _time_predict
+
+    seen = []
+    real = benchmark.Timer.__init__
+
+    def spy(self, *args, **kwargs):
+        seen.append(kwargs.get("num_threads"))
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(benchmark.Timer, "__init__", spy)
+    threads = torch.get_num_threads()
+    t = _time_predict(min_est, batch=2, min_run_time_s=0.01)
+    assert set(t) == {"fp32", "bf16"} and all(np.isfinite(v) and v > 0 for v in t.values())
+    assert seen == [threads, threads] and torch.get_num_threads() == threads
+
 def test_bucket_sizes():
     from camhealth.inference import bucket_size
 

@@ -16,6 +16,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from camhealth._cli import config_parser
+
 __all__ = ["build_parser", "main"]
 
 EPILOG = """\
@@ -51,8 +53,9 @@ def _positive_int(text: str) -> int:
     return n
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def build_parser():
+    """jsonargparse parser: every option may also come from ``--config FILE``; ``--print_config`` shows them."""
+    p = config_parser(
         prog="python -m camhealth.calibrate", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -70,13 +73,18 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--pixel-clock-hz", type=float, default=None, metavar="HZ")
     g.add_argument("--sense-node-gain-v-per-e", type=float, default=None, metavar="V")
     g.add_argument("--reset-factor", type=float, default=None, metavar="R", help="CMOS kTC residue 0…1 (default: fitted from ≥ 2 temperatures, else 0)")
-    p.add_argument("--operating-point", type=_assignment, action="append", default=[], metavar="FIELD=VALUE",
+    p.add_argument("--operating-point", action="append", default=[], metavar="FIELD=VALUE",  # → _assignment in main
                    help="gain_db, exposure_s or temperature_c written to the metadata (repeatable)")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:  # FIELD=VALUE strings (from the command line or a --config list) → (field, value)
+        operating_point = dict(_assignment(a) for a in args.operating_point)
+    except argparse.ArgumentTypeError as exc:
+        parser.error(f"argument --operating-point: {exc}")
     from camhealth.calibrate import calibrate
     from camhealth.calibrate.report import write_report
 
@@ -86,7 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     }.items() if v is not None}
     command = "python -m camhealth.calibrate " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     try:
-        result = calibrate(args.frames, camera=camera, operating_point=dict(args.operating_point), max_frames=args.max_frames,
+        result = calibrate(args.frames, camera=camera, operating_point=operating_point, max_frames=args.max_frames,
                            gain_db=args.gain_db, temperature_c=args.temperature_c)
     except (FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -217,3 +217,17 @@ def test_poisson_sampler_regimes_and_dtypes():
     assert sample_poisson(torch.zeros(0), g).numel() == 0
     a = sample_poisson(rate, torch.Generator().manual_seed(3))
     assert torch.equal(a, sample_poisson(rate, torch.Generator().manual_seed(3)))
+
+
+def test_library_reuse_comparison_checks_agreement_and_names_rows(capsys):
+    """python -m camhealth.bench.library_reuse: each case's own code and library call agree before timing."""
+    from camhealth.bench.library_reuse import compare, main
+
+    rows = compare(["filter2d", "bias_std_rms"], threads=1, min_run_time=0.001)
+    assert len(rows) == 6 and all(r["own_ms"] > 0 and r["library_ms"] > 0 and r["max_diff"] <= 1e-6 for r in rows)
+    with pytest.raises(ValueError, match="unknown rows"):
+        compare(["nope"])
+    main(["--rows", "bias_std_rms", "--min-run-time", "0.001"])
+    assert "| bias_std_rms: 2000 (library = camhealth.metrics) |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["--threads", "0"])

@@ -123,3 +123,18 @@ def test_to_gray_numpy_and_torch_agree_with_kornia():
     assert sum(BT601_WEIGHTS) == pytest.approx(1.0)
     with pytest.raises(ValueError, match="channels"):
         to_gray(torch.zeros(1, 5, 4, 4))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.uint8])
+def test_to_gray_tensor_weights_dtypes_and_layouts(dtype):
+    """Tensors go through Kornia's rgb_to_grayscale: its weights are BT601_WEIGHTS, in every dtype and layout."""
+    eye = torch.eye(3).view(3, 3, 1, 1).expand(3, 3, 2, 2)  # sample i: channel i = 1, others 0
+    scale = 255 if dtype == torch.uint8 else 1
+    g = to_gray((eye * scale).to(dtype))
+    want_dtype = torch.float32 if dtype == torch.uint8 else dtype
+    assert g.shape == (3, 1, 2, 2) and g.dtype == want_dtype
+    tol = {torch.float16: 1e-3, torch.bfloat16: 4e-3}.get(dtype, 1e-6) * scale
+    assert torch.allclose(g[:, 0, 0, 0].double(), torch.tensor(BT601_WEIGHTS, dtype=torch.float64) * scale, atol=tol)
+    rgba = torch.cat([eye[:1], torch.ones(1, 1, 2, 2)], 1).to(torch.float64)  # alpha dropped, C×H×W too
+    assert torch.allclose(to_gray(rgba[0]), torch.full((1, 2, 2), BT601_WEIGHTS[0], dtype=torch.float64))
+    assert torch.equal(to_gray(rgba[:, :2]), rgba[:, :1])  # gray + alpha: gray kept

@@ -381,3 +381,24 @@ def test_poisson_z_table_rejects_bad_rates(bad):
 
     with pytest.raises(ValueError, match=">= 0"):
         poisson_z_table(torch.tensor(bad, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("k", [5, 41])  # the direct path (filter2d, behaviour="conv") and the FFT path
+def test_apply_psf_is_true_convolution_with_asymmetric_kernels(k):
+    """An asymmetric kernel is convolved, not correlated: the reference flips it for conv2d (a correlation);
+    the FFT path also equals Kornia's fft_conv(behaviour="conv")."""
+    import kornia
+
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(3, 1, 50, 46, generator=g, dtype=torch.float64)
+    psf = torch.rand(3, k, k, generator=g, dtype=torch.float64)
+    psf[:, : k // 2] = 0.0  # support only below and on the centre row: a correlation would shift the other way
+    psf = psf / psf.sum((-1, -2), keepdim=True)
+    y = apply_psf(x, psf, group_by_support=False)
+    p = k // 2
+    padded = torch.nn.functional.pad(x, (p, p, p, p), mode="reflect")
+    ref = torch.cat([torch.nn.functional.conv2d(padded[i : i + 1], psf[i].flip(-1, -2)[None, None]) for i in range(3)])
+    assert torch.allclose(y, ref, rtol=0, atol=1e-10)
+    if k >= image_formation.FFT_MIN_KERNEL:
+        lib = kornia.filters.fft_conv(x, psf, border_type="reflect", behaviour="conv")
+        assert torch.allclose(image_formation._fft_convolve(x, psf, "reflect"), lib, rtol=0, atol=1e-10)
