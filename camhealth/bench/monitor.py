@@ -116,6 +116,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise-samples", type=int, default=8, help="--motion: noise patches per frame in sampled mode (default 8)")
     parser.add_argument("--mtf-samples", type=int, default=6, help="--motion: MTF patches per frame in sampled mode (default 6)")
     parser.add_argument("--window", type=int, default=5, help="--motion: frames of the temporal aggregation (default 5)")
+    parser.add_argument("--backends", action="store_true",
+                        help="--motion: also time the sampled monitor with the MTF network exported to .pt2 and ONNX")
     parser.add_argument("--true-gain-db", type=float, default=None,
                         help="--motion: the sensor's real gain in dB when it differs from the metadata's --gain-db "
                              "(a metadata mismatch: ξ ≠ 0; default: the same)")

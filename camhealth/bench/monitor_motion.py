@@ -27,6 +27,10 @@ source (PN, DCSN, RN), σ_total, ξ and MTF̃ of both modes with their stated un
 the median, :attr:`camhealth.monitor.TaskReport.uncertainty`); they *agree* in a frame when
 |sampled − all| ≤ 2·√(u_sampled² + u_all²) (two combined standard errors, ≈ 95 %).
 
+With ``--backends``: three more sampled monitors on the ego-motion stream whose MTF network is the shipped
+weights file (torch, bf16 autocast), its ``torch.export`` archive (``.pt2``, fp32) and its ONNX export (ONNX
+Runtime, fp32), timed round-robin among themselves.
+
 Memory: peak resident memory (``VmHWM``) of one sampled monitor alone in a fresh interpreter on the moving
 stream (Python, torch, the models and the frames included).
 """
@@ -115,6 +119,39 @@ def _p95(t: list[float]) -> float:
     return s[min(len(s) - 1, int(math.ceil(0.95 * len(s))) - 1)] if s else float("nan")
 
 
+def _backend_rows(args: argparse.Namespace, frames: torch.Tensor, common: dict, tmpdir: Path) -> dict[str, tuple]:
+    """Sampled monitors whose MTF network is the weights file (torch, bf16 autocast), its ``.pt2`` export and its
+    ONNX export (ONNX Runtime, fp32), timed round-robin on ``frames``: {label: (ms, CPU ms, max |ΔMTF̃| to .pt)}."""
+    from camhealth.export import export_onnx, export_pt2
+    from camhealth.inference import shipped_models
+    from camhealth.monitor import Monitor
+
+    src = shipped_models().get(str(common["mtf_model"]), common["mtf_model"])
+    files = {".pt (torch, default)": src, ".pt2 (torch.export)": export_pt2(src, tmpdir / "mtf.pt2")}
+    try:
+        files[".onnx (ONNX Runtime)"] = export_onnx(src, tmpdir / "mtf.onnx")
+    except Exception as exc:  # noqa: BLE001 — an ONNX exporter/runtime problem must not hide the other rows
+        print(f"ONNX row skipped: {exc}")
+    mons = {k: Monitor(**{**common, "mtf_model": v}, mode="sampled", noise_samples=args.noise_samples,
+                       mtf_samples=args.mtf_samples) for k, v in files.items()}
+    out = {k: ([], [], 0.0) for k in mons}
+    with torch.inference_mode():
+        for i in range(frames.shape[0]):
+            ind = {}
+            for k, m in mons.items():
+                c0, t0 = time.process_time(), time.perf_counter()
+                r = m.process(frames[i])
+                r.to_json()
+                out[k][0].append((time.perf_counter() - t0) * 1e3)
+                out[k][1].append((time.process_time() - c0) * 1e3)
+                ind[k] = r.mtf.indicator[0] if r.mtf.assessable else float("nan")
+            ref = ind[next(iter(ind))]
+            for k in mons:
+                if math.isfinite(ind[k]) and math.isfinite(ref):
+                    out[k] = (out[k][0], out[k][1], max(out[k][2], abs(ind[k] - ref)))
+    return out
+
+
 def run_motion(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load, machine_description
     from camhealth.bench.monitor import _models, _probe_memory, peak_rss_mb
@@ -179,6 +216,7 @@ def run_motion(args: argparse.Namespace) -> BenchResult:
                     noise_est.predict(patches, metadata=meta, precision=args.precision, pool=True)
                     ours_ms.append((time.perf_counter() - t0) * 1e3)
                     thesis_n = int(idx.numel())
+        backend_times = _backend_rows(args, streams["ego-motion"], common, tmpdir) if args.backends else {}
         probe = _probe_memory(args, streams["ego-motion"], meta, noise_model, mtf_model, tmpdir, mode="sampled") \
             if args.memory_probe else None
     finally:
@@ -200,6 +238,10 @@ def run_motion(args: argparse.Namespace) -> BenchResult:
                     f"{nn:.1f} of {inf_n:.1f} informative noise ({100 * an:.0f} % of the frame), {nm:.1f} of {inf_m:.1f} "
                     f"informative MTF ({100 * am:.0f} %)")
             rows.append(Row(f"{s}: {m}", t, note=note))
+    for label, (t, c, d_ind) in backend_times.items():
+        rows.append(Row(f"ego-motion: sampled, MTF network as {label}", t[w0:], note=(
+            f"p95 {_p95(t[w0:]):.1f} ms, CPU {Row('', c[w0:]).median_ms:.1f} ms/frame; max |ΔMTF̃| to the .pt monitor "
+            f"{d_ind:.4f}; timed round-robin with the other backends (not with the rows above)")))
     if thesis_ms:
         ratio = sorted(a / max(b, 1e-6) for a, b in zip(thesis_ms, ours_ms))[len(thesis_ms) // 2]
         rows.append(Row(THESIS, thesis_ms, note=f"fp32, {thesis_n} patches per frame ({len(thesis_ms)} frame(s)); camhealth "
@@ -221,7 +263,8 @@ def run_motion(args: argparse.Namespace) -> BenchResult:
                 vs.append(b), va.append(a), us.append(u_b), ua.append(u_a)
                 agree += abs(b - a) <= 2.0 * math.hypot(u_a, u_b)
             if n == 0:
-                parts.append(f"{name}: not assessable")
+                parts.append(f"{name}: no frame to compare" + (f" (--frames {args.frames} < --window {args.window})"
+                                                                if args.frames < args.window else " (not assessable)"))
                 continue
             med = lambda x: sorted(x)[len(x) // 2]  # noqa: E731
             nd = 3 if q is None else 2
