@@ -213,7 +213,8 @@ def run_motion(args: argparse.Namespace) -> BenchResult:
                     thesis(patches)
                     thesis_ms.append((time.perf_counter() - t0) * 1e3)
                     t0 = time.perf_counter()
-                    noise_est.predict(patches, metadata=meta, precision=args.precision, pool=True)
+                    pool = {"pool": True} if "pool" in monitors["ego-motion"][SAMPLED].estimators["noise"].kwargs else {}
+                    noise_est.predict(patches, metadata=meta, precision=args.precision, **pool)
                     ours_ms.append((time.perf_counter() - t0) * 1e3)
                     thesis_n = int(idx.numel())
         backend_times = _backend_rows(args, streams["ego-motion"], common, tmpdir) if args.backends else {}

@@ -304,8 +304,9 @@ class TaskReport:
         median, spread, temporal_spread, current: (K,) frame values (see the module docstring); K = 5
             (:data:`NOISE_FIELDS`, DN) or 16 (MTF H then V).
         indicator: MTF only: (median, spread) of the per-patch blur indicator MTF̃.
-        uncertainty: (K,) standard error of ``median``: 1.2533·spread/√n (the standard error of a median of n
-            values with Gaussian scatter ``spread``), n = ``n_values``.
+        uncertainty: (K,) standard error of ``median``: the larger of 1.2533·spread/√n (the standard error of a
+            median of n values with Gaussian scatter ``spread``, n = ``n_values``) and 1.2533·temporal_spread/√frames
+            (a pooled noise estimate gives every patch of a frame one camera state: only frames are independent).
         indicator_uncertainty: the same for the indicator.
         n_values: number of values behind ``median`` (map mode: patches with a value; sampled mode: samples
             in the window).
@@ -518,6 +519,17 @@ class _TaskState:
             return
         self.history[self.ptr[index], index] = vals
         self.ptr[index] = (self.ptr[index] + 1) % self.window
+
+
+def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, frames: int) -> torch.Tensor:
+    """Standard error of a frame value [its unit]: the larger of 1.2533·spread/√n (scatter of the n values) and
+    1.2533·temporal_spread/√frames (scatter from frame to frame — the values of one frame may share one pooled
+    camera-state posterior, so only the frames are independent)."""
+    se = _MEDIAN_SE * spread / math.sqrt(max(n, 1))
+    if frames > 1:
+        tse = _MEDIAN_SE * torch.nan_to_num(temporal_spread.float(), nan=0.0) / math.sqrt(frames)
+        se = torch.maximum(se, tse)
+    return se
 
 
 def _describe(est: Any) -> str:
@@ -912,8 +924,12 @@ class Monitor:
             ind = spatial_median(mtf_indicator(vals), dim=0)
             indicator = (float(ind.median), float(ind.spread))
             ind_unc = _MEDIAN_SE * indicator[1] / math.sqrt(n)
+        if task == "mtf":
+            ind_frames = spatial_median(mtf_indicator(st.samples.reshape(-1, st.k)).reshape(st.window, -1), dim=1).median
+            ind_unc = max(ind_unc, _MEDIAN_SE * float(spatial_median(ind_frames, dim=0).spread) / math.sqrt(frames)) \
+                if frames > 1 else ind_unc
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread, temporal_spread=tspread,
-                          current=current, indicator=indicator, uncertainty=_MEDIAN_SE * spatial.spread / math.sqrt(n),
+                          current=current, indicator=indicator, uncertainty=_uncertainty(spatial.spread, n, tspread, frames),
                           indicator_uncertainty=ind_unc, n_values=n)
 
     def _aggregate(self, task: str, st: _TaskState, name: str, informative: int = 0, fresh: int = 0) -> TaskReport:
@@ -945,7 +961,8 @@ class Monitor:
             indicator = (float(ind.median), float(ind.spread))
         se = _MEDIAN_SE / math.sqrt(n)
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread,
-                          temporal_spread=tspread, current=current, indicator=indicator, uncertainty=se * spatial.spread,
+                          temporal_spread=tspread, current=current, indicator=indicator,
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames),
                           indicator_uncertainty=None if indicator is None else se * indicator[1], n_values=n)
 
     # ------------------------------------------------------------------ public
