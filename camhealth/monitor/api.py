@@ -1,16 +1,23 @@
 """Real-time camera monitor: frames in, condition (blur, noise per source, ξ alarm) and advice out.
 
-:class:`Monitor` runs the learned estimators of :mod:`camhealth.inference` patch-wise on every frame,
-but only where the scene needs it (:mod:`camhealth.monitor.tiling`: skip black/saturated/featureless
-patches, reuse estimates of static regions, coarse lattice first and refine only where it changes), and
-reports one :class:`FrameReport` per frame (a JSON line):
+:class:`Monitor` runs the estimators of :mod:`camhealth.inference` patch-wise on every frame, but only where
+the scene needs it (:mod:`camhealth.monitor.tiling`), in one of two modes:
+
+- ``"sampled"`` (the default unless per-patch maps are asked for): a few informative patches per frame — flat
+  ones spread over the intensities for noise (a camera-state property), ones with edges spread over the frame
+  for blur — rotating over the frame across frames, the frame answer pooled over the last ``window`` frames;
+  its cost does not depend on the scene or on camera motion (a moving camera);
+- ``"map"``: every informative patch (skip black/saturated/featureless patches, reuse estimates of static
+  regions, coarse lattice first and refine only where it changes), with per-patch maps;
+
+and reports one :class:`FrameReport` per frame (a JSON line) with the coverage of each task:
 
 - **MTF** (H and V at the 8 normalised frequencies f_n ∈ {0.05, …, 0.6}, dimensionless) on the informative
   192-px patches and the IOPC blur indicator MTF̃ (mean of H and V at f_n = 0.1);
 - **noise** σ of photon shot (PN), dark-current shot (DCSN) and readout noise (RN), the residual ξ
   (Eq. 4.3: ξ = σ_Model(M) − σ_Image(M'), DN) and the total σ (√(σ_PN² + σ_DCSN² + σ_RN²), Eq. 4.2 without
   ξ), all in DN of 255, on the informative 128-px patches;
-- **uncertainty by temporal median aggregation** (thesis Sec. 5.6, Eq. 5.4): every patch keeps its last
+- **uncertainty by temporal median aggregation** (thesis Sec. 5.6, Eq. 5.4), map mode: every patch keeps its last
   ``window`` new values (network estimates, or interpolations from freshly estimated neighbours; a reused
   value adds no new information and is not added again); its value is their median σ̃_n and its temporal
   spread 1.4826·MAD (:func:`camhealth.estimators.aggregation.temporal_median`). The frame value is the median
