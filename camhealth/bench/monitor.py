@@ -236,7 +236,7 @@ def rss_probe(config_path: str) -> dict[str, float]:
     frames = torch.load(cfg["frames"], weights_only=True)
     start = peak_rss_mb()
     mon = Monitor(cfg["noise_model"], cfg["mtf_model"], metadata=CameraMetadata(**cfg["metadata"]), precision=cfg["precision"],
-                  mode=cfg.get("mode", "map"))
+                  mode=cfg.get("mode", "map"), **cfg.get("kwargs", {}))
     ms, cpu = [], []
     with torch.inference_mode():
         for f in frames:
@@ -248,7 +248,8 @@ def rss_probe(config_path: str) -> dict[str, float]:
 
 
 def _probe_memory(
-    args: argparse.Namespace, frames: torch.Tensor, meta, noise_model: Any, mtf_model: Any, tmpdir: Path, mode: str = "map"
+    args: argparse.Namespace, frames: torch.Tensor, meta, noise_model: Any, mtf_model: Any, tmpdir: Path, mode: str = "map",
+    kwargs: dict | None = None,
 ) -> dict[str, float] | None:
     import json
     import os
@@ -258,7 +259,7 @@ def _probe_memory(
     torch.save(frames, tmpdir / "frames.pt")
     cfg = {"frames": str(tmpdir / "frames.pt"), "noise_model": str(noise_model), "mtf_model": str(mtf_model),
            "metadata": {k: v[0] for k, v in meta.to_dict().items()}, "precision": args.precision,
-           "threads": torch.get_num_threads(), "mode": mode}
+           "threads": torch.get_num_threads(), "mode": mode, "kwargs": kwargs or {}}
     (tmpdir / "probe.json").write_text(json.dumps(cfg))
     code = "import json, sys; from camhealth.bench.monitor import rss_probe; print(json.dumps(rss_probe(sys.argv[1])))"
     try:

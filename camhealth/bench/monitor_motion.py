@@ -31,8 +31,11 @@ With ``--backends``: three more sampled monitors on the ego-motion stream whose 
 weights file (torch, bf16 autocast), its ``torch.export`` archive (``.pt2``, fp32) and its ONNX export (ONNX
 Runtime, fp32), timed round-robin among themselves.
 
-Memory: peak resident memory (``VmHWM``) of one sampled monitor alone in a fresh interpreter on the moving
-stream (Python, torch, the models and the frames included).
+Alone: the sampled monitor run by itself in a fresh interpreter on the ego-motion and on the static stream (as
+``python -m camhealth.monitor`` runs; interleaving six monitors in one process costs each of them cache and
+allocator traffic that a deployed monitor does not see): median, p95 and CPU ms/frame — the rows the targets
+are judged on — and the peak resident memory (``VmHWM``: Python, torch, the models and the frames included).
+``--no-memory-probe`` skips them.
 """
 
 from __future__ import annotations
@@ -218,8 +221,10 @@ def run_motion(args: argparse.Namespace) -> BenchResult:
                     ours_ms.append((time.perf_counter() - t0) * 1e3)
                     thesis_n = int(idx.numel())
         backend_times = _backend_rows(args, streams["ego-motion"], common, tmpdir) if args.backends else {}
-        probe = _probe_memory(args, streams["ego-motion"], meta, noise_model, mtf_model, tmpdir, mode="sampled") \
-            if args.memory_probe else None
+        kw = {"window": args.window, "noise_samples": args.noise_samples, "mtf_samples": args.mtf_samples}
+        probes = {s: _probe_memory(args, streams[s], meta, noise_model, mtf_model, tmpdir, mode="sampled", kwargs=kw)
+                  for s in ("ego-motion", "static")} if args.memory_probe else {}
+        probe = probes.get("ego-motion")
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
 
@@ -243,6 +248,12 @@ def run_motion(args: argparse.Namespace) -> BenchResult:
         rows.append(Row(f"ego-motion: sampled, MTF network as {label}", t[w0:], note=(
             f"p95 {_p95(t[w0:]):.1f} ms, CPU {Row('', c[w0:]).median_ms:.1f} ms/frame; max |ΔMTF̃| to the .pt monitor "
             f"{d_ind:.4f}; timed round-robin with the other backends (not with the rows above)")))
+    for s, pr in probes.items():
+        if pr and len(pr.get("ms", [])) > w0:
+            rows.append(Row(f"{s}: sampled, monitor alone in its process", pr["ms"][w0:], note=(
+                f"p95 {_p95(pr['ms'][w0:]):.1f} ms, CPU {Row('', pr['cpu_ms'][w0:]).median_ms:.1f} ms/frame; a fresh "
+                f"interpreter running only this monitor (as `python -m camhealth.monitor` runs), same frames; peak "
+                f"resident memory {pr['peak_mb']:.0f} MB")))
     if thesis_ms:
         ratio = sorted(a / max(b, 1e-6) for a, b in zip(thesis_ms, ours_ms))[len(thesis_ms) // 2]
         rows.append(Row(THESIS, thesis_ms, note=f"fp32, {thesis_n} patches per frame ({len(thesis_ms)} frame(s)); camhealth "
@@ -278,17 +289,26 @@ def run_motion(args: argparse.Namespace) -> BenchResult:
     mov_med = max(r.median_ms for r in moving)
     mov_p95 = max(_p95(times[(s, SAMPLED)][w0:]) for s in ("ego-motion", "photos"))
     static_med = Row("", times[("static", SAMPLED)][w0:]).median_ms
+    alone = {s: pr["ms"][w0:] for s, pr in probes.items() if pr and len(pr.get("ms", [])) > w0}
     is_target_size = (args.width, args.height) == (1280, 1024)
 
     def verdict(ok: bool) -> str:
         return ("met" if ok else "NOT met") if is_target_size else "defined for 1280×1024 only"
 
-    summary = [
-        f"sampled mode, moving streams: median {mov_med:.1f} ms/frame (target ≤ {TARGET_MOVING_MS:.0f}: "
+    summary = []
+    if "ego-motion" in alone and "static" in alone:
+        am, ap, ast = Row("", alone["ego-motion"]).median_ms, _p95(alone["ego-motion"]), Row("", alone["static"]).median_ms
+        summary.append(
+            f"sampled monitor alone in its process (the targets): moving (ego-motion) median {am:.1f} ms/frame (target ≤ "
+            f"{TARGET_MOVING_MS:.0f}: {verdict(am <= TARGET_MOVING_MS)}), p95 {ap:.1f} ms (target ≤ {TARGET_MOVING_P95_MS:.0f}: "
+            f"{verdict(ap <= TARGET_MOVING_P95_MS)}); static median {ast:.1f} ms/frame (target ≤ {TARGET_STATIC_MS:.0f}: "
+            f"{verdict(ast <= TARGET_STATIC_MS)})")
+    summary += [
+        f"sampled mode interleaved with the every-patch monitors, moving streams: median {mov_med:.1f} ms/frame (target ≤ {TARGET_MOVING_MS:.0f}: "
         f"{verdict(mov_med <= TARGET_MOVING_MS)}), p95 {mov_p95:.1f} ms (target ≤ {TARGET_MOVING_P95_MS:.0f}: "
         f"{verdict(mov_p95 <= TARGET_MOVING_P95_MS)}); static: median {static_med:.1f} ms/frame (target ≤ "
-        f"{TARGET_STATIC_MS:.0f}: {verdict(static_med <= TARGET_STATIC_MS)}) — the worse of the two moving streams, "
-        f"timed interleaved with the every-patch monitors",
+        f"{TARGET_STATIC_MS:.0f}: {verdict(static_med <= TARGET_STATIC_MS)}) — the worse of the two moving streams; "
+        f"interleaving six monitors in one process costs each of them cache and allocator traffic",
         (f"peak resident memory of one sampled monitor alone on the moving stream (fresh interpreter, VmHWM): "
          f"{probe['peak_mb']:.0f} MB (target ≤ {TARGET_RSS_MB:.0f} MB: {'met' if probe['peak_mb'] <= TARGET_RSS_MB else 'NOT met'}; "
          f"{probe['start_mb']:.0f} MB before the monitor); alone it takes median "
