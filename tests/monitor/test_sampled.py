@@ -193,3 +193,27 @@ def test_cli_auto_mode_uses_maps_for_per_patch(models, capsys):
     assert d["noise"]["coverage"]["mode"] == "map" and d["noise"]["coverage"]["patches_xy"] is None
     assert len(d["noise"]["per_patch"]["status"]) == d["noise"]["coverage"]["total"]
     assert np.isfinite(d["noise"]["coverage"]["area_fraction"])
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+def test_sampled_black_or_white_frame_is_not_assessable_without_network_calls(value):
+    fn, fm = FakeNoise(), FakeMTF()
+    mon = Monitor(fn, fm, sensor="ICX285", mode="sampled")
+    d = json.loads(mon.process(torch.full((512, 768), value)).to_json())
+    assert d["assessable"] is False and d["noise"]["sigma_dn"] is None and d["mtf"]["indicator"] is None
+    assert d["noise"]["coverage"]["estimated"] == 0 and d["noise"]["coverage"]["patches_xy"] == []
+    assert fn.patches == 0 and fm.patches == 0
+
+
+def test_sampled_small_frame_half_precision_and_metadata_reset(street_frames):
+    fn = FakeNoise()
+    mon = Monitor(fn, FakeMTF(), sensor="ICX285", mode="sampled", noise_samples=3, mtf_samples=2, window=4)
+    d = json.loads(mon.process(torch.rand(100, 150)).to_json())  # smaller than one patch: documented skip
+    assert d["noise"]["assessable"] is False and "smaller than one" in d["noise"]["note"]
+    frames = _moving_stream(street_frames, 3, 3.0)
+    for dtype in (torch.float16, torch.bfloat16, torch.float64):
+        r = mon.process(frames[0].to(dtype))
+        assert r.noise.assessable and r.noise.coverage["estimated"] == 3
+    assert r.noise.n_values == 9  # three frames of three samples
+    r = mon.process(frames[1], metadata={"gain_db": 12.0})  # a metadata change restarts the window
+    assert r.noise.n_values == 3 and r.noise.coverage["frames"] == 1
