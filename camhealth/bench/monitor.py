@@ -110,6 +110,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frames timed for the fp32 and thesis-size rows (default 2; 0: no such rows)")
     parser.add_argument("--thesis-patches", type=int, default=4,
                         help="patches the thesis-size net is timed on (default 4; 0: no thesis row)")
+    parser.add_argument("--motion", action="store_true",
+                        help="moving-camera benchmark: sampled mode vs every informative patch on the static street clip, "
+                             "the clip with simulated ego-motion and unrelated photographs (see camhealth.bench.monitor_motion)")
+    parser.add_argument("--noise-samples", type=int, default=8, help="--motion: noise patches per frame in sampled mode (default 8)")
+    parser.add_argument("--mtf-samples", type=int, default=6, help="--motion: MTF patches per frame in sampled mode (default 6)")
+    parser.add_argument("--window", type=int, default=5, help="--motion: frames of the temporal aggregation (default 5)")
+    parser.add_argument("--backends", action="store_true",
+                        help="--motion: also time the sampled monitor with the MTF network exported to .pt2 and ONNX")
+    parser.add_argument("--true-gain-db", type=float, default=None,
+                        help="--motion: the sensor's real gain in dB when it differs from the metadata's --gain-db "
+                             "(a metadata mismatch: ξ ≠ 0; default: the same)")
 
 
 def _frames(args: argparse.Namespace, meta) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -171,6 +182,10 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load
     from camhealth.physics import CameraMetadata
 
+    if getattr(args, "motion", False):
+        from camhealth.bench.monitor_motion import run_motion
+
+        return run_motion(args)
     checks = ((args.frames, "--frames", 1), (args.slow_frames, "--slow-frames", 0), (args.thesis_patches, "--thesis-patches", 0),
               (args.width, "--width", 1), (args.height, "--height", 1))
     for v, name, lo in checks:
@@ -220,7 +235,8 @@ def rss_probe(config_path: str) -> dict[str, float]:
     keep_freed_memory()
     frames = torch.load(cfg["frames"], weights_only=True)
     start = peak_rss_mb()
-    mon = Monitor(cfg["noise_model"], cfg["mtf_model"], metadata=CameraMetadata(**cfg["metadata"]), precision=cfg["precision"])
+    mon = Monitor(cfg["noise_model"], cfg["mtf_model"], metadata=CameraMetadata(**cfg["metadata"]), precision=cfg["precision"],
+                  mode=cfg.get("mode", "map"), **cfg.get("kwargs", {}))
     ms, cpu = [], []
     with torch.inference_mode():
         for f in frames:
@@ -232,7 +248,8 @@ def rss_probe(config_path: str) -> dict[str, float]:
 
 
 def _probe_memory(
-    args: argparse.Namespace, frames: torch.Tensor, meta, noise_model: Any, mtf_model: Any, tmpdir: Path
+    args: argparse.Namespace, frames: torch.Tensor, meta, noise_model: Any, mtf_model: Any, tmpdir: Path, mode: str = "map",
+    kwargs: dict | None = None,
 ) -> dict[str, float] | None:
     import json
     import os
@@ -242,7 +259,7 @@ def _probe_memory(
     torch.save(frames, tmpdir / "frames.pt")
     cfg = {"frames": str(tmpdir / "frames.pt"), "noise_model": str(noise_model), "mtf_model": str(mtf_model),
            "metadata": {k: v[0] for k, v in meta.to_dict().items()}, "precision": args.precision,
-           "threads": torch.get_num_threads()}
+           "threads": torch.get_num_threads(), "mode": mode, "kwargs": kwargs or {}}
     (tmpdir / "probe.json").write_text(json.dumps(cfg))
     code = "import json, sys; from camhealth.bench.monitor import rss_probe; print(json.dumps(rss_probe(sys.argv[1])))"
     try:
@@ -314,11 +331,11 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
     noise_model, mtf_model = _models(args, tmpdir)
     common = dict(noise_model=noise_model, mtf_model=mtf_model, metadata=meta, precision=args.precision)
     monitors = {
-        ALL: Monitor(**common, adaptive=False, skip_uninformative=False),
-        INFORMATIVE: Monitor(**common, adaptive=False),
-        ADAPTIVE: Monitor(**common),
+        ALL: Monitor(**common, mode="map", adaptive=False, skip_uninformative=False),
+        INFORMATIVE: Monitor(**common, mode="map", adaptive=False),
+        ADAPTIVE: Monitor(**common, mode="map"),
     }
-    fp32 = Monitor(**{**common, "precision": "fp32"}, adaptive=False)
+    fp32 = Monitor(**{**common, "precision": "fp32"}, mode="map", adaptive=False)
     thesis = ThesisNoiseNet().eval()
     noise_est = monitors[INFORMATIVE].estimators["noise"].est
     for m in (*monitors.values(), fp32):  # warm-up (oneDNN kernels), then forget the state

@@ -165,6 +165,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "set OMP_WAIT_POLICY=PASSIVE in the environment or use --threads 1: OpenMP threads that "
                         "spin-wait against other jobs can be 20x slower)")
     g = p.add_argument_group("scene-adaptive selection")
+    g.add_argument("--mode", choices=("auto", "sampled", "map"), default="auto",
+                   help="sampled: a frame-level answer from a few patches per frame (flat patches for noise, patches "
+                        "with edges for blur, rotating over the frame; cost independent of camera motion); map: every "
+                        "informative patch (per-patch maps, static reuse); auto (default): map with --per-patch or "
+                        "--overlay, else sampled")
+    g.add_argument("--noise-samples", type=_positive, default=8, metavar="N",
+                   help="sampled mode: noise patches per frame (default 8)")
+    g.add_argument("--mtf-samples", type=_positive, default=6, metavar="N",
+                   help="sampled mode: MTF patches per frame (default 6)")
     g.add_argument("--no-adaptive", action="store_true",
                    help="estimate every informative patch of every frame (no static reuse, no coarse-to-fine)")
     g.add_argument("--no-reuse", action="store_true", help="do not reuse estimates of static regions across frames")
@@ -363,7 +372,8 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     monitor = Monitor(
         noise_model=noise_model, mtf_model=mtf_model, metadata=metadata,
         sensor=args.sensor,
-        window=args.window, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
+        window=args.window, mode=("map" if args.overlay or args.per_patch else "sampled") if args.mode == "auto" else args.mode,
+        noise_samples=args.noise_samples, mtf_samples=args.mtf_samples, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
         skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, pool_noise=not args.per_patch_noise, batch_size=args.batch_size,
         xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
     )

@@ -1,16 +1,23 @@
 """Real-time camera monitor: frames in, condition (blur, noise per source, ξ alarm) and advice out.
 
-:class:`Monitor` runs the learned estimators of :mod:`camhealth.inference` patch-wise on every frame,
-but only where the scene needs it (:mod:`camhealth.monitor.tiling`: skip black/saturated/featureless
-patches, reuse estimates of static regions, coarse lattice first and refine only where it changes), and
-reports one :class:`FrameReport` per frame (a JSON line):
+:class:`Monitor` runs the estimators of :mod:`camhealth.inference` patch-wise on every frame, but only where
+the scene needs it (:mod:`camhealth.monitor.tiling`), in one of two modes:
+
+- ``"sampled"`` (the default unless per-patch maps are asked for): a few informative patches per frame — flat
+  ones spread over the intensities for noise (a camera-state property), ones with edges spread over the frame
+  for blur — rotating over the frame across frames, the frame answer pooled over the last ``window`` frames;
+  its cost does not depend on the scene or on camera motion (a moving camera);
+- ``"map"``: every informative patch (skip black/saturated/featureless patches, reuse estimates of static
+  regions, coarse lattice first and refine only where it changes), with per-patch maps;
+
+and reports one :class:`FrameReport` per frame (a JSON line) with the coverage of each task:
 
 - **MTF** (H and V at the 8 normalised frequencies f_n ∈ {0.05, …, 0.6}, dimensionless) on the informative
   192-px patches and the IOPC blur indicator MTF̃ (mean of H and V at f_n = 0.1);
 - **noise** σ of photon shot (PN), dark-current shot (DCSN) and readout noise (RN), the residual ξ
   (Eq. 4.3: ξ = σ_Model(M) − σ_Image(M'), DN) and the total σ (√(σ_PN² + σ_DCSN² + σ_RN²), Eq. 4.2 without
   ξ), all in DN of 255, on the informative 128-px patches;
-- **uncertainty by temporal median aggregation** (thesis Sec. 5.6, Eq. 5.4): every patch keeps its last
+- **uncertainty by temporal median aggregation** (thesis Sec. 5.6, Eq. 5.4), map mode: every patch keeps its last
   ``window`` new values (network estimates, or interpolations from freshly estimated neighbours; a reused
   value adds no new information and is not added again); its value is their median σ̃_n and its temporal
   spread 1.4826·MAD (:func:`camhealth.estimators.aggregation.temporal_median`). The frame value is the median
@@ -49,6 +56,7 @@ from camhealth.monitor.tiling import (
     INTERPOLATED,
     NOT_ASSESSABLE,
     REUSED,
+    UNSAMPLED,
     STATUS_NAMES,
     PatchGrid,
     SelectionConfig,
@@ -56,6 +64,7 @@ from camhealth.monitor.tiling import (
     coarse_lattice,
     grid_statistics,
     refine_plan,
+    sample_patches,
     select_patches,
     status_counts,
 )
@@ -65,6 +74,7 @@ from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 __all__ = [
     "NOISE_FIELDS",
     "TASKS",
+    "MODES",
     "Monitor",
     "FrameReport",
     "TaskReport",
@@ -81,6 +91,9 @@ TASKS: dict[str, tuple[str, ...]] = {"noise": ("noise_source", "drne"), "mtf": (
 #: Standard error of a median = √(π/2)·σ/√n for Gaussian scatter.
 _MEDIAN_SE = math.sqrt(math.pi / 2.0)
 _VALUE_STATUS = (ESTIMATED, INTERPOLATED, REUSED)
+#: Monitor modes: ``"sampled"`` (a few patches per frame, frame-level answer), ``"map"`` (every informative
+#: patch, per-patch maps) and ``"auto"`` (``"map"`` when per-patch output is asked for, else ``"sampled"``).
+MODES: tuple[str, ...] = ("auto", "sampled", "map")
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -298,6 +311,17 @@ class TaskReport:
         median, spread, temporal_spread, current: (K,) frame values (see the module docstring); K = 5
             (:data:`NOISE_FIELDS`, DN) or 16 (MTF H then V).
         indicator: MTF only: (median, spread) of the per-patch blur indicator MTF̃.
+        uncertainty: (K,) standard error of ``median``: the larger of 1.2533·spread/√n (the standard error of a
+            median of n values with Gaussian scatter ``spread``, n = ``n_values``) and 1.2533·temporal_spread/√frames
+            (a pooled noise estimate gives every patch of a frame one camera state: only frames are independent).
+        indicator_uncertainty: the same for the indicator.
+        n_values: number of values behind ``median`` (map mode: patches with a value; sampled mode: samples
+            in the window).
+        coverage: where the networks ran this frame (see :meth:`Monitor.process`): ``mode``, ``estimated``
+            (patches sent to the network and assessable), ``informative``, ``total``, ``area_fraction``
+            (estimated area / frame area), ``values`` (= n_values), ``frames`` (frames behind the answer),
+            ``patches_xy`` (sampled mode: top-left corners [px] of the estimated patches; map mode: ``None``,
+            the per-patch map says where).
         counts: patches per status (:data:`~camhealth.monitor.tiling.STATUS_NAMES`) and ``total``.
         note: why a task could not be assessed, if it could not.
         grid_obj, values, code: per-patch maps (not serialised unless asked).
@@ -313,6 +337,10 @@ class TaskReport:
     temporal_spread: torch.Tensor | None = None
     current: torch.Tensor | None = None
     indicator: tuple[float, float] | None = None
+    uncertainty: torch.Tensor | None = None
+    indicator_uncertainty: float | None = None
+    n_values: int = 0
+    coverage: dict[str, Any] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     note: str = ""
     grid_obj: PatchGrid | None = field(default=None, repr=False)
@@ -331,7 +359,7 @@ class TaskReport:
         return {
             key: None if t is None else _num(t[sl])
             for key, t in (("median", self.median), ("spread", self.spread), ("temporal_spread", self.temporal_spread),
-                           ("current", self.current))
+                           ("current", self.current), ("uncertainty", self.uncertainty))
         }
 
     def to_dict(self, per_patch: bool = False) -> dict[str, Any]:
@@ -346,10 +374,12 @@ class TaskReport:
                 out["h"] = self._stats(slice(0, n))
                 out["v"] = self._stats(slice(n, 2 * n))
                 ind = self.indicator
-                out["indicator"] = {"median": _num(ind[0]), "spread": _num(ind[1])} if ind else None
+                out["indicator"] = {"median": _num(ind[0]), "spread": _num(ind[1]),
+                                    "uncertainty": _num(self.indicator_uncertainty)} if ind else None
             else:
                 out["h"] = out["v"] = out["indicator"] = None
         out["patches"] = dict(self.counts)
+        out["coverage"] = dict(self.coverage)
         if self.note:
             out["note"] = self.note
         if per_patch and self.grid_obj is not None and self.values is not None and self.code is not None:
@@ -457,11 +487,15 @@ class _TaskState:
     k: int
     window: int
     config: SelectionConfig
+    n_samples: int = 1
     values: torch.Tensor = field(init=False)
     code: torch.Tensor = field(init=False)
     history: torch.Tensor = field(init=False)
     ptr: torch.Tensor = field(init=False)
     static: StaticRegions = field(init=False)
+    last_sampled: torch.Tensor = field(init=False)
+    samples: torch.Tensor = field(init=False)
+    sample_slot: int = 0
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -475,6 +509,16 @@ class _TaskState:
         self.history = torch.full((self.window, n, self.k), float("nan"))
         self.ptr = torch.zeros(n, dtype=torch.long)
         self.static.reset()
+        self.last_sampled = torch.full((n,), -1, dtype=torch.long)
+        self.samples = torch.full((self.window, self.n_samples, self.k), float("nan"))
+        self.sample_slot = 0
+
+    def push_samples(self, vals: torch.Tensor) -> None:
+        """Sampled mode: this frame's assessable samples (n, K) replace the oldest frame of the window."""
+        row = self.samples[self.sample_slot]
+        row.fill_(float("nan"))
+        row[: vals.shape[0]] = vals[: self.n_samples]
+        self.sample_slot = (self.sample_slot + 1) % self.window
 
     def push(self, index: torch.Tensor, vals: torch.Tensor) -> None:
         """Append fresh estimates to the patches' ring buffers."""
@@ -482,6 +526,17 @@ class _TaskState:
             return
         self.history[self.ptr[index], index] = vals
         self.ptr[index] = (self.ptr[index] + 1) % self.window
+
+
+def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, frames: int) -> torch.Tensor:
+    """Standard error of a frame value [its unit]: the larger of 1.2533·spread/√n (scatter of the n values) and
+    1.2533·temporal_spread/√frames (scatter from frame to frame — the values of one frame may share one pooled
+    camera-state posterior, so only the frames are independent)."""
+    se = _MEDIAN_SE * spread / math.sqrt(max(n, 1))
+    if frames > 1:
+        tse = _MEDIAN_SE * torch.nan_to_num(temporal_spread.float(), nan=0.0) / math.sqrt(frames)
+        se = torch.maximum(se, tse)
+    return se
 
 
 def _describe(est: Any) -> str:
@@ -501,6 +556,13 @@ class Monitor:
             required when the noise estimator reads metadata.
         sensor: sensor preset that fills missing metadata fields (or is the metadata).
         window: n of the temporal median (Eq. 5.4), frames (>= 1).
+        mode: ``"sampled"`` — a frame-level answer from a few patches per frame (``noise_samples`` flat patches
+            spread over the intensities, ``mtf_samples`` patches with edges spread over the frame, both rotating
+            over the frame across frames; :func:`~camhealth.monitor.tiling.sample_patches`) pooled over the last
+            ``window`` frames: cost independent of the scene and of camera motion; ``"map"`` — every informative
+            patch (with ``adaptive`` reuse/interpolation), per-patch maps; ``"auto"`` (default) — ``"map"`` when
+            ``per_patch`` output is asked for, else ``"sampled"``.
+        noise_samples, mtf_samples: patches per frame in sampled mode (>= 1; default 8 and 6).
         adaptive: reuse static patches and interpolate on the coarse lattice (``False``: estimate every
             informative patch of every frame).
         reuse_static, coarse_refine: the two parts of ``adaptive`` separately.
@@ -531,6 +593,9 @@ class Monitor:
         metadata: Any = None,
         sensor: str | None = None,
         window: int = 5,
+        mode: str = "auto",
+        noise_samples: int = 8,
+        mtf_samples: int = 6,
         adaptive: bool = True,
         reuse_static: bool = True,
         coarse_refine: bool = True,
@@ -548,6 +613,11 @@ class Monitor:
     ) -> None:
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
             raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
+        if mode not in MODES:
+            raise ValueError(f"mode = {mode!r} must be one of {list(MODES)}")
+        for v, name in ((noise_samples, "noise_samples"), (mtf_samples, "mtf_samples")):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} = {v!r} must be an integer >= 1 (patches per frame)")
         if precision not in ("bf16", "fp32"):
             raise ValueError(f"precision = {precision!r} must be 'bf16' or 'fp32'")
         if mtf_views not in (1, 2, 4) or isinstance(mtf_views, bool):
@@ -558,6 +628,8 @@ class Monitor:
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} = {v!r} must be a finite number >= 0")
         self.window = window
+        self.mode = ("map" if per_patch else "sampled") if mode == "auto" else mode
+        self.n_samples = {"noise": int(noise_samples), "mtf": int(mtf_samples)}
         self.reuse_static = bool(adaptive and reuse_static)
         self.coarse_refine = bool(adaptive and coarse_refine)
         self.skip_uninformative = bool(skip_uninformative)
@@ -648,7 +720,7 @@ class Monitor:
         self._shape = (h, w)
         self._states = {
             task: _TaskState(PatchGrid.fit(h, w, int(handle.est.patch_size)), 5 if task == "noise" else 16, self.window,
-                             self.selection)
+                             self.selection, self.n_samples[task])
             for task, handle in self.estimators.items()
         }
         if self.warmup:
@@ -662,7 +734,7 @@ class Monitor:
             handle = self.estimators[task]
             if st.grid.empty or not isinstance(handle.est, Estimator) or handle.est.backend != "torch":
                 continue  # oneDNN kernels: torch-backend camhealth estimators only
-            n_max = min(st.grid.n, self.batch_size)
+            n_max = min(st.grid.n, self.batch_size, self.n_samples[task] if self.mode == "sampled" else st.grid.n)
             sizes = sorted({min(bucket_size(k), n_max) for k in range(1, n_max + 1)})
             meta = self.metadata if getattr(handle.est, "metadata_set", "none") != "none" else None
             p = st.grid.patch
@@ -762,6 +834,18 @@ class Monitor:
             informative = torch.ones_like(informative)
             code = torch.full_like(code, ESTIMATED)
         values = torch.full((grid.n, st.k), float("nan"))
+        if self.mode == "sampled":
+            idx = sample_patches(grid, stats, informative, self.n_samples[task], task, st.last_sampled)
+            vals, ok = self._estimate(task, patches, idx, meta)
+            code[informative] = UNSAMPLED
+            code[idx] = ESTIMATED
+            code[idx[~ok]] = NOT_ASSESSABLE
+            values[idx] = vals
+            st.last_sampled[idx] = self._counter
+            st.push_samples(vals[ok])
+            st.values, st.code = values, code
+            boxes = grid.boxes()[idx[ok]]
+            return self._aggregate_sampled(task, st, handle.name, int(informative.sum()), boxes)
         if self.reuse_static:
             had = torch.isfinite(st.values).any(1) & torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8))
             reuse = informative & had & ~st.static.changed(stats) & ~st.static.due(self._counter)
@@ -807,15 +891,64 @@ class Monitor:
             st.static.update(new_idx, stats, self._counter)
         st.push(new_idx, values[new_idx])
         st.values, st.code = values, code
-        return self._aggregate(task, st, handle.name)
+        fresh_n = int(fresh.sum())
+        return self._aggregate(task, st, handle.name, int(informative.sum()), fresh_n)
 
-    def _aggregate(self, task: str, st: _TaskState, name: str) -> TaskReport:
+    @staticmethod
+    def _coverage(mode: str, grid: PatchGrid, estimated: int, informative: int, values: int, frames: int,
+                  boxes: torch.Tensor | None) -> dict[str, Any]:
+        area = estimated * grid.patch * grid.patch / float(grid.height * grid.width)
+        return {"mode": mode, "estimated": estimated, "informative": informative, "total": grid.n,
+                "area_fraction": round(area, 4), "values": values, "frames": frames,
+                "patches_xy": None if boxes is None else boxes[:, :2].tolist()}
+
+    def _aggregate_sampled(self, task: str, st: _TaskState, name: str, informative: int, boxes: torch.Tensor) -> TaskReport:
+        """Frame answer of sampled mode: median of all samples of the last ``window`` frames."""
         grid = st.grid
         counts = status_counts(st.code)
         counts["total"] = grid.n
+        flat = st.samples.reshape(-1, st.k)
+        vals = flat[torch.isfinite(flat[:, -1])]
+        frames = int(torch.isfinite(st.samples[..., -1]).any(1).sum())
+        coverage = self._coverage("sampled", grid, int(boxes.shape[0]), informative, int(vals.shape[0]), frames, boxes)
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
-                    grid_obj=grid, values=st.values.clone(), code=st.code.clone())
+                    grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage)
+        if boxes.shape[0] == 0:  # as in map mode: a frame without an informative patch is not assessable
+            skipped = {k: v for k, v in counts.items() if k in ("black", "saturated", "featureless", "not_assessable") and v}
+            why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
+            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why})")
+        spatial = spatial_median(vals, dim=0)
+        n = int(vals.shape[0])
+        per_frame = torch.nanmedian(st.samples, dim=1).values  # (window, K), NaN for frames without samples
+        tspread = spatial_median(per_frame, dim=0).spread
+        cur = st.samples[(st.sample_slot - 1) % st.window]
+        cur = cur[torch.isfinite(cur[:, -1])]
+        current = spatial_median(cur, dim=0).median if cur.shape[0] else torch.full((st.k,), float("nan"))
+        indicator = ind_unc = None
+        if task == "mtf":
+            from camhealth.physics.mtf import mtf_indicator
+
+            ind = spatial_median(mtf_indicator(vals), dim=0)
+            indicator = (float(ind.median), float(ind.spread))
+            ind_unc = _MEDIAN_SE * indicator[1] / math.sqrt(n)
+        if task == "mtf":
+            ind_frames = spatial_median(mtf_indicator(st.samples.reshape(-1, st.k)).reshape(st.window, -1), dim=1).median
+            ind_unc = max(ind_unc, _MEDIAN_SE * float(spatial_median(ind_frames, dim=0).spread) / math.sqrt(frames)) \
+                if frames > 1 else ind_unc
+        return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread, temporal_spread=tspread,
+                          current=current, indicator=indicator, uncertainty=_uncertainty(spatial.spread, n, tspread, frames),
+                          indicator_uncertainty=ind_unc, n_values=n)
+
+    def _aggregate(self, task: str, st: _TaskState, name: str, informative: int = 0, fresh: int = 0) -> TaskReport:
+        grid = st.grid
+        counts = status_counts(st.code)
+        counts["total"] = grid.n
         has = torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8)) & torch.isfinite(st.values).any(1)
+        n = int(has.sum())
+        frames = min(self._counter + 1, self.window)
+        coverage = self._coverage("map", grid, fresh, informative, n, frames, None)
+        base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
+                    grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage)
         if not bool(has.any()):
             skipped = {k: v for k, v in counts.items() if k not in ("estimated", "interpolated", "reused", "total") and v}
             why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
@@ -833,8 +966,11 @@ class Monitor:
 
             ind = spatial_median(mtf_indicator(per_patch), dim=0)
             indicator = (float(ind.median), float(ind.spread))
+        se = _MEDIAN_SE / math.sqrt(n)
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread,
-                          temporal_spread=tspread, current=current, indicator=indicator)
+                          temporal_spread=tspread, current=current, indicator=indicator,
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames),
+                          indicator_uncertainty=None if indicator is None else se * indicator[1], n_values=n)
 
     # ------------------------------------------------------------------ public
     def process(self, frame: Any, metadata: Any = None, index: int | None = None, source_id: str | None = None) -> FrameReport:
@@ -887,7 +1023,7 @@ class Monitor:
         if not noise.assessable or noise.median is None:
             return xi_alarm(float("nan"), float("nan"), 0)
         i = NOISE_FIELDS.index("xi")
-        count = int(noise.counts.get("estimated", 0) + noise.counts.get("interpolated", 0) + noise.counts.get("reused", 0))
+        count = noise.n_values
         return xi_alarm(float(noise.median[i]), float(noise.spread[i]), count, self.xi_threshold_dn, self.xi_sigmas,
                         total_dn=noise.value("total"))
 
@@ -952,6 +1088,7 @@ class Monitor:
             "estimators": {task: h.name for task, h in self.estimators.items()},
             "patches": {task: dict(c) for task, c in self._counts.items()},
             "alarms": dict(self._alarms),
+            "mode": self.mode, "samples_per_frame": dict(self.n_samples) if self.mode == "sampled" else None,
             "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,
             "window": self.window,
             "adaptive": {"reuse_static": self.reuse_static, "coarse_refine": self.coarse_refine,

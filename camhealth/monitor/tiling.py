@@ -44,12 +44,32 @@ units — σ_s / σ_s,model(M, Ī) per source and ξ / σ_model(M, Ī), with the
 patch's own mean intensity (σ_PN = 255·√(g·Ī/FW)) — so that neighbours of different brightness can be
 used; the cues are then σ̂ / σ_model (texture) and the clipped fraction.
 
+**Sampling for a frame-level answer** (:func:`sample_patches`, the monitor's ``mode="sampled"``): on a
+moving camera nothing can be reused and every patch is new in every frame, but noise is a property of the
+camera state (one σ per source at a given intensity) and blur changes slowly over the frame. So only a few
+informative patches per frame are estimated and the frame answer is aggregated over time:
+
+- noise: the informative patches are split into ``k`` strata of equal count by their mean intensity Ī
+  (so that the samples follow the frame's intensity distribution, σ_PN ∝ √Ī); in each stratum the flatter
+  half (lowest s + e: texture least confused with noise) is eligible and the one sampled longest ago is
+  taken (rotation over the frame across frames; ties → the flattest);
+- blur: only where there are edges — the informative patches (structure contrast s ≥ ``min_structure_dn``,
+  not clipped); the grid is split into ``k`` sectors (rows × columns close to the grid's aspect), so that
+  a blur that varies over the frame (depth, field curvature) is seen everywhere; in each sector the
+  informative patch sampled longest ago is taken (ties → the most edge energy e). All informative patches
+  of a sector are eligible, not only the edgiest: the MTF network reads strongly textured patches as
+  sharper, so preferring them would bias the frame's MTF̃ against the every-patch answer.
+
+Strata or sectors without a candidate leave their slot to the remaining candidates sampled longest ago, so
+``k`` patches are sampled whenever ``k`` are informative.
+
 Status codes per patch: :data:`STATUS_NAMES`. All functions are batched over patches (no Python loop over
 patches); grids are row-major.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -67,6 +87,7 @@ __all__ = [
     "SATURATED",
     "FEATURELESS",
     "NOT_ASSESSABLE",
+    "UNSAMPLED",
     "SKIP_CODES",
     "PatchGrid",
     "PatchStats",
@@ -79,14 +100,16 @@ __all__ = [
     "coarse_lattice",
     "lattice_neighbours",
     "refine_plan",
+    "sample_patches",
     "status_counts",
 ]
 
-#: Per-patch status, index = code. The first three carry a value; the others are skips.
+#: Per-patch status, index = code. The first three carry a value; ``unsampled`` (sampled mode: informative,
+#: but not among this frame's samples) carries none and is not a skip; the others are skips.
 STATUS_NAMES: tuple[str, ...] = (
-    "estimated", "interpolated", "reused", "black", "saturated", "featureless", "not_assessable",
+    "estimated", "interpolated", "reused", "black", "saturated", "featureless", "not_assessable", "unsampled",
 )
-ESTIMATED, INTERPOLATED, REUSED, BLACK, SATURATED, FEATURELESS, NOT_ASSESSABLE = range(len(STATUS_NAMES))
+ESTIMATED, INTERPOLATED, REUSED, BLACK, SATURATED, FEATURELESS, NOT_ASSESSABLE, UNSAMPLED = range(len(STATUS_NAMES))
 #: Codes of patches without a value (skipped before or after the estimator).
 SKIP_CODES: tuple[int, ...] = (BLACK, SATURATED, FEATURELESS, NOT_ASSESSABLE)
 
@@ -484,6 +507,76 @@ def refine_plan(
     mean = torch.nanmean(nb, dim=1)
     out = torch.where(ok[:, None], mean, torch.full_like(mean, float("nan")))
     return ok, out
+
+
+def _sector_ids(grid: PatchGrid, k: int) -> torch.Tensor:
+    """(N,) long: sector of every patch for ``k`` sectors — a rows × cols split of the grid with
+    rows·cols >= k chosen close to the grid's aspect; sectors beyond k merge into the last."""
+    best = (1, k)
+    for r in range(1, k + 1):
+        c = -(-k // r)
+        if r <= max(grid.rows, 1) and c <= max(grid.cols, 1):
+            aspect = abs((grid.rows / r) - (grid.cols / c))
+            if best == (1, k) or aspect < abs((grid.rows / best[0]) - (grid.cols / best[1])):
+                best = (r, c)
+    r, c = best
+    rc = grid.row_col()
+    sr = (rc[:, 0] * r) // max(grid.rows, 1)
+    sc = (rc[:, 1] * c) // max(grid.cols, 1)
+    return (sr * c + sc).clamp_max(k - 1)
+
+
+def sample_patches(
+    grid: PatchGrid, stats: PatchStats, informative: torch.Tensor, k: int, task: str, last_sampled: torch.Tensor
+) -> torch.Tensor:
+    """Indices (≤ ``k``, long) of the patches to estimate in sampled mode (see the module docstring).
+
+    Args:
+        grid: the patch grid.
+        stats: statistics of its patches.
+        informative: (N,) bool, candidates (from :func:`select_patches`).
+        k: number of samples (>= 1).
+        task: ``"noise"`` (flattest, spread over intensity) or ``"mtf"`` (edges, spread over the frame).
+        last_sampled: (N,) long, frame counter of each patch's last sample (−1: never) — the rotation.
+    """
+    if task not in ("noise", "mtf"):
+        raise ValueError(f"task = {task!r} must be 'noise' or 'mtf'")
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise ValueError(f"k = {k!r} must be an integer >= 1 (patches per frame)")
+    if informative.shape != (grid.n,) or last_sampled.shape != (grid.n,):
+        raise ValueError(f"informative and last_sampled must be ({grid.n},), got {tuple(informative.shape)}, "
+                         f"{tuple(last_sampled.shape)}")
+    cand = informative.nonzero()[:, 0]
+    if cand.numel() <= k:
+        return cand
+    if task == "noise":
+        quality = -(stats.structure_dn + stats.detail_dn)  # flatter is better
+        order = cand[torch.argsort(stats.mean_dn[cand], stable=True)]
+        strata = torch.empty(grid.n, dtype=torch.long)
+        strata[order] = (torch.arange(order.numel()) * k) // order.numel()
+    else:
+        quality = stats.detail_dn.clone()  # more edges is better
+        strata = _sector_ids(grid, k)
+    eligible = 0.5 if task == "noise" else 1.0  # fraction of a stratum (by quality) that may be sampled
+    chosen: list[int] = []
+    last = last_sampled.tolist()
+    q = quality.tolist()
+    s_ids = strata[cand].tolist()
+    members: dict[int, list[int]] = {}
+    for i, s in zip(cand.tolist(), s_ids):
+        members.setdefault(s, []).append(i)
+    for s in range(k):
+        m = members.get(s)
+        if not m:
+            continue
+        m.sort(key=lambda i: -q[i])
+        good = m[: max(1, math.ceil(eligible * len(m)))]
+        chosen.append(min(good, key=lambda i: (last[i], -q[i])))
+    if len(chosen) < k:  # empty strata/sectors: the best remaining candidates, oldest sample first
+        taken = set(chosen)
+        rest = sorted((i for i in cand.tolist() if i not in taken), key=lambda i: (last[i], -q[i]))
+        chosen.extend(rest[: k - len(chosen)])
+    return torch.tensor(sorted(chosen), dtype=torch.long)
 
 
 def status_counts(code: torch.Tensor) -> dict[str, int]:

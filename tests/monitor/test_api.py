@@ -102,6 +102,7 @@ def test_load_metadata_file_errors(tmp_path):
 # ------------------------------------------------------------------ monitor behaviour
 def _monitor(noise=None, mtf=None, **kw):
     kw.setdefault("sensor", "ICX285")
+    kw.setdefault("mode", "map")  # the per-patch behaviour these tests check; sampled mode: test_sampled.py
     return Monitor(noise_model=noise if noise is not None else FakeNoise(), mtf_model=mtf if mtf is not None else FakeMTF(), **kw)
 
 
@@ -115,7 +116,7 @@ def test_report_on_street_frames(street_frames):
         assert n["grid"] == [4, 6] and m["grid"] == [3, 4]
         assert sum(v for k, v in n["patches"].items() if k != "total") == n["patches"]["total"] == 24
         for name in ("pn", "dcsn", "rn", "xi", "total"):
-            assert set(n["sigma_dn"][name]) == {"median", "spread", "temporal_spread", "current"}
+            assert set(n["sigma_dn"][name]) == {"median", "spread", "temporal_spread", "current", "uncertainty"}
         assert n["sigma_dn"]["total"]["median"] == pytest.approx(3.0, rel=0.35)  # fake = robust σ of the patch
         assert len(m["h"]["median"]) == 8 and len(m["v"]["median"]) == 8 and 0 < m["indicator"]["median"] <= 1
         assert d["alarm"]["state"] == "ok" and d["advice"] is None
@@ -354,13 +355,13 @@ def test_warm_up_runs_every_bucket_once_before_the_first_frame(model_files, monk
     sizes = []
     orig = Estimator.predict
     monkeypatch.setattr(Estimator, "predict", lambda self, x, *a, **k: sizes.append((self.kind, x.shape[0])) or orig(self, x, *a, **k))
-    mon = Monitor(ns, mtf, sensor="ICX285")  # 384×576 frame: 3×4 noise patches, 2×3 MTF patches
+    mon = Monitor(ns, mtf, sensor="ICX285", mode="map")  # 384×576 frame: 3×4 noise patches, 2×3 MTF patches
     mon.process(torch.full((384, 576), 0.5))
     # warm-up first: each network once per bucket size up to its grid (12 noise, 6 MTF patches), then the frame
     assert sizes[:5] == [("noise_source", 4), ("noise_source", 8), ("noise_source", 12), ("mtf", 4), ("mtf", 6)]
     assert {min(bucket_size(n), 12) for n in range(1, 13)} == {4, 8, 12}
     sizes.clear()
-    Monitor(ns, mtf, sensor="ICX285", warmup=False).process(torch.full((384, 576), 0.5))
+    Monitor(ns, mtf, sensor="ICX285", mode="map", warmup=False).process(torch.full((384, 576), 0.5))
     assert len(sizes) <= 4  # only the frame's own network calls
 
 

@@ -64,3 +64,35 @@ def test_recording_times_read_every_frame(tmp_path):
     for suffix in (".mcap", ".bag"):
         times = recording_times(frames, meta, tmp_path, suffix)
         assert len(times) == 3 and all(t > 0 for t in times)
+
+
+MOTION = ["monitor", "--motion", "--untrained", "--frames", "3", "--warmup", "0", "--width", "640", "--height", "512",
+          "--window", "2", "--noise-samples", "2", "--mtf-samples", "2", "--slow-frames", "1", "--thesis-patches", "1",
+          "--threads", "1", "--no-memory-probe"]
+
+
+def test_motion_run_prints_both_modes_per_stream_and_accuracy(capsys):
+    n = torch.get_num_threads()
+    try:
+        assert main(MOTION) == 0
+    finally:
+        torch.set_num_threads(n)
+    text = capsys.readouterr().out
+    for stream in ("static", "ego-motion", "photos"):
+        assert f"{stream}: sampled" in text and f"{stream}: every informative patch" in text
+        assert f"accuracy, {stream}" in text
+    for q in ("σ_PN", "σ_DCSN", "σ_RN", "ξ", "σ_total", "MTF̃"):
+        assert q in text
+    assert "thesis-size noise net, the sampled noise patches" in text and "p95" in text and "CPU" in text
+    assert "2.0 of" in text  # two samples per frame and task went through the networks
+    assert "defined for 1280×1024 only" in text
+
+
+def test_ego_motion_crops_move_every_frame():
+    from camhealth.bench.monitor_motion import ego_motion_crops
+
+    clip = torch.rand(6, 1, 96, 128)
+    out = ego_motion_crops(clip.expand(6, -1, -1, -1).contiguous() * 0 + clip[:1], (64, 80))
+    assert out.shape == (6, 1, 64, 80) and float(out.min()) >= 0 and float(out.max()) <= 1
+    for i in range(5):  # the same scene, a new crop every frame: consecutive frames differ
+        assert float((out[i + 1] - out[i]).abs().mean()) > 1e-3

@@ -105,7 +105,7 @@ def test_video_file(models, tmp_path, capsys):
     for _ in range(3):
         writer.write(np.repeat(base[..., None], 3, axis=2))
     writer.release()
-    code, out, err = _run([str(path), "--sensor", "ICX285", "--no-mtf", *models], capsys)
+    code, out, err = _run([str(path), "--sensor", "ICX285", "--no-mtf", "--mode", "map", *models], capsys)
     assert code == 0, err
     lines = _lines(out)
     assert [d["index"] for d in lines] == [0, 1, 2] and lines[0]["source_id"].endswith("clip.avi#0")
