@@ -30,8 +30,8 @@ def structure_contrast_dn(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     """Noise-corrected structure contrast and robust noise level of B×1×P×P patches in [0, 1] → ((B,), (B,)) DN.
 
     - noise σ̂ = median|d| / 0.6745 of the finest diagonal Haar detail d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 over the
-      2×2 blocks (Donoho's MAD estimate: var d = σ² for white noise; edges and texture touch few d, so the
-      median ignores them);
+      2×2 blocks of every other block row (Donoho's MAD estimate: var d = σ² for white noise; edges and texture
+      touch few d, so the median ignores them);
     - structure s = √max(0, var(B₈) − σ̂²/64) of the 8×8 block means B₈ (P ≥ 16; the patch cropped to a
       multiple of 8): scene content at ≥ 16-px periods, from which the noise (variance σ²/64 in a block mean)
       is removed. On a flat patch with white noise s is ~0 whatever σ (the spread of var(B₈) over its P²/64
@@ -39,21 +39,24 @@ def structure_contrast_dn(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Te
       Patches under 16 px use the pixels themselves: s = √max(0, var − σ̂²).
 
     The monitor's tiling computes the same two statistics frame-wide (:mod:`camhealth.monitor.tiling`)."""
-    x = patches[:, 0].double() * 255.0
+    x = patches[:, 0].float() * 255.0
     b, h, w = x.shape
     h2, w2 = h - h % 2, w - w % 2
     if h2 < 2 or w2 < 2:
-        return x.flatten(1).std(1, unbiased=False).float(), torch.zeros(b)
+        return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b)
+    # d of every other row of 2×2 blocks (P²/8 samples: ~2 % standard error of σ̂, half the selection work)
     q = x[:, :h2, :w2]
-    d = 0.5 * (q[:, 0::2, 0::2] - q[:, 0::2, 1::2] - q[:, 1::2, 0::2] + q[:, 1::2, 1::2])
-    noise = d.abs().flatten(1).median(1).values / _MAD_NORMAL
+    step = 4 if h2 >= 8 else 2
+    d = 0.5 * (q[:, 0::step, 0::2] - q[:, 0::step, 1::2] - q[:, 1::step, 0::2] + q[:, 1::step, 1::2])
+    flat = d.abs().flatten(1)
+    noise = flat.kthvalue((flat.shape[1] + 1) // 2, dim=1).values.double() / _MAD_NORMAL
     blk = STRUCTURE_BLOCK
     if min(h, w) >= 2 * blk:
         hb, wb = h - h % blk, w - w % blk
-        means = x[:, :hb, :wb].reshape(b, hb // blk, blk, wb // blk, blk).mean((2, 4)).flatten(1)
+        means = x[:, :hb, :wb].reshape(b, hb // blk, blk, wb // blk, blk).mean((2, 4)).flatten(1).double()
         var = means.var(1, unbiased=False) - noise.square() / (blk * blk)
     else:
-        var = x.flatten(1).var(1, unbiased=False) - noise.square()
+        var = x.double().flatten(1).var(1, unbiased=False) - noise.square()
     return var.clamp_min(0).sqrt().float(), noise.float()
 
 
