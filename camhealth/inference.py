@@ -25,7 +25,7 @@
   (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``
   with ``base_preset="ICX285"``), a preset name, or the path of a ``.yaml``/``.json`` metadata file (the
   ``camera.yaml`` of ``python -m camhealth.calibrate``). Out-of-range values raise, naming field and range.
-- returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V [kind ``mtf``]; ``sigma_total`` (B,) DN
+- returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V and ``mtf_std`` (B, 16) [kind ``mtf``]; ``sigma_total`` (B,) DN
   [noise kinds; for noise-source networks √(Σ σ_s²)]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
   ``"black"``, ``"saturated"``, ``"featureless"``). Not-assessable patches still get finite numbers; do not
@@ -33,7 +33,10 @@
 - ``views`` (MTF models): 1 (default), 2 or 4 — also run the patch flipped (2: rotated by 180°; 4: flipped
   left–right, up–down and both) and average the estimates. A flip leaves the MTF along H and V unchanged
   (|OTF(−u, v)| = |OTF(u, v)| for a real PSF), so the views are estimates of the same 16 values with partly
-  independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``).
+  independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``). ``mtf_std`` (B, 16) is the
+  uncertainty of each value: the standard deviation of the views' estimates (unbiased, over 2 or 4 views); NaN
+  with ``views=1``, which has only one estimate (the spread is a lower bound of the error: it does not see what
+  all views get wrong alike; ``python -m camhealth.bench robustness --task mtf`` prints how it compares).
 - ``noise_source_full`` is no network: the physics-first estimator
   (:class:`~camhealth.estimators.physics_noise.PhysicsNoiseEstimator`, same ``predict`` interface, plus ``xi_std``,
   ``p_match`` and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
@@ -185,13 +188,16 @@ class Estimator:
         raw = torch.cat(outs)
         if not bool(torch.isfinite(raw).all()):
             raise FloatingPointError(f"estimator {self.name!r} produced non-finite outputs; please report this input")
+        spread = None
         if views > 1:
-            raw = raw.view(views, -1, *raw.shape[1:]).mean(0)
+            per_view = raw.view(views, -1, *raw.shape[1:])
+            raw, spread = per_view.mean(0), per_view.std(0)
             patches = assessed
         assessable, reason = assess_patches(patches, self.kind)
         result: dict[str, Any] = {"assessable": assessable, "reason": reason}
         if self.kind == "mtf":
             result["mtf"] = raw.clamp(0, 1)
+            result["mtf_std"] = spread if spread is not None else torch.full_like(result["mtf"], float("nan"))
         elif self.kind == "drne":
             flat = raw.flatten(1)
             result.update(sigma_map=raw, sigma_total=flat.pow(2).mean(1).sqrt(), sigma_median=flat.median(1).values)
@@ -209,6 +215,7 @@ class Estimator:
         result: dict[str, Any] = {"assessable": torch.zeros(0, dtype=torch.bool), "reason": []}
         if self.kind == "mtf":
             result["mtf"] = torch.zeros(0, 16)
+            result["mtf_std"] = torch.zeros(0, 16)
         elif self.kind == "drne":
             result.update(sigma_map=torch.zeros(0, 1, self.patch_size, self.patch_size), sigma_total=z, sigma_median=z)
         else:

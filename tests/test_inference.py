@@ -196,7 +196,7 @@ def test_views_are_checked(noise_est, tmp_path):
 @pytest.mark.parametrize("fill,reason", [(0.0, "black"), (1.0, "saturated"), (0.5, "featureless")])
 def test_mtf_views_keep_the_flags_of_hard_patches(tmp_path, fill, reason):
     mtf = load_estimator(export_weights(MTFEstimator(patch_size=32, joint_directions=True), tmp_path / "mtf.pt"))
-    x = torch.cat([torch.full((1, 1, 32, 32), fill), torch.rand(1, 1, 32, 32, generator=torch.Generator().manual_seed(2))])
+    x = torch.cat([torch.full((1, 1, 32, 32), fill), _textured(1, 32)])
     out = mtf.predict(x, views=4, precision="bf16")
     assert torch.isfinite(out["mtf"]).all() and out["mtf"].shape == (2, 16)
     assert out["reason"] == [reason, ""] and out["assessable"].tolist() == [False, True]
@@ -246,3 +246,53 @@ def test_noise_source_full_is_the_physics_first_estimator():
     est = load_estimator("noise_source_full")
     assert isinstance(est, PhysicsNoiseEstimator) and est.metadata_set == "full" and est.description["params"] == 0
     assert "noise_source_full" not in shipped_models()  # no weights file
+
+
+def test_flat_noisy_patches_are_never_assessable_for_mtf():
+    """Flat grey patches at any level with white noise σ ≤ 20 DN (8-bit rounded): featureless, although the pixel
+    std is up to 20 DN; the noise-corrected structure contrast is what is compared with 2 DN."""
+    g = torch.Generator().manual_seed(11)
+    for sigma in (1.0, 3.0, 5.0, 10.0, 20.0):
+        for level in (0.15, 0.5, 0.85):
+            x = (level + sigma / 255.0 * torch.randn(64, 1, 192, 192, generator=g)).clamp(0, 1)
+            x = (x * 255).round() / 255
+            ok, reason = assess_patches(x, "mtf")
+            assert not ok.any() and set(reason) == {"featureless"}, (sigma, level)
+            assert assess_patches(x, "noise_source")[0].all()
+
+
+def test_structure_survives_noise():
+    """A scene with real structure (a 4 DN sine of 32-px period) stays assessable under 20 DN of noise, and the
+    structure contrast matches the sine's std 4/√2 DN."""
+    from camhealth._inputs import structure_contrast_dn
+
+    g = torch.Generator().manual_seed(12)
+    xx = torch.arange(192, dtype=torch.float64)
+    scene = 0.5 + 4.0 / 255.0 * torch.sin(2 * torch.pi * xx / 32)[None, None, None, :].expand(16, 1, 192, 192)
+    x = (scene + 20.0 / 255.0 * torch.randn(16, 1, 192, 192, generator=g, dtype=torch.float64)).float()
+    s, noise = structure_contrast_dn(x)
+    assert torch.allclose(noise, torch.full_like(noise, 20.0), rtol=0.05)
+    # block means of a 32-px sine keep sinc(8/32)·(4/√2) ≈ 2.55 DN of it
+    assert torch.allclose(s, torch.full_like(s, 4.0 / 2**0.5 * float(torch.sinc(torch.tensor(8 / 32)))), atol=0.6)
+    assert assess_patches(x, "mtf")[0].all()
+
+
+def test_mtf_std_is_the_spread_over_views(tmp_path):
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32, joint_directions=True), tmp_path / "mtf.pt"))
+    x = _textured(3, 32)
+    one = mtf.predict(x)
+    assert one["mtf_std"].shape == (3, 16) and torch.isnan(one["mtf_std"]).all()
+    four = mtf.predict(x, views=4)
+    flips = torch.stack([mtf.predict(v)["mtf"] for v in (x, x.flip(-1), x.flip(-2), x.flip(-2, -1))])
+    assert torch.allclose(four["mtf_std"], flips.std(0), atol=1e-5)
+    assert (four["mtf_std"] >= 0).all() and torch.isfinite(four["mtf_std"]).all()
+    assert mtf.predict(x[:0], views=2)["mtf_std"].shape == (0, 16)
+
+
+def _textured(n: int, size: int, seed: int = 2) -> torch.Tensor:
+    """Smooth random texture (blurred noise), well above the featureless threshold."""
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(seed)
+    x = F.avg_pool2d(torch.rand(n, 1, size + 3, size + 3, generator=g), 4, stride=1)
+    return ((x - x.amin((2, 3), keepdim=True)) / (x.amax((2, 3), keepdim=True) - x.amin((2, 3), keepdim=True))).clamp(0, 1)

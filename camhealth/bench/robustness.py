@@ -1,5 +1,8 @@
 """Noise sources on data camhealth's simulator did not make: ``python -m camhealth.bench robustness``.
 
+``--task mtf`` runs the blur (MTF) counterpart instead, :mod:`camhealth.bench.robustness_mtf` (held-out PSF
+generators × held-out scenes); the default ``--task noise`` is described here.
+
 Every noise estimator is scored beside the closed form of the metadata alone on a matrix its training never saw:
 
 - **simulator**: :mod:`camhealth.bench.sensor_variants`, an independent NumPy implementation of the sensor model,
@@ -43,7 +46,8 @@ from camhealth.bench import BenchResult, Row
 from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
 from camhealth.physics.metadata import CameraMetadata
 
-HELP = "noise estimators vs the closed form on an independent simulator, real scenes, JPEG, mismatches and σ ≤ 60 DN"
+HELP = ("noise estimators vs the closed form on an independent simulator, real scenes, JPEG, mismatches and σ ≤ 60 DN; "
+        "--task mtf: MTF estimators on held-out PSF generators × held-out scenes")
 
 MATCHED = ("reference", *VARIANTS, "all_variants", "jpeg")
 MISMATCH = ("gain", "temperature", "white_noise")
@@ -57,9 +61,16 @@ PATCH = 128
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--task", choices=("noise", "mtf"), default="noise",
+                        help="noise (default): noise-source estimators; mtf: MTF estimators (camhealth.bench.robustness_mtf)")
+    parser.add_argument("--per-cell", type=int, default=8,
+                        help="--task mtf: patches per generator × size × condition × scene group (default 8)")
+    parser.add_argument("--mtf-sizes", type=float, nargs="+", default=[3.0, 5.0, 9.0, 15.0, 21.0],
+                        help="--task mtf: blur sizes in px (default 3 5 9 15 21; at most 29)")
     parser.add_argument("--frames", type=int, default=6, help="frames per condition (16 patches each; default 6)")
     parser.add_argument("--models", nargs="*", default=None,
-                        help=f"estimators (shipped names or files; default every shipped noise model) beside '{CLOSED_FORM}'")
+                        help=f"estimators (shipped names or files; default every shipped noise model beside '{CLOSED_FORM}'; "
+                             "--task mtf: default the shipped 'mtf')")
     parser.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
 
 
@@ -263,6 +274,14 @@ def _fmt3(t: tuple[float, float, float]) -> str:
 
 
 def run(args: argparse.Namespace) -> BenchResult:
+    if getattr(args, "task", "noise") == "mtf":
+        from camhealth.bench import robustness_mtf
+
+        if args.per_cell < 1:
+            raise SystemExit(f"--per-cell {args.per_cell} must be ≥ 1")
+        if any(not 0.0 <= s <= 29.0 for s in args.mtf_sizes):
+            raise SystemExit(f"--mtf-sizes {args.mtf_sizes} must lie in [0, 29] px (kernels are {robustness_mtf.KERNEL} px)")
+        return robustness_mtf.run(args)
     if args.frames < 2:
         raise SystemExit(f"--frames {args.frames} must be ≥ 2")
     t0 = time.perf_counter()

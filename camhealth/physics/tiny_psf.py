@@ -1,0 +1,37 @@
+"""Tiny blur kernels: random non-negative weights on a 1–5 px support (the smallest blurs, and lens/processing
+kernels of no parametric family).
+
+:func:`sample_tiny_psf` draws, per sample, weights from the flat Dirichlet distribution (normalised
+independent Exp(1) draws) on an s×s support (s = ``support_px``), placed at the kernel centre (for even s the
+support starts one pixel left of / above the centre). s = 1 is the delta kernel. Kernels sum to 1 by
+construction. The MTF of such a kernel has no closed form beyond its DFT (:func:`camhealth.physics.mtf_hv`).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from camhealth._validation import check_odd_kernel_size
+
+__all__ = ["sample_tiny_psf"]
+
+
+def sample_tiny_psf(batch_size: int, support_px: int, kernel_size: int, generator: torch.Generator | None = None,
+                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """B random kernels on an s×s support (s in 1..5) inside a k×k kernel (k ≥ s, odd) → (B, k, k) summing to 1."""
+    k = check_odd_kernel_size(kernel_size)
+    for name, v, lo, hi in (("batch_size", batch_size, 1, 1 << 30), ("support_px", support_px, 1, 5)):
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise TypeError(f"{name} must be an int, got {type(v).__name__}")
+        if not lo <= v <= hi:
+            raise ValueError(f"{name} = {v} is out of the allowed range [{lo}, {hi}]")
+    if support_px > k:
+        raise ValueError(f"support_px = {support_px} must be ≤ kernel_size = {k}")
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
+    w = -torch.log1p(-torch.rand(batch_size, support_px, support_px, generator=generator, dtype=torch.float64))
+    w = w / w.sum(dim=(-2, -1), keepdim=True)
+    out = torch.zeros(batch_size, k, k, dtype=torch.float64)
+    start = k // 2 - support_px // 2
+    out[:, start:start + support_px, start:start + support_px] = w
+    return out.to(dtype)

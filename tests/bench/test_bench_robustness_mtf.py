@@ -1,0 +1,56 @@
+"""The MTF task of ``python -m camhealth.bench robustness``: its kernels, conditions and metric (the full run is a
+benchmark, not a test)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from camhealth.bench import robustness_mtf as rm
+from camhealth.bench.__main__ import build_parser
+from camhealth.physics import mtf_hv
+
+
+@pytest.mark.parametrize("gen", [g for gens in rm.FAMILIES.values() for g in gens] + list(rm.IN_DIST.values()))
+@pytest.mark.parametrize("size", [3.0, 21.0])
+def test_every_generator_gives_normalised_kernels_of_its_size(gen, size):
+    k = rm.make_kernels(gen, size, 4, torch.Generator().manual_seed(0))
+    assert k.shape == (4, rm.KERNEL, rm.KERNEL) and bool((k >= 0).all())
+    torch.testing.assert_close(k.sum((1, 2)), torch.ones(4, dtype=k.dtype), atol=1e-6, rtol=0)
+    m = mtf_hv(k.double())
+    if gen != "tiny":  # a bigger blur is a softer blur
+        small = mtf_hv(rm.make_kernels(gen, 1.0, 4, torch.Generator().manual_seed(0)).double())
+        assert float(m[:, 7].mean() + m[:, 15].mean()) < float(small[:, 7].mean() + small[:, 15].mean())
+
+
+def test_accelerating_line_keeps_its_length_and_moves_mass():
+    uniform = rm._point_line(torch.tensor([11.0]), torch.tensor([0.0]), torch.zeros(1, 2), torch.zeros(1))
+    ramp = rm._point_line(torch.tensor([11.0]), torch.tensor([0.0]), torch.zeros(1, 2), torch.ones(1))
+    row = rm.KERNEL // 2
+    assert int((uniform[0, row] > 0).sum()) == int((ramp[0, row] > 0).sum()) == 11
+    assert float(ramp[0, row].max()) > 1.5 * float(uniform[0, row].max())  # slow start: mass piles up
+
+
+def test_conditions_round_to_8_bit_and_noise_is_5_dn():
+    g = torch.Generator().manual_seed(2)
+    x = torch.full((4, 1, 192, 192), 0.5)
+    for cond in rm.CONDITIONS:
+        y = rm.degrade(x, cond, g)
+        assert y.shape == x.shape and torch.equal((y * 255).round(), y * 255)
+    n5 = rm.degrade(x, "noise5", g)
+    assert abs(float(((n5 - 0.5) * 255).std()) - 5.0) < 0.2
+
+
+def test_amae_is_the_training_metric():
+    est, truth = torch.rand(5, 16), torch.rand(5, 16)
+    want = 100 * (est - truth).abs().view(5, 2, 8).mean(2).mean(1)
+    torch.testing.assert_close(rm._amae(est, truth).float(), want)
+
+
+def test_task_switch_defaults_to_noise():
+    p = build_parser()
+    assert p.parse_args(["robustness"]).task == "noise"
+    a = p.parse_args(["robustness", "--task", "mtf", "--per-cell", "2", "--mtf-sizes", "3", "9"])
+    assert a.task == "mtf" and a.per_cell == 2 and a.mtf_sizes == [3.0, 9.0]
+    with pytest.raises(SystemExit):
+        p.parse_args(["robustness", "--task", "blur"])
