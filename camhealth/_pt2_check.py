@@ -15,7 +15,7 @@ it unless every entry is one that :func:`camhealth.export.export_pt2` writes:
   and the arithmetic functions torch serialises (no attribute access, no other names).
 
 What stays is torch's own deserialiser running on plain data. It is not designed for hostile input: prefer
-weights files (``.pt``) for files from others (README, *Reliability*).
+weights files (``.pt``) for files from others (``docs/reliability.md``).
 """
 
 from __future__ import annotations

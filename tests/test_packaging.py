@@ -33,7 +33,7 @@ def test_the_wheel_holds_the_configs_the_console_script_and_the_declared_depende
     assert "camhealth = camhealth.__main__:main" in entry
     assert "Requires-Dist: tqdm" in meta and "Requires-Dist: torch<2.14,>=2.13" in meta
     assert "Requires-Dist: kornia<0.10,>=0.9" in meta
-    assert 'Requires-Dist: camhealth[onnx]; extra == "test"' in meta
+    assert 'Requires-Dist: camhealth[docs,onnx]; extra == "test"' in meta
 
 
 def test_a_config_name_resolves_to_the_packaged_file(tmp_path, monkeypatch):

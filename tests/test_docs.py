@@ -1,0 +1,84 @@
+"""The generated documentation: CLI reference, API reference (pdoc), generated blocks, no development diary."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from camhealth.docs import CLI_COMMANDS, build_api, cli_help, generated_blocks, help_options, main, replace_generated
+
+ROOT = Path(__file__).resolve().parents[1]
+CLI_DOC = ROOT / "docs" / "cli.md"
+
+
+def _sections(text: str) -> dict[str, str]:
+    parts = re.split(r"^## `(.+)`$", text, flags=re.M)
+    return {parts[i]: parts[i + 1] for i in range(1, len(parts), 2)}
+
+
+def test_cli_reference_lists_exactly_each_commands_options():
+    """docs/cli.md was generated from the parsers as they are: every option of every command is listed in its section,
+    and nothing else (regenerate: python -m camhealth.docs cli --out docs/cli.md)."""
+    sections = _sections(CLI_DOC.read_text(encoding="utf-8"))
+    for module, args in CLI_COMMANDS:
+        command = " ".join(["python -m", module, *args])
+        assert command in sections, f"{command} missing from docs/cli.md"
+        now, documented = help_options(cli_help(module, args)), help_options(sections[command])
+        assert now == documented, f"{command}: not documented {sorted(now - documented)}, gone {sorted(documented - now)}"
+
+
+def test_cli_help_of_an_unknown_subcommand_is_an_error():
+    with pytest.raises(RuntimeError, match="no-such-benchmark"):
+        cli_help("camhealth.bench", ("no-such-benchmark",))
+
+
+def test_api_reference_builds_without_warnings(tmp_path):
+    pytest.importorskip("pdoc", reason="the docs extra (pip install -e '.[docs]')")
+    out = build_api(tmp_path / "api", strict=True)
+    pages = {p.relative_to(out).as_posix() for p in out.rglob("*.html")}
+    for page in ("camhealth/physics/readout_noise.html", "camhealth/estimators/physics_noise.html",
+                 "camhealth/nets/mtf.html", "datamodules.html", "lightning_modules.html"):
+        assert page in pages
+    assert "readout_sigma_e" in (out / "camhealth/physics/readout_noise.html").read_text(encoding="utf-8")
+
+
+def test_replace_generated_keeps_the_rest_of_the_page(tmp_path):
+    page = tmp_path / "p.md"
+    page.write_text("# Title\n\nprose before\n\n<!-- generated: python -m x --a 1 -->\nold\n<!-- end generated -->\n\nafter\n")
+    assert replace_generated(page, "python -m x --a 1", "| new |\n") is True
+    assert page.read_text() == "# Title\n\nprose before\n\n<!-- generated: python -m x --a 1 -->\n| new |\n<!-- end generated -->\n\nafter\n"
+    assert replace_generated(page, "python -m y", "other") is False  # another command: a new block at the end
+    assert [c for c, _, _ in generated_blocks(page.read_text())] == ["python -m x --a 1", "python -m y"]
+    page.write_text("<!-- generated: python -m z -->\nno end\n")
+    with pytest.raises(ValueError, match="python -m z.*end marker"):
+        generated_blocks(page.read_text())
+
+
+def test_docs_pages_name_the_command_of_each_generated_block(capsys):
+    main(["tables", str(ROOT / "docs" / "benchmarks.md")])
+    commands = capsys.readouterr().out.split("\n")
+    assert "python -m camhealth.bench robustness --frames 6 --threads 2 --markdown" in commands
+
+
+def test_bench_docs_flag_writes_the_block_of_its_command(tmp_path, monkeypatch):
+    from camhealth.bench import __main__ as bench_main
+
+    page = tmp_path / "b.md"
+    page.write_text("intro\n")
+    bench_main.main(["data", "--batch", "2", "--size", "32", "--repeats", "1", "--warmup", "0", "--docs", str(page)])
+    text = page.read_text()
+    ((command, start, end),) = generated_blocks(text)
+    assert command == "python -m camhealth.bench data --batch 2 --size 32 --repeats 1 --warmup 0"
+    assert text.startswith("intro\n") and "| row |" in text[start:end]
+
+
+def test_no_development_diary_in_the_product():
+    """README, docs, model cards, docstrings and tests speak of the product; history is in git and CHANGELOG.md."""
+    out = subprocess.run(["git", "grep", "-n", "-i", "-E", r"session [0-9]", "--", ".", ":!CHANGELOG.md"],
+                         cwd=ROOT, capture_output=True, text=True)
+    if out.returncode not in (0, 1):
+        pytest.skip("not a git checkout")
+    assert out.stdout == "", out.stdout
