@@ -6,7 +6,9 @@ the scene needs it (:mod:`camhealth.monitor.tiling`), in one of two modes:
 - ``"sampled"`` (the default unless per-patch maps are asked for): a few informative patches per frame — flat
   ones spread over the intensities for noise (a camera-state property), ones with edges spread over the frame
   for blur — rotating over the frame across frames, the frame answer pooled over the last ``window`` frames;
-  its cost does not depend on the scene or on camera motion (a moving camera);
+  its cost does not depend on the scene or on camera motion (a moving camera); with ``adaptive`` a sampled patch
+  whose content has not changed since its last estimate (and is not due for its periodic refresh) keeps that
+  estimate, so a static camera sends fewer patches to the estimators once every patch has been sampled;
 - ``"map"``: every informative patch (skip black/saturated/featureless patches, reuse estimates of static
   regions, coarse lattice first and refine only where it changes), with per-patch maps;
 
@@ -494,6 +496,7 @@ class _TaskState:
     ptr: torch.Tensor = field(init=False)
     static: StaticRegions = field(init=False)
     last_sampled: torch.Tensor = field(init=False)
+    memory: torch.Tensor = field(init=False)
     samples: torch.Tensor = field(init=False)
     sample_slot: int = 0
 
@@ -510,6 +513,7 @@ class _TaskState:
         self.ptr = torch.zeros(n, dtype=torch.long)
         self.static.reset()
         self.last_sampled = torch.full((n,), -1, dtype=torch.long)
+        self.memory = torch.full((n, self.k), float("nan"))  # sampled mode: each patch's last estimate
         self.samples = torch.full((self.window, self.n_samples, self.k), float("nan"))
         self.sample_slot = 0
 
@@ -836,16 +840,27 @@ class Monitor:
         values = torch.full((grid.n, st.k), float("nan"))
         if self.mode == "sampled":
             idx = sample_patches(grid, stats, informative, self.n_samples[task], task, st.last_sampled)
-            vals, ok = self._estimate(task, patches, idx, meta)
+            reuse = torch.zeros(idx.numel(), dtype=torch.bool)
+            if self.reuse_static and idx.numel():  # a sampled patch unchanged since its last estimate keeps it
+                reuse = (torch.isfinite(st.memory[idx, -1]) & ~st.static.changed(stats)[idx]
+                         & ~st.static.due(self._counter)[idx])
+            new = idx[~reuse]
+            new_vals, new_ok = self._estimate(task, patches, new, meta)
+            st.memory[new] = new_vals
+            if self.reuse_static:
+                st.static.update(new[new_ok], stats, self._counter)
+            vals = st.memory[idx]
+            ok = torch.isfinite(vals[:, -1])
             code[informative] = UNSAMPLED
             code[idx] = ESTIMATED
+            code[idx[reuse]] = REUSED
             code[idx[~ok]] = NOT_ASSESSABLE
             values[idx] = vals
             st.last_sampled[idx] = self._counter
             st.push_samples(vals[ok])
             st.values, st.code = values, code
             boxes = grid.boxes()[idx[ok]]
-            return self._aggregate_sampled(task, st, handle.name, int(informative.sum()), boxes)
+            return self._aggregate_sampled(task, st, handle.name, int(informative.sum()), boxes, int(reuse.sum()))
         if self.reuse_static:
             had = torch.isfinite(st.values).any(1) & torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8))
             reuse = informative & had & ~st.static.changed(stats) & ~st.static.due(self._counter)
@@ -896,21 +911,24 @@ class Monitor:
 
     @staticmethod
     def _coverage(mode: str, grid: PatchGrid, estimated: int, informative: int, values: int, frames: int,
-                  boxes: torch.Tensor | None) -> dict[str, Any]:
+                  boxes: torch.Tensor | None, reused: int = 0) -> dict[str, Any]:
         area = estimated * grid.patch * grid.patch / float(grid.height * grid.width)
-        return {"mode": mode, "estimated": estimated, "informative": informative, "total": grid.n,
+        return {"mode": mode, "estimated": estimated, "reused": reused, "informative": informative, "total": grid.n,
                 "area_fraction": round(area, 4), "values": values, "frames": frames,
                 "patches_xy": None if boxes is None else boxes[:, :2].tolist()}
 
-    def _aggregate_sampled(self, task: str, st: _TaskState, name: str, informative: int, boxes: torch.Tensor) -> TaskReport:
-        """Frame answer of sampled mode: median of all samples of the last ``window`` frames."""
+    def _aggregate_sampled(self, task: str, st: _TaskState, name: str, informative: int, boxes: torch.Tensor,
+                           reused: int = 0) -> TaskReport:
+        """Frame answer of sampled mode: median of all samples of the last ``window`` frames (``reused`` of this
+        frame's samples are the earlier estimates of unchanged patches)."""
         grid = st.grid
         counts = status_counts(st.code)
         counts["total"] = grid.n
         flat = st.samples.reshape(-1, st.k)
         vals = flat[torch.isfinite(flat[:, -1])]
         frames = int(torch.isfinite(st.samples[..., -1]).any(1).sum())
-        coverage = self._coverage("sampled", grid, int(boxes.shape[0]), informative, int(vals.shape[0]), frames, boxes)
+        coverage = self._coverage("sampled", grid, int(boxes.shape[0]), informative, int(vals.shape[0]), frames, boxes,
+                                  reused)
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
                     grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage)
         if boxes.shape[0] == 0:  # as in map mode: a frame without an informative patch is not assessable
@@ -946,7 +964,7 @@ class Monitor:
         has = torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8)) & torch.isfinite(st.values).any(1)
         n = int(has.sum())
         frames = min(self._counter + 1, self.window)
-        coverage = self._coverage("map", grid, fresh, informative, n, frames, None)
+        coverage = self._coverage("map", grid, fresh, informative, n, frames, None, int((st.code == REUSED).sum()))
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
                     grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage)
         if not bool(has.any()):

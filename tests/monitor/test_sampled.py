@@ -217,3 +217,23 @@ def test_sampled_small_frame_half_precision_and_metadata_reset(street_frames):
     assert r.noise.n_values == 9  # three frames of three samples
     r = mon.process(frames[1], metadata={"gain_db": 12.0})  # a metadata change restarts the window
     assert r.noise.n_values == 3 and r.noise.coverage["frames"] == 1
+
+
+def test_sampled_mode_reuses_unchanged_patches_of_a_static_camera():
+    """A static scene: once a sampled patch has been estimated and has not changed, it keeps its estimate (status
+    reused, no estimator call) and the frame answer is the one of a monitor that estimates every sampled patch
+    again; a different scene is estimated afresh."""
+    frame, _ = _ramp_frame(seed=5)
+    counting = FakeNoise()
+    adaptive = Monitor(counting, None, sensor="ICX285", mode="sampled", noise_samples=4)
+    fresh = Monitor(FakeNoise(), None, sensor="ICX285", mode="sampled", noise_samples=4, adaptive=False)
+    for _ in range(12):
+        a, f = adaptive.process(frame), fresh.process(frame)
+        assert a.noise.coverage["estimated"] == f.noise.coverage["estimated"] == 4
+        assert torch.allclose(a.noise.median, f.noise.median, equal_nan=True)
+    assert a.noise.coverage["reused"] == a.noise.counts["reused"] > 0
+    assert f.noise.coverage["reused"] == 0
+    assert counting.patches < 12 * 4  # the first visit of each of the 24 patches, then reuse
+    before = counting.patches
+    adaptive.process(frame.flip(-1))  # another scene: every sampled patch is estimated again
+    assert counting.patches - before == 4
