@@ -72,10 +72,6 @@ def _entry(module: str):
         if exc.name != module + ".__main__":
             raise
         mod = importlib.import_module(module)
-    if module == "camhealth.iopc":
-        from camhealth.iopc.cli import main as iopc_main
-
-        return iopc_main
     return mod.main
 
 

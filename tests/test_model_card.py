@@ -88,3 +88,10 @@ def test_refresh_of_a_card_without_a_command_names_the_file(tmp_path):
     path.with_suffix(".md").write_text("# Model card\n\nno command here\n", encoding="utf-8")
     with pytest.raises(ValueError, match=r"m\.md.*reproduce command"):
         main([str(path), "--refresh"])
+
+
+@pytest.mark.parametrize("argv", [[], ["--command", "python -m camhealth.fit", "--refresh"]])
+def test_exactly_one_of_command_and_refresh(tmp_path, argv):
+    path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt")
+    with pytest.raises(ValueError, match="either --command .* or --refresh"):
+        main([str(path), *argv])
