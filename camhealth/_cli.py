@@ -9,11 +9,12 @@ and status.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import traceback
 from typing import Any, Callable, Sequence
 
-__all__ = ["DEBUG_FLAG", "add_debug_flag", "config_parser", "debugging", "one_line", "run_cli"]
+__all__ = ["DEBUG_FLAG", "BadValue", "add_debug_flag", "config_parser", "debugging", "one_line", "run_cli"]
 
 DEBUG_FLAG = "--debug"
 _debug = False
@@ -21,6 +22,12 @@ _HELP = "on an error, show the Python traceback instead of one line"
 
 #: Errors whose message says everything (the type name adds nothing for a user).
 _PLAIN = (ValueError, TypeError, OSError, ImportError, KeyError, IndexError)
+
+
+class BadValue(argparse.ArgumentTypeError, ValueError):
+    """A value an option's ``type`` refuses, with a message naming it. On the command line argparse prints the message
+    as it is (``argument --x: <message>``); from a ``--config`` file jsonargparse's check catches it as a
+    ``ValueError`` (``Parser key "x": <message>``): either way one line and exit status 2, never a traceback."""
 
 
 def add_debug_flag(parser: Any) -> None:

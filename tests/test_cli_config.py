@@ -108,3 +108,13 @@ def test_bad_values_still_exit_2_with_the_message(capsys):
     with pytest.raises(SystemExit) as info:
         export.main(["w.pt", "--format", "tflite"])
     assert info.value.code == 2 and "tflite" in capsys.readouterr().err
+
+
+def test_bad_value_in_a_config_file_exits_2_with_the_message(tmp_path, capsys):
+    """A value an option's type refuses is the same one-line error from a --config file (no traceback)."""
+    path = tmp_path / "c.yaml"
+    path.write_text("frames: [a/]\nout: c.yaml\nmax_frames: 0\n")
+    with pytest.raises(SystemExit) as info:
+        calibrate_cli.main(["--config", str(path)])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "must be >= 1, got 0" in err and "Traceback" not in err

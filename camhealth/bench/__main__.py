@@ -1,31 +1,34 @@
 """Command line: ``python -m camhealth.bench <benchmark> [--batch B --size S --repeats N --warmup N
 --threads T --markdown --out FILE --docs FILE]``. Benchmarks are listed in :data:`camhealth.bench.BENCHMARKS`.
 
+Each benchmark is a subcommand with ``--config FILE`` and ``--print_config`` after its name (before it, they cover
+the whole command: the benchmark's options nested under its name, as LightningCLI's subcommands).
+
 ``--docs FILE`` writes the markdown table into FILE between the markers ``<!-- generated: COMMAND -->`` and
 ``<!-- end generated -->`` of the block whose command is this one (without ``--docs``), so a page's tables are
 regenerated in place by the commands they name (:mod:`camhealth.docs`)."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Sequence
 
+from camhealth._cli import BadValue, config_parser
 from camhealth.bench import BENCHMARKS, format_table, load
 
 
-def _positive(value: str) -> int:
+def _positive(value: str | int) -> int:
     n = int(value)
     if n < 1:
-        raise argparse.ArgumentTypeError(f"must be ≥ 1, got {n}")
+        raise BadValue(f"must be ≥ 1, got {n}")
     return n
 
 
-def _non_negative(value: str) -> int:
+def _non_negative(value: str | int) -> int:
     n = int(value)
     if n < 0:
-        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {n}")
+        raise BadValue(f"must be ≥ 0, got {n}")
     return n
 
 
@@ -42,12 +45,13 @@ def _without_docs(argv: Sequence[str]) -> list[str]:
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m camhealth.bench", description=__doc__)
-    sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
+def build_parser():
+    """jsonargparse parser with one subcommand per benchmark (each with the common options and its module's own)."""
+    parser = config_parser(prog="python -m camhealth.bench", description=__doc__)
+    sub = parser.add_subcommands(dest="benchmark", required=True, metavar="BENCHMARK")
     for name in BENCHMARKS:
         module = load(name)
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        p = config_parser(prog=f"python -m camhealth.bench {name}", description=module.HELP)
         p.add_argument("--batch", type=_positive, default=32, help="batch size B (default 32)")
         p.add_argument("--size", type=_positive, default=192, help="image side H = W in px (default 192)")
         p.add_argument("--repeats", type=_positive, default=20, help="timed repeats per row (default 20)")
@@ -59,11 +63,20 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--docs", type=Path, default=None,
                        help="write the markdown table into FILE's generated block of this command (appended if none)")
         module.add_arguments(p)
+        sub.add_subcommand(name, p, help=module.HELP)
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def parse(argv: Sequence[str] | None = None):
+    """The chosen benchmark's options (a namespace with ``benchmark``, its name, added) from ``argv``."""
     args = build_parser().parse_args(argv)
+    options = args[args.benchmark]
+    options.benchmark = args.benchmark
+    return options
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse(argv)
     import torch
 
     if args.threads is not None:

@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--mtf-views", type=int, nargs="+", default=[1], choices=(1, 2, 4),
         help="for MTF models, also rows with the estimates of 2 or 4 flipped copies averaged (Estimator.predict views=); default 1",
     )
-    parser.add_argument("--sizes", type=float, nargs=2, default=(3.0, 21.0), help="blur size range of the MTF test set, px")
+    parser.add_argument("--sizes", type=float, nargs=2, default=[3.0, 21.0], help="blur size range of the MTF test set, px")
     parser.add_argument("--deadleaves", type=int, default=60, help="dead-leaves images added to the default source (as in the configs)")
     from camhealth.physics.metadata import FULL_FIELDS
 

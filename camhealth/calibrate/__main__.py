@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from camhealth._cli import config_parser
+from camhealth._cli import BadValue, config_parser
 
 __all__ = ["build_parser", "main"]
 
@@ -35,21 +35,21 @@ Examples:
 
 def _assignment(text: str) -> tuple[str, float]:
     if "=" not in text:
-        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+        raise BadValue(f"expected FIELD=VALUE, got {text!r}")
     k, v = text.split("=", 1)
     try:
         return k.strip(), float(v)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{k.strip()} = {v!r} must be a number") from None
+        raise BadValue(f"{k.strip()} = {v!r} must be a number") from None
 
 
 def _positive_int(text: str) -> int:
     try:
         n = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+        raise BadValue(f"must be an integer, got {text!r}") from None
     if n < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+        raise BadValue(f"must be >= 1, got {n}")
     return n
 
 

@@ -8,6 +8,8 @@ folder) is read with the camera state of its topics, and ``--diagnostics-out`` w
 success (unreadable frames in a folder or recording and partly decoded video frames are reported and skipped),
 2 on an error (missing/unreadable source, undecodable video, ``--start`` past the end, damaged recording, unknown
 topic, bad metadata, missing or refused model, …), with a one-line message (``--debug``: the traceback).
+Every option may also come from ``--config FILE`` (YAML/JSON, keys as ``--print_config`` writes them; ``--set``
+entries as ``FIELD=VALUE`` strings).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence, TextIO
 
-from camhealth._cli import add_debug_flag, run_cli
+from camhealth._cli import BadValue, add_debug_flag, config_parser, run_cli
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS
 
 __all__ = ["build_parser", "main"]
@@ -75,15 +77,15 @@ Examples:
 
 
 def _int_at_least(lo: int):
-    """argparse type: an integer >= ``lo``, with a message naming the value and the bound."""
+    """Option type: an integer >= ``lo``, with a message naming the value and the bound."""
 
-    def parse(value: str) -> int:
+    def parse(value: str | int) -> int:
         try:
             n = int(value)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer, got {value!r}") from None
+            raise BadValue(f"must be an integer, got {value!r}") from None
         if n < lo:
-            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {n}")
+            raise BadValue(f"must be >= {lo}, got {n}")
         return n
 
     return parse
@@ -93,43 +95,59 @@ _positive = _int_at_least(1)
 _non_negative_int = _int_at_least(0)
 
 
-def _non_negative(value: str) -> float:
+def _non_negative(value: str | float) -> float:
     try:
         x = float(value)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {value!r}") from None
+        raise BadValue(f"must be a number, got {value!r}") from None
     if not x >= 0 or x == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {value}")
+        raise BadValue(f"must be a finite number >= 0, got {value}")
     return x
 
 
-def _bit_depth(value: str) -> int | str:
+def _bit_depth(value: str | int) -> int | str:
     if value == "auto":
         return value
     try:
         n = int(value)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer 8…16, got {value!r}") from None
+        raise BadValue(f"must be 'auto' or an integer 8…16, got {value!r}") from None
     if not 8 <= n <= 16:
-        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer 8…16, got {n}")
+        raise BadValue(f"must be 'auto' or an integer 8…16, got {n}")
     return n
 
 
 def _assignment(value: str) -> tuple[str, float]:
-    if "=" not in value:
-        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {value!r}")
+    """``FIELD=VALUE`` → (field, value) with ``field`` one of the metadata fields and ``value`` a number."""
+    if not isinstance(value, str) or "=" not in value:
+        raise BadValue(f"expected FIELD=VALUE, got {value!r}")
     key, _, raw = value.partition("=")
     key = key.strip()
     if key not in FULL_FIELDS:
-        raise argparse.ArgumentTypeError(f"unknown metadata field {key!r}; known: {', '.join(FULL_FIELDS)}")
+        raise BadValue(f"unknown metadata field {key!r}; known: {', '.join(FULL_FIELDS)}")
     try:
         return key, float(raw)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{key} must be a number, got {raw!r}") from None
+        raise BadValue(f"{key} must be a number, got {raw!r}") from None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+def _assignments(value: str | list[str]) -> str | list[str]:
+    """Type of ``--set``: checks ``FIELD=VALUE`` strings and keeps them as written, so ``--print_config`` writes them
+    as a list of strings that ``--config`` reads back. argparse calls it on each ``--set``; jsonargparse's check calls
+    it again on the whole list (also the list of a config file). :func:`_overrides` makes the numbers."""
+    for item in [value] if isinstance(value, str) else value:
+        _assignment(item)
+    return value
+
+
+def _overrides(values: str | list[str]) -> dict[str, float]:
+    """The metadata fields ``--set`` overrides (a config file may give one string instead of a list)."""
+    return dict(_assignment(v) for v in ([values] if isinstance(values, str) else values))
+
+
+def build_parser():
+    """jsonargparse parser: every option may also come from ``--config FILE``; ``--print_config`` shows them."""
+    p = config_parser(
         prog="python -m camhealth.monitor", description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -141,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--sensor", metavar="NAME", choices=sorted(PRESETS),
                    help=f"sensor preset ({', '.join(sorted(PRESETS))}) that fills fields the file does not give, "
                         "or is the metadata (at 0 dB, 10 ms, 25 °C) when there is no file")
-    g.add_argument("--set", metavar="FIELD=VALUE", action="append", type=_assignment, default=[],
+    g.add_argument("--set", metavar="FIELD=VALUE", action="append", type=_assignments, default=[],
                    help="override one metadata field, e.g. --set gain_db=12 (repeatable)")
     g = p.add_argument_group("estimators")
     g.add_argument("--noise-model", metavar="NAME|FILE", default="noise_source_full",
@@ -200,9 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "Enables the policy's advice (needs camhealth.control)")
     g.add_argument("--iopc-weights", type=_non_negative, nargs="+", metavar="W",
                    help="weights λ of the IOPCs (Eq. 4.8), one per --iopc")
-    g.add_argument("--exposure-limits", type=float, nargs=2, default=(0.001, 0.2), metavar=("LO", "HI"),
+    g.add_argument("--exposure-limits", type=float, nargs=2, default=[0.001, 0.2], metavar=("LO", "HI"),
                    help="camera exposure limits in s (default 0.001 0.2)")
-    g.add_argument("--gain-limits", type=float, nargs=2, default=(0.0, 24.0), metavar=("LO", "HI"),
+    g.add_argument("--gain-limits", type=float, nargs=2, default=[0.0, 24.0], metavar=("LO", "HI"),
                    help="camera gain limits in dB (default 0 24)")
     g = p.add_argument_group("frames")
     g.add_argument("--start", type=_non_negative_int, default=0, metavar="N", help="first frame index (default 0)")
@@ -339,6 +357,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--no-noise and --no-mtf together leave nothing to monitor")
     if args.max_clipped > 1:
         raise ValueError(f"--max-clipped = {args.max_clipped:g} must lie in [0, 1]")
+    for name in ("exposure_limits", "gain_limits"):  # (a --config file is not held to the flag's two values)
+        if len(getattr(args, name)) != 2:
+            raise ValueError(f"--{name.replace('_', '-')} needs 2 values LO HI, got {getattr(args, name)}")
     if args.iopc_weights is not None and len(args.iopc_weights) != len(args.iopc):
         raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
     source = open_source(args.source, args.start, args.stride, args.max_frames, bit_depth=args.bit_depth,
@@ -363,7 +384,7 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     mtf_model = None if args.no_mtf else args.mtf_model
     metadata: Any = args.metadata
     if args.set:  # overrides go on top of the file's fields; the preset (if any) fills the rest
-        metadata = {**(_read_mapping(Path(args.metadata)) if args.metadata else {}), **dict(args.set)}
+        metadata = {**(_read_mapping(Path(args.metadata)) if args.metadata else {}), **_overrides(args.set)}
     policy = None
     if args.iopc:
         policy = load_policy(args.iopc, tuple(args.exposure_limits), tuple(args.gain_limits), args.iopc_weights)

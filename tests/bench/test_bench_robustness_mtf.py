@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from camhealth.bench import robustness_mtf as rm
-from camhealth.bench.__main__ import build_parser
+from camhealth.bench.__main__ import parse
 from camhealth.physics import mtf_hv
 
 
@@ -48,9 +48,8 @@ def test_amae_is_the_training_metric():
 
 
 def test_task_switch_defaults_to_noise():
-    p = build_parser()
-    assert p.parse_args(["robustness"]).task == "noise"
-    a = p.parse_args(["robustness", "--task", "mtf", "--per-cell", "2", "--mtf-sizes", "3", "9"])
+    assert parse(["robustness"]).task == "noise"
+    a = parse(["robustness", "--task", "mtf", "--per-cell", "2", "--mtf-sizes", "3", "9"])
     assert a.task == "mtf" and a.per_cell == 2 and a.mtf_sizes == [3.0, 9.0]
     with pytest.raises(SystemExit):
-        p.parse_args(["robustness", "--task", "blur"])
+        parse(["robustness", "--task", "blur"])

@@ -1,6 +1,7 @@
 """``python -m camhealth.monitor``: JSON lines on the embedded street clip, --help, and clear errors (exit 2) or
 documented skips — never a crash — for bad sources, videos, metadata and frames."""
 
+import argparse
 import json
 import re
 
@@ -31,11 +32,15 @@ def test_help_explains_every_option(capsys):
         parser.parse_args(["--help"])
     assert exc.value.code == 0
     text = capsys.readouterr().out
+    hidden = {opt for action in parser._actions if action.help == argparse.SUPPRESS for opt in action.option_strings}
+    assert hidden <= {"--print_shtab"}  # jsonargparse's hidden stub that only says it is no longer supported
     for action in parser._actions:
+        if action.help == argparse.SUPPRESS:
+            continue
         for opt in action.option_strings:
             assert opt in text, opt
         assert action.help, action.dest  # every option has an explanation
-    for word in ("SOURCE", "street", "JSON", "gain_db", "ξ", "IOPC", "noisier"):
+    for word in ("SOURCE", "street", "JSON", "gain_db", "ξ", "IOPC", "noisier", "--config", "--print_config"):
         assert word in text
 
 
