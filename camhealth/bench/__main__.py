@@ -10,6 +10,7 @@ regenerated in place by the commands they name (:mod:`camhealth.docs`)."""
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -47,11 +48,12 @@ def _without_docs(argv: Sequence[str]) -> list[str]:
 
 def build_parser():
     """jsonargparse parser with one subcommand per benchmark (each with the common options and its module's own)."""
-    parser = config_parser(prog="python -m camhealth.bench", description=__doc__)
+    parser = config_parser(prog="python -m camhealth.bench", description=__doc__, formatter_class=argparse.HelpFormatter)
     sub = parser.add_subcommands(dest="benchmark", required=True, metavar="BENCHMARK")
     for name in BENCHMARKS:
         module = load(name)
-        p = config_parser(prog=f"python -m camhealth.bench {name}", description=module.HELP)
+        p = config_parser(prog=f"python -m camhealth.bench {name}", description=module.HELP,
+                          formatter_class=argparse.HelpFormatter)  # (argparse's help, as the benchmarks' own texts expect)
         p.add_argument("--batch", type=_positive, default=32, help="batch size B (default 32)")
         p.add_argument("--size", type=_positive, default=192, help="image side H = W in px (default 192)")
         p.add_argument("--repeats", type=_positive, default=20, help="timed repeats per row (default 20)")
