@@ -91,6 +91,7 @@ def test_monitor_bad_flag_exits_2_naming_the_value(argv, message, capsys):
     ("source: x.png\nbit_depth: 20\n", "must be 'auto' or an integer 8…16, got 20"),
     ("source: x.png\nwindow: 0\n", "must be >= 1, got 0"),
     ("source: x.png\nxi_sigmas: -2\n", "must be a finite number >= 0, got -2"),
+    ("source: x.png\nwindow: 2.5\n", "must be an integer, got 2.5"),
     ("source: x.png\nsensor: IMX999\n", "IMX999"),
     ("source: x.png\nno_such_option: 1\n", "no_such_option"),
 ])
@@ -158,6 +159,7 @@ def test_bench_bad_flag_exits_2_naming_the_value(argv, message, capsys):
     ("batch: 0\n", "must be ≥ 1, got 0"),
     ("warmup: -3\n", "must be ≥ 0, got -3"),
     ("batch: many\n", "many"),
+    ("repeats: 2.5\n", "must be an integer, got 2.5"),
 ])
 def test_bench_bad_config_value_exits_2_naming_the_value(content, message, tmp_path, capsys):
     path = tmp_path / "bad.yaml"

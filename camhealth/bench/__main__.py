@@ -19,15 +19,21 @@ from camhealth._cli import BadValue, config_parser
 from camhealth.bench import BENCHMARKS, format_table, load
 
 
+def _integer(value: str | int) -> int:
+    if isinstance(value, (bool, float)):  # (a config file's true or 2.5 is no count)
+        raise BadValue(f"must be an integer, got {value!r}")
+    return int(value)
+
+
 def _positive(value: str | int) -> int:
-    n = int(value)
+    n = _integer(value)
     if n < 1:
         raise BadValue(f"must be ≥ 1, got {n}")
     return n
 
 
 def _non_negative(value: str | int) -> int:
-    n = int(value)
+    n = _integer(value)
     if n < 0:
         raise BadValue(f"must be ≥ 0, got {n}")
     return n

@@ -81,6 +81,8 @@ def _int_at_least(lo: int):
 
     def parse(value: str | int) -> int:
         try:
+            if isinstance(value, (bool, float)):  # (a config file's true or 2.5 is no count)
+                raise ValueError
             n = int(value)
         except ValueError:
             raise BadValue(f"must be an integer, got {value!r}") from None
