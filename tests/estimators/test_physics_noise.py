@@ -5,8 +5,10 @@ import torch
 
 from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
 from camhealth.estimators.noise_features import physics_prior_dn
+from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.physics_noise import (
-    PHYSICS_NOISE_COLUMNS, VALIDATED_SIGMA_DN, PhysicsNoiseEstimator, physics_noise_posterior,
+    PHYSICS_NOISE_COLUMNS, VALIDATED_SIGMA_DN, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor,
+    physics_noise_posterior,
 )
 from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
 from camhealth.physics import CameraMetadata
@@ -42,6 +44,59 @@ def test_flat_patch_with_40_dn_of_noise_is_caught(pool):
     assert torch.allclose(out[:, 3], truth, rtol=0.05)
     assert torch.allclose(out[:, 2], sigma[:, 2], rtol=0.06)  # the excess is readout-like white noise
     assert (out[:, 9] == 1).all() and (out[:, 6] < 0.01).all()
+
+
+@pytest.mark.parametrize("level, sigma", [(20.0, 15.0), (60.0, 40.0), (128.0, 60.0), (230.0, 12.0)])
+def test_kept_variance_factor_matches_the_details_of_unclipped_blocks(level, sigma):
+    """Monte Carlo: blocks of N(level, σ²) pixels, clipped and rounded to 8 bit; among the usable blocks (no pixel
+    clipped) whose mean lies within 1 DN of ``level``, the diagonal details keep the closed form's share of σ²."""
+    g = torch.Generator().manual_seed(0)
+    x = ((level + sigma * torch.randn(64, 1, 128, 128, generator=g)).clamp(0, 255).round() / 255.0)
+    m, d2, usable, _ = block_details(x)
+    sel = usable & ((m - level).abs() < 1.0)
+    assert int(sel.sum()) > 2000
+    measured = float(d2[0][sel].mean()) / (sigma**2 + 1.0 / 12.0)
+    f = float(_kept_variance_factor(torch.tensor(level, dtype=torch.float64), torch.tensor(sigma**2 + 1.0 / 12.0, dtype=torch.float64)))
+    assert abs(measured - f) < 0.04
+    if level - 2.5 * sigma < 0 or level + 2.5 * sigma > 255:  # near a bound the share is visibly below 1
+        assert f < 0.97
+    assert float(_kept_variance_factor(torch.tensor(128.0), torch.tensor(1.0))) == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_clipping_penalty_refuses_hypotheses_that_clip_more_than_the_patch_not_scene_highlights(pool):
+    """A 128-DN patch with 30 DN of noise and a saturated highlight in one corner: the true hypothesis costs
+    (almost) nothing in the mid-grey bins, a 90 DN one that would clip far more pixels there is refused."""
+    g = torch.Generator().manual_seed(4)
+    x = ((128.0 + 30.0 * torch.randn(2, 1, 64, 64, generator=g)).clamp(0, 255).round() / 255.0)
+    x[..., :16, :16] = 1.0  # the scene clips here, not the noise
+    m, _, _, _ = block_details(x)
+    bins = 16
+    kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
+    idx = (torch.arange(2).view(2, 1) * bins + kbin).flatten()
+    a = torch.zeros(2, 2, dtype=torch.float64)
+    c = torch.tensor([[30.0**2, 90.0**2]] * 2, dtype=torch.float64)
+    pen = _clipping_penalty(x, m, idx, a, c, torch.zeros(2, dtype=torch.float64), bins, pool)
+    mid = [7, 8]  # the bins around 128 DN, where the blocks carry NLF evidence
+    true_cost, alias_cost = pen[:, 0, mid].sum(-1), pen[:, 1, mid].sum(-1)
+    assert (true_cost > -1.0).all() and (alias_cost < -10.0).all()
+    assert (pen[:, :, 15] == 0).all() or (pen[:, 0, 15] > -1.0).all()  # the saturated highlight costs the truth nothing
+
+
+@pytest.mark.parametrize("level, sigma", [(128.0, 50.0), (128.0, 60.0), (64.0, 30.0), (100.0, 40.0), (32.0, 10.0)])
+def test_strong_noise_on_flat_patches_near_and_far_from_the_bounds(level, sigma):
+    """σ_Total within 5 % (the validated accuracy) on every flat patch up to 60 DN, dark patches with 30 DN included
+    (assessable): the blocks kept only where no pixel is clipped read 5–7 % low without the truncation model, and a
+    far noisier hypothesis (whose few kept blocks are as quiet) is refused by the clipped-pixel count."""
+    meta = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.01, temperature_c=25.0)
+    g = torch.Generator().manual_seed(2)
+    clean = torch.full((4, 1, 128, 128), level / 255.0)
+    noisy = ((clean + torch.randn(clean.shape, generator=g) * sigma / 255.0).clamp(0, 1) * 255.0).round() / 255.0
+    truth = ((noisy - clean) * 255.0).flatten(1).std(1)
+    out = PhysicsNoiseEstimator().predict(noisy, meta)
+    assert out["assessable"].all(), out["reason"]
+    assert torch.allclose(out["sigma_total"], truth, rtol=0.05)
+    assert (out["xi"] < 0).all()
 
 
 @pytest.mark.parametrize("target", [10.0, 30.0, 60.0])
