@@ -83,6 +83,7 @@ class Frame:
     sigma: torch.Tensor  # (16, 3) truth [DN]
     total: torch.Tensor  # (16,) realised σ_Total after clipping [DN]
     xi: torch.Tensor  # (16,) truth [DN]
+    scene_floor: float = float("nan")  # the clean scene's own fine-scale σ [DN] (scene_floor_dn), in no truth
 
 
 def _scenes() -> list[torch.Tensor]:
@@ -93,6 +94,28 @@ def _scenes() -> list[torch.Tensor]:
     street = StreetSampleSource(stride=5)
     scenes = [F.avg_pool2d(s.unsqueeze(0), SCENE_DOWNSAMPLE)[0] for s in photos + [street[i][0] for i in range(len(street))]]
     return [s for s in scenes if min(s.shape[-2:]) >= PATCH]
+
+
+#: A frame's scene is *quiet* where its own fine-scale σ (:func:`scene_floor_dn`) is at most this share of the frame's
+#: σ_Total: the scene then adds at most 1/9 of the noise variance the estimators read (σ_Total × 1.06), less than a
+#: visible mismatch moves it (≥ 0.5 DN and ≥ 15 % of σ_Total).
+QUIET_SCENE_SHARE = 1.0 / 3.0
+
+
+def scene_floor_dn(clean: torch.Tensor) -> float:
+    """The clean scene's own fine-scale σ [DN]: over the patches' 8×8-px windows without a pixel within ½ DN of 0 or
+    255 DN, the lower quartile of the windows' RMS diagonal Haar detail (16 details each). It is what the scene alone
+    puts into the statistic the noise estimators read — its own noise, JPEG residue and fine texture — and what no
+    truth here counts: a frame whose floor is near its σ_Total cannot show a 0.5 DN mismatch by its image."""
+    from camhealth.estimators.noise_features import block_details
+
+    h, w = clean.shape[-2] // 8 * 8, clean.shape[-1] // 8 * 8
+    _, d2, usable, _ = block_details(clean[..., :h, :w])
+    energy = F.avg_pool2d(d2[0], 4, 4)
+    whole = F.avg_pool2d(usable.float(), 4, 4) == 1
+    if not bool(whole.any()):
+        return float("nan")
+    return float(energy[whole].double().quantile(0.25).sqrt())
 
 
 def _told_camera(gen: torch.Generator, k: int) -> CameraMetadata:
@@ -148,7 +171,7 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
             if cond == "jpeg":
                 q = int(torch.randint(75, 96, (1,), generator=gen))
                 noisy = torch.stack([_jpeg(p, q) for p in noisy])
-            out.append(Frame(cond, clean, noisy, told, sigma, total, xi))
+            out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scene_floor_dn(clean)))
     return out
 
 
@@ -231,6 +254,9 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
         t_tot = torch.cat([r[3].total for r in items])
         t_xi = torch.cat([r[3].xi for r in items])
         g = {f"{s}": _bsr(sig[:, i] - t_sig[:, i]) for i, s in enumerate(("PN", "DCSN", "RN"))}
+        # the signal-independent part √(σ_DCSN² + σ_RN²): what one image identifies (a hotter sensor and more readout
+        # noise both add white, signal-independent noise; only the metadata's ranges and the prior split it)
+        g["DCSN+RN"] = _bsr(sig[:, 1:].square().sum(1).sqrt() - t_sig[:, 1:].square().sum(1).sqrt())
         g["total"] = _bsr(tot - t_tot)
         g["xi_rms"] = float((xi - t_xi).square().mean().sqrt())
         g["n"] = int(t_xi.numel())
@@ -255,6 +281,11 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
     f_label = torch.tensor([False] * len(neg) + f_vis)
     f_keep = torch.tensor([True] * len(neg) + f_vis)
     res["auc_frame"] = _auc(f_score[f_keep], f_label[f_keep])
+    quiet = torch.tensor([r[3].scene_floor <= QUIET_SCENE_SHARE * float(r[3].total.median()) for r in neg + pos])
+    for name, sel in (("quiet", quiet), ("busy", ~quiet)):
+        k = f_keep & sel
+        res[f"auc_frame_{name}"] = _auc(f_score[k], f_label[k])
+        res[f"frames_{name}"] = (int((k & ~f_label).sum()), int((k & f_label).sum()))
     res["visible_patches"] = int(p_label.sum())
     res["visible_frames"] = int(f_label.sum())
     strong = rows["strong"]
@@ -290,13 +321,18 @@ def run(args: argparse.Namespace) -> BenchResult:
     results = {getattr(e, "name", str(e)): score(e, frames) for e in ests}
     header = [f"{len(frames)} frames × 16 patches of 128 px ({args.frames} per condition), seed {args.seed}; "
               f"data made in {time.perf_counter() - t0:.0f} s", f"command: {args.command_line}"]
-    summary = ["", "Per-source Bias / Std / RMS [DN] (matched: every simulator variant and JPEG; mismatched: gain, temperature, white noise):", "",
-               "| estimator | set | PN | DCSN | RN | total | ξ RMS |", "|---|---|---|---|---|---|---:|"]
+    floors = np.array([f.scene_floor for f in frames])
+    quiet = np.array([f.scene_floor <= QUIET_SCENE_SHARE * float(f.total.median()) for f in frames])
+    header.append(f"scenes' own fine-scale σ (scene_floor_dn, in no truth): median {np.nanmedian(floors):.2f} DN; "
+                  f"{100 * quiet.mean():.0f} % of the frames are quiet (floor ≤ σ_Total/3)")
+    summary = ["", "Per-source Bias / Std / RMS [DN] (matched: every simulator variant and JPEG; mismatched: gain, temperature, white noise; "
+               "DCSN⊕RN = √(σ_DCSN² + σ_RN²), the signal-independent part one image identifies):", "",
+               "| estimator | set | PN | DCSN | RN | DCSN⊕RN | total | ξ RMS |", "|---|---|---|---|---|---|---|---:|"]
     for name, r in results.items():
         for gname in ("matched", "mismatched", "strong"):
             g = r["groups"][gname]
             summary.append(f"| {name} | {gname} ({g['n']}) | {_fmt3(g['PN'])} | {_fmt3(g['DCSN'])} | {_fmt3(g['RN'])} | "
-                           f"{_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
+                           f"{_fmt3(g['DCSN+RN'])} | {_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
     summary += ["", "Per-source RMS [DN] by condition (PN / DCSN / RN / total):", "",
                 "| estimator | " + " | ".join(MATCHED + MISMATCH) + " |", "|---|" + "---|" * (len(MATCHED) + len(MISMATCH))]
     for name, r in results.items():
@@ -304,15 +340,19 @@ def run(args: argparse.Namespace) -> BenchResult:
                  for c in MATCHED + MISMATCH]
         summary.append(f"| {name} | " + " | ".join(cells) + " |")
     summary += ["", "Detection of a visible mismatch and strong noise:", "",
-                "| estimator | AUC per patch | AUC per frame | σ ≥ 10 DN: median / p90 abs. rel. error of σ_Total | ξ sign right | assessable | ms/patch fp32 |",
-                "|---|---:|---:|---|---:|---:|---:|"]
+                "| estimator | AUC per patch | AUC per frame | per frame, quiet scenes (floor ≤ σ_Total/3) | per frame, busy scenes | "
+                "σ ≥ 10 DN: median / p90 abs. rel. error of σ_Total | ξ sign right | assessable | ms/patch fp32 |",
+                "|---|---:|---:|---:|---:|---|---:|---:|---:|"]
     for name, r in results.items():
-        summary.append(f"| {name} | {r['auc_patch']:.3f} | {r['auc_frame']:.3f} | {100 * r['strong_total_rel_median']:.1f} % / "
+        summary.append(f"| {name} | {r['auc_patch']:.3f} | {r['auc_frame']:.3f} | {r['auc_frame_quiet']:.3f} | {r['auc_frame_busy']:.3f} | "
+                       f"{100 * r['strong_total_rel_median']:.1f} % / "
                        f"{100 * r['strong_total_rel_p90']:.1f} % | {100 * r['strong_xi_sign_right']:.0f} % | {100 * r['assessable']:.0f} % | "
                        f"{r['ms_per_patch']:.2f} |")
     any_r = next(iter(results.values()))
     summary.append(f"\n{any_r['visible_patches']} visible-mismatch patches and {any_r['visible_frames']} frames against "
-                   f"{sum(len(f.xi) for f in frames if f.condition in MATCHED)} matched patches.")
+                   f"{sum(len(f.xi) for f in frames if f.condition in MATCHED)} matched patches; quiet scenes: "
+                   f"{any_r['frames_quiet'][1]} visible-mismatch frames against {any_r['frames_quiet'][0]} matched, busy: "
+                   f"{any_r['frames_busy'][1]} against {any_r['frames_busy'][0]}.")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=1))
