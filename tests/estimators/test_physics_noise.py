@@ -64,6 +64,26 @@ def test_kept_variance_factor_matches_the_details_of_unclipped_blocks(level, sig
 
 
 @pytest.mark.parametrize("pool", [False, True])
+def test_scene_allowance_keeps_the_closed_form_for_a_scene_with_its_own_fine_noise(pool):
+    """A scene that carries 1.5 DN of its own fine-scale noise (a recorded frame), metadata right: the closed form
+    (without the allowance the image reads as a mismatch); 5 DN of extra noise is still followed."""
+    meta = CameraMetadata.preset("ICX285", gain_db=0.0, exposure_s=0.01, temperature_c=25.0)
+    g = torch.Generator().manual_seed(5)
+    scene = (_ramp(4) + 1.5 / 255.0 * torch.randn(4, 1, 128, 128, generator=g)).clamp(0, 1)
+    noisy, _ = simulate_variant(scene, meta, (), torch.Generator().manual_seed(6))
+    prior = physics_prior_dn(noisy, meta, clipping=True)[:, 4:8]
+    out = physics_noise_posterior(noisy, meta, pool=pool)
+    assert torch.allclose(out[:, :4], prior, atol=1e-4) and (out[:, 4] == 0).all()
+    bare = physics_noise_posterior(noisy, meta, pool=pool, scene_allowance_dn=0.0)
+    assert (bare[:, 6] < out[:, 6]).all()  # without the allowance the scene's noise argues against the metadata
+    if pool:
+        assert (bare[:, 6] < 0.5).all()  # and decides, on the frame's evidence
+    louder, _ = simulate_variant(scene, meta, (), torch.Generator().manual_seed(6), extra_read_noise_dn=5.0)
+    followed = physics_noise_posterior(louder, meta, pool=pool)
+    assert (followed[:, 9] == 1).all() and (followed[:, 4] < -1.0).all()
+
+
+@pytest.mark.parametrize("pool", [False, True])
 def test_clipping_penalty_refuses_hypotheses_that_clip_more_than_the_patch_not_scene_highlights(pool):
     """A 128-DN patch with 30 DN of noise and a saturated highlight in one corner: the true hypothesis costs
     (almost) nothing in the mid-grey bins, a 90 DN one that would clip far more pixels there is refused."""
