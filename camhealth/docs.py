@@ -52,6 +52,7 @@ CLI_COMMANDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("camhealth.evaluate", ()),
     ("camhealth.iopc", ()),
     ("camhealth.demo", ()),
+    ("camhealth.data.native_mtf", ()),
     ("camhealth.bench", ()),
     *(("camhealth.bench", (b,)) for b in
       ("robustness", "estimators", "classical", "monitor", "corruption", "data", "calibrate")),

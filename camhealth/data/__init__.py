@@ -10,7 +10,7 @@ from camhealth.data.dead_leaves import DeadLeavesSource, dead_leaves, dead_leave
 from camhealth.data.image_folder import ImageFolderSource, list_images, natural_sort_key
 from camhealth.data.io import BT601_WEIGHTS, IMAGE_EXTENSIONS, read_image, to_gray
 from camhealth.data.skimage_photos import SKIMAGE_PHOTOS, SkimagePhotosSource, load_skimage_photo
-from camhealth.data.sources import SPLITS, ConcatSource, DefaultSource, build_source, group_key, split_ids
+from camhealth.data.sources import SPLITS, AreaDownsampledSource, ConcatSource, DefaultSource, build_source, group_key, split_ids
 from camhealth.data.street_sample import (
     STREET_CLIP,
     STREET_DIR,
@@ -44,6 +44,7 @@ __all__ = [
     "StreetSampleSource",
     "street_sequence",
     "extract_street_frames",
+    "AreaDownsampledSource",
     "ConcatSource",
     "DefaultSource",
     "build_source",

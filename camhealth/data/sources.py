@@ -29,7 +29,7 @@ from camhealth.data.skimage_photos import SkimagePhotosSource
 from camhealth.data.street_sample import StreetSampleSource
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
 
-__all__ = ["ConcatSource", "DefaultSource", "build_source", "group_key", "split_ids", "SPLITS"]
+__all__ = ["AreaDownsampledSource", "ConcatSource", "DefaultSource", "build_source", "group_key", "split_ids", "SPLITS"]
 
 #: Split names returned by :func:`split_ids`, in order.
 SPLITS = ("train", "val", "test")
@@ -73,6 +73,46 @@ class ConcatSource(torch.utils.data.Dataset):
         return f"{type(self).__name__}([{inner}])"
 
 
+class AreaDownsampledSource(torch.utils.data.Dataset):
+    """A source whose images are area-downsampled by an integer ``factor``: each output pixel is the mean of a
+    ``factor × factor`` block (the last rows/columns that do not fill a block are dropped).
+
+    Why: a camera pixel integrates light over its area, so the block mean is exactly what a camera with
+    ``factor``× larger pixels and the same optics would record — the new pixel aperture is an exact box and the
+    original optics' blur shrinks by ``factor`` in pixels. The native MTF of the result (relative to an ideal
+    pixel-aperture camera) at a normalised frequency f_n is the original optics' MTF at f_n / ``factor``
+    (``docs/data.md``, *Native MTF of the sources*): a soft photograph or video frame becomes a sharp one.
+    Ids are those of ``source`` (so the train/val/test split is the same as at full resolution).
+    """
+
+    def __init__(self, source: torch.utils.data.Dataset, factor: int) -> None:
+        if not hasattr(source, "ids") or not hasattr(source, "__getitem__"):
+            raise TypeError(f"{type(source).__name__} is not an image source (needs .ids and __getitem__)")
+        self.factor = check_int(factor, "area_downsample factor", 1)
+        if self.factor > 8:
+            raise ValueError(f"area_downsample factor = {self.factor} is out of the allowed range [1, 8]")
+        self.source = source
+        self.ids: list[str] = list(source.ids)
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
+        img, image_id = self.source[index]
+        k = self.factor
+        if k == 1:
+            return img, image_id
+        h, w = img.shape[-2] // k, img.shape[-1] // k
+        if h == 0 or w == 0:
+            raise ValueError(f"image {image_id!r} ({img.shape[-2]}×{img.shape[-1]} px) is smaller than one {k}×{k} block")
+        x = img[..., : h * k, : w * k].double()  # exact block means (float64), back to float32 in [0, 1]
+        out = x.reshape(*x.shape[:-2], h, k, w, k).mean((-3, -1))
+        return out.to(img.dtype).contiguous(), image_id
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.source!r}, factor={self.factor})"
+
+
 class DefaultSource(ConcatSource):
     """The offline default training images: scikit-image photos + street frames (+ dead-leaves images).
 
@@ -90,7 +130,13 @@ class DefaultSource(ConcatSource):
             ``"skimage:grass#1"`` … — the same split group as the photo, so a photo never sits in two splits —
             and give the few natural photos (fine texture such as grass and gravel) more weight among the
             dead-leaves images without leaving any of those out. Each copy draws its own crops.
-        deadleaves_kwargs: further :class:`DeadLeavesSource` arguments (``r_min``, ``r_max``, ...).
+        area_downsample: area-downsample the scikit-image photos and street frames by this integer factor
+            (:class:`AreaDownsampledSource`; 1: native resolution). Their own optics blur shrinks by the factor and the
+            pixel aperture stays an exact box, so 2 or 3 make soft photographs sharp (native MTF at f_n = 0.6 in
+            ``docs/data.md``); images that end up smaller than the patch size are skipped by the DataModule. Dead
+            leaves are not downsampled: render them with ``supersample`` (4 or 8: a pixel is the mean of s×s point
+            samples, within 1 % / 0.3 % of the exact pixel-area integral at f_n = 0.6).
+        deadleaves_kwargs: further :class:`DeadLeavesSource` arguments (``r_min``, ``r_max``, ``supersample``, ...).
     """
 
     def __init__(
@@ -103,11 +149,18 @@ class DefaultSource(ConcatSource):
         include_street: bool = True,
         deadleaves_antialiased: int = 0,
         photo_repeat: int = 1,
+        area_downsample: int = 1,
         **deadleaves_kwargs,
     ) -> None:
         deadleaves = check_int(deadleaves, "deadleaves", 0)
         n_aa = check_int(deadleaves_antialiased, "deadleaves_antialiased", 0)
         repeat = check_int(photo_repeat, "photo_repeat", 1)
+        k = check_int(area_downsample, "area_downsample", 1)
+        if k > 8:
+            raise ValueError(f"area_downsample = {k} is out of the allowed range [1, 8]")
+        if k > 1 and not (include_skimage or include_street):
+            raise ValueError(f"area_downsample = {k} downsamples the photos and street frames; both are switched off")
+        photo = (lambda src: AreaDownsampledSource(src, k)) if k > 1 else (lambda src: src)
         if repeat > 1 and not include_skimage:
             raise ValueError(f"photo_repeat = {repeat} repeats the scikit-image photos; they are switched off (include_skimage=False)")
         if n_aa > deadleaves:
@@ -116,13 +169,13 @@ class DefaultSource(ConcatSource):
             raise ValueError("deadleaves_antialiased re-renders the plain (supersample 1) images; do not pass supersample too")
         parts: list[torch.utils.data.Dataset] = []
         if include_skimage:
-            parts.append(SkimagePhotosSource())
-            for k in range(1, repeat):
+            parts.append(photo(SkimagePhotosSource()))
+            for r in range(1, repeat):
                 copy = SkimagePhotosSource()
-                copy.ids = [f"{i}#{k}" for i in copy.ids]
-                parts.append(copy)
+                copy.ids = [f"{i}#{r}" for i in copy.ids]
+                parts.append(photo(copy))
         if include_street:
-            parts.append(StreetSampleSource(stride=street_stride))
+            parts.append(photo(StreetSampleSource(stride=street_stride)))
         if deadleaves:
             parts.append(DeadLeavesSource(deadleaves, size=deadleaves_size, seed=seed, **deadleaves_kwargs))
         if n_aa:
@@ -142,14 +195,21 @@ def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
     * ``"skimage"`` → :class:`SkimagePhotosSource`; ``"street"`` → :class:`StreetSampleSource`;
     * a folder → :class:`ImageFolderSource` (``recursive``, ``extensions``); ``"frames:<folder>"`` → the folder
       as one clip of frames (one split group);
-    * a video file → its frames (``stride``, ``max_frames``, ``start``) as one clip.
+    * a video file → its frames (``stride``, ``max_frames``, ``start``) as one clip;
+    * ``area_downsample=k`` (any spec but ``"deadleaves"``): the images area-downsampled by k
+      (:class:`AreaDownsampledSource`; for ``"default"`` the photos and street frames only).
 
     Every result has ``len()``, ``source[i] -> (image 1×H×W float32 in [0, 1], id)`` and ``.ids``.
     """
+    if isinstance(spec, str) and spec.strip().lower() == "default":
+        return DefaultSource(**kwargs)
+    k = kwargs.pop("area_downsample", 1)
+    if k != 1:
+        if isinstance(spec, str) and spec.strip().lower() == "deadleaves":
+            raise ValueError(f"area_downsample = {k!r}: dead leaves are rendered, not downsampled; pass supersample= instead")
+        return AreaDownsampledSource(build_source(spec, **kwargs), k)
     if isinstance(spec, str):
         key = spec.strip().lower()
-        if key == "default":
-            return DefaultSource(**kwargs)
         if key == "deadleaves":
             kwargs.setdefault("n_images", 1000)
             return DeadLeavesSource(**kwargs)

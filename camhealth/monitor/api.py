@@ -316,7 +316,13 @@ class TaskReport:
         uncertainty: (K,) standard error of ``median``: the larger of 1.2533·spread/√n (the standard error of a
             median of n values with Gaussian scatter ``spread``, n = ``n_values``) and 1.2533·temporal_spread/√frames
             (a pooled noise estimate gives every patch of a frame one camera state: only frames are independent).
+            MTF with an estimator that reports a per-patch spread (``mtf_std``, ``mtf_views`` 2 or 4): also at least
+            1.2533·estimator_std/√n, so one patch's answer is not stated exact.
         indicator_uncertainty: the same for the indicator.
+        estimator_std: MTF only: (K,) the estimator's own per-value uncertainty, pooled over the values behind
+            ``median`` — √(mean of ``mtf_std``²), the RMS spread of each patch's estimate over its flipped views
+            (:meth:`camhealth.inference.Estimator.predict`); NaN (JSON ``null``) when the estimator gives none
+            (``mtf_views`` 1). It is the typical error bar of one patch's value, not of ``median``.
         n_values: number of values behind ``median`` (map mode: patches with a value; sampled mode: samples
             in the window).
         coverage: where the networks ran this frame (see :meth:`Monitor.process`): ``mode``, ``estimated``
@@ -341,6 +347,7 @@ class TaskReport:
     indicator: tuple[float, float] | None = None
     uncertainty: torch.Tensor | None = None
     indicator_uncertainty: float | None = None
+    estimator_std: torch.Tensor | None = None
     n_values: int = 0
     coverage: dict[str, Any] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
@@ -358,11 +365,11 @@ class TaskReport:
         return float(self.median[NOISE_FIELDS.index(name)])
 
     def _stats(self, sl: slice | int) -> dict[str, Any]:
-        return {
-            key: None if t is None else _num(t[sl])
-            for key, t in (("median", self.median), ("spread", self.spread), ("temporal_spread", self.temporal_spread),
-                           ("current", self.current), ("uncertainty", self.uncertainty))
-        }
+        fields = [("median", self.median), ("spread", self.spread), ("temporal_spread", self.temporal_spread),
+                  ("current", self.current), ("uncertainty", self.uncertainty)]
+        if self.task == "mtf":
+            fields.append(("estimator_std", self.estimator_std))
+        return {key: None if t is None else _num(t[sl]) for key, t in fields}
 
     def to_dict(self, per_patch: bool = False) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -498,6 +505,9 @@ class _TaskState:
     last_sampled: torch.Tensor = field(init=False)
     memory: torch.Tensor = field(init=False)
     samples: torch.Tensor = field(init=False)
+    std: torch.Tensor = field(init=False)
+    memory_std: torch.Tensor = field(init=False)
+    samples_std: torch.Tensor = field(init=False)
     sample_slot: int = 0
 
     def __post_init__(self) -> None:
@@ -515,13 +525,19 @@ class _TaskState:
         self.last_sampled = torch.full((n,), -1, dtype=torch.long)
         self.memory = torch.full((n, self.k), float("nan"))  # sampled mode: each patch's last estimate
         self.samples = torch.full((self.window, self.n_samples, self.k), float("nan"))
+        # the estimator's own per-value spread (MTF ``mtf_std``; NaN where it gives none) beside the values above
+        self.std = torch.full((n, self.k), float("nan"))
+        self.memory_std = torch.full((n, self.k), float("nan"))
+        self.samples_std = torch.full((self.window, self.n_samples, self.k), float("nan"))
         self.sample_slot = 0
 
-    def push_samples(self, vals: torch.Tensor) -> None:
-        """Sampled mode: this frame's assessable samples (n, K) replace the oldest frame of the window."""
-        row = self.samples[self.sample_slot]
-        row.fill_(float("nan"))
-        row[: vals.shape[0]] = vals[: self.n_samples]
+    def push_samples(self, vals: torch.Tensor, std: torch.Tensor) -> None:
+        """Sampled mode: this frame's assessable samples (n, K) and their estimator spread (n, K) replace the
+        oldest frame of the window."""
+        for buf, v in ((self.samples, vals), (self.samples_std, std)):
+            row = buf[self.sample_slot]
+            row.fill_(float("nan"))
+            row[: v.shape[0]] = v[: self.n_samples]
         self.sample_slot = (self.sample_slot + 1) % self.window
 
     def push(self, index: torch.Tensor, vals: torch.Tensor) -> None:
@@ -532,15 +548,30 @@ class _TaskState:
         self.ptr[index] = (self.ptr[index] + 1) % self.window
 
 
-def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, frames: int) -> torch.Tensor:
-    """Standard error of a frame value [its unit]: the larger of 1.2533·spread/√n (scatter of the n values) and
+def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, frames: int,
+                 estimator_std: torch.Tensor | None = None) -> torch.Tensor:
+    """Standard error of a frame value [its unit]: the largest of 1.2533·spread/√n (scatter of the n values),
     1.2533·temporal_spread/√frames (scatter from frame to frame — the values of one frame may share one pooled
-    camera-state posterior, so only the frames are independent)."""
+    camera-state posterior, so only the frames are independent) and, where the estimator states a per-value
+    spread, 1.2533·estimator_std/√n (each value is itself that uncertain: the floor when n is small and the
+    values happen to agree)."""
     se = _MEDIAN_SE * spread / math.sqrt(max(n, 1))
     if frames > 1:
         tse = _MEDIAN_SE * torch.nan_to_num(temporal_spread.float(), nan=0.0) / math.sqrt(frames)
         se = torch.maximum(se, tse)
+    if estimator_std is not None:
+        se = torch.maximum(se, _MEDIAN_SE * torch.nan_to_num(estimator_std.float(), nan=0.0) / math.sqrt(max(n, 1)))
     return se
+
+
+def _pooled_std(std: torch.Tensor, k: int) -> torch.Tensor:
+    """(K,) √(mean of std²) over the rows of ``std`` (n, K) that have one; NaN where none has."""
+    if std.shape[0] == 0:
+        return torch.full((k,), float("nan"))
+    m = torch.isfinite(std)
+    cnt = m.sum(0)
+    mean_sq = torch.where(m, std, torch.zeros_like(std)).pow(2).sum(0) / cnt.clamp_min(1)
+    return torch.where(cnt > 0, mean_sq.sqrt(), torch.full_like(mean_sq, float("nan")))
 
 
 def _describe(est: Any) -> str:
@@ -786,13 +817,14 @@ class Monitor:
 
     def _estimate(
         self, task: str, patches: torch.Tensor, index: torch.Tensor, meta: CameraMetadata | None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Run the estimator on ``patches[index]`` → (values (n, K), ok (n,) bool)."""
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Run the estimator on ``patches[index]`` → (values (n, K), ok (n,) bool, the estimator's per-value spread
+        (n, K): MTF ``mtf_std`` where the estimator returns one, else NaN)."""
         handle = self.estimators[task]
         k = 5 if task == "noise" else 16
         n = int(index.numel())
         if n == 0:
-            return torch.zeros(0, k), torch.zeros(0, dtype=torch.bool)
+            return torch.zeros(0, k), torch.zeros(0, dtype=torch.bool), torch.zeros(0, k)
         kwargs = {}
         if "precision" in handle.kwargs:
             kwargs["precision"] = self.precision
@@ -817,10 +849,14 @@ class Monitor:
             if "mtf" not in out:
                 raise ValueError(f"MTF estimator {handle.name} returned no 'mtf' (keys {sorted(out)})")
             vals = torch.as_tensor(out["mtf"]).float().reshape(n, 16)
+        std = torch.full((n, k), float("nan"))
+        if task == "mtf" and out.get("mtf_std") is not None:
+            std = torch.as_tensor(out["mtf_std"]).float().reshape(n, 16).clone()
         ok = torch.as_tensor(out.get("assessable", torch.ones(n, dtype=torch.bool))).bool().reshape(n)
         ok &= torch.isfinite(vals[:, -1])
         vals[~ok] = float("nan")
-        return vals, ok
+        std[~ok] = float("nan")
+        return vals, ok, std
 
     def _run_task(self, task: str, frame: torch.Tensor, meta: CameraMetadata | None) -> TaskReport:
         st = self._states[task]
@@ -838,6 +874,7 @@ class Monitor:
             informative = torch.ones_like(informative)
             code = torch.full_like(code, ESTIMATED)
         values = torch.full((grid.n, st.k), float("nan"))
+        std = torch.full((grid.n, st.k), float("nan"))
         if self.mode == "sampled":
             idx = sample_patches(grid, stats, informative, self.n_samples[task], task, st.last_sampled)
             reuse = torch.zeros(idx.numel(), dtype=torch.bool)
@@ -845,8 +882,9 @@ class Monitor:
                 reuse = (torch.isfinite(st.memory[idx, -1]) & ~st.static.changed(stats)[idx]
                          & ~st.static.due(self._counter)[idx])
             new = idx[~reuse]
-            new_vals, new_ok = self._estimate(task, patches, new, meta)
+            new_vals, new_ok, new_std = self._estimate(task, patches, new, meta)
             st.memory[new] = new_vals
+            st.memory_std[new] = new_std
             if self.reuse_static:
                 st.static.update(new[new_ok], stats, self._counter)
             vals = st.memory[idx]
@@ -857,7 +895,7 @@ class Monitor:
             code[idx[~ok]] = NOT_ASSESSABLE
             values[idx] = vals
             st.last_sampled[idx] = self._counter
-            st.push_samples(vals[ok])
+            st.push_samples(vals[ok], st.memory_std[idx][ok])
             st.values, st.code = values, code
             boxes = grid.boxes()[idx[ok]]
             return self._aggregate_sampled(task, st, handle.name, int(informative.sum()), boxes, int(reuse.sum()))
@@ -865,6 +903,7 @@ class Monitor:
             had = torch.isfinite(st.values).any(1) & torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8))
             reuse = informative & had & ~st.static.changed(stats) & ~st.static.due(self._counter)
             values[reuse] = st.values[reuse]
+            std[reuse] = st.std[reuse]
             code[reuse] = REUSED
             candidates = informative & ~reuse
         else:
@@ -872,8 +911,9 @@ class Monitor:
         first = coarse_lattice(grid, candidates, informative) if self.coarse_refine else candidates
         fresh = torch.zeros(grid.n, dtype=torch.bool)
         idx = first.nonzero()[:, 0]
-        vals, ok = self._estimate(task, patches, idx, meta)
+        vals, ok, vstd = self._estimate(task, patches, idx, meta)
         values[idx] = vals
+        std[idx] = vstd
         code[idx[~ok]] = NOT_ASSESSABLE
         fresh[idx[ok]] = True
         interpolated = torch.zeros(grid.n, dtype=torch.bool)
@@ -897,15 +937,16 @@ class Monitor:
             values[interpolated] = ivals[interpolated]
             code[interpolated] = INTERPOLATED
             idx2 = (remaining & ~interpolated).nonzero()[:, 0]
-            vals2, ok2 = self._estimate(task, patches, idx2, meta)
+            vals2, ok2, vstd2 = self._estimate(task, patches, idx2, meta)
             values[idx2] = vals2
+            std[idx2] = vstd2
             code[idx2[~ok2]] = NOT_ASSESSABLE
             fresh[idx2[ok2]] = True
         new_idx = (fresh | interpolated).nonzero()[:, 0]  # values computed this frame (not reused)
         if self.reuse_static:
             st.static.update(new_idx, stats, self._counter)
         st.push(new_idx, values[new_idx])
-        st.values, st.code = values, code
+        st.values, st.code, st.std = values, code, std
         fresh_n = int(fresh.sum())
         return self._aggregate(task, st, handle.name, int(informative.sum()), fresh_n)
 
@@ -925,7 +966,8 @@ class Monitor:
         counts = status_counts(st.code)
         counts["total"] = grid.n
         flat = st.samples.reshape(-1, st.k)
-        vals = flat[torch.isfinite(flat[:, -1])]
+        has = torch.isfinite(flat[:, -1])
+        vals = flat[has]
         frames = int(torch.isfinite(st.samples[..., -1]).any(1).sum())
         coverage = self._coverage("sampled", grid, int(boxes.shape[0]), informative, int(vals.shape[0]), frames, boxes,
                                   reused)
@@ -953,9 +995,11 @@ class Monitor:
             ind_frames = spatial_median(mtf_indicator(st.samples.reshape(-1, st.k)).reshape(st.window, -1), dim=1).median
             ind_unc = max(ind_unc, _MEDIAN_SE * float(spatial_median(ind_frames, dim=0).spread) / math.sqrt(frames)) \
                 if frames > 1 else ind_unc
+        est_std = _pooled_std(st.samples_std.reshape(-1, st.k)[has], st.k) if task == "mtf" else None
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread, temporal_spread=tspread,
-                          current=current, indicator=indicator, uncertainty=_uncertainty(spatial.spread, n, tspread, frames),
-                          indicator_uncertainty=ind_unc, n_values=n)
+                          current=current, indicator=indicator,
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std),
+                          indicator_uncertainty=ind_unc, estimator_std=est_std, n_values=n)
 
     def _aggregate(self, task: str, st: _TaskState, name: str, informative: int = 0, fresh: int = 0) -> TaskReport:
         grid = st.grid
@@ -985,10 +1029,12 @@ class Monitor:
             ind = spatial_median(mtf_indicator(per_patch), dim=0)
             indicator = (float(ind.median), float(ind.spread))
         se = _MEDIAN_SE / math.sqrt(n)
+        est_std = _pooled_std(st.std[has], st.k) if task == "mtf" else None
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread,
                           temporal_spread=tspread, current=current, indicator=indicator,
-                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames),
-                          indicator_uncertainty=None if indicator is None else se * indicator[1], n_values=n)
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std),
+                          indicator_uncertainty=None if indicator is None else se * indicator[1],
+                          estimator_std=est_std, n_values=n)
 
     # ------------------------------------------------------------------ public
     def process(self, frame: Any, metadata: Any = None, index: int | None = None, source_id: str | None = None) -> FrameReport:

@@ -47,3 +47,50 @@ def test_spectral_bad_arguments(kwargs, match):
 def test_spectral_image_too_small():
     with pytest.raises(ValueError, match="smaller than tile"):
         spectral_native_mtf(torch.rand(1, 64, 200))
+
+
+@pytest.mark.parametrize("s", [1, 2, 4, 8])
+def test_rendered_native_mtf_matches_the_closed_form_of_point_sample_averaging(s):
+    """A pixel that is the mean of s×s point samples has, against the exact pixel area integral, the MTF
+    sin(πf)/(s·sin(πf/s)) / sinc(f) (f = f_n/2 cycles/px): 1/sinc for s = 1 (no aperture), → 1 as s grows."""
+    import math
+
+    from camhealth.data.native_mtf import rendered_native_mtf
+
+    fn = torch.tensor([0.1, 0.3, 0.6], dtype=torch.float64)
+    f = fn / 2
+    closed = torch.sin(math.pi * f) / (s * torch.sin(math.pi * f / s)) / torch.special.sinc(f)
+    got = rendered_native_mtf(s, fn.tolist())
+    assert torch.allclose(got.double(), closed, atol=0.025), (got, closed)
+
+
+def test_rendered_native_mtf_rejects_bad_supersample():
+    from camhealth.data.native_mtf import rendered_native_mtf
+
+    with pytest.raises(ValueError, match=r"supersample = 9 is out of the allowed range \[1, 8\]"):
+        rendered_native_mtf(9)
+
+
+def test_street_edge_native_mtf_contract():
+    from camhealth.data.native_mtf import STREET_EDGE_ROIS, street_edge_native_mtf
+
+    m = street_edge_native_mtf((0.05, 0.3, 0.6))
+    assert m.shape == (len(STREET_EDGE_ROIS), 3) and bool(torch.isfinite(m).all())
+    assert bool((m[:, 0] > 0.85).all())  # near 1 at low frequency
+    assert bool((m[:, 2] < 0.5).all())  # the clip is soft at f_n 0.6 (docs/data.md)
+
+
+def test_native_mtf_cli(monkeypatch, capsys):
+    from camhealth.data import native_mtf
+
+    monkeypatch.setattr(native_mtf, "native_mtf_report", lambda f: [
+        {"source": "a", "method": "m1", "mtf": 0.99, "passes": True},
+        {"source": "b", "method": "m2", "mtf": (0.1, 0.2, 0.3), "passes": False},
+        {"source": "c", "method": "m3", "mtf": 0.5, "passes": None}])
+    assert native_mtf.main(["--frequency", "0.5"]) == 0
+    out = capsys.readouterr().out
+    assert "native MTF at f_n = 0.5" in out and "| a | 0.990 | yes | m1 |" in out
+    assert "| b | 0.20 (0.10–0.30) | no | m2 |" in out and "| c | 0.500 | unknown | m3 |" in out
+    with pytest.raises(SystemExit):
+        native_mtf.main(["--frequency", "1.5"])
+    assert "out of the allowed range (0, 1]" in capsys.readouterr().err

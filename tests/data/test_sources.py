@@ -214,3 +214,86 @@ def test_street_frames_share_one_split():
         parts = split_ids(ids, 0.3, 0.3, seed=seed)
         street_splits = {name for name, idx in parts.items() for i in idx if ids[i].startswith("street:")}
         assert len(street_splits) == 1
+
+
+def test_area_downsampled_source_is_the_exact_block_mean(tmp_path):
+    from camhealth.data import AreaDownsampledSource
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (10, 13), dtype=np.uint8)
+    Image.fromarray(img).save(tmp_path / "a.png")
+    src = AreaDownsampledSource(ImageFolderSource(tmp_path), 3)
+    x, image_id = src[0]
+    assert image_id == "a.png" and src.ids == ["a.png"] and len(src) == 1
+    want = img[:9, :12].astype(np.float64).reshape(3, 3, 4, 3).mean((1, 3)) / 255.0  # the last row/column dropped
+    assert x.shape == (1, 3, 4) and x.dtype == torch.float32
+    assert np.allclose(x[0].numpy(), want, atol=1e-6)
+    assert torch.equal(AreaDownsampledSource(ImageFolderSource(tmp_path), 1)[0][0], ImageFolderSource(tmp_path)[0][0])
+    for bad, match in ((0, "factor = 0"), (9, r"factor = 9 is out of the allowed range \[1, 8\]")):
+        with pytest.raises(ValueError, match=match):
+            AreaDownsampledSource(ImageFolderSource(tmp_path), bad)
+    with pytest.raises(TypeError, match="factor must be an int"):
+        AreaDownsampledSource(ImageFolderSource(tmp_path), 2.5)
+    Image.fromarray(img[:5, :5]).save(tmp_path / "a.png")
+    with pytest.raises(ValueError, match=r"'a.png' \(5×5 px\) is smaller than one 8×8 block"):
+        AreaDownsampledSource(ImageFolderSource(tmp_path), 8)[0]
+    with pytest.raises(TypeError, match="not an image source"):
+        AreaDownsampledSource([torch.zeros(1, 4, 4)], 2)
+
+
+def test_area_downsampling_shrinks_the_optics_blur_by_the_factor():
+    """A pixel-area-rendered edge blurred by a Gaussian of σ px, area-downsampled by k: the slanted edge (pixel
+    aperture divided out) reads the Gaussian of σ/k — the new pixel aperture is an exact box and the optics scale by
+    1/k; the native MTF at f_n is the original optics' MTF at f_n/k."""
+    from camhealth.data import AreaDownsampledSource
+    from camhealth.data.native_mtf import edge_native_mtf
+    from camhealth.estimators.charts import slanted_edge_chart, slanted_edge_rois
+    from camhealth.physics import apply_psf, gaussian_psf, mtf_from_psf
+    from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
+
+    class _One(torch.utils.data.Dataset):
+        ids = ["chart"]
+
+        def __init__(self, x):
+            self.x = x
+
+        def __len__(self):
+            return 1
+
+        def __getitem__(self, i):
+            return self.x, "chart"
+
+    sigma, k = 1.2, 2
+    chart = slanted_edge_chart(512).double()
+    blurred = apply_psf(chart, gaussian_psf(torch.tensor([sigma], dtype=torch.float64), 25))[0]
+    small = AreaDownsampledSource(_One(blurred), k)[0][0][None]
+    r0, r1, c0, c1 = slanted_edge_rois(256)["left"]
+    got = edge_native_mtf(small[:, :, r0:r1, c0:c1].float(), aperture=True)[0]
+    psf = gaussian_psf(torch.tensor([sigma], dtype=torch.float64), 25)
+    fn = torch.tensor(NORMALIZED_FREQUENCIES, dtype=torch.float64)
+    want = mtf_from_psf(psf, (0.0,), fn / k)[0, 0].float()  # the full-size blur's MTF at f_n / k
+    assert torch.allclose(got, want, atol=0.03), (got, want)
+    full = edge_native_mtf(blurred[None, :, 2 * r0:2 * r1, 2 * c0:2 * c1].float(), aperture=True)[0]
+    assert float(got[-1]) > float(full[-1]) + 0.3  # at f_n = 0.6: soft at full size, sharp after downsampling
+
+
+def test_default_source_area_downsample():
+    from camhealth.data import AreaDownsampledSource
+
+    plain = DefaultSource(street_stride=25)
+    small = DefaultSource(street_stride=25, area_downsample=2, deadleaves=1, deadleaves_size=64, supersample=4)
+    assert small.ids == plain.ids + ["deadleaves-000000"]  # the same ids, so the same split
+    for i in range(len(plain)):
+        a, b = plain[i][0], small[i][0]
+        assert b.shape == (1, a.shape[-2] // 2, a.shape[-1] // 2)
+    assert small[len(plain)][0].shape == (1, 64, 64)  # dead leaves are rendered at their size, not downsampled
+    assert isinstance(build_source("street", area_downsample=2, stride=25), AreaDownsampledSource)
+    assert build_source("street", area_downsample=2, stride=25)[0][0].shape == (1, 288, 384)
+    with pytest.raises(ValueError, match="supersample"):
+        build_source("deadleaves", area_downsample=2)
+    with pytest.raises(ValueError, match=r"area_downsample = 9 is out of the allowed range \[1, 8\]"):
+        DefaultSource(area_downsample=9)
+    with pytest.raises(ValueError, match="area_downsample = 0"):
+        DefaultSource(area_downsample=0)
+    with pytest.raises(ValueError, match="switched off"):
+        DefaultSource(area_downsample=2, include_skimage=False, include_street=False, deadleaves=2)

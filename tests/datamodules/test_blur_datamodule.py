@@ -146,3 +146,33 @@ def test_bench_data_subcommand_reports_patches_per_second(image_folder, capsys):
     # the setting is process-wide and cannot be undone: the header says so instead of claiming glibc defaults
     assert main(argv + ["--default-malloc"]) == 0
     assert "set earlier in this process" in capsys.readouterr().out
+
+
+def test_sharp_sources_option_is_batched_and_seeded():
+    """``source_kwargs: {area_downsample: 2, supersample: 4}`` (photos and street frames area-downsampled, dead leaves
+    area-rendered): full batches, the same validation batch for the same seed, the same training batches under the
+    same global seed, and different ones for another seed."""
+    kw = dict(source="default", source_kwargs={"street_stride": 10, "area_downsample": 2, "deadleaves": 6,
+                                                 "deadleaves_size": 96, "supersample": 4},
+              patch_size=64, batch_size=4, patches_per_image=2, val_patches_per_image=2, size_range=(1.0, 9.0))
+
+    def batches(seed):
+        dm = BlurDataModule(**kw, seed=seed)
+        dm.setup("fit")
+        val = dm.on_after_batch_transfer(next(iter(dm.val_dataloader())), 0)
+        torch.manual_seed(123)
+        L.seed_everything(123, verbose=False)
+        train = dm.on_after_batch_transfer(next(iter(dm.train_dataloader())), 0)
+        return dm, val, train
+
+    dm, v1, t1 = batches(0)
+    _, v2, t2 = batches(0)
+    assert t1["image"].shape == (4, 1, 64, 64) and t1["mtf"].shape == (4, 16) and v1["image"].shape[1:] == (1, 64, 64)
+    for key in ("image", "clean", "mtf", "family", "size"):
+        assert torch.equal(v1[key], v2[key]), key
+        assert torch.equal(t1[key], t2[key]), key
+    _, v3, _ = batches(1)
+    assert not torch.equal(v1["clean"], v3["clean"])
+    src = dm.source
+    i = src.ids.index("street:vtest#000100")
+    assert src[i][0].shape == (1, 288, 384)  # area-downsampled by 2

@@ -405,3 +405,70 @@ def test_physics_noise_pools_a_frame_and_catches_40_dn_of_unexplained_noise(monk
         assert d["alarm"]["state"] == "noisier", d["alarm"]
         assert d["noise"]["sigma_dn"]["xi"]["median"] < -25.0  # ξ̃ [DN]: the metadata explain a few DN of the ~40
         assert mon.summary()["pool_noise"] is pool
+
+
+class _MTFWithStd(FakeMTF):
+    """FakeMTF that also states a per-value spread ``mtf_std`` (as ``Estimator.predict(views=2|4)`` does): ``std``
+    for every patch, or per call from ``stds``."""
+
+    def __init__(self, std=None, stds=None):
+        super().__init__()
+        self.std, self.stds = std, stds
+
+    def predict(self, patches, metadata=None, precision="fp32", batch_size=256):
+        out = super().predict(patches, metadata, precision, batch_size)
+        b = patches.shape[0]
+        if self.stds is not None:
+            s = torch.as_tensor(self.stds[: b], dtype=torch.float32)[:, None].expand(b, 16)
+        else:
+            s = torch.full((b, 16), float("nan") if self.std is None else float(self.std))
+        out["mtf_std"] = s
+        return out
+
+
+@pytest.mark.parametrize("mode", ["map", "sampled"])
+def test_mtf_estimator_std_is_pooled_and_bounds_the_uncertainty(street_frames, mode):
+    """The estimator's per-patch ``mtf_std`` reaches the frame report as ``estimator_std`` (√ mean of squares over the
+    values behind the median), in the JSON line beside median/spread, and the stated ``uncertainty`` is never below
+    1.2533·estimator_std/√n; without a per-patch spread (views 1: NaN) the field is null and the uncertainty is the
+    one from the scatter alone."""
+    frame = noisy(street_frames[0], 2.0, seed=0)
+    kw = dict(sensor="ICX285", mode=mode, adaptive=False, warmup=False)
+    rep = Monitor(None, _MTFWithStd(std=0.2), **kw).process(frame).mtf
+    assert rep.assessable and rep.n_values >= 2
+    assert torch.allclose(rep.estimator_std, torch.full((16,), 0.2))
+    floor = 1.2533 * 0.2 / math.sqrt(rep.n_values)
+    assert bool((rep.uncertainty >= floor - 1e-6).all())
+    d = json.loads(rep_json := Monitor(None, _MTFWithStd(std=0.2), **kw).process(frame).to_json())["mtf"]
+    assert "NaN" not in rep_json
+    assert d["h"]["estimator_std"] == [0.2] * 8 and d["v"]["estimator_std"] == [0.2] * 8
+    assert min(d["h"]["uncertainty"]) >= round(floor, 4) - 1e-4
+
+    plain = Monitor(None, _MTFWithStd(std=None), **kw).process(frame).mtf  # views 1: no per-patch spread
+    assert bool(torch.isnan(plain.estimator_std).all())
+    d0 = json.loads(Monitor(None, _MTFWithStd(std=None), **kw).process(frame).to_json())["mtf"]
+    assert d0["h"]["estimator_std"] == [None] * 8
+    assert torch.equal(plain.median, rep.median) and bool((plain.uncertainty < floor).any())  # the floor did act
+
+    # pooled as √(mean std²): patches with 0.1 and 0.3 alternate → √((0.01 + 0.09) / 2) when they come in equal numbers
+    n = rep.n_values
+    stds = [0.1 if i % 2 == 0 else 0.3 for i in range(64)]
+    mixed = Monitor(None, _MTFWithStd(stds=stds), **kw).process(frame).mtf
+    per = torch.tensor(stds[:n] if mode == "sampled" else stds[: mixed.n_values])
+    assert torch.allclose(mixed.estimator_std, per.pow(2).mean().sqrt().expand(16), atol=1e-5)
+
+
+def test_noise_report_has_no_estimator_std(street_frames):
+    d = json.loads(Monitor(FakeNoise(), None, sensor="ICX285", warmup=False).process(street_frames[0]).to_json())
+    assert "estimator_std" not in d["noise"]["sigma_dn"]["total"]
+
+
+def test_real_mtf_estimator_views_give_an_estimator_std(model_files, street_frames):
+    """With the exported MTF network and ``mtf_views=2`` the frame carries a finite, non-negative estimator_std;
+    with views 1 it is null."""
+    ns, mtf = model_files
+    frame = noisy(street_frames[0], 3.0, seed=0)
+    two = json.loads(Monitor(None, mtf, mtf_views=2, warmup=False).process(frame).to_json())["mtf"]
+    one = json.loads(Monitor(None, mtf, warmup=False).process(frame).to_json())["mtf"]
+    assert all(v is not None and v >= 0 for v in two["h"]["estimator_std"] + two["v"]["estimator_std"])
+    assert one["h"]["estimator_std"] == [None] * 8
