@@ -67,14 +67,16 @@ _INTENDED = {
 
 _LIMITATIONS = {
     "noise_source": "Trained and tested on camhealth's own simulator only. On data it did not make "
-    "(`python -m camhealth.bench robustness --frames 6 --threads 2`: an independent implementation of the sensor "
+    "(`python -m camhealth.bench robustness --frames 16 --threads 2`: an independent implementation of the sensor "
     "model, downsampled real photographs and street frames, JPEG) its per-source error is far above the metadata's "
-    "closed form where the metadata are right (PN / DCSN / RN RMS 0.89 / 1.01 / 2.85 DN against 0.01 / 0.00 / 0.02) "
-    "and σ of 10–60 DN is underestimated (total RMS 5.6 DN). It never says `assessable=False` for textured "
-    "patches. Use it only where the metadata it needs are unknown or untrusted.",
+    "closed form where the metadata are right (Min-Meta PN / DCSN / RN RMS 0.91 / 0.86 / 2.86 DN against 0.01 / "
+    "0.00 / 0.01), and under 10–60 DN of noise it splits the total (within 1.3 DN) wrongly among the sources (PN / "
+    "DCSN RMS 5.8 / 6.8 DN). It never says `assessable=False` for textured patches. Use it only where the metadata it "
+    "needs are unknown or untrusted.",
     "drne": "Trained and tested on camhealth's own simulator only; on the robustness benchmark "
-    "(`python -m camhealth.bench robustness --frames 6 --threads 2`) its total-σ RMS is 1.9 DN on matched data and "
-    "it underestimates σ of 10–60 DN. Gray patches only; no noise sources, no ξ.",
+    "(`python -m camhealth.bench robustness --frames 16 --threads 2`) its total-σ RMS is 2.0 DN on matched data "
+    "(the metadata's closed form: 0.02 DN) and σ of 10–60 DN is within 4.7 % (p90). Gray patches only; no noise "
+    "sources, no ξ.",
     "mtf": "Trained on the three PSF families above and on sources whose own (native) blur is not part of the label. "
     "On PSF families and scenes it was not trained on (`python -m camhealth.bench robustness --task mtf --per-cell 8 "
     "--threads 1`) its AMAE is 8.9 / 10.3 / 10.7 % (defocus / linear / non-linear), 2.7–4.6× the held-out values, "

@@ -244,7 +244,7 @@ DOCUMENTED = documented_commands()
 def test_the_docs_show_bench_and_monitor_command_lines():
     tools = {tool for _, tool, _ in DOCUMENTED}
     assert tools == {"bench", "monitor"} and len(DOCUMENTED) >= 30
-    assert ("benchmarks.md", "bench", "robustness --frames 6 --threads 2 --markdown") in DOCUMENTED
+    assert ("benchmarks.md", "bench", "robustness --frames 16 --threads 2 --markdown") in DOCUMENTED
 
 
 @pytest.mark.parametrize("page,tool,rest", DOCUMENTED, ids=[f"{p}:{t} {r}"[:90] for p, t, r in DOCUMENTED])

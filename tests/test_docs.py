@@ -60,7 +60,7 @@ def test_replace_generated_keeps_the_rest_of_the_page(tmp_path):
 def test_docs_pages_name_the_command_of_each_generated_block(capsys):
     main(["tables", str(ROOT / "docs" / "benchmarks.md")])
     commands = capsys.readouterr().out.split("\n")
-    assert "python -m camhealth.bench robustness --frames 6 --threads 2 --markdown" in commands
+    assert "python -m camhealth.bench robustness --frames 16 --threads 2 --markdown" in commands
 
 
 def test_bench_docs_flag_writes_the_block_of_its_command(tmp_path, monkeypatch):

@@ -22,10 +22,11 @@ noisier hypothesis, whose few kept blocks would be as quiet, is refused by the c
 **The scene's own fine-scale content.** A scene adds to the details by itself — texture too fine for the flatness
 tests, and in recorded frames their own noise and compression. On the robustness benchmark's scenes that is about
 2 DN (lower quartile of 8×8-px windows; ``camhealth.bench.robustness.scene_floor_dn``), as much as a visible mismatch
-of a 2–4 DN camera. So a bin may read up to τ² = (``scene_allowance_dn``)² more than f_k·v_k(H) at no cost (the
-residual is zero inside [f_k·v_k, f_k·(v_k + τ²)]): the image contradicts the metadata only by more noise than a
-scene can bring, or by less noise than the metadata predict. That is what keeps the closed form on busy matched
-frames; the price is that a mismatch adding less than ≈ τ in quadrature goes unseen.
+of a 2–4 DN camera. So a bin that reads *more* than f_k·v_k(H) carries the extra log-variance ln(1 + τ²/v_k)²
+(τ = ``scene_allowance_dn``) in Σ's diagonal, one that reads less carries none (a scene cannot remove noise): the
+image contradicts the metadata by more noise only where the excess is well beyond what a scene brings, and by less
+noise as before. That keeps the closed form on busy matched frames (and on compressed ones whose codec added a few
+DN); the price is that a mismatch adding less than a few τ in quadrature on a quiet camera goes unseen.
 
 η is the **model error** that is common to all bins — what an NLF measured on real data differs by from the
 ideal model even when the metadata are right (another simulator's details, compression, demosaicking, slight
@@ -278,9 +279,8 @@ def physics_noise_posterior(
         bound_margin: blocks nearer than this many σ (at most 100 DN) to 0 or 255 DN are not used; nearer ones are
             kept and their details' loss to the clipping is modelled (:func:`_kept_variance_factor`).
         scene_allowance_dn: τ [DN], the fine-scale content a scene may add of its own (its texture, the noise and
-            compression of a recording it came from): each bin's measured variance may exceed a hypothesis's by up to
-            τ² without evidence against it (a dead zone in the residual; below the hypothesis there is none, a scene
-            cannot remove noise). 0 turns it off.
+            compression of a recording it came from): a bin that reads more than a hypothesis predicts carries the
+            extra log-variance ln(1 + τ²/v)² (one that reads less, none: a scene cannot remove noise). 0 turns it off.
         pool: the patches show one camera state (``meta`` of batch 1, e.g. the patches of one frame): add up their
             NLF evidence and texture check, so that every patch gets the posterior of the whole frame (noise is a
             property of the camera, not of the scene); σ after clipping stays per patch.
@@ -363,25 +363,22 @@ def physics_noise_posterior(
             s_hat = sq / _TRUNCATED_CHI2 / count.clamp_min(1.0)
             mk = sm / count.clamp_min(1.0)
             used = count >= _MIN_BIN_DETAILS
-            inv_d = torch.where(used, 1.0 / (2.0 / count.clamp_min(1.0) + eta_bin**2), torch.zeros_like(count))  # D⁻¹
             v = (a_all.unsqueeze(-1) * mk.unsqueeze(1) + c_all.unsqueeze(-1) + q.view(b, 1, 1)).clamp_min(1e-9)
             kept = _kept_variance_factor(mk.unsqueeze(1), v)  # the details of the blocks kept (no pixel clipped)
             v = v * kept
-            log_s = s_hat.clamp_min(1e-9).log().unsqueeze(1)
             evidence = count.sum(1) >= _MIN_FIT_BLOCKS
-
-            def log_likelihood(pred: torch.Tensor) -> torch.Tensor:
-                r = torch.where(used.unsqueeze(1), log_s - pred.log(), torch.zeros_like(pred))
-                quad = (r.square() * inv_d.unsqueeze(1)).sum(-1)
-                lin = (r * inv_d.unsqueeze(1)).sum(-1)
-                ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv_d.sum(-1, keepdim=True)))
-                ll = ll + (clip_penalty * used.unsqueeze(1)).sum(-1)
-                return torch.where(evidence.unsqueeze(1), ll, torch.zeros_like(ll))
-
-            # the scene's own fine-scale content explains up to τ² above v at no cost (marginalised over a scene content
-            # uniform in [0, τ²]: a plateau; the size of a mismatch then sits mid-plateau, ≈ τ²/2 below the NLF read)
-            allowed = torch.minimum(torch.maximum(s_hat.unsqueeze(1).clamp_min(1e-9), v), v + kept * scene_allowance_dn**2)
-            post = torch.softmax(log_likelihood(allowed) + prior, 1)
+            r = torch.where(used.unsqueeze(1), s_hat.clamp_min(1e-9).log().unsqueeze(1) - v.log(), torch.zeros_like(v))
+            # the scene's own fine-scale content adds up to about τ² to a bin (never removes any): a reading above the
+            # hypothesis carries the extra log-variance ln(1 + τ²/v)², one below it none
+            scene = torch.log1p(kept * scene_allowance_dn**2 / v).square() * (r > 0)
+            inv = torch.where(used.unsqueeze(1), 1.0 / (2.0 / count.clamp_min(1.0).unsqueeze(1) + eta_bin**2 + scene),
+                              torch.zeros_like(v))  # D⁻¹ per hypothesis
+            quad = (r.square() * inv).sum(-1)
+            lin = (r * inv).sum(-1)
+            ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv.sum(-1)))
+            ll = ll + (clip_penalty * used.unsqueeze(1)).sum(-1)
+            ll = torch.where(evidence.unsqueeze(1), ll, torch.zeros_like(ll))
+            post = torch.softmax(ll + prior, 1)
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
         tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
