@@ -44,11 +44,23 @@ class RandomDefocusBlur(CorruptionBase):
     Parameters (``aug._params``): ``diameter`` (B,). Labels (``aug.labels()``): ``mtf`` (B, 16).
     The transform is differentiable w.r.t. the image (a convolution).
 
-    Example:
+    Shape:
+        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
+          channel gets the same PSF).
+        - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
+
+    Examples:
+        >>> import torch
+        >>> from camhealth.augment import RandomDefocusBlur
         >>> aug = RandomDefocusBlur(diameter=(3.0, 11.0))
-        >>> y = aug(torch.rand(8, 1, 64, 64))
+        >>> x = torch.rand(8, 1, 64, 64)
+        >>> y = aug(x)
         >>> aug.labels()["mtf"].shape
         torch.Size([8, 16])
+        >>> torch.equal(aug(x, params=aug._params), y)  # replay the same diameters
+        True
+        >>> RandomDefocusBlur(5.0, p=0.5, keepdim=True)(torch.rand(1, 32, 32)).shape
+        torch.Size([1, 32, 32])
     """
 
     def __init__(
@@ -82,6 +94,26 @@ class RandomMotionBlur(CorruptionBase):
 
     Parameters: ``length``, ``angle``, ``intensity`` (B,) and ``shake_noise`` (B, 64, 2).
     Labels: ``mtf`` (B, 16). Differentiable w.r.t. the image.
+
+    Shape:
+        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
+          channel gets the same PSF).
+        - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
+
+    Examples:
+        >>> import torch
+        >>> from camhealth.augment import RandomMotionBlur
+        >>> aug = RandomMotionBlur(length=(3.0, 15.0), angle=(0.0, 180.0), intensity=0.5)
+        >>> x = torch.rand(4, 1, 64, 64)
+        >>> y = aug(x)
+        >>> aug._params["length"].shape, aug._params["shake_noise"].shape
+        (torch.Size([4]), torch.Size([4, 64, 2]))
+        >>> torch.equal(aug(x, params=aug._params), y)  # replay: the same paths
+        True
+        >>> RandomMotionBlur(3, 35.0, 0.5)  # Kornia's positional (kernel, angle, direction) is refused
+        Traceback (most recent call last):
+        ...
+        TypeError: RandomMotionBlur.__init__() takes from 1 to 2 positional arguments but 4 were given
     """
 
     def __init__(

@@ -59,12 +59,21 @@ class CameraCorruption(CorruptionBase):
     Labels (``aug.labels()``): ``mtf`` (B, 16) of the combined PSF (product of the components' MTFs),
     the noise labels of :class:`RandomSensorNoise`, and ``metadata``.
 
-    Example:
+    Shape:
+        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
+          channel gets the same PSF and metadata, the noise is drawn per pixel and channel).
+        - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
+
+    Examples:
+        >>> import torch
         >>> from camhealth.augment import CameraCorruption
         >>> cam = CameraCorruption()
-        >>> noisy_blurry = cam(torch.rand(4, 1, 128, 128))
+        >>> x = torch.rand(4, 1, 128, 128)
+        >>> noisy_blurry = cam(x)
         >>> cam.labels()["sigma_dn"].shape
         torch.Size([4, 3])
+        >>> torch.equal(cam(x, params=cam._params), noisy_blurry)  # replay the whole camera
+        True
     """
 
     def __init__(

@@ -45,6 +45,22 @@ class RandomSensorNoise(CorruptionBase):
 
     Gradient: identity w.r.t. the input on unclipped pixels (noise draws are constants: Gaussian parts
     reparameterised, Poisson parts straight-through), zero on clipped pixels.
+
+    Shape:
+        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
+          channel gets the same camera metadata, the noise is drawn per pixel and channel).
+        - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
+
+    Examples:
+        >>> import torch
+        >>> from camhealth.augment import RandomSensorNoise
+        >>> aug = RandomSensorNoise(metadata="ICX285", ranges={"gain_db": (0.0, 24.0)})
+        >>> x = torch.rand(4, 1, 64, 64)
+        >>> y = aug(x)
+        >>> aug.labels()["sigma_dn"].shape  # realised σ of PN, DCSN, RN [DN]
+        torch.Size([4, 3])
+        >>> torch.equal(aug(x, params=aug._params), y)  # replay: the same metadata and noise
+        True
     """
 
     def __init__(
