@@ -174,7 +174,8 @@ def _clipping_penalty(
     x: torch.Tensor, m: torch.Tensor, idx: torch.Tensor, a_all: torch.Tensor, c_all: torch.Tensor, q: torch.Tensor,
     bins: int, pool: bool,
 ) -> torch.Tensor:
-    """Log-likelihood terms (B, hypotheses, bins) ≤ 0 against hypotheses that clip more pixels than the patch shows.
+    """Log-likelihood terms (rows, hypotheses, bins) ≤ 0 against hypotheses that clip more pixels than the patch shows
+    (rows: those of ``a_all``, B, or 1 when ``pool`` makes every row the same).
 
     Under a hypothesis of noise variance v(m) = a·m + c + q, a pixel of a block at mean m [DN] deviates from m by
     N(0, ¾·v) and is clipped with probability Φ((0.5 − m)/√(¾v)) + Φ((m − 254.5)/√(¾v)). Per intensity bin k
@@ -185,6 +186,7 @@ def _clipping_penalty(
     the bounds, where the model holds): without it a very noisy hypothesis, whose few kept blocks are quiet (most
     blocks would have a clipped pixel), could fit the kept details as well as the true one."""
     b, f64, dev = x.shape[0], torch.float64, x.device
+    rows = a_all.shape[0]  # B, or 1 when pooled (every row the same)
     h, w = m.shape[-2] * 2, m.shape[-1] * 2
     dn = x.detach()[..., :h, :w].double() * 255.0
     clipped = F.avg_pool2d(((dn <= 0.5) | (dn >= 254.5)).double(), 2).flatten()  # share of each block's pixels
@@ -193,10 +195,10 @@ def _clipping_penalty(
         out = torch.zeros(b * bins, dtype=f64, device=dev).index_add_(0, idx, values).view(b, bins)
         return out.sum(0, keepdim=True).expand(b, bins) if pool else out
 
-    n_k = per_bin(torch.ones_like(clipped))
-    m_k = (per_bin(m.flatten().to(f64)) / n_k.clamp_min(1.0)).unsqueeze(1)
-    o_k = (per_bin(clipped) / n_k.clamp_min(1.0)).unsqueeze(1)
-    sd = (0.75 * (a_all.unsqueeze(-1) * m_k + c_all.unsqueeze(-1) + q.view(b, 1, 1))).clamp_min(1e-9).sqrt()
+    n_k = per_bin(torch.ones_like(clipped))[:rows]
+    m_k = (per_bin(m.flatten().to(f64))[:rows] / n_k.clamp_min(1.0)).unsqueeze(1)
+    o_k = (per_bin(clipped)[:rows] / n_k.clamp_min(1.0)).unsqueeze(1)
+    sd = (0.75 * (a_all.unsqueeze(-1) * m_k + c_all.unsqueeze(-1) + q.view(rows, 1, 1))).clamp_min(1e-9).sqrt()
     p_k = 0.5 * (torch.erfc((m_k - 0.5) / (sd * math.sqrt(2.0))) + torch.erfc((254.5 - m_k) / (sd * math.sqrt(2.0))))
     spread = 0.1 * p_k + (p_k / (4.0 * n_k.unsqueeze(1)).clamp_min(1.0)).sqrt() + 1e-3
     z = torch.where(n_k.unsqueeze(1) > 0, (p_k - o_k).clamp_min(0) / spread, torch.zeros_like(p_k))
@@ -335,7 +337,11 @@ def physics_noise_posterior(
         idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
         m_flat = m.flatten().to(f64)
         v_ref = _median_variance(m, d2[0], usable, 4)
-        clip_penalty = _clipping_penalty(x, m, idx, a_all, c_all, q, bins, pool)  # (B, H, bins)
+        # pooled, every patch has the same evidence and hypotheses (metadata of batch 1): one row is computed for all
+        h = 1 if pool else b
+        a_h, c_h, prior_h = a_all[:h], c_all[:h], prior[:h]
+        q_h = q.mean().view(1) if pool else q
+        clip_penalty = _clipping_penalty(x, m, idx, a_h, c_h, q_h, bins, pool)  # (h, H, bins)
         post = torch.softmax(prior, 1)
         for step in range(2):
             if step:  # the first pass's posterior NLF
@@ -359,26 +365,26 @@ def physics_noise_posterior(
                 hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
                 count, sq, sm = (t.sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
             texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
-            eta2 = (eta**2 + texture.clamp_min(0).square()).unsqueeze(1)
-            s_hat = sq / _TRUNCATED_CHI2 / count.clamp_min(1.0)
-            mk = sm / count.clamp_min(1.0)
-            used = count >= _MIN_BIN_DETAILS
-            v = (a_all.unsqueeze(-1) * mk.unsqueeze(1) + c_all.unsqueeze(-1) + q.view(b, 1, 1)).clamp_min(1e-9)
+            eta2 = (eta**2 + texture.clamp_min(0).square()).unsqueeze(1)[:h]
+            s_hat = (sq / _TRUNCATED_CHI2 / count.clamp_min(1.0))[:h]
+            mk = (sm / count.clamp_min(1.0))[:h]
+            used = count[:h] >= _MIN_BIN_DETAILS
+            evidence = count.sum(1) >= _MIN_FIT_BLOCKS
+            v = (a_h.unsqueeze(-1) * mk.unsqueeze(1) + c_h.unsqueeze(-1) + q_h.view(h, 1, 1)).clamp_min(1e-9)
             kept = _kept_variance_factor(mk.unsqueeze(1), v)  # the details of the blocks kept (no pixel clipped)
             v = v * kept
-            evidence = count.sum(1) >= _MIN_FIT_BLOCKS
             r = torch.where(used.unsqueeze(1), s_hat.clamp_min(1e-9).log().unsqueeze(1) - v.log(), torch.zeros_like(v))
             # the scene's own fine-scale content adds up to about τ² to a bin (never removes any): a reading above the
             # hypothesis carries the extra log-variance ln(1 + τ²/v)², one below it none
             scene = torch.log1p(kept * scene_allowance_dn**2 / v).square() * (r > 0)
-            inv = torch.where(used.unsqueeze(1), 1.0 / (2.0 / count.clamp_min(1.0).unsqueeze(1) + eta_bin**2 + scene),
+            inv = torch.where(used.unsqueeze(1), 1.0 / (2.0 / count[:h].clamp_min(1.0).unsqueeze(1) + eta_bin**2 + scene),
                               torch.zeros_like(v))  # D⁻¹ per hypothesis
             quad = (r.square() * inv).sum(-1)
             lin = (r * inv).sum(-1)
             ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv.sum(-1)))
             ll = ll + (clip_penalty * used.unsqueeze(1)).sum(-1)
-            ll = torch.where(evidence.unsqueeze(1), ll, torch.zeros_like(ll))
-            post = torch.softmax(ll + prior, 1)
+            ll = torch.where(evidence[:h].unsqueeze(1), ll, torch.zeros_like(ll))
+            post = torch.softmax(ll + prior_h, 1).expand(b, -1)
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
         tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
