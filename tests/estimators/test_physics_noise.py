@@ -192,6 +192,10 @@ def test_bad_input_is_refused():
         physics_noise_posterior(bad, meta)
     with pytest.raises(ValueError, match=r"eta = -0.1 must be in \[0, 10\]"):
         physics_noise_posterior(x, meta, eta=-0.1)
+    with pytest.raises(ValueError, match=r"scene_allowance_dn = -1.0 must be in \[0, 64\]"):
+        physics_noise_posterior(x, meta, scene_allowance_dn=-1.0)
+    with pytest.raises(ValueError, match="scene_allowance_dn"):
+        physics_noise_posterior(x, meta, scene_allowance_dn=float("nan"))
     with pytest.raises(ValueError, match="beyond_probability"):
         physics_noise_posterior(x, meta, mismatch_probability=0.1, beyond_probability=0.2)
     with pytest.raises(ValueError, match="metadata batch 3"):
