@@ -81,14 +81,24 @@ RETIRED_OPTIONS: dict[str, Any] = {
     "trunk_activation": "relu", "prior_clipping": False, "noise_fit_statistics": False, "mismatch_posterior": False,
     "train_only": None, "prior_anchor": "image",
 }
+BY_JOINT_MTF = ("replaced by the MTF network whose regressors read both directions, trained in one run by "
+                "configs/mtf_full.yaml (python -m camhealth.fit --config configs/mtf_full.yaml)")
+#: Retired MTF options, dropped when a file is read: ``joint_directions`` (every network now reads both directions;
+#: a file without it is refused by :func:`check_retired`) and ``train_only`` (a training-only option).
+RETIRED_MTF_OPTIONS: tuple[str, ...] = ("joint_directions", "train_only")
 
 
 def check_retired(desc: Mapping[str, Any], path: Any) -> None:
-    """Refuse a noise-source description written with a retired option (a Full-Meta network, a posterior blend, …),
-    naming the option and what replaced it."""
+    """Refuse a description written with a retired option — a noise-source Full-Meta network or posterior blend, an
+    MTF network whose regressors read one direction only — naming the option and what replaced it."""
+    args = desc.get("init_args", {}) or {}
+    if desc.get("kind") == "mtf":
+        if args.get("joint_directions", True) is not True:
+            raise ValueError(f"{path}: an MTF network whose regressors read one direction only "
+                             f"(joint_directions={args['joint_directions']!r}) is retired: {BY_JOINT_MTF}")
+        return
     if desc.get("kind") != "noise_source":
         return
-    args = desc.get("init_args", {}) or {}
     if args.get("metadata_set") == "full" or args.get("physics_prior"):
         raise ValueError(f"{path}: a Full-Meta noise-source network is retired: {BY_PHYSICS}")
     bad = [f"{k}={v!r}" for k, v in args.items() if k in RETIRED_OPTIONS and v not in (RETIRED_OPTIONS[k], None)]
@@ -187,11 +197,17 @@ def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
     desc, state = _description_and_state(_safe_load(path), path)
     check_retired(desc, path)
     init_args = {k: v for k, v in dict(desc.get("init_args", {})).items() if not str(k).startswith("_")}
-    if desc.get("kind") == "noise_source":  # retired options at their only remaining value: as if absent
-        init_args = {k: v for k, v in init_args.items() if k not in RETIRED_OPTIONS}
+    retired = {"noise_source": RETIRED_OPTIONS, "mtf": RETIRED_MTF_OPTIONS}.get(str(desc.get("kind")), {})
+    init_args = {k: v for k, v in init_args.items() if k not in retired}  # at their only remaining value: as if absent
     bad = [k for k, v in state.items() if not isinstance(v, torch.Tensor)]
     if bad:
         raise ValueError(f"{path}: state_dict entries {bad[:4]} are not tensors")
+    head = state.get("head.0.weight")
+    if desc.get("kind") == "mtf" and head is not None and head.ndim == 2:
+        width = int(list(init_args.get("widths", (32, 64, 96)))[-1])
+        if head.shape[1] == 3 * width:  # a regressor that reads its own direction's max/mean/std only
+            raise ValueError(f"{path}: an MTF network whose regressors read one direction only (regressor input "
+                             f"{head.shape[1]} = 3 × {width} features, not 6 × {width}) is retired: {BY_JOINT_MTF}")
     return path, desc, init_args, state
 
 

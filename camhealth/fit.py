@@ -226,16 +226,14 @@ def _sync_metadata_set(config) -> None:
 
 def _init_from(model, path: str) -> None:
     """Load the network weights of a camhealth weights file or Lightning checkpoint (tensors only) into
-    ``model``; the architectures must match (a clear error names the first mismatch). One exception: an MTF network
-    with ``joint_directions`` starts from a one-direction file exactly (:meth:`~lightning_modules.mtf.MTFNet.state_from`)."""
+    ``model``; the architectures must match (a clear error names the first mismatch)."""
     from camhealth.export import load_module
 
     source, _ = load_module(Path(path))
     if type(source) is not type(model):
         raise ValueError(f"--init_from {path}: holds a {type(source).__name__}, the config trains a {type(model).__name__}")
     try:
-        state = model.net.state_from(source.net) if hasattr(model.net, "state_from") else source.net.state_dict()
-        model.net.load_state_dict(state)
+        model.net.load_state_dict(source.net.state_dict())
     except (RuntimeError, ValueError) as exc:
         raise ValueError(f"--init_from {path}: architecture differs from the config's: {str(exc).splitlines()[0]}") from None
 

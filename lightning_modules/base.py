@@ -16,26 +16,7 @@ from torch import nn
 from camhealth.nets import check_patch_size
 from camhealth.nets.blocks import count_flops, count_parameters
 
-__all__ = ["EstimatorModule", "freeze_all_but"]
-
-
-def freeze_all_but(net: nn.Module, train_only: Any) -> None:
-    """Optimise only the parts of ``net`` whose parameter names start with one of the ``train_only`` prefixes
-    (e.g. ``["head"]``); freeze the rest (``requires_grad = False``; :meth:`EstimatorModule.configure_optimizers`
-    hands only trainable parameters to the optimiser). ``None`` or empty: train everything. A prefix that names
-    no parameter raises ``ValueError`` listing the network's parts."""
-    if not train_only:
-        return
-    if isinstance(train_only, str):
-        train_only = [train_only]
-    prefixes = tuple(str(t) for t in train_only)
-    names = [n for n, _ in net.named_parameters()]
-    unknown = [t for t in prefixes if not any(n.startswith(t) for n in names)]
-    if unknown:
-        tops = sorted({n.split(".")[0] for n in names})
-        raise ValueError(f"train_only {unknown} match no parameter of the network; its parts are {tops}")
-    for n, p in net.named_parameters():
-        p.requires_grad_(n.startswith(prefixes))
+__all__ = ["EstimatorModule"]
 
 
 class EstimatorModule(L.LightningModule):
@@ -75,7 +56,7 @@ class EstimatorModule(L.LightningModule):
 
     # ------------------------------------------------------------------ optimisation
     def configure_optimizers(self) -> Any:
-        params = [p for p in self.parameters() if p.requires_grad]  # frozen parts (e.g. ``train_only``) stay as they are
+        params = [p for p in self.parameters() if p.requires_grad]
         opt = torch.optim.AdamW(params, lr=self.lr, weight_decay=self.weight_decay)
         total = None
         if self._trainer is not None:

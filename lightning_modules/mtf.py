@@ -8,13 +8,13 @@ Loss: L1 on the 16 MTF values; metric: AMAE (Eq. 5.1) in % per blur family.
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import torch
 import torch.nn.functional as F
 
 from camhealth.nets.mtf import MTFNet, MTFPreprocess, sobel
-from lightning_modules.base import EstimatorModule, freeze_all_but
+from lightning_modules.base import EstimatorModule
 from lightning_modules.metrics import AMAEPerFamily
 
 __all__ = ["MTFPreprocess", "MTFNet", "MTFEstimator", "FAMILIES", "sobel"]
@@ -30,10 +30,6 @@ class MTFEstimator(EstimatorModule):
         widths: channels of the three resolution stages.
         hidden: hidden layers of the fully connected regressor.
         downsample: space-to-depth factor of the pre-processing.
-        joint_directions: the regressor of each direction also reads the other direction's features (see the
-            module docstring; default False, the layout of weights files before it existed).
-        train_only: optimise only the parts of the network whose parameter names start with these prefixes
-            (e.g. ``[head]``), the rest frozen (:func:`lightning_modules.base.freeze_all_but`); default: all.
         lr, weight_decay, channels_last, log_figures, max_figure_samples: see :class:`EstimatorModule`.
     """
 
@@ -45,8 +41,6 @@ class MTFEstimator(EstimatorModule):
         widths: tuple[int, int, int] = (32, 64, 96),
         hidden: tuple[int, ...] = (128, 64),
         downsample: int = 4,
-        joint_directions: bool = False,
-        train_only: Sequence[str] | None = None,
         lr: float = 2e-3,
         weight_decay: float = 1e-4,
         channels_last: bool = True,
@@ -56,8 +50,7 @@ class MTFEstimator(EstimatorModule):
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
         self._set_patch_size(patch_size)
-        self.net = MTFNet(tuple(widths), tuple(hidden), downsample, joint_directions)
-        freeze_all_but(self.net, train_only)
+        self.net = MTFNet(tuple(widths), tuple(hidden), downsample)
         self.val_amae = AMAEPerFamily(FAMILIES)
         self.test_amae = AMAEPerFamily(FAMILIES)
 

@@ -18,7 +18,6 @@ MODELS = {
     "noise_source_none": lambda: NoiseSourceEstimator(patch_size=32, metadata_set="none"),
     "drne": lambda: NoiseLevelEstimator(patch_size=32),
     "mtf": lambda: MTFEstimator(patch_size=32),
-    "mtf_joint": lambda: MTFEstimator(patch_size=32, joint_directions=True),
 }
 
 

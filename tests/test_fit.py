@@ -132,25 +132,33 @@ def test_init_from_fine_tunes_from_weights_and_rejects_another_kind(tmp_path):
         main(tiny_args("noise_source.yaml", tmp_path, "--init_from", str(other), "--trainer.max_steps", "0"))
 
 
-def test_mtf_joint_directions_fine_tune_from_a_one_direction_file_with_the_head_only(tmp_path):
+def test_mtf_files_with_a_one_direction_regressor_are_refused_naming_what_replaced_them(tmp_path):
     import torch
 
-    from camhealth.export import export_weights
+    from camhealth.export import export_weights, load_net
+    from camhealth.inference import load_estimator
     from lightning_modules import MTFEstimator
 
-    torch.manual_seed(4)
-    start = MTFEstimator(patch_size=32)
-    path = export_weights(start, tmp_path / "one.pt")
-    cli = main(tiny_args("mtf.yaml", tmp_path, "--init_from", str(path), "--model.init_args.joint_directions", "true",
-                         "--model.init_args.train_only", "[head]", "--test_after_fit", "false"))
-    net = cli.model.net.eval()
-    assert net.joint_directions
-    before = start.net.state_dict()
-    for name, p in net.named_parameters():  # two steps taken: only the regressor is trainable, the body unchanged
-        assert p.requires_grad == name.startswith("head.")
-        if not name.startswith("head."):
-            assert torch.equal(p, before[name])
-    assert net.head[0].weight[:, 3 * 96:].abs().sum() > 0  # the other direction's weights were trained from zero
+    path = export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt")
+    blob = torch.load(path, weights_only=True)
+    # the layout of files written before every regressor read both directions: 3 × 96 inputs, flag False or absent
+    blob["state_dict"]["head.0.weight"] = blob["state_dict"]["head.0.weight"][:, : 3 * 96].clone()
+    desc = json.loads(blob["description"])
+    for flag in (False, None):
+        if flag is None:
+            desc["init_args"].pop("joint_directions", None)
+        else:
+            desc["init_args"]["joint_directions"] = flag
+        blob["description"] = json.dumps(desc)
+        torch.save(blob, tmp_path / "one.pt")
+        for load in (load_net, load_estimator):
+            with pytest.raises(ValueError, match=r"one direction only.*configs/mtf_full.yaml"):
+                load(tmp_path / "one.pt")
+    with pytest.raises(ValueError, match=r"one direction only.*configs/mtf_full.yaml"):
+        main(tiny_args("mtf.yaml", tmp_path, "--init_from", str(tmp_path / "one.pt"), "--trainer.max_steps", "0"))
+    for gone in ("joint_directions", "train_only"):  # the options are gone from the LightningModule
+        with pytest.raises(SystemExit):
+            main(tiny_args("mtf.yaml", tmp_path, f"--model.init_args.{gone}", "true", "--trainer.max_steps", "0"))
 
 
 def test_fit_keeps_freed_memory_for_reuse(tmp_path, monkeypatch):

@@ -175,7 +175,7 @@ def test_padding_to_a_bucket_does_not_change_results(noise_est):
 @pytest.mark.parametrize("views", [2, 4])
 def test_mtf_views_average_the_flipped_copies(tmp_path, views):
     torch.manual_seed(0)
-    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32, joint_directions=True), tmp_path / "mtf.pt"))
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
     y = torch.rand(3, 1, 32, 32)
     flips = [(-2, -1)] if views == 2 else [(-1,), (-2,), (-2, -1)]
     expected = torch.stack([mtf.predict(y)["mtf"]] + [mtf.predict(y.flip(d))["mtf"] for d in flips]).mean(0)
@@ -195,7 +195,7 @@ def test_views_are_checked(noise_est, tmp_path):
 
 @pytest.mark.parametrize("fill,reason", [(0.0, "black"), (1.0, "saturated"), (0.5, "featureless")])
 def test_mtf_views_keep_the_flags_of_hard_patches(tmp_path, fill, reason):
-    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32, joint_directions=True), tmp_path / "mtf.pt"))
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
     x = torch.cat([torch.full((1, 1, 32, 32), fill), _textured(1, 32)])
     out = mtf.predict(x, views=4, precision="bf16")
     assert torch.isfinite(out["mtf"]).all() and out["mtf"].shape == (2, 16)
@@ -278,7 +278,7 @@ def test_structure_survives_noise():
 
 
 def test_mtf_std_is_the_spread_over_views(tmp_path):
-    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32, joint_directions=True), tmp_path / "mtf.pt"))
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
     x = _textured(3, 32)
     one = mtf.predict(x)
     assert one["mtf_std"].shape == (3, 16) and torch.isnan(one["mtf_std"]).all()

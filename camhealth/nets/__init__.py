@@ -98,7 +98,7 @@ NETWORKS: dict[str, NetworkSpec] = {
         NetworkSpec("drne", "lightning_modules.drne.NoiseLevelEstimator", NoiseLevelNet,
                     ("width", "dilations"), ("map_weight", "huber_beta_dn")),
         NetworkSpec("mtf", "lightning_modules.mtf.MTFEstimator", MTFNet,
-                    ("widths", "hidden", "downsample", "joint_directions"), ("train_only",)),
+                    ("widths", "hidden", "downsample"), ()),
     )
 }
 

@@ -12,14 +12,10 @@ layers while keeping every pixel (the finest frequencies are still there).
 **feature averaging over the T patches of a stack** (the thesis's intermediate representation layer), and a
 three-layer fully connected regressor with a sigmoid output. ≈ 0.6 GFLOP per 192-px patch (both directions).
 
-**Both directions at once** (``joint_directions``): the H and V passes share the convolutional body, and by
-default the regressor of each direction reads only its own pooled features, so the H and V estimates are made
-independently — a disk (H = V exactly) comes out with |H − V| ≈ 1.4 % at the median, and the coupling of the two
-directions of a motion line (both are |sinc(L·f·cos θ)|, |sinc(L·f·sin θ)| of one length) is not used. With
-``joint_directions=True`` the regressor reads [own, other] features: H = head([f_H, f_V]), V = head([f_V, f_H]);
-the head's first layer doubles its inputs (36 864 parameters, ≈ 0.15 MFLOP per patch), nothing else changes.
-:meth:`MTFNet.state_from` carries a one-direction network over with zero weights on the other direction's
-features, so ``--init_from`` starts exactly at its outputs.
+**Both directions at once**: the H and V passes share the convolutional body, and the regressor of each direction
+reads [own, other] pooled features: H = head([f_H, f_V]), V = head([f_V, f_H]). So it can see isotropy (a disk has
+H = V exactly) and the coupling of a motion line's two directions (|sinc(L·f·cos θ)|, |sinc(L·f·sin θ)| of one
+length L), which two independent regressors cannot.
 
 Plain ``torch.nn.Module``s: inference imports no training framework. The LightningModule that trains
 :class:`MTFNet` (loss: L1 on the 16 MTF values; metric: AMAE, Eq. 5.1, per blur family) is
@@ -77,11 +73,9 @@ class MTFNet(nn.Module):
 
     def __init__(
         self, widths: tuple[int, int, int] = (32, 64, 96), hidden: tuple[int, ...] = (128, 64), downsample: int = 4,
-        joint_directions: bool = False,
     ) -> None:
         super().__init__()
         w1, w2, w3 = widths
-        self.joint_directions = bool(joint_directions)
         self.pre = MTFPreprocess(downsample)
         self.stem = ConvAct(3 * downsample * downsample, w1)
         self.body = nn.Sequential(
@@ -92,7 +86,7 @@ class MTFNet(nn.Module):
             ResidualBlock(w3, w3, rezero=True),
         )
         self.pool = GlobalStatsPool()
-        self.head = FullyConnectedBlock((6 if self.joint_directions else 3) * w3, hidden, 8)
+        self.head = FullyConnectedBlock(6 * w3, hidden, 8)  # [own, other] direction's max/mean/std
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         b, t = image.shape[:2]
@@ -101,20 +95,6 @@ class MTFNet(nn.Module):
             x = x.contiguous(memory_format=torch.channels_last)
         feats = self.pool(self.body(self.stem(x))).float()  # (2·B·T, F)
         feats = feats.view(2, b, t, -1).mean(2)  # average the T patches of a stack
-        if self.joint_directions:  # each direction's regressor reads [own, other] features
-            feats = torch.cat([feats, feats.flip(0)], dim=-1)
+        feats = torch.cat([feats, feats.flip(0)], dim=-1)  # each direction's regressor reads [own, other] features
         mtf = torch.sigmoid(self.head(feats).float())  # (2, B, 8)
         return torch.cat([mtf[0], mtf[1]], dim=1)
-
-    def state_from(self, source: "MTFNet") -> dict[str, torch.Tensor]:
-        """``source``'s weights laid out for this network, so that it starts as ``source`` exactly: a
-        one-direction ``source`` carried into a ``joint_directions`` network gets zero weights on the other
-        direction's features. Raises ``ValueError`` for the reverse (the other direction's weights would be lost)."""
-        state = dict(source.state_dict())
-        if self.joint_directions == source.joint_directions:
-            return state
-        if source.joint_directions:
-            raise ValueError("the source regressor reads both directions (joint_directions) and this network does not")
-        w_old = state["head.0.weight"]
-        state["head.0.weight"] = torch.cat([w_old, torch.zeros_like(w_old)], dim=1)
-        return state

@@ -76,20 +76,7 @@ def test_sobel_equals_kornia_spatial_gradient(dtype, shape):
     assert torch.autograd.gradcheck(lambda t: sobel(t)[0] + sobel(t)[1], (xg,))
 
 
-def test_joint_directions_starts_as_the_one_direction_network():
-    torch.manual_seed(0)
-    one = MTFEstimator(patch_size=64).eval()
-    joint = MTFEstimator(patch_size=64, joint_directions=True).eval()
-    joint.net.load_state_dict(joint.net.state_from(one.net))
-    x = torch.rand(3, 1, 64, 64)
-    with torch.no_grad():
-        assert torch.allclose(joint(x)["mtf"], one(x)["mtf"], atol=1e-6)
-        assert torch.allclose(joint(x.expand(3, 2, 64, 64).contiguous())["mtf"], one(x)["mtf"], atol=1e-5)
-    with pytest.raises(ValueError, match="joint_directions"):
-        one.net.state_from(joint.net)
-
-
-def test_joint_head_h_estimate_changes_with_the_v_features_only_when_joint():
+def test_h_estimate_reads_the_v_features():
     """Through the network's own forward: pooled features are injected, and only the V pass's are changed."""
 
     class Given(torch.nn.Module):
@@ -102,22 +89,16 @@ def test_joint_head_h_estimate_changes_with_the_v_features_only_when_joint():
 
     torch.manual_seed(1)
     x = torch.rand(3, 1, 64, 64)
-    for joint in (False, True):
-        net = MTFEstimator(patch_size=64, joint_directions=joint).net.eval()
-        feats = torch.randn(2 * 3, 3 * 96)  # (2·B·T, F): the H passes of the 3 patches, then their V passes
-        other = feats.clone()
-        other[3:] += 1.0
-        with torch.no_grad():
-            net.pool = Given(feats)
-            h = net(x)[:, :8]
-            net.pool = Given(other)
-            h_other = net(x)[:, :8]
-        assert (not torch.allclose(h, h_other)) == joint
-
-
-def test_train_only_head_freezes_the_body():
-    m = MTFEstimator(patch_size=64, joint_directions=True, train_only=["head"])
-    trainable = {n for n, p in m.net.named_parameters() if p.requires_grad}
-    assert trainable and all(n.startswith("head.") for n in trainable)
-    with pytest.raises(ValueError, match=r"train_only \['heda'\] match no parameter.*head"):
-        MTFEstimator(patch_size=64, train_only=["heda"])
+    net = MTFEstimator(patch_size=64).net.eval()
+    feats = torch.randn(2 * 3, 3 * 96)  # (2·B·T, F): the H passes of the 3 patches, then their V passes
+    other = feats.clone()
+    other[3:] += 1.0
+    with torch.no_grad():
+        net.pool = Given(feats)
+        h, v = net(x).split(8, dim=1)
+        net.pool = Given(other)
+        h_other, v_other = net(x).split(8, dim=1)
+        net.pool = Given(feats.roll(3, dims=0))  # H and V features swapped: H and V estimates swap
+        swapped = net(x)
+    assert not torch.allclose(h, h_other) and not torch.allclose(v, v_other)
+    assert torch.allclose(swapped, torch.cat([v, h], dim=1))
