@@ -283,7 +283,10 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         n_images: number of images (>= 1).
         size: ``(H, W)`` in px, or one int.
         seed: base seed (>= 0).
-        r_min, r_max, contrast, supersample: as in :func:`dead_leaves`.
+        r_min, r_max, contrast, supersample: as in :func:`dead_leaves`. ``r_min`` [px] and ``contrast`` may also be
+            a ``[low, high]`` range: each image then draws its own value (``r_min`` log-uniform, ``contrast``
+            uniform) from the seed sequence ``(seed, i, 1)``, so scenes vary in edge density and edge contrast
+            while a fixed value leaves every image bit-identical to before.
     """
 
     def __init__(
@@ -291,30 +294,61 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         n_images: int,
         size: int | Sequence[int] = (256, 256),
         seed: int = 0,
-        r_min: float = 2.0,
+        r_min: float | Sequence[float] = 2.0,
         r_max: float | None = None,
-        contrast: float = 1.0,
+        contrast: float | Sequence[float] = 1.0,
         supersample: int = 1,
     ) -> None:
         self.n_images = check_int(n_images, "n_images", 1)
         self.seed = check_int(seed, "seed", 0)
-        h, w, r_min, r_max, contrast, s = _resolve_params(size, r_min, r_max, contrast, supersample)
+        self.r_min_range = _range(r_min, "r_min")
+        self.contrast_range = _range(contrast, "contrast")
+        for r_lo, c_lo in ((self.r_min_range[0], self.contrast_range[0]), (self.r_min_range[1], self.contrast_range[1])):
+            h, w, r_lo, r_max_v, c_lo, s = _resolve_params(size, r_lo, r_max, c_lo, supersample)  # both ends valid
         self.size = (h, w)
-        self.r_min, self.r_max, self.contrast, self.supersample = r_min, r_max, contrast, s
+        self.r_min, self.r_max, self.contrast, self.supersample = self.r_min_range[0], r_max_v, self.contrast_range[0], s
         self.ids = [f"deadleaves-{i:06d}" for i in range(self.n_images)]
+
+    def image_params(self, index: int) -> tuple[float, float]:
+        """``(r_min [px], contrast)`` of image ``index``: the fixed values, or its draw from the ranges."""
+        i = check_index(index, len(self), "DeadLeavesSource")
+        (r_lo, r_hi), (c_lo, c_hi) = self.r_min_range, self.contrast_range
+        if r_lo == r_hi and c_lo == c_hi:
+            return r_lo, c_lo
+        u = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 1]))).random(2)
+        return float(r_lo * (r_hi / r_lo) ** u[0]), float(c_lo + (c_hi - c_lo) * u[1])
 
     def __len__(self) -> int:
         return self.n_images  # type: ignore[return-value]
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
         i = check_index(index, len(self), "DeadLeavesSource")
+        r_min, contrast = self.image_params(i)
         rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i])))
         h, w = self.size
-        img = _dead_leaves(rng, h, w, self.r_min, self.r_max, self.contrast, self.supersample)
+        img = _dead_leaves(rng, h, w, r_min, self.r_max, contrast, self.supersample)
         return img, self.ids[i]
 
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(n_images={self.n_images}, size={self.size}, seed={self.seed}, "
-            f"r_min={self.r_min:g}, r_max={self.r_max:g}, contrast={self.contrast:g}, supersample={self.supersample})"
+            f"r_min={_fmt(self.r_min_range)}, r_max={self.r_max:g}, contrast={_fmt(self.contrast_range)}, "
+            f"supersample={self.supersample})"
         )
+
+
+def _range(v: float | Sequence[float], name: str) -> tuple[float, float]:
+    """A value or a ``[low, high]`` range as ``(low, high)``; ``ValueError`` naming ``name`` otherwise."""
+    if isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool):
+        return float(v), float(v)
+    try:
+        lo, hi = (float(x) for x in v)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or a [low, high] pair, got {v!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ValueError(f"{name} = [{lo:g}, {hi:g}] must be finite with low <= high")
+    return lo, hi
+
+
+def _fmt(r: tuple[float, float]) -> str:
+    return f"{r[0]:g}" if r[0] == r[1] else f"[{r[0]:g}, {r[1]:g}]"

@@ -89,3 +89,24 @@ def test_vectorised_painting_matches_naive_reference():
     img2, unc2 = np.zeros(h * w, np.float32), np.ones(h * w, bool)
     _paint_direct(img2, unc2, w, r, cx, cy, val)
     assert np.array_equal(unc2, ref_unc) and np.array_equal(img2, ref)
+
+
+def test_source_ranges_draw_each_images_edge_density_and_contrast_reproducibly():
+    from camhealth.data.dead_leaves import DeadLeavesSource
+
+    fixed, ranged = DeadLeavesSource(4, size=64), DeadLeavesSource(4, size=64, r_min=[1.0, 6.0], contrast=[0.3, 1.0])
+    assert torch.equal(DeadLeavesSource(4, size=64, r_min=[2.0, 2.0])[2][0], fixed[2][0])  # a degenerate range = the value
+    params = [ranged.image_params(i) for i in range(4)]
+    assert params == [DeadLeavesSource(4, size=64, r_min=[1.0, 6.0], contrast=[0.3, 1.0]).image_params(i) for i in range(4)]
+    assert len(set(params)) == 4 and all(1.0 <= r <= 6.0 and 0.3 <= c <= 1.0 for r, c in params)
+    for i, (_, c) in enumerate(params):
+        img = ranged[i][0]
+        assert float(img.min()) >= 0.5 - c / 2 - 1e-6 and float(img.max()) <= 0.5 + c / 2 + 1e-6
+    with pytest.raises(ValueError, match=r"r_min = \[6, 1\]"):
+        DeadLeavesSource(2, r_min=[6.0, 1.0])
+    with pytest.raises(ValueError, match=r"r_min = 0.2 px must be >= 0.5"):
+        DeadLeavesSource(2, r_min=[0.2, 1.0])
+    with pytest.raises(ValueError, match=r"contrast = 1.5 must be in \[0, 1\]"):
+        DeadLeavesSource(2, contrast=[0.5, 1.5])
+    with pytest.raises(ValueError, match="r_min must be a number or a \\[low, high\\] pair"):
+        DeadLeavesSource(2, r_min="big")
