@@ -8,8 +8,9 @@ For every shipped model (``camhealth/weights/*.pt`` and ``noise_source_full``, t
   training or validation) of the DataModule the shipped configs train on (``source: default`` + 60 dead-leaves
   images, ``seed: 0``), ``--per-image`` fixed crops per test image, corrupted with the DataModule's seeded test
   corruption: noise models — Bias/Std/RMS (Eq. 6.2, DN) of PN, DCSN, RN, total and ξ (total also on the
-  samples whose metadata agree with the image, ``altered = False``); MTF models — AMAE (Eq. 5.1, %) per blur
-  family over sizes ``--sizes`` (default 3–21 px), with ``--mtf-views 1 2 4`` also for the averaged estimates of
+  samples whose metadata agree with the image, ``altered = False``); MTF models — on the test split of the MTF
+  training source (``configs/mtf_full.yaml``'s ``source_kwargs``; ``--deadleaves`` does not apply) — AMAE
+  (Eq. 5.1, %) per blur family over sizes ``--sizes`` (default 3–21 px), with ``--mtf-views 1 2 4`` also for the averaged estimates of
   flipped copies (``Estimator.predict(views=...)``), timed alike;
 * **speed**: ``Estimator.predict`` on a batch of ``--batch`` patches in fp32 and bf16 (closed-form physics prior
   and input checks included), median over ``--repeats``; params and FLOPs per patch;
@@ -44,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="for MTF models, also rows with the estimates of 2 or 4 flipped copies averaged (Estimator.predict views=); default 1",
     )
     parser.add_argument("--sizes", type=float, nargs=2, default=[3.0, 21.0], help="blur size range of the MTF test set, px")
-    parser.add_argument("--deadleaves", type=int, default=60, help="dead-leaves images added to the default source (as in the configs)")
+    parser.add_argument("--deadleaves", type=int, default=60, help="dead-leaves images added to the default source of the noise set (as in the noise configs)")
     from camhealth.physics.metadata import FULL_FIELDS
 
     parser.add_argument(
@@ -86,11 +87,24 @@ def held_out_noise(args: argparse.Namespace) -> dict[str, torch.Tensor]:
     return _collect(dm)
 
 
+def mtf_training_source() -> tuple[str, dict[str, Any]]:
+    """``(source, source_kwargs)`` of the shipped MTF schedule (``configs/mtf_full.yaml``): its test split is the MTF
+    held-out set, so held-out scenes are rendered exactly as the training scenes are (same native MTF)."""
+    from pathlib import Path
+
+    import yaml
+
+    cfg = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "mtf_full.yaml").read_text())
+    data = cfg["data"]["init_args"]
+    return str(data.get("source", "default")), dict(data.get("source_kwargs") or {})
+
+
 def held_out_blur(args: argparse.Namespace) -> dict[str, torch.Tensor]:
     from datamodules import BlurDataModule
 
+    source, source_kwargs = mtf_training_source()
     dm = BlurDataModule(
-        source="default", source_kwargs={"deadleaves": args.deadleaves}, patch_size=192, batch_size=32,
+        source=source, source_kwargs=source_kwargs, patch_size=192, batch_size=32,
         val_patches_per_image=args.per_image, seed=0, size_range=tuple(args.sizes),
     )
     return _collect(dm)
