@@ -30,9 +30,12 @@ _DATA = {
     "(70/15/15), sensor noise of the physics core (photon, dark current, readout; gain, clipping) with metadata "
     "sampled uniformly over thesis Table 4.1, half of the samples with altered metadata M′ (ξ ≠ 0).",
     "drne": "`datamodules.NoiseDataModule` as for the noise-source models (no metadata given to the network).",
-    "mtf": "`datamodules.BlurDataModule` — the same images (dead leaves as in the config used), 192-px patches, "
-    "defocus / linear / non-linear motion "
-    "blur of 1–25 px (one family per sample, equal weights), labels = exact MTF of the applied PSF.",
+    "mtf": "`datamodules.BlurDataModule` — procedural dead-leaves scenes rendered with the exact pixel aperture "
+    "(`supersample: 4`, native MTF 1.00 at f_n = 0.6; each image its own edge density and contrast), 192-px patches, "
+    "defocus / linear / non-linear motion blur of 1–25 px (one family per sample, defocus twice as often as each "
+    "motion family), sensor noise on half of the samples; labels = exact MTF of the applied PSF, which is the "
+    "patch's whole MTF because the scenes have none of their own. No photographs or street frames (their own blur "
+    "is unknown or large: `docs/data.md`).",
 }
 
 
