@@ -26,7 +26,8 @@ Every MTF estimator is scored on a matrix of
 
   On ``photos`` and ``street`` the truth ignores the scene's own blur (the photos' native MTF is unknown — no
   straight edges — and the street clip's is far below 1): a network that sees that blur is scored as wrong there.
-  The ``native`` rows print the spectral estimate of each source (:func:`camhealth.data.native_mtf.spectral_native_mtf`);
+  The ``native`` rows print the spectral estimate of each source (:func:`camhealth.data.native_mtf.spectral_native_mtf`),
+  and for the rendered scenes their exact closed form beside the spectral estimate on them (its error where the truth is 1);
 - **conditions** — clean (8-bit rounded); JPEG quality 75–95 (OpenCV) after the blur; white Gaussian noise
   σ 1–10 DN after the blur; 5 DN noise (the target: ≤ 1.5× the clean AMAE).
 
@@ -339,8 +340,8 @@ def _closed_form_native(s: int, fn: float) -> float:
 
 
 def run(args: argparse.Namespace) -> BenchResult:
-    from camhealth.bench.rendered_scenes import CLASSES, SUPERSAMPLE
-    from camhealth.data.native_mtf import native_mtf_table
+    from camhealth.bench.rendered_scenes import CLASSES, SUPERSAMPLE, render_scenes
+    from camhealth.data.native_mtf import native_mtf_table, spectral_native_mtf
     from camhealth.inference import load_estimator
 
     t0 = time.perf_counter()
@@ -466,11 +467,17 @@ def run(args: argparse.Namespace) -> BenchResult:
     table = native_mtf_table()
     exact = {fn: _closed_form_native(SUPERSAMPLE, fn) for fn in (0.3, 0.6)}
     summary += ["", "Native MTF of the scene sources (spectral estimate, camhealth.data.native_mtf; H = V assumed; "
-                    "median over images, f_n = 0.3 / 0.6; `rendered`: the closed form of the rendering, exact):", "",
+                    "median over images, f_n = 0.3 / 0.6; `closed form`: the rendered scenes' exact native MTF; "
+                    "`rendered … (spectral estimate)`: the spectral estimate on those scenes, whose native MTF is 1):", "",
                 "| source | images | MTF(0.3) | MTF(0.6) |", "|---|---:|---:|---:|",
                 f"| rendered (s = {SUPERSAMPLE}, closed form) | {len(CLASSES) * RENDERED_PER_CLASS} | {exact[0.3]:.3f} | {exact[0.6]:.3f} |"]
     for src, v in table.items():
         summary.append(f"| {src} | {v['n']} | {v['mtf_0.3']:.2f} | {v['mtf_0.6']:.2f} |")
+    for cls in CLASSES:  # the spectral estimate on scenes whose native MTF is exactly 1: how far it is to be trusted
+        xs = render_scenes(cls, RENDERED_PER_CLASS, RENDERED_SIZE, seed=args.seed + 2000)
+        m = torch.stack([spectral_native_mtf(x, (0.3, 0.6)) for x in xs]).median(0).values
+        table[f"rendered_{cls}"] = {"n": int(xs.shape[0]), "mtf_0.3": float(m[0]), "mtf_0.6": float(m[1])}
+        summary.append(f"| rendered {cls} (true 1; spectral estimate) | {xs.shape[0]} | {float(m[0]):.2f} | {float(m[1]):.2f} |")
     results["native_mtf"] = {**table, "rendered_closed_form": {"n": len(CLASSES) * RENDERED_PER_CLASS,
                                                                 "mtf_0.3": exact[0.3], "mtf_0.6": exact[0.6]}}
     if args.json is not None:
