@@ -11,18 +11,30 @@ Every MTF estimator is scored on a matrix of
   (:func:`~camhealth.physics.sample_random_walk`); and tiny random kernels on 2–5 px supports
   (:func:`~camhealth.physics.sample_tiny_psf`, size = support);
 - **in-distribution** — training's own generators (disk, line, camera shake of intensity 0.5–1) on dead leaves (the
-  training source), and on the held-out scenes, to separate the shift of the scenes from that of the PSFs;
+  training source), and on the scene groups below, to separate the shift of the scenes from that of the PSFs;
 - **sizes** — blur size (disk diameter, 4σ, path length, support) from ``--mtf-sizes`` (default 3 5 9 15 21 px);
-- **scenes** — held-out photographs (scikit-image's retina, immunohistochemistry and Hubble deep field, none of
-  them in the training sources) and the training photos and street frames at another scale; every scene
-  area-downsampled (:data:`SCENE_DOWNSAMPLE`) so that its own blur is small (``native`` rows: the measured native
-  MTF of each source, :func:`camhealth.data.native_mtf.spectral_native_mtf`); 192-px patches, one random
-  crop each;
+- **scenes**, in three groups (each patch carries its group; the crops of a cell cycle :data:`GROUP_CYCLE`, so half
+  of them are rendered); 192-px patches, one random crop each:
+
+  - ``rendered`` — held-out scene classes rendered with an exact pixel aperture
+    (:mod:`camhealth.bench.rendered_scenes`: line art, gradient-filled polygons and ellipses, 1/f^β texture; the
+    mean of 8×8 point samples per pixel): their native MTF is 1 (closed form 1.002 at f_n 0.6), so the truth below
+    is exact. The headline numbers are on this group;
+  - ``photos`` — held-out photographs (scikit-image's retina, immunohistochemistry and Hubble deep field, in no
+    training source) and the training photos at another scale, area-downsampled (:data:`SCENE_DOWNSAMPLE`);
+  - ``street`` — the street frames area-downsampled 2× (native MTF ≈ 0.32 at f_n 0.6, ``docs/data.md``).
+
+  On ``photos`` and ``street`` the truth ignores the scene's own blur (the photos' native MTF is unknown — no
+  straight edges — and the street clip's is far below 1): a network that sees that blur is scored as wrong there.
+  The ``native`` rows print the spectral estimate of each source (:func:`camhealth.data.native_mtf.spectral_native_mtf`),
+  and for the rendered scenes their exact closed form beside the spectral estimate on them (its error where the truth is 1);
 - **conditions** — clean (8-bit rounded); JPEG quality 75–95 (OpenCV) after the blur; white Gaussian noise
   σ 1–10 DN after the blur; 5 DN noise (the target: ≤ 1.5× the clean AMAE).
 
 Truth is the exact DFT of each kernel (:func:`camhealth.physics.mtf_hv`). Printed: AMAE (Eq. 5.1, mean |Ĥ − H|
-over the 16 values × 100, the training metric) per family, generator and condition, per blur size, the ratio to the in-distribution value,
+over the 16 values × 100, the training metric) on held-out generators × rendered scenes per family and condition,
+per generator, per blur size and per rendered class, the ratio to the in-distribution value on dead leaves; per
+scene group (rendered, photos, street) per family, for held-out and training generators;
 the fraction of patches called assessable, ms per patch, and for the spread over 4 views (``mtf_std`` of
 ``predict(views=4)``) the mean |error| against the mean spread. The classical reference is the ISO 12233 slanted
 edge (:func:`~camhealth.estimators.slanted_edge.slanted_edge_mtf_hv`) on an area-rendered slanted-edge chart blurred
@@ -33,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -44,7 +57,7 @@ import torch.nn.functional as F
 from camhealth.bench import BenchResult, Row
 
 PATCH = 192
-#: Area-downsampling of each scene source (factor): photographs 2×, the 1411-px retina 4×, Hubble 3×, street 2×.
+#: Area-downsampling of each photographed source (factor): photographs 2×, the 1411-px retina 4×, Hubble 3×, street 2×.
 SCENE_DOWNSAMPLE = {"photo": 2, "retina": 4, "immunohistochemistry": 2, "hubble_deep_field": 3, "street": 2}
 HELD_OUT_IMAGES = ("retina", "immunohistochemistry", "hubble_deep_field")
 CONDITIONS = ("clean", "jpeg", "noise", "noise5")
@@ -56,6 +69,15 @@ FAMILIES = {
 }
 IN_DIST = {"defocus": "disk", "linear": "line", "nonlinear": "shake"}
 KERNEL = 31
+#: Scene groups (module docstring): ``rendered`` has an exact truth; on ``photos`` and ``street`` the truth (the
+#: kernel's MTF alone) ignores the scene's own blur.
+GROUPS = ("rendered", "photos", "street")
+#: The crops of one cell (generator × size × condition) cycle through these groups: half on rendered scenes.
+GROUP_CYCLE = ("rendered", "photos", "rendered", "street")
+#: Rendered scenes per class (:data:`camhealth.bench.rendered_scenes.CLASSES`) and their side (px).
+RENDERED_PER_CLASS = 4
+RENDERED_SIZE = 320
+TRUTH_NOTE = "truth ignores the scene's own blur"
 
 
 def _gray(arr: np.ndarray) -> torch.Tensor:
@@ -71,20 +93,27 @@ def _area(x: torch.Tensor, factor: int) -> torch.Tensor:
     return F.avg_pool2d(x[None], factor)[0] if factor > 1 else x
 
 
-def scene_sources() -> dict[str, list[torch.Tensor]]:
-    """The held-out scenes by group (``held_out``: unseen photographs; ``photos``, ``street``: training scenes at
-    another scale), each 1×H×W in [0, 1], area-downsampled and at least 192 + 32 px on each side."""
+def scene_sources(seed: int = 0) -> dict[str, list[tuple[str, torch.Tensor]]]:
+    """The scenes by group, each ``(label, 1×H×W in [0, 1])`` at least 192 + 32 px on each side:
+
+    - ``rendered``: :data:`RENDERED_PER_CLASS` scenes of :data:`RENDERED_SIZE` px of each class of
+      :mod:`camhealth.bench.rendered_scenes` (label = class), rendered with seed ``seed`` + 2000;
+    - ``photos``: the held-out photographs (``held_out_photo``) and the training photos (``training_photo``),
+      area-downsampled (:data:`SCENE_DOWNSAMPLE`);
+    - ``street``: every 10th street frame, area-downsampled 2× (``street``)."""
     import skimage.data
 
+    from camhealth.bench.rendered_scenes import CLASSES, render_scenes
     from camhealth.data.skimage_photos import SKIMAGE_PHOTOS, load_skimage_photo
     from camhealth.data.street_sample import StreetSampleSource
 
-    held = [_area(_gray(np.asarray(getattr(skimage.data, n)())), SCENE_DOWNSAMPLE[n]) for n in HELD_OUT_IMAGES]
-    photos = [_area(load_skimage_photo(n), SCENE_DOWNSAMPLE["photo"]) for n in SKIMAGE_PHOTOS]
+    rendered = [(cls, x) for cls in CLASSES for x in render_scenes(cls, RENDERED_PER_CLASS, RENDERED_SIZE, seed=seed + 2000)]
+    held = [("held_out_photo", _area(_gray(np.asarray(getattr(skimage.data, n)())), SCENE_DOWNSAMPLE[n])) for n in HELD_OUT_IMAGES]
+    photos = [("training_photo", _area(load_skimage_photo(n), SCENE_DOWNSAMPLE["photo"])) for n in SKIMAGE_PHOTOS]
     street = StreetSampleSource(stride=10)
-    frames = [_area(street[i][0].float(), SCENE_DOWNSAMPLE["street"]) for i in range(len(street))]
-    keep = lambda xs: [x for x in xs if min(x.shape[-2:]) >= PATCH + KERNEL + 1]  # noqa: E731
-    return {"held_out": keep(held), "photos": keep(photos), "street": keep(frames)}
+    frames = [("street", _area(street[i][0].float(), SCENE_DOWNSAMPLE["street"])) for i in range(len(street))]
+    keep = lambda xs: [x for x in xs if min(x[1].shape[-2:]) >= PATCH + KERNEL + 1]  # noqa: E731
+    return {"rendered": keep(rendered), "photos": keep(held + photos), "street": keep(frames)}
 
 
 def _dead_leaves(n: int, seed: int) -> list[torch.Tensor]:
@@ -153,20 +182,22 @@ def _jpeg(x: torch.Tensor, quality: int) -> torch.Tensor:
     return torch.from_numpy(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0)[None]
 
 
-def blur_patches(scenes: list[torch.Tensor], kernels: torch.Tensor, g: torch.Generator) -> torch.Tensor:
-    """One random crop per kernel (the scene cycled), blurred by true convolution over a margin → (n, 1, 192, 192)."""
+def blur_patches(pools: list[list[tuple[str, torch.Tensor]]], kernels: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, list[str]]:
+    """One random crop per kernel from a random scene of that patch's pool (``pools[i]``: ``(label, 1×H×W)``
+    scenes), blurred by true convolution over a margin → ((n, 1, 192, 192), the n scene labels)."""
     from camhealth.physics import apply_psf
 
     m = KERNEL // 2 + 1
-    crops = []
+    crops, labels = [], []
     for i in range(kernels.shape[0]):
-        s = scenes[int(torch.randint(0, len(scenes), (1,), generator=g))]
+        label, s = pools[i][int(torch.randint(0, len(pools[i]), (1,), generator=g))]
         h, w = s.shape[-2:]
         y = int(torch.randint(0, h - PATCH - 2 * m + 1, (1,), generator=g))
         x = int(torch.randint(0, w - PATCH - 2 * m + 1, (1,), generator=g))
         crops.append(s[:, y:y + PATCH + 2 * m, x:x + PATCH + 2 * m])
+        labels.append(label)
     big = apply_psf(torch.stack(crops).double(), kernels.double())
-    return big[..., m:m + PATCH, m:m + PATCH].float().clamp(0, 1)
+    return big[..., m:m + PATCH, m:m + PATCH].float().clamp(0, 1), labels
 
 
 def degrade(x: torch.Tensor, cond: str, g: torch.Generator) -> torch.Tensor:
@@ -184,6 +215,9 @@ def degrade(x: torch.Tensor, cond: str, g: torch.Generator) -> torch.Tensor:
 
 @dataclass
 class Cell:
+    """One batch: a generator × size × condition on one scene set (``mixed``: the crops cycle
+    :data:`GROUP_CYCLE`; ``dead_leaves``; ``chart``), with each patch's scene group and scene label."""
+
     family: str
     generator: str
     scene: str
@@ -191,22 +225,37 @@ class Cell:
     size: float
     image: torch.Tensor
     truth: torch.Tensor
+    groups: tuple[str, ...] = ()
+    labels: tuple[str, ...] = ()
     out: dict[str, Any] = field(default_factory=dict)
 
 
 def make_cells(per_cell: int, sizes: tuple[float, ...], seed: int) -> tuple[list[Cell], list[Cell]]:
-    """The held-out cells and the edge-chart cells (the same held-out kernels on a slanted-edge chart)."""
+    """The cells (held-out and training generators on the ``mixed`` scene groups; training generators on dead
+    leaves) and the edge-chart cells (the same held-out kernels on a slanted-edge chart).
+
+    Args:
+        per_cell: patches per generator × size × condition × scene set, 1 … 256; in a ``mixed`` cell the i-th crop
+            comes from group ``GROUP_CYCLE[i % 4]``.
+        sizes: blur sizes in px, each in [0, 29] (kernels are 31 px).
+        seed: seed of the kernels, crops, conditions and rendered scenes.
+    """
     from camhealth.estimators.charts import slanted_edge_chart
     from camhealth.physics import mtf_hv
 
+    if not 1 <= int(per_cell) <= 256:
+        raise ValueError(f"per_cell = {per_cell} is out of the allowed range [1, 256]")
+    if not sizes or any(not 0.0 <= float(z) <= KERNEL - 2 for z in sizes):
+        raise ValueError(f"sizes = {list(sizes)} must be non-empty with every size in the allowed range [0, {KERNEL - 2}] px")
     g = torch.Generator().manual_seed(seed)
-    scenes = scene_sources()
-    natural = scenes["held_out"] + scenes["photos"] + scenes["street"]
-    chart = slanted_edge_chart(PATCH + 2 * (KERNEL // 2 + 1))[0]
-    leaves = _dead_leaves(6, seed + 1000)
+    scenes = scene_sources(seed)
+    groups = tuple(GROUP_CYCLE[i % len(GROUP_CYCLE)] for i in range(per_cell))
+    mixed = [scenes[gr] for gr in groups]
+    chart = [("chart", slanted_edge_chart(PATCH + 2 * (KERNEL // 2 + 1))[0])]
+    leaves = [("dead_leaves", x) for x in _dead_leaves(6, seed + 1000)]
     cells, charts = [], []
-    jobs = [(fam, gen, "natural") for fam, gens in FAMILIES.items() for gen in gens]
-    jobs += [(fam, gen, "natural") for fam, gen in IN_DIST.items()] + [(fam, gen, "dead_leaves") for fam, gen in IN_DIST.items()]
+    jobs = [(fam, gen, "mixed") for fam, gens in FAMILIES.items() for gen in gens]
+    jobs += [(fam, gen, "mixed") for fam, gen in IN_DIST.items()] + [(fam, gen, "dead_leaves") for fam, gen in IN_DIST.items()]
     for fam, gen, scene in jobs:
         for size in sizes:
             if gen == "tiny" and size > 5:
@@ -214,12 +263,14 @@ def make_cells(per_cell: int, sizes: tuple[float, ...], seed: int) -> tuple[list
             for cond in CONDITIONS:
                 k = make_kernels(gen, size, per_cell, g)
                 truth = mtf_hv(k).float()
-                src = leaves if scene == "dead_leaves" else natural
-                cells.append(Cell(fam, gen, scene, cond, size, degrade(blur_patches(src, k, g), cond, g), truth))
-                if scene == "natural" and cond in ("clean", "noise5") and gen not in IN_DIST.values():
+                pools, grs = (mixed, groups) if scene == "mixed" else ([leaves] * per_cell, ("dead_leaves",) * per_cell)
+                img, labels = blur_patches(pools, k, g)
+                cells.append(Cell(fam, gen, scene, cond, size, degrade(img, cond, g), truth, grs, tuple(labels)))
+                if scene == "mixed" and cond in ("clean", "noise5") and gen not in IN_DIST.values():
                     kc = k[: max(1, per_cell // 4)]
-                    img = degrade(blur_patches([chart], kc, g), cond, g)
-                    charts.append(Cell(fam, gen, "chart", cond, size, img, mtf_hv(kc).float()))
+                    img, labels = blur_patches([chart] * kc.shape[0], kc, g)
+                    charts.append(Cell(fam, gen, "chart", cond, size, degrade(img, cond, g), mtf_hv(kc).float(),
+                                       ("chart",) * kc.shape[0], tuple(labels)))
     return cells, charts
 
 
@@ -251,101 +302,155 @@ def slanted_edge_reference(charts: list[Cell]) -> float:
     return float(np.median(times))
 
 
-def _agg(cells: list[Cell], key: Any, pred: Callable[[Cell], bool]) -> tuple[float, int, float]:
-    sel = [c for c in cells if pred(c) and key in c.out]
-    if not sel:
+def _mask(c: Cell, where: str | None) -> torch.Tensor:
+    """Patches of cell ``c`` whose scene group or scene label is ``where`` (every patch for None)."""
+    return torch.tensor([where is None or where in (gr, lab) for gr, lab in zip(c.groups, c.labels)], dtype=torch.bool)
+
+
+def _agg(cells: list[Cell], key: Any, pred: Callable[[Cell], bool], where: str | None = None) -> tuple[float, int, float]:
+    """(mean AMAE %, patches, fraction assessable) over the patches of the cells ``pred`` keeps, in ``where``."""
+    a, ok = [], []
+    for c in cells:
+        if not (pred(c) and key in c.out):
+            continue
+        m = _mask(c, where)
+        a.append(_amae(c.out[key]["mtf"], c.truth)[m])
+        ok.append(torch.as_tensor(c.out[key].get("assessable", torch.ones(c.truth.shape[0], dtype=torch.bool)))[m])
+    if not a or sum(x.numel() for x in a) == 0:
         return float("nan"), 0, float("nan")
-    a = torch.cat([_amae(c.out[key]["mtf"], c.truth) for c in sel])
-    ok = torch.cat([torch.as_tensor(c.out[key].get("assessable", torch.ones(c.truth.shape[0], dtype=torch.bool))) for c in sel])
-    return float(a.mean()), int(a.numel()), float(ok.float().mean())
+    av = torch.cat(a)
+    return float(av.mean()), int(av.numel()), float(torch.cat(ok).float().mean())
 
 
-def _bias(cells: list[Cell], pred: Callable[[Cell], bool]) -> float:
+def _bias(cells: list[Cell], pred: Callable[[Cell], bool], where: str | None = None) -> float:
     """Mean signed error (Ĥ − H) × 100 over the 16 values (views 1): < 0 reads the blur as stronger than it is."""
-    sel = [c for c in cells if pred(c) and 1 in c.out]
-    if not sel:
-        return float("nan")
-    return float(100.0 * torch.cat([(c.out[1]["mtf"].double() - c.truth.double()).flatten() for c in sel]).mean())
+    d = [(c.out[1]["mtf"].double() - c.truth.double())[_mask(c, where)].flatten() for c in cells if pred(c) and 1 in c.out]
+    d = [x for x in d if x.numel()]
+    return float(100.0 * torch.cat(d).mean()) if d else float("nan")
+
+
+def _f(v: float, fmt: str = ".1f") -> str:
+    return "–" if v != v else format(v, fmt)
+
+
+def _closed_form_native(s: int, fn: float) -> float:
+    """MTF of the mean of s×s point samples against the exact pixel-area integral at f_n (f = f_n/2 cycles/px)."""
+    f = fn / 2.0
+    return float(math.sin(math.pi * f) / (s * math.sin(math.pi * f / s)) / (math.sin(math.pi * f) / (math.pi * f)))
 
 
 def run(args: argparse.Namespace) -> BenchResult:
-    from camhealth.data.native_mtf import native_mtf_table
+    from camhealth.bench.rendered_scenes import CLASSES, SUPERSAMPLE, render_scenes
+    from camhealth.data.native_mtf import native_mtf_table, spectral_native_mtf
     from camhealth.inference import load_estimator
 
     t0 = time.perf_counter()
     sizes = tuple(args.mtf_sizes)
     cells, charts = make_cells(args.per_cell, sizes, args.seed)
     names = args.models or ["mtf"]
+    n_group = {gr: sum(c.groups.count(gr) for c in cells if c.scene == "mixed") for gr in GROUPS}
     header = [f"{sum(c.image.shape[0] for c in cells)} patches of {PATCH} px ({args.per_cell} per generator × size × condition × "
-              f"scene group) + {sum(c.image.shape[0] for c in charts)} slanted-edge chart patches, seed {args.seed}; "
+              f"scene set; the crops of a cell cycle {' → '.join(GROUP_CYCLE)}: "
+              + ", ".join(f"{v} {k}" for k, v in n_group.items())
+              + f", {sum(c.image.shape[0] for c in cells if c.scene == 'dead_leaves')} dead leaves) + "
+              f"{sum(c.image.shape[0] for c in charts)} slanted-edge chart patches, seed {args.seed}; "
               f"data made in {time.perf_counter() - t0:.0f} s", f"command: {args.command_line}"]
     summary: list[str] = []
-    results: dict[str, Any] = {}
+    results: dict[str, Any] = {"patches_per_group": n_group}
     rows = []
     edge_ms = slanted_edge_reference(charts)
+    held_p = lambda c: c.scene == "mixed" and c.generator not in IN_DIST.values()  # noqa: E731
+    ind_p = lambda c, f: c.scene == "mixed" and c.generator == IN_DIST.get(f)  # noqa: E731
+    dl_p = lambda c, f: c.family == f and c.scene == "dead_leaves" and c.condition == "clean"  # noqa: E731
     for name in names:
         est = load_estimator(name)
         ms1 = run_estimator(est, cells + charts, 1)
         ms4 = run_estimator(est, cells, 4)
         rows.append(Row(f"{est.name} (views 1)", [ms1], note="ms per patch"))
         rows.append(Row(f"{est.name} (views 4)", [ms4], note="ms per patch"))
-        held = [c for c in cells if c.scene == "natural" and c.generator not in IN_DIST.values()]
-        r: dict[str, Any] = {"ms_views1": ms1, "ms_views4": ms4, "families": {}, "sizes": {}, "generators": {}}
-        summary += ["", f"**{est.name}** — AMAE % (views 1) on held-out generators × held-out scenes, by condition; "
-                        "in-distribution: training generators on dead leaves (clean) and on the held-out scenes (clean):", "",
-                    "| family | " + " | ".join(CONDITIONS) + " | all | in-dist. dead leaves | in-dist. gen. × held-out scenes | all / in-dist. | assessable |",
+        held = [c for c in cells if held_p(c)]
+        r: dict[str, Any] = {"ms_views1": ms1, "ms_views4": ms4, "families": {}, "sizes": {}, "generators": {},
+                             "rendered_classes": {}}
+        summary += ["", f"**{est.name}** — AMAE % (views 1) on held-out generators × rendered scenes (exact truth: the "
+                        "scenes' native MTF is 1), by condition; in-distribution: training generators on dead leaves "
+                        "(clean) and on rendered scenes (clean):", "",
+                    "| family | " + " | ".join(CONDITIONS) + " | all | in-dist. dead leaves | in-dist. gen. × rendered | "
+                    "all / in-dist. dead leaves | assessable |",
                     "|---|" + "---:|" * (len(CONDITIONS) + 5)]
         for fam in FAMILIES:
-            per = {cond: _agg(held, 1, lambda c, f=fam, k=cond: c.family == f and c.condition == k)[0] for cond in CONDITIONS}
-            allv, n, ok = _agg(held, 1, lambda c, f=fam: c.family == f)
-            ind = _agg(cells, 1, lambda c, f=fam: c.family == f and c.scene == "dead_leaves" and c.condition == "clean")[0]
-            ind_nat = _agg(cells, 1, lambda c, f=fam: c.family == f and c.generator == IN_DIST.get(f) and c.scene == "natural"
-                           and c.condition == "clean")[0]
-            r["families"][fam] = {**per, "all": allv, "n": n, "assessable": ok, "in_dist_dead_leaves": ind, "in_dist_natural": ind_nat}
-            ratio = allv / ind if ind == ind else float("nan")
-            summary.append(f"| {fam} | " + " | ".join(f"{per[c]:.1f}" for c in CONDITIONS)
-                           + f" | **{allv:.1f}** | {ind:.1f} | {ind_nat:.1f} | {ratio:.2f}× | {100 * ok:.0f} % |")
+            per = {cond: _agg(held, 1, lambda c, f=fam, k=cond: c.family == f and c.condition == k, "rendered")[0] for cond in CONDITIONS}
+            allv, n, ok = _agg(held, 1, lambda c, f=fam: c.family == f, "rendered")
+            ind = _agg(cells, 1, lambda c, f=fam: dl_p(c, f))[0]
+            ind_r = _agg(cells, 1, lambda c, f=fam: ind_p(c, f) and c.condition == "clean", "rendered")[0]
+            r["families"][fam] = {**per, "all": allv, "n": n, "assessable": ok, "in_dist_dead_leaves": ind,
+                                  "in_dist_rendered": ind_r, "groups": {}}
+            summary.append(f"| {fam} | " + " | ".join(_f(per[c]) for c in CONDITIONS)
+                           + f" | **{_f(allv)}** | {_f(ind)} | {_f(ind_r)} | {_f(allv / ind, '.2f')}× | {_f(100 * ok, '.0f')} % |")
+        summary += ["", f"AMAE % (views 1) by scene group, every condition. **photos** (held-out and training photographs) and "
+                        f"**street** (street frames 2×, native MTF ≈ 0.32 at f_n 0.6): {TRUTH_NOTE} (the kernel's MTF "
+                        "alone), so a network that sees that blur is counted wrong there; **rendered**: exact truth:", "",
+                    "| family | held-out gen. × rendered | held-out gen. × photos (" + TRUTH_NOTE + ") | held-out gen. × street ("
+                    + TRUTH_NOTE + ") | in-dist. gen. × rendered | in-dist. gen. × photos (" + TRUTH_NOTE
+                    + ") | in-dist. gen. × street (" + TRUTH_NOTE + ") |", "|---|" + "---:|" * 6]
+        for fam in FAMILIES:
+            vals = []
+            for gr in GROUPS:
+                h, nh, _ = _agg(held, 1, lambda c, f=fam: c.family == f, gr)
+                i, ni, _ = _agg(cells, 1, lambda c, f=fam: ind_p(c, f), gr)
+                r["families"][fam]["groups"][gr] = {"held_out": h, "n_held_out": nh, "in_dist": i, "n_in_dist": ni}
+                vals.append((h, i))
+            summary.append(f"| {fam} | " + " | ".join(_f(v[0]) for v in vals) + " | " + " | ".join(_f(v[1]) for v in vals) + " |")
         summary += ["", "Mean signed error (Ĥ − H) × 100, clean, views 1 (< 0: the blur read as stronger than it is):", "",
-                    "| family | held-out gen. × held-out scenes | in-dist. gen. × held-out scenes | in-dist. dead leaves |",
-                    "|---|---:|---:|---:|"]
+                    "| family | held-out gen. × rendered | held-out gen. × photos (" + TRUTH_NOTE + ") | held-out gen. × street ("
+                    + TRUTH_NOTE + ") | in-dist. gen. × rendered | in-dist. dead leaves |", "|---|---:|---:|---:|---:|---:|"]
         r["bias"] = {}
         for fam in FAMILIES:
-            b_h = _bias(held, lambda c, f=fam: c.family == f and c.condition == "clean")
-            b_n = _bias(cells, lambda c, f=fam: c.family == f and c.generator == IN_DIST.get(f) and c.scene == "natural"
-                        and c.condition == "clean")
-            b_d = _bias(cells, lambda c, f=fam: c.family == f and c.scene == "dead_leaves" and c.condition == "clean")
-            r["bias"][fam] = {"held_out": b_h, "in_dist_natural": b_n, "in_dist_dead_leaves": b_d}
-            summary.append(f"| {fam} | {b_h:+.1f} | {b_n:+.1f} | {b_d:+.1f} |")
-        summary += ["", "AMAE % by generator (views 1; clean / 5 DN noise / ratio):", "",
+            b = {gr: _bias(held, lambda c, f=fam: c.family == f and c.condition == "clean", gr) for gr in GROUPS}
+            b["in_dist_rendered"] = _bias(cells, lambda c, f=fam: ind_p(c, f) and c.condition == "clean", "rendered")
+            b["in_dist_dead_leaves"] = _bias(cells, lambda c, f=fam: dl_p(c, f))
+            r["bias"][fam] = b
+            summary.append(f"| {fam} | " + " | ".join(_f(v, "+.1f") for v in b.values()) + " |")
+        summary += ["", "AMAE % by generator (held-out generators × rendered scenes, views 1; clean / 5 DN noise / ratio):", "",
                     "| generator | family | clean | noise 5 DN | noise 5 / clean |", "|---|---|---:|---:|---:|"]
         for fam, gens in FAMILIES.items():
             for gen in gens:
-                cl = _agg(held, 1, lambda c, g_=gen: c.generator == g_ and c.condition == "clean")[0]
-                n5 = _agg(held, 1, lambda c, g_=gen: c.generator == g_ and c.condition == "noise5")[0]
+                cl = _agg(held, 1, lambda c, g_=gen: c.generator == g_ and c.condition == "clean", "rendered")[0]
+                n5 = _agg(held, 1, lambda c, g_=gen: c.generator == g_ and c.condition == "noise5", "rendered")[0]
                 r["generators"][gen] = {"clean": cl, "noise5": n5}
-                summary.append(f"| {gen} | {fam} | {cl:.1f} | {n5:.1f} | {n5 / cl:.2f}× |")
-        summary += ["", "AMAE % by blur size (held-out generators × held-out scenes, every condition; views 1):", "",
+                summary.append(f"| {gen} | {fam} | {_f(cl)} | {_f(n5)} | {_f(n5 / cl, '.2f')}× |")
+        summary += ["", "AMAE % by blur size (held-out generators × rendered scenes, every condition; views 1):", "",
                     "| size px | " + " | ".join(FAMILIES) + " | all |", "|---:|" + "---:|" * (len(FAMILIES) + 1)]
         for size in sizes:
-            vals = [_agg(held, 1, lambda c, f=fam, s=size: c.family == f and c.size == s)[0] for fam in FAMILIES]
-            allv = _agg(held, 1, lambda c, s=size: c.size == s)[0]
+            vals = [_agg(held, 1, lambda c, f=fam, s=size: c.family == f and c.size == s, "rendered")[0] for fam in FAMILIES]
+            allv = _agg(held, 1, lambda c, s=size: c.size == s, "rendered")[0]
             r["sizes"][str(size)] = dict(zip(FAMILIES, vals), all=allv)
-            summary.append(f"| {size:g} | " + " | ".join("–" if v != v else f"{v:.1f}" for v in vals) + f" | **{allv:.1f}** |")
-        # uncertainty: views 4 mean, spread vs error
+            summary.append(f"| {size:g} | " + " | ".join(_f(v) for v in vals) + f" | **{_f(allv)}** |")
+        summary += ["", "AMAE % by rendered scene class (held-out generators, every condition; views 1) and the mean signed "
+                        "error (Ĥ − H) × 100 on the clean ones:", "",
+                    "| family | " + " | ".join(CLASSES) + " | " + " | ".join(f"signed, {k}" for k in CLASSES) + " |",
+                    "|---|" + "---:|" * (2 * len(CLASSES))]
+        for fam in FAMILIES:
+            vals = [_agg(held, 1, lambda c, f=fam: c.family == f, cls)[0] for cls in CLASSES]
+            bias = [_bias(held, lambda c, f=fam: c.family == f and c.condition == "clean", cls) for cls in CLASSES]
+            r["rendered_classes"][fam] = {**dict(zip(CLASSES, vals)), "bias_clean": dict(zip(CLASSES, bias))}
+            summary.append(f"| {fam} | " + " | ".join(_f(v) for v in vals) + " | " + " | ".join(_f(b, "+.1f") for b in bias) + " |")
+        # uncertainty: views 4 mean, spread vs error, on held-out generators × rendered scenes (exact truth)
         err4, std4 = [], []
         for c in held:
+            m = _mask(c, "rendered")
             o = c.out[4]
-            err4.append((o["mtf"] - c.truth).abs().flatten())
-            std4.append(o["mtf_std"].flatten())
+            err4.append((o["mtf"][m] - c.truth[m]).abs().flatten())
+            std4.append(o["mtf_std"][m].flatten())
         e, s = torch.cat(err4), torch.cat(std4)
         cover = float((e <= 2 * s).float().mean())
-        corr = float(torch.corrcoef(torch.stack([e, s]))[0, 1])
-        v4 = _agg(held, 4, lambda c: True)[0]
-        r["uncertainty"] = {"amae_views4": v4, "mean_abs_error": float(e.mean()), "mean_std": float(s.mean()),
-                            "within_2std": cover, "corr": corr}
-        summary += ["", f"Uncertainty (views 4, held-out): AMAE {v4:.1f} % (views 1: {_agg(held, 1, lambda c: True)[0]:.1f} %); "
+        corr = float(torch.corrcoef(torch.stack([e, s]))[0, 1]) if e.numel() > 1 else float("nan")
+        v4 = _agg(held, 4, lambda c: True, "rendered")[0]
+        v1 = _agg(held, 1, lambda c: True, "rendered")[0]
+        r["uncertainty"] = {"amae_views4": v4, "amae_views1": v1, "mean_abs_error": float(e.mean()),
+                            "mean_std": float(s.mean()), "within_2std": cover, "corr": corr}
+        summary += ["", f"Uncertainty (views 4, held-out generators × rendered scenes): AMAE {_f(v4)} % (views 1: {_f(v1)} %); "
                         f"mean |Ĥ − H| {float(e.mean()):.4f} against mean mtf_std {float(s.mean()):.4f}; "
-                        f"|error| ≤ 2·mtf_std for {100 * cover:.0f} % of the values; correlation of |error| and mtf_std {corr:.2f}."]
+                        f"|error| ≤ 2·mtf_std for {100 * cover:.0f} % of the values; correlation of |error| and mtf_std {_f(corr, '.2f')}."]
         # classical reference on the edge chart
         summary += ["", "Slanted-edge chart blurred with the held-out kernels (a scene with an edge): AMAE % network vs ISO 12233 slanted edge:", "",
                     "| family | condition | network | slanted edge |", "|---|---|---:|---:|"]
@@ -355,16 +460,26 @@ def run(args: argparse.Namespace) -> BenchResult:
                 nv = _agg(charts, 1, lambda c, f=fam, k=cond: c.family == f and c.condition == k)[0]
                 ev = _agg(charts, "edge", lambda c, f=fam, k=cond: c.family == f and c.condition == k)[0]
                 r["chart"][f"{fam}/{cond}"] = {"network": nv, "edge": ev}
-                summary.append(f"| {fam} | {cond} | {nv:.1f} | {ev:.1f} |")
+                summary.append(f"| {fam} | {cond} | {_f(nv)} | {_f(ev)} |")
         summary.append(f"\nms per patch (fp32, threads {torch.get_num_threads()}): network views 1 {ms1:.1f}, views 4 {ms4:.1f}; "
                        f"slanted edge {edge_ms:.1f} (per chart patch, 4 edges)")
         results[est.name] = r
     table = native_mtf_table()
+    exact = {fn: _closed_form_native(SUPERSAMPLE, fn) for fn in (0.3, 0.6)}
     summary += ["", "Native MTF of the scene sources (spectral estimate, camhealth.data.native_mtf; H = V assumed; "
-                    "median over images, f_n = 0.3 / 0.6):", "", "| source | images | MTF(0.3) | MTF(0.6) |", "|---|---:|---:|---:|"]
+                    "median over images, f_n = 0.3 / 0.6; `closed form`: the rendered scenes' exact native MTF; "
+                    "`rendered … (spectral estimate)`: the spectral estimate on those scenes, whose native MTF is 1):", "",
+                "| source | images | MTF(0.3) | MTF(0.6) |", "|---|---:|---:|---:|",
+                f"| rendered (s = {SUPERSAMPLE}, closed form) | {len(CLASSES) * RENDERED_PER_CLASS} | {exact[0.3]:.3f} | {exact[0.6]:.3f} |"]
     for src, v in table.items():
         summary.append(f"| {src} | {v['n']} | {v['mtf_0.3']:.2f} | {v['mtf_0.6']:.2f} |")
-    results["native_mtf"] = table
+    for cls in CLASSES:  # the spectral estimate on scenes whose native MTF is exactly 1: how far it is to be trusted
+        xs = render_scenes(cls, RENDERED_PER_CLASS, RENDERED_SIZE, seed=args.seed + 2000)
+        m = torch.stack([spectral_native_mtf(x, (0.3, 0.6)) for x in xs]).median(0).values
+        table[f"rendered_{cls}"] = {"n": int(xs.shape[0]), "mtf_0.3": float(m[0]), "mtf_0.6": float(m[1])}
+        summary.append(f"| rendered {cls} (true 1; spectral estimate) | {xs.shape[0]} | {float(m[0]):.2f} | {float(m[1]):.2f} |")
+    results["native_mtf"] = {**table, "rendered_closed_form": {"n": len(CLASSES) * RENDERED_PER_CLASS,
+                                                                "mtf_0.3": exact[0.3], "mtf_0.6": exact[0.6]}}
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=1))

@@ -53,3 +53,51 @@ def test_task_switch_defaults_to_noise():
     assert a.task == "mtf" and a.per_cell == 2 and a.mtf_sizes == [3.0, 9.0]
     with pytest.raises(SystemExit):
         parse(["robustness", "--task", "blur"])
+
+
+class _FakeEstimator:
+    """Reads every patch as a fixed MTF: enough to run the whole report without a network."""
+
+    name = "fake"
+
+    def predict(self, x, views=1):
+        n = x.shape[0]
+        return {"mtf": torch.full((n, 16), 0.5), "assessable": torch.ones(n, dtype=torch.bool),
+                "mtf_std": torch.full((n, 16), 0.1)}
+
+
+def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
+    import argparse
+    import json
+
+    import camhealth.data.native_mtf as nm
+    import camhealth.inference as inf
+
+    monkeypatch.setattr(rm, "RENDERED_PER_CLASS", 1)
+    monkeypatch.setattr(rm, "FAMILIES", {"defocus": ("gaussian",), "tiny": ("tiny",)})  # one of each kind: fast
+    monkeypatch.setattr(rm, "IN_DIST", {"defocus": "disk"})
+    monkeypatch.setattr(rm, "CONDITIONS", ("clean", "noise5"))  # the two the chart and the tables need
+    monkeypatch.setattr(inf, "load_estimator", lambda name: _FakeEstimator())
+    monkeypatch.setattr(nm, "native_mtf_table", lambda: {"street": {"n": 1, "mtf_0.3": 0.9, "mtf_0.6": 0.3}})
+    args = argparse.Namespace(per_cell=4, mtf_sizes=[3.0], seed=0, models=None, json=tmp_path / "r.json",
+                              command_line="test")
+    res = rm.run(args)
+    out = json.loads((tmp_path / "r.json").read_text())
+    n_cells = (sum(len(g) for g in rm.FAMILIES.values()) + len(rm.IN_DIST)) * len(rm.CONDITIONS)  # one size
+    assert out["patches_per_group"] == {"rendered": 2 * n_cells, "photos": n_cells, "street": n_cells}  # R P R S
+    groups = out["fake"]["families"]["defocus"]["groups"]
+    assert set(groups) == set(rm.GROUPS) and all(v["n_held_out"] > 0 for v in groups.values())
+    # the truth is exact per patch, so a constant 0.5 scores differently on each group's kernels but always finite
+    assert all(v["held_out"] == v["held_out"] for v in groups.values())
+    text = "\n".join(res.summary)
+    assert "held-out generators × rendered scenes" in text and "truth ignores the scene's own blur" in text
+    assert "| rendered (s = 8, closed form) |" in text
+
+
+@pytest.mark.parametrize("per_cell,sizes,match", [
+    (0, (3.0,), r"per_cell = 0 is out of the allowed range \[1, 256\]"),
+    (2, (31.0,), r"sizes = \[31.0\] must be non-empty with every size in the allowed range \[0, 29\] px"),
+])
+def test_make_cells_rejects_bad_arguments(per_cell, sizes, match):
+    with pytest.raises(ValueError, match=match):
+        rm.make_cells(per_cell, sizes, 0)
