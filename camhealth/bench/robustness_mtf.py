@@ -10,8 +10,8 @@ Every MTF estimator is scored on a matrix of
   rasteriser than training's exact line coverage); non-linear motion as a random walk with inertia and jerks
   (:func:`~camhealth.physics.sample_random_walk`); and tiny random kernels on 2–5 px supports
   (:func:`~camhealth.physics.sample_tiny_psf`, size = support);
-- **in-distribution** — training's own generators (disk, line, camera shake of intensity 0.5–1) on dead leaves (the
-  training source), and on the scene groups below, to separate the shift of the scenes from that of the PSFs;
+- **in-distribution** — training's own generators (disk, line, camera shake of intensity 0.5–1) on dead leaves rendered
+  as the training scenes are (``configs/mtf_full.yaml``'s dead-leaves arguments, other seeds), and on the scene groups below, to separate the shift of the scenes from that of the PSFs;
 - **sizes** — blur size (disk diameter, 4σ, path length, support) from ``--mtf-sizes`` (default 3 5 9 15 21 px);
 - **scenes**, in three groups (each patch carries its group; the crops of a cell cycle :data:`GROUP_CYCLE`, so half
   of them are rendered); 192-px patches, one random crop each:
@@ -117,9 +117,15 @@ def scene_sources(seed: int = 0) -> dict[str, list[tuple[str, torch.Tensor]]]:
 
 
 def _dead_leaves(n: int, seed: int) -> list[torch.Tensor]:
-    from camhealth.data.dead_leaves import dead_leaves
+    """``n`` dead-leaves scenes rendered as the shipped MTF schedule renders its training scenes (the dead-leaves
+    arguments of ``configs/mtf_full.yaml``'s ``source_kwargs``: aperture, edge density, contrast), another seed."""
+    from camhealth.bench.estimators import mtf_training_source
+    from camhealth.data.dead_leaves import DeadLeavesSource
 
-    return [torch.as_tensor(dead_leaves((256, 256), seed=seed + i)).float().reshape(1, 256, 256) for i in range(n)]
+    _, kwargs = mtf_training_source()
+    keys = ("r_min", "r_max", "contrast", "supersample")
+    src = DeadLeavesSource(n, size=(256, 256), seed=seed, **{k: kwargs[k] for k in keys if k in kwargs})
+    return [src[i][0].float().reshape(1, 256, 256) for i in range(n)]
 
 
 def _point_line(length: torch.Tensor, angle: torch.Tensor, shift: torch.Tensor, speed_ramp: torch.Tensor) -> torch.Tensor:
