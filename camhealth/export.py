@@ -84,7 +84,8 @@ RETIRED_OPTIONS: dict[str, Any] = {
 BY_JOINT_MTF = ("replaced by the MTF network whose regressors read both directions, trained in one run by "
                 "configs/mtf_full.yaml (python -m camhealth.fit --config configs/mtf_full.yaml)")
 #: Retired MTF options, dropped when a file is read: ``joint_directions`` (every network now reads both directions;
-#: a file without it is refused by :func:`check_retired`) and ``train_only`` (a training-only option).
+#: ``False`` is refused by :func:`check_retired`, and a file whose regressor has one direction's inputs by ``_read``)
+#: and ``train_only`` (a training-only option).
 RETIRED_MTF_OPTIONS: tuple[str, ...] = ("joint_directions", "train_only")
 
 

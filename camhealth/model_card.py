@@ -80,13 +80,14 @@ _LIMITATIONS = {
     "(`python -m camhealth.bench robustness --frames 16 --threads 2`) its total-σ RMS is 2.0 DN on matched data "
     "(the metadata's closed form: 0.02 DN) and σ of 10–60 DN is within 4.7 % (p90). Gray patches only; no noise "
     "sources, no ξ.",
-    "mtf": "Trained on the three PSF families above and on sources whose own (native) blur is not part of the label. "
-    "On PSF families and scenes it was not trained on (`python -m camhealth.bench robustness --task mtf --per-cell 8 "
-    "--threads 1`) its AMAE is 8.9 / 10.3 / 10.7 % (defocus / linear / non-linear), 2.7–4.6× the held-out values, "
-    "and it reads the MTF too high on natural scenes (it learned soft sources as sharp); a slanted edge on a chart "
-    "is more accurate where one is available. `mtf_std` (the spread over `views`) ranks patches but is no error "
-    "bar. Gray patches only; featureless (after the noise is removed), black or saturated patches are "
-    "`assessable=False`.",
+    "mtf": "Trained on dead-leaves scenes only, with the three PSF families above. On PSFs and scenes it was not "
+    "trained on — rendered line art, shaded shapes and 1/f textures with an exact pixel aperture, so the truth is "
+    "exact (`python -m camhealth.bench robustness --task mtf --per-cell 8 --threads 2`) — its AMAE is 9.1 / 11.4 / "
+    "13.7 % (defocus / linear / non-linear), 3.2–5.7× its value on held-out dead leaves, and 15.4 % on 3-px kernels: it judges sharpness "
+    "partly from the scene's own fine content, so it reads line art too sharp and edge-free textures far too blurred "
+    "(−11 to −28 points). A slanted edge on a chart is more accurate where one is available. `mtf_std` (the spread "
+    "over `views`) ranks patches but is no error bar. Gray patches only; featureless (after the noise is removed), "
+    "black or saturated patches are `assessable=False`.",
 }
 
 _INDEPENDENT = {
