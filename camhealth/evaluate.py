@@ -93,7 +93,11 @@ class EvalConfig:
     """Size of the benchmark. Patches per cell: ``noise_patches`` per (source, σ); ``combined_patches``
     per data set; ``blur_patches`` per kernel (family, size, direction); ``bun_patches`` per (case, d, σ);
     ``agg_frames`` × ``agg_patches`` for the aggregation sequence. ``charts``: build the blurred test
-    charts (needed by the slanted-edge and Siemens-star methods)."""
+    charts (needed by the slanted-edge and Siemens-star methods). ``blur_scenes``: where the learned estimator's
+    blur patches come from — ``"rendered"`` (default): line art, shaded shapes and 1/f textures rendered with an
+    exact pixel aperture (:mod:`camhealth.bench.rendered_scenes`, in no training source), whose own MTF is 1, so
+    the label (the kernel's MTF) is the patch's whole MTF; ``"source"``: crops of ``source`` (a label that ignores
+    the source's own blur: the street clip's native MTF is ≈ 0.08 at f_n 0.6)."""
 
     source: str = "default"
     seed: int = 0
@@ -109,6 +113,11 @@ class EvalConfig:
     deadleaves: bool = True
     charts: bool = True
     batch: int = 32
+    blur_scenes: str = "rendered"
+
+    def __post_init__(self) -> None:
+        if self.blur_scenes not in ("rendered", "source"):
+            raise ValueError(f"blur_scenes = {self.blur_scenes!r} must be 'rendered' or 'source'")
 
     def key(self) -> str:
         """Hash of the configuration (cache entries are only reused for the same key)."""
@@ -267,11 +276,21 @@ def _case_noise_combined(cfg: EvalConfig, images: _ImageCache, dataset: str) -> 
     return {"patches": res.image, "total": res.sigma_total_dn, "sigma": res.sigma_dn, "meta": meta.to_dict()}
 
 
+def _rendered_blur_scenes(seed: int) -> _ImageCache:
+    """Four scenes of each rendered class (exact pixel aperture, native MTF 1), 320 px."""
+    from camhealth.bench.rendered_scenes import CLASSES, render_scenes
+
+    scenes = [(x, f"rendered-{c}-{i}") for c in CLASSES for i, x in enumerate(render_scenes(c, 4, 320, seed=seed + 500))]
+    return _ImageCache(scenes)
+
+
 def _case_blur(cfg: EvalConfig, images: _ImageCache) -> dict:
     from camhealth.estimators.charts import siemens_star_chart, slanted_edge_chart
     from camhealth.physics import mtf_from_psf, mtf_hv
 
     gen = _generator(cfg.seed, "blur")
+    if cfg.blur_patches and cfg.blur_scenes == "rendered":
+        images = _rendered_blur_scenes(cfg.seed)
     rows, patches, p_rows, sle, star, labels, exact = [], [], [], [], [], [], []
     sle_chart = slanted_edge_chart(SLE_CHART) if cfg.charts else None
     star_chart = siemens_star_chart(STAR_CHART) if cfg.charts else None
@@ -790,7 +809,8 @@ def _markdown(report: dict) -> str:
         f"date: {report['date']}; wall time {report['wall_s']:.0f} s; configuration key `{report['config_key']}`"
         + (" (--quick)" if report.get("quick") else ""),
         "",
-        f"Data: source `{cfg['source']}` (+ dead leaves as the texture-rich set), seed {cfg['seed']}; noise patches 128 px, "
+        f"Data: source `{cfg['source']}` (+ dead leaves as the texture-rich set), seed {cfg['seed']}; learned-MTF blur patches from "
+        f"{'rendered scenes with an exact pixel aperture (native MTF 1: the label is exact)' if cfg.get('blur_scenes', 'rendered') == 'rendered' else 'the source (labels ignore its own blur)'}; noise patches 128 px, "
         f"blur patches 192 px, charts {SLE_CHART} px (slanted edge) and {STAR_CHART} px (Siemens star).",
         "",
     ]
@@ -1132,6 +1152,9 @@ def build_parser():
     p.add_argument("--methods", default="all", help="comma list: all, classical, learned, pca, bf, wavelet, slanted_edge, "
                    "siemens_star, mtf, drne, noise_source_min, noise_source_full (default all)")  # fmt: skip
     p.add_argument("--checkpoint", action="append", default=[], metavar="PATH", help="a learned estimator file to add (repeatable)")
+    p.add_argument("--blur-scenes", choices=("rendered", "source"), default="rendered",
+                   help="scenes of the learned MTF's blur patches: 'rendered' (exact pixel aperture, native MTF 1: the "
+                   "kernel's MTF is the whole label) or 'source' (labels ignore the source's own blur); default rendered")
     p.add_argument("--seed", type=int, default=0, help="seed of the benchmark (default 0)")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     p.add_argument("--docs", type=Path, default=None, help="also write the Markdown report to this file (e.g. docs/results.md)")
@@ -1152,7 +1175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not methods:
         raise SystemExit("no method to evaluate (the selected learned estimators are not available)")
     cfg = dataclasses.replace(QUICK if args.quick else DEFAULT, source=str(args.source), seed=args.seed,
-                              charts=any(m.kind.startswith("chart") for m in methods))  # fmt: skip
+                              blur_scenes=args.blur_scenes, charts=any(m.kind.startswith("chart") for m in methods))  # fmt: skip
     command = "python -m camhealth.evaluate " + " ".join(sys.argv[1:] if argv is None else list(argv))
     report = run_evaluation(cfg, args.out, methods, resume=args.resume, quick=args.quick, command=command.strip(),
                             notes=notes, progress=not args.no_progress, plots=not args.no_plots)  # fmt: skip

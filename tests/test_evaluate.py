@@ -278,3 +278,15 @@ def test_cache_entries_are_written_atomically(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert [p.name for p in path.parent.iterdir()] == ["entry.pt"]
     assert torch.load(path, weights_only=True)["config_key"] == "a"
+
+
+def test_blur_scenes_rendered_have_an_exact_label_and_a_bad_choice_is_refused():
+    import dataclasses
+
+    from camhealth.evaluate import QUICK, EvalConfig, _rendered_blur_scenes
+
+    scenes = _rendered_blur_scenes(0)
+    assert len(scenes) == 12 and all(scenes[i].shape == (1, 320, 320) for i in range(len(scenes)))
+    assert dataclasses.replace(QUICK, blur_scenes="source").blur_scenes == "source"
+    with pytest.raises(ValueError, match=r"blur_scenes = 'photos' must be 'rendered' or 'source'"):
+        EvalConfig(blur_scenes="photos")
