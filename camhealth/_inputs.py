@@ -5,6 +5,7 @@ patches that are black, saturated or featureless. A lower layer than :mod:`camhe
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -13,13 +14,22 @@ import torch
 
 from camhealth.physics.metadata import CameraMetadata
 
-__all__ = ["MAX_CLIPPED_FRACTION", "MIN_CONTRAST_DN", "STRUCTURE_BLOCK", "assess_patches", "structure_contrast_dn"]
+__all__ = [
+    "MAX_CLIPPED_FRACTION", "MIN_CONTRAST_DN", "MIN_EDGE_KURTOSIS", "STRUCTURE_BLOCK", "assess_patches", "edge_kurtosis",
+    "edge_kurtosis_from_moments", "has_edges", "structure_contrast_dn",
+]
 
 #: Fraction of clipped pixels above which a patch is "black"/"saturated" (not assessable).
 MAX_CLIPPED_FRACTION = 0.5
 #: Noise-corrected structure contrast (DN, :func:`structure_contrast_dn`) below which a patch carries no blur
 #: information ("featureless"; MTF only).
 MIN_CONTRAST_DN = 2.0
+#: Noise-corrected excess kurtosis of the scene's gradients (:func:`edge_kurtosis`) that a patch must exceed by two
+#: standard errors to show edges to read blur from (:func:`has_edges`; else "no edges", MTF only). A Gaussian random field — texture whose phases carry no edge, where a
+#: steep spectrum and blur look alike — has 0; on the robustness benchmark's random-phase 1/f textures the 192-px
+#: patches read −0.15 … 0.9 (10th–90th percentile, with 1–10 DN of noise); dead leaves, line art, polygons and
+#: street frames read 2 … 26 (``python -m camhealth.bench robustness --task mtf``).
+MIN_EDGE_KURTOSIS = 0.5
 #: Block side [px] of the block means whose spread is the structure contrast.
 STRUCTURE_BLOCK = 8
 #: 1 / Φ⁻¹(0.75): median absolute value of a standard normal → σ.
@@ -60,13 +70,65 @@ def structure_contrast_dn(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     return var.clamp_min(0).sqrt().float(), noise.float()
 
 
+def edge_kurtosis_from_moments(m2: torch.Tensor, m4: torch.Tensor, noise_dn: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """γ = κ₄ / (m₂ − σ_g²)² of ``count`` gradients g with moments m₂ = E g² [DN²] and m₄ = E g⁴ [DN⁴] measured on
+    an image with white noise σ̂ = ``noise_dn`` [DN], and its standard error → ((B,), (B,)) [–]; g is a difference
+    of neighbouring 2×2-block means, whose noise is N(0, σ_g² = σ̂²/2).
+
+    The fourth cumulant κ₄ = m₄ − 3m₂² is additive over independent parts and 0 for Gaussian noise, so κ₄ is the
+    scene's own and γ is the scene gradients' excess kurtosis with the noise removed from numerator and
+    denominator alike: 0 for a Gaussian random field, large where the gradients are sparse (edges: most of the
+    patch flat, a few large steps). Its standard error where everything is Gaussian is
+    √(24/count)·(m₂ / (m₂ − σ_g²))² (the sample excess kurtosis of n Gaussian values has standard error √(24/n);
+    neighbouring gradients are treated as independent, so it is a lower bound for correlated texture). Where the
+    noise explains all of m₂ there is no scene evidence: γ = 0, standard error ∞."""
+    m2, m4, vn = m2.double(), m4.double(), noise_dn.double().square() / 2.0
+    scene = m2 - vn
+    has = scene > 1e-6 * m2.clamp_min(1e-12)
+    gamma = (m4 - 3.0 * m2.square()) / scene.clamp_min(1e-12).square()
+    se = math.sqrt(24.0 / max(int(count), 1)) * (m2 / scene.clamp_min(1e-12)).square()
+    return (torch.where(has, gamma, torch.zeros_like(gamma)).float(),
+            torch.where(has, se, torch.full_like(se, float("inf"))).float())
+
+
+def edge_kurtosis(patches: torch.Tensor, noise_dn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Noise-corrected excess kurtosis γ [–] of the scene's gradients in B×1×P×P patches in [0, 1], given their
+    white-noise level ``noise_dn`` (B,) [DN] (:func:`structure_contrast_dn`'s σ̂), and its standard error → ((B,), (B,)).
+
+    The gradients are the horizontal and vertical differences of the 2×2-block means (the half-resolution patch:
+    the noise is halved, an edge blurred by a few px is still a step), pooled; γ and its standard error:
+    :func:`edge_kurtosis_from_moments`. γ tells a scene with edges (γ ≫ 0) from a Gaussian-like texture (γ ≈ 0), on
+    which a blind blur estimate cannot tell a smooth scene from a blurred one: a random-phase texture of steep
+    spectrum and a blurred flat-spectrum one look the same to every single-patch estimator, and so do a sine
+    grating of lower contrast and a blurred one (γ = −1.5). Blur keeps γ of an edge scene large (a blurred step is
+    still a few px of gradient among flat ones)."""
+    x = patches[:, 0].double() * 255.0
+    b, h, w = x.shape
+    h2, w2 = h - h % 2, w - w % 2
+    if h2 < 4 or w2 < 4:
+        return torch.zeros(b), torch.full((b,), float("inf"))
+    m = 0.25 * (x[:, 0:h2:2, 0:w2:2] + x[:, 0:h2:2, 1:w2:2] + x[:, 1:h2:2, 0:w2:2] + x[:, 1:h2:2, 1:w2:2])
+    gx, gy = (m[:, :, 1:] - m[:, :, :-1]).flatten(1), (m[:, 1:, :] - m[:, :-1, :]).flatten(1)
+    m2 = 0.5 * (gx.square().mean(1) + gy.square().mean(1))
+    m4 = 0.5 * (gx.pow(4).mean(1) + gy.pow(4).mean(1))
+    return edge_kurtosis_from_moments(m2, m4, noise_dn, gx.shape[1] + gy.shape[1])
+
+
+def has_edges(gamma: torch.Tensor, se: torch.Tensor) -> torch.Tensor:
+    """Whether the gradients are shown to be sparser than a Gaussian's: γ − 2·SE ≥ :data:`MIN_EDGE_KURTOSIS`
+    (a patch whose γ is too uncertain — weak structure under strong noise — has no edges shown either)."""
+    return (gamma - 2.0 * se) >= MIN_EDGE_KURTOSIS
+
+
 def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list[str]]:
     """Which B×1×P×P patches (in [0, 1]) an estimator of ``kind`` can assess, and why not.
 
     black / saturated: more than half of the pixels within 0.5 DN of 0 / 255 (noise is clipped away,
     blur invisible); featureless (MTF only): noise-corrected structure contrast (:func:`structure_contrast_dn`)
-    below :data:`MIN_CONTRAST_DN` = 2 DN — no edges to measure blur on, however strong the noise (a flat patch with
-    20 DN of noise has the contrast of its noise, not of a scene)."""
+    below :data:`MIN_CONTRAST_DN` = 2 DN — no structure to measure blur on, however strong the noise (a flat patch
+    with 20 DN of noise has the contrast of its noise, not of a scene); no edges (MTF only): the scene's gradients are
+    not shown to be sparser than a random-phase texture's (:func:`has_edges`: :func:`edge_kurtosis` two standard
+    errors above :data:`MIN_EDGE_KURTOSIS`), so a steep spectrum and blur cannot be told apart on the patch."""
     x = patches.flatten(1)
     x = x if x.dtype in (torch.float32, torch.float64) else x.float()
     tol = 0.5 / 255.0
@@ -75,17 +137,22 @@ def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list
     low = (x <= tol).sum(1, dtype=torch.int32) / n if bool((x.amin(1) <= tol).any()) else torch.zeros(x.shape[0])
     high = (x >= 1 - tol).sum(1, dtype=torch.int32) / n if bool((x.amax(1) >= 1 - tol).any()) else torch.zeros(x.shape[0])
     if kind == "mtf":
-        std_dn = structure_contrast_dn(patches.float() if patches.dtype not in (torch.float32, torch.float64) else patches)[0]
+        p = patches.float() if patches.dtype not in (torch.float32, torch.float64) else patches
+        std_dn, noise_dn = structure_contrast_dn(p)
+        edges = has_edges(*edge_kurtosis(p, noise_dn))
     else:
         std_dn = torch.full((x.shape[0],), float("inf"))
+        edges = torch.ones(x.shape[0], dtype=torch.bool)
     reason = []
-    for lo, hi, s in zip(low.tolist(), high.tolist(), std_dn.tolist()):
+    for lo, hi, s, k in zip(low.tolist(), high.tolist(), std_dn.tolist(), edges.tolist()):
         if lo > MAX_CLIPPED_FRACTION:
             reason.append("black")
         elif hi > MAX_CLIPPED_FRACTION:
             reason.append("saturated")
         elif kind == "mtf" and s < MIN_CONTRAST_DN:
             reason.append("featureless")
+        elif kind == "mtf" and not k:
+            reason.append("no edges")
         else:
             reason.append("")
     return torch.tensor([r == "" for r in reason], dtype=torch.bool), reason

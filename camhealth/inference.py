@@ -28,7 +28,7 @@
 - returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V and ``mtf_std`` (B, 16) [kind ``mtf``]; ``sigma_total`` (B,) DN
   [noise kinds; for noise-source networks √(Σ σ_s²)]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
-  ``"black"``, ``"saturated"``, ``"featureless"``). Not-assessable patches still get finite numbers; do not
+  ``"black"``, ``"saturated"``, ``"featureless"``, ``"no edges"`` [MTF: Gaussian-like texture, :func:`camhealth._inputs.has_edges`]). Not-assessable patches still get finite numbers; do not
   trust them.
 - ``views`` (MTF models): 1 (default), 2 or 4 — also run the patch flipped (2: rotated by 180°; 4: flipped
   left–right, up–down and both) and average the estimates. A flip leaves the MTF along H and V unchanged

@@ -87,7 +87,8 @@ _LIMITATIONS = {
     "partly from the scene's own fine content, so it reads line art too sharp and edge-free textures far too blurred "
     "(−11 to −28 points). A slanted edge on a chart is more accurate where one is available. `mtf_std` (the spread "
     "over `views`) ranks patches but is no error bar. Gray patches only; featureless (after the noise is removed), "
-    "black or saturated patches are `assessable=False`.",
+    "edge-free (Gaussian-like texture or a single grating, whose contrast and blur one patch cannot tell apart: the "
+    "noise-corrected gradient kurtosis), black or saturated patches are `assessable=False`.",
 }
 
 _INDEPENDENT = {

@@ -196,7 +196,7 @@ def test_views_are_checked(noise_est, tmp_path):
 @pytest.mark.parametrize("fill,reason", [(0.0, "black"), (1.0, "saturated"), (0.5, "featureless")])
 def test_mtf_views_keep_the_flags_of_hard_patches(tmp_path, fill, reason):
     mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
-    x = torch.cat([torch.full((1, 1, 32, 32), fill), _textured(1, 32)])
+    x = torch.cat([torch.full((1, 1, 32, 32), fill), _edges(1, 32)])
     out = mtf.predict(x, views=4, precision="bf16")
     assert torch.isfinite(out["mtf"]).all() and out["mtf"].shape == (2, 16)
     assert out["reason"] == [reason, ""] and out["assessable"].tolist() == [False, True]
@@ -262,8 +262,8 @@ def test_flat_noisy_patches_are_never_assessable_for_mtf():
 
 
 def test_structure_survives_noise():
-    """A scene with real structure (a 4 DN sine of 32-px period) stays assessable under 20 DN of noise, and the
-    structure contrast matches the sine's std 4/√2 DN."""
+    """The structure contrast of a 4 DN sine of 32-px period under 20 DN of noise matches the sine's std 4/√2 DN (it
+    is not featureless); a sine has no edges, a square wave under the same noise has."""
     from camhealth._inputs import structure_contrast_dn
 
     g = torch.Generator().manual_seed(12)
@@ -274,7 +274,13 @@ def test_structure_survives_noise():
     assert torch.allclose(noise, torch.full_like(noise, 20.0), rtol=0.05)
     # block means of a 32-px sine keep sinc(8/32)·(4/√2) ≈ 2.55 DN of it
     assert torch.allclose(s, torch.full_like(s, 4.0 / 2**0.5 * float(torch.sinc(torch.tensor(8 / 32)))), atol=0.6)
-    assert assess_patches(x, "mtf")[0].all()
+    # a single sine has no edges: its contrast and its blur cannot be told apart
+    ok, reason = assess_patches(x, "mtf")
+    assert not ok.any() and set(reason) == {"no edges"}
+    # a square wave of the same period with ±20 DN steps keeps its edges under the same noise
+    square = 0.5 + 20.0 / 255.0 * torch.sign(torch.sin(2 * torch.pi * (xx + 0.5) / 32))[None, None, None, :].expand(16, 1, 192, 192)
+    y = (square + 20.0 / 255.0 * torch.randn(16, 1, 192, 192, generator=g, dtype=torch.float64)).float()
+    assert assess_patches(y, "mtf")[0].all()
 
 
 def test_mtf_std_is_the_spread_over_views(tmp_path):
@@ -287,6 +293,14 @@ def test_mtf_std_is_the_spread_over_views(tmp_path):
     assert torch.allclose(four["mtf_std"], flips.std(0), atol=1e-5)
     assert (four["mtf_std"] >= 0).all() and torch.isfinite(four["mtf_std"]).all()
     assert mtf.predict(x[:0], views=2)["mtf_std"].shape == (0, 16)
+
+
+def _edges(n: int, size: int, seed: int = 2) -> torch.Tensor:
+    """Random 4-px blocks of random gray (edges between them), well above the featureless threshold."""
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(seed)
+    return F.interpolate(0.1 + 0.8 * torch.rand(n, 1, size // 4, size // 4, generator=g), size=size, mode="nearest")
 
 
 def _textured(n: int, size: int, seed: int = 2) -> torch.Tensor:

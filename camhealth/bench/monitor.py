@@ -465,7 +465,7 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
         rows.append(r)
     informative_ms = Row(INFORMATIVE, times[INFORMATIVE]).median_ms
     skip_noise = {k: per_frame(INFORMATIVE, "noise", k) for k in ("black", "saturated")}
-    skip_mtf = {k: per_frame(INFORMATIVE, "mtf", k) for k in ("black", "saturated", "featureless")}
+    skip_mtf = {k: per_frame(INFORMATIVE, "mtf", k) for k in ("black", "saturated", "featureless", "no_edges")}
     model_note = f"{noise_model}, {mtf_model}"
     if args.untrained:
         model_note = "UNTRAINED networks (timing only; accuracy numbers are not meaningful)"

@@ -35,7 +35,8 @@ Truth is the exact DFT of each kernel (:func:`camhealth.physics.mtf_hv`). Printe
 over the 16 values × 100, the training metric) on held-out generators × rendered scenes per family and condition,
 per generator, per blur size and per rendered class, the ratio to the in-distribution value on dead leaves; per
 scene group (rendered, photos, street) per family, for held-out and training generators;
-the fraction of patches called assessable, ms per patch, and for the spread over 4 views (``mtf_std`` of
+the fraction of patches called assessable and the AMAE on those alone (a patch without edges — Gaussian-like texture,
+whose steep spectrum and blur look alike — is not assessable, :func:`camhealth._inputs.has_edges`), ms per patch, and for the spread over 4 views (``mtf_std`` of
 ``predict(views=4)``) the mean |error| against the mean spread. The classical reference is the ISO 12233 slanted
 edge (:func:`~camhealth.estimators.slanted_edge.slanted_edge_mtf_hv`) on an area-rendered slanted-edge chart blurred
 with the same held-out kernels — a scene that has an edge — beside the network on the same chart patches.
@@ -313,15 +314,18 @@ def _mask(c: Cell, where: str | None) -> torch.Tensor:
     return torch.tensor([where is None or where in (gr, lab) for gr, lab in zip(c.groups, c.labels)], dtype=torch.bool)
 
 
-def _agg(cells: list[Cell], key: Any, pred: Callable[[Cell], bool], where: str | None = None) -> tuple[float, int, float]:
-    """(mean AMAE %, patches, fraction assessable) over the patches of the cells ``pred`` keeps, in ``where``."""
+def _agg(cells: list[Cell], key: Any, pred: Callable[[Cell], bool], where: str | None = None,
+         assessable_only: bool = False) -> tuple[float, int, float]:
+    """(mean AMAE %, patches, fraction assessable) over the patches of the cells ``pred`` keeps, in ``where``
+    (``assessable_only``: the AMAE over the patches the estimator calls assessable; the fraction stays that of all)."""
     a, ok = [], []
     for c in cells:
         if not (pred(c) and key in c.out):
             continue
         m = _mask(c, where)
-        a.append(_amae(c.out[key]["mtf"], c.truth)[m])
-        ok.append(torch.as_tensor(c.out[key].get("assessable", torch.ones(c.truth.shape[0], dtype=torch.bool)))[m])
+        good = torch.as_tensor(c.out[key].get("assessable", torch.ones(c.truth.shape[0], dtype=torch.bool)))
+        a.append(_amae(c.out[key]["mtf"], c.truth)[m & good if assessable_only else m])
+        ok.append(good[m])
     if not a or sum(x.numel() for x in a) == 0:
         return float("nan"), 0, float("nan")
     av = torch.cat(a)
@@ -381,17 +385,19 @@ def run(args: argparse.Namespace) -> BenchResult:
                         "scenes' native MTF is 1), by condition; in-distribution: training generators on dead leaves "
                         "(clean) and on rendered scenes (clean):", "",
                     "| family | " + " | ".join(CONDITIONS) + " | all | in-dist. dead leaves | in-dist. gen. × rendered | "
-                    "all / in-dist. dead leaves | assessable |",
-                    "|---|" + "---:|" * (len(CONDITIONS) + 5)]
+                    "all / in-dist. dead leaves | assessable | all, assessable patches only |",
+                    "|---|" + "---:|" * (len(CONDITIONS) + 6)]
         for fam in FAMILIES:
             per = {cond: _agg(held, 1, lambda c, f=fam, k=cond: c.family == f and c.condition == k, "rendered")[0] for cond in CONDITIONS}
             allv, n, ok = _agg(held, 1, lambda c, f=fam: c.family == f, "rendered")
+            only = _agg(held, 1, lambda c, f=fam: c.family == f, "rendered", assessable_only=True)[0]
             ind = _agg(cells, 1, lambda c, f=fam: dl_p(c, f))[0]
             ind_r = _agg(cells, 1, lambda c, f=fam: ind_p(c, f) and c.condition == "clean", "rendered")[0]
             r["families"][fam] = {**per, "all": allv, "n": n, "assessable": ok, "in_dist_dead_leaves": ind,
-                                  "in_dist_rendered": ind_r, "groups": {}}
+                                  "in_dist_rendered": ind_r, "assessable_only": only,
+                                  "groups": {}}
             summary.append(f"| {fam} | " + " | ".join(_f(per[c]) for c in CONDITIONS)
-                           + f" | **{_f(allv)}** | {_f(ind)} | {_f(ind_r)} | {_f(allv / ind, '.2f')}× | {_f(100 * ok, '.0f')} % |")
+                           + f" | **{_f(allv)}** | {_f(ind)} | {_f(ind_r)} | {_f(allv / ind, '.2f')}× | {_f(100 * ok, '.0f')} % | {_f(only)} |")
         summary += ["", f"AMAE % (views 1) by scene group, every condition. **photos** (held-out and training photographs) and "
                         f"**street** (street frames 2×, native MTF ≈ 0.32 at f_n 0.6): {TRUTH_NOTE} (the kernel's MTF "
                         "alone), so a network that sees that blur is counted wrong there; **rendered**: exact truth:", "",
@@ -431,15 +437,19 @@ def run(args: argparse.Namespace) -> BenchResult:
             allv = _agg(held, 1, lambda c, s=size: c.size == s, "rendered")[0]
             r["sizes"][str(size)] = dict(zip(FAMILIES, vals), all=allv)
             summary.append(f"| {size:g} | " + " | ".join(_f(v) for v in vals) + f" | **{_f(allv)}** |")
-        summary += ["", "AMAE % by rendered scene class (held-out generators, every condition; views 1) and the mean signed "
-                        "error (Ĥ − H) × 100 on the clean ones:", "",
-                    "| family | " + " | ".join(CLASSES) + " | " + " | ".join(f"signed, {k}" for k in CLASSES) + " |",
-                    "|---|" + "---:|" * (2 * len(CLASSES))]
+        summary += ["", "AMAE % by rendered scene class (held-out generators, every condition; views 1), the share of patches "
+                        "called assessable, and the mean signed error (Ĥ − H) × 100 on the clean ones:", "",
+                    "| family | " + " | ".join(CLASSES) + " | " + " | ".join(f"assessable, {k}" for k in CLASSES) + " | "
+                    + " | ".join(f"signed, {k}" for k in CLASSES) + " |",
+                    "|---|" + "---:|" * (3 * len(CLASSES))]
         for fam in FAMILIES:
-            vals = [_agg(held, 1, lambda c, f=fam: c.family == f, cls)[0] for cls in CLASSES]
+            aggs = [_agg(held, 1, lambda c, f=fam: c.family == f, cls) for cls in CLASSES]
+            vals, oks = [a[0] for a in aggs], [a[2] for a in aggs]
             bias = [_bias(held, lambda c, f=fam: c.family == f and c.condition == "clean", cls) for cls in CLASSES]
-            r["rendered_classes"][fam] = {**dict(zip(CLASSES, vals)), "bias_clean": dict(zip(CLASSES, bias))}
-            summary.append(f"| {fam} | " + " | ".join(_f(v) for v in vals) + " | " + " | ".join(_f(b, "+.1f") for b in bias) + " |")
+            r["rendered_classes"][fam] = {**dict(zip(CLASSES, vals)), "bias_clean": dict(zip(CLASSES, bias)),
+                                          "assessable": dict(zip(CLASSES, oks))}
+            summary.append(f"| {fam} | " + " | ".join(_f(v) for v in vals) + " | "
+                           + " | ".join(f"{_f(100 * o, '.0f')} %" for o in oks) + " | " + " | ".join(_f(b, "+.1f") for b in bias) + " |")
         # uncertainty: views 4 mean, spread vs error, on held-out generators × rendered scenes (exact truth)
         err4, std4 = [], []
         for c in held:

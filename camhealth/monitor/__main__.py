@@ -33,8 +33,8 @@ noise, the metadata residual ξ and the total, in DN of 255), aggregated over ti
 with its spread (thesis Eq. 5.4), an alarm when ξ says the image is noisier (or cleaner) than the camera
 metadata allow, and, with --iopc, the exposure/gain advice of the IOPC policy (Eq. 4.5-4.8).
 
-Only what the scene needs is estimated: black, saturated and (for blur) featureless patches are skipped,
-static regions reuse their last estimate, and patches are estimated on a coarse lattice first and refined
+Only what the scene needs is estimated: black, saturated and (for blur) featureless and edge-free
+(Gaussian-like texture, "no_edges") patches are skipped, static regions reuse their last estimate, and patches are estimated on a coarse lattice first and refined
 only where the estimates or the patch content change. Every skip is counted in the JSON line.
 """
 
@@ -60,7 +60,7 @@ Metadata file (--metadata), JSON or YAML, physical units (thesis Table 4.1):
 Output, one JSON object per frame (keys): frame, index, source_id, size, assessable, metadata,
   noise {{estimator, patch_px, grid, assessable, sigma_dn {{pn, dcsn, rn, xi, total: {{median, spread,
   temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
-  not_assessable, total}}}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
+  no_edges, not_assessable, total}}}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
   ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
   Unreadable frames of a folder and partly decoded video frames give {{"frame_error": …}} lines, never scores.
   16-bit frames are scaled by their significant bits (--bit-depth; the summary names the scaling used).
@@ -200,7 +200,7 @@ def build_parser():
     g.add_argument("--no-refine", action="store_true",
                    help="estimate all changed patches at once, without the coarse lattice first")
     g.add_argument("--no-skip", action="store_true",
-                   help="also estimate black, saturated and featureless patches (not recommended)")
+                   help="also estimate black, saturated, featureless and edge-free patches (not recommended)")
     g.add_argument("--max-age", type=_positive, default=16, metavar="N",
                    help="re-estimate a static patch at least every N frames (default 16; staggered over the grid)")
     g.add_argument("--max-clipped", type=_non_negative, default=0.5, metavar="F",

@@ -9,7 +9,7 @@ the scene needs it (:mod:`camhealth.monitor.tiling`), in one of two modes:
   its cost does not depend on the scene or on camera motion (a moving camera); with ``adaptive`` a sampled patch
   whose content has not changed since its last estimate (and is not due for its periodic refresh) keeps that
   estimate, so a static camera sends fewer patches to the estimators once every patch has been sampled;
-- ``"map"``: every informative patch (skip black/saturated/featureless patches, reuse estimates of static
+- ``"map"``: every informative patch (skip black/saturated/featureless/no-edge patches, reuse estimates of static
   regions, coarse lattice first and refine only where it changes), with per-patch maps;
 
 and reports one :class:`FrameReport` per frame (a JSON line) with the coverage of each task:
@@ -601,7 +601,7 @@ class Monitor:
         adaptive: reuse static patches and interpolate on the coarse lattice (``False``: estimate every
             informative patch of every frame).
         reuse_static, coarse_refine: the two parts of ``adaptive`` separately.
-        skip_uninformative: ``False`` also estimates black/saturated/featureless patches (for benchmarks;
+        skip_uninformative: ``False`` also estimates black/saturated/featureless/no-edge patches (for benchmarks;
             their results are then discarded by the estimator's own ``assessable``).
         selection: thresholds (:class:`~camhealth.monitor.tiling.SelectionConfig`).
         precision: ``"bf16"`` (CPU autocast) or ``"fp32"``.
@@ -974,7 +974,7 @@ class Monitor:
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
                     grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage)
         if boxes.shape[0] == 0:  # as in map mode: a frame without an informative patch is not assessable
-            skipped = {k: v for k, v in counts.items() if k in ("black", "saturated", "featureless", "not_assessable") and v}
+            skipped = {k: v for k, v in counts.items() if k in ("black", "saturated", "featureless", "no_edges", "not_assessable") and v}
             why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
             return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why})")
         spatial = spatial_median(vals, dim=0)

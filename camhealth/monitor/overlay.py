@@ -6,7 +6,7 @@ two panels side by side on the gray frame: the total noise σ [DN] of every 128-
 indicator MTF̃ (mean of the H and V MTF at f_n = 0.1, thesis Sec. 4.4) of every 192-px patch, each as a
 colour map (viridis; fixed ranges so that frames compare: σ in [0, ``sigma_max_dn``], MTF̃ in [0, 1])
 blended over the frame, with the value written in each patch, a letter for its status (``i``
-interpolated, ``r`` reused, ``B`` black, ``S`` saturated, ``F`` featureless, ``?`` not assessable, ``u`` not sampled in sampled mode;
+interpolated, ``r`` reused, ``B`` black, ``S`` saturated, ``F`` featureless, ``E`` no edges, ``?`` not assessable, ``u`` not sampled in sampled mode;
 skipped patches are hatched), a title line with the frame values and the ξ alarm, and a colour bar.
 :func:`save_overlay` writes the panels as PNG. OpenCV draws (ASCII text only).
 """
@@ -27,7 +27,7 @@ __all__ = ["heat_map", "render_overlay", "save_overlay", "STATUS_LETTERS"]
 #: Letter drawn in a patch for each status (estimated patches get none).
 STATUS_LETTERS: dict[str, str] = {
     "estimated": "", "interpolated": "i", "reused": "r", "black": "B", "saturated": "S", "featureless": "F",
-    "not_assessable": "?", "unsampled": "u",
+    "not_assessable": "?", "unsampled": "u", "no_edges": "E",
 }
 
 

@@ -14,7 +14,10 @@ statistics of every patch are computed in one batched pass over a strided view o
   ≥ 16-px periods, which blur of a few px hardly changes and from which the noise (variance σ²/64 in a
   block mean) is removed;
 - the edge energy e = √max(0, ½·mean(Δx² + Δy²) − σ̂²/2) of the 2×2-binned patch (Δ: neighbour
-  differences; white noise contributes σ²/2) — a sharpness cue that drops when blur grows.
+  differences; white noise contributes σ²/2) — a sharpness cue that drops when blur grows;
+- the edge kurtosis γ = κ₄ / (mean Δ² − σ̂²/2)² of the same differences (κ₄ = mean Δ⁴ − 3·(mean Δ²)², the
+  fourth cumulant, which Gaussian noise does not change; :func:`camhealth._inputs.edge_kurtosis`): ≈ 0 for
+  Gaussian-like texture, large where the scene has edges; with its standard error.
 
 **Which patches are worth estimating** (:func:`select_patches`; the thesis showed that over/under-exposed
 and homogeneous areas break every blur estimator, Sec. 5.3–5.5):
@@ -23,7 +26,9 @@ and homogeneous areas break every blur estimator, Sec. 5.3–5.5):
   there is clipped away; the same rule as :func:`camhealth.inference.assess_patches`, so a skip never
   hides a patch the estimator would have called assessable);
 - blur (MTF): the same clipping rule plus "featureless" when s < 2 DN (no structure to measure blur on;
-  noise-corrected, so a flat but noisy patch is featureless too). Every skip is counted with its reason.
+  noise-corrected, so a flat but noisy patch is featureless too), and "no edges" unless γ − 2·SE ≥ 0.5 (Gaussian-like
+  texture or weak structure under strong noise: the estimator would call the patch not assessable). Every skip
+  is counted with its reason.
 
 **Static-region reuse** (:class:`StaticRegions`): a patch whose content has not changed since it was last
 estimated keeps its estimate. Frame differencing at block level: the patch is *changed* if any 8×8 block
@@ -76,7 +81,7 @@ from typing import Sequence
 import torch
 
 from camhealth._validation import check_float, check_tensor
-from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN
+from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, MIN_EDGE_KURTOSIS, edge_kurtosis_from_moments
 
 __all__ = [
     "STATUS_NAMES",
@@ -107,11 +112,11 @@ __all__ = [
 #: Per-patch status, index = code. The first three carry a value; ``unsampled`` (sampled mode: informative,
 #: but not among this frame's samples) carries none and is not a skip; the others are skips.
 STATUS_NAMES: tuple[str, ...] = (
-    "estimated", "interpolated", "reused", "black", "saturated", "featureless", "not_assessable", "unsampled",
+    "estimated", "interpolated", "reused", "black", "saturated", "featureless", "not_assessable", "unsampled", "no_edges",
 )
-ESTIMATED, INTERPOLATED, REUSED, BLACK, SATURATED, FEATURELESS, NOT_ASSESSABLE, UNSAMPLED = range(len(STATUS_NAMES))
+ESTIMATED, INTERPOLATED, REUSED, BLACK, SATURATED, FEATURELESS, NOT_ASSESSABLE, UNSAMPLED, NO_EDGES = range(len(STATUS_NAMES))
 #: Codes of patches without a value (skipped before or after the estimator).
-SKIP_CODES: tuple[int, ...] = (BLACK, SATURATED, FEATURELESS, NOT_ASSESSABLE)
+SKIP_CODES: tuple[int, ...] = (BLACK, SATURATED, FEATURELESS, NO_EDGES, NOT_ASSESSABLE)
 
 #: Block side [px] of the block means used for structure contrast and frame differencing.
 BLOCK = 8
@@ -193,6 +198,8 @@ class PatchStats:
         noise_dn: robust noise level σ̂ (Haar-diagonal MAD).
         structure_dn: noise-corrected contrast of the 8×8 block means.
         detail_dn: noise-corrected edge energy of the 2×2-binned patch.
+        edge_kurtosis: noise-corrected excess kurtosis γ of the 2×2-binned patch's neighbour differences [–].
+        edge_kurtosis_se: its standard error [–] (∞ where the noise explains all the differences).
         blocks_dn: (N, P/8, P/8) 8×8 block means (frame differencing).
     """
 
@@ -202,6 +209,8 @@ class PatchStats:
     noise_dn: torch.Tensor
     structure_dn: torch.Tensor
     detail_dn: torch.Tensor
+    edge_kurtosis: torch.Tensor
+    edge_kurtosis_se: torch.Tensor
     blocks_dn: torch.Tensor
 
     def __len__(self) -> int:
@@ -238,6 +247,8 @@ def _statistics(v: torch.Tensor, patch: int) -> PatchStats:
     dy = bin2[:, 1:] - bin2[:, :-1]
     energy = 0.5 * (dx.pow(2).sum((1, 3)).reshape(n) / (h * (h - 1)) + dy.pow(2).sum((1, 3)).reshape(n) / (h * (h - 1)))
     detail = (energy - 0.5 * noise.pow(2)).clamp_min(0).sqrt()
+    m4 = 0.5 * (dx.pow(4).sum((1, 3)).reshape(n) / (h * (h - 1)) + dy.pow(4).sum((1, 3)).reshape(n) / (h * (h - 1)))
+    kurt, kurt_se = edge_kurtosis_from_moments(energy, m4, noise, 2 * h * (h - 1))
     q = h // (BLOCK // 2)
     blocks = bin2.reshape(r, q, BLOCK // 2, c, q, BLOCK // 2).mean((2, 5))  # 8×8 block means (R, P/8, C, P/8)
     blocks = blocks.permute(0, 2, 1, 3).reshape(n, q, q)
@@ -245,7 +256,7 @@ def _statistics(v: torch.Tensor, patch: int) -> PatchStats:
     mean = bflat.mean(1)
     var8 = (bflat - mean[:, None]).pow(2).mean(1)
     structure = (var8 - noise.pow(2) / (BLOCK * BLOCK)).clamp_min(0).sqrt()
-    return PatchStats(mean, clipped_low, clipped_high, noise, structure, detail, blocks.contiguous())
+    return PatchStats(mean, clipped_low, clipped_high, noise, structure, detail, kurt, kurt_se, blocks.contiguous())
 
 
 def patch_statistics(patches: torch.Tensor) -> PatchStats:
@@ -256,7 +267,7 @@ def patch_statistics(patches: torch.Tensor) -> PatchStats:
     n, p = x.shape[0], x.shape[2]
     if n == 0:
         z = torch.zeros(0)
-        return PatchStats(z, z, z, z, z, z, torch.zeros(0, p // BLOCK, p // BLOCK))
+        return PatchStats(z, z, z, z, z, z, z, z, torch.zeros(0, p // BLOCK, p // BLOCK))
     v = x.float().reshape(n, p, 1, p)
     return _statistics(v, p)
 
@@ -282,6 +293,9 @@ class SelectionConfig:
         max_clipped_fraction: a patch with more than this fraction of pixels at 0 (255) DN is "black"
             ("saturated") [–]; default the estimator's own rule.
         min_structure_dn: blur only: a patch with structure contrast below this is "featureless" [DN].
+        min_edge_kurtosis: blur only: a patch whose edge kurtosis γ is not two standard errors above this has
+            "no edges" [–]; default the estimator's own rule (:data:`camhealth._inputs.MIN_EDGE_KURTOSIS`); ≤ −2 (no
+            distribution's excess kurtosis is lower) turns the test off.
         block_sigmas: k of the frame-differencing threshold k·√2·σ̂/8 [–].
         block_tol_dn: smallest block-mean change that counts as a change [DN].
         noise_tol: (absolute [DN], relative [–]) change of σ̂ that counts as a change.
@@ -303,6 +317,7 @@ class SelectionConfig:
 
     max_clipped_fraction: float = MAX_CLIPPED_FRACTION
     min_structure_dn: float = MIN_CONTRAST_DN
+    min_edge_kurtosis: float = MIN_EDGE_KURTOSIS
     block_sigmas: float = 5.0
     block_tol_dn: float = 4.0
     noise_tol: tuple[float, float] = (0.3, 0.15)
@@ -323,6 +338,7 @@ class SelectionConfig:
                 raise ValueError(f"SelectionConfig.{name} = {v!r} is out of the allowed range {rng}")
 
         _check("max_clipped_fraction", self.max_clipped_fraction, 0.0, 1.0)
+        _check("min_edge_kurtosis", self.min_edge_kurtosis, -3.0)
         for name in ("min_structure_dn", "block_sigmas", "block_tol_dn", "value_tol_noise_dn", "value_tol_noise_rel",
                      "value_tol_mtf", "cue_tol_mean_dn"):
             _check(name, getattr(self, name), 0.0)
@@ -342,13 +358,16 @@ def select_patches(stats: PatchStats, task: str, config: SelectionConfig | None 
     Returns:
         (mask (N,) bool: informative, code (N,) int8: :data:`ESTIMATED` for informative patches — the
         caller refines it to interpolated/reused — else :data:`BLACK`, :data:`SATURATED` or
-        :data:`FEATURELESS`). Clipping is checked first, black before saturated.
+        :data:`FEATURELESS` or :data:`NO_EDGES`). Clipping is checked first, black before saturated, then
+        featureless before no edges.
     """
     if task not in ("noise", "mtf"):
         raise ValueError(f"task = {task!r} must be 'noise' or 'mtf'")
     cfg = config or SelectionConfig()
     code = torch.full((len(stats),), ESTIMATED, dtype=torch.int8)
     if task == "mtf":
+        if cfg.min_edge_kurtosis > -2.0:
+            code[~(stats.edge_kurtosis - 2.0 * stats.edge_kurtosis_se >= cfg.min_edge_kurtosis)] = NO_EDGES
         code[stats.structure_dn < cfg.min_structure_dn] = FEATURELESS
     code[stats.clipped_high > cfg.max_clipped_fraction] = SATURATED
     code[stats.clipped_low > cfg.max_clipped_fraction] = BLACK

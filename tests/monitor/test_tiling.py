@@ -9,6 +9,7 @@ from camhealth.monitor.tiling import (
     BLACK,
     ESTIMATED,
     FEATURELESS,
+    NO_EDGES,
     SATURATED,
     STATUS_NAMES,
     PatchGrid,
@@ -106,17 +107,20 @@ def _stats_for(patches):
 
 def test_select_reasons():
     g = torch.Generator().manual_seed(4)
-    texture = torch.nn.functional.interpolate(torch.rand(1, 1, 8, 8, generator=g), size=192, mode="bilinear", align_corners=False)
+    coarse = torch.rand(1, 1, 8, 8, generator=g)
+    blocks = torch.nn.functional.interpolate(coarse, size=192, mode="nearest")  # steps between 24-px blocks: edges
+    smooth = torch.nn.functional.interpolate(coarse, size=192, mode="bilinear", align_corners=False)  # no edge
     flat_noisy = noisy(torch.full((1, 1, 192, 192), 0.4), 6.0, seed=5)
     black = torch.zeros(1, 1, 192, 192)
     white = torch.ones(1, 1, 192, 192)
-    x = torch.cat([texture * 0.8 + 0.1, flat_noisy, black, white])
+    x = torch.cat([blocks * 0.8 + 0.1, flat_noisy, black, white, smooth * 0.8 + 0.1])
     s = patch_statistics(x)
     mask, code = select_patches(s, "mtf")
-    assert code.tolist() == [ESTIMATED, FEATURELESS, BLACK, SATURATED] and mask.tolist() == [True, False, False, False]
+    assert code.tolist() == [ESTIMATED, FEATURELESS, BLACK, SATURATED, NO_EDGES]
+    assert mask.tolist() == [True, False, False, False, False]
     mask, code = select_patches(s, "noise")  # noise is still measurable on a flat patch
-    assert code.tolist() == [ESTIMATED, ESTIMATED, BLACK, SATURATED]
-    mask, code = select_patches(s, "mtf", SelectionConfig(min_structure_dn=0.0, max_clipped_fraction=1.0))
+    assert code.tolist() == [ESTIMATED, ESTIMATED, BLACK, SATURATED, ESTIMATED]
+    mask, code = select_patches(s, "mtf", SelectionConfig(min_structure_dn=0.0, max_clipped_fraction=1.0, min_edge_kurtosis=-3.0))
     assert mask.all()
     with pytest.raises(ValueError, match="task"):
         select_patches(s, "blur")
@@ -228,3 +232,19 @@ def test_status_counts():
     c = status_counts(code)
     assert list(c) == list(STATUS_NAMES) and c["estimated"] == 2 and c["reused"] == 1 and c["black"] == 1
     assert c["not_assessable"] == 1 and sum(c.values()) == 5
+
+
+def test_edge_kurtosis_matches_the_estimator_rule():
+    """The monitor's frame-wide edge kurtosis is the estimator's (camhealth._inputs.edge_kurtosis) on the same
+    patches with the same noise level, so a skipped "no_edges" patch is one the estimator calls not assessable."""
+    from camhealth._inputs import edge_kurtosis
+
+    g = torch.Generator().manual_seed(9)
+    blocks = torch.nn.functional.interpolate(0.2 + 0.6 * torch.rand(3, 1, 12, 12, generator=g), size=192, mode="nearest")
+    smooth = torch.nn.functional.interpolate(0.2 + 0.6 * torch.rand(3, 1, 12, 12, generator=g), size=192, mode="bilinear",
+                                             align_corners=False)
+    x = noisy(torch.cat([blocks, smooth]), 4.0, seed=10)
+    s = patch_statistics(x)
+    gamma, se = edge_kurtosis(x, s.noise_dn)
+    assert torch.allclose(s.edge_kurtosis, gamma, rtol=1e-3, atol=1e-3) and torch.allclose(s.edge_kurtosis_se, se, rtol=1e-3)
+    assert select_patches(s, "mtf")[1].tolist() == [ESTIMATED] * 3 + [NO_EDGES] * 3

@@ -1,0 +1,99 @@
+"""The shared input checks of camhealth._inputs: the edge test of the MTF estimators (noise-corrected gradient kurtosis)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from camhealth._inputs import (
+    MIN_EDGE_KURTOSIS, assess_patches, edge_kurtosis, edge_kurtosis_from_moments, has_edges, structure_contrast_dn,
+)
+
+
+def _random_phase_texture(n: int, size: int, beta: float, seed: int) -> torch.Tensor:
+    """Gaussian random field with power spectrum f^-β, std 30 DN around 128 DN ([0, 1] units)."""
+    g = torch.Generator().manual_seed(seed)
+    w = torch.fft.rfft2(torch.randn(n, 1, size, size, generator=g, dtype=torch.float64))
+    f = torch.sqrt(torch.fft.fftfreq(size, dtype=torch.float64)[:, None] ** 2 + torch.fft.rfftfreq(size, dtype=torch.float64)[None, :] ** 2)
+    x = torch.fft.irfft2(w * torch.where(f > 0, f.clamp_min(1e-9) ** (-beta / 2), torch.zeros(())), s=(size, size))
+    x = (x - x.mean((2, 3), keepdim=True)) / x.std(dim=(2, 3), keepdim=True)
+    return (128.0 + 30.0 * x).clamp(0, 255) / 255.0
+
+
+def _blocks(n: int, size: int, block: int, seed: int) -> torch.Tensor:
+    """Random gray blocks (edges between them), 40–215 DN."""
+    g = torch.Generator().manual_seed(seed)
+    return F.interpolate((40.0 + 175.0 * torch.rand(n, 1, size // block, size // block, generator=g, dtype=torch.float64)) / 255.0,
+                         size=size, mode="nearest")
+
+
+def _noisy(x: torch.Tensor, sigma_dn: float, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (x + sigma_dn / 255.0 * torch.randn(x.shape, generator=g, dtype=x.dtype)).clamp(0, 1)
+
+
+def test_moments_closed_form_with_noise():
+    """Sparse gradients ±a with probability p (excess kurtosis 1/p − 3) plus N(0, σ²/2) noise: the exact moments give
+    γ = 1/p − 3 whatever σ — κ₄ is additive and Gaussian noise has none."""
+    p, a = torch.tensor([0.02, 0.1, 0.3], dtype=torch.float64), 12.0
+    for sigma in (0.0, 3.0, 20.0):
+        vn = sigma**2 / 2
+        m2 = p * a**2 + vn
+        m4 = p * a**4 + 6 * p * a**2 * vn + 3 * vn**2
+        gamma, se = edge_kurtosis_from_moments(m2, m4, torch.full_like(p, sigma), 10_000)
+        assert torch.allclose(gamma.double(), 1 / p - 3, rtol=1e-5)
+        assert torch.allclose(se.double(), math.sqrt(24 / 10_000) * (m2 / (p * a**2)) ** 2, rtol=1e-5)
+    # noise explaining all of m2: no scene evidence
+    gamma, se = edge_kurtosis_from_moments(torch.tensor([8.0]), torch.tensor([192.0]), torch.tensor([4.0]), 100)
+    assert gamma.item() == 0.0 and math.isinf(se.item())
+
+
+@pytest.mark.parametrize("sigma_dn", [0.0, 5.0, 10.0])
+def test_gaussian_texture_has_no_edges(sigma_dn):
+    x = _noisy(_random_phase_texture(6, 192, 2.0, seed=1), sigma_dn, seed=2).float()
+    gamma, se = edge_kurtosis(x, structure_contrast_dn(x)[1])
+    assert gamma.abs().max() < 0.5, gamma
+    assert not has_edges(gamma, se).any()
+    ok, reason = assess_patches(x, "mtf")
+    assert not ok.any() and set(reason) == {"no edges"}
+
+
+@pytest.mark.parametrize("sigma_dn", [0.0, 5.0, 10.0])
+def test_edges_survive_blur_and_noise(sigma_dn):
+    """Blocks blurred by a 5×5 box and then noisy: large γ, the noise correction keeps it near the clean value."""
+    clean = F.avg_pool2d(F.pad(_blocks(6, 192, 16, seed=3), (2, 2, 2, 2), mode="replicate"), 5, stride=1)
+    ref = edge_kurtosis(clean.float(), torch.zeros(6))[0]
+    x = _noisy(clean, sigma_dn, seed=4).float()
+    gamma, se = edge_kurtosis(x, structure_contrast_dn(x)[1])
+    assert (ref > 5 * MIN_EDGE_KURTOSIS).all() and has_edges(gamma, se).all()
+    assert torch.allclose(gamma, ref, rtol=0.25), (gamma, ref)
+    ok, reason = assess_patches(x, "mtf")
+    assert ok.all() and set(reason) == {""}
+
+
+def test_weak_structure_under_strong_noise_is_not_shown():
+    """±2 DN blocks under 20 DN of noise: γ is far too uncertain to show edges (standard error ≫ γ)."""
+    x = _noisy(0.5 + 4.0 / 255.0 * (_blocks(4, 192, 16, seed=5) - 0.5), 20.0, seed=6).float()
+    gamma, se = edge_kurtosis(x, structure_contrast_dn(x)[1])
+    assert (se > 1.0).all() and not has_edges(gamma, se).any()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [1, 256])
+def test_batched_and_dtypes(dtype, batch):
+    parts = [_blocks(batch // 2 + batch % 2, 32, 4, seed=7)] + ([_random_phase_texture(batch // 2, 32, 2.0, seed=8)] if batch > 1 else [])
+    x = torch.cat(parts).to(dtype)
+    noise = structure_contrast_dn(x)[1]
+    gamma, se = edge_kurtosis(x, noise)
+    assert gamma.shape == se.shape == (batch,) and gamma.dtype == torch.float32 and torch.isfinite(gamma).all()
+    one, one_se = edge_kurtosis(x[:1], noise[:1])
+    assert torch.allclose(one, gamma[:1]) and torch.allclose(one_se, se[:1])
+    assert has_edges(gamma[:1], se[:1]).all()  # the blocks come first
+
+
+def test_tiny_patches_show_no_edges():
+    gamma, se = edge_kurtosis(torch.rand(3, 1, 3, 3), torch.zeros(3))
+    assert (gamma == 0).all() and torch.isinf(se).all() and not has_edges(gamma, se).any()
