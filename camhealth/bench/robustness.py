@@ -8,9 +8,14 @@ Every noise estimator is scored beside the closed form of the metadata alone on 
 - **simulator**: :mod:`camhealth.bench.sensor_variants`, an independent NumPy implementation of the sensor model,
   as it is and with each of its variants (whole electrons, readout rounded to whole electrons, log-normal kTC,
   clipping after every source, reverse source order, 8-bit rounding) and all of them at once;
-- **scenes**: the scikit-image photographs and frames of the committed street clip (no dead leaves), area-downsampled
-  3× so that their own noise is small against the simulated one (those at least 384 px on their short side), 16
-  random 128-px patches per frame; JPEG (quality 75–95, OpenCV) after the noise;
+- **scenes**: the scikit-image photographs and every 5th frame of the committed street clip (no dead leaves) at two
+  scales, the frames of every condition alternating between them, 16 random 128-px patches per frame; JPEG
+  (quality 75–95, OpenCV) after the noise. *Full resolution*: the images as they are (the scale a camera delivers;
+  all 10 photographs). *3× area-downsampled*: the busy stress case — a 128-px patch holds a 384-px field of fine
+  structure (the 8 photographs at least 384 px on their short side). The scene floor (:func:`scene_floor_dn`, what
+  the clean scene alone puts into the finest details; no truth counts it) is 0.83 DN at the median at full
+  resolution (quartiles 0.67–1.31; street frames 0.73) and 2.00 DN at 3× (1.83–2.16; street frames 2.00), seeds 0
+  and 7: the downsampling packs scene structure into the pixel scale, it does not remove the scenes' own noise;
 - **metadata**: matched; and one field altered while the estimator is told the unaltered value — gain +6…12 dB,
   temperature +15…30 K, thermal white noise ×2…4 (thesis Sec. 6.3.2);
 - **strong noise**: extra white noise that brings σ_Total to 10–60 DN while the metadata are unchanged.
@@ -22,10 +27,11 @@ random numbers in both, so ξ is exactly 0 where the metadata are right. A misma
 |ξ| ≥ max(0.5 DN, 15 % of σ_Total); detection is scored by ROC AUC of |ξ̂| per patch and of |median ξ̂| per frame
 (16 patches, one camera state) between the matched conditions and the visible mismatches.
 
-Printed per estimator: per-source Bias / Std / RMS [DN] per condition group over every patch (those it marks not
-assessable included: the closed form stands there), ξ RMS, the AUCs, the strong-noise rows (median |σ̂_Total/σ_Total − 1|
-and the fraction of patches with the right sign of ξ), the fraction of patches it calls assessable and ms per patch
-(fp32, one camera state per batch of 16, the threads set by ``--threads``).
+Printed per estimator, pooled over both scales and for each scale: per-source Bias / Std / RMS [DN] per condition
+group over every patch (those it marks not assessable included: the closed form stands there), ξ RMS, the AUCs
+(per frame also split into quiet and busy scenes), the strong-noise rows (median |σ̂_Total/σ_Total − 1| and the
+fraction of patches with the right sign of ξ), the fraction of patches it calls assessable and ms per patch (fp32,
+one camera state per batch of 16, the threads set by ``--threads``); the RMS per condition is pooled over both scales.
 """
 
 from __future__ import annotations
@@ -54,9 +60,19 @@ MISMATCH = ("gain", "temperature", "white_noise")
 STRONG = ("strong",)
 CONDITIONS = MATCHED + MISMATCH + STRONG
 CLOSED_FORM = "closed_form"
-#: Scenes are area-downsampled by this factor first: the photographs and the compressed street clip carry noise of
-#: their own (≈ 1–2 DN), which the average of 3×3 pixels brings to a third, small against the simulated noise.
-SCENE_DOWNSAMPLE = 3
+#: The scene scales scored (name → area-downsampling factor); the frames of every condition alternate between them.
+#: Scene floors (:func:`scene_floor_dn`) over the 208 frames of each scale at 16 frames per condition, seeds 0 and 7:
+#: ``full``: the photographs and street frames as they are — the issue's specification and the scale a camera
+#: delivers; floor median 0.83 DN (quartiles 0.67–1.31 DN; street frames 0.73 DN, 0.66–0.82; photographs 1.31 DN,
+#: 0.84–1.93, grass and gravel 10 and 6 DN). ``3x``: area-downsampled 3×, kept as the *busy* stress case: a 128-px
+#: patch holds a 384-px field of fine structure, which the average of 3×3 pixels packs into the pixel scale — floor
+#: median 2.00 DN (quartiles 1.83–2.16 DN; street frames 2.00 DN, 1.94–2.07; photographs 2.29 DN, 1.31–7.36). The
+#: downsampling does not remove the scenes' own noise of any size that matters: it raises the floor (the street
+#: clip's whole frames read 0.65 DN as recorded, 1.46 DN at 2× and 2.18 DN at 3×, medians over its 50 frames).
+SCENE_SCALES = {"full": 1, "3x": 3}
+SCALE_LABELS = {"full": "full resolution", "3x": "3× area-downsampled"}
+#: The 3× scale's downsampling factor (:data:`SCENE_SCALES`).
+SCENE_DOWNSAMPLE = SCENE_SCALES["3x"]
 PATCH = 128
 
 
@@ -83,17 +99,23 @@ class Frame:
     sigma: torch.Tensor  # (16, 3) truth [DN]
     total: torch.Tensor  # (16,) realised σ_Total after clipping [DN]
     xi: torch.Tensor  # (16,) truth [DN]
+    scale: str  # the scene scale, a key of SCENE_SCALES
     scene_floor: float = float("nan")  # the clean scene's own fine-scale σ [DN] (scene_floor_dn), in no truth
 
 
-def _scenes() -> list[torch.Tensor]:
+def _scenes() -> dict[str, list[torch.Tensor]]:
+    """The photographs and every 5th street frame at each scale of :data:`SCENE_SCALES` (gray, 1×H×W in [0, 1]);
+    those shorter than one patch (128 px) on their short side at that scale are left out."""
     from camhealth.data.skimage_photos import SKIMAGE_PHOTOS, load_skimage_photo
     from camhealth.data.street_sample import StreetSampleSource
 
-    photos = [load_skimage_photo(n) for n in SKIMAGE_PHOTOS]
     street = StreetSampleSource(stride=5)
-    scenes = [F.avg_pool2d(s.unsqueeze(0), SCENE_DOWNSAMPLE)[0] for s in photos + [street[i][0] for i in range(len(street))]]
-    return [s for s in scenes if min(s.shape[-2:]) >= PATCH]
+    originals = [load_skimage_photo(n) for n in SKIMAGE_PHOTOS] + [street[i][0] for i in range(len(street))]
+    out = {}
+    for scale, factor in SCENE_SCALES.items():
+        scenes = [F.avg_pool2d(s.unsqueeze(0), factor)[0] if factor > 1 else s for s in originals]
+        out[scale] = [s for s in scenes if min(s.shape[-2:]) >= PATCH]
+    return out
 
 
 #: A frame's scene is *quiet* where its own fine-scale σ (:func:`scene_floor_dn`) is at most this share of the frame's
@@ -133,15 +155,37 @@ def _total(noisy: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
     return ((noisy.double() - clean.double()) * 255.0).flatten(1).std(1).float()
 
 
+def scene_floor_lines(frames: list[Frame]) -> list[str]:
+    """One line per scene scale: median and quartiles of the frames' scene floors [DN] and their share of quiet frames."""
+    out = []
+    for scale in SCENE_SCALES:
+        sel = [f for f in frames if f.scale == scale]
+        floors = np.array([f.scene_floor for f in sel], dtype=float)
+        if not sel or np.isnan(floors).all():
+            continue
+        quiet = np.mean([f.scene_floor <= QUIET_SCENE_SHARE * float(f.total.median()) for f in sel])
+        q1, med, q3 = np.nanquantile(floors, [0.25, 0.5, 0.75])
+        out.append(f"{SCALE_LABELS[scale]} ({len(sel)} frames): scenes' own fine-scale σ (scene_floor_dn, in no truth) "
+                   f"median {med:.2f} DN (quartiles {q1:.2f}–{q3:.2f}); {100 * quiet:.0f} % of the frames are quiet "
+                   f"(floor ≤ σ_Total/3)")
+    return out
+
+
 def make_frames(frames: int, seed: int = 0) -> list[Frame]:
-    """``frames`` frames of 16 patches for every condition of :data:`CONDITIONS` (module docstring)."""
+    """``frames`` frames of 16 patches for every condition of :data:`CONDITIONS` (module docstring); within each
+    condition the frames alternate between the scales of :data:`SCENE_SCALES` (the first gets the odd one out), each
+    scale cycling through its own scenes."""
     gen = torch.Generator().manual_seed(seed)
     scenes = _scenes()
+    scales = tuple(SCENE_SCALES)
+    used = dict.fromkeys(scales, 0)
     out = []
     k = 0
     for cond in CONDITIONS:
-        for _ in range(frames):
-            scene = scenes[k % len(scenes)]
+        for j in range(frames):
+            scale = scales[j % len(scales)]
+            scene = scenes[scale][used[scale] % len(scenes[scale])]
+            used[scale] += 1
             told = _told_camera(gen, k)
             k += 1
             h, w = scene.shape[-2:]
@@ -171,7 +215,7 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
             if cond == "jpeg":
                 q = int(torch.randint(75, 96, (1,), generator=gen))
                 noisy = torch.stack([_jpeg(p, q) for p in noisy])
-            out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scene_floor_dn(clean)))
+            out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scale, scene_floor_dn(clean)))
     return out
 
 
@@ -236,22 +280,16 @@ def _visible(fr: Frame, xi: torch.Tensor) -> torch.Tensor:
     return xi.abs() >= torch.maximum(torch.full_like(xi, 0.5), 0.15 * fr.total)
 
 
-def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
-    """Every number of one estimator on ``frames`` (module docstring)."""
-    rows: dict[str, list] = {c: [] for c in CONDITIONS}
-    times, assessable = [], []
-    for fr in frames:
-        out, ms = _predict(est, fr)
-        times.append(ms)
-        assessable.append(torch.as_tensor(out.get("assessable", torch.ones(16, dtype=torch.bool))).float().mean().item())
-        has_sources = "sigma" in out
-        sig = out["sigma"].float() if has_sources else torch.full((16, 3), float("nan"))
-        xi = out["xi"].float() if "xi" in out else torch.zeros(16)
-        rows[fr.condition].append((sig, out["sigma_total"].float(), xi, fr))
-    res: dict[str, Any] = {"ms_per_patch": float(np.median(times)), "assessable": float(np.mean(assessable)), "groups": {}}
+def _aggregate(rows: dict[str, list]) -> dict[str, Any]:
+    """The error groups, AUCs and strong-noise numbers of one estimator's answers ``rows`` (condition → list of
+    (σ per source, σ_Total, ξ, frame)); NaN where a set is empty or holds one class only."""
+    res: dict[str, Any] = {"frames": sum(len(v) for v in rows.values()), "groups": {}}
 
     def group(conds: tuple[str, ...], only_visible: bool = False) -> dict[str, Any]:
         items = [r for c in conds for r in rows[c]]
+        if not items:
+            nan3 = (float("nan"),) * 3
+            return {**{k: nan3 for k in ("PN", "DCSN", "RN", "DCSN+RN", "total")}, "xi_rms": float("nan"), "n": 0}
         keep = torch.cat([_visible(r[3], r[3].xi) if only_visible else torch.ones(len(r[3].xi), dtype=torch.bool) for r in items])
         sig = torch.cat([r[0] for r in items])[keep]
         tot = torch.cat([r[1] for r in items])[keep]
@@ -259,6 +297,8 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
         t_sig = torch.cat([r[3].sigma for r in items])[keep]
         t_tot = torch.cat([r[3].total for r in items])[keep]
         t_xi = torch.cat([r[3].xi for r in items])[keep]
+        if t_xi.numel() == 0:
+            return group((), False)
         g = {f"{s}": _bsr(sig[:, i] - t_sig[:, i]) for i, s in enumerate(("PN", "DCSN", "RN"))}
         # the signal-independent part √(σ_DCSN² + σ_RN²): what one image identifies (a hotter sensor and more readout
         # noise both add white, signal-independent noise; only the metadata's ranges and the prior split it)
@@ -278,31 +318,68 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
     neg = [r for c in MATCHED for r in rows[c]]
     pos = [r for c in MISMATCH for r in rows[c]]
 
-    p_score = torch.cat([r[2].abs() for r in neg] + [r[2].abs() for r in pos])
-    p_label = torch.cat([torch.zeros(16, dtype=torch.bool) for _ in neg] + [_visible(r[3], r[3].xi) for r in pos])
-    keep = torch.cat([torch.ones(16, dtype=torch.bool) for _ in neg] + [_visible(r[3], r[3].xi) for r in pos])
+    p_score = torch.cat([r[2].abs() for r in neg] + [r[2].abs() for r in pos] + [torch.zeros(0)])
+    p_label = torch.cat([torch.zeros(16, dtype=torch.bool) for _ in neg] + [_visible(r[3], r[3].xi) for r in pos]
+                        + [torch.zeros(0, dtype=torch.bool)])
+    keep = torch.cat([torch.ones(16, dtype=torch.bool) for _ in neg] + [_visible(r[3], r[3].xi) for r in pos]
+                     + [torch.zeros(0, dtype=torch.bool)])
     res["auc_patch"] = _auc(p_score[keep], p_label[keep])
     f_score = torch.tensor([float(r[2].median().abs()) for r in neg + pos])
     f_vis = [float(r[3].xi.median().abs()) >= max(0.5, 0.15 * float(r[3].total.median())) for r in pos]
-    f_label = torch.tensor([False] * len(neg) + f_vis)
-    f_keep = torch.tensor([True] * len(neg) + f_vis)
+    f_label = torch.tensor([False] * len(neg) + f_vis, dtype=torch.bool)
+    f_keep = torch.tensor([True] * len(neg) + f_vis, dtype=torch.bool)
     res["auc_frame"] = _auc(f_score[f_keep], f_label[f_keep])
-    quiet = torch.tensor([r[3].scene_floor <= QUIET_SCENE_SHARE * float(r[3].total.median()) for r in neg + pos])
+    quiet = torch.tensor([r[3].scene_floor <= QUIET_SCENE_SHARE * float(r[3].total.median()) for r in neg + pos], dtype=torch.bool)
     for name, sel in (("quiet", quiet), ("busy", ~quiet)):
         k = f_keep & sel
         res[f"auc_frame_{name}"] = _auc(f_score[k], f_label[k])
         res[f"frames_{name}"] = (int((k & ~f_label).sum()), int((k & f_label).sum()))
     res["visible_patches"] = int(p_label.sum())
     res["visible_frames"] = int(f_label.sum())
+    res["matched_patches"] = 16 * len(neg)
     strong = rows["strong"]
-    tot = torch.cat([r[1] for r in strong])
-    t_tot = torch.cat([r[3].total for r in strong])
-    xi = torch.cat([r[2] for r in strong])
-    t_xi = torch.cat([r[3].xi for r in strong])
-    rel = (tot / t_tot - 1).abs()
-    res["strong_total_rel_median"] = float(rel.median())
-    res["strong_total_rel_p90"] = float(rel.quantile(0.9))
-    res["strong_xi_sign_right"] = float(((xi < 0) == (t_xi < 0)).float().mean())
+    if strong:
+        tot = torch.cat([r[1] for r in strong])
+        t_tot = torch.cat([r[3].total for r in strong])
+        xi = torch.cat([r[2] for r in strong])
+        t_xi = torch.cat([r[3].xi for r in strong])
+        rel = (tot / t_tot - 1).abs()
+        res["strong_total_rel_median"] = float(rel.median())
+        res["strong_total_rel_p90"] = float(rel.quantile(0.9))
+        res["strong_xi_sign_right"] = float(((xi < 0) == (t_xi < 0)).float().mean())
+    else:
+        res["strong_total_rel_median"] = res["strong_total_rel_p90"] = res["strong_xi_sign_right"] = float("nan")
+    return res
+
+
+def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
+    """Every number of one estimator on ``frames`` (module docstring): pooled over all frames, and under ``"scales"``
+    the same numbers for the frames of each scene scale of :data:`SCENE_SCALES` (each frame is predicted once)."""
+    answers = []
+    times, assessable = [], []
+    for fr in frames:
+        out, ms = _predict(est, fr)
+        times.append(ms)
+        assessable.append(torch.as_tensor(out.get("assessable", torch.ones(16, dtype=torch.bool))).float().mean().item())
+        has_sources = "sigma" in out
+        sig = out["sigma"].float() if has_sources else torch.full((16, 3), float("nan"))
+        xi = out["xi"].float() if "xi" in out else torch.zeros(16)
+        answers.append((sig, out["sigma_total"].float(), xi, fr))
+
+    def rows_of(scale: str | None) -> dict[str, list]:
+        rows: dict[str, list] = {c: [] for c in CONDITIONS}
+        for a, fr in zip(answers, frames):
+            if scale is None or fr.scale == scale:
+                rows[fr.condition].append(a)
+        return rows
+
+    res = _aggregate(rows_of(None))
+    res["ms_per_patch"] = float(np.median(times))
+    res["assessable"] = float(np.mean(assessable))
+    res["scales"] = {}
+    for scale in SCENE_SCALES:
+        sel = [a for a, fr in zip(assessable, frames) if fr.scale == scale]
+        res["scales"][scale] = {**_aggregate(rows_of(scale)), "assessable": float(np.mean(sel)) if sel else float("nan")}
     return res
 
 
@@ -327,38 +404,46 @@ def run(args: argparse.Namespace) -> BenchResult:
     results = {getattr(e, "name", str(e)): score(e, frames) for e in ests}
     header = [f"{len(frames)} frames × 16 patches of 128 px ({args.frames} per condition), seed {args.seed}; "
               f"data made in {time.perf_counter() - t0:.0f} s", f"command: {args.command_line}"]
-    floors = np.array([f.scene_floor for f in frames])
-    quiet = np.array([f.scene_floor <= QUIET_SCENE_SHARE * float(f.total.median()) for f in frames])
-    header.append(f"scenes' own fine-scale σ (scene_floor_dn, in no truth): median {np.nanmedian(floors):.2f} DN; "
-                  f"{100 * quiet.mean():.0f} % of the frames are quiet (floor ≤ σ_Total/3)")
+    header += scene_floor_lines(frames)
+    sets = [("pooled", None), *[(SCALE_LABELS[k], k) for k in SCENE_SCALES]]
+
+    def part(r: dict[str, Any], key: str | None) -> dict[str, Any]:
+        return r if key is None else r["scales"][key]
+
     summary = ["", "Per-source Bias / Std / RMS [DN] (matched: every simulator variant and JPEG; mismatched: gain, temperature, white noise; "
-               "DCSN⊕RN = √(σ_DCSN² + σ_RN²), the signal-independent part one image identifies):", "",
-               "| estimator | set | PN | DCSN | RN | DCSN⊕RN | total | ξ RMS |", "|---|---|---|---|---|---|---|---:|"]
+               "DCSN⊕RN = √(σ_DCSN² + σ_RN²), the signal-independent part one image identifies), pooled and per scene scale:", "",
+               "| estimator | scenes | set | PN | DCSN | RN | DCSN⊕RN | total | ξ RMS |", "|---|---|---|---|---|---|---|---|---:|"]
     for name, r in results.items():
-        for gname in ("matched", "mismatched", "visible mismatch", "strong"):
-            g = r["groups"][gname]
-            summary.append(f"| {name} | {gname} ({g['n']}) | {_fmt3(g['PN'])} | {_fmt3(g['DCSN'])} | {_fmt3(g['RN'])} | "
-                           f"{_fmt3(g['DCSN+RN'])} | {_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
-    summary += ["", "Per-source RMS [DN] by condition (PN / DCSN / RN / total):", "",
+        for label, key in sets:
+            for gname in ("matched", "mismatched", "visible mismatch", "strong"):
+                g = part(r, key)["groups"][gname]
+                summary.append(f"| {name} | {label} | {gname} ({g['n']}) | {_fmt3(g['PN'])} | {_fmt3(g['DCSN'])} | {_fmt3(g['RN'])} | "
+                               f"{_fmt3(g['DCSN+RN'])} | {_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
+    summary += ["", "Per-source RMS [DN] by condition, both scene scales pooled (PN / DCSN / RN / total):", "",
                 "| estimator | " + " | ".join(MATCHED + MISMATCH) + " |", "|---|" + "---|" * (len(MATCHED) + len(MISMATCH))]
     for name, r in results.items():
         cells = [f"{r['groups'][c]['PN'][2]:.2f}/{r['groups'][c]['DCSN'][2]:.2f}/{r['groups'][c]['RN'][2]:.2f}/{r['groups'][c]['total'][2]:.2f}"
                  for c in MATCHED + MISMATCH]
         summary.append(f"| {name} | " + " | ".join(cells) + " |")
-    summary += ["", "Detection of a visible mismatch and strong noise:", "",
-                "| estimator | AUC per patch | AUC per frame | per frame, quiet scenes (floor ≤ σ_Total/3) | per frame, busy scenes | "
+    summary += ["", "Detection of a visible mismatch and strong noise, pooled and per scene scale:", "",
+                "| estimator | scenes | AUC per patch | AUC per frame | per frame, quiet scenes (floor ≤ σ_Total/3) | per frame, busy scenes | "
                 "σ ≥ 10 DN: median / p90 abs. rel. error of σ_Total | ξ sign right | assessable | ms/patch fp32 |",
-                "|---|---:|---:|---:|---:|---|---:|---:|---:|"]
+                "|---|---|---:|---:|---:|---:|---|---:|---:|---:|"]
     for name, r in results.items():
-        summary.append(f"| {name} | {r['auc_patch']:.3f} | {r['auc_frame']:.3f} | {r['auc_frame_quiet']:.3f} | {r['auc_frame_busy']:.3f} | "
-                       f"{100 * r['strong_total_rel_median']:.1f} % / "
-                       f"{100 * r['strong_total_rel_p90']:.1f} % | {100 * r['strong_xi_sign_right']:.0f} % | {100 * r['assessable']:.0f} % | "
-                       f"{r['ms_per_patch']:.2f} |")
+        for label, key in sets:
+            q = part(r, key)
+            summary.append(f"| {name} | {label} | {q['auc_patch']:.3f} | {q['auc_frame']:.3f} | {q['auc_frame_quiet']:.3f} | "
+                           f"{q['auc_frame_busy']:.3f} | {100 * q['strong_total_rel_median']:.1f} % / "
+                           f"{100 * q['strong_total_rel_p90']:.1f} % | {100 * q['strong_xi_sign_right']:.0f} % | "
+                           f"{100 * q['assessable']:.0f} % | {r['ms_per_patch']:.2f} |")
     any_r = next(iter(results.values()))
-    summary.append(f"\n{any_r['visible_patches']} visible-mismatch patches and {any_r['visible_frames']} frames against "
-                   f"{sum(len(f.xi) for f in frames if f.condition in MATCHED)} matched patches; quiet scenes: "
-                   f"{any_r['frames_quiet'][1]} visible-mismatch frames against {any_r['frames_quiet'][0]} matched, busy: "
-                   f"{any_r['frames_busy'][1]} against {any_r['frames_busy'][0]}.")
+    counts = []
+    for label, key in sets:
+        q = part(any_r, key)
+        counts.append(f"{label}: {q['visible_patches']} visible-mismatch patches and {q['visible_frames']} frames against "
+                      f"{q['matched_patches']} matched patches; quiet scenes {q['frames_quiet'][1]} visible-mismatch frames "
+                      f"against {q['frames_quiet'][0]} matched, busy {q['frames_busy'][1]} against {q['frames_busy'][0]}")
+    summary.append("\n" + "; ".join(counts) + ".")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=1))

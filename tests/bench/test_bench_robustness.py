@@ -1,0 +1,100 @@
+"""The noise task of ``python -m camhealth.bench robustness``: its two scene scales, the frames that record them and
+the tables per scale (the full run is a benchmark, not a test)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from camhealth.bench import robustness as rb
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)  # many tiny tensors: more threads only contend
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return rb.make_frames(2, seed=0)  # one frame of each scale per condition
+
+
+def test_scenes_are_the_originals_and_their_3x_area_downsampling():
+    from camhealth.data.skimage_photos import SKIMAGE_PHOTOS, load_skimage_photo
+
+    scenes = rb._scenes()
+    assert set(scenes) == set(rb.SCENE_SCALES) == {"full", "3x"} and rb.SCENE_DOWNSAMPLE == 3
+    photos = [load_skimage_photo(n) for n in SKIMAGE_PHOTOS]
+    # full resolution: every photograph (none is shorter than 128 px) and the 10 street frames, untouched
+    assert len(scenes["full"]) == len(photos) + 10
+    assert all(torch.equal(s, p) for s, p in zip(scenes["full"], photos))
+    assert tuple(scenes["full"][-1].shape) == (1, 576, 768)
+    # 3×: the photographs at least 384 px on their short side, each the mean of 3×3 pixels
+    kept = [p for p in photos if min(p.shape[-2:]) >= 3 * rb.PATCH]
+    assert len(scenes["3x"]) == len(kept) + 10 and len(kept) < len(photos)
+    p = kept[0]
+    torch.testing.assert_close(scenes["3x"][0][0, 0, 0], p[0, :3, :3].mean())
+    assert tuple(scenes["3x"][-1].shape) == (1, 192, 256)
+    assert all(min(s.shape[-2:]) >= rb.PATCH for ss in scenes.values() for s in ss)
+
+
+def test_every_frame_records_its_scale_and_both_scales_appear_in_every_condition(frames):
+    assert len(frames) == 2 * len(rb.CONDITIONS)
+    for cond in rb.CONDITIONS:
+        assert [f.scale for f in frames if f.condition == cond] == ["full", "3x"]
+    assert all(f.clean.shape == (16, 1, rb.PATCH, rb.PATCH) for f in frames)
+    # the 3× scale packs a 384-px field into a patch: its scene floor is the higher one (seed 0: 0.8 vs 2.0 DN at
+    # 16 frames per condition)
+    floor = {s: np.nanmedian([f.scene_floor for f in frames if f.scale == s]) for s in rb.SCENE_SCALES}
+    assert floor["full"] < floor["3x"]
+
+
+def test_odd_frame_counts_give_the_first_scale_the_extra_frame(monkeypatch):
+    flat = torch.full((1, 160, 160), 0.5)
+    monkeypatch.setattr(rb, "_scenes", lambda: {"full": [flat], "3x": [flat.clone()]})
+    monkeypatch.setattr(rb, "CONDITIONS", ("reference", "gain"))
+    out = rb.make_frames(3, seed=1)
+    assert len(out) == 6
+    for cond in rb.CONDITIONS:
+        assert [f.scale for f in out if f.condition == cond] == ["full", "3x", "full"]
+
+
+def test_score_has_pooled_and_per_scale_groups(frames):
+    res = rb.score(rb._ClosedForm(), frames)
+    assert set(res["scales"]) == set(rb.SCENE_SCALES)
+    n_matched = sum(16 for f in frames if f.condition in rb.MATCHED)
+    assert res["groups"]["matched"]["n"] == n_matched
+    assert sum(res["scales"][s]["groups"]["matched"]["n"] for s in rb.SCENE_SCALES) == n_matched
+    for s in rb.SCENE_SCALES:
+        part = res["scales"][s]
+        assert part["frames"] == sum(f.scale == s for f in frames)
+        assert set(part["groups"]) == set(res["groups"])
+        for key in ("auc_patch", "auc_frame", "auc_frame_quiet", "auc_frame_busy", "strong_total_rel_p90", "assessable"):
+            assert key in part
+        # the closed form is exact where the metadata are right, at either scale
+        assert part["groups"]["matched"]["total"][2] < 0.1
+        assert part["auc_patch"] != part["auc_patch"] or part["auc_patch"] == pytest.approx(0.5)
+
+
+def test_report_prints_floors_and_tables_per_scale(frames, monkeypatch, tmp_path):
+    monkeypatch.setattr(rb, "make_frames", lambda n, seed=0: frames)
+    args = argparse.Namespace(task="noise", frames=2, seed=0, models=[], json=tmp_path / "r.json", command_line="test")
+    res = rb.run(args)
+    header = "\n".join(res.header)
+    assert "full resolution (13 frames): scenes' own fine-scale σ" in header
+    assert "3× area-downsampled (13 frames): scenes' own fine-scale σ" in header and "quartiles" in header
+    text = "\n".join(res.summary)
+    n = 16 * len(rb.MATCHED)  # matched patches per scale
+    for label, matched in (("pooled", 2 * n), ("full resolution", n), ("3× area-downsampled", n)):
+        assert f"| closed_form | {label} | matched ({matched}) |" in text  # per-source table
+        assert f"| closed_form | {label} | 0.500 |" in text or f"| closed_form | {label} | nan |" in text  # detection
+        assert f"{label}: " in text  # visible/matched counts
+    out = json.loads((tmp_path / "r.json").read_text())
+    assert set(out["closed_form"]["scales"]) == {"full", "3x"}
