@@ -98,3 +98,26 @@ def test_report_prints_floors_and_tables_per_scale(frames, monkeypatch, tmp_path
         assert f"{label}: " in text  # visible/matched counts
     out = json.loads((tmp_path / "r.json").read_text())
     assert set(out["closed_form"]["scales"]) == {"full", "3x"}
+
+
+class _Refuses:
+    """The closed form, but it says "I can't tell" on the first 4 patches of every frame."""
+
+    kind, metadata_set, name = "noise_source", "full", "refuses"
+
+    def predict(self, noisy, meta):
+        out = rb._ClosedForm().predict(noisy, meta)
+        ok = torch.ones(noisy.shape[0], dtype=torch.bool)
+        ok[:4] = False
+        return {**out, "assessable": ok}
+
+
+def test_strong_noise_is_also_scored_on_the_patches_called_assessable(frames):
+    res = rb.score(_Refuses(), frames)
+    assert res["strong_assessable"] == pytest.approx(12 / 16)
+    # the closed form never sees the extra noise: ξ = 0 has the wrong sign on every strong patch, vouched for or not
+    assert res["strong_xi_sign_right"] == 0.0 and res["strong_xi_sign_right_assessable"] == 0.0
+    assert res["strong_total_rel_p90_assessable"] > 0.5
+    strong = [f for f in frames if f.condition == "strong"]
+    rel = torch.cat([(rb._ClosedForm().predict(f.noisy, f.told)["sigma_total"] / f.total - 1).abs()[4:] for f in strong])
+    assert res["strong_total_rel_p90_assessable"] == pytest.approx(float(rel.quantile(0.9)), rel=1e-5)
