@@ -124,7 +124,7 @@ def _dead_leaves(n: int, seed: int) -> list[torch.Tensor]:
     from camhealth.data.dead_leaves import DeadLeavesSource
 
     _, kwargs = mtf_training_source()
-    keys = ("r_min", "r_max", "contrast", "supersample", "shading", "aspect")
+    keys = ("r_min", "r_max", "contrast", "supersample")
     src = DeadLeavesSource(n, size=(256, 256), seed=seed, **{k: kwargs[k] for k in keys if k in kwargs})
     return [src[i][0].float().reshape(1, 256, 256) for i in range(n)]
 

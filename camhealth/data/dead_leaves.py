@@ -22,21 +22,6 @@ Simulation (exact, not an approximation of the stationary model):
   thinned to the ones meeting the frame; it is sampled as a mixture of three power laws (``r⁻³``, ``r⁻²``,
   ``r⁻¹``) with closed-form inverse CDFs.
 * Gray levels are uniform on ``[0.5 − contrast/2, 0.5 + contrast/2]``.
-* ``aspect`` > 1 (at most 8): leaves are ellipses with axis ratio ``k`` log-uniform on ``[1, aspect]`` and
-  uniform orientation, semi-axes ``a = r√k``, ``b = r/√k``: the area ``π a b = π r²`` of the disk, so the radius
-  law, the coverage and the scale statistics are unchanged. A leaf's largest extent is ``a ≤ r√aspect``, so the
-  centres are drawn over the frame dilated by ``r√aspect`` and ``r`` from the power law re-weighted by that area,
-  ``q(r) ∝ r⁻³ (H' + 2r√aspect)(W' + 2r√aspect)``: the same exact thinned Poisson process (``k`` and the
-  orientation are independent of ``r`` and the centre); leaves that then miss the frame cover no pixel and are
-  culled. Bounding boxes are the exact axis-aligned boxes of the rotated ellipses (half-widths
-  ``√(a²cos²θ + b²sin²θ)`` and ``√(a²sin²θ + b²cos²θ)``, at most ``a``); the hit test is the rotated ellipse
-  equation.
-* ``shading`` > 0 (at most 1): each leaf's gray level is a linear ramp ``val + g·(p − c)`` (``c`` the centre) with
-  ``g`` of uniform random direction and ``|g| = shading · contrast · U(0, 1) / r`` [gray level / px, with ``r`` and
-  ``p`` in the rendering grid, so the slope per output pixel does not depend on ``supersample``]: across one
-  radius the level changes by at most ``shading × contrast`` (along the major axis of an ellipse, up to
-  ``√aspect`` times that). The rendered levels are clipped to [0, 1] before the supersampling average (and
-  after it, as always).
 * Painting is vectorised: a batch of leaves is rasterised by their bounding boxes at once (leaves whose
   box holds no uncovered pixel are culled with a summed-area table first) and each pixel takes the first
   leaf of the batch that covers it; when only a few pixels remain uncovered they are tested against the
@@ -49,12 +34,7 @@ Edge density (the knob): the expected edge length per pixel is ``2 E[r] / E[r²]
 detail; ``r_max`` sets the size of the largest flat regions.
 
 Reproducibility: the same ``seed`` (and parameters) gives a bit-identical image with the same numpy
-version (numpy's ``PCG64`` generator; no threads, no float reductions whose order could vary). The per-leaf
-draws of the ellipses and the shading (four uniforms per leaf: ``k``, orientation, gradient direction and
-magnitude) come from a second stream, seeded ``(seed, 2)`` (``DeadLeavesSource``: ``(seed, i, 2)``), used only
-when ``aspect`` > 1 or ``shading`` > 0: the disk draws are untouched, so with ``shading = 0`` and ``aspect = 1``
-the images are bit-identical to the disk-only renderer, and with ``aspect = 1`` the shaded leaves have the same
-geometry as the flat ones.
+version (numpy's ``PCG64`` generator; no threads, no float reductions whose order could vary).
 """
 
 from __future__ import annotations
@@ -103,23 +83,6 @@ def _resolve_params(
     return h, w, r_min, r_max, contrast, s  # type: ignore[return-value]
 
 
-def _check_shape(shading: float, aspect: float) -> tuple[float, float]:
-    """``(shading, aspect)`` as floats; ``ValueError`` naming the value and its allowed range otherwise."""
-    try:
-        shading, aspect = float(shading), float(aspect)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"shading and aspect must be numbers, got shading = {shading!r}, aspect = {aspect!r}"
-        ) from None
-    if not math.isfinite(shading) or not 0.0 <= shading <= 1.0:
-        raise ValueError(
-            f"shading = {shading:g} must be in [0, 1] (largest change of gray level across a leaf radius, × contrast)"
-        )
-    if not math.isfinite(aspect) or not 1.0 <= aspect <= 8.0:
-        raise ValueError(f"aspect = {aspect:g} must be in [1, 8] (largest axis ratio of the elliptical leaves)")
-    return shading, aspect
-
-
 def dead_leaves_radius_pdf(r: np.ndarray, r_min: float, r_max: float) -> np.ndarray:
     """The radius density ``p(r) = c · r⁻³`` on ``[r_min, r_max]`` (0 outside), normalised to integrate to 1."""
     r = np.asarray(r, dtype=np.float64)
@@ -128,30 +91,14 @@ def dead_leaves_radius_pdf(r: np.ndarray, r_min: float, r_max: float) -> np.ndar
 
 
 def _sample_leaves(
-    rng: np.random.Generator,
-    n: int,
-    h: int,
-    w: int,
-    r_min: float,
-    r_max: float,
-    lo: float,
-    hi: float,
-    dilate: float = 1.0,
+    rng: np.random.Generator, n: int, h: int, w: int, r_min: float, r_max: float, lo: float, hi: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` leaves that may meet the frame (pixel centres 0..w-1 × 0..h-1), in front-to-back order.
-
-    A leaf of radius ``r`` has its centre uniform over the frame dilated by ``m·r`` (``m = dilate`` >= 1: the
-    largest extent of a leaf of radius ``r`` in units of ``r``; 1 for disks, ``√aspect`` for ellipses), and ``r``
-    follows ``p(r) ∝ r⁻³`` re-weighted by that dilated area. Leaves that then miss the frame are harmless.
-    """
+    """``n`` leaves meeting the frame (pixel centres 0..w-1 × 0..h-1), in front-to-back order."""
     hp, wp = float(h - 1), float(w - 1)
-    m = float(dilate)
-    # q(r) ∝ r^-3 (hp + 2mr)(wp + 2mr) = hp·wp r^-3 + 2m(hp + wp) r^-2 + 4m² r^-1 on [r_min, r_max]
+    # q(r) ∝ r^-3 (hp + 2r)(wp + 2r) = hp·wp r^-3 + 2(hp + wp) r^-2 + 4 r^-1 on [r_min, r_max]
     w3 = hp * wp * 0.5 * (r_min**-2 - r_max**-2)
     w2 = 2.0 * (hp + wp) * (1.0 / r_min - 1.0 / r_max)
     w1 = 4.0 * math.log(r_max / r_min)
-    if m != 1.0:
-        w2, w1 = w2 * m, w1 * m * m
     total = w3 + w2 + w1
     u = rng.random((5, n))
     comp_u = u[0] * total
@@ -161,9 +108,8 @@ def _sample_leaves(
     r_pow1 = r_min * (r_max / r_min) ** v
     r = np.where(comp_u < w3, r_pow3, np.where(comp_u < w3 + w2, r_pow2, r_pow1))
     np.clip(r, r_min, r_max, out=r)
-    d = r if m == 1.0 else m * r  # dilation of the frame for each leaf
-    cx = -d + u[2] * (wp + 2.0 * d)
-    cy = -d + u[3] * (hp + 2.0 * d)
+    cx = -r + u[2] * (wp + 2.0 * r)
+    cy = -r + u[3] * (hp + 2.0 * r)
     val = (lo + (hi - lo) * u[4]).astype(np.float32)
     return r, cx, cy, val
 
@@ -180,15 +126,8 @@ def _paint_by_boxes(
     y0: np.ndarray,
     bw: np.ndarray,
     bh: np.ndarray,
-    ell: tuple[np.ndarray, ...] | None = None,
-    grad: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
-    """Rasterise the leaves' bounding boxes; each uncovered pixel takes the first leaf covering it.
-
-    ``ell = (cos θ, sin θ, a², b²)`` per leaf makes the leaves ellipses (semi-axes ``a`` along ``θ``, ``b``
-    across; ``None``: disks of radius ``r``); ``grad = (g_x, g_y)`` per leaf [gray level / px] shades them:
-    a pixel ``p`` takes ``val + g·(p − c)``.
-    """
+    """Rasterise the leaves' bounding boxes; each uncovered pixel takes the first leaf covering it."""
     counts = bw * bh
     total = int(counts.sum())
     if total == 0:
@@ -202,31 +141,15 @@ def _paint_by_boxes(
     dx = px - cx[leaf]
     dy = py - cy[leaf]
     lin = py * w + px
-    hit = _inside(dx, dy, r, ell, leaf) & uncovered[lin]
+    hit = (dx * dx + dy * dy <= r[leaf] ** 2) & uncovered[lin]
     lin = lin[hit]
     leaf = leaf[hit]
     if lin.size == 0:
         return
     # entries are in leaf order, so the first occurrence of a pixel is its front-most leaf
     pix, first = np.unique(lin, return_index=True)
-    front = leaf[first]
-    if grad is None:
-        lin_img[pix] = val[front]
-    else:
-        lin_img[pix] = val[front] + grad[0][front] * dx[hit][first] + grad[1][front] * dy[hit][first]
+    lin_img[pix] = val[leaf[first]]
     uncovered[pix] = False
-
-
-def _inside(
-    dx: np.ndarray, dy: np.ndarray, r: np.ndarray, ell: tuple[np.ndarray, ...] | None, idx: np.ndarray | slice
-) -> np.ndarray:
-    """Whether the offsets ``(dx, dy)`` [px] from the centres of leaves ``idx`` lie in those leaves (edge included)."""
-    if ell is None:
-        return dx * dx + dy * dy <= r[idx] ** 2
-    c, s, a2, b2 = (e[idx] for e in ell)
-    u = dx * c + dy * s  # along the major axis
-    v = dy * c - dx * s  # along the minor axis
-    return u * u * b2 + v * v * a2 <= a2 * b2
 
 
 def _paint_direct(
@@ -237,12 +160,8 @@ def _paint_direct(
     cx: np.ndarray,
     cy: np.ndarray,
     val: np.ndarray,
-    ell: tuple[np.ndarray, ...] | None = None,
-    grad: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
-    """Few pixels left: test every uncovered pixel against every leaf (in blocks), keep the first hit.
-
-    ``ell`` and ``grad`` as in :func:`_paint_by_boxes`."""
+    """Few pixels left: test every uncovered pixel against every leaf (in blocks), keep the first hit."""
     pix = np.flatnonzero(uncovered)
     py = (pix // w).astype(np.float64)
     px = (pix % w).astype(np.float64)
@@ -252,76 +171,35 @@ def _paint_direct(
         if pix.size == 0:
             break
         sl = slice(s, s + block)
-        if ell is None:
-            inside = (px[:, None] - cx[None, sl]) ** 2 + (py[:, None] - cy[None, sl]) ** 2 <= r2[None, sl]
-        else:
-            sub = tuple(e[None, sl] for e in ell)
-            inside = _inside(px[:, None] - cx[None, sl], py[:, None] - cy[None, sl], r, sub, slice(None))
+        inside = (px[:, None] - cx[None, sl]) ** 2 + (py[:, None] - cy[None, sl]) ** 2 <= r2[None, sl]
         any_hit = inside.any(axis=1)
         if not any_hit.any():
             continue
         first = inside[any_hit].argmax(axis=1) + s
         done = pix[any_hit]
-        if grad is None:
-            lin_img[done] = val[first]
-        else:
-            dx, dy = px[any_hit] - cx[first], py[any_hit] - cy[first]
-            lin_img[done] = val[first] + grad[0][first] * dx + grad[1][first] * dy
+        lin_img[done] = val[first]
         uncovered[done] = False
         keep = ~any_hit
         pix, px, py = pix[keep], px[keep], py[keep]
 
 
 def _render(
-    rng: np.random.Generator,
-    h: int,
-    w: int,
-    r_min: float,
-    r_max: float,
-    lo: float,
-    hi: float,
-    aspect: float = 1.0,
-    slope: float = 0.0,
-    rng2: np.random.Generator | None = None,
+    rng: np.random.Generator, h: int, w: int, r_min: float, r_max: float, lo: float, hi: float
 ) -> np.ndarray:
-    """Render ``h×w`` px (radii in px of this grid). ``aspect`` > 1: elliptical leaves (axis ratio log-uniform on
-    ``[1, aspect]``, same area as the disk of radius ``r``); ``slope`` > 0: shaded leaves, the gray level changing by
-    ``slope · U(0, 1)`` per radius ``r`` along a random direction. Their per-leaf draws come from ``rng2``."""
-    shaped = aspect > 1.0 or slope > 0.0
-    if shaped and rng2 is None:
-        raise ValueError("elliptical or shaded leaves need their own random stream rng2")
-    m = math.sqrt(aspect)  # largest extent of a leaf of radius r, in units of r
     n_pix = h * w
     img = np.zeros(n_pix, dtype=np.float32)
     uncovered = np.ones(n_pix, dtype=bool)
     # mean area of a leaf under p(r): π E[r²] = π c ln(r_max / r_min), c = 2 / (r_min⁻² − r_max⁻²)
     mean_area = math.pi * 2.0 / (r_min**-2 - r_max**-2) * math.log(r_max / r_min)
-    frame_area = (h - 1 + 2 * m * r_min) * (w - 1 + 2 * m * r_min)
+    frame_area = (h - 1 + 2 * r_min) * (w - 1 + 2 * r_min)
     batch = int(min(max(64, frame_area / mean_area), 1_000_000))
     n_left = n_pix
     for _ in range(10_000):
-        r, cx, cy, val = _sample_leaves(rng, batch, h, w, r_min, r_max, lo, hi, m)
-        ex = ey = r  # half-widths of the leaves' axis-aligned bounding boxes [px]
-        ell = grad = None
-        if shaped:  # the same four draws per leaf whichever option is on
-            v = rng2.random((4, batch))  # type: ignore[union-attr]
-            if aspect > 1.0:
-                k_ax = aspect ** v[0]  # axis ratio a/b, log-uniform on [1, aspect]
-                theta = math.pi * v[1]  # orientation of the major axis
-                c, sn = np.cos(theta), np.sin(theta)
-                a2, b2 = r * r * k_ax, r * r / k_ax  # a = r√k, b = r/√k: area πab = πr²
-                # exact half-widths of the rotated ellipse's box (<= a), padded against rounding
-                ex = np.sqrt(a2 * c * c + b2 * sn * sn) + 1e-9
-                ey = np.sqrt(a2 * sn * sn + b2 * c * c) + 1e-9
-                ell = (c, sn, a2, b2)
-            if slope > 0.0:
-                g = slope * v[3] / r  # |g| [gray level / px of this grid]
-                phi = 2.0 * math.pi * v[2]
-                grad = (g * np.cos(phi), g * np.sin(phi))
-        x0 = np.maximum(np.ceil(cx - ex), 0).astype(np.int64)
-        x1 = np.minimum(np.floor(cx + ex), w - 1).astype(np.int64)
-        y0 = np.maximum(np.ceil(cy - ey), 0).astype(np.int64)
-        y1 = np.minimum(np.floor(cy + ey), h - 1).astype(np.int64)
+        r, cx, cy, val = _sample_leaves(rng, batch, h, w, r_min, r_max, lo, hi)
+        x0 = np.maximum(np.ceil(cx - r), 0).astype(np.int64)
+        x1 = np.minimum(np.floor(cx + r), w - 1).astype(np.int64)
+        y0 = np.maximum(np.ceil(cy - r), 0).astype(np.int64)
+        y1 = np.minimum(np.floor(cy + r), h - 1).astype(np.int64)
         bw = np.maximum(x1 - x0 + 1, 0)
         bh = np.maximum(y1 - y0 + 1, 0)
         keep = (bw > 0) & (bh > 0)
@@ -335,13 +213,9 @@ def _render(
         k = np.flatnonzero(keep)
         r, cx, cy, val = r[k], cx[k], cy[k], val[k]
         x0, y0, bw, bh = x0[k], y0[k], bw[k], bh[k]
-        if ell is not None:
-            ell = tuple(e[k] for e in ell)
-        if grad is not None:
-            grad = (grad[0][k], grad[1][k])
         box_cost = int((bw * bh).sum())
         if n_left * len(k) <= box_cost:
-            _paint_direct(img, uncovered, w, r, cx, cy, val, ell, grad)
+            _paint_direct(img, uncovered, w, r, cx, cy, val)
         else:
             # bound memory: rasterise in chunks of leaves (order preserved, coverage updated in between)
             ends = np.cumsum(bw * bh)
@@ -350,11 +224,7 @@ def _render(
                 limit = (ends[start - 1] if start else 0) + 4_000_000
                 stop = max(start + 1, int(np.searchsorted(ends, limit, side="right")))
                 sl = slice(start, stop)
-                _paint_by_boxes(
-                    img, uncovered, w, r[sl], cx[sl], cy[sl], val[sl], x0[sl], y0[sl], bw[sl], bh[sl],
-                    None if ell is None else tuple(e[sl] for e in ell),
-                    None if grad is None else (grad[0][sl], grad[1][sl]),
-                )
+                _paint_by_boxes(img, uncovered, w, r[sl], cx[sl], cy[sl], val[sl], x0[sl], y0[sl], bw[sl], bh[sl])
                 start = stop
         n_left = int(np.count_nonzero(uncovered))
         if n_left == 0:
@@ -370,8 +240,6 @@ def dead_leaves(
     contrast: float = 1.0,
     seed: int = 0,
     supersample: int = 1,
-    shading: float = 0.0,
-    aspect: float = 1.0,
 ) -> torch.Tensor:
     """Render one dead-leaves image.
 
@@ -383,41 +251,21 @@ def dead_leaves(
             (1 → levels in [0, 1]; 0.5 → [0.25, 0.75]).
         seed: integer seed; the same seed and parameters give a bit-identical image.
         supersample: render at this factor and box-average (anti-aliased edges); 1 = hard edges.
-        shading: in [0, 1]; 0 = flat leaves. Otherwise each leaf's gray level is a linear ramp
-            ``val + g·(p − c)`` with a random direction and ``|g| = shading · contrast · U(0, 1) / r``
-            [gray level / px]: across one radius the level changes by at most ``shading · contrast``.
-        aspect: in [1, 8]; 1 = disks. Otherwise leaves are ellipses with axis ratio log-uniform on
-            ``[1, aspect]``, uniform orientation and the area of the disk of radius ``r``.
 
     Returns:
-        float32 tensor ``1×H×W`` with values in ``[0.5 − contrast/2, 0.5 + contrast/2]`` ⊂ [0, 1] (with
-        ``shading`` > 0: the ramps may leave that range; values are clipped to [0, 1]).
+        float32 tensor ``1×H×W`` with values in ``[0.5 − contrast/2, 0.5 + contrast/2]`` ⊂ [0, 1].
     """
     h, w, r_min, r_max, contrast, s = _resolve_params(size, r_min, r_max, contrast, supersample)
-    shading, aspect = _check_shape(shading, aspect)
     seed = check_int(seed, "seed", 0)
     rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
-    rng2 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, 2])))
-    return _dead_leaves(rng, h, w, r_min, r_max, contrast, s, shading, aspect, rng2)
+    return _dead_leaves(rng, h, w, r_min, r_max, contrast, s)
 
 
 def _dead_leaves(
-    rng: np.random.Generator,
-    h: int,
-    w: int,
-    r_min: float,
-    r_max: float,
-    contrast: float,
-    s: int,
-    shading: float = 0.0,
-    aspect: float = 1.0,
-    rng2: np.random.Generator | None = None,
+    rng: np.random.Generator, h: int, w: int, r_min: float, r_max: float, contrast: float, s: int
 ) -> torch.Tensor:
     lo, hi = 0.5 - 0.5 * contrast, 0.5 + 0.5 * contrast
-    slope = shading * contrast  # largest change of gray level across one radius
-    img = _render(rng, h * s, w * s, r_min * s, r_max * s, lo, hi, aspect, slope, rng2)
-    if slope > 0.0:
-        np.clip(img, 0.0, 1.0, out=img)  # a reflectance stays in [0, 1] before the pixel averages it
+    img = _render(rng, h * s, w * s, r_min * s, r_max * s, lo, hi)
     if s > 1:
         img = img.reshape(h, s, w, s).astype(np.float64).mean(axis=(1, 3)).astype(np.float32)
     np.clip(img, 0.0, 1.0, out=img)
@@ -435,12 +283,10 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         n_images: number of images (>= 1).
         size: ``(H, W)`` in px, or one int.
         seed: base seed (>= 0).
-        r_min, r_max, contrast, supersample, shading, aspect: as in :func:`dead_leaves`. ``r_min`` [px],
-            ``contrast``, ``shading`` and ``aspect`` may also be a ``[low, high]`` range: each image then draws its
-            own value (``r_min`` and ``aspect`` log-uniform, ``contrast`` and ``shading`` uniform) from the seed
-            sequence ``(seed, i, 1)``, so scenes vary in edge density, edge contrast, shading and elongation
-            while fixed values leave every image bit-identical to before. The per-leaf draws of the shading
-            and the ellipses come from the seed sequence ``(seed, i, 2)``.
+        r_min, r_max, contrast, supersample: as in :func:`dead_leaves`. ``r_min`` [px] and ``contrast`` may also be
+            a ``[low, high]`` range: each image then draws its own value (``r_min`` log-uniform, ``contrast``
+            uniform) from the seed sequence ``(seed, i, 1)``, so scenes vary in edge density and edge contrast
+            while a fixed value leaves every image bit-identical to before.
     """
 
     def __init__(
@@ -452,17 +298,11 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         r_max: float | None = None,
         contrast: float | Sequence[float] = 1.0,
         supersample: int = 1,
-        shading: float | Sequence[float] = 0.0,
-        aspect: float | Sequence[float] = 1.0,
     ) -> None:
         self.n_images = check_int(n_images, "n_images", 1)
         self.seed = check_int(seed, "seed", 0)
         self.r_min_range = _range(r_min, "r_min")
         self.contrast_range = _range(contrast, "contrast")
-        self.shading_range = _range(shading, "shading")
-        self.aspect_range = _range(aspect, "aspect")
-        for sh, asp in zip(self.shading_range, self.aspect_range):
-            _check_shape(sh, asp)  # both ends valid
         for r_lo, c_lo in ((self.r_min_range[0], self.contrast_range[0]), (self.r_min_range[1], self.contrast_range[1])):
             h, w, r_lo, r_max_v, c_lo, s = _resolve_params(size, r_lo, r_max, c_lo, supersample)  # both ends valid
         self.size = (h, w)
@@ -471,41 +311,29 @@ class DeadLeavesSource(torch.utils.data.Dataset):
 
     def image_params(self, index: int) -> tuple[float, float]:
         """``(r_min [px], contrast)`` of image ``index``: the fixed values, or its draw from the ranges."""
-        return self.scene_params(index)[:2]  # type: ignore[return-value]
-
-    def scene_params(self, index: int) -> tuple[float, float, float, float]:
-        """``(r_min [px], contrast, shading, aspect)`` of image ``index``: the fixed values, or its draws."""
         i = check_index(index, len(self), "DeadLeavesSource")
         (r_lo, r_hi), (c_lo, c_hi) = self.r_min_range, self.contrast_range
-        (s_lo, s_hi), (a_lo, a_hi) = self.shading_range, self.aspect_range
-        if r_lo == r_hi and c_lo == c_hi and s_lo == s_hi and a_lo == a_hi:
-            return r_lo, c_lo, s_lo, a_lo
-        # the first two draws are those of r_min and contrast whatever the other ranges are
-        u = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 1]))).random(4)
-        return (
-            float(r_lo * (r_hi / r_lo) ** u[0]),
-            float(c_lo + (c_hi - c_lo) * u[1]),
-            float(s_lo + (s_hi - s_lo) * u[2]),
-            float(a_lo * (a_hi / a_lo) ** u[3]),
-        )
+        if r_lo == r_hi and c_lo == c_hi:
+            return r_lo, c_lo
+        u = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 1]))).random(2)
+        return float(r_lo * (r_hi / r_lo) ** u[0]), float(c_lo + (c_hi - c_lo) * u[1])
 
     def __len__(self) -> int:
         return self.n_images  # type: ignore[return-value]
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
         i = check_index(index, len(self), "DeadLeavesSource")
-        r_min, contrast, shading, aspect = self.scene_params(i)
+        r_min, contrast = self.image_params(i)
         rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i])))
-        rng2 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 2])))
         h, w = self.size
-        img = _dead_leaves(rng, h, w, r_min, self.r_max, contrast, self.supersample, shading, aspect, rng2)
+        img = _dead_leaves(rng, h, w, r_min, self.r_max, contrast, self.supersample)
         return img, self.ids[i]
 
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(n_images={self.n_images}, size={self.size}, seed={self.seed}, "
             f"r_min={_fmt(self.r_min_range)}, r_max={self.r_max:g}, contrast={_fmt(self.contrast_range)}, "
-            f"supersample={self.supersample}, shading={_fmt(self.shading_range)}, aspect={_fmt(self.aspect_range)})"
+            f"supersample={self.supersample})"
         )
 
 
