@@ -49,9 +49,17 @@ The texture check — ln of the horizontal-and-vertical to diagonal detail energ
 noise — widens the common model error: η_eff² = η² + max(texture, 0)² (texture adds to the horizontal and vertical
 details first, so it bounds what it may have added to the diagonal one).
 
+The neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated, and a scene's fine
+texture does not (grass or gravel seen under strong noise, where the texture ratio is near 0 because the noise
+dominates all three details, or a texture without horizontal and vertical energy at all). The correlation ρ of the
+standardised diagonal details d/√v_ref over adjacent inlier pairs (horizontal and vertical; over the frame when
+pooled) must stay within max(:data:`DETAIL_CORR_LIMIT`, 3/√pairs); its covariance is a lower bound on what the
+texture adds to each detail. On the robustness benchmark's strong-noise frames of clean scenes |ρ| ≤ 0.02, on grass
+and gravel 0.04–0.11.
+
 The answer: a mismatch too small to see (it moves σ_Total by less than max(0.5 DN, 15 %)) counts as a match, and
 P(match) is H₀'s posterior plus theirs. Where P(match) ≥ ½, or fewer than :data:`MIN_FOLLOW_DETAILS` details were
-used, or the texture check exceeds :data:`TEXTURE_LIMIT`: the closed form exactly (σ per source after clipping,
+used, or the texture check exceeds :data:`TEXTURE_LIMIT`, or the neighbour check fails: the closed form exactly (σ per source after clipping,
 ξ = 0). Elsewhere the posterior over the visible mismatch hypotheses: its σ per source after clipping (at the
 posterior-mean variances) and ξ = σ_Total(M) − σ_Total(image) (Eq. 4.3, both after clipping). ``xi_std`` is the
 posterior standard deviation of σ_Total (∞ without evidence). Inliers are chosen in two passes — against a
@@ -61,8 +69,8 @@ noisier than its metadata keeps its details.
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
 the metadata cannot be checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
-more energy than the diagonal one on the inliers, so texture leaked into the evidence: the closed form is
-returned and ξ is not trusted), and ``"noise beyond validated range"`` (σ_Total before clipping above
+more energy than the diagonal one on the inliers, or adjacent diagonal details are correlated, so texture leaked into
+the evidence: the closed form is returned and ξ is not trusted), and ``"noise beyond validated range"`` (σ_Total before clipping above
 :data:`VALIDATED_SIGMA_DN`: there the clipping takes so much of the noise that the closed-form correction is
 not validated).
 """
@@ -79,7 +87,8 @@ import torch.nn.functional as F
 
 from camhealth._inputs import _to_metadata, _to_patches, assess_patches
 from camhealth.estimators.noise_features import (
-    _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, block_details, clipped_prior_dn, metadata_from_matrix,
+    _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
+    metadata_from_matrix,
 )
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
@@ -97,6 +106,8 @@ VALIDATED_SIGMA_DN = 64.0
 SCENE_ALLOWANCE_DN = 2.0
 #: Texture check above which ξ is not trusted: ln(E[d_H² + d_V²]/2 / E[d_D²]) on the inliers (0 for white noise).
 TEXTURE_LIMIT = 0.25
+#: Largest |correlation| of adjacent blocks' diagonal details (0 for white noise) before ξ is not trusted ("textured").
+DETAIL_CORR_LIMIT = 0.03
 #: Fewest diagonal details (flat, unclipped 2×2 blocks; a 128-px patch has 4 096) on which the answer may leave the
 #: closed form: below it the patch is mostly texture, whose few flat-looking blocks say "noisier" without being noise.
 MIN_FOLLOW_DETAILS = 256
@@ -108,7 +119,7 @@ MISMATCH_FIELDS: tuple[str, ...] = ("gain_db", "temperature_c", "white_noise_v_p
 #: Columns of :func:`physics_noise_posterior`.
 PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
-    "total_unclipped_dn",
+    "total_unclipped_dn", "detail_corr_check",
 )
 # the bound margin leaves at least 100…155 DN usable however noisy the patch (≥ 2 σ up to 50 DN, 1.7 σ at 60 DN)
 _MAX_MARGIN_DN = 100.0
@@ -265,11 +276,12 @@ def physics_noise_posterior(
     pool: bool = False,
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
 ) -> torch.Tensor:
-    """Physics-first noise sources of each patch, (B, 10) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 12) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
-    check; 1 where the answer follows the image (P(match) < ½), else 0; σ_Total before clipping [DN] of the answer.
+    check; 1 where the answer follows the image (P(match) < ½), else 0; σ_Total before clipping [DN] of the answer; the
+    neighbour check |ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) (≥ 1: textured).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -403,7 +415,26 @@ def physics_noise_posterior(
             torch.cat([var0[:, 1], e_var[:, 1]]).sqrt(),
         ).view(2, b, 4)
         prior_clipped, image_clipped = clipped[0], clipped[1]
-        follows = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & (texture <= TEXTURE_LIMIT)
+        # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
+        # texture does not (its covariance is a lower bound on what it adds to each detail)
+        p00, p01, p10, p11 = _block_pixels(x * 255.0)
+        z = (p00 - p01 - p10 + p11) / 2.0 / v_ref.sqrt()
+        ok = inl_all[0]
+        cov, var, pairs = (torch.zeros(b, dtype=f64, device=dev) for _ in range(3))
+        for dim in (-1, -2):
+            n_d = z.shape[dim] - 1
+            za, zb = z.narrow(dim, 0, n_d), z.narrow(dim, 1, n_d)
+            both = ok.narrow(dim, 0, n_d) * ok.narrow(dim, 1, n_d)
+            cov = cov + (za * zb * both).flatten(1).sum(1).to(f64)
+            var = var + (both * (za.square() + zb.square()) / 2.0).flatten(1).sum(1).to(f64)
+            pairs = pairs + both.flatten(1).sum(1).to(f64)
+        if pool:
+            cov, var, pairs = (t.sum().expand(b) for t in (cov, var, pairs))
+        corr = torch.where(pairs >= _MIN_FIT_BLOCKS, cov / var.clamp_min(1e-12), torch.zeros_like(cov))
+        corr_check = corr.abs() / torch.maximum(torch.full_like(corr, DETAIL_CORR_LIMIT), 3.0 / pairs.clamp_min(1.0).sqrt())
+        corr_ok = corr_check < 1.0
+        follows = (evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & (texture <= TEXTURE_LIMIT)
+                   & corr_ok)
         out_sigma = torch.where(follows.unsqueeze(1), image_clipped, prior_clipped)
         xi = torch.where(follows, prior_clipped[:, 3] - image_clipped[:, 3], torch.zeros_like(p_match))
         # posterior spread of σ_Total (before clipping) over all hypotheses, scaled to the clipped total
@@ -414,7 +445,8 @@ def physics_noise_posterior(
         e_tot_image = (w * tot[:, 1:]).sum(1)
         unclipped_answer = torch.where(follows, e_tot_image, tot[:, 0])
         out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
-                         texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1)], dim=1)
+                         texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
+                         corr_check.unsqueeze(1)], dim=1)
     return out.float()
 
 
@@ -481,7 +513,7 @@ class PhysicsNoiseEstimator:
                 continue
             if raw[i, 7] < MIN_FOLLOW_DETAILS:
                 reason[i] = "no flat area"
-            elif raw[i, 8] > TEXTURE_LIMIT:
+            elif raw[i, 8] > TEXTURE_LIMIT or raw[i, 11] >= 1.0:
                 reason[i] = "textured"
             elif raw[i, 10] > VALIDATED_SIGMA_DN:
                 reason[i] = "noise beyond validated range"

@@ -206,3 +206,31 @@ def test_bad_input_is_refused():
         PhysicsNoiseEstimator().predict(torch.rand(1, 1, 128, 128))
     with pytest.raises(ValueError, match="views"):
         PhysicsNoiseEstimator().predict(torch.rand(1, 1, 128, 128), meta, views=2)
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_texture_that_only_the_neighbour_check_sees_is_refused(pool):
+    """A fine texture (−1)^(x+y+bx+by) · 6 DN (bx, by: the 2×2-block indices) has zero block means and zero horizontal
+    and vertical Haar details — the flatness tests and the texture ratio cannot see it — and adds 12 DN to every
+    diagonal detail with the sign flipping from block to block, like noise. Under the metadata's few DN it would read as
+    a mismatch; adjacent blocks' diagonal details are perfectly anti-correlated, so the patch is "textured": the
+    closed form is kept and the patch is not assessable. White noise of the same size is followed."""
+    meta = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.01, temperature_c=25.0)
+    y, x = torch.meshgrid(torch.arange(128), torch.arange(128), indexing="ij")
+    sign = (-1.0) ** (x + y + x // 2 + y // 2)
+    scene = (0.5 + 6.0 / 255.0 * sign).expand(4, 1, 128, 128).contiguous()
+    _, d2, _, _ = block_details(scene)
+    assert d2[1].abs().max() < 1e-3 and d2[2].abs().max() < 1e-3 and d2[0].sqrt().mean() == pytest.approx(12.0, rel=1e-3)
+    noisy, _ = simulate_variant(scene, meta, (), torch.Generator().manual_seed(8))
+    out = physics_noise_posterior(noisy, meta, pool=pool)
+    prior = physics_prior_dn(noisy, meta, clipping=True)[:, 4:8]
+    col = PHYSICS_NOISE_COLUMNS.index("detail_corr_check")
+    assert (out[:, col] >= 1.0).all() and (out[:, 9] == 0).all() and (out[:, 4] == 0).all()
+    assert torch.allclose(out[:, :4], prior, atol=1e-4)
+    res = PhysicsNoiseEstimator().predict(noisy, meta, pool=pool)
+    assert not res["assessable"].any() and set(res["reason"]) == {"textured"}
+    # 12 DN of white noise instead: uncorrelated neighbours, followed as a mismatch
+    white, _ = simulate_variant(torch.full((4, 1, 128, 128), 0.5), meta, (), torch.Generator().manual_seed(8),
+                                extra_read_noise_dn=12.0)
+    out_w = physics_noise_posterior(white, meta, pool=pool)
+    assert (out_w[:, col] < 1.0).all() and (out_w[:, 9] == 1).all() and (out_w[:, 4] < -5.0).all()
