@@ -25,8 +25,8 @@ MAX_CLIPPED_FRACTION = 0.5
 #: information ("featureless"; MTF only).
 MIN_CONTRAST_DN = 2.0
 #: Noise-corrected excess kurtosis of the scene's gradients (:func:`edge_kurtosis`) that a patch must exceed by two
-#: standard errors to show edges to read blur from (:func:`has_edges`; else "no edges", MTF only). A Gaussian random field — texture whose phases carry no edge, where a
-#: steep spectrum and blur look alike — has 0; on the robustness benchmark's random-phase 1/f textures the 192-px
+#: standard errors to show edges to read blur from (:func:`has_edges`; else "no edges", MTF only). A Gaussian
+#: random field — texture whose phases carry no edge, where a steep spectrum and blur look alike — has 0; on the robustness benchmark's random-phase 1/f textures the 192-px
 #: patches read −0.15 … 0.9 (10th–90th percentile, with 1–10 DN of noise); dead leaves, line art, polygons and
 #: street frames read 2 … 26 (``python -m camhealth.bench robustness --task mtf``).
 MIN_EDGE_KURTOSIS = 0.5

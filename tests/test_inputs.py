@@ -81,7 +81,7 @@ def test_weak_structure_under_strong_noise_is_not_shown():
     assert (se > 1.0).all() and not has_edges(gamma, se).any()
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32, torch.float64])
 @pytest.mark.parametrize("batch", [1, 256])
 def test_batched_and_dtypes(dtype, batch):
     parts = [_blocks(batch // 2 + batch % 2, 32, 4, seed=7)] + ([_random_phase_texture(batch // 2, 32, 2.0, seed=8)] if batch > 1 else [])
@@ -92,6 +92,8 @@ def test_batched_and_dtypes(dtype, batch):
     one, one_se = edge_kurtosis(x[:1], noise[:1])
     assert torch.allclose(one, gamma[:1]) and torch.allclose(one_se, se[:1])
     assert has_edges(gamma[:1], se[:1]).all()  # the blocks come first
+    ok, reason = assess_patches(x, "mtf")  # the estimator's rule at every precision
+    assert ok[: batch // 2 + batch % 2].all() and not ok[batch // 2 + batch % 2:].any()
 
 
 def test_tiny_patches_show_no_edges():

@@ -132,6 +132,8 @@ def test_select_reasons():
     ({"max_age": 0}, "max_age"),
     ({"noise_tol": (0.1,)}, "noise_tol"),
     ({"block_sigmas": float("nan")}, "block_sigmas"),
+    ({"min_edge_kurtosis": -5.0}, "min_edge_kurtosis"),
+    ({"min_edge_kurtosis": float("nan")}, "min_edge_kurtosis"),
 ])
 def test_selection_config_validates(kwargs, match):
     with pytest.raises(ValueError, match=match):
