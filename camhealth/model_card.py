@@ -31,7 +31,8 @@ _DATA = {
     "sampled uniformly over thesis Table 4.1, half of the samples with altered metadata M′ (ξ ≠ 0).",
     "drne": "`datamodules.NoiseDataModule` as for the noise-source models (no metadata given to the network).",
     "mtf": "`datamodules.BlurDataModule` — procedural dead-leaves scenes rendered with the exact pixel aperture "
-    "(`supersample: 4`, native MTF 1.00 at f_n = 0.6; each image its own edge density and contrast), 192-px patches, "
+    "(`supersample: 4`, native MTF 1.00 at f_n = 0.6; each image its own edge density, contrast, shading and share of thin "
+    "leaves 0.5–4 px wide), 192-px patches, "
     "defocus / linear / non-linear motion blur of 1–25 px (one family per sample, defocus twice as often as each "
     "motion family), sensor noise on half of the samples; labels = exact MTF of the applied PSF, which is the "
     "patch's whole MTF because the scenes have none of their own. No photographs or street frames (their own blur "
@@ -81,11 +82,11 @@ _LIMITATIONS = {
     "(the metadata's closed form: 0.02 DN) and σ of 10–60 DN is within 4.7 % (p90). Gray patches only; no noise "
     "sources, no ξ.",
     "mtf": "Trained on dead-leaves scenes only, with the three PSF families above. On PSFs and scenes it was not "
-    "trained on — rendered line art, shaded shapes and 1/f textures with an exact pixel aperture, so the truth is "
-    "exact (`python -m camhealth.bench robustness --task mtf --per-cell 8 --threads 2`) — its AMAE is 9.1 / 11.4 / "
-    "13.7 % (defocus / linear / non-linear), 3.2–5.7× its value on held-out dead leaves, and 15.4 % on 3-px kernels: it judges sharpness "
-    "partly from the scene's own fine content, so it reads line art too sharp and edge-free textures far too blurred "
-    "(−11 to −28 points). A slanted edge on a chart is more accurate where one is available. `mtf_std` (the spread "
+    "trained on — rendered line art, shapes filled with gradients and 1/f textures with an exact pixel aperture, so the "
+    "truth is exact (`python -m camhealth.bench robustness --task mtf --per-cell 8 --threads 2`) — its AMAE is 8.7 / "
+    "10.7 / 14.5 % (defocus / linear / non-linear), 3.5–4.8× its value on held-out dead leaves, 6.2 / 7.7 / 6.6 % on the "
+    "patches it calls assessable, and 14.9 % on 3-px kernels: it judges sharpness partly from the scene's own fine "
+    "content, so it reads line art too sharp (+2 to +8 points) and edge-free textures far too blurred (−12 to −32). A slanted edge on a chart is more accurate where one is available. `mtf_std` (the spread "
     "over `views`) ranks patches but is no error bar. Gray patches only; featureless (after the noise is removed), "
     "edge-free (Gaussian-like texture or a single grating, whose contrast and blur one patch cannot tell apart: the "
     "noise-corrected gradient kurtosis), black or saturated patches are `assessable=False`.",

@@ -119,12 +119,13 @@ def scene_sources(seed: int = 0) -> dict[str, list[tuple[str, torch.Tensor]]]:
 
 def _dead_leaves(n: int, seed: int) -> list[torch.Tensor]:
     """``n`` dead-leaves scenes rendered as the shipped MTF schedule renders its training scenes (the dead-leaves
-    arguments of ``configs/mtf_full.yaml``'s ``source_kwargs``: aperture, edge density, contrast), another seed."""
+    arguments of ``configs/mtf_full.yaml``'s ``source_kwargs``: aperture, edge density, contrast, shading, thin
+    leaves), another seed."""
     from camhealth.bench.estimators import mtf_training_source
     from camhealth.data.dead_leaves import DeadLeavesSource
 
     _, kwargs = mtf_training_source()
-    keys = ("r_min", "r_max", "contrast", "supersample")
+    keys = ("r_min", "r_max", "contrast", "supersample", "shading", "thin")
     src = DeadLeavesSource(n, size=(256, 256), seed=seed, **{k: kwargs[k] for k in keys if k in kwargs})
     return [src[i][0].float().reshape(1, 256, 256) for i in range(n)]
 

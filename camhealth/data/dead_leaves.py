@@ -22,6 +22,23 @@ Simulation (exact, not an approximation of the stationary model):
   thinned to the ones meeting the frame; it is sampled as a mixture of three power laws (``r⁻³``, ``r⁻²``,
   ``r⁻¹``) with closed-form inverse CDFs.
 * Gray levels are uniform on ``[0.5 − contrast/2, 0.5 + contrast/2]``.
+* ``shading`` > 0 (at most 1): each leaf's gray level is a linear ramp ``val + g·(p − c)`` (``c`` the centre) with
+  ``g`` of uniform random direction and ``|g| = shading · contrast · U(0, 1) / r`` [gray level / px, with ``r`` and
+  ``p`` in the rendering grid, so the slope per output pixel does not depend on ``supersample``]: across one
+  radius the level changes by at most ``shading × contrast`` (along a thin leaf, up to ``THIN_LENGTH`` times
+  that). The rendered levels are clipped to [0, 1] before the supersampling average (and
+  after it, as always).
+* ``thin`` > 0 (at most 1): that share of the leaves are thin ellipses — wires, poles, lane markings, twigs —
+  of width ``2b`` log-uniform on [:data:`THIN_WIDTH_PX`] output px, length ``2a = 2·THIN_LENGTH·r`` (``a ≥ b``) and
+  uniform orientation. Their largest extent is ``THIN_LENGTH·r``, so the centres of all leaves are drawn over the
+  frame dilated by ``THIN_LENGTH·r`` and ``r`` from the power law re-weighted by that area,
+  ``q(r) ∝ r⁻³ (H' + 2mr)(W' + 2mr)`` with ``m = THIN_LENGTH``: the same exact thinned Poisson process (being thin,
+  the width and the orientation are independent of ``r`` and the centre); leaves that then miss the frame cover no
+  pixel and are culled. Bounding boxes are the exact axis-aligned boxes of the rotated ellipses (half-widths
+  ``√(a²cos²θ + b²sin²θ)`` and ``√(a²sin²θ + b²cos²θ)``, at most ``a``); the hit test is the rotated ellipse
+  equation (a disk is the ellipse ``a = b = r``). Natural scenes hold structures narrower than their edges are
+  far apart; disks alone have none, and a patch of thin lines has more fine content than a patch of edges at the
+  same blur.
 * Painting is vectorised: a batch of leaves is rasterised by their bounding boxes at once (leaves whose
   box holds no uncovered pixel are culled with a summed-area table first) and each pixel takes the first
   leaf of the batch that covers it; when only a few pixels remain uncovered they are tested against the
@@ -34,7 +51,12 @@ Edge density (the knob): the expected edge length per pixel is ``2 E[r] / E[r²]
 detail; ``r_max`` sets the size of the largest flat regions.
 
 Reproducibility: the same ``seed`` (and parameters) gives a bit-identical image with the same numpy
-version (numpy's ``PCG64`` generator; no threads, no float reductions whose order could vary).
+version (numpy's ``PCG64`` generator; no threads, no float reductions whose order could vary). The per-leaf
+draws of the shading and the thin leaves (four uniforms per leaf — one unused, orientation, gradient direction and
+magnitude — and with ``thin`` > 0 two more: thin or not, width) come from a second stream, seeded ``(seed, 2)``
+(``DeadLeavesSource``: ``(seed, i, 2)``), used only when ``shading`` > 0 or ``thin`` > 0: the disk draws are
+untouched, so with ``shading = 0`` and ``thin = 0`` the images are bit-identical to the disk-only renderer, and the
+shaded leaves have the same geometry as the flat ones.
 """
 
 from __future__ import annotations
@@ -47,7 +69,12 @@ import torch
 
 from camhealth.data._common import check_index, check_int
 
-__all__ = ["dead_leaves", "dead_leaves_radius_pdf", "DeadLeavesSource"]
+__all__ = ["dead_leaves", "dead_leaves_radius_pdf", "DeadLeavesSource", "THIN_WIDTH_PX", "THIN_LENGTH"]
+
+#: Range of the thin leaves' full width ``2b`` [output px], log-uniform: from half a pixel (a wire) to 4 px.
+THIN_WIDTH_PX: tuple[float, float] = (0.5, 4.0)
+#: A thin leaf of radius ``r`` is ``2·THIN_LENGTH·r`` long (its semi-major axis ``THIN_LENGTH·r``).
+THIN_LENGTH = 4.0
 
 _DIRECT_TEST_MAX = 4_000_000  # pixel×leaf tests per block in the "few pixels left" path
 
@@ -83,6 +110,21 @@ def _resolve_params(
     return h, w, r_min, r_max, contrast, s  # type: ignore[return-value]
 
 
+def _check_shape(shading: float, thin: float) -> tuple[float, float]:
+    """``(shading, thin)`` as floats; ``ValueError`` naming the value and its allowed range otherwise."""
+    try:
+        shading, thin = float(shading), float(thin)
+    except (TypeError, ValueError):
+        raise ValueError(f"shading and thin must be numbers, got shading = {shading!r}, thin = {thin!r}") from None
+    if not math.isfinite(thin) or not 0.0 <= thin <= 1.0:
+        raise ValueError(f"thin = {thin:g} must be in [0, 1] (share of the leaves that are thin ellipses)")
+    if not math.isfinite(shading) or not 0.0 <= shading <= 1.0:
+        raise ValueError(
+            f"shading = {shading:g} must be in [0, 1] (largest change of gray level across a leaf radius, × contrast)"
+        )
+    return shading, thin
+
+
 def dead_leaves_radius_pdf(r: np.ndarray, r_min: float, r_max: float) -> np.ndarray:
     """The radius density ``p(r) = c · r⁻³`` on ``[r_min, r_max]`` (0 outside), normalised to integrate to 1."""
     r = np.asarray(r, dtype=np.float64)
@@ -91,14 +133,30 @@ def dead_leaves_radius_pdf(r: np.ndarray, r_min: float, r_max: float) -> np.ndar
 
 
 def _sample_leaves(
-    rng: np.random.Generator, n: int, h: int, w: int, r_min: float, r_max: float, lo: float, hi: float
+    rng: np.random.Generator,
+    n: int,
+    h: int,
+    w: int,
+    r_min: float,
+    r_max: float,
+    lo: float,
+    hi: float,
+    dilate: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` leaves meeting the frame (pixel centres 0..w-1 × 0..h-1), in front-to-back order."""
+    """``n`` leaves that may meet the frame (pixel centres 0..w-1 × 0..h-1), in front-to-back order.
+
+    A leaf of radius ``r`` has its centre uniform over the frame dilated by ``m·r`` (``m = dilate`` >= 1: the
+    largest extent of a leaf of radius ``r`` in units of ``r``; 1 for disks, ``THIN_LENGTH`` with thin leaves), and ``r``
+    follows ``p(r) ∝ r⁻³`` re-weighted by that dilated area. Leaves that then miss the frame are harmless.
+    """
     hp, wp = float(h - 1), float(w - 1)
-    # q(r) ∝ r^-3 (hp + 2r)(wp + 2r) = hp·wp r^-3 + 2(hp + wp) r^-2 + 4 r^-1 on [r_min, r_max]
+    m = float(dilate)
+    # q(r) ∝ r^-3 (hp + 2mr)(wp + 2mr) = hp·wp r^-3 + 2m(hp + wp) r^-2 + 4m² r^-1 on [r_min, r_max]
     w3 = hp * wp * 0.5 * (r_min**-2 - r_max**-2)
     w2 = 2.0 * (hp + wp) * (1.0 / r_min - 1.0 / r_max)
     w1 = 4.0 * math.log(r_max / r_min)
+    if m != 1.0:
+        w2, w1 = w2 * m, w1 * m * m
     total = w3 + w2 + w1
     u = rng.random((5, n))
     comp_u = u[0] * total
@@ -108,8 +166,9 @@ def _sample_leaves(
     r_pow1 = r_min * (r_max / r_min) ** v
     r = np.where(comp_u < w3, r_pow3, np.where(comp_u < w3 + w2, r_pow2, r_pow1))
     np.clip(r, r_min, r_max, out=r)
-    cx = -r + u[2] * (wp + 2.0 * r)
-    cy = -r + u[3] * (hp + 2.0 * r)
+    d = r if m == 1.0 else m * r  # dilation of the frame for each leaf
+    cx = -d + u[2] * (wp + 2.0 * d)
+    cy = -d + u[3] * (hp + 2.0 * d)
     val = (lo + (hi - lo) * u[4]).astype(np.float32)
     return r, cx, cy, val
 
@@ -126,8 +185,15 @@ def _paint_by_boxes(
     y0: np.ndarray,
     bw: np.ndarray,
     bh: np.ndarray,
+    ell: tuple[np.ndarray, ...] | None = None,
+    grad: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
-    """Rasterise the leaves' bounding boxes; each uncovered pixel takes the first leaf covering it."""
+    """Rasterise the leaves' bounding boxes; each uncovered pixel takes the first leaf covering it.
+
+    ``ell = (cos θ, sin θ, a², b²)`` per leaf makes the leaves ellipses (semi-axes ``a`` along ``θ``, ``b``
+    across; ``None``: disks of radius ``r``); ``grad = (g_x, g_y)`` per leaf [gray level / px] shades them:
+    a pixel ``p`` takes ``val + g·(p − c)``.
+    """
     counts = bw * bh
     total = int(counts.sum())
     if total == 0:
@@ -141,15 +207,31 @@ def _paint_by_boxes(
     dx = px - cx[leaf]
     dy = py - cy[leaf]
     lin = py * w + px
-    hit = (dx * dx + dy * dy <= r[leaf] ** 2) & uncovered[lin]
+    hit = _inside(dx, dy, r, ell, leaf) & uncovered[lin]
     lin = lin[hit]
     leaf = leaf[hit]
     if lin.size == 0:
         return
     # entries are in leaf order, so the first occurrence of a pixel is its front-most leaf
     pix, first = np.unique(lin, return_index=True)
-    lin_img[pix] = val[leaf[first]]
+    front = leaf[first]
+    if grad is None:
+        lin_img[pix] = val[front]
+    else:
+        lin_img[pix] = val[front] + grad[0][front] * dx[hit][first] + grad[1][front] * dy[hit][first]
     uncovered[pix] = False
+
+
+def _inside(
+    dx: np.ndarray, dy: np.ndarray, r: np.ndarray, ell: tuple[np.ndarray, ...] | None, idx: np.ndarray | slice
+) -> np.ndarray:
+    """Whether the offsets ``(dx, dy)`` [px] from the centres of leaves ``idx`` lie in those leaves (edge included)."""
+    if ell is None:
+        return dx * dx + dy * dy <= r[idx] ** 2
+    c, s, a2, b2 = (e[idx] for e in ell)
+    u = dx * c + dy * s  # along the major axis
+    v = dy * c - dx * s  # along the minor axis
+    return u * u * b2 + v * v * a2 <= a2 * b2
 
 
 def _paint_direct(
@@ -160,8 +242,12 @@ def _paint_direct(
     cx: np.ndarray,
     cy: np.ndarray,
     val: np.ndarray,
+    ell: tuple[np.ndarray, ...] | None = None,
+    grad: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
-    """Few pixels left: test every uncovered pixel against every leaf (in blocks), keep the first hit."""
+    """Few pixels left: test every uncovered pixel against every leaf (in blocks), keep the first hit.
+
+    ``ell`` and ``grad`` as in :func:`_paint_by_boxes`."""
     pix = np.flatnonzero(uncovered)
     py = (pix // w).astype(np.float64)
     px = (pix % w).astype(np.float64)
@@ -171,35 +257,82 @@ def _paint_direct(
         if pix.size == 0:
             break
         sl = slice(s, s + block)
-        inside = (px[:, None] - cx[None, sl]) ** 2 + (py[:, None] - cy[None, sl]) ** 2 <= r2[None, sl]
+        if ell is None:
+            inside = (px[:, None] - cx[None, sl]) ** 2 + (py[:, None] - cy[None, sl]) ** 2 <= r2[None, sl]
+        else:
+            sub = tuple(e[None, sl] for e in ell)
+            inside = _inside(px[:, None] - cx[None, sl], py[:, None] - cy[None, sl], r, sub, slice(None))
         any_hit = inside.any(axis=1)
         if not any_hit.any():
             continue
         first = inside[any_hit].argmax(axis=1) + s
         done = pix[any_hit]
-        lin_img[done] = val[first]
+        if grad is None:
+            lin_img[done] = val[first]
+        else:
+            dx, dy = px[any_hit] - cx[first], py[any_hit] - cy[first]
+            lin_img[done] = val[first] + grad[0][first] * dx + grad[1][first] * dy
         uncovered[done] = False
         keep = ~any_hit
         pix, px, py = pix[keep], px[keep], py[keep]
 
 
 def _render(
-    rng: np.random.Generator, h: int, w: int, r_min: float, r_max: float, lo: float, hi: float
+    rng: np.random.Generator,
+    h: int,
+    w: int,
+    r_min: float,
+    r_max: float,
+    lo: float,
+    hi: float,
+    slope: float = 0.0,
+    rng2: np.random.Generator | None = None,
+    thin: float = 0.0,
+    thin_width: tuple[float, float] = (1.0, 1.0),
 ) -> np.ndarray:
+    """Render ``h×w`` px (radii in px of this grid). ``slope`` > 0: shaded leaves, the gray level changing by
+    ``slope · U(0, 1)`` per radius ``r`` along a random direction. Their per-leaf draws come from ``rng2``.
+    ``thin`` > 0: that share of the leaves are thin ellipses, semi-minor axis ``b`` log-uniform on ``thin_width``
+    [px of this grid], semi-major ``a = max(THIN_LENGTH·r, b)``."""
+    shaped = slope > 0.0 or thin > 0.0
+    if shaped and rng2 is None:
+        raise ValueError("shaded or thin leaves need their own random stream rng2")
+    m = THIN_LENGTH if thin > 0.0 else 1.0  # largest extent of a leaf of radius r, in units of r
     n_pix = h * w
     img = np.zeros(n_pix, dtype=np.float32)
     uncovered = np.ones(n_pix, dtype=bool)
     # mean area of a leaf under p(r): π E[r²] = π c ln(r_max / r_min), c = 2 / (r_min⁻² − r_max⁻²)
     mean_area = math.pi * 2.0 / (r_min**-2 - r_max**-2) * math.log(r_max / r_min)
-    frame_area = (h - 1 + 2 * r_min) * (w - 1 + 2 * r_min)
+    frame_area = (h - 1 + 2 * m * r_min) * (w - 1 + 2 * m * r_min)
     batch = int(min(max(64, frame_area / mean_area), 1_000_000))
     n_left = n_pix
     for _ in range(10_000):
-        r, cx, cy, val = _sample_leaves(rng, batch, h, w, r_min, r_max, lo, hi)
-        x0 = np.maximum(np.ceil(cx - r), 0).astype(np.int64)
-        x1 = np.minimum(np.floor(cx + r), w - 1).astype(np.int64)
-        y0 = np.maximum(np.ceil(cy - r), 0).astype(np.int64)
-        y1 = np.minimum(np.floor(cy + r), h - 1).astype(np.int64)
+        r, cx, cy, val = _sample_leaves(rng, batch, h, w, r_min, r_max, lo, hi, m)
+        ex = ey = r  # half-widths of the leaves' axis-aligned bounding boxes [px]
+        ell = grad = None
+        if shaped:  # the same four draws per leaf whichever option is on (v[0] is unused), two more for thin leaves
+            v = rng2.random((6 if thin > 0.0 else 4, batch))  # type: ignore[union-attr]
+            if thin > 0.0:
+                theta = math.pi * v[1]  # orientation of the major axis
+                c, sn = np.cos(theta), np.sin(theta)
+                lo_w, hi_w = thin_width
+                b_thin = lo_w * (hi_w / lo_w) ** v[5]
+                a_thin = np.maximum(THIN_LENGTH * r, b_thin)
+                is_thin = v[4] < thin
+                a2 = np.where(is_thin, a_thin * a_thin, r * r)  # the others are disks: a = b = r
+                b2 = np.where(is_thin, b_thin * b_thin, r * r)
+                # exact half-widths of the rotated ellipse's box (<= a), padded against rounding
+                ex = np.sqrt(a2 * c * c + b2 * sn * sn) + 1e-9
+                ey = np.sqrt(a2 * sn * sn + b2 * c * c) + 1e-9
+                ell = (c, sn, a2, b2)
+            if slope > 0.0:
+                g = slope * v[3] / r  # |g| [gray level / px of this grid]
+                phi = 2.0 * math.pi * v[2]
+                grad = (g * np.cos(phi), g * np.sin(phi))
+        x0 = np.maximum(np.ceil(cx - ex), 0).astype(np.int64)
+        x1 = np.minimum(np.floor(cx + ex), w - 1).astype(np.int64)
+        y0 = np.maximum(np.ceil(cy - ey), 0).astype(np.int64)
+        y1 = np.minimum(np.floor(cy + ey), h - 1).astype(np.int64)
         bw = np.maximum(x1 - x0 + 1, 0)
         bh = np.maximum(y1 - y0 + 1, 0)
         keep = (bw > 0) & (bh > 0)
@@ -213,9 +346,13 @@ def _render(
         k = np.flatnonzero(keep)
         r, cx, cy, val = r[k], cx[k], cy[k], val[k]
         x0, y0, bw, bh = x0[k], y0[k], bw[k], bh[k]
+        if ell is not None:
+            ell = tuple(e[k] for e in ell)
+        if grad is not None:
+            grad = (grad[0][k], grad[1][k])
         box_cost = int((bw * bh).sum())
         if n_left * len(k) <= box_cost:
-            _paint_direct(img, uncovered, w, r, cx, cy, val)
+            _paint_direct(img, uncovered, w, r, cx, cy, val, ell, grad)
         else:
             # bound memory: rasterise in chunks of leaves (order preserved, coverage updated in between)
             ends = np.cumsum(bw * bh)
@@ -224,7 +361,11 @@ def _render(
                 limit = (ends[start - 1] if start else 0) + 4_000_000
                 stop = max(start + 1, int(np.searchsorted(ends, limit, side="right")))
                 sl = slice(start, stop)
-                _paint_by_boxes(img, uncovered, w, r[sl], cx[sl], cy[sl], val[sl], x0[sl], y0[sl], bw[sl], bh[sl])
+                _paint_by_boxes(
+                    img, uncovered, w, r[sl], cx[sl], cy[sl], val[sl], x0[sl], y0[sl], bw[sl], bh[sl],
+                    None if ell is None else tuple(e[sl] for e in ell),
+                    None if grad is None else (grad[0][sl], grad[1][sl]),
+                )
                 start = stop
         n_left = int(np.count_nonzero(uncovered))
         if n_left == 0:
@@ -240,6 +381,8 @@ def dead_leaves(
     contrast: float = 1.0,
     seed: int = 0,
     supersample: int = 1,
+    shading: float = 0.0,
+    thin: float = 0.0,
 ) -> torch.Tensor:
     """Render one dead-leaves image.
 
@@ -251,21 +394,42 @@ def dead_leaves(
             (1 → levels in [0, 1]; 0.5 → [0.25, 0.75]).
         seed: integer seed; the same seed and parameters give a bit-identical image.
         supersample: render at this factor and box-average (anti-aliased edges); 1 = hard edges.
+        shading: in [0, 1]; 0 = flat leaves. Otherwise each leaf's gray level is a linear ramp
+            ``val + g·(p − c)`` with a random direction and ``|g| = shading · contrast · U(0, 1) / r``
+            [gray level / px]: across one radius the level changes by at most ``shading · contrast``.
+        thin: in [0, 1]; the share of the leaves that are thin ellipses (width log-uniform on
+            :data:`THIN_WIDTH_PX` px, length ``2·THIN_LENGTH·r``, uniform orientation); 0 = none.
 
     Returns:
-        float32 tensor ``1×H×W`` with values in ``[0.5 − contrast/2, 0.5 + contrast/2]`` ⊂ [0, 1].
+        float32 tensor ``1×H×W`` with values in ``[0.5 − contrast/2, 0.5 + contrast/2]`` ⊂ [0, 1] (with
+        ``shading`` > 0: the ramps may leave that range; values are clipped to [0, 1]).
     """
     h, w, r_min, r_max, contrast, s = _resolve_params(size, r_min, r_max, contrast, supersample)
+    shading, thin = _check_shape(shading, thin)
     seed = check_int(seed, "seed", 0)
     rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
-    return _dead_leaves(rng, h, w, r_min, r_max, contrast, s)
+    rng2 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, 2])))
+    return _dead_leaves(rng, h, w, r_min, r_max, contrast, s, shading, rng2, thin)
 
 
 def _dead_leaves(
-    rng: np.random.Generator, h: int, w: int, r_min: float, r_max: float, contrast: float, s: int
+    rng: np.random.Generator,
+    h: int,
+    w: int,
+    r_min: float,
+    r_max: float,
+    contrast: float,
+    s: int,
+    shading: float = 0.0,
+    rng2: np.random.Generator | None = None,
+    thin: float = 0.0,
 ) -> torch.Tensor:
     lo, hi = 0.5 - 0.5 * contrast, 0.5 + 0.5 * contrast
-    img = _render(rng, h * s, w * s, r_min * s, r_max * s, lo, hi)
+    slope = shading * contrast  # largest change of gray level across one radius
+    width = (0.5 * THIN_WIDTH_PX[0] * s, 0.5 * THIN_WIDTH_PX[1] * s)  # semi-minor axis in px of the render grid
+    img = _render(rng, h * s, w * s, r_min * s, r_max * s, lo, hi, slope, rng2, thin, width)
+    if slope > 0.0:
+        np.clip(img, 0.0, 1.0, out=img)  # a reflectance stays in [0, 1] before the pixel averages it
     if s > 1:
         img = img.reshape(h, s, w, s).astype(np.float64).mean(axis=(1, 3)).astype(np.float32)
     np.clip(img, 0.0, 1.0, out=img)
@@ -283,10 +447,12 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         n_images: number of images (>= 1).
         size: ``(H, W)`` in px, or one int.
         seed: base seed (>= 0).
-        r_min, r_max, contrast, supersample: as in :func:`dead_leaves`. ``r_min`` [px] and ``contrast`` may also be
-            a ``[low, high]`` range: each image then draws its own value (``r_min`` log-uniform, ``contrast``
-            uniform) from the seed sequence ``(seed, i, 1)``, so scenes vary in edge density and edge contrast
-            while a fixed value leaves every image bit-identical to before.
+        r_min, r_max, contrast, supersample, shading, thin: as in :func:`dead_leaves`. ``r_min`` [px],
+            ``contrast``, ``shading`` and ``thin`` may also be a ``[low, high]`` range: each image then draws its
+            own value (``r_min`` log-uniform, the others uniform) from the seed sequence ``(seed, i, 1)``, so
+            scenes vary in edge density, edge contrast, shading and thin structures while fixed values leave every
+            image bit-identical to before. The per-leaf draws of the shading and the thin leaves come from the
+            seed sequence ``(seed, i, 2)``.
     """
 
     def __init__(
@@ -298,11 +464,17 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         r_max: float | None = None,
         contrast: float | Sequence[float] = 1.0,
         supersample: int = 1,
+        shading: float | Sequence[float] = 0.0,
+        thin: float | Sequence[float] = 0.0,
     ) -> None:
         self.n_images = check_int(n_images, "n_images", 1)
         self.seed = check_int(seed, "seed", 0)
         self.r_min_range = _range(r_min, "r_min")
         self.contrast_range = _range(contrast, "contrast")
+        self.shading_range = _range(shading, "shading")
+        self.thin_range = _range(thin, "thin")
+        for sh, th in zip(self.shading_range, self.thin_range):
+            _check_shape(sh, th)  # both ends valid
         for r_lo, c_lo in ((self.r_min_range[0], self.contrast_range[0]), (self.r_min_range[1], self.contrast_range[1])):
             h, w, r_lo, r_max_v, c_lo, s = _resolve_params(size, r_lo, r_max, c_lo, supersample)  # both ends valid
         self.size = (h, w)
@@ -311,29 +483,43 @@ class DeadLeavesSource(torch.utils.data.Dataset):
 
     def image_params(self, index: int) -> tuple[float, float]:
         """``(r_min [px], contrast)`` of image ``index``: the fixed values, or its draw from the ranges."""
+        return self.scene_params(index)[:2]  # type: ignore[return-value]
+
+    def scene_params(self, index: int) -> tuple[float, float, float, float]:
+        """``(r_min [px], contrast, shading, thin)`` of image ``index``: the fixed values, or its draws."""
         i = check_index(index, len(self), "DeadLeavesSource")
         (r_lo, r_hi), (c_lo, c_hi) = self.r_min_range, self.contrast_range
-        if r_lo == r_hi and c_lo == c_hi:
-            return r_lo, c_lo
-        u = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 1]))).random(2)
-        return float(r_lo * (r_hi / r_lo) ** u[0]), float(c_lo + (c_hi - c_lo) * u[1])
+        (s_lo, s_hi), (t_lo, t_hi) = self.shading_range, self.thin_range
+        if r_lo == r_hi and c_lo == c_hi and s_lo == s_hi and t_lo == t_hi:
+            return r_lo, c_lo, s_lo, t_lo
+        # the first draws are those of r_min and contrast (then shading) whatever the later ranges are; the fourth is
+        # unused, so every image stays the one the shipped MTF schedule trained on
+        u = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 1]))).random(5)
+        return (
+            float(r_lo * (r_hi / r_lo) ** u[0]),
+            float(c_lo + (c_hi - c_lo) * u[1]),
+            float(s_lo + (s_hi - s_lo) * u[2]),
+            float(t_lo + (t_hi - t_lo) * u[4]),
+        )
 
     def __len__(self) -> int:
         return self.n_images  # type: ignore[return-value]
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
         i = check_index(index, len(self), "DeadLeavesSource")
-        r_min, contrast = self.image_params(i)
+        r_min, contrast, shading, thin = self.scene_params(i)
         rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i])))
+        rng2 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 2])))
         h, w = self.size
-        img = _dead_leaves(rng, h, w, r_min, self.r_max, contrast, self.supersample)
+        img = _dead_leaves(rng, h, w, r_min, self.r_max, contrast, self.supersample, shading, rng2, thin)
         return img, self.ids[i]
 
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(n_images={self.n_images}, size={self.size}, seed={self.seed}, "
             f"r_min={_fmt(self.r_min_range)}, r_max={self.r_max:g}, contrast={_fmt(self.contrast_range)}, "
-            f"supersample={self.supersample})"
+            f"supersample={self.supersample}, shading={_fmt(self.shading_range)}, "
+            f"thin={_fmt(self.thin_range)})"
         )
 
 
