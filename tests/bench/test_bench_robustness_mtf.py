@@ -92,6 +92,10 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     text = "\n".join(res.summary)
     assert "held-out generators × rendered scenes" in text and "truth ignores the scene's own blur" in text
     assert "| rendered (s = 8, closed form) |" in text
+    # every patch assessable: the assessable-only columns equal the all-patch ones
+    gen = out["fake"]["generators"]["gaussian"]
+    assert gen["clean_assessable"] == gen["clean"] and gen["noise5_assessable"] == gen["noise5"]
+    assert "| noise 5 / clean, assessable |" in text
 
 
 @pytest.mark.parametrize("per_cell,sizes,match", [
