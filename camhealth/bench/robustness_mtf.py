@@ -33,7 +33,7 @@ Every MTF estimator is scored on a matrix of
 
 Truth is the exact DFT of each kernel (:func:`camhealth.physics.mtf_hv`). Printed: AMAE (Eq. 5.1, mean |Ĥ − H|
 over the 16 values × 100, the training metric) on held-out generators × rendered scenes per family and condition,
-per generator, per blur size and per rendered class, the ratio to the in-distribution value on dead leaves; per
+per generator, per blur size (also on the assessable patches alone, with the signed error per rendered class) and per rendered class, the ratio to the in-distribution value on dead leaves; per
 scene group (rendered, photos, street) per family, for held-out and training generators;
 the fraction of patches called assessable and the AMAE on those alone (a patch without edges — Gaussian-like texture,
 whose steep spectrum and blur look alike — is not assessable, :func:`camhealth._inputs.has_edges`), ms per patch, and for the spread over 4 views (``mtf_std`` of
@@ -435,13 +435,25 @@ def run(args: argparse.Namespace) -> BenchResult:
                 r["generators"][gen] = {"clean": cl, "noise5": n5, "clean_assessable": cl_a, "noise5_assessable": n5_a}
                 summary.append(f"| {gen} | {fam} | {_f(cl)} | {_f(n5)} | {_f(n5 / cl, '.2f')}× | {_f(cl_a)} | {_f(n5_a)} "
                                f"| {_f(n5_a / cl_a, '.2f')}× |")
-        summary += ["", "AMAE % by blur size (held-out generators × rendered scenes, every condition; views 1):", "",
-                    "| size px | " + " | ".join(FAMILIES) + " | all |", "|---:|" + "---:|" * (len(FAMILIES) + 1)]
+        summary += ["", "AMAE % by blur size (held-out generators × rendered scenes, every condition; views 1), over all patches "
+                        "and over the patches the estimator calls assessable, and the mean signed error (Ĥ − H) × 100 per "
+                        "rendered class on the clean ones:", "",
+                    "| size px | " + " | ".join(FAMILIES) + " | all | " + " | ".join(f"{f}, assessable" for f in FAMILIES)
+                    + " | all, assessable | " + " | ".join(f"signed, {k}" for k in CLASSES) + " |",
+                    "|---:|" + "---:|" * (2 * len(FAMILIES) + 2 + len(CLASSES))]
         for size in sizes:
             vals = [_agg(held, 1, lambda c, f=fam, s=size: c.family == f and c.size == s, "rendered")[0] for fam in FAMILIES]
             allv = _agg(held, 1, lambda c, s=size: c.size == s, "rendered")[0]
-            r["sizes"][str(size)] = dict(zip(FAMILIES, vals), all=allv)
-            summary.append(f"| {size:g} | " + " | ".join(_f(v) for v in vals) + f" | **{_f(allv)}** |")
+            vals_a = [_agg(held, 1, lambda c, f=fam, s=size: c.family == f and c.size == s, "rendered", True)[0]
+                      for fam in FAMILIES]
+            allv_a = _agg(held, 1, lambda c, s=size: c.size == s, "rendered", True)[0]
+            bias = [_bias(held, lambda c, s=size: c.size == s and c.condition == "clean", cls) for cls in CLASSES]
+            r["sizes"][str(size)] = {**dict(zip(FAMILIES, vals)), "all": allv,
+                                     "assessable": {**dict(zip(FAMILIES, vals_a)), "all": allv_a},
+                                     "bias_clean": dict(zip(CLASSES, bias))}
+            summary.append(f"| {size:g} | " + " | ".join(_f(v) for v in vals) + f" | **{_f(allv)}** | "
+                           + " | ".join(_f(v) for v in vals_a) + f" | **{_f(allv_a)}** | "
+                           + " | ".join(_f(b, "+.1f") for b in bias) + " |")
         summary += ["", "AMAE % by rendered scene class (held-out generators, every condition; views 1), the share of patches "
                         "called assessable, and the mean signed error (Ĥ − H) × 100 on the clean ones:", "",
                     "| family | " + " | ".join(CLASSES) + " | " + " | ".join(f"assessable, {k}" for k in CLASSES) + " | "

@@ -96,6 +96,13 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     gen = out["fake"]["generators"]["gaussian"]
     assert gen["clean_assessable"] == gen["clean"] and gen["noise5_assessable"] == gen["noise5"]
     assert "| noise 5 / clean, assessable |" in text
+    size = out["fake"]["sizes"]["3.0"]
+    assert size["assessable"]["all"] == size["all"] and size["assessable"]["defocus"] == size["defocus"]
+    # a constant 0.5 against 3-px kernels (MTF near 1 at low frequencies) reads them as more blurred: signed error < 0
+    from camhealth.bench.rendered_scenes import CLASSES
+    bias = [b for b in size["bias_clean"].values() if b == b]  # NaN: no clean patch of that class at one scene per class
+    assert set(size["bias_clean"]) == set(CLASSES) and bias and all(b < 0 for b in bias)
+    assert "| all, assessable |" in text
 
 
 @pytest.mark.parametrize("per_cell,sizes,match", [
