@@ -33,8 +33,9 @@ Every MTF estimator is scored on a matrix of
 
 Truth is the exact DFT of each kernel (:func:`camhealth.physics.mtf_hv`). Printed: AMAE (Eq. 5.1, mean |Ĥ − H|
 over the 16 values × 100, the training metric) on held-out generators × rendered scenes per family and condition,
-per generator, per blur size (also on the assessable patches alone, with the signed error per rendered class) and per rendered class, the ratio to the in-distribution value on dead leaves; per
-scene group (rendered, photos, street) per family, for held-out and training generators;
+per generator, per blur size (also on the assessable patches alone, with the signed error per rendered class) and
+per rendered class, the ratio to the in-distribution value on dead leaves; per scene group (rendered, photos,
+street) per family, for held-out and training generators;
 the fraction of patches called assessable and the AMAE on those alone (a patch without edges — Gaussian-like texture,
 whose steep spectrum and blur look alike — is not assessable, :func:`camhealth._inputs.has_edges`), ms per patch, and for the spread over 4 views (``mtf_std`` of
 ``predict(views=4)``) the mean |error| against the mean spread. The classical reference is the ISO 12233 slanted
