@@ -55,7 +55,7 @@ CLI_COMMANDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("camhealth.data.native_mtf", ()),
     ("camhealth.bench", ()),
     *(("camhealth.bench", (b,)) for b in
-      ("robustness", "estimators", "classical", "monitor", "corruption", "data", "calibrate")),
+      ("robustness", "mtf_error", "estimators", "classical", "monitor", "corruption", "data", "calibrate")),
     ("camhealth.docs", ()),
 )
 

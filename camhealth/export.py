@@ -60,7 +60,7 @@ import torch
 from camhealth._cli import add_debug_flag, config_parser, debugging, run_cli
 from camhealth.nets import NETWORKS, network_for
 
-__all__ = ["FORMAT_TAG", "SelfContainedNoiseSource", "ONNX_NOISE_OUTPUTS", "ONNX_REASONS", "export_weights", "export_pt2",
+__all__ = ["CARRIED", "FORMAT_TAG", "set_description_entries", "SelfContainedNoiseSource", "ONNX_NOISE_OUTPUTS", "ONNX_REASONS", "export_weights", "export_pt2",
            "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES", "check_retired"]
 
 FORMAT_TAG = "camhealth-estimator"
@@ -261,8 +261,14 @@ def load_module(source: str | Path):
     return module.eval(), desc
 
 
-def _description(module, metrics: Mapping[str, float] | None) -> dict:
+#: Description entries a file carries over when it is exported again (measured on the trained network, not
+#: derived from the module): the MTF error table of :mod:`camhealth.estimators.mtf_error`.
+CARRIED = ("mtf_error",)
+
+
+def _description(module, metrics: Mapping[str, float] | None, carried: Mapping[str, Any] | None = None) -> dict:
     desc = module.describe()
+    desc.update({k: v for k, v in (carried or {}).items() if k in CARRIED})
     desc["format"] = FORMAT_TAG
     desc["version"] = FORMAT_VERSION
     desc["init_args"] = json.loads(json.dumps(desc["init_args"], default=list))
@@ -272,19 +278,39 @@ def _description(module, metrics: Mapping[str, float] | None) -> dict:
 
 
 def _module_and_metrics(source, metrics):
+    """(module, metrics, carried description entries) of an EstimatorModule or a file."""
     if isinstance(source, (str, Path)):
         module, desc = load_module(source)
-        return module, metrics if metrics is not None else desc.get("metrics")
-    return source.eval(), metrics
+        return module, metrics if metrics is not None else desc.get("metrics"), {k: desc[k] for k in CARRIED if k in desc}
+    return source.eval(), metrics, {}
 
 
 def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
     """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file."""
-    module, metrics = _module_and_metrics(source, metrics)
+    module, metrics, carried = _module_and_metrics(source, metrics)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in module.net.state_dict().items()}
-    payload = {"format": FORMAT_TAG, "version": FORMAT_VERSION, "description": json.dumps(_description(module, metrics)), "state_dict": state}
+    payload = {"format": FORMAT_TAG, "version": FORMAT_VERSION, "description": json.dumps(_description(module, metrics, carried)), "state_dict": state}
+    torch.save(payload, out)
+    return out
+
+
+def set_description_entries(source: str | Path, entries: Mapping[str, Any], out: str | Path | None = None) -> Path:
+    """Rewrite the weights file ``source`` (to ``out``; default in place) with the description ``entries`` set — only
+    the keys of :data:`CARRIED`, JSON-serialisable — and its tensors unchanged."""
+    path = Path(source)
+    bad = sorted(set(map(str, entries)) - set(CARRIED))
+    if bad:
+        raise ValueError(f"description entries {bad} cannot be set; allowed: {list(CARRIED)}")
+    obj = _safe_load(path)
+    if obj.get("format") != FORMAT_TAG:
+        raise ValueError(f"{path} is not a camhealth weights file (format {FORMAT_TAG!r}); export it first")
+    desc, state = _description_and_state(obj, path)
+    desc.update(json.loads(json.dumps(dict(entries))))
+    payload = {"format": FORMAT_TAG, "version": obj.get("version", FORMAT_VERSION), "description": json.dumps(desc),
+               "state_dict": state}
+    out = Path(out) if out is not None else path
     torch.save(payload, out)
     return out
 
@@ -296,13 +322,13 @@ def _dynamic_batch(inputs: Sequence[torch.Tensor]):
 
 def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
     """torch.export the bare network (dynamic batch) to a ``.pt2`` archive with the description."""
-    module, metrics = _module_and_metrics(source, metrics)
+    module, metrics, carried = _module_and_metrics(source, metrics)
     inputs = module.export_inputs(2)
     net = module.export_module()
     ep = torch.export.export(net, inputs, dynamic_shapes=_dynamic_batch(inputs))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.export.save(ep, out, extra_files={"camhealth.json": json.dumps(_description(module, metrics))})
+    torch.export.save(ep, out, extra_files={"camhealth.json": json.dumps(_description(module, metrics, carried))})
     return out
 
 
@@ -401,7 +427,7 @@ def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = N
     self-contained (:class:`SelfContainedNoiseSource`, module docstring)."""
     import onnx
 
-    module, metrics = _module_and_metrics(source, metrics)
+    module, metrics, carried = _module_and_metrics(source, metrics)
     net, inputs, names, outputs, graph = _onnx_graph(module)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -411,7 +437,7 @@ def export_onnx(source, out: str | Path, metrics: Mapping[str, float] | None = N
     )
     program.save(str(out))
     model = onnx.load(str(out))
-    desc = _description(module, metrics)
+    desc = _description(module, metrics, carried)
     desc["onnx_graph"] = graph
     entry = model.metadata_props.add()
     entry.key, entry.value = "camhealth.json", json.dumps(desc)

@@ -25,7 +25,7 @@
   (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``
   with ``base_preset="ICX285"``), a preset name, or the path of a ``.yaml``/``.json`` metadata file (the
   ``camera.yaml`` of ``python -m camhealth.calibrate``). Out-of-range values raise, naming field and range.
-- returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V and ``mtf_std`` (B, 16) [kind ``mtf``]; ``sigma_total`` (B,) DN
+- returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V, ``mtf_std`` and ``mtf_spread`` (B, 16) [kind ``mtf``]; ``sigma_total`` (B,) DN
   [noise kinds; for noise-source networks √(Σ σ_s²)]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
   ``"black"``, ``"saturated"``, ``"featureless"``, ``"no edges"`` [MTF: Gaussian-like texture, :func:`camhealth._inputs.has_edges`]). Not-assessable patches still get finite numbers; do not
@@ -33,10 +33,12 @@
 - ``views`` (MTF models): 1 (default), 2 or 4 — also run the patch flipped (2: rotated by 180°; 4: flipped
   left–right, up–down and both) and average the estimates. A flip leaves the MTF along H and V unchanged
   (|OTF(−u, v)| = |OTF(u, v)| for a real PSF), so the views are estimates of the same 16 values with partly
-  independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``). ``mtf_std`` (B, 16) is the
-  uncertainty of each value: the standard deviation of the views' estimates (unbiased, over 2 or 4 views); NaN
-  with ``views=1``, which has only one estimate (the spread is a lower bound of the error: it does not see what
-  all views get wrong alike; ``python -m camhealth.bench robustness --task mtf`` prints how it compares).
+  independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``). ``mtf_spread`` (B, 16) is the
+  standard deviation of the views' estimates (unbiased, over 2 or 4 views; NaN with ``views=1``). ``mtf_std``
+  (B, 16) is the 1-σ uncertainty of each value, √(r(Ĥ)² + spread²) (spread 0 with one view): r is the file's
+  error table (description entry ``mtf_error``, :mod:`camhealth.estimators.mtf_error`), the RMS error at each
+  estimate Ĥ measured by ``python -m camhealth.bench mtf_error`` on scenes unlike training's. A file without a table
+  gives the spread alone (a lower bound of the error: it does not see what all views get wrong alike).
 - ``noise_source_full`` is no network: the physics-first estimator
   (:class:`~camhealth.estimators.physics_noise.PhysicsNoiseEstimator`, same ``predict`` interface, plus ``xi_std``,
   ``p_match`` and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
@@ -54,6 +56,7 @@ from typing import Any, Callable
 import torch
 
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches  # noqa: F401
+from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
 from camhealth.export import BY_PHYSICS, FORMAT_TAG, check_retired, load_net
 from camhealth.nets import NetworkSpec
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
@@ -103,6 +106,7 @@ class Estimator:
     backend: str
     _run: Callable[..., torch.Tensor] = field(repr=False)
     _net: Any = field(default=None, repr=False)
+    _mtf_error: Any = field(default=None, repr=False)
 
     @property
     def name(self) -> str:
@@ -197,7 +201,8 @@ class Estimator:
         result: dict[str, Any] = {"assessable": assessable, "reason": reason}
         if self.kind == "mtf":
             result["mtf"] = raw.clamp(0, 1)
-            result["mtf_std"] = spread if spread is not None else torch.full_like(result["mtf"], float("nan"))
+            result["mtf_std"] = mtf_uncertainty(result["mtf"], self._mtf_error, spread)
+            result["mtf_spread"] = spread if spread is not None else torch.full_like(result["mtf"], float("nan"))
         elif self.kind == "drne":
             flat = raw.flatten(1)
             result.update(sigma_map=raw, sigma_total=flat.pow(2).mean(1).sqrt(), sigma_median=flat.median(1).values)
@@ -216,6 +221,7 @@ class Estimator:
         if self.kind == "mtf":
             result["mtf"] = torch.zeros(0, 16)
             result["mtf_std"] = torch.zeros(0, 16)
+            result["mtf_spread"] = torch.zeros(0, 16)
         elif self.kind == "drne":
             result.update(sigma_map=torch.zeros(0, 1, self.patch_size, self.patch_size), sigma_total=z, sigma_median=z)
         else:
@@ -342,6 +348,9 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
     if desc.get("format", FORMAT_TAG) != FORMAT_TAG or desc.get("kind") not in ("mtf", "drne", "noise_source"):
         raise ValueError(f"{path}: unknown estimator description (kind {desc.get('kind')!r})")
     check_retired(desc, path)
+    error = None
+    if desc["kind"] == "mtf" and desc.get("mtf_error") is not None:
+        error = MTFErrorTable.from_dict(desc["mtf_error"], str(path))
     return Estimator(
         kind=desc["kind"],
         patch_size=int(desc["patch_size"]),
@@ -351,4 +360,5 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         backend=backend,
         _run=run,
         _net=net,
+        _mtf_error=error,
     )

@@ -86,8 +86,10 @@ _LIMITATIONS = {
     "truth is exact (`python -m camhealth.bench robustness --task mtf --per-cell 8 --threads 2`) — its AMAE is 8.7 / "
     "10.7 / 14.5 % (defocus / linear / non-linear), 3.5–4.8× its value on held-out dead leaves, 6.2 / 7.7 / 6.6 % on the "
     "patches it calls assessable, and 14.9 % on 3-px kernels: it judges sharpness partly from the scene's own fine "
-    "content, so it reads line art too sharp (+2 to +8 points) and edge-free textures far too blurred (−12 to −32). A slanted edge on a chart is more accurate where one is available. `mtf_std` (the spread "
-    "over `views`) ranks patches but is no error bar. Gray patches only; featureless (after the noise is removed), "
+    "content, so it reads line art too sharp (+2 to +8 points) and edge-free textures far too blurred (−12 to −32). A slanted edge on a chart is more accurate where one is available. `mtf_std` is a 1-σ error "
+    "bar per value from the file's error table (RMS error at each estimate, measured on training's generators × "
+    "rendered scenes: `python -m camhealth.bench mtf_error`) and the spread over `views`: 97 % of the values on "
+    "assessable patches of held-out generators lie within 2·`mtf_std`. Gray patches only; featureless (after the noise is removed), "
     "edge-free (Gaussian-like texture or a single grating, whose contrast and blur one patch cannot tell apart: the "
     "noise-corrected gradient kurtosis), black or saturated patches are `assessable=False`.",
 }

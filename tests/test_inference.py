@@ -283,16 +283,42 @@ def test_structure_survives_noise():
     assert assess_patches(y, "mtf")[0].all()
 
 
-def test_mtf_std_is_the_spread_over_views(tmp_path):
+def test_mtf_std_is_the_spread_over_views_without_an_error_table(tmp_path):
     mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
     x = _textured(3, 32)
     one = mtf.predict(x)
-    assert one["mtf_std"].shape == (3, 16) and torch.isnan(one["mtf_std"]).all()
+    assert one["mtf_std"].shape == (3, 16) and torch.isnan(one["mtf_std"]).all() and torch.isnan(one["mtf_spread"]).all()
     four = mtf.predict(x, views=4)
     flips = torch.stack([mtf.predict(v)["mtf"] for v in (x, x.flip(-1), x.flip(-2), x.flip(-2, -1))])
-    assert torch.allclose(four["mtf_std"], flips.std(0), atol=1e-5)
+    assert torch.allclose(four["mtf_spread"], flips.std(0), atol=1e-5)
+    assert torch.equal(four["mtf_std"], four["mtf_spread"])
     assert (four["mtf_std"] >= 0).all() and torch.isfinite(four["mtf_std"]).all()
     assert mtf.predict(x[:0], views=2)["mtf_std"].shape == (0, 16)
+    assert mtf.predict(x[:0], views=2)["mtf_spread"].shape == (0, 16)
+
+
+def test_mtf_std_reads_the_files_error_table_and_export_keeps_it(tmp_path):
+    """With an error table in the file, mtf_std = √(r(Ĥ)² + spread²) — finite with one view too — and exporting the
+    file again carries the table; a malformed table is refused naming the file."""
+    from camhealth.estimators.mtf_error import MTFErrorTable
+    from camhealth.export import set_description_entries
+
+    path = export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt")
+    table = MTFErrorTable((0.0, 0.5, 1.0), (0.02, 0.2, 0.04), 100, "test")
+    set_description_entries(path, {"mtf_error": table.to_dict()})
+    mtf = load_estimator(path)
+    x = _textured(3, 32)
+    one, four = mtf.predict(x), mtf.predict(x, views=4)
+    torch.testing.assert_close(one["mtf_std"], table(one["mtf"]))
+    torch.testing.assert_close(four["mtf_std"], (table(four["mtf"]) ** 2 + four["mtf_spread"] ** 2).sqrt())
+    again = load_estimator(export_weights(path, tmp_path / "again.pt"))
+    assert again.description["mtf_error"] == table.to_dict()
+    torch.testing.assert_close(again.predict(x)["mtf_std"], one["mtf_std"])
+    with pytest.raises(ValueError, match=r"cannot be set; allowed: \['mtf_error'\]"):
+        set_description_entries(path, {"metrics": {}})
+    set_description_entries(path, {"mtf_error": {**table.to_dict(), "rms": [0.1, 0.1, 2.0]}}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match=r"bad.pt: mtf_error: rms .* allowed range \[0, 1\]"):
+        load_estimator(tmp_path / "bad.pt")
 
 
 def _edges(n: int, size: int, seed: int = 2) -> torch.Tensor:

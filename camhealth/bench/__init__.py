@@ -29,6 +29,7 @@ BENCHMARKS: dict[str, str] = {
     "coldstart": "camhealth.bench.coldstart",
     "estimators": "camhealth.bench.estimators",
     "monitor": "camhealth.bench.monitor",
+    "mtf_error": "camhealth.bench.mtf_error",
     "robustness": "camhealth.bench.robustness",
 }
 

@@ -316,13 +316,14 @@ class TaskReport:
         uncertainty: (K,) standard error of ``median``: the larger of 1.2533·spread/√n (the standard error of a
             median of n values with Gaussian scatter ``spread``, n = ``n_values``) and 1.2533·temporal_spread/√frames
             (a pooled noise estimate gives every patch of a frame one camera state: only frames are independent).
-            MTF with an estimator that reports a per-patch spread (``mtf_std``, ``mtf_views`` 2 or 4): also at least
+            MTF with an estimator that reports a per-value uncertainty (``mtf_std``): also at least
             1.2533·estimator_std/√n, so one patch's answer is not stated exact.
         indicator_uncertainty: the same for the indicator.
         estimator_std: MTF only: (K,) the estimator's own per-value uncertainty, pooled over the values behind
-            ``median`` — √(mean of ``mtf_std``²), the RMS spread of each patch's estimate over its flipped views
-            (:meth:`camhealth.inference.Estimator.predict`); NaN (JSON ``null``) when the estimator gives none
-            (``mtf_views`` 1). It is the typical error bar of one patch's value, not of ``median``.
+            ``median`` — √(mean of ``mtf_std``²), each value's 1-σ uncertainty from the estimator's error table and
+            its views' spread (:meth:`camhealth.inference.Estimator.predict`); NaN (JSON ``null``) when the estimator
+            gives none (a file without an error table at ``mtf_views`` 1). It is the typical error bar of one patch's
+            value, not of ``median``.
         n_values: number of values behind ``median`` (map mode: patches with a value; sampled mode: samples
             in the window).
         coverage: where the networks ran this frame (see :meth:`Monitor.process`): ``mode``, ``estimated``

@@ -63,7 +63,7 @@ class _FakeEstimator:
     def predict(self, x, views=1):
         n = x.shape[0]
         return {"mtf": torch.full((n, 16), 0.5), "assessable": torch.ones(n, dtype=torch.bool),
-                "mtf_std": torch.full((n, 16), 0.1)}
+                "mtf_std": torch.full((n, 16), 0.1), "mtf_spread": torch.full((n, 16), 0.05)}
 
 
 def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
@@ -103,6 +103,13 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     bias = [b for b in size["bias_clean"].values() if b == b]  # NaN: no clean patch of that class at one scene per class
     assert set(size["bias_clean"]) == set(CLASSES) and bias and all(b < 0 for b in bias)
     assert "| all, assessable |" in text
+    # the uncertainty table: per scene group and views, the shares within u and 2u, the spread alone beside it
+    unc = out["fake"]["uncertainty"]
+    for gr in rm.GROUPS:
+        row = unc[f"{gr}/views4"]
+        assert 0 <= row["within_1std"] <= row["within_2std"] <= 1 and row["mean_std"] == pytest.approx(0.1)
+        assert row["within_2spread"] <= row["within_2std"]  # 2·0.05 < 2·0.1
+    assert "| rendered | 4 |" in text and "views' spread alone" in text
 
 
 @pytest.mark.parametrize("per_cell,sizes,match", [
@@ -112,3 +119,42 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
 def test_make_cells_rejects_bad_arguments(per_cell, sizes, match):
     with pytest.raises(ValueError, match=match):
         rm.make_cells(per_cell, sizes, 0)
+
+
+def test_calibration_cells_use_training_generators_on_their_own_rendered_scenes(monkeypatch):
+    monkeypatch.setattr(rm, "CALIBRATION_PER_CLASS", 1)
+    cells = rm.calibration_cells(2, (3.0, 9.0), 0)
+    assert len(cells) == len(rm.IN_DIST) * 2 * len(rm.CONDITIONS)
+    assert {c.generator for c in cells} == set(rm.IN_DIST.values()) and {c.scene for c in cells} == {"rendered"}
+    from camhealth.bench.rendered_scenes import CLASSES
+    assert all(c.image.shape == (2, 1, rm.PATCH, rm.PATCH) and set(c.labels) <= set(CLASSES) for c in cells)
+    with pytest.raises(ValueError, match=r"per_cell = 0 is out of the allowed range \[1, 256\]"):
+        rm.calibration_cells(0, (3.0,), 0)
+
+
+def test_mtf_error_benchmark_fits_and_writes_the_table(monkeypatch, tmp_path):
+    """``bench mtf_error --write`` on an (untrained) MTF network: the table lands in the file, the estimator reads it."""
+    import argparse
+    import json
+
+    from camhealth.bench import mtf_error
+    from camhealth.export import export_weights
+    from camhealth.inference import load_estimator
+    from lightning_modules import MTFEstimator
+
+    monkeypatch.setattr(rm, "CALIBRATION_PER_CLASS", 1)
+    path = export_weights(MTFEstimator(), tmp_path / "m.pt")
+    args = argparse.Namespace(models=[str(path)], per_cell=2, sizes=[3.0], seed=0, write=True, json=tmp_path / "e.json",
+                              command_line="test")
+    res = mtf_error.run(args)
+    table = json.loads((tmp_path / "e.json").read_text())["m"]["table"]
+    est = load_estimator(path)
+    assert est.description["mtf_error"] == table and len(table["rms"]) == len(table["knots"])
+    out = est.predict(torch.full((1, 1, 192, 192), 0.5) + 0.2 * (torch.rand(1, 1, 192, 192) > 0.5))
+    assert torch.isfinite(out["mtf_std"]).all() and (out["mtf_std"] > 0).all()
+    assert "| RMS |" in "\n".join(res.summary)
+    noise = tmp_path / "n.pt"
+    from lightning_modules import NoiseLevelEstimator
+    export_weights(NoiseLevelEstimator(), noise)
+    with pytest.raises(ValueError, match="calibrates MTF estimators"):
+        mtf_error.run(argparse.Namespace(**{**vars(args), "models": [str(noise)]}))

@@ -1,0 +1,91 @@
+"""Calibrate an MTF estimator's uncertainty: ``python -m camhealth.bench mtf_error [--models FILE …] [--write]``.
+
+Measures r(Ĥ), the RMS error of each MTF value against the estimate itself (:mod:`camhealth.estimators.mtf_error`),
+on a calibration set with an exact truth: training's own PSF generators (disk, line, camera shake) on rendered
+scenes (line art, gradient-filled shapes, 1/f texture with an exact pixel aperture; their own seed), every condition
+of the robustness benchmark (clean, JPEG q 75–95, noise 1–10 DN, 5 DN), blur sizes ``--sizes``. Only the patches
+the estimator calls assessable count. None of the robustness benchmark's held-out generators is used, so
+``python -m camhealth.bench robustness --task mtf`` checks the table on PSFs it was not measured on.
+
+Printed per model: the table (knot, RMS, values nearest the knot), the share of values with |Ĥ − H| ≤ u and ≤ 2u
+on the calibration set itself, and ms per patch. ``--write`` stores the table in the weights file
+(description entry ``mtf_error``), where :meth:`camhealth.inference.Estimator.predict` reads it for ``mtf_std``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from camhealth.bench import BenchResult, Row
+
+HELP = "calibrate the MTF estimator's per-value uncertainty (mtf_std) on training generators × rendered scenes"
+SIZES = (2.0, 4.0, 7.0, 11.0, 16.0, 21.0, 25.0)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--models", nargs="*", default=None, help="MTF estimators (shipped names or .pt files; default 'mtf')")
+    parser.add_argument("--per-cell", type=int, default=16, help="patches per generator × size × condition (default 16)")
+    parser.add_argument("--sizes", type=float, nargs="+", default=list(SIZES),
+                        help=f"blur sizes in px (default {' '.join(f'{s:g}' for s in SIZES)}; at most 29)")
+    parser.add_argument("--write", action="store_true",
+                        help="store the table in each model's weights file (description entry 'mtf_error')")
+    parser.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
+
+
+def run(args: argparse.Namespace) -> BenchResult:
+    from camhealth.bench.robustness_mtf import calibration_cells
+    from camhealth.estimators.mtf_error import fit_error_table, mtf_uncertainty
+    from camhealth.export import set_description_entries
+    from camhealth.inference import load_estimator
+
+    t0 = time.perf_counter()
+    cells = calibration_cells(args.per_cell, tuple(args.sizes), args.seed)
+    n = sum(c.image.shape[0] for c in cells)
+    data = (f"training generators (disk, line, shake) × rendered scenes, sizes {' '.join(f'{s:g}' for s in args.sizes)} px, "
+            f"clean / JPEG / noise 1–10 DN / 5 DN, {n} patches, seed {args.seed}, assessable patches only")
+    header = [f"calibration set: {data}; made in {time.perf_counter() - t0:.0f} s", f"command: {args.command_line}"]
+    rows, summary, results = [], [], {}
+    for name in args.models or ["mtf"]:
+        est = load_estimator(name)
+        if est.kind != "mtf":
+            raise ValueError(f"estimator {name!r} is {est.kind!r}; mtf_error calibrates MTF estimators")
+        ests, truths, oks, times = [], [], [], []
+        for c in cells:
+            t = time.perf_counter()
+            o = est.predict(c.image)
+            times.append((time.perf_counter() - t) * 1e3 / c.image.shape[0])
+            ests.append(o["mtf"]), truths.append(c.truth), oks.append(o["assessable"])
+        e, tr, ok = torch.cat(ests), torch.cat(truths), torch.cat(oks)
+        table = fit_error_table(e, tr, ok, data=data)
+        u = mtf_uncertainty(e[ok], table)
+        err = (e[ok] - tr[ok]).abs()
+        c1, c2 = float((err <= u).float().mean()), float((err <= 2 * u).float().mean())
+        ms = float(torch.tensor(times).median())
+        rows.append(Row(f"{est.name} (views 1)", [ms], note="ms per patch"))
+        summary += ["", f"**{est.name}** — RMS |Ĥ − H| by the estimate Ĥ (nearest knot), {int(ok.sum())} of {n} patches assessable:", "",
+                    "| Ĥ | " + " | ".join(f"{k:g}" for k in table.knots) + " |",
+                    "|---|" + "---:|" * len(table.knots),
+                    "| RMS | " + " | ".join(f"{r:.3f}" for r in table.rms) + " |",
+                    "| values | " + " | ".join(str(int(v)) for v in _counts(e[ok], table.knots)) + " |", "",
+                    f"On the calibration set itself: |Ĥ − H| ≤ u for {100 * c1:.0f} %, ≤ 2u for {100 * c2:.0f} % of the values; "
+                    f"{ms:.1f} ms per patch."]
+        results[est.name] = {"table": table.to_dict(), "within_1u": c1, "within_2u": c2, "ms": ms}
+        if args.write:
+            if est.backend != "torch" or Path(est.source).suffix.lower() != ".pt":
+                raise ValueError(f"--write stores the table in a .pt weights file; {est.source} is not one")
+            set_description_entries(est.source, {"mtf_error": table.to_dict()})
+            summary.append(f"Written to {est.source} (description entry `mtf_error`).")
+    if args.json is not None:
+        args.json.write_text(json.dumps(results, indent=1))
+    return BenchResult("MTF error table (mtf_std calibration)", rows, rows[0].name, header=header, summary=summary)
+
+
+def _counts(est: torch.Tensor, knots: Any) -> torch.Tensor:
+    kn = torch.tensor(list(knots), dtype=torch.float64)
+    return torch.bincount((est.double().flatten()[:, None] - kn[None]).abs().argmin(1), minlength=kn.numel())
