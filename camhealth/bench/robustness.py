@@ -25,7 +25,11 @@ gain 0–12 dB, exposure 1–200 ms, temperature 0–50 °C. Truth per source is
 clipping; ξ = σ_Total(image made with the told metadata) − σ_Total(image made with the real ones), the same
 random numbers in both, so ξ is exactly 0 where the metadata are right. A mismatch is *visible* where
 |ξ| ≥ max(0.5 DN, 15 % of σ_Total); detection is scored by ROC AUC of |ξ̂| per patch and of |median ξ̂| per frame
-(16 patches, one camera state) between the matched conditions and the visible mismatches.
+(16 patches, one camera state) between the matched conditions and the visible mismatches; again with the estimator's
+evidence — |ξ̂|, its ties broken by the estimator's probability of a visible mismatch 1 − p_match where it reports
+one (the physics-first estimator's ξ̂ is 0 wherever it keeps the closed form) — and at its decision: the shares of
+visible mismatches (TPR) and of matched patches or frames (FPR) whose estimate is itself visible,
+|ξ̂| ≥ max(0.5 DN, 15 % of σ̂_Total).
 
 Printed per estimator, pooled over both scales and for each scale: per-source Bias / Std / RMS [DN] per condition
 group over every patch (those it marks not assessable included: the closed form stands there), ξ RMS, the AUCs
@@ -268,6 +272,11 @@ def _bsr(err: torch.Tensor) -> tuple[float, float, float]:
     return abs(bias), std, float(np.hypot(bias, std))
 
 
+#: Weight [DN] of an estimator's mismatch probability 1 − p_match in its evidence score: far below any ξ̂ ≠ 0, so it
+#: only orders the patches whose ξ̂ ties (at 0, where the estimator keeps the closed form).
+TIE_BREAK_DN = 1e-6
+
+
 def _auc(score: torch.Tensor, label: torch.Tensor) -> float:
     from torchmetrics.functional.classification import binary_auroc
 
@@ -335,6 +344,25 @@ def _aggregate(rows: dict[str, list]) -> dict[str, Any]:
         k = f_keep & sel
         res[f"auc_frame_{name}"] = _auc(f_score[k], f_label[k])
         res[f"frames_{name}"] = (int((k & ~f_label).sum()), int((k & f_label).sum()))
+    # the estimator's mismatch evidence: |ξ̂|, its ties (ξ̂ = 0 where the closed form is kept) broken by the
+    # estimator's own probability of a visible mismatch 1 − p_match where it reports one
+    def evidence(r, frame: bool) -> torch.Tensor:
+        xi_abs = r[2].median().abs() if frame else r[2].abs()
+        if len(r) < 6 or r[5] is None:
+            return xi_abs
+        return xi_abs + TIE_BREAK_DN * (1.0 - (r[5].median() if frame else r[5]))
+
+    e_score = torch.cat([evidence(r, False) for r in neg + pos] + [torch.zeros(0)])
+    res["auc_patch_evidence"] = _auc(e_score[keep], p_label[keep])
+    ef_score = torch.stack([evidence(r, True) for r in neg + pos]) if neg + pos else torch.zeros(0)
+    res["auc_frame_evidence"] = _auc(ef_score[f_keep], f_label[f_keep])
+    # the decision: a mismatch declared where the estimate itself is visible, |ξ̂| ≥ max(0.5 DN, 15 % of σ̂_Total)
+    declared = torch.cat([r[2].abs() >= torch.clamp(0.15 * r[1], min=0.5) for r in neg + pos] + [torch.zeros(0, dtype=torch.bool)])
+    f_declared = torch.tensor([float(r[2].median().abs()) >= max(0.5, 0.15 * float(r[1].median())) for r in neg + pos], dtype=torch.bool)
+    for name, d, lab, k in (("patch", declared, p_label, keep), ("frame", f_declared, f_label, f_keep)):
+        d, lab = d[k], lab[k]
+        res[f"declared_tpr_{name}"] = float(d[lab].float().mean()) if lab.any() else float("nan")
+        res[f"declared_fpr_{name}"] = float(d[~lab].float().mean()) if (~lab).any() else float("nan")
     res["visible_patches"] = int(p_label.sum())
     res["visible_frames"] = int(f_label.sum())
     res["matched_patches"] = 16 * len(neg)
@@ -375,7 +403,8 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
         sig = out["sigma"].float() if has_sources else torch.full((16, 3), float("nan"))
         xi = out["xi"].float() if "xi" in out else torch.zeros(16)
         ok = torch.as_tensor(out.get("assessable", torch.ones(16, dtype=torch.bool))).bool().reshape(-1)
-        answers.append((sig, out["sigma_total"].float(), xi, fr, ok))
+        p_match = torch.as_tensor(out["p_match"]).float().reshape(-1) if "p_match" in out else None
+        answers.append((sig, out["sigma_total"].float(), xi, fr, ok, p_match))
 
     def rows_of(scale: str | None) -> dict[str, list]:
         rows: dict[str, list] = {c: [] for c in CONDITIONS}
@@ -449,6 +478,20 @@ def run(args: argparse.Namespace) -> BenchResult:
                            f"{100 * q['strong_total_rel_p90']:.1f} % | {100 * q['strong_xi_sign_right']:.0f} % | "
                            f"{100 * q['strong_assessable']:.0f} %, {100 * q['strong_total_rel_p90_assessable']:.1f} %, "
                            f"{100 * q['strong_xi_sign_right_assessable']:.0f} % | {100 * q['assessable']:.0f} % | {r['ms_per_patch']:.2f} |")
+    summary += ["", "Detection by the estimator's evidence and by its decision, pooled and per scene scale. *Evidence*: |ξ̂|, "
+                "its ties broken by the estimator's own probability of a visible mismatch 1 − p_match (the physics-first "
+                "estimator: ξ̂ is 0 wherever it keeps the closed form, p_match still ranks those patches; networks: |ξ̂| "
+                "alone). *Declared*: a mismatch declared where |ξ̂| ≥ max(0.5 DN, 15 % of σ̂_Total); the share of visible "
+                "mismatches declared (TPR) and of matched patches or frames declared (FPR):", "",
+                "| estimator | scenes | AUC per patch, abs. ξ̂ / evidence | AUC per frame, abs. ξ̂ / evidence | declared per patch: TPR / FPR | "
+                "declared per frame: TPR / FPR |", "|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        for label, key in sets:
+            q = part(r, key)
+            summary.append(f"| {name} | {label} | {q['auc_patch']:.3f} / {q['auc_patch_evidence']:.3f} | "
+                           f"{q['auc_frame']:.3f} / {q['auc_frame_evidence']:.3f} | "
+                           f"{100 * q['declared_tpr_patch']:.0f} % / {100 * q['declared_fpr_patch']:.0f} % | "
+                           f"{100 * q['declared_tpr_frame']:.0f} % / {100 * q['declared_fpr_frame']:.0f} % |")
     any_r = next(iter(results.values()))
     counts = []
     for label, key in sets:

@@ -121,3 +121,30 @@ def test_strong_noise_is_also_scored_on_the_patches_called_assessable(frames):
     strong = [f for f in frames if f.condition == "strong"]
     rel = torch.cat([(rb._ClosedForm().predict(f.noisy, f.told)["sigma_total"] / f.total - 1).abs()[4:] for f in strong])
     assert res["strong_total_rel_p90_assessable"] == pytest.approx(float(rel.quantile(0.9)), rel=1e-5)
+
+
+def test_evidence_breaks_ties_of_xi_with_the_mismatch_probability_and_the_decision_is_counted():
+    """ξ̂ = 0 (closed form kept) on all matched and half the mismatched patches: |ξ̂| ties them, the estimator's
+    p_match still ranks them; the declared mismatches (|ξ̂| visible) are half the visible ones and no matched one."""
+    from types import SimpleNamespace
+
+    def frame(xi_true: float) -> SimpleNamespace:
+        return SimpleNamespace(xi=torch.full((16,), xi_true), total=torch.full((16,), 10.0), sigma=torch.ones(16, 3),
+                               scene_floor=0.0)
+
+    sig, tot = torch.ones(16, 3), torch.full((16,), 10.0)
+    matched = (sig, tot, torch.zeros(16), frame(0.0), torch.ones(16, dtype=torch.bool), torch.full((16,), 0.9))
+    xi_hat = torch.cat([torch.zeros(8), torch.full((8,), -3.0)])
+    pm = torch.cat([torch.full((8,), 0.3), torch.full((8,), 0.1)])
+    mismatched = (sig, tot, xi_hat, frame(-3.0), torch.ones(16, dtype=torch.bool), pm)
+    rows = {c: [] for c in rb.CONDITIONS}
+    rows[rb.MATCHED[0]] = [matched, matched]
+    rows[rb.MISMATCH[0]] = [mismatched, mismatched]
+    res = rb._aggregate(rows)
+    assert res["auc_patch"] == pytest.approx(0.75)  # half the positives tie with every negative
+    assert res["auc_patch_evidence"] == pytest.approx(1.0)
+    assert res["declared_tpr_patch"] == pytest.approx(0.5) and res["declared_fpr_patch"] == 0.0
+    # without p_match (a network) the evidence is |ξ̂| alone
+    rows[rb.MATCHED[0]] = [matched[:5] + (None,)] * 2
+    rows[rb.MISMATCH[0]] = [mismatched[:5] + (None,)] * 2
+    assert rb._aggregate(rows)["auc_patch_evidence"] == pytest.approx(0.75)
