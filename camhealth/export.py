@@ -1,7 +1,8 @@
 """Export a trained estimator: ``python -m camhealth.export CKPT --format {weights,pt2,onnx} [--out PATH]``.
 
 Formats (every file carries the same JSON description: kind, patch size, metadata set, architecture
-arguments, params, FLOPs, metrics — read back by :func:`camhealth.load_estimator`):
+arguments, params, FLOPs, metrics and, for an MTF model, its error table ``mtf_error`` — read back by
+:func:`camhealth.load_estimator`; exporting a file again keeps its metrics and error table):
 
 - ``weights`` (``.pt``): the state dict plus the description, a file that :func:`torch.load` opens with
   ``weights_only=True`` (tensors and plain containers only, no pickled code). The shipped models are these.

@@ -77,6 +77,23 @@ def test_exported_program_matches_torch(kind, fmt, tmp_path):
         assert torch.allclose(ref.predict(x, views=4)["mtf"], est.predict(x, views=4)["mtf"], rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("fmt", ["pt2", "onnx"])
+def test_exporting_a_weights_file_carries_its_mtf_error_table(fmt, tmp_path):
+    """The error table measured on a weights file (``bench mtf_error --write``) travels into .pt2 and .onnx, so their
+    ``mtf_std`` is the same calibrated uncertainty."""
+    from camhealth.estimators.mtf_error import MTFErrorTable
+    from camhealth.export import set_description_entries
+
+    w = export_weights(_perturbed("mtf"), tmp_path / "w.pt")
+    table = MTFErrorTable((0.0, 0.5, 1.0), (0.02, 0.2, 0.04), 100, "test")
+    set_description_entries(w, {"mtf_error": table.to_dict()})
+    path = (export_pt2 if fmt == "pt2" else export_onnx)(w, tmp_path / f"m.{fmt}")
+    est, ref = load_estimator(path), load_estimator(w)
+    assert est.description["mtf_error"] == table.to_dict()
+    x, _ = _inputs(3)
+    assert torch.allclose(est.predict(x)["mtf_std"], ref.predict(x)["mtf_std"], atol=1e-4)
+
+
 def test_export_cli(tmp_path, capsys):
     src = export_weights(_perturbed("drne"), tmp_path / "w.pt")
     out = main([str(src), "--format", "pt2", "--out", str(tmp_path / "x.pt2")])
