@@ -130,6 +130,8 @@ def test_calibration_cells_use_training_generators_on_their_own_rendered_scenes(
     assert all(c.image.shape == (2, 1, rm.PATCH, rm.PATCH) and set(c.labels) <= set(CLASSES) for c in cells)
     with pytest.raises(ValueError, match=r"per_cell = 0 is out of the allowed range \[1, 256\]"):
         rm.calibration_cells(0, (3.0,), 0)
+    with pytest.raises(ValueError, match=r"sizes = \[40.0\] must be non-empty with every size in the allowed range \[0, 29\] px"):
+        rm.calibration_cells(2, (40.0,), 0)
 
 
 def test_mtf_error_benchmark_fits_and_writes_the_table(monkeypatch, tmp_path):
