@@ -94,10 +94,12 @@ from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
-__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN"]
+__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN"]
 
 #: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
 VALIDATED_SIGMA_DN = 64.0
+#: The ``reason`` of a patch whose σ_Total (before clipping) is above :data:`VALIDATED_SIGMA_DN`.
+BEYOND_VALIDATED = "noise beyond validated range"
 #: τ [DN] of :func:`physics_noise_posterior`: what a scene may add to the finest-scale statistic by itself. The lower
 #: quartile of the 8×8-px windows' diagonal detail on clean frames (``camhealth.bench.robustness.scene_floor_dn``) is
 #: 2.0 DN at the median over the street clip and the photographs, area-downsampled 3× (≈ 2 DN on the street frames,
@@ -403,7 +405,7 @@ def physics_noise_posterior(
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
         tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
         visible = (tot - tot[:, :1]).abs() >= torch.maximum(torch.full_like(tot[:, :1], VISIBLE_XI_DN), VISIBLE_XI_FRACTION * tot[:, :1])
-        p_match = 1.0 - (post * visible).sum(1)
+        p_match = (1.0 - (post * visible).sum(1)).clamp(0.0, 1.0)  # a probability: no −2e-16 from rounding
         # the visible mismatch hypotheses alone (renormalised): what the image says where it contradicts M
         w = (post * visible)[:, 1:]
         w = w / w.sum(1, keepdim=True).clamp_min(1e-300)
@@ -516,7 +518,7 @@ class PhysicsNoiseEstimator:
             elif raw[i, 8] > TEXTURE_LIMIT or raw[i, 11] >= 1.0:
                 reason[i] = "textured"
             elif raw[i, 10] > VALIDATED_SIGMA_DN:
-                reason[i] = "noise beyond validated range"
+                reason[i] = BEYOND_VALIDATED
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_total": raw[:, 3], "xi": raw[:, 4],
                 "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5}

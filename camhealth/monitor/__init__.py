@@ -23,6 +23,7 @@ from camhealth.monitor.api import (
     load_metadata,
     load_policy,
     xi_alarm,
+    beyond_range_alarm,
 )
 from camhealth.monitor.tiling import STATUS_NAMES, PatchGrid, SelectionConfig
 
@@ -38,4 +39,5 @@ __all__ = [
     "load_metadata",
     "load_policy",
     "xi_alarm",
+    "beyond_range_alarm",
 ]

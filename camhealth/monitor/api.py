@@ -53,6 +53,7 @@ import numpy as np
 import torch
 
 from camhealth.estimators.aggregation import spatial_median, temporal_median
+from camhealth.estimators.physics_noise import BEYOND_VALIDATED, VALIDATED_SIGMA_DN
 from camhealth.monitor.tiling import (
     ESTIMATED,
     INTERPOLATED,
@@ -84,6 +85,7 @@ __all__ = [
     "load_metadata",
     "load_policy",
     "xi_alarm",
+    "beyond_range_alarm",
 ]
 
 #: Columns of the per-patch noise values (DN): σ per source, ξ, total.
@@ -332,6 +334,13 @@ class TaskReport:
             ``patches_xy`` (sampled mode: top-left corners [px] of the estimated patches; map mode: ``None``,
             the per-patch map says where).
         counts: patches per status (:data:`~camhealth.monitor.tiling.STATUS_NAMES`) and ``total``.
+        refused: this frame's patches the estimator refused (status ``not_assessable``), by the reason it gave —
+            e.g. ``{"textured": 3, "noise beyond validated range": 1}`` for the noise sources, ``{"no edges": 2}``
+            for the MTF; empty when it refused none.
+        beyond_xi: noise only: the median ξ [DN] the estimator still reports on this frame's patches refused as
+            ``"noise beyond validated range"`` (σ above :data:`~camhealth.estimators.physics_noise.VALIDATED_SIGMA_DN`;
+            there the image's σ reads low, so the ξ is a bound: the image is at least that much noisier); ``None``
+            when there were none.
         note: why a task could not be assessed, if it could not.
         grid_obj, values, code: per-patch maps (not serialised unless asked).
     """
@@ -352,6 +361,8 @@ class TaskReport:
     n_values: int = 0
     coverage: dict[str, Any] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
+    refused: dict[str, int] = field(default_factory=dict)
+    beyond_xi: float | None = None
     note: str = ""
     grid_obj: PatchGrid | None = field(default=None, repr=False)
     values: torch.Tensor | None = field(default=None, repr=False)
@@ -389,6 +400,7 @@ class TaskReport:
             else:
                 out["h"] = out["v"] = out["indicator"] = None
         out["patches"] = dict(self.counts)
+        out["refused"] = dict(self.refused)
         out["coverage"] = dict(self.coverage)
         if self.note:
             out["note"] = self.note
@@ -483,6 +495,29 @@ def xi_alarm(xi_dn: float, spread_dn: float, count: int, threshold_dn: float = 1
     return {"state": state, "xi_dn": _num(xi_dn), "limit_dn": _num(limit), "message": msg}
 
 
+def beyond_range_alarm(xi_dn: float, beyond: int, refused: int, threshold_dn: float = 1.0) -> dict[str, Any]:
+    """ξ alarm for a frame whose noise patches were all refused, ``beyond`` of the ``refused`` ones as
+    ``"noise beyond validated range"`` (σ_Total above :data:`~camhealth.estimators.physics_noise.VALIDATED_SIGMA_DN`).
+
+    Such a patch passed every check of the evidence (flat area, texture, neighbours) and its image reads noisier
+    than the validated range; the others were refused for other reasons (near 0 or 255 DN, where the clipping leaves
+    no unclipped block, they say ``"no flat area"``) and do not contradict it. Beyond that range the clipping takes
+    so much of the noise that the image's σ reads low (80 DN reads ≈ 68 DN), so their median ξ ``xi_dn`` [DN] is an
+    upper bound on the true ξ: ξ̃ < −``threshold_dn`` says the image is *noisier* than the metadata allow — by at
+    least |ξ̃| — and the alarm is raised rather than hidden as "not assessable". A ξ̃ near 0 or above (metadata that
+    predict such noise themselves) cannot be told and stays ``"not_assessable"``, naming the reason.
+    """
+    if beyond >= 1 and math.isfinite(xi_dn) and xi_dn < -threshold_dn:
+        return {"state": "noisier", "xi_dn": _num(xi_dn), "limit_dn": _num(threshold_dn),
+                "message": (f"image is noisier than the metadata allow: its noise is beyond the validated "
+                            f"{VALIDATED_SIGMA_DN:g} DN ({beyond} of {refused} refused patches); ξ̃ ≤ {xi_dn:+.2f} DN "
+                            "(a bound: beyond the validated range σ reads low); check gain/temperature metadata, the "
+                            "sensor, or noise added downstream")}
+    return {"state": "not_assessable", "xi_dn": None, "limit_dn": None,
+            "message": (f"noise beyond the validated {VALIDATED_SIGMA_DN:g} DN ({beyond} of {refused} refused patches) "
+                        "and the metadata predict as much: ξ cannot be assessed")}
+
+
 # ---------------------------------------------------------------------------------------------- monitor
 @dataclass
 class _EstimatorHandle:
@@ -510,6 +545,9 @@ class _TaskState:
     memory_std: torch.Tensor = field(init=False)
     samples_std: torch.Tensor = field(init=False)
     sample_slot: int = 0
+    # this frame's refusals: reason → patches, and ξ [DN] of the patches refused as beyond the validated range
+    refused: dict[str, int] = field(default_factory=dict)
+    beyond_xi: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -573,6 +611,19 @@ def _pooled_std(std: torch.Tensor, k: int) -> torch.Tensor:
     cnt = m.sum(0)
     mean_sq = torch.where(m, std, torch.zeros_like(std)).pow(2).sum(0) / cnt.clamp_min(1)
     return torch.where(cnt > 0, mean_sq.sqrt(), torch.full_like(mean_sq, float("nan")))
+
+
+def _refusals(st: _TaskState) -> dict[str, Any]:
+    """The ``refused`` and ``beyond_xi`` fields of a :class:`TaskReport` from this frame's task state."""
+    beyond = float(torch.tensor(st.beyond_xi).median()) if st.beyond_xi else None
+    return {"refused": dict(st.refused), "beyond_xi": beyond}
+
+
+def _refused_text(st: _TaskState) -> str:
+    """``"; refused: 8 noise beyond validated range"`` for a note, or ``""``."""
+    if not st.refused:
+        return ""
+    return "; refused: " + ", ".join(f"{v} {k}" for k, v in sorted(st.refused.items(), key=lambda kv: -kv[1]))
 
 
 def _describe(est: Any) -> str:
@@ -820,8 +871,11 @@ class Monitor:
         self, task: str, patches: torch.Tensor, index: torch.Tensor, meta: CameraMetadata | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Run the estimator on ``patches[index]`` → (values (n, K), ok (n,) bool, the estimator's per-value spread
-        (n, K): MTF ``mtf_std`` where the estimator returns one, else NaN)."""
+        (n, K): MTF ``mtf_std`` where the estimator returns one, else NaN). The reasons the estimator gave for the
+        patches it refused are counted into this frame's ``refused`` of the task state, and the ξ [DN] it still
+        reports for those refused as ``"noise beyond validated range"`` kept in ``beyond_xi`` (the alarm's bound)."""
         handle = self.estimators[task]
+        st = self._states[task]
         k = 5 if task == "noise" else 16
         n = int(index.numel())
         if n == 0:
@@ -854,6 +908,14 @@ class Monitor:
         if task == "mtf" and out.get("mtf_std") is not None:
             std = torch.as_tensor(out["mtf_std"]).float().reshape(n, 16).clone()
         ok = torch.as_tensor(out.get("assessable", torch.ones(n, dtype=torch.bool))).bool().reshape(n)
+        reasons = list(out.get("reason") or [""] * n)
+        for i in (~ok).nonzero()[:, 0].tolist():
+            why = str(reasons[i]) if i < len(reasons) and reasons[i] else "no value"
+            st.refused[why] = st.refused.get(why, 0) + 1
+            if task == "noise" and why == BEYOND_VALIDATED and "xi" in out:
+                xi = float(torch.as_tensor(out["xi"]).reshape(n)[i])
+                if math.isfinite(xi):
+                    st.beyond_xi.append(xi)
         ok &= torch.isfinite(vals[:, -1])
         vals[~ok] = float("nan")
         std[~ok] = float("nan")
@@ -861,6 +923,7 @@ class Monitor:
 
     def _run_task(self, task: str, frame: torch.Tensor, meta: CameraMetadata | None) -> TaskReport:
         st = self._states[task]
+        st.refused, st.beyond_xi = {}, []
         grid, cfg = st.grid, self.selection
         handle = self.estimators[task]
         base = dict(task=task, estimator=handle.name, patch=grid.patch, grid=(grid.rows, grid.cols))
@@ -973,11 +1036,11 @@ class Monitor:
         coverage = self._coverage("sampled", grid, int(boxes.shape[0]), informative, int(vals.shape[0]), frames, boxes,
                                   reused)
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
-                    grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage)
+                    grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage, **_refusals(st))
         if boxes.shape[0] == 0:  # as in map mode: a frame without an informative patch is not assessable
             skipped = {k: v for k, v in counts.items() if k in ("black", "saturated", "featureless", "no_edges", "not_assessable") and v}
             why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
-            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why})")
+            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}{_refused_text(st)})")
         spatial = spatial_median(vals, dim=0)
         n = int(vals.shape[0])
         per_frame = torch.nanmedian(st.samples, dim=1).values  # (window, K), NaN for frames without samples
@@ -1011,11 +1074,11 @@ class Monitor:
         frames = min(self._counter + 1, self.window)
         coverage = self._coverage("map", grid, fresh, informative, n, frames, None, int((st.code == REUSED).sum()))
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
-                    grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage)
+                    grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage, **_refusals(st))
         if not bool(has.any()):
             skipped = {k: v for k, v in counts.items() if k not in ("estimated", "interpolated", "reused", "total") and v}
             why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
-            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why})")
+            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}{_refused_text(st)})")
         agg = temporal_median(st.history, st.window, dim=0)  # (1, N, K)
         tm = agg.median[0]
         per_patch = torch.where(torch.isfinite(tm), tm, st.values)[has]
@@ -1086,7 +1149,14 @@ class Monitor:
             return {"state": "unavailable", "xi_dn": None, "limit_dn": None,
                     "message": "ξ needs a noise-source estimator with metadata"}
         if not noise.assessable or noise.median is None:
-            return xi_alarm(float("nan"), float("nan"), 0)
+            if noise.beyond_xi is not None:
+                return beyond_range_alarm(noise.beyond_xi, noise.refused.get(BEYOND_VALIDATED, 0),
+                                          sum(noise.refused.values()), self.xi_threshold_dn)
+            out = xi_alarm(float("nan"), float("nan"), 0)
+            if noise.refused:  # say why: the estimator's reasons for the patches it refused
+                out["message"] += " (refused: " + ", ".join(
+                    f"{v} {k}" for k, v in sorted(noise.refused.items(), key=lambda kv: -kv[1])) + ")"
+            return out
         i = NOISE_FIELDS.index("xi")
         count = noise.n_values
         return xi_alarm(float(noise.median[i]), float(noise.spread[i]), count, self.xi_threshold_dn, self.xi_sigmas,

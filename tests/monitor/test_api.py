@@ -407,6 +407,66 @@ def test_physics_noise_pools_a_frame_and_catches_40_dn_of_unexplained_noise(monk
         assert mon.summary()["pool_noise"] is pool
 
 
+@pytest.mark.parametrize("mode", ["sampled", "map"])
+def test_noise_beyond_the_validated_range_raises_noisier_not_silence(mode):
+    """A frame with 80 DN of white noise where the metadata say a few DN: the physics-first estimator refuses its
+    patches as "noise beyond validated range" (σ above 64 DN, where its σ reads low), and the monitor still raises
+    "noisier" with that ξ̃ as a bound, instead of "not assessable"; the refusals are counted in the report."""
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED, VALIDATED_SIGMA_DN
+
+    g = torch.Generator().manual_seed(3)
+    ramp = torch.linspace(60.0, 200.0, 512).view(1, 512).expand(384, 512) / 255.0
+    frame = ((ramp + 80.0 / 255.0 * torch.randn(384, 512, generator=g)).clamp(0, 1) * 255).round() / 255
+    mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
+    d = _strict(mon.process(frame).to_json())
+    assert not d["noise"]["assessable"]
+    refused = d["noise"]["refused"]
+    assert refused.get(BEYOND_VALIDATED, 0) >= 1 and sum(refused.values()) == d["noise"]["patches"]["not_assessable"]
+    assert BEYOND_VALIDATED in d["noise"]["note"]
+    a = d["alarm"]
+    assert a["state"] == "noisier", a
+    assert a["xi_dn"] < -VALIDATED_SIGMA_DN + 20.0  # the metadata explain ~2 DN; the image reads ≥ 60 DN (a bound)
+    assert "bound" in a["message"] and f"{VALIDATED_SIGMA_DN:g} DN" in a["message"]
+
+
+def test_beyond_range_alarm_rules():
+    """noisier only with a beyond-range patch and ξ̃ below −threshold; otherwise not assessable, saying why."""
+    from camhealth.monitor import beyond_range_alarm
+
+    a = beyond_range_alarm(-40.0, 2, 8, 1.0)
+    assert a["state"] == "noisier" and a["xi_dn"] == -40.0 and a["limit_dn"] == 1.0 and "2 of 8" in a["message"]
+    for xi, beyond in ((-0.5, 3), (0.0, 3), (12.0, 3), (float("nan"), 3), (-40.0, 0)):
+        b = beyond_range_alarm(xi, beyond, 8, 1.0)
+        assert b["state"] == "not_assessable" and b["xi_dn"] is None and "cannot be assessed" in b["message"], (xi, beyond)
+
+
+def test_refused_patches_are_counted_and_named_when_nothing_is_assessable():
+    """An estimator that refuses every patch with a reason: the report counts the reasons, the note and the alarm
+    message name them (not a bare "no informative patch")."""
+
+    class Refusing(FakeNoise):
+        def predict(self, patches, metadata=None, precision="fp32", batch_size=256):
+            out = super().predict(patches, metadata, precision, batch_size)
+            b = patches.shape[0]
+            out["assessable"] = torch.zeros(b, dtype=torch.bool)
+            out["reason"] = ["textured" if i % 2 else "no flat area" for i in range(b)]
+            return out
+
+    frame = (0.5 + 3.0 / 255.0 * torch.randn(384, 512, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
+    for mode in ("sampled", "map"):
+        mon = Monitor(Refusing(), None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
+        d = _strict(mon.process(frame).to_json())
+        refused = d["noise"]["refused"]
+        assert set(refused) == {"textured", "no flat area"} and sum(refused.values()) == d["noise"]["patches"]["not_assessable"] > 0
+        assert "textured" in d["noise"]["note"] and "no flat area" in d["noise"]["note"]
+        assert d["alarm"]["state"] == "not_assessable" and "textured" in d["alarm"]["message"]
+        # the next frame counts its own refusals, not a running total
+        d2 = _strict(mon.process(frame).to_json())
+        assert sum(d2["noise"]["refused"].values()) == d2["noise"]["patches"]["not_assessable"]
+    ok = _strict(Monitor(FakeNoise(), None, sensor="ICX285", warmup=False).process(frame).to_json())
+    assert ok["noise"]["refused"] == {}
+
+
 class _MTFWithStd(FakeMTF):
     """FakeMTF that also states a per-value spread ``mtf_std`` (as ``Estimator.predict(views=2|4)`` does): ``std``
     for every patch, or per call from ``stds``."""
