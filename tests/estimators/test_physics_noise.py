@@ -177,6 +177,7 @@ def test_estimator_interface_reasons_and_loader():
     assert out["reason"][2] == "noise beyond validated range" and -out["xi"][2] > VALIDATED_SIGMA_DN - 10
     assert set(out) >= {"sigma", "sigma_total", "xi", "xi_std", "p_match", "assessable", "reason"}
     assert torch.isinf(out["xi_std"][1])  # no evidence: ξ unknown
+    assert bool(((out["p_match"] >= 0) & (out["p_match"] <= 1)).all())  # a probability, also where it is ~0
 
 
 def test_bad_input_is_refused():
