@@ -766,6 +766,7 @@ class Monitor:
         self._times: list[float] = []
         self._counts: dict[str, dict[str, int]] = {t: {n: 0 for n in STATUS_NAMES} for t in self.estimators}
         self._alarms: dict[str, int] = {}
+        self._refused: dict[str, dict[str, int]] = {t: {} for t in self.estimators}
         self._last: FrameReport | None = None
 
     # ------------------------------------------------------------------ set-up
@@ -1138,6 +1139,8 @@ class Monitor:
         for task, r in reports.items():
             for name in STATUS_NAMES:
                 self._counts[task][name] += int(r.counts.get(name, 0))
+            for why, n in r.refused.items():
+                self._refused[task][why] = self._refused[task].get(why, 0) + int(n)
         self._alarms[alarm["state"]] = self._alarms.get(alarm["state"], 0) + 1
         self._last = report
         return report
@@ -1211,7 +1214,8 @@ class Monitor:
         return self._counter
 
     def summary(self) -> dict[str, Any]:
-        """Frames, timing (median/mean/max ms), patch counts per task and status, alarm states, last values."""
+        """Frames, timing (median/mean/max ms), patch counts per task and status, the patches the estimators refused
+        per task and reason, alarm states, last values."""
         t = sorted(self._times)
         out: dict[str, Any] = {
             "frames": self._counter,
@@ -1222,6 +1226,7 @@ class Monitor:
             },
             "estimators": {task: h.name for task, h in self.estimators.items()},
             "patches": {task: dict(c) for task, c in self._counts.items()},
+            "refused": {task: dict(c) for task, c in self._refused.items()},
             "alarms": dict(self._alarms),
             "mode": self.mode, "samples_per_frame": dict(self.n_samples) if self.mode == "sampled" else None,
             "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,

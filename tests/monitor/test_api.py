@@ -460,9 +460,11 @@ def test_refused_patches_are_counted_and_named_when_nothing_is_assessable():
         assert set(refused) == {"textured", "no flat area"} and sum(refused.values()) == d["noise"]["patches"]["not_assessable"] > 0
         assert "textured" in d["noise"]["note"] and "no flat area" in d["noise"]["note"]
         assert d["alarm"]["state"] == "not_assessable" and "textured" in d["alarm"]["message"]
-        # the next frame counts its own refusals, not a running total
+        # the next frame counts its own refusals, not a running total; the summary adds them up over the run
         d2 = _strict(mon.process(frame).to_json())
         assert sum(d2["noise"]["refused"].values()) == d2["noise"]["patches"]["not_assessable"]
+        total = mon.summary()["refused"]["noise"]
+        assert total == {k: refused.get(k, 0) + d2["noise"]["refused"].get(k, 0) for k in set(refused) | set(d2["noise"]["refused"])}
     ok = _strict(Monitor(FakeNoise(), None, sensor="ICX285", warmup=False).process(frame).to_json())
     assert ok["noise"]["refused"] == {}
 
