@@ -39,6 +39,11 @@ Simulation (exact, not an approximation of the stationary model):
   equation (a disk is the ellipse ``a = b = r``). Natural scenes hold structures narrower than their edges are
   far apart; disks alone have none, and a patch of thin lines has more fine content than a patch of edges at the
   same blur.
+* ``coverage`` < 1 (the default 1 is the model above): the leaves stop once they cover at least that share of the
+  pixels (the topmost leaves of the same process), and the rest shows a background — a linear ramp between two gray
+  levels of the leaves' range along a random direction, from the stream ``(seed, 3)`` — rendered on the same fine
+  grid. Natural scenes have large smooth areas (sky, road, walls) between their objects; a fully covered frame has
+  none, and a network trained only on it reads a sparse patch's missing fine content as blur.
 * Painting is vectorised: a batch of leaves is rasterised by their bounding boxes at once (leaves whose
   box holds no uncovered pixel are culled with a summed-area table first) and each pixel takes the first
   leaf of the batch that covers it; when only a few pixels remain uncovered they are tested against the
@@ -108,6 +113,29 @@ def _resolve_params(
     if s > 8:
         raise ValueError(f"supersample = {s} must be in [1, 8]")
     return h, w, r_min, r_max, contrast, s  # type: ignore[return-value]
+
+
+def _check_coverage(coverage: float) -> float:
+    """``coverage`` as a float in (0, 1]; ``ValueError`` naming the value otherwise."""
+    try:
+        c = float(coverage)
+    except (TypeError, ValueError):
+        raise ValueError(f"coverage must be a number in (0, 1], got {coverage!r}") from None
+    if not math.isfinite(c) or not 0.0 < c <= 1.0:
+        raise ValueError(f"coverage = {c:g} must be in (0, 1] (share of the frame the leaves cover)")
+    return c
+
+
+def _gradient_background(rng3: np.random.Generator, h: int, w: int, lo: float, hi: float) -> np.ndarray:
+    """``h×w`` linear ramp between two gray levels uniform on [lo, hi] along a uniformly random direction across the
+    frame (the sky, a road, a wall behind the leaves)."""
+    a, b, u = rng3.random(3)
+    a, b, phi = lo + (hi - lo) * a, lo + (hi - lo) * b, 2.0 * math.pi * u
+    c, sn = math.cos(phi), math.sin(phi)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    t = c * x + sn * y
+    t = (t - t.min()) / max(float(t.max() - t.min()), 1e-12)
+    return (a + (b - a) * t).astype(np.float32)
 
 
 def _check_shape(shading: float, thin: float) -> tuple[float, float]:
@@ -289,11 +317,14 @@ def _render(
     rng2: np.random.Generator | None = None,
     thin: float = 0.0,
     thin_width: tuple[float, float] = (1.0, 1.0),
-) -> np.ndarray:
-    """Render ``h×w`` px (radii in px of this grid). ``slope`` > 0: shaded leaves, the gray level changing by
-    ``slope · U(0, 1)`` per radius ``r`` along a random direction. Their per-leaf draws come from ``rng2``.
-    ``thin`` > 0: that share of the leaves are thin ellipses, semi-minor axis ``b`` log-uniform on ``thin_width``
-    [px of this grid], semi-major ``a = max(THIN_LENGTH·r, b)``."""
+    coverage: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Render ``h×w`` px (radii in px of this grid) → (image, uncovered pixels) as ``h×w`` arrays. ``slope`` > 0:
+    shaded leaves, the gray level changing by ``slope · U(0, 1)`` per radius ``r`` along a random direction. Their
+    per-leaf draws come from ``rng2``. ``thin`` > 0: that share of the leaves are thin ellipses, semi-minor axis
+    ``b`` log-uniform on ``thin_width`` [px of this grid], semi-major ``a = max(THIN_LENGTH·r, b)``. ``coverage``
+    < 1: stop after the first batch of leaves that covers at least that share of the pixels (batches of about an
+    eighth of the leaves it takes, −ln(1 − coverage) frames' worth of leaf area); the rest stays uncovered."""
     shaped = slope > 0.0 or thin > 0.0
     if shaped and rng2 is None:
         raise ValueError("shaded or thin leaves need their own random stream rng2")
@@ -305,6 +336,8 @@ def _render(
     mean_area = math.pi * 2.0 / (r_min**-2 - r_max**-2) * math.log(r_max / r_min)
     frame_area = (h - 1 + 2 * m * r_min) * (w - 1 + 2 * m * r_min)
     batch = int(min(max(64, frame_area / mean_area), 1_000_000))
+    if coverage < 1.0:  # a Poisson process of leaves covers 1 − exp(−N·area/frame): N for the share, in 8 steps
+        batch = int(min(max(16, -math.log1p(-coverage) * frame_area / mean_area / 8.0), 1_000_000))
     n_left = n_pix
     for _ in range(10_000):
         r, cx, cy, val = _sample_leaves(rng, batch, h, w, r_min, r_max, lo, hi, m)
@@ -368,9 +401,10 @@ def _render(
                 )
                 start = stop
         n_left = int(np.count_nonzero(uncovered))
-        if n_left == 0:
-            return img.reshape(h, w)
-        batch = min(batch * 2, 1_000_000)
+        if n_left == 0 or n_left <= (1.0 - coverage) * n_pix:
+            return img.reshape(h, w), uncovered.reshape(h, w)
+        if coverage >= 1.0:
+            batch = min(batch * 2, 1_000_000)
     raise RuntimeError("dead_leaves did not cover the frame; r_min may be too small for the image size")
 
 
@@ -383,6 +417,7 @@ def dead_leaves(
     supersample: int = 1,
     shading: float = 0.0,
     thin: float = 0.0,
+    coverage: float = 1.0,
 ) -> torch.Tensor:
     """Render one dead-leaves image.
 
@@ -399,6 +434,10 @@ def dead_leaves(
             [gray level / px]: across one radius the level changes by at most ``shading · contrast``.
         thin: in [0, 1]; the share of the leaves that are thin ellipses (width log-uniform on
             :data:`THIN_WIDTH_PX` px, length ``2·THIN_LENGTH·r``, uniform orientation); 0 = none.
+        coverage: in (0, 1]; 1 = the frame fully covered (the dead-leaves model). Below 1 the leaves stop once they
+            cover at least that share of the frame and the rest shows a background: a linear ramp between two gray
+            levels of the leaves' range along a random direction (drawn from the seed sequence ``(seed, 3)``),
+            rendered on the same fine grid, so the pixel aperture stays exact. Scenes with large smooth areas.
 
     Returns:
         float32 tensor ``1×H×W`` with values in ``[0.5 − contrast/2, 0.5 + contrast/2]`` ⊂ [0, 1] (with
@@ -406,10 +445,12 @@ def dead_leaves(
     """
     h, w, r_min, r_max, contrast, s = _resolve_params(size, r_min, r_max, contrast, supersample)
     shading, thin = _check_shape(shading, thin)
+    coverage = _check_coverage(coverage)
     seed = check_int(seed, "seed", 0)
     rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed)))
     rng2 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, 2])))
-    return _dead_leaves(rng, h, w, r_min, r_max, contrast, s, shading, rng2, thin)
+    rng3 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, 3])))
+    return _dead_leaves(rng, h, w, r_min, r_max, contrast, s, shading, rng2, thin, coverage, rng3)
 
 
 def _dead_leaves(
@@ -423,11 +464,17 @@ def _dead_leaves(
     shading: float = 0.0,
     rng2: np.random.Generator | None = None,
     thin: float = 0.0,
+    coverage: float = 1.0,
+    rng3: np.random.Generator | None = None,
 ) -> torch.Tensor:
     lo, hi = 0.5 - 0.5 * contrast, 0.5 + 0.5 * contrast
     slope = shading * contrast  # largest change of gray level across one radius
     width = (0.5 * THIN_WIDTH_PX[0] * s, 0.5 * THIN_WIDTH_PX[1] * s)  # semi-minor axis in px of the render grid
-    img = _render(rng, h * s, w * s, r_min * s, r_max * s, lo, hi, slope, rng2, thin, width)
+    img, uncovered = _render(rng, h * s, w * s, r_min * s, r_max * s, lo, hi, slope, rng2, thin, width, coverage)
+    if uncovered.any():  # coverage < 1: the background behind the leaves, on the fine grid
+        if rng3 is None:
+            raise ValueError("a background (coverage < 1) needs its own random stream rng3")
+        img[uncovered] = _gradient_background(rng3, h * s, w * s, lo, hi)[uncovered]
     if slope > 0.0:
         np.clip(img, 0.0, 1.0, out=img)  # a reflectance stays in [0, 1] before the pixel averages it
     if s > 1:
@@ -447,12 +494,13 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         n_images: number of images (>= 1).
         size: ``(H, W)`` in px, or one int.
         seed: base seed (>= 0).
-        r_min, r_max, contrast, supersample, shading, thin: as in :func:`dead_leaves`. ``r_min`` [px],
-            ``contrast``, ``shading`` and ``thin`` may also be a ``[low, high]`` range: each image then draws its
-            own value (``r_min`` log-uniform, the others uniform) from the seed sequence ``(seed, i, 1)``, so
-            scenes vary in edge density, edge contrast, shading and thin structures while fixed values leave every
-            image bit-identical to before. The per-leaf draws of the shading and the thin leaves come from the
-            seed sequence ``(seed, i, 2)``.
+        r_min, r_max, contrast, supersample, shading, thin, coverage: as in :func:`dead_leaves`.
+            ``r_min`` [px], ``contrast``, ``shading``, ``thin`` and ``coverage`` may also be a ``[low, high]`` range:
+            each image then draws its own value (``r_min`` log-uniform, the others uniform) from the seed sequence
+            ``(seed, i, 1)``, so scenes vary in edge density, edge contrast, shading, thin structures and how much of
+            the frame the leaves cover, while fixed values leave every image bit-identical to before. The per-leaf
+            draws of the shading and the thin leaves come from the seed sequence ``(seed, i, 2)``, the background
+            of a partly covered image from ``(seed, i, 3)``.
     """
 
     def __init__(
@@ -466,6 +514,7 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         supersample: int = 1,
         shading: float | Sequence[float] = 0.0,
         thin: float | Sequence[float] = 0.0,
+        coverage: float | Sequence[float] = 1.0,
     ) -> None:
         self.n_images = check_int(n_images, "n_images", 1)
         self.seed = check_int(seed, "seed", 0)
@@ -473,6 +522,9 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         self.contrast_range = _range(contrast, "contrast")
         self.shading_range = _range(shading, "shading")
         self.thin_range = _range(thin, "thin")
+        self.coverage_range = _range(coverage, "coverage")
+        for c in self.coverage_range:
+            _check_coverage(c)
         for sh, th in zip(self.shading_range, self.thin_range):
             _check_shape(sh, th)  # both ends valid
         for r_lo, c_lo in ((self.r_min_range[0], self.contrast_range[0]), (self.r_min_range[1], self.contrast_range[1])):
@@ -485,21 +537,22 @@ class DeadLeavesSource(torch.utils.data.Dataset):
         """``(r_min [px], contrast)`` of image ``index``: the fixed values, or its draw from the ranges."""
         return self.scene_params(index)[:2]  # type: ignore[return-value]
 
-    def scene_params(self, index: int) -> tuple[float, float, float, float]:
-        """``(r_min [px], contrast, shading, thin)`` of image ``index``: the fixed values, or its draws."""
+    def scene_params(self, index: int) -> tuple[float, float, float, float, float]:
+        """``(r_min [px], contrast, shading, thin, coverage)`` of image ``index``: the fixed values, or its draws."""
         i = check_index(index, len(self), "DeadLeavesSource")
         (r_lo, r_hi), (c_lo, c_hi) = self.r_min_range, self.contrast_range
-        (s_lo, s_hi), (t_lo, t_hi) = self.shading_range, self.thin_range
-        if r_lo == r_hi and c_lo == c_hi and s_lo == s_hi and t_lo == t_hi:
-            return r_lo, c_lo, s_lo, t_lo
-        # the first draws are those of r_min and contrast (then shading) whatever the later ranges are; the fourth is
-        # unused, so every image stays the one the shipped MTF schedule trained on
+        (s_lo, s_hi), (t_lo, t_hi), (v_lo, v_hi) = self.shading_range, self.thin_range, self.coverage_range
+        if r_lo == r_hi and c_lo == c_hi and s_lo == s_hi and t_lo == t_hi and v_lo == v_hi:
+            return r_lo, c_lo, s_lo, t_lo, v_lo
+        # the first draws are those of r_min and contrast (then shading) whatever the later ranges are; the fourth
+        # (coverage) is unused by the others, so a fixed coverage leaves every image as before
         u = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 1]))).random(5)
         return (
             float(r_lo * (r_hi / r_lo) ** u[0]),
             float(c_lo + (c_hi - c_lo) * u[1]),
             float(s_lo + (s_hi - s_lo) * u[2]),
             float(t_lo + (t_hi - t_lo) * u[4]),
+            float(v_lo + (v_hi - v_lo) * u[3]),
         )
 
     def __len__(self) -> int:
@@ -507,11 +560,13 @@ class DeadLeavesSource(torch.utils.data.Dataset):
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
         i = check_index(index, len(self), "DeadLeavesSource")
-        r_min, contrast, shading, thin = self.scene_params(i)
+        r_min, contrast, shading, thin, coverage = self.scene_params(i)
         rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i])))
         rng2 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 2])))
+        rng3 = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, i, 3])))
         h, w = self.size
-        img = _dead_leaves(rng, h, w, r_min, self.r_max, contrast, self.supersample, shading, rng2, thin)
+        img = _dead_leaves(rng, h, w, r_min, self.r_max, contrast, self.supersample, shading, rng2, thin, coverage,
+                           rng3)
         return img, self.ids[i]
 
     def __repr__(self) -> str:
@@ -519,7 +574,7 @@ class DeadLeavesSource(torch.utils.data.Dataset):
             f"{type(self).__name__}(n_images={self.n_images}, size={self.size}, seed={self.seed}, "
             f"r_min={_fmt(self.r_min_range)}, r_max={self.r_max:g}, contrast={_fmt(self.contrast_range)}, "
             f"supersample={self.supersample}, shading={_fmt(self.shading_range)}, "
-            f"thin={_fmt(self.thin_range)})"
+            f"thin={_fmt(self.thin_range)}, coverage={_fmt(self.coverage_range)})"
         )
 
 

@@ -253,10 +253,10 @@ def test_shaded_elliptical_leaves_are_seeded_and_deterministic():
     assert all(torch.equal(src[i][0], again[i][0]) for i in (3, 0, 2))
     assert not torch.equal(src[0][0], src[1][0])
     params = [src.scene_params(i) for i in range(4)]
-    assert len(set(params)) == 4 and all(0.2 <= s <= 0.9 and 0.1 <= t <= 0.6 for _, _, s, t in params)
-    assert "shading=[0.2, 0.9], thin=[0.1, 0.6])" in repr(src)
+    assert len(set(params)) == 4 and all(0.2 <= s <= 0.9 and 0.1 <= t <= 0.6 and c == 1.0 for _, _, s, t, c in params)
+    assert "shading=[0.2, 0.9], thin=[0.1, 0.6], coverage=1)" in repr(src)
     fixed = DeadLeavesSource(2, size=32, seed=2, shading=0.5, thin=0.25)
-    assert fixed.scene_params(1) == (2.0, 1.0, 0.5, 0.25) and "shading=0.5, thin=0.25)" in repr(fixed)
+    assert fixed.scene_params(1) == (2.0, 1.0, 0.5, 0.25, 1.0) and "shading=0.5, thin=0.25," in repr(fixed)
 
 
 def test_default_source_forwards_shading():
@@ -264,7 +264,7 @@ def test_default_source_forwards_shading():
 
     src = DefaultSource(deadleaves=2, deadleaves_size=32, include_skimage=False, include_street=False, shading=0.4)
     (dl,) = src.sources
-    assert isinstance(dl, DeadLeavesSource) and dl.scene_params(0)[2:] == (0.4, 0.0)
+    assert isinstance(dl, DeadLeavesSource) and dl.scene_params(0)[2:] == (0.4, 0.0, 1.0)
     assert torch.equal(src[1][0], DeadLeavesSource(2, size=32, shading=0.4)[1][0])
 
 
@@ -356,3 +356,52 @@ def test_default_source_forwards_thin():
     (dl,) = src.sources
     assert isinstance(dl, DeadLeavesSource) and 0.1 <= dl.scene_params(1)[3] <= 0.6
     assert torch.equal(src[1][0], DeadLeavesSource(2, size=32, thin=[0.1, 0.6])[1][0])
+
+
+@pytest.mark.parametrize("coverage", [0.2, 0.5, 0.9])
+def test_coverage_leaves_that_share_of_the_frame_to_a_ramp_background(coverage):
+    """``coverage`` < 1: the leaves cover at least that share of the pixels (at most ~ an eighth of the needed leaf
+    area more), the rest is the linear-ramp background drawn from the seed sequence (seed, 3)."""
+    from camhealth.data.dead_leaves import _gradient_background, _render
+
+    rng, rng2 = np.random.default_rng(5), np.random.default_rng(6)
+    img, uncovered = _render(rng, 200, 240, 2.0, 100.0, 0.0, 1.0, 0.0, rng2, 0.0, (1.0, 1.0), coverage)
+    share = 1.0 - uncovered.mean()
+    assert coverage <= share <= coverage + 0.5 * (1.0 - coverage)
+    kw = dict(size=(200, 240), r_min=2.0, supersample=1, contrast=0.8)
+    out = dead_leaves(seed=9, coverage=coverage, **kw)[0].numpy()
+    bg = _gradient_background(np.random.Generator(np.random.PCG64(np.random.SeedSequence([9, 3]))), 200, 240, 0.1, 0.9)
+    on_bg = np.isclose(out, bg, atol=1e-6)
+    assert coverage - 0.05 <= 1.0 - on_bg.mean() <= coverage + 0.5 * (1.0 - coverage) + 0.05
+    # the background is a plane: second differences vanish where three pixels in a row lie on it
+    d2 = bg[:, 2:] - 2 * bg[:, 1:-1] + bg[:, :-2]
+    assert np.abs(d2).max() < 1e-5 and 0.1 - 1e-6 <= bg.min() and bg.max() <= 0.9 + 1e-6
+    assert torch.equal(dead_leaves(seed=9, coverage=1.0, **kw), dead_leaves(seed=9, **kw))  # 1: the full model
+
+
+def test_coverage_range_is_drawn_per_image_and_leaves_fixed_images_unchanged():
+    src = DeadLeavesSource(6, size=48, seed=4, coverage=[0.3, 1.0], supersample=2)
+    cov = [src.scene_params(i)[4] for i in range(6)]
+    assert len(set(cov)) == 6 and all(0.3 <= c <= 1.0 for c in cov)
+    assert all(torch.equal(src[i][0], DeadLeavesSource(6, size=48, seed=4, coverage=[0.3, 1.0], supersample=2)[i][0]) for i in (5, 0))
+    plain, full = DeadLeavesSource(3, size=48, seed=4, thin=[0.1, 0.5]), DeadLeavesSource(3, size=48, seed=4, thin=[0.1, 0.5], coverage=1.0)
+    assert all(torch.equal(plain[i][0], full[i][0]) for i in range(3))
+    # r_min, contrast, shading and thin draws do not depend on the coverage range
+    both = DeadLeavesSource(3, size=48, seed=4, thin=[0.1, 0.5], coverage=[0.2, 0.9])
+    assert [both.scene_params(i)[:4] for i in range(3)] == [plain.scene_params(i)[:4] for i in range(3)]
+
+
+@pytest.mark.parametrize(
+    "kw, msg",
+    [
+        (dict(coverage=0.0), r"coverage = 0 must be in \(0, 1\]"),
+        (dict(coverage=1.5), r"coverage = 1.5 must be in \(0, 1\]"),
+        (dict(coverage=float("nan")), r"coverage = nan must be in \(0, 1\]"),
+        (dict(coverage="most"), r"coverage.*'most'"),
+    ],
+)
+def test_bad_coverage_is_rejected(kw, msg):
+    with pytest.raises(ValueError, match=msg):
+        dead_leaves(16, **kw)
+    with pytest.raises(ValueError, match=msg):
+        DeadLeavesSource(2, size=16, **kw)
