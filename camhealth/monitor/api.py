@@ -619,11 +619,9 @@ def _refusals(st: _TaskState) -> dict[str, Any]:
     return {"refused": dict(st.refused), "beyond_xi": beyond}
 
 
-def _refused_text(st: _TaskState) -> str:
-    """``"; refused: 8 noise beyond validated range"`` for a note, or ``""``."""
-    if not st.refused:
-        return ""
-    return "; refused: " + ", ".join(f"{v} {k}" for k, v in sorted(st.refused.items(), key=lambda kv: -kv[1]))
+def _reasons_text(refused: Mapping[str, int]) -> str:
+    """``"8 noise beyond validated range, 2 textured"``: refusal counts, most frequent reason first."""
+    return ", ".join(f"{v} {k}" for k, v in sorted(refused.items(), key=lambda kv: -kv[1]))
 
 
 def _describe(est: Any) -> str:
@@ -1041,7 +1039,8 @@ class Monitor:
         if boxes.shape[0] == 0:  # as in map mode: a frame without an informative patch is not assessable
             skipped = {k: v for k, v in counts.items() if k in ("black", "saturated", "featureless", "no_edges", "not_assessable") and v}
             why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
-            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}{_refused_text(st)})")
+            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}"
+                              + (f"; refused: {_reasons_text(st.refused)})" if st.refused else ")"))
         spatial = spatial_median(vals, dim=0)
         n = int(vals.shape[0])
         per_frame = torch.nanmedian(st.samples, dim=1).values  # (window, K), NaN for frames without samples
@@ -1079,7 +1078,8 @@ class Monitor:
         if not bool(has.any()):
             skipped = {k: v for k, v in counts.items() if k not in ("estimated", "interpolated", "reused", "total") and v}
             why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
-            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}{_refused_text(st)})")
+            return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}"
+                              + (f"; refused: {_reasons_text(st.refused)})" if st.refused else ")"))
         agg = temporal_median(st.history, st.window, dim=0)  # (1, N, K)
         tm = agg.median[0]
         per_patch = torch.where(torch.isfinite(tm), tm, st.values)[has]
@@ -1157,8 +1157,7 @@ class Monitor:
                                           sum(noise.refused.values()), self.xi_threshold_dn)
             out = xi_alarm(float("nan"), float("nan"), 0)
             if noise.refused:  # say why: the estimator's reasons for the patches it refused
-                out["message"] += " (refused: " + ", ".join(
-                    f"{v} {k}" for k, v in sorted(noise.refused.items(), key=lambda kv: -kv[1])) + ")"
+                out["message"] += f" (refused: {_reasons_text(noise.refused)})"
             return out
         i = NOISE_FIELDS.index("xi")
         count = noise.n_values
