@@ -103,6 +103,10 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     bias = [b for b in size["bias_clean"].values() if b == b]  # NaN: no clean patch of that class at one scene per class
     assert set(size["bias_clean"]) == set(CLASSES) and bias and all(b < 0 for b in bias)
     assert "| all, assessable |" in text
+    # the PSF generalisation alone: held-out over training generators, both clean on the same rendered scenes
+    fam = out["fake"]["families"]["defocus"]
+    assert fam["clean_over_in_dist_rendered"] == pytest.approx(fam["clean"] / fam["in_dist_rendered"])
+    assert "| clean / in-dist. gen. × rendered |" in text
     # the uncertainty table: per scene group and views, the shares within u and 2u, the spread alone beside it
     unc = out["fake"]["uncertainty"]
     for gr in rm.GROUPS:
