@@ -38,12 +38,13 @@ harm" needs. Σ⁻¹ is applied in closed form (Sherman–Morrison), so ℓ cost
 
 Hypotheses (the thesis's mismatch model, Sec. 6.3.2: one field of M is wrong at a time):
 
-- H₀: M is right (prior 1 − ``mismatch_probability``);
+- H₀: M is right (prior 1 − ``mismatch_probability``, ½);
 - gain, temperature or thermal white noise W wrong: each field on a grid of ``grid`` values uniform over its
   range (gain uniform in the linear factor), the σ of every candidate from the physics (Eq. 3.14–3.19), so a
   field explains only what its physical range allows;
 - noise that no metadata in range explain: extra white noise of σ_x on a log grid up to 128 DN, counted as
-  readout noise (prior ``beyond_probability``).
+  readout noise (prior ``beyond_probability``). The four kinds of mismatch share the mismatch prior equally
+  (⅛ each): a noise source outside the metadata is as likely as any one field being wrong.
 
 The texture check — ln of the horizontal-and-vertical to diagonal detail energy on the inliers, ≈ 0 for white
 noise — widens the common model error: η_eff² = η² + max(texture, 0)² (texture adds to the horizontal and vertical
@@ -59,7 +60,8 @@ and gravel 0.04–0.11.
 
 The answer: a mismatch too small to see (it moves σ_Total by less than max(0.5 DN, 15 %)) counts as a match, and
 P(match) is H₀'s posterior plus theirs. Where P(match) ≥ ½, or fewer than :data:`MIN_FOLLOW_DETAILS` details were
-used, or the texture check exceeds :data:`TEXTURE_LIMIT`, or the neighbour check fails: the closed form exactly (σ per source after clipping,
+used, or the patch is textured (:func:`textured`: the texture check and the neighbour check, each scaled to its
+limit, add up in quadrature to 1 or more — each alone at its limit, or two marginal signs together): the closed form exactly (σ per source after clipping,
 ξ = 0). Elsewhere the posterior over the visible mismatch hypotheses: its σ per source after clipping (at the
 posterior-mean variances) and ξ = σ_Total(M) − σ_Total(image) (Eq. 4.3, both after clipping). ``xi_std`` is the
 posterior standard deviation of σ_Total (∞ without evidence). Inliers are chosen in two passes — against a
@@ -94,7 +96,8 @@ from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
-__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN"]
+__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
+           "textured"]
 
 #: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
 VALIDATED_SIGMA_DN = 64.0
@@ -127,6 +130,19 @@ PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
 _MAX_MARGIN_DN = 100.0
 # bins with fewer details than this carry no evidence (their ŝ is too rough for the log-normal approximation)
 _MIN_BIN_DETAILS = 8
+
+
+def textured(texture: torch.Tensor, corr_check: torch.Tensor) -> torch.Tensor:
+    """Whether texture leaked into the evidence (bool, broadcast): the texture check (the log ratio of horizontal and
+    vertical to diagonal detail energy, ≈ 0 for white noise) over :data:`TEXTURE_LIMIT` and the neighbour check
+    (|ρ| of adjacent diagonal details over its limit), added in quadrature, reach 1.
+
+    Each check alone at its limit is texture, as is a patch where both are marginal (say 0.75 and 0.7 of their
+    limits): white noise keeps both near 0 at once, so two independent signs of texture that agree are one clear
+    sign. Such patches — mostly texture, a few hundred flat-looking blocks — otherwise read several DN noisier than
+    their camera (on the robustness benchmark's matched frames, up to 9.5 DN)."""
+    t = torch.as_tensor(texture).double().clamp_min(0) / TEXTURE_LIMIT
+    return t.square() + torch.as_tensor(corr_check).double().square() >= 1.0
 
 
 def _grid_values(name: str, low: float, high: float, grid: int, gain_uniform_in: str) -> torch.Tensor:
@@ -271,7 +287,7 @@ def physics_noise_posterior(
     eta: float = 0.12,
     eta_bin: float = 0.05,
     mismatch_probability: float = 0.5,
-    beyond_probability: float = 0.02,
+    beyond_probability: float = 0.125,
     grid: int = 96,
     bins: int = 16,
     bound_margin: float = 2.0,
@@ -291,7 +307,10 @@ def physics_noise_posterior(
         eta: model error of the NLF common to all bins (relative, of the variance).
         eta_bin: model error of one bin (relative).
         mismatch_probability: prior probability that one field of the metadata is wrong.
-        beyond_probability: prior probability of noise no metadata in range explain (part of the mismatch prior).
+        beyond_probability: prior probability of noise no metadata in range explain (part of the mismatch prior). The
+            default gives it the share of each single field (0.125 = 0.5 / 4): a noise source outside the metadata
+            (interference, a failing amplifier, a white-noise density beyond its range) is as likely as any one field
+            being wrong.
         grid: candidate values per field.
         bins: intensity bins of [0, 255] DN.
         bound_margin: blocks nearer than this many σ (at most 100 DN) to 0 or 255 DN are not used; nearer ones are
@@ -434,9 +453,7 @@ def physics_noise_posterior(
             cov, var, pairs = (t.sum().expand(b) for t in (cov, var, pairs))
         corr = torch.where(pairs >= _MIN_FIT_BLOCKS, cov / var.clamp_min(1e-12), torch.zeros_like(cov))
         corr_check = corr.abs() / torch.maximum(torch.full_like(corr, DETAIL_CORR_LIMIT), 3.0 / pairs.clamp_min(1.0).sqrt())
-        corr_ok = corr_check < 1.0
-        follows = (evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & (texture <= TEXTURE_LIMIT)
-                   & corr_ok)
+        follows = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & ~textured(texture, corr_check)
         out_sigma = torch.where(follows.unsqueeze(1), image_clipped, prior_clipped)
         xi = torch.where(follows, prior_clipped[:, 3] - image_clipped[:, 3], torch.zeros_like(p_match))
         # posterior spread of σ_Total (before clipping) over all hypotheses, scaled to the clipped total
@@ -515,7 +532,7 @@ class PhysicsNoiseEstimator:
                 continue
             if raw[i, 7] < MIN_FOLLOW_DETAILS:
                 reason[i] = "no flat area"
-            elif raw[i, 8] > TEXTURE_LIMIT or raw[i, 11] >= 1.0:
+            elif bool(textured(raw[i, 8], raw[i, 11])):
                 reason[i] = "textured"
             elif raw[i, 10] > VALIDATED_SIGMA_DN:
                 reason[i] = BEYOND_VALIDATED
