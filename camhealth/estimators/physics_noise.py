@@ -527,12 +527,13 @@ class PhysicsNoiseEstimator:
                                                      **settings) for i in range(0, b, batch_size)])
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
+        is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
         for i in range(b):
             if reason[i]:
                 continue
             if raw[i, 7] < MIN_FOLLOW_DETAILS:
                 reason[i] = "no flat area"
-            elif bool(textured(raw[i, 8], raw[i, 11])):
+            elif is_textured[i]:
                 reason[i] = "textured"
             elif raw[i, 10] > VALIDATED_SIGMA_DN:
                 reason[i] = BEYOND_VALIDATED
