@@ -15,9 +15,11 @@ predicts v_k(H), and the evidence is read in log space, where a bin's sampling e
 
 f_k ≤ 1 is the share of the noise a block keeps when it is used only if none of its pixels is clipped: near 0 or
 255 DN that drops the blocks whose noise swings widest (:func:`_kept_variance_factor`, a truncated normal; 1 far
-from the bounds). Without it a 60 DN patch reads 7 % low; with it, blocks down to 2 σ from the bounds are used. A far
-noisier hypothesis, whose few kept blocks would be as quiet, is refused by the count of clipped pixels
-(:func:`_clipping_penalty`).
+from the bounds). Without it a 60 DN patch reads 7 % low; with it, blocks down to 2 σ from the bounds are used, and
+down to 1 σ in a patch (pooled: a frame) that keeps fewer than :data:`MIN_FOLLOW_DETAILS` details at 2 σ — a dark or
+bright patch under strong noise, whose blocks all lie near a bound (at 40 DN with 35 DN of noise: within 8 %, where
+2 σ alone leaves no flat area and the closed form would stand). A far noisier hypothesis, whose few kept blocks would
+be as quiet, is refused by the count of clipped pixels (:func:`_clipping_penalty`).
 
 **The scene's own fine-scale content.** A scene adds to the details by itself — texture too fine for the flatness
 tests, and in recorded frames their own noise and compression. On the robustness benchmark's scenes that is
@@ -241,14 +243,16 @@ def _inliers(
     max_margin_dn: float = math.inf,
 ) -> torch.Tensor:
     """Float mask (3, B, 1, h, w) of the details used: usable blocks more than ``bound_margin`` reference σ from
-    both bounds (nearer, few blocks are left and the clipping model of :func:`_kept_variance_factor` carries the
-    evidence alone), flat at the next coarser scale
+    both bounds (a number, or one per patch as a (B,) tensor; nearer, few blocks are left and the clipping model of
+    :func:`_kept_variance_factor` carries the evidence alone), flat at the next coarser scale
     (χ²₂ test at 99 % on the central differences of the block means, whose noise variance is v/2, dilated by one
     block), and within 3 reference σ. The margin is at most ``max_margin_dn`` (for a very noisy patch 2 σ from
     both bounds would leave no intensity at all)."""
-    sd = v_ref.sqrt().clamp_max(max_margin_dn / bound_margin) if bound_margin > 0 else v_ref.sqrt()
+    margin = torch.as_tensor(bound_margin, dtype=v_ref.dtype, device=v_ref.device)
+    margin = margin.view(-1, 1, 1, 1) if margin.ndim else margin
+    dist = torch.minimum(v_ref.sqrt() * margin, torch.full_like(v_ref, max_margin_dn))  # ≤ max_margin_dn [DN]
     flat = F.max_pool2d((g2 > _TEXTURE_CHI2 * v_ref / 2.0).float(), 3, 1, 1) == 0
-    keep = usable & flat & (m - bound_margin * sd > 0) & (m + bound_margin * sd < 255.0)
+    keep = usable & flat & (m - dist > 0) & (m + dist < 255.0)
     return (keep & (d2 < _INLIER_Z**2 * v_ref)).float()
 
 
@@ -291,6 +295,7 @@ def physics_noise_posterior(
     grid: int = 96,
     bins: int = 16,
     bound_margin: float = 2.0,
+    fallback_margin: float = 1.0,
     pool: bool = False,
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
 ) -> torch.Tensor:
@@ -315,6 +320,11 @@ def physics_noise_posterior(
         bins: intensity bins of [0, 255] DN.
         bound_margin: blocks nearer than this many σ (at most 100 DN) to 0 or 255 DN are not used; nearer ones are
             kept and their details' loss to the clipping is modelled (:func:`_kept_variance_factor`).
+        fallback_margin: the margin [σ] of a patch (pooled: a frame) that keeps fewer than
+            :data:`MIN_FOLLOW_DETAILS` details at ``bound_margin`` — a dark or bright patch under strong noise, whose
+            blocks all lie within 2 σ of a bound — so that its nearer blocks, with their clipping modelled, carry
+            the evidence instead of none (a patch at 40 DN with 35 DN of noise: assessable and within 8 %, where
+            ``bound_margin`` alone leaves it without a flat area). Must be in (0, ``bound_margin``].
         scene_allowance_dn: τ [DN], the fine-scale content a scene may add of its own (its texture, the noise and
             compression of a recording it came from): a bin that reads more than a hypothesis predicts carries the
             extra log-variance ln(1 + τ²/v)² (one that reads less, none: a scene cannot remove noise). 0 turns it off.
@@ -336,6 +346,8 @@ def physics_noise_posterior(
             raise ValueError(f"{name} = {value!r} must be in [{low:g}, {high:g}]")
     if beyond_probability > mismatch_probability or mismatch_probability >= 1.0:
         raise ValueError(f"beyond_probability = {beyond_probability} must be ≤ mismatch_probability = {mismatch_probability} < 1")
+    if not (0.0 < fallback_margin <= bound_margin) or not math.isfinite(bound_margin):
+        raise ValueError(f"fallback_margin = {fallback_margin!r} must be in (0, bound_margin = {bound_margin!r}]")
     if grid < 2 or bins < 1:
         raise ValueError(f"grid = {grid} must be ≥ 2 and bins = {bins} ≥ 1")
     b, dev, f64 = image.shape[0], image.device, torch.float64
@@ -383,6 +395,13 @@ def physics_noise_posterior(
                 v_ref = ((post * a_all).sum(1).float().view(b, 1, 1, 1) * m.clamp_min(0)
                          + ((post * c_all).sum(1) + q + scene_allowance_dn**2).float().view(b, 1, 1, 1)).clamp_min(1e-6)
             inl_all = _inliers(m, d2, usable, g2, v_ref, bound_margin, _MAX_MARGIN_DN)
+            # a patch (pooled: a frame) with too few details at the nominal margin — dark or bright under strong
+            # noise — reads its blocks nearer the bounds instead, their loss to the clipping modelled
+            n_nominal = inl_all[0].flatten(1).sum(1)
+            short = (n_nominal.sum().expand(b) if pool else n_nominal) < MIN_FOLLOW_DETAILS
+            if fallback_margin < bound_margin and bool(short.any()):
+                margin = torch.where(short, fallback_margin, bound_margin).to(v_ref.dtype)
+                inl_all = _inliers(m, d2, usable, g2, v_ref, margin, _MAX_MARGIN_DN)
             inl = inl_all[0].flatten().to(f64)
 
             def per_bin(values: torch.Tensor) -> torch.Tensor:

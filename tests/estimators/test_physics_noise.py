@@ -119,6 +119,26 @@ def test_strong_noise_on_flat_patches_near_and_far_from_the_bounds(level, sigma)
     assert (out["xi"] < 0).all()
 
 
+@pytest.mark.parametrize("level, sigma", [(40.0, 35.0), (20.0, 20.0), (220.0, 35.0)])
+def test_dark_and_bright_patches_under_strong_noise_read_their_blocks_nearer_the_bounds(level, sigma):
+    """A patch whose every block lies within 2 σ of a bound (level ≈ σ) keeps too few details at the nominal margin;
+    with the fallback margin (1 σ, the clipping of the nearer blocks modelled) it is assessable, σ_Total within 8 %
+    and ξ < 0 — without it the closed form (a few DN) would stand with "no flat area"."""
+    meta = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.01, temperature_c=25.0)
+    g = torch.Generator().manual_seed(2)
+    clean = torch.full((4, 1, 128, 128), level / 255.0)
+    noisy = ((clean + torch.randn(clean.shape, generator=g) * sigma / 255.0).clamp(0, 1) * 255.0).round() / 255.0
+    truth = ((noisy - clean) * 255.0).flatten(1).std(1)
+    out = PhysicsNoiseEstimator().predict(noisy, meta)
+    assert out["assessable"].all(), out["reason"]
+    assert torch.allclose(out["sigma_total"], truth, rtol=0.08)
+    assert (out["xi"] < 0).all()
+    nominal = PhysicsNoiseEstimator(settings={"fallback_margin": 2.0}).predict(noisy, meta)
+    assert nominal["reason"] == ["no flat area"] * 4 and (nominal["xi"] == 0).all()
+    pooled = PhysicsNoiseEstimator().predict(noisy, meta, pool=True)
+    assert pooled["assessable"].all() and torch.allclose(pooled["sigma_total"], truth, rtol=0.08)
+
+
 @pytest.mark.parametrize("target", [10.0, 30.0, 60.0])
 def test_xi_sign_and_size_up_to_60_dn(target):
     meta = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.01, temperature_c=20.0)
@@ -199,6 +219,10 @@ def test_bad_input_is_refused():
         physics_noise_posterior(x, meta, scene_allowance_dn=-1.0)
     with pytest.raises(ValueError, match="scene_allowance_dn"):
         physics_noise_posterior(x, meta, scene_allowance_dn=float("nan"))
+    with pytest.raises(ValueError, match=r"fallback_margin = 3.0 must be in \(0, bound_margin = 2.0\]"):
+        physics_noise_posterior(x, meta, fallback_margin=3.0)
+    with pytest.raises(ValueError, match="fallback_margin = 0"):
+        physics_noise_posterior(x, meta, fallback_margin=0)
     with pytest.raises(ValueError, match="beyond_probability"):
         physics_noise_posterior(x, meta, mismatch_probability=0.1, beyond_probability=0.2)
     with pytest.raises(ValueError, match="metadata batch 3"):
