@@ -324,7 +324,7 @@ def physics_noise_posterior(
             :data:`MIN_FOLLOW_DETAILS` details at ``bound_margin`` — a dark or bright patch under strong noise, whose
             blocks all lie within 2 σ of a bound — so that its nearer blocks, with their clipping modelled, carry
             the evidence instead of none (a patch at 40 DN with 35 DN of noise: assessable and within 8 %, where
-            ``bound_margin`` alone leaves it without a flat area). Must be in (0, ``bound_margin``].
+            ``bound_margin`` alone leaves it without a flat area). Used only where it is smaller than ``bound_margin``.
         scene_allowance_dn: τ [DN], the fine-scale content a scene may add of its own (its texture, the noise and
             compression of a recording it came from): a bin that reads more than a hypothesis predicts carries the
             extra log-variance ln(1 + τ²/v)² (one that reads less, none: a scene cannot remove noise). 0 turns it off.
@@ -346,8 +346,9 @@ def physics_noise_posterior(
             raise ValueError(f"{name} = {value!r} must be in [{low:g}, {high:g}]")
     if beyond_probability > mismatch_probability or mismatch_probability >= 1.0:
         raise ValueError(f"beyond_probability = {beyond_probability} must be ≤ mismatch_probability = {mismatch_probability} < 1")
-    if not (0.0 < fallback_margin <= bound_margin) or not math.isfinite(bound_margin):
-        raise ValueError(f"fallback_margin = {fallback_margin!r} must be in (0, bound_margin = {bound_margin!r}]")
+    for name, value in (("bound_margin", bound_margin), ("fallback_margin", fallback_margin)):
+        if not 0.0 <= value <= 64.0 or not math.isfinite(value):
+            raise ValueError(f"{name} = {value!r} must be in [0, 64] (σ from the bounds)")
     if grid < 2 or bins < 1:
         raise ValueError(f"grid = {grid} must be ≥ 2 and bins = {bins} ≥ 1")
     b, dev, f64 = image.shape[0], image.device, torch.float64

@@ -209,10 +209,10 @@ def test_bad_input_is_refused():
         physics_noise_posterior(x, meta, scene_allowance_dn=-1.0)
     with pytest.raises(ValueError, match="scene_allowance_dn"):
         physics_noise_posterior(x, meta, scene_allowance_dn=float("nan"))
-    with pytest.raises(ValueError, match=r"fallback_margin = 3.0 must be in \(0, bound_margin = 2.0\]"):
-        physics_noise_posterior(x, meta, fallback_margin=3.0)
-    with pytest.raises(ValueError, match="fallback_margin = 0"):
-        physics_noise_posterior(x, meta, fallback_margin=0)
+    with pytest.raises(ValueError, match=r"fallback_margin = -1.0 must be in \[0, 64\]"):
+        physics_noise_posterior(x, meta, fallback_margin=-1.0)
+    with pytest.raises(ValueError, match=r"bound_margin = nan must be in \[0, 64\]"):
+        physics_noise_posterior(x, meta, bound_margin=float("nan"))
     with pytest.raises(ValueError, match="beyond_probability"):
         physics_noise_posterior(x, meta, mismatch_probability=0.1, beyond_probability=0.2)
     with pytest.raises(ValueError, match="metadata batch 3"):
