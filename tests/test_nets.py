@@ -133,3 +133,17 @@ def test_built_networks_run_in_fp32_and_under_bf16_autocast(kind, autocast):
     with torch.no_grad():
         ref = net(*args)
     assert torch.allclose(out, ref, rtol=0.1, atol=0.1 * float(ref.abs().max()))
+
+
+def test_count_flops_and_describe_follow_the_network_to_its_device():
+    # a network trained on a GPU is described (FLOPs) at every checkpoint with CPU example inputs; a network on the
+    # meta device stands in for the GPU here: without the move, its forward refuses the CPU input
+    from lightning_modules import MTFEstimator
+
+    x = torch.rand(1, 1, 192, 192)
+    cpu = nets.count_flops(nets.MTFNet(), x)
+    assert cpu > 0
+    assert nets.count_flops(nets.MTFNet().to("meta"), x) == cpu
+    module = MTFEstimator()
+    module.net.to("meta")
+    assert module.describe()["flops_per_patch"] == cpu

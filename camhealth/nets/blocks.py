@@ -85,7 +85,11 @@ def count_parameters(module: nn.Module) -> int:
 
 @torch.no_grad()
 def count_flops(module: nn.Module, *inputs: torch.Tensor) -> int:
-    """FLOPs of one forward pass on ``inputs`` (counted by torch's ``FlopCounterMode``; 2 per MAC)."""
+    """FLOPs of one forward pass on ``inputs`` (counted by torch's ``FlopCounterMode``; 2 per MAC). The inputs are
+    moved to the module's device first (a LightningModule describes its network while it trains on a GPU)."""
+    device = next((p.device for p in module.parameters()), None)
+    if device is not None:
+        inputs = tuple(t.to(device) for t in inputs)
     was_training = module.training
     module.eval()
     counter = FlopCounterMode(display=False)
