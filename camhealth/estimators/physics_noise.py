@@ -31,6 +31,16 @@ image contradicts the metadata by more noise only where the excess is well beyon
 noise as before. That keeps the closed form on busy matched frames (and on compressed ones whose codec added a few
 DN); the price is that a mismatch adding less than a few τ in quadrature on a quiet camera goes unseen.
 
+Per patch τ is ``scene_allowance_dn`` (2 DN, the 3× floor). Pooled, a frame reads its own: white noise puts as
+much energy into the horizontal and vertical Haar details as into the diagonal one, while a scene's fine content
+puts at least ``SCENE_DETAIL_RATIO`` (r = 2) times as much (a spectrum ∝ f^−β through the pixel aperture: r = 1.4 at
+β = 0, 1.9 at β = 1, 2.9 at β = 2), so on the frame's inliers the excess E[d_HV²] − E[d_D²] bounds what the scene
+added to the diagonal detail by (r − 1)⁻¹ times itself: τ² = τ_min² + excess/(r − 1), between τ_min =
+``scene_allowance_min_dn`` (1 DN: the white content of a recorded source, which no ratio can see) and the per-patch
+τ. A quiet frame thus shows a mismatch that adds 1–2 DN in quadrature, a busy one keeps the allowance it had. Per
+patch the same reading is not used: one patch's excess is one texture's, and on the benchmark's photographs some
+patches carry near-white fine content of their own (r ≈ 1.5) that it would miss.
+
 η is the **model error** that is common to all bins — what an NLF measured on real data differs by from the
 ideal model even when the metadata are right (another simulator's details, compression, demosaicking, slight
 texture): a relative error of the variance of about η. η_b is the same per bin (texture that passed the
@@ -99,7 +109,7 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetad
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
-           "textured"]
+           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "textured"]
 
 #: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
 VALIDATED_SIGMA_DN = 64.0
@@ -111,6 +121,14 @@ BEYOND_VALIDATED = "noise beyond validated range"
 #: 0.3–1.5 DN on quiet photos, 5–14 DN on grass and gravel, which the texture check refuses); τ was chosen there.
 #: As they are (full resolution) the same scenes read 0.83 DN at the median (street frames 0.73 DN).
 SCENE_ALLOWANCE_DN = 2.0
+#: τ_min [DN]: pooled, the allowance of a frame whose details show no texture — what a recorded source brings of white
+#: content of its own (the street clip's own noise and compression: 0.73 DN at the median as recorded). A frame's τ is
+#: read from its details between τ_min and :data:`SCENE_ALLOWANCE_DN` (:func:`physics_noise_posterior`).
+SCENE_ALLOWANCE_MIN_DN = 1.0
+#: Least ratio of horizontal-and-vertical to diagonal Haar detail energy of a scene's own fine content (white noise:
+#: 1). Through the pixel aperture a power spectrum ∝ f^−β gives 1.4 at β = 0, 1.9 at β = 1 and 2.9 at β = 2 (natural
+#: scenes, β ≈ 2; optics steepen it); the least-textured half of the robustness benchmark's clean frames reads 1.9–3.8.
+SCENE_DETAIL_RATIO = 2.0
 #: Texture check above which ξ is not trusted: ln(E[d_H² + d_V²]/2 / E[d_D²]) on the inliers (0 for white noise).
 TEXTURE_LIMIT = 0.25
 #: Largest |correlation| of adjacent blocks' diagonal details (0 for white noise) before ξ is not trusted ("textured").
@@ -126,7 +144,7 @@ MISMATCH_FIELDS: tuple[str, ...] = ("gain_db", "temperature_c", "white_noise_v_p
 #: Columns of :func:`physics_noise_posterior`.
 PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
-    "total_unclipped_dn", "detail_corr_check",
+    "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn",
 )
 # the bound margin leaves at least 100…155 DN usable however noisy the patch (≥ 2 σ up to 50 DN, 1.7 σ at 60 DN)
 _MAX_MARGIN_DN = 100.0
@@ -298,13 +316,15 @@ def physics_noise_posterior(
     fallback_margin: float = 1.0,
     pool: bool = False,
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
+    scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
 ) -> torch.Tensor:
-    """Physics-first noise sources of each patch, (B, 12) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 13) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
     check; 1 where the answer follows the image (P(match) < ½), else 0; σ_Total before clipping [DN] of the answer; the
-    neighbour check |ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) (≥ 1: textured).
+    neighbour check |ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) (≥ 1: textured); the scene allowance τ [DN] the evidence was
+    read with (``scene_allowance_dn`` per patch; pooled, the frame's own, ``scene_allowance_min_dn`` … ``scene_allowance_dn``).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -328,6 +348,11 @@ def physics_noise_posterior(
         scene_allowance_dn: τ [DN], the fine-scale content a scene may add of its own (its texture, the noise and
             compression of a recording it came from): a bin that reads more than a hypothesis predicts carries the
             extra log-variance ln(1 + τ²/v)² (one that reads less, none: a scene cannot remove noise). 0 turns it off.
+            Per patch τ is this; pooled it is the most the frame's own reading may give.
+        scene_allowance_min_dn: τ_min [DN], pooled: the allowance of a frame whose details show no texture (white
+            content a recording brings, which the detail ratio cannot see); the frame's τ² is
+            τ_min² + max(E[d_HV²] − E[d_D²], 0)/(SCENE_DETAIL_RATIO − 1) on its inliers, at most
+            ``scene_allowance_dn``². Equal to ``scene_allowance_dn``: τ fixed pooled as well.
         pool: the patches show one camera state (``meta`` of batch 1, e.g. the patches of one frame): add up their
             NLF evidence and texture check, so that every patch gets the posterior of the whole frame (noise is a
             property of the camera, not of the scene); σ after clipping stays per patch.
@@ -340,6 +365,7 @@ def physics_noise_posterior(
         raise ValueError("image contains NaN or inf; physics_noise_posterior needs finite intensities in [0, 1]")
     for name, value, low, high in (("eta", eta, 0.0, 10.0), ("eta_bin", eta_bin, 0.0, 10.0),
                                    ("scene_allowance_dn", scene_allowance_dn, 0.0, 64.0),
+                                   ("scene_allowance_min_dn", scene_allowance_min_dn, 0.0, 64.0),
                                    ("mismatch_probability", mismatch_probability, 0.0, 1.0),
                                    ("beyond_probability", beyond_probability, 0.0, 1.0)):
         if not low <= value <= high or not math.isfinite(value):
@@ -391,10 +417,12 @@ def physics_noise_posterior(
         q_h = q.mean().view(1) if pool else q
         clip_penalty = _clipping_penalty(x, m, idx, a_h, c_h, q_h, bins, pool)  # (h, H, bins)
         post = torch.softmax(prior, 1)
+        tau2 = torch.full((b,), scene_allowance_dn**2, dtype=f64, device=dev)  # τ² [DN²] per patch
+        tau2_min = min(scene_allowance_min_dn, scene_allowance_dn) ** 2
         for step in range(2):
             if step:  # the first pass's posterior NLF
                 v_ref = ((post * a_all).sum(1).float().view(b, 1, 1, 1) * m.clamp_min(0)
-                         + ((post * c_all).sum(1) + q + scene_allowance_dn**2).float().view(b, 1, 1, 1)).clamp_min(1e-6)
+                         + ((post * c_all).sum(1) + q + tau2).float().view(b, 1, 1, 1)).clamp_min(1e-6)
             inl_all = _inliers(m, d2, usable, g2, v_ref, bound_margin, _MAX_MARGIN_DN)
             # a patch (pooled: a frame) with too few details at the nominal margin — dark or bright under strong
             # noise — reads its blocks nearer the bounds instead, their loss to the clipping modelled
@@ -420,6 +448,13 @@ def physics_noise_posterior(
                 hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
                 count, sq, sm = (t.sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
             texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
+            if pool and tau2_min < scene_allowance_dn**2:
+                # the frame's own fine content, read off its inliers: white noise puts as much energy into the
+                # horizontal and vertical details as into the diagonal one, a scene at least SCENE_DETAIL_RATIO
+                # times as much, so the excess bounds what the scene added to the diagonal detail
+                excess = ((hv - dd) / n3.clamp_min(1.0) / _TRUNCATED_CHI2).clamp_min(0.0)
+                tau2 = torch.where(n3 >= _MIN_FIT_BLOCKS, (tau2_min + excess / (SCENE_DETAIL_RATIO - 1.0)).clamp_max(scene_allowance_dn**2),
+                                   torch.full_like(excess, scene_allowance_dn**2))
             eta2 = (eta**2 + texture.clamp_min(0).square()).unsqueeze(1)[:h]
             s_hat = (sq / _TRUNCATED_CHI2 / count.clamp_min(1.0))[:h]
             mk = (sm / count.clamp_min(1.0))[:h]
@@ -431,7 +466,7 @@ def physics_noise_posterior(
             r = torch.where(used.unsqueeze(1), s_hat.clamp_min(1e-9).log().unsqueeze(1) - v.log(), torch.zeros_like(v))
             # the scene's own fine-scale content adds up to about τ² to a bin (never removes any): a reading above the
             # hypothesis carries the extra log-variance ln(1 + τ²/v)², one below it none
-            scene = torch.log1p(kept * scene_allowance_dn**2 / v).square() * (r > 0)
+            scene = torch.log1p(kept * tau2[:h].view(h, 1, 1) / v).square() * (r > 0)
             inv = torch.where(used.unsqueeze(1), 1.0 / (2.0 / count[:h].clamp_min(1.0).unsqueeze(1) + eta_bin**2 + scene),
                               torch.zeros_like(v))  # D⁻¹ per hypothesis
             quad = (r.square() * inv).sum(-1)
@@ -485,7 +520,7 @@ def physics_noise_posterior(
         unclipped_answer = torch.where(follows, e_tot_image, tot[:, 0])
         out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
-                         corr_check.unsqueeze(1)], dim=1)
+                         corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1)], dim=1)
     return out.float()
 
 

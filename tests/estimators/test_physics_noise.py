@@ -2,13 +2,14 @@
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
 from camhealth.estimators.noise_features import physics_prior_dn
 from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.physics_noise import (
-    PHYSICS_NOISE_COLUMNS, TEXTURE_LIMIT, VALIDATED_SIGMA_DN, PhysicsNoiseEstimator, _clipping_penalty,
-    _kept_variance_factor, physics_noise_posterior, textured,
+    PHYSICS_NOISE_COLUMNS, SCENE_ALLOWANCE_DN, SCENE_ALLOWANCE_MIN_DN, TEXTURE_LIMIT, VALIDATED_SIGMA_DN,
+    PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, physics_noise_posterior, textured,
 )
 from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
 from camhealth.physics import CameraMetadata
@@ -81,6 +82,55 @@ def test_scene_allowance_keeps_the_closed_form_for_a_scene_with_its_own_fine_noi
     louder, _ = simulate_variant(scene, meta, (), torch.Generator().manual_seed(6), extra_read_noise_dn=5.0)
     followed = physics_noise_posterior(louder, meta, pool=pool)
     assert (followed[:, 9] == 1).all() and (followed[:, 4] < -1.0).all()
+
+
+def _levels(b: int = 16, size: int = 128) -> torch.Tensor:
+    """Flat patches at ``b`` levels spanning 0.15…0.85: no texture and no gradient at any scale."""
+    return torch.linspace(0.15, 0.85, b).view(b, 1, 1, 1).expand(b, 1, size, size).contiguous()
+
+
+_COL = {c: i for i, c in enumerate(PHYSICS_NOISE_COLUMNS)}
+
+
+def test_pooled_frame_without_texture_reads_with_the_least_allowance_and_shows_a_small_mismatch():
+    """A frame of flat patches: its details show no texture, so pooled it is read with τ_min (1 DN) and 1.8 DN of extra
+    white noise on a 1.5 DN camera (ξ ≈ −0.9 DN, visible) is caught; with τ fixed at 2 DN, and per patch, it is not.
+    With the metadata right the same frame stays the closed form."""
+    meta = CameraMetadata.preset("ICX285", gain_db=0.0, exposure_s=0.01, temperature_c=25.0)
+    louder, _ = simulate_variant(_levels(), meta, (), torch.Generator().manual_seed(1), extra_read_noise_dn=1.8)
+    out = physics_noise_posterior(louder, meta, pool=True)
+    assert torch.allclose(out[:, _COL["scene_allowance_dn"]], torch.tensor(SCENE_ALLOWANCE_MIN_DN), atol=0.1)
+    assert (out[:, _COL["follows_image"]] == 1).all() and (out[:, _COL["xi_dn"]] < -0.5).all()
+    fixed = physics_noise_posterior(louder, meta, pool=True, scene_allowance_min_dn=SCENE_ALLOWANCE_DN)
+    assert (fixed[:, _COL["scene_allowance_dn"]] == SCENE_ALLOWANCE_DN).all() and (fixed[:, _COL["follows_image"]] == 0).all()
+    per_patch = physics_noise_posterior(louder, meta)
+    assert (per_patch[:, _COL["scene_allowance_dn"]] == SCENE_ALLOWANCE_DN).all() and (per_patch[:, _COL["follows_image"]] == 0).all()
+    matched, _ = simulate_variant(_levels(), meta, (), torch.Generator().manual_seed(1))
+    kept = physics_noise_posterior(matched, meta, pool=True)
+    assert torch.allclose(kept[:, :4], physics_prior_dn(matched, meta, clipping=True)[:, 4:8], atol=1e-4)
+    assert (kept[:, _COL["xi_dn"]] == 0).all()
+
+
+@pytest.mark.parametrize("amplitude", [1.0, 2.0, 3.0, 6.0])
+def test_pooled_allowance_covers_the_frames_own_fine_texture_up_to_the_per_patch_allowance(amplitude):
+    """Fine smooth texture (Gaussian-filtered white noise, σ 0.7 px: 3.8 times as much horizontal and vertical as
+    diagonal detail energy) on flat patches, metadata right: the frame's allowance τ² − τ_min² is at least the diagonal
+    energy the texture adds, τ stays within [τ_min, 2 DN], and the answer is the closed form."""
+    g = torch.Generator().manual_seed(2)
+    k = torch.exp(-torch.arange(-4, 5).float().square() / (2 * 0.7**2))
+    k = k / k.sum()
+    t = F.conv2d(F.conv2d(torch.randn(16, 1, 144, 144, generator=g), k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1))[..., :128, :128]
+    scene = (_levels() + amplitude / 255.0 * t / t.std()).clamp(0, 1)
+    _, d2, usable, _ = block_details(scene)
+    scene_diagonal = float(d2[0][usable].mean())  # [DN²]
+    meta = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.01, temperature_c=25.0)
+    noisy, _ = simulate_variant(scene, meta, (), torch.Generator().manual_seed(1))
+    out = physics_noise_posterior(noisy, meta, pool=True)
+    tau = out[:, _COL["scene_allowance_dn"]]
+    assert ((tau >= SCENE_ALLOWANCE_MIN_DN) & (tau <= SCENE_ALLOWANCE_DN + 1e-6)).all()
+    assert float(tau[0]) ** 2 - SCENE_ALLOWANCE_MIN_DN**2 >= min(scene_diagonal, SCENE_ALLOWANCE_DN**2 - SCENE_ALLOWANCE_MIN_DN**2) - 1e-4
+    assert torch.allclose(out[:, :4], physics_prior_dn(noisy, meta, clipping=True)[:, 4:8], atol=1e-4)
+    assert (out[:, _COL["xi_dn"]] == 0).all()
 
 
 @pytest.mark.parametrize("pool", [False, True])
@@ -205,6 +255,8 @@ def test_bad_input_is_refused():
         physics_noise_posterior(bad, meta)
     with pytest.raises(ValueError, match=r"eta = -0.1 must be in \[0, 10\]"):
         physics_noise_posterior(x, meta, eta=-0.1)
+    with pytest.raises(ValueError, match=r"scene_allowance_min_dn = -0.5 must be in \[0, 64\]"):
+        physics_noise_posterior(x, meta, scene_allowance_min_dn=-0.5)
     with pytest.raises(ValueError, match=r"scene_allowance_dn = -1.0 must be in \[0, 64\]"):
         physics_noise_posterior(x, meta, scene_allowance_dn=-1.0)
     with pytest.raises(ValueError, match="scene_allowance_dn"):
