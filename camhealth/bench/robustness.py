@@ -316,6 +316,14 @@ def _aggregate(rows: dict[str, list]) -> dict[str, Any]:
         g["total"] = _bsr(tot - t_tot)
         g["xi_rms"] = float((xi - t_xi).square().mean().sqrt())
         g["n"] = int(t_xi.numel())
+        # the estimator's own per-source uncertainty u (``sigma_std``), where it reports one: the share of the
+        # per-source errors within u and within 2u, and the median u (∞ where it has no evidence: counted as covering)
+        if all(len(r) > 6 and r[6] is not None for r in items):
+            u = torch.cat([r[6] for r in items])[keep]
+            err = (sig - t_sig).abs()
+            g["within_u"] = tuple(float(v) for v in (err <= u).float().mean(0))
+            g["within_2u"] = tuple(float(v) for v in (err <= 2 * u).float().mean(0))
+            g["median_u"] = tuple(float(v) for v in u.median(0).values)
         return g
 
     for name, conds in [("matched", MATCHED), *[(c, (c,)) for c in MATCHED], ("mismatched", MISMATCH),
@@ -404,7 +412,8 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
         xi = out["xi"].float() if "xi" in out else torch.zeros(16)
         ok = torch.as_tensor(out.get("assessable", torch.ones(16, dtype=torch.bool))).bool().reshape(-1)
         p_match = torch.as_tensor(out["p_match"]).float().reshape(-1) if "p_match" in out else None
-        answers.append((sig, out["sigma_total"].float(), xi, fr, ok, p_match))
+        sig_std = torch.as_tensor(out["sigma_std"]).float().reshape(-1, 3) if "sigma_std" in out else None
+        answers.append((sig, out["sigma_total"].float(), xi, fr, ok, p_match, sig_std))
 
     def rows_of(scale: str | None) -> dict[str, list]:
         rows: dict[str, list] = {c: [] for c in CONDITIONS}
@@ -492,6 +501,20 @@ def run(args: argparse.Namespace) -> BenchResult:
                            f"{q['auc_frame']:.3f} / {q['auc_frame_evidence']:.3f} | "
                            f"{100 * q['declared_tpr_patch']:.0f} % / {100 * q['declared_fpr_patch']:.0f} % | "
                            f"{100 * q['declared_tpr_frame']:.0f} % / {100 * q['declared_fpr_frame']:.0f} %")
+    with_u = {n: r for n, r in results.items() if "within_u" in r["groups"]["matched"]}
+    if with_u:
+        summary += ["", "Per-source uncertainty `sigma_std` (u) against the error |σ̂ − σ| (PN / DCSN / RN): the share within u and within "
+                    "2u (Gaussian errors: 68 % and 95 %) and the median u [DN], pooled and per scene scale:", "",
+                    "| estimator | scenes | set | within u | within 2u | median u |", "|---|---|---|---|---|---|"]
+        for name, r in with_u.items():
+            for label, key in sets:
+                for gname in ("matched", "mismatched", "visible mismatch"):
+                    g = part(r, key)["groups"][gname]
+                    if "within_u" not in g:
+                        continue
+                    summary.append(f"| {name} | {label} | {gname} ({g['n']}) | " + " / ".join(f"{100 * v:.0f} %" for v in g["within_u"])
+                                   + " | " + " / ".join(f"{100 * v:.0f} %" for v in g["within_2u"]) + " | "
+                                   + " / ".join(f"{v:.2f}" for v in g["median_u"]) + " |")
     any_r = next(iter(results.values()))
     counts = []
     for label, key in sets:

@@ -144,7 +144,7 @@ MISMATCH_FIELDS: tuple[str, ...] = ("gain_db", "temperature_c", "white_noise_v_p
 #: Columns of :func:`physics_noise_posterior`.
 PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
-    "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn",
+    "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
 )
 # the bound margin leaves at least 100…155 DN usable however noisy the patch (≥ 2 σ up to 50 DN, 1.7 σ at 60 DN)
 _MAX_MARGIN_DN = 100.0
@@ -318,13 +318,17 @@ def physics_noise_posterior(
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
     scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
 ) -> torch.Tensor:
-    """Physics-first noise sources of each patch, (B, 13) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 16) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
     check; 1 where the answer follows the image (P(match) < ½), else 0; σ_Total before clipping [DN] of the answer; the
     neighbour check |ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) (≥ 1: textured); the scene allowance τ [DN] the evidence was
-    read with (``scene_allowance_dn`` per patch; pooled, the frame's own, ``scene_allowance_min_dn`` … ``scene_allowance_dn``).
+    read with (``scene_allowance_dn`` per patch; pooled, the frame's own, ``scene_allowance_min_dn`` … ``scene_allowance_dn``);
+    the uncertainty of PN, DCSN and RN [DN]: the posterior RMS deviation of every hypothesis's σ from the answer's
+    (before clipping, scaled to the clipped answer), and in quadrature σ/√(2n), by which the realised σ of a patch's
+    n pixels differs from the expected one (∞ without evidence) — large where the image shows an excess that several
+    sources explain alike and the prior alone splits it.
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -518,9 +522,21 @@ def physics_noise_posterior(
         xi_std = torch.where(evidence, sd_tot * scale, torch.full_like(sd_tot, float("inf")))
         e_tot_image = (w * tot[:, 1:]).sum(1)
         unclipped_answer = torch.where(follows, e_tot_image, tot[:, 0])
+        # per source: the posterior RMS deviation of every hypothesis's σ (before clipping) from the answer's, scaled
+        # to the clipped answer — the spread where the image is followed, and what a mismatch would move where the
+        # closed form is kept; large where the sources that explain the excess are told apart by the prior alone
+        src = torch.stack([(a_all * mean_i.unsqueeze(1)).clamp_min(0).sqrt(), var_all[..., 0].clamp_min(0).sqrt(),
+                           var_all[..., 1].clamp_min(0).sqrt()], dim=-1)  # (B, 1 + H, 3) [DN]
+        image_src = torch.stack([(e_a * mean_i).clamp_min(0).sqrt(), e_var[:, 0].clamp_min(0).sqrt(), e_var[:, 1].clamp_min(0).sqrt()], 1)
+        answer_src = torch.where(follows.unsqueeze(1), image_src, src[:, 0])
+        sd_src = (post.unsqueeze(-1) * (src - answer_src.unsqueeze(1)).square()).sum(1).sqrt()
+        src_scale = torch.where(answer_src > 1e-12, out_sigma[:, :3] / answer_src.clamp_min(1e-12), torch.ones_like(answer_src)).clamp(0, 1)
+        # and the patch's own sampling: the realised σ of n pixels' noise differs from its expected σ by σ/√(2n)
+        sd_src = (sd_src.square() * src_scale.square() + out_sigma[:, :3].square() / (2.0 * x.shape[-1] * x.shape[-2])).sqrt()
+        sigma_std = torch.where(evidence.unsqueeze(1), sd_src, torch.full_like(sd_src, float("inf")))
         out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
-                         corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1)], dim=1)
+                         corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std], dim=1)
     return out.float()
 
 
@@ -571,7 +587,7 @@ class PhysicsNoiseEstimator:
         b = patches.shape[0]
         if b == 0:  # an empty batch: every output with 0 rows
             z = torch.zeros(0)
-            return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_total": z,
+            return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
                     "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
@@ -593,5 +609,5 @@ class PhysicsNoiseEstimator:
             elif raw[i, 10] > VALIDATED_SIGMA_DN:
                 reason[i] = BEYOND_VALIDATED
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
-        return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_total": raw[:, 3], "xi": raw[:, 4],
-                "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5}
+        return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
+                "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5}

@@ -148,3 +148,21 @@ def test_evidence_breaks_ties_of_xi_with_the_mismatch_probability_and_the_decisi
     rows[rb.MATCHED[0]] = [matched[:5] + (None,)] * 2
     rows[rb.MISMATCH[0]] = [mismatched[:5] + (None,)] * 2
     assert rb._aggregate(rows)["auc_patch_evidence"] == pytest.approx(0.75)
+
+
+def test_per_source_uncertainty_coverage_is_counted_where_the_estimator_reports_one():
+    """Errors of 0.1 / 0.3 / 1.0 DN against u = 0.2 DN: within u 100 / 0 / 0 %, within 2u 100 / 100 / 0 %; an
+    estimator without ``sigma_std`` (a network) gets no coverage entry."""
+    from types import SimpleNamespace
+
+    truth = SimpleNamespace(xi=torch.zeros(16), total=torch.full((16,), 3.0), sigma=torch.ones(16, 3), scene_floor=0.0)
+    sig = torch.ones(16, 3) + torch.tensor([0.1, 0.3, 1.0])
+    row = (sig, torch.full((16,), 3.0), torch.zeros(16), truth, torch.ones(16, dtype=torch.bool), torch.ones(16),
+           torch.full((16, 3), 0.2))
+    rows = {c: [] for c in rb.CONDITIONS}
+    rows[rb.MATCHED[0]] = [row]
+    g = rb._aggregate(rows)["groups"]["matched"]
+    assert g["within_u"] == pytest.approx((1.0, 0.0, 0.0)) and g["within_2u"] == pytest.approx((1.0, 1.0, 0.0))
+    assert g["median_u"] == pytest.approx((0.2, 0.2, 0.2))
+    rows[rb.MATCHED[0]] = [row[:6] + (None,)]
+    assert "within_u" not in rb._aggregate(rows)["groups"]["matched"]

@@ -133,6 +133,24 @@ def test_pooled_allowance_covers_the_frames_own_fine_texture_up_to_the_per_patch
     assert (out[:, _COL["xi_dn"]] == 0).all()
 
 
+@pytest.mark.parametrize("levels, split", [(1, True), (16, False)])
+def test_per_source_uncertainty_is_large_where_the_prior_alone_splits_the_excess(levels, split):
+    """4 DN of extra white noise on a 3 DN camera (ICX285 at 12 dB), pooled. On one grey level the image cannot tell a
+    gain change (more PN and RN) from extra white noise (more RN): the posterior splits, the answer's PN is off by more
+    than 0.5 DN, and ``sigma_std`` says so (u ≥ 0.5 DN, every error within 2u). Over 16 levels the signal dependence
+    separates them: PN within 0.1 DN and u below 0.1 DN."""
+    meta = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.01, temperature_c=25.0)
+    scene = torch.linspace(0.1, 0.9, 16).view(16, 1, 1, 1).expand(16, 1, 128, 128).contiguous() if levels == 16 else torch.full((16, 1, 128, 128), 0.5)
+    noisy, sigma = simulate_variant(scene, meta, (), torch.Generator().manual_seed(3), extra_read_noise_dn=4.0)
+    out = PhysicsNoiseEstimator().predict(noisy, meta, pool=True)
+    err, u = (out["sigma"] - sigma).abs(), out["sigma_std"]
+    assert out["follows_image"].all()
+    if split:
+        assert (err[:, 0] > 0.5).all() and (u[:, 0] >= 0.5).all() and (err <= 2 * u).all()
+    else:
+        assert (err[:, 0] < 0.1).all() and (u[:, 0] < 0.1).all()
+
+
 @pytest.mark.parametrize("pool", [False, True])
 def test_clipping_penalty_refuses_hypotheses_that_clip_more_than_the_patch_not_scene_highlights(pool):
     """A 128-DN patch with 30 DN of noise and a saturated highlight in one corner: the true hypothesis costs
@@ -219,6 +237,8 @@ def test_dtypes_batches_and_hard_patches(dtype, batch):
     assert out.shape == (batch, len(PHYSICS_NOISE_COLUMNS)) and out.dtype == torch.float32
     assert torch.isfinite(out[:, :5]).all()
     assert out[0, 7] == 0  # no usable detail in a black patch: no evidence, the closed form
+    std = out[:, [_COL["pn_std_dn"], _COL["dcsn_std_dn"], _COL["rn_std_dn"]]]
+    assert torch.isinf(std[0]).all() and (std >= 0).all() and not torch.isnan(std).any()  # no evidence: no uncertainty bound
     res = PhysicsNoiseEstimator().predict(x.float(), meta)
     assert res["reason"][0] == "black" and not res["assessable"][0]
     if batch > 1:
@@ -237,7 +257,8 @@ def test_estimator_interface_reasons_and_loader():
     assert out["reason"][0] == "" and out["assessable"][0]
     assert out["reason"][1] == "no flat area"
     assert out["reason"][2] == "noise beyond validated range" and -out["xi"][2] > VALIDATED_SIGMA_DN - 10
-    assert set(out) >= {"sigma", "sigma_total", "xi", "xi_std", "p_match", "assessable", "reason"}
+    assert set(out) >= {"sigma", "sigma_std", "sigma_total", "xi", "xi_std", "p_match", "assessable", "reason"}
+    assert out["sigma_std"].shape == (3, 3)
     assert torch.isinf(out["xi_std"][1])  # no evidence: ξ unknown
     assert bool(((out["p_match"] >= 0) & (out["p_match"] <= 1)).all())  # a probability, also where it is ~0
 
