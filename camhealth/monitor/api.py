@@ -318,14 +318,17 @@ class TaskReport:
         uncertainty: (K,) standard error of ``median``: the larger of 1.2533·spread/√n (the standard error of a
             median of n values with Gaussian scatter ``spread``, n = ``n_values``) and 1.2533·temporal_spread/√frames
             (a pooled noise estimate gives every patch of a frame one camera state: only frames are independent).
-            MTF with an estimator that reports a per-value uncertainty (``mtf_std``): also at least
-            1.2533·estimator_std/√n, so one patch's answer is not stated exact.
+            With an estimator that reports a per-value uncertainty (MTF ``mtf_std``; noise ``sigma_std`` and ``xi_std``):
+            also at least 1.2533·estimator_std/√n, so one patch's answer is not stated exact — or, for the noise pooled
+            per frame (every patch shares the frame's posterior, so its error is common to them), estimator_std/√frames.
         indicator_uncertainty: the same for the indicator.
-        estimator_std: MTF only: (K,) the estimator's own per-value uncertainty, pooled over the values behind
-            ``median`` — √(mean of ``mtf_std``²), each value's 1-σ uncertainty from the estimator's error table and
-            its views' spread (:meth:`camhealth.inference.Estimator.predict`); NaN (JSON ``null``) when the estimator
-            gives none (a file without an error table at ``mtf_views`` 1). It is the typical error bar of one patch's
-            value, not of ``median``.
+        estimator_std: (K,) the estimator's own per-value uncertainty, pooled over the values behind ``median`` —
+            √(mean of std²) over the values that have a finite one. MTF: ``mtf_std``, each value's 1-σ uncertainty
+            from the estimator's error table and its views' spread (:meth:`camhealth.inference.Estimator.predict`).
+            Noise (``noise_source_full``): ``sigma_std`` for PN, DCSN and RN and ``xi_std`` for ξ and the total, the
+            posterior's spread (:func:`camhealth.estimators.physics_noise.physics_noise_posterior`). NaN (JSON
+            ``null``) when the estimator gives none (a network, or an MTF file without an error table at
+            ``mtf_views`` 1). It is the typical error bar of one patch's value, not of ``median``.
         n_values: number of values behind ``median`` (map mode: patches with a value; sampled mode: samples
             in the window).
         coverage: where the networks ran this frame (see :meth:`Monitor.process`): ``mode``, ``estimated``
@@ -378,9 +381,7 @@ class TaskReport:
 
     def _stats(self, sl: slice | int) -> dict[str, Any]:
         fields = [("median", self.median), ("spread", self.spread), ("temporal_spread", self.temporal_spread),
-                  ("current", self.current), ("uncertainty", self.uncertainty)]
-        if self.task == "mtf":
-            fields.append(("estimator_std", self.estimator_std))
+                  ("current", self.current), ("uncertainty", self.uncertainty), ("estimator_std", self.estimator_std)]
         return {key: None if t is None else _num(t[sl]) for key, t in fields}
 
     def to_dict(self, per_patch: bool = False) -> dict[str, Any]:
@@ -588,18 +589,20 @@ class _TaskState:
 
 
 def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, frames: int,
-                 estimator_std: torch.Tensor | None = None) -> torch.Tensor:
+                 estimator_std: torch.Tensor | None = None, shared: bool = False) -> torch.Tensor:
     """Standard error of a frame value [its unit]: the largest of 1.2533·spread/√n (scatter of the n values),
     1.2533·temporal_spread/√frames (scatter from frame to frame — the values of one frame may share one pooled
     camera-state posterior, so only the frames are independent) and, where the estimator states a per-value
     spread, 1.2533·estimator_std/√n (each value is itself that uncertain: the floor when n is small and the
-    values happen to agree)."""
+    values happen to agree) — or, where the values of a frame share one posterior (``shared``: the pooled noise
+    estimate), estimator_std/√frames (its error is common to them, so more patches do not shrink it)."""
     se = _MEDIAN_SE * spread / math.sqrt(max(n, 1))
     if frames > 1:
         tse = _MEDIAN_SE * torch.nan_to_num(temporal_spread.float(), nan=0.0) / math.sqrt(frames)
         se = torch.maximum(se, tse)
     if estimator_std is not None:
-        se = torch.maximum(se, _MEDIAN_SE * torch.nan_to_num(estimator_std.float(), nan=0.0) / math.sqrt(max(n, 1)))
+        floor = estimator_std.float() / math.sqrt(max(frames, 1)) if shared else _MEDIAN_SE * estimator_std.float() / math.sqrt(max(n, 1))
+        se = torch.maximum(se, torch.nan_to_num(floor, nan=0.0))
     return se
 
 
@@ -866,11 +869,16 @@ class Monitor:
         scale = torch.stack([pn, torch.full_like(pn, dc), torch.full_like(pn, rn), total, total], 1).float()
         return scale.clamp_min(1e-3)
 
+    def _shared_posterior(self, task: str) -> bool:
+        """Whether the values of one frame share one posterior: the noise estimate pooled per frame (``pool_noise``)."""
+        return task == "noise" and bool(self.pool_noise) and "pool" in self.estimators[task].kwargs
+
     def _estimate(
         self, task: str, patches: torch.Tensor, index: torch.Tensor, meta: CameraMetadata | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Run the estimator on ``patches[index]`` → (values (n, K), ok (n,) bool, the estimator's per-value spread
-        (n, K): MTF ``mtf_std`` where the estimator returns one, else NaN). The reasons the estimator gave for the
+        (n, K): MTF ``mtf_std``, noise ``sigma_std`` and ``xi_std`` (ξ and the total) where the estimator returns them,
+        else NaN). The reasons the estimator gave for the
         patches it refused are counted into this frame's ``refused`` of the task state, and the ξ [DN] it still
         reports for those refused as ``"noise beyond validated range"`` kept in ``beyond_xi`` (the alarm's bound)."""
         handle = self.estimators[task]
@@ -906,6 +914,9 @@ class Monitor:
         std = torch.full((n, k), float("nan"))
         if task == "mtf" and out.get("mtf_std") is not None:
             std = torch.as_tensor(out["mtf_std"]).float().reshape(n, 16).clone()
+        if task == "noise" and out.get("sigma_std") is not None and out.get("xi_std") is not None:
+            xi_std = torch.as_tensor(out["xi_std"]).float().reshape(n, 1)  # the posterior spread of σ_Total: ξ's and the total's
+            std = torch.cat([torch.as_tensor(out["sigma_std"]).float().reshape(n, 3), xi_std, xi_std], 1)
         ok = torch.as_tensor(out.get("assessable", torch.ones(n, dtype=torch.bool))).bool().reshape(n)
         reasons = list(out.get("reason") or [""] * n)
         for i in (~ok).nonzero()[:, 0].tolist():
@@ -1059,10 +1070,10 @@ class Monitor:
             ind_frames = spatial_median(mtf_indicator(st.samples.reshape(-1, st.k)).reshape(st.window, -1), dim=1).median
             ind_unc = max(ind_unc, _MEDIAN_SE * float(spatial_median(ind_frames, dim=0).spread) / math.sqrt(frames)) \
                 if frames > 1 else ind_unc
-        est_std = _pooled_std(st.samples_std.reshape(-1, st.k)[has], st.k) if task == "mtf" else None
+        est_std = _pooled_std(st.samples_std.reshape(-1, st.k)[has], st.k)
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread, temporal_spread=tspread,
                           current=current, indicator=indicator,
-                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std),
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task)),
                           indicator_uncertainty=ind_unc, estimator_std=est_std, n_values=n)
 
     def _aggregate(self, task: str, st: _TaskState, name: str, informative: int = 0, fresh: int = 0) -> TaskReport:
@@ -1094,10 +1105,10 @@ class Monitor:
             ind = spatial_median(mtf_indicator(per_patch), dim=0)
             indicator = (float(ind.median), float(ind.spread))
         se = _MEDIAN_SE / math.sqrt(n)
-        est_std = _pooled_std(st.std[has], st.k) if task == "mtf" else None
+        est_std = _pooled_std(st.std[has], st.k)
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread,
                           temporal_spread=tspread, current=current, indicator=indicator,
-                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std),
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task)),
                           indicator_uncertainty=None if indicator is None else se * indicator[1],
                           estimator_std=est_std, n_values=n)
 

@@ -116,7 +116,8 @@ def test_report_on_street_frames(street_frames):
         assert n["grid"] == [4, 6] and m["grid"] == [3, 4]
         assert sum(v for k, v in n["patches"].items() if k != "total") == n["patches"]["total"] == 24
         for name in ("pn", "dcsn", "rn", "xi", "total"):
-            assert set(n["sigma_dn"][name]) == {"median", "spread", "temporal_spread", "current", "uncertainty"}
+            assert set(n["sigma_dn"][name]) == {"median", "spread", "temporal_spread", "current", "uncertainty", "estimator_std"}
+            assert n["sigma_dn"][name]["estimator_std"] is None  # the fake states no uncertainty of its own
         assert n["sigma_dn"]["total"]["median"] == pytest.approx(3.0, rel=0.35)  # fake = robust σ of the patch
         assert len(m["h"]["median"]) == 8 and len(m["v"]["median"]) == 8 and 0 < m["indicator"]["median"] <= 1
         assert d["alarm"]["state"] == "ok" and d["advice"] is None
@@ -408,6 +409,27 @@ def test_physics_noise_pools_a_frame_and_catches_40_dn_of_unexplained_noise(monk
 
 
 @pytest.mark.parametrize("mode", ["sampled", "map"])
+def test_physics_noise_uncertainty_reaches_the_report(mode):
+    """``noise_source_full`` states its own uncertainty (``sigma_std``, ``xi_std``): the report carries it as
+    ``estimator_std`` for every noise field, and pooled (every patch shares the frame's posterior, so its error is
+    common to them) each frame value's ``uncertainty`` is at least that; per patch it may shrink with the patches."""
+    from camhealth.monitor import NOISE_FIELDS
+
+    meta = {"gain_db": 24.0, "exposure_s": 0.05, "temperature_c": 80.0}
+    frame = (0.5 + 12.0 / 255.0 * torch.randn(384, 512, generator=torch.Generator().manual_seed(1))).clamp(0, 1)
+    for pool in (True, False):
+        mon = Monitor("noise_source_full", None, sensor="ICX285", metadata=meta, mode=mode, pool_noise=pool, warmup=False,
+                      adaptive=False)
+        d = _strict(mon.process(frame).to_json())["noise"]["sigma_dn"]
+        for name in NOISE_FIELDS:
+            est, unc = d[name]["estimator_std"], d[name]["uncertainty"]
+            assert est is not None and est >= 0.0, (name, d[name])
+            if pool:
+                assert unc >= est - 1e-6, (name, d[name])
+        assert d["xi"]["estimator_std"] > 0.0 and d["xi"]["estimator_std"] == d["total"]["estimator_std"]
+
+
+@pytest.mark.parametrize("mode", ["sampled", "map"])
 def test_noise_beyond_the_validated_range_raises_noisier_not_silence(mode):
     """A frame with 80 DN of white noise where the metadata say a few DN: the physics-first estimator refuses its
     patches as "noise beyond validated range" (σ above 64 DN, where its σ reads low), and the monitor still raises
@@ -520,9 +542,9 @@ def test_mtf_estimator_std_is_pooled_and_bounds_the_uncertainty(street_frames, m
     assert torch.allclose(mixed.estimator_std, per.pow(2).mean().sqrt().expand(16), atol=1e-5)
 
 
-def test_noise_report_has_no_estimator_std(street_frames):
+def test_noise_estimator_without_its_own_uncertainty_reports_a_null_estimator_std(street_frames):
     d = json.loads(Monitor(FakeNoise(), None, sensor="ICX285", warmup=False).process(street_frames[0]).to_json())
-    assert "estimator_std" not in d["noise"]["sigma_dn"]["total"]
+    assert d["noise"]["sigma_dn"]["total"]["estimator_std"] is None
 
 
 def test_real_mtf_estimator_views_give_an_estimator_std(model_files, street_frames):
