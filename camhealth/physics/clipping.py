@@ -47,6 +47,8 @@ _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 #: Pixels whose 3×3 mean lies this many σ (of the largest noise at any intensity) from a bound are treated as
 #: unaffected by clipping: P(|n| > 6σ) < 2e-9.
 _NEAR_SIGMAS = 6.0
+#: Newton steps of :func:`estimate_clean_dn` stop once no pixel moved by more than this [DN] in the last step.
+_NEWTON_TOL_DN = 1e-5
 
 
 def _phi(u: torch.Tensor) -> torch.Tensor:
@@ -118,13 +120,15 @@ def clipped_sigma_dn(
         raise ValueError(f"clean_dn must be B×C×H×W or B×N, got shape {tuple(clean_dn.shape)}")
     x = clean_dn.to(dtype).flatten(1)
     b, n = x.shape
-    vs = []
+    vs, per_sample = [], []  # per-sample sources also keep their (B, 1) value
     for k, v in enumerate(variances):
         v = _check_variance(torch.as_tensor(v, device=x.device), f"variance {k}").to(dtype)
         if v.numel() == b * n:
             vs.append(v.reshape(b, n))
+            per_sample.append(None)
         elif v.numel() in (1, b):
             vs.append(v.reshape(-1, 1).expand(b, n))
+            per_sample.append(v.reshape(-1, 1).expand(b, 1))
         else:
             raise ValueError(
                 f"variance {k} has {v.numel()} values; expected 1, one per sample ({b}) or one per pixel ({b * n})"
@@ -134,10 +138,13 @@ def clipped_sigma_dn(
         var = var + v
     s = var.clamp_min(0).sqrt()
     near = (x < _NEAR_SIGMAS * s) | (x > FULL_SCALE_DN - _NEAR_SIGMAS * s)
-    # unclipped pixels: E[n_k f] = 0, E[(n_k f)²] = σ_k², total likewise
+    # unclipped pixels: E[n_k f] = 0, E[(n_k f)²] = σ_k², total likewise (a per-sample σ_k² times the count of such
+    # pixels: the same float64 sum, exactly, without a pass over the pixels)
     f64 = torch.float64
+    far = n - near.sum(1, dtype=f64)
     first = [torch.zeros(b, dtype=f64, device=x.device) for _ in range(len(vs) + 1)]
-    second = [torch.where(near, 0.0, v).sum(1, dtype=f64) for v in vs] + [torch.where(near, 0.0, var).sum(1, dtype=f64)]
+    second = [torch.where(near, 0.0, v).sum(1, dtype=f64) if c is None else c.to(f64).flatten() * far
+              for v, c in zip(vs, per_sample)] + [torch.where(near, 0.0, var).sum(1, dtype=f64)]
     if bool(near.any()):
         rows, cols = near.nonzero(as_tuple=True)
         xv, vv = x[rows, cols], var[rows, cols]
@@ -179,9 +186,9 @@ def estimate_clean_dn(
 
     The ``window``×``window`` mean m of the observed image (replicate borders) estimates the censored mean
     E[clamp(x + n, 0, 255)]. Where m lies within 6 σ of a bound it is inverted for x by bisection — the
-    censored mean is increasing in x and |m − x| ≤ E|n| < σ(255), which brackets x; ``iterations`` steps of
-    Newton's method, safeguarded by bisection of the bracket (8 resolve < 1e-4 DN where it matters) — elsewhere
-    x = m. The result is clamped to
+    censored mean is increasing in x and |m − x| ≤ E|n| < σ(255), which brackets x; at most ``iterations`` steps of
+    Newton's method, safeguarded by bisection of the bracket (8 resolve < 1e-4 DN where it matters), ending early
+    once no pixel moves by more than 1e-5 DN — elsewhere x = m. The result is clamped to
     [0, 255] DN, the range of clean images, in ``dtype`` (the inversion itself runs in float32: the 3×3 mean
     is uncertain by σ/3 anyway).
 
@@ -226,7 +233,12 @@ def estimate_clean_dn(
             below = f < target
             lo, hi = torch.where(below, xv, lo), torch.where(below, hi, xv)
             step = xv + (target - f) / df.clamp_min(1e-12)
-            xv = torch.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+            moved = xv
+            # a converged pixel's step is itself, one end of its bracket: it stays (a strict test would bisect it
+            # away from the root again)
+            xv = torch.where((step >= lo) & (step <= hi), step, 0.5 * (lo + hi))
+            if float((xv - moved).abs().max()) < _NEWTON_TOL_DN:  # converged everywhere: further steps move < 1e-5 DN
+                break
         x = m.index_put(idx, xv.to(dtype))
     return x.clamp(0, FULL_SCALE_DN)
 

@@ -146,6 +146,34 @@ def test_clean_estimate_is_the_local_mean_away_from_the_bounds():
     assert torch.allclose(x, ref)
 
 
+def test_inversion_solves_the_censored_mean_and_stops_when_converged():
+    """Near the bounds the inverted clean level x reproduces the observed 3×3 mean through the censored mean to
+    < 1e-3 DN (the Newton steps stop early once converged), and more steps change nothing that matters."""
+    g = torch.Generator().manual_seed(3)
+    a, c = torch.tensor([0.05, 0.2]), torch.tensor([36.0, 100.0])
+    clean = torch.linspace(0.0, 30.0, 48).view(1, 1, 1, 48).expand(2, 1, 48, 48)
+    img = (clean + (a.view(2, 1, 1, 1) * clean + c.view(2, 1, 1, 1)).sqrt() * torch.randn(clean.shape, generator=g)).clamp(0, 255)
+    x = estimate_clean_dn(img, a, c)
+    m = torch.nn.functional.avg_pool2d(torch.nn.functional.pad(img.double(), (1, 1, 1, 1), mode="replicate"), 3, 1)
+    inside = (x > 0.5) & (x < 254.5)  # where the inversion has a solution inside [0, 255]
+    var = a.double().view(2, 1, 1, 1) * x + c.double().view(2, 1, 1, 1)
+    assert inside.sum() > 1000
+    assert (censored_mean_dn(x, var) - m)[inside].abs().max() < 1e-3
+    assert (estimate_clean_dn(img, a, c, iterations=40) - x).abs().max() < 1e-3
+
+
+def test_per_sample_variances_give_the_same_sums_as_per_pixel_ones():
+    """A source variance given once per sample is summed without a pass over the pixels: the same result as the
+    same variance spelled out per pixel."""
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(3, 1, 40, 40, generator=g) * 255.0
+    pn = 0.1 * x
+    dc, rn = torch.tensor([4.0, 9.0, 0.0]), torch.tensor([25.0, 1.0, 400.0])
+    per_sample = clipped_sigma_dn(x, [pn, dc, rn], dtype=torch.float32)
+    per_pixel = clipped_sigma_dn(x, [pn, dc.view(3, 1, 1, 1).expand_as(x), rn.view(3, 1, 1, 1).expand_as(x)], dtype=torch.float32)
+    assert torch.allclose(per_sample, per_pixel, rtol=1e-12, atol=1e-12)
+
+
 def test_bad_values_are_named():
     """NaN scenes, negative or non-finite variances and wrong shapes get a ValueError naming the value."""
     with pytest.raises(ValueError, match="clean_dn must be finite"):
