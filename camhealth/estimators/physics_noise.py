@@ -235,9 +235,21 @@ def _clipping_penalty(
     Σ_k −½·((p_k − o_k)/s_k)², s_k = 0.1·p_k + √(p_k/N_k) + 10⁻³ (a 10 % model error, the binomial spread over
     the bin's N_k pixels). The caller adds the bins that carry NLF evidence (those at least ``bound_margin`` σ from
     the bounds, where the model holds): without it a very noisy hypothesis, whose few kept blocks are quiet (most
-    blocks would have a clipped pixel), could fit the kept details as well as the true one."""
+    blocks would have a clipped pixel), could fit the kept details as well as the true one.
+
+    :func:`physics_noise_posterior` evaluates the same terms only at the bins that carry evidence
+    (:func:`_clip_bin_stats`, :func:`_clip_cost`)."""
+    n_k, m_k, o_k = _clip_bin_stats(x, m, idx, bins, pool, a_all.shape[0])
+    return _clip_cost(n_k.unsqueeze(1), m_k.unsqueeze(1), o_k.unsqueeze(1), a_all.unsqueeze(-1), c_all.unsqueeze(-1),
+                      q.view(-1, 1, 1))
+
+
+def _clip_bin_stats(
+    x: torch.Tensor, m: torch.Tensor, idx: torch.Tensor, bins: int, pool: bool, rows: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per intensity bin (``rows``, bins) float64: the number of blocks N_k, their mean intensity m_k [DN] and the
+    share o_k of their pixels that are clipped (within ½ DN of 0 or 255 DN) (:func:`_clipping_penalty`)."""
     b, f64, dev = x.shape[0], torch.float64, x.device
-    rows = a_all.shape[0]  # B, or 1 when pooled (every row the same)
     h, w = m.shape[-2] * 2, m.shape[-1] * 2
     dn = x.detach()[..., :h, :w].double() * 255.0
     clipped = F.avg_pool2d(((dn <= 0.5) | (dn >= 254.5)).double(), 2).flatten()  # share of each block's pixels
@@ -247,12 +259,19 @@ def _clipping_penalty(
         return out.sum(0, keepdim=True).expand(b, bins) if pool else out
 
     n_k = per_bin(torch.ones_like(clipped))[:rows]
-    m_k = (per_bin(m.flatten().to(f64))[:rows] / n_k.clamp_min(1.0)).unsqueeze(1)
-    o_k = (per_bin(clipped)[:rows] / n_k.clamp_min(1.0)).unsqueeze(1)
-    sd = (0.75 * (a_all.unsqueeze(-1) * m_k + c_all.unsqueeze(-1) + q.view(rows, 1, 1))).clamp_min(1e-9).sqrt()
+    m_k = per_bin(m.flatten().to(f64))[:rows] / n_k.clamp_min(1.0)
+    o_k = per_bin(clipped)[:rows] / n_k.clamp_min(1.0)
+    return n_k, m_k, o_k
+
+
+def _clip_cost(n_k: torch.Tensor, m_k: torch.Tensor, o_k: torch.Tensor, a: torch.Tensor, c: torch.Tensor,
+               q: torch.Tensor) -> torch.Tensor:
+    """−½·((p_k − o_k)⁺/s_k)² of :func:`_clipping_penalty`, broadcast over its arguments (bin statistics of
+    :func:`_clip_bin_stats`; a hypothesis's slope a [DN²/DN], variance c [DN²] and quantisation variance q [DN²])."""
+    sd = (0.75 * (a * m_k + c + q)).clamp_min(1e-9).sqrt()
     p_k = 0.5 * (torch.erfc((m_k - 0.5) / (sd * math.sqrt(2.0))) + torch.erfc((254.5 - m_k) / (sd * math.sqrt(2.0))))
-    spread = 0.1 * p_k + (p_k / (4.0 * n_k.unsqueeze(1)).clamp_min(1.0)).sqrt() + 1e-3
-    z = torch.where(n_k.unsqueeze(1) > 0, (p_k - o_k).clamp_min(0) / spread, torch.zeros_like(p_k))
+    spread = 0.1 * p_k + (p_k / (4.0 * n_k).clamp_min(1.0)).sqrt() + 1e-3
+    z = torch.where(n_k > 0, (p_k - o_k).clamp_min(0) / spread, torch.zeros_like(p_k))
     return -0.5 * z.square()
 
 
@@ -388,26 +407,34 @@ def physics_noise_posterior(
         raise ValueError(f"pool=True adds up the evidence of patches of one camera state: metadata must have batch 1, got {meta.batch_size}")
     with torch.autocast(device_type=dev.type, enabled=False):
         x = image.detach().float()
-        rows = torch.stack([getattr(meta, n).to(device=dev, dtype=f64).expand(b) for n in FULL_FIELDS], dim=1)
-        a0, var0 = _noise_model(rows)  # (B,), (B, 2) = σ_DCSN², σ_RN² [DN²]
-        # hypotheses: M itself, each field on its grid, extra white noise beyond the ranges
-        slopes, variances, logp = [a0.unsqueeze(1)], [var0.unsqueeze(1)], [torch.full((b, 1), math.log1p(-mismatch_probability), dtype=f64, device=dev)]
-        p_field = (mismatch_probability - beyond_probability) / len(MISMATCH_FIELDS)
+        # the hypotheses depend on the metadata alone: one camera state (metadata of batch 1) gets one row, shared
+        nm = meta.batch_size
+        rows = torch.stack([getattr(meta, n).to(device=dev, dtype=f64).expand(nm) for n in FULL_FIELDS], dim=1)
+        # hypotheses: M itself, each field on its grid, extra white noise beyond the ranges; the noise model of M and
+        # of every single-field candidate in one call
+        cands = [rows]
         for fname in MISMATCH_FIELDS:
             low, high = METADATA_RANGES[fname]
-            values = _grid_values(fname, float(low), float(high), grid, "factor").to(dev)
             cand = rows.repeat_interleave(grid, 0)
-            cand[:, FULL_FIELDS.index(fname)] = values.repeat(b)
-            a, var = _noise_model(cand)
-            slopes.append(a.view(b, grid))
-            variances.append(var.view(b, grid, 2))
-            logp.append(torch.full((b, grid), math.log(max(p_field, 1e-300) / grid), dtype=f64, device=dev))
+            cand[:, FULL_FIELDS.index(fname)] = _grid_values(fname, float(low), float(high), grid, "factor").to(dev).repeat(nm)
+            cands.append(cand)
+        a_c, var_c = _noise_model(torch.cat(cands))
+        a0, var0 = a_c[:nm], var_c[:nm]  # (M,), (M, 2) = σ_DCSN², σ_RN² [DN²]
+        slopes, variances, logp = [a0.unsqueeze(1)], [var0.unsqueeze(1)], [torch.full((nm, 1), math.log1p(-mismatch_probability), dtype=f64, device=dev)]
+        p_field = (mismatch_probability - beyond_probability) / len(MISMATCH_FIELDS)
+        for j in range(len(MISMATCH_FIELDS)):
+            lo_row = nm + j * nm * grid
+            slopes.append(a_c[lo_row:lo_row + nm * grid].view(nm, grid))
+            variances.append(var_c[lo_row:lo_row + nm * grid].view(nm, grid, 2))
+            logp.append(torch.full((nm, grid), math.log(max(p_field, 1e-300) / grid), dtype=f64, device=dev))
         extra = torch.logspace(math.log10(0.5), math.log10(128.0), grid, dtype=f64, device=dev).square()  # σ_x² [DN²]
-        slopes.append(a0.unsqueeze(1).expand(b, grid))
-        variances.append(torch.stack([var0[:, :1].expand(b, grid), var0[:, 1:] + extra], dim=-1))
-        logp.append(torch.full((b, grid), math.log(max(beyond_probability, 1e-300) / grid), dtype=f64, device=dev))
+        slopes.append(a0.unsqueeze(1).expand(nm, grid))
+        variances.append(torch.stack([var0[:, :1].expand(nm, grid), var0[:, 1:] + extra], dim=-1))
+        logp.append(torch.full((nm, grid), math.log(max(beyond_probability, 1e-300) / grid), dtype=f64, device=dev))
         a_all, var_all, prior = torch.cat(slopes, 1), torch.cat(variances, 1), torch.cat(logp, 1)
         c_all = var_all.sum(-1)
+        a0, var0 = a0.expand(b), var0.expand(b, 2)
+        a_all, var_all, c_all, prior = a_all.expand(b, -1), var_all.expand(b, -1, 2), c_all.expand(b, -1), prior.expand(b, -1)
         q = _quantisation_variance(x)
 
         m, d2, usable, g2 = block_details(x, "physics_noise_posterior")
@@ -419,7 +446,7 @@ def physics_noise_posterior(
         h = 1 if pool else b
         a_h, c_h, prior_h = a_all[:h], c_all[:h], prior[:h]
         q_h = q.mean().view(1) if pool else q
-        clip_penalty = _clipping_penalty(x, m, idx, a_h, c_h, q_h, bins, pool)  # (h, H, bins)
+        clip_n, clip_m, clip_o = _clip_bin_stats(x, m, idx, bins, pool, h)  # (h, bins): the clipping penalty's bins
         post = torch.softmax(prior, 1)
         tau2 = torch.full((b,), scene_allowance_dn**2, dtype=f64, device=dev)  # τ² [DN²] per patch
         tau2_min = min(scene_allowance_min_dn, scene_allowance_dn) ** 2
@@ -460,23 +487,28 @@ def physics_noise_posterior(
                 tau2 = torch.where(n3 >= _MIN_FIT_BLOCKS, (tau2_min + excess / (SCENE_DETAIL_RATIO - 1.0)).clamp_max(scene_allowance_dn**2),
                                    torch.full_like(excess, scene_allowance_dn**2))
             eta2 = (eta**2 + texture.clamp_min(0).square()).unsqueeze(1)[:h]
-            s_hat = (sq / _TRUNCATED_CHI2 / count.clamp_min(1.0))[:h]
-            mk = (sm / count.clamp_min(1.0))[:h]
-            used = count[:h] >= _MIN_BIN_DETAILS
             evidence = count.sum(1) >= _MIN_FIT_BLOCKS
-            v = (a_h.unsqueeze(-1) * mk.unsqueeze(1) + c_h.unsqueeze(-1) + q_h.view(h, 1, 1)).clamp_min(1e-9)
-            kept = _kept_variance_factor(mk.unsqueeze(1), v)  # the details of the blocks kept (no pixel clipped)
+            # only the bins that carry evidence (≥ _MIN_BIN_DETAILS details; a patch spans a few of the bins) enter
+            # ℓ: each such bin e of row pe is one row of (E, hypotheses) arrays, summed back per row
+            pe, ke = (count[:h] >= _MIN_BIN_DETAILS).nonzero(as_tuple=True)
+            n_e = count[pe, ke].unsqueeze(1)
+            s_hat = (sq[pe, ke] / _TRUNCATED_CHI2 / n_e.squeeze(1)).unsqueeze(1)
+            mk = (sm[pe, ke] / n_e.squeeze(1)).unsqueeze(1)
+            a_e, c_e = a_h.index_select(0, pe), c_h.index_select(0, pe)
+            v = (a_e * mk + c_e + q_h[pe].unsqueeze(1)).clamp_min(1e-9)
+            kept = _kept_variance_factor(mk, v)  # the details of the blocks kept (no pixel clipped)
             v = v * kept
-            r = torch.where(used.unsqueeze(1), s_hat.clamp_min(1e-9).log().unsqueeze(1) - v.log(), torch.zeros_like(v))
+            r = s_hat.clamp_min(1e-9).log() - v.log()
             # the scene's own fine-scale content adds up to about τ² to a bin (never removes any): a reading above the
             # hypothesis carries the extra log-variance ln(1 + τ²/v)², one below it none
-            scene = torch.log1p(kept * tau2[:h].view(h, 1, 1) / v).square() * (r > 0)
-            inv = torch.where(used.unsqueeze(1), 1.0 / (2.0 / count[:h].clamp_min(1.0).unsqueeze(1) + eta_bin**2 + scene),
-                              torch.zeros_like(v))  # D⁻¹ per hypothesis
-            quad = (r.square() * inv).sum(-1)
-            lin = (r * inv).sum(-1)
-            ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv.sum(-1)))
-            ll = ll + (clip_penalty * used.unsqueeze(1)).sum(-1)
+            scene = torch.log1p(kept * tau2[:h][pe].unsqueeze(1) / v).square() * (r > 0)
+            inv = 1.0 / (2.0 / n_e + eta_bin**2 + scene)  # D⁻¹ per hypothesis
+            per_row = torch.zeros(4, h, a_h.shape[1], dtype=f64, device=dev).index_add_(
+                1, pe, torch.stack([r.square() * inv, r * inv, inv,
+                                    _clip_cost(clip_n[pe, ke].unsqueeze(1), clip_m[pe, ke].unsqueeze(1),
+                                               clip_o[pe, ke].unsqueeze(1), a_e, c_e, q_h[pe].unsqueeze(1))]))
+            quad, lin, inv_sum, clip_cost = per_row
+            ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv_sum)) + clip_cost
             ll = torch.where(evidence[:h].unsqueeze(1), ll, torch.zeros_like(ll))
             post = torch.softmax(ll + prior_h, 1).expand(b, -1)
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
@@ -489,12 +521,6 @@ def physics_noise_posterior(
         w = w / w.sum(1, keepdim=True).clamp_min(1e-300)
         e_a = (w * a_all[:, 1:]).sum(1)
         e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
-        # σ after clipping of the metadata's model and of the image's (posterior-mean variances): one batched call
-        clipped = clipped_prior_dn(
-            torch.cat([x, x]), torch.cat([a0, e_a]), torch.cat([var0[:, 0], e_var[:, 0]]).sqrt(),
-            torch.cat([var0[:, 1], e_var[:, 1]]).sqrt(),
-        ).view(2, b, 4)
-        prior_clipped, image_clipped = clipped[0], clipped[1]
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
         # texture does not (its covariance is a lower bound on what it adds to each detail)
         p00, p01, p10, p11 = _block_pixels(x * 255.0)
@@ -513,6 +539,15 @@ def physics_noise_posterior(
         corr = torch.where(pairs >= _MIN_FIT_BLOCKS, cov / var.clamp_min(1e-12), torch.zeros_like(cov))
         corr_check = corr.abs() / torch.maximum(torch.full_like(corr, DETAIL_CORR_LIMIT), 3.0 / pairs.clamp_min(1.0).sqrt())
         follows = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & ~textured(texture, corr_check)
+        # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
+        # follow it (the only ones that use it): one batched call
+        sel = follows.nonzero(as_tuple=True)[0]
+        clipped = clipped_prior_dn(
+            torch.cat([x, x[sel]]), torch.cat([a0, e_a[sel]]), torch.cat([var0[:, 0], e_var[sel, 0]]).sqrt(),
+            torch.cat([var0[:, 1], e_var[sel, 1]]).sqrt(),
+        )
+        prior_clipped = clipped[:b]
+        image_clipped = prior_clipped.index_copy(0, sel, clipped[b:])
         out_sigma = torch.where(follows.unsqueeze(1), image_clipped, prior_clipped)
         xi = torch.where(follows, prior_clipped[:, 3] - image_clipped[:, 3], torch.zeros_like(p_match))
         # posterior spread of σ_Total (before clipping) over all hypotheses, scaled to the clipped total

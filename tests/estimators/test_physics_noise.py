@@ -224,6 +224,28 @@ def test_gain_mismatch_is_followed_and_pooling_shares_the_answer():
     assert torch.equal(pooled[:, 6], pooled[:1, 6].expand(4))
 
 
+def test_each_patch_is_answered_alone_whatever_shares_its_batch():
+    """Per patch (not pooled) a patch's answer depends on it and its metadata only: one camera state for the batch
+    (hypotheses computed once, shared), the same state spelled out per patch, and every patch alone agree, also when
+    the patches span different intensity bins and one of them follows the image."""
+    told = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    clean = torch.cat([_ramp(1), torch.full((1, 1, 128, 128), 0.1), torch.full((1, 1, 128, 128), 0.9), _ramp(1).flip(-1)])
+    g = torch.Generator().manual_seed(8)
+    noisy, _ = simulate_variant(clean, told, (), g)
+    noisy[3:], _ = simulate_variant(clean[3:], told, (), g, overrides={"gain_db": 18.0})
+    shared = physics_noise_posterior(noisy, told)
+    per_row = physics_noise_posterior(noisy, told.expand(4))
+    alone = torch.cat([physics_noise_posterior(noisy[i:i + 1], told) for i in range(4)])
+    assert shared[3, 9] == 1 and (shared[:3, 9] == 0).all()  # the last one follows the image
+    assert torch.allclose(shared, per_row, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(shared, alone, rtol=1e-5, atol=1e-6)
+    other = CameraMetadata.preset("ICX285", gain_db=18.0, exposure_s=0.02, temperature_c=30.0)
+    mixed = physics_noise_posterior(noisy, CameraMetadata.cat([told, told, told, other]))  # one camera per patch
+    assert torch.allclose(mixed[:3], shared[:3], rtol=1e-5, atol=1e-6)
+    assert torch.allclose(mixed[3:], physics_noise_posterior(noisy[3:], other), rtol=1e-5, atol=1e-6)
+    assert mixed[3, 9] == 0  # told the gain it was made with, the last patch is the closed form
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
 @pytest.mark.parametrize("batch", [1, 256])
 def test_dtypes_batches_and_hard_patches(dtype, batch):
