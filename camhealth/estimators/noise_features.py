@@ -147,8 +147,9 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
     and the per-pixel source variances σ_PN² = slope·x, σ_DCSN², σ_RN² are carried through the clipping in
     closed form (:func:`~camhealth.physics.clipping.clipped_sigma_dn`; the labels' attribution rule). Far from
     0 and 255 DN nothing is clipped and the result is the unclipped model; on a patch that is half black it is
-    about 1/√2 of it. Given the metadata the image was made with, it is within 0.03 / 0.07 / 0.09 / 0.13 DN
-    (RMS) of the realised labels on the 592-patch held-out set.
+    about 1/√2 of it. Given the metadata the image was made with, it is within 0.01 / 0.00 / 0.02 / 0.02 DN (RMS)
+    of the σ an independent implementation of the sensor model realised, on photographs and street frames of every
+    simulator variant (``python -m camhealth.bench robustness``, row ``closed_form``, matched).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1].
