@@ -224,6 +224,20 @@ def test_gain_mismatch_is_followed_and_pooling_shares_the_answer():
     assert torch.equal(pooled[:, 6], pooled[:1, 6].expand(4))
 
 
+def test_runs_on_the_patches_device_with_the_cpu_answer(device):
+    """The statistics run on the device of the patches (a GPU where there is one) and give the CPU's answer: the
+    same decisions, σ within float32 rounding."""
+    told = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    noisy, _ = simulate_variant(_ramp(4), told, (), torch.Generator().manual_seed(3), overrides={"gain_db": 16.0})
+    for pool in (False, True):
+        ref = physics_noise_posterior(noisy, told, pool=pool)
+        out = physics_noise_posterior(noisy.to(device), told.to(device), pool=pool)
+        assert out.device.type == device.type
+        out = out.cpu()
+        assert torch.equal(out[:, 9], ref[:, 9]) and (ref[:, 9] == 1).all()
+        assert torch.allclose(out, ref, rtol=1e-5, atol=1e-4)
+
+
 def test_each_patch_is_answered_alone_whatever_shares_its_batch():
     """Per patch (not pooled) a patch's answer depends on it and its metadata only: one camera state for the batch
     (hypotheses computed once, shared), the same state spelled out per patch, and every patch alone agree, also when
