@@ -9,7 +9,7 @@ from camhealth.estimators.noise_features import physics_prior_dn
 from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.physics_noise import (
     PHYSICS_NOISE_COLUMNS, SCENE_ALLOWANCE_DN, SCENE_ALLOWANCE_MIN_DN, TEXTURE_LIMIT, VALIDATED_SIGMA_DN,
-    PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, physics_noise_posterior, textured,
+    PATCH_CHUNK, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, physics_noise_posterior, textured,
 )
 from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
 from camhealth.physics import CameraMetadata
@@ -222,6 +222,20 @@ def test_gain_mismatch_is_followed_and_pooling_shares_the_answer():
         assert (out[:, 4] < 0).all()
     pooled = physics_noise_posterior(noisy, told, pool=True)
     assert torch.equal(pooled[:, 6], pooled[:1, 6].expand(4))
+
+
+def test_predict_in_chunks_gives_the_answer_of_one_call():
+    """``predict`` sends the patches through the statistics PATCH_CHUNK at a time: the same answer as one call over
+    all of them, with one camera state and with one camera per patch."""
+    told = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    b = PATCH_CHUNK + 7
+    noisy, _ = simulate_variant(_ramp(b), told, (), torch.Generator().manual_seed(5), overrides={"gain_db": 12.0})
+    for meta in (told, told.expand(b)):
+        res = PhysicsNoiseEstimator().predict(noisy, meta)
+        ref = physics_noise_posterior(noisy, meta)
+        assert res["sigma"].shape == (b, 3) and torch.equal(res["follows_image"], ref[:, 9] > 0.5) and res["follows_image"].any()
+        assert torch.allclose(res["sigma"], ref[:, :3], rtol=1e-5, atol=1e-5)
+        assert torch.allclose(res["xi"], ref[:, 4], rtol=1e-5, atol=1e-5)
 
 
 def test_runs_on_the_patches_device_with_the_cpu_answer(device):
