@@ -325,6 +325,63 @@ def _quantisation_variance(image: torch.Tensor) -> torch.Tensor:
     return whole.double() / 12.0
 
 
+def _hypotheses(
+    meta: CameraMetadata, grid: int, mismatch_probability: float, beyond_probability: float, dev: torch.device,
+) -> tuple[torch.Tensor, ...]:
+    """The hypotheses of :func:`physics_noise_posterior` for each row of ``meta`` (M rows: one camera state gets one
+    row, shared by its patches), float64: M itself, each field of :data:`MISMATCH_FIELDS` on its grid, and extra white
+    noise beyond the ranges (σ_x on a log grid 0.5…128 DN, counted as readout noise).
+
+    Returns (a₀ (M,), var₀ (M, 2), a (M, 1 + 4·grid), var (…, 2), c (…), log prior (…)): the PN slope 255·g/FW
+    [DN²/DN], the DCSN and RN variances [DN²] and their sum c of M and of every hypothesis, and the log prior. The noise
+    model of M and of every single-field candidate is evaluated in one call."""
+    f64, nm = torch.float64, meta.batch_size
+    rows = torch.stack([getattr(meta, n).to(device=dev, dtype=f64).expand(nm) for n in FULL_FIELDS], dim=1)
+    cands = [rows]
+    for fname in MISMATCH_FIELDS:
+        low, high = METADATA_RANGES[fname]
+        cand = rows.repeat_interleave(grid, 0)
+        cand[:, FULL_FIELDS.index(fname)] = _grid_values(fname, float(low), float(high), grid, "factor").to(dev).repeat(nm)
+        cands.append(cand)
+    a_c, var_c = _noise_model(torch.cat(cands))
+    a0, var0 = a_c[:nm], var_c[:nm]  # (M,), (M, 2) = σ_DCSN², σ_RN² [DN²]
+    slopes, variances, logp = [a0.unsqueeze(1)], [var0.unsqueeze(1)], [torch.full((nm, 1), math.log1p(-mismatch_probability), dtype=f64, device=dev)]
+    p_field = (mismatch_probability - beyond_probability) / len(MISMATCH_FIELDS)
+    for j in range(len(MISMATCH_FIELDS)):
+        lo_row = nm + j * nm * grid
+        slopes.append(a_c[lo_row:lo_row + nm * grid].view(nm, grid))
+        variances.append(var_c[lo_row:lo_row + nm * grid].view(nm, grid, 2))
+        logp.append(torch.full((nm, grid), math.log(max(p_field, 1e-300) / grid), dtype=f64, device=dev))
+    extra = torch.logspace(math.log10(0.5), math.log10(128.0), grid, dtype=f64, device=dev).square()  # σ_x² [DN²]
+    slopes.append(a0.unsqueeze(1).expand(nm, grid))
+    variances.append(torch.stack([var0[:, :1].expand(nm, grid), var0[:, 1:] + extra], dim=-1))
+    logp.append(torch.full((nm, grid), math.log(max(beyond_probability, 1e-300) / grid), dtype=f64, device=dev))
+    a_all, var_all, prior = torch.cat(slopes, 1), torch.cat(variances, 1), torch.cat(logp, 1)
+    return a0, var0, a_all, var_all, var_all.sum(-1), prior
+
+
+def _neighbour_check(x: torch.Tensor, v_ref: torch.Tensor, ok: torch.Tensor, pool: bool) -> torch.Tensor:
+    """|ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) per patch (B,) float64 (≥ 1: textured): ρ is the correlation of the
+    standardised diagonal details d/√v_ref of horizontally and vertically adjacent inlier blocks (mask ``ok``), over
+    the frame when ``pool``. White noise leaves them uncorrelated, a scene's fine texture does not (its covariance is
+    a lower bound on what it adds to each detail); 0 with fewer than _MIN_FIT_BLOCKS pairs."""
+    b, f64, dev = x.shape[0], torch.float64, x.device
+    p00, p01, p10, p11 = _block_pixels(x * 255.0)
+    z = (p00 - p01 - p10 + p11) / 2.0 / v_ref.sqrt()
+    cov, var, pairs = (torch.zeros(b, dtype=f64, device=dev) for _ in range(3))
+    for dim in (-1, -2):
+        n_d = z.shape[dim] - 1
+        za, zb = z.narrow(dim, 0, n_d), z.narrow(dim, 1, n_d)
+        both = ok.narrow(dim, 0, n_d) * ok.narrow(dim, 1, n_d)
+        cov = cov + (za * zb * both).flatten(1).sum(1).to(f64)
+        var = var + (both * (za.square() + zb.square()) / 2.0).flatten(1).sum(1).to(f64)
+        pairs = pairs + both.flatten(1).sum(1).to(f64)
+    if pool:
+        cov, var, pairs = (t.sum().expand(b) for t in (cov, var, pairs))
+    corr = torch.where(pairs >= _MIN_FIT_BLOCKS, cov / var.clamp_min(1e-12), torch.zeros_like(cov))
+    return corr.abs() / torch.maximum(torch.full_like(corr, DETAIL_CORR_LIMIT), 3.0 / pairs.clamp_min(1.0).sqrt())
+
+
 def physics_noise_posterior(
     image: torch.Tensor,
     meta: CameraMetadata,
@@ -410,32 +467,7 @@ def physics_noise_posterior(
         raise ValueError(f"pool=True adds up the evidence of patches of one camera state: metadata must have batch 1, got {meta.batch_size}")
     with torch.autocast(device_type=dev.type, enabled=False):
         x = image.detach().float()
-        # the hypotheses depend on the metadata alone: one camera state (metadata of batch 1) gets one row, shared
-        nm = meta.batch_size
-        rows = torch.stack([getattr(meta, n).to(device=dev, dtype=f64).expand(nm) for n in FULL_FIELDS], dim=1)
-        # hypotheses: M itself, each field on its grid, extra white noise beyond the ranges; the noise model of M and
-        # of every single-field candidate in one call
-        cands = [rows]
-        for fname in MISMATCH_FIELDS:
-            low, high = METADATA_RANGES[fname]
-            cand = rows.repeat_interleave(grid, 0)
-            cand[:, FULL_FIELDS.index(fname)] = _grid_values(fname, float(low), float(high), grid, "factor").to(dev).repeat(nm)
-            cands.append(cand)
-        a_c, var_c = _noise_model(torch.cat(cands))
-        a0, var0 = a_c[:nm], var_c[:nm]  # (M,), (M, 2) = σ_DCSN², σ_RN² [DN²]
-        slopes, variances, logp = [a0.unsqueeze(1)], [var0.unsqueeze(1)], [torch.full((nm, 1), math.log1p(-mismatch_probability), dtype=f64, device=dev)]
-        p_field = (mismatch_probability - beyond_probability) / len(MISMATCH_FIELDS)
-        for j in range(len(MISMATCH_FIELDS)):
-            lo_row = nm + j * nm * grid
-            slopes.append(a_c[lo_row:lo_row + nm * grid].view(nm, grid))
-            variances.append(var_c[lo_row:lo_row + nm * grid].view(nm, grid, 2))
-            logp.append(torch.full((nm, grid), math.log(max(p_field, 1e-300) / grid), dtype=f64, device=dev))
-        extra = torch.logspace(math.log10(0.5), math.log10(128.0), grid, dtype=f64, device=dev).square()  # σ_x² [DN²]
-        slopes.append(a0.unsqueeze(1).expand(nm, grid))
-        variances.append(torch.stack([var0[:, :1].expand(nm, grid), var0[:, 1:] + extra], dim=-1))
-        logp.append(torch.full((nm, grid), math.log(max(beyond_probability, 1e-300) / grid), dtype=f64, device=dev))
-        a_all, var_all, prior = torch.cat(slopes, 1), torch.cat(variances, 1), torch.cat(logp, 1)
-        c_all = var_all.sum(-1)
+        a0, var0, a_all, var_all, c_all, prior = _hypotheses(meta, grid, mismatch_probability, beyond_probability, dev)
         a0, var0 = a0.expand(b), var0.expand(b, 2)
         a_all, var_all, c_all, prior = a_all.expand(b, -1), var_all.expand(b, -1, 2), c_all.expand(b, -1), prior.expand(b, -1)
         q = _quantisation_variance(x)
@@ -525,22 +557,8 @@ def physics_noise_posterior(
         e_a = (w * a_all[:, 1:]).sum(1)
         e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
-        # texture does not (its covariance is a lower bound on what it adds to each detail)
-        p00, p01, p10, p11 = _block_pixels(x * 255.0)
-        z = (p00 - p01 - p10 + p11) / 2.0 / v_ref.sqrt()
-        ok = inl_all[0]
-        cov, var, pairs = (torch.zeros(b, dtype=f64, device=dev) for _ in range(3))
-        for dim in (-1, -2):
-            n_d = z.shape[dim] - 1
-            za, zb = z.narrow(dim, 0, n_d), z.narrow(dim, 1, n_d)
-            both = ok.narrow(dim, 0, n_d) * ok.narrow(dim, 1, n_d)
-            cov = cov + (za * zb * both).flatten(1).sum(1).to(f64)
-            var = var + (both * (za.square() + zb.square()) / 2.0).flatten(1).sum(1).to(f64)
-            pairs = pairs + both.flatten(1).sum(1).to(f64)
-        if pool:
-            cov, var, pairs = (t.sum().expand(b) for t in (cov, var, pairs))
-        corr = torch.where(pairs >= _MIN_FIT_BLOCKS, cov / var.clamp_min(1e-12), torch.zeros_like(cov))
-        corr_check = corr.abs() / torch.maximum(torch.full_like(corr, DETAIL_CORR_LIMIT), 3.0 / pairs.clamp_min(1.0).sqrt())
+        # texture does not
+        corr_check = _neighbour_check(x, v_ref, inl_all[0], pool)
         follows = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & ~textured(texture, corr_check)
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
         # follow it (the only ones that use it): one batched call
