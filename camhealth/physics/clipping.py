@@ -47,8 +47,9 @@ _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 #: Pixels whose 3×3 mean lies this many σ (of the largest noise at any intensity) from a bound are treated as
 #: unaffected by clipping: P(|n| > 6σ) < 2e-9.
 _NEAR_SIGMAS = 6.0
-#: Newton steps of :func:`estimate_clean_dn` stop once no pixel moved by more than this [DN] in the last step.
-_NEWTON_TOL_DN = 1e-5
+#: Newton steps of :func:`estimate_clean_dn` stop once no pixel moved by more than this [DN] in the last step (float32:
+#: 255 DN is resolved to 1.5e-5 DN).
+_NEWTON_TOL_DN = 1e-4
 
 
 def _phi(u: torch.Tensor) -> torch.Tensor:
@@ -188,7 +189,8 @@ def estimate_clean_dn(
     E[clamp(x + n, 0, 255)]. Where m lies within 6 σ of a bound it is inverted for x by bisection — the
     censored mean is increasing in x and |m − x| ≤ E|n| < σ(255), which brackets x; at most ``iterations`` steps of
     Newton's method, safeguarded by bisection of the bracket (8 resolve < 1e-4 DN where it matters), ending early
-    once no pixel moves by more than 1e-5 DN — elsewhere x = m. The result is clamped to
+    once no pixel moves by more than 1e-4 DN; a mean at or beyond the censored mean of a clean level at a bound is
+    that bound, without steps — elsewhere x = m. The result is clamped to
     [0, 255] DN, the range of clean images, in ``dtype`` (the inversion itself runs in float32: the 3×3 mean
     is uncertain by σ/3 anyway).
 
@@ -223,12 +225,19 @@ def estimate_clean_dn(
         idx = near.nonzero(as_tuple=True)
         # float32 suffices here: the 3×3 mean itself is uncertain by σ/3
         target, aa, cc = m[idx].float(), a.flatten()[idx[0]].float(), c.flatten()[idx[0]].float()
+        # the censored mean increases with x: a mean at or below its value at x = 0 (above it at 255 DN) is a clean
+        # level at the bound, which the result is clamped to anyway; only the others are solved for
+        f0 = _censored_mean_and_slope(torch.zeros_like(target), cc, torch.zeros_like(target))[0]
+        f255 = _censored_mean_and_slope(torch.full_like(target, FULL_SCALE_DN), aa * FULL_SCALE_DN + cc, torch.zeros_like(target))[0]
+        at_bound = torch.where(target <= f0, 0.0, FULL_SCALE_DN)
+        solve = (target > f0) & (target < f255)
+        pix, target, aa, cc, at_bound = solve.nonzero(as_tuple=True)[0], target[solve], aa[solve], cc[solve], at_bound[~solve]
         # |m − x| = |E[y]| ≤ E|n| < σ(x) ≤ σ(255): x ∈ [m − σ(255), m + σ(255)]
         span = (aa * FULL_SCALE_DN + cc).sqrt()
         lo, hi = target - span, target + span
         # safeguarded Newton: a Newton step where it stays inside the bracket, bisection otherwise
         xv = target.clone()
-        for _ in range(iterations):
+        for _ in range(iterations if pix.numel() else 0):
             f, df = _censored_mean_and_slope(xv, aa * xv.clamp(0, FULL_SCALE_DN) + cc, aa * ((xv > 0) & (xv < FULL_SCALE_DN)))
             below = f < target
             lo, hi = torch.where(below, xv, lo), torch.where(below, hi, xv)
@@ -237,9 +246,12 @@ def estimate_clean_dn(
             # a converged pixel's step is itself, one end of its bracket: it stays (a strict test would bisect it
             # away from the root again)
             xv = torch.where((step >= lo) & (step <= hi), step, 0.5 * (lo + hi))
-            if float((xv - moved).abs().max()) < _NEWTON_TOL_DN:  # converged everywhere: further steps move < 1e-5 DN
+            if float((xv - moved).abs().max()) < _NEWTON_TOL_DN:  # converged everywhere
                 break
-        x = m.index_put(idx, xv.to(dtype))
+        values = torch.empty(solve.shape, dtype=dtype, device=m.device)
+        values[pix] = xv.to(dtype)
+        values[~solve] = at_bound.to(dtype)
+        x = m.index_put(idx, values)
     return x.clamp(0, FULL_SCALE_DN)
 
 

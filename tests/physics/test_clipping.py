@@ -160,6 +160,9 @@ def test_inversion_solves_the_censored_mean_and_stops_when_converged():
     assert inside.sum() > 1000
     assert (censored_mean_dn(x, var) - m)[inside].abs().max() < 1e-3
     assert (estimate_clean_dn(img, a, c, iterations=40) - x).abs().max() < 1e-3
+    # a mean beyond what any clean level inside [0, 255] gives (black, saturated) is the bound itself
+    bounds = torch.cat([torch.zeros(1, 1, 16, 16), torch.full((1, 1, 16, 16), 255.0)])
+    assert torch.equal(estimate_clean_dn(bounds, a, c), bounds)
 
 
 def test_per_sample_variances_give_the_same_sums_as_per_pixel_ones():
