@@ -360,6 +360,16 @@ def _hypotheses(
     return a0, var0, a_all, var_all, var_all.sum(-1), prior
 
 
+@functools.lru_cache(maxsize=16)
+def _camera_hypotheses(
+    fields: tuple[float, ...], grid: int, mismatch_probability: float, beyond_probability: float, device: str,
+) -> tuple[torch.Tensor, ...]:
+    """:func:`_hypotheses` of one camera state given by its :data:`FULL_FIELDS` values (physical units), cached: a
+    monitor asks for the same state frame after frame. The tensors are shared between calls and never written to."""
+    meta = CameraMetadata(**{n: torch.tensor([v], dtype=torch.float64) for n, v in zip(FULL_FIELDS, fields)})
+    return _hypotheses(meta, grid, mismatch_probability, beyond_probability, torch.device(device))
+
+
 def _neighbour_check(x: torch.Tensor, v_ref: torch.Tensor, ok: torch.Tensor, pool: bool) -> torch.Tensor:
     """|ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) per patch (B,) float64 (≥ 1: textured): ρ is the correlation of the
     standardised diagonal details d/√v_ref of horizontally and vertically adjacent inlier blocks (mask ``ok``), over
@@ -467,7 +477,11 @@ def physics_noise_posterior(
         raise ValueError(f"pool=True adds up the evidence of patches of one camera state: metadata must have batch 1, got {meta.batch_size}")
     with torch.autocast(device_type=dev.type, enabled=False):
         x = image.detach().float()
-        a0, var0, a_all, var_all, c_all, prior = _hypotheses(meta, grid, mismatch_probability, beyond_probability, dev)
+        if meta.batch_size == 1:  # one camera state: its hypotheses are reused from call to call (a monitor's frames)
+            key = tuple(float(getattr(meta, n).reshape(-1)[0]) for n in FULL_FIELDS)
+            a0, var0, a_all, var_all, c_all, prior = _camera_hypotheses(key, grid, mismatch_probability, beyond_probability, str(dev))
+        else:
+            a0, var0, a_all, var_all, c_all, prior = _hypotheses(meta, grid, mismatch_probability, beyond_probability, dev)
         a0, var0 = a0.expand(b), var0.expand(b, 2)
         a_all, var_all, c_all, prior = a_all.expand(b, -1), var_all.expand(b, -1, 2), c_all.expand(b, -1), prior.expand(b, -1)
         q = _quantisation_variance(x)

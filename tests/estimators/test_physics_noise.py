@@ -13,6 +13,7 @@ from camhealth.estimators.physics_noise import (
 )
 from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
 from camhealth.physics import CameraMetadata
+from camhealth.physics.metadata import FULL_FIELDS
 
 
 def _ramp(b: int = 4, size: int = 128) -> torch.Tensor:
@@ -236,6 +237,24 @@ def test_predict_in_chunks_gives_the_answer_of_one_call():
         assert res["sigma"].shape == (b, 3) and torch.equal(res["follows_image"], ref[:, 9] > 0.5) and res["follows_image"].any()
         assert torch.allclose(res["sigma"], ref[:, :3], rtol=1e-5, atol=1e-5)
         assert torch.allclose(res["xi"], ref[:, 4], rtol=1e-5, atol=1e-5)
+
+
+def test_one_camera_states_hypotheses_are_reused_unchanged():
+    """One camera state's hypotheses are computed once and reused by later calls: the same as computing them afresh,
+    and a call (which follows the image here) leaves them as they were."""
+    from camhealth.estimators.physics_noise import _camera_hypotheses, _hypotheses
+
+    told = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    noisy, _ = simulate_variant(_ramp(2), told, (), torch.Generator().manual_seed(6), overrides={"gain_db": 16.0})
+    _camera_hypotheses.cache_clear()
+    first = physics_noise_posterior(noisy, told)
+    assert _camera_hypotheses.cache_info().currsize == 1
+    second = physics_noise_posterior(noisy, told)
+    assert _camera_hypotheses.cache_info().hits >= 1 and torch.equal(first, second) and (first[:, 9] == 1).all()
+    fresh = _hypotheses(told, 96, 0.5, 0.125, torch.device("cpu"))
+    key = tuple(float(getattr(told, n).reshape(-1)[0]) for n in FULL_FIELDS)
+    for cached, recomputed in zip(_camera_hypotheses(key, 96, 0.5, 0.125, "cpu"), fresh):
+        assert torch.equal(cached, recomputed)
 
 
 def test_runs_on_the_patches_device_with_the_cpu_answer(device):
