@@ -86,7 +86,9 @@ the metadata cannot be checked; the closed form is still returned), ``"textured"
 more energy than the diagonal one on the inliers, or adjacent diagonal details are correlated, so texture leaked into
 the evidence: the closed form is returned and ξ is not trusted), and ``"noise beyond validated range"`` (σ_Total before clipping above
 :data:`VALIDATED_SIGMA_DN`: there the clipping takes so much of the noise that the closed-form correction is
-not validated).
+not validated; or the patch's finest-scale fluctuations, measured over all of its blocks, above that limit by more
+than their sampling error — :func:`beyond_validated_range`: noise that is not clipped Gaussian noise, such as
+uniform noise, can read below the limit through the clipped-Gaussian model).
 """
 
 from __future__ import annotations
@@ -108,13 +110,16 @@ from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
-__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
+__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
            "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "textured"]
 
 #: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
 VALIDATED_SIGMA_DN = 64.0
 #: The ``reason`` of a patch whose σ_Total (before clipping) is above :data:`VALIDATED_SIGMA_DN`.
 BEYOND_VALIDATED = "noise beyond validated range"
+#: Relative standard error × √n of Donoho's MAD estimate σ̂ = median|d|/0.6745 over n Gaussian details:
+#: 1/(2·f(0.6745)·0.6745) with f = 2φ(0.6745) the density of |d|/σ at its median.
+_MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * 0.6744897501960817**2) / math.sqrt(2.0 * math.pi) * 0.6744897501960817)
 #: τ [DN] of :func:`physics_noise_posterior`: what a scene may add to the finest-scale statistic by itself. The lower
 #: quartile of the 8×8-px windows' diagonal detail on clean frames (``camhealth.bench.robustness.scene_floor_dn``) is
 #: 2.0 DN at the median over the street clip and the photographs, area-downsampled 3× (≈ 2 DN on the street frames,
@@ -610,6 +615,24 @@ def physics_noise_posterior(
     return out.float()
 
 
+def beyond_validated_range(patches: torch.Tensor) -> torch.Tensor:
+    """Whether the finest-scale fluctuations of B×1×H×W patches in [0, 1] exceed :data:`VALIDATED_SIGMA_DN` beyond
+    doubt → (B,) bool.
+
+    σ̂ = median|d|/0.6745 of the diagonal Haar details d over the patch's blocks, every one of them
+    (:func:`camhealth._inputs.structure_contrast_dn`: sparse edges do not move a median), must exceed the limit by three
+    of its standard errors (1.166·σ/√n for n Gaussian details). Clipping only lowers σ̂, so clipped Gaussian noise
+    within the limit never trips it. Uniform noise of σ 73 DN does: the clipped-Gaussian model, which reads only
+    the blocks away from the bounds, sees it as about 52 DN. Texture that fine and that strong trips it too, and
+    no noise estimate can be vouched for under it either."""
+    from camhealth._inputs import structure_contrast_dn
+
+    _, mad = structure_contrast_dn(patches.float())
+    h, w = patches.shape[-2:]
+    n = max(((h - h % 2) // 2 + 1) // 2 * ((w - w % 2) // 2), 1)  # the details structure_contrast_dn reads
+    return mad > VALIDATED_SIGMA_DN * (1.0 + 3.0 * _MAD_RELATIVE_SE / math.sqrt(n))
+
+
 @dataclass
 class PhysicsNoiseEstimator:
     """The shipped Full-Meta noise-source estimator: :func:`physics_noise_posterior` behind the
@@ -671,6 +694,7 @@ class PhysicsNoiseEstimator:
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
         is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
+        too_strong = beyond_validated_range(patches).tolist()
         for i in range(b):
             if reason[i]:
                 continue
@@ -678,7 +702,7 @@ class PhysicsNoiseEstimator:
                 reason[i] = "no flat area"
             elif is_textured[i]:
                 reason[i] = "textured"
-            elif raw[i, 10] > VALIDATED_SIGMA_DN:
+            elif raw[i, 10] > VALIDATED_SIGMA_DN or too_strong[i]:
                 reason[i] = BEYOND_VALIDATED
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],

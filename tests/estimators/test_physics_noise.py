@@ -9,7 +9,8 @@ from camhealth.estimators.noise_features import physics_prior_dn
 from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.physics_noise import (
     PHYSICS_NOISE_COLUMNS, SCENE_ALLOWANCE_DN, SCENE_ALLOWANCE_MIN_DN, TEXTURE_LIMIT, VALIDATED_SIGMA_DN,
-    PATCH_CHUNK, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, physics_noise_posterior, textured,
+    PATCH_CHUNK, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, beyond_validated_range,
+    physics_noise_posterior, textured,
 )
 from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
 from camhealth.physics import CameraMetadata
@@ -330,6 +331,30 @@ def test_estimator_interface_reasons_and_loader():
     assert out["sigma_std"].shape == (3, 3)
     assert torch.isinf(out["xi_std"][1])  # no evidence: ξ unknown
     assert bool(((out["p_match"] >= 0) & (out["p_match"] <= 1)).all())  # a probability, also where it is ~0
+
+
+def test_uniform_noise_beyond_the_validated_range_is_refused_not_read_low():
+    """Uniform noise of σ 73.6 DN (255/√12) is not clipped Gaussian noise: read through the clipped-Gaussian model it
+    looks like ≈ 52 DN, within the validated range; its fine-scale fluctuations say otherwise."""
+    g = torch.Generator().manual_seed(0)
+    noisy = (torch.rand(4, 1, 128, 128, generator=g) * 255).round() / 255
+    out = PhysicsNoiseEstimator().predict(noisy, CameraMetadata.preset("ICX285"))
+    assert out["reason"] == ["noise beyond validated range"] * 4 and not out["assessable"].any()
+    assert bool(beyond_validated_range(noisy).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("level", [0.15, 0.5, 0.85])
+def test_clipped_gaussian_noise_within_the_validated_range_is_not_refused_as_beyond_it(dtype, level):
+    """60 DN of Gaussian noise, clipped at 0 and 255 DN and 8-bit rounded, on 64 flat patches: the fine-scale check
+    never fires (clipping only lowers it), and strong sparse edges do not move its median."""
+    g = torch.Generator().manual_seed(1)
+    x = (level + 60.0 / 255 * torch.randn(64, 1, 128, 128, generator=g)).clamp(0, 1)
+    assert not bool(beyond_validated_range(((x * 255).round() / 255).to(dtype)).any())
+    edges = torch.full((8, 1, 128, 128), level)
+    edges[..., ::16, :] = 1.0 - level  # a full-contrast line every 16 rows, 2 DN of noise
+    edges = (edges + 2.0 / 255 * torch.randn(edges.shape, generator=g)).clamp(0, 1).to(dtype)
+    assert not bool(beyond_validated_range(edges).any())
 
 
 def test_bad_input_is_refused():
