@@ -429,16 +429,21 @@ def test_physics_noise_uncertainty_reaches_the_report(mode):
         assert d["xi"]["estimator_std"] > 0.0 and d["xi"]["estimator_std"] == d["total"]["estimator_std"]
 
 
+@pytest.mark.parametrize("noise", ["gaussian", "uniform"])
 @pytest.mark.parametrize("mode", ["sampled", "map"])
-def test_noise_beyond_the_validated_range_raises_noisier_not_silence(mode):
-    """A frame with 80 DN of white noise where the metadata say a few DN: the physics-first estimator refuses its
-    patches as "noise beyond validated range" (σ above 64 DN, where its σ reads low), and the monitor still raises
-    "noisier" with that ξ̃ as a bound, instead of "not assessable"; the refusals are counted in the report."""
+def test_noise_beyond_the_validated_range_raises_noisier_not_silence(mode, noise):
+    """A frame with 80 DN of white noise (or uniform noise over 0…255 DN, σ 73.6 DN, which the clipped-Gaussian model
+    alone reads as ≈ 52 DN) where the metadata say a few DN: the physics-first estimator refuses its patches as
+    "noise beyond validated range" (σ above 64 DN, where its σ reads low), and the monitor still raises "noisier"
+    with that ξ̃ as a bound, instead of "not assessable"; the refusals are counted in the report."""
     from camhealth.estimators.physics_noise import BEYOND_VALIDATED, VALIDATED_SIGMA_DN
 
     g = torch.Generator().manual_seed(3)
     ramp = torch.linspace(60.0, 200.0, 512).view(1, 512).expand(384, 512) / 255.0
-    frame = ((ramp + 80.0 / 255.0 * torch.randn(384, 512, generator=g)).clamp(0, 1) * 255).round() / 255
+    if noise == "gaussian":
+        frame = ((ramp + 80.0 / 255.0 * torch.randn(384, 512, generator=g)).clamp(0, 1) * 255).round() / 255
+    else:
+        frame = (torch.rand(384, 512, generator=g) * 255).round() / 255
     mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
     d = _strict(mon.process(frame).to_json())
     assert not d["noise"]["assessable"]
