@@ -101,7 +101,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from camhealth._inputs import _to_metadata, _to_patches, assess_patches
+from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, structure_contrast_dn
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
     metadata_from_matrix,
@@ -119,7 +119,7 @@ VALIDATED_SIGMA_DN = 64.0
 BEYOND_VALIDATED = "noise beyond validated range"
 #: Relative standard error × √n of Donoho's MAD estimate σ̂ = median|d|/0.6745 over n Gaussian details:
 #: 1/(2·f(0.6745)·0.6745) with f = 2φ(0.6745) the density of |d|/σ at its median.
-_MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * 0.6744897501960817**2) / math.sqrt(2.0 * math.pi) * 0.6744897501960817)
+_MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * _MAD_NORMAL**2) / math.sqrt(2.0 * math.pi) * _MAD_NORMAL)
 #: τ [DN] of :func:`physics_noise_posterior`: what a scene may add to the finest-scale statistic by itself. The lower
 #: quartile of the 8×8-px windows' diagonal detail on clean frames (``camhealth.bench.robustness.scene_floor_dn``) is
 #: 2.0 DN at the median over the street clip and the photographs, area-downsampled 3× (≈ 2 DN on the street frames,
@@ -625,11 +625,10 @@ def beyond_validated_range(patches: torch.Tensor) -> torch.Tensor:
     within the limit never trips it. Uniform noise of σ 73 DN does: the clipped-Gaussian model, which reads only
     the blocks away from the bounds, sees it as about 52 DN. Texture that fine and that strong trips it too, and
     no noise estimate can be vouched for under it either."""
-    from camhealth._inputs import structure_contrast_dn
-
     _, mad = structure_contrast_dn(patches.float())
-    h, w = patches.shape[-2:]
-    n = max(((h - h % 2) // 2 + 1) // 2 * ((w - w % 2) // 2), 1)  # the details structure_contrast_dn reads
+    h2, w2 = (s - s % 2 for s in patches.shape[-2:])
+    step = 4 if h2 >= 8 else 2  # structure_contrast_dn reads the details of every other row of 2×2 blocks
+    n = max(-(-h2 // step) * (w2 // 2), 1)
     return mad > VALIDATED_SIGMA_DN * (1.0 + 3.0 * _MAD_RELATIVE_SE / math.sqrt(n))
 
 
