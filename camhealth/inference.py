@@ -41,7 +41,8 @@
   gives the spread alone (a lower bound of the error: it does not see what all views get wrong alike).
 - ``noise_source_full`` is no network: the physics-first estimator
   (:class:`~camhealth.estimators.physics_noise.PhysicsNoiseEstimator`, same ``predict`` interface, plus ``xi_std``,
-  ``p_match`` and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
+  ``p_match``, ``row_column_dn`` (B, 2): σ of row and column noise [DN] where detected, else 0,
+  :mod:`camhealth.estimators.row_column_noise`; and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
   with fewer metadata. Names and files of retired variants are refused with a message naming what replaced them.
 """
 

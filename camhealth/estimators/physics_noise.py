@@ -80,6 +80,14 @@ posterior standard deviation of σ_Total (∞ without evidence). Inliers are cho
 metadata-free per-intensity median of the details, then against the first pass's posterior NLF — so a camera far
 noisier than its metadata keeps its details.
 
+**Row and column noise** (banding, :mod:`camhealth.estimators.row_column_noise`): offsets shared by whole pixel rows or
+columns, which no source of the metadata makes. The diagonal detail never sees them; the horizontal and vertical ones
+do, so the texture check would call a banded flat patch textured. Where they are detected (pooled: over the frame),
+they are taken out of the horizontal and vertical details and of the block-mean gradients before the checks, and
+where the patch then passes them and the banding moves σ_Total visibly, the image's σ_Total is
+√(σ_Total(pixel noise)² + σ_row² + σ_col²): ξ says the image is noisier, P(match) is 0, and the per-source σ stay
+the pixel noise's. Columns ``row_dn``/``col_dn`` give the detected σ (0 where none is).
+
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
 the metadata cannot be checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
@@ -106,6 +114,7 @@ from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
     metadata_from_matrix,
 )
+from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
@@ -150,6 +159,7 @@ MISMATCH_FIELDS: tuple[str, ...] = ("gain_db", "temperature_c", "white_noise_v_p
 PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
     "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
+    "row_dn", "col_dn",
 )
 #: Patches per call of :func:`physics_noise_posterior` in :meth:`PhysicsNoiseEstimator.predict` (per patch; pooled, the
 #: frame is one call): larger chunks outgrow the CPU's caches (1.9 against 1.4 ms per patch at 256 on a 2-core VM).
@@ -412,7 +422,7 @@ def physics_noise_posterior(
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
     scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
 ) -> torch.Tensor:
-    """Physics-first noise sources of each patch, (B, 16) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 18) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
@@ -422,7 +432,8 @@ def physics_noise_posterior(
     the uncertainty of PN, DCSN and RN [DN]: the posterior RMS deviation of every hypothesis's σ from the answer's
     (before clipping, scaled to the clipped answer), and in quadrature σ/√(2n), by which the realised σ of a patch's
     n pixels differs from the expected one (∞ without evidence) — large where the image shows an excess that several
-    sources explain alike and the prior alone splits it.
+    sources explain alike and the prior alone splits it; σ of row and column noise where detected [DN] (else 0; where
+    they are, σ_Total, ξ and its uncertainty include them, module docstring).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -492,6 +503,8 @@ def physics_noise_posterior(
         q = _quantisation_variance(x)
 
         m, d2, usable, g2 = block_details(x, "physics_noise_posterior")
+        band = row_column_noise(x, pool)  # row and column offsets: out of the details the fits read
+        d2, g2 = debanded_details(x, m, d2, g2, band.detected)
         kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
         idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
         m_flat = m.flatten().to(f64)
@@ -609,9 +622,26 @@ def physics_noise_posterior(
         # and the patch's own sampling: the realised σ of n pixels' noise differs from its expected σ by σ/√(2n)
         sd_src = (sd_src.square() * src_scale.square() + out_sigma[:, :3].square() / (2.0 * x.shape[-1] * x.shape[-2])).sqrt()
         sigma_std = torch.where(evidence.unsqueeze(1), sd_src, torch.full_like(sd_src, float("inf")))
+        # row and column noise, which no source of the metadata makes: where it is detected on a patch that is not
+        # textured once it is taken out, and moves σ_Total visibly, it adds to the image's σ_Total and so to ξ (the
+        # per-source σ stay the pixel noise's)
+        band_sigma = band.sigma_dn * band.detected
+        band_var = band_sigma.square().sum(1)
+        white_total = out_sigma[:, 3].double()
+        banded_total = (white_total.square() + band_var).sqrt()
+        prior_total = prior_clipped[:, 3]
+        banded = ((band_var > 0) & evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
+                  & ((banded_total - prior_total).abs() >= torch.clamp_min(VISIBLE_XI_FRACTION * prior_total, VISIBLE_XI_DN)))
+        out_sigma = torch.cat([out_sigma[:, :3], torch.where(banded, banded_total, white_total).unsqueeze(1)], 1)
+        xi = torch.where(banded, prior_total - banded_total, xi.double())
+        p_match = torch.where(banded, torch.zeros_like(p_match), p_match)
+        follows = follows | banded
+        band_se = (band.var_se_dn2 * band.detected).sum(1) / (2.0 * banded_total.clamp_min(1e-6))
+        xi_std = torch.where(banded, (xi_std.square() + band_se.square()).sqrt(), xi_std)
+        unclipped_answer = torch.where(banded, (unclipped_answer.square() + band_var).sqrt(), unclipped_answer)
         out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
-                         corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std], dim=1)
+                         corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma], dim=1)
     return out.float()
 
 
@@ -681,7 +711,8 @@ class PhysicsNoiseEstimator:
         if b == 0:  # an empty batch: every output with 0 rows
             z = torch.zeros(0)
             return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
-                    "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool)}
+                    "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool),
+                    "row_column_dn": torch.zeros(0, 2)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
@@ -705,4 +736,5 @@ class PhysicsNoiseEstimator:
                 reason[i] = BEYOND_VALIDATED
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
-                "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5}
+                "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
+                "row_column_dn": raw[:, 16:18]}

@@ -454,3 +454,50 @@ def test_matched_patch_with_two_marginal_signs_of_texture_keeps_the_closed_form(
     assert torch.allclose(out[:4], prior, atol=1e-4) and float(prior[3]) == pytest.approx(9.87, abs=0.05)
     res = PhysicsNoiseEstimator().predict(x, meta)
     assert res["reason"] == ["textured"] and not res["assessable"].any()
+
+
+@pytest.mark.parametrize("kind", ["rows", "columns", "both"])
+@pytest.mark.parametrize("pool", [False, True])
+def test_row_and_column_noise_counts_in_the_total_and_in_xi(kind, pool):
+    """Right metadata, a mid-grey patch, 10 DN of offsets per pixel row and/or column: the per-source σ stay the
+    closed form (the banding is no source of the metadata), σ_Total = √(σ_Total(M)² + σ_row² + σ_col²) within 10 %,
+    ξ < 0 by as much, P(match) = 0; ``row_column_dn`` gives the banding. The patch is assessable."""
+    meta = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.02, temperature_c=30.0)
+    clean = torch.full((8, 1, 128, 128), 0.5)
+    noisy, _ = simulate_variant(clean, meta, ("round8",), torch.Generator().manual_seed(2))
+    g = torch.Generator().manual_seed(3)
+    band = torch.zeros(8, 1, 128, 128)
+    if kind in ("rows", "both"):
+        band = band + 10.0 * torch.randn(8, 1, 128, 1, generator=g)
+    if kind in ("columns", "both"):
+        band = band + 10.0 * torch.randn(8, 1, 1, 128, generator=g)
+    x = ((noisy + band / 255.0).clamp(0, 1) * 255).round() / 255
+    est = PhysicsNoiseEstimator()
+    out = est.predict(x, meta, pool=pool)
+    prior = physics_prior_dn(x, meta, clipping=True)[:, 4:8]
+    assert out["assessable"].all(), out["reason"]
+    assert torch.allclose(out["sigma"], prior[:, :3], atol=0.05)
+    band_dn = out["row_column_dn"]
+    assert band_dn.shape == (8, 2)
+    for i, on in enumerate((kind in ("rows", "both"), kind in ("columns", "both"))):
+        if on:
+            assert band_dn[:, i].median() == pytest.approx(10.0, rel=0.1)
+        else:
+            assert (band_dn[:, i] == 0).all()
+    expect = (prior[:, 3].square() + band_dn.square().sum(1)).sqrt()
+    assert torch.allclose(out["sigma_total"], expect, rtol=1e-4)
+    truth = ((x - clean) * 255).flatten(1).std(1)
+    assert out["sigma_total"].median() == pytest.approx(float(truth.median()), rel=0.1)
+    assert torch.allclose(out["xi"], prior[:, 3] - out["sigma_total"], atol=1e-4) and (out["xi"] < -5).all()
+    assert (out["p_match"] == 0).all() and out["follows_image"].all()
+    assert torch.isfinite(out["xi_std"]).all() and (out["xi_std"] > 0).all()
+
+
+def test_no_banding_reported_on_matched_patches_of_every_simulator_variant():
+    """Do no harm: the matched patches of the do-no-harm test report no row or column noise."""
+    meta = CameraMetadata.preset("EV76C661", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    noisy, _ = simulate_variant(_ramp(16), meta, VARIANTS, torch.Generator().manual_seed(3))
+    for pool in (False, True):
+        out = PhysicsNoiseEstimator().predict(noisy, meta, pool=pool)
+        assert (out["row_column_dn"] == 0).all()
+    assert PhysicsNoiseEstimator().predict(torch.zeros(0, 1, 128, 128), meta)["row_column_dn"].shape == (0, 2)
