@@ -344,6 +344,11 @@ class TaskReport:
             ``"noise beyond validated range"`` (σ above :data:`~camhealth.estimators.physics_noise.VALIDATED_SIGMA_DN`;
             there the image's σ reads low, so the ξ is a bound: the image is at least that much noisier); ``None``
             when there were none.
+        banding: noise only: row and column noise (offsets shared by whole pixel rows or columns, which no metadata
+            field makes; :mod:`camhealth.estimators.row_column_noise`) on this frame's assessable patches where the
+            estimator reports it (``row_column_dn``): ``{"row_dn", "col_dn"}`` the medians over the patches with any
+            [DN] (0 for a direction none shows) and ``"patches"``; ``None`` when no patch shows any. It is part of
+            σ_Total and ξ, and the alarm names it.
         note: why a task could not be assessed, if it could not.
         grid_obj, values, code: per-patch maps (not serialised unless asked).
     """
@@ -366,6 +371,7 @@ class TaskReport:
     counts: dict[str, int] = field(default_factory=dict)
     refused: dict[str, int] = field(default_factory=dict)
     beyond_xi: float | None = None
+    banding: dict[str, Any] | None = None
     note: str = ""
     grid_obj: PatchGrid | None = field(default=None, repr=False)
     values: torch.Tensor | None = field(default=None, repr=False)
@@ -402,6 +408,8 @@ class TaskReport:
                 out["h"] = out["v"] = out["indicator"] = None
         out["patches"] = dict(self.counts)
         out["refused"] = dict(self.refused)
+        if self.task == "noise":
+            out["banding"] = dict(self.banding) if self.banding else None
         out["coverage"] = dict(self.coverage)
         if self.note:
             out["note"] = self.note
@@ -519,6 +527,15 @@ def beyond_range_alarm(xi_dn: float, beyond: int, refused: int, threshold_dn: fl
                         "and the metadata predict as much: ξ cannot be assessed")}
 
 
+def banding_text(banding: Mapping[str, Any]) -> str:
+    """The alarm's words for a frame's row and column noise (:attr:`TaskReport.banding`)."""
+    parts = [f"{name} noise ≈ {float(banding[key]):.2f} DN" for name, key in (("row", "row_dn"), ("column", "col_dn"))
+             if float(banding.get(key, 0.0)) > 0]
+    return (" and ".join(parts) + f" on {banding.get('patches', 0)} patches: offsets shared by whole pixel "
+            + ("rows and columns" if len(parts) == 2 else "rows" if banding.get("row_dn", 0) else "columns")
+            + ", which no metadata field makes (banding: check the readout electronics, supply and interference)")
+
+
 # ---------------------------------------------------------------------------------------------- monitor
 @dataclass
 class _EstimatorHandle:
@@ -549,6 +566,7 @@ class _TaskState:
     # this frame's refusals: reason → patches, and ξ [DN] of the patches refused as beyond the validated range
     refused: dict[str, int] = field(default_factory=dict)
     beyond_xi: list[float] = field(default_factory=list)
+    banding: list[tuple[float, float]] = field(default_factory=list)  # (row, column) σ [DN] of this frame's patches
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -617,9 +635,13 @@ def _pooled_std(std: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def _refusals(st: _TaskState) -> dict[str, Any]:
-    """The ``refused`` and ``beyond_xi`` fields of a :class:`TaskReport` from this frame's task state."""
+    """The ``refused``, ``beyond_xi`` and ``banding`` fields of a :class:`TaskReport` from this frame's task state."""
     beyond = float(torch.tensor(st.beyond_xi).median()) if st.beyond_xi else None
-    return {"refused": dict(st.refused), "beyond_xi": beyond}
+    banding = None
+    if st.banding:
+        med = torch.tensor(st.banding).median(0).values
+        banding = {"row_dn": round(float(med[0]), 3), "col_dn": round(float(med[1]), 3), "patches": len(st.banding)}
+    return {"refused": dict(st.refused), "beyond_xi": beyond, "banding": banding}
 
 
 def _reasons_text(refused: Mapping[str, int]) -> str:
@@ -926,6 +948,9 @@ class Monitor:
                 xi = float(torch.as_tensor(out["xi"]).reshape(n)[i])
                 if math.isfinite(xi):
                     st.beyond_xi.append(xi)
+        if task == "noise" and out.get("row_column_dn") is not None:
+            band = torch.as_tensor(out["row_column_dn"]).float().reshape(n, 2)
+            st.banding += [tuple(band[i].tolist()) for i in ((band > 0).any(1) & ok).nonzero()[:, 0].tolist()]
         ok &= torch.isfinite(vals[:, -1])
         vals[~ok] = float("nan")
         std[~ok] = float("nan")
@@ -933,7 +958,7 @@ class Monitor:
 
     def _run_task(self, task: str, frame: torch.Tensor, meta: CameraMetadata | None) -> TaskReport:
         st = self._states[task]
-        st.refused, st.beyond_xi = {}, []
+        st.refused, st.beyond_xi, st.banding = {}, [], []
         grid, cfg = st.grid, self.selection
         handle = self.estimators[task]
         base = dict(task=task, estimator=handle.name, patch=grid.patch, grid=(grid.rows, grid.cols))
@@ -1172,8 +1197,11 @@ class Monitor:
             return out
         i = NOISE_FIELDS.index("xi")
         count = noise.n_values
-        return xi_alarm(float(noise.median[i]), float(noise.spread[i]), count, self.xi_threshold_dn, self.xi_sigmas,
-                        total_dn=noise.value("total"))
+        out = xi_alarm(float(noise.median[i]), float(noise.spread[i]), count, self.xi_threshold_dn, self.xi_sigmas,
+                       total_dn=noise.value("total"))
+        if out["state"] == "noisier" and noise.banding:
+            out["message"] += "; " + banding_text(noise.banding)
+        return out
 
     def _advice(self, noise: TaskReport | None, mtf: TaskReport | None, meta: CameraMetadata | None) -> dict[str, Any] | None:
         if self.policy is None:

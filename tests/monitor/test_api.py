@@ -561,3 +561,42 @@ def test_real_mtf_estimator_views_give_an_estimator_std(model_files, street_fram
     one = json.loads(Monitor(None, mtf, warmup=False).process(frame).to_json())["mtf"]
     assert all(v is not None and v >= 0 for v in two["h"]["estimator_std"] + two["v"]["estimator_std"])
     assert one["h"]["estimator_std"] == [None] * 8
+
+
+@pytest.mark.parametrize("kind", ["rows", "columns"])
+@pytest.mark.parametrize("mode", ["sampled", "map"])
+def test_row_or_column_noise_raises_noisier_and_names_it(mode, kind, monkeypatch):
+    """A ramp frame with the camera's own noise plus 8 DN of offsets per pixel row (or column): the texture check alone
+    reads the banding as texture and would refuse every patch; the banding is taken out of the checks, counted in
+    σ_Total and ξ, and the alarm says "noisier" and names it. The same frame without banding stays "ok"."""
+    from camhealth.bench.sensor_variants import simulate_variant
+    from camhealth.physics import CameraMetadata
+
+    meta = CameraMetadata.preset("ICX285")
+    ramp = torch.linspace(60.0, 200.0, 512).view(1, 1, 1, 512).expand(1, 1, 384, 512) / 255.0
+    noisy, _ = simulate_variant(ramp.contiguous(), meta, ("round8",), torch.Generator().manual_seed(4))
+    g = torch.Generator().manual_seed(5)
+    shape = (384, 1) if kind == "rows" else (1, 512)
+    banded = ((noisy[0, 0] + 8.0 / 255.0 * torch.randn(shape, generator=g)).clamp(0, 1) * 255).round() / 255
+    for frame, banding in ((noisy[0, 0], False), (banded, True)):
+        mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
+        d = _strict(mon.process(frame).to_json())
+        assert d["noise"]["assessable"], d["noise"]
+        if not banding:
+            assert d["alarm"]["state"] == "ok" and d["noise"]["banding"] is None, d["alarm"]
+            continue
+        band = d["noise"]["banding"]
+        key, other = ("row_dn", "col_dn") if kind == "rows" else ("col_dn", "row_dn")
+        assert 6.5 < band[key] < 9.5 and band[other] == 0.0, band
+        a = d["alarm"]
+        assert a["state"] == "noisier", a
+        assert a["xi_dn"] < -4.0
+        assert f"{kind[:-1] if kind == 'rows' else 'column'} noise ≈" in a["message"] and "banding" in a["message"]
+        # with the banding never detected, the texture check refuses the patches: the monitor could not tell
+        import camhealth.estimators.row_column_noise as rcn
+
+        monkeypatch.setattr(rcn, "T_LIMIT", float("inf"))
+        mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
+        d = _strict(mon.process(frame).to_json())
+        assert not d["noise"]["assessable"] and d["noise"]["refused"].get("textured", 0) >= 1, d["noise"]
+        assert d["alarm"]["state"] == "not_assessable"
