@@ -18,7 +18,10 @@ Every noise estimator is scored beside the closed form of the metadata alone on 
   and 7: the downsampling packs scene structure into the pixel scale, it does not remove the scenes' own noise;
 - **metadata**: matched; and one field altered while the estimator is told the unaltered value — gain +6…12 dB,
   temperature +15…30 K, thermal white noise ×2…4 (thesis Sec. 6.3.2);
-- **strong noise**: extra white noise that brings σ_Total to 10–60 DN while the metadata are unchanged.
+- **strong noise**: extra white noise that brings σ_Total to 10–60 DN while the metadata are unchanged;
+- **row and column noise** (banding): offsets N(0, σ²) per pixel row, per pixel column or both, σ 1–8 DN, on a
+  matched camera (:func:`add_banding`, written here from that description) — noise no metadata field makes, which the
+  image shows as whole rows or columns out of step. Its truth per source is the camera's; σ_Total and ξ include it.
 
 The cameras are the two presets and random sensors (every field uniform over conventions.md Table 4.1), told
 gain 0–12 dB, exposure 1–200 ms, temperature 0–50 °C. Truth per source is the simulator's realised σ after
@@ -37,6 +40,8 @@ group over every patch (those it marks not assessable included: the closed form 
 fraction of patches with the right sign of ξ; the same on the patches the estimator calls assessable — where it says
 it cannot tell it keeps the closed form, wrong there by construction), the fraction of patches it calls assessable and ms per patch (fp32,
 one camera state per batch of 16, the threads set by ``--threads``); the RMS per condition is pooled over both scales.
+The row-and-column-noise frames get their own rows: per source, and the share of their visible banding (ξ ≤
+−max(0.5 DN, 15 % of σ_Total)) that the estimate declares noisier.
 """
 
 from __future__ import annotations
@@ -57,13 +62,17 @@ from camhealth.bench import BenchResult, Row
 from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
 from camhealth.physics.metadata import CameraMetadata
 
-HELP = ("noise estimators vs the closed form on an independent simulator, real scenes, JPEG, mismatches and σ ≤ 60 DN; "
+HELP = ("noise estimators vs the closed form on an independent simulator, real scenes, JPEG, mismatches, σ ≤ 60 DN and "
+        "row/column noise; "
         "--task mtf: MTF estimators on held-out PSF generators × held-out scenes")
 
 MATCHED = ("reference", *VARIANTS, "all_variants", "jpeg")
 MISMATCH = ("gain", "temperature", "white_noise")
 STRONG = ("strong",)
-CONDITIONS = MATCHED + MISMATCH + STRONG
+#: Row and column noise (banding) on a matched camera: offsets shared by whole pixel rows and/or columns, which no
+#: field of the metadata makes (last, so the frames of the other conditions do not depend on it).
+BANDING = ("banding",)
+CONDITIONS = MATCHED + MISMATCH + STRONG + BANDING
 CLOSED_FORM = "closed_form"
 #: The scene scales scored (name → area-downsampling factor); the frames of every condition alternate between them.
 #: Scene floors (:func:`scene_floor_dn`) over the 208 frames of each scale at 16 frames per condition, seeds 0 and 7:
@@ -211,6 +220,14 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
                 target = float(torch.empty(1).uniform_(10.0, 60.0, generator=gen))
                 extra = float(np.sqrt(max(target**2 - float(base.square().sum(1).mean()), 1.0)))
             noisy, sigma = simulate_variant(clean, told, variants, torch.Generator().manual_seed(seed_k), overrides, extra)
+            if cond == "banding":  # σ 1–8 DN of offsets per pixel row, per column, or both
+                kind = ("rows", "columns", "both")[int(torch.randint(0, 3, (1,), generator=gen))]
+                band_dn = float(torch.empty(1).uniform_(1.0, 8.0, generator=gen))
+                as_told = noisy
+                noisy = add_banding(noisy, band_dn, kind, int(torch.randint(0, 2**62, (1,), generator=gen)))
+                total = _total(noisy, clean)
+                out.append(Frame(cond, clean, noisy, told, sigma, total, _total(as_told, clean) - total, scale, scene_floor_dn(clean)))
+                continue
             total = _total(noisy, clean)
             if overrides is None and extra is None:
                 xi = torch.zeros(16)
@@ -222,6 +239,23 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
                 noisy = torch.stack([_jpeg(p, q) for p in noisy])
             out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scale, scene_floor_dn(clean)))
     return out
+
+
+def add_banding(noisy: torch.Tensor, sigma_dn: float, kind: str, seed: int) -> torch.Tensor:
+    """Row and/or column noise on B×1×H×W images in [0, 1]: an offset N(0, σ²) [DN] per pixel row (``kind`` "rows"),
+    per pixel column ("columns") or both, each patch its own, then clipped to [0, 1] and, where the input holds whole
+    DN (8-bit data), rounded to whole DN again. NumPy's generator, seeded by ``seed``."""
+    rng = np.random.default_rng(seed)
+    x = noisy.detach().double().numpy()[:, 0] * 255.0
+    b, h, w = x.shape
+    whole = np.abs(x - np.round(x)).max(axis=(1, 2)) < 1e-3
+    if kind in ("rows", "both"):
+        x = x + sigma_dn * rng.standard_normal((b, h, 1))
+    if kind in ("columns", "both"):
+        x = x + sigma_dn * rng.standard_normal((b, 1, w))
+    x = np.clip(x, 0.0, 255.0)
+    x = np.where(whole[:, None, None], np.round(x), x)
+    return torch.from_numpy(x / 255.0).float().unsqueeze(1)
 
 
 def _jpeg(patch: torch.Tensor, quality: int) -> torch.Tensor:
@@ -327,7 +361,7 @@ def _aggregate(rows: dict[str, list]) -> dict[str, Any]:
         return g
 
     for name, conds in [("matched", MATCHED), *[(c, (c,)) for c in MATCHED], ("mismatched", MISMATCH),
-                        *[(c, (c,)) for c in MISMATCH], ("strong", STRONG)]:
+                        *[(c, (c,)) for c in MISMATCH], ("strong", STRONG), ("banding", BANDING)]:
         res["groups"][name] = group(conds)
     # the mismatches the image can show (|ξ| ≥ max(0.5 DN, 15 % of σ_Total)); the others are within any estimator's reach
     # only through the metadata, which are wrong there
@@ -395,6 +429,24 @@ def _aggregate(rows: dict[str, list]) -> dict[str, Any]:
         for k in ("strong_total_rel_median", "strong_total_rel_p90", "strong_xi_sign_right", "strong_assessable",
                   "strong_total_rel_p90_assessable", "strong_xi_sign_right_assessable"):
             res[k] = float("nan")
+    banded = rows.get("banding", [])
+    if banded:  # row and column noise: the image is noisier than its (right) metadata say
+        tot = torch.cat([r[1] for r in banded])
+        t_tot = torch.cat([r[3].total for r in banded])
+        xi = torch.cat([r[2] for r in banded])
+        vis = torch.cat([_visible(r[3], r[3].xi) for r in banded])
+        res["banding_total_rel_median"] = float((tot / t_tot - 1).abs().median())
+        res["banding_visible_patches"] = int(vis.sum())
+        res["banding_declared_patch"] = float((xi[vis] <= -torch.clamp(0.15 * tot[vis], min=0.5)).float().mean()) if vis.any() else float("nan")
+        f_vis = [float(r[3].xi.median()) <= -max(0.5, 0.15 * float(r[3].total.median())) for r in banded]
+        f_dec = [float(r[2].median()) <= -max(0.5, 0.15 * float(r[1].median())) for r in banded]
+        res["banding_visible_frames"] = int(sum(f_vis))
+        res["banding_declared_frame"] = (float(np.mean([d for d, v in zip(f_dec, f_vis) if v])) if any(f_vis) else float("nan"))
+        res["banding_assessable"] = float(torch.cat([r[4] for r in banded]).float().mean())
+    else:
+        for k in ("banding_total_rel_median", "banding_declared_patch", "banding_declared_frame", "banding_assessable"):
+            res[k] = float("nan")
+        res["banding_visible_patches"] = res["banding_visible_frames"] = 0
     return res
 
 
@@ -464,7 +516,7 @@ def run(args: argparse.Namespace) -> BenchResult:
                "| estimator | scenes | set | PN | DCSN | RN | DCSN⊕RN | total | ξ RMS |", "|---|---|---|---|---|---|---|---|---:|"]
     for name, r in results.items():
         for label, key in sets:
-            for gname in ("matched", "mismatched", "visible mismatch", "strong"):
+            for gname in ("matched", "mismatched", "visible mismatch", "strong", "banding"):
                 g = part(r, key)["groups"][gname]
                 summary.append(f"| {name} | {label} | {gname} ({g['n']}) | {_fmt3(g['PN'])} | {_fmt3(g['DCSN'])} | {_fmt3(g['RN'])} | "
                                f"{_fmt3(g['DCSN+RN'])} | {_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
@@ -501,6 +553,15 @@ def run(args: argparse.Namespace) -> BenchResult:
                            f"{q['auc_frame']:.3f} / {q['auc_frame_evidence']:.3f} | "
                            f"{100 * q['declared_tpr_patch']:.0f} % / {100 * q['declared_fpr_patch']:.0f} % | "
                            f"{100 * q['declared_tpr_frame']:.0f} % / {100 * q['declared_fpr_frame']:.0f} %")
+    summary += ["", "Row and column noise (σ 1–8 DN of offsets per pixel row, per column or both, metadata right): the "
+                "median abs. rel. error of σ_Total (which includes it), the share of the patches and frames whose banding "
+                "is visible (ξ ≤ −max(0.5 DN, 15 % of σ_Total)) that the estimate declares noisier (ξ̂ ≤ −max(0.5 DN, 15 % "
+                "of σ̂_Total); per frame the medians), and the share of patches called assessable:", "",
+                "| estimator | scenes | σ_Total: median abs. rel. error | declared noisier: patches | declared noisier: frames | assessable |",
+                "|---|---|---:|---|---|---:|"]
+    per_scale(lambda q, r: f"{100 * q['banding_total_rel_median']:.1f} % | {100 * q['banding_declared_patch']:.0f} % of "
+                           f"{q['banding_visible_patches']} | {100 * q['banding_declared_frame']:.0f} % of "
+                           f"{q['banding_visible_frames']} | {100 * q['banding_assessable']:.0f} %")
     with_u = {n: r for n, r in results.items() if "within_u" in r["groups"]["matched"]}
     if with_u:
         summary += ["", "Per-source uncertainty `sigma_std` (u) against the error |σ̂ − σ| (PN / DCSN / RN): the share within u and within "

@@ -88,14 +88,18 @@ def test_report_prints_floors_and_tables_per_scale(frames, monkeypatch, tmp_path
     args = argparse.Namespace(task="noise", frames=2, seed=0, models=[], json=tmp_path / "r.json", command_line="test")
     res = rb.run(args)
     header = "\n".join(res.header)
-    assert "full resolution (13 frames): scenes' own fine-scale σ" in header
-    assert "3× area-downsampled (13 frames): scenes' own fine-scale σ" in header and "quartiles" in header
+    n_full = sum(f.scale == "full" for f in frames)
+    assert n_full == len(rb.CONDITIONS)  # two frames per condition, one per scale
+    assert f"full resolution ({n_full} frames): scenes' own fine-scale σ" in header
+    assert f"3× area-downsampled ({len(frames) - n_full} frames): scenes' own fine-scale σ" in header and "quartiles" in header
     text = "\n".join(res.summary)
     n = 16 * len(rb.MATCHED)  # matched patches per scale
     for label, matched in (("pooled", 2 * n), ("full resolution", n), ("3× area-downsampled", n)):
         assert f"| closed_form | {label} | matched ({matched}) |" in text  # per-source table
         assert f"| closed_form | {label} | 0.500 |" in text or f"| closed_form | {label} | nan |" in text  # detection
         assert f"{label}: " in text  # visible/matched counts
+        assert f"| closed_form | {label} | banding (" in text  # row and column noise: per-source table
+        assert f"| closed_form | {label} | " in text.split("Row and column noise")[1]  # and its own table
     out = json.loads((tmp_path / "r.json").read_text())
     assert set(out["closed_form"]["scales"]) == {"full", "3x"}
 
@@ -166,3 +170,22 @@ def test_per_source_uncertainty_coverage_is_counted_where_the_estimator_reports_
     assert g["median_u"] == pytest.approx((0.2, 0.2, 0.2))
     rows[rb.MATCHED[0]] = [row[:6] + (None,)]
     assert "within_u" not in rb._aggregate(rows)["groups"]["matched"]
+
+
+@pytest.mark.parametrize("kind", ["rows", "columns", "both"])
+def test_add_banding_adds_offsets_per_row_or_column(kind):
+    """The benchmark's row and column noise: per-row (per-column) offsets of the asked σ, constant along the row
+    (column), clipped, and rounded to whole DN only where the input was 8-bit."""
+    x = torch.full((4, 1, 128, 128), 100.0 / 255.0)
+    out = rb.add_banding(x, 5.0, kind, seed=3)
+    d = (out - x)[:, 0].double() * 255.0
+    assert torch.allclose(out * 255.0, (out * 255.0).round(), atol=1e-3)  # 8-bit in, 8-bit out
+    if kind == "rows":
+        assert (d.std(2) < 1e-6).all() and d[:, :, 0].std() == pytest.approx(5.0, rel=0.15)
+    elif kind == "columns":
+        assert (d.std(1) < 1e-6).all() and d[:, 0, :].std() == pytest.approx(5.0, rel=0.15)
+    else:
+        assert d.flatten(1).std(1).mean() == pytest.approx(5.0 * 2**0.5, rel=0.2)
+    smooth = torch.full((1, 1, 16, 16), 0.3001)
+    assert not torch.allclose(rb.add_banding(smooth, 1.0, "rows", 0) * 255, (rb.add_banding(smooth, 1.0, "rows", 0) * 255).round())
+    assert rb.add_banding(torch.ones(1, 1, 16, 16), 40.0, "both", 1).max() <= 1.0
