@@ -123,3 +123,19 @@ def test_diagonal_detail_never_sees_banding_and_debanding_restores_white_noise()
 def test_bad_shapes_are_refused_naming_the_shape(bad):
     with pytest.raises(ValueError, match=r"B×1×H×W patches with H, W ≥ 8, got"):
         row_column_noise(bad)
+
+
+def test_constant_black_saturated_and_non_square_patches():
+    """No texture, no noise (black, saturated, constant grey): nothing detected, every number finite. A non-square
+    patch (128×96) takes each direction on its own and finds its row noise."""
+    flat = torch.stack([torch.zeros(1, 128, 128), torch.ones(1, 128, 128), torch.full((1, 128, 128), 0.5)])
+    for pool in (False, True):
+        r = row_column_noise(flat, pool=pool)
+        assert not r.detected.any()
+        for t in (r.sigma_dn, r.var_se_dn2, r.significance, r.serial):
+            assert torch.isfinite(t).all()
+    wide = _eight_bit(_band(_white(16, 3.0, size=128)[..., :96], 3.0, "rows"))
+    r = row_column_noise(wide)
+    assert r.sigma_dn.shape == (16, 2)
+    assert r.detected[:, 0].float().mean() > 0.9 and not r.detected[:, 1].any()
+    assert r.sigma_dn[:, 0].median() == pytest.approx(3.0, rel=0.15)
