@@ -49,11 +49,18 @@ def structure_contrast_dn(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Te
       Patches under 16 px use the pixels themselves: s = √max(0, var − σ̂²).
 
     The monitor's tiling computes the same two statistics frame-wide (:mod:`camhealth.monitor.tiling`)."""
+    s, noise, _ = _structure_stats(patches)
+    return s, noise
+
+
+def _structure_stats(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """:func:`structure_contrast_dn`'s (s, σ̂) and the 8×8 block means it read [DN] (B, rows, cols) float64, or ``None``
+    for patches under 16 px."""
     x = patches[:, 0].float() * 255.0
     b, h, w = x.shape
     h2, w2 = h - h % 2, w - w % 2
     if h2 < 2 or w2 < 2:
-        return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b)
+        return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b), None
     # d of every other row of 2×2 blocks (P²/8 samples: ~2 % standard error of σ̂, half the selection work)
     q = x[:, :h2, :w2]
     step = 4 if h2 >= 8 else 2
@@ -63,11 +70,12 @@ def structure_contrast_dn(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     blk = STRUCTURE_BLOCK
     if min(h, w) >= 2 * blk:
         hb, wb = h - h % blk, w - w % blk
-        means = x[:, :hb, :wb].reshape(b, hb // blk, blk, wb // blk, blk).mean((2, 4)).flatten(1).double()
-        var = means.var(1, unbiased=False) - noise.square() / (blk * blk)
+        means = x[:, :hb, :wb].reshape(b, hb // blk, blk, wb // blk, blk).mean((2, 4)).double()
+        var = means.flatten(1).var(1, unbiased=False) - noise.square() / (blk * blk)
     else:
+        means = None
         var = x.double().flatten(1).var(1, unbiased=False) - noise.square()
-    return var.clamp_min(0).sqrt().float(), noise.float()
+    return var.clamp_min(0).sqrt().float(), noise.float(), means
 
 
 def edge_kurtosis_from_moments(m2: torch.Tensor, m4: torch.Tensor, noise_dn: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -122,13 +130,57 @@ def has_edges(gamma: torch.Tensor, se: torch.Tensor) -> torch.Tensor:
     return (gamma - 2.0 * se) >= MIN_EDGE_KURTOSIS
 
 
+def _interaction_contrast_dn(means: torch.Tensor, noise_dn: torch.Tensor) -> torch.Tensor:
+    """The structure contrast of :func:`structure_contrast_dn` without what is constant along block rows or block
+    columns: its 8×8 block means ``means`` (B, rows, cols) [DN] less their row and column means (plus the grand
+    mean), noise-corrected → (B,) DN. Row and column offsets (banding) have none; neither has a straight edge along a
+    row or column."""
+    blk = STRUCTURE_BLOCK
+    nr, nc = means.shape[1], means.shape[2]
+    resid = means - means.mean(2, keepdim=True) - means.mean(1, keepdim=True) + means.mean((1, 2), keepdim=True)
+    var = resid.square().mean((1, 2)) - noise_dn.double().square() / (blk * blk) * (1 - 1 / nr) * (1 - 1 / nc)
+    return var.clamp_min(0).sqrt().float()
+
+
+def _without_banding(patches: torch.Tensor, std_dn: torch.Tensor, noise_dn: torch.Tensor,
+                     means: torch.Tensor | None) -> torch.Tensor:
+    """The structure contrast with detected row and column noise taken out (B,) [DN]: an 8×8 block mean carries
+    σ_row²/8 + σ_col²/8 of it, so s² − σ_row²/8 − σ_col²/8 (:mod:`camhealth.estimators.row_column_noise`, per patch),
+    each term raised by two of its standard errors (the estimate's and the n block rows' realised spread, √(2/n)).
+    Only patches that pass :data:`MIN_CONTRAST_DN` with all but 2 DN of their structure constant along block rows or
+    columns (:func:`_interaction_contrast_dn`) are checked: banding adds nothing else, so no other patch could drop
+    below the limit. A flat patch with 10 DN of row noise has ≈ 3.5 DN of contrast from it and would otherwise be read
+    as a scene, its blur across the rows as "strong" with a confident error bar."""
+    from camhealth.estimators.row_column_noise import row_column_noise  # torch only: no import circle
+
+    if means is None:
+        return std_dn
+    cand = (std_dn >= MIN_CONTRAST_DN).nonzero()[:, 0]
+    if cand.numel() == 0:
+        return std_dn
+    sep = cand[_interaction_contrast_dn(means[cand], noise_dn[cand]) < MIN_CONTRAST_DN]
+    if sep.numel() == 0:
+        return std_dn
+    band = row_column_noise(patches[sep])
+    # the banding's share of var(B₈) with two standard errors: that of σ̂² and that of the realised variance of the
+    # n block rows' (columns') offsets, √(2/n) relative — the patch must show more than banding could bring
+    n = torch.tensor([patches.shape[-2] // STRUCTURE_BLOCK, patches.shape[-1] // STRUCTURE_BLOCK], dtype=torch.float64)
+    var = band.sigma_dn.square()
+    rel = ((band.var_se_dn2 / var.clamp_min(1e-12)).square() + 2.0 / n).sqrt()
+    band_var = (var * (1.0 + 2.0 * rel) * band.detected).sum(1) / STRUCTURE_BLOCK
+    out = std_dn.clone()
+    out[sep] = (std_dn[sep].double().square() - band_var).clamp_min(0).sqrt().float()
+    return out
+
+
 def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list[str]]:
     """Which B×1×P×P patches (in [0, 1]) an estimator of ``kind`` can assess, and why not.
 
     black / saturated: more than half of the pixels within 0.5 DN of 0 / 255 (noise is clipped away,
     blur invisible); featureless (MTF only): noise-corrected structure contrast (:func:`structure_contrast_dn`)
     below :data:`MIN_CONTRAST_DN` = 2 DN — no structure to measure blur on, however strong the noise (a flat patch
-    with 20 DN of noise has the contrast of its noise, not of a scene); no edges (MTF only): the scene's gradients are
+    with 20 DN of noise has the contrast of its noise, not of a scene), nor row and column noise (a flat patch with
+    10 DN of it: :func:`_without_banding`); no edges (MTF only): the scene's gradients are
     not shown to be sparser than a random-phase texture's (:func:`has_edges`: :func:`edge_kurtosis` two standard
     errors above :data:`MIN_EDGE_KURTOSIS`), so a steep spectrum and blur cannot be told apart on the patch."""
     x = patches.flatten(1)
@@ -140,7 +192,8 @@ def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list
     high = (x >= 1 - tol).sum(1, dtype=torch.int32) / n if bool((x.amax(1) >= 1 - tol).any()) else torch.zeros(x.shape[0])
     if kind == "mtf":
         p = patches.float() if patches.dtype not in (torch.float32, torch.float64) else patches
-        std_dn, noise_dn = structure_contrast_dn(p)
+        std_dn, noise_dn, means = _structure_stats(p)
+        std_dn = _without_banding(p, std_dn, noise_dn, means)
         edges = has_edges(*edge_kurtosis(p, noise_dn))
     else:
         std_dn = torch.full((x.shape[0],), float("inf"))
