@@ -13,7 +13,8 @@ Foxglove, rqt_runtime_monitor or PlotJuggler show them beside the recording. Eac
   assessable (featureless scene); **OK** otherwise;
 - ``message``: the reason in one sentence (the alarm message for ERROR);
 - ``values`` (:data:`KEYS`, strings; ``nan`` where a number is missing): the alarm state, ξ̃ and its limit,
-  σ of PN/DCSN/RN and the total (temporal + spatial medians, DN of 255) with the total's spread, the blur
+  σ of PN/DCSN/RN and the total (temporal + spatial medians, DN of 255) with the total's spread, the row and
+  column noise of the frame (``TaskReport.banding``: 0 where none is found; in the total), the blur
   indicator MTF̃ with its spread and its H and V parts at f_n = 0.1, the patch counts, the camera state
   used (gain, exposure, temperature) and the frame's processing time.
 
@@ -43,8 +44,8 @@ _MSGTYPE = "diagnostic_msgs/msg/DiagnosticArray"
 #: Keys of the ``values`` of every status, in order.
 KEYS: tuple[str, ...] = (
     "level", "alarm", "xi_dn", "xi_limit_dn",
-    "noise_total_dn", "noise_total_spread_dn", "noise_pn_dn", "noise_dcsn_dn", "noise_rn_dn",
-    "blur_mtf_indicator", "blur_mtf_indicator_spread", "blur_mtf_h_fn0.1", "blur_mtf_v_fn0.1",
+    "noise_total_dn", "noise_total_spread_dn", "noise_pn_dn", "noise_dcsn_dn", "noise_rn_dn", "noise_row_dn",
+    "noise_col_dn", "blur_mtf_indicator", "blur_mtf_indicator_spread", "blur_mtf_h_fn0.1", "blur_mtf_v_fn0.1",
     "noise_patches_used", "noise_patches_total", "blur_patches_used", "blur_patches_total",
     "gain_db", "exposure_s", "temperature_c", "frame", "index", "source_id", "processing_ms",
 )
@@ -99,12 +100,14 @@ def key_values(report: FrameReport, level: int) -> list[tuple[str, str]]:
 
         i = list(NORMALIZED_FREQUENCIES).index(0.1)
         h01, v01 = float(mtf.median[i]), float(mtf.median[len(NORMALIZED_FREQUENCIES) + i])
+    band = (noise.banding or {"row_dn": 0.0, "col_dn": 0.0}) if noise is not None and noise.assessable else {}
     md = report.metadata or {}
     values = {
         "level": LEVEL_NAMES[level], "alarm": str(alarm.get("state", "unavailable")),
         "xi_dn": _fmt(alarm.get("xi_dn")), "xi_limit_dn": _fmt(alarm.get("limit_dn")),
         "noise_total_dn": _fmt(nv["total"]), "noise_total_spread_dn": _fmt(spread), "noise_pn_dn": _fmt(nv["pn"]),
         "noise_dcsn_dn": _fmt(nv["dcsn"]), "noise_rn_dn": _fmt(nv["rn"]),
+        "noise_row_dn": _fmt(band.get("row_dn")), "noise_col_dn": _fmt(band.get("col_dn")),
         "blur_mtf_indicator": _fmt(ind[0]), "blur_mtf_indicator_spread": _fmt(ind[1]),
         "blur_mtf_h_fn0.1": _fmt(h01), "blur_mtf_v_fn0.1": _fmt(v01),
         "noise_patches_used": str(_used(noise.counts)) if noise is not None else "0",

@@ -570,6 +570,7 @@ def test_row_or_column_noise_raises_noisier_and_names_it(mode, kind, monkeypatch
     reads the banding as texture and would refuse every patch; the banding is taken out of the checks, counted in
     σ_Total and ξ, and the alarm says "noisier" and names it. The same frame without banding stays "ok"."""
     from camhealth.bench.sensor_variants import simulate_variant
+    from camhealth.monitor.diagnostics import frame_level, key_values
     from camhealth.physics import CameraMetadata
 
     meta = CameraMetadata.preset("ICX285")
@@ -580,10 +581,13 @@ def test_row_or_column_noise_raises_noisier_and_names_it(mode, kind, monkeypatch
     banded = ((noisy[0, 0] + 8.0 / 255.0 * torch.randn(shape, generator=g)).clamp(0, 1) * 255).round() / 255
     for frame, banding in ((noisy[0, 0], False), (banded, True)):
         mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
-        d = _strict(mon.process(frame).to_json())
+        report = mon.process(frame)
+        d = _strict(report.to_json())
+        diag = dict(key_values(report, frame_level(report)[0]))
         assert d["noise"]["assessable"], d["noise"]
         if not banding:
             assert d["alarm"]["state"] == "ok" and d["noise"]["banding"] is None, d["alarm"]
+            assert diag["noise_row_dn"] == "0" and diag["noise_col_dn"] == "0"
             continue
         band = d["noise"]["banding"]
         key, other = ("row_dn", "col_dn") if kind == "rows" else ("col_dn", "row_dn")
@@ -592,6 +596,8 @@ def test_row_or_column_noise_raises_noisier_and_names_it(mode, kind, monkeypatch
         assert a["state"] == "noisier", a
         assert a["xi_dn"] < -4.0
         assert f"{kind[:-1] if kind == 'rows' else 'column'} noise ≈" in a["message"] and "banding" in a["message"]
+        assert float(diag[f"noise_{key[:3]}_dn"]) == pytest.approx(band[key], abs=1e-3)  # the ROS diagnostics carry it
+        assert diag["level"] == "ERROR" and float(diag["noise_total_dn"]) > 7.0
         # with the banding never detected, the texture check refuses the patches: the monitor could not tell
         import camhealth.estimators.row_column_noise as rcn
 

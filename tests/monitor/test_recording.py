@@ -110,6 +110,7 @@ def test_monitor_reads_recording_uses_gain_topic_and_writes_diagnostics(rec_suff
     assert diags[0]["frame_id"] == "camera_optical" and diags[0]["hardware_id"] == "camera_optical"
     v0, v2 = diags[0]["values"], diags[2]["values"]
     assert list(v0) == list(KEYS) and v0["level"] == "OK" and v0["alarm"] == "ok" and float(v0["gain_db"]) == 0.0
+    assert v0["noise_row_dn"] == "0" and v0["noise_col_dn"] == "0"  # no row or column noise in the street clip
     assert v2["alarm"] == "cleaner" and float(v2["gain_db"]) == 6.0 and float(v2["xi_dn"]) > 3
     assert abs(float(v0["noise_total_dn"]) - reports[0]["noise"]["sigma_dn"]["total"]["median"]) < 1e-3
     assert float(v0["blur_mtf_indicator"]) == pytest.approx(reports[0]["mtf"]["indicator"]["median"], abs=1e-3)
