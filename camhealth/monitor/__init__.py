@@ -24,6 +24,9 @@ from camhealth.monitor.api import (
     load_policy,
     xi_alarm,
     beyond_range_alarm,
+    banding_text,
+    mtf_under_banding,
+    MTF_BANDING_LIMIT_DN,
 )
 from camhealth.monitor.tiling import STATUS_NAMES, PatchGrid, SelectionConfig
 
@@ -40,4 +43,7 @@ __all__ = [
     "load_policy",
     "xi_alarm",
     "beyond_range_alarm",
+    "banding_text",
+    "mtf_under_banding",
+    "MTF_BANDING_LIMIT_DN",
 ]

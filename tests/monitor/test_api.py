@@ -606,3 +606,24 @@ def test_row_or_column_noise_raises_noisier_and_names_it(mode, kind, monkeypatch
         d = _strict(mon.process(frame).to_json())
         assert not d["noise"]["assessable"] and d["noise"]["refused"].get("textured", 0) >= 1, d["noise"]
         assert d["alarm"]["state"] == "not_assessable"
+
+
+def test_mtf_is_not_assessable_under_banding_from_the_limit_on():
+    """The MTF network reads row and column noise as fine detail: a frame whose noise report shows banding of
+    MTF_BANDING_LIMIT_DN or more gets its MTF refused with a note that names it; below, or without banding, the
+    report is returned as it is."""
+    from camhealth.monitor import MTF_BANDING_LIMIT_DN, TaskReport, mtf_under_banding
+
+    mtf = TaskReport(task="mtf", estimator="mtf", patch=192, grid=(2, 3), assessable=True,
+                     median=torch.full((16,), 0.5), indicator=(0.6, 0.05))
+    below = {"row_dn": MTF_BANDING_LIMIT_DN - 0.1, "col_dn": 0.0, "patches": 8}
+    assert mtf_under_banding(mtf, below) is mtf
+    for band, which in (({"row_dn": 0.0, "col_dn": MTF_BANDING_LIMIT_DN, "patches": 8}, "column"),
+                        ({"row_dn": 6.5, "col_dn": 1.0, "patches": 8}, "row")):
+        out = mtf_under_banding(mtf, band)
+        assert out is not mtf and not out.assessable and mtf.assessable
+        assert f"{which} noise ≈" in out.note and "banding" in out.note
+        d = out.to_dict()
+        assert d["h"] is None and d["v"] is None and d["indicator"] is None
+    not_assessable = TaskReport(task="mtf", estimator="mtf", patch=192, grid=(2, 3), assessable=False, note="n")
+    assert mtf_under_banding(not_assessable, {"row_dn": 9.0, "col_dn": 0.0, "patches": 8}) is not_assessable
