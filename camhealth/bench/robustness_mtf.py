@@ -406,6 +406,38 @@ def _closed_form_native(s: int, fn: float) -> float:
     return float(math.sin(math.pi * f) / (s * math.sin(math.pi * f / s)) / (math.sin(math.pi * f) / (math.pi * f)))
 
 
+#: Row noise [DN] added after the blur in :func:`banding_lines` (0: the patches as they are).
+BANDING_DN = (0.0, 1.0, 3.0, 6.0)
+
+
+def banding_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> list[str]:
+    """The table of row noise after the blur: the clean held-out cells' rendered-scene patches with an offset N(0, σ²)
+    per pixel row added (8-bit rounded; its own generator, seed + 3000, so no other number moves), on the patches the
+    estimator calls assessable: AMAE % across the rows (V) and along them (H), the signed error across, the share
+    assessable. Fills ``r["banding"]``."""
+    g = torch.Generator().manual_seed(seed + 3000)
+    clean = [c for c in held if c.condition == "clean"]
+    x = torch.cat([c.image[_mask(c, "rendered")] for c in clean])
+    truth = torch.cat([c.truth[_mask(c, "rendered")] for c in clean])
+    lines = ["", f"Row noise after the blur ({x.shape[0]} clean patches of the held-out generators on rendered scenes, an offset "
+             "per pixel row; the monitor refuses a frame's MTF from 2 DN of it, `MTF_BANDING_LIMIT_DN`), on the patches "
+             "the estimator calls assessable:", "",
+             "| row noise [DN] | AMAE across the rows (V) % | AMAE along them (H) % | signed error across × 100 | assessable |",
+             "|---:|---:|---:|---:|---:|"]
+    r["banding"] = {}
+    for band in BANDING_DN:
+        xb = ((x + band / 255.0 * torch.randn(x.shape[0], 1, x.shape[-2], 1, generator=g)).clamp(0, 1) * 255.0).round() / 255.0
+        o = est.predict(xb)
+        ok = torch.as_tensor(o.get("assessable", torch.ones(x.shape[0], dtype=torch.bool))).bool()
+        err = (o["mtf"].double() - truth.double())[ok]
+        row = {"across": float(100 * err[:, 8:].abs().mean()), "along": float(100 * err[:, :8].abs().mean()),
+               "signed_across": float(100 * err[:, 8:].mean()), "assessable": float(ok.float().mean())}
+        r["banding"][str(band)] = row
+        lines.append(f"| {band:g} | {_f(row['across'])} | {_f(row['along'])} | {row['signed_across']:+.1f} | "
+                     f"{_f(100 * row['assessable'], '.0f')} % |")
+    return lines
+
+
 def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.rendered_scenes import CLASSES, SUPERSAMPLE, render_scenes
     from camhealth.data.native_mtf import native_mtf_table, spectral_native_mtf
@@ -560,6 +592,7 @@ def run(args: argparse.Namespace) -> BenchResult:
                 ev = _agg(charts, "edge", lambda c, f=fam, k=cond: c.family == f and c.condition == k)[0]
                 r["chart"][f"{fam}/{cond}"] = {"network": nv, "edge": ev}
                 summary.append(f"| {fam} | {cond} | {_f(nv)} | {_f(ev)} |")
+        summary += banding_lines(est, held, args.seed, r)
         summary.append(f"\nms per patch (fp32, threads {torch.get_num_threads()}): network views 1 {ms1:.1f}, views 4 {ms4:.1f}; "
                        f"slanted edge {edge_ms:.1f} (per chart patch, 4 edges)")
         results[est.name] = r

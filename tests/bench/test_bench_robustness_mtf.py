@@ -114,6 +114,11 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
         assert 0 <= row["within_1std"] <= row["within_2std"] <= 1 and row["mean_std"] == pytest.approx(0.1)
         assert row["within_2spread"] <= row["within_2std"]  # 2·0.05 < 2·0.1
     assert "| rendered | 4 |" in text and "views' spread alone" in text
+    # row noise after the blur: one row per level; a constant estimate reads the same error whatever the banding
+    band = out["fake"]["banding"]
+    assert set(band) == {str(b) for b in rm.BANDING_DN}
+    assert len({round(v["across"], 9) for v in band.values()}) == 1 and all(v["assessable"] == 1.0 for v in band.values())
+    assert "| row noise [DN] | AMAE across the rows (V) % |" in text
 
 
 @pytest.mark.parametrize("per_cell,sizes,match", [
