@@ -531,10 +531,10 @@ def beyond_range_alarm(xi_dn: float, beyond: int, refused: int, threshold_dn: fl
 
 
 #: Row or column noise [DN] (the frame's, :attr:`TaskReport.banding`) from which the frame's MTF is not assessable:
-#: the MTF network reads banding as fine detail. Over 124 clean patches of the held-out PSF generators on rendered
-#: scenes (3, 9 and 15 px, ``make_cells`` of :mod:`camhealth.bench.robustness_mtf`), on the patches it calls
-#: assessable, the AMAE across the banding rises from 7.0 % to 8.5 % at 1 DN of row noise, 19.5 % at 3 DN and 35.8 %
-#: at 6 DN (read sharper by 13 and 34 points), and along it by up to 2.7 points.
+#: the MTF network reads banding as fine detail. On the 148 clean patches of the held-out PSF generators on rendered
+#: scenes (``python -m camhealth.bench robustness --task mtf --per-cell 8``, its row-noise table), on the patches it
+#: calls assessable, the AMAE across the rows rises from 5.3 % to 7.9 % at 1 DN of row noise, 21.2 % at 3 DN and
+#: 47.0 % at 6 DN (read sharper by 20 and 47 points), and along them from 5.5 % to 7.4 % and 9.1 %.
 MTF_BANDING_LIMIT_DN = 2.0
 
 
