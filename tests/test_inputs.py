@@ -125,3 +125,20 @@ def test_row_and_column_noise_is_no_structure_to_read_blur_on(kind, monkeypatch)
     # most of it: its gradients are as Gaussian across the rows as along them)
     monkeypatch.setattr(inputs, "_without_banding", lambda p, s, n, m: s)
     assert int(assess_patches(x, "mtf")[0].sum()) >= (32 if kind != "both" else 0)
+
+
+def test_flat_banded_patches_over_a_sweep_are_nearly_never_assessable():
+    """Flat 192-px patches, 1–20 DN of pixel noise × 3–30 DN of row, column or both kinds of banding, 64 each
+    (2 304 in all): at most 2 % pass the featureless and edge tests (35 do, mostly at 30 DN of banding)."""
+    g = torch.Generator().manual_seed(1)
+    passed = 0
+    for sw in (1.0, 3.0, 8.0, 20.0):
+        for sr in (3.0, 10.0, 30.0):
+            for kind in ("rows", "cols", "both"):
+                x = 0.5 + sw / 255.0 * torch.randn(64, 1, 192, 192, generator=g)
+                if kind in ("rows", "both"):
+                    x = x + sr / 255.0 * torch.randn(64, 1, 192, 1, generator=g)
+                if kind in ("cols", "both"):
+                    x = x + sr / 255.0 * torch.randn(64, 1, 1, 192, generator=g)
+                passed += int(assess_patches((x.clamp(0, 1) * 255).round() / 255, "mtf")[0].sum())
+    assert passed <= 0.02 * 2304, passed
