@@ -812,6 +812,7 @@ class Monitor:
         self._times: list[float] = []
         self._counts: dict[str, dict[str, int]] = {t: {n: 0 for n in STATUS_NAMES} for t in self.estimators}
         self._alarms: dict[str, int] = {}
+        self._banding: list[tuple[float, float]] = []  # (row, column) σ [DN] of the frames that showed banding
         self._refused: dict[str, dict[str, int]] = {t: {} for t in self.estimators}
         self._last: FrameReport | None = None
 
@@ -1203,6 +1204,8 @@ class Monitor:
             for why, n in r.refused.items():
                 self._refused[task][why] = self._refused[task].get(why, 0) + int(n)
         self._alarms[alarm["state"]] = self._alarms.get(alarm["state"], 0) + 1
+        if noise is not None and noise.banding:
+            self._banding.append((float(noise.banding["row_dn"]), float(noise.banding["col_dn"])))
         self._last = report
         return report
 
@@ -1278,7 +1281,8 @@ class Monitor:
 
     def summary(self) -> dict[str, Any]:
         """Frames, timing (median/mean/max ms), patch counts per task and status, the patches the estimators refused
-        per task and reason, alarm states, last values."""
+        per task and reason, alarm states, the frames with row or column noise (``banding``: their count and the
+        median and largest σ per direction [DN]; ``None`` without any), last values."""
         t = sorted(self._times)
         out: dict[str, Any] = {
             "frames": self._counter,
@@ -1291,6 +1295,10 @@ class Monitor:
             "patches": {task: dict(c) for task, c in self._counts.items()},
             "refused": {task: dict(c) for task, c in self._refused.items()},
             "alarms": dict(self._alarms),
+            "banding": None if not self._banding else {
+                "frames": len(self._banding),
+                **{f"{name}_dn": {"median": _num(float(np.median(v)), 3), "max": _num(float(np.max(v)), 3)}
+                   for name, v in (("row", [b[0] for b in self._banding]), ("col", [b[1] for b in self._banding]))}},
             "mode": self.mode, "samples_per_frame": dict(self.n_samples) if self.mode == "sampled" else None,
             "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,
             "window": self.window,

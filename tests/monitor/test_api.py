@@ -588,6 +588,7 @@ def test_row_or_column_noise_raises_noisier_and_names_it(mode, kind, monkeypatch
         if not banding:
             assert d["alarm"]["state"] == "ok" and d["noise"]["banding"] is None, d["alarm"]
             assert diag["noise_row_dn"] == "0" and diag["noise_col_dn"] == "0"
+            assert mon.summary()["banding"] is None
             continue
         band = d["noise"]["banding"]
         key, other = ("row_dn", "col_dn") if kind == "rows" else ("col_dn", "row_dn")
@@ -598,6 +599,9 @@ def test_row_or_column_noise_raises_noisier_and_names_it(mode, kind, monkeypatch
         assert f"{kind[:-1] if kind == 'rows' else 'column'} noise ≈" in a["message"] and "banding" in a["message"]
         assert float(diag[f"noise_{key[:3]}_dn"]) == pytest.approx(band[key], abs=1e-3)  # the ROS diagnostics carry it
         assert diag["level"] == "ERROR" and float(diag["noise_total_dn"]) > 7.0
+        summary = mon.summary()["banding"]  # the run's frames with banding
+        assert summary["frames"] == 1 and summary[key]["median"] == pytest.approx(band[key], abs=1e-3)
+        assert summary[key]["max"] == summary[key]["median"] and summary[other]["max"] == 0.0
         # with the banding never detected, the texture check refuses the patches: the monitor could not tell
         import camhealth.estimators.row_column_noise as rcn
 
