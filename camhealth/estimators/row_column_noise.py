@@ -44,6 +44,8 @@ from dataclasses import dataclass
 
 import torch
 
+from camhealth.estimators.noise_features import _block_pixels
+
 __all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", "MIN_BANDING_DN", "SERIAL_LIMIT"]
 
 #: Significance T above which row or column noise counts as detected. Pixel noise alone: T ≈ 1, 99th percentile
@@ -91,9 +93,7 @@ def _mad_var(x: torch.Tensor) -> torch.Tensor:
 
 def _signed_details(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Horizontal and vertical Haar details [DN] of B×1×H×W patches in [0, 1], each (B, h, w) float32."""
-    hh, ww = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
-    q = x[:, 0, :hh, :ww].float() * 255.0
-    p00, p01, p10, p11 = q[:, 0::2, 0::2], q[:, 0::2, 1::2], q[:, 1::2, 0::2], q[:, 1::2, 1::2]
+    p00, p01, p10, p11 = (p[:, 0] for p in _block_pixels(x.float()))
     return (p00 + p01 - p10 - p11) / 2.0, (p00 - p01 + p10 - p11) / 2.0
 
 
