@@ -164,7 +164,8 @@ def _without_banding(patches: torch.Tensor, std_dn: torch.Tensor, noise_dn: torc
     band = row_column_noise(patches[sep])
     # the banding's share of var(B₈) with two standard errors: that of σ̂² and that of the realised variance of the
     # n block rows' (columns') offsets, √(2/n) relative — the patch must show more than banding could bring
-    n = torch.tensor([patches.shape[-2] // STRUCTURE_BLOCK, patches.shape[-1] // STRUCTURE_BLOCK], dtype=torch.float64)
+    n = torch.tensor([patches.shape[-2] // STRUCTURE_BLOCK, patches.shape[-1] // STRUCTURE_BLOCK], dtype=torch.float64,
+                     device=patches.device)
     var = band.sigma_dn.square()
     rel = ((band.var_se_dn2 / var.clamp_min(1e-12)).square() + 2.0 / n).sqrt()
     band_var = (var * (1.0 + 2.0 * rel) * band.detected).sum(1) / STRUCTURE_BLOCK

@@ -174,7 +174,7 @@ def row_column_noise(patches: torch.Tensor, pool: bool = False) -> RowColumnNois
         both = tuple(torch.cat(p) for p in zip(_directions(h.unsqueeze(0), pool), _directions(vt.unsqueeze(0), pool)))
     sig2, se, tt, serial = (q.t() for q in both)  # each (B, 2): rows, columns
     n = (h.shape[-2] * (h.shape[0] if pool else 1), v.shape[-1] * (v.shape[0] if pool else 1))
-    white = serial <= torch.tensor([max(_SERIAL_CHI2 / k, SERIAL_LIMIT) for k in n], dtype=serial.dtype)
+    white = serial <= torch.tensor([max(_SERIAL_CHI2 / k, SERIAL_LIMIT) for k in n], dtype=serial.dtype, device=serial.device)
     sigma = sig2.sqrt().contiguous()
     return RowColumnNoise(sigma, se.contiguous(), tt.contiguous(), serial.contiguous(), (tt > T_LIMIT) & (sigma > MIN_BANDING_DN) & white)
 
