@@ -538,11 +538,17 @@ def beyond_range_alarm(xi_dn: float, beyond: int, refused: int, threshold_dn: fl
 MTF_BANDING_LIMIT_DN = 2.0
 
 
-def mtf_under_banding(mtf: TaskReport, banding: Mapping[str, Any]) -> TaskReport:
+def mtf_under_banding(mtf: TaskReport, banding: Mapping[str, Any], estimated: int | None = None) -> TaskReport:
     """The frame's MTF report, not assessable where the frame's row or column noise reaches
-    :data:`MTF_BANDING_LIMIT_DN` (a copy with ``assessable=False`` and a note that names it); else ``mtf`` itself."""
+    :data:`MTF_BANDING_LIMIT_DN` (a copy with ``assessable=False`` and a note that names it); else ``mtf`` itself.
+
+    ``estimated``: the noise patches estimated this frame. Banding belongs to the camera, so it shows on most of
+    them; where fewer than half show it (each patch judged on its own, ``pool_noise=False``), it is a few patches'
+    stripes and the MTF stands."""
     worst = max(float(banding.get("row_dn", 0.0)), float(banding.get("col_dn", 0.0)))
     if not mtf.assessable or worst < MTF_BANDING_LIMIT_DN:
+        return mtf
+    if estimated is not None and int(banding.get("patches", 0)) < 0.5 * estimated:
         return mtf
     which = "row" if float(banding.get("row_dn", 0.0)) >= float(banding.get("col_dn", 0.0)) else "column"
     return replace(mtf, assessable=False, note=(
@@ -1188,7 +1194,7 @@ class Monitor:
             t2 = time.perf_counter()
             noise = reports.get("noise")
             if "mtf" in reports and noise is not None and noise.banding:
-                reports["mtf"] = mtf_under_banding(reports["mtf"], noise.banding)
+                reports["mtf"] = mtf_under_banding(reports["mtf"], noise.banding, int(noise.coverage.get("estimated", 0)))
             alarm = self._alarm(noise, meta)
             advice = self._advice(noise, reports.get("mtf"), meta)
             timing["aggregate"] = (time.perf_counter() - t2) * 1e3

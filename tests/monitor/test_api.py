@@ -629,5 +629,9 @@ def test_mtf_is_not_assessable_under_banding_from_the_limit_on():
         assert f"{which} noise ≈" in out.note and "banding" in out.note
         d = out.to_dict()
         assert d["h"] is None and d["v"] is None and d["indicator"] is None
+    # judged patch by patch, banding on 3 of 8 patches is their stripes, not the camera's: the MTF stands
+    few = {"row_dn": 6.5, "col_dn": 0.0, "patches": 3}
+    assert mtf_under_banding(mtf, few, estimated=8) is mtf
+    assert not mtf_under_banding(mtf, {**few, "patches": 4}, estimated=8).assessable
     not_assessable = TaskReport(task="mtf", estimator="mtf", patch=192, grid=(2, 3), assessable=False, note="n")
     assert mtf_under_banding(not_assessable, {"row_dn": 9.0, "col_dn": 0.0, "patches": 8}) is not_assessable
