@@ -25,15 +25,14 @@ the scene's spread along each row (each Δ is standardised by its own rows' spre
 patches of one frame share one camera), the Δ of all patches enter one MAD.
 
 **Detected** where T exceeds :data:`T_LIMIT`, σ̂ exceeds :data:`MIN_BANDING_DN` and the offsets look independent from
-row to row (:attr:`RowColumnNoise.serial`). The scene can imitate banding:
-structure coherent along whole rows (horizontal edges across the patch, stripes) gives the same Δ. On the robustness
-benchmark's clean scenes with matched noise (``python -m camhealth.bench robustness``) T reaches 12.6 on single
-patches of photographs and 4.0 pooled over a frame. Such structure is mostly not independent from row to row (a
-stripe pattern, periodic or smooth), which :attr:`RowColumnNoise.serial` tests; what passes — random stripes, which
-one patch cannot tell from banding (2.8 % of the benchmark's full-resolution patches without banding, 0.4 % at 3×) — rarely
-moves σ_Total visibly, and a patch whose banding came from its scene is mostly still textured once the band is taken
-out and is refused. :func:`debanded_details` removes the detected offsets from the
-details the noise fits use.
+row to row (:attr:`RowColumnNoise.serial`). The scene can imitate banding: structure coherent along whole rows
+(horizontal edges across the patch, stripes) gives the same Δ. On the robustness benchmark's clean scenes with
+matched noise (``python -m camhealth.bench robustness``) T reaches 12.6 on single patches of photographs and 4.0
+pooled over a frame. Such structure is mostly not independent from row to row (a stripe pattern, periodic or
+smooth), which :attr:`RowColumnNoise.serial` tests; what passes — random stripes, which one patch cannot tell from
+banding (2.8 % of the benchmark's full-resolution patches without banding, 0.4 % at 3×) — rarely moves σ_Total
+visibly, and a patch whose banding came from its scene is mostly still textured once the band is taken out and is
+refused. :func:`debanded_details` removes the detected offsets from the details the noise fits use.
 """
 
 from __future__ import annotations
