@@ -591,7 +591,8 @@ def physics_noise_posterior(
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
         # texture does not
         corr_check = _neighbour_check(x, v_ref, inl_all[0], pool)
-        follows = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & (p_match < 0.5) & ~textured(texture, corr_check)
+        readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
+        follows = readable & (p_match < 0.5)
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
         # follow it (the only ones that use it): one batched call
         sel = follows.nonzero(as_tuple=True)[0]
@@ -630,7 +631,7 @@ def physics_noise_posterior(
         white_total = out_sigma[:, 3].double()
         banded_total = (white_total.square() + band_var).sqrt()
         prior_total = prior_clipped[:, 3]
-        banded = ((band_var > 0) & evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
+        banded = ((band_var > 0) & readable
                   & ((banded_total - prior_total).abs() >= torch.clamp_min(VISIBLE_XI_FRACTION * prior_total, VISIBLE_XI_DN)))
         out_sigma = torch.cat([out_sigma[:, :3], torch.where(banded, banded_total, white_total).unsqueeze(1)], 1)
         xi = torch.where(banded, prior_total - banded_total, xi.double())
