@@ -88,6 +88,11 @@ where the patch then passes them and the banding moves σ_Total visibly, the ima
 √(σ_Total(pixel noise)² + σ_row² + σ_col²): ξ says the image is noisier, P(match) is 0, and the per-source σ stay
 the pixel noise's. Columns ``row_dn``/``col_dn`` give the detected σ (0 where none is).
 
+**Defective pixels** (hot, stuck and dead pixels, impulses: :mod:`camhealth.estimators.defective_pixels`): a pixel
+that stands above or below all its neighbours by far more than the local noise. The fits here are robust to them and
+do not count them in σ_Total; ``predict`` returns their count per patch (``defects``: hot, dark) and where they are
+(``defect_mask``).
+
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
 the metadata cannot be checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
@@ -114,6 +119,7 @@ from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
     metadata_from_matrix,
 )
+from camhealth.estimators.defective_pixels import defective_pixels
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
@@ -713,7 +719,8 @@ class PhysicsNoiseEstimator:
             z = torch.zeros(0)
             return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
                     "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool),
-                    "row_column_dn": torch.zeros(0, 2)}
+                    "row_column_dn": torch.zeros(0, 2), "defects": torch.zeros(0, 2, dtype=torch.int64),
+                    "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
@@ -736,6 +743,8 @@ class PhysicsNoiseEstimator:
             elif raw[i, 10] > VALIDATED_SIGMA_DN or too_strong[i]:
                 reason[i] = BEYOND_VALIDATED
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
+        defects = defective_pixels(patches)  # on every patch: a defect shows in textured and clipped ones too
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
                 "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
-                "row_column_dn": raw[:, 16:18]}
+                "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),
+                "defect_mask": defects.mask}

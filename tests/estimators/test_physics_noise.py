@@ -501,3 +501,30 @@ def test_no_banding_reported_on_matched_patches_of_every_simulator_variant():
         out = PhysicsNoiseEstimator().predict(noisy, meta, pool=pool)
         assert (out["row_column_dn"] == 0).all()
     assert PhysicsNoiseEstimator().predict(torch.zeros(0, 1, 128, 128), meta)["row_column_dn"].shape == (0, 2)
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_defective_pixels_are_reported_apart_and_leave_the_answer_alone(pool):
+    """Right metadata (σ ≈ 5 DN), 0.3 % of the pixels hot or dead (60–150 DN): ``defects`` counts them (hot, dark) and
+    ``defect_mask`` says where; σ per source, σ_Total and ξ stay the closed form (defects are not noise of the sensor
+    model, and the fits are robust to them). Without defects nothing is reported."""
+    meta = CameraMetadata.preset("EV76C661", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    noisy, _ = simulate_variant(_ramp(8), meta, ("round8",), torch.Generator().manual_seed(4))
+    g = torch.Generator().manual_seed(5)
+    hit = torch.rand(noisy.shape, generator=g) < 0.003
+    hit[..., [0, -1], :] = False
+    hit[..., :, [0, -1]] = False
+    sign = torch.where(torch.rand(noisy.shape, generator=g) < 0.5, 1.0, -1.0)
+    x = (noisy * 255 + hit * sign * (60 + 90 * torch.rand(noisy.shape, generator=g))).clamp(0, 255).round() / 255
+    est = PhysicsNoiseEstimator()
+    out, ref = est.predict(x, meta, pool=pool), est.predict(noisy, meta, pool=pool)
+    assert (ref["defects"] == 0).all() and (ref["defect_mask"] == 0).all()
+    found = out["defect_mask"] != 0
+    assert int((found & ~hit).sum()) == 0 and int((found & hit).sum()) >= 0.9 * int(hit.sum())
+    assert torch.equal(out["defects"][:, 0], (out["defect_mask"] > 0).flatten(1).sum(1))
+    assert torch.equal(out["defects"][:, 1], (out["defect_mask"] < 0).flatten(1).sum(1))
+    prior = physics_prior_dn(noisy, meta, clipping=True)[:, 4:8]
+    assert torch.allclose(out["sigma"], prior[:, :3], atol=0.05) and (out["xi"] == 0).all()
+    assert torch.allclose(out["sigma_total"], ref["sigma_total"], rtol=0.02)
+    empty = est.predict(torch.zeros(0, 1, 128, 128), meta)
+    assert empty["defects"].shape == (0, 2) and empty["defect_mask"].shape == (0, 1, 128, 128)

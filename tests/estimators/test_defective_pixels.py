@@ -1,0 +1,155 @@
+"""Defective pixels: a pixel that stands above or below all its neighbours by far more than the local noise."""
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from camhealth.bench.sensor_variants import simulate_variant
+from camhealth.estimators.defective_pixels import DEFECT_SIGMAS, MIN_DEFECT_DN, defective_pixels
+from camhealth.physics import CameraMetadata
+
+
+def _white(b: int, sigma: float, level: float = 128.0, seed: int = 0, size: int = 128) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return ((level + sigma * torch.randn(b, 1, size, size, generator=g)).round().clamp(0, 255)) / 255.0
+
+
+def _camera_ramp(b: int = 8, seed: int = 1) -> torch.Tensor:
+    """A ramp 60–200 DN with an ICX285's shot, dark-current and readout noise, rounded to 8 bit."""
+    meta = CameraMetadata.preset("ICX285")
+    ramp = torch.linspace(60.0, 200.0, 128).view(1, 1, 1, 128).expand(b, 1, 128, 128) / 255.0
+    noisy, _ = simulate_variant(ramp.contiguous(), meta, ("round8",), torch.Generator().manual_seed(seed))
+    return noisy
+
+
+def _inject(x: torch.Tensor, n: int, amp: tuple[float, float], seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` isolated defects per patch (at least 3 px apart and from the border), half bright, half dark."""
+    g = torch.Generator().manual_seed(seed)
+    b, _, h, w = x.shape
+    truth = torch.zeros(b, 1, h, w, dtype=torch.int8)
+    grid = torch.stack(torch.meshgrid(torch.arange(4, h - 4, 4), torch.arange(4, w - 4, 4), indexing="ij"), -1).reshape(-1, 2)
+    out = x.clone() * 255.0
+    for i in range(b):
+        pick = grid[torch.randperm(grid.shape[0], generator=g)[:n]]
+        sign = torch.where(torch.arange(n) % 2 == 0, 1, -1)
+        a = amp[0] + (amp[1] - amp[0]) * torch.rand(n, generator=g)
+        out[i, 0, pick[:, 0], pick[:, 1]] += sign * a
+        truth[i, 0, pick[:, 0], pick[:, 1]] = sign.to(torch.int8)
+    return out.clamp(0, 255).round() / 255.0, truth
+
+
+@pytest.mark.parametrize("sigma", [0.5, 1.0, 5.0, 30.0])
+def test_white_noise_is_never_a_defect(sigma):
+    """For Gaussian noise the chance that a pixel exceeds the largest of 8 neighbours by 6 σ is 2.5·10⁻¹¹: no pixel of
+    256 patches (4.1 M pixels) is flagged, 8-bit rounded, at any level."""
+    d = defective_pixels(_white(256, sigma))
+    assert int(d.hot.sum() + d.dark.sum()) == 0
+    assert d.checked.tolist() == [126 * 126] * 256 and d.mask.shape == (256, 1, 128, 128)
+
+
+def test_null_chance_of_a_6_sigma_step_is_tiny():
+    """P(Z₀ − max(Z₁…Z₈) > k) = ∫ φ(z) Φ(z − k)⁸ dz (closed form, numerical quadrature) — the design's false-alarm rate."""
+    z = torch.linspace(-10.0, 20.0, 300001, dtype=torch.float64)
+    phi = torch.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
+    cdf = 0.5 * (1 + torch.erf((z - DEFECT_SIGMAS) / math.sqrt(2)))
+    p = float(torch.trapezoid(phi * cdf**8, z))
+    assert 1e-12 < p < 1e-10
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+def test_isolated_hot_and_dark_pixels_are_found_on_a_noisy_ramp(dtype):
+    """Defects of 40–200 DN on a ramp with the camera's own noise: every one found with its sign, nothing else."""
+    x, truth = _inject(_camera_ramp(), 20, (40.0, 200.0), seed=2)
+    d = defective_pixels(x.to(dtype))
+    assert torch.equal(d.mask, truth)
+    assert d.hot.tolist() == [10] * 8 and d.dark.tolist() == [10] * 8
+    assert torch.allclose(d.fraction, torch.full((8,), 20 / 126**2, dtype=torch.float64))
+
+
+def test_small_offsets_below_the_floor_are_not_reported():
+    x, _ = _inject(_white(4, 0.3), 10, (MIN_DEFECT_DN - 3.0, MIN_DEFECT_DN - 2.0), seed=3)
+    d = defective_pixels(x)
+    assert int(d.hot.sum() + d.dark.sum()) == 0
+
+
+def test_hot_pixels_on_a_dark_frame_and_dense_defects():
+    """A dark frame (readout noise 0.7 DN at 2 DN) — where hot pixels are measured — shows every hot pixel of 15 DN and
+    more; at 1 % of the pixels, defects a few pixels apart do not hide each other (candidates are left out of the
+    windows' fits): ≥ 90 % found (the rest have another defect among their 8 neighbours), none wrong."""
+    dark = _white(4, 0.7, level=2.0, seed=4)
+    x, truth = _inject(dark, 30, (15.0, 60.0), seed=5)
+    truth = truth.clamp_min(0)  # the dark ones are clipped at 0 DN: nothing to see
+    x = torch.where(truth.bool(), x, dark)
+    d = defective_pixels(x)
+    assert torch.equal(d.mask.clamp_min(0), truth) and int(d.dark.sum()) == 0
+    g = torch.Generator().manual_seed(6)
+    base = _camera_ramp(4, seed=7)
+    hit = torch.rand(base.shape, generator=g) < 0.01
+    hit[..., :1, :] = hit[..., -1:, :] = False
+    hit[..., :, :1] = hit[..., :, -1:] = False
+    sign = torch.where(torch.rand(base.shape, generator=g) < 0.5, 1.0, -1.0)
+    x = (base * 255 + hit * sign * (60 + 100 * torch.rand(base.shape, generator=g))).clamp(0, 255).round() / 255
+    d = defective_pixels(x)
+    found = d.mask != 0
+    assert int((found & ~hit).sum()) == 0
+    assert int((found & hit).sum()) >= 0.9 * int(hit.sum())
+
+
+def test_scene_structure_is_not_a_defect():
+    """Edges, 1-px lines in every direction, a 1-px checkerboard, shading and points seen through a lens (a Gaussian
+    PSF of σ ≥ 1 px) with noise: nothing flagged."""
+    g = torch.Generator().manual_seed(8)
+    yy, xx = torch.meshgrid(torch.arange(128.0), torch.arange(128.0), indexing="ij")
+    scenes = [
+        torch.where(xx < 64, 40.0, 200.0),  # a step edge
+        torch.where((yy == 64) | (xx == 30) | (yy == xx) | (yy == 127 - xx), 220.0, 60.0),  # 1-px lines
+        torch.where((yy + xx) % 2 == 0, 180.0, 70.0),  # checkerboard
+        60.0 + 1.0 * xx + 0.5 * yy,  # shading
+    ]
+    points = torch.zeros(128, 128)
+    points[20::24, 20::24] = 1.0
+    for s in (1.0, 1.5):
+        k = torch.exp(-0.5 * (torch.arange(-6.0, 7.0) / s) ** 2)
+        k = k / k.sum()
+        blurred = F.conv2d(F.conv2d(points.view(1, 1, 128, 128), k.view(1, 1, 1, 13), padding=(0, 6)), k.view(1, 1, 13, 1), padding=(6, 0))
+        scenes.append(50.0 + 180.0 * blurred[0, 0] / blurred.max())
+    x = torch.stack(scenes).unsqueeze(1)
+    x = ((x + 2.0 * torch.randn(x.shape, generator=g)).clamp(0, 255).round()) / 255.0
+    d = defective_pixels(x)
+    assert (d.hot + d.dark).tolist() == [0] * len(scenes)
+
+
+@pytest.mark.parametrize("level", [0.0, 1.0])
+def test_black_and_saturated_frames(level):
+    """Nothing stands out of a black or saturated frame; a hot pixel in a black frame does, a dead one in a saturated
+    frame too."""
+    x = torch.full((1, 1, 64, 64), level)
+    assert int(defective_pixels(x).hot + defective_pixels(x).dark) == 0
+    y = x.clone()
+    y[0, 0, 30, 30] = 0.5
+    d = defective_pixels(y)
+    assert (int(d.hot), int(d.dark)) == ((1, 0) if level == 0.0 else (0, 1))
+    assert int(d.mask[0, 0, 30, 30]) == (1 if level == 0.0 else -1)
+
+
+def test_batch_of_one_small_and_non_square_patches():
+    x, truth = _inject(_camera_ramp(1), 4, (80.0, 120.0), seed=9)
+    d = defective_pixels(x[..., :40, :])
+    assert torch.equal(d.mask, truth[..., :40, :]) and d.checked.tolist() == [38 * 126]
+    assert int(defective_pixels(torch.rand(1, 1, 3, 3)).checked) == 1
+    empty = defective_pixels(torch.zeros(0, 1, 16, 16))
+    assert empty.hot.shape == (0,) and empty.mask.shape == (0, 1, 16, 16)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (torch.zeros(1, 3, 16, 16), "B×1×H×W"),
+    (torch.zeros(16, 16), "B×1×H×W"),
+    (torch.zeros(1, 1, 2, 16), "H, W ≥ 3"),
+    (torch.zeros(1, 1, 16, 16, dtype=torch.uint8), "floating-point"),
+    (torch.full((1, 1, 16, 16), float("nan")), "NaN"),
+])
+def test_bad_input_is_refused(bad, match):
+    with pytest.raises(ValueError, match=match):
+        defective_pixels(bad)
