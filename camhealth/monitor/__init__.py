@@ -25,6 +25,8 @@ from camhealth.monitor.api import (
     xi_alarm,
     beyond_range_alarm,
     banding_text,
+    defects_text,
+    DEFECT_ALARM_PPM,
     mtf_under_banding,
     MTF_BANDING_LIMIT_DN,
 )
@@ -44,6 +46,8 @@ __all__ = [
     "xi_alarm",
     "beyond_range_alarm",
     "banding_text",
+    "defects_text",
+    "DEFECT_ALARM_PPM",
     "mtf_under_banding",
     "MTF_BANDING_LIMIT_DN",
 ]

@@ -635,3 +635,44 @@ def test_mtf_is_not_assessable_under_banding_from_the_limit_on():
     assert not mtf_under_banding(mtf, {**few, "patches": 4}, estimated=8).assessable
     not_assessable = TaskReport(task="mtf", estimator="mtf", patch=192, grid=(2, 3), assessable=False, note="n")
     assert mtf_under_banding(not_assessable, {"row_dn": 9.0, "col_dn": 0.0, "patches": 8}) is not_assessable
+
+
+@pytest.mark.parametrize("mode", ["sampled", "map"])
+def test_defective_pixels_are_counted_named_and_recur(mode):
+    """A ramp frame with the camera's own noise and 0.5 % of its pixels hot or dead: the noise report counts them
+    (``defects``), the alarm names them (its state stays the ξ verdict: the defects are not σ), the ROS diagnostics
+    warn and carry the share; the same frame again shows them at the same pixels (``recurring``), which the summary
+    counts. The frame without defects reports none and stays OK."""
+    from camhealth.bench.sensor_variants import simulate_variant
+    from camhealth.monitor import DEFECT_ALARM_PPM
+    from camhealth.monitor.diagnostics import WARN, OK, frame_level, key_values
+    from camhealth.physics import CameraMetadata
+
+    meta = CameraMetadata.preset("ICX285")
+    ramp = torch.linspace(60.0, 200.0, 512).view(1, 1, 1, 512).expand(1, 1, 384, 512) / 255.0
+    noisy, _ = simulate_variant(ramp.contiguous(), meta, ("round8",), torch.Generator().manual_seed(4))
+    g = torch.Generator().manual_seed(6)
+    hit = torch.rand(noisy.shape, generator=g) < 0.005
+    sign = torch.where(torch.rand(noisy.shape, generator=g) < 0.5, 1.0, -1.0)
+    bad = ((noisy * 255 + hit * sign * (40 + 100 * torch.rand(noisy.shape, generator=g))).clamp(0, 255).round() / 255)[0, 0]
+    mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
+    clean = mon.process(noisy[0, 0])
+    assert clean.noise.defects is None and clean.alarm["state"] == "ok"
+    assert frame_level(clean)[0] == OK and dict(key_values(clean, OK))["noise_defect_ppm"] == "0"
+    first = mon.process(bad)
+    d = _strict(first.to_json())
+    df = d["noise"]["defects"]
+    assert df["hot"] > 0 and df["dark"] > 0 and df["recurring"] == 0
+    assert 0.8 * 5000 <= df["ppm"] <= 5000 * 1.05 and df["ppm"] >= DEFECT_ALARM_PPM
+    assert df["checked"] == d["noise"]["coverage"]["estimated"] * 126 * 126
+    assert d["alarm"]["state"] == "ok" and "stand out from all their neighbours" in d["alarm"]["message"]
+    level, message = frame_level(first)
+    assert level == WARN and message.startswith("defective pixels")
+    assert float(dict(key_values(first, level))["noise_defect_ppm"]) == pytest.approx(df["ppm"], rel=1e-3)  # 4 digits
+    second = _strict(mon.process(bad).to_json())
+    again = second["noise"]["defects"]
+    assert again["recurring"] == again["hot"] + again["dark"] > 0  # the same frame: every defect where it was
+    assert f"{again['recurring']} at the same place as in an earlier frame" in second["alarm"]["message"]
+    s = mon.summary()["defects"]
+    assert s["frames"] == 2 and s["recurring_pixels"] >= again["recurring"] > 0
+    assert s["ppm"]["max"] >= s["ppm"]["median"] >= DEFECT_ALARM_PPM
