@@ -22,6 +22,10 @@ Every noise estimator is scored beside the closed form of the metadata alone on 
 - **row and column noise** (banding): offsets N(0, σ²) per pixel row, per pixel column or both, σ 1–8 DN, on a
   matched camera (:func:`add_banding`, written here from that description) — noise no metadata field makes, which the
   image shows as whole rows or columns out of step. Its truth per source is the camera's; σ_Total and ξ include it.
+- **defective pixels**: 100 ppm–1 % of the pixels (log-uniform) with an offset of their own, 10–200 DN, bright or
+  dark, on a matched camera (:func:`add_defects`, written here from that description): hot, stuck and dead pixels,
+  impulses. Their truth per source, σ_Total and ξ are the camera's (ξ = 0): the defects are reported apart
+  (``defect_mask``), not as noise.
 
 The cameras are the two presets and random sensors (every field uniform over conventions.md Table 4.1), told
 gain 0–12 dB, exposure 1–200 ms, temperature 0–50 °C. Truth per source is the simulator's realised σ after
@@ -41,7 +45,9 @@ fraction of patches with the right sign of ξ; the same on the patches the estim
 it cannot tell it keeps the closed form, wrong there by construction), the fraction of patches it calls assessable and ms per patch (fp32,
 one camera state per batch of 16, the threads set by ``--threads``); the RMS per condition is pooled over both scales.
 The row-and-column-noise frames get their own rows: per source, and the share of their visible banding (ξ ≤
-−max(0.5 DN, 15 % of σ_Total)) that the estimate declares noisier.
+−max(0.5 DN, 15 % of σ_Total)) that the estimate declares noisier. The defects frames too: per source, and for an
+estimator that says where the defects are, the share found, the share of its finds that are defects, and what it
+flags on the frames without any.
 """
 
 from __future__ import annotations
@@ -63,7 +69,7 @@ from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
 from camhealth.physics.metadata import CameraMetadata
 
 HELP = ("noise estimators vs the closed form on an independent simulator, real scenes, JPEG, mismatches, σ ≤ 60 DN and "
-        "row/column noise; "
+        "row/column noise, defective pixels; "
         "--task mtf: MTF estimators on held-out PSF generators × held-out scenes")
 
 MATCHED = ("reference", *VARIANTS, "all_variants", "jpeg")
@@ -72,7 +78,10 @@ STRONG = ("strong",)
 #: Row and column noise (banding) on a matched camera: offsets shared by whole pixel rows and/or columns, which no
 #: field of the metadata makes (last, so the frames of the other conditions do not depend on it).
 BANDING = ("banding",)
-CONDITIONS = MATCHED + MISMATCH + STRONG + BANDING
+#: Defective pixels (hot, stuck, dead) and impulses on a matched camera: single pixels with an offset of their own
+#: (last, so the frames of the other conditions do not depend on it).
+DEFECTS = ("defects",)
+CONDITIONS = MATCHED + MISMATCH + STRONG + BANDING + DEFECTS
 CLOSED_FORM = "closed_form"
 #: The scene scales scored (name → area-downsampling factor); the frames of every condition alternate between them.
 #: Scene floors (:func:`scene_floor_dn`) over the 208 frames of each scale at 16 frames per condition, seeds 0 and 7:
@@ -115,6 +124,7 @@ class Frame:
     xi: torch.Tensor  # (16,) truth [DN]
     scale: str  # the scene scale, a key of SCENE_SCALES
     scene_floor: float = float("nan")  # the clean scene's own fine-scale σ [DN] (scene_floor_dn), in no truth
+    defects: torch.Tensor | None = None  # defects condition: (16, 1, 128, 128) int8, +1 bright, −1 dark offset
 
 
 def _scenes() -> dict[str, list[torch.Tensor]]:
@@ -228,6 +238,12 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
                 total = _total(noisy, clean)
                 out.append(Frame(cond, clean, noisy, told, sigma, total, _total(as_told, clean) - total, scale, scene_floor_dn(clean)))
                 continue
+            if cond == "defects":  # 100 ppm–1 % of the pixels with an offset of 10–200 DN, bright or dark
+                share = float(10 ** torch.empty(1).uniform_(-4.0, -2.0, generator=gen))
+                with_defects, truth = add_defects(noisy, share, int(torch.randint(0, 2**62, (1,), generator=gen)))
+                out.append(Frame(cond, clean, with_defects, told, sigma, _total(noisy, clean), torch.zeros(16), scale,
+                                 scene_floor_dn(clean), truth))
+                continue
             total = _total(noisy, clean)
             if overrides is None and extra is None:
                 xi = torch.zeros(16)
@@ -256,6 +272,27 @@ def add_banding(noisy: torch.Tensor, sigma_dn: float, kind: str, seed: int) -> t
     x = np.clip(x, 0.0, 255.0)
     x = np.where(whole[:, None, None], np.round(x), x)
     return torch.from_numpy(x / 255.0).float().unsqueeze(1)
+
+
+#: Offsets of the defects condition [DN]: uniform in this range, bright or dark with equal odds.
+DEFECT_OFFSET_DN = (10.0, 200.0)
+
+
+def add_defects(noisy: torch.Tensor, share: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Defective pixels on B×1×H×W images in [0, 1]: each pixel independently with probability ``share`` gets an
+    offset of its own, uniform in :data:`DEFECT_OFFSET_DN`, added (a hot or stuck-bright pixel) or subtracted (a dark
+    or dead one) with equal odds; then clipped to [0, 1] and, where the input holds whole DN, rounded again. NumPy's
+    generator, seeded by ``seed``. Returns (images, truth (B, 1, H, W) int8: +1 bright, −1 dark, 0 untouched)."""
+    rng = np.random.default_rng(seed)
+    x = noisy.detach().double().numpy()[:, 0] * 255.0
+    whole = np.abs(x - np.round(x)).max(axis=(1, 2)) < 1e-3
+    hit = rng.random(x.shape) < share
+    sign = np.where(rng.random(x.shape) < 0.5, 1.0, -1.0)
+    offset = rng.uniform(*DEFECT_OFFSET_DN, size=x.shape)
+    x = np.clip(x + hit * sign * offset, 0.0, 255.0)
+    x = np.where(whole[:, None, None], np.round(x), x)
+    truth = torch.from_numpy((hit * sign).astype(np.int8)).unsqueeze(1)
+    return torch.from_numpy(x / 255.0).float().unsqueeze(1), truth
 
 
 def _jpeg(patch: torch.Tensor, quality: int) -> torch.Tensor:
@@ -361,7 +398,7 @@ def _aggregate(rows: dict[str, list]) -> dict[str, Any]:
         return g
 
     for name, conds in [("matched", MATCHED), *[(c, (c,)) for c in MATCHED], ("mismatched", MISMATCH),
-                        *[(c, (c,)) for c in MISMATCH], ("strong", STRONG), ("banding", BANDING)]:
+                        *[(c, (c,)) for c in MISMATCH], ("strong", STRONG), ("banding", BANDING), ("defects", DEFECTS)]:
         res["groups"][name] = group(conds)
     # the mismatches the image can show (|ξ| ≥ max(0.5 DN, 15 % of σ_Total)); the others are within any estimator's reach
     # only through the metadata, which are wrong there
@@ -447,7 +484,47 @@ def _aggregate(rows: dict[str, list]) -> dict[str, Any]:
         for k in ("banding_total_rel_median", "banding_declared_patch", "banding_declared_frame", "banding_assessable"):
             res[k] = float("nan")
         res["banding_visible_patches"] = res["banding_visible_frames"] = 0
+    res.update(_defect_scores(rows))
     return res
+
+
+def _defect_scores(rows: dict[str, list]) -> dict[str, Any]:
+    """Defective pixels, for an estimator that reports where they are (``defect_mask``): on the defects frames the
+    share of the injected ones (away from the patch border) found (recall), the share of those found that were
+    injected (precision) and the median over frames of found/injected; on every other frame the pixels flagged per
+    million tested (none was injected there: the scenes' own points and noise); and the share of defects frames
+    declared noisier (ξ̂ median ≤ −max(0.5 DN, 15 % of σ̂_Total): defects are not noise of the sensor model). NaN
+    where the estimator reports none."""
+    nan = {k: float("nan") for k in ("defects_recall", "defects_precision", "defects_count_ratio", "defects_false_ppm",
+                                     "defects_noisier_frames")}
+    items = [r for v in rows.values() for r in v]
+    if not items or any(len(r) < 8 or r[7] is None for r in items):
+        return nan
+    out = dict(nan)
+    found_true, found, injected, ratios, noisier = 0, 0, 0, [], []
+    flagged, tested = 0, 0
+    for c, v in rows.items():
+        for r in v:
+            mask = r[7] != 0
+            inner = mask[..., 1:-1, 1:-1]
+            if c in DEFECTS and r[3].defects is not None:
+                truth = (r[3].defects != 0)[..., 1:-1, 1:-1]
+                found_true += int((inner & truth).sum())
+                found += int(inner.sum())
+                injected += int(truth.sum())
+                ratios.append(int(inner.sum()) / max(int(truth.sum()), 1))
+                noisier.append(float(r[2].median()) <= -max(0.5, 0.15 * float(r[1].median())))
+            else:
+                flagged += int(inner.sum())
+                tested += inner.numel()
+    if injected:
+        out["defects_recall"] = found_true / injected
+        out["defects_precision"] = found_true / max(found, 1)
+        out["defects_count_ratio"] = float(np.median(ratios))
+        out["defects_noisier_frames"] = float(np.mean(noisier))
+    if tested:
+        out["defects_false_ppm"] = 1e6 * flagged / tested
+    return out
 
 
 def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
@@ -465,7 +542,8 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
         ok = torch.as_tensor(out.get("assessable", torch.ones(16, dtype=torch.bool))).bool().reshape(-1)
         p_match = torch.as_tensor(out["p_match"]).float().reshape(-1) if "p_match" in out else None
         sig_std = torch.as_tensor(out["sigma_std"]).float().reshape(-1, 3) if "sigma_std" in out else None
-        answers.append((sig, out["sigma_total"].float(), xi, fr, ok, p_match, sig_std))
+        mask = torch.as_tensor(out["defect_mask"]) if out.get("defect_mask") is not None else None
+        answers.append((sig, out["sigma_total"].float(), xi, fr, ok, p_match, sig_std, mask))
 
     def rows_of(scale: str | None) -> dict[str, list]:
         rows: dict[str, list] = {c: [] for c in CONDITIONS}
@@ -516,7 +594,7 @@ def run(args: argparse.Namespace) -> BenchResult:
                "| estimator | scenes | set | PN | DCSN | RN | DCSN⊕RN | total | ξ RMS |", "|---|---|---|---|---|---|---|---|---:|"]
     for name, r in results.items():
         for label, key in sets:
-            for gname in ("matched", "mismatched", "visible mismatch", "strong", "banding"):
+            for gname in ("matched", "mismatched", "visible mismatch", "strong", "banding", "defects"):
                 g = part(r, key)["groups"][gname]
                 summary.append(f"| {name} | {label} | {gname} ({g['n']}) | {_fmt3(g['PN'])} | {_fmt3(g['DCSN'])} | {_fmt3(g['RN'])} | "
                                f"{_fmt3(g['DCSN+RN'])} | {_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
@@ -562,6 +640,15 @@ def run(args: argparse.Namespace) -> BenchResult:
     per_scale(lambda q, r: f"{100 * q['banding_total_rel_median']:.1f} % | {100 * q['banding_declared_patch']:.0f} % of "
                            f"{q['banding_visible_patches']} | {100 * q['banding_declared_frame']:.0f} % of "
                            f"{q['banding_visible_frames']} | {100 * q['banding_assessable']:.0f} %")
+    summary += ["", "Defective pixels (100 ppm–1 % of the pixels with a bright or dark offset of 10–200 DN of their own, "
+                "metadata right; `defect_mask`): of the injected ones away from the patch border the share found, of "
+                "those found the share injected, the median over frames of found/injected, the pixels flagged per "
+                "million tested on every other frame (nothing injected: the scenes' own points), and the share of "
+                "defects frames declared noisier (the defects are not σ):", "",
+                "| estimator | scenes | found | of those found, injected | found/injected per frame | flagged elsewhere [ppm] | declared noisier |",
+                "|---|---|---:|---:|---:|---:|---:|"]
+    per_scale(lambda q, r: f"{100 * q['defects_recall']:.1f} % | {100 * q['defects_precision']:.1f} % | "
+                           f"{q['defects_count_ratio']:.2f} | {q['defects_false_ppm']:.1f} | {100 * q['defects_noisier_frames']:.0f} %")
     with_u = {n: r for n, r in results.items() if "within_u" in r["groups"]["matched"]}
     if with_u:
         summary += ["", "Per-source uncertainty `sigma_std` (u) against the error |σ̂ − σ| (PN / DCSN / RN): the share within u and within "

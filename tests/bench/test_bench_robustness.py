@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from camhealth.bench import robustness as rb
+from camhealth.physics import CameraMetadata
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -100,6 +101,8 @@ def test_report_prints_floors_and_tables_per_scale(frames, monkeypatch, tmp_path
         assert f"{label}: " in text  # visible/matched counts
         assert f"| closed_form | {label} | banding (" in text  # row and column noise: per-source table
         assert f"| closed_form | {label} | " in text.split("Row and column noise")[1]  # and its own table
+        assert f"| closed_form | {label} | defects (" in text  # defective pixels: per-source table
+        assert f"| closed_form | {label} | nan % | nan % |" in text.split("Defective pixels")[1]  # it says where none
     out = json.loads((tmp_path / "r.json").read_text())
     assert set(out["closed_form"]["scales"]) == {"full", "3x"}
 
@@ -189,3 +192,45 @@ def test_add_banding_adds_offsets_per_row_or_column(kind):
     smooth = torch.full((1, 1, 16, 16), 0.3001)
     assert not torch.allclose(rb.add_banding(smooth, 1.0, "rows", 0) * 255, (rb.add_banding(smooth, 1.0, "rows", 0) * 255).round())
     assert rb.add_banding(torch.ones(1, 1, 16, 16), 40.0, "both", 1).max() <= 1.0
+
+
+def test_add_defects_offsets_single_pixels_and_records_them():
+    """The benchmark's defective pixels: about the asked share of the pixels, each moved by 10–200 DN up (+1 in the
+    truth) or down (−1), the others untouched; clipped, and 8-bit in, 8-bit out."""
+    x = torch.full((8, 1, 128, 128), 100.0 / 255.0)
+    out, truth = rb.add_defects(x, 0.01, seed=4)
+    d = (out - x)[:, 0].double() * 255.0
+    hit = truth[:, 0] != 0
+    assert hit.float().mean() == pytest.approx(0.01, rel=0.1)
+    assert (d[~hit] == 0).all() and torch.allclose(out * 255.0, (out * 255.0).round(), atol=1e-3)
+    lo, hi = rb.DEFECT_OFFSET_DN
+    up, down = truth[:, 0] > 0, truth[:, 0] < 0
+    assert (d[up] >= lo - 0.5).all() and (d[up] <= 155.01).all()  # clipped at 255 DN
+    assert (d[down] <= -(lo - 0.5)).all() and (d[down] >= -100.01).all()  # clipped at 0 DN
+    assert 0.4 < up.sum() / hit.sum() < 0.6
+
+
+def test_defect_scores_count_found_wrong_and_elsewhere():
+    """Recall, precision and the per-frame ratio on the defects frames, flagged pixels per million on the others."""
+    x = torch.full((16, 1, 128, 128), 0.5)
+    _, truth = rb.add_defects(x, 0.001, seed=1)
+    told = CameraMetadata.preset("ICX285")
+    fr = rb.Frame("defects", x, x, told, torch.zeros(16, 3), torch.ones(16), torch.zeros(16), "full", 0.5, truth)
+    other = rb.Frame("reference", x, x, told, torch.zeros(16, 3), torch.ones(16), torch.zeros(16), "full", 0.5)
+    found = truth.clone()
+    idx = (truth[..., 1:-1, 1:-1] != 0).nonzero()[0]
+    found[idx[0], 0, idx[2] + 1, idx[3] + 1] = 0  # one injected defect missed
+    wrong = torch.zeros_like(truth)
+    wrong[0, 0, 64, 64] = 1  # one pixel flagged where nothing was injected
+    z = torch.zeros(16)
+    rows = {c: [] for c in rb.CONDITIONS}
+    rows["defects"] = [(torch.zeros(16, 3), torch.ones(16), z, fr, z.bool(), None, None, found)]
+    rows["reference"] = [(torch.zeros(16, 3), torch.ones(16), z, other, z.bool(), None, None, wrong)]
+    res = rb._defect_scores(rows)
+    n = int((truth[..., 1:-1, 1:-1] != 0).sum())
+    assert res["defects_recall"] == pytest.approx((n - 1) / n)
+    assert res["defects_precision"] == 1.0 and res["defects_count_ratio"] == pytest.approx((n - 1) / n)
+    assert res["defects_false_ppm"] == pytest.approx(1e6 / (16 * 126 * 126))
+    assert res["defects_noisier_frames"] == 0.0
+    rows["reference"] = [rows["reference"][0][:7] + (None,)]
+    assert all(v != v for v in rb._defect_scores(rows).values())  # no mask from the estimator: NaN
