@@ -53,20 +53,31 @@ def structure_contrast_dn(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     return s, noise
 
 
-def _structure_stats(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """:func:`structure_contrast_dn`'s (s, σ̂) and the 8×8 block means it read [DN] (B, rows, cols) float64, or ``None``
-    for patches under 16 px."""
-    x = patches[:, 0].float() * 255.0
-    b, h, w = x.shape
-    h2, w2 = h - h % 2, w - w % 2
-    if h2 < 2 or w2 < 2:
-        return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b), None
+def haar_noise_dn(patches: torch.Tensor) -> torch.Tensor:
+    """Robust noise level σ̂ [DN] of B×1×H×W patches in [0, 1] (H, W ≥ 2) → (B,) float32: median|d| / 0.6745 of the
+    finest diagonal Haar details d over the 2×2 blocks of every other block row (:func:`structure_contrast_dn`)."""
+    return _haar_noise(patches[:, 0].float() * 255.0).float()
+
+
+def _haar_noise(x: torch.Tensor) -> torch.Tensor:
+    """:func:`haar_noise_dn` of B×H×W images in DN → (B,) float64."""
+    h2, w2 = x.shape[-2] - x.shape[-2] % 2, x.shape[-1] - x.shape[-1] % 2
     # d of every other row of 2×2 blocks (P²/8 samples: ~2 % standard error of σ̂, half the selection work)
     q = x[:, :h2, :w2]
     step = 4 if h2 >= 8 else 2
     d = 0.5 * (q[:, 0::step, 0::2] - q[:, 0::step, 1::2] - q[:, 1::step, 0::2] + q[:, 1::step, 1::2])
     flat = d.abs().flatten(1)
-    noise = flat.kthvalue((flat.shape[1] + 1) // 2, dim=1).values.double() / _MAD_NORMAL
+    return flat.kthvalue((flat.shape[1] + 1) // 2, dim=1).values.double() / _MAD_NORMAL
+
+
+def _structure_stats(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """:func:`structure_contrast_dn`'s (s, σ̂) and the 8×8 block means it read [DN] (B, rows, cols) float64, or ``None``
+    for patches under 16 px."""
+    x = patches[:, 0].float() * 255.0
+    b, h, w = x.shape
+    if h < 2 or w < 2:
+        return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b), None
+    noise = _haar_noise(x)
     blk = STRUCTURE_BLOCK
     if min(h, w) >= 2 * blk:
         hb, wb = h - h % blk, w - w % blk

@@ -142,3 +142,17 @@ def test_flat_banded_patches_over_a_sweep_are_nearly_never_assessable():
                     x = x + sr / 255.0 * torch.randn(64, 1, 1, 192, generator=g)
                 passed += int(assess_patches((x.clamp(0, 1) * 255).round() / 255, "mtf")[0].sum())
     assert passed <= 0.02 * 2304, passed
+
+
+@pytest.mark.parametrize("size", [2, 9, 128, 192])
+def test_haar_noise_dn_is_structure_contrasts_noise_level(size):
+    """The shared robust σ̂ [DN]: the one ``structure_contrast_dn`` reports, within 5 % of white noise's σ."""
+    from camhealth._inputs import haar_noise_dn
+
+    g = torch.Generator().manual_seed(size)
+    x = (0.5 + 6.0 / 255.0 * torch.randn(4, 1, size, size, generator=g))
+    sigma = haar_noise_dn(x)
+    assert sigma.shape == (4,) and sigma.dtype == torch.float32
+    assert torch.allclose(sigma, structure_contrast_dn(x)[1])
+    if size >= 128:
+        assert torch.allclose(sigma, torch.full((4,), 6.0), rtol=0.05)

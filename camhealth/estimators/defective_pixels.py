@@ -14,7 +14,8 @@ smallest (dark), by more than
 
     t = k·max(s, σ_n),   k = :data:`DEFECT_SIGMAS`, and at least :data:`MIN_DEFECT_DN`,
 
-with σ_n the patch's pixel noise (1.4826·MAD of its diagonal Haar details, with the 8-bit rounding's 1/12 DN²) and s
+with σ_n the patch's pixel noise (median |d| / 0.6745 of its diagonal Haar details d, with the 8-bit rounding's 1/12
+DN²) and s
 the scatter of the other pixels of the pixel's :data:`WINDOW`×:data:`WINDOW` window about the plane that fits them
 best (shading and gradients do not raise it; signal-dependent noise, texture and edges do, so a defect in a textured
 area must stand out further). The pixels that are themselves candidates (a step above k·σ_n) are left out of every
@@ -29,16 +30,24 @@ with their right noise (``python -m camhealth.bench robustness``) that is 5 pixe
 most 95 per million on a frame; a defect hidden in texture, next to an edge or pushed into clipping is missed
 (the benchmark's share found). A defect stays at its pixel from frame to frame while the scene moves;
 :class:`camhealth.monitor.Monitor` counts the pixels flagged at the same place in several frames.
+
+:func:`repair_defective_pixels` replaces each one by the mean of its neighbours (what a camera's defect-pixel
+correction does). The MTF estimator reads its patches so repaired: its edge check reads isolated impulses as sparse
+edges and its network as fine detail (``python -m camhealth.bench robustness --task mtf``, the defects table).
 """
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-__all__ = ["DefectivePixels", "defective_pixels", "DEFECT_SIGMAS", "MIN_DEFECT_DN", "WINDOW"]
+from camhealth._inputs import haar_noise_dn
+
+__all__ = ["DefectivePixels", "defective_pixels", "repair_defective_pixels", "DEFECT_SIGMAS", "MIN_DEFECT_DN", "WINDOW"]
 
 #: Step above the largest (below the smallest) of the 8 neighbours, in local σ, from which a pixel is a defect.
 DEFECT_SIGMAS = 6.0
@@ -71,81 +80,116 @@ class DefectivePixels:
         return (self.hot + self.dark).double() / self.checked.clamp_min(1).double()
 
 
-def _max_min8(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Largest and smallest of each interior pixel's 8 neighbours (B×1×(H−2)×(W−2)): the 3-wide row maxima above
-    and below, and the left and right neighbours."""
-    row_max = torch.maximum(torch.maximum(q[..., :-2], q[..., 1:-1]), q[..., 2:])  # (…, H, W−2)
-    row_min = torch.minimum(torch.minimum(q[..., :-2], q[..., 1:-1]), q[..., 2:])
-    left, right = q[..., 1:-1, :-2], q[..., 1:-1, 2:]
-    mx = torch.maximum(torch.maximum(row_max[..., :-2, :], row_max[..., 2:, :]), torch.maximum(left, right))
-    mn = torch.minimum(torch.minimum(row_min[..., :-2, :], row_min[..., 2:, :]), torch.minimum(left, right))
-    return mx, mn
+@functools.lru_cache(maxsize=8)
+def _ring_offsets(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(dy, dx) (8,) long of the 8 neighbours."""
+    ring = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+    return torch.tensor([r[0] for r in ring], device=device), torch.tensor([r[1] for r in ring], device=device)
 
 
-def _noise_floor_dn(q: torch.Tensor) -> torch.Tensor:
-    """(B,) robust σ [DN] of each patch's pixel noise: 1.4826·MAD of its diagonal 2×2 Haar details (edges and shading
-    barely reach them, a median ignores the rest), with the 8-bit rounding's 1/12 DN² added."""
-    h, w = q.shape[-2] // 2 * 2, q.shape[-1] // 2 * 2
-    x = q[:, 0, :h, :w]
-    d = ((x[:, 0::2, 0::2] - x[:, 0::2, 1::2] - x[:, 1::2, 0::2] + x[:, 1::2, 1::2]) / 2.0).flatten(1)
-    mad = (d - d.median(1, keepdim=True).values).abs().median(1).values * 1.4826
-    return (mad.square() + _QUANT_VAR).sqrt()
+def _gather(q: torch.Tensor, where: torch.Tensor, dy: torch.Tensor, dx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Values of B×1×H×W ``q`` at ``where`` ((N, 3): b, y, x) shifted by (dy, dx) (M,) → (N, M), and whether each
+    shifted pixel lies inside the patch (outside: value of the nearest border pixel, flagged False)."""
+    h, w = q.shape[-2:]
+    y, x = where[:, 1:2] + dy, where[:, 2:3] + dx
+    inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+    flat = where[:, 0:1] * (h * w) + y.clamp(0, h - 1) * w + x.clamp(0, w - 1)
+    return q.reshape(-1)[flat], inside
+
+
+@functools.lru_cache(maxsize=8)
+def _window_offsets(device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(dy, dx) (M,) long of a WINDOW×WINDOW window without its centre, and the plane's design [1, dy, dx] (M, 3)."""
+    pad = WINDOW // 2
+    off = torch.arange(-pad, pad + 1, device=device)
+    dy, dx = (t.reshape(-1) for t in torch.meshgrid(off, off, indexing="ij"))
+    ring = (dy != 0) | (dx != 0)
+    dy, dx = dy[ring], dx[ring]
+    return dy, dx, torch.stack([torch.ones_like(dy), dy, dx], 1).to(dtype)
+
+
+@functools.lru_cache(maxsize=8)
+def _RIDGE(device: torch.device, dtype: torch.dtype) -> torch.Tensor:  # noqa: N802 - a constant
+    """1e-6·I (3×3): keeps the normal equations solvable where a window has few pixels left."""
+    return 1e-6 * torch.eye(3, dtype=dtype, device=device)
 
 
 def _window_scale(q: torch.Tensor, keep: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
     """σ [DN] about the plane that fits best the pixels of each WINDOW×WINDOW window around ``where`` ((N, 3): b,
     y, x) that ``keep`` marks, the centre left out (weighted least squares, Σ weights − 3 degrees of freedom; ∞ where
     fewer than 8 pixels remain): the local noise and texture, with the scene's shading and gradients taken out."""
-    pad = WINDOW // 2
-    qp = F.pad(q[:, 0], (pad, pad, pad, pad))
-    kp = F.pad(keep[:, 0].to(q.dtype), (pad, pad, pad, pad))
-    off = torch.arange(-pad, pad + 1, device=q.device)
-    dy, dx = (t.reshape(-1) for t in torch.meshgrid(off, off, indexing="ij"))
-    ring = (dy != 0) | (dx != 0)
-    dy, dx = dy[ring], dx[ring]
-    bi, yi, xi = where[:, 0:1], where[:, 1:2] + pad + dy, where[:, 2:3] + pad + dx  # (N, WINDOW² − 1), padded coords
-    v, wt = qp[bi, yi, xi], kp[bi, yi, xi]
-    design = torch.stack([torch.ones_like(dy), dy, dx], 1).to(q.dtype)  # (M, 3)
-    xw = design.unsqueeze(0) * wt.unsqueeze(-1)  # (N, M, 3)
-    normal = xw.transpose(1, 2) @ design + 1e-6 * torch.eye(3, dtype=q.dtype, device=q.device)
+    dy, dx, design = _window_offsets(q.device, q.dtype)
+    v, inside = _gather(q, where, dy, dx)  # (N, WINDOW² − 1)
+    wt = (_gather(keep, where, dy, dx)[0] & inside).to(q.dtype)
+    xw = design * wt.unsqueeze(-1)  # (N, M, 3)
+    normal = torch.baddbmm(_RIDGE(q.device, q.dtype), xw.transpose(1, 2), design.expand(xw.shape[0], -1, -1))
     beta = torch.linalg.solve(normal, (xw * v.unsqueeze(-1)).sum(1))  # (N, 3)
     ss = (wt * (v - beta @ design.t()).square()).sum(1)
     dof = wt.sum(1) - 3.0
     return torch.where(dof >= 5.0, (ss / dof.clamp_min(1.0)).sqrt(), torch.full_like(ss, float("inf")))
 
 
-def defective_pixels(patches: torch.Tensor) -> DefectivePixels:
+def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> DefectivePixels:
     """Hot, stuck and dead pixels of B×1×H×W patches in [0, 1] (H, W ≥ 3; module docstring). Any float dtype; computed
     in float32 (float64 input in float64). The window's fit is made only at the candidates, the pixels whose step
-    exceeds k·σ_n and :data:`MIN_DEFECT_DN` (few in most patches). Returns :class:`DefectivePixels`."""
+    over all 8 neighbours exceeds k·σ_n and :data:`MIN_DEFECT_DN` (few in most patches). ``noise_dn``: the patches' σ̂ [DN] (B,) of :func:`camhealth._inputs.haar_noise_dn` where the caller has it
+    already (computed here otherwise). Returns :class:`DefectivePixels`."""
     if patches.ndim != 4 or patches.shape[1] != 1 or min(patches.shape[-2:]) < 3:
         raise ValueError(f"defective_pixels needs B×1×H×W patches with H, W ≥ 3, got {tuple(patches.shape)}")
     if not patches.is_floating_point():
         raise ValueError(f"defective_pixels needs floating-point patches in [0, 1], got dtype {patches.dtype}")
-    if not bool(torch.isfinite(patches).all()):
+    total = patches.detach().sum(dtype=None if patches.dtype == torch.float64 else torch.float32)
+    if not math.isfinite(float(total)):  # NaN or ±inf anywhere makes the sum so
         raise ValueError("defective_pixels: the patches hold NaN or infinite values")
     dtype = torch.float64 if patches.dtype == torch.float64 else torch.float32
     q = patches.detach().to(dtype) * 255.0
     b, _, h, w = q.shape
     c = q[..., 1:-1, 1:-1]
-    mx, mn = _max_min8(q)
-    step = torch.maximum(c - mx, mn - c)  # > 0 only where the pixel stands above or below every neighbour
+    # the largest and smallest of the 8 neighbours: 3-wide row extremes above and below, and the left and right ones
+    left, right = q[..., 1:-1, :-2], q[..., 1:-1, 2:]
+    row_max = torch.maximum(torch.maximum(q[..., :-2], q[..., 1:-1]), q[..., 2:])
+    row_min = torch.minimum(torch.minimum(q[..., :-2], q[..., 1:-1]), q[..., 2:])
+    up_all = c - torch.maximum(torch.maximum(row_max[..., :-2, :], row_max[..., 2:, :]), torch.maximum(left, right))
+    down_all = torch.minimum(torch.minimum(row_min[..., :-2, :], row_min[..., 2:, :]), torch.minimum(left, right)) - c
     mask = torch.zeros(b, 1, h, w, dtype=torch.int8, device=q.device)
-    floor = _noise_floor_dn(q).view(b, 1, 1, 1)
-    # candidates: the step beats the floor and k times the patch's noise (a lower bound of the threshold)
-    cand = (step > torch.clamp(DEFECT_SIGMAS * floor, min=MIN_DEFECT_DN)).nonzero()  # (N, 4): b, 0, y − 1, x − 1
+    sigma = haar_noise_dn(patches.detach()) if noise_dn is None else torch.as_tensor(noise_dn).reshape(b)
+    floor = (sigma.to(q.dtype).square() + _QUANT_VAR).sqrt()
+    # candidates: a step over all 8 neighbours beyond k σ_n and MIN_DEFECT_DN (a lower bound of the threshold)
+    lower = torch.clamp(DEFECT_SIGMAS * floor, min=MIN_DEFECT_DN).view(b, 1, 1, 1)
+    step_all = torch.maximum(up_all, down_all)
+    cand = (step_all > lower).nonzero()  # (N, 4): b, 0, y − 1, x − 1
+    hot = dark = torch.zeros(b, dtype=torch.int64, device=q.device)
     if cand.shape[0]:
         where = torch.stack([cand[:, 0], cand[:, 2] + 1, cand[:, 3] + 1], 1)
+        at = (cand[:, 0] * c[0].numel() + cand[:, 2] * c.shape[-1] + cand[:, 3])
+        step, up = step_all.reshape(-1)[at], up_all.reshape(-1)[at]
         keep = torch.ones_like(q, dtype=torch.bool)  # the window's fit leaves out every candidate
         keep[where[:, 0], 0, where[:, 1], where[:, 2]] = False
-        scale = torch.maximum(_window_scale(q, keep, where), floor.view(b)[cand[:, 0]])
-        found = step[cand[:, 0], 0, cand[:, 2], cand[:, 3]] > DEFECT_SIGMAS * scale
-        hit, at = where[found], cand[found]
-        up = c[at[:, 0], 0, at[:, 2], at[:, 3]] > mx[at[:, 0], 0, at[:, 2], at[:, 3]]  # above every neighbour: hot
-        mask[hit[:, 0], 0, hit[:, 1], hit[:, 2]] = torch.where(up, 1, -1).to(torch.int8)
-        hot = torch.bincount(hit[up, 0], minlength=b)
-        dark = torch.bincount(hit[~up, 0], minlength=b)
-    else:
-        hot = dark = torch.zeros(b, dtype=torch.int64, device=q.device)
+        scale = torch.maximum(_window_scale(q, keep, where), floor[where[:, 0]])
+        found = step > DEFECT_SIGMAS * scale
+        hit, bright = where[found], up[found] > 0  # above every neighbour: hot
+        mask[hit[:, 0], 0, hit[:, 1], hit[:, 2]] = torch.where(bright, 1, -1).to(torch.int8)
+        hot = torch.bincount(hit[bright, 0], minlength=b)
+        dark = torch.bincount(hit[~bright, 0], minlength=b)
     checked = torch.full((b,), (h - 2) * (w - 2), dtype=torch.int64, device=q.device)
     return DefectivePixels(hot, dark, checked, mask)
+
+
+def repair_defective_pixels(patches: torch.Tensor) -> tuple[torch.Tensor, DefectivePixels]:
+    """B×1×H×W patches in [0, 1] with every defective pixel (:func:`defective_pixels`) replaced by the mean of its
+    8 neighbours that are not defective themselves (of all 8 where every one is), in the patches' dtype; the input
+    is returned unchanged (the same tensor) where none is found. Returns (patches, :class:`DefectivePixels`)."""
+    found = defective_pixels(patches)
+    bad = found.mask != 0
+    if not bool(bad.any()):
+        return patches, found
+    x = patches.detach().to(torch.float64 if patches.dtype == torch.float64 else torch.float32)
+    good = (~bad).to(x.dtype)
+    ring = torch.ones(1, 1, 3, 3, dtype=x.dtype, device=x.device)
+    ring[0, 0, 1, 1] = 0.0
+    pad = (1, 1, 1, 1)
+    total = F.conv2d(F.pad(x * good, pad), ring)
+    count = F.conv2d(F.pad(good, pad), ring)
+    every = F.conv2d(F.pad(x, pad, mode="replicate"), ring) / 8.0
+    fill = torch.where(count > 0, total / count.clamp_min(1.0), every)
+    return torch.where(bad, fill, x).to(patches.dtype), found

@@ -114,7 +114,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, structure_contrast_dn
+from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, haar_noise_dn
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
     metadata_from_matrix,
@@ -652,17 +652,18 @@ def physics_noise_posterior(
     return out.float()
 
 
-def beyond_validated_range(patches: torch.Tensor) -> torch.Tensor:
+def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> torch.Tensor:
     """Whether the finest-scale fluctuations of B×1×H×W patches in [0, 1] exceed :data:`VALIDATED_SIGMA_DN` beyond
     doubt → (B,) bool.
 
     σ̂ = median|d|/0.6745 of the diagonal Haar details d over the patch's blocks, every one of them
-    (:func:`camhealth._inputs.structure_contrast_dn`: sparse edges do not move a median), must exceed the limit by three
+    (:func:`camhealth._inputs.haar_noise_dn`, or ``noise_dn`` where the caller has it: sparse edges do not move a
+    median), must exceed the limit by three
     of its standard errors (1.166·σ/√n for n Gaussian details). Clipping only lowers σ̂, so clipped Gaussian noise
     within the limit never trips it. Uniform noise of σ 73 DN does: the clipped-Gaussian model, which reads only
     the blocks away from the bounds, sees it as about 52 DN. Texture that fine and that strong trips it too, and
     no noise estimate can be vouched for under it either."""
-    _, mad = structure_contrast_dn(patches.float())
+    mad = haar_noise_dn(patches) if noise_dn is None else noise_dn
     h2, w2 = (s - s % 2 for s in patches.shape[-2:])
     step = 4 if h2 >= 8 else 2  # structure_contrast_dn reads the details of every other row of 2×2 blocks
     n = max(-(-h2 // step) * (w2 // 2), 1)
@@ -732,7 +733,8 @@ class PhysicsNoiseEstimator:
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
         is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
-        too_strong = beyond_validated_range(patches).tolist()
+        noise_dn = haar_noise_dn(patches)
+        too_strong = beyond_validated_range(patches, noise_dn).tolist()
         for i in range(b):
             if reason[i]:
                 continue
@@ -743,7 +745,7 @@ class PhysicsNoiseEstimator:
             elif raw[i, 10] > VALIDATED_SIGMA_DN or too_strong[i]:
                 reason[i] = BEYOND_VALIDATED
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
-        defects = defective_pixels(patches)  # on every patch: a defect shows in textured and clipped ones too
+        defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
                 "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
                 "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),

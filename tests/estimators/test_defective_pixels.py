@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from camhealth.bench.sensor_variants import simulate_variant
-from camhealth.estimators.defective_pixels import DEFECT_SIGMAS, MIN_DEFECT_DN, defective_pixels
+from camhealth.estimators.defective_pixels import DEFECT_SIGMAS, MIN_DEFECT_DN, defective_pixels, repair_defective_pixels
 from camhealth.physics import CameraMetadata
 
 
@@ -153,3 +153,25 @@ def test_batch_of_one_small_and_non_square_patches():
 def test_bad_input_is_refused(bad, match):
     with pytest.raises(ValueError, match=match):
         defective_pixels(bad)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+def test_repair_replaces_each_defect_by_its_good_neighbours_mean(dtype):
+    """A defect's value becomes the mean of its 8 neighbours that are not defects themselves; every other pixel is
+    untouched; without defects the input comes back as it is (the same tensor)."""
+    x, truth = _inject(_camera_ramp(2), 12, (60.0, 150.0), seed=10)
+    x[0, 0, 40, 40], x[0, 0, 40, 41] = 1.0, 0.0  # a bright and a dark pixel side by side: a cluster, not found
+    x[0, 0, 60, 60], x[0, 0, 61, 62] = 1.0, 1.0  # two defects one pixel apart diagonally: both found
+    x = x.to(dtype)
+    fixed, found = repair_defective_pixels(x)
+    assert fixed.dtype == dtype and found.mask[0, 0, 60, 60] == 1 and found.mask[0, 0, 61, 62] == 1
+    bad = found.mask != 0
+    assert torch.equal(fixed[~bad], x[~bad])
+    xf = x.double()
+    for b, _, y, xx in bad.nonzero().tolist():
+        ring = [(y + dy, xx + dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+        good = [float(xf[b, 0, p, q]) for p, q in ring if not bad[b, 0, p, q]]
+        assert float(fixed[b, 0, y, xx]) == pytest.approx(sum(good) / len(good), abs=2e-3 if dtype == torch.bfloat16 else 1e-6)
+    clean = _camera_ramp(2)
+    same, none = repair_defective_pixels(clean)
+    assert same is clean and int(none.hot.sum() + none.dark.sum()) == 0
