@@ -39,10 +39,13 @@
   error table (description entry ``mtf_error``, :mod:`camhealth.estimators.mtf_error`), the RMS error at each
   estimate Ĥ measured by ``python -m camhealth.bench mtf_error`` on scenes unlike training's. A file without a table
   gives the spread alone (a lower bound of the error: it does not see what all views get wrong alike).
+  MTF models read each patch with its defective pixels (hot, stuck, dead; :mod:`camhealth.estimators.defective_pixels`)
+  replaced by their neighbours' mean, and return how many they replaced, ``defects`` (B, 2) int64 (bright, dark).
 - ``noise_source_full`` is no network: the physics-first estimator
   (:class:`~camhealth.estimators.physics_noise.PhysicsNoiseEstimator`, same ``predict`` interface, plus ``xi_std``,
   ``p_match``, ``row_column_dn`` (B, 2): σ of row and column noise [DN] where detected, else 0,
-  :mod:`camhealth.estimators.row_column_noise`; and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
+  :mod:`camhealth.estimators.row_column_noise`; ``defects`` (B, 2) int64 and ``defect_mask`` (B, 1, P, P) int8:
+  defective pixels, bright and dark, :mod:`camhealth.estimators.defective_pixels`; and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
   with fewer metadata. Names and files of retired variants are refused with a message naming what replaced them.
 """
 
@@ -56,6 +59,7 @@ from typing import Any, Callable
 
 import torch
 
+from camhealth.estimators.defective_pixels import repair_defective_pixels
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches  # noqa: F401
 from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
 from camhealth.export import BY_PHYSICS, FORMAT_TAG, check_retired, load_net
@@ -161,6 +165,9 @@ class Estimator:
         patches = _to_patches(images, self.patch_size, input_range)
         if patches.shape[0] == 0:
             return self._empty_result(metadata)
+        defects = None
+        if self.kind == "mtf":  # isolated impulses read as sparse edges and fine detail: the neighbours' mean instead
+            patches, defects = repair_defective_pixels(patches)
         if views > 1:  # estimates of flipped copies are averaged below; the MTF along H and V is flip-invariant
             flips = [(-2, -1)] if views == 2 else [(-1,), (-2,), (-2, -1)]
             assessed = patches
@@ -204,6 +211,7 @@ class Estimator:
             result["mtf"] = raw.clamp(0, 1)
             result["mtf_std"] = mtf_uncertainty(result["mtf"], self._mtf_error, spread)
             result["mtf_spread"] = spread if spread is not None else torch.full_like(result["mtf"], float("nan"))
+            result["defects"] = torch.stack([defects.hot, defects.dark], 1)
         elif self.kind == "drne":
             flat = raw.flatten(1)
             result.update(sigma_map=raw, sigma_total=flat.pow(2).mean(1).sqrt(), sigma_median=flat.median(1).values)
@@ -223,6 +231,7 @@ class Estimator:
             result["mtf"] = torch.zeros(0, 16)
             result["mtf_std"] = torch.zeros(0, 16)
             result["mtf_spread"] = torch.zeros(0, 16)
+            result["defects"] = torch.zeros(0, 2, dtype=torch.int64)
         elif self.kind == "drne":
             result.update(sigma_map=torch.zeros(0, 1, self.patch_size, self.patch_size), sigma_total=z, sigma_median=z)
         else:

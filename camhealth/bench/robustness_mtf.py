@@ -48,11 +48,13 @@ with the same held-out kernels — a scene that has an edge — beside the netwo
 from __future__ import annotations
 
 import argparse
+import contextlib
+import inspect
 import json
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -438,6 +440,69 @@ def banding_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> l
     return lines
 
 
+#: Shares of defective pixels added after the blur in :func:`defects_lines` (0: the patches as they are).
+DEFECT_SHARES = (0.0, 1e-4, 1e-3, 1e-2)
+
+
+@contextlib.contextmanager
+def swapped_global(method: Any, name: str, value: Any) -> Iterator[None]:
+    """Within the block, the global ``name`` that ``method`` (decorators unwrapped) reads is ``value``: the module the
+    function was defined in, even where that module has been imported afresh since."""
+    scope = inspect.unwrap(method).__globals__
+    missing = object()
+    old = scope.get(name, missing)
+    scope[name] = value
+    try:
+        yield
+    finally:
+        if old is missing:
+            del scope[name]
+        else:
+            scope[name] = old
+
+
+def _without_repair(p: torch.Tensor) -> tuple[torch.Tensor, Any]:
+    from camhealth.estimators.defective_pixels import defective_pixels
+
+    return p, defective_pixels(p)
+
+
+def defects_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> list[str]:
+    """The table of defective pixels after the blur: the clean held-out cells' rendered-scene patches with a share of
+    their pixels moved by 10–200 DN up or down (:func:`camhealth.bench.robustness.add_defects`, its own seed,
+    seed + 4000, so no other number moves): AMAE % over all patches and over those the estimator calls assessable, and
+    the share assessable — as the estimator ships (MTF models replace the defective pixels they find by their
+    neighbours' mean before reading a patch) and with that repair switched off. Fills ``r["defects"]``."""
+    from camhealth.bench.robustness import add_defects
+
+    clean = [c for c in held if c.condition == "clean"]
+    x = torch.cat([c.image[_mask(c, "rendered")] for c in clean])
+    truth = torch.cat([c.truth[_mask(c, "rendered")] for c in clean])
+    lines = ["", f"Defective pixels after the blur ({x.shape[0]} clean patches of the held-out generators on rendered "
+             "scenes; a share of the pixels moved by 10–200 DN up or down): AMAE % over all patches / on the patches "
+             "the estimator calls assessable, and the share assessable — as shipped (the defective pixels it finds "
+             "replaced by their neighbours' mean) and without that repair:", "",
+             "| defective pixels | as shipped: all / assessable | assessable | without the repair: all / assessable | assessable |",
+             "|---:|---|---:|---|---:|"]
+    r["defects"] = {}
+    for share in DEFECT_SHARES:
+        xd = add_defects(x, share, seed + 4000)[0] if share else x
+        row = {}
+        for key, ctx in (("shipped", contextlib.nullcontext()),
+                         ("unrepaired", swapped_global(type(est).predict, "repair_defective_pixels", _without_repair))):
+            with ctx:
+                o = est.predict(xd)
+            ok = torch.as_tensor(o.get("assessable", torch.ones(x.shape[0], dtype=torch.bool))).bool()
+            amae = _amae(o["mtf"], truth)
+            row[key] = {"all": float(amae.mean()), "assessable_amae": float(amae[ok].mean()) if bool(ok.any()) else float("nan"),
+                        "assessable": float(ok.float().mean())}
+        r["defects"][str(share)] = row
+        a, b = row["shipped"], row["unrepaired"]
+        lines.append(f"| {100 * share:g} % | {_f(a['all'])} / {_f(a['assessable_amae'])} | {_f(100 * a['assessable'], '.0f')} % | "
+                     f"{_f(b['all'])} / {_f(b['assessable_amae'])} | {_f(100 * b['assessable'], '.0f')} % |")
+    return lines
+
+
 def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.rendered_scenes import CLASSES, SUPERSAMPLE, render_scenes
     from camhealth.data.native_mtf import native_mtf_table, spectral_native_mtf
@@ -593,6 +658,7 @@ def run(args: argparse.Namespace) -> BenchResult:
                 r["chart"][f"{fam}/{cond}"] = {"network": nv, "edge": ev}
                 summary.append(f"| {fam} | {cond} | {_f(nv)} | {_f(ev)} |")
         summary += banding_lines(est, held, args.seed, r)
+        summary += defects_lines(est, held, args.seed, r)
         summary.append(f"\nms per patch (fp32, threads {torch.get_num_threads()}): network views 1 {ms1:.1f}, views 4 {ms4:.1f}; "
                        f"slanted edge {edge_ms:.1f} (per chart patch, 4 edges)")
         results[est.name] = r

@@ -119,6 +119,11 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     assert set(band) == {str(b) for b in rm.BANDING_DN}
     assert len({round(v["across"], 9) for v in band.values()}) == 1 and all(v["assessable"] == 1.0 for v in band.values())
     assert "| row noise [DN] | AMAE across the rows (V) % |" in text
+    # defective pixels after the blur: one row per share, as shipped and without the repair
+    defects = out["fake"]["defects"]
+    assert set(defects) == {str(s) for s in rm.DEFECT_SHARES}
+    assert all(set(v) == {"shipped", "unrepaired"} and v["shipped"]["assessable"] == 1.0 for v in defects.values())
+    assert "| defective pixels | as shipped: all / assessable |" in text
 
 
 @pytest.mark.parametrize("per_cell,sizes,match", [
