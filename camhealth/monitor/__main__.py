@@ -61,7 +61,8 @@ Output, one JSON object per frame (keys): frame, index, source_id, size, assessa
   noise {{estimator, patch_px, grid, assessable, sigma_dn {{pn, dcsn, rn, xi, total: {{median, spread,
   temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
   no_edges, not_assessable, total}}, refused {{reason: patches}}, banding {{row_dn, col_dn, patches}} (row and
-  column noise, in total and xi; null without)}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
+  column noise, in total and xi; null without), defects {{hot, dark, checked, ppm, patches, recurring}} (defective
+  pixels, not in total; null without)}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
   ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
   Unreadable frames of a folder and partly decoded video frames give {{"frame_error": …}} lines, never scores.
   16-bit frames are scaled by their significant bits (--bit-depth; the summary names the scaling used).
