@@ -574,6 +574,8 @@ def mtf_under_banding(mtf: TaskReport, banding: Mapping[str, Any], estimated: in
 DEFECT_ALARM_PPM = 200.0
 #: Defect positions a monitor remembers to tell recurring ones (a few MB).
 DEFECT_POSITIONS = 100_000
+#: Recurring defect positions the summary lists (most frames first).
+DEFECT_LIST = 100
 
 
 def defects_text(defects: Mapping[str, Any]) -> str:
@@ -1372,8 +1374,10 @@ class Monitor:
         """Frames, timing (median/mean/max ms), patch counts per task and status, the patches the estimators refused
         per task and reason, alarm states, the frames with row or column noise (``banding``: their count and the
         median and largest σ per direction [DN]; ``None`` without any), the frames with defective pixels (``defects``:
-        their count, the median and largest share per million tested, and ``recurring_pixels``, the frame positions
-        flagged in more than one frame; ``None`` without any), last values."""
+        their count, the median and largest share per million tested, ``recurring_pixels``, the frame positions
+        flagged in more than one frame, and ``recurring_xy``, up to :data:`DEFECT_LIST` of them as [x, y, frames],
+        most frames first: a defect map to correct or to compare with a calibration's hot pixels; ``None`` without
+        any), last values."""
         t = sorted(self._times)
         out: dict[str, Any] = {
             "frames": self._counter,
@@ -1394,7 +1398,9 @@ class Monitor:
                 "frames": len(self._defect_frames),
                 "ppm": {"median": _num(float(np.median([d[0] for d in self._defect_frames])), 1),
                         "max": _num(float(np.max([d[0] for d in self._defect_frames])), 1)},
-                "recurring_pixels": sum(1 for v in self._defect_seen.values() if v > 1)},
+                "recurring_pixels": sum(1 for v in self._defect_seen.values() if v > 1),
+                "recurring_xy": [[x, y, n] for (x, y), n in sorted(self._defect_seen.items(), key=lambda kv: (-kv[1], kv[0]))
+                                 if n > 1][:DEFECT_LIST]},
             "mode": self.mode, "samples_per_frame": dict(self.n_samples) if self.mode == "sampled" else None,
             "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,
             "window": self.window,

@@ -675,4 +675,7 @@ def test_defective_pixels_are_counted_named_and_recur(mode):
     assert f"{again['recurring']} at the same place as in an earlier frame" in second["alarm"]["message"]
     s = mon.summary()["defects"]
     assert s["frames"] == 2 and s["recurring_pixels"] >= again["recurring"] > 0
+    xy = s["recurring_xy"]  # where: [x, y, frames] in frame pixels, each a pixel the frame really has moved
+    assert 0 < len(xy) <= 100 and all(n == 2 for _, _, n in xy)
+    assert all(hit[0, 0, y, x] for x, y, _ in xy)
     assert s["ppm"]["max"] >= s["ppm"]["median"] >= DEFECT_ALARM_PPM
