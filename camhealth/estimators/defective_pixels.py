@@ -15,11 +15,10 @@ smallest (dark), by more than
     t = k·max(s, σ_n),   k = :data:`DEFECT_SIGMAS`, and at least :data:`MIN_DEFECT_DN`,
 
 with σ_n the patch's pixel noise (median |d| / 0.6745 of its diagonal Haar details d, with the 8-bit rounding's 1/12
-DN²) and s
-the scatter of the other pixels of the pixel's :data:`WINDOW`×:data:`WINDOW` window about the plane that fits them
-best (shading and gradients do not raise it; signal-dependent noise, texture and edges do, so a defect in a textured
-area must stand out further). The pixels that are themselves candidates (a step above k·σ_n) are left out of every
-window's fit, so that defects a few pixels apart do not hide each other. For Gaussian noise alone the chance that a
+DN²) and s the scatter of the other pixels of the pixel's :data:`WINDOW`×:data:`WINDOW` window about the plane that
+fits them best (shading and gradients do not raise it; signal-dependent noise, texture and edges do, so a defect in a
+textured area must stand out further). The pixels that are themselves candidates (a step above k·σ_n) are left out of
+every window's fit, so that defects a few pixels apart do not hide each other. For Gaussian noise alone the chance that a
 pixel exceeds the largest of 8 like it by 6 σ is 2.5·10⁻¹¹; no pixel of 256 patches of white noise (σ 0.5–30 DN,
 8-bit) is flagged. Two defects side by side (a cluster) hide each other from this test, and a hot pixel in a
 saturated area or a dead one in a black area has nothing to stand out from.
