@@ -151,7 +151,14 @@ def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None
     up_all = c - torch.maximum(torch.maximum(row_max[..., :-2, :], row_max[..., 2:, :]), torch.maximum(left, right))
     down_all = torch.minimum(torch.minimum(row_min[..., :-2, :], row_min[..., 2:, :]), torch.minimum(left, right)) - c
     mask = torch.zeros(b, 1, h, w, dtype=torch.int8, device=q.device)
-    sigma = haar_noise_dn(patches.detach()) if noise_dn is None else torch.as_tensor(noise_dn).reshape(b)
+    if noise_dn is None:
+        sigma = haar_noise_dn(patches.detach())
+    else:
+        sigma = torch.as_tensor(noise_dn, device=q.device)
+        if sigma.numel() != b or not bool(torch.isfinite(sigma).all()) or bool((sigma < 0).any()):
+            raise ValueError(f"defective_pixels: noise_dn must hold one finite σ ≥ 0 [DN] per patch ({b}), got shape "
+                             f"{tuple(sigma.shape)} with values {sigma.flatten()[:4].tolist()}")
+        sigma = sigma.reshape(b)
     floor = (sigma.to(q.dtype).square() + _QUANT_VAR).sqrt()
     # candidates: a step over all 8 neighbours beyond k σ_n and MIN_DEFECT_DN (a lower bound of the threshold)
     lower = torch.clamp(DEFECT_SIGMAS * floor, min=MIN_DEFECT_DN).view(b, 1, 1, 1)

@@ -175,3 +175,16 @@ def test_repair_replaces_each_defect_by_its_good_neighbours_mean(dtype):
     clean = _camera_ramp(2)
     same, none = repair_defective_pixels(clean)
     assert same is clean and int(none.hot.sum() + none.dark.sum()) == 0
+
+
+@pytest.mark.parametrize("noise_dn", [torch.ones(3), torch.tensor([1.0, float("nan")]), torch.tensor([1.0, -2.0])])
+def test_a_given_noise_level_must_be_one_finite_sigma_per_patch(noise_dn):
+    with pytest.raises(ValueError, match="noise_dn must hold one finite σ ≥ 0"):
+        defective_pixels(_white(2, 1.0, size=32), noise_dn=noise_dn)
+
+
+def test_a_given_noise_level_gives_the_same_answer_as_the_computed_one():
+    from camhealth._inputs import haar_noise_dn
+
+    x, _ = _inject(_camera_ramp(2), 10, (60.0, 150.0), seed=11)
+    assert torch.equal(defective_pixels(x, noise_dn=haar_noise_dn(x)).mask, defective_pixels(x).mask)
