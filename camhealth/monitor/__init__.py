@@ -9,6 +9,7 @@
 - :mod:`~camhealth.monitor.overlay` — heat maps and overlay PNGs.
 - :mod:`~camhealth.monitor.sources` — images, folders of frames, videos, the embedded street clip.
 - :mod:`~camhealth.monitor.recording` — ROS 1/ROS 2/MCAP recordings with the camera state of their topics.
+- :mod:`~camhealth.monitor.defect_map` — a camera's known defective pixels (calibration's hot-pixel map).
 - :mod:`~camhealth.monitor.diagnostics` — one ``diagnostic_msgs/DiagnosticArray`` per frame (``.mcap``/``.bag``).
 
 See ``docs/monitor.md``; the benchmark is ``python -m camhealth.bench monitor``.
@@ -26,6 +27,7 @@ from camhealth.monitor.api import (
     beyond_range_alarm,
     banding_text,
     defects_text,
+    new_defect_ppm,
     DEFECT_ALARM_PPM,
     mtf_under_banding,
     MTF_BANDING_LIMIT_DN,
@@ -47,6 +49,7 @@ __all__ = [
     "beyond_range_alarm",
     "banding_text",
     "defects_text",
+    "new_defect_ppm",
     "DEFECT_ALARM_PPM",
     "mtf_under_banding",
     "MTF_BANDING_LIMIT_DN",

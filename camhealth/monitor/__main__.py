@@ -61,8 +61,8 @@ Output, one JSON object per frame (keys): frame, index, source_id, size, assessa
   noise {{estimator, patch_px, grid, assessable, sigma_dn {{pn, dcsn, rn, xi, total: {{median, spread,
   temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
   no_edges, not_assessable, total}}, refused {{reason: patches}}, banding {{row_dn, col_dn, patches}} (row and
-  column noise, in total and xi; null without), defects {{hot, dark, checked, ppm, patches, recurring}} (defective
-  pixels, not in total; null without)}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
+  column noise, in total and xi; null without), defects {{hot, dark, checked, ppm, patches, recurring, known
+  (with --defect-map)}} (defective pixels, not in total; null without)}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
   ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
   Unreadable frames of a folder and partly decoded video frames give {{"frame_error": …}} lines, never scores.
   16-bit frames are scaled by their significant bits (--bit-depth; the summary names the scaling used).
@@ -216,6 +216,10 @@ def build_parser():
                    help="alarm when |ξ| exceeds this (and 3 standard errors of the median; default 1 DN)")
     g.add_argument("--xi-sigmas", type=_non_negative, default=3.0, metavar="K",
                    help="significance of the alarm in standard errors (default 3)")
+    g.add_argument("--defect-map", type=Path, default=None, metavar="FILE",
+                   help="the camera's known defective pixels, the frames' size: camera.maps.npz of python -m "
+                        "camhealth.calibrate (hot_pixels), a .npy array or a mask image (non-zero = defective); the "
+                        "defects on it count as known and the alarm names only the others")
     g = p.add_argument_group("exposure/gain advice")
     g.add_argument("--iopc", metavar="FILE", action="append", default=[],
                    help="IOPC file (.json/.npz from python -m camhealth.iopc); repeat for several applications. "
@@ -401,6 +405,7 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         noise_samples=args.noise_samples, mtf_samples=args.mtf_samples, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
         skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, pool_noise=not args.per_patch_noise, batch_size=args.batch_size,
         xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
+        defect_map=args.defect_map,
     )
     out_dir: Path | None = args.out
     if out_dir is not None:

@@ -88,6 +88,7 @@ __all__ = [
     "beyond_range_alarm",
     "banding_text",
     "defects_text",
+    "new_defect_ppm",
     "DEFECT_ALARM_PPM",
     "mtf_under_banding",
     "MTF_BANDING_LIMIT_DN",
@@ -359,8 +360,10 @@ class TaskReport:
             :mod:`camhealth.estimators.defective_pixels`) on this frame's freshly estimated patches, every one of them
             (assessable or not): ``{"hot", "dark", "checked"`` (pixels tested), ``"ppm"`` (per million tested),
             ``"patches"`` (with any), ``"recurring"}`` (at a pixel where an earlier frame of the run had one too: a
-            defect stays where it is while the scene moves); ``None`` when no pixel stands out. Not part of σ_Total;
-            the alarm names them from :data:`DEFECT_ALARM_PPM` on.
+            defect stays where it is while the scene moves), and with a defect map (``Monitor(defect_map=...)``)
+            ``"known"`` (at a pixel the map marks); ``None`` when no pixel stands out. Not part of σ_Total; the alarm
+            names them from :data:`DEFECT_ALARM_PPM` on, with a map counting only the pixels it does not mark
+            (:func:`new_defect_ppm`).
         note: why a task could not be assessed, if it could not.
         grid_obj, values, code: per-patch maps (not serialised unless asked).
     """
@@ -578,12 +581,26 @@ DEFECT_POSITIONS = 100_000
 DEFECT_LIST = 100
 
 
+def new_defect_ppm(defects: Mapping[str, Any] | None) -> float:
+    """The defective pixels of a frame (:attr:`TaskReport.defects`) that a defect map does not mark, per million
+    pixels tested: what the alarm compares with :data:`DEFECT_ALARM_PPM` (without a map, all of them: ``ppm``)."""
+    if not defects:
+        return 0.0
+    if "known" not in defects:
+        return float(defects.get("ppm", 0.0))
+    new = int(defects.get("hot", 0)) + int(defects.get("dark", 0)) - int(defects["known"])
+    return round(1e6 * new / max(int(defects.get("checked", 0)), 1), 1)
+
+
 def defects_text(defects: Mapping[str, Any]) -> str:
     """The alarm's words for a frame's defective pixels (:attr:`TaskReport.defects`)."""
     n = int(defects.get("hot", 0)) + int(defects.get("dark", 0))
     rec = int(defects.get("recurring", 0))
+    known = defects.get("known")
     return (f"{n} pixels stand out from all their neighbours ({defects.get('hot', 0)} bright, {defects.get('dark', 0)} "
             f"dark; {float(defects.get('ppm', 0.0)):g} per million tested"
+            + (f"; {n - int(known)} not on the defect map ({new_defect_ppm(defects):g} per million), {int(known)} on it"
+               if known is not None else "")
             + (f"; {rec} at the same place as in an earlier frame" if rec else "")
             + "): hot, stuck or dead pixels or impulse noise, which no metadata field makes (or the scene's own "
             "points of light: a defect stays at its pixel while the scene moves)")
@@ -760,6 +777,10 @@ class Monitor:
         xi_threshold_dn, xi_sigmas: ξ alarm threshold [DN] and significance k (:func:`xi_alarm`).
         policy: an :class:`camhealth.control.ExposurePolicy` (or IOPC file path(s), :func:`load_policy`).
         per_patch: include per-patch status and values in the JSON lines.
+        defect_map: the camera's known defective pixels — ``camera.maps.npz`` of ``python -m camhealth.calibrate``
+            (its ``hot_pixels``), a ``.npy`` array, a mask image or an H×W array
+            (:func:`camhealth.monitor.defect_map.load_defect_map`), the frames' size: the defects on it are counted
+            as ``known`` and the alarm names only the others; ``None`` (default): every defect counts.
         warmup: on the first frame of a new size, run each network once on every batch size the frame can
             need (:func:`camhealth.inference.bucket_size` buckets up to the grid size), so that oneDNN builds its
             kernels then and not on later frames (≈ 0.5 s once for 1280×1024; the "cold first frame").
@@ -788,6 +809,7 @@ class Monitor:
         xi_sigmas: float = 3.0,
         policy: Any = None,
         per_patch: bool = False,
+        defect_map: Any = None,
         warmup: bool = True,
     ) -> None:
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
@@ -861,6 +883,13 @@ class Monitor:
         self._banding: list[tuple[float, float]] = []  # (row, column) σ [DN] of the frames that showed banding
         self._defect_frames: list[tuple[float, int]] = []  # (ppm, recurring) of the frames that showed defective pixels
         self._defect_seen: dict[tuple[int, int], int] = {}  # frame position → frames it was flagged in
+        self.defect_map: torch.Tensor | None = None
+        if defect_map is not None:
+            from camhealth.monitor.defect_map import load_defect_map
+
+            if "noise" not in self.estimators:
+                raise ValueError("defect_map is read by the noise estimator's defect check: give a noise_model")
+            self.defect_map = load_defect_map(defect_map)
         self._refused: dict[str, dict[str, int]] = {t: {} for t in self.estimators}
         self._last: FrameReport | None = None
 
@@ -900,6 +929,10 @@ class Monitor:
     def _prepare(self, h: int, w: int) -> None:
         if self._shape == (h, w):
             return
+        if self.defect_map is not None and tuple(self.defect_map.shape) != (h, w):
+            mh, mw = self.defect_map.shape
+            raise ValueError(f"the defect map is {mw}×{mh} px (W×H) but this frame is {w}×{h} px: the map must cover "
+                             "the whole frame, pixel for pixel")
         self._shape = (h, w)
         self._states = {
             task: _TaskState(PatchGrid.fit(h, w, int(handle.est.patch_size)), 5 if task == "noise" else 16, self.window,
@@ -1259,7 +1292,10 @@ class Monitor:
             if "mtf" in reports and noise is not None and noise.banding:
                 reports["mtf"] = mtf_under_banding(reports["mtf"], noise.banding, int(noise.coverage.get("estimated", 0)))
             if noise is not None and noise.defects:
-                noise.defects["recurring"] = self._recurring(self._states["noise"].defect_xy)
+                xy = self._states["noise"].defect_xy
+                noise.defects["recurring"] = self._recurring(xy)
+                if self.defect_map is not None:
+                    noise.defects["known"] = sum(bool(self.defect_map[y, x]) for x, y in xy)
             alarm = self._alarm(noise, meta)
             advice = self._advice(noise, reports.get("mtf"), meta)
             timing["aggregate"] = (time.perf_counter() - t2) * 1e3
@@ -1296,7 +1332,7 @@ class Monitor:
 
     def _alarm(self, noise: TaskReport | None, meta: CameraMetadata | None) -> dict[str, Any]:
         alarm = self._xi_alarm(noise, meta)
-        if noise is not None and noise.defects and noise.defects["ppm"] >= DEFECT_ALARM_PPM:
+        if noise is not None and noise.defects and new_defect_ppm(noise.defects) >= DEFECT_ALARM_PPM:
             alarm["message"] += "; " + defects_text(noise.defects)
         return alarm
 
@@ -1370,14 +1406,27 @@ class Monitor:
         """Frames processed so far."""
         return self._counter
 
+    def _map_summary(self) -> dict[str, Any]:
+        """The summary's defect-map fields (:meth:`summary`); empty without a map."""
+        dmap = self.defect_map
+        if dmap is None:
+            return {}
+        on_map = {p: bool(dmap[p[1], p[0]]) for p in self._defect_seen}
+        new = sorted(((p, n) for p, n in self._defect_seen.items() if n > 1 and not on_map[p]), key=lambda kv: (-kv[1], kv[0]))
+        return {"map_pixels": int(dmap.sum()), "map_pixels_flagged": sum(on_map.values()),
+                "recurring_new_pixels": len(new), "recurring_new_xy": [[x, y, n] for (x, y), n in new[:DEFECT_LIST]]}
+
     def summary(self) -> dict[str, Any]:
         """Frames, timing (median/mean/max ms), patch counts per task and status, the patches the estimators refused
         per task and reason, alarm states, the frames with row or column noise (``banding``: their count and the
         median and largest σ per direction [DN]; ``None`` without any), the frames with defective pixels (``defects``:
         their count, the median and largest share per million tested, ``recurring_pixels``, the frame positions
         flagged in more than one frame, and ``recurring_xy``, up to :data:`DEFECT_LIST` of them as [x, y, frames],
-        most frames first: a defect map to correct or to compare with a calibration's hot pixels; ``None`` without
-        any), last values."""
+        most frames first: a defect map to correct or to compare with a calibration's hot pixels; with ``defect_map``
+        also ``map_pixels`` (pixels the map marks), ``map_pixels_flagged`` (of those, flagged in any frame),
+        ``recurring_new_pixels`` and ``recurring_new_xy`` (the recurring positions the map does not mark: defects
+        new since it was made, or the scene's own points of light on a static camera); ``None`` without any), last
+        values."""
         t = sorted(self._times)
         out: dict[str, Any] = {
             "frames": self._counter,
@@ -1400,7 +1449,8 @@ class Monitor:
                         "max": _num(float(np.max([d[0] for d in self._defect_frames])), 1)},
                 "recurring_pixels": sum(1 for v in self._defect_seen.values() if v > 1),
                 "recurring_xy": [[x, y, n] for (x, y), n in sorted(self._defect_seen.items(), key=lambda kv: (-kv[1], kv[0]))
-                                 if n > 1][:DEFECT_LIST]},
+                                 if n > 1][:DEFECT_LIST],
+                **self._map_summary()},
             "mode": self.mode, "samples_per_frame": dict(self.n_samples) if self.mode == "sampled" else None,
             "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,
             "window": self.window,

@@ -10,13 +10,15 @@ Foxglove, rqt_runtime_monitor or PlotJuggler show them beside the recording. Eac
   is not assessable (no informative patch: black, saturated, …) or the frame could not be decoded; **WARN**
   when the verdict is uncertain — ξ̃ beyond ``--xi-threshold-dn`` but within k standard errors (the spread
   over the patches leaves it open), ξ not checked (no noise-source model or no metadata), defective pixels from
-  ``DEFECT_ALARM_PPM`` per million of the pixels tested on (hot, stuck or dead pixels, impulses), or blur not
+  ``DEFECT_ALARM_PPM`` per million of the pixels tested on (hot, stuck or dead pixels, impulses; with a defect map,
+  those it does not mark), or blur not
   assessable (featureless scene); **OK** otherwise;
 - ``message``: the reason in one sentence (the alarm message for ERROR);
 - ``values`` (:data:`KEYS`, strings; ``nan`` where a number is missing): the alarm state, ξ̃ and its limit,
   σ of PN/DCSN/RN and the total (temporal + spatial medians, DN of 255) with the total's spread, the row and
   column noise of the frame (``TaskReport.banding``: 0 where none is found; in the total), the defective pixels
-  per million tested and how many of them recur at the same place (``TaskReport.defects``; 0 where none), the blur
+  per million tested, how many of them recur at the same place and how many a defect map marks
+  (``TaskReport.defects``; 0 where none; ``known`` nan without a map or without defects), the blur
   indicator MTF̃ with its spread and its H and V parts at f_n = 0.1, the patch counts, the camera state
   used (gain, exposure, temperature) and the frame's processing time.
 
@@ -32,7 +34,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from camhealth.monitor.api import DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text
+from camhealth.monitor.api import DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text, new_defect_ppm
 
 __all__ = ["OK", "WARN", "ERROR", "LEVEL_NAMES", "KEYS", "DIAGNOSTICS_TOPIC", "DIAGNOSTICS_SUFFIXES",
            "frame_level", "key_values", "DiagnosticsWriter", "read_diagnostics"]
@@ -47,7 +49,7 @@ _MSGTYPE = "diagnostic_msgs/msg/DiagnosticArray"
 KEYS: tuple[str, ...] = (
     "level", "alarm", "xi_dn", "xi_limit_dn",
     "noise_total_dn", "noise_total_spread_dn", "noise_pn_dn", "noise_dcsn_dn", "noise_rn_dn", "noise_row_dn",
-    "noise_col_dn", "noise_defect_ppm", "noise_defects_recurring", "blur_mtf_indicator", "blur_mtf_indicator_spread", "blur_mtf_h_fn0.1", "blur_mtf_v_fn0.1",
+    "noise_col_dn", "noise_defect_ppm", "noise_defects_recurring", "noise_defects_known", "blur_mtf_indicator", "blur_mtf_indicator_spread", "blur_mtf_h_fn0.1", "blur_mtf_v_fn0.1",
     "noise_patches_used", "noise_patches_total", "blur_patches_used", "blur_patches_total",
     "gain_db", "exposure_s", "temperature_c", "frame", "index", "source_id", "processing_ms",
 )
@@ -79,7 +81,7 @@ def frame_level(report: FrameReport, xi_threshold_dn: float = 1.0) -> tuple[int,
         return WARN, (f"uncertain: |ξ̃| = {abs(xi):.2f} DN exceeds {xi_threshold_dn:g} DN but not the limit {limit:.2f} DN "
                       "set by the spread over the patches")
     defects = report.noise.defects if report.noise is not None else None
-    if defects and defects.get("ppm", 0.0) >= DEFECT_ALARM_PPM:
+    if defects and new_defect_ppm(defects) >= DEFECT_ALARM_PPM:
         return WARN, f"defective pixels: {defects_text(defects)}; {alarm.get('message', '')}"
     if report.mtf is not None and not report.mtf.assessable:
         return WARN, f"uncertain: blur not assessable ({report.mtf.note or 'no informative patch'}); {alarm.get('message', '')}"
@@ -115,6 +117,7 @@ def key_values(report: FrameReport, level: int) -> list[tuple[str, str]]:
         "noise_dcsn_dn": _fmt(nv["dcsn"]), "noise_rn_dn": _fmt(nv["rn"]),
         "noise_row_dn": _fmt(band.get("row_dn")), "noise_col_dn": _fmt(band.get("col_dn")),
         "noise_defect_ppm": _fmt(defects.get("ppm")), "noise_defects_recurring": _fmt(defects.get("recurring")),
+        "noise_defects_known": _fmt(defects.get("known")),
         "blur_mtf_indicator": _fmt(ind[0]), "blur_mtf_indicator_spread": _fmt(ind[1]),
         "blur_mtf_h_fn0.1": _fmt(h01), "blur_mtf_v_fn0.1": _fmt(v01),
         "noise_patches_used": str(_used(noise.counts)) if noise is not None else "0",

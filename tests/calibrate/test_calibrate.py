@@ -90,6 +90,9 @@ def test_outputs_round_trip_into_predict_monitor_and_fit(icx_result, tmp_path):
     maps = np.load(paths["maps"])
     assert {"hot_pixels", "dsnu_dn", "prnu", "master_bias_dn", "master_dark_dn", "master_flat_dn"} <= set(maps.files)
     assert maps["hot_pixels"].shape == (48, 48)
+    from camhealth.monitor.defect_map import load_defect_map  # monitor --defect-map reads the maps as written
+
+    assert torch.equal(load_defect_map(paths["maps"], shape=(48, 48)), torch.from_numpy(maps["hot_pixels"]))
 
 
 def test_hot_pixels_are_found_and_left_out():

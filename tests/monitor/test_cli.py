@@ -170,3 +170,26 @@ def test_default_threads_is_two_or_the_cores_available(monkeypatch):
     assert default_threads() == 1
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
     assert default_threads() == 2
+
+
+def test_defect_map_counts_known_defects_and_refuses_another_size(tmp_path, capsys):
+    """--defect-map camera.maps.npz: the frame's defects on the map are counted as known (JSON lines and summary);
+    a map of another size than the frames stops with exit 2 naming both sizes."""
+    from tests.monitor.test_defect_map import _defect_frame
+
+    frame, hit = _defect_frame()
+    png = _png(tmp_path / "frame.png", (frame.numpy() * 255).round().astype(np.uint8))
+    maps = tmp_path / "camera.maps.npz"
+    np.savez_compressed(maps, hot_pixels=hit.numpy(), dsnu_dn=np.zeros(hit.shape))
+    argv = [str(png), "--sensor", "ICX285", "--no-mtf", "--noise-model", "noise_source_full", "--no-progress",
+            "--threads", "1", "--defect-map", str(maps), "--out", str(tmp_path / "run")]
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    line = _lines((tmp_path / "run" / "monitor.jsonl").read_text())[0]
+    d = line["noise"]["defects"]
+    assert d["known"] == d["hot"] + d["dark"] > 0 and "stand out" not in line["alarm"]["message"]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())["defects"]
+    assert summary["map_pixels"] == int(hit.sum()) and summary["map_pixels_flagged"] == d["known"]
+    np.savez_compressed(maps, hot_pixels=hit.numpy()[:, :-8])
+    code, _, err = _run(argv, capsys)
+    assert code == 2 and "defect map is 504×384 px (W×H) but this frame is 512×384 px" in err, err

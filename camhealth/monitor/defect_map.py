@@ -1,0 +1,122 @@
+"""A camera's known defective pixels, for the monitor to tell them from new ones.
+
+A defect map is a boolean H×W array over the sensor's frame: ``True`` at a pixel known to be defective. It is what
+``python -m camhealth.calibrate`` writes as ``hot_pixels`` in ``camera.maps.npz`` (a dark master more than 6 robust σ
+above its median), or a vendor's or a user's own mask. The monitor (:class:`camhealth.monitor.Monitor`,
+``defect_map=``) counts how many of the pixels it flags on a frame are on the map (``known``) and names only the
+others in its alarm: a defect the calibration already lists is expected, one that appeared since is news (hot pixels
+grow with age and radiation).
+
+Accepted forms (:func:`load_defect_map`):
+
+- ``.npz`` — the array ``hot_pixels`` (calibration's maps), or the archive's only array; read with
+  ``allow_pickle=False``, so loading never runs code from the file;
+- ``.npy`` — one array, ``allow_pickle=False``;
+- ``.png``, ``.pgm``, ``.pbm``, ``.tif``, ``.tiff``, ``.bmp`` — a one-channel image, non-zero at the defects;
+- an array (NumPy or torch) of H×W.
+
+Values must be boolean or whole numbers 0/1 (an image: zero and non-zero); the map may mark no pixel (a calibration
+that found no hot pixels: every defect the monitor flags is then new) but fewer than half of them (a map of mostly
+defects is an inverted mask or the wrong file).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "load_defect_map"]
+
+#: Image files read as masks (non-zero = defective).
+IMAGE_SUFFIXES = (".png", ".pgm", ".pbm", ".tif", ".tiff", ".bmp")
+#: The largest share of a frame's pixels a defect map may mark (above: an inverted mask or another file).
+MAX_DEFECT_SHARE = 0.5
+#: The array of calibration's ``camera.maps.npz`` that holds the hot pixels.
+NPZ_KEY = "hot_pixels"
+
+
+def _from_file(path: Path) -> tuple[np.ndarray, str]:
+    if not path.is_file():
+        raise FileNotFoundError(f"defect map {str(path)!r} does not exist (expected camera.maps.npz from "
+                                "python -m camhealth.calibrate, a .npy array or a mask image)")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                names = list(z.files)
+                if NPZ_KEY in names:
+                    return np.asarray(z[NPZ_KEY]), f"{path.name}[{NPZ_KEY}]"
+                if len(names) == 1:
+                    return np.asarray(z[names[0]]), f"{path.name}[{names[0]}]"
+        except ValueError as err:  # an object (pickled) array, or not an archive
+            raise ValueError(f"defect map {str(path)!r} cannot be read as a plain NumPy archive ({err}); pickled "
+                             "arrays are refused") from None
+        except (OSError, EOFError) as err:
+            raise ValueError(f"defect map {str(path)!r} is not a readable .npz archive ({err})") from None
+        raise ValueError(f"defect map {str(path)!r} holds the arrays {names}: expected {NPZ_KEY!r} (camera.maps.npz "
+                         "of python -m camhealth.calibrate) or a single array")
+    if suffix == ".npy":
+        try:
+            return np.load(path, allow_pickle=False), path.name
+        except (ValueError, OSError, EOFError) as err:
+            raise ValueError(f"defect map {str(path)!r} cannot be read as a plain .npy array ({err}); pickled arrays "
+                             "are refused") from None
+    if suffix in IMAGE_SUFFIXES:
+        import cv2
+
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"defect map {str(path)!r} is not a readable image")
+        if img.ndim == 3:
+            raise ValueError(f"defect map {str(path)!r} has {img.shape[2]} channels: a mask image must have one "
+                             "(non-zero at the defects)")
+        return img != 0, path.name
+    raise ValueError(f"defect map {str(path)!r}: suffix {suffix or '(none)'!r} is not one of "
+                     f"{['.npz', '.npy', *IMAGE_SUFFIXES]}")
+
+
+def load_defect_map(source: Any, shape: tuple[int, int] | None = None) -> torch.Tensor:
+    """The known defective pixels as a bool tensor (H, W) (module docstring for the forms accepted).
+
+    Args:
+        source: a path (str or Path) or an array of H×W.
+        shape: (H, W) [px] the map must have, e.g. the frames' size; ``None``: any.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file cannot be read safely, or the map is not 2-D, holds values other than 0/1 (NaN
+            included), marks at least :data:`MAX_DEFECT_SHARE` of the pixels, or does not have ``shape`` —
+            each naming the value found and what is allowed.
+    """
+    if isinstance(source, (str, Path)):
+        arr, name = _from_file(Path(source))
+    elif isinstance(source, torch.Tensor):
+        arr, name = source.detach().cpu().numpy(), "defect map"
+    elif isinstance(source, np.ndarray):
+        arr, name = source, "defect map"
+    else:
+        raise TypeError(f"defect map must be a path or an H×W array, got {type(source).__name__}")
+    if arr.ndim != 2:
+        raise ValueError(f"{name} has shape {tuple(arr.shape)}: a defect map must be 2-D (H×W)")
+    if arr.size == 0:
+        raise ValueError(f"{name} is empty (shape {tuple(arr.shape)})")
+    if arr.dtype != np.bool_:
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"{name} has dtype {arr.dtype}: expected bool or whole numbers 0/1")
+        values = np.unique(arr)
+        if not np.isin(values, (0, 1)).all():
+            shown = ", ".join(f"{v:g}" for v in values[:6].astype(float))
+            raise ValueError(f"{name} holds the values {shown}{' …' if values.size > 6 else ''}: a defect map must be "
+                             "bool or 0/1")
+        arr = arr != 0
+    if shape is not None and tuple(arr.shape) != tuple(shape):
+        raise ValueError(f"{name} is {arr.shape[1]}×{arr.shape[0]} px (W×H) but the frames are {shape[1]}×{shape[0]} "
+                         "px: the map must cover the whole frame, pixel for pixel")
+    marked = int(arr.sum())
+    if marked >= MAX_DEFECT_SHARE * arr.size:
+        raise ValueError(f"{name} marks {marked} of {arr.size} pixels ({100.0 * marked / arr.size:.1f} %; a map must "
+                         f"mark fewer than {100 * MAX_DEFECT_SHARE:g} %): an inverted mask or another file?")
+    return torch.from_numpy(np.ascontiguousarray(arr))

@@ -1,0 +1,225 @@
+"""``camhealth.monitor.defect_map``: a camera's known defective pixels read from calibration's ``camera.maps.npz``,
+a ``.npy`` array, a mask image or an array; bad and malicious files refused with a message that names what is
+wrong; the monitor counting the defects on the map as ``known`` and alarming on the others only."""
+
+import json
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from camhealth.monitor.defect_map import MAX_DEFECT_SHARE, load_defect_map
+
+
+def _mask(h=6, w=8, at=((1, 2), (4, 7))):
+    m = np.zeros((h, w), dtype=bool)
+    for y, x in at:
+        m[y, x] = True
+    return m
+
+
+# ------------------------------------------------------------------ reading
+def test_calibration_maps_npz_is_read_by_its_hot_pixels(tmp_path):
+    """camera.maps.npz with calibration's arrays (tests/calibrate reads the file calibrate writes): the hot pixels
+    taken."""
+    m = _mask()
+    path = tmp_path / "camera.maps.npz"
+    np.savez_compressed(path, hot_pixels=m, dsnu_dn=np.zeros(m.shape), prnu=np.zeros(m.shape))
+    out = load_defect_map(path)
+    assert out.dtype == torch.bool and out.shape == m.shape and torch.equal(out, torch.from_numpy(m))
+    assert torch.equal(load_defect_map(str(path), shape=m.shape), out)
+
+
+@pytest.mark.parametrize("form", ["npz_single", "npy", "png", "pgm", "tiff16", "numpy_uint8", "torch_bool", "torch_float"])
+def test_every_accepted_form_gives_the_same_map(form, tmp_path):
+    import cv2
+
+    m = _mask()
+    if form == "npz_single":
+        src = tmp_path / "m.npz"
+        np.savez(src, mask=m.astype(np.uint8))
+    elif form == "npy":
+        src = tmp_path / "m.npy"
+        np.save(src, m)
+    elif form in ("png", "pgm"):
+        src = tmp_path / f"m.{form}"
+        assert cv2.imwrite(str(src), m.astype(np.uint8) * 255)
+    elif form == "tiff16":
+        src = tmp_path / "m.tiff"
+        assert cv2.imwrite(str(src), m.astype(np.uint16) * 1000)
+    elif form == "numpy_uint8":
+        src = m.astype(np.uint8)
+    elif form == "torch_bool":
+        src = torch.from_numpy(m)
+    else:
+        src = torch.from_numpy(m).double()
+    assert torch.equal(load_defect_map(src), torch.from_numpy(m))
+
+
+def test_a_map_without_defects_is_allowed():
+    """A calibration that found no hot pixels: every defect the monitor flags is then new."""
+    assert not bool(load_defect_map(np.zeros((4, 5), dtype=bool)).any())
+
+
+class _Payload:
+    """Pickling this object would run code on loading: it must never be unpickled."""
+
+    def __init__(self, target):
+        self.target = target
+
+    def __reduce__(self):
+        return (open, (self.target, "w"))
+
+
+def test_pickled_arrays_are_refused_and_never_run(tmp_path):
+    target = tmp_path / "pwned.txt"
+    obj = np.empty(1, dtype=object)
+    obj[0] = _Payload(str(target))
+    npz = tmp_path / "evil.npz"
+    np.savez(npz, hot_pixels=obj)
+    with pytest.raises(ValueError, match="pickled arrays are refused"):
+        load_defect_map(npz)
+    npy = tmp_path / "evil.npy"
+    np.save(npy, obj, allow_pickle=True)
+    with pytest.raises(ValueError, match="pickled arrays are refused"):
+        load_defect_map(npy)
+    raw = tmp_path / "evil.pkl"
+    raw.write_bytes(pickle.dumps(_Payload(str(target))))
+    with pytest.raises(ValueError, match="suffix '.pkl' is not one of"):
+        load_defect_map(raw)
+    assert not target.exists()
+
+
+@pytest.mark.parametrize("setup, error, match", [
+    (lambda p: p / "missing.npz", FileNotFoundError, "does not exist"),
+    (lambda p: (p / "junk.npz").write_bytes(b"not a zip") and p / "junk.npz", ValueError, "not a readable .npz|cannot be read"),
+    (lambda p: (p / "junk.png").write_bytes(b"not a png") and p / "junk.png", ValueError, "not a readable image"),
+    (lambda p: p / "folder", FileNotFoundError, "does not exist"),
+])
+def test_missing_and_unreadable_files_are_named(setup, error, match, tmp_path):
+    (tmp_path / "folder").mkdir()
+    path = setup(tmp_path)
+    with pytest.raises(error, match=match) as exc:
+        load_defect_map(path)
+    assert path.name in str(exc.value)
+
+
+def test_an_archive_without_hot_pixels_names_its_arrays(tmp_path):
+    path = tmp_path / "two.npz"
+    np.savez(path, a=_mask(), b=_mask())
+    with pytest.raises(ValueError, match=r"holds the arrays \['a', 'b'\]: expected 'hot_pixels'"):
+        load_defect_map(path)
+
+
+def test_a_colour_image_is_refused(tmp_path):
+    import cv2
+
+    path = tmp_path / "rgb.png"
+    assert cv2.imwrite(str(path), np.zeros((6, 8, 3), dtype=np.uint8))
+    with pytest.raises(ValueError, match="has 3 channels"):
+        load_defect_map(path)
+
+
+@pytest.mark.parametrize("array, match", [
+    (np.zeros((2, 3, 4), dtype=bool), r"shape \(2, 3, 4\): a defect map must be 2-D"),
+    (np.zeros((0, 4), dtype=bool), "is empty"),
+    (np.array([[0, 1], [2, 0]]), "holds the values 0, 1, 2: a defect map must be bool or 0/1"),
+    (np.array([[0.0, float("nan")], [0.0, 0.0]]), "holds the values 0, nan"),
+    (np.array([["a", "b"]]), "dtype <U1: expected bool"),
+    (np.ones((4, 4), dtype=bool), r"marks 16 of 16 pixels \(100.0 %; a map must mark fewer than 50 %\)"),
+])
+def test_bad_arrays_are_refused_naming_the_value(array, match):
+    with pytest.raises(ValueError, match=match):
+        load_defect_map(array)
+
+
+def test_the_share_limit_and_the_shape_check():
+    m = np.zeros((4, 4), dtype=bool)
+    m.flat[: int(MAX_DEFECT_SHARE * 16) - 1] = True
+    assert int(load_defect_map(m).sum()) == 7  # just under half: accepted
+    with pytest.raises(ValueError, match=r"is 4×4 px \(W×H\) but the frames are 5×4 px"):
+        load_defect_map(m, shape=(4, 5))
+    with pytest.raises(TypeError, match="must be a path or an H×W array, got list"):
+        load_defect_map([[0, 1]])
+
+
+# ------------------------------------------------------------------ the monitor
+def _defect_frame(share=0.005, seed=6):
+    """A ramp with the ICX285's own noise (8-bit) and ``share`` of its pixels moved by 40–140 DN, and the truth."""
+    from camhealth.bench.sensor_variants import simulate_variant
+    from camhealth.physics import CameraMetadata
+
+    meta = CameraMetadata.preset("ICX285")
+    ramp = torch.linspace(60.0, 200.0, 512).view(1, 1, 1, 512).expand(1, 1, 384, 512) / 255.0
+    noisy, _ = simulate_variant(ramp.contiguous(), meta, ("round8",), torch.Generator().manual_seed(4))
+    g = torch.Generator().manual_seed(seed)
+    hit = torch.rand(noisy.shape, generator=g) < share
+    sign = torch.where(torch.rand(noisy.shape, generator=g) < 0.5, 1.0, -1.0)
+    bad = (noisy * 255 + hit * sign * (40 + 100 * torch.rand(noisy.shape, generator=g))).clamp(0, 255).round() / 255
+    return bad[0, 0], hit[0, 0]
+
+
+@pytest.mark.parametrize("mode", ["sampled", "map"])
+def test_defects_on_the_map_are_known_and_do_not_alarm(mode):
+    """With every defect on the map the monitor still counts them (``known`` = all) but neither the alarm nor the
+    ROS diagnostics name them; with half of them on the map, ``known`` is the flagged ones the map marks and the
+    alarm names the others; the summary lists the recurring positions the map does not mark."""
+    from camhealth.monitor import DEFECT_ALARM_PPM, Monitor, new_defect_ppm
+    from camhealth.monitor.api import DEFECT_LIST
+    from camhealth.monitor.diagnostics import OK, WARN, frame_level, key_values
+
+    frame, hit = _defect_frame()
+    full = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False, defect_map=hit)
+    r = full.process(frame)
+    d = r.noise.defects
+    assert d["hot"] + d["dark"] == d["known"] > 0 and new_defect_ppm(d) == 0.0 and d["ppm"] >= DEFECT_ALARM_PPM
+    assert "stand out" not in r.alarm["message"] and frame_level(r)[0] == OK
+    assert dict(key_values(r, OK))["noise_defects_known"] == str(d["known"])
+    full.process(frame)
+    s = full.summary()["defects"]
+    assert s["map_pixels"] == int(hit.sum()) and 0 < s["map_pixels_flagged"] <= s["map_pixels"]
+    assert s["recurring_new_pixels"] == 0 and s["recurring_new_xy"] == []
+
+    half = hit.clone()
+    ys, xs = hit.nonzero(as_tuple=True)
+    half[ys[::2], xs[::2]] = False  # every other defect off the map
+    mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False, defect_map=half)
+    r = mon.process(frame)
+    d = r.noise.defects
+    flagged = d["hot"] + d["dark"]
+    assert 0.3 * flagged < d["known"] < 0.7 * flagged
+    assert new_defect_ppm(d) == pytest.approx(1e6 * (flagged - d["known"]) / d["checked"], abs=0.05)
+    assert new_defect_ppm(d) >= DEFECT_ALARM_PPM
+    assert f"{flagged - d['known']} not on the defect map" in r.alarm["message"] and f"{d['known']} on it" in r.alarm["message"]
+    assert frame_level(r)[0] == WARN
+    json.loads(r.to_json())  # "known" serialises
+    mon.process(frame)
+    s = mon.summary()["defects"]
+    new_xy = s["recurring_new_xy"]
+    assert s["recurring_new_pixels"] >= len(new_xy) == min(s["recurring_new_pixels"], DEFECT_LIST) > 0
+    assert all(hit[y, x] and not half[y, x] and n == 2 for x, y, n in new_xy)
+
+
+def test_without_a_map_nothing_changes():
+    from camhealth.monitor import Monitor, new_defect_ppm
+    from camhealth.monitor.diagnostics import WARN, frame_level, key_values
+
+    frame, _ = _defect_frame()
+    mon = Monitor("noise_source_full", None, sensor="ICX285", mode="sampled", warmup=False, adaptive=False)
+    r = mon.process(frame)
+    assert "known" not in r.noise.defects and new_defect_ppm(r.noise.defects) == r.noise.defects["ppm"]
+    assert "defect map" not in r.alarm["message"] and frame_level(r)[0] == WARN
+    assert dict(key_values(r, WARN))["noise_defects_known"] == "nan"
+    assert "map_pixels" not in mon.summary()["defects"]
+
+
+def test_a_map_of_another_size_or_without_noise_is_refused():
+    from camhealth.monitor import Monitor
+
+    frame, hit = _defect_frame()
+    mon = Monitor("noise_source_full", None, sensor="ICX285", warmup=False, defect_map=hit[:, :500])
+    with pytest.raises(ValueError, match=r"defect map is 500×384 px \(W×H\) but this frame is 512×384 px"):
+        mon.process(frame)
+    with pytest.raises(ValueError, match="give a noise_model"):
+        Monitor(None, "mtf", defect_map=hit)
