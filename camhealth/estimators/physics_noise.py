@@ -165,7 +165,7 @@ MISMATCH_FIELDS: tuple[str, ...] = ("gain_db", "temperature_c", "white_noise_v_p
 PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
     "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
-    "row_dn", "col_dn",
+    "row_dn", "col_dn", "patch_details", "patch_texture", "patch_detail_corr_check",
 )
 #: Patches per call of :func:`physics_noise_posterior` in :meth:`PhysicsNoiseEstimator.predict` (per patch; pooled, the
 #: frame is one call): larger chunks outgrow the CPU's caches (1.9 against 1.4 ms per patch at 256 on a 2-core VM).
@@ -391,11 +391,11 @@ def _camera_hypotheses(
     return _hypotheses(meta, grid, mismatch_probability, beyond_probability, torch.device(device))
 
 
-def _neighbour_check(x: torch.Tensor, v_ref: torch.Tensor, ok: torch.Tensor, pool: bool) -> torch.Tensor:
-    """|ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) per patch (B,) float64 (≥ 1: textured): ρ is the correlation of the
-    standardised diagonal details d/√v_ref of horizontally and vertically adjacent inlier blocks (mask ``ok``), over
-    the frame when ``pool``. White noise leaves them uncorrelated, a scene's fine texture does not (its covariance is
-    a lower bound on what it adds to each detail); 0 with fewer than _MIN_FIT_BLOCKS pairs."""
+def _neighbour_check(x: torch.Tensor, v_ref: torch.Tensor, ok: torch.Tensor, pool: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """|ρ| / max(DETAIL_CORR_LIMIT, 3/√pairs) (≥ 1: textured), (over the frame when ``pool``, of each patch), both
+    (B,) float64: ρ is the correlation of the standardised diagonal details d/√v_ref of horizontally and vertically
+    adjacent inlier blocks (mask ``ok``). White noise leaves them uncorrelated, a scene's fine texture does not (its
+    covariance is a lower bound on what it adds to each detail); 0 with fewer than _MIN_FIT_BLOCKS pairs."""
     b, f64, dev = x.shape[0], torch.float64, x.device
     p00, p01, p10, p11 = _block_pixels(x * 255.0)
     z = (p00 - p01 - p10 + p11) / 2.0 / v_ref.sqrt()
@@ -407,10 +407,13 @@ def _neighbour_check(x: torch.Tensor, v_ref: torch.Tensor, ok: torch.Tensor, poo
         cov = cov + (za * zb * both).flatten(1).sum(1).to(f64)
         var = var + (both * (za.square() + zb.square()) / 2.0).flatten(1).sum(1).to(f64)
         pairs = pairs + both.flatten(1).sum(1).to(f64)
-    if pool:
-        cov, var, pairs = (t.sum().expand(b) for t in (cov, var, pairs))
-    corr = torch.where(pairs >= _MIN_FIT_BLOCKS, cov / var.clamp_min(1e-12), torch.zeros_like(cov))
-    return corr.abs() / torch.maximum(torch.full_like(corr, DETAIL_CORR_LIMIT), 3.0 / pairs.clamp_min(1.0).sqrt())
+
+    def check(cov: torch.Tensor, var: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+        corr = torch.where(pairs >= _MIN_FIT_BLOCKS, cov / var.clamp_min(1e-12), torch.zeros_like(cov))
+        return corr.abs() / torch.maximum(torch.full_like(corr, DETAIL_CORR_LIMIT), 3.0 / pairs.clamp_min(1.0).sqrt())
+
+    own = check(cov, var, pairs)
+    return (check(*(t.sum().expand(b) for t in (cov, var, pairs))) if pool else own), own
 
 
 def physics_noise_posterior(
@@ -428,7 +431,7 @@ def physics_noise_posterior(
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
     scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
 ) -> torch.Tensor:
-    """Physics-first noise sources of each patch, (B, 18) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 21) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
@@ -439,7 +442,9 @@ def physics_noise_posterior(
     (before clipping, scaled to the clipped answer), and in quadrature σ/√(2n), by which the realised σ of a patch's
     n pixels differs from the expected one (∞ without evidence) — large where the image shows an excess that several
     sources explain alike and the prior alone splits it; σ of row and column noise where detected [DN] (else 0; where
-    they are, σ_Total, ξ and its uncertainty include them, module docstring).
+    they are, σ_Total, ξ and its uncertainty include them, module docstring); the number of the patch's own
+    details used and its own texture and neighbour checks (pooled, read with the frame's noise model; per patch,
+    the three columns above again).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -548,6 +553,8 @@ def physics_noise_posterior(
             dd = (d2[0] * all3).flatten(1).sum(1).to(f64)
             n3 = all3.flatten(1).sum(1).to(f64)
             count, sq, sm = per_bin(inl), per_bin(d2[0].flatten().to(f64) * inl), per_bin(m_flat * inl)
+            own_texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
+            own_count = count.sum(1)
             if pool:  # one camera state: the frame's evidence for every patch
                 hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
                 count, sq, sm = (t.sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
@@ -596,7 +603,7 @@ def physics_noise_posterior(
         e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
         # texture does not
-        corr_check = _neighbour_check(x, v_ref, inl_all[0], pool)
+        corr_check, own_corr_check = _neighbour_check(x, v_ref, inl_all[0], pool)
         readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
         follows = readable & (p_match < 0.5)
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
@@ -648,7 +655,8 @@ def physics_noise_posterior(
         unclipped_answer = torch.where(banded, (unclipped_answer.square() + band_var).sqrt(), unclipped_answer)
         out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
-                         corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma], dim=1)
+                         corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
+                         own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1)], dim=1)
     return out.float()
 
 
@@ -726,6 +734,14 @@ class PhysicsNoiseEstimator:
         settings = {**self.settings, **({"pool": True} if pool else {})}
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
             raw = physics_noise_posterior(patches, meta, **settings)
+            # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
+            # textured, the patches whose own details pass both checks are read on their own
+            if b > 1 and bool(textured(raw[0, 8], raw[0, 11])):
+                alone = ((raw[:, 18] >= MIN_FOLLOW_DETAILS) & ~textured(raw[:, 19], raw[:, 20])).nonzero(as_tuple=True)[0]
+                if alone.numel():
+                    own = {**settings, "pool": False}
+                    raw[alone] = torch.cat([physics_noise_posterior(patches[alone[i:i + PATCH_CHUNK]], meta, **own)
+                                            for i in range(0, alone.numel(), PATCH_CHUNK)])
         else:
             step = min(batch_size, PATCH_CHUNK)
             raw = torch.cat([physics_noise_posterior(patches[i:i + step], meta if meta.batch_size == 1 else meta[i:i + step],

@@ -528,3 +528,50 @@ def test_defective_pixels_are_reported_apart_and_leave_the_answer_alone(pool):
     assert torch.allclose(out["sigma_total"], ref["sigma_total"], rtol=0.02)
     empty = est.predict(torch.zeros(0, 1, 128, 128), meta)
     assert empty["defects"].shape == (0, 2) and empty["defect_mask"].shape == (0, 1, 128, 128)
+
+
+def _mixed_frame(amplitude: float = 20.0) -> tuple[torch.Tensor, torch.Tensor, CameraMetadata]:
+    """12 patches of fine texture (white noise through a Gaussian of σ 0.5 px, ``amplitude`` DN) and 4 flat ones, all
+    mid-grey, with the ICX285's own noise, 20 DN of extra white noise and 8-bit rounding: (noisy, clean, told)."""
+    g = torch.Generator().manual_seed(1)
+    k = torch.exp(-torch.arange(-4, 5).float().square() / (2 * 0.5**2))
+    k = k / k.sum()
+    t = F.conv2d(F.conv2d(torch.randn(12, 1, 136, 136, generator=g), k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1))
+    clean = torch.cat([0.5 + amplitude / 255.0 * t / t.std(), torch.full((4, 1, 128, 128), 0.5)]).clamp(0, 1)
+    meta = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    noisy, _ = simulate_variant(clean, meta, ("round8",), torch.Generator().manual_seed(2), extra_read_noise_dn=20.0)
+    return noisy, clean, meta
+
+
+def test_a_textured_frame_still_reads_the_patches_that_are_readable_alone():
+    """Pooled, 12 textured patches make the frame's summed details textured; the 4 flat ones pass both checks on their
+    own details (the posterior's per-patch columns) and are read alone: σ_Total within 5 %, ξ < 0 (20 DN of white
+    noise the metadata do not make). The rest stay refused as textured; each patch read alone gets exactly the
+    per-patch answer. Per patch, the per-patch columns repeat the frame columns."""
+    noisy, clean, meta = _mixed_frame()
+    raw = physics_noise_posterior(noisy, meta, pool=True)
+    assert bool(textured(raw[0, _COL["texture"]], raw[0, _COL["detail_corr_check"]]))  # the frame as a whole
+    alone = ~textured(raw[:, _COL["patch_texture"]], raw[:, _COL["patch_detail_corr_check"]]) & (raw[:, _COL["patch_details"]] >= 256)
+    assert alone[12:].all() and int(alone[:12].sum()) <= 4
+    out = PhysicsNoiseEstimator().predict(noisy, meta, pool=True)
+    truth = ((noisy - clean) * 255).flatten(1).std(1)
+    assert out["assessable"][12:].all()
+    assert torch.allclose(out["sigma_total"][12:], truth[12:], rtol=0.05) and (out["xi"][12:] < -15).all()
+    per = physics_noise_posterior(noisy[alone], meta)
+    assert torch.equal(out["sigma_total"][alone], per[:, 3]) and torch.equal(out["xi"][alone], per[:, 4])
+    refused = [r for r, a in zip(out["reason"], alone.tolist()) if not a]
+    assert refused and set(refused) == {"textured"}
+    own = physics_noise_posterior(noisy, meta)
+    for frame_col, patch_col in (("details", "patch_details"), ("texture", "patch_texture"),
+                                 ("detail_corr_check", "patch_detail_corr_check")):
+        assert torch.equal(own[:, _COL[frame_col]], own[:, _COL[patch_col]])
+
+
+def test_a_frame_that_is_not_textured_is_read_as_one_camera_state():
+    """With weaker texture the frame passes pooled: every patch gets the frame's posterior (no patch read alone)."""
+    noisy, _, meta = _mixed_frame(amplitude=5.0)
+    raw = physics_noise_posterior(noisy, meta, pool=True)
+    assert not bool(textured(raw[0, _COL["texture"]], raw[0, _COL["detail_corr_check"]]))
+    out = PhysicsNoiseEstimator().predict(noisy, meta, pool=True)
+    assert out["assessable"].all() and torch.equal(out["xi"], raw[:, _COL["xi_dn"]])
+    assert (out["p_match"] == out["p_match"][0]).all()  # one posterior (σ after clipping stays per patch)
