@@ -53,10 +53,10 @@ def structure_contrast_dn(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     return s, noise
 
 
-def haar_noise_dn(patches: torch.Tensor) -> torch.Tensor:
-    """Robust noise level σ̂ [DN] of B×1×H×W patches in [0, 1] (H, W ≥ 2) → (B,) float32: median|d| / 0.6745 of the
+def haar_noise_dn(patches: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Robust noise level σ̂ [DN] of B×1×H×W patches in [0, 1] (H, W ≥ 2) → (B,) ``dtype``: median|d| / 0.6745 of the
     finest diagonal Haar details d over the 2×2 blocks of every other block row (:func:`structure_contrast_dn`)."""
-    return _haar_noise(patches[:, 0].float() * 255.0).float()
+    return _haar_noise(patches[:, 0].float() * 255.0).to(dtype)
 
 
 def _haar_noise(x: torch.Tensor) -> torch.Tensor:
@@ -70,14 +70,14 @@ def _haar_noise(x: torch.Tensor) -> torch.Tensor:
     return flat.kthvalue((flat.shape[1] + 1) // 2, dim=1).values.double() / _MAD_NORMAL
 
 
-def _structure_stats(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+def _structure_stats(patches: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """:func:`structure_contrast_dn`'s (s, σ̂) and the 8×8 block means it read [DN] (B, rows, cols) float64, or ``None``
-    for patches under 16 px."""
+    for patches under 16 px. ``noise``: σ̂ of :func:`haar_noise_dn` (B,) float64 where the caller has it."""
     x = patches[:, 0].float() * 255.0
     b, h, w = x.shape
     if h < 2 or w < 2:
         return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b), None
-    noise = _haar_noise(x)
+    noise = _haar_noise(x) if noise is None else noise.double()
     blk = STRUCTURE_BLOCK
     if min(h, w) >= 2 * blk:
         hb, wb = h - h % blk, w - w % blk
@@ -185,7 +185,7 @@ def _without_banding(patches: torch.Tensor, std_dn: torch.Tensor, noise_dn: torc
     return out
 
 
-def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list[str]]:
+def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | None = None) -> tuple[torch.Tensor, list[str]]:
     """Which B×1×P×P patches (in [0, 1]) an estimator of ``kind`` can assess, and why not.
 
     black / saturated: more than half of the pixels within 0.5 DN of 0 / 255 (noise is clipped away,
@@ -194,7 +194,8 @@ def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list
     with 20 DN of noise has the contrast of its noise, not of a scene), nor row and column noise (a flat patch with
     10 DN of it: :func:`_without_banding`); no edges (MTF only): the scene's gradients are
     not shown to be sparser than a random-phase texture's (:func:`has_edges`: :func:`edge_kurtosis` two standard
-    errors above :data:`MIN_EDGE_KURTOSIS`), so a steep spectrum and blur cannot be told apart on the patch."""
+    errors above :data:`MIN_EDGE_KURTOSIS`), so a steep spectrum and blur cannot be told apart on the patch.
+    ``noise_dn``: the patches' σ̂ of :func:`haar_noise_dn` (B,) (``dtype=torch.float64``) where the caller has it."""
     x = patches.flatten(1)
     x = x if x.dtype in (torch.float32, torch.float64) else x.float()
     tol = 0.5 / 255.0
@@ -204,7 +205,7 @@ def assess_patches(patches: torch.Tensor, kind: str) -> tuple[torch.Tensor, list
     high = (x >= 1 - tol).sum(1, dtype=torch.int32) / n if bool((x.amax(1) >= 1 - tol).any()) else torch.zeros(x.shape[0])
     if kind == "mtf":
         p = patches.float() if patches.dtype not in (torch.float32, torch.float64) else patches
-        std_dn, noise_dn, means = _structure_stats(p)
+        std_dn, noise_dn, means = _structure_stats(p, noise_dn)
         std_dn = _without_banding(p, std_dn, noise_dn, means)
         edges = has_edges(*edge_kurtosis(p, noise_dn))
     else:

@@ -60,7 +60,7 @@ from typing import Any, Callable
 import torch
 
 from camhealth.estimators.defective_pixels import repair_defective_pixels
-from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches  # noqa: F401
+from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches, haar_noise_dn  # noqa: F401
 from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
 from camhealth.export import BY_PHYSICS, FORMAT_TAG, check_retired, load_net
 from camhealth.nets import NetworkSpec
@@ -165,9 +165,13 @@ class Estimator:
         patches = _to_patches(images, self.patch_size, input_range)
         if patches.shape[0] == 0:
             return self._empty_result(metadata)
-        defects = None
+        defects = noise_dn = None
         if self.kind == "mtf":  # isolated impulses read as sparse edges and fine detail: the neighbours' mean instead
-            patches, defects = repair_defective_pixels(patches)
+            noise_dn = haar_noise_dn(patches, torch.float64)  # σ̂ for the defect check and assess_patches alike
+            patches, defects = repair_defective_pixels(patches, noise_dn)
+            fixed = ((defects.hot + defects.dark) > 0).nonzero(as_tuple=True)[0]
+            if fixed.numel():  # the repaired patches' own σ̂
+                noise_dn = noise_dn.index_copy(0, fixed, haar_noise_dn(patches[fixed], torch.float64))
         if views > 1:  # estimates of flipped copies are averaged below; the MTF along H and V is flip-invariant
             flips = [(-2, -1)] if views == 2 else [(-1,), (-2,), (-2, -1)]
             assessed = patches
@@ -205,7 +209,7 @@ class Estimator:
             per_view = raw.view(views, -1, *raw.shape[1:])
             raw, spread = per_view.mean(0), per_view.std(0)
             patches = assessed
-        assessable, reason = assess_patches(patches, self.kind)
+        assessable, reason = assess_patches(patches, self.kind, noise_dn)
         result: dict[str, Any] = {"assessable": assessable, "reason": reason}
         if self.kind == "mtf":
             result["mtf"] = raw.clamp(0, 1)

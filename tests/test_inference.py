@@ -365,7 +365,7 @@ def test_mtf_reads_patches_with_their_defective_pixels_repaired():
     assert clean["assessable"].all() and (clean["defects"] == 0).all()
     assert (repaired["defects"].sum(1) >= 0.7 * (truth != 0).flatten(1).sum(1)).all()  # offsets from 10 DN: not all seen
     assert ((repaired["mtf"] - clean["mtf"]).abs().mean(1) <= 0.005).all()
-    with swapped_global(type(est).predict, "repair_defective_pixels", lambda p: (p, defective_pixels(p))):
+    with swapped_global(type(est).predict, "repair_defective_pixels", lambda p, n=None: (p, defective_pixels(p, n))):
         raw = est.predict(bad)
     assert ((raw["mtf"] - clean["mtf"]).abs().mean(1).max() > 0.01)
     assert est.predict(torch.zeros(0, 1, 192, 192))["defects"].shape == (0, 2)

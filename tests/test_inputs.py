@@ -156,3 +156,21 @@ def test_haar_noise_dn_is_structure_contrasts_noise_level(size):
     assert torch.allclose(sigma, structure_contrast_dn(x)[1])
     if size >= 128:
         assert torch.allclose(sigma, torch.full((4,), 6.0), rtol=0.05)
+
+
+def test_assess_patches_with_the_callers_noise_level_answers_as_without():
+    """A caller that has σ̂ (haar_noise_dn in float64, as Estimator.predict does for the MTF) gets the same verdicts
+    as assess_patches computing it itself: edges, textures, flat and noisy patches alike."""
+    from camhealth._inputs import assess_patches, haar_noise_dn
+
+    g = torch.Generator().manual_seed(3)
+    flat = torch.full((4, 1, 64, 64), 0.5)
+    edge = flat.clone()
+    edge[..., 32:] = 0.8
+    texture = torch.rand(4, 1, 64, 64, generator=g)
+    x = torch.cat([flat, edge, texture]) + torch.linspace(0, 20, 12).view(12, 1, 1, 1) / 255 * torch.randn(12, 1, 64, 64, generator=g)
+    x = x.clamp(0, 1)
+    own = assess_patches(x, "mtf")
+    given = assess_patches(x, "mtf", haar_noise_dn(x, torch.float64))
+    assert torch.equal(own[0], given[0]) and own[1] == given[1]
+    assert len(set(own[1])) > 1  # the patches are not all judged alike

@@ -461,10 +461,10 @@ def swapped_global(method: Any, name: str, value: Any) -> Iterator[None]:
             scope[name] = old
 
 
-def _without_repair(p: torch.Tensor) -> tuple[torch.Tensor, Any]:
+def _without_repair(p: torch.Tensor, noise_dn: torch.Tensor | None = None) -> tuple[torch.Tensor, Any]:
     from camhealth.estimators.defective_pixels import defective_pixels
 
-    return p, defective_pixels(p)
+    return p, defective_pixels(p, noise_dn)
 
 
 def defects_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> list[str]:

@@ -181,11 +181,12 @@ def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None
     return DefectivePixels(hot, dark, checked, mask)
 
 
-def repair_defective_pixels(patches: torch.Tensor) -> tuple[torch.Tensor, DefectivePixels]:
-    """B×1×H×W patches in [0, 1] with every defective pixel (:func:`defective_pixels`) replaced by the mean of its
-    8 neighbours that are not defective themselves (of all 8 where every one is), in the patches' dtype; the input
-    is returned unchanged (the same tensor) where none is found. Returns (patches, :class:`DefectivePixels`)."""
-    found = defective_pixels(patches)
+def repair_defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> tuple[torch.Tensor, DefectivePixels]:
+    """B×1×H×W patches in [0, 1] with every defective pixel (:func:`defective_pixels`, ``noise_dn`` as there) replaced
+    by the mean of its 8 neighbours that are not defective themselves (of all 8 where every one is), in the patches'
+    dtype; the input is returned unchanged (the same tensor) where none is found. Returns (patches,
+    :class:`DefectivePixels`)."""
+    found = defective_pixels(patches, noise_dn)
     bad = found.mask != 0
     if not bool(bad.any()):
         return patches, found
