@@ -730,6 +730,16 @@ def _refusals(st: _TaskState) -> dict[str, Any]:
     return {"refused": dict(st.refused), "beyond_xi": beyond, "banding": banding, "defects": defects}
 
 
+#: Appended to the alarm message where every noise patch a frame refused was refused as textured: besides a scene that
+#: is fine texture everywhere, noise that is not white does it — demosaicing, denoising, sharpening and compression
+#: correlate neighbouring pixels' noise, and a smooth ramp demosaiced, Gaussian-filtered (σ 0.7 px) or JPEG-compressed
+#: (q 90) after 2–10 DN of white noise is refused as textured on every patch (``docs/monitor.md``).
+TEXTURED_HINT = ("every refused patch looks textured: a scene of fine texture everywhere, or noise that is not white — "
+                 "a demosaiced, denoised, sharpened or compressed frame, which camhealth's sensor noise model does not "
+                 "describe (give frames as the sensor delivers them; a recording's bayer_* images: --bayer green, the default, "
+                 "keeps the raw noise)")
+
+
 def _reasons_text(refused: Mapping[str, int]) -> str:
     """``"8 noise beyond validated range, 2 textured"``: refusal counts, most frequent reason first."""
     return ", ".join(f"{v} {k}" for k, v in sorted(refused.items(), key=lambda kv: -kv[1]))
@@ -1349,6 +1359,8 @@ class Monitor:
             out = xi_alarm(float("nan"), float("nan"), 0)
             if noise.refused:  # say why: the estimator's reasons for the patches it refused
                 out["message"] += f" (refused: {_reasons_text(noise.refused)})"
+                if set(noise.refused) == {"textured"}:
+                    out["message"] += "; " + TEXTURED_HINT
             return out
         i = NOISE_FIELDS.index("xi")
         count = noise.n_values

@@ -679,3 +679,27 @@ def test_defective_pixels_are_counted_named_and_recur(mode):
     assert 0 < len(xy) <= 100 and all(n == 2 for _, _, n in xy)
     assert all(hit[0, 0, y, x] for x, y, _ in xy)
     assert s["ppm"]["max"] >= s["ppm"]["median"] >= DEFECT_ALARM_PPM
+
+
+@pytest.mark.parametrize("process", ["demosaic", "gauss"])
+def test_noise_that_is_not_white_is_refused_with_a_hint_at_its_cause(process):
+    """A smooth ramp with 5 DN of white noise, then demosaiced (OpenCV bilinear, to gray) or Gaussian-filtered: the
+    noise of neighbouring pixels is correlated, every noise patch is refused as textured, and the alarm message says
+    what besides texture does that; on the raw ramp the noise is read and there is no hint."""
+    import cv2
+
+    from camhealth.monitor.api import TEXTURED_HINT
+
+    rng = np.random.default_rng(0)
+    ramp = np.tile(np.linspace(40, 210, 640), (512, 1))
+    raw = np.clip(ramp + 5 * rng.standard_normal(ramp.shape), 0, 255).round().astype(np.uint8)
+    if process == "demosaic":
+        img = cv2.cvtColor(cv2.cvtColor(raw, cv2.COLOR_BayerBG2BGR), cv2.COLOR_BGR2GRAY)
+    else:
+        img = cv2.GaussianBlur(raw, (0, 0), 0.7)
+    mon = Monitor("noise_source_full", None, sensor="ICX285", warmup=False)
+    r = mon.process(img)
+    assert not r.noise.assessable and set(r.noise.refused) == {"textured"}
+    assert r.alarm["state"] == "not_assessable" and TEXTURED_HINT in r.alarm["message"]
+    ok = Monitor("noise_source_full", None, sensor="ICX285", warmup=False).process(raw)
+    assert ok.noise.assessable and TEXTURED_HINT not in ok.alarm["message"]
