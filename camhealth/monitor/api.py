@@ -732,8 +732,8 @@ def _refusals(st: _TaskState) -> dict[str, Any]:
 
 #: Appended to the alarm message where every noise patch a frame refused was refused as textured: besides a scene that
 #: is fine texture everywhere, noise that is not white does it — demosaicing, denoising, sharpening and compression
-#: correlate neighbouring pixels' noise, and a smooth ramp demosaiced, Gaussian-filtered (σ 0.7 px) or JPEG-compressed
-#: (q 90) after 2–10 DN of white noise is refused as textured on every patch (``docs/monitor.md``).
+#: correlate neighbouring pixels' noise: a smooth ramp demosaiced or Gaussian-filtered (σ 0.7 px) after 2–10 DN of white
+#: noise, or JPEG-compressed (q 90) after 2–5 DN, is refused as textured on every patch (``docs/monitor.md``).
 TEXTURED_HINT = ("every refused patch looks textured: a scene of fine texture everywhere, or noise that is not white — "
                  "a demosaiced, denoised, sharpened or compressed frame, which camhealth's sensor noise model does not "
                  "describe (give frames as the sensor delivers them; a recording's bayer_* images: --bayer green, the default, "
