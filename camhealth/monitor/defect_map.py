@@ -10,8 +10,9 @@ grow with age and radiation).
 Accepted forms (:func:`load_defect_map`):
 
 - ``.npz`` — the array ``hot_pixels`` (calibration's maps), or the archive's only array; read with
-  ``allow_pickle=False``, so loading never runs code from the file;
-- ``.npy`` — one array, ``allow_pickle=False``;
+  ``allow_pickle=False``, so loading never runs code from the file, and only after its header declares at most
+  :data:`MAX_MAP_PIXELS` elements;
+- ``.npy`` — one array, the same way;
 - ``.png``, ``.pgm``, ``.pbm``, ``.tif``, ``.tiff``, ``.bmp`` — a one-channel image, non-zero at the defects;
 - an array (NumPy or torch) of H×W.
 
@@ -28,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "load_defect_map"]
+__all__ = ["IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "MAX_MAP_PIXELS", "load_defect_map"]
 
 #: Image files read as masks (non-zero = defective).
 IMAGE_SUFFIXES = (".png", ".pgm", ".pbm", ".tif", ".tiff", ".bmp")
@@ -36,6 +37,32 @@ IMAGE_SUFFIXES = (".png", ".pgm", ".pbm", ".tif", ".tiff", ".bmp")
 MAX_DEFECT_SHARE = 0.5
 #: The array of calibration's ``camera.maps.npz`` that holds the hot pixels.
 NPZ_KEY = "hot_pixels"
+#: The most pixels a defect map may have (a 400-megapixel sensor): a file that declares more is refused before its
+#: data are read (a compressed archive can declare far more than it takes on disk).
+MAX_MAP_PIXELS = 400_000_000
+
+
+class _Refused(ValueError):
+    """A file refused by its header: the message is final (not wrapped by the loader's other errors)."""
+
+
+def _declared_size(fp: Any, name: str) -> None:
+    """Reads the ``.npy`` header at ``fp`` and refuses an array of more than :data:`MAX_MAP_PIXELS` elements."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fp)
+        if version == (1, 0):
+            shape, _, _ = fmt.read_array_header_1_0(fp)
+        elif version == (2, 0):
+            shape, _, _ = fmt.read_array_header_2_0(fp)
+        else:
+            return  # a newer header: np.load reads it (and checks it) itself
+    except ValueError as err:
+        raise _Refused(f"{name} is not a plain NumPy array ({err})") from None
+    n = int(np.prod(shape, dtype=np.float64)) if len(shape) else 1
+    if n > MAX_MAP_PIXELS:
+        raise _Refused(f"{name} declares an array of shape {tuple(shape)} ({n} elements, at most {MAX_MAP_PIXELS} "
+                         "allowed): not read")
 
 
 def _from_file(path: Path) -> tuple[np.ndarray, str]:
@@ -47,10 +74,13 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
         try:
             with np.load(path, allow_pickle=False) as z:
                 names = list(z.files)
-                if NPZ_KEY in names:
-                    return np.asarray(z[NPZ_KEY]), f"{path.name}[{NPZ_KEY}]"
-                if len(names) == 1:
-                    return np.asarray(z[names[0]]), f"{path.name}[{names[0]}]"
+                key = NPZ_KEY if NPZ_KEY in names else names[0] if len(names) == 1 else None
+                if key is not None:
+                    with z.zip.open(key + ".npy") as fp:
+                        _declared_size(fp, f"defect map {str(path)!r}[{key}]")
+                    return np.asarray(z[key]), f"{path.name}[{key}]"
+        except _Refused:
+            raise
         except ValueError as err:  # an object (pickled) array, or not an archive
             raise ValueError(f"defect map {str(path)!r} cannot be read as a plain NumPy archive ({err}); pickled "
                              "arrays are refused") from None
@@ -60,7 +90,11 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
                          "of python -m camhealth.calibrate) or a single array")
     if suffix == ".npy":
         try:
+            with path.open("rb") as fp:
+                _declared_size(fp, f"defect map {str(path)!r}")
             return np.load(path, allow_pickle=False), path.name
+        except _Refused:
+            raise
         except (ValueError, OSError, EOFError) as err:
             raise ValueError(f"defect map {str(path)!r} cannot be read as a plain .npy array ({err}); pickled arrays "
                              "are refused") from None

@@ -223,3 +223,24 @@ def test_a_map_of_another_size_or_without_noise_is_refused():
         mon.process(frame)
     with pytest.raises(ValueError, match="give a noise_model"):
         Monitor(None, "mtf", defect_map=hit)
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".npy"])
+def test_a_file_that_declares_a_huge_array_is_refused_before_it_is_read(suffix, tmp_path):
+    """A compressed archive can declare far more than it holds on disk: the header's shape is checked first."""
+    import io
+    import zipfile
+
+    from camhealth.monitor.defect_map import MAX_MAP_PIXELS
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "|b1", "fortran_order": False, "shape": (100_000, 100_000)})
+    path = tmp_path / f"bomb{suffix}"
+    if suffix == ".npz":
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr("hot_pixels.npy", header.getvalue() + b"\0" * 64)
+    else:
+        path.write_bytes(header.getvalue())
+    with pytest.raises(ValueError, match=rf"declares an array of shape \(100000, 100000\) \(10000000000 elements, at "
+                                         rf"most {MAX_MAP_PIXELS} allowed\): not read$"):
+        load_defect_map(path)
