@@ -710,7 +710,9 @@ class PhysicsNoiseEstimator:
         """σ per source, total, ξ, its uncertainty and P(match) of B×1×128×128 patches (module docstring).
 
         ``pool``: the patches show one camera state (metadata of batch 1): the evidence of all of them decides
-        (:func:`physics_noise_posterior`); otherwise the patches go through it :data:`PATCH_CHUNK` (or ``batch_size``, if
+        (:func:`physics_noise_posterior`) — except where the frame's summed details are textured, whose patches that
+        pass both texture checks on their own details (and keep 256 of them) are read alone, as without ``pool``;
+        otherwise the patches go through it :data:`PATCH_CHUNK` (or ``batch_size``, if
         smaller) at a time. ``precision`` is accepted for interface compatibility: the statistics
         always run in float32/float64 (bf16 cannot resolve 1 DN at 255 DN). ``views`` must be 1."""
         if precision not in ("fp32", "bf16"):
