@@ -21,7 +21,9 @@ textured area must stand out further). The pixels that are themselves candidates
 every window's fit, so that defects a few pixels apart do not hide each other. For Gaussian noise alone the chance that a
 pixel exceeds the largest of 8 like it by 6 σ is 2.5·10⁻¹¹; no pixel of 256 patches of white noise (σ 0.5–30 DN,
 8-bit) is flagged. Two defects side by side (a cluster) hide each other from this test, and a hot pixel in a
-saturated area or a dead one in a black area has nothing to stand out from.
+saturated area or a dead one in a black area has nothing to stand out from. A patch where more than
+:data:`MAX_CANDIDATE_SHARE` of the pixels are candidates holds a regular pattern of local extremes (a raw Bayer mosaic
+read as gray), not isolated defects: it is not tested.
 
 What it cannot tell from one frame: a scene's own isolated point (a specular glint, a distant light, a star) or a
 pixel-sized peak of a fine texture reads as a defect. On the robustness benchmark's photographs and street frames
@@ -42,11 +44,11 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from camhealth._inputs import haar_noise_dn
 
-__all__ = ["DefectivePixels", "defective_pixels", "repair_defective_pixels", "DEFECT_SIGMAS", "MIN_DEFECT_DN", "WINDOW"]
+__all__ = ["DefectivePixels", "defective_pixels", "repair_defective_pixels", "DEFECT_SIGMAS", "MIN_DEFECT_DN", "WINDOW",
+           "MAX_CANDIDATE_SHARE"]
 
 #: Step above the largest (below the smallest) of the 8 neighbours, in local σ, from which a pixel is a defect.
 DEFECT_SIGMAS = 6.0
@@ -54,6 +56,11 @@ DEFECT_SIGMAS = 6.0
 MIN_DEFECT_DN = 8.0
 #: Side [px] of the window whose other pixels give the local scatter s.
 WINDOW = 5
+#: The largest share of a patch's tested pixels that may be candidates (a step over all 8 neighbours beyond k·σ_n):
+#: above it the local extremes are a regular pattern, not isolated defects — a 1-px grid whose steps the diagonal
+#: details do not see (a raw Bayer mosaic read as gray makes one) has half of its pixels so — and the patch is not
+#: tested (``checked`` 0). The robustness benchmark's densest defects, 1 % of the pixels, stay far below.
+MAX_CANDIDATE_SHARE = 0.05
 _QUANT_VAR = 1.0 / 12.0  # DN²: rounding to whole DN
 
 
@@ -64,7 +71,8 @@ class DefectivePixels:
     Attributes:
         hot: (B,) int64, pixels above all 8 neighbours by more than the threshold.
         dark: (B,) int64, pixels below all 8 neighbours by more than the threshold.
-        checked: (B,) int64, pixels tested (all but the one-pixel border).
+        checked: (B,) int64, pixels tested (all but the one-pixel border; 0 where more than
+            :data:`MAX_CANDIDATE_SHARE` of them are candidates: a regular pattern, not isolated defects).
         mask: (B, 1, H, W) int8: +1 hot, −1 dark, 0 otherwise (the border 0).
     """
 
@@ -128,6 +136,45 @@ def _window_scale(q: torch.Tensor, keep: torch.Tensor, where: torch.Tensor) -> t
     return torch.where(dof >= 5.0, (ss / dof.clamp_min(1.0)).sqrt(), torch.full_like(ss, float("inf")))
 
 
+#: Offsets (y, x) of a pixel's 8 neighbours.
+_RING_DY = torch.tensor([-1, -1, -1, 0, 0, 1, 1, 1])
+_RING_DX = torch.tensor([-1, 0, 1, -1, 1, -1, 0, 1])
+#: Share of the pixels above which :func:`_candidates` reads every pixel's 8 neighbours at once instead of gathering
+#: them at the pixels its prefilter keeps (a regular pattern whose steps the noise estimate does not see).
+_DENSE_SHARE = 0.05
+
+
+def _candidates(q: torch.Tensor, lower: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The interior pixels of B×1×H×W images ``q`` [DN] whose step over all 8 neighbours exceeds ``lower`` (B,) [DN]:
+    (where (N, 3): patch, y, x; step (N,): the larger of c − max₈ and min₈ − c; up (N,): c − max₈), in row-major order.
+
+    A step over all 8 is one over the left and the upper neighbour first, so the 8 are read only where both are
+    (edges and corners; few pixels), unless more than :data:`_DENSE_SHARE` of them are: then for every pixel at once
+    (3-wide row extremes above and below, and the left and right neighbours). Both give the same values."""
+    b = q.shape[0]
+    c, low = q[..., 1:-1, 1:-1], lower.view(b, 1, 1, 1)
+    pre = torch.minimum((c - q[..., 1:-1, :-2]).abs_(), (c - q[..., :-2, 1:-1]).abs_()) > low
+    n_pre = int(pre.sum())
+    if n_pre <= _DENSE_SHARE * pre.numel():
+        at = pre.nonzero()  # (P, 4): b, 0, y − 1, x − 1
+        pb, py, px = at[:, 0], at[:, 2] + 1, at[:, 3] + 1
+        ring = q[pb.unsqueeze(1), 0, py.unsqueeze(1) + _RING_DY.to(q.device), px.unsqueeze(1) + _RING_DX.to(q.device)]
+        centre = q[pb, 0, py, px]
+        up, down = centre - ring.amax(1), ring.amin(1) - centre
+        step = torch.maximum(up, down)
+        keep = step > lower[pb]
+        return torch.stack([pb[keep], py[keep], px[keep]], 1), step[keep], up[keep]
+    left, right = q[..., 1:-1, :-2], q[..., 1:-1, 2:]
+    row_max = torch.maximum(torch.maximum(q[..., :-2], q[..., 1:-1]), q[..., 2:])
+    row_min = torch.minimum(torch.minimum(q[..., :-2], q[..., 1:-1]), q[..., 2:])
+    up_all = c - torch.maximum(torch.maximum(row_max[..., :-2, :], row_max[..., 2:, :]), torch.maximum(left, right))
+    down_all = torch.minimum(torch.minimum(row_min[..., :-2, :], row_min[..., 2:, :]), torch.minimum(left, right)) - c
+    step_all = torch.maximum(up_all, down_all)
+    at = (step_all > low).nonzero()
+    flat = at[:, 0] * c[0].numel() + at[:, 2] * c.shape[-1] + at[:, 3]
+    return (torch.stack([at[:, 0], at[:, 2] + 1, at[:, 3] + 1], 1), step_all.reshape(-1)[flat], up_all.reshape(-1)[flat])
+
+
 def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> DefectivePixels:
     """Hot, stuck and dead pixels of B×1×H×W patches in [0, 1] (H, W ≥ 3; module docstring). Any float dtype; computed
     in float32 (float64 input in float64). The window's fit is made only at the candidates, the pixels whose step
@@ -143,13 +190,6 @@ def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None
     dtype = torch.float64 if patches.dtype == torch.float64 else torch.float32
     q = patches.detach().to(dtype) * 255.0
     b, _, h, w = q.shape
-    c = q[..., 1:-1, 1:-1]
-    # the largest and smallest of the 8 neighbours: 3-wide row extremes above and below, and the left and right ones
-    left, right = q[..., 1:-1, :-2], q[..., 1:-1, 2:]
-    row_max = torch.maximum(torch.maximum(q[..., :-2], q[..., 1:-1]), q[..., 2:])
-    row_min = torch.minimum(torch.minimum(q[..., :-2], q[..., 1:-1]), q[..., 2:])
-    up_all = c - torch.maximum(torch.maximum(row_max[..., :-2, :], row_max[..., 2:, :]), torch.maximum(left, right))
-    down_all = torch.minimum(torch.minimum(row_min[..., :-2, :], row_min[..., 2:, :]), torch.minimum(left, right)) - c
     mask = torch.zeros(b, 1, h, w, dtype=torch.int8, device=q.device)
     if noise_dn is None:
         sigma = haar_noise_dn(patches.detach())
@@ -161,14 +201,15 @@ def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None
         sigma = sigma.reshape(b)
     floor = (sigma.to(q.dtype).square() + _QUANT_VAR).sqrt()
     # candidates: a step over all 8 neighbours beyond k σ_n and MIN_DEFECT_DN (a lower bound of the threshold)
-    lower = torch.clamp(DEFECT_SIGMAS * floor, min=MIN_DEFECT_DN).view(b, 1, 1, 1)
-    step_all = torch.maximum(up_all, down_all)
-    cand = (step_all > lower).nonzero()  # (N, 4): b, 0, y − 1, x − 1
+    lower = torch.clamp(DEFECT_SIGMAS * floor, min=MIN_DEFECT_DN)
+    where, step, up = _candidates(q, lower)
+    tested = (h - 2) * (w - 2)
+    pattern = torch.bincount(where[:, 0], minlength=b) > MAX_CANDIDATE_SHARE * tested
+    if bool(pattern.any()):  # a regular pattern of local extremes: those patches cannot tell a defect
+        alone = ~pattern[where[:, 0]]
+        where, step, up = where[alone], step[alone], up[alone]
     hot = dark = torch.zeros(b, dtype=torch.int64, device=q.device)
-    if cand.shape[0]:
-        where = torch.stack([cand[:, 0], cand[:, 2] + 1, cand[:, 3] + 1], 1)
-        at = (cand[:, 0] * c[0].numel() + cand[:, 2] * c.shape[-1] + cand[:, 3])
-        step, up = step_all.reshape(-1)[at], up_all.reshape(-1)[at]
+    if where.shape[0]:
         keep = torch.ones_like(q, dtype=torch.bool)  # the window's fit leaves out every candidate
         keep[where[:, 0], 0, where[:, 1], where[:, 2]] = False
         scale = torch.maximum(_window_scale(q, keep, where), floor[where[:, 0]])
@@ -177,7 +218,7 @@ def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None
         mask[hit[:, 0], 0, hit[:, 1], hit[:, 2]] = torch.where(bright, 1, -1).to(torch.int8)
         hot = torch.bincount(hit[bright, 0], minlength=b)
         dark = torch.bincount(hit[~bright, 0], minlength=b)
-    checked = torch.full((b,), (h - 2) * (w - 2), dtype=torch.int64, device=q.device)
+    checked = torch.where(pattern, 0, tested).to(device=q.device, dtype=torch.int64)
     return DefectivePixels(hot, dark, checked, mask)
 
 
@@ -188,15 +229,19 @@ def repair_defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None
     :class:`DefectivePixels`)."""
     found = defective_pixels(patches, noise_dn)
     bad = found.mask != 0
-    if not bool(bad.any()):
+    at = bad.nonzero()  # (N, 4): patch, 0, y, x — only these pixels change, so only their neighbours are read
+    if not at.shape[0]:
         return patches, found
     x = patches.detach().to(torch.float64 if patches.dtype == torch.float64 else torch.float32)
-    good = (~bad).to(x.dtype)
-    ring = torch.ones(1, 1, 3, 3, dtype=x.dtype, device=x.device)
-    ring[0, 0, 1, 1] = 0.0
-    pad = (1, 1, 1, 1)
-    total = F.conv2d(F.pad(x * good, pad), ring)
-    count = F.conv2d(F.pad(good, pad), ring)
-    every = F.conv2d(F.pad(x, pad, mode="replicate"), ring) / 8.0
-    fill = torch.where(count > 0, total / count.clamp_min(1.0), every)
-    return torch.where(bad, fill, x).to(patches.dtype), found
+    h, w = x.shape[-2:]
+    ny, nx = at[:, 2:3] + _RING_DY.to(x.device), at[:, 3:4] + _RING_DX.to(x.device)  # (N, 8)
+    inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
+    ny, nx = ny.clamp(0, h - 1), nx.clamp(0, w - 1)  # out of the patch: the edge pixel's value (replicate)
+    b = at[:, :1].expand_as(ny)
+    vals = x[b, 0, ny, nx]
+    good = (inside & ~bad[b, 0, ny, nx]).to(x.dtype)
+    count = good.sum(1)
+    fill = torch.where(count > 0, (vals * good).sum(1) / count.clamp_min(1.0), vals.mean(1))
+    out = patches.detach().clone()
+    out[at[:, 0], 0, at[:, 2], at[:, 3]] = fill.to(patches.dtype)
+    return out, found

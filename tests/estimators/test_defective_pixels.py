@@ -188,3 +188,47 @@ def test_a_given_noise_level_gives_the_same_answer_as_the_computed_one():
 
     x, _ = _inject(_camera_ramp(2), 10, (60.0, 150.0), seed=11)
     assert torch.equal(defective_pixels(x, noise_dn=haar_noise_dn(x)).mask, defective_pixels(x).mask)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_gathered_and_the_dense_neighbour_test_agree(dtype, monkeypatch):
+    """The candidates' 8 neighbours are gathered where the left and upper steps pass (few pixels), or read for every
+    pixel at once where more than _DENSE_SHARE do: the same defects either way — a camera ramp with defects, 1-px
+    columns and a 1-px grid of 10 DN steps (steps the noise estimate does not see; the grid's pass the prefilter at
+    every pixel) with defects, and white noise with defects at the border of the tested area."""
+    import camhealth.estimators.defective_pixels as dp
+
+    ramp, _ = _inject(_camera_ramp(4), 20, (20.0, 150.0), seed=3)
+    cols = (torch.arange(128) % 2).float().view(1, 1, 1, 128).expand(2, 1, 128, 128) * 0.04 + 0.3
+    i = torch.arange(128) % 2  # steps to the left and upper neighbour at every pixel, no diagonal Haar detail
+    grid = (i.view(-1, 1) + i.view(1, -1)).float().expand(2, 1, 128, 128) * 0.04 + 0.3
+    patterned, _ = _inject(torch.cat([cols, grid]).contiguous(), 10, (60.0, 120.0), seed=4)
+    edge = _white(2, 2.0, seed=5)
+    edge[:, 0, 1, 1], edge[:, 0, -2, -2], edge[:, 0, 1, -2] = 1.0, 0.0, 1.0
+    patterned = patterned[:2]  # the columns (the grid is a pattern, not tested: below)
+    for x in (ramp, patterned, edge):
+        x = x.to(dtype)
+        monkeypatch.setattr(dp, "_DENSE_SHARE", 1.0)  # always gathered
+        gathered = defective_pixels(x)
+        monkeypatch.setattr(dp, "_DENSE_SHARE", -1.0)  # always dense
+        dense = defective_pixels(x)
+        assert torch.equal(gathered.mask, dense.mask) and int((dense.mask != 0).sum()) > 0
+    assert (dense.mask[:, 0, 1, 1] == 1).all() and (dense.mask[:, 0, -2, -2] == -1).all()
+
+
+def test_a_regular_grid_of_local_extremes_is_a_pattern_not_defects():
+    """A 1-px grid of 10 DN steps with no diagonal Haar detail (as a raw Bayer mosaic read as gray makes): every other
+    pixel is a local maximum or minimum beyond the noise estimate, half of them candidates — a pattern, not isolated
+    defects: no defect reported and the patch not counted as tested; beside it a patch with 1 % of real defects is
+    read as before."""
+    from camhealth.estimators.defective_pixels import MAX_CANDIDATE_SHARE
+
+    i = torch.arange(128) % 2
+    grid = ((i.view(-1, 1) + i.view(1, -1)).float() * 0.04 + 0.3).expand(1, 1, 128, 128)
+    real, truth = _inject(_camera_ramp(1), 160, (60.0, 120.0), seed=8)  # 1 % of the pixels
+    d = defective_pixels(torch.cat([grid, real]))
+    assert int(d.hot[0] + d.dark[0]) == 0 and int(d.checked[0]) == 0 and not bool(d.mask[0].any())
+    assert int(d.checked[1]) == 126 * 126 and int(d.hot[1] + d.dark[1]) >= 0.9 * int((truth != 0).sum())
+    assert 160 / (126 * 126) < MAX_CANDIDATE_SHARE
+    fixed, _ = repair_defective_pixels(grid.contiguous())
+    assert torch.equal(fixed, grid)
