@@ -220,6 +220,12 @@ def build_parser():
                    help="the camera's known defective pixels, the frames' size: camera.maps.npz of python -m "
                         "camhealth.calibrate (hot_pixels), a .npy array or a mask image (non-zero = defective); the "
                         "defects on it count as known and the alarm names only the others")
+    g.add_argument("--defects-out", type=Path, default=None, metavar="FILE",
+                   help="write the run's defect map to FILE (.npz: defective_pixels, the pixels flagged in at least "
+                        "--defects-min-frames frames, and flagged_frames), readable by --defect-map")
+    g.add_argument("--defects-min-frames", type=_positive, default=2, metavar="N",
+                   help="--defects-out: frames a pixel must be flagged in (default 2: recurring; on a static camera "
+                        "the scene's own points of light recur too)")
     g = p.add_argument_group("exposure/gain advice")
     g.add_argument("--iopc", metavar="FILE", action="append", default=[],
                    help="IOPC file (.json/.npz from python -m camhealth.iopc); repeat for several applications. "
@@ -348,6 +354,9 @@ def _human_summary(summary: dict, out: TextIO) -> None:
     for key in ("jsonl", "overlays"):
         if summary.get(key):
             print(f"  {key}: {summary[key]}", file=out)
+    d = summary.get("defects_out")
+    if d:
+        print(f"  defect map: {d['path']} ({d['pixels']} pixels flagged in at least {d['min_frames']} frames)", file=out)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -465,6 +474,12 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         summary["recording"] = source.summary()
     if diagnostics is not None:
         summary["diagnostics"] = diagnostics.summary()
+    if args.defects_out is not None and monitor.frames:
+        from camhealth.monitor.defect_map import save_defect_map
+
+        found, counts = monitor.found_defects(args.defects_min_frames)
+        written = save_defect_map(args.defects_out, found, counts)
+        summary["defects_out"] = {"path": str(written), "pixels": int(found.sum()), "min_frames": args.defects_min_frames}
     if out_dir is not None:
         summary["jsonl"] = str(out_dir / "monitor.jsonl")
         if overlays:

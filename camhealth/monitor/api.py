@@ -1418,6 +1418,23 @@ class Monitor:
         """Frames processed so far."""
         return self._counter
 
+    def found_defects(self, min_frames: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+        """The run's defect map: (bool (H, W), True at the pixels flagged as defective in at least ``min_frames``
+        frames; int32 (H, W), the frames each pixel was flagged in) in the frames' size. 2 (default) keeps the
+        recurring ones: on a moving camera a defect stays at its pixel while the scene moves; on a static one the
+        scene's own points of light recur too. At most :data:`DEFECT_POSITIONS` positions are remembered.
+        ``python -m camhealth.monitor --defects-out FILE`` writes them for ``--defect-map``."""
+        if isinstance(min_frames, bool) or not isinstance(min_frames, int) or min_frames < 1:
+            raise ValueError(f"min_frames = {min_frames!r} must be an integer >= 1")
+        if self._shape is None:
+            raise ValueError("no frame processed yet: the defect map has no size")
+        h, w = self._shape
+        counts = torch.zeros(h, w, dtype=torch.int32)
+        if self._defect_seen:
+            xy = torch.tensor(list(self._defect_seen.keys()), dtype=torch.int64)
+            counts[xy[:, 1], xy[:, 0]] = torch.tensor(list(self._defect_seen.values()), dtype=torch.int32)
+        return counts >= min_frames, counts
+
     def _map_summary(self) -> dict[str, Any]:
         """The summary's defect-map fields (:meth:`summary`); empty without a map."""
         dmap = self.defect_map

@@ -9,7 +9,8 @@ grow with age and radiation).
 
 Accepted forms (:func:`load_defect_map`):
 
-- ``.npz`` — the array ``hot_pixels`` (calibration's maps), or the archive's only array; read with
+- ``.npz`` — the array ``hot_pixels`` (calibration's maps), ``defective_pixels`` (a monitor run's, written by
+  :func:`save_defect_map`: ``python -m camhealth.monitor --defects-out``), or the archive's only array; read with
   ``allow_pickle=False``, so loading never runs code from the file, and only after its header declares at most
   :data:`MAX_MAP_PIXELS` elements;
 - ``.npy`` — one array, the same way;
@@ -29,14 +30,15 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "MAX_MAP_PIXELS", "load_defect_map"]
+__all__ = ["IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "MAX_MAP_PIXELS", "NPZ_KEYS", "load_defect_map", "save_defect_map"]
 
 #: Image files read as masks (non-zero = defective).
 IMAGE_SUFFIXES = (".png", ".pgm", ".pbm", ".tif", ".tiff", ".bmp")
 #: The largest share of a frame's pixels a defect map may mark (above: an inverted mask or another file).
 MAX_DEFECT_SHARE = 0.5
-#: The array of calibration's ``camera.maps.npz`` that holds the hot pixels.
-NPZ_KEY = "hot_pixels"
+#: The arrays a ``.npz`` defect map is read from, in this order: calibration's ``camera.maps.npz`` hot pixels, and
+#: the defects a monitor run found (``python -m camhealth.monitor --defects-out``, :func:`save_defect_map`).
+NPZ_KEYS = ("hot_pixels", "defective_pixels")
 #: The most pixels a defect map may have (a 400-megapixel sensor): a file that declares more is refused before its
 #: data are read (a compressed archive can declare far more than it takes on disk).
 MAX_MAP_PIXELS = 400_000_000
@@ -74,7 +76,7 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
         try:
             with np.load(path, allow_pickle=False) as z:
                 names = list(z.files)
-                key = NPZ_KEY if NPZ_KEY in names else names[0] if len(names) == 1 else None
+                key = next((k for k in NPZ_KEYS if k in names), names[0] if len(names) == 1 else None)
                 if key is not None:
                     with z.zip.open(key + ".npy") as fp:
                         _declared_size(fp, f"defect map {str(path)!r}[{key}]")
@@ -86,8 +88,8 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
                              "arrays are refused") from None
         except (OSError, EOFError) as err:
             raise ValueError(f"defect map {str(path)!r} is not a readable .npz archive ({err})") from None
-        raise ValueError(f"defect map {str(path)!r} holds the arrays {names}: expected {NPZ_KEY!r} (camera.maps.npz "
-                         "of python -m camhealth.calibrate) or a single array")
+        raise ValueError(f"defect map {str(path)!r} holds the arrays {names}: expected one of {list(NPZ_KEYS)} "
+                         "(camera.maps.npz of python -m camhealth.calibrate, or a monitor's --defects-out) or a single array")
     if suffix == ".npy":
         try:
             with path.open("rb") as fp:
@@ -154,3 +156,23 @@ def load_defect_map(source: Any, shape: tuple[int, int] | None = None) -> torch.
         raise ValueError(f"{name} marks {marked} of {arr.size} pixels ({100.0 * marked / arr.size:.1f} %; a map must "
                          f"mark fewer than {100 * MAX_DEFECT_SHARE:g} %): an inverted mask or another file?")
     return torch.from_numpy(np.ascontiguousarray(arr))
+
+
+def save_defect_map(path: str | Path, defective: torch.Tensor, frames: torch.Tensor | None = None) -> Path:
+    """Writes a defect map that :func:`load_defect_map` reads: ``defective_pixels`` (bool H×W) and, where given,
+    ``flagged_frames`` (int32 H×W, the frames each pixel was flagged in), compressed, no pickled objects. Returns the
+    path written (``.npz`` appended where missing)."""
+    arr = torch.as_tensor(defective).detach().cpu().numpy()
+    if arr.ndim != 2 or arr.dtype != np.bool_:
+        raise ValueError(f"defective must be a bool H×W array, got {arr.dtype} of shape {tuple(arr.shape)}")
+    out = {"defective_pixels": arr}
+    if frames is not None:
+        cnt = torch.as_tensor(frames).detach().cpu().numpy().astype(np.int32)
+        if cnt.shape != arr.shape:
+            raise ValueError(f"frames has shape {tuple(cnt.shape)}, the map {tuple(arr.shape)}")
+        out["flagged_frames"] = cnt
+    path = Path(path)
+    if path.suffix.lower() != ".npz":
+        path = path.with_name(path.name + ".npz")
+    np.savez_compressed(path, **out)
+    return path

@@ -174,7 +174,8 @@ def test_default_threads_is_two_or_the_cores_available(monkeypatch):
 
 def test_defect_map_counts_known_defects_and_refuses_another_size(tmp_path, capsys):
     """--defect-map camera.maps.npz: the frame's defects on the map are counted as known (JSON lines and summary);
-    a map of another size than the frames stops with exit 2 naming both sizes."""
+    --defects-out writes the run's flagged pixels as a map that --defect-map reads; a map of another size than the
+    frames stops with exit 2 naming both sizes."""
     from tests.monitor.test_defect_map import _defect_frame
 
     frame, hit = _defect_frame()
@@ -190,6 +191,17 @@ def test_defect_map_counts_known_defects_and_refuses_another_size(tmp_path, caps
     assert d["known"] == d["hot"] + d["dark"] > 0 and "stand out" not in line["alarm"]["message"]
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())["defects"]
     assert summary["map_pixels"] == int(hit.sum()) and summary["map_pixels_flagged"] == d["known"]
+    # the run's own map: the pixels flagged in at least one frame, written and read back
+    out_map = tmp_path / "found.npz"
+    code, out, err = _run([str(png), "--sensor", "ICX285", "--no-mtf", "--noise-model", "noise_source_full",
+                           "--no-progress", "--threads", "1", "--defects-out", str(out_map), "--defects-min-frames", "1"],
+                          capsys)
+    assert code == 0, err
+    assert f"defect map: {out_map}" in out + err
+    from camhealth.monitor.defect_map import load_defect_map
+
+    found = load_defect_map(out_map, shape=tuple(hit.shape))
+    assert int(found.sum()) == d["hot"] + d["dark"] and bool(hit[found].all())
     np.savez_compressed(maps, hot_pixels=hit.numpy()[:, :-8])
     code, _, err = _run(argv, capsys)
     assert code == 2 and "defect map is 504×384 px (W×H) but this frame is 512×384 px" in err, err

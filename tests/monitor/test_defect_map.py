@@ -108,7 +108,7 @@ def test_missing_and_unreadable_files_are_named(setup, error, match, tmp_path):
 def test_an_archive_without_hot_pixels_names_its_arrays(tmp_path):
     path = tmp_path / "two.npz"
     np.savez(path, a=_mask(), b=_mask())
-    with pytest.raises(ValueError, match=r"holds the arrays \['a', 'b'\]: expected 'hot_pixels'"):
+    with pytest.raises(ValueError, match=r"holds the arrays \['a', 'b'\]: expected one of \['hot_pixels', 'defective_pixels'\]"):
         load_defect_map(path)
 
 
@@ -244,3 +244,33 @@ def test_a_file_that_declares_a_huge_array_is_refused_before_it_is_read(suffix, 
     with pytest.raises(ValueError, match=rf"declares an array of shape \(100000, 100000\) \(10000000000 elements, at "
                                          rf"most {MAX_MAP_PIXELS} allowed\): not read$"):
         load_defect_map(path)
+
+
+@pytest.mark.parametrize("mode", ["sampled", "map"])
+def test_the_runs_recurring_defects_are_a_map_the_monitor_reads_back(mode, tmp_path):
+    """found_defects: the pixels flagged in at least min_frames frames, in the frames' size; saved (defective_pixels
+    and flagged_frames), read back by load_defect_map, and given to a new monitor every defect it flags is known."""
+    from camhealth.monitor import Monitor
+    from camhealth.monitor.defect_map import save_defect_map
+
+    frame, hit = _defect_frame()
+    mon = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False)
+    with pytest.raises(ValueError, match="no frame processed yet"):
+        mon.found_defects()
+    first = mon.process(frame).noise.defects
+    once, counts = mon.found_defects(1)
+    assert once.shape == frame.shape and int(once.sum()) == first["hot"] + first["dark"] and int(counts.max()) == 1
+    assert not bool(mon.found_defects()[0].any())  # nothing recurs after one frame
+    mon.process(frame)
+    twice, counts = mon.found_defects()
+    assert torch.equal(twice, once) and bool(hit[twice].all()) and int(counts[twice].min()) == 2
+    with pytest.raises(ValueError, match="min_frames = 0 must be an integer >= 1"):
+        mon.found_defects(0)
+    path = save_defect_map(tmp_path / "run_defects", twice, counts)
+    assert path.name == "run_defects.npz" and set(np.load(path).files) == {"defective_pixels", "flagged_frames"}
+    assert torch.equal(load_defect_map(path, shape=tuple(frame.shape)), twice)
+    again = Monitor("noise_source_full", None, sensor="ICX285", mode=mode, warmup=False, adaptive=False, defect_map=path)
+    d = again.process(frame).noise.defects
+    assert d["known"] == d["hot"] + d["dark"] > 0
+    with pytest.raises(ValueError, match="must be a bool H×W array"):
+        save_defect_map(tmp_path / "x.npz", counts)
