@@ -90,8 +90,8 @@ the pixel noise's. Columns ``row_dn``/``col_dn`` give the detected σ (0 where n
 
 **Defective pixels** (hot, stuck and dead pixels, impulses: :mod:`camhealth.estimators.defective_pixels`): a pixel
 that stands above or below all its neighbours by far more than the local noise. The fits here are robust to them and
-do not count them in σ_Total; ``predict`` returns their count per patch (``defects``: hot, dark) and where they are
-(``defect_mask``).
+do not count them in σ_Total; ``predict`` returns their count per patch (``defects``: hot, dark), where they are
+(``defect_mask``) and the pixels tested (``defects_checked``: 0 on a patch whose local extremes are a regular pattern).
 
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
@@ -731,6 +731,7 @@ class PhysicsNoiseEstimator:
             return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
                     "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool),
                     "row_column_dn": torch.zeros(0, 2), "defects": torch.zeros(0, 2, dtype=torch.int64),
+                    "defects_checked": torch.zeros(0, dtype=torch.int64),
                     "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
@@ -767,4 +768,5 @@ class PhysicsNoiseEstimator:
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
                 "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
                 "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),
+                "defects_checked": defects.checked,
                 "defect_mask": defects.mask}

@@ -1067,8 +1067,10 @@ class Monitor:
             band = torch.as_tensor(out["row_column_dn"]).float().reshape(n, 2)
             st.banding += [tuple(band[i].tolist()) for i in ((band > 0).any(1) & ok).nonzero()[:, 0].tolist()]
         if task == "noise" and out.get("defects") is not None:
-            self._count_defects(st, index, torch.as_tensor(out["defects"]).reshape(n, 2), out.get("defect_mask"),
-                                int(patches.shape[-2] - 2) * int(patches.shape[-1] - 2))
+            checked = out.get("defects_checked")  # pixels tested per patch (0 where a patch is a pattern, not tested)
+            checked = (int(torch.as_tensor(checked).sum()) if checked is not None
+                       else n * int(patches.shape[-2] - 2) * int(patches.shape[-1] - 2))
+            self._count_defects(st, index, torch.as_tensor(out["defects"]).reshape(n, 2), out.get("defect_mask"), checked)
         ok &= torch.isfinite(vals[:, -1])
         vals[~ok] = float("nan")
         std[~ok] = float("nan")
@@ -1077,10 +1079,11 @@ class Monitor:
     @staticmethod
     def _count_defects(st: _TaskState, index: torch.Tensor, counts: torch.Tensor, mask: Any, checked: int) -> None:
         """Adds the defective pixels the noise estimator found on the patches ``index`` of the grid (``counts`` (n, 2):
-        hot, dark) to this frame's, with their frame coordinates where ``mask`` (n, 1, P, P) gives them."""
+        hot, dark; ``checked`` pixels tested on them) to this frame's, with their frame coordinates where ``mask``
+        (n, 1, P, P) gives them."""
         st.defects[0] += int(counts[:, 0].sum())
         st.defects[1] += int(counts[:, 1].sum())
-        st.defects[2] += checked * int(index.numel())
+        st.defects[2] += checked
         st.defects[3] += int((counts.sum(1) > 0).sum())
         if mask is None or not bool((counts > 0).any()):
             return

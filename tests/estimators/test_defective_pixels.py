@@ -232,3 +232,4 @@ def test_a_regular_grid_of_local_extremes_is_a_pattern_not_defects():
     assert 160 / (126 * 126) < MAX_CANDIDATE_SHARE
     fixed, _ = repair_defective_pixels(grid.contiguous())
     assert torch.equal(fixed, grid)
+

@@ -274,3 +274,22 @@ def test_the_runs_recurring_defects_are_a_map_the_monitor_reads_back(mode, tmp_p
     assert d["known"] == d["hot"] + d["dark"] > 0
     with pytest.raises(ValueError, match="must be a bool H×W array"):
         save_defect_map(tmp_path / "x.npz", counts)
+
+
+def test_the_monitor_counts_only_the_pixels_tested():
+    """A frame half a 1-px grid pattern (not tested) and half a camera ramp with 1 % defects: the monitor's pixels
+    tested exclude the pattern's patches, so the share per million is the ramp's own."""
+    from camhealth.monitor import Monitor
+    from tests.estimators.test_defective_pixels import _camera_ramp, _inject
+
+    i = torch.arange(256) % 2
+    grid = ((i.view(-1, 1) + i.view(1, -1)).float() * 0.04 + 0.3)
+    ramp, truth = _inject(_camera_ramp(4), 160, (60.0, 120.0), seed=9)  # 4 patches of 128 px
+    right = torch.cat([torch.cat([ramp[0, 0], ramp[1, 0]], 1), torch.cat([ramp[2, 0], ramp[3, 0]], 1)], 0)
+    frame = torch.cat([grid, right], 1)  # 256 × 512: 2×2 patches of the grid, 2×2 of the ramps
+    mon = Monitor("noise_source_full", None, sensor="ICX285", mode="map", warmup=False, adaptive=False)
+    report = mon.process(frame).noise
+    assert report.coverage["estimated"] == 8  # the grid's 4 patches were read too
+    d = report.defects
+    assert d["checked"] == 4 * 126 * 126  # but only the ramps' pixels were tested
+    assert d["ppm"] >= 0.9 * 1e6 * 160 / (126 * 126)
