@@ -219,12 +219,22 @@ class PatchStats:
 
 def _clipped_fraction(v: torch.Tensor, extreme: torch.Tensor, level: float, low: bool) -> torch.Tensor:
     """Fraction of pixels <= ``level`` (``low``) or >= ``level`` per patch of (R, P, C, P) ``v``, given the
-    per-patch extreme (R, C); one counting pass over the frame only when some patch reaches the level."""
+    per-patch extreme (R, C); counted only on the patches whose extreme reaches the level (one pass over the frame
+    where more than half of them do)."""
     r, p, c, _ = v.shape
-    if not bool(((extreme <= level) if low else (extreme >= level)).any()):
+    reach = ((extreme <= level) if low else (extreme >= level)).reshape(-1)
+    n = int(reach.sum())
+    if n == 0:
         return torch.zeros(r * c)
-    mask = (v <= level) if low else (v >= level)
-    return mask.view(torch.uint8).sum((1, 3), dtype=torch.int32).reshape(r * c).float() / (p * p)
+    if 2 * n > r * c:
+        mask = (v <= level) if low else (v >= level)
+        return mask.view(torch.uint8).sum((1, 3), dtype=torch.int32).reshape(r * c).float() / (p * p)
+    idx = reach.nonzero()[:, 0]
+    sub = v[idx // c, :, idx % c, :]  # (n, P, P): the patches that reach the level
+    mask = (sub <= level) if low else (sub >= level)
+    out = torch.zeros(r * c)
+    out[idx] = mask.view(torch.uint8).sum((1, 2), dtype=torch.int32).float() / (p * p)
+    return out
 
 
 def _statistics(v: torch.Tensor, patch: int) -> PatchStats:

@@ -250,3 +250,23 @@ def test_edge_kurtosis_matches_the_estimator_rule():
     gamma, se = edge_kurtosis(x, s.noise_dn)
     assert torch.allclose(s.edge_kurtosis, gamma, rtol=1e-3, atol=1e-3) and torch.allclose(s.edge_kurtosis_se, se, rtol=1e-3)
     assert select_patches(s, "mtf")[1].tolist() == [ESTIMATED] * 3 + [NO_EDGES] * 3
+
+
+@pytest.mark.parametrize("clipped_patches", [1, 3, 12])
+def test_clipped_fractions_counted_on_the_patches_that_reach_the_bounds_equal_a_full_count(clipped_patches):
+    """The clipped pixels are counted only on the patches whose extreme reaches 0 or 255 DN (all of them where more
+    than half do): the same fractions as a count over every pixel, in the grid's row-major order."""
+    g = torch.Generator().manual_seed(4)
+    frame = torch.rand(1, 1, 512, 512, generator=g) * 0.6 + 0.2
+    grid = PatchGrid.fit(512, 512, 128)
+    boxes = grid.boxes()
+    for k in range(clipped_patches):
+        x0, y0 = int(boxes[k * 5 % 16, 0]), int(boxes[k * 5 % 16, 1])
+        frame[..., y0:y0 + 40 + k, x0:x0 + 50] = 1.0
+        frame[..., y0 + 60:y0 + 70, x0:x0 + 30 + k] = 0.0
+    s = grid_statistics(frame, grid)
+    patches = grid.extract(frame)
+    tol = 0.5 / 255.0
+    assert torch.equal(s.clipped_high, (patches >= 1 - tol).flatten(1).float().mean(1))
+    assert torch.equal(s.clipped_low, (patches <= tol).flatten(1).float().mean(1))
+    assert int((s.clipped_high > 0).sum()) == len(set(k * 5 % 16 for k in range(clipped_patches)))
