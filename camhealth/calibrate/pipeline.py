@@ -29,7 +29,7 @@ from camhealth.calibrate.manifest import CAMERA_FIELDS, OPERATING_POINT_FIELDS, 
 from camhealth.calibrate.photon_transfer import FlatPoint, fit_photon_transfer
 from camhealth.calibrate.readout import white_noise_from_sigma
 from camhealth.calibrate.result import CalibrationResult, FieldEstimate, SetRecord
-from camhealth.calibrate.statistics import SetStatistics, detect_hot_pixels, set_statistics
+from camhealth.calibrate.statistics import SetStatistics, detect_dead_pixels, detect_hot_pixels, set_statistics
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, UNITS, CameraMetadata
 
 __all__ = ["ASSUMED", "calibrate", "resolve_sets"]
@@ -393,6 +393,7 @@ def calibrate(
     t_ref = op_values["temperature_c"] + 273.15
     rn_ref = math.sqrt(max(rn_law.var_e2(t_ref), 0.0))
     emva = _emva(dark, ptc, rn_law, k0, k0_err, c_e, c_e_err, full_well, rn_ref, nonuni, hot, t_ref)
+    emva["dead_pixels"] = int(maps["dead_pixels"].sum())
     fits = {
         "photon_transfer": {
             "k0_dn_per_e": k0, "k0_err": k0_err, "chi2_dof": ptc.chi2_dof,
@@ -468,8 +469,9 @@ def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: 
 
 
 def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """Hot pixels, DSNU map [DN] (master bias minus its mean), PRNU map [–] (the brightest unsaturated flat's
-    master over the dark level, relative to its mean), the masters, and the spatial non-uniformities."""
+    """Hot pixels, dead pixels (:func:`~camhealth.calibrate.statistics.detect_dead_pixels` on the brightest unsaturated
+    flat's signal), DSNU map [DN] (master bias minus its mean), PRNU map [–] (that flat's master over the dark level,
+    relative to its mean), the masters, and the spatial non-uniformities."""
     bias_fs, bias_st = min(dark_stats, key=lambda d: (d[0].exposure_s, d[0].temperature_c, d[0].gain_db))
     long_fs, long_st = max(dark_stats, key=lambda d: (d[0].temperature_c, d[0].exposure_s, d[0].gain_db))
     keep = ~hot if hot is not None else np.ones_like(bias_st.master_dn, dtype=bool)
@@ -481,8 +483,10 @@ def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict
     signal = flat_st.master_dn - flat_point.dark_mean_dn
     mean_signal = float(signal[keep].mean())
     prnu = signal / mean_signal - 1.0 if mean_signal > 0 else np.zeros_like(signal)
+    dead = detect_dead_pixels(signal, flat_st.sigma_dn, flat_st.n_frames, flat_st.step_dn, hot)
     maps = {
         "hot_pixels": (hot if hot is not None else np.zeros_like(dsnu, dtype=bool)).astype(bool),
+        "dead_pixels": dead.astype(bool),
         "dsnu_dn": dsnu.astype(np.float32),
         "prnu": prnu.astype(np.float32),
         "master_bias_dn": bias_st.master_dn,

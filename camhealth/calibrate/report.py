@@ -98,8 +98,9 @@ def _maps_figure(result: CalibrationResult, path: Path) -> None:
 
     m = result.maps
     fig, axes = plt.subplots(1, 3, figsize=(12, 4))
-    axes[0].imshow(m["hot_pixels"], cmap="gray_r", interpolation="nearest")
-    axes[0].set_title(f"hot pixels ({int(m['hot_pixels'].sum())})")
+    dead = m.get("dead_pixels", np.zeros_like(m["hot_pixels"]))
+    axes[0].imshow(m["hot_pixels"].astype(np.int8) - dead.astype(np.int8), cmap="coolwarm", vmin=-1, vmax=1, interpolation="nearest")
+    axes[0].set_title(f"hot (red) {int(m['hot_pixels'].sum())}, dead (blue) {int(dead.sum())}")
     for ax, key, title in ((axes[1], "dsnu_dn", "DSNU: master bias − mean [DN]"), (axes[2], "prnu", "PRNU: flat / mean − 1")):
         v = m[key]
         lim = float(np.percentile(np.abs(v), 99.5)) or 1e-9
@@ -144,7 +145,7 @@ def write_report(result: CalibrationResult, directory: str | Path, command: str 
         f"- dark current at {e['temporal_dark_noise_at_c']:g} °C (Eq. 3.14 law): {_num(e['dark_current_law_e_per_s_at_ref'])} e⁻/s",
         f"- doubling temperature: {_num(e['doubling_temperature_k'], '.3g')} ± {_num(e['doubling_temperature_err'], '.2g')} K measured, "
         f"{_num(e['doubling_temperature_of_eq_3_14_k'], '.3g')} K by Eq. 3.14",
-        f"- DSNU: {_num(e['dsnu_e'], '.3g')} e⁻; PRNU: {_num(e['prnu_percent'], '.3g')} %; hot pixels: {e['hot_pixels']}",
+        f"- DSNU: {_num(e['dsnu_e'], '.3g')} e⁻; PRNU: {_num(e['prnu_percent'], '.3g')} %; hot pixels: {e['hot_pixels']}; dead pixels: {e.get('dead_pixels', 0)}",
         "", "| temperature | dark current (free fit) [e⁻/s] | Eq. 3.14 law [e⁻/s] | temporal dark noise [e⁻] |", "|---|---:|---:|---:|",
     ]
     for t, v in e["dark_current"].items():

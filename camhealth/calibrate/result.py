@@ -8,7 +8,7 @@ Files (:meth:`CalibrationResult.save`):
   (``fitted``, ``given``, ``assumed``, ``operating point``).
 * ``camera.calibration.yaml`` — the same values machine-readable with uncertainty, unit, source and method,
   EMVA 1288 figures, every set's statistics and the fits' quality.
-* ``camera.maps.npz`` — hot-pixel mask, DSNU map [DN], PRNU map [–], master bias/dark/flat [DN].
+* ``camera.maps.npz`` — hot- and dead-pixel masks, DSNU map [DN], PRNU map [–], master bias/dark/flat [DN].
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ class CalibrationResult:
             temperature, doubling temperature, DSNU, PRNU, dynamic range, SNR max), plain floats.
         sets: every set with its statistics.
         fits: the fits' parameters and quality (χ²/dof, residuals).
-        maps: ``hot_pixels`` (bool H×W), ``dsnu_dn`` (H×W), ``prnu`` (H×W, relative), ``master_bias_dn``,
+        maps: ``hot_pixels`` (bool H×W), ``dead_pixels`` (bool H×W), ``dsnu_dn`` (H×W), ``prnu`` (H×W, relative), ``master_bias_dn``,
             ``master_dark_dn``, ``master_flat_dn``.
         warnings: what the user should know (assumed fields, sets left out, a dark current below detection …).
         photon_transfer, dark: the fit objects (for the report).

@@ -41,6 +41,8 @@ __all__ = [
     "censored_normal_fit",
     "binned_censored_normal_fit",
     "detect_hot_pixels",
+    "detect_dead_pixels",
+    "DEAD_PIXEL_SIGMAS",
     "set_statistics",
     "poisson_gaussian_cdf",
     "poisson_gaussian_group_fit",
@@ -52,6 +54,10 @@ CENSORED_ABOVE = 1e-4
 MIN_UNCLIPPED_FRACTION = 0.02
 #: A pixel whose master-frame level lies this many robust standard deviations above the median is hot.
 HOT_PIXEL_SIGMAS = 6.0
+#: A pixel whose flat-field signal lies this many robust standard deviations below the median is dead (or dim).
+DEAD_PIXEL_SIGMAS = 6.0
+#: Side [px] of the neighbourhood whose median a pixel's flat-field signal is compared with.
+DEAD_PIXEL_WINDOW = 5
 #: Frames are rounded to this many codes over [0, 1] to test for integer coding (16-bit resolution).
 _CODES = 65535
 
@@ -287,6 +293,27 @@ def detect_hot_pixels(master_dn: np.ndarray, temporal_sigma_dn: float, n_frames:
     mad = 1.4826 * float(np.median(np.abs(master_dn - med)))
     scale = max(mad, temporal_sigma_dn / math.sqrt(max(n_frames, 1)), step_dn / max(n_frames, 1), 1e-9)
     return master_dn > med + HOT_PIXEL_SIGMAS * scale
+
+
+def detect_dead_pixels(signal_dn: np.ndarray, temporal_sigma_dn: float, n_frames: int, step_dn: float,
+                       exclude: np.ndarray | None = None) -> np.ndarray:
+    """Pixels whose flat-field signal (master flat minus the dark level) [DN] lies more than
+    :data:`DEAD_PIXEL_SIGMAS` robust standard deviations below the median of its 5×5 neighbourhood: dead pixels and
+    ones whose response is far below their neighbours'. Against the local median, so that the flat's own shading
+    (vignetting, uneven light) is not read as dead pixels; robust σ: 1.4826·MAD of the signal minus its local
+    median, which the PRNU sets, at least the temporal σ/√N and the quantisation step/N. ``exclude`` (hot pixels)
+    are neither counted in the MAD nor flagged."""
+    from scipy import ndimage
+
+    keep = np.ones(signal_dn.shape, dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
+    if not keep.any():
+        return np.zeros(signal_dn.shape, dtype=bool)
+    resid = signal_dn - ndimage.median_filter(signal_dn, size=DEAD_PIXEL_WINDOW, mode="nearest")
+    vals = resid[keep]
+    mad = 1.4826 * float(np.median(np.abs(vals - np.median(vals))))
+    temporal = temporal_sigma_dn if math.isfinite(temporal_sigma_dn) else 0.0
+    scale = max(mad, temporal / math.sqrt(max(n_frames, 1)), step_dn / max(n_frames, 1), 1e-9)
+    return (resid < -DEAD_PIXEL_SIGMAS * scale) & keep
 
 
 def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_dn: float | None = None) -> SetStatistics:

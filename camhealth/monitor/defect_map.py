@@ -1,16 +1,18 @@
 """A camera's known defective pixels, for the monitor to tell them from new ones.
 
 A defect map is a boolean H×W array over the sensor's frame: ``True`` at a pixel known to be defective. It is what
-``python -m camhealth.calibrate`` writes as ``hot_pixels`` in ``camera.maps.npz`` (a dark master more than 6 robust σ
-above its median), or a vendor's or a user's own mask. The monitor (:class:`camhealth.monitor.Monitor`,
+``python -m camhealth.calibrate`` writes as ``hot_pixels`` and ``dead_pixels`` in ``camera.maps.npz`` (a dark master
+more than 6 robust σ above its median; a flat-field signal more than 6 robust σ below its median), what a monitor run
+found (``--defects-out``), or a vendor's or a user's own mask. The monitor (:class:`camhealth.monitor.Monitor`,
 ``defect_map=``) counts how many of the pixels it flags on a frame are on the map (``known``) and names only the
 others in its alarm: a defect the calibration already lists is expected, one that appeared since is news (hot pixels
 grow with age and radiation).
 
 Accepted forms (:func:`load_defect_map`):
 
-- ``.npz`` — the array ``hot_pixels`` (calibration's maps), ``defective_pixels`` (a monitor run's, written by
-  :func:`save_defect_map`: ``python -m camhealth.monitor --defects-out``), or the archive's only array; read with
+- ``.npz`` — ``hot_pixels`` and ``dead_pixels`` (calibration's maps; their union), ``defective_pixels`` (a monitor
+  run's, written by :func:`save_defect_map`: ``python -m camhealth.monitor --defects-out``), or the archive's only
+  array; read with
   ``allow_pickle=False``, so loading never runs code from the file, and only after its header declares at most
   :data:`MAX_MAP_PIXELS` elements;
 - ``.npy`` — one array, the same way;
@@ -36,9 +38,10 @@ __all__ = ["IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "MAX_MAP_PIXELS", "NPZ_KEYS", "
 IMAGE_SUFFIXES = (".png", ".pgm", ".pbm", ".tif", ".tiff", ".bmp")
 #: The largest share of a frame's pixels a defect map may mark (above: an inverted mask or another file).
 MAX_DEFECT_SHARE = 0.5
-#: The arrays a ``.npz`` defect map is read from, in this order: calibration's ``camera.maps.npz`` hot pixels, and
-#: the defects a monitor run found (``python -m camhealth.monitor --defects-out``, :func:`save_defect_map`).
-NPZ_KEYS = ("hot_pixels", "defective_pixels")
+#: The arrays a ``.npz`` defect map is read from: calibration's ``camera.maps.npz`` hot and dead pixels (both, where
+#: both are there: their union), else the defects a monitor run found (``python -m camhealth.monitor --defects-out``,
+#: :func:`save_defect_map`).
+NPZ_KEYS = ("hot_pixels", "dead_pixels", "defective_pixels")
 #: The most pixels a defect map may have (a 400-megapixel sensor): a file that declares more is refused before its
 #: data are read (a compressed archive can declare far more than it takes on disk).
 MAX_MAP_PIXELS = 400_000_000
@@ -76,11 +79,16 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
         try:
             with np.load(path, allow_pickle=False) as z:
                 names = list(z.files)
-                key = next((k for k in NPZ_KEYS if k in names), names[0] if len(names) == 1 else None)
-                if key is not None:
-                    with z.zip.open(key + ".npy") as fp:
-                        _declared_size(fp, f"defect map {str(path)!r}[{key}]")
-                    return np.asarray(z[key]), f"{path.name}[{key}]"
+                keys = [k for k in NPZ_KEYS[:2] if k in names] or [k for k in NPZ_KEYS[2:] if k in names]
+                keys = keys or (names[:1] if len(names) == 1 else [])
+                if keys:
+                    for key in keys:
+                        with z.zip.open(key + ".npy") as fp:
+                            _declared_size(fp, f"defect map {str(path)!r}[{key}]")
+                    arrays = [np.asarray(z[key]) for key in keys]
+                    if len(arrays) == 2 and arrays[0].shape == arrays[1].shape and all(a.dtype == np.bool_ for a in arrays):
+                        return arrays[0] | arrays[1], f"{path.name}[{' | '.join(keys)}]"
+                    return arrays[0], f"{path.name}[{keys[0]}]"
         except _Refused:
             raise
         except ValueError as err:  # an object (pickled) array, or not an archive

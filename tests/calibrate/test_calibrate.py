@@ -108,6 +108,30 @@ def test_hot_pixels_are_found_and_left_out():
     assert abs(_errors(true, res.metadata)[1]) < 0.03
 
 
+def test_dead_pixels_are_found_in_the_flats_and_join_the_monitors_defect_map(tmp_path):
+    """Pixels that respond at 20 % in every flat (dead or dim) are in the maps' dead_pixels, hot pixels in hot_pixels,
+    and no other pixel in either; the monitor's --defect-map reads camera.maps.npz as their union."""
+    from camhealth.monitor.defect_map import load_defect_map
+
+    true = CameraMetadata.preset("EV76C661")
+    sets = synthetic_sets(true, SMALL, frames=6, size=48, seed=4)
+    hot, dead = [(5, 7)], [(20, 30), (40, 2)]
+    for s in sets:
+        for y, x in hot:
+            if s.kind != "flat":
+                s.frames[:, y, x] = np.clip(s.frames[:, y, x] + 0.3 * (s.exposure_s / 0.2), 0, 1)
+        if s.kind == "flat":  # the dead pixels keep a fifth of the light
+            for y, x in dead:
+                s.frames[:, y, x] = s.frames[:, y, x] * 0.2
+    res = calibrate(sets, camera=_datasheet(true))
+    assert {tuple(p) for p in np.argwhere(res.maps["dead_pixels"])} == set(dead)
+    assert {tuple(p) for p in np.argwhere(res.maps["hot_pixels"])} == set(hot)
+    assert res.emva["dead_pixels"] == 2 and res.emva["hot_pixels"] == 1
+    paths = res.save(tmp_path / "camera.yaml")
+    union = load_defect_map(paths["maps"], shape=(48, 48))
+    assert {tuple(p) for p in union.nonzero().tolist()} == set(hot) | set(dead)
+
+
 def test_file_name_convention():
     assert parse_set_name("dark_100ms_12dB_40C_L3") == {"kind": "dark", "exposure_s": pytest.approx(0.1), "gain_db": 12.0,
                                                          "temperature_c": 40.0, "label": "L3"}

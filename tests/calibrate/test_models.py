@@ -118,3 +118,27 @@ def test_white_noise_inversion_round_trips_eq_3_17(preset):
     inv = white_noise_from_sigma(sf, 0.01 * sf, float(meta.pixel_clock_hz), float(meta.sense_node_gain_v_per_e), bool(meta.is_cmos))
     assert inv.white_noise_v_per_rthz == pytest.approx(float(meta.white_noise_v_per_rthz), rel=1e-6)
     assert inv.white_noise_err / inv.white_noise_v_per_rthz == pytest.approx(0.01, rel=0.05)
+
+
+def test_dead_pixels_against_the_local_median_survive_vignetting():
+    """A flat with 50 % vignetting and 1 % PRNU has no dead pixel; a pixel at half its neighbours' response in the
+    centre, one at 20 % and one at 0 are found — the first one a global rule misses (the shading makes its MAD
+    ~19 DN); hot pixels excluded are never flagged."""
+    from camhealth.calibrate.statistics import DEAD_PIXEL_SIGMAS, detect_dead_pixels
+
+    rng = np.random.default_rng(0)
+    h, w = 200, 300
+    yy, xx = np.mgrid[:h, :w]
+    r2 = ((yy - h / 2) ** 2 + (xx - w / 2) ** 2) / ((h / 2) ** 2 + (w / 2) ** 2)
+    flat = 150.0 * (1.0 - 0.5 * r2) * (1.0 + 0.01 * rng.standard_normal((h, w)))
+    assert not detect_dead_pixels(flat, 2.0, 16, 0.0).any()
+    flat[100, 100] *= 0.5
+    med = np.median(flat)
+    assert flat[100, 100] > med - DEAD_PIXEL_SIGMAS * 1.4826 * np.median(np.abs(flat - med))  # global: not dead
+    flat[10, 10] *= 0.2
+    flat[100, 150] = 0.0
+    exclude = np.zeros((h, w), dtype=bool)
+    exclude[50, 60] = True
+    flat[50, 60] = 0.0  # excluded: not flagged
+    found = detect_dead_pixels(flat, 2.0, 16, 0.0, exclude)
+    assert {tuple(p) for p in np.argwhere(found)} == {(100, 100), (10, 10), (100, 150)}

@@ -108,7 +108,7 @@ def test_missing_and_unreadable_files_are_named(setup, error, match, tmp_path):
 def test_an_archive_without_hot_pixels_names_its_arrays(tmp_path):
     path = tmp_path / "two.npz"
     np.savez(path, a=_mask(), b=_mask())
-    with pytest.raises(ValueError, match=r"holds the arrays \['a', 'b'\]: expected one of \['hot_pixels', 'defective_pixels'\]"):
+    with pytest.raises(ValueError, match=r"holds the arrays \['a', 'b'\]: expected one of \['hot_pixels', 'dead_pixels', 'defective_pixels'\]"):
         load_defect_map(path)
 
 
