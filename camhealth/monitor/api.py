@@ -788,7 +788,7 @@ class Monitor:
         policy: an :class:`camhealth.control.ExposurePolicy` (or IOPC file path(s), :func:`load_policy`).
         per_patch: include per-patch status and values in the JSON lines.
         defect_map: the camera's known defective pixels — ``camera.maps.npz`` of ``python -m camhealth.calibrate``
-            (its ``hot_pixels``), a ``.npy`` array, a mask image or an H×W array
+            (its hot and dead pixels), a monitor run's ``--defects-out``, a ``.npy`` array, a mask image or an H×W array
             (:func:`camhealth.monitor.defect_map.load_defect_map`), the frames' size: the defects on it are counted
             as ``known`` and the alarm names only the others; ``None`` (default): every defect counts.
         warmup: on the first frame of a new size, run each network once on every batch size the frame can
@@ -1308,7 +1308,8 @@ class Monitor:
                 xy = self._states["noise"].defect_xy
                 noise.defects["recurring"] = self._recurring(xy)
                 if self.defect_map is not None:
-                    noise.defects["known"] = sum(bool(self.defect_map[y, x]) for x, y in xy)
+                    at = torch.tensor(xy, dtype=torch.int64).reshape(-1, 2)
+                    noise.defects["known"] = int(self.defect_map[at[:, 1], at[:, 0]].sum())
             alarm = self._alarm(noise, meta)
             advice = self._advice(noise, reports.get("mtf"), meta)
             timing["aggregate"] = (time.perf_counter() - t2) * 1e3
@@ -1443,7 +1444,8 @@ class Monitor:
         dmap = self.defect_map
         if dmap is None:
             return {}
-        on_map = {p: bool(dmap[p[1], p[0]]) for p in self._defect_seen}
+        at = torch.tensor(list(self._defect_seen), dtype=torch.int64).reshape(-1, 2)
+        on_map = dict(zip(self._defect_seen, dmap[at[:, 1], at[:, 0]].tolist()))
         new = sorted(((p, n) for p, n in self._defect_seen.items() if n > 1 and not on_map[p]), key=lambda kv: (-kv[1], kv[0]))
         return {"map_pixels": int(dmap.sum()), "map_pixels_flagged": sum(on_map.values()),
                 "recurring_new_pixels": len(new), "recurring_new_xy": [[x, y, n] for (x, y), n in new[:DEFECT_LIST]]}
