@@ -147,3 +147,30 @@ def test_count_flops_and_describe_follow_the_network_to_its_device():
     module = MTFEstimator()
     module.net.to("meta")
     assert module.describe()["flops_per_patch"] == cpu
+
+
+@pytest.mark.parametrize("size", [192, 64, 8])
+def test_mtf_preprocess_equals_pixel_unshuffle(size):
+    """MTFPreprocess rearranges s×s cells into channels by one reshape; the values are nn.PixelUnshuffle's."""
+    from camhealth.nets.mtf import MTFPreprocess, sobel
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(3, 2, size, size, generator=g)
+    pre = MTFPreprocess(4)
+    flat = x.reshape(6, 1, size, size)
+    mean = flat.mean((2, 3), keepdim=True)
+    std = (flat - mean).pow(2).mean((2, 3), keepdim=True).sqrt()
+    z = (flat - mean) / (std + pre.contrast_floor)
+    both = torch.cat([z, torch.rot90(z, 1, dims=(2, 3))], 0)
+    gx, gy = sobel(both)
+    want = torch.nn.functional.pixel_unshuffle(torch.cat([both, gx * 4.0, gy * 4.0], 1), 4)
+    out = pre(x)
+    assert out.shape == (12, 48, size // 4, size // 4)
+    assert torch.equal(out, want)
+
+
+def test_mtf_preprocess_refuses_sizes_not_divisible_by_the_downsampling():
+    from camhealth.nets.mtf import MTFPreprocess
+
+    with pytest.raises(RuntimeError, match="divisible|30"):
+        MTFPreprocess(4)(torch.rand(1, 1, 30, 30))
