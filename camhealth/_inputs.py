@@ -12,6 +12,7 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
+from camhealth._order import lower_median
 from camhealth.physics.metadata import CameraMetadata
 
 __all__ = [
@@ -67,7 +68,7 @@ def _haar_noise(x: torch.Tensor) -> torch.Tensor:
     step = 4 if h2 >= 8 else 2
     d = 0.5 * (q[:, 0::step, 0::2] - q[:, 0::step, 1::2] - q[:, 1::step, 0::2] + q[:, 1::step, 1::2])
     flat = d.abs().flatten(1)
-    return flat.kthvalue((flat.shape[1] + 1) // 2, dim=1).values.double() / _MAD_NORMAL
+    return lower_median(flat).double() / _MAD_NORMAL
 
 
 def _structure_stats(patches: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:

@@ -25,7 +25,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from camhealth.physics.clipping import clipped_sigma_dn, estimate_clean_dn
+from camhealth.physics.clipping import _NEAR_SIGMAS, clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
@@ -151,6 +151,12 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
     of the σ an independent implementation of the sensor model realised, on photographs and street frames of every
     simulator variant (``python -m camhealth.bench robustness``, row ``closed_form``, matched).
 
+    A patch whose every pixel lies more than 6 σ(x) from both bounds (σ² = slope·x + σ_DCSN² + σ_RN², the test
+    of :func:`~camhealth.physics.clipping.estimate_clean_dn`; its 3×3 means, which lie between the patch's extremes,
+    then pass it too) has nothing clipped: its σ are the unclipped model's at the patch's mean intensity (the 3×3
+    means with replicate borders sum to the patch's sum), read without the per-pixel moments (the values agree
+    within 1e-6 DN, tested). Only the patches of a batch that come nearer a bound take the per-pixel path.
+
     Args:
         image: B×1×H×W noisy patches in [0, 1].
         pn_slope: (B,) photon-noise variance per DN of signal, 255·g/FW [DN²/DN].
@@ -159,12 +165,26 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
     Returns (B, 4) float64.
     """
     with torch.autocast(device_type=image.device.type, enabled=False):
-        f32 = torch.float32  # per-pixel arithmetic in float32 (sums in float64): within 1e-5 DN of float64, 2× faster
-        a = pn_slope.to(f32)
-        dc2, rn2 = dcsn_dn.to(f32).pow(2), rn_dn.to(f32).pow(2)
-        img = image.detach().to(f32).clamp(0, 1) * 255.0
+        f32, f64 = torch.float32, torch.float64  # per-pixel arithmetic in float32 (sums in float64): within 1e-5 DN of float64, 2× faster
+        flat = image.detach().flatten(1)
+        a64, dc64, rn64 = (t.to(f64).reshape(-1).expand(flat.shape[0]) for t in (pn_slope, dcsn_dn, rn_dn))
+        c64 = dc64.square() + rn64.square()
+        k = _NEAR_SIGMAS
+        low_band = 0.5 * k * k * a64 + (0.25 * k**4 * a64.square() + k * k * c64).sqrt()  # x < k·σ(x) below it
+        high_band = 255.0 - k * (a64 * 255.0 + c64).sqrt()  # x > 255 − k·σ(x) only above it
+        lo, hi = flat.aminmax(dim=1)  # in [0, 1]: where the test passes, the clamp to [0, 1] changes nothing
+        # (metadata that are not finite or a negative slope go to the per-pixel path, whose checks name them)
+        far = (lo.double() * 255.0 >= low_band) & (hi.double() * 255.0 <= high_band) & (a64 >= 0) & torch.isfinite(a64 + c64)
+        mean_dn = flat.sum(1, dtype=f64) * (255.0 / flat.shape[1])
+        pn2 = (a64 * mean_dn).clamp_min(0)
+        out = torch.stack([pn2.sqrt(), dc64.abs(), rn64.abs(), (pn2 + c64).sqrt()], 1)
+        if bool(far.all()):
+            return out
+        near = (~far).nonzero(as_tuple=True)[0]
+        a, dc2, rn2 = a64[near].to(f32), dc64[near].to(f32).pow(2), rn64[near].to(f32).pow(2)
+        img = image.detach()[near].to(f32).clamp(0, 1) * 255.0
         x = estimate_clean_dn(img, a, dc2 + rn2, dtype=f32)
-        return clipped_sigma_dn(x, [a.view(-1, 1, 1, 1) * x, dc2, rn2], dtype=f32)
+        return out.index_copy(0, near, clipped_sigma_dn(x, [a.view(-1, 1, 1, 1) * x, dc2, rn2], dtype=f32))
 
 
 _LAPLACE_DIFF = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])

@@ -114,6 +114,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from camhealth._order import sorted_values
 from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, haar_noise_dn
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
@@ -275,8 +276,9 @@ def _clip_bin_stats(
     share o_k of their pixels that are clipped (within ½ DN of 0 or 255 DN) (:func:`_clipping_penalty`)."""
     b, f64, dev = x.shape[0], torch.float64, x.device
     h, w = m.shape[-2] * 2, m.shape[-1] * 2
-    dn = x.detach()[..., :h, :w].double() * 255.0
-    clipped = F.avg_pool2d(((dn <= 0.5) | (dn >= 254.5)).double(), 2).flatten()  # share of each block's pixels
+    lo, hi = _clip_thresholds()
+    xs = x.detach()[..., :h, :w].float()
+    clipped = F.avg_pool2d(((xs <= lo) | (xs >= hi)).float(), 2).flatten().to(f64)  # share of each block's pixels
 
     def per_bin(values: torch.Tensor) -> torch.Tensor:
         out = torch.zeros(b * bins, dtype=f64, device=dev).index_add_(0, idx, values).view(b, bins)
@@ -288,6 +290,25 @@ def _clip_bin_stats(
     return n_k, m_k, o_k
 
 
+@functools.lru_cache(maxsize=1)
+def _clip_thresholds() -> tuple[float, float]:
+    """(t₀, t₂₅₅): the float32 values with x ≤ t₀ ⟺ 255·x ≤ 0.5 DN and x ≥ t₂₅₅ ⟺ 255·x ≥ 254.5 DN, exactly, for every
+    float32 x (255·x is exact in float64), so that a pixel within ½ DN of a bound is found without a float64 copy."""
+    one, f32 = torch.tensor(1.0), torch.float32
+
+    def last(bound: float, below: bool) -> float:
+        t = torch.tensor(bound / 255.0, dtype=f32)
+        inside = (lambda v: float(v.double()) * 255.0 <= bound) if below else (lambda v: float(v.double()) * 255.0 >= bound)
+        toward, away = (-one, one) if below else (one, -one)
+        while not inside(t):
+            t = torch.nextafter(t, toward.to(f32))
+        while inside(torch.nextafter(t, away.to(f32))):
+            t = torch.nextafter(t, away.to(f32))
+        return float(t)
+
+    return last(0.5, True), last(254.5, False)
+
+
 def _clip_cost(n_k: torch.Tensor, m_k: torch.Tensor, o_k: torch.Tensor, a: torch.Tensor, c: torch.Tensor,
                q: torch.Tensor) -> torch.Tensor:
     """−½·((p_k − o_k)⁺/s_k)² of :func:`_clipping_penalty`, broadcast over its arguments (bin statistics of
@@ -297,6 +318,18 @@ def _clip_cost(n_k: torch.Tensor, m_k: torch.Tensor, o_k: torch.Tensor, a: torch
     spread = 0.1 * p_k + (p_k / (4.0 * n_k).clamp_min(1.0)).sqrt() + 1e-3
     z = torch.where(n_k > 0, (p_k - o_k).clamp_min(0) / spread, torch.zeros_like(p_k))
     return -0.5 * z.square()
+
+
+def _dilate3(mask: torch.Tensor) -> torch.Tensor:
+    """Whether any element of each 3×3 neighbourhood of a (…, h, w) bool mask is set (outside the mask: unset) —
+    the values of a 3×3 max pool with padding 1, by shifted ors (10× faster on the CPU than ``max_pool2d``)."""
+    rows = mask.clone()
+    rows[..., 1:, :] |= mask[..., :-1, :]
+    rows[..., :-1, :] |= mask[..., 1:, :]
+    out = rows.clone()
+    out[..., :, 1:] |= rows[..., :, :-1]
+    out[..., :, :-1] |= rows[..., :, 1:]
+    return out
 
 
 def _inliers(
@@ -312,7 +345,7 @@ def _inliers(
     margin = torch.as_tensor(bound_margin, dtype=v_ref.dtype, device=v_ref.device)
     margin = margin.view(-1, 1, 1, 1) if margin.ndim else margin
     dist = torch.minimum(v_ref.sqrt() * margin, torch.full_like(v_ref, max_margin_dn))  # ≤ max_margin_dn [DN]
-    flat = F.max_pool2d((g2 > _TEXTURE_CHI2 * v_ref / 2.0).float(), 3, 1, 1) == 0
+    flat = ~_dilate3(g2 > _TEXTURE_CHI2 * v_ref / 2.0)
     keep = usable & flat & (m - dist > 0) & (m + dist < 255.0)
     return (keep & (d2 < _INLIER_Z**2 * v_ref)).float()
 
@@ -323,11 +356,18 @@ def _median_variance(m: torch.Tensor, diag2: torch.Tensor, usable: torch.Tensor,
     of χ²₁; the diagonal detail does not see linear gradients); +inf in a bin without usable blocks."""
     b = m.shape[0]
     k = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)  # (B, n)
-    diag = torch.where(usable.flatten(1), diag2.flatten(1), torch.full_like(m.flatten(1), float("nan")))
-    per_bin = torch.full((b, bins, diag.shape[1]), float("nan"), device=m.device)
-    per_bin.scatter_(1, k.unsqueeze(1), diag.unsqueeze(1))
-    v_bin = torch.nanmedian(per_bin, dim=2).values / 0.4549  # (B, bins); NaN where a bin has no block
-    return v_bin.gather(1, k).view_as(m).nan_to_num(float("inf")).clamp_min(1e-6)
+    # one sort per patch by (bin, d²): the bits of a float32 ≥ 0 order as the values do, so bin·2³² + bits is an
+    # exact key; unusable blocks get bin ``bins`` and sort last. Bin j's median (the lower one, as torch.median's) is
+    # then at its start + (N_j − 1) // 2.
+    bits = diag2.detach().float().clamp_min(0).flatten(1).view(torch.int32).long()
+    j = torch.where(usable.flatten(1), k, torch.full_like(k, bins))
+    key = sorted_values(j * (1 << 32) + bits)
+    n_j = torch.zeros(b, bins + 1, dtype=torch.long, device=m.device).scatter_add_(1, j, torch.ones_like(j))[:, :bins]
+    start = n_j.cumsum(1) - n_j
+    pick = key.gather(1, (start + (n_j - 1).clamp_min(0) // 2).clamp_max(key.shape[1] - 1))
+    med = (pick & 0xFFFFFFFF).int().view(torch.float32)
+    v_bin = torch.where(n_j > 0, med / 0.4549, torch.full_like(med, float("inf")))  # (B, bins); ∞ where a bin has no block
+    return v_bin.gather(1, k).view_as(m).clamp_min(1e-6)
 
 
 def _noise_model(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

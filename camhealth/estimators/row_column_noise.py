@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import torch
 
+from camhealth._order import sorted_values
 from camhealth.estimators.noise_features import _block_pixels
 
 __all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", "MIN_BANDING_DN", "SERIAL_LIMIT"]
@@ -114,7 +115,7 @@ def _midmean_constants(w: int) -> tuple[float, float]:
 def _midmean(h: torch.Tensor, w: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Midmean along the last dimension and the variance of the middle half (float64; sorted in float32)."""
     lo = w // 4
-    mid = h.float().contiguous().sort(-1).values[..., lo:w - lo]
+    mid = sorted_values(h.float())[..., lo:w - lo]
     m = mid.mean(-1)
     return m.double(), (mid.square().mean(-1) - m.square()).clamp_min(0.0).double()
 

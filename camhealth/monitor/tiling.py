@@ -80,6 +80,7 @@ from typing import Sequence
 
 import torch
 
+from camhealth._order import lower_median
 from camhealth._validation import check_float, check_tensor
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, MIN_EDGE_KURTOSIS, edge_kurtosis_from_moments
 
@@ -251,7 +252,7 @@ def _statistics(v: torch.Tensor, patch: int) -> PatchStats:
     diag = (ab - cd).abs_().mul_(127.5)  # |I00 − I01 − I10 + I11| / 2 in DN, (R, P/2, C, P/2)
     # median over every other row of d (P²/8 samples per patch: ~2 % standard error, half the sort work)
     flat = diag[:, 0::2].permute(0, 2, 1, 3).reshape(n, -1)
-    noise = flat.kthvalue((flat.shape[1] + 1) // 2, dim=1).values / _MAD_NORMAL
+    noise = lower_median(flat) / _MAD_NORMAL
     bin2 = (a + b).add_(cc).add_(d).mul_(63.75)  # 2×2 means in DN
     dx = bin2[..., 1:] - bin2[..., :-1]
     dy = bin2[:, 1:] - bin2[:, :-1]

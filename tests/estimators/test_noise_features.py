@@ -136,3 +136,47 @@ def _leaves(b: int, seed: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     levels = 30 + 190 * torch.rand(b, 1, 8, 8, generator=g, dtype=torch.float64)
     return torch.nn.functional.interpolate(levels, size=(128, 128), mode="nearest")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_clipped_prior_far_from_the_bounds_equals_the_per_pixel_path(dtype):
+    """clipped_prior_dn reads a patch whose every pixel lies > 6 σ from both bounds from its mean alone; that must be
+    what the per-pixel censored moments give there (the unclipped model at the mean), and a batch that mixes such
+    patches with clipped ones must give each the value it gets alone."""
+    from camhealth.estimators.noise_features import clipped_prior_dn
+    from camhealth.physics.clipping import clipped_sigma_dn, estimate_clean_dn
+
+    g = torch.Generator().manual_seed(5)
+    ramp = torch.linspace(60.0, 190.0, 64).view(1, 1, 1, 64)
+    far = ((ramp + 3.0 * torch.randn(3, 1, 64, 64, generator=g)).round() / 255.0).to(dtype)
+    near = ((torch.linspace(-20.0, 300.0, 64).view(1, 1, 1, 64) + 9.0 * torch.randn(2, 1, 64, 64, generator=g))
+            .clamp(0, 255).round() / 255.0).to(dtype)
+    a = torch.tensor([0.05, 0.1, 0.0, 0.3, 1.2], dtype=torch.float64)
+    dc = torch.tensor([0.2, 1.0, 0.0, 0.5, 2.0], dtype=torch.float64)
+    rn = torch.tensor([1.0, 2.0, 0.5, 3.0, 4.0], dtype=torch.float64)
+    x = torch.cat([far, near])
+    got = clipped_prior_dn(x, a, dc, rn)
+    # the per-pixel path, written out
+    img = x.float().clamp(0, 1) * 255.0
+    clean = estimate_clean_dn(img, a.float(), (dc.square() + rn.square()).float(), dtype=torch.float32)
+    ref = clipped_sigma_dn(clean, [a.float().view(-1, 1, 1, 1) * clean, dc.float().square(), rn.float().square()], dtype=torch.float32)
+    assert got.dtype == torch.float64 and got.shape == (5, 4)
+    assert torch.allclose(got, ref, rtol=0, atol=1e-5), (got - ref).abs().max()
+    mean = x.double().flatten(1).mean(1)[:3] * 255.0
+    assert torch.allclose(got[:3, 0], (a[:3] * mean).sqrt(), rtol=1e-9, atol=0), got[:3, 0] - (a[:3] * mean).sqrt()  # far: the unclipped model at the mean
+    assert torch.equal(got[:3, 1:3], torch.stack([dc[:3], rn[:3]], 1))
+    assert (got[3:, 3] < (a[3:] * x[3:].double().flatten(1).mean(1) * 255 + dc[3:] ** 2 + rn[3:] ** 2).sqrt()).all()
+    for i in range(5):  # each patch alone: the same value as in the mixed batch
+        assert torch.allclose(clipped_prior_dn(x[i:i + 1], a[i:i + 1], dc[i:i + 1], rn[i:i + 1]), got[i:i + 1], atol=1e-12)
+
+
+def test_clipped_prior_names_bad_metadata_on_the_fast_path_too():
+    from camhealth.estimators.noise_features import clipped_prior_dn
+
+    x = torch.full((1, 1, 16, 16), 0.5)
+    with pytest.raises(ValueError, match="nan|NaN|finite"):
+        clipped_prior_dn(x, torch.tensor([float("nan")]), torch.tensor([1.0]), torch.tensor([1.0]))
+    with pytest.raises(ValueError):
+        clipped_prior_dn(x, torch.tensor([-1.0]), torch.tensor([1.0]), torch.tensor([1.0]))
+    with pytest.raises(ValueError):
+        clipped_prior_dn(torch.full((1, 1, 16, 16), float("nan")), torch.tensor([0.1]), torch.tensor([1.0]), torch.tensor([1.0]))

@@ -575,3 +575,57 @@ def test_a_frame_that_is_not_textured_is_read_as_one_camera_state():
     out = PhysicsNoiseEstimator().predict(noisy, meta, pool=True)
     assert out["assessable"].all() and torch.equal(out["xi"], raw[:, _COL["xi_dn"]])
     assert (out["p_match"] == out["p_match"][0]).all()  # one posterior (σ after clipping stays per patch)
+
+
+def test_dilate3_equals_a_3x3_max_pool():
+    from camhealth.estimators.physics_noise import _dilate3
+
+    g = torch.Generator().manual_seed(2)
+    for shape in [(8, 1, 64, 64), (1, 1, 3, 3), (2, 1, 1, 5), (3, 1, 7, 1), (4, 1, 96, 40)]:
+        for share in (0.0, 0.01, 0.2, 1.0):
+            mask = torch.rand(*shape, generator=g) < share
+            assert torch.equal(_dilate3(mask), F.max_pool2d(mask.float(), 3, 1, 1) > 0), (shape, share)
+
+
+def test_clip_thresholds_find_pixels_within_half_a_dn_of_the_bounds_exactly():
+    """x ≤ t₀ ⟺ 255·x ≤ 0.5 and x ≥ t₂₅₅ ⟺ 255·x ≥ 254.5 (computed exactly in float64) for float32 x around both
+    thresholds and for every 8-bit value."""
+    from camhealth.estimators.physics_noise import _clip_thresholds
+
+    lo, hi = _clip_thresholds()
+    f32 = torch.float32
+    near = []
+    for bound in (lo, hi):
+        t = torch.tensor(bound, dtype=f32)
+        for direction in (-1.0, 2.0):
+            u = t
+            for _ in range(8):
+                u = torch.nextafter(u, torch.tensor(direction, dtype=f32))
+                near.append(u)
+        near.append(t)
+    x = torch.cat([torch.stack(near), torch.arange(256, dtype=f32) / 255.0])
+    exact = x.double() * 255.0
+    assert torch.equal(x <= lo, exact <= 0.5)
+    assert torch.equal(x >= hi, exact >= 254.5)
+
+
+def test_median_variance_equals_a_per_bin_nanmedian():
+    from camhealth.estimators.physics_noise import _median_variance
+
+    g = torch.Generator().manual_seed(4)
+    for trial in range(40):
+        b, bins = int(torch.randint(1, 6, (1,), generator=g)), int(torch.randint(1, 9, (1,), generator=g))
+        m = torch.rand(b, 1, 16, 24, generator=g) * 255.0
+        d2 = torch.randn(b, 1, 16, 24, generator=g).square() * 30.0
+        if trial % 3 == 0:
+            d2 = d2.round()  # ties
+        usable = torch.rand(b, 1, 16, 24, generator=g) < float(torch.rand(1, generator=g))
+        k = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
+        ref = torch.full((b, bins), float("inf"))
+        for i in range(b):
+            for j in range(bins):
+                sel = d2.flatten(1)[i][(k[i] == j) & usable.flatten(1)[i]]
+                if sel.numel():
+                    ref[i, j] = sel.median() / 0.4549
+        want = ref.gather(1, k).view_as(m).clamp_min(1e-6)
+        assert torch.equal(_median_variance(m, d2, usable, bins), want), trial
