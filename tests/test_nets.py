@@ -166,7 +166,19 @@ def test_mtf_preprocess_equals_pixel_unshuffle(size):
     want = torch.nn.functional.pixel_unshuffle(torch.cat([both, gx * 4.0, gy * 4.0], 1), 4)
     out = pre(x)
     assert out.shape == (12, 48, size // 4, size // 4)
-    assert torch.equal(out, want)
+    assert torch.equal(out, want) and out.is_contiguous()
+    cl = pre(x, channels_last=True)
+    assert torch.equal(cl, want) and cl.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(gx_gy_reference(both)[0], gx) and torch.equal(gx_gy_reference(both)[1], gy)
+
+
+def gx_gy_reference(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sobel derivatives written out as (a + 2b + c)/8 with temporaries (the definition sobel must match bit for bit)."""
+    xp = torch.nn.functional.pad(x, (1, 1, 1, 1), mode="replicate")
+    dx = xp[..., :, 2:] - xp[..., :, :-2]
+    dy = xp[..., 2:, :] - xp[..., :-2, :]
+    return ((dx[..., :-2, :] + 2.0 * dx[..., 1:-1, :] + dx[..., 2:, :]) / 8.0,
+            (dy[..., :, :-2] + 2.0 * dy[..., :, 1:-1] + dy[..., :, 2:]) / 8.0)
 
 
 def test_mtf_preprocess_refuses_sizes_not_divisible_by_the_downsampling():
