@@ -380,10 +380,22 @@ def _noise_model(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _quantisation_variance(image: torch.Tensor) -> torch.Tensor:
-    """1/12 DN² for patches whose values are whole DN (8-bit data), else 0, (B,) float64."""
-    dn = image.detach().double().flatten(1) * 255.0
-    whole = (dn - dn.round()).abs().amax(1) < 1e-3
-    return whole.double() / 12.0
+    """1/12 DN² for patches whose values are whole DN (8-bit data), else 0, (B,) float64: every |255·x − round(255·x)|
+    below 1e-3, with 255·x exact (float64).
+
+    Read in float32 first, where 255·x is within 8e-6 DN of exact (half an ulp of 255); only a patch whose largest
+    distance comes within 1e-5 of the tolerance is read again in float64, so the verdict is the exact one at a fifth
+    of the memory traffic."""
+    flat = image.detach().flatten(1)
+    if flat.dtype != torch.float32:
+        flat = flat.double()
+    dn = flat * 255.0
+    dist = dn.sub_(dn.round()).abs_().amax(1).double()
+    close = (dist - 1e-3).abs() < 1e-5
+    if bool(close.any()):
+        exact = image.detach().flatten(1)[close].double() * 255.0
+        dist[close] = (exact - exact.round()).abs().amax(1)
+    return (dist < 1e-3).double() / 12.0
 
 
 def _hypotheses(

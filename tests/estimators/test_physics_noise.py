@@ -629,3 +629,23 @@ def test_median_variance_equals_a_per_bin_nanmedian():
                     ref[i, j] = sel.median() / 0.4549
         want = ref.gather(1, k).view_as(m).clamp_min(1e-6)
         assert torch.equal(_median_variance(m, d2, usable, bins), want), trial
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_quantisation_variance_is_the_exact_verdict_at_the_tolerance(dtype):
+    """8-bit patches get 1/12 DN²; a patch whose largest distance to a whole DN lies just below, at or just above
+    1e-3 DN gets the verdict of the exact float64 product, not of float32 rounding."""
+    from camhealth.estimators.physics_noise import _quantisation_variance
+
+    g = torch.Generator().manual_seed(0)
+    base = (torch.rand(6, 1, 16, 16, generator=g) * 255).round()
+    base[:, :, 0, 0] = 200.0
+    offsets = torch.tensor([0.0, 0.999e-3, 1e-3, 1.001e-3, 0.3, 5e-4], dtype=torch.float64)
+    x = base.double()
+    x[:, 0, 0, 0] += offsets
+    x = (x / 255.0).to(dtype)
+    exact = (x.double().flatten(1) * 255.0)
+    want = ((exact - exact.round()).abs().amax(1) < 1e-3).double() / 12.0
+    got = _quantisation_variance(x)
+    assert torch.equal(got, want)
+    assert got[0] == 1 / 12 and got[4] == 0 and got[5] == 1 / 12
