@@ -167,8 +167,6 @@ def test_mtf_preprocess_equals_pixel_unshuffle(size):
     out = pre(x)
     assert out.shape == (12, 48, size // 4, size // 4)
     assert torch.equal(out, want) and out.is_contiguous()
-    cl = pre(x, channels_last=True)
-    assert torch.equal(cl, want) and cl.is_contiguous(memory_format=torch.channels_last)
     assert torch.equal(gx_gy_reference(both)[0], gx) and torch.equal(gx_gy_reference(both)[1], gy)
 
 
