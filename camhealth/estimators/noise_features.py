@@ -172,7 +172,8 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
         k = _NEAR_SIGMAS
         low_band = 0.5 * k * k * a64 + (0.25 * k**4 * a64.square() + k * k * c64).sqrt()  # x < k·σ(x) below it
         high_band = 255.0 - k * (a64 * 255.0 + c64).sqrt()  # x > 255 − k·σ(x) only above it
-        lo, hi = flat.aminmax(dim=1)  # in [0, 1]: where the test passes, the clamp to [0, 1] changes nothing
+        lo, hi = flat.amin(1), flat.amax(1)  # (6× faster than aminmax along a dimension); where the test below passes,
+        # they lie in [0, 1] and the clamp to [0, 1] changes nothing
         # (metadata that are not finite or a negative slope go to the per-pixel path, whose checks name them)
         far = (lo.double() * 255.0 >= low_band) & (hi.double() * 255.0 <= high_band) & (a64 >= 0) & torch.isfinite(a64 + c64)
         mean_dn = flat.sum(1, dtype=f64) * (255.0 / flat.shape[1])
