@@ -5,7 +5,7 @@ on every frame. On the CPU, NumPy's vectorised selection and sort take 5–10× 
 ``torch.sort`` for such rows (2 threads, a 2-core x86 VM: the median of 80 rows of 2 048 values 0.16 against 0.84
 ms; sorting 1 024 rows of 64 values 0.07 against 0.69 ms), and an order statistic is a value of the input, so both
 give the same numbers bit for bit (tested). CPU tensors of float32, float64 or integer dtypes that need no gradient
-take the NumPy path; everything else (CUDA, bf16/fp16, autograd) takes torch's.
+take the NumPy path; everything else (CUDA, bf16/fp16, autograd, and code being traced or exported) takes torch's.
 """
 
 from __future__ import annotations
@@ -18,8 +18,16 @@ __all__ = ["kth_smallest", "sorted_values", "lower_median"]
 _NUMPY_DTYPES = (torch.float32, torch.float64, torch.int16, torch.int32, torch.int64, torch.uint8)
 
 
+def _traced() -> bool:
+    """Whether torch is tracing or exporting the caller (TorchScript, ONNX, torch.export, torch.compile): NumPy calls
+    cannot be traced, so the torch operators are used there."""
+    return (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
+            or torch.compiler.is_exporting())
+
+
 def _numpy_ok(x: torch.Tensor) -> bool:
-    return x.device.type == "cpu" and x.dtype in _NUMPY_DTYPES and not x.requires_grad and x.numel() > 0
+    return (x.device.type == "cpu" and x.dtype in _NUMPY_DTYPES and not x.requires_grad and x.numel() > 0
+            and not _traced())
 
 
 def kth_smallest(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -34,7 +42,12 @@ def kth_smallest(x: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def lower_median(x: torch.Tensor) -> torch.Tensor:
-    """The lower median along the last dimension (the ⌈n/2⌉-th smallest value), like ``x.median(-1).values``."""
+    """The lower median along the last dimension (the ⌈n/2⌉-th smallest value), like ``x.median(-1).values``. ONNX
+    has no median operator: in an ONNX export it is the top-k form (the same value)."""
+    if torch.onnx.is_in_onnx_export():
+        return x.topk((x.shape[-1] - 1) // 2 + 1, dim=-1, largest=False).values[..., -1]
+    if not _numpy_ok(x):
+        return x.median(dim=-1).values
     return kth_smallest(x, (x.shape[-1] + 1) // 2)
 
 

@@ -62,3 +62,19 @@ def test_inference_tensors_and_results_own_their_memory():
     m += 1.0
     s.zero_()
     assert torch.equal(y, before)  # neither result is a view of the input
+
+
+class _Median(torch.nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return lower_median(x) + sorted_values(x)[..., 0]
+
+
+def test_traced_and_exported_code_takes_torch_operators():
+    """NumPy cannot be traced: under torch.export and TorchScript tracing the helpers use torch's operators and the
+    exported program gives the eager values."""
+    x = torch.rand(3, 17, generator=torch.Generator().manual_seed(1))
+    want = x.median(-1).values + x.sort(-1).values[..., 0]
+    ep = torch.export.export(_Median(), (x,))
+    assert torch.equal(ep.module()(x), want)
+    traced = torch.jit.trace(_Median(), (x,))
+    assert torch.equal(traced(x), want)

@@ -25,6 +25,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from camhealth._order import lower_median
 from camhealth.physics.clipping import _NEAR_SIGMAS, clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
@@ -233,19 +234,11 @@ def _haar_blocks(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return ((a - b - c + e) / 2.0).abs().flatten(1), ((a + b + c + e) / 4.0).flatten(1)
 
 
-def _lower_median(x: torch.Tensor) -> torch.Tensor:
-    """Lower median along the last dimension. ONNX has no median operator: there it is the top-k form (3–4×
-    slower); torch.median returns the lower median for an even count, the same value."""
-    if torch.onnx.is_in_onnx_export():
-        return x.topk((x.shape[-1] - 1) // 2 + 1, dim=-1, largest=False).values[..., -1]
-    return x.median(dim=-1).values
-
-
 def _image_statistics(x: torch.Tensor) -> torch.Tensor:
     mean = x.flatten(1).mean(1)
     low = (x <= CLIP_TOLERANCE).float().flatten(1).mean(1)
     high = (x >= 1.0 - CLIP_TOLERANCE).float().flatten(1).mean(1)
     resp = laplace_difference(x * 255.0).abs().flatten(1).mean(1)
     immerkaer = math.sqrt(math.pi / 2.0) * resp / 6.0
-    mad = _lower_median(_haar_blocks(x)[0]) / 0.6745
+    mad = lower_median(_haar_blocks(x)[0]) / 0.6745
     return torch.stack([mean, mean.clamp_min(0).sqrt(), low, high, immerkaer, mad], dim=1)
