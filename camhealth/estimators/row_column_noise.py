@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import torch
 
-from camhealth._order import sorted_values
+from camhealth._order import lower_median, sorted_values
 from camhealth.estimators.noise_features import _block_pixels
 
 __all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", "MIN_BANDING_DN", "SERIAL_LIMIT"]
@@ -87,8 +87,8 @@ class RowColumnNoise:
 
 def _mad_var(x: torch.Tensor) -> torch.Tensor:
     """(1.4826·median|x − median x|)² along the last dimension."""
-    med = x.median(-1, keepdim=True).values
-    return ((x - med).abs().median(-1).values * _MAD_TO_SD).square()
+    med = lower_median(x).unsqueeze(-1)
+    return (lower_median((x - med).abs()) * _MAD_TO_SD).square()
 
 
 def _signed_details(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,7 +134,7 @@ def _directions(h: torch.Tensor, pool: bool) -> tuple[torch.Tensor, ...]:
         delta, nu, t = (v.reshape(d, 1, -1) for v in (delta, nu, t))
     n = delta.shape[-1]
     var_delta = _mad_var(delta)
-    sig2 = ((var_delta - nu.median(-1).values) / 4.0).clamp_min(0.0)
+    sig2 = ((var_delta - lower_median(nu)) / 4.0).clamp_min(0.0)
     se = 2.0 * 1.166 * var_delta / math.sqrt(max(n, 1)) / 4.0
     out = (sig2, se, _mad_var(t), _serial_correlation(mid, pool))
     return tuple(v.expand(d, b) for v in out) if pool else out
