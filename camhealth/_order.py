@@ -26,8 +26,8 @@ def _traced() -> bool:
 
 
 def _numpy_ok(x: torch.Tensor) -> bool:
-    return (x.device.type == "cpu" and x.dtype in _NUMPY_DTYPES and not x.requires_grad and x.numel() > 0
-            and not _traced())
+    return (not _traced() and x.device.type == "cpu" and x.dtype in _NUMPY_DTYPES and not x.requires_grad
+            and x.numel() > 0)
 
 
 def kth_smallest(x: torch.Tensor, k: int) -> torch.Tensor:

@@ -69,6 +69,7 @@ class _Median(torch.nn.Module):
         return lower_median(x) + sorted_values(x)[..., 0]
 
 
+@pytest.mark.filterwarnings("ignore:`torch.jit.trace:DeprecationWarning")
 def test_traced_and_exported_code_takes_torch_operators():
     """NumPy cannot be traced: under torch.export and TorchScript tracing the helpers use torch's operators and the
     exported program gives the eager values."""
