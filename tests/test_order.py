@@ -79,3 +79,14 @@ def test_traced_and_exported_code_takes_torch_operators():
     assert torch.equal(ep.module()(x), want)
     traced = torch.jit.trace(_Median(), (x,))
     assert torch.equal(traced(x), want)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64])
+def test_each_device_gets_the_cpu_values_on_its_own_device(device, dtype):
+    """On a GPU the helpers run torch's operators on the tensor's device and give the CPU path's values."""
+    x = _rows(dtype, (5, 9, 129), seed=4)
+    xd = x.to(device)
+    for got, want in ((kth_smallest(xd, 3), kth_smallest(x, 3)), (lower_median(xd), lower_median(x)),
+                      (sorted_values(xd), sorted_values(x))):
+        assert got.device.type == device.type
+        assert torch.equal(got.cpu(), want)
