@@ -1,6 +1,6 @@
 """Inference with trained estimators: :func:`load_estimator` → :class:`Estimator` with ``predict``.
 
-``load_estimator(path_or_name)`` accepts
+``load_estimator(path_or_name, device="cpu")`` accepts
 
 - a **shipped model name** (no network access): ``"mtf"``, ``"drne"``, ``"noise_source_full"`` (physics-first, no
   weights), ``"noise_source_min"``, ``"noise_source_none"`` (see :func:`shipped_models`; files in
@@ -47,6 +47,13 @@
   :mod:`camhealth.estimators.row_column_noise`; ``defects`` (B, 2) int64 and ``defect_mask`` (B, 1, P, P) int8:
   defective pixels, bright and dark, :mod:`camhealth.estimators.defective_pixels`; and ``pool``). The noise-source networks (``noise_source_min``, ``noise_source_none``) are for cameras
   with fewer metadata. Names and files of retired variants are refused with a message naming what replaced them.
+
+``device``: where the network runs (``"cpu"``, ``"cuda"`` or ``"cuda:N"``; the torch backend — shipped names,
+``.pt``, ``.ckpt``): each chunk of patches goes there and its outputs come back. The input checks, the
+defective-pixel repair and the assessability checks stay on the CPU (cheap statistics, NumPy-backed there);
+``noise_source_full`` runs its posterior (:func:`~camhealth.estimators.physics_noise.physics_noise_posterior`) on
+the device. ``predict`` takes CPU or device tensors alike and returns CPU tensors either way. ``.pt2`` and
+``.onnx`` files run on the CPU.
 """
 
 from __future__ import annotations
@@ -66,7 +73,7 @@ from camhealth.export import BY_PHYSICS, FORMAT_TAG, check_retired, load_net
 from camhealth.nets import NetworkSpec
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 
-__all__ = ["Estimator", "load_estimator", "shipped_models", "WEIGHTS_DIR", "assess_patches", "bucket_size",
+__all__ = ["Estimator", "load_estimator", "check_device", "shipped_models", "WEIGHTS_DIR", "assess_patches", "bucket_size",
            "PHYSICS_NOISE_MODEL", "RETIRED"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -99,6 +106,7 @@ class Estimator:
         description: the file's JSON description (architecture, params, FLOPs, metrics, ...).
         source: where it was loaded from.
         backend: ``"torch"``, ``"pt2"`` or ``"onnx"``.
+        device: where the network runs (the torch backend; module docstring).
 
     With the torch backend the network is a plain ``torch.nn.Module`` of :mod:`camhealth.nets` (no Lightning).
     """
@@ -110,6 +118,7 @@ class Estimator:
     source: str
     backend: str
     _run: Callable[..., torch.Tensor] = field(repr=False)
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     _net: Any = field(default=None, repr=False)
     _mtf_error: Any = field(default=None, repr=False)
 
@@ -195,12 +204,15 @@ class Estimator:
             if self.backend == "torch":  # pad to a bucket size: oneDNN reuses its kernels per batch shape
                 chunk = _pad_batch(chunk, bucket_size(n))
             chunk_meta = meta if meta is None or meta.batch_size == 1 else _pad_meta(meta[sl], chunk.shape[0])
+            if self.device.type != "cpu":
+                chunk = chunk.to(self.device, non_blocking=True)
+                chunk_meta = None if chunk_meta is None else chunk_meta.to(self.device)
             inputs = self.network_inputs(chunk, chunk_meta)
             if precision == "bf16" and self.backend == "torch":
-                with torch.autocast("cpu", dtype=torch.bfloat16):
-                    outs.append(self._run(*inputs, bf16=True)[:n].float())
+                with torch.autocast(self.device.type, dtype=torch.bfloat16):
+                    outs.append(self._run(*inputs, bf16=True)[:n].float().cpu())
             else:
-                outs.append(self._run(*inputs)[:n].float())
+                outs.append(self._run(*inputs)[:n].float().cpu())
         raw = torch.cat(outs)
         if not bool(torch.isfinite(raw).all()):
             raise FloatingPointError(f"estimator {self.name!r} produced non-finite outputs; please report this input")
@@ -267,8 +279,8 @@ def _pad_meta(meta: CameraMetadata, size: int) -> CameraMetadata:
     return meta[torch.cat([torch.arange(meta.batch_size), torch.full((size - meta.batch_size,), meta.batch_size - 1)])]
 
 
-def _torch_runner(net: torch.nn.Module, channels_last: bool) -> Callable[..., torch.Tensor]:
-    net = net.eval().float()
+def _torch_runner(net: torch.nn.Module, channels_last: bool, device: torch.device) -> Callable[..., torch.Tensor]:
+    net = net.eval().float().to(device)
     if channels_last:
         net = net.to(memory_format=torch.channels_last)
     nets: dict[bool, torch.nn.Module] = {False: net}
@@ -327,12 +339,43 @@ def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
     return desc, run
 
 
-def load_estimator(path_or_name: str | Path) -> Estimator:
-    """Load a shipped model by name, or a weights/checkpoint/pt2/onnx file (see the module docstring)."""
+def check_device(device: torch.device | str | None) -> torch.device:
+    """``device`` as a :class:`torch.device`: ``None``/``"cpu"``, or a CUDA device this machine has; anything else
+    raises a ``ValueError`` that names the value and what is allowed."""
+    if device is None:
+        return torch.device("cpu")
+    if not isinstance(device, (str, torch.device)):
+        raise TypeError(f"device must be a str or torch.device, got {type(device).__name__}")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"device = {device!r} is not a device name; allowed: 'cpu', 'cuda' or 'cuda:N'") from None
+    if dev.type == "cpu":
+        return torch.device("cpu")
+    if dev.type != "cuda":
+        raise ValueError(f"device = {device!r}: allowed are 'cpu', 'cuda' or 'cuda:N', got device type {dev.type!r}")
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if count == 0:
+        raise ValueError(f"device = {device!r}: this machine has no CUDA device (torch.cuda.is_available() is False); "
+                         f"use device='cpu'")
+    index = 0 if dev.index is None else dev.index
+    if not 0 <= index < count:
+        raise ValueError(f"device = {device!r}: CUDA device index {index} is out of the allowed range [0, {count - 1}]")
+    return torch.device("cuda", index)
+
+
+def load_estimator(path_or_name: str | Path, device: torch.device | str | None = "cpu") -> Estimator:
+    """Load a shipped model by name, or a weights/checkpoint/pt2/onnx file, with its network on ``device``
+    (see the module docstring)."""
+    if isinstance(path_or_name, (str, Path)) and Path(path_or_name).suffix.lower() in (".pt2", ".onnx") \
+            and device is not None and str(device) != "cpu":
+        raise ValueError(f"device = {str(device)!r}: {Path(path_or_name).name} is a {Path(path_or_name).suffix} file, "
+                         f"which runs on the CPU only; load a weights file (.pt) or a shipped name for device='cuda'")
+    dev = check_device(device)
     if isinstance(path_or_name, str) and path_or_name == PHYSICS_NOISE_MODEL:
         from camhealth.estimators.physics_noise import PhysicsNoiseEstimator
 
-        return PhysicsNoiseEstimator(source=PHYSICS_NOISE_MODEL)
+        return PhysicsNoiseEstimator(source=PHYSICS_NOISE_MODEL, device=dev)
     if isinstance(path_or_name, str) and path_or_name in RETIRED:
         raise ValueError(f"the shipped model {path_or_name!r} is retired: {RETIRED[path_or_name]}")
     shipped = shipped_models()
@@ -357,7 +400,7 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         backend = "onnx"
     else:
         net, desc = load_net(path)
-        run = _torch_runner(net, NetworkSpec.channels_last(desc.get("init_args", {})))
+        run = _torch_runner(net, NetworkSpec.channels_last(desc.get("init_args", {})), dev)
         backend = "torch"
     if desc.get("format", FORMAT_TAG) != FORMAT_TAG or desc.get("kind") not in ("mtf", "drne", "noise_source"):
         raise ValueError(f"{path}: unknown estimator description (kind {desc.get('kind')!r})")
@@ -375,4 +418,5 @@ def load_estimator(path_or_name: str | Path) -> Estimator:
         _run=run,
         _net=net,
         _mtf_error=error,
+        device=dev,
     )

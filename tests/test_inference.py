@@ -369,3 +369,61 @@ def test_mtf_reads_patches_with_their_defective_pixels_repaired():
         raw = est.predict(bad)
     assert ((raw["mtf"] - clean["mtf"]).abs().mean(1).max() > 0.01)
     assert est.predict(torch.zeros(0, 1, 192, 192))["defects"].shape == (0, 2)
+
+
+# ------------------------------------------------------------------ device
+def test_device_names_are_checked():
+    from camhealth.inference import check_device
+
+    assert check_device(None) == check_device("cpu") == check_device(torch.device("cpu")) == torch.device("cpu")
+    with pytest.raises(ValueError, match=r"device = 'gpu' is not a device name; allowed: 'cpu', 'cuda' or 'cuda:N'"):
+        check_device("gpu")
+    with pytest.raises(ValueError, match=r"device = 'meta'.*allowed are 'cpu', 'cuda' or 'cuda:N'"):
+        check_device("meta")
+    with pytest.raises(TypeError, match="device must be a str or torch.device, got int"):
+        check_device(0)
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"CUDA device index 99 is out of the allowed range \[0, "):
+            check_device("cuda:99")
+    else:
+        with pytest.raises(ValueError, match=r"device = 'cuda': this machine has no CUDA device"):
+            load_estimator("mtf", device="cuda")
+    for suffix in (".pt2", ".onnx"):  # refused before the file is read: those backends run on the CPU
+        with pytest.raises(ValueError, match=rf"{suffix} file, which runs on the CPU only"):
+            load_estimator(f"model{suffix}", device="cuda")
+
+
+def _scene_patches(size: int, batch: int, seed: int) -> torch.Tensor:
+    """Edges, shading and noise: patches every estimator reads as assessable, and a flat and a black one."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.linspace(0.2, 0.8, size).view(1, 1, 1, size).expand(batch, 1, size, size).clone()
+    x[..., size // 3:, size // 2:] += 0.15
+    x[-2] = 0.5
+    x[-1] = 0.0
+    return (x + 0.01 * torch.randn(x.shape, generator=g)).clamp(0, 1)
+
+
+@pytest.mark.parametrize("name", ["mtf", "drne", "noise_source_min", "noise_source_full"])
+def test_predict_on_each_device_gives_the_cpu_answer(device, name):
+    """With ``device=`` the network (``noise_source_full``: the posterior) runs there and the outputs come back on the
+    CPU: the same flags as on the CPU and values within float32 convolution rounding (TF32 on a GPU)."""
+    est = load_estimator(name, device=device)
+    assert est.device.type == device.type
+    x = _scene_patches(est.patch_size, 5, seed=1)
+    meta = None if est.metadata_set == "none" else CameraMetadata.preset("ICX285", gain_db=12.0)
+    ref = load_estimator(name).predict(x, metadata=meta)
+    for inputs in (x, x.to(device)):  # CPU or device tensors alike
+        out = est.predict(inputs, metadata=meta)
+        assert out["reason"] == ref["reason"]
+        for key, want in ref.items():
+            if isinstance(want, torch.Tensor):
+                got = out[key]
+                assert got.device.type == "cpu" and got.dtype == want.dtype and got.shape == want.shape, key
+                if want.is_floating_point():
+                    scale = 1.0 if name == "mtf" else 255.0
+                    assert torch.allclose(got, want, rtol=2e-3, atol=2e-3 * scale, equal_nan=True), key
+                else:
+                    assert torch.equal(got, want), key
+    if name == "mtf":
+        with torch.no_grad():
+            assert est.predict(x, precision="bf16")["mtf"].device.type == "cpu"

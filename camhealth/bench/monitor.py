@@ -104,6 +104,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="defocus disk diameter in px applied to every frame (default 3)")
     parser.add_argument("--precision", choices=("bf16", "fp32"), default="bf16",
                         help="precision of the monitor rows (default bf16)")
+    parser.add_argument("--device", default="cpu",
+                        help="where the monitors' networks (and noise_source_full's posterior) run: cpu (default), cuda "
+                             "or cuda:N; frame statistics stay on the CPU")
     parser.add_argument("--no-memory-probe", dest="memory_probe", action="store_false",
                         help="skip the peak-memory run of one monitor in a fresh interpreter")
     parser.add_argument("--slow-frames", type=int, default=2,
@@ -329,7 +332,8 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
     from camhealth.nets.drne import ThesisNoiseNet
 
     noise_model, mtf_model = _models(args, tmpdir)
-    common = dict(noise_model=noise_model, mtf_model=mtf_model, metadata=meta, precision=args.precision)
+    common = dict(noise_model=noise_model, mtf_model=mtf_model, metadata=meta, precision=args.precision,
+                  device=args.device)
     monitors = {
         ALL: Monitor(**common, mode="map", adaptive=False, skip_uninformative=False),
         INFORMATIVE: Monitor(**common, mode="map", adaptive=False),
@@ -391,7 +395,8 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
     for reader in readers.values():
         reader.close()
     rss_all = peak_rss_mb()
-    probe = _probe_memory(args, frames, meta, noise_model, mtf_model, tmpdir) if args.memory_probe else None
+    probe = _probe_memory(args, frames, meta, noise_model, mtf_model, tmpdir,
+                          kwargs={"device": args.device} if args.device != "cpu" else None) if args.memory_probe else None
 
     # ---- patches estimated per frame, accuracy
     def per_frame(name: str, task: str, key: str) -> float:
@@ -475,7 +480,7 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
         f"frames: {args.frames} × {args.width}×{args.height} uint8, scene {args.scene} (brightness ×{args.brightness:g}), "
         f"defocus {args.defocus_px:g} px, "
         f"{args.sensor} at {args.gain_db:g} dB / {args.exposure_s * 1e3:g} ms / {args.temperature_c:g} °C (metadata given); "
-        f"models: {model_note}; precision {args.precision}; warm-up {args.warmup} frame(s)",
+        f"models: {model_note}; precision {args.precision}; device {args.device}; warm-up {args.warmup} frame(s)",
         f"command: {getattr(args, 'command_line', 'python -m camhealth.bench monitor')}",
     ]
     def fmt(e: dict | None) -> str:

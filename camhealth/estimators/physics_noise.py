@@ -741,6 +741,8 @@ class PhysicsNoiseEstimator:
         metadata_set: ``"full"`` (every field of :class:`~camhealth.physics.CameraMetadata` enters the closed form).
         settings: keyword arguments of :func:`physics_noise_posterior`.
         source: the name it was loaded by.
+        device: where :func:`physics_noise_posterior` runs (the input checks, the assessability and defective-pixel
+            checks stay on the CPU); the outputs are CPU tensors either way.
     """
 
     kind: str = "noise_source"
@@ -752,6 +754,7 @@ class PhysicsNoiseEstimator:
     description: dict = field(default_factory=lambda: {
         "kind": "noise_source", "metadata_set": "full", "architecture": "physics_noise_posterior (no network)",
         "params": 0})
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
 
     @property
     def name(self) -> str:
@@ -788,20 +791,23 @@ class PhysicsNoiseEstimator:
                     "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
+        on_device, meta_dev = patches.to(self.device), meta.to(self.device)
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
-            raw = physics_noise_posterior(patches, meta, **settings)
+            raw = physics_noise_posterior(on_device, meta_dev, **settings)
             # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
             # textured, the patches whose own details pass both checks are read on their own
             if b > 1 and bool(textured(raw[0, 8], raw[0, 11])):
                 alone = ((raw[:, 18] >= MIN_FOLLOW_DETAILS) & ~textured(raw[:, 19], raw[:, 20])).nonzero(as_tuple=True)[0]
                 if alone.numel():
                     own = {**settings, "pool": False}
-                    raw[alone] = torch.cat([physics_noise_posterior(patches[alone[i:i + PATCH_CHUNK]], meta, **own)
+                    raw[alone] = torch.cat([physics_noise_posterior(on_device[alone[i:i + PATCH_CHUNK]], meta_dev, **own)
                                             for i in range(0, alone.numel(), PATCH_CHUNK)])
         else:
             step = min(batch_size, PATCH_CHUNK)
-            raw = torch.cat([physics_noise_posterior(patches[i:i + step], meta if meta.batch_size == 1 else meta[i:i + step],
+            raw = torch.cat([physics_noise_posterior(on_device[i:i + step],
+                                                     meta_dev if meta.batch_size == 1 else meta_dev[i:i + step],
                                                      **settings) for i in range(0, b, step)])
+        raw = raw.cpu()
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
         is_textured = textured(raw[:, 8], raw[:, 11]).tolist()

@@ -181,6 +181,9 @@ def build_parser():
                    help="judge every noise patch on its own instead of adding up the evidence of a frame's patches "
                         "(physics-first noise_source_full; per-patch maps)")
     g.add_argument("--batch-size", type=_positive, default=128, metavar="N", help="patches per network call (default 128)")
+    g.add_argument("--device", default="cpu", metavar="DEV",
+                   help="where the networks (and noise_source_full's posterior) run: cpu (default), cuda or cuda:N; "
+                        "frame statistics stay on the CPU")
     g.add_argument("--threads", type=_positive, default=None, metavar="N",
                    help="torch intra-op threads (default: 2, or 1 on a single-core machine — the 10 frames/s of a "
                         "1280x1024 stream are measured with 2 threads on 2 cores; if other busy jobs share the cores, "
@@ -412,7 +415,7 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         sensor=args.sensor,
         window=args.window, mode=("map" if args.overlay or args.per_patch else "sampled") if args.mode == "auto" else args.mode,
         noise_samples=args.noise_samples, mtf_samples=args.mtf_samples, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
-        skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, pool_noise=not args.per_patch_noise, batch_size=args.batch_size,
+        skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, pool_noise=not args.per_patch_noise, batch_size=args.batch_size, device=args.device,
         xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
         defect_map=args.defect_map,
     )

@@ -794,6 +794,10 @@ class Monitor:
         warmup: on the first frame of a new size, run each network once on every batch size the frame can
             need (:func:`camhealth.inference.bucket_size` buckets up to the grid size), so that oneDNN builds its
             kernels then and not on later frames (≈ 0.5 s once for 1280×1024; the "cold first frame").
+        device: where the estimators given by name or file run their networks (and ``noise_source_full`` its
+            posterior): ``"cpu"`` (default), ``"cuda"`` or ``"cuda:N"``
+            (:func:`camhealth.inference.load_estimator`); the frame statistics and patch selection stay on the CPU.
+            Estimator objects passed in keep their own device.
     """
 
     def __init__(
@@ -821,6 +825,7 @@ class Monitor:
         per_patch: bool = False,
         defect_map: Any = None,
         warmup: bool = True,
+        device: Any = "cpu",
     ) -> None:
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
             raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
@@ -855,7 +860,7 @@ class Monitor:
         self.estimators: dict[str, _EstimatorHandle] = {}
         for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
             if spec is not None:
-                self.estimators[task] = self._resolve(task, spec)
+                self.estimators[task] = self._resolve(task, spec, device)
         self.pool_noise = bool(pool_noise)
         if not self.estimators:
             raise ValueError("nothing to monitor: noise_model and mtf_model are both None")
@@ -905,11 +910,11 @@ class Monitor:
 
     # ------------------------------------------------------------------ set-up
     @staticmethod
-    def _resolve(task: str, spec: Any) -> _EstimatorHandle:
+    def _resolve(task: str, spec: Any, device: Any = "cpu") -> _EstimatorHandle:
         if isinstance(spec, (str, Path)):
             from camhealth.inference import load_estimator
 
-            est = load_estimator(spec)
+            est = load_estimator(spec, device=device)
         else:
             est = spec
         for attr in ("kind", "patch_size", "predict"):

@@ -310,6 +310,8 @@ def test_monitor_errors(model_files):
         Monitor(FakeNoise(), None, sensor="ICX285", mtf_views=3)
     with pytest.raises(FileNotFoundError, match="shipped names"):
         Monitor("no_such_model", None, sensor="ICX285")
+    with pytest.raises(ValueError, match="device = 'tpu' is not a device name"):
+        Monitor("noise_source_full", None, sensor="ICX285", device="tpu")
     class BlindNoise(FakeNoise):
         metadata_set = "none"
 
@@ -703,3 +705,21 @@ def test_noise_that_is_not_white_is_refused_with_a_hint_at_its_cause(process):
     assert r.alarm["state"] == "not_assessable" and TEXTURED_HINT in r.alarm["message"]
     ok = Monitor("noise_source_full", None, sensor="ICX285", warmup=False).process(raw)
     assert ok.noise.assessable and TEXTURED_HINT not in ok.alarm["message"]
+
+
+def test_the_estimators_run_on_the_monitors_device(device, street_frames):
+    """``device=`` puts the named estimators' networks (and the noise posterior) there; the frame's answer is the
+    CPU's: the same patches and alarm, σ and MTF within float32 convolution rounding (TF32 on a GPU)."""
+    frame = noisy(street_frames[0], 3.0, seed=0)
+    reports = []
+    for dev in ("cpu", device):
+        mon = Monitor("noise_source_full", "mtf", sensor="ICX285", mode="map", precision="fp32", device=dev)
+        assert all(h.est.device.type == torch.device(dev).type for h in mon.estimators.values())
+        reports.append(_strict(mon.process(frame).to_json()))
+    ref, got = reports
+    assert got["alarm"] == ref["alarm"]
+    assert got["noise"]["patches"] == ref["noise"]["patches"] and got["mtf"]["patches"] == ref["mtf"]["patches"]
+    for name in ("pn", "dcsn", "rn", "xi", "total"):
+        assert got["noise"]["sigma_dn"][name]["median"] == pytest.approx(ref["noise"]["sigma_dn"][name]["median"], abs=1e-3)
+    for d in ("h", "v"):
+        assert got["mtf"][d]["median"] == pytest.approx(ref["mtf"][d]["median"], abs=2e-3)

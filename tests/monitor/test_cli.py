@@ -155,6 +155,8 @@ def test_metadata_overrides_and_option_errors(models, tmp_path, capsys):
     assert code == 2 and "--overlay needs --out" in err
     code, _, err = _run(["street", "--sensor", "ICX285", "--iopc", str(tmp_path / "nope.json"), *models], capsys)
     assert code == 2 and "IOPC file not found" in err
+    code, _, err = _run(["street", "--sensor", "ICX285", "--max-frames", "1", "--device", "gpu0", *models], capsys)
+    assert code == 2 and "device = 'gpu0' is not a device name; allowed: 'cpu', 'cuda' or 'cuda:N'" in err
     with pytest.raises(SystemExit):
         build_parser().parse_args(["street", "--set", "gain=3"])
 
