@@ -119,6 +119,16 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     assert set(band) == {str(b) for b in rm.BANDING_DN}
     assert len({round(v["across"], 9) for v in band.values()}) == 1 and all(v["assessable"] == 1.0 for v in band.values())
     assert "| row noise [DN] | AMAE across the rows (V) % |" in text
+    # white noise after the blur, paired: the same patches (so the same truths) at every σ — a constant estimate reads
+    # the same error at every level, per family and in all, and the ratio to the noiseless patches is 1
+    paired = out["fake"]["noise_paired"]
+    assert set(paired) == {str(s) for s in rm.NOISE_DN}
+    for v in paired.values():
+        assert set(v) >= {*rm.FAMILIES, "all", "ratio", "share_assessable"}
+        assert v["ratio"]["all"] == pytest.approx(1.0) and v["share_assessable"] == 1.0
+        for f in (*rm.FAMILIES, "all"):
+            assert v[f]["all"] == pytest.approx(paired["0.0"][f]["all"]) and v[f]["assessable"] == v[f]["all"]
+    assert "| noise [DN] | defocus | tiny | all families | ratio to 0 DN | share assessable |" in text
     # defective pixels after the blur: one row per share, as shipped and without the repair
     defects = out["fake"]["defects"]
     assert set(defects) == {str(s) for s in rm.DEFECT_SHARES}
