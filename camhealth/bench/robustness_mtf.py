@@ -41,8 +41,8 @@ the fraction of patches called assessable and the AMAE on those alone (a patch w
 whose steep spectrum and blur look alike — is not assessable, :func:`camhealth._inputs.has_edges`), ms per patch, and the uncertainty ``mtf_std`` (views 1 and 4; the
 error table of ``python -m camhealth.bench mtf_error``, which is measured on training's generators only) against the
 error on the assessable patches: the share of values within u and 2u, beside the views' spread alone; the clean
-held-out patches again with white noise of 0–20 DN after the blur (paired: the same patches at every σ, so the ratio
-to the noiseless AMAE is the noise's alone), with row noise and with defective pixels. The classical reference is the ISO 12233 slanted
+held-out patches again with white noise of 0–20 DN or JPEG q 95–75 after the blur (paired: the same patches in every
+row, so the ratio to the untouched ones is the perturbation's alone), with row noise and with defective pixels. The classical reference is the ISO 12233 slanted
 edge (:func:`~camhealth.estimators.slanted_edge.slanted_edge_mtf_hv`) on an area-rendered slanted-edge chart blurred
 with the same held-out kernels — a scene that has an edge — beside the network on the same chart patches.
 """
@@ -442,31 +442,40 @@ def banding_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> l
     return lines
 
 
-#: White noise [DN] added after the blur in :func:`noise_lines` (0: the clean patches as they are).
-NOISE_DN = (0.0, 1.0, 2.0, 5.0, 10.0, 20.0)
+#: What :func:`paired_lines` does to the clean patches after the blur: ("noise", σ [DN]) white noise, ("jpeg", quality)
+#: OpenCV's libjpeg; ("none", 0) the patches as they are.
+PAIRED = (("none", 0), ("noise", 1), ("noise", 2), ("noise", 5), ("noise", 10), ("noise", 20),
+          ("jpeg", 95), ("jpeg", 85), ("jpeg", 75))
 
 
-def noise_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> list[str]:
-    """The paired table of white noise after the blur: the clean held-out cells' rendered-scene patches themselves with
-    N(0, σ²) per pixel added (8-bit rounded; its own generator, seed + 5000, so no other number moves) — the same
-    scenes and kernels at every σ, so the ratio to 0 DN is the noise's alone (the condition columns above draw other
-    kernels and crops per condition). AMAE % per family over all patches and over those the estimator calls
-    assessable, the ratio to the noiseless patches, the share assessable. Fills ``r["noise_paired"]``."""
+def paired_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> list[str]:
+    """The paired table of white noise and JPEG after the blur: the clean held-out cells' rendered-scene patches
+    themselves with N(0, σ²) per pixel added (8-bit rounded; its own generator, seed + 5000, so no other number moves)
+    or JPEG-compressed — the same scenes and kernels in every row, so the ratio to the untouched patches is the
+    perturbation's alone (the condition columns above draw other kernels and crops per condition). AMAE % per family
+    over all patches and over those the estimator calls assessable, the ratio to the untouched patches, the share
+    assessable. Fills ``r["paired"]`` (keys ``"none"``, ``"noise_5"``, ``"jpeg_85"`` …)."""
     g = torch.Generator().manual_seed(seed + 5000)
     clean = [c for c in held if c.condition == "clean"]
     x = torch.cat([c.image[_mask(c, "rendered")] for c in clean])
     truth = torch.cat([c.truth[_mask(c, "rendered")] for c in clean])
     fam = [c.family for c in clean for keep in _mask(c, "rendered").tolist() if keep]
-    lines = ["", f"White noise after the blur, paired ({x.shape[0]} clean patches of the held-out generators on rendered "
-             "scenes, the same patches at every σ, 8-bit rounded): AMAE % over all patches / on the patches the estimator "
-             "calls assessable, per family and in all, its ratio to the noiseless patches, and the share assessable:", "",
-             "| noise [DN] | " + " | ".join(FAMILIES) + " | all families | ratio to 0 DN | share assessable |",
-             "|---:|" + "---|" * (len(FAMILIES) + 2) + "---:|"]
-    r["noise_paired"] = {}
+    lines = ["", f"White noise and JPEG after the blur, paired ({x.shape[0]} clean patches of the held-out generators on "
+             "rendered scenes, the same patches in every row, 8-bit): AMAE % over all patches / on the patches the "
+             "estimator calls assessable, per family and in all, its ratio to the untouched patches, and the share "
+             "assessable:", "",
+             "| after the blur | " + " | ".join(FAMILIES) + " | all families | ratio to none | share assessable |",
+             "|---|" + "---|" * (len(FAMILIES) + 2) + "---:|"]
+    r["paired"] = {}
     base: dict[str, float] = {}
-    for sigma in NOISE_DN:
-        xn = x if sigma == 0 else ((x + sigma / 255.0 * torch.randn(x.shape, generator=g)).clamp(0, 1) * 255.0).round() / 255.0
-        o = est.predict(xn)
+    for kind, level in PAIRED:
+        if kind == "noise":
+            xp = ((x + level / 255.0 * torch.randn(x.shape, generator=g)).clamp(0, 1) * 255.0).round() / 255.0
+        elif kind == "jpeg":
+            xp = torch.stack([_jpeg(p, level) for p in x])
+        else:
+            xp = x
+        o = est.predict(xp)
         ok = torch.as_tensor(o.get("assessable", torch.ones(x.shape[0], dtype=torch.bool))).bool()
         amae = _amae(o["mtf"], truth)
         row: dict[str, Any] = {}
@@ -475,11 +484,13 @@ def noise_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> lis
             row[f] = {"all": float(amae[m].mean()),
                       "assessable": float(amae[m & ok].mean()) if bool((m & ok).any()) else float("nan")}
         row["share_assessable"] = float(ok.float().mean())
-        if sigma == 0:
+        if kind == "none":
             base = {"all": row["all"]["all"], "assessable": row["all"]["assessable"]}
         row["ratio"] = {k: row["all"][k] / base[k] for k in ("all", "assessable")}
-        r["noise_paired"][str(sigma)] = row
-        lines.append(f"| {sigma:g} | " + " | ".join(f"{_f(row[f]['all'])} / {_f(row[f]['assessable'])}" for f in FAMILIES)
+        key = "none" if kind == "none" else f"{kind}_{level}"
+        r["paired"][key] = row
+        label = {"none": "none", "noise": f"white noise {level} DN", "jpeg": f"JPEG q {level}"}[kind]
+        lines.append(f"| {label} | " + " | ".join(f"{_f(row[f]['all'])} / {_f(row[f]['assessable'])}" for f in FAMILIES)
                      + f" | {_f(row['all']['all'])} / {_f(row['all']['assessable'])} | {_f(row['ratio']['all'], '.2f')}× / "
                      f"{_f(row['ratio']['assessable'], '.2f')}× | {_f(100 * row['share_assessable'], '.0f')} % |")
     return lines
@@ -704,7 +715,7 @@ def run(args: argparse.Namespace) -> BenchResult:
                 ev = _agg(charts, "edge", lambda c, f=fam, k=cond: c.family == f and c.condition == k)[0]
                 r["chart"][f"{fam}/{cond}"] = {"network": nv, "edge": ev}
                 summary.append(f"| {fam} | {cond} | {_f(nv)} | {_f(ev)} |")
-        summary += noise_lines(est, held, args.seed, r)
+        summary += paired_lines(est, held, args.seed, r)
         summary += banding_lines(est, held, args.seed, r)
         summary += defects_lines(est, held, args.seed, r)
         summary.append(f"\nms per patch (fp32, threads {torch.get_num_threads()}): network views 1 {ms1:.1f}, views 4 {ms4:.1f}; "

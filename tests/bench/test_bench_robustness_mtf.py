@@ -119,16 +119,17 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     assert set(band) == {str(b) for b in rm.BANDING_DN}
     assert len({round(v["across"], 9) for v in band.values()}) == 1 and all(v["assessable"] == 1.0 for v in band.values())
     assert "| row noise [DN] | AMAE across the rows (V) % |" in text
-    # white noise after the blur, paired: the same patches (so the same truths) at every σ — a constant estimate reads
-    # the same error at every level, per family and in all, and the ratio to the noiseless patches is 1
-    paired = out["fake"]["noise_paired"]
-    assert set(paired) == {str(s) for s in rm.NOISE_DN}
+    # white noise and JPEG after the blur, paired: the same patches (so the same truths) in every row — a constant
+    # estimate reads the same error in every row, per family and in all, and the ratio to the untouched patches is 1
+    paired = out["fake"]["paired"]
+    assert set(paired) == {"none" if k == "none" else f"{k}_{v}" for k, v in rm.PAIRED}
     for v in paired.values():
         assert set(v) >= {*rm.FAMILIES, "all", "ratio", "share_assessable"}
         assert v["ratio"]["all"] == pytest.approx(1.0) and v["share_assessable"] == 1.0
         for f in (*rm.FAMILIES, "all"):
-            assert v[f]["all"] == pytest.approx(paired["0.0"][f]["all"]) and v[f]["assessable"] == v[f]["all"]
-    assert "| noise [DN] | defocus | tiny | all families | ratio to 0 DN | share assessable |" in text
+            assert v[f]["all"] == pytest.approx(paired["none"][f]["all"]) and v[f]["assessable"] == v[f]["all"]
+    assert "| after the blur | defocus | tiny | all families | ratio to none | share assessable |" in text
+    assert "| white noise 5 DN |" in text and "| JPEG q 75 |" in text
     # defective pixels after the blur: one row per share, as shipped and without the repair
     defects = out["fake"]["defects"]
     assert set(defects) == {str(s) for s in rm.DEFECT_SHARES}
