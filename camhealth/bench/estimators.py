@@ -58,6 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also print the Bayes-optimal DCSN/RN split's RMS on the noise set for a noise level known to 0/1/2/5 %%",
     )
     parser.add_argument("--no-reference", action="store_true", help="skip the thesis-size reference network")
+    parser.add_argument("--device", default="cpu",
+                        help="where the estimators' networks (and noise_source_full's posterior) run: cpu (default), cuda "
+                             "or cuda:N (load_estimator(device=)); input checks and patch statistics stay on the CPU")
 
 
 def _collect(dm, limit_batches: int | None = None) -> dict[str, torch.Tensor]:
@@ -250,7 +253,8 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.nets import ThesisNoiseNet, count_flops
 
     names = list(args.models) if args.models is not None else sorted([*shipped_models(), PHYSICS_NOISE_MODEL])
-    estimators = [load_estimator(n) for n in names] + [load_estimator(p) for p in args.checkpoint]
+    estimators = [load_estimator(n, device=args.device) for n in names] + [load_estimator(p, device=args.device)
+                                                                           for p in args.checkpoint]
     if not estimators:
         raise SystemExit("no estimators: ship weights under camhealth/weights/ or pass --checkpoint")
     noise_data = held_out_noise(args) if any(e.kind != "mtf" for e in estimators) else None
@@ -314,7 +318,8 @@ def run(args: argparse.Namespace) -> BenchResult:
     baseline = rows[0].name
     header = [
         f"{_dt.date.today().isoformat()}, {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads; batch {b}; `{getattr(args, 'command_line', 'python -m camhealth.bench estimators')}`",
+        f"{torch.get_num_threads()} threads; batch {b}; device {args.device}; "
+        f"`{getattr(args, 'command_line', 'python -m camhealth.bench estimators')}`",
     ]
     if not args.no_reference:
         ref = ThesisNoiseNet().eval()

@@ -123,3 +123,4 @@ def test_run_reports_accuracy_and_time_for_each_model_and_precision(tmp_path):
     assert all(len(r.times_ms) == 2 for r in res.rows)
     assert "total RMS" in res.rows[0].note and "total RMS" in res.rows[2].note and "AMAE" in res.rows[4].note
     assert any("closed form first, no network" in line for line in res.summary)
+    assert "device cpu" in res.header[0]  # --device (default cpu): where load_estimator put the networks
