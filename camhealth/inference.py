@@ -368,7 +368,7 @@ def load_estimator(path_or_name: str | Path, device: torch.device | str | None =
     """Load a shipped model by name, or a weights/checkpoint/pt2/onnx file, with its network on ``device``
     (see the module docstring)."""
     if isinstance(path_or_name, (str, Path)) and Path(path_or_name).suffix.lower() in (".pt2", ".onnx") \
-            and device is not None and str(device) != "cpu":
+            and device is not None and str(device).split(":")[0] != "cpu":
         raise ValueError(f"device = {str(device)!r}: {Path(path_or_name).name} is a {Path(path_or_name).suffix} file, "
                          f"which runs on the CPU only; load a weights file (.pt) or a shipped name for device='cuda'")
     dev = check_device(device)

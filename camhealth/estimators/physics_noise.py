@@ -791,7 +791,9 @@ class PhysicsNoiseEstimator:
                     "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
-        on_device, meta_dev = patches.to(self.device), meta.to(self.device)
+        on_device, meta_dev = patches, meta
+        if self.device.type != "cpu":
+            on_device, meta_dev = patches.to(self.device), meta.to(self.device)
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
             raw = physics_noise_posterior(on_device, meta_dev, **settings)
             # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
