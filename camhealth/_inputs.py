@@ -77,7 +77,7 @@ def _structure_stats(patches: torch.Tensor, noise: torch.Tensor | None = None) -
     x = patches[:, 0].float() * 255.0
     b, h, w = x.shape
     if h < 2 or w < 2:
-        return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b), None
+        return x.double().flatten(1).std(1, unbiased=False).float(), torch.zeros(b, device=x.device), None
     noise = _haar_noise(x) if noise is None else noise.double()
     blk = STRUCTURE_BLOCK
     if min(h, w) >= 2 * blk:
@@ -126,7 +126,7 @@ def edge_kurtosis(patches: torch.Tensor, noise_dn: torch.Tensor) -> tuple[torch.
     b, h, w = x.shape
     h2, w2 = h - h % 2, w - w % 2
     if h2 < 4 or w2 < 4:
-        return torch.zeros(b), torch.full((b,), float("inf"))
+        return torch.zeros(b, device=x.device), torch.full((b,), float("inf"), device=x.device)
     # float32 (gradients ≤ 255 DN; the moments' relative rounding ~1e-6 moves γ by ~1e-5), moments summed in float64
     m = 63.75 * (x[:, 0:h2:2, 0:w2:2] + x[:, 0:h2:2, 1:w2:2] + x[:, 1:h2:2, 0:w2:2] + x[:, 1:h2:2, 1:w2:2])
     gx, gy = (m[:, :, 1:] - m[:, :, :-1]).flatten(1), (m[:, 1:, :] - m[:, :-1, :]).flatten(1)

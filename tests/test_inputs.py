@@ -174,3 +174,15 @@ def test_assess_patches_with_the_callers_noise_level_answers_as_without():
     given = assess_patches(x, "mtf", haar_noise_dn(x, torch.float64))
     assert torch.equal(own[0], given[0]) and own[1] == given[1]
     assert len(set(own[1])) > 1  # the patches are not all judged alike
+
+
+def test_statistics_of_tiny_patches_stay_on_the_patches_device(device):
+    """Patches too small for the block statistics still get their answers on their own device."""
+    from camhealth._inputs import _structure_stats, edge_kurtosis
+
+    x = torch.rand(2, 1, 3, 3, generator=torch.Generator().manual_seed(0)).to(device)
+    gamma, se = edge_kurtosis(x, torch.ones(2, device=device))
+    assert gamma.device.type == se.device.type == device.type and bool(torch.isinf(se).all())
+    one = torch.rand(2, 1, 1, 5, generator=torch.Generator().manual_seed(1)).to(device)
+    s, noise, means = _structure_stats(one)
+    assert s.device.type == noise.device.type == device.type and means is None
