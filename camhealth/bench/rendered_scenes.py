@@ -179,14 +179,16 @@ def _texture(rng: np.random.Generator, size: int, s: int) -> np.ndarray:
     n = size * s
     beta = float(rng.uniform(1.5, 2.5))
     g = torch.Generator().manual_seed(int(rng.integers(2**62)))
-    w = torch.fft.rfft2(torch.randn(n, n, generator=g))
-    fy = torch.fft.fftfreq(n)[:, None] * s  # cycles per output pixel
-    fx = torch.fft.rfftfreq(n)[None, :] * s
-    f = torch.sqrt(fx**2 + fy**2)
-    amp = torch.where(f > 0, f.clamp_min(1e-12) ** (-beta / 2), torch.zeros(()))
-    x = torch.fft.irfft2(w / w.abs().clamp_min(1e-30) * amp, s=(n, n))
-    x = 0.5 + float(rng.uniform(0.10, 0.18)) * (x - x.mean()) / x.std()
-    return x.clamp(0, 1).numpy()
+    # NumPy's FFT (pocketfft, float64): the same bits in every process; torch's CPU FFT (MKL) can differ in the last
+    # bits from one process to the next
+    w = np.fft.rfft2(torch.randn(n, n, generator=g).double().numpy())
+    fy = np.fft.fftfreq(n)[:, None] * s  # cycles per output pixel
+    fx = np.fft.rfftfreq(n)[None, :] * s
+    f = np.sqrt(fx**2 + fy**2)
+    amp = np.where(f > 0, np.maximum(f, 1e-12) ** (-beta / 2), 0.0)
+    x = np.fft.irfft2(w / np.maximum(np.abs(w), 1e-30) * amp, s=(n, n))
+    x = 0.5 + float(rng.uniform(0.10, 0.18)) * (x - x.mean()) / x.std(ddof=1)
+    return np.clip(x, 0.0, 1.0).astype(np.float32)
 
 
 _RENDER = {"strokes": _strokes, "shapes": _shapes, "texture": _texture}
