@@ -93,6 +93,12 @@ that stands above or below all its neighbours by far more than the local noise. 
 do not count them in σ_Total; ``predict`` returns their count per patch (``defects``: hot, dark), where they are
 (``defect_mask``) and the pixels tested (``defects_checked``: 0 on a patch whose local extremes are a regular pattern).
 
+**Two exposures of a still scene** (``reference``; :mod:`camhealth.estimators.static_pair`): the evidence is read
+from the pair's fold J, whose details hold the two frames' noise and nothing of the scene, with no scene allowance,
+flatness tested on the difference's block means, and blocks used only where all four pixels lie
+:data:`PAIR_BOUND_MARGIN` σ from the bounds; the clipping, the rounding and σ after clipping stay ``image``'s.
+:meth:`PhysicsNoiseEstimator.predict` tests per patch that the scene stood still and reads the others alone.
+
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
 the metadata cannot be checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
@@ -122,13 +128,29 @@ from camhealth.estimators.noise_features import (
 )
 from camhealth.estimators.defective_pixels import defective_pixels
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
+from camhealth.estimators.static_pair import (
+    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, pair_shift, scene_leak, static_pair_blocks, static_pair_image,
+)
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
-           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "textured"]
+           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "PAIR_BOUND_MARGIN", "PAIR_MAX_SIGMA_DN", "textured"]
 
+#: τ [DN] of a static pair (:meth:`PhysicsNoiseEstimator.predict` with ``reference``): the difference of two exposures
+#: holds nothing of a static scene, so no allowance is made for its fine content.
+PAIR_SCENE_ALLOWANCE_DN = 0.0
+#: Bound margin [σ] of a static pair: a block is used where its pixels lie 3 σ from 0 and 255 DN (one frame: 2 σ, with
+#: the clipping's loss modelled). A pair's block is used only where none of its eight pixels is clipped, which
+#: truncates the difference more than :func:`_kept_variance_factor` models for one frame; at 3 σ that loss is below
+#: 0.3 % of a pixel's variance (a pair of frames with 24 DN of noise: p90 of |σ̂_Total/σ_Total − 1| 1.2 % at 3 σ, 6 % at
+#: 2 σ).
+PAIR_BOUND_MARGIN = 3.0
+#: Largest σ_Total [DN] read from a static pair: above it the 3-σ margin outgrows the 100-DN cap of the margin (the
+#: pair then reads low: −7 % at 60 DN), while the scene's fine content (≤ 2 DN on busy scenes) is < 0.2 % of the
+#: variance, so one frame reads it as well; such patches are read alone.
+PAIR_MAX_SIGMA_DN = 32.0
 #: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
 VALIDATED_SIGMA_DN = 64.0
 #: The ``reason`` of a patch whose σ_Total (before clipping) is above :data:`VALIDATED_SIGMA_DN`.
@@ -335,19 +357,21 @@ def _dilate3(mask: torch.Tensor) -> torch.Tensor:
 
 def _inliers(
     m: torch.Tensor, d2: torch.Tensor, usable: torch.Tensor, g2: torch.Tensor, v_ref: torch.Tensor, bound_margin: float,
-    max_margin_dn: float = math.inf,
+    max_margin_dn: float = math.inf, lo_hi: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Float mask (3, B, 1, h, w) of the details used: usable blocks more than ``bound_margin`` reference σ from
     both bounds (a number, or one per patch as a (B,) tensor; nearer, few blocks are left and the clipping model of
     :func:`_kept_variance_factor` carries the evidence alone), flat at the next coarser scale
     (χ²₂ test at 99 % on the central differences of the block means, whose noise variance is v/2, dilated by one
     block), and within 3 reference σ. The margin is at most ``max_margin_dn`` (for a very noisy patch 2 σ from
-    both bounds would leave no intensity at all)."""
+    both bounds would leave no intensity at all). ``lo_hi``: each block's smallest and largest pixel [DN], tested
+    against the bounds instead of the block mean (a static pair's blocks need not be flat)."""
     margin = torch.as_tensor(bound_margin, dtype=v_ref.dtype, device=v_ref.device)
     margin = margin.view(-1, 1, 1, 1) if margin.ndim else margin
     dist = torch.minimum(v_ref.sqrt() * margin, torch.full_like(v_ref, max_margin_dn))  # ≤ max_margin_dn [DN]
     flat = ~_dilate3(g2 > _TEXTURE_CHI2 * v_ref / 2.0)
-    keep = usable & flat & (m - dist > 0) & (m + dist < 255.0)
+    lo, hi = (m, m) if lo_hi is None else lo_hi
+    keep = usable & flat & (lo - dist > 0) & (hi + dist < 255.0)
     return (keep & (d2 < _INLIER_Z**2 * v_ref)).float()
 
 
@@ -483,6 +507,7 @@ def physics_noise_posterior(
     pool: bool = False,
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
     scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
+    reference: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Physics-first noise sources of each patch, (B, 21) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
@@ -529,6 +554,12 @@ def physics_noise_posterior(
         pool: the patches show one camera state (``meta`` of batch 1, e.g. the patches of one frame): add up their
             NLF evidence and texture check, so that every patch gets the posterior of the whole frame (noise is a
             property of the camera, not of the scene); σ after clipping stays per patch.
+        reference: the same patches from another exposure of a static scene in the same camera state (B×1×H×W in
+            [0, 1]), or None. Given, the evidence — the details, their block means, the row and column noise and the
+            texture and neighbour checks — is read from :func:`~camhealth.estimators.static_pair.static_pair_image`,
+            whose details carry the pair's noise and nothing of the scene; the clipping, the 8-bit rounding and σ
+            after clipping stay those of ``image``. Where the scene moved between the exposures, the difference
+            carries the change and the checks call the patch textured.
     """
     if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 1:
         raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
@@ -550,6 +581,14 @@ def physics_noise_posterior(
             raise ValueError(f"{name} = {value!r} must be in [0, 64] (σ from the bounds)")
     if grid < 2 or bins < 1:
         raise ValueError(f"grid = {grid} must be ≥ 2 and bins = {bins} ≥ 1")
+    if reference is not None:
+        if not isinstance(reference, torch.Tensor) or reference.shape != image.shape:
+            raise ValueError(f"reference must have the image's shape {tuple(image.shape)}, got "
+                             f"{tuple(reference.shape) if isinstance(reference, torch.Tensor) else type(reference).__name__}")
+        if not reference.is_floating_point():
+            raise TypeError(f"reference must be a floating-point tensor in [0, 1], got {reference.dtype}")
+        if not bool(torch.isfinite(reference).all()):
+            raise ValueError("reference contains NaN or inf; physics_noise_posterior needs finite intensities in [0, 1]")
     b, dev, f64 = image.shape[0], image.device, torch.float64
     if meta.batch_size not in (1, b):
         raise ValueError(f"metadata batch {meta.batch_size} does not match the {b} patches")
@@ -565,10 +604,16 @@ def physics_noise_posterior(
         a0, var0 = a0.expand(b), var0.expand(b, 2)
         a_all, var_all, c_all, prior = a_all.expand(b, -1), var_all.expand(b, -1, 2), c_all.expand(b, -1), prior.expand(b, -1)
         q = _quantisation_variance(x)
+        # the image the evidence is read from: the patch itself, or a static pair's scene-free fold of it
+        x_ev = x if reference is None else static_pair_image(x, reference.detach().to(x.device))
 
-        m, d2, usable, g2 = block_details(x, "physics_noise_posterior")
-        band = row_column_noise(x, pool)  # row and column offsets: out of the details the fits read
-        d2, g2 = debanded_details(x, m, d2, g2, band.detected)
+        m, d2, usable, g2 = block_details(x_ev, "physics_noise_posterior")
+        m_g, lo_hi = m, None  # the block means whose gradients test flatness; each block's pixel range [DN]
+        if reference is not None:  # a pair's details hold no scene: flatness of the difference, the range of the pixels
+            m_g, g2, lo, hi = static_pair_blocks(x, reference.detach().to(x.device))
+            lo_hi = (lo, hi)
+        band = row_column_noise(x_ev, pool)  # row and column offsets: out of the details the fits read
+        d2, g2 = debanded_details(x_ev, m_g, d2, g2, band.detected)
         kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
         idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
         m_flat = m.flatten().to(f64)
@@ -585,14 +630,14 @@ def physics_noise_posterior(
             if step:  # the first pass's posterior NLF
                 v_ref = ((post * a_all).sum(1).float().view(b, 1, 1, 1) * m.clamp_min(0)
                          + ((post * c_all).sum(1) + q + tau2).float().view(b, 1, 1, 1)).clamp_min(1e-6)
-            inl_all = _inliers(m, d2, usable, g2, v_ref, bound_margin, _MAX_MARGIN_DN)
+            inl_all = _inliers(m, d2, usable, g2, v_ref, bound_margin, _MAX_MARGIN_DN, lo_hi)
             # a patch (pooled: a frame) with too few details at the nominal margin — dark or bright under strong
             # noise — reads its blocks nearer the bounds instead, their loss to the clipping modelled
             n_nominal = inl_all[0].flatten(1).sum(1)
             short = (n_nominal.sum().expand(b) if pool else n_nominal) < MIN_FOLLOW_DETAILS
             if fallback_margin < bound_margin and bool(short.any()):
                 margin = torch.where(short, fallback_margin, bound_margin).to(v_ref.dtype)
-                inl_all = _inliers(m, d2, usable, g2, v_ref, margin, _MAX_MARGIN_DN)
+                inl_all = _inliers(m, d2, usable, g2, v_ref, margin, _MAX_MARGIN_DN, lo_hi)
             inl = inl_all[0].flatten().to(f64)
 
             def per_bin(values: torch.Tensor) -> torch.Tensor:
@@ -656,7 +701,7 @@ def physics_noise_posterior(
         e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
         # texture does not
-        corr_check, own_corr_check = _neighbour_check(x, v_ref, inl_all[0], pool)
+        corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0], pool)
         readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
         follows = readable & (p_match < 0.5)
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
@@ -762,7 +807,8 @@ class PhysicsNoiseEstimator:
 
     @torch.inference_mode()
     def predict(self, images: Any, metadata: Any = None, *, input_range: str = "auto", base_preset: str | None = None,
-                batch_size: int = 256, precision: str = "fp32", views: int = 1, pool: bool = False) -> dict[str, Any]:
+                batch_size: int = 256, precision: str = "fp32", views: int = 1, pool: bool = False,
+                reference: Any = None) -> dict[str, Any]:
         """σ per source, total, ξ, its uncertainty and P(match) of B×1×128×128 patches (module docstring).
 
         ``pool``: the patches show one camera state (metadata of batch 1): the evidence of all of them decides
@@ -770,7 +816,18 @@ class PhysicsNoiseEstimator:
         pass both texture checks on their own details (and keep 256 of them) are read alone, as without ``pool``;
         otherwise the patches go through it :data:`PATCH_CHUNK` (or ``batch_size``, if
         smaller) at a time. ``precision`` is accepted for interface compatibility: the statistics
-        always run in float32/float64 (bf16 cannot resolve 1 DN at 255 DN). ``views`` must be 1."""
+        always run in float32/float64 (bf16 cannot resolve 1 DN at 255 DN). ``views`` must be 1.
+
+        ``reference``: the same patches from another exposure of a static camera in the same camera state (same
+        shape and input conventions as ``images``; e.g. the previous frame). The evidence is then read from the pair's
+        difference (:mod:`camhealth.estimators.static_pair`), which holds the noise and nothing of the scene, with no
+        allowance for the scene's fine content (:data:`PAIR_SCENE_ALLOWANCE_DN`); the answer is still about
+        ``images`` (its clipping, its σ). Patches whose difference carries the scene
+        (:func:`~camhealth.estimators.static_pair.scene_leak`, :func:`~camhealth.estimators.static_pair.pair_shift`:
+        the scene or the camera moved, or a lossy codec re-quantised the two frames differently) or reads textured or
+        without a flat area are read from ``images`` alone; pooled, a frame of which fewer than half the patches are
+        still (the camera moved) is read alone as a whole. The output then has
+        ``"static"`` (B,) bool: the answer read the pair."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         if batch_size < 1:
@@ -791,25 +848,42 @@ class PhysicsNoiseEstimator:
                     "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8)}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
-        on_device, meta_dev = patches, meta
+        ref = None
+        if reference is not None:
+            ref = _to_patches(reference, self.patch_size, input_range)
+            if ref.shape != patches.shape:
+                raise ValueError(f"reference must hold the same patches as images, {tuple(patches.shape)}, got {tuple(ref.shape)}")
+        on_device, meta_dev, ref_dev = patches, meta, ref
         if self.device.type != "cpu":
             on_device, meta_dev = patches.to(self.device), meta.to(self.device)
-        if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
-            raw = physics_noise_posterior(on_device, meta_dev, **settings)
-            # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
-            # textured, the patches whose own details pass both checks are read on their own
-            if b > 1 and bool(textured(raw[0, 8], raw[0, 11])):
-                alone = ((raw[:, 18] >= MIN_FOLLOW_DETAILS) & ~textured(raw[:, 19], raw[:, 20])).nonzero(as_tuple=True)[0]
-                if alone.numel():
-                    own = {**settings, "pool": False}
-                    raw[alone] = torch.cat([physics_noise_posterior(on_device[alone[i:i + PATCH_CHUNK]], meta_dev, **own)
-                                            for i in range(0, alone.numel(), PATCH_CHUNK)])
+            ref_dev = None if ref is None else ref.to(self.device)
+        if ref_dev is None:
+            raw = self._posterior(on_device, meta_dev, settings, batch_size).cpu()
         else:
-            step = min(batch_size, PATCH_CHUNK)
-            raw = torch.cat([physics_noise_posterior(on_device[i:i + step],
-                                                     meta_dev if meta.batch_size == 1 else meta_dev[i:i + step],
-                                                     **settings) for i in range(0, b, step)])
-        raw = raw.cpu()
+            pair = {"scene_allowance_dn": PAIR_SCENE_ALLOWANCE_DN, "scene_allowance_min_dn": PAIR_SCENE_ALLOWANCE_DN,
+                    "bound_margin": PAIR_BOUND_MARGIN, **settings}
+            # a patch whose difference carries the scene (it moved, or a codec re-quantised it) is read alone
+            leak, leak_se = scene_leak(patches, ref, pool=bool(settings.get("pool")))
+            shift, n_shift = pair_shift(patches, ref)
+            static = (((leak - 1.0).abs() <= torch.clamp_min(4.0 * leak_se, SCENE_LEAK_LIMIT))
+                      & (shift.abs().amax(1) <= torch.clamp_min(4.0 / n_shift.clamp_min(1.0).sqrt(), PAIR_SHIFT_LIMIT))).cpu()
+            if settings.get("pool") and 2 * int(static.sum()) < b:  # most of the frame moved: the camera did
+                static[:] = False
+            raw = torch.zeros(b, len(PHYSICS_NOISE_COLUMNS))
+            sel = static.nonzero(as_tuple=True)[0]
+            if sel.numel():
+                sel_dev = sel.to(on_device.device)
+                raw[sel] = self._posterior(on_device[sel_dev], meta_dev if meta.batch_size == 1 else meta_dev[sel_dev], pair,
+                                           batch_size, ref_dev[sel_dev]).cpu()
+                # a pair that is still textured, without a flat area (clipped nearly everywhere) or noisier than its
+                # margin from the bounds can hold is read alone too
+                static[sel] = (~textured(raw[sel, 8], raw[sel, 11]) & (raw[sel, 7] >= MIN_FOLLOW_DETAILS)
+                               & (raw[sel, 10] <= PAIR_MAX_SIGMA_DN))
+            moved = (~static).nonzero(as_tuple=True)[0]
+            if moved.numel():
+                moved_dev = moved.to(on_device.device)
+                raw[moved] = self._posterior(on_device[moved_dev], meta_dev if meta.batch_size == 1 else meta_dev[moved_dev],
+                                             settings, batch_size).cpu()
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
         is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
@@ -830,4 +904,27 @@ class PhysicsNoiseEstimator:
                 "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
                 "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),
                 "defects_checked": defects.checked,
-                "defect_mask": defects.mask}
+                "defect_mask": defects.mask, **({} if ref is None else {"static": static})}
+
+    def _posterior(self, patches: torch.Tensor, meta: CameraMetadata, settings: dict[str, Any], batch_size: int,
+                   reference: torch.Tensor | None = None) -> torch.Tensor:
+        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 21): pooled in one call (with the
+        patches of a textured frame that pass both checks on their own details read alone), else in chunks."""
+        b = patches.shape[0]
+        if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
+            raw = physics_noise_posterior(patches, meta, reference=reference, **settings)
+            # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
+            # textured, the patches whose own details pass both checks are read on their own
+            if b > 1 and bool(textured(raw[0, 8], raw[0, 11])):
+                alone = ((raw[:, 18] >= MIN_FOLLOW_DETAILS) & ~textured(raw[:, 19], raw[:, 20])).nonzero(as_tuple=True)[0]
+                if alone.numel():
+                    own = {**settings, "pool": False}
+                    raw[alone] = torch.cat([physics_noise_posterior(
+                        patches[alone[i:i + PATCH_CHUNK]], meta,
+                        reference=None if reference is None else reference[alone[i:i + PATCH_CHUNK]], **own)
+                        for i in range(0, alone.numel(), PATCH_CHUNK)])
+            return raw
+        step = min(batch_size, PATCH_CHUNK)
+        return torch.cat([physics_noise_posterior(patches[i:i + step], meta if meta.batch_size == 1 else meta[i:i + step],
+                                                  reference=None if reference is None else reference[i:i + step], **settings)
+                          for i in range(0, b, step)])

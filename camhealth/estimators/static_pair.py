@@ -1,0 +1,213 @@
+"""Two exposures of a static scene: their difference carries the noise and nothing of the scene.
+
+Model (conventions.md): a pixel of frame t reads I_t = S + n_t [DN], the scene S the same in both frames of a
+static camera, the noise n_t independent from frame to frame with variance v(S) = a·S + σ_DCSN² + σ_RN² (+ 1/12 DN²
+of 8-bit rounding). Then
+
+    (I₁ − I₂)/√2 = (n₁ − n₂)/√2   has variance v(S) at every pixel, and no scene content at all,
+
+while (I₁ + I₂)/2 = S + (n₁ + n₂)/2 is the scene with half the noise variance. One image cannot tell fine scene
+content from noise (the *scene floor* of ``python -m camhealth.bench robustness``: 0.8 DN at the median as recorded,
+2 DN on busy scenes, as much as a visible mismatch adds); a static pair can.
+
+:func:`static_pair_image` folds the pair into one image the single-image noise statistics read unchanged: the 2×2
+block means of the average plus the scaled difference,
+
+    J = B₂[(I₁ + I₂)/2] + (I₁ − I₂)/√2.
+
+B₂ is constant on each 2×2 block, so J's Haar details (diagonal, horizontal, vertical) are exactly those of
+(n₁ − n₂)/√2 — white noise of variance v(m), m the block's mean intensity, whatever the scene — and J's block means
+are the scene's block means (with noise variance v/4, as in one frame). A pixel clipped at 0 or 255 DN in either
+frame is clipped in J (its difference no longer carries the noise). So a noise estimate of J is a noise estimate of
+the camera free of the scene, and where the scene moved or the light changed between the frames, J's details carry
+the change — structure that the texture and neighbour checks of
+:func:`camhealth.estimators.physics_noise.physics_noise_posterior` refuse.
+
+**Was the scene still?** Noise does not know the scene: a detail's variance depends on the block's intensity alone.
+Where the camera or an object moved, the focus changed, or a lossy codec re-quantised the two exposures differently,
+the difference carries the scene's change, and two tests look for it:
+
+- :func:`pair_shift` — a shift δ of the scene (camera shake, vibration) makes the difference follow the scene's
+  gradient, I₁ − I₂ ≈ δ·∂S/∂x, while for a still pair it is uncorrelated with the average's gradient (n₁ − n₂ and
+  n₁ + n₂ are uncorrelated for equal variances). A patch whose correlation along x or y exceeds
+  max(:data:`PAIR_SHIFT_LIMIT`, 4/√n) has moved. This sees a tenth of a pixel on a textured patch.
+- :func:`scene_leak` — a change that follows no gradient (a focus change, a codec's re-quantisation, a non-rigid
+  change) sits where the scene has edges and fine detail. On the pair's diagonal details it compares the mean of
+  d²/v̂(m) over the blocks with the steepest scene (the upper quarter of the average's block-mean gradient) with the
+  blocks with the flattest (the lower half), v̂(m) = â + b̂·m the pair's own linear NLF. For a still pair the ratio is
+  1 within its sampling error; off 1 by more than max(:data:`SCENE_LEAK_LIMIT`, 4 standard errors), either way, the
+  pair is not read (below 1: the change sits in fine texture whose block means are flat, and the NLF fit took up
+  part of it). It cannot see a change on a texture that is everywhere alike (no flat blocks to compare with).
+
+A change of the light between the exposures (I₂ = α·I₁ + β) moves the block means, not the details, and passes
+both. Structure that only the horizontal and vertical details carry (a row-wise change) does not enter the evidence
+(the diagonal detail) and is left to the texture check.
+
+Fixed-pattern offsets the two frames share (hot pixels, column fixed-pattern noise) cancel in the difference, as the
+scene does: the pair measures the temporal noise, which is what the sensor model's sources are.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["static_pair_image", "static_pair_blocks", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT"]
+
+
+def static_pair_image(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """J = B₂[(I₁ + I₂)/2] + (I₁ − I₂)/√2 of two B×1×H×W exposures of a static scene in [0, 1] (module docstring).
+
+    Args:
+        image: B×1×H×W floating-point frame I₁ in [0, 1].
+        reference: I₂, the same scene and camera state from another exposure, same shape.
+
+    Returns:
+        B×1×H×W float32 in [0, 1]: its Haar details are the pair's noise alone (variance v(m) [DN²/255²]), its 2×2
+        block means the scene's; clipped (0 or 1) wherever either frame is. An odd last row or column keeps the
+        average there (it forms no 2×2 block).
+    """
+    if not isinstance(image, torch.Tensor) or not isinstance(reference, torch.Tensor):
+        raise TypeError(f"image and reference must be tensors, got {type(image).__name__} and {type(reference).__name__}")
+    if image.shape != reference.shape:
+        raise ValueError(f"reference must have the image's shape {tuple(image.shape)} (the same patches of another "
+                         f"exposure), got {tuple(reference.shape)}")
+    if image.ndim != 4 or image.shape[1] != 1:
+        raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape)}")
+    if not image.is_floating_point() or not reference.is_floating_point():
+        raise TypeError(f"image and reference must be floating point in [0, 1], got {image.dtype} and {reference.dtype}")
+    x1, x2 = image.detach().float(), reference.detach().float()
+    avg = (x1 + x2) * 0.5
+    h2, w2 = avg.shape[-2] // 2 * 2, avg.shape[-1] // 2 * 2
+    base = avg.clone()
+    if h2 and w2:
+        blocks = F.avg_pool2d(avg[..., :h2, :w2], 2)
+        base[..., :h2, :w2] = blocks.repeat_interleave(2, -2).repeat_interleave(2, -1)
+    out = (base + (x1 - x2) * (1.0 / math.sqrt(2.0))).clamp_(0.0, 1.0)
+    out = torch.where((x1 <= 0.0) | (x2 <= 0.0), torch.zeros_like(out), out)
+    return torch.where((x1 >= 1.0) | (x2 >= 1.0), torch.ones_like(out), out)
+
+
+def static_pair_blocks(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The 2×2-block quantities of a static pair that its flatness and clipping tests read, float32 (B×1×H×W in
+    [0, 1], H, W ≥ 8; module docstring).
+
+    Returns:
+        m_d: block means of the scaled difference (I₁ − I₂)/√2 [DN], (B, 1, h, w): noise of variance v/4.
+        g2: their squared central differences, vertical plus horizontal [DN²] (noise variance v/2 each, as the
+            block-mean gradients of one frame on a flat scene).
+        lo, hi: the smallest and largest pixel of each block of the average (I₁ + I₂)/2 [DN].
+    """
+    x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
+    h2, w2 = x1.shape[-2] // 2 * 2, x1.shape[-1] // 2 * 2
+    diff = (x1 - x2)[..., :h2, :w2] * (1.0 / math.sqrt(2.0))
+    avg = ((x1 + x2) * 0.5)[..., :h2, :w2]
+    m_d = F.avg_pool2d(diff, 2)
+    g2 = torch.zeros_like(m_d)
+    g2[..., 1:-1, :] += (m_d[..., 2:, :] - m_d[..., :-2, :]).square()
+    g2[..., :, 1:-1] += (m_d[..., :, 2:] - m_d[..., :, :-2]).square()
+    hi = F.max_pool2d(avg, 2)
+    lo = -F.max_pool2d(-avg, 2)
+    return m_d, g2, lo, hi
+
+
+#: Largest deviation of :func:`scene_leak` (the steep blocks' normalised detail energy over the flat ones') from 1 of a
+#: still pair, beside 4 of its standard errors: 0.1 lets through a change that adds ≈ 10 % to the noise variance of
+#: the steepest quarter of the blocks, ≈ 2.5 % on the patch (1 % of σ).
+SCENE_LEAK_LIMIT = 0.1
+
+
+def scene_leak(image: torch.Tensor, reference: torch.Tensor, pool: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """How much of the scene a pair's difference carries (module docstring), (B,) float64 each: the ratio of the mean
+    normalised diagonal detail energy d²/v̂(m) of the steep blocks (upper quarter of the average's block-mean gradient)
+    to that of the flat blocks (lower half), and its standard error √(2/n_steep + 2/n_flat). Blocks with a pixel within
+    ½ DN of 0 or 255 DN in either frame are left out; a patch with fewer than 64 usable blocks gets ratio 1 and an
+    infinite error. ``pool``: one camera state — the NLF v̂ is fitted over all patches, the ratio stays per patch.
+
+    Args:
+        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8).
+    """
+    x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
+    h2, w2 = x1.shape[-2] // 2 * 2, x1.shape[-1] // 2 * 2
+    x1, x2 = x1[..., :h2, :w2], x2[..., :h2, :w2]
+    diff = (x1 - x2) * (1.0 / math.sqrt(2.0))
+    d = (diff[..., 0::2, 0::2] - diff[..., 0::2, 1::2] - diff[..., 1::2, 0::2] + diff[..., 1::2, 1::2]) / 2.0
+    avg = (x1 + x2) * 0.5
+    m = F.avg_pool2d(avg, 2)
+    g = torch.zeros_like(m)
+    g[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
+    g[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
+    lo = -F.max_pool2d(-torch.minimum(x1, x2), 2)
+    hi = F.max_pool2d(torch.maximum(x1, x2), 2)
+    ok = (lo > 0.5) & (hi < 254.5)
+    ok[..., 0, :] = False
+    ok[..., -1, :] = False
+    ok[..., :, 0] = False
+    ok[..., :, -1] = False
+    b = x1.shape[0]
+    f64 = torch.float64
+    d2, mm, okf = d.square().flatten(1).to(f64), m.flatten(1).to(f64), ok.flatten(1).to(f64)
+    # the pair's own NLF, d² ≈ a + c·m by least squares over the usable blocks (pooled: over the frame)
+    n = okf.sum(1)
+    s_m, s_mm, s_d, s_md = (okf * mm).sum(1), (okf * mm * mm).sum(1), (okf * d2).sum(1), (okf * mm * d2).sum(1)
+    if pool:
+        n, s_m, s_mm, s_d, s_md = (t.sum().expand(b) for t in (n, s_m, s_mm, s_d, s_md))
+    det = n * s_mm - s_m * s_m
+    slope = torch.where(det > 1e-9 * n.clamp_min(1) ** 2, (n * s_md - s_m * s_d) / det.clamp_min(1e-30), torch.zeros_like(det))
+    slope = slope.clamp_min(0.0)
+    icpt = (s_d - slope * s_m) / n.clamp_min(1.0)
+    v = (icpt.unsqueeze(1) + slope.unsqueeze(1) * mm).clamp_min(1e-3)
+    z = d2 / v
+    # the usable blocks of each patch split at the median and the upper quartile of the scene's gradient
+    okf_b = ok.flatten(1)
+    gk = torch.where(okf_b, g.flatten(1), torch.full_like(g.flatten(1), math.inf))
+    sorted_g = torch.sort(gk, dim=1).values
+    n_use = okf_b.sum(1, keepdim=True)
+    t_flat = sorted_g.gather(1, (n_use // 2 - 1).clamp_min(0))
+    t_steep = sorted_g.gather(1, (n_use - n_use // 4).clamp(0, gk.shape[1] - 1))
+    flat = (okf_b & (gk <= t_flat)).to(f64)
+    steep = (okf_b & (gk >= t_steep)).to(f64)
+    nf, ns = flat.sum(1), steep.sum(1)
+    enough = n_use.squeeze(1) >= 64
+    ratio = torch.where(enough, ((z * steep).sum(1) / ns.clamp_min(1.0)) / ((z * flat).sum(1) / nf.clamp_min(1.0)).clamp_min(1e-12),
+                        torch.ones_like(nf))
+    se = torch.where(enough, (2.0 / ns.clamp_min(1.0) + 2.0 / nf.clamp_min(1.0)).sqrt(), torch.full_like(nf, math.inf))
+    return ratio, se
+
+
+#: Largest |correlation| of a still pair's difference with the average's gradient (:func:`pair_shift`), beside 4/√n.
+PAIR_SHIFT_LIMIT = 0.05
+
+
+def pair_shift(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Correlation of a pair's difference I₁ − I₂ with the horizontal and vertical central differences of its average
+    (module docstring), (B, 2) float64, and the number n of pixels it was read on, (B,): the pixels of the interior
+    with no pixel of the 3×3 neighbourhood within ½ DN of 0 or 255 DN in either frame. A still pair reads 0 within
+    1/√n; a patch shifted by δ px reads the share of its difference that δ·∇S explains. Fewer than 64 pixels: 0.
+
+    Args:
+        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 3).
+    """
+    x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
+    d = (x1 - x2)[..., 1:-1, 1:-1]
+    avg = (x1 + x2) * 0.5
+    gx = (avg[..., 1:-1, 2:] - avg[..., 1:-1, :-2]) * 0.5
+    gy = (avg[..., 2:, 1:-1] - avg[..., :-2, 1:-1]) * 0.5
+    clip = (x1 <= 0.5) | (x1 >= 254.5) | (x2 <= 0.5) | (x2 >= 254.5)
+    rows = clip[..., :, :-2] | clip[..., :, 1:-1] | clip[..., :, 2:]  # the 3×3 neighbourhood, one axis at a time
+    ok = (~(rows[..., :-2, :] | rows[..., 1:-1, :] | rows[..., 2:, :])).float()
+    f64 = torch.float64
+    n = ok.flatten(1).sum(1, dtype=f64)
+
+    def corr(gr: torch.Tensor) -> torch.Tensor:
+        dm = (d * ok).flatten(1).sum(1, dtype=f64) / n.clamp_min(1.0)
+        gm = (gr * ok).flatten(1).sum(1, dtype=f64) / n.clamp_min(1.0)
+        dc = (d - dm.float().view(-1, 1, 1, 1)) * ok
+        gc = (gr - gm.float().view(-1, 1, 1, 1)) * ok
+        num = (dc * gc).flatten(1).sum(1, dtype=f64)
+        den = (dc.square().flatten(1).sum(1, dtype=f64) * gc.square().flatten(1).sum(1, dtype=f64)).sqrt()
+        return torch.where((n >= 64) & (den > 0), num / den.clamp_min(1e-300), torch.zeros_like(num))
+
+    return torch.stack([corr(gx), corr(gy)], 1), n

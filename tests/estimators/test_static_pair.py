@@ -1,0 +1,190 @@
+"""A static camera's pair of exposures: the difference holds the noise and nothing of the scene."""
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from camhealth.bench.sensor_variants import simulate_variant
+from camhealth.estimators.noise_features import block_details, physics_prior_dn
+from camhealth.estimators.physics_noise import (
+    PAIR_MAX_SIGMA_DN, PHYSICS_NOISE_COLUMNS, PhysicsNoiseEstimator, physics_noise_posterior,
+)
+from camhealth.estimators.static_pair import (
+    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, pair_shift, scene_leak, static_pair_blocks, static_pair_image,
+)
+from camhealth.physics import CameraMetadata
+
+
+def _busy(b: int, size: int = 128, seed: int = 0) -> torch.Tensor:
+    """Busy scenes: random-phase 1/f² texture with 30 DN of contrast plus sharp-edged blocks, within 0.2…0.8: as much
+    fine content as a 3× downsampled street frame (one image's estimator keeps the closed form on them)."""
+    g = torch.Generator().manual_seed(seed)
+    w = torch.fft.rfft2(torch.randn(b, 1, size, size, generator=g).double())
+    f = torch.sqrt(torch.fft.fftfreq(size).view(-1, 1) ** 2 + torch.fft.rfftfreq(size).view(1, -1) ** 2)
+    x = torch.fft.irfft2(w / w.abs().clamp_min(1e-30) * torch.where(f > 0, 1.0 / f.clamp_min(1e-9), 0.0), s=(size, size))
+    x = (x - x.mean((-2, -1), keepdim=True)) / x.std((-2, -1), keepdim=True)
+    blocks = (torch.rand(b, 1, size // 16, size // 16, generator=g) > 0.5).double()
+    x = 0.5 + 30.0 / 255.0 * x + 0.15 * (F.interpolate(blocks, scale_factor=16.0) - 0.5)
+    return x.clamp(0.2, 0.8).float()
+
+
+def _pair(clean: torch.Tensor, meta: CameraMetadata, seed: int, extra_dn: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    a, _ = simulate_variant(clean, meta, (), torch.Generator().manual_seed(seed), extra_read_noise_dn=extra_dn)
+    b, _ = simulate_variant(clean, meta, (), torch.Generator().manual_seed(seed + 1), extra_read_noise_dn=extra_dn)
+    return a, b
+
+
+META = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+
+
+def test_the_fold_has_the_differences_details_and_the_averages_block_means():
+    g = torch.Generator().manual_seed(1)
+    x1, x2 = torch.rand(3, 1, 16, 18, generator=g) * 0.6 + 0.2, torch.rand(3, 1, 16, 18, generator=g) * 0.6 + 0.2
+    j = static_pair_image(x1, x2)
+    m_j, d_j, _, _ = block_details(j)
+    m_avg, _, _, _ = block_details((x1 + x2) / 2)
+    m_diff, d_diff, _, g2_diff = block_details((x1 - x2) / math.sqrt(2.0) + 0.5)
+    assert torch.allclose(d_j, d_diff, atol=1e-3)  # every Haar detail: the difference's alone
+    assert torch.allclose(m_j, m_avg + (m_diff - 127.5), atol=1e-3)
+    m_d, g2, lo, hi = static_pair_blocks(x1, x2)
+    assert torch.allclose(m_d, m_diff - 127.5, atol=1e-3)
+    assert (lo <= m_avg + 1e-4).all() and (hi >= m_avg - 1e-4).all()
+    assert torch.allclose(g2, g2_diff, rtol=1e-4, atol=1e-2)  # the flatness of the difference, not of the scene
+
+
+def test_a_pixel_clipped_in_either_frame_is_clipped_in_the_fold():
+    x1 = torch.full((1, 1, 8, 8), 0.5)
+    x2 = x1.clone()
+    x1[0, 0, 2, 3], x2[0, 0, 5, 5], x2[0, 0, 1, 1] = 1.0, 0.0, 1.0
+    j = static_pair_image(x1, x2)
+    assert j[0, 0, 2, 3] == 1.0 and j[0, 0, 5, 5] == 0.0 and j[0, 0, 1, 1] == 1.0
+    assert ((j > 0) & (j < 1)).sum() == 61
+
+
+@pytest.mark.parametrize("bad, match", [
+    (lambda x: x[:, :, :-2], "same patches|image's shape"),
+    (lambda x: (x * 255).to(torch.uint8), "floating point"),
+])
+def test_the_fold_refuses_mismatched_frames(bad, match):
+    x = torch.rand(2, 1, 16, 16)
+    with pytest.raises((ValueError, TypeError), match=match):
+        static_pair_image(x, bad(x))
+    with pytest.raises(ValueError, match="B×1×H×W"):
+        static_pair_image(x[:, 0], x[:, 0])
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_a_still_pair_is_read_and_a_moved_one_is_not(pool):
+    clean = _busy(8, seed=2)
+    a, b = _pair(clean, META, 10)
+    leak, se = scene_leak(a, b, pool=pool)
+    assert ((leak - 1).abs() <= torch.clamp_min(4 * se, SCENE_LEAK_LIMIT)).all()
+    shift, n = pair_shift(a, b)
+    assert (shift.abs().amax(1) <= torch.clamp_min(4 / n.sqrt(), PAIR_SHIFT_LIMIT)).all()
+    # the scene moved by a third of a pixel between the exposures (bilinear), the noise is the second exposure's own
+    moved_scene = (2 * clean + torch.roll(clean, 1, -1)) / 3
+    b_moved = (b + moved_scene - clean).clamp(0, 1)
+    shift_m, n_m = pair_shift(a, b_moved)
+    assert (shift_m.abs().amax(1) > torch.clamp_min(4 / n_m.sqrt(), PAIR_SHIFT_LIMIT)).all()
+    # a change of the light between the exposures moves block means, not details: still
+    leak_l, se_l = scene_leak(a, (b * 1.05).clamp(0, 1), pool=pool)
+    assert ((leak_l - 1).abs() <= torch.clamp_min(4 * se_l, SCENE_LEAK_LIMIT)).float().mean() >= 0.75
+
+
+def test_scene_leak_sees_a_change_that_lives_where_the_scene_has_edges():
+    """The focus changed between the exposures (the second one's scene 3×3-box blurred): the difference sits at the
+    photograph's edges and fine detail and follows no gradient, so the shift test cannot see it; the leak test does."""
+    from camhealth.data.skimage_photos import load_skimage_photo
+
+    img = load_skimage_photo("camera")
+    clean = torch.stack([img[:, y:y + 128, x:x + 128] for y, x in [(100, 100), (200, 250), (300, 150), (50, 300)]]).float()
+    a, b = _pair(clean, META, 20)
+    soft = F.avg_pool2d(F.pad(clean, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+    leak, se = scene_leak(a, (b + soft - clean).clamp(0, 1))
+    assert ((leak - 1).abs() > torch.clamp_min(4 * se, SCENE_LEAK_LIMIT)).all()
+    shift, n = pair_shift(a, (b + soft - clean).clamp(0, 1))
+    assert (shift.abs().amax(1) <= torch.clamp_min(4 / n.sqrt(), PAIR_SHIFT_LIMIT)).all()
+    leak, se = scene_leak(a, b)
+    assert ((leak - 1).abs() <= torch.clamp_min(4 * se, SCENE_LEAK_LIMIT)).all()
+
+
+def test_a_pair_on_a_busy_scene_reads_the_noise_the_single_image_cannot():
+    """Busy static scenes, white noise 3 DN above what the metadata allow: one image keeps the closed form (it cannot
+    tell the excess from the scene's own fine content); the pair finds it, σ_Total within 5 %."""
+    clean = _busy(16, seed=4)
+    a, b = _pair(clean, META, 30, extra_dn=3.0)
+    truth = ((a - clean) * 255).flatten(1).std(1)
+    alone = physics_noise_posterior(a, META, pool=True)
+    pair = physics_noise_posterior(a, META, pool=True, reference=b, scene_allowance_dn=0.0, scene_allowance_min_dn=0.0,
+                                   bound_margin=3.0)
+    col = PHYSICS_NOISE_COLUMNS.index
+    assert (alone[:, col("xi_dn")] == 0).all()
+    assert (pair[:, col("xi_dn")] < -0.5).all() and (pair[:, col("follows_image")] == 1).all()
+    assert torch.allclose(pair[:, col("total_dn")], truth, rtol=0.05)
+    assert pair[0, col("details")] > 10 * alone[0, col("details")]  # the pair keeps the busy blocks
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_do_no_harm_a_matched_still_pair_is_the_closed_form(pool):
+    clean = _busy(8, seed=5)
+    a, b = _pair(clean, META, 40)
+    out = PhysicsNoiseEstimator().predict(a, META, reference=b, pool=pool)
+    prior = physics_prior_dn(a, META, clipping=True)[:, 4:8]
+    assert out["static"].all()
+    assert torch.allclose(out["sigma"], prior[:, :3], atol=1e-4) and (out["xi"] == 0).all()
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_a_moved_pair_gives_the_single_image_answer(pool):
+    clean = _busy(8, seed=6)
+    a, b = _pair(clean, META, 50, extra_dn=3.0)
+    est = PhysicsNoiseEstimator()
+    alone = est.predict(a, META, pool=pool)
+    moved = est.predict(a, META, reference=torch.roll(b, 1, -1), pool=pool)
+    assert not moved["static"].any()
+    for k in ("sigma", "sigma_total", "xi", "p_match", "assessable"):
+        assert torch.equal(moved[k], alone[k]), k
+    assert moved["reason"] == alone["reason"]
+
+
+def test_pooled_a_frame_most_of_which_moved_is_read_alone_as_a_whole():
+    clean = _busy(8, seed=7)
+    a, b = _pair(clean, META, 60)
+    b_moved = b.clone()
+    b_moved[:5] = torch.roll(b[:5], 1, -1)  # the camera moved: five of eight patches show it (three are flat-ish here)
+    out = PhysicsNoiseEstimator().predict(a, META, reference=b_moved, pool=True)
+    assert not out["static"].any()
+
+
+def test_a_pair_noisier_than_its_margin_allows_is_read_alone():
+    clean = torch.full((4, 1, 128, 128), 0.5)
+    a, b = _pair(clean, META, 70, extra_dn=40.0)
+    out = PhysicsNoiseEstimator().predict(a, META, reference=b, pool=True)
+    assert 40.0 > PAIR_MAX_SIGMA_DN and not out["static"].any()
+    assert (out["xi"] < -30).all()  # the single image reads it
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [1, 256])
+def test_reference_dtypes_and_batches(dtype, batch):
+    clean = _busy(1, seed=8).expand(batch, 1, 128, 128)
+    a, b = _pair(clean, META, 80, extra_dn=3.0)
+    out = PhysicsNoiseEstimator().predict(a.to(dtype), META, reference=b.to(dtype))
+    assert out["static"].shape == (batch,) and out["sigma"].dtype == torch.float32
+    assert torch.isfinite(out["sigma"]).all()
+    assert out["static"].float().mean() > 0.9 and (out["xi"][out["static"]] < 0).float().mean() > 0.9
+
+
+def test_reference_is_checked_like_the_images():
+    est = PhysicsNoiseEstimator()
+    x = torch.rand(2, 1, 128, 128)
+    with pytest.raises(ValueError, match=r"reference must hold the same patches as images, \(2, 1, 128, 128\), got \(1, 1, 128, 128\)"):
+        est.predict(x, META, reference=x[:1])
+    with pytest.raises(ValueError, match="non-finite"):
+        est.predict(x, META, reference=torch.full_like(x, float("nan")))
+    with pytest.raises(ValueError, match="reference must have the image's shape"):
+        physics_noise_posterior(x, META, reference=x[:, :, :64])
+    out = est.predict((x * 255).round().to(torch.uint8), META, reference=(x.flip(0) * 255).round().to(torch.uint8))
+    assert "static" in out and "static" not in est.predict(x, META)
