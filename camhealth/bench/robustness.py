@@ -38,6 +38,13 @@ one (the physics-first estimator's ξ̂ is 0 wherever it keeps the closed form) 
 visible mismatches (TPR) and of matched patches or frames (FPR) whose estimate is itself visible,
 |ξ̂| ≥ max(0.5 DN, 15 % of σ̂_Total).
 
+**Static pairs.** Every frame also has a second exposure (:attr:`Frame.second`): the same clean scene and camera
+state with its own random numbers (the banding's row and column offsets drawn anew, the defects at the same pixels,
+the same JPEG quality), a static camera's next frame. The row ``noise_source_full (static pair, pooled per frame)``
+reads each frame against it (``predict(..., reference=...)``; :mod:`camhealth.estimators.static_pair`), except the
+JPEG frames (:data:`LOSSY`), which it reads alone as a monitor on a lossy stream would; :func:`static_pair_lines`
+adds what the pair reads on those JPEG frames anyway and on matched frames whose scene moved between the exposures.
+
 Printed per estimator, pooled over both scales and for each scale: per-source Bias / Std / RMS [DN] per condition
 group over every patch (those it marks not assessable included: the closed form stands there), ξ RMS, the AUCs
 (per frame also split into quiet and busy scenes), the strong-noise rows (median |σ̂_Total/σ_Total − 1| and the
@@ -93,6 +100,16 @@ CLOSED_FORM = "closed_form"
 #: downsampling does not remove the scenes' own noise of any size that matters: it raises the floor (the street
 #: clip's whole frames read 0.65 DN as recorded, 1.46 DN at 2× and 2.18 DN at 3×, medians over its 50 frames).
 SCENE_SCALES = {"full": 1, "3x": 3}
+#: The row of the physics-first estimator given each frame's second exposure (``predict(..., reference=...)``, pooled):
+#: a static camera's pair of frames.
+STATIC_PAIR_LABEL = "(static pair, pooled per frame)"
+#: Conditions whose frames passed a lossy codec: a static pair is not read from them (the codec re-quantises each
+#: exposure's noise differently, and on dense texture the difference carries that; :func:`static_pair_lines` shows it).
+LOSSY = ("jpeg",)
+#: Shifts [px] of the scene between a static pair's exposures in :func:`static_pair_lines` (camera vibration).
+PAIR_SHIFT_PX = (0.1, 1.0)
+#: XOR-ed into a frame's seed for its second exposure (:attr:`Frame.second`).
+SECOND_SEED = 0x5EC0_0D
 SCALE_LABELS = {"full": "full resolution", "3x": "3× area-downsampled"}
 #: The 3× scale's downsampling factor (:data:`SCENE_SCALES`).
 SCENE_DOWNSAMPLE = SCENE_SCALES["3x"]
@@ -125,6 +142,7 @@ class Frame:
     scale: str  # the scene scale, a key of SCENE_SCALES
     scene_floor: float = float("nan")  # the clean scene's own fine-scale σ [DN] (scene_floor_dn), in no truth
     defects: torch.Tensor | None = None  # defects condition: (16, 1, 128, 128) int8, +1 bright, −1 dark offset
+    second: torch.Tensor | None = None  # a second exposure of the same clean scene and camera state (static camera)
 
 
 def _scenes() -> dict[str, list[torch.Tensor]]:
@@ -230,19 +248,27 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
                 target = float(torch.empty(1).uniform_(10.0, 60.0, generator=gen))
                 extra = float(np.sqrt(max(target**2 - float(base.square().sum(1).mean()), 1.0)))
             noisy, sigma = simulate_variant(clean, told, variants, torch.Generator().manual_seed(seed_k), overrides, extra)
+            # the same scene and camera state exposed again with its own random numbers (a static camera's next frame;
+            # its own generator, so the first exposures do not depend on it)
+            second, _ = simulate_variant(clean, told, variants, torch.Generator().manual_seed(seed_k ^ SECOND_SEED), overrides, extra)
             if cond == "banding":  # σ 1–8 DN of offsets per pixel row, per column, or both
                 kind = ("rows", "columns", "both")[int(torch.randint(0, 3, (1,), generator=gen))]
                 band_dn = float(torch.empty(1).uniform_(1.0, 8.0, generator=gen))
                 as_told = noisy
-                noisy = add_banding(noisy, band_dn, kind, int(torch.randint(0, 2**62, (1,), generator=gen)))
+                band_seed = int(torch.randint(0, 2**62, (1,), generator=gen))
+                noisy = add_banding(noisy, band_dn, kind, band_seed)
+                second = add_banding(second, band_dn, kind, band_seed ^ SECOND_SEED)  # row noise is temporal: new offsets
                 total = _total(noisy, clean)
-                out.append(Frame(cond, clean, noisy, told, sigma, total, _total(as_told, clean) - total, scale, scene_floor_dn(clean)))
+                out.append(Frame(cond, clean, noisy, told, sigma, total, _total(as_told, clean) - total, scale, scene_floor_dn(clean),
+                                 second=second))
                 continue
             if cond == "defects":  # 100 ppm–1 % of the pixels with an offset of 10–200 DN, bright or dark
                 share = float(10 ** torch.empty(1).uniform_(-4.0, -2.0, generator=gen))
-                with_defects, truth = add_defects(noisy, share, int(torch.randint(0, 2**62, (1,), generator=gen)))
+                defect_seed = int(torch.randint(0, 2**62, (1,), generator=gen))
+                with_defects, truth = add_defects(noisy, share, defect_seed)
+                second = add_defects(second, share, defect_seed)[0]  # defects stay at their pixels with their offsets
                 out.append(Frame(cond, clean, with_defects, told, sigma, _total(noisy, clean), torch.zeros(16), scale,
-                                 scene_floor_dn(clean), truth))
+                                 scene_floor_dn(clean), truth, second))
                 continue
             total = _total(noisy, clean)
             if overrides is None and extra is None:
@@ -253,7 +279,8 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
             if cond == "jpeg":
                 q = int(torch.randint(75, 96, (1,), generator=gen))
                 noisy = torch.stack([_jpeg(p, q) for p in noisy])
-            out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scale, scene_floor_dn(clean)))
+                second = torch.stack([_jpeg(p, q) for p in second])
+            out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scale, scene_floor_dn(clean), second=second))
     return out
 
 
@@ -328,14 +355,72 @@ def _estimators(names: list[str] | None) -> list[Any]:
         out.append(load_estimator(n))
         if n == PHYSICS_NOISE_MODEL:
             out.append(PhysicsNoiseEstimator(settings={"pool": True}, source=f"{PHYSICS_NOISE_MODEL} (pooled per frame)"))
+            out.append(PhysicsNoiseEstimator(settings={"pool": True}, source=f"{PHYSICS_NOISE_MODEL} {STATIC_PAIR_LABEL}"))
     return out
 
 
 def _predict(est: Any, frame: Frame) -> tuple[dict[str, Any], float]:
     meta = frame.told if getattr(est, "metadata_set", "none") != "none" else None
+    pair = {"reference": frame.second} if est.name.endswith(STATIC_PAIR_LABEL) and frame.condition not in LOSSY else {}
     t = time.perf_counter()
-    out = est.predict(frame.noisy, meta) if meta is not None else est.predict(frame.noisy)
+    out = est.predict(frame.noisy, meta, **pair) if meta is not None else est.predict(frame.noisy)
     return out, (time.perf_counter() - t) * 1e3 / frame.noisy.shape[0]
+
+
+def _declared(xi: torch.Tensor, total: torch.Tensor) -> bool:
+    """A frame's medians declare a mismatch: |median ξ̂| ≥ max(0.5 DN, 15 % of median σ̂_Total)."""
+    x, t = float(xi.median()), float(total.median())
+    return abs(x) >= max(0.5, 0.15 * t)
+
+
+def static_pair_lines(est: Any, frames: list[Frame], seed: int) -> list[str]:
+    """What a static pair reads (``predict(..., reference=...)`` pooled per frame) beyond the tables: the share of the
+    patches read from the pair, per scene scale and condition group; on the lossy (JPEG) frames given as a pair anyway,
+    the frames declared a mismatch (their metadata are right) and the ξ̂ RMS; and on the matched lossless frames with
+    the scene shifted between the exposures by 0.1–1 px in a random direction (camera vibration: the second exposure's
+    noise, the clean scene translated bilinearly, Kornia), the share read from the pair and the frames declared."""
+    import kornia
+
+    gen = torch.Generator().manual_seed(seed + 4000)
+    lines = ["", "Static pair (`predict(..., reference=second exposure)`, pooled per frame): the share of patches read from the "
+             "pair (the others failed its stillness tests or its texture checks and were read alone); lossy frames (JPEG) "
+             "given as a pair anyway — metadata right, so every frame declared is a false alarm; lossless matched frames "
+             f"whose scene moved by {PAIR_SHIFT_PX[0]:g}–{PAIR_SHIFT_PX[1]:g} px between the exposures:", "",
+             "| scenes | read from the pair: matched / mismatched / strong / banding | JPEG as a pair: frames declared, ξ̂ RMS [DN] | "
+             "scene moved: read from the pair, frames declared |", "|---|---|---|---|"]
+    for scale in SCENE_SCALES:
+        share: dict[str, list[float]] = {"matched": [], "mismatched": [], "strong": [], "banding": []}
+        jpeg_declared, jpeg_n, jpeg_xi2, moved_share, moved_declared, moved_n = 0, 0, [], [], 0, 0
+        for fr in (f for f in frames if f.scale == scale):
+            group = ("matched" if fr.condition in MATCHED else "mismatched" if fr.condition in MISMATCH
+                     else fr.condition if fr.condition in share else None)
+            if fr.condition in LOSSY:
+                out = est.predict(fr.noisy, fr.told, reference=fr.second)
+                jpeg_n += 1
+                jpeg_declared += _declared(out["xi"], out["sigma_total"])
+                jpeg_xi2.append(out["xi"].double().square())
+                continue
+            if group is None:
+                continue
+            out = est.predict(fr.noisy, fr.told, reference=fr.second)
+            share[group].append(float(out["static"].float().mean()))
+            if group == "matched":
+                size = float(torch.empty(1).uniform_(*PAIR_SHIFT_PX, generator=gen))
+                angle = float(torch.empty(1).uniform_(0.0, 2.0 * np.pi, generator=gen))
+                shift = torch.tensor([[size * np.cos(angle), size * np.sin(angle)]], dtype=torch.float32).expand(fr.clean.shape[0], 2)
+                moved_clean = kornia.geometry.transform.translate(fr.clean, shift, padding_mode="border", align_corners=True)
+                second = (fr.second + moved_clean - fr.clean).clamp(0.0, 1.0)
+                if bool(((fr.second * 255.0 - (fr.second * 255.0).round()).abs() < 1e-3).all()):  # 8-bit frames stay 8-bit
+                    second = (second * 255.0).round() / 255.0
+                out = est.predict(fr.noisy, fr.told, reference=second)
+                moved_share.append(float(out["static"].float().mean()))
+                moved_declared += _declared(out["xi"], out["sigma_total"])
+                moved_n += 1
+        pct = lambda v: f"{100 * float(np.mean(v)):.0f} %" if v else "–"  # noqa: E731
+        xi_rms = float(torch.cat(jpeg_xi2).mean().sqrt()) if jpeg_xi2 else float("nan")
+        lines.append(f"| {SCALE_LABELS[scale]} | " + " / ".join(pct(share[g]) for g in share)
+                     + f" | {jpeg_declared} of {jpeg_n}, {xi_rms:.2f} | {pct(moved_share)}, {moved_declared} of {moved_n} |")
+    return lines
 
 
 def _bsr(err: torch.Tensor) -> tuple[float, float, float]:
@@ -663,6 +748,9 @@ def run(args: argparse.Namespace) -> BenchResult:
                     summary.append(f"| {name} | {label} | {gname} ({g['n']}) | " + " / ".join(f"{100 * v:.0f} %" for v in g["within_u"])
                                    + " | " + " / ".join(f"{100 * v:.0f} %" for v in g["within_2u"]) + " | "
                                    + " / ".join(f"{v:.2f}" for v in g["median_u"]) + " |")
+    for e in ests:
+        if e.name.endswith(STATIC_PAIR_LABEL):
+            summary += static_pair_lines(e, frames, args.seed)
     any_r = next(iter(results.values()))
     counts = []
     for label, key in sets:

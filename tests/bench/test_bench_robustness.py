@@ -234,3 +234,32 @@ def test_defect_scores_count_found_wrong_and_elsewhere():
     assert res["defects_noisier_frames"] == 0.0
     rows["reference"] = [rows["reference"][0][:7] + (None,)]
     assert all(v != v for v in rb._defect_scores(rows).values())  # no mask from the estimator: NaN
+
+
+def test_every_frame_has_a_second_exposure_of_the_same_scene_and_camera(frames):
+    """A static camera's next frame: the same clean scene and camera state, its own random numbers (so its noise is
+    as strong and independent), the same defects at the same pixels, the same JPEG quality."""
+    for f in frames:
+        assert f.second is not None and f.second.shape == f.noisy.shape and not torch.equal(f.second, f.noisy)
+        n1, n2 = (f.noisy - f.clean).flatten(1) * 255, (f.second - f.clean).flatten(1) * 255
+        if f.condition != "defects":
+            assert torch.allclose(n2.std(1), n1.std(1), rtol=0.25, atol=0.3), f.condition
+        if f.condition not in ("defects", *rb.LOSSY):  # (the codec's own error on the scene is common to both)
+            assert abs(float(torch.corrcoef(torch.stack([n1.flatten(), n2.flatten()]))[0, 1])) < 0.2, f.condition
+    d = next(f for f in frames if f.condition == "defects")
+    hit = d.defects != 0
+    assert ((d.second - d.noisy).abs()[hit] * 255 < (d.noisy - d.clean).abs()[hit] * 255).float().mean() > 0.5
+
+
+def test_the_static_pair_row_reads_lossless_frames_as_pairs_and_jpeg_ones_alone(frames):
+    from camhealth.estimators.physics_noise import PhysicsNoiseEstimator
+
+    pair = PhysicsNoiseEstimator(settings={"pool": True}, source=f"noise_source_full {rb.STATIC_PAIR_LABEL}")
+    ref = next(f for f in frames if f.condition == "reference")
+    jpeg = next(f for f in frames if f.condition in rb.LOSSY)
+    assert "static" in rb._predict(pair, ref)[0] and "static" not in rb._predict(pair, jpeg)[0]
+    lines = rb.static_pair_lines(pair, frames, seed=0)
+    text = "\n".join(lines)
+    for label in rb.SCALE_LABELS.values():
+        assert f"| {label} | " in text
+    assert "JPEG as a pair" in text and "scene moved" in text
