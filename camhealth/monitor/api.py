@@ -648,6 +648,10 @@ class _TaskState:
     banding: list[tuple[float, float]] = field(default_factory=list)  # (row, column) σ [DN] of this frame's patches
     defects: list[int] = field(default_factory=lambda: [0, 0, 0, 0])  # this frame's hot, dark, checked pixels, patches with any
     defect_xy: list[tuple[int, int]] = field(default_factory=list)  # their frame coordinates (x, y) [px]
+    # static pairs (noise): the previous frame's patches, this frame's reference for them, and the patches read from a pair
+    previous: torch.Tensor | None = None
+    reference: torch.Tensor | None = None
+    pairs: int = 0
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -669,6 +673,7 @@ class _TaskState:
         self.memory_std = torch.full((n, self.k), float("nan"))
         self.samples_std = torch.full((self.window, self.n_samples, self.k), float("nan"))
         self.sample_slot = 0
+        self.previous = self.reference = None
 
     def push_samples(self, vals: torch.Tensor, std: torch.Tensor) -> None:
         """Sampled mode: this frame's assessable samples (n, K) and their estimator spread (n, K) replace the
@@ -798,6 +803,13 @@ class Monitor:
             posterior): ``"cpu"`` (default), ``"cuda"`` or ``"cuda:N"``
             (:func:`camhealth.inference.load_estimator`); the frame statistics and patch selection stay on the CPU.
             Estimator objects passed in keep their own device.
+        static_pairs: ``True`` — the noise estimator also reads each patch's difference from the same patch of the
+            previous frame (``predict(..., reference=...)``, :mod:`camhealth.estimators.static_pair`): where the scene
+            stood still, that difference holds the camera's noise and nothing of the scene, so a busy scene no longer
+            hides a mismatch; patches that moved are read alone, and ``coverage["static_pairs"]`` counts the patches
+            read from a pair. For lossless frames only (raw, PNG/TIFF, uncompressed video or ROS ``Image``): a lossy
+            codec (JPEG, H.264) re-quantises the two frames differently or copies one into the other, and on dense
+            texture that passes the stillness tests. ``False`` (default): one frame at a time.
     """
 
     def __init__(
@@ -826,6 +838,7 @@ class Monitor:
         defect_map: Any = None,
         warmup: bool = True,
         device: Any = "cpu",
+        static_pairs: bool = False,
     ) -> None:
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
             raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
@@ -857,6 +870,9 @@ class Monitor:
         self.xi_sigmas = float(xi_sigmas)
         self.per_patch = bool(per_patch)
         self.warmup = bool(warmup)
+        if not isinstance(static_pairs, bool):
+            raise TypeError(f"static_pairs = {static_pairs!r} must be True or False")
+        self.static_pairs = static_pairs
         self.estimators: dict[str, _EstimatorHandle] = {}
         for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
             if spec is not None:
@@ -934,6 +950,8 @@ class Monitor:
         kwargs = {name: None for name in ("precision", "batch_size", "views") if name in params or var_kw}
         if "pool" in params:  # named, not only **kwargs: the physics-first noise estimator
             kwargs["pool"] = None
+        if "reference" in params:  # a static pair's second exposure: the physics-first noise estimator
+            kwargs["reference"] = None
         return _EstimatorHandle(est, _describe(est), kwargs)
 
     def reset(self) -> None:
@@ -1038,8 +1056,12 @@ class Monitor:
             kwargs["views"] = self.mtf_views
         if task == "noise" and self.pool_noise and "pool" in handle.kwargs and meta is not None and meta.batch_size == 1:
             kwargs["pool"] = True  # one camera state per frame: the frame's evidence for every patch
+        if task == "noise" and st.reference is not None and "reference" in handle.kwargs:
+            kwargs["reference"] = st.reference[index]  # the same patches of the previous frame (static pairs)
         use_meta = meta if getattr(handle.est, "metadata_set", "none") != "none" else None
         out = handle.est.predict(patches[index], metadata=use_meta, **kwargs)
+        if kwargs.get("reference") is not None and "static" in out:
+            st.pairs += int(torch.as_tensor(out["static"]).sum())
         if task == "noise":
             if "sigma_total" not in out:
                 raise ValueError(f"noise estimator {handle.name} returned no 'sigma_total' (keys {sorted(out)})")
@@ -1103,6 +1125,7 @@ class Monitor:
         st = self._states[task]
         st.refused, st.beyond_xi, st.banding = {}, [], []
         st.defects, st.defect_xy = [0, 0, 0, 0], []
+        st.pairs = 0
         grid, cfg = st.grid, self.selection
         handle = self.estimators[task]
         base = dict(task=task, estimator=handle.name, patch=grid.patch, grid=(grid.rows, grid.cols))
@@ -1111,6 +1134,9 @@ class Monitor:
             note = f"frame {grid.width}×{grid.height} px is smaller than one {grid.patch}-px patch: {task} not estimated"
             return TaskReport(**base, assessable=False, counts=counts, note=note)
         patches = grid.extract(frame)
+        if task == "noise" and self.static_pairs:  # the previous frame's patches are this frame's second exposure
+            same = st.previous is not None and st.previous.shape == patches.shape
+            st.reference, st.previous = (st.previous if same else None), patches
         stats = grid_statistics(frame, grid)
         informative, code = select_patches(stats, task, cfg)
         if not self.skip_uninformative:
@@ -1141,7 +1167,8 @@ class Monitor:
             st.push_samples(vals[ok], st.memory_std[idx][ok])
             st.values, st.code = values, code
             boxes = grid.boxes()[idx[ok]]
-            return self._aggregate_sampled(task, st, handle.name, int(informative.sum()), boxes, int(reuse.sum()))
+            return self._with_pairs(task, st, self._aggregate_sampled(task, st, handle.name, int(informative.sum()), boxes,
+                                                                      int(reuse.sum())))
         if self.reuse_static:
             had = torch.isfinite(st.values).any(1) & torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8))
             reuse = informative & had & ~st.static.changed(stats) & ~st.static.due(self._counter)
@@ -1191,7 +1218,13 @@ class Monitor:
         st.push(new_idx, values[new_idx])
         st.values, st.code, st.std = values, code, std
         fresh_n = int(fresh.sum())
-        return self._aggregate(task, st, handle.name, int(informative.sum()), fresh_n)
+        return self._with_pairs(task, st, self._aggregate(task, st, handle.name, int(informative.sum()), fresh_n))
+
+    def _with_pairs(self, task: str, st: _TaskState, report: TaskReport) -> TaskReport:
+        """``coverage["static_pairs"]``: this frame's noise patches read from a static pair (``static_pairs`` on)."""
+        if task == "noise" and self.static_pairs:
+            report.coverage["static_pairs"] = st.pairs
+        return report
 
     @staticmethod
     def _coverage(mode: str, grid: PatchGrid, estimated: int, informative: int, values: int, frames: int,

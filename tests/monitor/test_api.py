@@ -723,3 +723,51 @@ def test_the_estimators_run_on_the_monitors_device(device, street_frames):
         assert got["noise"]["sigma_dn"][name]["median"] == pytest.approx(ref["noise"]["sigma_dn"][name]["median"], abs=1e-3)
     for d in ("h", "v"):
         assert got["mtf"][d]["median"] == pytest.approx(ref["mtf"][d]["median"], abs=2e-3)
+
+
+def _busy_frame(h: int = 384, w: int = 512, seed: int = 0) -> torch.Tensor:
+    """A busy static scene: random-phase 1/f² texture (30 DN of contrast) over sharp-edged blocks, 0.2…0.8."""
+    g = torch.Generator().manual_seed(seed)
+    wn = torch.fft.rfft2(torch.randn(h, w, generator=g).double())
+    f = torch.sqrt(torch.fft.fftfreq(h).view(-1, 1) ** 2 + torch.fft.rfftfreq(w).view(1, -1) ** 2)
+    x = torch.fft.irfft2(wn / wn.abs().clamp_min(1e-30) * torch.where(f > 0, 1.0 / f.clamp_min(1e-9), 0.0), s=(h, w))
+    x = (x - x.mean()) / x.std()
+    blocks = torch.nn.functional.interpolate((torch.rand(1, 1, h // 16, w // 16, generator=g) > 0.5).double(), scale_factor=16.0)[0, 0]
+    return (0.5 + 30.0 / 255.0 * x + 0.15 * (blocks - 0.5)).clamp(0.2, 0.8).float()
+
+
+@pytest.mark.parametrize("mode", ["map", "sampled"])
+def test_static_pairs_find_a_mismatch_a_busy_scene_hides_from_one_frame(mode):
+    """A static camera 3 DN noisier than its metadata, on a busy scene: one frame at a time no patch has a flat area
+    to read the noise from (not assessable); with ``static_pairs`` the second frame on is read against the previous
+    one, every patch, and raises "noisier". When the camera moves between the frames, no pair is read."""
+    from camhealth.bench.sensor_variants import simulate_variant
+    from camhealth.physics import CameraMetadata
+
+    meta = {"gain_db": 6.0, "exposure_s": 0.02, "temperature_c": 30.0}
+    cam = CameraMetadata.preset("ICX285", **meta)
+    clean = _busy_frame()[None, None]
+    frames = [simulate_variant(clean, cam, (), torch.Generator().manual_seed(i), extra_read_noise_dn=3.0)[0][0, 0] for i in range(3)]
+    states = {}
+    for pairs in (False, True):
+        mon = Monitor("noise_source_full", None, sensor="ICX285", metadata=meta, mode=mode, adaptive=False, warmup=False,
+                      static_pairs=pairs)
+        reports = [_strict(mon.process(f).to_json()) for f in frames]
+        states[pairs] = [r["alarm"]["state"] for r in reports]
+        if pairs:
+            assert reports[0]["noise"]["coverage"]["static_pairs"] == 0  # nothing to pair the first frame with
+            assert all(r["noise"]["coverage"]["static_pairs"] > 0 for r in reports[1:])
+        else:
+            assert "static_pairs" not in reports[1]["noise"]["coverage"]
+    assert states[False] == ["not_assessable"] * 3
+    assert states[True] == ["not_assessable", "noisier", "noisier"]
+    moved = Monitor("noise_source_full", None, sensor="ICX285", metadata=meta, mode=mode, adaptive=False, warmup=False,
+                    static_pairs=True)
+    for i, f in enumerate(frames):  # the camera pans 1 px per frame
+        r = _strict(moved.process(torch.roll(f, i, -1)).to_json())
+    assert r["noise"]["coverage"]["static_pairs"] == 0 and r["alarm"]["state"] == "not_assessable"
+
+
+def test_static_pairs_must_be_a_bool():
+    with pytest.raises(TypeError, match="static_pairs = 'yes' must be True or False"):
+        Monitor("noise_source_full", None, sensor="ICX285", static_pairs="yes")

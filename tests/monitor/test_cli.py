@@ -207,3 +207,22 @@ def test_defect_map_counts_known_defects_and_refuses_another_size(tmp_path, caps
     np.savez_compressed(maps, hot_pixels=hit.numpy()[:, :-8])
     code, _, err = _run(argv, capsys)
     assert code == 2 and "defect map is 504×384 px (W×H) but this frame is 512×384 px" in err, err
+
+
+def test_static_pairs_on_a_folder_of_lossless_frames(tmp_path, capsys):
+    """``--static-pairs``: PNG frames of a still scene, each with its own noise; from the second frame on the noise
+    patches are read against the previous frame (``coverage.static_pairs``; ``--no-adaptive``: every patch is
+    estimated on every frame, where static reuse would keep the first frame's estimates until they are due)."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    g = np.random.default_rng(0)
+    scene = g.integers(60, 190, (8, 8)).repeat(32, 0).repeat(32, 1).astype(float)
+    for i in range(3):
+        _png(folder / f"f{i:03d}.png", np.clip(scene + 3.0 * g.standard_normal(scene.shape), 0, 255).round().astype(np.uint8))
+    code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", "--mode", "map", "--no-adaptive", "--static-pairs"], capsys)
+    assert code == 0, err
+    lines = _lines(out)
+    assert [d["noise"]["coverage"]["static_pairs"] for d in lines][0] == 0
+    assert all(d["noise"]["coverage"]["static_pairs"] > 0 for d in lines[1:])
+    code, out, _ = _run([str(folder), "--sensor", "ICX285", "--no-mtf", "--mode", "map"], capsys)
+    assert "static_pairs" not in _lines(out)[1]["noise"]["coverage"]
