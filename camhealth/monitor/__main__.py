@@ -389,6 +389,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
     source = open_source(args.source, args.start, args.stride, args.max_frames, bit_depth=args.bit_depth,
                          recording=_recording_options(args))
+    if args.static_pairs:
+        from camhealth.monitor.sources import lossy_source
+
+        why = lossy_source(source)
+        if why is not None:
+            print(f"warning: --static-pairs reads pairs of lossless frames, and {why}: on dense texture a codec's "
+                  "re-quantisation can pass for noise (docs/monitor.md, Static camera)", file=sys.stderr)
     try:
         return _run_source(args, source)
     finally:

@@ -1525,7 +1525,7 @@ class Monitor:
                 **self._map_summary()},
             "mode": self.mode, "samples_per_frame": dict(self.n_samples) if self.mode == "sampled" else None,
             "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,
-            "window": self.window,
+            "static_pairs": self.static_pairs, "window": self.window,
             "adaptive": {"reuse_static": self.reuse_static, "coarse_refine": self.coarse_refine,
                          "skip_uninformative": self.skip_uninformative},
         }

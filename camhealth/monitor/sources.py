@@ -117,6 +117,23 @@ class FrameSource:
             yield SourceFrame(int(idx), f"{self.path}#{int(idx)}", frame, error)
 
 
+#: Image suffixes of lossy codecs: a static pair of such frames is not read (``--static-pairs``).
+LOSSY_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif", ".webp")
+
+
+def lossy_source(source: Any) -> str | None:
+    """Why the frames of ``source`` are likely lossy-compressed (a video file; JPEG or WebP images), or ``None``:
+    ``--static-pairs`` reads two frames' difference as noise, which a codec's re-quantisation can imitate."""
+    kind = getattr(source, "kind", None)
+    if kind == "video":
+        return f"{source.path.name} is a video (unless its codec is lossless, its frames are re-quantised)"
+    files = getattr(source, "_files", [])
+    lossy = [f for f in files if f.suffix.lower() in LOSSY_IMAGE_SUFFIXES]
+    if lossy:
+        return f"{len(lossy)} of its {len(files)} frame file(s) are {lossy[0].suffix.lower()} images"
+    return None
+
+
 def _past_end(start: int, n_frames: int, path: Path) -> None:
     if start >= n_frames:
         raise ValueError(f"start = {start} is past the end of {path}: it has {n_frames} frame(s), indices 0…{n_frames - 1}")

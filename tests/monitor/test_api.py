@@ -754,6 +754,7 @@ def test_static_pairs_find_a_mismatch_a_busy_scene_hides_from_one_frame(mode):
                       static_pairs=pairs)
         reports = [_strict(mon.process(f).to_json()) for f in frames]
         states[pairs] = [r["alarm"]["state"] for r in reports]
+        assert mon.summary()["static_pairs"] is pairs
         if pairs:
             assert reports[0]["noise"]["coverage"]["static_pairs"] == 0  # nothing to pair the first frame with
             assert all(r["noise"]["coverage"]["static_pairs"] > 0 for r in reports[1:])

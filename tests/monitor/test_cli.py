@@ -226,3 +226,18 @@ def test_static_pairs_on_a_folder_of_lossless_frames(tmp_path, capsys):
     assert all(d["noise"]["coverage"]["static_pairs"] > 0 for d in lines[1:])
     code, out, _ = _run([str(folder), "--sensor", "ICX285", "--no-mtf", "--mode", "map"], capsys)
     assert "static_pairs" not in _lines(out)[1]["noise"]["coverage"]
+
+
+def test_static_pairs_warn_on_lossy_frames(tmp_path, capsys):
+    """JPEG frames (or a video) with ``--static-pairs``: the run goes on and says, once, that pairs are for lossless
+    frames; PNG frames get no warning."""
+    g = np.random.default_rng(1)
+    for ext in ("jpg", "png"):
+        folder = tmp_path / ext
+        folder.mkdir()
+        for i in range(2):
+            _png(folder / f"f{i}.{ext}", g.integers(60, 190, (256, 256), dtype=np.uint8))
+        code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", "--static-pairs"], capsys)
+        assert code == 0, err
+        warned = "warning: --static-pairs reads pairs of lossless frames, and 2 of its 2 frame file(s) are .jpg images"
+        assert (warned in err) == (ext == "jpg") and err.count("warning: --static-pairs") == (ext == "jpg")
