@@ -839,20 +839,24 @@ class PhysicsNoiseEstimator:
             raise ValueError(f"estimator {self.name!r} reads 'full' metadata: pass metadata= (CameraMetadata, a dict of "
                              f"fields in physical units, or a preset name)")
         b = patches.shape[0]
+        ref = None
+        if reference is not None:
+            try:
+                ref = _to_patches(reference, self.patch_size, input_range)
+            except (TypeError, ValueError) as exc:
+                raise type(exc)(f"reference: {exc}") from None
+            if ref.shape != patches.shape:
+                raise ValueError(f"reference must hold the same patches as images, {tuple(patches.shape)}, got {tuple(ref.shape)}")
         if b == 0:  # an empty batch: every output with 0 rows
             z = torch.zeros(0)
             return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
                     "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool),
                     "row_column_dn": torch.zeros(0, 2), "defects": torch.zeros(0, 2, dtype=torch.int64),
                     "defects_checked": torch.zeros(0, dtype=torch.int64),
-                    "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8)}
+                    "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8),
+                    **({} if ref is None else {"static": torch.zeros(0, dtype=torch.bool)})}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
-        ref = None
-        if reference is not None:
-            ref = _to_patches(reference, self.patch_size, input_range)
-            if ref.shape != patches.shape:
-                raise ValueError(f"reference must hold the same patches as images, {tuple(patches.shape)}, got {tuple(ref.shape)}")
         on_device, meta_dev, ref_dev = patches, meta, ref
         if self.device.type != "cpu":
             on_device, meta_dev = patches.to(self.device), meta.to(self.device)

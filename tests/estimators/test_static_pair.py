@@ -182,9 +182,26 @@ def test_reference_is_checked_like_the_images():
     x = torch.rand(2, 1, 128, 128)
     with pytest.raises(ValueError, match=r"reference must hold the same patches as images, \(2, 1, 128, 128\), got \(1, 1, 128, 128\)"):
         est.predict(x, META, reference=x[:1])
-    with pytest.raises(ValueError, match="non-finite"):
+    with pytest.raises(ValueError, match="reference: images contain 32768 non-finite"):
         est.predict(x, META, reference=torch.full_like(x, float("nan")))
+    with pytest.raises(TypeError, match="reference: images must be a real numeric tensor"):
+        est.predict(x, META, reference=x > 0.5)
+    empty = est.predict(x[:0], META, reference=x[:0])
+    assert empty["static"].shape == (0,) and empty["sigma"].shape == (0, 3)
     with pytest.raises(ValueError, match="reference must have the image's shape"):
         physics_noise_posterior(x, META, reference=x[:, :, :64])
     out = est.predict((x * 255).round().to(torch.uint8), META, reference=(x.flip(0) * 255).round().to(torch.uint8))
     assert "static" in out and "static" not in est.predict(x, META)
+
+
+def test_a_pair_on_each_device_gives_the_cpu_answer(device):
+    """The posterior runs on the estimator's device with the pair there too; the stillness tests and the answer are
+    the CPU's (σ within float rounding)."""
+    from camhealth.inference import load_estimator
+
+    clean = _busy(8, seed=9)
+    a, b = _pair(clean, META, 90, extra_dn=3.0)
+    cpu = load_estimator("noise_source_full").predict(a, META, reference=b, pool=True)
+    dev = load_estimator("noise_source_full", device=str(device)).predict(a, META, reference=b, pool=True)
+    assert torch.equal(cpu["static"], dev["static"]) and dev["sigma"].device.type == "cpu"
+    assert torch.allclose(cpu["sigma"], dev["sigma"], atol=1e-3) and torch.allclose(cpu["xi"], dev["xi"], atol=1e-3)
