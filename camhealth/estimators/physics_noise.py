@@ -558,8 +558,11 @@ def physics_noise_posterior(
             [0, 1]), or None. Given, the evidence — the details, their block means, the row and column noise and the
             texture and neighbour checks — is read from :func:`~camhealth.estimators.static_pair.static_pair_image`,
             whose details carry the pair's noise and nothing of the scene; the clipping, the 8-bit rounding and σ
-            after clipping stay those of ``image``. Where the scene moved between the exposures, the difference
-            carries the change and the checks call the patch textured.
+            after clipping stay those of ``image`` (and so does the 8-bit rounding's 1/12 DN², which the difference
+            of two rounded frames keeps in its details). The scene must have stood still: a change between the
+            exposures enters the difference, and the texture checks see only part of it;
+            :meth:`PhysicsNoiseEstimator.predict` tests each patch first (:func:`~camhealth.estimators.static_pair.pair_shift`,
+            :func:`~camhealth.estimators.static_pair.scene_leak`).
     """
     if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 1:
         raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
