@@ -805,8 +805,8 @@ class Monitor:
             Estimator objects passed in keep their own device.
         static_pairs: ``True`` — the noise estimator also reads each patch's difference from the same patch of the
             previous frame (``predict(..., reference=...)``, :mod:`camhealth.estimators.static_pair`): where the scene
-            stood still, that difference holds the camera's noise and nothing of the scene, so a busy scene no longer
-            hides a mismatch; patches that moved are read alone, and ``coverage["static_pairs"]`` counts the patches
+            stood still, that difference holds the camera's noise and nothing of the scene, so a busy scene does not
+            hide a mismatch; patches that moved are read alone, and ``coverage["static_pairs"]`` counts the patches
             read from a pair. For lossless frames only (raw, PNG/TIFF, uncompressed video or ROS ``Image``): a lossy
             codec (JPEG, H.264) re-quantises the two frames differently or copies one into the other, and on dense
             texture that passes the stillness tests. ``False`` (default): one frame at a time.
