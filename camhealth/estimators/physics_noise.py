@@ -129,7 +129,7 @@ from camhealth.estimators.noise_features import (
 from camhealth.estimators.defective_pixels import defective_pixels
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
 from camhealth.estimators.static_pair import (
-    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, pair_shift, scene_leak, static_pair_blocks, static_pair_image,
+    pair_stillness, static_pair_blocks, static_pair_image,
 )
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
@@ -870,10 +870,7 @@ class PhysicsNoiseEstimator:
             pair = {"scene_allowance_dn": PAIR_SCENE_ALLOWANCE_DN, "scene_allowance_min_dn": PAIR_SCENE_ALLOWANCE_DN,
                     "bound_margin": PAIR_BOUND_MARGIN, **settings}
             # a patch whose difference carries the scene (it moved, or a codec re-quantised it) is read alone
-            leak, leak_se = scene_leak(patches, ref, pool=bool(settings.get("pool")))
-            shift, n_shift = pair_shift(patches, ref)
-            static = (((leak - 1.0).abs() <= torch.clamp_min(4.0 * leak_se, SCENE_LEAK_LIMIT))
-                      & (shift.abs().amax(1) <= torch.clamp_min(4.0 / n_shift.clamp_min(1.0).sqrt(), PAIR_SHIFT_LIMIT))).cpu()
+            static = pair_stillness(patches, ref, pool=bool(settings.get("pool"))).cpu()
             if settings.get("pool") and 2 * int(static.sum()) < b:  # most of the frame moved: the camera did
                 static[:] = False
             raw = torch.zeros(b, len(PHYSICS_NOISE_COLUMNS))

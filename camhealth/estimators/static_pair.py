@@ -52,9 +52,11 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
-__all__ = ["static_pair_image", "static_pair_blocks", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT"]
+from camhealth._order import sorted_values
+
+__all__ = ["static_pair_image", "static_pair_blocks", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
+           "pair_stillness"]
 
 
 def static_pair_image(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -80,14 +82,54 @@ def static_pair_image(image: torch.Tensor, reference: torch.Tensor) -> torch.Ten
         raise TypeError(f"image and reference must be floating point in [0, 1], got {image.dtype} and {reference.dtype}")
     x1, x2 = image.detach().float(), reference.detach().float()
     avg = (x1 + x2) * 0.5
-    h2, w2 = avg.shape[-2] // 2 * 2, avg.shape[-1] // 2 * 2
-    base = avg.clone()
-    if h2 and w2:
-        blocks = F.avg_pool2d(avg[..., :h2, :w2], 2)
-        base[..., :h2, :w2] = blocks.repeat_interleave(2, -2).repeat_interleave(2, -1)
-    out = (base + (x1 - x2) * (1.0 / math.sqrt(2.0))).clamp_(0.0, 1.0)
-    out = torch.where((x1 <= 0.0) | (x2 <= 0.0), torch.zeros_like(out), out)
-    return torch.where((x1 >= 1.0) | (x2 >= 1.0), torch.ones_like(out), out)
+    b, c, h, w = avg.shape
+    h2, w2 = h // 2 * 2, w // 2 * 2
+    out = (x1 - x2) * (1.0 / math.sqrt(2.0))
+    if h2 and w2:  # the block means, each spread over its 2×2 block (a view, not a copy)
+        blocks = _block_mean(avg[..., :h2, :w2])
+        out[..., :h2, :w2] += blocks.view(b, c, h2 // 2, 1, w2 // 2, 1).expand(b, c, h2 // 2, 2, w2 // 2, 2).reshape(b, c, h2, w2)
+    if h2 < h:
+        out[..., h2:, :] += avg[..., h2:, :]
+    if w2 < w:
+        out[..., :h2, w2:] += avg[..., :h2, w2:]
+    out.clamp_(0.0, 1.0)
+    out.masked_fill_(torch.minimum(x1, x2) <= 0.0, 0.0)
+    return out.masked_fill_(torch.maximum(x1, x2) >= 1.0, 1.0)
+
+
+def _block_max(x: torch.Tensor) -> torch.Tensor:
+    """The largest of each 2×2 block of B×C×H×W (H, W even), as ``max_pool2d(x, 2)`` (the same values; several
+    times faster on the CPU)."""
+    return torch.maximum(torch.maximum(x[..., 0::2, 0::2], x[..., 0::2, 1::2]), torch.maximum(x[..., 1::2, 0::2], x[..., 1::2, 1::2]))
+
+
+def _block_min(x: torch.Tensor) -> torch.Tensor:
+    """The smallest of each 2×2 block of B×C×H×W (H, W even), as ``-max_pool2d(-x, 2)``."""
+    return torch.minimum(torch.minimum(x[..., 0::2, 0::2], x[..., 0::2, 1::2]), torch.minimum(x[..., 1::2, 0::2], x[..., 1::2, 1::2]))
+
+
+def _block_mean(x: torch.Tensor) -> torch.Tensor:
+    """The mean of each 2×2 block of B×C×H×W (H, W even), as ``avg_pool2d(x, 2)`` to the last bit or two (a sum of
+    four strided views: 2–3× faster on the CPU)."""
+    return (x[..., 0::2, 0::2] + x[..., 0::2, 1::2] + x[..., 1::2, 0::2] + x[..., 1::2, 1::2]) * 0.25
+
+
+def _block_grad2(m: torch.Tensor) -> torch.Tensor:
+    """Squared central differences of block means, vertical plus horizontal (0 where a neighbour is missing)."""
+    g = torch.zeros_like(m)
+    g[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
+    g[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
+    return g
+
+
+def _pair_dn(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pair in DN (float32): the scaled difference (I₁ − I₂)/√2, the average (I₁ + I₂)/2 and the pixels within
+    ½ DN of 0 or 255 DN in either frame (bool), all B×1×H×W."""
+    x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
+    diff = (x1 - x2) * (1.0 / math.sqrt(2.0))
+    avg = (x1 + x2) * 0.5
+    clip = (torch.minimum(x1, x2) <= 0.5) | (torch.maximum(x1, x2) >= 254.5)
+    return diff, avg, clip
 
 
 def static_pair_blocks(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -104,13 +146,8 @@ def static_pair_blocks(image: torch.Tensor, reference: torch.Tensor) -> tuple[to
     h2, w2 = x1.shape[-2] // 2 * 2, x1.shape[-1] // 2 * 2
     diff = (x1 - x2)[..., :h2, :w2] * (1.0 / math.sqrt(2.0))
     avg = ((x1 + x2) * 0.5)[..., :h2, :w2]
-    m_d = F.avg_pool2d(diff, 2)
-    g2 = torch.zeros_like(m_d)
-    g2[..., 1:-1, :] += (m_d[..., 2:, :] - m_d[..., :-2, :]).square()
-    g2[..., :, 1:-1] += (m_d[..., :, 2:] - m_d[..., :, :-2]).square()
-    hi = F.max_pool2d(avg, 2)
-    lo = -F.max_pool2d(-avg, 2)
-    return m_d, g2, lo, hi
+    m_d = _block_mean(diff)
+    return m_d, _block_grad2(m_d), _block_min(avg), _block_max(avg)
 
 
 #: Largest deviation of :func:`scene_leak` (the steep blocks' normalised detail energy over the flat ones') from 1 of a
@@ -129,24 +166,23 @@ def scene_leak(image: torch.Tensor, reference: torch.Tensor, pool: bool = False)
     Args:
         image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8).
     """
-    x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
-    h2, w2 = x1.shape[-2] // 2 * 2, x1.shape[-1] // 2 * 2
-    x1, x2 = x1[..., :h2, :w2], x2[..., :h2, :w2]
-    diff = (x1 - x2) * (1.0 / math.sqrt(2.0))
-    d = (diff[..., 0::2, 0::2] - diff[..., 0::2, 1::2] - diff[..., 1::2, 0::2] + diff[..., 1::2, 1::2]) / 2.0
-    avg = (x1 + x2) * 0.5
-    m = F.avg_pool2d(avg, 2)
-    g = torch.zeros_like(m)
-    g[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
-    g[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
-    lo = -F.max_pool2d(-torch.minimum(x1, x2), 2)
-    hi = F.max_pool2d(torch.maximum(x1, x2), 2)
-    ok = (lo > 0.5) & (hi < 254.5)
+    diff, avg, clip = _pair_dn(image, reference)
+    return _scene_leak(diff, avg, clip, pool)
+
+
+def _scene_leak(diff: torch.Tensor, avg: torch.Tensor, clip: torch.Tensor, pool: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`scene_leak` of the pair's arrays in DN (:func:`_pair_dn`)."""
+    h2, w2 = diff.shape[-2] // 2 * 2, diff.shape[-1] // 2 * 2
+    diff, avg, clip = diff[..., :h2, :w2], avg[..., :h2, :w2], clip[..., :h2, :w2]
+    d = (diff[..., 0::2, 0::2] - diff[..., 0::2, 1::2] - diff[..., 1::2, 0::2] + diff[..., 1::2, 1::2]) * 0.5
+    m = _block_mean(avg)
+    g = _block_grad2(m)
+    ok = ~((clip[..., 0::2, 0::2] | clip[..., 0::2, 1::2]) | (clip[..., 1::2, 0::2] | clip[..., 1::2, 1::2]))
     ok[..., 0, :] = False
     ok[..., -1, :] = False
     ok[..., :, 0] = False
     ok[..., :, -1] = False
-    b = x1.shape[0]
+    b = diff.shape[0]
     f64 = torch.float64
     d2, mm, okf = d.square().flatten(1).to(f64), m.flatten(1).to(f64), ok.flatten(1).to(f64)
     # the pair's own NLF, d² ≈ a + c·m by least squares over the usable blocks (pooled: over the frame)
@@ -163,7 +199,7 @@ def scene_leak(image: torch.Tensor, reference: torch.Tensor, pool: bool = False)
     # the usable blocks of each patch split at the median and the upper quartile of the scene's gradient
     okf_b = ok.flatten(1)
     gk = torch.where(okf_b, g.flatten(1), torch.full_like(g.flatten(1), math.inf))
-    sorted_g = torch.sort(gk, dim=1).values
+    sorted_g = sorted_values(gk)
     n_use = okf_b.sum(1, keepdim=True)
     t_flat = sorted_g.gather(1, (n_use // 2 - 1).clamp_min(0))
     t_steep = sorted_g.gather(1, (n_use - n_use // 4).clamp(0, gk.shape[1] - 1))
@@ -190,24 +226,50 @@ def pair_shift(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tens
     Args:
         image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 3).
     """
-    x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
-    d = (x1 - x2)[..., 1:-1, 1:-1]
-    avg = (x1 + x2) * 0.5
+    diff, avg, clip = _pair_dn(image, reference)
+    return _pair_shift(diff, avg, clip)
+
+
+def _pair_shift(diff: torch.Tensor, avg: torch.Tensor, clip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`pair_shift` of the pair's arrays in DN (:func:`_pair_dn`; the correlation does not depend on the
+    difference's scale)."""
+    d = diff[..., 1:-1, 1:-1]
     gx = (avg[..., 1:-1, 2:] - avg[..., 1:-1, :-2]) * 0.5
     gy = (avg[..., 2:, 1:-1] - avg[..., :-2, 1:-1]) * 0.5
-    clip = (x1 <= 0.5) | (x1 >= 254.5) | (x2 <= 0.5) | (x2 >= 254.5)
     rows = clip[..., :, :-2] | clip[..., :, 1:-1] | clip[..., :, 2:]  # the 3×3 neighbourhood, one axis at a time
-    ok = (~(rows[..., :-2, :] | rows[..., 1:-1, :] | rows[..., 2:, :])).float()
-    f64 = torch.float64
-    n = ok.flatten(1).sum(1, dtype=f64)
+    ok = (~(rows[..., :-2, :] | rows[..., 1:-1, :] | rows[..., 2:, :])).flatten(1).float()
+    b = d.shape[0]
+    d, gx, gy = d.reshape(b, -1), gx.reshape(b, -1), gy.reshape(b, -1)
+    n = ok.sum(1)
+    scale = 1.0 / n.clamp_min(1.0)
+
+    def centred(v: torch.Tensor) -> torch.Tensor:  # about its mean over the pixels read, 0 elsewhere
+        return (v - (v * ok).sum(1, keepdim=True) * scale.unsqueeze(1)) * ok
+
+    dc = centred(d)
+    s_dd = torch.linalg.vecdot(dc, dc)
 
     def corr(gr: torch.Tensor) -> torch.Tensor:
-        dm = (d * ok).flatten(1).sum(1, dtype=f64) / n.clamp_min(1.0)
-        gm = (gr * ok).flatten(1).sum(1, dtype=f64) / n.clamp_min(1.0)
-        dc = (d - dm.float().view(-1, 1, 1, 1)) * ok
-        gc = (gr - gm.float().view(-1, 1, 1, 1)) * ok
-        num = (dc * gc).flatten(1).sum(1, dtype=f64)
-        den = (dc.square().flatten(1).sum(1, dtype=f64) * gc.square().flatten(1).sum(1, dtype=f64)).sqrt()
+        gc = centred(gr)
+        den = (s_dd * torch.linalg.vecdot(gc, gc)).double().sqrt()
+        num = torch.linalg.vecdot(dc, gc).double()
         return torch.where((n >= 64) & (den > 0), num / den.clamp_min(1e-300), torch.zeros_like(num))
 
+    n = n.double()
     return torch.stack([corr(gx), corr(gy)], 1), n
+
+
+def pair_stillness(image: torch.Tensor, reference: torch.Tensor, pool: bool = False) -> torch.Tensor:
+    """Whether each patch of a pair shows a still scene, (B,) bool: :func:`scene_leak` within
+    max(:data:`SCENE_LEAK_LIMIT`, 4 standard errors) of 1 and both :func:`pair_shift` correlations within
+    max(:data:`PAIR_SHIFT_LIMIT`, 4/√n) of 0 — the two tests on one pass over the pair. ``pool``: one camera state
+    (the scene-leak NLF over all patches; the tests stay per patch).
+
+    Args:
+        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8).
+    """
+    diff, avg, clip = _pair_dn(image, reference)
+    leak, leak_se = _scene_leak(diff, avg, clip, pool)
+    shift, n = _pair_shift(diff, avg, clip)
+    return (((leak - 1.0).abs() <= torch.clamp_min(4.0 * leak_se, SCENE_LEAK_LIMIT))
+            & (shift.abs().amax(1) <= torch.clamp_min(4.0 / n.clamp_min(1.0).sqrt(), PAIR_SHIFT_LIMIT)))

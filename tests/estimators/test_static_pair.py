@@ -12,7 +12,8 @@ from camhealth.estimators.physics_noise import (
     PAIR_MAX_SIGMA_DN, PHYSICS_NOISE_COLUMNS, PhysicsNoiseEstimator, physics_noise_posterior,
 )
 from camhealth.estimators.static_pair import (
-    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, pair_shift, scene_leak, static_pair_blocks, static_pair_image,
+    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, _block_max, _block_mean, _block_min, pair_shift, pair_stillness, scene_leak,
+    static_pair_blocks, static_pair_image,
 )
 from camhealth.physics import CameraMetadata
 
@@ -124,6 +125,51 @@ def test_a_pair_on_a_busy_scene_reads_the_noise_the_single_image_cannot():
     assert (pair[:, col("xi_dn")] < -0.5).all() and (pair[:, col("follows_image")] == 1).all()
     assert torch.allclose(pair[:, col("total_dn")], truth, rtol=0.05)
     assert pair[0, col("details")] > 10 * alone[0, col("details")]  # the pair keeps the busy blocks
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_block_reductions_are_torchs_pooling(dtype):
+    x = torch.rand(3, 1, 18, 34, dtype=dtype)
+    assert torch.equal(_block_max(x), F.max_pool2d(x, 2)) and torch.equal(_block_min(x), -F.max_pool2d(-x, 2))
+    assert torch.allclose(_block_mean(x), F.avg_pool2d(x, 2), rtol=0, atol=4 * torch.finfo(dtype).eps)
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_stillness_is_both_tests_at_their_limits(pool):
+    """pair_stillness on one pass gives what scene_leak and pair_shift give at their limits, on still, shifted and
+    partly clipped pairs."""
+    clean = torch.cat([_busy(4, seed=11), torch.full((2, 1, 128, 128), 0.5)])
+    clean[-1, :, :, :40] = 1.0  # a clipped band: its pixels and their neighbours are left out
+    a, b = _pair(clean, META, 110)
+    b[[1, 4]] = torch.roll(b[[1, 4]], 1, -2)  # two patches shifted by a pixel (one busy, one flat)
+    leak, se = scene_leak(a, b, pool=pool)
+    shift, n = pair_shift(a, b)
+    expect = (((leak - 1).abs() <= (4 * se).clamp_min(SCENE_LEAK_LIMIT))
+              & (shift.abs().amax(1) <= (4 / n.sqrt()).clamp_min(PAIR_SHIFT_LIMIT)))
+    got = pair_stillness(a, b, pool=pool)
+    assert torch.equal(got, expect)
+    assert got.tolist() == [True, False, True, True, True, True]  # the flat patch's roll is still noise: nothing moved
+    assert n[-1] < n[-2] - 39 * 126  # the band and the column beside it
+
+
+def test_the_shift_correlation_is_the_sample_correlation():
+    """pair_shift against the textbook correlation of the difference with the average's central difference, on a
+    grating over a steep ramp (a large mean gradient: no cancellation) shifted by 0.3 px."""
+    g = torch.Generator().manual_seed(12)
+    col = torch.arange(64.0)
+
+    def scene(dx: float) -> torch.Tensor:
+        return (0.1 + 0.6 * (col - dx) / 63 + 0.1 * torch.sin(2 * math.pi * (col - dx) / 16)).view(1, 1, 1, 64).expand(1, 1, 64, 64)
+
+    a = scene(0.0) + 0.5 / 255 * torch.randn(1, 1, 64, 64, generator=g)
+    b = scene(0.3) + 0.5 / 255 * torch.randn(1, 1, 64, 64, generator=g)
+    x1, x2 = a.double() * 255, b.double() * 255
+    d = (x1 - x2)[0, 0, 1:-1, 1:-1].flatten()
+    avg = (x1 + x2)[0, 0] / 2
+    gx = ((avg[1:-1, 2:] - avg[1:-1, :-2]) / 2).flatten()
+    ref = torch.corrcoef(torch.stack([d, gx]))[0, 1]
+    shift, n = pair_shift(a, b)
+    assert n.item() == 62 * 62 and abs(shift[0, 0].item() - ref.item()) < 1e-5 and abs(shift[0, 0]) > 0.5
 
 
 @pytest.mark.parametrize("pool", [False, True])
