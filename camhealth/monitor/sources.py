@@ -122,16 +122,36 @@ LOSSY_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif", ".webp")
 
 
 def lossy_source(source: Any) -> str | None:
-    """Why the frames of ``source`` are likely lossy-compressed (a video file; JPEG or WebP images), or ``None``:
-    ``--static-pairs`` reads two frames' difference as noise, which a codec's re-quantisation can imitate."""
+    """Why the frames of ``source`` are likely lossy-compressed (a video file; JPEG or WebP images; a recording's
+    ``CompressedImage`` topic whose first message is not PNG), or ``None``: ``--static-pairs`` reads two frames'
+    difference as noise, which a codec's re-quantisation can imitate."""
     kind = getattr(source, "kind", None)
     if kind == "video":
         return f"{source.path.name} is a video (unless its codec is lossless, its frames are re-quantised)"
+    if kind == "recording":
+        return _lossy_topic(source)
     files = getattr(source, "_files", [])
     lossy = [f for f in files if f.suffix.lower() in LOSSY_IMAGE_SUFFIXES]
     if lossy:
         return f"{len(lossy)} of its {len(files)} frame file(s) are {lossy[0].suffix.lower()} images"
     return None
+
+
+def _lossy_topic(source: Any) -> str | None:
+    """:func:`lossy_source` of a recording: a ``sensor_msgs/CompressedImage`` topic is lossy unless its first
+    message's ``format`` names PNG (``"png"``, ``"mono8; png compressed"``); raw ``Image`` topics are lossless."""
+    summary = source.recording.topics.get(source.topic)
+    if summary is None or not str(summary.msgtype or "").endswith("CompressedImage"):
+        return None
+    try:
+        first = next(iter(source.recording.read(source.topic)), None)
+    except Exception:  # noqa: BLE001 - a damaged first message: its format is unknown, the reader reports the damage
+        first = None
+    fmt = str(getattr(first[1], "format", "")) if first is not None else ""
+    if "png" in fmt.lower():
+        return None
+    shown = f"format {fmt!r}" if fmt else "format unknown"
+    return f"topic {source.topic} holds sensor_msgs/CompressedImage messages ({shown}; only PNG is lossless)"
 
 
 def _past_end(start: int, n_frames: int, path: Path) -> None:

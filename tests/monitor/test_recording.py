@@ -273,3 +273,27 @@ def test_damage_met_while_reading_keeps_the_frames_before_it(fakes, street_frame
     assert [d["index"] for d in _lines(out)] == [0, 1]
     assert (f"warning: reading stopped after message 2 of 4 on {TOPIC}: chunk data ends early (damaged or truncated "
             "recording)") in err
+
+
+@pytest.mark.parametrize("fmt, lossy", [("jpeg", True), ("rgb8; jpeg compressed bgr8", True), ("png", False),
+                                        ("mono8; png compressed", False), ("raw", None)])
+def test_static_pairs_warn_on_a_compressed_topic_unless_png(fmt, lossy, fakes, tmp_path, capsys):
+    """``--static-pairs`` on a recording: a ``CompressedImage`` topic is named as lossy unless its format is PNG
+    (raw ``Image`` topics never are); the run goes on either way."""
+    import cv2
+
+    rec = tmp_path / "run.mcap"
+    g = np.random.default_rng(3)
+    with RecordingWriter(rec) as w:
+        for i in range(2):
+            img = np.clip(128 + g.normal(0, NOISE_DN, (256, 256)), 0, 255).round().astype(np.uint8)
+            t = T0 + i * PERIOD
+            if lossy is None:
+                w.add_image(TOPIC, img, t)
+            else:
+                w.add_compressed(TOPIC, cv2.imencode(".jpg" if lossy else ".png", img)[1], fmt, t)
+    code, out, err = _run([str(rec), "--topic", TOPIC, "--noise-model", "fake_noise", "--no-mtf", "--sensor", "ICX285",
+                           "--static-pairs"], capsys)
+    assert code == 0, err
+    warned = f"topic {TOPIC} holds sensor_msgs/CompressedImage messages (format {fmt!r}; only PNG is lossless)"
+    assert (warned in err) == bool(lossy) and err.count("warning: --static-pairs") == int(bool(lossy))
