@@ -22,6 +22,11 @@ selection, batched inference, aggregation and report):
   same frames (as ``python -m camhealth.monitor`` runs; interleaving three monitors in one process costs each
   of them cache and allocator traffic that a deployed monitor does not see), first ``--warmup`` frames not
   counted; this is the row the ≤ 100 ms target is judged on (skipped with ``--no-memory-probe``);
+* ``informative patches + static pairs`` (with ``--static-pairs``) — as ``informative patches``, with
+  ``static_pairs=True``: each noise patch is also read against the same patch of the previous frame where the
+  scene stood still (:mod:`camhealth.estimators.static_pair`); a summary line gives the patches per frame read from
+  a pair and the answers against the realised σ and against those of ``informative patches``. (The adaptive
+  monitor reuses a still patch's estimate until it is due again, so there pairs are read at that rate);
 * ``informative, fp32`` — as ``informative`` with fp32 networks (first ``--slow-frames`` frames);
 * the note of the monitor rows gives the median **CPU time** per frame (``time.process_time``, all threads):
   on a machine shared with other jobs it is what the frame costs independent of the load (with one thread it
@@ -74,6 +79,7 @@ HELP = ("ms per 1280×1024 frame of the monitor (every / informative / adaptive 
 ALL = "every patch (no skipping)"
 INFORMATIVE = "informative patches (fully monitored)"
 ADAPTIVE = "adaptive (skip + reuse static + coarse→refine)"
+PAIRS = "informative patches + static pairs"
 ALONE = "adaptive, monitor alone in its process"
 FP32 = "informative patches, fp32"
 THESIS = "thesis-size noise net, same noise patches"
@@ -113,6 +119,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frames timed for the fp32 and thesis-size rows (default 2; 0: no such rows)")
     parser.add_argument("--thesis-patches", type=int, default=4,
                         help="patches the thesis-size net is timed on (default 4; 0: no thesis row)")
+    parser.add_argument("--static-pairs", action="store_true",
+                        help="add the row 'informative patches + static pairs' (every informative patch every frame, each noise "
+                             "patch also read against the previous frame where the scene stood still: "
+                             "Monitor(static_pairs=True, adaptive=False)); the street clip is a still camera with people walking "
+                             "past, --scene deadleaves a scene where nothing moves")
     parser.add_argument("--motion", action="store_true",
                         help="moving-camera benchmark: sampled mode vs every informative patch on the static street clip, "
                              "the clip with simulated ego-motion and unrelated photographs (see camhealth.bench.monitor_motion)")
@@ -339,6 +350,8 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
         INFORMATIVE: Monitor(**common, mode="map", adaptive=False),
         ADAPTIVE: Monitor(**common, mode="map"),
     }
+    if getattr(args, "static_pairs", False):
+        monitors[PAIRS] = Monitor(**common, mode="map", adaptive=False, static_pairs=True)
     fp32 = Monitor(**{**common, "precision": "fp32"}, mode="map", adaptive=False)
     thesis = ThesisNoiseNet().eval()
     noise_est = monitors[INFORMATIVE].estimators["noise"].est
@@ -430,10 +443,34 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
     amae_diff = float(amae(ma, mf).mean()) if ma.numel() else float("nan")
     xi_all = torch.cat(xi_adapt)
 
+    def fmt(e: dict | None) -> str:
+        return "–" if e is None else f"Bias {e['bias']:.3f} / Std {e['std']:.3f} / RMS {e['rms']:.3f} DN (n = {e['n']})"
+
+    pair_lines = []
+    if PAIRS in reports:  # the pairs' answers against the fully monitored ones on the same patches
+        pe, pd, pxi = [], [], []
+        for i in range(args.frames):
+            ra, rp = reports[INFORMATIVE][i], reports[PAIRS][i]
+            both = _has_value(ra.noise) & _has_value(rp.noise)
+            pe.append(rp.noise.values[both, -1])
+            pd.append(rp.noise.values[both, -1] - ra.noise.values[both, -1])
+            pxi.append(rp.noise.values[both, NOISE_FIELDS.index("xi")])
+        truth_p = torch.cat([_truth_sigma(frames[i], blurred[i], grid_n)[_has_value(reports[INFORMATIVE][i].noise)
+                                                                        & _has_value(reports[PAIRS][i].noise)]
+                             for i in range(args.frames)])
+        pair_e = noise_errors(torch.cat(pe), truth_p) if truth_p.numel() else None
+        dp, xp = torch.cat(pd), torch.cat(pxi)
+        read = [r.noise.coverage.get("static_pairs", 0) for r in reports[PAIRS]]
+        pair_lines.append(
+            f"static pairs: {sum(read) / len(read):.1f} noise patches per frame read from a pair (frames 2…{args.frames}: "
+            f"{sum(read[1:]) / max(len(read) - 1, 1):.1f}); σ_total vs realised σ {fmt(pair_e)}; against the informative "
+            f"patches' RMS {float(dp.pow(2).mean().sqrt()) if dp.numel() else float('nan'):.3f} DN; ξ median "
+            f"{float(xp.median()) if xp.numel() else float('nan'):+.3f} DN")
+
     # ---- rows
     n_noise, n_mtf = reports[ALL][0].noise.counts["total"], reports[ALL][0].mtf.counts["total"]
     rows = []
-    for name in (ALL, INFORMATIVE, ADAPTIVE):
+    for name in monitors:
         rn, rm = fresh(name, "noise"), fresh(name, "mtf")
         note = (f"CPU {Row(name, cpu[name]).median_ms:.0f} ms/frame; {rn:.1f}/{n_noise} noise + {rm:.1f}/{n_mtf} MTF patches "
                 f"through the networks per frame")
@@ -483,9 +520,6 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
         f"models: {model_note}; precision {args.precision}; device {args.device}; warm-up {args.warmup} frame(s)",
         f"command: {getattr(args, 'command_line', 'python -m camhealth.bench monitor')}",
     ]
-    def fmt(e: dict | None) -> str:
-        return "–" if e is None else f"Bias {e['bias']:.3f} / Std {e['std']:.3f} / RMS {e['rms']:.3f} DN (n = {e['n']})"
-
     verdict = (lambda ms: ("met" if ms <= TARGET_MS else "NOT met")) if (args.width, args.height) == (1280, 1024) else \
         (lambda ms: "defined for 1280×1024 only")
     summary = [
@@ -513,6 +547,7 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
         f"{'met' if max(reading_pct.values()) <= TARGET_RECORDING_PCT else 'NOT met'})",
         f"ξ on informative patches (metadata correct, truth 0): median "
         f"{float(xi_all.median()) if xi_all.numel() else float('nan'):+.3f} DN",
+        *pair_lines,
         f"load average after: {_load()}",
     ]
     title = f"Monitor, {args.width}×{args.height} frames (ms per frame)"

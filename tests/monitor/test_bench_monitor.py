@@ -33,6 +33,25 @@ def test_tiny_run_prints_rows_and_summary(capsys, tmp_path):
     assert "| adaptive (skip + reuse static + coarse→refine) |" in (tmp_path / "b.md").read_text()
 
 
+def test_static_pairs_row_on_a_still_scene(capsys):
+    """``--static-pairs``: the row and its summary line; on the still dead-leaves scene (the same scene in every frame,
+    a new noise realisation) the shipped estimator reads noise patches from a pair from the second frame on."""
+    import re
+
+    n = torch.get_num_threads()
+    argv = ["monitor", "--frames", "3", "--warmup", "0", "--width", "384", "--height", "320", "--scene", "deadleaves",
+            "--slow-frames", "0", "--thesis-patches", "0", "--threads", "1", "--no-memory-probe", "--static-pairs"]
+    try:
+        assert main(argv) == 0
+    finally:
+        torch.set_num_threads(n)
+    text = capsys.readouterr().out
+    assert "informative patches + static pairs" in text
+    m = re.search(r"static pairs: ([0-9.]+) noise patches per frame read from a pair \(frames 2…3: ([0-9.]+)\)", text)
+    assert m is not None and float(m.group(2)) > 0
+    assert "against the informative patches' RMS" in text
+
+
 @pytest.mark.parametrize("bad", [["--frames", "0"], ["--thesis-patches", "-1"]])
 def test_bad_options(bad):
     with pytest.raises(ValueError, match=bad[0]):
