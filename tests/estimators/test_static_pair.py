@@ -212,6 +212,18 @@ def test_a_pair_noisier_than_its_margin_allows_is_read_alone():
     assert (out["xi"] < -30).all()  # the single image reads it
 
 
+@pytest.mark.parametrize("level, reason", [(0.0, "black"), (1.0, "saturated")])
+@pytest.mark.parametrize("pool", [False, True])
+def test_a_black_or_saturated_pair_is_not_read(level, reason, pool):
+    """Every pixel clipped in both frames: the stillness tests have nothing to read (they let it through), the pair's
+    fold has no flat area, so it is read alone — and a clipped patch is not assessable, with finite numbers."""
+    x = torch.full((3, 1, 128, 128), level)
+    assert pair_stillness(x, x.clone(), pool=pool).all()
+    out = PhysicsNoiseEstimator().predict(x, META, reference=x.clone(), pool=pool)
+    assert not out["static"].any() and out["reason"] == [reason] * 3
+    assert torch.isfinite(out["sigma"]).all() and torch.isfinite(out["xi"]).all()
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
 @pytest.mark.parametrize("batch", [1, 256])
 def test_reference_dtypes_and_batches(dtype, batch):
