@@ -50,6 +50,7 @@ scene does: the pair measures the temporal noise, which is what the sensor model
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
@@ -57,6 +58,20 @@ from camhealth._order import sorted_values
 
 __all__ = ["static_pair_image", "static_pair_blocks", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
            "pair_stillness"]
+
+
+def _check_pair(image: Any, reference: Any, min_side: int = 3) -> None:
+    """Two floating-point B×1×H×W tensors of one shape (H, W ≥ ``min_side``): ``TypeError``/``ValueError`` naming
+    what was given otherwise."""
+    if not isinstance(image, torch.Tensor) or not isinstance(reference, torch.Tensor):
+        raise TypeError(f"image and reference must be tensors, got {type(image).__name__} and {type(reference).__name__}")
+    if image.shape != reference.shape:
+        raise ValueError(f"reference must have the image's shape {tuple(image.shape)} (the same patches of another "
+                         f"exposure), got {tuple(reference.shape)}")
+    if image.ndim != 4 or image.shape[1] != 1 or min(image.shape[-2:]) < min_side:
+        raise ValueError(f"image must be a B×1×H×W tensor with H, W ≥ {min_side}, got {tuple(image.shape)}")
+    if not image.is_floating_point() or not reference.is_floating_point():
+        raise TypeError(f"image and reference must be floating point in [0, 1], got {image.dtype} and {reference.dtype}")
 
 
 def static_pair_image(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -71,15 +86,7 @@ def static_pair_image(image: torch.Tensor, reference: torch.Tensor) -> torch.Ten
         block means the scene's; clipped (0 or 1) wherever either frame is. An odd last row or column keeps the
         average there (it forms no 2×2 block).
     """
-    if not isinstance(image, torch.Tensor) or not isinstance(reference, torch.Tensor):
-        raise TypeError(f"image and reference must be tensors, got {type(image).__name__} and {type(reference).__name__}")
-    if image.shape != reference.shape:
-        raise ValueError(f"reference must have the image's shape {tuple(image.shape)} (the same patches of another "
-                         f"exposure), got {tuple(reference.shape)}")
-    if image.ndim != 4 or image.shape[1] != 1:
-        raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape)}")
-    if not image.is_floating_point() or not reference.is_floating_point():
-        raise TypeError(f"image and reference must be floating point in [0, 1], got {image.dtype} and {reference.dtype}")
+    _check_pair(image, reference, min_side=1)
     x1, x2 = image.detach().float(), reference.detach().float()
     avg = (x1 + x2) * 0.5
     b, c, h, w = avg.shape
@@ -124,7 +131,9 @@ def _block_grad2(m: torch.Tensor) -> torch.Tensor:
 
 def _pair_dn(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The pair in DN (float32): the scaled difference (I₁ − I₂)/√2, the average (I₁ + I₂)/2 and the pixels within
-    ½ DN of 0 or 255 DN in either frame (bool), all B×1×H×W."""
+    ½ DN of 0 or 255 DN in either frame (bool), all B×1×H×W. Two floating-point B×1×H×W tensors of one shape, H and
+    W ≥ 3; else ``TypeError``/``ValueError`` naming what was given."""
+    _check_pair(image, reference)
     x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
     diff = (x1 - x2) * (1.0 / math.sqrt(2.0))
     avg = (x1 + x2) * 0.5
@@ -142,6 +151,7 @@ def static_pair_blocks(image: torch.Tensor, reference: torch.Tensor) -> tuple[to
             block-mean gradients of one frame on a flat scene).
         lo, hi: the smallest and largest pixel of each block of the average (I₁ + I₂)/2 [DN].
     """
+    _check_pair(image, reference, min_side=8)
     x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
     h2, w2 = x1.shape[-2] // 2 * 2, x1.shape[-1] // 2 * 2
     diff = (x1 - x2)[..., :h2, :w2] * (1.0 / math.sqrt(2.0))

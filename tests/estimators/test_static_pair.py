@@ -68,12 +68,19 @@ def test_a_pixel_clipped_in_either_frame_is_clipped_in_the_fold():
     (lambda x: x[:, :, :-2], "same patches|image's shape"),
     (lambda x: (x * 255).to(torch.uint8), "floating point"),
 ])
-def test_the_fold_refuses_mismatched_frames(bad, match):
+@pytest.mark.parametrize("fn", [static_pair_image, static_pair_blocks, scene_leak, pair_shift, pair_stillness])
+def test_every_pair_function_refuses_mismatched_frames(bad, match, fn):
+    """A reference of another shape (also one that would broadcast), an integer frame or a frame of the wrong rank is
+    a clear error from every function of the pair, never a silently broadcast answer."""
     x = torch.rand(2, 1, 16, 16)
     with pytest.raises((ValueError, TypeError), match=match):
-        static_pair_image(x, bad(x))
+        fn(x, bad(x))
+    with pytest.raises(ValueError, match=r"reference must have the image's shape \(2, 1, 16, 16\) .*, got \(1, 1, 16, 16\)"):
+        fn(x, x[:1])
     with pytest.raises(ValueError, match="B×1×H×W"):
-        static_pair_image(x[:, 0], x[:, 0])
+        fn(x[:, 0], x[:, 0])
+    with pytest.raises(TypeError, match="must be tensors"):
+        fn(x, x.numpy())
 
 
 @pytest.mark.parametrize("pool", [False, True])
