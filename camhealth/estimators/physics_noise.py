@@ -94,10 +94,16 @@ do not count them in σ_Total; ``predict`` returns their count per patch (``defe
 (``defect_mask``) and the pixels tested (``defects_checked``: 0 on a patch whose local extremes are a regular pattern).
 
 **Two exposures of a still scene** (``reference``; :mod:`camhealth.estimators.static_pair`): the evidence is read
-from the pair's fold J, whose details hold the two frames' noise and nothing of the scene, with no scene allowance,
-flatness tested on the difference's block means, and blocks used only where all four pixels lie
-:data:`PAIR_BOUND_MARGIN` σ from the bounds; the clipping, the rounding and σ after clipping stay ``image``'s.
-:meth:`PhysicsNoiseEstimator.predict` tests per patch that the scene stood still and reads the others alone.
+from the pair's fold J (not clamped to [0, 1]), whose details hold the two frames' noise and nothing of the scene, with
+no scene allowance, flatness tested on the difference's block means, the details binned at the average's block mean
+(the scene's level, independent of the difference), blocks used where no pixel clips in either frame and the
+average's pixels lie ``bound_margin`` σ (at most 100 DN) from the bounds, and the clipping's loss modelled pixel by
+pixel: given the average A, neither frame clips exactly where the scaled difference stays within
+c = √2·min(A − ½, 254.5 − A), so each used pixel keeps the share h(c/σ) of the variance
+(:func:`truncated_second_moment`, :func:`pair_kept_variance_factor`) — exact for Gaussian noise however strong, so
+the pair reads σ up to the validated 64 DN (one frame's model infers the loss from block means instead). The
+clipping penalty, the rounding and σ after clipping stay ``image``'s. :meth:`PhysicsNoiseEstimator.predict` tests per
+patch that the scene stood still and reads the others alone.
 
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
@@ -129,28 +135,19 @@ from camhealth.estimators.noise_features import (
 from camhealth.estimators.defective_pixels import defective_pixels
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
 from camhealth.estimators.static_pair import (
-    pair_stillness, static_pair_blocks, static_pair_image,
+    difference_limits_dn, pair_stillness, static_pair_blocks, static_pair_image,
 )
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
-           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "PAIR_BOUND_MARGIN", "PAIR_MAX_SIGMA_DN", "textured"]
+           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "truncated_second_moment",
+           "pair_kept_variance_factor"]
 
 #: τ [DN] of a static pair (:meth:`PhysicsNoiseEstimator.predict` with ``reference``): the difference of two exposures
 #: holds nothing of a static scene, so no allowance is made for its fine content.
 PAIR_SCENE_ALLOWANCE_DN = 0.0
-#: Bound margin [σ] of a static pair: a block is used where its pixels lie 3 σ from 0 and 255 DN (one frame: 2 σ, with
-#: the clipping's loss modelled). A pair's block is used only where none of its eight pixels is clipped, which
-#: truncates the difference more than :func:`_kept_variance_factor` models for one frame; at 3 σ that loss is below
-#: 0.3 % of a pixel's variance (a pair of frames with 24 DN of noise: p90 of |σ̂_Total/σ_Total − 1| 1.2 % at 3 σ, 6 % at
-#: 2 σ).
-PAIR_BOUND_MARGIN = 3.0
-#: Largest σ_Total [DN] read from a static pair: above it the 3-σ margin outgrows the 100-DN cap of the margin (the
-#: pair then reads low: −7 % at 60 DN), while the scene's fine content (≤ 2 DN on busy scenes) is < 0.2 % of the
-#: variance, so one frame reads it as well; such patches are read alone.
-PAIR_MAX_SIGMA_DN = 32.0
 #: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
 VALIDATED_SIGMA_DN = 64.0
 #: The ``reason`` of a patch whose σ_Total (before clipping) is above :data:`VALIDATED_SIGMA_DN`.
@@ -268,6 +265,61 @@ def _kept_variance_factor(level: torch.Tensor, var: torch.Tensor) -> torch.Tenso
     f = 1.0 - loss(level - 0.5) - loss(254.5 - level)
     return f.clamp(1e-3, 1.0).to(var.dtype)
 
+
+
+def truncated_second_moment(u: torch.Tensor) -> torch.Tensor:
+    """h(u) = E[z² | |z| < u] for z ~ N(0, 1): 1 − 2u·φ(u)/(2Φ(u) − 1), → u²/3 as u → 0 and 1 as u → ∞ (h(1) = 0.291,
+    h(2) = 0.774, h(3) = 0.973). Elementwise, float64 inside, the input's dtype out."""
+    t = u.double().clamp_min(0.0)
+    tail = 2.0 * t * torch.exp(-0.5 * t * t) / math.sqrt(2.0 * math.pi) / torch.erf(t / math.sqrt(2.0)).clamp_min(1e-300)
+    return torch.where(t < 1e-2, t * t / 3.0, 1.0 - tail).to(u.dtype if u.is_floating_point() else torch.float64)
+
+
+#: A static pair's per-pixel clipping limits c [DN] (:func:`~camhealth.estimators.static_pair.difference_limits_dn`)
+#: are counted on a log grid of this many intervals between _PAIR_C_RANGE[0] and [1] DN (c ≤ √2·127 DN always; each
+#: interval spans 11 %, its geometric centre stands for it), the noise σ on a log grid of _PAIR_SIGMA_GRID points.
+_PAIR_C_BINS = 64
+_PAIR_C_RANGE = (0.25, 180.0)
+_PAIR_SIGMA_GRID = (0.05, 400.0, 97)
+
+
+def _pair_c_index(c: torch.Tensor) -> torch.Tensor:
+    """The interval of _PAIR_C_BINS that each limit c [DN] falls in (long; below the grid: 0, above: the last)."""
+    lo, hi = _PAIR_C_RANGE
+    pos = (c.clamp(lo, hi).log() - math.log(lo)) * (_PAIR_C_BINS / math.log(hi / lo))
+    return pos.long().clamp_(0, _PAIR_C_BINS - 1)
+
+
+@functools.lru_cache(maxsize=4)
+def _pair_share_table(device: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ln σ grid (G,), h(c_j/σ_g) (J, G)) float64: the share of the variance a pixel keeps whose difference is used
+    only within its limit c_j, at each noise σ_g of the grid (:func:`pair_kept_variance_factor`)."""
+    lo, hi = _PAIR_C_RANGE
+    centres = torch.exp(math.log(lo) + (torch.arange(_PAIR_C_BINS, dtype=torch.float64) + 0.5) * (math.log(hi / lo) / _PAIR_C_BINS))
+    s_lo, s_hi, n = _PAIR_SIGMA_GRID
+    log_sigma = torch.linspace(math.log(s_lo), math.log(s_hi), n, dtype=torch.float64)
+    table = truncated_second_moment(centres.unsqueeze(1) / log_sigma.exp().unsqueeze(0))
+    return log_sigma.to(device), table.to(device)
+
+
+def pair_kept_variance_factor(c_counts: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
+    """The share of the noise variance ``var`` [DN²] left in a static pair's diagonal details, (E, H) float64, for E
+    intensity bins given (E, _PAIR_C_BINS) counts of their pixels' clipping limits c (:func:`_pair_c_index` of
+    :func:`~camhealth.estimators.static_pair.difference_limits_dn`) and (E, H) hypothesised variances.
+
+    A detail is the ± sum of its four pixels' scaled differences over 2, each truncated at its own limit independently
+    of the others, so E[d²] = v·mean over the pixels of h(c_i/√v) (:func:`truncated_second_moment`); per bin that is
+    the mean over all its used pixels. Evaluated on a log grid of σ (every 0.09 in ln σ) and interpolated: within
+    0.3 % of the exact mean. 1 where a bin has no counts."""
+    log_sigma, table = _pair_share_table(str(var.device))
+    total = c_counts.sum(1, keepdim=True)
+    share = (c_counts.double() / total.clamp_min(1.0)) @ table  # (E, G): the bin's factor at each σ of the grid
+    share = torch.where(total > 0, share, torch.ones_like(share))
+    step = float(log_sigma[1] - log_sigma[0])
+    pos = ((0.5 * var.double().clamp_min(1e-12).log() - float(log_sigma[0])) / step).clamp(0.0, len(log_sigma) - 1.000001)
+    i = pos.floor().long()
+    w = pos - i
+    return (share.gather(1, i) * (1.0 - w) + share.gather(1, i + 1) * w).clamp(1e-3, 1.0)
 
 def _clipping_penalty(
     x: torch.Tensor, m: torch.Tensor, idx: torch.Tensor, a_all: torch.Tensor, c_all: torch.Tensor, q: torch.Tensor,
@@ -608,13 +660,27 @@ def physics_noise_posterior(
         a_all, var_all, c_all, prior = a_all.expand(b, -1), var_all.expand(b, -1, 2), c_all.expand(b, -1), prior.expand(b, -1)
         q = _quantisation_variance(x)
         # the image the evidence is read from: the patch itself, or a static pair's scene-free fold of it
-        x_ev = x if reference is None else static_pair_image(x, reference.detach().to(x.device))
+        # (unclamped: the scaled difference swings √2 times as far as a frame's noise, and its tails carry the noise)
+        x_ev = x if reference is None else static_pair_image(x, reference.detach().to(x.device), clamp=False)
 
         m, d2, usable, g2 = block_details(x_ev, "physics_noise_posterior")
         m_g, lo_hi = m, None  # the block means whose gradients test flatness; each block's pixel range [DN]
+        c_index = None  # a pair's per-pixel clipping limits, as intervals of the log grid (B, h·w, 4)
         if reference is not None:  # a pair's details hold no scene: flatness of the difference, the range of the pixels
             m_g, g2, lo, hi = static_pair_blocks(x, reference.detach().to(x.device))
             lo_hi = (lo, hi)
+            # the intensity a detail is binned at and its NLF read at: the average's block mean, the scene's level with
+            # noise v/8 and independent of the difference (the fold's own block mean adds the difference's, and bins
+            # chosen by it select details by their own values: at 60 DN the outer bins read half the variance)
+            m = m - m_g  # J's block mean less the difference's block mean
+            limits = difference_limits_dn(x, reference.detach().to(x.device))  # (B, 1, h, w, 4) [DN], 0: clipped
+            # usable: no pixel clipped in either frame (the fold's own range says nothing: it is not clamped)
+            usable = (limits > 0).all(-1)
+            usable[..., 0, :] = False  # the border blocks, as block_details leaves them out
+            usable[..., -1, :] = False
+            usable[..., :, 0] = False
+            usable[..., :, -1] = False
+            c_index = _pair_c_index(limits).view(b, -1, 4)
         band = row_column_noise(x_ev, pool)  # row and column offsets: out of the details the fits read
         d2, g2 = debanded_details(x_ev, m_g, d2, g2, band.detected)
         kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
@@ -625,7 +691,14 @@ def physics_noise_posterior(
         h = 1 if pool else b
         a_h, c_h, prior_h = a_all[:h], c_all[:h], prior[:h]
         q_h = q.mean().view(1) if pool else q
-        clip_n, clip_m, clip_o = _clip_bin_stats(x, m, idx, bins, pool, h)  # (h, bins): the clipping penalty's bins
+        # (h, bins): the clipping penalty's bins, read from the image's own blocks (a pair's fold has other block means)
+        if reference is None:
+            clip_n, clip_m, clip_o = _clip_bin_stats(x, m, idx, bins, pool, h)
+        else:
+            m_x = sum(_block_pixels(x)) / 4.0
+            k_x = (m_x / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
+            idx_x = (torch.arange(b, device=dev).view(b, 1) * bins + k_x).flatten()
+            clip_n, clip_m, clip_o = _clip_bin_stats(x, m_x, idx_x, bins, pool, h)
         post = torch.softmax(prior, 1)
         tau2 = torch.full((b,), scene_allowance_dn**2, dtype=f64, device=dev)  # τ² [DN²] per patch
         tau2_min = min(scene_allowance_min_dn, scene_allowance_dn) ** 2
@@ -654,11 +727,17 @@ def physics_noise_posterior(
             dd = (d2[0] * all3).flatten(1).sum(1).to(f64)
             n3 = all3.flatten(1).sum(1).to(f64)
             count, sq, sm = per_bin(inl), per_bin(d2[0].flatten().to(f64) * inl), per_bin(m_flat * inl)
+            c_counts = None
+            if c_index is not None:  # per bin, how many of the used pixels have each clipping limit
+                used = inl_all[0].flatten(1).bool()  # (B, h·w)
+                key = (idx.view(b, -1, 1) * _PAIR_C_BINS + c_index)[used].flatten()
+                c_counts = torch.bincount(key, minlength=b * bins * _PAIR_C_BINS).view(b, bins, _PAIR_C_BINS).to(f64)
             own_texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
             own_count = count.sum(1)
             if pool:  # one camera state: the frame's evidence for every patch
                 hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
                 count, sq, sm = (t.sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
+                c_counts = None if c_counts is None else c_counts.sum(0, keepdim=True)
             texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
             if pool and tau2_min < scene_allowance_dn**2:
                 # the frame's own fine content, read off its inliers: white noise puts as much energy into the
@@ -677,7 +756,9 @@ def physics_noise_posterior(
             mk = (sm[pe, ke] / n_e.squeeze(1)).unsqueeze(1)
             a_e, c_e = a_h.index_select(0, pe), c_h.index_select(0, pe)
             v = (a_e * mk + c_e + q_h[pe].unsqueeze(1)).clamp_min(1e-9)
-            kept = _kept_variance_factor(mk, v)  # the details of the blocks kept (no pixel clipped)
+            # the details of the blocks kept (no pixel clipped): one frame infers the loss from the block means, a pair
+            # knows each pixel's limit
+            kept = _kept_variance_factor(mk, v) if c_counts is None else pair_kept_variance_factor(c_counts[pe, ke], v)
             v = v * kept
             r = s_hat.clamp_min(1e-9).log() - v.log()
             # the scene's own fine-scale content adds up to about τ² to a bin (never removes any): a reading above the
@@ -867,8 +948,7 @@ class PhysicsNoiseEstimator:
         if ref_dev is None:
             raw = self._posterior(on_device, meta_dev, settings, batch_size).cpu()
         else:
-            pair = {"scene_allowance_dn": PAIR_SCENE_ALLOWANCE_DN, "scene_allowance_min_dn": PAIR_SCENE_ALLOWANCE_DN,
-                    "bound_margin": PAIR_BOUND_MARGIN, **settings}
+            pair = {"scene_allowance_dn": PAIR_SCENE_ALLOWANCE_DN, "scene_allowance_min_dn": PAIR_SCENE_ALLOWANCE_DN, **settings}
             # a patch whose difference carries the scene (it moved, or a codec re-quantised it) is read alone
             static = pair_stillness(patches, ref, pool=bool(settings.get("pool"))).cpu()
             if settings.get("pool") and 2 * int(static.sum()) < b:  # most of the frame moved: the camera did
@@ -879,10 +959,8 @@ class PhysicsNoiseEstimator:
                 sel_dev = sel.to(on_device.device)
                 raw[sel] = self._posterior(on_device[sel_dev], meta_dev if meta.batch_size == 1 else meta_dev[sel_dev], pair,
                                            batch_size, ref_dev[sel_dev]).cpu()
-                # a pair that is still textured, without a flat area (clipped nearly everywhere) or noisier than its
-                # margin from the bounds can hold is read alone too
-                static[sel] = (~textured(raw[sel, 8], raw[sel, 11]) & (raw[sel, 7] >= MIN_FOLLOW_DETAILS)
-                               & (raw[sel, 10] <= PAIR_MAX_SIGMA_DN))
+                # a pair that is still textured or without a flat area (clipped nearly everywhere) is read alone too
+                static[sel] = ~textured(raw[sel, 8], raw[sel, 11]) & (raw[sel, 7] >= MIN_FOLLOW_DETAILS)
             moved = (~static).nonzero(as_tuple=True)[0]
             if moved.numel():
                 moved_dev = moved.to(on_device.device)

@@ -17,9 +17,9 @@ block means of the average plus the scaled difference,
 
 B₂ is constant on each 2×2 block, so J's Haar details (diagonal, horizontal, vertical) are exactly those of
 (n₁ − n₂)/√2 — white noise of variance v(m), m the block's mean intensity, whatever the scene — and J's block means
-are the scene's block means (with noise variance v/4, as in one frame). A pixel clipped at 0 or 255 DN in either
-frame is clipped in J (its difference no longer carries the noise). So a noise estimate of J is a noise estimate of
-the camera free of the scene, and where the scene moved or the light changed between the frames, J's details carry
+are the scene's block means plus the difference's (noise variance v/8 + v/4). A pixel clipped at 0 or 255 DN in
+either frame is clipped in J (its difference no longer carries the noise). So a noise estimate of J is a noise
+estimate of the camera free of the scene, and where the scene moved or the light changed between the frames, J's details carry
 the change — structure that the texture and neighbour checks of
 :func:`camhealth.estimators.physics_noise.physics_noise_posterior` refuse.
 
@@ -43,6 +43,13 @@ A change of the light between the exposures (I₂ = α·I₁ + β) moves the blo
 both. Structure that only the horizontal and vertical details carry (a row-wise change) does not enter the evidence
 (the diagonal detail) and is left to the texture check.
 
+**Clipping.** The average A = (I₁ + I₂)/2 and the scaled difference D = (I₁ − I₂)/√2 of equal-variance Gaussian
+noise are independent, and neither frame clips exactly where |D| < √2·min(A − ½, 254.5 − A)
+(:func:`difference_limits_dn`): given the observed average, a used pixel's difference is a symmetric truncated normal
+with a known limit, whatever the scene and however strong the noise. Selecting and binning blocks by A keeps that
+model exact, so the noise estimate reads its details at the average's block mean (its flatness test and 3-σ cut,
+which read D, move the kept variance by under 1 % at 60 DN).
+
 Fixed-pattern offsets the two frames share (hot pixels, column fixed-pattern noise) cancel in the difference, as the
 scene does: the pair measures the temporal noise, which is what the sensor model's sources are.
 """
@@ -56,7 +63,7 @@ import torch
 
 from camhealth._order import sorted_values
 
-__all__ = ["static_pair_image", "static_pair_blocks", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
+__all__ = ["static_pair_image", "static_pair_blocks", "difference_limits_dn", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
            "pair_stillness"]
 
 
@@ -74,17 +81,23 @@ def _check_pair(image: Any, reference: Any, min_side: int = 3) -> None:
         raise TypeError(f"image and reference must be floating point in [0, 1], got {image.dtype} and {reference.dtype}")
 
 
-def static_pair_image(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+def static_pair_image(image: torch.Tensor, reference: torch.Tensor, clamp: bool = True) -> torch.Tensor:
     """J = B₂[(I₁ + I₂)/2] + (I₁ − I₂)/√2 of two B×1×H×W exposures of a static scene in [0, 1] (module docstring).
 
     Args:
         image: B×1×H×W floating-point frame I₁ in [0, 1].
         reference: I₂, the same scene and camera state from another exposure, same shape.
+        clamp: J clamped to [0, 1] (an image like any other). The scaled difference swings √2 times as far as either
+            frame's noise, so under strong noise J leaves [0, 1] where neither frame clips (σ = 60 DN at mid-grey: 5 %
+            of the pixels); a clamp there cuts the difference's tails, and a noise estimate read from the clamped J reads
+            low (−8 % at 60 DN). ``False`` keeps those values, as
+            :func:`~camhealth.estimators.physics_noise.physics_noise_posterior` reads J (its usable pixels are those of
+            :func:`difference_limits_dn`).
 
     Returns:
-        B×1×H×W float32 in [0, 1]: its Haar details are the pair's noise alone (variance v(m) [DN²/255²]), its 2×2
-        block means the scene's; clipped (0 or 1) wherever either frame is. An odd last row or column keeps the
-        average there (it forms no 2×2 block).
+        B×1×H×W float32 (in [0, 1] with ``clamp``): its Haar details are the pair's noise alone (variance v(m)
+        [DN²/255²]), its 2×2 block means the scene's; 0 or 1 wherever either frame is clipped. An odd last row or
+        column keeps the average there (it forms no 2×2 block).
     """
     _check_pair(image, reference, min_side=1)
     x1, x2 = image.detach().float(), reference.detach().float()
@@ -99,7 +112,8 @@ def static_pair_image(image: torch.Tensor, reference: torch.Tensor) -> torch.Ten
         out[..., h2:, :] += avg[..., h2:, :]
     if w2 < w:
         out[..., :h2, w2:] += avg[..., :h2, w2:]
-    out.clamp_(0.0, 1.0)
+    if clamp:
+        out.clamp_(0.0, 1.0)
     out.masked_fill_(torch.minimum(x1, x2) <= 0.0, 0.0)
     return out.masked_fill_(torch.maximum(x1, x2) >= 1.0, 1.0)
 
@@ -159,6 +173,32 @@ def static_pair_blocks(image: torch.Tensor, reference: torch.Tensor) -> tuple[to
     m_d = _block_mean(diff)
     return m_d, _block_grad2(m_d), _block_min(avg), _block_max(avg)
 
+
+
+def difference_limits_dn(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """How far the scaled difference of a static pair may swing before either frame clips, given the pair's average:
+    (B, 1, h, w, 4) float32 [DN], the four pixels of each 2×2 block (I₀₀, I₀₁, I₁₀, I₁₁; an odd last row or column is
+    dropped, as by the block statistics), B×1×H×W frames in [0, 1] (H, W ≥ 8).
+
+    A pixel of frame t reads I_t = S + n_t with n₁, n₂ independent N(0, v). The average A = (I₁ + I₂)/2 and the
+    scaled difference D = (I₁ − I₂)/√2 are then independent (uncorrelated Gaussians), and I₁ = A + D/√2,
+    I₂ = A − D/√2: neither frame clips (both within ½ DN of the bounds' inside) exactly where
+
+        |D| < c = √2·min(A − ½, 254.5 − A)   [DN].
+
+    So a pixel used only where neither frame clips carries D conditioned on |D| < c — a symmetric truncated normal
+    whose variance is v·h(c/√v), h(u) = E[z² | |z| < u] (:func:`camhealth.estimators.physics_noise.truncated_second_moment`)
+    — and since A is observed, c is known pixel by pixel whatever the scene. That is the pair's whole clipping model;
+    one frame has to infer it from block means instead (:func:`camhealth.estimators.physics_noise._kept_variance_factor`).
+    0 where either frame clips (within ½ DN of 0 or 255 DN: |D| ≥ c there), so a block is usable exactly where its
+    four limits are positive."""
+    _check_pair(image, reference, min_side=8)
+    h2, w2 = image.shape[-2] // 2 * 2, image.shape[-1] // 2 * 2
+    x1, x2 = image.detach().float()[..., :h2, :w2] * 255.0, reference.detach().float()[..., :h2, :w2] * 255.0
+    avg = (x1 + x2) * 0.5
+    c = torch.minimum(avg - 0.5, 254.5 - avg).clamp_min_(0.0).mul_(math.sqrt(2.0))
+    c.masked_fill_((torch.minimum(x1, x2) <= 0.5) | (torch.maximum(x1, x2) >= 254.5), 0.0)
+    return torch.stack([c[..., 0::2, 0::2], c[..., 0::2, 1::2], c[..., 1::2, 0::2], c[..., 1::2, 1::2]], dim=-1)
 
 #: Largest deviation of :func:`scene_leak` (the steep blocks' normalised detail energy over the flat ones') from 1 of a
 #: still pair, beside 4 of its standard errors: 0.1 lets through a change that adds ≈ 10 % to the noise variance of

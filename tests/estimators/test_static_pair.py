@@ -9,11 +9,12 @@ import torch.nn.functional as F
 from camhealth.bench.sensor_variants import simulate_variant
 from camhealth.estimators.noise_features import block_details, physics_prior_dn
 from camhealth.estimators.physics_noise import (
-    PAIR_MAX_SIGMA_DN, PHYSICS_NOISE_COLUMNS, PhysicsNoiseEstimator, physics_noise_posterior,
+    PHYSICS_NOISE_COLUMNS, PhysicsNoiseEstimator, _pair_c_index, pair_kept_variance_factor,
+    physics_noise_posterior, truncated_second_moment,
 )
 from camhealth.estimators.static_pair import (
-    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, _block_max, _block_mean, _block_min, pair_shift, pair_stillness, scene_leak,
-    static_pair_blocks, static_pair_image,
+    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, _block_max, _block_mean, _block_min, difference_limits_dn, pair_shift,
+    pair_stillness, scene_leak, static_pair_blocks, static_pair_image,
 )
 from camhealth.physics import CameraMetadata
 
@@ -211,12 +212,87 @@ def test_pooled_a_frame_most_of_which_moved_is_read_alone_as_a_whole():
     assert not out["static"].any()
 
 
-def test_a_pair_noisier_than_its_margin_allows_is_read_alone():
-    clean = torch.full((4, 1, 128, 128), 0.5)
-    a, b = _pair(clean, META, 70, extra_dn=40.0)
+def test_truncated_second_moment_is_the_truncated_normals_variance():
+    """h(u) = E[z² | |z| < u]: against a numerical integral of the normal density, its small-u limit u²/3 and 1 at ∞."""
+    u = torch.tensor([0.0, 1e-3, 0.05, 0.5, 1.0, 2.0, 3.0, 6.0, 40.0], dtype=torch.float64)
+    z = torch.linspace(0.0, 1.0, 200_001, dtype=torch.float64)
+    for ui, hi in zip(u.tolist(), truncated_second_moment(u).tolist()):
+        if ui == 0.0:
+            assert hi == 0.0
+            continue
+        t = z * ui
+        pdf = torch.exp(-0.5 * t * t)
+        assert hi == pytest.approx(float(torch.trapezoid(t * t * pdf, t) / torch.trapezoid(pdf, t)), rel=1e-6, abs=1e-12)
+    assert float(truncated_second_moment(torch.tensor(1e-3))) == pytest.approx(1e-6 / 3.0, rel=1e-3)
+    assert truncated_second_moment(torch.tensor([3.0], dtype=torch.float32)).dtype == torch.float32
+
+
+def test_difference_limits_are_where_either_frame_clips():
+    """|D| < c ⇔ neither frame within ½ DN of a bound, pixel by pixel (D = (I₁ − I₂)/√2, c from the average alone);
+    0 on a pixel that clips; the four pixels of each 2×2 block."""
+    g = torch.Generator().manual_seed(3)
+    x1 = ((torch.rand(2, 1, 16, 18, generator=g) * 1.4 - 0.2) * 255).round().clamp(0, 255) / 255
+    x2 = ((torch.rand(2, 1, 16, 18, generator=g) * 1.4 - 0.2) * 255).round().clamp(0, 255) / 255
+    c = difference_limits_dn(x1, x2)
+    assert c.shape == (2, 1, 8, 9, 4)
+    d = ((x1 - x2) * 255 / math.sqrt(2.0))[..., :16, :18]
+    blocks = torch.stack([d[..., 0::2, 0::2], d[..., 0::2, 1::2], d[..., 1::2, 0::2], d[..., 1::2, 1::2]], -1)
+    lo = torch.minimum(x1, x2)[..., :16, :18] * 255
+    hi = torch.maximum(x1, x2)[..., :16, :18] * 255
+    clipped = (lo <= 0.5) | (hi >= 254.5)
+    clipped = torch.stack([clipped[..., 0::2, 0::2], clipped[..., 0::2, 1::2], clipped[..., 1::2, 0::2], clipped[..., 1::2, 1::2]], -1)
+    assert clipped.any() and (~clipped).any()
+    assert torch.equal(c == 0, clipped)
+    assert (blocks.abs()[~clipped] < c[~clipped] + 1e-4).all()  # every used pixel's difference within its limit
+    avg = ((x1 + x2) * 127.5)[..., 0:16:2, 0:18:2]
+    expected = math.sqrt(2.0) * torch.minimum(avg - 0.5, 254.5 - avg)
+    ok = ~clipped[..., 0]
+    assert torch.allclose(c[..., 0][ok], expected[ok], atol=1e-3)
+
+
+def test_the_pairs_kept_variance_is_the_truncated_normals():
+    """Gaussian noise of σ 60 DN on a mid-grey scene, both frames clipped and rounded: given the average, the kept
+    pixels' differences have the variance σ²·mean h(c/σ) the model predicts, and the binned factor is within 0.3 % of
+    that exact mean."""
+    g = torch.Generator().manual_seed(0)
+    sigma = 60.0
+    x1, x2 = (((127.5 + sigma * torch.randn(2, 1, 512, 512, generator=g)).round().clamp(0, 255) / 255) for _ in range(2))
+    c = difference_limits_dn(x1, x2).flatten()
+    d = torch.stack([((x1 - x2) * 255 / math.sqrt(2.0))[..., i::2, j::2] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1))], -1).flatten()
+    used = c > 0
+    exact = float(truncated_second_moment(c[used].double() / sigma).mean())
+    assert 0.75 < exact < 0.9  # the clipping takes a fifth of the variance here
+    measured = float(d[used].double().square().mean()) - 1.0 / 12.0  # the 8-bit rounding's 1/12 DN²
+    assert measured / sigma**2 == pytest.approx(exact, rel=0.01)
+    counts = torch.bincount(_pair_c_index(c[used]), minlength=64).view(1, 64).double()
+    factor = pair_kept_variance_factor(counts, torch.tensor([[sigma**2, (0.5 * sigma) ** 2]], dtype=torch.float64))
+    assert float(factor[0, 0]) == pytest.approx(exact, rel=3e-3)
+    assert float(factor[0, 1]) == pytest.approx(float(truncated_second_moment(c[used].double() / (0.5 * sigma)).mean()), rel=3e-3)
+    assert pair_kept_variance_factor(torch.zeros(1, 64), torch.ones(1, 3)).eq(1.0).all()  # no counts: nothing lost
+
+
+def test_the_fold_left_unclamped_keeps_the_differences_tails():
+    x1 = torch.full((1, 1, 8, 8), 0.5)
+    x2 = x1.clone()
+    x1[0, 0, 0, 0], x2[0, 0, 0, 0] = 0.9, 0.1  # neither clips; J = 0.5 + 0.8/√2 > 1
+    x1[0, 0, 3, 3] = 1.0  # clipped in one frame
+    assert static_pair_image(x1, x2)[0, 0, 0, 0] == 1.0
+    j = static_pair_image(x1, x2, clamp=False)
+    assert float(j[0, 0, 0, 0]) == pytest.approx(0.5 + 0.8 / math.sqrt(2.0), abs=1e-6) and j[0, 0, 3, 3] == 1.0
+
+
+@pytest.mark.parametrize("level, extra", [(0.5, 40.0), (0.5, 60.0), (0.2, 40.0), (0.2, 60.0)])
+def test_a_pair_under_strong_noise_is_read_from_the_pair(level, extra):
+    """A frame (16 patches, pooled) with 40–60 DN of extra noise on the told camera, also near a bound: the pair reads
+    it (static, assessable) within 5 % of the realised σ_Total with ξ < 0 — the clipping of both frames modelled pixel
+    by pixel (read from the clamped fold at its own block means, a flat frame read 9–18 % low at 40–60 DN)."""
+    clean = torch.full((16, 1, 128, 128), level)
+    a, b = _pair(clean, META, 70, extra_dn=extra)
     out = PhysicsNoiseEstimator().predict(a, META, reference=b, pool=True)
-    assert 40.0 > PAIR_MAX_SIGMA_DN and not out["static"].any()
-    assert (out["xi"] < -30).all()  # the single image reads it
+    assert out["static"].all() and out["assessable"].all(), out["reason"]
+    truth = (a - clean).mul(255).flatten(1).std(1)  # the realised σ_Total after clipping (no scene: clean is flat)
+    assert torch.allclose(out["sigma_total"], truth, rtol=0.05), (out["sigma_total"], truth)
+    assert (out["xi"] < -30).all()
 
 
 @pytest.mark.parametrize("level, reason", [(0.0, "black"), (1.0, "saturated")])
