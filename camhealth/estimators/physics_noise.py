@@ -284,10 +284,10 @@ _PAIR_SIGMA_GRID = (0.05, 400.0, 97)
 
 
 def _pair_c_index(c: torch.Tensor) -> torch.Tensor:
-    """The interval of _PAIR_C_BINS that each limit c [DN] falls in (long; below the grid: 0, above: the last)."""
+    """The interval of _PAIR_C_BINS that each limit c [DN] falls in (int32; below the grid: 0, above: the last)."""
     lo, hi = _PAIR_C_RANGE
-    pos = (c.clamp(lo, hi).log() - math.log(lo)) * (_PAIR_C_BINS / math.log(hi / lo))
-    return pos.long().clamp_(0, _PAIR_C_BINS - 1)
+    pos = (c.clamp(lo, hi).log_() - math.log(lo)).mul_(_PAIR_C_BINS / math.log(hi / lo))
+    return pos.int().clamp_(0, _PAIR_C_BINS - 1)
 
 
 @functools.lru_cache(maxsize=4)
@@ -675,7 +675,7 @@ def physics_noise_posterior(
             m = m - m_g  # J's block mean less the difference's block mean
             limits = difference_limits_dn(x, reference.detach().to(x.device))  # (B, 1, h, w, 4) [DN], 0: clipped
             # usable: no pixel clipped in either frame (the fold's own range says nothing: it is not clamped)
-            usable = (limits > 0).all(-1)
+            usable = limits.amin(-1) > 0
             usable[..., 0, :] = False  # the border blocks, as block_details leaves them out
             usable[..., -1, :] = False
             usable[..., :, 0] = False
@@ -686,6 +686,8 @@ def physics_noise_posterior(
         kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
         idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
         m_flat = m.flatten().to(f64)
+        # a pair's pixels by (patch, intensity bin, interval of their clipping limit), flattened from (B, h·w, 4)
+        c_key = None if c_index is None else (idx.view(b, -1, 1).int() * _PAIR_C_BINS + c_index).flatten()
         v_ref = _median_variance(m, d2[0], usable, 4)
         # pooled, every patch has the same evidence and hypotheses (metadata of batch 1): one row is computed for all
         h = 1 if pool else b
@@ -728,10 +730,9 @@ def physics_noise_posterior(
             n3 = all3.flatten(1).sum(1).to(f64)
             count, sq, sm = per_bin(inl), per_bin(d2[0].flatten().to(f64) * inl), per_bin(m_flat * inl)
             c_counts = None
-            if c_index is not None:  # per bin, how many of the used pixels have each clipping limit
-                used = inl_all[0].flatten(1).bool()  # (B, h·w)
-                key = (idx.view(b, -1, 1) * _PAIR_C_BINS + c_index)[used].flatten()
-                c_counts = torch.bincount(key, minlength=b * bins * _PAIR_C_BINS).view(b, bins, _PAIR_C_BINS).to(f64)
+            if c_key is not None:  # per bin, how many of the used pixels have each clipping limit
+                c_counts = torch.bincount(c_key, weights=inl.view(b, -1, 1).expand(-1, -1, 4).flatten(),
+                                          minlength=b * bins * _PAIR_C_BINS).view(b, bins, _PAIR_C_BINS)
             own_texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
             own_count = count.sum(1)
             if pool:  # one camera state: the frame's evidence for every patch
