@@ -33,7 +33,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
     "metadata_from_matrix", "physics_prior_dn", "clipped_prior_dn", "image_statistics", "laplace_difference", "box_mean3",
-    "IMAGE_STATISTICS", "CLIP_TOLERANCE", "block_details",
+    "IMAGE_STATISTICS", "CLIP_TOLERANCE", "block_details", "truncated_second_moment",
 ]
 
 #: Names of the columns of :func:`image_statistics`.
@@ -106,9 +106,17 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
     return prior.float()
 
 
+def truncated_second_moment(u: torch.Tensor) -> torch.Tensor:
+    """h(u) = E[z² | |z| < u] for z ~ N(0, 1): 1 − 2u·φ(u)/(2Φ(u) − 1), → u²/3 as u → 0 and 1 as u → ∞ (h(1) = 0.291,
+    h(2) = 0.774, h(3) = 0.973). Elementwise, float64 inside, the input's dtype out (float64 for an integer input)."""
+    t = u.double().clamp_min(0.0)
+    tail = 2.0 * t * torch.exp(-0.5 * t * t) / math.sqrt(2.0 * math.pi) / torch.erf(t / math.sqrt(2.0)).clamp_min(1e-300)
+    return torch.where(t < 1e-2, t * t / 3.0, 1.0 - tail).to(u.dtype if u.is_floating_point() else torch.float64)
+
+
 # Inliers of the fits: |d| < 3 σ; E[d² | inlier] = _TRUNCATED_CHI2 · σ² for Gaussian d.
 _INLIER_Z = 3.0
-_TRUNCATED_CHI2 = 1.0 - 2.0 * _INLIER_Z * math.exp(-0.5 * _INLIER_Z**2) / math.sqrt(2.0 * math.pi) / math.erf(_INLIER_Z / math.sqrt(2.0))
+_TRUNCATED_CHI2 = float(truncated_second_moment(torch.tensor(_INLIER_Z, dtype=torch.float64)))
 # Coarse-gradient test of the texture mask: χ²₂ at 99 %.
 _TEXTURE_CHI2 = 9.21
 # Fewer inlier details than this: a patch carries no evidence about its noise-level function.

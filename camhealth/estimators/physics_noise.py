@@ -100,7 +100,7 @@ no scene allowance, flatness tested on the difference's block means, the details
 average's pixels lie ``bound_margin`` σ (at most 100 DN) from the bounds, and the clipping's loss modelled pixel by
 pixel: given the average A, neither frame clips exactly where the scaled difference stays within
 c = √2·min(A − ½, 254.5 − A), so each used pixel keeps the share h(c/σ) of the variance
-(:func:`truncated_second_moment`, :func:`pair_kept_variance_factor`) — exact for Gaussian noise however strong, so
+(:func:`~camhealth.estimators.noise_features.truncated_second_moment`, :func:`pair_kept_variance_factor`) — exact for Gaussian noise however strong, so
 the pair reads σ up to the validated 64 DN (one frame's model infers the loss from block means instead). The
 clipping penalty, the rounding and σ after clipping stay ``image``'s. :meth:`PhysicsNoiseEstimator.predict` tests per
 patch that the scene stood still and reads the others alone.
@@ -130,7 +130,7 @@ from camhealth._order import sorted_values
 from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, haar_noise_dn
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
-    metadata_from_matrix,
+    metadata_from_matrix, truncated_second_moment,
 )
 from camhealth.estimators.defective_pixels import defective_pixels
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
@@ -142,8 +142,7 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetad
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
-           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "truncated_second_moment",
-           "pair_kept_variance_factor"]
+           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor"]
 
 #: τ [DN] of a static pair (:meth:`PhysicsNoiseEstimator.predict` with ``reference``): the difference of two exposures
 #: holds nothing of a static scene, so no allowance is made for its fine content.
@@ -267,14 +266,6 @@ def _kept_variance_factor(level: torch.Tensor, var: torch.Tensor) -> torch.Tenso
 
 
 
-def truncated_second_moment(u: torch.Tensor) -> torch.Tensor:
-    """h(u) = E[z² | |z| < u] for z ~ N(0, 1): 1 − 2u·φ(u)/(2Φ(u) − 1), → u²/3 as u → 0 and 1 as u → ∞ (h(1) = 0.291,
-    h(2) = 0.774, h(3) = 0.973). Elementwise, float64 inside, the input's dtype out."""
-    t = u.double().clamp_min(0.0)
-    tail = 2.0 * t * torch.exp(-0.5 * t * t) / math.sqrt(2.0 * math.pi) / torch.erf(t / math.sqrt(2.0)).clamp_min(1e-300)
-    return torch.where(t < 1e-2, t * t / 3.0, 1.0 - tail).to(u.dtype if u.is_floating_point() else torch.float64)
-
-
 #: A static pair's per-pixel clipping limits c [DN] (:func:`~camhealth.estimators.static_pair.difference_limits_dn`)
 #: are counted on a log grid of this many intervals between _PAIR_C_RANGE[0] and [1] DN (c ≤ √2·127 DN always; each
 #: interval spans 11 %, its geometric centre stands for it), the noise σ on a log grid of _PAIR_SIGMA_GRID points.
@@ -308,7 +299,7 @@ def pair_kept_variance_factor(c_counts: torch.Tensor, var: torch.Tensor) -> torc
     :func:`~camhealth.estimators.static_pair.difference_limits_dn`) and (E, H) hypothesised variances.
 
     A detail is the ± sum of its four pixels' scaled differences over 2, each truncated at its own limit independently
-    of the others, so E[d²] = v·mean over the pixels of h(c_i/√v) (:func:`truncated_second_moment`); per bin that is
+    of the others, so E[d²] = v·mean over the pixels of h(c_i/√v) (:func:`~camhealth.estimators.noise_features.truncated_second_moment`); per bin that is
     the mean over all its used pixels. Evaluated on a log grid of σ (every 0.09 in ln σ) and interpolated: within
     0.3 % of the exact mean. 1 where a bin has no counts."""
     log_sigma, table = _pair_share_table(str(var.device))

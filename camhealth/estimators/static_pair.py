@@ -187,7 +187,7 @@ def difference_limits_dn(image: torch.Tensor, reference: torch.Tensor) -> torch.
         |D| < c = √2·min(A − ½, 254.5 − A)   [DN].
 
     So a pixel used only where neither frame clips carries D conditioned on |D| < c — a symmetric truncated normal
-    whose variance is v·h(c/√v), h(u) = E[z² | |z| < u] (:func:`camhealth.estimators.physics_noise.truncated_second_moment`)
+    whose variance is v·h(c/√v), h(u) = E[z² | |z| < u] (:func:`camhealth.estimators.noise_features.truncated_second_moment`)
     — and since A is observed, c is known pixel by pixel whatever the scene. That is the pair's whole clipping model;
     one frame has to infer it from block means instead (:func:`camhealth.estimators.physics_noise._kept_variance_factor`).
     0 where either frame clips (within ½ DN of 0 or 255 DN: |D| ≥ c there), so a block is usable exactly where its

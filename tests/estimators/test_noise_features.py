@@ -8,7 +8,9 @@ import torch
 from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_dn
-from camhealth.estimators.noise_features import image_statistics, metadata_from_matrix, physics_prior_dn
+from camhealth.estimators.noise_features import (
+    _TRUNCATED_CHI2, image_statistics, metadata_from_matrix, physics_prior_dn, truncated_second_moment,
+)
 
 
 @pytest.mark.parametrize("temperature_c", [0.0, 80.0])
@@ -180,3 +182,19 @@ def test_clipped_prior_names_bad_metadata_on_the_fast_path_too():
         clipped_prior_dn(x, torch.tensor([-1.0]), torch.tensor([1.0]), torch.tensor([1.0]))
     with pytest.raises(ValueError):
         clipped_prior_dn(torch.full((1, 1, 16, 16), float("nan")), torch.tensor([0.1]), torch.tensor([1.0]), torch.tensor([1.0]))
+
+
+def test_truncated_second_moment_is_the_truncated_normals_variance():
+    """h(u) = E[z² | |z| < u]: against a numerical integral of the normal density, its small-u limit u²/3 and 1 at ∞."""
+    u = torch.tensor([0.0, 1e-3, 0.05, 0.5, 1.0, 2.0, 3.0, 6.0, 40.0], dtype=torch.float64)
+    z = torch.linspace(0.0, 1.0, 200_001, dtype=torch.float64)
+    for ui, hi in zip(u.tolist(), truncated_second_moment(u).tolist()):
+        if ui == 0.0:
+            assert hi == 0.0
+            continue
+        t = z * ui
+        pdf = torch.exp(-0.5 * t * t)
+        assert hi == pytest.approx(float(torch.trapezoid(t * t * pdf, t) / torch.trapezoid(pdf, t)), rel=1e-6, abs=1e-12)
+    assert float(truncated_second_moment(torch.tensor(1e-3))) == pytest.approx(1e-6 / 3.0, rel=1e-3)
+    assert truncated_second_moment(torch.tensor([3.0], dtype=torch.float32)).dtype == torch.float32
+    assert _TRUNCATED_CHI2 == pytest.approx(0.97333692, rel=1e-7)  # the inlier cut at 3 σ

@@ -7,10 +7,10 @@ import torch
 import torch.nn.functional as F
 
 from camhealth.bench.sensor_variants import simulate_variant
-from camhealth.estimators.noise_features import block_details, physics_prior_dn
+from camhealth.estimators.noise_features import block_details, physics_prior_dn, truncated_second_moment
 from camhealth.estimators.physics_noise import (
     PHYSICS_NOISE_COLUMNS, PhysicsNoiseEstimator, _pair_c_index, pair_kept_variance_factor,
-    physics_noise_posterior, truncated_second_moment,
+    physics_noise_posterior,
 )
 from camhealth.estimators.static_pair import (
     PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, _block_max, _block_mean, _block_min, difference_limits_dn, pair_shift,
@@ -210,21 +210,6 @@ def test_pooled_a_frame_most_of_which_moved_is_read_alone_as_a_whole():
     b_moved[:5] = torch.roll(b[:5], 1, -1)  # the camera moved: five of eight patches show it (three are flat-ish here)
     out = PhysicsNoiseEstimator().predict(a, META, reference=b_moved, pool=True)
     assert not out["static"].any()
-
-
-def test_truncated_second_moment_is_the_truncated_normals_variance():
-    """h(u) = E[z² | |z| < u]: against a numerical integral of the normal density, its small-u limit u²/3 and 1 at ∞."""
-    u = torch.tensor([0.0, 1e-3, 0.05, 0.5, 1.0, 2.0, 3.0, 6.0, 40.0], dtype=torch.float64)
-    z = torch.linspace(0.0, 1.0, 200_001, dtype=torch.float64)
-    for ui, hi in zip(u.tolist(), truncated_second_moment(u).tolist()):
-        if ui == 0.0:
-            assert hi == 0.0
-            continue
-        t = z * ui
-        pdf = torch.exp(-0.5 * t * t)
-        assert hi == pytest.approx(float(torch.trapezoid(t * t * pdf, t) / torch.trapezoid(pdf, t)), rel=1e-6, abs=1e-12)
-    assert float(truncated_second_moment(torch.tensor(1e-3))) == pytest.approx(1e-6 / 3.0, rel=1e-3)
-    assert truncated_second_moment(torch.tensor([3.0], dtype=torch.float32)).dtype == torch.float32
 
 
 def test_difference_limits_are_where_either_frame_clips():
