@@ -194,10 +194,11 @@ def difference_limits_dn(image: torch.Tensor, reference: torch.Tensor) -> torch.
     four limits are positive."""
     _check_pair(image, reference, min_side=8)
     h2, w2 = image.shape[-2] // 2 * 2, image.shape[-1] // 2 * 2
-    x1, x2 = image.detach().float()[..., :h2, :w2] * 255.0, reference.detach().float()[..., :h2, :w2] * 255.0
-    avg = (x1 + x2) * 0.5
-    c = torch.minimum(avg - 0.5, 254.5 - avg).clamp_min_(0.0).mul_(math.sqrt(2.0))
-    c.masked_fill_((torch.minimum(x1, x2) <= 0.5) | (torch.maximum(x1, x2) >= 254.5), 0.0)
+    x1, x2 = image.detach().float()[..., :h2, :w2], reference.detach().float()[..., :h2, :w2]
+    # c = √2·(127 − |A − 127.5|) with A = 127.5·(x₁ + x₂) [DN]; with d = (I₁ − I₂)/2 the frames read A ± d, so one of
+    # them is within ½ DN of a bound exactly where |d| ≥ c/√2, i.e. |D| = 255·|x₁ − x₂|/√2 ≥ c
+    c = (x1 + x2 - 1.0).abs_().mul_(-127.5 * math.sqrt(2.0)).add_(127.0 * math.sqrt(2.0))
+    c.masked_fill_((x1 - x2).abs_().mul_(255.0 / math.sqrt(2.0)) >= c, 0.0).clamp_min_(0.0)
     return torch.stack([c[..., 0::2, 0::2], c[..., 0::2, 1::2], c[..., 1::2, 0::2], c[..., 1::2, 1::2]], dim=-1)
 
 #: Largest deviation of :func:`scene_leak` (the steep blocks' normalised detail energy over the flat ones') from 1 of a
