@@ -134,9 +134,7 @@ from camhealth.estimators.noise_features import (
 )
 from camhealth.estimators.defective_pixels import defective_pixels
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
-from camhealth.estimators.static_pair import (
-    difference_limits_dn, pair_stillness, static_pair_blocks, static_pair_image,
-)
+from camhealth.estimators.static_pair import pair_fold, pair_stillness
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
@@ -652,26 +650,25 @@ def physics_noise_posterior(
         q = _quantisation_variance(x)
         # the image the evidence is read from: the patch itself, or a static pair's scene-free fold of it
         # (unclamped: the scaled difference swings √2 times as far as a frame's noise, and its tails carry the noise)
-        x_ev = x if reference is None else static_pair_image(x, reference.detach().to(x.device), clamp=False)
+        pair = None if reference is None else pair_fold(x, reference.detach().to(x.device))
+        x_ev = x if pair is None else pair.fold
 
         m, d2, usable, g2 = block_details(x_ev, "physics_noise_posterior")
         m_g, lo_hi = m, None  # the block means whose gradients test flatness; each block's pixel range [DN]
         c_index = None  # a pair's per-pixel clipping limits, as intervals of the log grid (B, h·w, 4)
-        if reference is not None:  # a pair's details hold no scene: flatness of the difference, the range of the pixels
-            m_g, g2, lo, hi = static_pair_blocks(x, reference.detach().to(x.device))
-            lo_hi = (lo, hi)
+        if pair is not None:  # a pair's details hold no scene: flatness of the difference, the range of the pixels
+            m_g, g2, lo_hi = pair.m_d, pair.g2, (pair.lo, pair.hi)
             # the intensity a detail is binned at and its NLF read at: the average's block mean, the scene's level with
             # noise v/8 and independent of the difference (the fold's own block mean adds the difference's, and bins
             # chosen by it select details by their own values: at 60 DN the outer bins read half the variance)
-            m = m - m_g  # J's block mean less the difference's block mean
-            limits = difference_limits_dn(x, reference.detach().to(x.device))  # (B, 1, h, w, 4) [DN], 0: clipped
+            m = pair.m_avg
             # usable: no pixel clipped in either frame (the fold's own range says nothing: it is not clamped)
-            usable = limits.amin(-1) > 0
+            usable = pair.limits.amin(-1) > 0
             usable[..., 0, :] = False  # the border blocks, as block_details leaves them out
             usable[..., -1, :] = False
             usable[..., :, 0] = False
             usable[..., :, -1] = False
-            c_index = _pair_c_index(limits).view(b, -1, 4)
+            c_index = _pair_c_index(pair.limits).view(b, -1, 4)
         band = row_column_noise(x_ev, pool)  # row and column offsets: out of the details the fits read
         d2, g2 = debanded_details(x_ev, m_g, d2, g2, band.detected)
         kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)

@@ -57,13 +57,13 @@ scene does: the pair measures the temporal noise, which is what the sensor model
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
 from camhealth._order import sorted_values
 
-__all__ = ["static_pair_image", "static_pair_blocks", "difference_limits_dn", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
+__all__ = ["static_pair_image", "static_pair_blocks", "difference_limits_dn", "pair_fold", "PairFold", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
            "pair_stillness"]
 
 
@@ -174,7 +174,6 @@ def static_pair_blocks(image: torch.Tensor, reference: torch.Tensor) -> tuple[to
     return m_d, _block_grad2(m_d), _block_min(avg), _block_max(avg)
 
 
-
 def difference_limits_dn(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """How far the scaled difference of a static pair may swing before either frame clips, given the pair's average:
     (B, 1, h, w, 4) float32 [DN], the four pixels of each 2×2 block (I₀₀, I₀₁, I₁₀, I₁₁; an odd last row or column is
@@ -200,6 +199,48 @@ def difference_limits_dn(image: torch.Tensor, reference: torch.Tensor) -> torch.
     c = (x1 + x2 - 1.0).abs_().mul_(-127.5 * math.sqrt(2.0)).add_(127.0 * math.sqrt(2.0))
     c.masked_fill_((x1 - x2).abs_().mul_(255.0 / math.sqrt(2.0)) >= c, 0.0).clamp_min_(0.0)
     return torch.stack([c[..., 0::2, 0::2], c[..., 0::2, 1::2], c[..., 1::2, 0::2], c[..., 1::2, 1::2]], dim=-1)
+
+
+class PairFold(NamedTuple):
+    """What :func:`~camhealth.estimators.physics_noise.physics_noise_posterior` reads of a static pair, from one pass
+    (:func:`pair_fold`): the unclamped fold (:func:`static_pair_image` with ``clamp=False``), the blocks of
+    :func:`static_pair_blocks` (m_d, g2, lo, hi), the limits of :func:`difference_limits_dn`, and the average's block
+    means m_avg [DN] (B, 1, h, w)."""
+
+    fold: torch.Tensor
+    m_d: torch.Tensor
+    g2: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    limits: torch.Tensor
+    m_avg: torch.Tensor
+
+
+def pair_fold(image: torch.Tensor, reference: torch.Tensor) -> PairFold:
+    """:func:`static_pair_image` (unclamped), :func:`static_pair_blocks`, :func:`difference_limits_dn` and the average's
+    block means of B×1×H×W frames in [0, 1] (H, W ≥ 8), the sum and difference of the frames formed once."""
+    _check_pair(image, reference, min_side=8)
+    x1, x2 = image.detach().float(), reference.detach().float()
+    b, ch, h, w = x1.shape
+    h2, w2 = h // 2 * 2, w // 2 * 2
+    total, diff = x1 + x2, x1 - x2  # [0, 2] and [−1, 1]
+    t2, d2 = total[..., :h2, :w2], diff[..., :h2, :w2]
+    avg_blocks = _block_mean(t2).mul_(0.5)  # the average's block means in [0, 1]
+    fold = diff * (1.0 / math.sqrt(2.0))
+    fold[..., :h2, :w2] += avg_blocks.view(b, ch, h2 // 2, 1, w2 // 2, 1).expand(b, ch, h2 // 2, 2, w2 // 2, 2).reshape(b, ch, h2, w2)
+    if h2 < h:
+        fold[..., h2:, :] += total[..., h2:, :] * 0.5
+    if w2 < w:
+        fold[..., :h2, w2:] += total[..., :h2, w2:] * 0.5
+    fold.masked_fill_(torch.minimum(x1, x2) <= 0.0, 0.0).masked_fill_(torch.maximum(x1, x2) >= 1.0, 1.0)
+    # the limits as in difference_limits_dn: c = √2·(127 − |A − 127.5|), 0 where |D| ≥ c
+    c = (t2 - 1.0).abs_().mul_(-127.5 * math.sqrt(2.0)).add_(127.0 * math.sqrt(2.0))
+    c.masked_fill_(d2.abs().mul_(255.0 / math.sqrt(2.0)) >= c, 0.0).clamp_min_(0.0)
+    limits = torch.stack([c[..., 0::2, 0::2], c[..., 0::2, 1::2], c[..., 1::2, 0::2], c[..., 1::2, 1::2]], dim=-1)
+    m_d = _block_mean(d2).mul_(255.0 / math.sqrt(2.0))
+    return PairFold(fold, m_d, _block_grad2(m_d), _block_min(t2).mul_(127.5), _block_max(t2).mul_(127.5), limits,
+                    avg_blocks.mul(255.0))
+
 
 #: Largest deviation of :func:`scene_leak` (the steep blocks' normalised detail energy over the flat ones') from 1 of a
 #: still pair, beside 4 of its standard errors: 0.1 lets through a change that adds ≈ 10 % to the noise variance of

@@ -13,7 +13,7 @@ from camhealth.estimators.physics_noise import (
     physics_noise_posterior,
 )
 from camhealth.estimators.static_pair import (
-    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, _block_max, _block_mean, _block_min, difference_limits_dn, pair_shift,
+    PAIR_SHIFT_LIMIT, SCENE_LEAK_LIMIT, _block_max, _block_mean, _block_min, difference_limits_dn, pair_fold, pair_shift,
     pair_stillness, scene_leak, static_pair_blocks, static_pair_image,
 )
 from camhealth.physics import CameraMetadata
@@ -233,6 +233,23 @@ def test_difference_limits_are_where_either_frame_clips():
     expected = math.sqrt(2.0) * torch.minimum(avg - 0.5, 254.5 - avg)
     ok = ~clipped[..., 0]
     assert torch.allclose(c[..., 0][ok], expected[ok], atol=1e-3)
+
+
+@pytest.mark.parametrize("shape", [(3, 1, 16, 18), (2, 1, 17, 9)])
+def test_the_posteriors_one_pass_is_the_three_functions(shape):
+    """pair_fold forms the sum and difference once; its parts equal static_pair_image (unclamped), static_pair_blocks,
+    difference_limits_dn and the average's block means, odd sizes and clipped pixels included."""
+    g = torch.Generator().manual_seed(5)
+    x1 = ((torch.rand(*shape, generator=g) * 1.6 - 0.3) * 255).round().clamp(0, 255) / 255
+    x2 = ((torch.rand(*shape, generator=g) * 1.6 - 0.3) * 255).round().clamp(0, 255) / 255
+    f = pair_fold(x1, x2)
+    assert torch.allclose(f.fold, static_pair_image(x1, x2, clamp=False), atol=1e-6)
+    for got, want in zip((f.m_d, f.g2, f.lo, f.hi), static_pair_blocks(x1, x2)):
+        assert torch.allclose(got, want, rtol=1e-5, atol=1e-3)
+    assert torch.allclose(f.limits, difference_limits_dn(x1, x2), atol=1e-3)
+    assert torch.equal(f.limits == 0, difference_limits_dn(x1, x2) == 0)
+    h2, w2 = shape[-2] // 2 * 2, shape[-1] // 2 * 2
+    assert torch.allclose(f.m_avg, _block_mean(((x1 + x2) * 127.5)[..., :h2, :w2]), atol=1e-3)
 
 
 def test_the_pairs_kept_variance_is_the_truncated_normals():
