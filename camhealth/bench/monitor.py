@@ -55,6 +55,10 @@ frames carry their own camera and upscaling blur on top, so AMAE is a consistenc
 RMS difference between the two; bf16 vs fp32 differences; peak resident memory (``VmHWM``) of one adaptive
 monitor alone in a fresh interpreter (the frames, models, Python and torch included), and of this process
 after the three monitor rows and after the slow rows; the machine and its load average before and after.
+``--true-gain-db``: the frames come from a sensor at that gain while the monitors are told ``--gain-db`` (a metadata
+mismatch); the ξ line then gives the ξ of a right answer — the metadata's closed form after clipping
+(:func:`~camhealth.estimators.noise_features.physics_prior_dn`) less the realised σ, median over the informative
+patches — beside the median ξ of the informative and adaptive monitors (and the pairs' line, theirs).
 ``--batch``/``--size``/``--repeats`` of the common options are not used (the frame count is ``--frames``).
 """
 
@@ -133,8 +137,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backends", action="store_true",
                         help="--motion: also time the sampled monitor with the MTF network exported to .pt2 and ONNX")
     parser.add_argument("--true-gain-db", type=float, default=None,
-                        help="--motion: the sensor's real gain in dB when it differs from the metadata's --gain-db "
-                             "(a metadata mismatch: ξ ≠ 0; default: the same)")
+                        help="the sensor's real gain in dB when it differs from the metadata's --gain-db (a metadata "
+                             "mismatch: ξ ≠ 0; the summary compares each monitor's ξ with the closed form of the metadata "
+                             "less the realised σ; default: the same)")
 
 
 def _frames(args: argparse.Namespace, meta) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -213,7 +218,8 @@ def run(args: argparse.Namespace) -> BenchResult:
     load_before = _load()
     rss_start = peak_rss_mb()
     meta = CameraMetadata.preset(args.sensor, gain_db=args.gain_db, exposure_s=args.exposure_s, temperature_c=args.temperature_c)
-    frames, blurred, mtf_true = _frames(args, meta)
+    true_gain = getattr(args, "true_gain_db", None)
+    frames, blurred, mtf_true = _frames(args, meta if true_gain is None else meta.replace(gain_db=true_gain))
     tmpdir = Path(tempfile.mkdtemp(prefix="camhealth_bench_monitor_"))
     try:
         return _run(args, meta, frames, blurred, mtf_true, tmpdir, load_before, rss_start)
@@ -337,6 +343,7 @@ def recording_times(frames: torch.Tensor, meta, tmpdir: Path, suffix: str) -> li
 def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Tensor, mtf_true: torch.Tensor, tmpdir: Path,
          load_before: str, rss_start: float) -> BenchResult:
     from camhealth.bench.corruption import _load, machine_description
+    from camhealth.estimators.noise_features import physics_prior_dn
     from camhealth.metrics import amae, noise_errors
     from camhealth.monitor import Monitor
     from camhealth.monitor.api import NOISE_FIELDS
@@ -420,11 +427,16 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
 
     grid_n = reports[ALL][0].noise.grid_obj
     err_full, err_adapt, diff, mtf_full, mtf_adapt = [], [], [], [], []
-    truth_sig, xi_adapt = [], []
+    truth_sig, xi_adapt, xi_full, xi_right = [], [], [], []
+    mismatch = getattr(args, "true_gain_db", None) is not None
     for i in range(args.frames):
         rf, ra = reports[INFORMATIVE][i], reports[ADAPTIVE][i]
         both = _has_value(rf.noise) & _has_value(ra.noise)
         truth = _truth_sigma(frames[i], blurred[i], grid_n)[both]
+        if mismatch:  # the ξ a right answer gives: the metadata's closed form (after clipping) less the realised σ
+            patches = grid_n.extract(frames[i].float() / 255.0)[both]
+            xi_right.append(physics_prior_dn(patches, meta, clipping=True)[:, 7] - truth)
+            xi_full.append(rf.noise.values[both, NOISE_FIELDS.index("xi")])
         err_full.append(rf.noise.values[both, -1])
         err_adapt.append(ra.noise.values[both, -1])
         truth_sig.append(truth)
@@ -442,6 +454,10 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
     amae_adapt = float(amae(ma, mtf_true.expand_as(ma)).mean()) if ma.numel() else float("nan")
     amae_diff = float(amae(ma, mf).mean()) if ma.numel() else float("nan")
     xi_all = torch.cat(xi_adapt)
+
+    def med(parts: list[torch.Tensor]) -> float:
+        t = torch.cat(parts) if parts else torch.zeros(0)
+        return float(t.median()) if t.numel() else float("nan")
 
     def fmt(e: dict | None) -> str:
         return "–" if e is None else f"Bias {e['bias']:.3f} / Std {e['std']:.3f} / RMS {e['rms']:.3f} DN (n = {e['n']})"
@@ -516,7 +532,8 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
         f"load average before: {load_before} (1/5/15 min); date {_dt.date.today().isoformat()}",
         f"frames: {args.frames} × {args.width}×{args.height} uint8, scene {args.scene} (brightness ×{args.brightness:g}), "
         f"defocus {args.defocus_px:g} px, "
-        f"{args.sensor} at {args.gain_db:g} dB / {args.exposure_s * 1e3:g} ms / {args.temperature_c:g} °C (metadata given); "
+        f"{args.sensor} at {args.gain_db:g} dB / {args.exposure_s * 1e3:g} ms / {args.temperature_c:g} °C (metadata given"
+        f"{'' if getattr(args, 'true_gain_db', None) is None else f'; the sensor at {args.true_gain_db:g} dB'}); "
         f"models: {model_note}; precision {args.precision}; device {args.device}; warm-up {args.warmup} frame(s)",
         f"command: {getattr(args, 'command_line', 'python -m camhealth.bench monitor')}",
     ]
@@ -545,8 +562,11 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
         "reading a recording adds " + ", ".join(f"{p:.1f} % ({k})" for k, p in reading_pct.items())
         + f" to the adaptive monitor's per-frame time (target ≤ {TARGET_RECORDING_PCT:.0f} %: "
         f"{'met' if max(reading_pct.values()) <= TARGET_RECORDING_PCT else 'NOT met'})",
-        f"ξ on informative patches (metadata correct, truth 0): median "
-        f"{float(xi_all.median()) if xi_all.numel() else float('nan'):+.3f} DN",
+        (f"ξ on informative patches (metadata correct, truth 0): median "
+         f"{float(xi_all.median()) if xi_all.numel() else float('nan'):+.3f} DN" if not mismatch else
+         f"metadata mismatch: the sensor's gain {args.true_gain_db:g} dB, the metadata's {args.gain_db:g} dB; on the informative "
+         f"patches the metadata's closed form less the realised σ (the ξ of a right answer) has median {med(xi_right):+.3f} DN, "
+         f"ξ median: informative {med(xi_full):+.3f} DN, adaptive {float(xi_all.median()) if xi_all.numel() else float('nan'):+.3f} DN"),
         *pair_lines,
         f"load average after: {_load()}",
     ]

@@ -52,6 +52,33 @@ def test_static_pairs_row_on_a_still_scene(capsys):
     assert "against the informative patches' RMS" in text
 
 
+def test_true_gain_makes_a_mismatch_every_monitor_follows(capsys):
+    """``--true-gain-db``: the frames come from a sensor 12 dB above the metadata's gain; the summary gives the ξ of a
+    right answer (the metadata's closed form less the realised σ, negative: the image is noisier) and each monitor's
+    ξ, which follow it in sign and size on the still dead-leaves scene."""
+    import re
+
+    n = torch.get_num_threads()
+    argv = ["monitor", "--frames", "3", "--warmup", "0", "--width", "384", "--height", "320", "--scene", "deadleaves",
+            "--slow-frames", "0", "--thesis-patches", "0", "--threads", "1", "--no-memory-probe", "--static-pairs",
+            "--gain-db", "6", "--true-gain-db", "18"]
+    try:
+        assert main(argv) == 0
+    finally:
+        torch.set_num_threads(n)
+    text = capsys.readouterr().out
+    m = re.search(r"metadata mismatch: the sensor's gain 18 dB, the metadata's 6 dB; .* has median ([-+0-9.]+) DN, "
+                  r"ξ median: informative ([-+0-9.]+) DN, adaptive ([-+0-9.]+) DN", text)
+    assert m is not None, text[-2000:]
+    right, informative, adaptive = (float(v) for v in m.groups())
+    assert right < -1.0
+    for xi in (informative, adaptive):
+        assert xi == pytest.approx(right, rel=0.25)
+    pair = re.search(r"static pairs: .* ξ median ([-+0-9.]+) DN", text)
+    assert pair is not None and float(pair.group(1)) == pytest.approx(right, rel=0.25)
+    assert "metadata correct, truth 0" not in text
+
+
 @pytest.mark.parametrize("bad", [["--frames", "0"], ["--thesis-patches", "-1"]])
 def test_bad_options(bad):
     with pytest.raises(ValueError, match=bad[0]):
