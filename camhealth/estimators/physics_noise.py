@@ -100,8 +100,9 @@ no scene allowance, flatness tested on the difference's block means, the details
 average's pixels lie ``bound_margin`` σ (at most 100 DN) from the bounds, and the clipping's loss modelled pixel by
 pixel: given the average A, neither frame clips exactly where the scaled difference stays within
 c = √2·min(A − ½, 254.5 − A), so each used pixel keeps the share h(c/σ) of the variance
-(:func:`~camhealth.estimators.noise_features.truncated_second_moment`, :func:`pair_kept_variance_factor`) — exact for Gaussian noise however strong, so
-the pair reads σ up to the validated 64 DN (one frame's model infers the loss from block means instead). The
+(:func:`~camhealth.estimators.noise_features.truncated_second_moment`, :func:`pair_kept_variance_factor`) — exact
+for Gaussian noise however strong, so the pair reads σ up to the validated 64 DN (one frame's model infers the loss
+from block means instead). The
 clipping penalty, the rounding and σ after clipping stay ``image``'s. :meth:`PhysicsNoiseEstimator.predict` tests per
 patch that the scene stood still and reads the others alone.
 
@@ -263,7 +264,6 @@ def _kept_variance_factor(level: torch.Tensor, var: torch.Tensor) -> torch.Tenso
     return f.clamp(1e-3, 1.0).to(var.dtype)
 
 
-
 #: A static pair's per-pixel clipping limits c [DN] (:func:`~camhealth.estimators.static_pair.difference_limits_dn`)
 #: are counted on a log grid of this many intervals between _PAIR_C_RANGE[0] and [1] DN (c ≤ √2·127 DN always; each
 #: interval spans 11 %, its geometric centre stands for it), the noise σ on a log grid of _PAIR_SIGMA_GRID points.
@@ -297,8 +297,9 @@ def pair_kept_variance_factor(c_counts: torch.Tensor, var: torch.Tensor) -> torc
     :func:`~camhealth.estimators.static_pair.difference_limits_dn`) and (E, H) hypothesised variances.
 
     A detail is the ± sum of its four pixels' scaled differences over 2, each truncated at its own limit independently
-    of the others, so E[d²] = v·mean over the pixels of h(c_i/√v) (:func:`~camhealth.estimators.noise_features.truncated_second_moment`); per bin that is
-    the mean over all its used pixels. Evaluated on a log grid of σ (every 0.09 in ln σ) and interpolated: within
+    of the others, so E[d²] = v·mean over the pixels of h(c_i/√v)
+    (:func:`~camhealth.estimators.noise_features.truncated_second_moment`); per bin that is the mean over all its used
+    pixels. Evaluated on a log grid of σ (every 0.09 in ln σ) and interpolated: within
     0.3 % of the exact mean. 1 where a bin has no counts."""
     log_sigma, table = _pair_share_table(str(var.device))
     total = c_counts.sum(1, keepdim=True)
@@ -309,6 +310,7 @@ def pair_kept_variance_factor(c_counts: torch.Tensor, var: torch.Tensor) -> torc
     i = pos.floor().long()
     w = pos - i
     return (share.gather(1, i) * (1.0 - w) + share.gather(1, i + 1) * w).clamp(1e-3, 1.0)
+
 
 def _clipping_penalty(
     x: torch.Tensor, m: torch.Tensor, idx: torch.Tensor, a_all: torch.Tensor, c_all: torch.Tensor, q: torch.Tensor,
