@@ -301,6 +301,8 @@ def pair_kept_variance_factor(c_counts: torch.Tensor, var: torch.Tensor) -> torc
     (:func:`~camhealth.estimators.noise_features.truncated_second_moment`); per bin that is the mean over all its used
     pixels. Evaluated on a log grid of σ (every 0.09 in ln σ) and interpolated: within
     0.3 % of the exact mean. 1 where a bin has no counts."""
+    if c_counts.ndim != 2 or c_counts.shape[1] != _PAIR_C_BINS or var.ndim != 2 or var.shape[0] != c_counts.shape[0]:
+        raise ValueError(f"c_counts must be (E, {_PAIR_C_BINS}) and var (E, H), got {tuple(c_counts.shape)} and {tuple(var.shape)}")
     log_sigma, table = _pair_share_table(str(var.device))
     total = c_counts.sum(1, keepdim=True)
     share = (c_counts.double() / total.clamp_min(1.0)) @ table  # (E, G): the bin's factor at each σ of the grid

@@ -165,13 +165,8 @@ def static_pair_blocks(image: torch.Tensor, reference: torch.Tensor) -> tuple[to
             block-mean gradients of one frame on a flat scene).
         lo, hi: the smallest and largest pixel of each block of the average (I₁ + I₂)/2 [DN].
     """
-    _check_pair(image, reference, min_side=8)
-    x1, x2 = image.detach().float() * 255.0, reference.detach().float() * 255.0
-    h2, w2 = x1.shape[-2] // 2 * 2, x1.shape[-1] // 2 * 2
-    diff = (x1 - x2)[..., :h2, :w2] * (1.0 / math.sqrt(2.0))
-    avg = ((x1 + x2) * 0.5)[..., :h2, :w2]
-    m_d = _block_mean(diff)
-    return m_d, _block_grad2(m_d), _block_min(avg), _block_max(avg)
+    f = pair_fold(image, reference)
+    return f.m_d, f.g2, f.lo, f.hi
 
 
 def difference_limits_dn(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -191,14 +186,7 @@ def difference_limits_dn(image: torch.Tensor, reference: torch.Tensor) -> torch.
     one frame has to infer it from block means instead (:func:`camhealth.estimators.physics_noise._kept_variance_factor`).
     0 where either frame clips (within ½ DN of 0 or 255 DN: |D| ≥ c there), so a block is usable exactly where its
     four limits are positive."""
-    _check_pair(image, reference, min_side=8)
-    h2, w2 = image.shape[-2] // 2 * 2, image.shape[-1] // 2 * 2
-    x1, x2 = image.detach().float()[..., :h2, :w2], reference.detach().float()[..., :h2, :w2]
-    # c = √2·(127 − |A − 127.5|) with A = 127.5·(x₁ + x₂) [DN]; with d = (I₁ − I₂)/2 the frames read A ± d, so one of
-    # them is within ½ DN of a bound exactly where |d| ≥ c/√2, i.e. |D| = 255·|x₁ − x₂|/√2 ≥ c
-    c = (x1 + x2 - 1.0).abs_().mul_(-127.5 * math.sqrt(2.0)).add_(127.0 * math.sqrt(2.0))
-    c.masked_fill_((x1 - x2).abs_().mul_(255.0 / math.sqrt(2.0)) >= c, 0.0).clamp_min_(0.0)
-    return torch.stack([c[..., 0::2, 0::2], c[..., 0::2, 1::2], c[..., 1::2, 0::2], c[..., 1::2, 1::2]], dim=-1)
+    return pair_fold(image, reference).limits
 
 
 class PairFold(NamedTuple):
@@ -217,8 +205,11 @@ class PairFold(NamedTuple):
 
 
 def pair_fold(image: torch.Tensor, reference: torch.Tensor) -> PairFold:
-    """:func:`static_pair_image` (unclamped), :func:`static_pair_blocks`, :func:`difference_limits_dn` and the average's
-    block means of B×1×H×W frames in [0, 1] (H, W ≥ 8), the sum and difference of the frames formed once."""
+    """The fold (as :func:`static_pair_image` with ``clamp=False``), the blocks of :func:`static_pair_blocks`, the limits of
+    :func:`difference_limits_dn` (both read from here) and the average's block means of B×1×H×W frames in [0, 1]
+    (H, W ≥ 8), the sum and difference of the frames formed once. The limits: c = √2·(127 − |A − 127.5|) with
+    A = 127.5·(x₁ + x₂) [DN]; the frames read A ± d with d = (I₁ − I₂)/2, so one of them is within ½ DN of a bound
+    exactly where |d| ≥ c/√2, i.e. |D| = 255·|x₁ − x₂|/√2 ≥ c, and c is set to 0 there."""
     _check_pair(image, reference, min_side=8)
     x1, x2 = image.detach().float(), reference.detach().float()
     b, ch, h, w = x1.shape
