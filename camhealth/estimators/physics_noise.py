@@ -122,6 +122,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -141,7 +142,8 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetad
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
-           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor"]
+           "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor",
+           "noise_evidence"]
 
 #: τ [DN] of a static pair (:meth:`PhysicsNoiseEstimator.predict` with ``reference``): the difference of two exposures
 #: holds nothing of a static scene, so no allowance is made for its fine content.
@@ -553,6 +555,7 @@ def physics_noise_posterior(
     scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
     scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
     reference: torch.Tensor | None = None,
+    other_evidence: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Physics-first noise sources of each patch, (B, 21) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
@@ -608,7 +611,39 @@ def physics_noise_posterior(
             exposures enters the difference, and the texture checks see only part of it;
             :meth:`PhysicsNoiseEstimator.predict` tests each patch first (:func:`~camhealth.estimators.static_pair.pair_shift`,
             :func:`~camhealth.estimators.static_pair.scene_leak`).
+        other_evidence: the summed :func:`noise_evidence` of other frames of this camera that differ from ``meta`` only
+            in the exposure time (4, 1 + 4·grid), or None. Their bins join this frame's (η applied once to all of
+            them), so that an excess that grows with the exposure time (dark current: a hotter sensor than told) is
+            told apart from one that does not (readout noise). ``meta`` must have batch 1; the answer is still about
+            ``image``, and where ``image`` itself is not readable it keeps the closed form.
     """
+    return _posterior_and_evidence(
+        image, meta, eta=eta, eta_bin=eta_bin, mismatch_probability=mismatch_probability,
+        beyond_probability=beyond_probability, grid=grid, bins=bins, bound_margin=bound_margin,
+        fallback_margin=fallback_margin, pool=pool, scene_allowance_dn=scene_allowance_dn,
+        scene_allowance_min_dn=scene_allowance_min_dn, reference=reference, other_evidence=other_evidence,
+    )[0]
+
+
+def _posterior_and_evidence(
+    image: torch.Tensor,
+    meta: CameraMetadata,
+    eta: float = 0.12,
+    eta_bin: float = 0.05,
+    mismatch_probability: float = 0.5,
+    beyond_probability: float = 0.125,
+    grid: int = 96,
+    bins: int = 16,
+    bound_margin: float = 2.0,
+    fallback_margin: float = 1.0,
+    pool: bool = False,
+    scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
+    scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
+    reference: torch.Tensor | None = None,
+    other_evidence: torch.Tensor | None = None,
+    evidence_out: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`physics_noise_posterior`, and with ``evidence_out`` the frame's evidence of :func:`noise_evidence`."""
     if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 1:
         raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
     if not image.is_floating_point():
@@ -642,6 +677,10 @@ def physics_noise_posterior(
         raise ValueError(f"metadata batch {meta.batch_size} does not match the {b} patches")
     if pool and meta.batch_size != 1:
         raise ValueError(f"pool=True adds up the evidence of patches of one camera state: metadata must have batch 1, got {meta.batch_size}")
+    if other_evidence is not None and meta.batch_size != 1:
+        raise ValueError(f"other_evidence belongs to one camera: metadata must have batch 1, got {meta.batch_size}")
+    if evidence_out and not pool:
+        raise ValueError("a frame's evidence (noise_evidence) is read pooled: pool must be True")
     with torch.autocast(device_type=dev.type, enabled=False):
         x = image.detach().float()
         if meta.batch_size == 1:  # one camera state: its hypotheses are reused from call to call (a monitor's frames)
@@ -649,6 +688,15 @@ def physics_noise_posterior(
             a0, var0, a_all, var_all, c_all, prior = _camera_hypotheses(key, grid, mismatch_probability, beyond_probability, str(dev))
         else:
             a0, var0, a_all, var_all, c_all, prior = _hypotheses(meta, grid, mismatch_probability, beyond_probability, dev)
+        other = None
+        if other_evidence is not None:
+            n_hyp = a_all.shape[1]
+            if not isinstance(other_evidence, torch.Tensor) or other_evidence.shape != (4, n_hyp):
+                raise ValueError(f"other_evidence must be the (4, {n_hyp}) evidence of noise_evidence with grid = {grid}, got "
+                                 f"{tuple(other_evidence.shape) if isinstance(other_evidence, torch.Tensor) else type(other_evidence).__name__}")
+            if not bool(torch.isfinite(other_evidence).all()):
+                raise ValueError("other_evidence contains NaN or inf")
+            other = other_evidence.to(device=dev, dtype=f64)
         a0, var0 = a0.expand(b), var0.expand(b, 2)
         a_all, var_all, c_all, prior = a_all.expand(b, -1), var_all.expand(b, -1, 2), c_all.expand(b, -1), prior.expand(b, -1)
         q = _quantisation_variance(x)
@@ -762,9 +810,11 @@ def physics_noise_posterior(
                 1, pe, torch.stack([r.square() * inv, r * inv, inv,
                                     _clip_cost(clip_n[pe, ke].unsqueeze(1), clip_m[pe, ke].unsqueeze(1),
                                                clip_o[pe, ke].unsqueeze(1), a_e, c_e, q_h[pe].unsqueeze(1))]))
-            quad, lin, inv_sum, clip_cost = per_row
+            own = torch.where(evidence[:h].view(1, h, 1), per_row, torch.zeros_like(per_row))  # (4, h, hypotheses)
+            # other exposures of this camera add their bins; the model error η is common to all of them (one camera,
+            # one scene), so it is applied once, to the sum
+            quad, lin, inv_sum, clip_cost = own if other_evidence is None else own + other.unsqueeze(1)
             ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv_sum)) + clip_cost
-            ll = torch.where(evidence[:h].unsqueeze(1), ll, torch.zeros_like(ll))
             post = torch.softmax(ll + prior_h, 1).expand(b, -1)
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
@@ -832,7 +882,38 @@ def physics_noise_posterior(
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
                          corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1)], dim=1)
-    return out.float()
+    frame_evidence = None
+    if evidence_out:  # this frame's own bins (row 0: pooled, every row is the frame), none where it is not readable
+        frame_evidence = torch.where(readable[0], own[:, 0], torch.zeros_like(own[:, 0]))
+    return out.float(), frame_evidence
+
+
+def noise_evidence(image: torch.Tensor, meta: CameraMetadata, reference: torch.Tensor | None = None, **settings: Any) -> torch.Tensor:
+    """What one frame's noise says about the hypotheses of :func:`physics_noise_posterior` on its camera, its patches
+    pooled (one camera state, ``meta`` of batch 1), (4, 1 + 4·grid) float64: per hypothesis, summed over the frame's
+    intensity bins, r²/D, r/D and 1/D (r the bin's log-residual, D its variance without the common model error η) and
+    the clipping penalty. Zeros where the frame is not readable (too few flat details, or textured).
+
+    The hypotheses are absolute values of the camera's fields (its gain, temperature, white-noise density, extra white
+    noise in DN), so two frames of one camera that differ **only in exposure time** share them: hypothesis j predicts
+    σ_DCSN² ∝ t_exp in each and the same σ_PN and σ_RN. Their evidence adds up, η is applied once to the sum (one camera,
+    one model error), and an excess that grows with the exposure time (a hotter sensor than told) is told apart from
+    one that does not (readout noise) — which a single exposure cannot do. Pass the sum of other frames' evidence as
+    ``other_evidence`` of :func:`physics_noise_posterior` (:meth:`PhysicsNoiseEstimator.predict` with
+    ``other_exposures`` does it).
+
+    Args:
+        image: B×1×H×W patches of one frame in [0, 1].
+        meta: its camera state, batch 1.
+        reference: another exposure of the same still scene in the same state (read as a static pair), or None.
+        settings: keyword arguments of :func:`physics_noise_posterior` (``pool`` is always True here).
+    """
+    settings = {k: v for k, v in settings.items() if k != "pool"}
+    if "other_evidence" in settings or "evidence_out" in settings:
+        raise ValueError("noise_evidence reads one frame: other_evidence is not an argument of it")
+    if meta.batch_size != 1:
+        raise ValueError(f"noise_evidence reads one camera state: metadata must have batch 1, got {meta.batch_size}")
+    return _posterior_and_evidence(image, meta, pool=True, reference=reference, evidence_out=True, **settings)[1]
 
 
 def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> torch.Tensor:
@@ -885,7 +966,8 @@ class PhysicsNoiseEstimator:
     @torch.inference_mode()
     def predict(self, images: Any, metadata: Any = None, *, input_range: str = "auto", base_preset: str | None = None,
                 batch_size: int = 256, precision: str = "fp32", views: int = 1, pool: bool = False,
-                reference: Any = None) -> dict[str, Any]:
+                reference: Any = None, other_exposures: Sequence[Sequence[Any]] | None = None,
+                other_evidence: torch.Tensor | None = None, return_evidence: bool = False) -> dict[str, Any]:
         """σ per source, total, ξ, its uncertainty and P(match) of B×1×128×128 patches (module docstring).
 
         ``pool``: the patches show one camera state (metadata of batch 1): the evidence of all of them decides
@@ -904,7 +986,21 @@ class PhysicsNoiseEstimator:
         the scene or the camera moved, or a lossy codec re-quantised the two frames differently) or reads textured or
         without a flat area are read from ``images`` alone; pooled, a frame of which fewer than half the patches are
         still (the camera moved) is read alone as a whole. The output then has
-        ``"static"`` (B,) bool: the answer read the pair."""
+        ``"static"`` (B,) bool: the answer read the pair.
+
+        ``other_exposures`` (with ``pool``): other frames of the same camera whose metadata differ from ``metadata``
+        only in the exposure time, each ``(images, metadata)`` or ``(images, metadata, reference)`` (a static pair,
+        read from its still patches where at least half of them are still, else alone). Their evidence joins this
+        frame's (:func:`noise_evidence`): dark-current shot noise grows with the exposure time and readout noise does
+        not, so an excess the frames show is split between them by the physics instead of by the prior. The answer is
+        about ``images``; an other frame that is not readable (textured, no flat area) adds nothing. The output then
+        has ``"exposures_read"``: how many of them added evidence.
+
+        ``other_evidence``: the same as a (4, 1 + 4·grid) tensor, the summed :func:`noise_evidence` (or ``"evidence"``)
+        of such frames, kept by the caller (a monitor) so that each frame is read once; the caller vouches that they
+        show this camera at other exposure times. ``return_evidence`` (with ``pool``): the output also has
+        ``"evidence"``, this frame's own evidence from the same reading (zeros where it is not readable), for later
+        frames at other exposure times."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         if batch_size < 1:
@@ -934,12 +1030,25 @@ class PhysicsNoiseEstimator:
                     **({} if ref is None else {"static": torch.zeros(0, dtype=torch.bool)})}
         meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
+        exposures_read = None
+        if (other_evidence is not None or return_evidence) and not settings.get("pool"):
+            raise ValueError("other_evidence and return_evidence are about whole frames of one camera: pass pool=True")
+        if other_exposures is not None:
+            settings["other_evidence"], exposures_read = self._other_evidence(other_exposures, meta, bool(settings.get("pool")),
+                                                                               input_range, base_preset)
+        if other_evidence is not None:
+            if not isinstance(other_evidence, torch.Tensor):
+                raise TypeError(f"other_evidence must be a tensor (noise_evidence), got {type(other_evidence).__name__}")
+            given = other_evidence.detach().to(self.device, torch.float64)
+            settings["other_evidence"] = given if "other_evidence" not in settings else settings["other_evidence"] + given
+        evidence = None
         on_device, meta_dev, ref_dev = patches, meta, ref
         if self.device.type != "cpu":
             on_device, meta_dev = patches.to(self.device), meta.to(self.device)
             ref_dev = None if ref is None else ref.to(self.device)
         if ref_dev is None:
-            raw = self._posterior(on_device, meta_dev, settings, batch_size).cpu()
+            raw, evidence = self._posterior(on_device, meta_dev, settings, batch_size)
+            raw = raw.cpu()
         else:
             pair = {"scene_allowance_dn": PAIR_SCENE_ALLOWANCE_DN, "scene_allowance_min_dn": PAIR_SCENE_ALLOWANCE_DN, **settings}
             # a patch whose difference carries the scene (it moved, or a codec re-quantised it) is read alone
@@ -950,15 +1059,19 @@ class PhysicsNoiseEstimator:
             sel = static.nonzero(as_tuple=True)[0]
             if sel.numel():
                 sel_dev = sel.to(on_device.device)
-                raw[sel] = self._posterior(on_device[sel_dev], meta_dev if meta.batch_size == 1 else meta_dev[sel_dev], pair,
-                                           batch_size, ref_dev[sel_dev]).cpu()
+                raw_sel, evidence = self._posterior(on_device[sel_dev], meta_dev if meta.batch_size == 1 else meta_dev[sel_dev],
+                                                    pair, batch_size, ref_dev[sel_dev])
+                raw[sel] = raw_sel.cpu()
                 # a pair that is still textured or without a flat area (clipped nearly everywhere) is read alone too
                 static[sel] = ~textured(raw[sel, 8], raw[sel, 11]) & (raw[sel, 7] >= MIN_FOLLOW_DETAILS)
             moved = (~static).nonzero(as_tuple=True)[0]
             if moved.numel():
                 moved_dev = moved.to(on_device.device)
-                raw[moved] = self._posterior(on_device[moved_dev], meta_dev if meta.batch_size == 1 else meta_dev[moved_dev],
-                                             settings, batch_size).cpu()
+                raw_moved, moved_evidence = self._posterior(on_device[moved_dev], meta_dev if meta.batch_size == 1 else meta_dev[moved_dev],
+                                                            settings, batch_size)
+                raw[moved] = raw_moved.cpu()
+                # (a pair read as textured or without a flat area gave no evidence: its patches' come from here)
+                evidence = moved_evidence if evidence is None else evidence + moved_evidence
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
         is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
@@ -979,15 +1092,71 @@ class PhysicsNoiseEstimator:
                 "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
                 "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),
                 "defects_checked": defects.checked,
-                "defect_mask": defects.mask, **({} if ref is None else {"static": static})}
+                "defect_mask": defects.mask, **({} if ref is None else {"static": static}),
+                **({} if exposures_read is None else {"exposures_read": exposures_read}),
+                **({"evidence": evidence.cpu()} if return_evidence else {})}
+
+    def _other_evidence(self, frames: Any, meta: CameraMetadata, pool: bool, input_range: str,
+                        base_preset: str | None) -> tuple[torch.Tensor, int]:
+        """The summed :func:`noise_evidence` of ``other_exposures`` (:meth:`predict`) on the estimator's device, and how
+        many of the frames were readable. Each must show this camera (``meta``, batch 1) at another exposure time."""
+        if not pool:
+            raise ValueError("other_exposures adds up the evidence of whole frames of one camera: pass pool=True")
+        if meta.batch_size != 1:
+            raise ValueError(f"other_exposures needs one camera state for this frame: metadata of batch 1, got {meta.batch_size}")
+        if isinstance(frames, (torch.Tensor, str)) or not isinstance(frames, Sequence):
+            raise TypeError(f"other_exposures must be a sequence of (images, metadata[, reference]) tuples, got {type(frames).__name__}")
+        total, read = None, 0
+        for k, item in enumerate(frames):
+            if not isinstance(item, Sequence) or isinstance(item, (str, torch.Tensor)) or len(item) not in (2, 3):
+                raise TypeError(f"other_exposures[{k}] must be (images, metadata) or (images, metadata, reference), got "
+                                f"{type(item).__name__}{f' of length {len(item)}' if isinstance(item, Sequence) else ''}")
+            try:
+                patches = _to_patches(item[0], self.patch_size, input_range)
+                ref = None if len(item) < 3 or item[2] is None else _to_patches(item[2], self.patch_size, input_range)
+            except (TypeError, ValueError) as exc:
+                raise type(exc)(f"other_exposures[{k}]: {exc}") from None
+            if ref is not None and ref.shape != patches.shape:
+                raise ValueError(f"other_exposures[{k}]: reference must hold the same patches as images, {tuple(patches.shape)}, "
+                                 f"got {tuple(ref.shape)}")
+            other = _to_metadata(item[1], 1, base_preset)
+            if other.batch_size != 1:
+                raise ValueError(f"other_exposures[{k}]: metadata must have batch 1, got {other.batch_size}")
+            for name in FULL_FIELDS:
+                if name == "exposure_s":
+                    continue
+                mine, theirs = float(getattr(meta, name).reshape(-1)[0]), float(getattr(other, name).reshape(-1)[0])
+                if not math.isclose(mine, theirs, rel_tol=1e-6, abs_tol=1e-12):
+                    raise ValueError(f"other_exposures[{k}]: {name} = {theirs:g} differs from this frame's {mine:g}; the frames "
+                                     f"may differ only in exposure_s (their evidence is about one camera)")
+            settings = {**self.settings, "pool": True}
+            dev = self.device
+            pat, other_d = patches.to(dev), other.to(dev)
+            evidence = None
+            if ref is not None:  # a static pair where at least half of it is still, read from its still patches
+                still = pair_stillness(patches, ref, pool=True).nonzero(as_tuple=True)[0]
+                if 2 * still.numel() >= patches.shape[0]:
+                    pair = {**settings, "scene_allowance_dn": PAIR_SCENE_ALLOWANCE_DN, "scene_allowance_min_dn": PAIR_SCENE_ALLOWANCE_DN}
+                    sel = still.to(dev)
+                    evidence = noise_evidence(pat[sel], other_d, ref.to(dev)[sel], **pair)
+                    if not bool(evidence.any()):  # the pair is not readable (textured, clipped nearly everywhere): alone
+                        evidence = None
+            if evidence is None:
+                evidence = noise_evidence(pat, other_d, **settings)
+            read += int(bool(evidence.any()))
+            total = evidence if total is None else total + evidence
+        if total is None:
+            raise ValueError("other_exposures is empty: pass None, or at least one (images, metadata) frame")
+        return total, read
 
     def _posterior(self, patches: torch.Tensor, meta: CameraMetadata, settings: dict[str, Any], batch_size: int,
-                   reference: torch.Tensor | None = None) -> torch.Tensor:
+                   reference: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 21): pooled in one call (with the
-        patches of a textured frame that pass both checks on their own details read alone), else in chunks."""
+        patches of a textured frame that pass both checks on their own details read alone), else in chunks; and,
+        pooled, the frame's own evidence of that call (:func:`noise_evidence`; None per patch)."""
         b = patches.shape[0]
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
-            raw = physics_noise_posterior(patches, meta, reference=reference, **settings)
+            raw, evidence = _posterior_and_evidence(patches, meta, reference=reference, evidence_out=True, **settings)
             # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
             # textured, the patches whose own details pass both checks are read on their own
             if b > 1 and bool(textured(raw[0, 8], raw[0, 11])):
@@ -998,8 +1167,8 @@ class PhysicsNoiseEstimator:
                         patches[alone[i:i + PATCH_CHUNK]], meta,
                         reference=None if reference is None else reference[alone[i:i + PATCH_CHUNK]], **own)
                         for i in range(0, alone.numel(), PATCH_CHUNK)])
-            return raw
+            return raw, evidence
         step = min(batch_size, PATCH_CHUNK)
         return torch.cat([physics_noise_posterior(patches[i:i + step], meta if meta.batch_size == 1 else meta[i:i + step],
                                                   reference=None if reference is None else reference[i:i + step], **settings)
-                          for i in range(0, b, step)])
+                          for i in range(0, b, step)]), None

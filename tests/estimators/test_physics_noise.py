@@ -10,7 +10,7 @@ from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.physics_noise import (
     PHYSICS_NOISE_COLUMNS, SCENE_ALLOWANCE_DN, SCENE_ALLOWANCE_MIN_DN, TEXTURE_LIMIT, VALIDATED_SIGMA_DN,
     PATCH_CHUNK, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, beyond_validated_range,
-    physics_noise_posterior, textured,
+    noise_evidence, physics_noise_posterior, textured,
 )
 from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
 from camhealth.physics import CameraMetadata
@@ -649,3 +649,149 @@ def test_quantisation_variance_is_the_exact_verdict_at_the_tolerance(dtype):
     got = _quantisation_variance(x)
     assert torch.equal(got, want)
     assert got[0] == 1 / 12 and got[4] == 0 and got[5] == 1 / 12
+
+
+# --- other exposure times of the same camera: dark-current shot noise ∝ t_exp, readout noise not -------------------
+
+def _two_exposures(override: dict | None, seed: int = 1) -> tuple[CameraMetadata, CameraMetadata, list]:
+    """A CMOS camera with much dark current (EV76C661, 6 dB, 30 °C) at 0.2 s and at 0.02 s, the same ramp scene,
+    16 patches per frame; each exposure twice (a static pair). ``override``: the field the camera really has."""
+    long = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.2, temperature_c=30.0)
+    short = long.replace(exposure_s=torch.tensor([0.02], dtype=torch.float64))
+    clean = _ramp(16)
+    sims = [simulate_variant(clean, m, (), torch.Generator().manual_seed(seed + k), override)
+            for k, m in enumerate((long, long, short, short))]
+    return long, short, sims
+
+
+@pytest.mark.parametrize("pair", [False, True])
+@pytest.mark.parametrize("field, factor", [("temperature_c", None), ("white_noise_v_per_rthz", 3.0)])
+def test_two_exposure_times_tell_dark_current_from_readout_noise(field, factor, pair):
+    """The camera is 25 K hotter than told (a dark-current excess, ∝ t_exp), or has 3× the thermal white noise (a
+    readout excess, the same at every exposure). One exposure shows a signal-independent excess that the prior splits
+    between the two sources (the source that did not change reads 30 % high or more); with a second exposure time the
+    physics splits it: each within 5 % of the realised σ."""
+    long = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.2, temperature_c=30.0)
+    override = {field: 55.0 if factor is None else float(long.white_noise_v_per_rthz) * factor}
+    long, short, sims = _two_exposures(override)
+    est = PhysicsNoiseEstimator()
+    ref, ref_short = (sims[1][0], sims[3][0]) if pair else (None, None)
+    other = [(sims[2][0], short) if ref_short is None else (sims[2][0], short, ref_short)]
+    alone = est.predict(sims[0][0], long, pool=True, reference=ref)
+    joint = est.predict(sims[0][0], long, pool=True, reference=ref, other_exposures=other)
+    truth = sims[0][1][:, 1:3]  # realised σ of DCSN and RN [DN]
+    assert joint["exposures_read"] == 1 and (joint["xi"] < 0).all() and joint["assessable"].all()
+    assert torch.allclose(joint["sigma"][:, 1:3], truth, rtol=0.05), (joint["sigma"][:, 1:3].mean(0), truth.mean(0))
+    unchanged = 2 if field == "temperature_c" else 1  # RN, or DCSN
+    assert (alone["sigma"][:, unchanged] > 1.3 * sims[0][1][:, unchanged]).all()
+    assert torch.allclose(joint["sigma"][:, 0], alone["sigma"][:, 0], rtol=0.02)  # PN was never in doubt
+
+
+def test_other_exposures_keep_the_closed_form_of_a_matched_camera():
+    """Do no harm: metadata right at both exposure times (an independent simulator variant), the answer is the
+    closed form exactly, as without the other exposure."""
+    long, short, sims = _two_exposures(None)
+    noisy = [simulate_variant(_ramp(16), m, VARIANTS, torch.Generator().manual_seed(k))[0]
+             for k, m in ((5, long), (6, short))]
+    est = PhysicsNoiseEstimator()
+    alone = est.predict(noisy[0], long, pool=True)
+    joint = est.predict(noisy[0], long, pool=True, other_exposures=[(noisy[1], short)])
+    prior = physics_prior_dn(noisy[0], long, clipping=True)[:, 4:8]
+    assert joint["exposures_read"] == 1
+    assert torch.equal(joint["sigma"], alone["sigma"]) and (joint["xi"] == 0).all()
+    assert torch.allclose(joint["sigma"], prior[:, :3], atol=1e-4)
+
+
+def test_noise_evidence_adds_up_and_zero_evidence_adds_nothing():
+    long, short, sims = _two_exposures({"temperature_c": 55.0})
+    ev = noise_evidence(sims[2][0], short)
+    assert ev.shape == (4, 1 + 4 * 96) and ev.dtype == torch.float64 and torch.isfinite(ev).all() and ev.any()
+    assert (ev[0] >= 0).all() and (ev[2] > 0).all() and (ev[3] <= 0).all()  # Σr²/D, Σ1/D, the clipping penalty
+    base = physics_noise_posterior(sims[0][0], long, pool=True)
+    assert torch.equal(physics_noise_posterior(sims[0][0], long, pool=True, other_evidence=torch.zeros_like(ev)), base)
+    # a frame's evidence given twice is the frame read with twice the bins: it moves the answer, it does not break it
+    twice = physics_noise_posterior(sims[0][0], long, pool=True, other_evidence=noise_evidence(sims[0][0], long))
+    assert torch.isfinite(twice).all()
+
+
+def test_an_unreadable_other_exposure_adds_nothing():
+    """A black frame (nothing to read) and a textured one give no evidence: the answer is the frame's own."""
+    long, short, sims = _two_exposures({"temperature_c": 55.0})
+    g = torch.Generator().manual_seed(0)
+    texture = (0.5 + 0.2 * torch.randn(16, 1, 128, 128, generator=g)).clamp(0, 1)  # white texture of 50 DN …
+    texture = F.avg_pool2d(F.pad(texture, (1, 1, 1, 1), mode="replicate"), 3, stride=1)  # … smoothed: correlated details
+    black = torch.zeros(16, 1, 128, 128)
+    assert not noise_evidence(black, short).any()
+    assert not noise_evidence(texture, short).any()
+    est = PhysicsNoiseEstimator()
+    alone = est.predict(sims[0][0], long, pool=True)
+    joint = est.predict(sims[0][0], long, pool=True, other_exposures=[(black, short), (texture, short)])
+    assert joint["exposures_read"] == 0 and torch.equal(joint["sigma"], alone["sigma"])
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float16, torch.float64])
+def test_other_exposures_take_the_inputs_predict_takes(dtype):
+    long, short, sims = _two_exposures({"white_noise_v_per_rthz": 1.2e-7})
+    est = PhysicsNoiseEstimator()
+    other = sims[2][0]
+    given = (other * 255).round().to(torch.uint8) if dtype == torch.uint8 else other.to(dtype)
+    a = est.predict(sims[0][0], long, pool=True, other_exposures=[(other, short)])
+    fields = {n: float(getattr(long, n)) for n in FULL_FIELDS} | {"exposure_s": 0.02}  # a dict of fields, as predict takes
+    b = est.predict(sims[0][0], long, pool=True, other_exposures=[(given, fields)])
+    assert torch.allclose(a["sigma"], b["sigma"], rtol=0.01, atol=0.01)
+
+
+def test_other_exposures_bad_input_is_refused():
+    long, short, sims = _two_exposures(None)
+    est = PhysicsNoiseEstimator()
+    x, y = sims[0][0], sims[2][0]
+    with pytest.raises(ValueError, match="pass pool=True"):
+        est.predict(x, long, other_exposures=[(y, short)])
+    hotter_gain = short.replace(gain_db=torch.tensor([12.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"other_exposures\[0\]: gain_db = 12 differs from this frame's 6; .* only in exposure_s"):
+        est.predict(x, long, pool=True, other_exposures=[(y, hotter_gain)])
+    with pytest.raises(ValueError, match="other_exposures is empty"):
+        est.predict(x, long, pool=True, other_exposures=[])
+    with pytest.raises(TypeError, match=r"other_exposures\[0\] must be \(images, metadata\)"):
+        est.predict(x, long, pool=True, other_exposures=[y])
+    with pytest.raises(TypeError, match="sequence of"):
+        est.predict(x, long, pool=True, other_exposures=y)
+    with pytest.raises(ValueError, match=r"other_exposures\[0\]: reference must hold the same patches"):
+        est.predict(x, long, pool=True, other_exposures=[(y, short, y[:2])])
+    nan = y.clone()
+    nan[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"other_exposures\[0\]: .*non-finite"):
+        est.predict(x, long, pool=True, other_exposures=[(nan, short)])
+    with pytest.raises(ValueError, match=r"other_evidence must be the \(4, 385\) evidence"):
+        physics_noise_posterior(x, long, pool=True, other_evidence=torch.zeros(4, 97))
+    bad = torch.zeros(4, 385)
+    bad[0, 0] = float("inf")
+    with pytest.raises(ValueError, match="other_evidence contains NaN or inf"):
+        physics_noise_posterior(x, long, pool=True, other_evidence=bad)
+    with pytest.raises(ValueError, match="other_evidence belongs to one camera"):
+        physics_noise_posterior(x[:2], CameraMetadata.preset("EV76C661", batch_size=2), other_evidence=torch.zeros(4, 385))
+    with pytest.raises(ValueError, match="noise_evidence reads one camera state"):
+        noise_evidence(x[:2], CameraMetadata.preset("EV76C661", batch_size=2))
+
+
+@pytest.mark.parametrize("pair", [False, True])
+def test_a_frames_own_evidence_comes_back_from_its_reading_and_can_be_kept(pair):
+    """``return_evidence``: the frame's evidence from the same pass (what ``noise_evidence`` reads); handed to a later
+    frame as ``other_evidence`` it gives what ``other_exposures`` with that frame gives — a monitor reads each frame
+    once."""
+    long, short, sims = _two_exposures({"temperature_c": 55.0})
+    est = PhysicsNoiseEstimator()
+    ref_short = sims[3][0] if pair else None
+    first = est.predict(sims[2][0], short, pool=True, reference=ref_short, return_evidence=True)
+    if not pair:
+        assert torch.equal(first["evidence"], noise_evidence(sims[2][0], short))
+    assert first["evidence"].shape == (4, 385) and first["evidence"].any()
+    ref = sims[1][0] if pair else None
+    kept = est.predict(sims[0][0], long, pool=True, reference=ref, other_evidence=first["evidence"])
+    given = est.predict(sims[0][0], long, pool=True, reference=ref,
+                        other_exposures=[(sims[2][0], short) if not pair else (sims[2][0], short, ref_short)])
+    assert torch.equal(kept["sigma"], given["sigma"]) and torch.equal(kept["xi"], given["xi"])
+    with pytest.raises(ValueError, match="pass pool=True"):
+        est.predict(sims[0][0], long, return_evidence=True)
+    with pytest.raises(TypeError, match="other_evidence must be a tensor"):
+        est.predict(sims[0][0], long, pool=True, other_evidence=[0.0])
