@@ -45,6 +45,11 @@ reads each frame against it (``predict(..., reference=...)``; :mod:`camhealth.es
 JPEG frames (:data:`LOSSY`), which it reads alone as a monitor on a lossy stream would; :func:`static_pair_lines`
 adds what the pair reads on those JPEG frames anyway and on matched frames whose scene moved between the exposures.
 
+**Another exposure time.** :func:`other_exposure_lines` exposes the frames of two matched conditions and of the
+mismatches once more at another exposure time (×8, or ÷8 where that passes 0.2 s; the same real camera otherwise) and
+scores the physics-first estimator, pooled and as a static pair, alone and with that frame's evidence
+(``predict(..., other_exposures=...)``): dark-current shot noise grows with the exposure time, readout noise does not.
+
 Printed per estimator, pooled over both scales and for each scale: per-source Bias / Std / RMS [DN] per condition
 group over every patch (those it marks not assessable included: the closed form stands there), ξ RMS, the AUCs
 (per frame also split into quiet and busy scenes), the strong-noise rows (median |σ̂_Total/σ_Total − 1| and the
@@ -110,6 +115,13 @@ LOSSY = ("jpeg",)
 PAIR_SHIFT_PX = (0.1, 1.0)
 #: XOR-ed into a frame's seed for its second exposure (:attr:`Frame.second`).
 SECOND_SEED = 0x5EC0_0D
+#: XOR-ed into a frame's seed for its exposures at another exposure time (:func:`other_exposure_lines`).
+EXPOSURE_SEED = 0xE7B0_5E
+#: The other exposure time of :func:`other_exposure_lines`: the told one times this, or divided by it where that
+#: would pass 0.2 s.
+EXPOSURE_RATIO = 8.0
+#: The conditions :func:`other_exposure_lines` reads: two matched ones (do no harm) and the mismatches.
+EXPOSURE_CONDITIONS = ("reference", "all_variants", "gain", "temperature", "white_noise")
 SCALE_LABELS = {"full": "full resolution", "3x": "3× area-downsampled"}
 #: The 3× scale's downsampling factor (:data:`SCENE_SCALES`).
 SCENE_DOWNSAMPLE = SCENE_SCALES["3x"]
@@ -143,6 +155,9 @@ class Frame:
     scene_floor: float = float("nan")  # the clean scene's own fine-scale σ [DN] (scene_floor_dn), in no truth
     defects: torch.Tensor | None = None  # defects condition: (16, 1, 128, 128) int8, +1 bright, −1 dark offset
     second: torch.Tensor | None = None  # a second exposure of the same clean scene and camera state (static camera)
+    variants: tuple[str, ...] = ()  # the simulator variants the frame was made with
+    overrides: dict | None = None  # the fields the real camera has where the told metadata are wrong
+    seed: int = 0  # the seed of its random numbers
 
 
 def _scenes() -> dict[str, list[torch.Tensor]]:
@@ -280,7 +295,8 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
                 q = int(torch.randint(75, 96, (1,), generator=gen))
                 noisy = torch.stack([_jpeg(p, q) for p in noisy])
                 second = torch.stack([_jpeg(p, q) for p in second])
-            out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scale, scene_floor_dn(clean), second=second))
+            out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scale, scene_floor_dn(clean), second=second,
+                             variants=tuple(variants), overrides=overrides, seed=seed_k))
     return out
 
 
@@ -420,6 +436,52 @@ def static_pair_lines(est: Any, frames: list[Frame], seed: int) -> list[str]:
         xi_rms = float(torch.cat(jpeg_xi2).mean().sqrt()) if jpeg_xi2 else float("nan")
         lines.append(f"| {SCALE_LABELS[scale]} | " + " / ".join(pct(share[g]) for g in share)
                      + f" | {jpeg_declared} of {jpeg_n}, {xi_rms:.2f} | {pct(moved_share)}, {moved_declared} of {moved_n} |")
+    return lines
+
+
+def other_exposure_lines(ests: list[Any], frames: list[Frame]) -> list[str]:
+    """The same camera at another exposure time (``predict(..., other_exposures=...)``): for the frames of
+    :data:`EXPOSURE_CONDITIONS`, the camera's state with the exposure time × or ÷ :data:`EXPOSURE_RATIO` (everything
+    else as told, the same real fields where the told ones are wrong, the same scene and variants) exposed twice with its
+    own random numbers; per-source Bias / Std / RMS [DN] of the physics-first estimator pooled per frame and as a static
+    pair, each alone and with the other exposure time's frame (as a pair for the static pair), both scales pooled."""
+    from camhealth.inference import PHYSICS_NOISE_MODEL
+
+    labels = {f"{PHYSICS_NOISE_MODEL} (pooled per frame)": False, f"{PHYSICS_NOISE_MODEL} {STATIC_PAIR_LABEL}": True}
+    chosen = [(e, labels[e.name]) for e in ests if getattr(e, "name", None) in labels]
+    if not chosen:
+        return []
+    errs: dict[tuple[str, str, str], list[torch.Tensor]] = {}
+    for fr in (f for f in frames if f.condition in EXPOSURE_CONDITIONS):
+        t_told = float(fr.told.exposure_s)
+        t_other = t_told * EXPOSURE_RATIO if t_told * EXPOSURE_RATIO <= 0.2 else max(t_told / EXPOSURE_RATIO, 0.001)
+        other_meta = fr.told.replace(exposure_s=torch.tensor([t_other], dtype=torch.float64))
+        other, _ = simulate_variant(fr.clean, other_meta, fr.variants, torch.Generator().manual_seed(fr.seed ^ EXPOSURE_SEED), fr.overrides)
+        other_2, _ = simulate_variant(fr.clean, other_meta, fr.variants,
+                                      torch.Generator().manual_seed(fr.seed ^ EXPOSURE_SEED ^ SECOND_SEED), fr.overrides)
+        group = "matched" if fr.condition in MATCHED else "mismatched"
+        for est, pair in chosen:
+            ref = {"reference": fr.second} if pair else {}
+            given = (other, other_meta, other_2) if pair else (other, other_meta)
+            for how, extra in (("alone", {}), ("joint", {"other_exposures": [given]})):
+                out = est.predict(fr.noisy, fr.told, **ref, **extra)
+                err = out["sigma"] - fr.sigma
+                for key in (group, fr.condition):
+                    errs.setdefault((est.name, how, key), []).append(err)
+    keys = ("matched", "mismatched", "gain", "temperature", "white_noise")
+    lines = ["", f"The same camera at another exposure time (`predict(..., other_exposures=[(frame, metadata)])`): each frame of "
+             f"{', '.join(EXPOSURE_CONDITIONS)} also exposed at its told exposure time ×{EXPOSURE_RATIO:g} (÷{EXPOSURE_RATIO:g} "
+             "where that passes 0.2 s), the real camera otherwise the same; per-source Bias / Std / RMS [DN] (PN / DCSN / RN RMS "
+             "per mismatch), both scales pooled, alone and with the other exposure time's evidence:", "",
+             "| estimator | evidence | matched | mismatched: PN | DCSN | RN | gain | temperature | white noise |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for est, pair in chosen:
+        for how, label in (("alone", "this exposure"), ("joint", "+ the other exposure time" + (" (a pair)" if pair else ""))):
+            cell = {k: torch.cat(errs[(est.name, how, k)]) for k in keys if (est.name, how, k) in errs}
+            rms = lambda k: "/".join(f"{float(cell[k][:, j].square().mean().sqrt()):.2f}" for j in range(3)) if k in cell else "–"  # noqa: E731
+            mis = [_fmt3(_bsr(cell["mismatched"][:, j])) if "mismatched" in cell else "–" for j in range(3)]
+            lines.append(f"| {est.name} | {label} | {rms('matched')} | " + " | ".join(mis) + " | "
+                         + " | ".join(rms(k) for k in ("gain", "temperature", "white_noise")) + " |")
     return lines
 
 
@@ -751,6 +813,7 @@ def run(args: argparse.Namespace) -> BenchResult:
     for e in ests:
         if e.name.endswith(STATIC_PAIR_LABEL):
             summary += static_pair_lines(e, frames, args.seed)
+    summary += other_exposure_lines(ests, frames)
     any_r = next(iter(results.values()))
     counts = []
     for label, key in sets:

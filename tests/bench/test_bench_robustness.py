@@ -263,3 +263,26 @@ def test_the_static_pair_row_reads_lossless_frames_as_pairs_and_jpeg_ones_alone(
     for label in rb.SCALE_LABELS.values():
         assert f"| {label} | " in text
     assert "JPEG as a pair" in text and "scene moved" in text
+
+
+def test_every_frame_records_how_it_was_made(frames):
+    """Variants, the real camera's fields and the seed: what another exposure of the same camera needs."""
+    by = {f.condition: f for f in frames}
+    assert by["all_variants"].variants == tuple(rb.VARIANTS) and by["reference"].variants == ()
+    assert by["reference"].overrides is None and set(by["temperature"].overrides) == {"temperature_c"}
+    assert by["temperature"].overrides["temperature_c"] >= float(by["temperature"].told.temperature_c) + 15.0
+    again, _ = rb.simulate_variant(by["gain"].clean, by["gain"].told, by["gain"].variants,
+                                   torch.Generator().manual_seed(by["gain"].seed), by["gain"].overrides)
+    assert torch.equal(again, by["gain"].noisy)  # the frame, made again from what it records
+
+
+def test_other_exposure_lines_score_each_estimator_alone_and_with_the_other_exposure(frames):
+    from camhealth.estimators.physics_noise import PhysicsNoiseEstimator
+
+    ests = [PhysicsNoiseEstimator(settings={"pool": True}, source="noise_source_full (pooled per frame)"),
+            PhysicsNoiseEstimator(settings={"pool": True}, source=f"noise_source_full {rb.STATIC_PAIR_LABEL}")]
+    text = "\n".join(rb.other_exposure_lines(ests, frames))
+    for name in (e.name for e in ests):
+        assert f"| {name} | this exposure | 0.0" in text  # matched: the closed form, ~0 DN
+        assert f"| {name} | + the other exposure time" in text
+    assert rb.other_exposure_lines([rb._ClosedForm()], frames) == []  # nothing to read it with
