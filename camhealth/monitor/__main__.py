@@ -207,6 +207,10 @@ def build_parser():
                         "stood still (their difference holds the noise and none of the scene; patches that moved are "
                         "read alone). Lossless frames only: raw, PNG/TIFF, uncompressed video, ROS Image — not JPEG, "
                         "MJPEG or H.264, whose re-quantisation passes for noise on dense texture")
+    g.add_argument("--no-exposure-evidence", action="store_true",
+                   help="noise: do not add the camera's noise evidence at other exposure times (kept from earlier "
+                        "frames whose metadata differ only in the exposure time; it splits an excess between dark "
+                        "current, which grows with the exposure time, and readout noise)")
     g.add_argument("--no-refine", action="store_true",
                    help="estimate all changed patches at once, without the coarse lattice first")
     g.add_argument("--no-skip", action="store_true",
@@ -429,7 +433,7 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         noise_samples=args.noise_samples, mtf_samples=args.mtf_samples, adaptive=not args.no_adaptive, reuse_static=not args.no_reuse, coarse_refine=not args.no_refine,
         skip_uninformative=not args.no_skip, selection=selection, precision=args.precision, mtf_views=args.mtf_views, pool_noise=not args.per_patch_noise, batch_size=args.batch_size, device=args.device,
         xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
-        defect_map=args.defect_map, static_pairs=args.static_pairs,
+        defect_map=args.defect_map, static_pairs=args.static_pairs, exposure_evidence=not args.no_exposure_evidence,
     )
     out_dir: Path | None = args.out
     if out_dir is not None:

@@ -575,6 +575,9 @@ def mtf_under_banding(mtf: TaskReport, banding: Mapping[str, Any], estimated: in
 #: million on average (their own points of light and pixel-sized texture peaks), at most 95 on a frame (seeds 0 and
 #: 7); one such point on eight 128-px patches is 8 per million. A sensor with 0.02 % defective pixels shows 200.
 DEFECT_ALARM_PPM = 200.0
+#: Frames for which the noise evidence of a camera state is kept for frames at other exposure times
+#: (``exposure_evidence``): long enough to span an auto-exposure's steps, short against a sensor's warming.
+EXPOSURE_MEMORY_FRAMES = 300
 #: Defect positions a monitor remembers to tell recurring ones (a few MB).
 DEFECT_POSITIONS = 100_000
 #: Recurring defect positions the summary lists (most frames first).
@@ -652,6 +655,7 @@ class _TaskState:
     previous: torch.Tensor | None = None
     reference: torch.Tensor | None = None
     pairs: int = 0
+    exposures: int = 0  # other exposure times whose noise evidence joined this frame's (exposure_evidence)
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -810,6 +814,13 @@ class Monitor:
             read from a pair. For lossless frames only (raw, PNG/TIFF, uncompressed video or ROS ``Image``): a lossy
             codec (JPEG, H.264) re-quantises the two frames differently or copies one into the other, and on dense
             texture that passes the stillness tests. ``False`` (default): one frame at a time.
+        exposure_evidence: ``True`` (default) — the physics-first noise estimator, pooled, keeps each camera state's
+            latest noise evidence (``predict(..., return_evidence=True)``, from the same reading) for
+            :data:`EXPOSURE_MEMORY_FRAMES` frames, and a frame whose metadata differ from a kept state's only in the
+            exposure time adds it (``other_evidence``): dark-current shot noise grows with the exposure time and
+            readout noise does not, so an auto-exposure's steps split an excess between them by the physics
+            (:func:`camhealth.estimators.physics_noise.noise_evidence`). ``coverage["other_exposures"]`` counts the
+            states that joined a frame. ``False``: each state on its own.
     """
 
     def __init__(
@@ -839,6 +850,7 @@ class Monitor:
         warmup: bool = True,
         device: Any = "cpu",
         static_pairs: bool = False,
+        exposure_evidence: bool = True,
     ) -> None:
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
             raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
@@ -873,6 +885,11 @@ class Monitor:
         if not isinstance(static_pairs, bool):
             raise TypeError(f"static_pairs = {static_pairs!r} must be True or False")
         self.static_pairs = static_pairs
+        if not isinstance(exposure_evidence, bool):
+            raise TypeError(f"exposure_evidence = {exposure_evidence!r} must be True or False")
+        self.exposure_evidence = exposure_evidence
+        # (the metadata's other fields, exposure time [s]) → (frame counter, that state's latest noise evidence)
+        self._exposure_cache: dict[tuple[tuple, float], tuple[int, torch.Tensor]] = {}
         self.estimators: dict[str, _EstimatorHandle] = {}
         for task, spec in (("noise", noise_model), ("mtf", mtf_model)):
             if spec is not None:
@@ -952,12 +969,46 @@ class Monitor:
             kwargs["pool"] = None
         if "reference" in params:  # a static pair's second exposure: the physics-first noise estimator
             kwargs["reference"] = None
+        if "other_evidence" in params and "return_evidence" in params:  # other exposure times' evidence: the same
+            kwargs["other_evidence"] = None
         return _EstimatorHandle(est, _describe(est), kwargs)
 
     def reset(self) -> None:
-        """Forget all history (temporal aggregation, static references); counters and timing stay."""
+        """Forget all history (temporal aggregation, static references, other exposure times' evidence); counters and
+        timing stay."""
+        self._reset_aggregation()
+        self._exposure_cache.clear()
+
+    def _reset_aggregation(self) -> None:
+        """A new camera state: the temporal aggregation and static references start afresh (the evidence kept per
+        exposure time stays: it is about the camera, :meth:`_exposure_evidence`)."""
         for st in self._states.values():
             st.reset()
+
+    @staticmethod
+    def _exposure_key(meta: CameraMetadata) -> tuple[tuple, float]:
+        """(every field but the exposure time, the exposure time [s]) of a camera state of batch 1, rounded."""
+        fields = meta.to_dict()
+        return (tuple((k, round(float(v[0]), 12)) for k, v in fields.items() if k != "exposure_s"),
+                round(float(fields["exposure_s"][0]), 12))
+
+    def _exposure_evidence(self, meta: CameraMetadata) -> tuple[torch.Tensor | None, int]:
+        """The summed kept evidence of this camera at other exposure times (kept at most
+        :data:`EXPOSURE_MEMORY_FRAMES` frames ago), and how many states it holds."""
+        others, exposure = self._exposure_key(meta)
+        kept = [ev for (k, e), (c, ev) in self._exposure_cache.items()
+                if k == others and e != exposure and self._counter - c <= EXPOSURE_MEMORY_FRAMES]
+        return (None if not kept else torch.stack(kept).sum(0)), len(kept)
+
+    def _keep_evidence(self, meta: CameraMetadata, evidence: torch.Tensor) -> None:
+        """This frame's noise evidence for its camera state (added up where the frame is read in several calls)."""
+        key = self._exposure_key(meta)
+        old = self._exposure_cache.get(key)
+        if old is not None and old[0] == self._counter:
+            evidence = old[1] + evidence
+        self._exposure_cache[key] = (self._counter, evidence)
+        for k in [k for k, (c, _) in self._exposure_cache.items() if self._counter - c > EXPOSURE_MEMORY_FRAMES]:
+            del self._exposure_cache[k]
 
     def _prepare(self, h: int, w: int) -> None:
         if self._shape == (h, w):
@@ -1058,8 +1109,14 @@ class Monitor:
             kwargs["pool"] = True  # one camera state per frame: the frame's evidence for every patch
         if task == "noise" and st.reference is not None and "reference" in handle.kwargs:
             kwargs["reference"] = st.reference[index]  # the same patches of the previous frame (static pairs)
+        exposures = task == "noise" and self.exposure_evidence and kwargs.get("pool") and "other_evidence" in handle.kwargs
+        if exposures:  # this camera's evidence at other exposure times joins; this frame's is kept for them
+            kwargs["other_evidence"], st.exposures = self._exposure_evidence(meta)
+            kwargs["return_evidence"] = True
         use_meta = meta if getattr(handle.est, "metadata_set", "none") != "none" else None
         out = handle.est.predict(patches[index], metadata=use_meta, **kwargs)
+        if exposures and out.get("evidence") is not None and bool(torch.as_tensor(out["evidence"]).any()):
+            self._keep_evidence(meta, torch.as_tensor(out["evidence"]))
         if kwargs.get("reference") is not None and "static" in out:
             st.pairs += int(torch.as_tensor(out["static"]).sum())
         if task == "noise":
@@ -1125,7 +1182,7 @@ class Monitor:
         st = self._states[task]
         st.refused, st.beyond_xi, st.banding = {}, [], []
         st.defects, st.defect_xy = [0, 0, 0, 0], []
-        st.pairs = 0
+        st.pairs = st.exposures = 0
         grid, cfg = st.grid, self.selection
         handle = self.estimators[task]
         base = dict(task=task, estimator=handle.name, patch=grid.patch, grid=(grid.rows, grid.cols))
@@ -1221,9 +1278,13 @@ class Monitor:
         return self._with_pairs(task, st, self._aggregate(task, st, handle.name, int(informative.sum()), fresh_n))
 
     def _with_pairs(self, task: str, st: _TaskState, report: TaskReport) -> TaskReport:
-        """``coverage["static_pairs"]``: this frame's noise patches read from a static pair (``static_pairs`` on)."""
+        """``coverage["static_pairs"]``: this frame's noise patches read from a static pair (``static_pairs`` on);
+        ``coverage["other_exposures"]``: the other exposure times whose evidence joined this frame's
+        (``exposure_evidence`` on, with the physics-first noise estimator pooled)."""
         if task == "noise" and self.static_pairs:
             report.coverage["static_pairs"] = st.pairs
+        if task == "noise" and self.exposure_evidence and self.pool_noise and "other_evidence" in self.estimators[task].kwargs:
+            report.coverage["other_exposures"] = st.exposures
         return report
 
     @staticmethod
@@ -1329,7 +1390,7 @@ class Monitor:
             key = None if meta is None else tuple(round(float(v[0]), 12) for v in meta.to_dict().values())
             if key != self._meta_key:
                 if self._meta_key is not None:
-                    self.reset()
+                    self._reset_aggregation()
                 self._meta_key = key
             timing = {"convert": (time.perf_counter() - t0) * 1e3}
             reports: dict[str, TaskReport] = {}
@@ -1525,7 +1586,7 @@ class Monitor:
                 **self._map_summary()},
             "mode": self.mode, "samples_per_frame": dict(self.n_samples) if self.mode == "sampled" else None,
             "precision": self.precision, "mtf_views": self.mtf_views, "pool_noise": self.pool_noise,
-            "static_pairs": self.static_pairs, "window": self.window,
+            "static_pairs": self.static_pairs, "exposure_evidence": self.exposure_evidence, "window": self.window,
             "adaptive": {"reuse_static": self.reuse_static, "coarse_refine": self.coarse_refine,
                          "skip_uninformative": self.skip_uninformative},
         }

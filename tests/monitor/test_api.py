@@ -772,3 +772,56 @@ def test_static_pairs_find_a_mismatch_a_busy_scene_hides_from_one_frame(mode):
 def test_static_pairs_must_be_a_bool():
     with pytest.raises(TypeError, match="static_pairs = 'yes' must be True or False"):
         Monitor("noise_source_full", None, sensor="ICX285", static_pairs="yes")
+
+
+@pytest.mark.parametrize("mode", ["map", "sampled"])
+def test_an_auto_exposures_steps_split_dark_current_from_readout_noise(mode):
+    """A CMOS camera with 3× the white noise its metadata say, its exposure alternating 0.2 s / 0.02 s: one state at a
+    time, the 0.2-s frames give the excess to dark current (DCSN 2.8× the truth); with the other exposure time's
+    evidence kept (the default) each source is within 5 % from the third frame on. A frame of another gain adds
+    nothing: only the exposure time may differ."""
+    from camhealth.bench.sensor_variants import simulate_variant
+
+    told = {"gain_db": 6.0, "exposure_s": 0.2, "temperature_c": 30.0}
+    long = CameraMetadata.preset("EV76C661", **told)
+    h, w = 384, 512
+    clean = torch.linspace(0.1, 0.8, w).view(1, 1, 1, w).expand(1, 1, h, w).contiguous()
+    real = {"white_noise_v_per_rthz": float(long.white_noise_v_per_rthz) * 3.0}
+    seq = []
+    for i in range(4):
+        cam = long.replace(exposure_s=torch.tensor([0.02 if i % 2 else 0.2], dtype=torch.float64))
+        x, truth = simulate_variant(clean, cam, (), torch.Generator().manual_seed(i), real)
+        seq.append((x[0, 0], {"exposure_s": float(cam.exposure_s)}, truth.mean(0)))
+    got = {}
+    for kept in (False, True):
+        mon = Monitor("noise_source_full", None, sensor="EV76C661", metadata=told, mode=mode, adaptive=False, warmup=False,
+                      exposure_evidence=kept)
+        reports = [_strict(mon.process(x, md).to_json()) for x, md, _ in seq]
+        got[kept] = [[r["noise"]["sigma_dn"][k]["median"] for k in ("pn", "dcsn", "rn")] for r in reports]
+        assert mon.summary()["exposure_evidence"] is kept
+        assert all(r["alarm"]["state"] == "noisier" for r in reports)
+        if kept:
+            assert [r["noise"]["coverage"]["other_exposures"] for r in reports] == [0, 1, 1, 1]
+        else:
+            assert "other_exposures" not in reports[0]["noise"]["coverage"]
+    truth = seq[2][2]
+    assert got[False][2][1] > 2.0 * float(truth[1])  # one state: the excess partly in DCSN
+    for i in (2, 3):
+        assert torch.allclose(torch.tensor(got[True][i]), seq[i][2].float(), rtol=0.05), (got[True][i], seq[i][2])
+    other_gain = Monitor("noise_source_full", None, sensor="EV76C661", metadata=told, mode=mode, adaptive=False, warmup=False)
+    other_gain.process(seq[1][0], {"exposure_s": 0.02, "gain_db": 12.0})
+    r = _strict(other_gain.process(seq[2][0], seq[2][1]).to_json())
+    assert r["noise"]["coverage"]["other_exposures"] == 0
+
+
+def test_exposure_evidence_must_be_a_bool_and_reset_forgets_it():
+    with pytest.raises(TypeError, match="exposure_evidence = 1 must be True or False"):
+        Monitor("noise_source_full", None, sensor="ICX285", exposure_evidence=1)
+    mon = Monitor("noise_source_full", None, sensor="ICX285", warmup=False)
+    frame = (0.5 + 0.01 * torch.randn(256, 256, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
+    mon.process(frame, {"exposure_s": 0.01})
+    assert len(mon._exposure_cache) == 1
+    mon.process(frame, {"exposure_s": 0.02})  # a new exposure time: its evidence joins the kept one
+    assert len(mon._exposure_cache) == 2
+    mon.reset()
+    assert not mon._exposure_cache
