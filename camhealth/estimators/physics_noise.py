@@ -106,6 +106,13 @@ from block means instead). The
 clipping penalty, the rounding and σ after clipping stay ``image``'s. :meth:`PhysicsNoiseEstimator.predict` tests per
 patch that the scene stood still and reads the others alone.
 
+**Other exposure times of the same camera** (``other_evidence``; :func:`noise_evidence`): one camera state cannot split
+a signal-independent excess between dark-current shot noise and readout noise — both add a constant to v(m). The
+hypotheses are absolute values of the camera's fields, so frames whose metadata differ only in the exposure time share
+them, and each predicts σ_DCSN² ∝ t_exp in every frame and the same σ_RN: the frames' per-hypothesis sums Σr²/D, Σr/D,
+Σ1/D and clipping penalties add up, η is applied once to the sum (one camera, one model error), and the split follows
+the physics. :meth:`PhysicsNoiseEstimator.predict` takes such frames (``other_exposures``) or their kept evidence.
+
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
 the metadata cannot be checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
@@ -121,8 +128,8 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -556,7 +563,8 @@ def physics_noise_posterior(
     scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
     reference: torch.Tensor | None = None,
     other_evidence: torch.Tensor | None = None,
-) -> torch.Tensor:
+    return_evidence: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Physics-first noise sources of each patch, (B, 21) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
@@ -616,34 +624,9 @@ def physics_noise_posterior(
             them), so that an excess that grows with the exposure time (dark current: a hotter sensor than told) is
             told apart from one that does not (readout noise). ``meta`` must have batch 1; the answer is still about
             ``image``, and where ``image`` itself is not readable it keeps the closed form.
+        return_evidence: with ``pool``, return (the table, this frame's own evidence of :func:`noise_evidence` from the
+            same reading) instead of the table.
     """
-    return _posterior_and_evidence(
-        image, meta, eta=eta, eta_bin=eta_bin, mismatch_probability=mismatch_probability,
-        beyond_probability=beyond_probability, grid=grid, bins=bins, bound_margin=bound_margin,
-        fallback_margin=fallback_margin, pool=pool, scene_allowance_dn=scene_allowance_dn,
-        scene_allowance_min_dn=scene_allowance_min_dn, reference=reference, other_evidence=other_evidence,
-    )[0]
-
-
-def _posterior_and_evidence(
-    image: torch.Tensor,
-    meta: CameraMetadata,
-    eta: float = 0.12,
-    eta_bin: float = 0.05,
-    mismatch_probability: float = 0.5,
-    beyond_probability: float = 0.125,
-    grid: int = 96,
-    bins: int = 16,
-    bound_margin: float = 2.0,
-    fallback_margin: float = 1.0,
-    pool: bool = False,
-    scene_allowance_dn: float = SCENE_ALLOWANCE_DN,
-    scene_allowance_min_dn: float = SCENE_ALLOWANCE_MIN_DN,
-    reference: torch.Tensor | None = None,
-    other_evidence: torch.Tensor | None = None,
-    evidence_out: bool = False,
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """:func:`physics_noise_posterior`, and with ``evidence_out`` the frame's evidence of :func:`noise_evidence`."""
     if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 1:
         raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
     if not image.is_floating_point():
@@ -679,8 +662,8 @@ def _posterior_and_evidence(
         raise ValueError(f"pool=True adds up the evidence of patches of one camera state: metadata must have batch 1, got {meta.batch_size}")
     if other_evidence is not None and meta.batch_size != 1:
         raise ValueError(f"other_evidence belongs to one camera: metadata must have batch 1, got {meta.batch_size}")
-    if evidence_out and not pool:
-        raise ValueError("a frame's evidence (noise_evidence) is read pooled: pool must be True")
+    if return_evidence and not pool:
+        raise ValueError("a frame's evidence (return_evidence, noise_evidence) is read pooled: pool must be True")
     with torch.autocast(device_type=dev.type, enabled=False):
         x = image.detach().float()
         if meta.batch_size == 1:  # one camera state: its hypotheses are reused from call to call (a monitor's frames)
@@ -882,10 +865,10 @@ def _posterior_and_evidence(
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
                          corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1)], dim=1)
-    frame_evidence = None
-    if evidence_out:  # this frame's own bins (row 0: pooled, every row is the frame), none where it is not readable
-        frame_evidence = torch.where(readable[0], own[:, 0], torch.zeros_like(own[:, 0]))
-    return out.float(), frame_evidence
+    if not return_evidence:
+        return out.float()
+    # this frame's own bins (row 0: pooled, every row is the frame), none where it is not readable
+    return out.float(), torch.where(readable[0], own[:, 0], torch.zeros_like(own[:, 0]))
 
 
 def noise_evidence(image: torch.Tensor, meta: CameraMetadata, reference: torch.Tensor | None = None, **settings: Any) -> torch.Tensor:
@@ -909,11 +892,11 @@ def noise_evidence(image: torch.Tensor, meta: CameraMetadata, reference: torch.T
         settings: keyword arguments of :func:`physics_noise_posterior` (``pool`` is always True here).
     """
     settings = {k: v for k, v in settings.items() if k != "pool"}
-    if "other_evidence" in settings or "evidence_out" in settings:
-        raise ValueError("noise_evidence reads one frame: other_evidence is not an argument of it")
+    if "other_evidence" in settings or "return_evidence" in settings:
+        raise ValueError("noise_evidence reads one frame: other_evidence and return_evidence are not arguments of it")
     if meta.batch_size != 1:
         raise ValueError(f"noise_evidence reads one camera state: metadata must have batch 1, got {meta.batch_size}")
-    return _posterior_and_evidence(image, meta, pool=True, reference=reference, evidence_out=True, **settings)[1]
+    return physics_noise_posterior(image, meta, pool=True, reference=reference, return_evidence=True, **settings)[1]
 
 
 def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> torch.Tensor:
@@ -1156,7 +1139,7 @@ class PhysicsNoiseEstimator:
         pooled, the frame's own evidence of that call (:func:`noise_evidence`; None per patch)."""
         b = patches.shape[0]
         if settings.get("pool"):  # the whole batch is one frame: one call, whatever batch_size says
-            raw, evidence = _posterior_and_evidence(patches, meta, reference=reference, evidence_out=True, **settings)
+            raw, evidence = physics_noise_posterior(patches, meta, reference=reference, return_evidence=True, **settings)
             # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
             # textured, the patches whose own details pass both checks are read on their own
             if b > 1 and bool(textured(raw[0, 8], raw[0, 11])):

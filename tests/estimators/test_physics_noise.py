@@ -772,6 +772,10 @@ def test_other_exposures_bad_input_is_refused():
         physics_noise_posterior(x[:2], CameraMetadata.preset("EV76C661", batch_size=2), other_evidence=torch.zeros(4, 385))
     with pytest.raises(ValueError, match="noise_evidence reads one camera state"):
         noise_evidence(x[:2], CameraMetadata.preset("EV76C661", batch_size=2))
+    with pytest.raises(ValueError, match="is read pooled: pool must be True"):
+        physics_noise_posterior(x, long, return_evidence=True)
+    with pytest.raises(ValueError, match="other_evidence and return_evidence are not arguments of it"):
+        noise_evidence(x, long, other_evidence=torch.zeros(4, 385))
 
 
 @pytest.mark.parametrize("pair", [False, True])
