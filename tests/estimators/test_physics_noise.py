@@ -799,3 +799,17 @@ def test_a_frames_own_evidence_comes_back_from_its_reading_and_can_be_kept(pair)
         est.predict(sims[0][0], long, return_evidence=True)
     with pytest.raises(TypeError, match="other_evidence must be a tensor"):
         est.predict(sims[0][0], long, pool=True, other_evidence=[0.0])
+
+
+@pytest.mark.parametrize("batch", [1, 256])
+def test_other_exposures_of_one_and_of_256_patches(batch):
+    """A frame of one patch and its other exposure of one patch, or 256 beside 256: the split as with 16."""
+    long = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.2, temperature_c=30.0)
+    short = long.replace(exposure_s=torch.tensor([0.02], dtype=torch.float64))
+    real = {"white_noise_v_per_rthz": float(long.white_noise_v_per_rthz) * 3.0}
+    x, truth = simulate_variant(_ramp(batch), long, (), torch.Generator().manual_seed(1), real)
+    y, _ = simulate_variant(_ramp(batch), short, (), torch.Generator().manual_seed(2), real)
+    out = PhysicsNoiseEstimator().predict(x, long, pool=True, other_exposures=[(y, short)])
+    assert out["sigma"].shape == (batch, 3) and torch.isfinite(out["sigma_std"]).all()
+    assert out["exposures_read"] == 1 and out["assessable"].all()
+    assert torch.allclose(out["sigma"][:, 1:3], truth[:, 1:3], rtol=0.05)  # DCSN and RN
