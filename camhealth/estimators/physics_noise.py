@@ -973,7 +973,7 @@ class PhysicsNoiseEstimator:
 
         ``other_exposures`` (with ``pool``): other frames of the same camera whose metadata differ from ``metadata``
         only in the exposure time, each ``(images, metadata)`` or ``(images, metadata, reference)`` (a static pair,
-        read from its still patches where at least half of them are still, else alone). Their evidence joins this
+        read as ``images`` with ``reference`` is: from the pair where the scene stood still, alone elsewhere). Their evidence joins this
         frame's (:func:`noise_evidence`): dark-current shot noise grows with the exposure time and readout noise does
         not, so an excess the frames show is split between them by the physics instead of by the prior. The answer is
         about ``images``; an other frame that is not readable (textured, no flat area) adds nothing. The output then
@@ -1024,7 +1024,38 @@ class PhysicsNoiseEstimator:
                 raise TypeError(f"other_evidence must be a tensor (noise_evidence), got {type(other_evidence).__name__}")
             given = other_evidence.detach().to(self.device, torch.float64)
             settings["other_evidence"] = given if "other_evidence" not in settings else settings["other_evidence"] + given
-        evidence = None
+        raw, static, evidence = self._read(patches, ref, meta, settings, batch_size)
+        assessable, reason = assess_patches(patches, "noise_source")
+        reason = list(reason)
+        is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
+        noise_dn = haar_noise_dn(patches)
+        too_strong = beyond_validated_range(patches, noise_dn).tolist()
+        for i in range(b):
+            if reason[i]:
+                continue
+            if raw[i, 7] < MIN_FOLLOW_DETAILS:
+                reason[i] = "no flat area"
+            elif is_textured[i]:
+                reason[i] = "textured"
+            elif raw[i, 10] > VALIDATED_SIGMA_DN or too_strong[i]:
+                reason[i] = BEYOND_VALIDATED
+        assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
+        defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
+        return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
+                "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
+                "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),
+                "defects_checked": defects.checked,
+                "defect_mask": defects.mask, **({} if ref is None else {"static": static}),
+                **({} if exposures_read is None else {"exposures_read": exposures_read}),
+                **({"evidence": evidence.cpu()} if return_evidence else {})}
+
+    def _read(self, patches: torch.Tensor, ref: torch.Tensor | None, meta: CameraMetadata, settings: dict[str, Any],
+              batch_size: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """The posterior of the patches (CPU, (B, 21)) — read from their static pair where ``ref`` is given and the
+        scene stood still, alone elsewhere (:meth:`predict`) — whether each was read from the pair ((B,) bool, None
+        without ``ref``), and, pooled, the frame's own evidence summed over the readings (:func:`noise_evidence`)."""
+        b = patches.shape[0]
+        static, evidence = None, None
         on_device, meta_dev, ref_dev = patches, meta, ref
         if self.device.type != "cpu":
             on_device, meta_dev = patches.to(self.device), meta.to(self.device)
@@ -1055,29 +1086,7 @@ class PhysicsNoiseEstimator:
                 raw[moved] = raw_moved.cpu()
                 # (a pair read as textured or without a flat area gave no evidence: its patches' come from here)
                 evidence = moved_evidence if evidence is None else evidence + moved_evidence
-        assessable, reason = assess_patches(patches, "noise_source")
-        reason = list(reason)
-        is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
-        noise_dn = haar_noise_dn(patches)
-        too_strong = beyond_validated_range(patches, noise_dn).tolist()
-        for i in range(b):
-            if reason[i]:
-                continue
-            if raw[i, 7] < MIN_FOLLOW_DETAILS:
-                reason[i] = "no flat area"
-            elif is_textured[i]:
-                reason[i] = "textured"
-            elif raw[i, 10] > VALIDATED_SIGMA_DN or too_strong[i]:
-                reason[i] = BEYOND_VALIDATED
-        assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
-        defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
-        return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
-                "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
-                "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),
-                "defects_checked": defects.checked,
-                "defect_mask": defects.mask, **({} if ref is None else {"static": static}),
-                **({} if exposures_read is None else {"exposures_read": exposures_read}),
-                **({"evidence": evidence.cpu()} if return_evidence else {})}
+        return raw, static, evidence
 
     def _other_evidence(self, frames: Any, meta: CameraMetadata, pool: bool, input_range: str,
                         base_preset: str | None) -> tuple[torch.Tensor, int]:
@@ -1112,20 +1121,8 @@ class PhysicsNoiseEstimator:
                 if not math.isclose(mine, theirs, rel_tol=1e-6, abs_tol=1e-12):
                     raise ValueError(f"other_exposures[{k}]: {name} = {theirs:g} differs from this frame's {mine:g}; the frames "
                                      f"may differ only in exposure_s (their evidence is about one camera)")
-            settings = {**self.settings, "pool": True}
-            dev = self.device
-            pat, other_d = patches.to(dev), other.to(dev)
-            evidence = None
-            if ref is not None:  # a static pair where at least half of it is still, read from its still patches
-                still = pair_stillness(patches, ref, pool=True).nonzero(as_tuple=True)[0]
-                if 2 * still.numel() >= patches.shape[0]:
-                    pair = {**settings, "scene_allowance_dn": PAIR_SCENE_ALLOWANCE_DN, "scene_allowance_min_dn": PAIR_SCENE_ALLOWANCE_DN}
-                    sel = still.to(dev)
-                    evidence = noise_evidence(pat[sel], other_d, ref.to(dev)[sel], **pair)
-                    if not bool(evidence.any()):  # the pair is not readable (textured, clipped nearly everywhere): alone
-                        evidence = None
-            if evidence is None:
-                evidence = noise_evidence(pat, other_d, **settings)
+            # read as the frame itself is: from its static pair where the scene stood still, alone elsewhere
+            _, _, evidence = self._read(patches, ref, other, {**self.settings, "pool": True}, patches.shape[0])
             read += int(bool(evidence.any()))
             total = evidence if total is None else total + evidence
         if total is None:

@@ -729,7 +729,7 @@ def test_an_unreadable_other_exposure_adds_nothing():
     assert joint["exposures_read"] == 0 and torch.equal(joint["sigma"], alone["sigma"])
 
 
-@pytest.mark.parametrize("dtype", [torch.uint8, torch.float16, torch.float64])
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float16, torch.bfloat16, torch.float64])
 def test_other_exposures_take_the_inputs_predict_takes(dtype):
     long, short, sims = _two_exposures({"white_noise_v_per_rthz": 1.2e-7})
     est = PhysicsNoiseEstimator()
@@ -738,7 +738,8 @@ def test_other_exposures_take_the_inputs_predict_takes(dtype):
     a = est.predict(sims[0][0], long, pool=True, other_exposures=[(other, short)])
     fields = {n: float(getattr(long, n)) for n in FULL_FIELDS} | {"exposure_s": 0.02}  # a dict of fields, as predict takes
     b = est.predict(sims[0][0], long, pool=True, other_exposures=[(given, fields)])
-    assert torch.allclose(a["sigma"], b["sigma"], rtol=0.01, atol=0.01)
+    # bf16 holds 8 significant bits: above 128 DN it rounds a frame to 2 DN steps, noise the other frame then carries
+    assert torch.allclose(a["sigma"], b["sigma"], rtol=0.03 if dtype == torch.bfloat16 else 0.01, atol=0.01)
 
 
 def test_other_exposures_bad_input_is_refused():
