@@ -136,6 +136,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window", type=int, default=5, help="--motion: frames of the temporal aggregation (default 5)")
     parser.add_argument("--backends", action="store_true",
                         help="--motion: also time the sampled monitor with the MTF network exported to .pt2 and ONNX")
+    parser.add_argument("--exposure-step", action="store_true",
+                        help="the monitor on an exposure time alternating --exposure-ratio × --exposure-s / --exposure-s, "
+                             "with and without the other exposure time's evidence, on three cameras (see "
+                             "camhealth.bench.monitor_exposure)")
+    parser.add_argument("--exposure-ratio", type=float, default=8.0,
+                        help="--exposure-step: long / short exposure time (default 8)")
     parser.add_argument("--true-gain-db", type=float, default=None,
                         help="the sensor's real gain in dB when it differs from the metadata's --gain-db (a metadata "
                              "mismatch: ξ ≠ 0; the summary compares each monitor's ξ with the closed form of the metadata "
@@ -205,6 +211,10 @@ def run(args: argparse.Namespace) -> BenchResult:
         from camhealth.bench.monitor_motion import run_motion
 
         return run_motion(args)
+    if getattr(args, "exposure_step", False):
+        from camhealth.bench.monitor_exposure import run_exposure_step
+
+        return run_exposure_step(args)
     checks = ((args.frames, "--frames", 1), (args.slow_frames, "--slow-frames", 0), (args.thesis_patches, "--thesis-patches", 0),
               (args.width, "--width", 1), (args.height, "--height", 1))
     for v, name, lo in checks:

@@ -111,7 +111,8 @@ a signal-independent excess between dark-current shot noise and readout noise �
 hypotheses are absolute values of the camera's fields, so frames whose metadata differ only in the exposure time share
 them, and each predicts σ_DCSN² ∝ t_exp in every frame and the same σ_RN: the frames' per-hypothesis sums Σr²/D, Σr/D,
 Σ1/D and clipping penalties add up, η is applied once to the sum (one camera, one model error), and the split follows
-the physics. :meth:`PhysicsNoiseEstimator.predict` takes such frames (``other_exposures``) or their kept evidence.
+the physics. A mismatch that moves σ_Total visibly in any of the frames is visible in all of them: a sensor hotter than
+told shows at the long exposure, and the short one, whose σ_Total it moves too little to see, follows it as well. :meth:`PhysicsNoiseEstimator.predict` takes such frames (``other_exposures``) or their kept evidence.
 
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
@@ -620,10 +621,12 @@ def physics_noise_posterior(
             :meth:`PhysicsNoiseEstimator.predict` tests each patch first (:func:`~camhealth.estimators.static_pair.pair_shift`,
             :func:`~camhealth.estimators.static_pair.scene_leak`).
         other_evidence: the summed :func:`noise_evidence` of other frames of this camera that differ from ``meta`` only
-            in the exposure time (4, 1 + 4·grid), or None. Their bins join this frame's (η applied once to all of
+            in the exposure time (5, 1 + 4·grid), or None. Their bins join this frame's (η applied once to all of
             them), so that an excess that grows with the exposure time (dark current: a hotter sensor than told) is
-            told apart from one that does not (readout noise). ``meta`` must have batch 1; the answer is still about
-            ``image``, and where ``image`` itself is not readable it keeps the closed form.
+            told apart from one that does not (readout noise); a mismatch hypothesis that moves σ_Total visibly in any
+            of them is visible (row 4), so one that the other frames show is followed here too, however little it
+            moves this frame's σ_Total (a hotter sensor at a short exposure). ``meta`` must have batch 1; the answer
+            is still about ``image``, and where ``image`` itself is not readable it keeps the closed form.
         return_evidence: with ``pool``, return (the table, this frame's own evidence of :func:`noise_evidence` from the
             same reading) instead of the table.
     """
@@ -674,8 +677,8 @@ def physics_noise_posterior(
         other = None
         if other_evidence is not None:
             n_hyp = a_all.shape[1]
-            if not isinstance(other_evidence, torch.Tensor) or other_evidence.shape != (4, n_hyp):
-                raise ValueError(f"other_evidence must be the (4, {n_hyp}) evidence of noise_evidence with grid = {grid}, got "
+            if not isinstance(other_evidence, torch.Tensor) or other_evidence.shape != (5, n_hyp):
+                raise ValueError(f"other_evidence must be the (5, {n_hyp}) evidence of noise_evidence with grid = {grid}, got "
                                  f"{tuple(other_evidence.shape) if isinstance(other_evidence, torch.Tensor) else type(other_evidence).__name__}")
             if not bool(torch.isfinite(other_evidence).all()):
                 raise ValueError("other_evidence contains NaN or inf")
@@ -796,13 +799,15 @@ def physics_noise_posterior(
             own = torch.where(evidence[:h].view(1, h, 1), per_row, torch.zeros_like(per_row))  # (4, h, hypotheses)
             # other exposures of this camera add their bins; the model error η is common to all of them (one camera,
             # one scene), so it is applied once, to the sum
-            quad, lin, inv_sum, clip_cost = own if other_evidence is None else own + other.unsqueeze(1)
+            quad, lin, inv_sum, clip_cost = own if other is None else own + other[:4].unsqueeze(1)
             ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv_sum)) + clip_cost
             post = torch.softmax(ll + prior_h, 1).expand(b, -1)
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
         tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
-        visible = (tot - tot[:, :1]).abs() >= torch.maximum(torch.full_like(tot[:, :1], VISIBLE_XI_DN), VISIBLE_XI_FRACTION * tot[:, :1])
+        visible = _visible(tot)
+        if other is not None:  # a mismatch the other exposure times show is seen, however little it moves this frame
+            visible = visible | (other[4] > 0).unsqueeze(0)
         p_match = (1.0 - (post * visible).sum(1)).clamp(0.0, 1.0)  # a probability: no −2e-16 from rounding
         # the visible mismatch hypotheses alone (renormalised): what the image says where it contradicts M
         w = (post * visible)[:, 1:]
@@ -867,15 +872,26 @@ def physics_noise_posterior(
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1)], dim=1)
     if not return_evidence:
         return out.float()
-    # this frame's own bins (row 0: pooled, every row is the frame), none where it is not readable
-    return out.float(), torch.where(readable[0], own[:, 0], torch.zeros_like(own[:, 0]))
+    # this frame's own bins (row 0: pooled, every row is the frame) and which hypotheses move its σ_Total visibly at
+    # the frame's mean level; none where it is not readable
+    frame_tot = (a_all[:1] * mean_i.mean() + c_all[:1]).clamp_min(0).sqrt()
+    frame_ev = torch.cat([own[:, 0], _visible(frame_tot).to(f64)])
+    return out.float(), torch.where(readable[0], frame_ev, torch.zeros_like(frame_ev))
+
+
+def _visible(tot: torch.Tensor) -> torch.Tensor:
+    """Which hypotheses move σ_Total [DN] (column 0: the metadata's) by at least max(:data:`VISIBLE_XI_DN`,
+    :data:`VISIBLE_XI_FRACTION` × σ_Total): (R, 1 + H) → (R, 1 + H) bool."""
+    return (tot - tot[:, :1]).abs() >= torch.maximum(torch.full_like(tot[:, :1], VISIBLE_XI_DN), VISIBLE_XI_FRACTION * tot[:, :1])
 
 
 def noise_evidence(image: torch.Tensor, meta: CameraMetadata, reference: torch.Tensor | None = None, **settings: Any) -> torch.Tensor:
     """What one frame's noise says about the hypotheses of :func:`physics_noise_posterior` on its camera, its patches
-    pooled (one camera state, ``meta`` of batch 1), (4, 1 + 4·grid) float64: per hypothesis, summed over the frame's
-    intensity bins, r²/D, r/D and 1/D (r the bin's log-residual, D its variance without the common model error η) and
-    the clipping penalty. Zeros where the frame is not readable (too few flat details, or textured).
+    pooled (one camera state, ``meta`` of batch 1), (5, 1 + 4·grid) float64: per hypothesis, summed over the frame's
+    intensity bins, r²/D, r/D and 1/D (r the bin's log-residual, D its variance without the common model error η), the
+    clipping penalty, and 1 where the hypothesis moves the frame's σ_Total visibly (at its mean level; 0 elsewhere —
+    summed over frames, the number of frames where it does). Zeros where the frame is not readable (too few flat
+    details, or textured).
 
     The hypotheses are absolute values of the camera's fields (its gain, temperature, white-noise density, extra white
     noise in DN), so two frames of one camera that differ **only in exposure time** share them: hypothesis j predicts
@@ -979,7 +995,7 @@ class PhysicsNoiseEstimator:
         about ``images``; an other frame that is not readable (textured, no flat area) adds nothing. The output then
         has ``"exposures_read"``: how many of them added evidence.
 
-        ``other_evidence``: the same as a (4, 1 + 4·grid) tensor, the summed :func:`noise_evidence` (or ``"evidence"``)
+        ``other_evidence``: the same as a (5, 1 + 4·grid) tensor, the summed :func:`noise_evidence` (or ``"evidence"``)
         of such frames, kept by the caller (a monitor) so that each frame is read once; the caller vouches that they
         show this camera at other exposure times. ``return_evidence`` (with ``pool``): the output also has
         ``"evidence"``, this frame's own evidence from the same reading (zeros where it is not readable), for later

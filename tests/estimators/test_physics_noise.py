@@ -702,11 +702,28 @@ def test_other_exposures_keep_the_closed_form_of_a_matched_camera():
     assert torch.allclose(joint["sigma"], prior[:, :3], atol=1e-4)
 
 
+def test_a_mismatch_the_long_exposure_shows_is_followed_at_the_short_one():
+    """The sensor is 25 K hotter than told. At 0.02 s its dark current moves σ_Total too little to see (under
+    max(0.5 DN, 15 %)), so that frame alone keeps the closed form (σ_DCSN 0.40 against 1.0 DN realised); the 0.2-s
+    frame shows it, and with its evidence the short frame follows it too: each source within 5 %, ξ < 0."""
+    long, short, sims = _two_exposures({"temperature_c": 55.0})
+    est = PhysicsNoiseEstimator()
+    alone = est.predict(sims[2][0], short, pool=True)
+    joint = est.predict(sims[2][0], short, pool=True, other_exposures=[(sims[0][0], long)])
+    truth = sims[2][1]
+    prior = physics_prior_dn(sims[2][0], short, clipping=True)[:, 4:7]
+    assert (alone["xi"] == 0).all() and torch.allclose(alone["sigma"][:, :3], prior, atol=1e-4)
+    assert (alone["sigma"][:, 1] < 0.5 * truth[:, 1]).all()
+    assert torch.allclose(joint["sigma"][:, :3], truth, rtol=0.05), (joint["sigma"].mean(0), truth.mean(0))
+    assert (joint["xi"] < 0).all() and (joint["p_match"] < 0.5).all()
+
+
 def test_noise_evidence_adds_up_and_zero_evidence_adds_nothing():
     long, short, sims = _two_exposures({"temperature_c": 55.0})
     ev = noise_evidence(sims[2][0], short)
-    assert ev.shape == (4, 1 + 4 * 96) and ev.dtype == torch.float64 and torch.isfinite(ev).all() and ev.any()
+    assert ev.shape == (5, 1 + 4 * 96) and ev.dtype == torch.float64 and torch.isfinite(ev).all() and ev.any()
     assert (ev[0] >= 0).all() and (ev[2] > 0).all() and (ev[3] <= 0).all()  # Σr²/D, Σ1/D, the clipping penalty
+    assert set(ev[4].tolist()) == {0.0, 1.0} and ev[4, 0] == 0  # visible in this frame; the metadata's own never
     base = physics_noise_posterior(sims[0][0], long, pool=True)
     assert torch.equal(physics_noise_posterior(sims[0][0], long, pool=True, other_evidence=torch.zeros_like(ev)), base)
     # a frame's evidence given twice is the frame read with twice the bins: it moves the answer, it does not break it
@@ -763,20 +780,20 @@ def test_other_exposures_bad_input_is_refused():
     nan[0, 0, 0, 0] = float("nan")
     with pytest.raises(ValueError, match=r"other_exposures\[0\]: .*non-finite"):
         est.predict(x, long, pool=True, other_exposures=[(nan, short)])
-    with pytest.raises(ValueError, match=r"other_evidence must be the \(4, 385\) evidence"):
-        physics_noise_posterior(x, long, pool=True, other_evidence=torch.zeros(4, 97))
-    bad = torch.zeros(4, 385)
+    with pytest.raises(ValueError, match=r"other_evidence must be the \(5, 385\) evidence"):
+        physics_noise_posterior(x, long, pool=True, other_evidence=torch.zeros(4, 385))  # the evidence of an older layout
+    bad = torch.zeros(5, 385)
     bad[0, 0] = float("inf")
     with pytest.raises(ValueError, match="other_evidence contains NaN or inf"):
         physics_noise_posterior(x, long, pool=True, other_evidence=bad)
     with pytest.raises(ValueError, match="other_evidence belongs to one camera"):
-        physics_noise_posterior(x[:2], CameraMetadata.preset("EV76C661", batch_size=2), other_evidence=torch.zeros(4, 385))
+        physics_noise_posterior(x[:2], CameraMetadata.preset("EV76C661", batch_size=2), other_evidence=torch.zeros(5, 385))
     with pytest.raises(ValueError, match="noise_evidence reads one camera state"):
         noise_evidence(x[:2], CameraMetadata.preset("EV76C661", batch_size=2))
     with pytest.raises(ValueError, match="is read pooled: pool must be True"):
         physics_noise_posterior(x, long, return_evidence=True)
     with pytest.raises(ValueError, match="other_evidence and return_evidence are not arguments of it"):
-        noise_evidence(x, long, other_evidence=torch.zeros(4, 385))
+        noise_evidence(x, long, other_evidence=torch.zeros(5, 385))
 
 
 @pytest.mark.parametrize("pair", [False, True])
@@ -790,7 +807,7 @@ def test_a_frames_own_evidence_comes_back_from_its_reading_and_can_be_kept(pair)
     first = est.predict(sims[2][0], short, pool=True, reference=ref_short, return_evidence=True)
     if not pair:
         assert torch.equal(first["evidence"], noise_evidence(sims[2][0], short))
-    assert first["evidence"].shape == (4, 385) and first["evidence"].any()
+    assert first["evidence"].shape == (5, 385) and first["evidence"].any()
     ref = sims[1][0] if pair else None
     kept = est.predict(sims[0][0], long, pool=True, reference=ref, other_evidence=first["evidence"])
     given = est.predict(sims[0][0], long, pool=True, reference=ref,

@@ -142,3 +142,43 @@ def test_ego_motion_crops_move_every_frame():
     assert out.shape == (6, 1, 64, 80) and float(out.min()) >= 0 and float(out.max()) <= 1
     for i in range(5):  # the same scene, a new crop every frame: consecutive frames differ
         assert float((out[i + 1] - out[i]).abs().mean()) > 1e-3
+
+
+EXPOSURE = ["monitor", "--exposure-step", "--frames", "3", "--width", "384", "--height", "320", "--sensor", "EV76C661",
+            "--gain-db", "6", "--exposure-s", "0.02", "--temperature-c", "30", "--threads", "1"]
+
+
+def test_exposure_step_splits_a_readout_excess_only_with_the_other_exposure_time(capsys):
+    """``--exposure-step``: the exposure time alternates 0.16 / 0.02 s on three cameras. Every monitor row is there; a
+    matched camera reads the closed form (no error, alarm ok); with 3× the white noise, the monitors that keep the
+    other exposure time's evidence read the long frames' dark current right, those that do not put a large part of
+    the excess into it."""
+    import re
+
+    n = torch.get_num_threads()
+    try:
+        assert main(EXPOSURE) == 0
+    finally:
+        torch.set_num_threads(n)
+    text = capsys.readouterr().out
+    rows = {}
+    for line in text.splitlines():
+        m = re.match(r"\| (matched|hotter sensor|white noise ×3) \| (sampled|map) \| (on|off) \| ([0-9.]+) \(", line)
+        if m:
+            rows[m.group(1, 2, 3)] = (float(m.group(4)), line)
+    assert len(rows) == 12
+    for mode in ("sampled", "map"):
+        assert rows[("matched", mode, "on")][0] == 0.0 and "| 0/2 / 2/2 | 2/2 |" in rows[("matched", mode, "on")][1]
+        assert rows[("white noise ×3", mode, "on")][0] < 0.2 < 1.0 < rows[("white noise ×3", mode, "off")][0]
+        assert rows[("white noise ×3", mode, "off")][1].endswith("| 0/2 |")  # no other exposure time drawn on
+    assert "exposure alternating 160 / 20 ms (×8)" in text
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--exposure-ratio", "1"], r"--exposure-ratio = 1.0 must be a number > 1"),
+    (["--exposure-ratio", "20"], r"exposure_s.*0.4.*\[0.001, 0.2\] s"),
+    (["--frames", "2"], r"--frames must be >= 3 with --exposure-step"),
+])
+def test_exposure_step_refuses_bad_settings(extra, message):
+    with pytest.raises(ValueError, match=message):
+        main(EXPOSURE + extra)
