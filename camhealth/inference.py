@@ -126,6 +126,12 @@ class Estimator:
     def name(self) -> str:
         return Path(self.source).stem
 
+    @property
+    def mtf_error(self) -> Any:
+        """MTF models: the error table of the weights file (:class:`camhealth.estimators.mtf_error.MTFErrorTable`,
+        behind ``mtf_std``), or None where the file has none."""
+        return self._mtf_error
+
     def network_inputs(self, patches: torch.Tensor, meta: CameraMetadata | None) -> tuple[torch.Tensor, ...]:
         """Inputs of the bare network: patches, and for noise-source networks the normalised metadata (zeros without)."""
         if self.kind != "noise_source":

@@ -90,7 +90,10 @@ _LIMITATIONS = {
     "textures far too blurred (−11 to −30). A slanted edge on a chart is more accurate where one is available. `mtf_std` is a 1-σ error "
     "bar per value from the file's error table (RMS error at each estimate, measured on training's generators × "
     "rendered scenes: `python -m camhealth.bench mtf_error`) and the spread over `views`: 97 % of the values on "
-    "assessable patches of held-out generators lie within 2·`mtf_std`. Gray patches only; featureless (after the noise is removed), "
+    "assessable patches of held-out generators lie within 2·`mtf_std`. The patches of one scene share most of their "
+    "error (ρ = 0.68 of its variance, the table's `shared`): a frame's median over n patches is only √(ρ + (π/2)(1 − ρ)/n) "
+    "times as uncertain as one patch, which is what the monitor states (91–97 % of the frame answers within two of it on frames of held-out PSFs). "
+    "Gray patches only; featureless (after the noise is removed), "
     "edge-free (Gaussian-like texture or a single grating, whose contrast and blur one patch cannot tell apart: the "
     "noise-corrected gradient kurtosis), black or saturated patches are `assessable=False`.",
 }

@@ -7,8 +7,14 @@ of the robustness benchmark (clean, JPEG q 75–95, noise 1–10 DN, 5 DN), blur
 the estimator calls assessable count. None of the robustness benchmark's held-out generators is used, so
 ``python -m camhealth.bench robustness --task mtf`` checks the table on PSFs it was not measured on.
 
+The share of the error that the patches of one scene have in common (``shared``, ρ;
+:func:`camhealth.estimators.mtf_error.shared_error_fraction`) is measured on frames: ``--frames`` per generator × size,
+each a 3 × 3 grid of 192-px patches cut from one rendered calibration scene of 704 px
+(:func:`camhealth.bench.robustness_mtf.calibration_frames`), clean.
+
 Printed per model: the table (knot, RMS, values nearest the knot), the share of values with |Ĥ − H| ≤ u and ≤ 2u
-on the calibration set itself, and ms per patch. ``--write`` stores the table in the weights file
+on the calibration set itself, ρ and the share of the frames' medians within two of their standard error
+(:func:`~camhealth.estimators.mtf_error.frame_uncertainty`) with it and without it (ρ = 0), and ms per patch. ``--write`` stores the table in the weights file
 (description entry ``mtf_error``), where :meth:`camhealth.inference.Estimator.predict` reads it for ``mtf_std``.
 """
 
@@ -33,19 +39,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--per-cell", type=int, default=16, help="patches per generator × size × condition (default 16)")
     parser.add_argument("--sizes", type=float, nargs="+", default=list(SIZES),
                         help=f"blur sizes in px (default {' '.join(f'{s:g}' for s in SIZES)}; at most 29)")
+    parser.add_argument("--frames", type=int, default=4,
+                        help="frames per generator × size for the shared part of the error (default 4)")
     parser.add_argument("--write", action="store_true",
                         help="store the table in each model's weights file (description entry 'mtf_error')")
     parser.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
 
 
 def run(args: argparse.Namespace) -> BenchResult:
-    from camhealth.bench.robustness_mtf import calibration_cells
-    from camhealth.estimators.mtf_error import fit_error_table, mtf_uncertainty
+    import dataclasses
+
+    from camhealth.bench.robustness_mtf import FRAME_GRID, PATCH, calibration_cells, calibration_frames
+    from camhealth.estimators.mtf_error import fit_error_table, frame_uncertainty, mtf_uncertainty, shared_error_fraction
     from camhealth.export import set_description_entries
     from camhealth.inference import load_estimator
 
     t0 = time.perf_counter()
     cells = calibration_cells(args.per_cell, tuple(args.sizes), args.seed)
+    frame_sets = calibration_frames(args.frames, tuple(args.sizes), args.seed)
     n = sum(c.image.shape[0] for c in cells)
     data = (f"training generators (disk, line, shake) × rendered scenes, sizes {' '.join(f'{s:g}' for s in args.sizes)} px, "
             f"clean / JPEG / noise 1–10 DN / 5 DN, {n} patches, seed {args.seed}, assessable patches only")
@@ -66,6 +77,22 @@ def run(args: argparse.Namespace) -> BenchResult:
         u = mtf_uncertainty(e[ok], table)
         err = (e[ok] - tr[ok]).abs()
         c1, c2 = float((err <= u).float().mean()), float((err <= 2 * u).float().mean())
+        # the frames: each one scene, one blur; the errors of its assessable patches against their common truth
+        per_frame = []
+        for frames, truth in frame_sets:
+            patches = frames.unfold(-2, PATCH, PATCH).unfold(-2, PATCH, PATCH).reshape(-1, 1, PATCH, PATCH)
+            o = est.predict(patches)
+            m, a = o["mtf"].view(frames.shape[0], FRAME_GRID * FRAME_GRID, -1), o["assessable"].view(frames.shape[0], -1)
+            per_frame += [(m[i][a[i]], truth[i].expand(int(a[i].sum()), -1)) for i in range(frames.shape[0])]
+        rho = shared_error_fraction(per_frame, table)
+        table = dataclasses.replace(table, shared=round(rho, 3))
+        cover = {}
+        for r_ in (0.0, table.shared):
+            inside = [((f.median(0).values - t[0]).abs() <= 2 * frame_uncertainty(mtf_uncertainty(f, table).pow(2).mean(0).sqrt(),
+                                                                                  f.shape[0], r_))
+                      for f, t in per_frame if f.shape[0] > 0]
+            cover[r_] = float(torch.cat(inside).float().mean()) if inside else float("nan")
+        n_frames = sum(1 for f, _ in per_frame if f.shape[0] > 0)
         ms = float(torch.tensor(times).median())
         rows.append(Row(f"{est.name} (views 1)", [ms], note="ms per patch"))
         summary += ["", f"**{est.name}** — RMS |Ĥ − H| by the estimate Ĥ (nearest knot), {int(ok.sum())} of {n} patches assessable:", "",
@@ -74,8 +101,13 @@ def run(args: argparse.Namespace) -> BenchResult:
                     "| RMS | " + " | ".join(f"{r:.3f}" for r in table.rms) + " |",
                     "| values | " + " | ".join(str(int(v)) for v in _counts(e[ok], table.knots)) + " |", "",
                     f"On the calibration set itself: |Ĥ − H| ≤ u for {100 * c1:.0f} %, ≤ 2u for {100 * c2:.0f} % of the values; "
-                    f"{ms:.1f} ms per patch."]
-        results[est.name] = {"table": table.to_dict(), "within_1u": c1, "within_2u": c2, "ms": ms}
+                    f"{ms:.1f} ms per patch.", "",
+                    f"Shared by the patches of one scene (ρ, {n_frames} frames with an assessable patch of "
+                    f"{len(per_frame)}): **{table.shared:.3f}**; the frames' medians within two standard errors of the "
+                    f"median: {100 * cover[table.shared]:.0f} % with ρ, {100 * cover[0.0]:.0f} % with ρ = 0 (every patch's error "
+                    "its own)."]
+        results[est.name] = {"table": table.to_dict(), "within_1u": c1, "within_2u": c2, "ms": ms,
+                             "frames_within_2se": cover[table.shared], "frames_within_2se_independent": cover[0.0]}
         if args.write:
             if est.backend != "torch" or Path(est.source).suffix.lower() != ".pt":
                 raise ValueError(f"--write stores the table in a .pt weights file; {est.source} is not one")

@@ -326,6 +326,35 @@ def calibration_cells(per_cell: int, sizes: tuple[float, ...], seed: int) -> lis
     return cells
 
 
+#: Rendered scenes per class behind :func:`calibration_frames` (at :data:`FRAME_SCENE_SIZE` px).
+CALIBRATION_FRAME_SCENES = 4
+
+
+def calibration_frames(per_cell: int, sizes: tuple[float, ...], seed: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Frames of the MTF error-table calibration (``python -m camhealth.bench mtf_error``), for the share of the error
+    that the patches of one scene have in common: training's own generators (:data:`IN_DIST`) × ``sizes``,
+    ``per_cell`` frames each, every frame cut from one calibration scene (:data:`CALIBRATION_FRAME_SCENES` per class at
+    :data:`FRAME_SCENE_SIZE` px, seed ``seed`` + :data:`CALIBRATION_SCENE_SEED` + 1) by :func:`scene_frames` →
+    [((n, 1, 576, 576) frames, (n, 16) their kernels' MTF)], one entry per generator × size."""
+    from camhealth.bench.rendered_scenes import CLASSES, render_scenes
+    from camhealth.physics import mtf_hv
+
+    if not 1 <= int(per_cell) <= 256:
+        raise ValueError(f"per_cell = {per_cell} is out of the allowed range [1, 256]")
+    if not sizes or any(not 0.0 <= float(z) <= KERNEL - 2 for z in sizes):
+        raise ValueError(f"sizes = {list(sizes)} must be non-empty with every size in the allowed range [0, {KERNEL - 2}] px")
+    g = torch.Generator().manual_seed(seed + CALIBRATION_SCENE_SEED + 1)
+    scenes = [(cls, x) for cls in CLASSES for x in render_scenes(cls, CALIBRATION_FRAME_SCENES, FRAME_SCENE_SIZE,
+                                                                 seed=seed + CALIBRATION_SCENE_SEED + 1,
+                                                                 supersample=FRAME_SUPERSAMPLE)]
+    out = []
+    for gen in IN_DIST.values():
+        for size in sizes:
+            k = make_kernels(gen, size, per_cell, g)
+            out.append((scene_frames(scenes, k, g)[0], mtf_hv(k).float()))
+    return out
+
+
 def _amae(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     """Per-patch AMAE (%) — Eq. 5.1, as in training and ``bench estimators``: the mean of the H and V mean absolute
     errors |Ĥ − H| over the 8 frequencies, × 100."""
@@ -439,6 +468,97 @@ def banding_lines(est: Any, held: list[Cell], seed: int, r: dict[str, Any]) -> l
         r["banding"][str(band)] = row
         lines.append(f"| {band:g} | {_f(row['across'])} | {_f(row['along'])} | {row['signed_across']:+.1f} | "
                      f"{_f(100 * row['assessable'], '.0f')} % |")
+    return lines
+
+
+#: Frames of :func:`frame_lines`: per held-out generator × size this many frames, each a :data:`FRAME_GRID` ×
+#: :data:`FRAME_GRID` grid of MTF patches cut from one rendered scene of :data:`FRAME_SCENE_SIZE` px (rendered with
+#: :data:`FRAME_SUPERSAMPLE` × :data:`FRAME_SUPERSAMPLE` samples per pixel: native MTF 1.00 at f_n 0.6).
+FRAMES_PER_CELL = 4
+FRAME_GRID = 3
+FRAME_SCENE_SIZE = 704
+FRAME_SUPERSAMPLE = 4
+
+
+def scene_frames(scenes: list[tuple[str, torch.Tensor]], kernels: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, list[str]]:
+    """((n, 1, 576, 576) frames, their scene classes): per kernel a random crop of a random scene of ``scenes``
+    (``(class, 1 × S × S)``, S ≥ 608), blurred by true convolution with that kernel, the inner :data:`FRAME_GRID` ×
+    :data:`PATCH` px kept (no border of the convolution enters), 8-bit rounded."""
+    from camhealth.physics import apply_psf
+
+    side, m = FRAME_GRID * PATCH, KERNEL // 2 + 1
+    crops, labels = [], []
+    for _ in range(kernels.shape[0]):
+        label, x = scenes[int(torch.randint(0, len(scenes), (1,), generator=g))]
+        y0 = int(torch.randint(0, x.shape[-2] - side - 2 * m + 1, (1,), generator=g))
+        x0 = int(torch.randint(0, x.shape[-1] - side - 2 * m + 1, (1,), generator=g))
+        crops.append(x[..., y0:y0 + side + 2 * m, x0:x0 + side + 2 * m])
+        labels.append(label)
+    big = apply_psf(torch.stack(crops).double(), kernels.double())
+    return ((big[..., m:m + side, m:m + side].clamp(0, 1) * 255.0).round() / 255.0).float(), labels
+
+
+def frame_lines(est: Any, seed: int, sizes: tuple[float, ...], r: dict[str, Any]) -> list[str]:
+    """What the monitor reports for a whole frame against the patches it reads: per held-out generator × size,
+    :data:`FRAMES_PER_CELL` frames of one rendered scene each (:func:`scene_frames`; the benchmark's scene classes at
+    :data:`FRAME_SCENE_SIZE` px, 4 per class, and its kernels' generators, their own seed + 4000), each read by a
+    map-mode monitor (``Monitor(mode="map", adaptive=False)``: the frame's answer is the median over its assessable
+    patches). AMAE % per family and per scene class of the frame answers and of the assessable patches behind them,
+    the share of frames with an answer, and the share of the answers' values within two of the report's
+    ``uncertainty``. Fills ``r["frames"]``."""
+    from camhealth.bench.rendered_scenes import CLASSES, render_scenes
+    from camhealth.monitor import Monitor
+    from camhealth.monitor.tiling import ESTIMATED
+    from camhealth.physics import mtf_hv
+
+    g = torch.Generator().manual_seed(seed + 4000)
+    scenes = [(cls, x) for cls in CLASSES for x in render_scenes(cls, RENDERED_PER_CLASS, FRAME_SCENE_SIZE, seed=seed + 4000,
+                                                                 supersample=FRAME_SUPERSAMPLE)]
+    keys = list(FAMILIES) + list(CLASSES)
+    per: dict[str, dict[str, list]] = {k: {"frame": [], "patch_ok": [], "answered": [], "within": []} for k in keys}
+    n_frames = 0
+    for fam, gens in FAMILIES.items():
+        for gen in gens:
+            for size in sizes:
+                if gen == "tiny" and size > 5:
+                    continue
+                k = make_kernels(gen, size, FRAMES_PER_CELL, g)
+                truth = mtf_hv(k).float()
+                frames, labels = scene_frames(scenes, k, g)
+                for i in range(frames.shape[0]):
+                    rep = Monitor(None, est, mode="map", adaptive=False, warmup=False).process(frames[i, 0])
+                    ok = rep.mtf.code == ESTIMATED  # the patches the frame's answer is the median of
+                    patch_err = _amae(rep.mtf.values[ok], truth[i : i + 1].expand(int(ok.sum()), -1))
+                    for key in (fam, labels[i]):
+                        per[key]["patch_ok"].append(patch_err)
+                        per[key]["answered"].append(rep.mtf.assessable)
+                        if rep.mtf.assessable:
+                            med = torch.as_tensor(rep.mtf.median).float()
+                            per[key]["frame"].append(float(_amae(med[None], truth[i : i + 1])))
+                            err = (med - truth[i]).abs()
+                            per[key]["within"].append(err <= 2.0 * torch.as_tensor(rep.mtf.uncertainty).float())
+                    n_frames += 1
+    lines = ["", f"Per frame, what the monitor reports ({n_frames} frames of 576 × 576 px, {FRAMES_PER_CELL} per held-out "
+                 f"generator × size, each cut from one rendered scene of {FRAME_SCENE_SIZE} px and read as a 3 × 3 grid of MTF "
+                 "patches by a map-mode monitor, whose frame MTF is the median over the assessable patches): AMAE % of the "
+                 "frame answers and of the assessable patches behind them, the share of frames with an answer, and the "
+                 "share of the frame answers' values within two of their stated uncertainties (the report's "
+                 "`uncertainty`, a standard error of the median), by family and by scene class:", "",
+             "| family or scene class | frames | frame answer | its assessable patches | frames with an answer | "
+             "within 2 × uncertainty |",
+             "|---|---:|---:|---:|---:|---:|"]
+    r["frames"] = {}
+    for key in keys:
+        v = per[key]
+        fr = torch.tensor(v["frame"], dtype=torch.float64)
+        po = torch.cat(v["patch_ok"]) if v["patch_ok"] else torch.zeros(0)
+        row = {"frames": len(v["answered"]), "frame": float(fr.mean()) if fr.numel() else float("nan"),
+               "patches_assessable": float(po.mean()) if po.numel() else float("nan"),
+               "answered": sum(v["answered"]) / max(len(v["answered"]), 1),
+               "within_2u": float(torch.cat(v["within"]).float().mean()) if v["within"] else float("nan")}
+        r["frames"][key] = row
+        lines.append(f"| {key} | {row['frames']} | **{_f(row['frame'])}** | {_f(row['patches_assessable'])} | "
+                     f"{_f(100 * row['answered'], '.0f')} % | {_f(100 * row['within_2u'], '.0f')} % |")
     return lines
 
 
@@ -715,6 +835,7 @@ def run(args: argparse.Namespace) -> BenchResult:
                 ev = _agg(charts, "edge", lambda c, f=fam, k=cond: c.family == f and c.condition == k)[0]
                 r["chart"][f"{fam}/{cond}"] = {"network": nv, "edge": ev}
                 summary.append(f"| {fam} | {cond} | {_f(nv)} | {_f(ev)} |")
+        summary += frame_lines(est, args.seed, sizes, r)
         summary += paired_lines(est, held, args.seed, r)
         summary += banding_lines(est, held, args.seed, r)
         summary += defects_lines(est, held, args.seed, r)

@@ -18,6 +18,14 @@ r interpolated linearly between the knots, s the spread of the views (0 for one 
 one patch's value: where the errors are those of the calibration set, |Ĥ − H| ≤ 2u for about 95 % of the values.
 It is not a bound: a source unlike every calibration scene (one with a strong blur of its own) can be wrong by
 more.
+
+**What the patches of one scene share.** The error is mostly the scene's: patches of one frame of line art are all
+read too sharp, so the median over a frame's patches is not √n times more accurate than one patch. ``shared`` is the
+share ρ of a value's error variance that the patches of one scene have in common — the mean product of the
+standardised errors z = (Ĥ − H)/r(Ĥ) of two patches of one frame over the mean z² (:func:`shared_error_fraction`),
+measured on frames of the calibration scenes (``python -m camhealth.bench mtf_error``). A median of n patches of one
+scene then has the standard error r·√(ρ + (π/2)(1 − ρ)/n) (:func:`frame_uncertainty`), which is what the monitor
+states for a frame.
 """
 
 from __future__ import annotations
@@ -28,7 +36,8 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-__all__ = ["DEFAULT_KNOTS", "MTFErrorTable", "fit_error_table", "mtf_uncertainty"]
+__all__ = ["DEFAULT_KNOTS", "MTFErrorTable", "fit_error_table", "frame_uncertainty", "mtf_uncertainty",
+           "shared_error_fraction"]
 
 #: Knots of Ĥ for :func:`fit_error_table`: finer near 0 and 1, where the error changes fastest.
 DEFAULT_KNOTS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 1.0)
@@ -51,12 +60,15 @@ class MTFErrorTable:
         rms: RMS of Ĥ − H at each knot [MTF units, 0–1], each in [0, 1].
         values: number of MTF values behind the fit (≥ 1).
         data: what the calibration set was (free text, for the model card).
+        shared: the share ρ ∈ [0, 1] of the error variance that the patches of one scene have in common (module
+            docstring); 0 where it was not measured (each patch's error its own).
     """
 
     knots: tuple[float, ...]
     rms: tuple[float, ...]
     values: int
     data: str = ""
+    shared: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "knots", tuple(float(k) for k in self.knots))
@@ -72,6 +84,9 @@ class MTFErrorTable:
             raise ValueError(f"mtf_error: rms {list(r)} must lie in the allowed range [0, 1]")
         if isinstance(self.values, bool) or not isinstance(self.values, int) or self.values < 1:
             raise ValueError(f"mtf_error: values = {self.values!r} must be a positive integer")
+        if isinstance(self.shared, bool) or not isinstance(self.shared, (int, float)) or not 0.0 <= self.shared <= 1.0:
+            raise ValueError(f"mtf_error: shared = {self.shared!r} must be a number in the allowed range [0, 1]")
+        object.__setattr__(self, "shared", float(self.shared))
 
     def __call__(self, mtf: torch.Tensor) -> torch.Tensor:
         """r(Ĥ) at each value of ``mtf`` (any shape, MTF units) → the same shape, float32."""
@@ -79,7 +94,8 @@ class MTFErrorTable:
         return _interp(m, torch.tensor(self.knots), torch.tensor(self.rms))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"knots": list(self.knots), "rms": list(self.rms), "values": self.values, "data": self.data}
+        return {"knots": list(self.knots), "rms": list(self.rms), "values": self.values, "data": self.data,
+                "shared": self.shared}
 
     @classmethod
     def from_dict(cls, d: Any, where: str = "mtf_error") -> "MTFErrorTable":
@@ -87,9 +103,9 @@ class MTFErrorTable:
         ``where`` and the field."""
         if not isinstance(d, Mapping):
             raise ValueError(f"{where}: mtf_error must be a JSON object, got {type(d).__name__}")
-        unknown = sorted(set(map(str, d)) - {"knots", "rms", "values", "data"})
+        unknown = sorted(set(map(str, d)) - {"knots", "rms", "values", "data", "shared"})
         if unknown:
-            raise ValueError(f"{where}: mtf_error has unknown fields {unknown}; allowed: data, knots, rms, values")
+            raise ValueError(f"{where}: mtf_error has unknown fields {unknown}; allowed: data, knots, rms, shared, values")
         for name in ("knots", "rms"):
             v = d.get(name)
             if not isinstance(v, (list, tuple)) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
@@ -97,7 +113,7 @@ class MTFErrorTable:
         if not isinstance(d.get("data", ""), str):
             raise ValueError(f"{where}: mtf_error data must be a string")
         try:
-            return cls(tuple(d["knots"]), tuple(d["rms"]), d.get("values", 0), d.get("data", ""))
+            return cls(tuple(d["knots"]), tuple(d["rms"]), d.get("values", 0), d.get("data", ""), d.get("shared", 0.0))
         except ValueError as exc:
             raise ValueError(f"{where}: {exc}") from None
 
@@ -159,3 +175,40 @@ def fit_error_table(estimate: torch.Tensor, truth: torch.Tensor, valid: torch.Te
     rms = (sq[ok] / counts[ok]).sqrt()
     full = _interp(kn, kn[ok], rms) if int(ok.sum()) > 1 else rms.expand(kn.numel())
     return MTFErrorTable(tuple(kn.tolist()), tuple(full.clamp(0, 1).tolist()), int(e.numel()), data)
+
+
+def shared_error_fraction(frames: Sequence[tuple[torch.Tensor, torch.Tensor]], table: MTFErrorTable) -> float:
+    """ρ: the share of the error variance that the patches of one frame have in common (module docstring).
+
+    Args:
+        frames: per frame ``(estimate, truth)`` of its assessable patches, (n, 16) each (the same truth on every row:
+            one blur per frame); frames with fewer than two patches add nothing.
+        table: the error table that standardises each value's error by r(Ĥ).
+
+    Returns:
+        Σ over frames of Σ_{i≠j} z_i·z_j over Σ over the same frames of (n − 1)·Σ_i z_i² (per value, pooled over the
+        16), clamped to [0, 1]; z = (Ĥ − H)/r(Ĥ). 0 without a frame of two patches.
+    """
+    cross = norm = 0.0
+    for est, tru in frames:
+        est, tru = torch.as_tensor(est).double(), torch.as_tensor(tru).double()
+        if est.shape != tru.shape or est.ndim != 2:
+            raise ValueError(f"estimate {tuple(est.shape)} and truth {tuple(tru.shape)} must be the same (n, K) shape")
+        n = est.shape[0]
+        if n < 2:
+            continue
+        z = (est - tru) / table(est).double().clamp_min(1e-3)
+        total = z.sum(0)
+        cross += float((total.square() - z.square().sum(0)).sum())
+        norm += float((n - 1) * z.square().sum())
+    return min(max(cross / norm, 0.0), 1.0) if norm > 0 else 0.0
+
+
+def frame_uncertainty(estimator_std: torch.Tensor, n: int, shared: float) -> torch.Tensor:
+    """Standard error of the median of ``n`` patches of one scene whose values each have the uncertainty
+    ``estimator_std`` and share the part ``shared`` (ρ) of its variance: u·√(ρ + (π/2)(1 − ρ)/n)."""
+    if n < 1:
+        raise ValueError(f"n = {n} must be ≥ 1")
+    if not 0.0 <= shared <= 1.0:
+        raise ValueError(f"shared = {shared} must lie in the allowed range [0, 1]")
+    return torch.as_tensor(estimator_std).float() * math.sqrt(shared + (math.pi / 2.0) * (1.0 - shared) / n)

@@ -697,19 +697,23 @@ class _TaskState:
 
 
 def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, frames: int,
-                 estimator_std: torch.Tensor | None = None, shared: bool = False) -> torch.Tensor:
+                 estimator_std: torch.Tensor | None = None, shared: bool = False, error_shared: float = 0.0) -> torch.Tensor:
     """Standard error of a frame value [its unit]: the largest of 1.2533·spread/√n (scatter of the n values),
     1.2533·temporal_spread/√frames (scatter from frame to frame — the values of one frame may share one pooled
     camera-state posterior, so only the frames are independent) and, where the estimator states a per-value
-    spread, 1.2533·estimator_std/√n (each value is itself that uncertain: the floor when n is small and the
-    values happen to agree) — or, where the values of a frame share one posterior (``shared``: the pooled noise
-    estimate), estimator_std/√frames (its error is common to them, so more patches do not shrink it)."""
+    spread, estimator_std·√(ρ + (π/2)(1 − ρ)/n) (each value is itself that uncertain, and the share ρ =
+    ``error_shared`` of its error variance is common to the patches of one scene — the MTF estimator's, measured with
+    its error table, :func:`camhealth.estimators.mtf_error.frame_uncertainty`; 1.2533·estimator_std/√n at ρ = 0) — or,
+    where the values of a frame share one posterior (``shared``: the pooled noise estimate), estimator_std/√frames
+    (its error is common to them, so more patches do not shrink it)."""
+    from camhealth.estimators.mtf_error import frame_uncertainty
+
     se = _MEDIAN_SE * spread / math.sqrt(max(n, 1))
     if frames > 1:
         tse = _MEDIAN_SE * torch.nan_to_num(temporal_spread.float(), nan=0.0) / math.sqrt(frames)
         se = torch.maximum(se, tse)
     if estimator_std is not None:
-        floor = estimator_std.float() / math.sqrt(max(frames, 1)) if shared else _MEDIAN_SE * estimator_std.float() / math.sqrt(max(n, 1))
+        floor = estimator_std.float() / math.sqrt(max(frames, 1)) if shared else frame_uncertainty(estimator_std, max(n, 1), error_shared)
         se = torch.maximum(se, torch.nan_to_num(floor, nan=0.0))
     return se
 
@@ -1080,6 +1084,12 @@ class Monitor:
         scale = torch.stack([pn, torch.full_like(pn, dc), torch.full_like(pn, rn), total, total], 1).float()
         return scale.clamp_min(1e-3)
 
+    def _error_shared(self, task: str) -> float:
+        """The share of the estimator's per-value error variance that the patches of one scene have in common: the MTF
+        estimator's error table's ``shared`` (0 without a table, and for the noise)."""
+        table = getattr(self.estimators[task].est, "mtf_error", None) if task == "mtf" else None
+        return float(getattr(table, "shared", 0.0) or 0.0)
+
     def _shared_posterior(self, task: str) -> bool:
         """Whether the values of one frame share one posterior: the noise estimate pooled per frame (``pool_noise``)."""
         return task == "noise" and bool(self.pool_noise) and "pool" in self.estimators[task].kwargs
@@ -1336,7 +1346,8 @@ class Monitor:
         est_std = _pooled_std(st.samples_std.reshape(-1, st.k)[has], st.k)
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread, temporal_spread=tspread,
                           current=current, indicator=indicator,
-                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task)),
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task),
+                                                  self._error_shared(task)),
                           indicator_uncertainty=ind_unc, estimator_std=est_std, n_values=n)
 
     def _aggregate(self, task: str, st: _TaskState, name: str, informative: int = 0, fresh: int = 0) -> TaskReport:
@@ -1371,7 +1382,8 @@ class Monitor:
         est_std = _pooled_std(st.std[has], st.k)
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread,
                           temporal_spread=tspread, current=current, indicator=indicator,
-                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task)),
+                          uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task),
+                                                  self._error_shared(task)),
                           indicator_uncertainty=None if indicator is None else se * indicator[1],
                           estimator_std=est_std, n_values=n)
 

@@ -59,8 +59,10 @@ class _FakeEstimator:
     """Reads every patch as a fixed MTF: enough to run the whole report without a network."""
 
     name = "fake"
+    kind = "mtf"
+    patch_size = 192
 
-    def predict(self, x, views=1):
+    def predict(self, x, views=1, **kwargs):
         n = x.shape[0]
         return {"mtf": torch.full((n, 16), 0.5), "assessable": torch.ones(n, dtype=torch.bool),
                 "mtf_std": torch.full((n, 16), 0.1), "mtf_spread": torch.full((n, 16), 0.05)}
@@ -135,6 +137,15 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     assert set(defects) == {str(s) for s in rm.DEFECT_SHARES}
     assert all(set(v) == {"shipped", "unrepaired"} and v["shipped"]["assessable"] == 1.0 for v in defects.values())
     assert "| defective pixels | as shipped: all / assessable |" in text
+    # per frame, what the monitor reports: a constant estimate gives the frame the same MTF as each of its patches,
+    # so the frame answer's AMAE is its assessable patches' (on every family and scene class with an answer)
+    frames = out["fake"]["frames"]
+    assert set(frames) == {*rm.FAMILIES, *CLASSES}
+    assert [frames[f]["frames"] for f in rm.FAMILIES] == [rm.FRAMES_PER_CELL] * len(rm.FAMILIES)  # one generator, one size
+    assert sum(frames[c]["frames"] for c in CLASSES) == rm.FRAMES_PER_CELL * len(rm.FAMILIES)
+    answered = [v for v in frames.values() if v["answered"] > 0]
+    assert answered and all(v["frame"] == pytest.approx(v["patches_assessable"]) for v in answered)
+    assert "| family or scene class | frames | frame answer | its assessable patches | frames with an answer |" in text
 
 
 @pytest.mark.parametrize("per_cell,sizes,match", [
@@ -144,6 +155,20 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
 def test_make_cells_rejects_bad_arguments(per_cell, sizes, match):
     with pytest.raises(ValueError, match=match):
         rm.make_cells(per_cell, sizes, 0)
+
+
+def test_scene_frames_are_seeded_8_bit_crops_of_one_scene_each():
+    from camhealth.physics import defocus_psf
+
+    scenes = [("a", torch.full((1, 640, 640), 0.25)), ("b", torch.full((1, 640, 640), 0.75))]
+    k = defocus_psf(torch.tensor([5.0, 9.0, 3.0]), rm.KERNEL)
+    x, labels = rm.scene_frames(scenes, k, torch.Generator().manual_seed(1))
+    y, _ = rm.scene_frames(scenes, k, torch.Generator().manual_seed(1))
+    side = rm.FRAME_GRID * rm.PATCH
+    assert x.shape == (3, 1, side, side) and torch.equal(x, y) and set(labels) <= {"a", "b"}
+    assert torch.equal((x * 255).round(), x * 255)  # 8-bit
+    for img, lab in zip(x, labels):  # a flat scene stays flat: no border of the convolution entered the frame
+        assert torch.allclose(img, torch.full_like(img, 0.25 if lab == "a" else 0.75), atol=0.5 / 255)
 
 
 def test_calibration_cells_use_training_generators_on_their_own_rendered_scenes(monkeypatch):
@@ -170,13 +195,16 @@ def test_mtf_error_benchmark_fits_and_writes_the_table(monkeypatch, tmp_path):
     from lightning_modules import MTFEstimator
 
     monkeypatch.setattr(rm, "CALIBRATION_PER_CLASS", 1)
+    monkeypatch.setattr(rm, "CALIBRATION_FRAME_SCENES", 1)
     path = export_weights(MTFEstimator(), tmp_path / "m.pt")
     args = argparse.Namespace(models=[str(path)], per_cell=2, sizes=[3.0], seed=0, write=True, json=tmp_path / "e.json",
-                              command_line="test")
+                              command_line="test", frames=2)
     res = mtf_error.run(args)
     table = json.loads((tmp_path / "e.json").read_text())["m"]["table"]
     est = load_estimator(path)
     assert est.description["mtf_error"] == table and len(table["rms"]) == len(table["knots"])
+    assert 0.0 <= table["shared"] <= 1.0 and est.mtf_error.shared == table["shared"]
+    assert "Shared by the patches of one scene" in "\n".join(res.summary)
     out = est.predict(torch.full((1, 1, 192, 192), 0.5) + 0.2 * (torch.rand(1, 1, 192, 192) > 0.5))
     assert torch.isfinite(out["mtf_std"]).all() and (out["mtf_std"] > 0).all()
     assert "| RMS |" in "\n".join(res.summary)

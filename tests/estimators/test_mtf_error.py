@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from camhealth.estimators.mtf_error import DEFAULT_KNOTS, MTFErrorTable, fit_error_table, mtf_uncertainty
+from camhealth.estimators.mtf_error import (DEFAULT_KNOTS, MTFErrorTable, fit_error_table, frame_uncertainty, mtf_uncertainty,
+                                           shared_error_fraction)
 
 
 def _table(rms=(0.02, 0.2, 0.04)) -> MTFErrorTable:
@@ -83,6 +84,8 @@ def test_fit_refuses_bad_input(kwargs, match):
     ({"knots": [0, 1], "rms": [0.1, float("nan")], "values": 5}, "must be finite"),
     ({"knots": [0, 1], "rms": [0.1, 0.1], "values": 0}, "values = 0 must be a positive integer"),
     ({"knots": [0, 1], "rms": [0.1, 0.1], "values": 5, "data": 3}, "data must be a string"),
+    ({"knots": [0, 1], "rms": [0.1, 0.1], "values": 5, "shared": 1.5}, r"shared = 1.5 must be a number in the allowed range \[0, 1\]"),
+    ({"knots": [0, 1], "rms": [0.1, 0.1], "values": 5, "shared": "0.5"}, "shared = '0.5' must be a number"),
 ])
 def test_from_dict_names_the_bad_field(d, match):
     with pytest.raises(ValueError, match=f"w.pt: .*{match}"):
@@ -92,3 +95,39 @@ def test_from_dict_names_the_bad_field(d, match):
 def test_round_trip():
     t = _table()
     assert MTFErrorTable.from_dict(t.to_dict()) == t
+
+
+def test_round_trip_keeps_the_shared_part_and_an_older_entry_reads_as_none_shared():
+    t = MTFErrorTable((0.0, 0.5, 1.0), (0.02, 0.2, 0.04), 100, "test", 0.68)
+    assert MTFErrorTable.from_dict(t.to_dict()) == t
+    older = {k: v for k, v in t.to_dict().items() if k != "shared"}  # a file written before the field existed
+    assert MTFErrorTable.from_dict(older).shared == 0.0
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.3, 0.7, 1.0])
+def test_shared_fraction_recovers_the_common_part_of_the_errors(rho):
+    """Errors z = √ρ·s + √(1 − ρ)·e per patch, s common to a frame's patches: the fraction is ρ."""
+    t = _table((0.1, 0.1, 0.1))
+    g = torch.Generator().manual_seed(0)
+    frames = []
+    for _ in range(400):
+        truth = torch.full((9, 16), 0.5)
+        common = torch.randn(1, 16, generator=g)
+        own = torch.randn(9, 16, generator=g)
+        frames.append((truth + 0.1 * (math.sqrt(rho) * common + math.sqrt(1 - rho) * own), truth))
+    assert shared_error_fraction(frames, t) == pytest.approx(rho, abs=0.03)
+    assert shared_error_fraction([(e[:1], tr[:1]) for e, tr in frames], t) == 0.0  # one patch: nothing
+    with pytest.raises(ValueError, match="must be the same"):
+        shared_error_fraction([(torch.zeros(3, 16), torch.zeros(2, 16))], t)
+
+
+@pytest.mark.parametrize("n", [1, 9, 256])
+def test_frame_uncertainty_is_the_median_standard_error_and_keeps_the_shared_part(n):
+    u = torch.full((16,), 0.2)
+    torch.testing.assert_close(frame_uncertainty(u, n, 0.0), u * math.sqrt(math.pi / 2 / n))  # independent: 1.2533·u/√n
+    torch.testing.assert_close(frame_uncertainty(u, n, 1.0), u)  # all shared: no patch count shrinks it
+    assert bool((frame_uncertainty(u, n, 0.68) >= u * math.sqrt(0.68)).all())
+    with pytest.raises(ValueError, match="allowed range"):
+        frame_uncertainty(u, n, 1.2)
+    with pytest.raises(ValueError, match="n = 0 must be"):
+        frame_uncertainty(u, 0, 0.5)

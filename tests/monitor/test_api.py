@@ -549,6 +549,26 @@ def test_mtf_estimator_std_is_pooled_and_bounds_the_uncertainty(street_frames, m
     assert torch.allclose(mixed.estimator_std, per.pow(2).mean().sqrt().expand(16), atol=1e-5)
 
 
+@pytest.mark.parametrize("mode", ["map", "sampled"])
+def test_mtf_uncertainty_keeps_the_part_of_the_error_a_scenes_patches_share(street_frames, mode):
+    """An MTF estimator whose error table says the patches of one scene share ρ of their error variance (the shipped
+    file's ``mtf_error.shared``): the frame's uncertainty is at least estimator_std·√(ρ + (π/2)(1 − ρ)/n), so more
+    patches do not make a shared bias look small; without ``shared`` (ρ = 0) the floor is 1.2533·estimator_std/√n."""
+    from camhealth.estimators.mtf_error import MTFErrorTable
+    from camhealth.inference import load_estimator
+
+    frame = noisy(street_frames[0], 2.0, seed=0)
+    kw = dict(sensor="ICX285", mode=mode, adaptive=False, warmup=False)
+    est = _MTFWithStd(std=0.2)
+    est.mtf_error = MTFErrorTable((0.0, 1.0), (0.2, 0.2), 10, "test", 0.68)
+    rep = Monitor(None, est, **kw).process(frame).mtf
+    n = rep.n_values
+    assert n >= 2 and bool((rep.uncertainty >= 0.2 * math.sqrt(0.68 + (math.pi / 2) * 0.32 / n) - 1e-6).all())
+    alone = Monitor(None, _MTFWithStd(std=0.2), **kw).process(frame).mtf  # no table: independent errors
+    assert bool((alone.uncertainty < 0.2 * math.sqrt(0.68)).any()) and torch.equal(alone.median, rep.median)
+    assert load_estimator("mtf").mtf_error.shared > 0.5  # the shipped file carries its measured ρ
+
+
 def test_noise_estimator_without_its_own_uncertainty_reports_a_null_estimator_std(street_frames):
     d = json.loads(Monitor(FakeNoise(), None, sensor="ICX285", warmup=False).process(street_frames[0]).to_json())
     assert d["noise"]["sigma_dn"]["total"]["estimator_std"] is None
