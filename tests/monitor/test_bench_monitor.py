@@ -7,6 +7,16 @@ import torch
 from camhealth.bench import BENCHMARKS
 from camhealth.bench.__main__ import main
 
+def _printed(argv, capsys) -> str:
+    """Run ``python -m camhealth.bench`` with ``argv`` (its ``--threads`` restored afterwards) → what it printed."""
+    n = torch.get_num_threads()
+    try:
+        assert main(argv) == 0
+    finally:
+        torch.set_num_threads(n)
+    return capsys.readouterr().out
+
+
 TINY = ["monitor", "--untrained", "--frames", "2", "--warmup", "0", "--width", "384", "--height", "320",
         "--slow-frames", "1", "--thesis-patches", "1", "--threads", "1", "--brightness", "1.6", "--no-memory-probe"]
 
@@ -16,12 +26,7 @@ def test_registered():
 
 
 def test_tiny_run_prints_rows_and_summary(capsys, tmp_path):
-    n = torch.get_num_threads()
-    try:
-        assert main(TINY + ["--out", str(tmp_path / "b.md")]) == 0
-    finally:
-        torch.set_num_threads(n)
-    text = capsys.readouterr().out
+    text = _printed(TINY + ["--out", str(tmp_path / "b.md")], capsys)
     for row in ("every patch (no skipping)", "informative patches (fully monitored)", "adaptive (skip + reuse static",
                 "informative patches, fp32", "thesis-size noise net, same noise patches",
                 "reading the recording (.mcap)", "reading the recording (.db3)", "reading the recording (.bag)"):
@@ -38,14 +43,9 @@ def test_static_pairs_row_on_a_still_scene(capsys):
     a new noise realisation) the shipped estimator reads noise patches from a pair from the second frame on."""
     import re
 
-    n = torch.get_num_threads()
     argv = ["monitor", "--frames", "3", "--warmup", "0", "--width", "384", "--height", "320", "--scene", "deadleaves",
             "--slow-frames", "0", "--thesis-patches", "0", "--threads", "1", "--no-memory-probe", "--static-pairs"]
-    try:
-        assert main(argv) == 0
-    finally:
-        torch.set_num_threads(n)
-    text = capsys.readouterr().out
+    text = _printed(argv, capsys)
     assert "informative patches + static pairs" in text
     m = re.search(r"static pairs: ([0-9.]+) noise patches per frame read from a pair \(frames 2…3: ([0-9.]+)\)", text)
     assert m is not None and float(m.group(2)) > 0
@@ -58,15 +58,10 @@ def test_true_gain_makes_a_mismatch_every_monitor_follows(capsys):
     ξ, which follow it in sign and size on the still dead-leaves scene."""
     import re
 
-    n = torch.get_num_threads()
     argv = ["monitor", "--frames", "3", "--warmup", "0", "--width", "384", "--height", "320", "--scene", "deadleaves",
             "--slow-frames", "0", "--thesis-patches", "0", "--threads", "1", "--no-memory-probe", "--static-pairs",
             "--gain-db", "6", "--true-gain-db", "18"]
-    try:
-        assert main(argv) == 0
-    finally:
-        torch.set_num_threads(n)
-    text = capsys.readouterr().out
+    text = _printed(argv, capsys)
     m = re.search(r"metadata mismatch: the sensor's gain 18 dB, the metadata's 6 dB; .* has median ([-+0-9.]+) DN, "
                   r"ξ median: informative ([-+0-9.]+) DN, adaptive ([-+0-9.]+) DN", text)
     assert m is not None, text[-2000:]
@@ -118,12 +113,7 @@ MOTION = ["monitor", "--motion", "--untrained", "--frames", "3", "--warmup", "0"
 
 
 def test_motion_run_prints_both_modes_per_stream_and_accuracy(capsys):
-    n = torch.get_num_threads()
-    try:
-        assert main(MOTION) == 0
-    finally:
-        torch.set_num_threads(n)
-    text = capsys.readouterr().out
+    text = _printed(MOTION, capsys)
     for stream in ("static", "ego-motion", "photos"):
         assert f"{stream}: sampled" in text and f"{stream}: every informative patch" in text
         assert f"accuracy, {stream}" in text
@@ -155,12 +145,7 @@ def test_exposure_step_splits_a_readout_excess_only_with_the_other_exposure_time
     the excess into it."""
     import re
 
-    n = torch.get_num_threads()
-    try:
-        assert main(EXPOSURE) == 0
-    finally:
-        torch.set_num_threads(n)
-    text = capsys.readouterr().out
+    text = _printed(EXPOSURE, capsys)
     rows = {}
     for line in text.splitlines():
         m = re.match(r"\| (matched|hotter sensor|white noise ×3) \| (sampled|map) \| (on|off) \| ([0-9.]+) \(", line)
