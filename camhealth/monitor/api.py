@@ -325,8 +325,10 @@ class TaskReport:
             median of n values with Gaussian scatter ``spread``, n = ``n_values``) and 1.2533·temporal_spread/√frames
             (a pooled noise estimate gives every patch of a frame one camera state: only frames are independent).
             With an estimator that reports a per-value uncertainty (MTF ``mtf_std``; noise ``sigma_std`` and ``xi_std``):
-            also at least 1.2533·estimator_std/√n, so one patch's answer is not stated exact — or, for the noise pooled
-            per frame (every patch shares the frame's posterior, so its error is common to them), estimator_std/√frames.
+            also at least 1.2533·estimator_std/√n, so one patch's answer is not stated exact — for the MTF
+            estimator_std·√(ρ + (π/2)(1 − ρ)/n), ρ the share of the error the patches of one scene have in common (its
+            error table's ``shared``; 1.2533·estimator_std/√n at ρ = 0) — or, for the noise pooled per frame (every
+            patch shares the frame's posterior, so its error is common to them), estimator_std/√frames.
         indicator_uncertainty: the same for the indicator.
         estimator_std: (K,) the estimator's own per-value uncertainty, pooled over the values behind ``median`` —
             √(mean of std²) over the values that have a finite one. MTF: ``mtf_std``, each value's 1-σ uncertainty
