@@ -148,6 +148,7 @@ def run_exposure_step(args: argparse.Namespace) -> BenchResult:
                     continue
                 for q in (1, 2):
                     err[(q, i % 2 == 0)].append(float(r.noise.median[q]) - float(truth[i, q]))
+
             def cell(q: int) -> str:
                 return " / ".join(f"{_rms(e):.2f} ({_mean(e):+.2f})" for e in (err[(q, True)], err[(q, False)]))
 
@@ -166,7 +167,7 @@ def run_exposure_step(args: argparse.Namespace) -> BenchResult:
         f"(camhealth.bench.sensor_variants); {args.sensor} at {args.gain_db:g} dB, {args.temperature_c:g} °C told, the "
         f"exposure alternating {t_long * 1e3:g} / {t_short * 1e3:g} ms (×{ratio:g}); cameras: matched, sensor "
         f"{HOTTER_K:g} K hotter, white noise ×{WHITE_NOISE_FACTOR:g}; precision {args.precision}; errors over frames "
-        f"{w0 + 1}…{args.frames} (long: every other frame from the first, short: from the second)",
+        f"{w0 + 1}…{args.frames} (long: the odd-numbered frames from the third on, short: the even-numbered ones)",
         f"command: {getattr(args, 'command_line', 'python -m camhealth.bench monitor --exposure-step')}",
     ]
     summary = table + ["", f"load average after: {_load()}"]
