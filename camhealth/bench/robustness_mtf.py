@@ -487,6 +487,10 @@ def scene_frames(scenes: list[tuple[str, torch.Tensor]], kernels: torch.Tensor, 
     from camhealth.physics import apply_psf
 
     side, m = FRAME_GRID * PATCH, KERNEL // 2 + 1
+    small = [(label, tuple(x.shape[-2:])) for label, x in scenes if min(x.shape[-2:]) < side + 2 * m]
+    if not scenes or small:
+        raise ValueError(f"scene_frames needs scenes of at least {side + 2 * m} px a side (the frame and the kernel's "
+                         f"margin), got {small[0][1] if small else 'none'}{f' ({small[0][0]})' if small else ''}")
     crops, labels = [], []
     for _ in range(kernels.shape[0]):
         label, x = scenes[int(torch.randint(0, len(scenes), (1,), generator=g))]

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 
 from camhealth.estimators.aggregation import spatial_median, temporal_median
+from camhealth.estimators.mtf_error import frame_uncertainty
 from camhealth.estimators.physics_noise import BEYOND_VALIDATED, VALIDATED_SIGMA_DN
 from camhealth.monitor.tiling import (
     ESTIMATED,
@@ -708,8 +709,6 @@ def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, fr
     its error table, :func:`camhealth.estimators.mtf_error.frame_uncertainty`; 1.2533·estimator_std/√n at ρ = 0) — or,
     where the values of a frame share one posterior (``shared``: the pooled noise estimate), estimator_std/√frames
     (its error is common to them, so more patches do not shrink it)."""
-    from camhealth.estimators.mtf_error import frame_uncertainty
-
     se = _MEDIAN_SE * spread / math.sqrt(max(n, 1))
     if frames > 1:
         tse = _MEDIAN_SE * torch.nan_to_num(temporal_spread.float(), nan=0.0) / math.sqrt(frames)

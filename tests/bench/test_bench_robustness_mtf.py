@@ -169,6 +169,10 @@ def test_scene_frames_are_seeded_8_bit_crops_of_one_scene_each():
     assert torch.equal((x * 255).round(), x * 255)  # 8-bit
     for img, lab in zip(x, labels):  # a flat scene stays flat: no border of the convolution entered the frame
         assert torch.allclose(img, torch.full_like(img, 0.25 if lab == "a" else 0.75), atol=0.5 / 255)
+    with pytest.raises(ValueError, match=r"at least 608 px a side .*\(320, 320\) \(small\)"):
+        rm.scene_frames(scenes + [("small", torch.zeros(1, 320, 320))], k, torch.Generator())
+    with pytest.raises(ValueError, match="got none"):
+        rm.scene_frames([], k, torch.Generator())
 
 
 def test_calibration_cells_use_training_generators_on_their_own_rendered_scenes(monkeypatch):
