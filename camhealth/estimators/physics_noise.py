@@ -112,7 +112,8 @@ hypotheses are absolute values of the camera's fields, so frames whose metadata 
 them, and each predicts σ_DCSN² ∝ t_exp in every frame and the same σ_RN: the frames' per-hypothesis sums Σr²/D, Σr/D,
 Σ1/D and clipping penalties add up, η is applied once to the sum (one camera, one model error), and the split follows
 the physics. A mismatch that moves σ_Total visibly in any of the frames is visible in all of them: a sensor hotter than
-told shows at the long exposure, and the short one, whose σ_Total it moves too little to see, follows it as well. :meth:`PhysicsNoiseEstimator.predict` takes such frames (``other_exposures``) or their kept evidence.
+told shows at the long exposure, and the short one, whose σ_Total it moves too little to see, follows it as well.
+:meth:`PhysicsNoiseEstimator.predict` takes such frames (``other_exposures``) or their kept evidence.
 
 Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
 ``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
