@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, Dict, Optional, Sequence
 
@@ -42,6 +43,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
         self._formation: ImageFormation | None = None
         self._formation_params: Dict[str, torch.Tensor] | None = None  # the params the formation was made with
         self._sf_cache: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._untouched_clipped: torch.Tensor | None = None  # (B,) clipped fraction of the samples left without noise
 
     # ------------------------------------------------------------------ helpers
     def validate_tensor(self, input: torch.Tensor) -> None:  # noqa: D102 (Kornia hook)
@@ -114,6 +116,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
     ) -> torch.Tensor:
         dev = input.device
         self._formation_params = _snapshot(params)
+        self._untouched_clipped = None
         if input.shape[0] == 0:  # an empty batch comes back empty, with empty labels
             self._formation = _empty_formation(input)
             return input.clone()
@@ -139,11 +142,17 @@ class CorruptionBase(IntensityAugmentationBase2D):
             rng=self._rng,
         )
         out = result.image
-        if self._sources and "noise_gate" in params:
-            keep = (params["noise_gate"].to(dev) > 0.5).view(-1, 1, 1, 1)
-            if not bool(keep.all()):  # (p = 1, the default, keeps every sample: no pass needed)
-                out = torch.where(keep, out, result.blurred.clamp(0, 1).to(out.dtype))
-        self._formation = result
+        if self._sources:
+            on = self._component_gate(params, "noise", input.shape[0], dev)
+            if not bool(on.all()):  # (p = 1, the default, keeps every sample: no pass needed)
+                # a sample whose noise is gated off gets the blurred image, with the blur's gradient; one that Kornia
+                # leaves untouched (batch_prob 0) gets its input: their clipped fraction is that of what they get
+                out = torch.where(on.view(-1, 1, 1, 1), out, result.blurred.clamp(0, 1).to(out.dtype))
+                applied = (params["batch_prob"].to(dev).reshape(-1).expand(input.shape[0]) > 0.5 if "batch_prob" in params
+                           else torch.ones_like(on)).view(-1, 1, 1, 1)
+                got = torch.where(applied, result.blurred.detach(), input.detach().to(result.blurred.dtype))
+                self._untouched_clipped = ((got <= 0) | (got >= 1)).flatten(1).to(result.clipped_fraction.dtype).mean(1)
+        self._formation = dataclasses.replace(result, blurred=result.blurred.detach())
         return out
 
     # ------------------------------------------------------------------ labels
@@ -190,7 +199,11 @@ class CorruptionBase(IntensityAugmentationBase2D):
             for name in ("sigma_dn", "sigma_total_dn", "sigma_expected_dn", "sigma_total_expected_dn", "clipped_fraction"):
                 v = getattr(f, name)
                 mask = on.view(-1, *([1] * (v.ndim - 1)))
-                out[name] = torch.where(mask, v, torch.zeros_like(v)) if name != "clipped_fraction" else v
+                if name == "clipped_fraction":  # of the output each sample got (its blurred image or its input where off)
+                    off = self._untouched_clipped
+                    out[name] = v if off is None else torch.where(on, v, off.to(v.device, v.dtype))
+                else:
+                    out[name] = torch.where(mask, v, torch.zeros_like(v))
         return out
 
     def _empty_labels(self, params: Dict[str, torch.Tensor]) -> Dict[str, Any]:

@@ -72,7 +72,8 @@ class ImageFormation:
         sigma_expected_dn: analytic σ of (PN, DCSN, RN) before clipping, (B, 3).
         sigma_total_expected_dn: √(Σ expected²), (B,).
         clipped_fraction: fraction of pixels clipped at 0 or 255 DN, (B,).
-        blurred: noise-free blurred image (defocus then motion) B×1×H×W, float32/64.
+        blurred: noise-free blurred image (defocus then motion) B×1×H×W, float32/64, before clipping; it carries
+            the blur's gradient where the input requires one (detach it before keeping it beyond the step).
     """
 
     image: torch.Tensor
@@ -953,5 +954,5 @@ def form_image(
         sigma_expected_dn=exp,
         sigma_total_expected_dn=exp.pow(2).sum(1).sqrt(),
         clipped_fraction=clipped_fraction,
-        blurred=signal.detach(),
+        blurred=signal,
     )

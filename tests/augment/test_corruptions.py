@@ -121,6 +121,34 @@ def test_camera_labels_combine_components_and_gates():
         assert torch.allclose(y[clean_samples], x[clean_samples])
 
 
+
+def test_camera_blur_gradient_reaches_samples_whose_noise_is_gated_off():
+    cam = CameraCorruption(RandomDefocusBlur((2.0, 4.0)), None, RandomSensorNoise(metadata="ICX285", sources=("dark", "readout"), p=0.5))
+    x = torch.rand(16, 1, 10, 10, dtype=torch.float64) * 0.6 + 0.2
+    torch.manual_seed(2)
+    cam(x)
+    params = cam._params
+    quiet = params["noise_gate"] < 0.5
+    assert 0 < int(quiet.sum()) < 16
+    xg = x.clone().requires_grad_(True)
+    cam(xg, params=params).sum().backward()
+    assert torch.all(xg.grad.flatten(1).abs().sum(1) > 0)  # every sample: the blur's gradient, noise or not
+    # the samples without noise are their blurred image, differentiably (the noisy ones add a constant here)
+    assert torch.autograd.gradcheck(lambda t: cam(t, params=params)[quiet], (x[:].clone().requires_grad_(True),))
+
+
+def test_clipped_fraction_label_is_of_the_output_each_sample_got():
+    meta = CameraMetadata.preset("EV76C661", gain_db=24.0, exposure_s=0.2, temperature_c=80.0)
+    aug = RandomSensorNoise(metadata=meta, p=0.5)
+    for x in (torch.full((16, 1, 24, 24), 0.98), torch.ones(16, 1, 24, 24)):
+        y = aug(x)
+        lab = aug.labels()["clipped_fraction"]
+        off = aug._params["batch_prob"] < 0.5
+        assert 0 < int(off.sum()) < 16
+        got = ((y <= 0) | (y >= 1)).flatten(1).float().mean(1)
+        assert torch.allclose(lab[off].float(), got[off])  # untouched: 0 for the 0.98 frame, 1 for the white one
+        assert torch.all(lab[~off] > 0.3)  # noisy samples near full scale clip about half their pixels
+
 def test_noise_labels_match_physics_for_given_metadata():
     meta = CameraMetadata.preset("EV76C661", batch_size=2, gain_db=[6.0, 24.0], temperature_c=[30.0, 70.0], exposure_s=0.1)
     aug = RandomSensorNoise()
