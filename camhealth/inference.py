@@ -179,7 +179,7 @@ class Estimator:
             raise ValueError(f"views = {views} averages flipped copies of MTF patches; estimator {self.name!r} is {self.kind!r}")
         patches = _to_patches(images, self.patch_size, input_range)
         if patches.shape[0] == 0:
-            return self._empty_result(metadata)
+            return self._empty_result(metadata, base_preset)
         defects = noise_dn = None
         if self.kind == "mtf":  # isolated impulses read as sparse edges and fine detail: the neighbours' mean instead
             noise_dn = haar_noise_dn(patches, torch.float64)  # σ̂ for the defect check and assess_patches alike
@@ -243,10 +243,13 @@ class Estimator:
         return result
 
 
-    def _empty_result(self, metadata: Any) -> dict[str, Any]:
-        """The outputs of :meth:`predict` for an empty batch: every entry with 0 rows."""
-        if self.metadata_set != "none" and metadata is None:
-            raise ValueError(f"estimator {self.name!r} reads {self.metadata_set!r} metadata: pass metadata=")
+    def _empty_result(self, metadata: Any, base_preset: str | None = None) -> dict[str, Any]:
+        """The outputs of :meth:`predict` for an empty batch: every entry with 0 rows (the metadata checked as for
+        a full batch: a field out of range is an error whatever the number of patches)."""
+        if self.metadata_set != "none":
+            if metadata is None:
+                raise ValueError(f"estimator {self.name!r} reads {self.metadata_set!r} metadata: pass metadata=")
+            _to_metadata(metadata, 0, base_preset or ("ICX285" if self.metadata_set == "minimal" else None))
         z = torch.zeros(0)
         result: dict[str, Any] = {"assessable": torch.zeros(0, dtype=torch.bool), "reason": []}
         if self.kind == "mtf":

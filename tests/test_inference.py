@@ -77,6 +77,21 @@ def test_bad_inputs_get_clear_errors(noise_est):
 def test_metadata_out_of_range_names_field(noise_est, field, value):
     with pytest.raises(ValueError, match=field):
         noise_est.predict(_patches(1), {field: value}, base_preset="ICX285")
+    with pytest.raises(ValueError, match=field):  # an empty batch checks its metadata too
+        noise_est.predict(_patches(1)[:0], {field: value}, base_preset="ICX285")
+
+
+@pytest.mark.parametrize("name", ["noise_source_full", "noise_source_min"])
+def test_an_empty_batch_checks_the_shipped_noise_models_metadata(name):
+    est = load_estimator(name)
+    empty = torch.zeros(0, 1, est.patch_size, est.patch_size)
+    assert est.predict(empty, "ICX285")["sigma"].shape == (0, 3)
+    with pytest.raises(ValueError, match=r"gain_db.*= 99 dB is out of the allowed range \[0, 24\]"):
+        est.predict(empty, {"gain_db": 99.0}, base_preset="ICX285")
+    with pytest.raises(ValueError, match="unknown sensor preset 'NOPE'"):
+        est.predict(empty, "NOPE")
+    with pytest.raises(TypeError, match="metadata must be"):
+        est.predict(empty, 3)
 
 
 def test_metadata_batch_and_dict(noise_est, min_est):

@@ -1020,6 +1020,7 @@ class PhysicsNoiseEstimator:
                 raise type(exc)(f"reference: {exc}") from None
             if ref.shape != patches.shape:
                 raise ValueError(f"reference must hold the same patches as images, {tuple(patches.shape)}, got {tuple(ref.shape)}")
+        meta = _to_metadata(metadata, b, base_preset)  # checked whatever the number of patches
         if b == 0:  # an empty batch: every output with 0 rows
             z = torch.zeros(0)
             return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
@@ -1028,7 +1029,6 @@ class PhysicsNoiseEstimator:
                     "defects_checked": torch.zeros(0, dtype=torch.int64),
                     "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8),
                     **({} if ref is None else {"static": torch.zeros(0, dtype=torch.bool)})}
-        meta = _to_metadata(metadata, b, base_preset)
         settings = {**self.settings, **({"pool": True} if pool else {})}
         exposures_read = None
         if (other_evidence is not None or return_evidence) and not settings.get("pool"):
