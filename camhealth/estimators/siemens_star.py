@@ -239,8 +239,11 @@ def siemens_star_ctf(
         i_b = torch.full((b,), float(levels[0]), dtype=torch.float64, device=dev)
         i_w = torch.full((b,), float(levels[1]), dtype=torch.float64, device=dev)
     m0 = (i_w - i_b) / (i_w + i_b)
-    if bool((m0 <= 0.05).any()):
-        raise ValueError(f"chart modulation (I_w − I_b)/(I_w + I_b) = {float(m0.min()):.3f} is too low (<= 0.05): is this a Siemens star chart?")
+    bad = ~(m0 > 0.05)  # NaN too: both reference levels 0 (a black image) give 0/0
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"chart modulation (I_w − I_b)/(I_w + I_b) of image {i} = {float(m0[i]):.3f} must exceed 0.05 "
+                         f"(reference levels I_b = {float(i_b[i]):.3f}, I_w = {float(i_w[i]):.3f}): is this a Siemens star chart?")
     r_lo = n_cycles / math.pi  # f_n = 1 (Nyquist)
     r_hi = radius - margin
     if r_hi <= r_lo + 4:

@@ -84,6 +84,10 @@ def test_errors(star):
         siemens_star_ctf(star, n_sectors=6)
     with pytest.raises(ValueError, match="modulation"):
         siemens_star_ctf(torch.full((1, 1, 512, 512), 0.5))
+    # a black image (0/0 modulation), alone or in a batch with a good chart, is refused, naming which image
+    for batch in (torch.zeros(1, 1, 512, 512), torch.cat([star[:1], torch.zeros(1, 1, 512, 512)])):
+        with pytest.raises(ValueError, match=r"modulation .* of image \d+ = nan"):
+            siemens_star_mtf(batch)
     with pytest.raises(ValueError, match="square"):
         siemens_star_ctf(torch.rand(1, 1, 64, 80))
     with pytest.raises(ValueError, match="frequencies"):
