@@ -22,6 +22,7 @@ paths agree to float precision (tested whenever PyWavelets is importable); ``bac
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -94,6 +95,9 @@ def wavelet_noise_sigma(images: torch.Tensor, backend: str = "auto") -> torch.Te
         from skimage.restoration import estimate_sigma
 
         stack = np.ascontiguousarray(x[:, 0].detach().double().cpu().numpy().transpose(1, 2, 0))  # H×W×B
-        sig = estimate_sigma(stack, average_sigmas=False, channel_axis=-1)
-        return (DN * torch.as_tensor(np.asarray(sig, dtype=np.float64))).to(device=x.device, dtype=out)
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an image whose every coefficient is 0: median of nothing
+            sig = np.asarray(estimate_sigma(stack, average_sigmas=False, channel_axis=-1), dtype=np.float64)
+        # scikit-image leaves the zero coefficients out; where none is left (a constant image) σ̂ is 0, as on the torch path
+        return (DN * torch.as_tensor(np.nan_to_num(sig, nan=0.0))).to(device=x.device, dtype=out)
     return (DN * _torch_sigma(x)).to(out)

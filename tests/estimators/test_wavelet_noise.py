@@ -1,5 +1,7 @@
 """Wavelet MAD noise level: known σ, the torch path equals scikit-image's (when PyWavelets is installed)."""
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -46,6 +48,15 @@ def test_returns_dn_floats(flat):
 def test_torch_path_equals_skimage(textured):
     x = add_noise(textured.double(), 9.0, seed=9)
     assert torch.allclose(wavelet_noise_sigma(x, backend="torch"), wavelet_noise_sigma(x, backend="skimage"), rtol=1e-10)
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_constant_images_read_zero_not_nan(backend):
+    x = torch.cat([torch.zeros(1, 1, 64, 64), torch.ones(1, 1, 64, 64), torch.full((1, 1, 64, 64), 0.5)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # and without NumPy's "mean of empty slice"
+        est = wavelet_noise_sigma(x, backend=backend)
+    assert bool(torch.isfinite(est).all()) and torch.allclose(est, torch.zeros(3), atol=1e-20)  # (rounding: ~1e-30)
 
 
 def test_backend_errors(flat):
