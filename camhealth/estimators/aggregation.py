@@ -24,6 +24,8 @@ are pure and batched.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -65,9 +67,14 @@ def _check_estimates(x: object, name: str) -> torch.Tensor:
 
 
 def _reduce_last(w: torch.Tensor) -> Aggregate:
-    """Median, spread, min, max and count over the last dim, ignoring NaN."""
-    med = torch.nanquantile(w, 0.5, dim=-1) if w.numel() else w.sum(-1)
-    mad = torch.nanquantile((w - med[..., None]).abs(), 0.5, dim=-1) if w.numel() else med
+    """Median, spread, min, max and count over the last dim, ignoring NaN (NaN and count 0 where nothing is left,
+    an empty last dim included)."""
+    if w.shape[-1] == 0 or w.numel() == 0:  # nothing to reduce (no patches or frames): NaN, count 0
+        nan = torch.full(w.shape[:-1], float("nan"), dtype=w.dtype, device=w.device)
+        return Aggregate(median=nan, spread=nan.clone(), low=nan.clone(), high=nan.clone(),
+                         count=torch.zeros(w.shape[:-1], dtype=torch.int64, device=w.device))
+    med = torch.nanquantile(w, 0.5, dim=-1)
+    mad = torch.nanquantile((w - med[..., None]).abs(), 0.5, dim=-1)
     finite = torch.isfinite(w)
     low = torch.where(finite, w, torch.full_like(w, float("inf"))).amin(dim=-1)
     high = torch.where(finite, w, torch.full_like(w, float("-inf"))).amax(dim=-1)
@@ -126,7 +133,7 @@ def spatial_median(estimates: torch.Tensor, dim: int | Sequence[int] = -1) -> Ag
     if len(set(dims)) != len(dims):
         raise ValueError(f"dim = {dim} names an axis twice")
     keep = [d for d in range(x.ndim) if d not in dims]
-    moved = x.permute(*keep, *dims).reshape(*[x.shape[d] for d in keep], -1)
+    moved = x.permute(*keep, *dims).reshape(*[x.shape[d] for d in keep], math.prod(x.shape[d] for d in dims))
     return _reduce_last(moved)
 
 

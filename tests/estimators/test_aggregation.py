@@ -30,6 +30,15 @@ def test_nan_is_skipped_and_all_nan_window_stays_nan():
     assert torch.isnan(agg.median[0, 1]) and torch.isnan(agg.spread[0, 1])
 
 
+@pytest.mark.parametrize("shape, dim", [((4, 0), 1), ((0, 5), 1), ((3, 0, 2), (1, 2))])
+def test_nothing_to_reduce_gives_nan_and_count_0(shape, dim):
+    agg = spatial_median(torch.zeros(shape), dim=dim)
+    kept = [s for i, s in enumerate(shape) if i not in ([dim] if isinstance(dim, int) else dim)]
+    for v in (agg.median, agg.spread, agg.low, agg.high):
+        assert list(v.shape) == kept and bool(torch.isnan(v).all())
+    assert agg.count.tolist() == torch.zeros(kept, dtype=torch.int64).tolist()
+
+
 def test_spatial_median_over_patches():
     x = torch.tensor([[1.0, 2.0, 100.0], [4.0, 5.0, 6.0]])  # 2 frames × 3 patches; an outlier patch
     agg = spatial_median(x, dim=1)
