@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from camhealth._validation import check_finite, check_range
 from camhealth.physics.metadata import CameraMetadata
 
 __all__ = ["photo_electrons", "photon_shot_sigma_dn", "photon_shot_sigma_patch_dn"]
@@ -23,12 +24,15 @@ def _per_sample(v: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 
 def photo_electrons(intensity: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
-    """Expected photo-electrons per pixel, N = I · FW / g [e⁻]; ``intensity`` is B×… in [0, 1]."""
+    """Expected photo-electrons per pixel, N = I · FW / g [e⁻]; ``intensity`` is B×… in [0, 1] (else ``ValueError``)."""
+    check_range(intensity, "intensity", 0.0, 1.0, "(DN/255)")
     return intensity.clamp_min(0) * _per_sample(meta.full_well_e / meta.gain_factor, intensity)
 
 
 def photon_shot_sigma_dn(intensity: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
-    """Per-pixel σ_PN [DN] = 255·√(g·I/FW) for intensities I ∈ [0, 1] of shape B×…."""
+    """Per-pixel σ_PN [DN] = 255·√(g·I/FW) for intensities I ∈ [0, 1] of shape B×… (NaN or a value outside [0, 1]:
+    ``ValueError`` naming it)."""
+    check_range(intensity, "intensity", 0.0, 1.0, "(DN/255)")
     return 255.0 * (intensity.clamp_min(0) * _per_sample(meta.gain_factor / meta.full_well_e, intensity)).sqrt()
 
 
@@ -36,4 +40,5 @@ def photon_shot_sigma_patch_dn(intensity: torch.Tensor, meta: CameraMetadata) ->
     """Patch-level σ_PN [DN], shape (B,): the root-mean-square of the per-pixel σ over each sample,
     i.e. √(mean σ²) = 255·√(g·mean(I)/FW) (clipping ignored)."""
     mean_i = intensity.clamp_min(0).flatten(1).mean(1)
+    check_finite(mean_i.detach(), "mean intensity")  # (B,): a NaN anywhere in a sample shows here
     return 255.0 * (mean_i * (meta.gain_factor / meta.full_well_e).to(mean_i)).sqrt()

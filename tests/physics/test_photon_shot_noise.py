@@ -41,3 +41,14 @@ def test_realised_photon_noise_matches_analytic():
     # std of a 16384-pixel sample: relative standard error ≈ 1/√(2n) ≈ 0.6 %
     assert torch.allclose(r.sigma_dn[:, 0], r.sigma_expected_dn[:, 0], rtol=0.03)
     assert torch.all(r.sigma_dn[:, 1:] == 0)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 2.0, -0.1])
+def test_bad_intensity_is_refused_naming_it(bad):
+    m = CameraMetadata.preset("ICX285")
+    for fn in (photon_shot_sigma_dn, photo_electrons):
+        with pytest.raises(ValueError, match="intensity"):
+            fn(torch.tensor([[0.5, bad]]), m)
+    if bad != bad or abs(bad) == float("inf"):
+        with pytest.raises(ValueError, match="mean intensity"):
+            photon_shot_sigma_patch_dn(torch.full((1, 1, 2, 2), bad), m)
