@@ -49,6 +49,8 @@ adds what the pair reads on those JPEG frames anyway and on matched frames whose
 mismatches once more at another exposure time (×8, or ÷8 where that passes 0.2 s; the same real camera otherwise) and
 scores the physics-first estimator, pooled and as a static pair, alone and with that frame's evidence
 (``predict(..., other_exposures=...)``): dark-current shot noise grows with the exposure time, readout noise does not.
+From the same readings it counts, on the frames with a visible mismatch that the estimator follows, those whose most
+probable ``cause`` (:func:`frame_cause`, grouped as the monitor groups it) is the field the benchmark altered.
 
 Printed per estimator, pooled over both scales and for each scale: per-source Bias / Std / RMS [DN] per condition
 group over every patch (those it marks not assessable included: the closed form stands there), ξ RMS, the AUCs
@@ -452,6 +454,7 @@ def other_exposure_lines(ests: list[Any], frames: list[Frame]) -> list[str]:
     if not chosen:
         return []
     errs: dict[tuple[str, str, str], list[torch.Tensor]] = {}
+    named: dict[tuple[str, str, str], list[tuple[bool, bool]]] = {}  # (followed, named right) per visible-mismatch frame
     for fr in (f for f in frames if f.condition in EXPOSURE_CONDITIONS):
         t_told = float(fr.told.exposure_s)
         t_other = t_told * EXPOSURE_RATIO if t_told * EXPOSURE_RATIO <= 0.2 else max(t_told / EXPOSURE_RATIO, 0.001)
@@ -468,6 +471,8 @@ def other_exposure_lines(ests: list[Any], frames: list[Frame]) -> list[str]:
                 err = out["sigma"] - fr.sigma
                 for key in (group, fr.condition):
                     errs.setdefault((est.name, how, key), []).append(err)
+                if fr.condition in CAUSE_OF and _frame_visible(fr):
+                    named.setdefault((est.name, how, fr.condition), []).append(frame_cause(out, CAUSE_OF[fr.condition]))
     keys = ("matched", "mismatched", "gain", "temperature", "white_noise")
     lines = ["", f"The same camera at another exposure time (`predict(..., other_exposures=[(frame, metadata)])`): each frame of "
              f"{', '.join(EXPOSURE_CONDITIONS)} also exposed at its told exposure time ×{EXPOSURE_RATIO:g} (÷{EXPOSURE_RATIO:g} "
@@ -482,7 +487,47 @@ def other_exposure_lines(ests: list[Any], frames: list[Frame]) -> list[str]:
             mis = [_fmt3(_bsr(cell["mismatched"][:, j])) if "mismatched" in cell else "–" for j in range(3)]
             lines.append(f"| {est.name} | {label} | {rms('matched')} | " + " | ".join(mis) + " | "
                          + " | ".join(rms(k) for k in ("gain", "temperature", "white_noise")) + " |")
+    lines += ["", "The cause the estimator names (`predict`'s `cause`, the monitor's `noise.cause`: gain, dark current or "
+              "readout noise — the white-noise density or noise beyond the fields), on the frames whose mismatch is visible "
+              "(|median ξ| ≥ max(0.5 DN, 15 % of median σ_Total)): of those the estimator follows (most of their patches "
+              "read the image), the share whose most probable cause — the mean of `cause` over the followed patches — is the "
+              "field the benchmark altered, and in brackets the share followed:", "",
+              "| estimator | evidence | gain | temperature | white noise |", "|---|---|---|---|---|"]
+    for est, pair in chosen:
+        for how, label in (("alone", "this exposure"), ("joint", "+ the other exposure time" + (" (a pair)" if pair else ""))):
+            cells = []
+            for cond in CAUSE_OF:
+                got = named.get((est.name, how, cond), [])
+                followed = [right for fol, right in got if fol]
+                cells.append("–" if not got else
+                             f"{sum(followed)} of {len(followed)} ({len(followed)} of {len(got)} followed)")
+            lines.append(f"| {est.name} | {label} | " + " | ".join(cells) + " |")
     return lines
+
+
+#: The cause (a key of :data:`camhealth.monitor.api.CAUSE_GROUPS`) each mismatch condition makes.
+CAUSE_OF: dict[str, str] = {"gain": "gain", "temperature": "dark_current", "white_noise": "readout"}
+
+
+def _frame_visible(fr: Frame) -> bool:
+    """The frame's mismatch is visible: |median ξ| ≥ max(0.5 DN, 15 % of median σ_Total) (the per-frame AUC's label)."""
+    return float(fr.xi.median().abs()) >= max(0.5, 0.15 * float(fr.total.median()))
+
+
+def frame_cause(out: dict[str, Any], truth: str) -> tuple[bool, bool]:
+    """(the estimator follows the image on most of the frame's assessable patches, and the most probable cause of
+    those — the mean of their ``cause`` grouped as the monitor does, :data:`camhealth.monitor.api.CAUSE_GROUPS` — is
+    ``truth``)."""
+    from camhealth.monitor.api import CAUSE_GROUPS
+
+    fol = out["follows_image"] & out["assessable"]
+    cause = out["cause"][fol]
+    cause = cause[torch.isfinite(cause).all(1)]
+    if 2 * int(fol.sum()) < int(out["assessable"].sum()) or out["assessable"].sum() == 0 or cause.shape[0] == 0:
+        return False, False
+    mean = cause.double().mean(0)
+    best = max(CAUSE_GROUPS, key=lambda k: float(mean[list(CAUSE_GROUPS[k])].sum()))
+    return True, best == truth
 
 
 def _bsr(err: torch.Tensor) -> tuple[float, float, float]:

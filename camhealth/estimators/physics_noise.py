@@ -150,7 +150,7 @@ from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
-__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
+__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
            "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor",
            "noise_evidence"]
 
@@ -195,7 +195,11 @@ PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
     "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
     "row_dn", "col_dn", "patch_details", "patch_texture", "patch_detail_corr_check",
+    "p_cause_gain", "p_cause_temperature", "p_cause_white_noise", "p_cause_beyond",
 )
+#: What a visible mismatch may be (the hypotheses' kinds, in the order of the ``cause`` output): one of
+#: :data:`MISMATCH_FIELDS` wrong, or noise beyond what any field in range explains.
+MISMATCH_CAUSES: tuple[str, ...] = (*MISMATCH_FIELDS, "beyond")
 #: Patches per call of :func:`physics_noise_posterior` in :meth:`PhysicsNoiseEstimator.predict` (per patch; pooled, the
 #: frame is one call): larger chunks outgrow the CPU's caches (1.3 against 1.0 ms per patch at 256 on a 2-core VM; 32 reads as
 #: 64).
@@ -567,7 +571,7 @@ def physics_noise_posterior(
     other_evidence: torch.Tensor | None = None,
     return_evidence: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Physics-first noise sources of each patch, (B, 21) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 25) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
@@ -580,7 +584,9 @@ def physics_noise_posterior(
     sources explain alike and the prior alone splits it; σ of row and column noise where detected [DN] (else 0; where
     they are, σ_Total, ξ and its uncertainty include them, module docstring); the number of the patch's own
     details used and its own texture and neighbour checks (pooled, read with the frame's noise model; per patch,
-    the three columns above again).
+    the three columns above again); the cause: P(kind | a visible mismatch) for each of :data:`MISMATCH_CAUSES` — the
+    gain, the temperature or the white noise wrong, or noise beyond them — summing to 1 (NaN where the patch is not
+    readable: too few flat details, or textured).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -813,6 +819,9 @@ def physics_noise_posterior(
         # the visible mismatch hypotheses alone (renormalised): what the image says where it contradicts M
         w = (post * visible)[:, 1:]
         w = w / w.sum(1, keepdim=True).clamp_min(1e-300)
+        # which kind of mismatch the evidence names, given that there is a visible one: the visible hypotheses'
+        # posterior summed per kind (gain, temperature, white noise, beyond); rows sum to 1 (0 where no hypothesis is visible)
+        cause = w.view(b, len(MISMATCH_CAUSES), -1).sum(-1)
         e_a = (w * a_all[:, 1:]).sum(1)
         e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
@@ -870,7 +879,8 @@ def physics_noise_posterior(
         out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
                          corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
-                         own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1)], dim=1)
+                         own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1),
+                         torch.where(readable.unsqueeze(1), cause, torch.full_like(cause, float("nan")))], dim=1)
     if not return_evidence:
         return out.float()
     # this frame's own bins (row 0: pooled, every row is the frame) and which hypotheses move its σ_Total visibly at
@@ -1000,7 +1010,14 @@ class PhysicsNoiseEstimator:
         of such frames, kept by the caller (a monitor) so that each frame is read once; the caller vouches that they
         show this camera at other exposure times. ``return_evidence`` (with ``pool``): the output also has
         ``"evidence"``, this frame's own evidence from the same reading (zeros where it is not readable), for later
-        frames at other exposure times."""
+        frames at other exposure times.
+
+        ``"cause"`` (B, 4): which kind of mismatch the evidence names, should there be a visible one — the gain, the
+        temperature or the white-noise density wrong, or noise beyond what any field in range explains
+        (:data:`MISMATCH_CAUSES`); each row sums to 1, NaN where the patch is not readable. A gain changes the
+        signal-dependent part of the noise and the signal-independent part together, so one frame names it; a hotter
+        sensor, more white noise and noise beyond the fields all add a signal-independent variance, which one exposure
+        time shares between them by their priors and physical ranges, and ``other_exposures`` tells apart."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         if batch_size < 1:
@@ -1025,7 +1042,8 @@ class PhysicsNoiseEstimator:
             z = torch.zeros(0)
             return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
                     "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool),
-                    "row_column_dn": torch.zeros(0, 2), "defects": torch.zeros(0, 2, dtype=torch.int64),
+                    "row_column_dn": torch.zeros(0, 2), "cause": torch.zeros(0, len(MISMATCH_CAUSES)),
+                    "defects": torch.zeros(0, 2, dtype=torch.int64),
                     "defects_checked": torch.zeros(0, dtype=torch.int64),
                     "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8),
                     **({} if ref is None else {"static": torch.zeros(0, dtype=torch.bool)})}
@@ -1060,7 +1078,7 @@ class PhysicsNoiseEstimator:
         defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
                 "xi": raw[:, 4], "xi_std": raw[:, 5], "p_match": raw[:, 6], "follows_image": raw[:, 9] > 0.5,
-                "row_column_dn": raw[:, 16:18], "defects": torch.stack([defects.hot, defects.dark], 1),
+                "row_column_dn": raw[:, 16:18], "cause": raw[:, 21:25], "defects": torch.stack([defects.hot, defects.dark], 1),
                 "defects_checked": defects.checked,
                 "defect_mask": defects.mask, **({} if ref is None else {"static": static}),
                 **({} if exposures_read is None else {"exposures_read": exposures_read}),
@@ -1068,7 +1086,7 @@ class PhysicsNoiseEstimator:
 
     def _read(self, patches: torch.Tensor, ref: torch.Tensor | None, meta: CameraMetadata, settings: dict[str, Any],
               batch_size: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """The posterior of the patches (CPU, (B, 21)) — read from their static pair where ``ref`` is given and the
+        """The posterior of the patches (CPU, (B, 25)) — read from their static pair where ``ref`` is given and the
         scene stood still, alone elsewhere (:meth:`predict`) — whether each was read from the pair ((B,) bool, None
         without ``ref``), and, pooled, the frame's own evidence summed over the readings (:func:`noise_evidence`)."""
         b = patches.shape[0]
@@ -1148,7 +1166,7 @@ class PhysicsNoiseEstimator:
 
     def _posterior(self, patches: torch.Tensor, meta: CameraMetadata, settings: dict[str, Any], batch_size: int,
                    reference: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 21): pooled in one call (with the
+        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 25): pooled in one call (with the
         patches of a textured frame that pass both checks on their own details read alone), else in chunks; and,
         pooled, the frame's own evidence of that call (:func:`noise_evidence`; None per patch)."""
         b = patches.shape[0]

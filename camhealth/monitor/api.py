@@ -92,6 +92,8 @@ __all__ = [
     "new_defect_ppm",
     "DEFECT_ALARM_PPM",
     "mtf_under_banding",
+    "CAUSE_GROUPS",
+    "cause_text",
     "MTF_BANDING_LIMIT_DN",
 ]
 
@@ -177,8 +179,14 @@ def as_frame(frame: Any) -> torch.Tensor:
 def _read_mapping(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"metadata file not found: {path}")
-    text = path.read_text(encoding="utf-8")
     suffix = path.suffix.lower()
+    if suffix not in (".json", ".yaml", ".yml"):
+        raise ValueError(f"metadata file {path} must be .json, .yaml or .yml, got {path.suffix!r}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"metadata file {path} is not UTF-8 text: byte 0x{exc.object[exc.start]:02x} at position "
+                         f"{exc.start} (save it as UTF-8)") from None
     try:
         if suffix == ".json":
             data = json.loads(text)
@@ -367,6 +375,14 @@ class TaskReport:
             ``"known"`` (at a pixel the map marks); ``None`` when no pixel stands out. Not part of σ_Total; the alarm
             names them from :data:`DEFECT_ALARM_PPM` on, with a map counting only the pixels it does not mark
             (:func:`new_defect_ppm`).
+        cause: noise only, where this frame's assessable patches follow the image (their noise contradicts the
+            metadata): which kind of cause the evidence names — ``{"gain", "dark_current", "readout"}``, the
+            probabilities (summing to 1) that the gain is wrong, that the dark current is (the sensor's temperature),
+            or that there is more readout-like white noise than the metadata say (the white-noise density, or noise
+            beyond what any field in range explains), the mean of the estimator's ``cause`` over those patches
+            (:data:`CAUSE_GROUPS`), and ``"patches"``; ``None`` where no patch follows the image. One exposure time
+            names a gain; dark current and readout noise it tells apart by their physical ranges only — another
+            exposure time of the camera tells them apart (``Monitor(exposure_evidence=True)``).
         note: why a task could not be assessed, if it could not.
         grid_obj, values, code: per-patch maps (not serialised unless asked).
     """
@@ -391,6 +407,7 @@ class TaskReport:
     beyond_xi: float | None = None
     banding: dict[str, Any] | None = None
     defects: dict[str, Any] | None = None
+    cause: dict[str, Any] | None = None
     note: str = ""
     grid_obj: PatchGrid | None = field(default=None, repr=False)
     values: torch.Tensor | None = field(default=None, repr=False)
@@ -430,6 +447,7 @@ class TaskReport:
         if self.task == "noise":
             out["banding"] = dict(self.banding) if self.banding else None
             out["defects"] = dict(self.defects) if self.defects else None
+            out["cause"] = dict(self.cause) if self.cause else None
         out["coverage"] = dict(self.coverage)
         if self.note:
             out["note"] = self.note
@@ -652,6 +670,7 @@ class _TaskState:
     refused: dict[str, int] = field(default_factory=dict)
     beyond_xi: list[float] = field(default_factory=list)
     banding: list[tuple[float, float]] = field(default_factory=list)  # (row, column) σ [DN] of this frame's patches
+    causes: list[torch.Tensor] = field(default_factory=list)  # (n, 4) the estimator's cause of the patches that follow the image
     defects: list[int] = field(default_factory=lambda: [0, 0, 0, 0])  # this frame's hot, dark, checked pixels, patches with any
     defect_xy: list[tuple[int, int]] = field(default_factory=list)  # their frame coordinates (x, y) [px]
     # static pairs (noise): the previous frame's patches, this frame's reference for them, and the patches read from a pair
@@ -729,8 +748,28 @@ def _pooled_std(std: torch.Tensor, k: int) -> torch.Tensor:
     return torch.where(cnt > 0, mean_sq.sqrt(), torch.full_like(mean_sq, float("nan")))
 
 
+#: The monitor's causes of a noise mismatch, each the kinds of :data:`~camhealth.estimators.physics_noise.MISMATCH_CAUSES`
+#: (by index) it sums: the gain; the dark current (the sensor's temperature); readout-like white noise (the white-noise
+#: density, or noise beyond what any field in range explains: both add the same exposure-independent variance).
+CAUSE_GROUPS: dict[str, tuple[int, ...]] = {"gain": (0,), "dark_current": (1,), "readout": (2, 3)}
+#: Words for the causes in the alarm's message.
+CAUSE_WORDS: dict[str, str] = {"gain": "the gain", "dark_current": "dark current (the sensor hotter than told)",
+                               "readout": "readout noise (white noise the metadata do not have)"}
+
+
+def cause_text(cause: Mapping[str, Any]) -> str:
+    """The alarm's words for a frame's :attr:`TaskReport.cause`: the most probable cause and its probability, and the
+    runner-up where it has at least a quarter."""
+    ranked = sorted(((float(cause.get(k, 0.0)), k) for k in CAUSE_GROUPS), reverse=True)
+    text = f"most likely {CAUSE_WORDS[ranked[0][1]]} (P {ranked[0][0]:.2f}"
+    if ranked[1][0] >= 0.25:
+        text += f"; {CAUSE_WORDS[ranked[1][1]]} P {ranked[1][0]:.2f}"
+    return text + f", {cause.get('patches', 0)} patches)"
+
+
 def _refusals(st: _TaskState) -> dict[str, Any]:
-    """The ``refused``, ``beyond_xi`` and ``banding`` fields of a :class:`TaskReport` from this frame's task state."""
+    """The ``refused``, ``beyond_xi``, ``banding``, ``defects`` and ``cause`` fields of a :class:`TaskReport` from this
+    frame's task state."""
     beyond = float(torch.tensor(st.beyond_xi).median()) if st.beyond_xi else None
     banding = None
     if st.banding:
@@ -741,7 +780,12 @@ def _refusals(st: _TaskState) -> dict[str, Any]:
     if hot + dark:
         defects = {"hot": hot, "dark": dark, "checked": checked, "ppm": round(1e6 * (hot + dark) / max(checked, 1), 1),
                    "patches": with_any, "recurring": 0}
-    return {"refused": dict(st.refused), "beyond_xi": beyond, "banding": banding, "defects": defects}
+    cause = None
+    if st.causes:  # the mean over this frame's patches that follow the image, by physical cause
+        c = torch.cat(st.causes).double().mean(0)
+        cause = {name: round(float(c[list(idx)].sum()), 3) for name, idx in CAUSE_GROUPS.items()}
+        cause["patches"] = int(sum(int(t.shape[0]) for t in st.causes))
+    return {"refused": dict(st.refused), "beyond_xi": beyond, "banding": banding, "defects": defects, "cause": cause}
 
 
 #: Appended to the alarm message where every noise patch a frame refused was refused as textured: besides a scene that
@@ -1161,6 +1205,12 @@ class Monitor:
         if task == "noise" and out.get("row_column_dn") is not None:
             band = torch.as_tensor(out["row_column_dn"]).float().reshape(n, 2)
             st.banding += [tuple(band[i].tolist()) for i in ((band > 0).any(1) & ok).nonzero()[:, 0].tolist()]
+        if task == "noise" and out.get("cause") is not None and out.get("follows_image") is not None:
+            follows = torch.as_tensor(out["follows_image"]).bool().reshape(n) & ok
+            cause = torch.as_tensor(out["cause"]).float().reshape(n, -1)[follows]
+            cause = cause[torch.isfinite(cause).all(1)]
+            if cause.numel():
+                st.causes.append(cause)
         if task == "noise" and out.get("defects") is not None:
             checked = out.get("defects_checked")  # pixels tested per patch (0 where a patch is a pattern, not tested)
             checked = (int(torch.as_tensor(checked).sum()) if checked is not None
@@ -1191,7 +1241,7 @@ class Monitor:
 
     def _run_task(self, task: str, frame: torch.Tensor, meta: CameraMetadata | None) -> TaskReport:
         st = self._states[task]
-        st.refused, st.beyond_xi, st.banding = {}, [], []
+        st.refused, st.beyond_xi, st.banding, st.causes = {}, [], [], []
         st.defects, st.defect_xy = [0, 0, 0, 0], []
         st.pairs = st.exposures = 0
         grid, cfg = st.grid, self.selection
@@ -1484,6 +1534,13 @@ class Monitor:
                        total_dn=noise.value("total"))
         if out["state"] == "noisier" and noise.banding:
             out["message"] += "; " + banding_text(noise.banding)
+        elif noise.cause and out["state"] in ("noisier", "cleaner"):
+            out["message"] += "; " + cause_text(noise.cause)
+        elif (noise.cause and out["state"] == "ok"
+              and 2 * int(noise.cause.get("patches", 0)) >= int(noise.coverage.get("estimated", 0))):
+            # the frame's ξ is within the limit, but its sources depart from the metadata's (a mismatch that moves the
+            # total less than the alarm waits for): say what they point to
+            out["message"] += "; the noise sources depart from the metadata's closed form: " + cause_text(noise.cause)
         return out
 
     def _advice(self, noise: TaskReport | None, mtf: TaskReport | None, meta: CameraMetadata | None) -> dict[str, Any] | None:

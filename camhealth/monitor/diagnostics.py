@@ -34,7 +34,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from camhealth.monitor.api import DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text, new_defect_ppm
+from camhealth.monitor.api import CAUSE_GROUPS, DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text, new_defect_ppm
 
 __all__ = ["OK", "WARN", "ERROR", "LEVEL_NAMES", "KEYS", "DIAGNOSTICS_TOPIC", "DIAGNOSTICS_SUFFIXES",
            "frame_level", "key_values", "DiagnosticsWriter", "read_diagnostics"]
@@ -49,7 +49,8 @@ _MSGTYPE = "diagnostic_msgs/msg/DiagnosticArray"
 KEYS: tuple[str, ...] = (
     "level", "alarm", "xi_dn", "xi_limit_dn",
     "noise_total_dn", "noise_total_spread_dn", "noise_pn_dn", "noise_dcsn_dn", "noise_rn_dn", "noise_row_dn",
-    "noise_col_dn", "noise_defect_ppm", "noise_defects_recurring", "noise_defects_known", "blur_mtf_indicator", "blur_mtf_indicator_spread", "blur_mtf_h_fn0.1", "blur_mtf_v_fn0.1",
+    "noise_col_dn", "noise_defect_ppm", "noise_defects_recurring", "noise_defects_known", "noise_cause", "noise_cause_p",
+    "blur_mtf_indicator", "blur_mtf_indicator_spread", "blur_mtf_h_fn0.1", "blur_mtf_v_fn0.1",
     "noise_patches_used", "noise_patches_total", "blur_patches_used", "blur_patches_total",
     "gain_db", "exposure_s", "temperature_c", "frame", "index", "source_id", "processing_ms",
 )
@@ -109,6 +110,8 @@ def key_values(report: FrameReport, level: int) -> list[tuple[str, str]]:
         h01, v01 = float(mtf.median[i]), float(mtf.median[len(NORMALIZED_FREQUENCIES) + i])
     band = (noise.banding or {"row_dn": 0.0, "col_dn": 0.0}) if noise is not None and noise.assessable else {}
     defects = ({"ppm": 0.0, "recurring": 0} if noise.defects is None else noise.defects) if noise is not None else {}
+    cause = noise.cause if noise is not None and noise.assessable and noise.cause else None
+    top = max(CAUSE_GROUPS, key=lambda k: float(cause.get(k, 0.0))) if cause else None
     md = report.metadata or {}
     values = {
         "level": LEVEL_NAMES[level], "alarm": str(alarm.get("state", "unavailable")),
@@ -118,6 +121,7 @@ def key_values(report: FrameReport, level: int) -> list[tuple[str, str]]:
         "noise_row_dn": _fmt(band.get("row_dn")), "noise_col_dn": _fmt(band.get("col_dn")),
         "noise_defect_ppm": _fmt(defects.get("ppm")), "noise_defects_recurring": _fmt(defects.get("recurring")),
         "noise_defects_known": _fmt(defects.get("known")),
+        "noise_cause": top or "", "noise_cause_p": _fmt(cause.get(top) if cause else None),
         "blur_mtf_indicator": _fmt(ind[0]), "blur_mtf_indicator_spread": _fmt(ind[1]),
         "blur_mtf_h_fn0.1": _fmt(h01), "blur_mtf_v_fn0.1": _fmt(v01),
         "noise_patches_used": str(_used(noise.counts)) if noise is not None else "0",

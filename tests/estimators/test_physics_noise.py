@@ -8,7 +8,7 @@ from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
 from camhealth.estimators.noise_features import physics_prior_dn
 from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.physics_noise import (
-    PHYSICS_NOISE_COLUMNS, SCENE_ALLOWANCE_DN, SCENE_ALLOWANCE_MIN_DN, TEXTURE_LIMIT, VALIDATED_SIGMA_DN,
+    MISMATCH_CAUSES, PHYSICS_NOISE_COLUMNS, SCENE_ALLOWANCE_DN, SCENE_ALLOWANCE_MIN_DN, TEXTURE_LIMIT, VALIDATED_SIGMA_DN,
     PATCH_CHUNK, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, beyond_validated_range,
     noise_evidence, physics_noise_posterior, textured,
 )
@@ -831,3 +831,45 @@ def test_other_exposures_of_one_and_of_256_patches(batch):
     assert out["sigma"].shape == (batch, 3) and torch.isfinite(out["sigma_std"]).all()
     assert out["exposures_read"] == 1 and out["assessable"].all()
     assert torch.allclose(out["sigma"][:, 1:3], truth[:, 1:3], rtol=0.05)  # DCSN and RN
+
+
+# --- which kind of mismatch the evidence names ---------------------------------------------------------------------
+
+def test_the_cause_names_a_gain_from_one_frame():
+    """A gain 10 dB above the told one moves the signal-dependent and the signal-independent noise together: one
+    frame names it (pooled and per patch); each row of ``cause`` sums to 1."""
+    told = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    noisy, _ = simulate_variant(_ramp(4), told, (), torch.Generator().manual_seed(2), overrides={"gain_db": 16.0})
+    est = PhysicsNoiseEstimator()
+    for pool in (False, True):
+        cause = est.predict(noisy, told, pool=pool)["cause"]
+        assert cause.shape == (4, len(MISMATCH_CAUSES)) and torch.allclose(cause.sum(1), torch.ones(4), atol=1e-5)
+        assert (cause[:, MISMATCH_CAUSES.index("gain_db")] > 0.9).all(), cause
+
+
+@pytest.mark.parametrize("field, factor", [("temperature_c", None), ("white_noise_v_per_rthz", 3.0)])
+def test_the_cause_of_a_signal_independent_excess_is_named_by_a_second_exposure_time(field, factor):
+    """A hotter sensor and more white noise both add a signal-independent variance: one exposure time cannot tell
+    them apart (its cause is shared by the prior and the fields' ranges), two can — the temperature, or the readout
+    side (the white-noise density, or noise beyond what its range allows)."""
+    long = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.2, temperature_c=30.0)
+    override = {field: 55.0 if factor is None else float(long.white_noise_v_per_rthz) * factor}
+    long, short, sims = _two_exposures(override)
+    est = PhysicsNoiseEstimator()
+    joint = est.predict(sims[0][0], long, pool=True, other_exposures=[(sims[2][0], short)])["cause"]
+    readout = joint[:, MISMATCH_CAUSES.index("white_noise_v_per_rthz")] + joint[:, MISMATCH_CAUSES.index("beyond")]
+    if field == "temperature_c":
+        assert (joint[:, MISMATCH_CAUSES.index("temperature_c")] > 0.9).all(), joint[0]
+    else:
+        assert (readout > 0.9).all(), joint[0]
+    assert (joint[:, MISMATCH_CAUSES.index("gain_db")] < 0.05).all()
+
+
+def test_the_cause_is_nan_where_a_patch_is_not_readable():
+    meta = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.02, temperature_c=30.0)
+    black = torch.zeros(2, 1, 128, 128)  # no unclipped block: no evidence at all
+    out = PhysicsNoiseEstimator().predict(black, meta)
+    assert torch.isnan(out["cause"]).all() and not out["assessable"].any()
+    matched, _ = simulate_variant(_ramp(2), meta, (), torch.Generator().manual_seed(4))
+    cause = PhysicsNoiseEstimator().predict(matched, meta)["cause"]  # readable: a distribution even where it matches
+    assert torch.isfinite(cause).all() and torch.allclose(cause.sum(1), torch.ones(2), atol=1e-5)

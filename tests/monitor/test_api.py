@@ -8,6 +8,8 @@ import pytest
 import torch
 
 from camhealth.monitor import Monitor, as_frame, load_metadata, xi_alarm
+from camhealth.monitor.api import CAUSE_WORDS, cause_text
+from camhealth.monitor.diagnostics import OK, key_values
 from camhealth.physics import CameraMetadata
 from tests.monitor.conftest import FakeMTF, FakeNoise, noisy
 
@@ -97,6 +99,12 @@ def test_load_metadata_file_errors(tmp_path):
     (tmp_path / "m.txt").write_text("gain_db: 1")
     with pytest.raises(ValueError, match=".json, .yaml"):
         load_metadata(tmp_path / "m.txt")
+    (tmp_path / "m.png").write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")  # binary: refused by its suffix, not decoded
+    with pytest.raises(ValueError, match=r"m.png must be .json, .yaml or .yml"):
+        load_metadata(tmp_path / "m.png")
+    (tmp_path / "latin1.yaml").write_bytes("sensor: ICX285\ntemperature_c: 40 # 40 °C\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"latin1.yaml is not UTF-8 text: byte 0xb0 at position \d+"):
+        load_metadata(tmp_path / "latin1.yaml")
 
 
 # ------------------------------------------------------------------ monitor behaviour
@@ -832,6 +840,47 @@ def test_an_auto_exposures_steps_split_dark_current_from_readout_noise(mode):
     other_gain.process(seq[1][0], {"exposure_s": 0.02, "gain_db": 12.0})
     r = _strict(other_gain.process(seq[2][0], seq[2][1]).to_json())
     assert r["noise"]["coverage"]["other_exposures"] == 0
+
+
+@pytest.mark.parametrize("mode", ["map", "sampled"])
+def test_the_report_names_the_cause_of_a_mismatch(mode):
+    """What the evidence points to, in the JSON (``noise.cause``) and in the alarm's message: a camera with 3× the white
+    noise is "noisier", most likely readout noise; a sensor 25 K hotter than told, its exposure alternating 0.2 / 0.02
+    s, moves the short frames' σ_Total by less than the alarm's limit — "ok", but its sources are followed and named
+    (dark current); a matched camera has no cause."""
+    from camhealth.bench.sensor_variants import simulate_variant
+
+    told = {"gain_db": 6.0, "exposure_s": 0.2, "temperature_c": 30.0}
+    long = CameraMetadata.preset("EV76C661", **told)
+    h, w = 256, 384
+    clean = torch.linspace(0.1, 0.8, w).view(1, 1, 1, w).expand(1, 1, h, w).contiguous()
+    cameras = {"readout": {"white_noise_v_per_rthz": float(long.white_noise_v_per_rthz) * 3.0},
+               "dark_current": {"temperature_c": 55.0}, None: None}
+    for cause, real in cameras.items():
+        mon = Monitor("noise_source_full", None, sensor="EV76C661", metadata=told, mode=mode, adaptive=False, warmup=False)
+        for i in range(4):
+            cam = long.replace(exposure_s=torch.tensor([0.02 if i % 2 else 0.2], dtype=torch.float64))
+            x, _ = simulate_variant(clean, cam, (), torch.Generator().manual_seed(i), real)
+            report = mon.process(x[0, 0], {"exposure_s": float(cam.exposure_s)})
+            r = _strict(report.to_json())
+        got = r["noise"]["cause"]  # the last frame: 0.02 s, the other exposure time's evidence kept
+        diag = dict(key_values(report, OK))
+        if cause is None:
+            assert got is None and r["alarm"]["state"] == "ok" and "most likely" not in r["alarm"]["message"]
+            assert diag["noise_cause"] == "" and diag["noise_cause_p"] == "nan"
+            continue
+        assert diag["noise_cause"] == cause and float(diag["noise_cause_p"]) > 0.9
+        assert set(got) == {"gain", "dark_current", "readout", "patches"} and got["patches"] > 0
+        assert abs(got["gain"] + got["dark_current"] + got["readout"] - 1.0) < 1e-2
+        assert got[cause] > 0.9, got
+        assert "most likely " + CAUSE_WORDS[cause] in r["alarm"]["message"]
+        assert r["alarm"]["state"] == ("noisier" if cause == "readout" else "ok"), r["alarm"]
+
+
+def test_cause_text_names_the_runner_up_where_it_has_a_quarter():
+    assert cause_text({"gain": 0.9, "dark_current": 0.06, "readout": 0.04, "patches": 12}) == "most likely the gain (P 0.90, 12 patches)"
+    both = cause_text({"gain": 0.0, "dark_current": 0.55, "readout": 0.45, "patches": 3})
+    assert both.startswith("most likely dark current") and "readout noise (white noise the metadata do not have) P 0.45" in both
 
 
 def test_exposure_evidence_must_be_a_bool_and_reset_forgets_it():
