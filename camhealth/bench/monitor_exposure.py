@@ -29,8 +29,9 @@ Both are signal-independent, so every patch shares them (clipped pixels aside). 
 each patch's signal, and a frame's median over patches is not a whole-frame value; it is left out of the error.
 Reported per camera and monitor, over the frames from the second on (the first has no other exposure time to
 draw on), separately for the long and the short exposure: the RMS and the mean of the error of the frame's σ_DCSN
-and σ_RN (the frame report's ``median``) against the truth, and the frames whose alarm says ``noisier`` (the visible excesses)
-or ``ok``. ms/frame of each monitor in the timing rows (``Monitor.process`` plus the JSON line).
+and σ_RN (the frame report's ``median``) against the truth, the frames whose alarm says ``noisier`` (the visible excesses)
+or ``ok``, and of the frames with a ``cause`` (their patches follow the image) those whose most probable cause is
+the camera's (dark current, readout noise). ms/frame of each monitor in the timing rows (``Monitor.process`` plus the JSON line).
 """
 
 from __future__ import annotations
@@ -50,6 +51,8 @@ HOTTER_K = 25.0
 #: The white-noise camera's read-out white noise is this multiple of the metadata's.
 WHITE_NOISE_FACTOR = 3.0
 CAMERAS = ("matched", "hotter sensor", "white noise ×3")
+#: The cause (:data:`camhealth.monitor.api.CAUSE_GROUPS`) each camera's mismatch is (None: none).
+CAUSE_OF = {"matched": None, "hotter sensor": "dark_current", "white noise ×3": "readout"}
 MODES = ("sampled", "map")
 
 
@@ -101,6 +104,7 @@ def _mean(errors: list[float]) -> float:
 def run_exposure_step(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load, machine_description
     from camhealth.monitor import Monitor
+    from camhealth.monitor.api import CAUSE_GROUPS
     from camhealth.physics import CameraMetadata
 
     ratio = float(args.exposure_ratio)
@@ -120,8 +124,9 @@ def run_exposure_step(args: argparse.Namespace) -> BenchResult:
     rows: list[Row] = []
     table = [
         "| camera | monitor | exposure evidence | σ_DCSN error, long / short: RMS (mean) [DN] | σ_RN error, long / short: "
-        "RMS (mean) [DN] | true σ_DCSN / σ_RN, long [DN] | alarm noisier / ok | other exposure times used |",
-        "|---|---|---|---|---|---|---|---|",
+        "RMS (mean) [DN] | true σ_DCSN / σ_RN, long [DN] | alarm noisier / ok | cause named: right / frames with one | "
+        "other exposure times used |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for camera in CAMERAS:
         frames, truth = exposure_stream(clean, meta, exposures, camera, args.seed)
@@ -139,10 +144,12 @@ def run_exposure_step(args: argparse.Namespace) -> BenchResult:
                 got[k].append(rep)
         for (mode, kept), reps in got.items():
             err = {(q, long): [] for q in (1, 2) for long in (True, False)}
-            states, other = [], []
+            states, other, causes = [], [], []
             for i in range(w0, len(reps)):
                 r = reps[i]
                 states.append(r.alarm.get("state"))
+                if r.noise is not None and r.noise.cause:  # the most probable cause of the frame's followed patches
+                    causes.append(max(CAUSE_GROUPS, key=lambda k: float(r.noise.cause.get(k, 0.0))))
                 other.append(int(r.noise.coverage.get("other_exposures", 0)) if r.noise is not None else 0)
                 if r.noise is None or not r.noise.assessable:
                     continue
@@ -157,7 +164,9 @@ def run_exposure_step(args: argparse.Namespace) -> BenchResult:
             table.append(
                 f"| {camera} | {mode} | {'on' if kept else 'off'} | {cell(1)} | {cell(2)} | "
                 f"{float(long_truth[:, 1].mean()):.2f} / {float(long_truth[:, 2].mean()):.2f} | "
-                f"{states.count('noisier')}/{n} / {states.count('ok')}/{n} | {sum(1 for o in other if o > 0)}/{n} |")
+                f"{states.count('noisier')}/{n} / {states.count('ok')}/{n} | "
+                f"{'–' if CAUSE_OF[camera] is None else causes.count(CAUSE_OF[camera])} / {len(causes)} | "
+                f"{sum(1 for o in other if o > 0)}/{n} |")
             rows.append(Row(f"{camera}: {mode}, exposure evidence {'on' if kept else 'off'}", times[(mode, kept)][w0:],
                             note="ms per frame"))
     header = [

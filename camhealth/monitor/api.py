@@ -752,18 +752,23 @@ def _pooled_std(std: torch.Tensor, k: int) -> torch.Tensor:
 #: (by index) it sums: the gain; the dark current (the sensor's temperature); readout-like white noise (the white-noise
 #: density, or noise beyond what any field in range explains: both add the same exposure-independent variance).
 CAUSE_GROUPS: dict[str, tuple[int, ...]] = {"gain": (0,), "dark_current": (1,), "readout": (2, 3)}
-#: Words for the causes in the alarm's message.
+#: Words for the causes in the alarm's message, where the image is noisier than the metadata say …
 CAUSE_WORDS: dict[str, str] = {"gain": "the gain", "dark_current": "dark current (the sensor hotter than told)",
                                "readout": "readout noise (white noise the metadata do not have)"}
+#: … and where it is cleaner.
+CAUSE_WORDS_CLEANER: dict[str, str] = {"gain": "the gain", "dark_current": "dark current (the sensor cooler than told)",
+                                       "readout": "readout noise (less white noise than the metadata say, or a denoiser)"}
 
 
-def cause_text(cause: Mapping[str, Any]) -> str:
+def cause_text(cause: Mapping[str, Any], noisier: bool = True) -> str:
     """The alarm's words for a frame's :attr:`TaskReport.cause`: the most probable cause and its probability, and the
-    runner-up where it has at least a quarter."""
+    runner-up where it has at least a quarter; ``noisier``: the image is noisier than the metadata say (ξ < 0), else
+    cleaner."""
+    words = CAUSE_WORDS if noisier else CAUSE_WORDS_CLEANER
     ranked = sorted(((float(cause.get(k, 0.0)), k) for k in CAUSE_GROUPS), reverse=True)
-    text = f"most likely {CAUSE_WORDS[ranked[0][1]]} (P {ranked[0][0]:.2f}"
+    text = f"most likely {words[ranked[0][1]]} (P {ranked[0][0]:.2f}"
     if ranked[1][0] >= 0.25:
-        text += f"; {CAUSE_WORDS[ranked[1][1]]} P {ranked[1][0]:.2f}"
+        text += f"; {words[ranked[1][1]]} P {ranked[1][0]:.2f}"
     return text + f", {cause.get('patches', 0)} patches)"
 
 
@@ -1535,12 +1540,13 @@ class Monitor:
         if out["state"] == "noisier" and noise.banding:
             out["message"] += "; " + banding_text(noise.banding)
         elif noise.cause and out["state"] in ("noisier", "cleaner"):
-            out["message"] += "; " + cause_text(noise.cause)
+            out["message"] += "; " + cause_text(noise.cause, out["state"] == "noisier")
         elif (noise.cause and out["state"] == "ok"
               and 2 * int(noise.cause.get("patches", 0)) >= int(noise.coverage.get("estimated", 0))):
             # the frame's ξ is within the limit, but its sources depart from the metadata's (a mismatch that moves the
             # total less than the alarm waits for): say what they point to
-            out["message"] += "; the noise sources depart from the metadata's closed form: " + cause_text(noise.cause)
+            out["message"] += ("; the noise sources depart from the metadata's closed form: "
+                               + cause_text(noise.cause, noise.value("xi") <= 0))
         return out
 
     def _advice(self, noise: TaskReport | None, mtf: TaskReport | None, meta: CameraMetadata | None) -> dict[str, Any] | None:

@@ -877,10 +877,25 @@ def test_the_report_names_the_cause_of_a_mismatch(mode):
         assert r["alarm"]["state"] == ("noisier" if cause == "readout" else "ok"), r["alarm"]
 
 
+def test_a_cleaner_image_names_its_cause_in_the_words_of_less_noise():
+    """The gain is 8 dB below the told one: the image is "cleaner", and the message names the gain."""
+    from camhealth.bench.sensor_variants import simulate_variant
+
+    told = {"gain_db": 12.0, "exposure_s": 0.05, "temperature_c": 30.0}
+    clean = torch.linspace(0.1, 0.8, 384).view(1, 1, 1, 384).expand(1, 1, 256, 384).contiguous()
+    x, _ = simulate_variant(clean, CameraMetadata.preset("ICX285", **told), (), torch.Generator().manual_seed(0), {"gain_db": 4.0})
+    mon = Monitor("noise_source_full", None, sensor="ICX285", metadata=told, mode="map", adaptive=False, warmup=False)
+    r = _strict(mon.process(x[0, 0]).to_json())
+    assert r["alarm"]["state"] == "cleaner" and r["noise"]["cause"]["gain"] > 0.9
+    assert r["alarm"]["message"].endswith(f"; most likely the gain (P 1.00, {r['noise']['cause']['patches']} patches)")
+
+
 def test_cause_text_names_the_runner_up_where_it_has_a_quarter():
     assert cause_text({"gain": 0.9, "dark_current": 0.06, "readout": 0.04, "patches": 12}) == "most likely the gain (P 0.90, 12 patches)"
     both = cause_text({"gain": 0.0, "dark_current": 0.55, "readout": 0.45, "patches": 3})
-    assert both.startswith("most likely dark current") and "readout noise (white noise the metadata do not have) P 0.45" in both
+    assert both.startswith("most likely dark current (the sensor hotter") and "readout noise (white noise the metadata do not have) P 0.45" in both
+    cleaner = cause_text({"gain": 0.0, "dark_current": 0.2, "readout": 0.8, "patches": 3}, noisier=False)
+    assert cleaner.startswith("most likely readout noise (less white noise than the metadata say, or a denoiser) (P 0.80")
 
 
 def test_exposure_evidence_must_be_a_bool_and_reset_forgets_it():

@@ -153,8 +153,9 @@ def test_exposure_step_splits_a_readout_excess_only_with_the_other_exposure_time
             rows[m.group(1, 2, 3)] = (float(m.group(4)), line)
     assert len(rows) == 12
     for mode in ("sampled", "map"):
-        assert rows[("matched", mode, "on")][0] == 0.0 and "| 0/2 / 2/2 | 2/2 |" in rows[("matched", mode, "on")][1]
+        assert rows[("matched", mode, "on")][0] == 0.0 and "| 0/2 / 2/2 | – / 0 | 2/2 |" in rows[("matched", mode, "on")][1]
         assert rows[("white noise ×3", mode, "on")][0] < 0.2 < 1.0 < rows[("white noise ×3", mode, "off")][0]
+        assert "| 2/2 / 0/2 | 2 / 2 | 2/2 |" in rows[("white noise ×3", mode, "on")][1]  # named: readout noise
         assert rows[("white noise ×3", mode, "off")][1].endswith("| 0/2 |")  # no other exposure time drawn on
     assert "exposure alternating 160 / 20 ms (×8)" in text
 
