@@ -30,7 +30,7 @@ from typing import Any, Optional, Sequence
 
 import torch
 
-from camhealth._cli import add_debug_flag
+from camhealth._cli import add_debug_flag, config_action
 from camhealth.iopc.curves import IOPC
 from camhealth.iopc.estimation import resolve_estimator
 from camhealth.iopc.sweep import IOPCSweep, SweepConfig, log_iopc
@@ -112,6 +112,34 @@ class EstimatorSettings:
     mtf: str = "mtf"
 
 
+def _module_class(class_path: Optional[str]) -> type:
+    """The ``torch.nn.Module`` subclass ``class_path`` (``package.module.Class``) names; anything else (a function, an
+    object, a class that is no module) is refused before it is called."""
+    if not class_path or "." not in class_path:
+        raise ValueError("detector.torch.class_path must name the module class, e.g. 'mypkg.models.Detector'")
+    mod_name, cls_name = class_path.rsplit(".", 1)
+    cls = getattr(importlib.import_module(mod_name), cls_name, None)
+    if cls is None:
+        raise ValueError(f"detector.torch.class_path {class_path!r}: {mod_name} has no {cls_name!r}")
+    if not (isinstance(cls, type) and issubclass(cls, torch.nn.Module)):
+        raise ValueError(f"detector.torch.class_path {class_path!r} is a {type(cls).__name__}, not a torch.nn.Module "
+                         "class; name the detector's nn.Module subclass")
+    return cls
+
+
+def _load_state_dict(path: str) -> Any:
+    """The state dict in ``path`` (a bare one or a checkpoint's ``state_dict``), read as plain tensors only."""
+    from camhealth.export import _load_refusal
+
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"detector.torch.checkpoint {path}: no such file")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickled code, not a torch file, truncated file, ...
+        raise ValueError(f"detector.torch.checkpoint {path}: not a state dict of plain tensors ({_load_refusal(exc)})") from None
+    return state.get("state_dict", state) if isinstance(state, dict) else state
+
+
 def build_detector(settings: DetectorSettings) -> Any:
     """The frozen detector described by ``settings``."""
     from camhealth.detection import HOGPeopleDetector, TorchDetector
@@ -122,18 +150,12 @@ def build_detector(settings: DetectorSettings) -> Any:
                                  h.upscale)
     if settings.kind == "torch":
         t = settings.torch
-        if not t.class_path or "." not in t.class_path:
-            raise ValueError("detector.torch.class_path must name the module class, e.g. 'mypkg.models.Detector'")
-        mod_name, cls_name = t.class_path.rsplit(".", 1)
-        cls = getattr(importlib.import_module(mod_name), cls_name, None)
-        if cls is None:
-            raise ValueError(f"detector.torch.class_path {t.class_path!r}: {mod_name} has no {cls_name!r}")
+        cls = _module_class(t.class_path)
         module = cls(**t.init_args)
         if t.checkpoint:
-            state = torch.load(t.checkpoint, map_location="cpu", weights_only=True)
-            module.load_state_dict(state.get("state_dict", state) if isinstance(state, dict) else state)
+            module.load_state_dict(_load_state_dict(t.checkpoint))
         return TorchDetector(module, t.channels, t.input_scale, t.box_format, t.normalized_boxes,
-                             name=cls_name)
+                             name=cls.__name__)
     raise ValueError(f"detector.kind = {settings.kind!r} must be 'hog' or 'torch'")
 
 
@@ -158,11 +180,32 @@ def load_frames(source: str, selection: FrameSelection) -> tuple[torch.Tensor, l
     return torch.stack(images), ids, paths
 
 
-def build_parser():
-    from jsonargparse import ActionConfigFile, ArgumentParser
+#: jsonargparse parser mode of ``python -m camhealth.iopc``: YAML, read by :func:`_load_yaml`.
+_PARSER_MODE = "camhealth_iopc"
 
-    p = ArgumentParser(prog="python -m camhealth.iopc", description=__doc__.split("\n\n")[0])
-    p.add_argument("--config", action=ActionConfigFile, help="YAML config (configs/iopc.yaml)")
+
+def _load_yaml(text: str) -> Any:
+    """jsonargparse's YAML loader (safe: no tags that run code), with a ``detector.torch`` section that holds only
+    ``class_path`` (and ``init_args``) wrapped as the settings' own class spec: jsonargparse would read such a
+    mapping as a subclass of :class:`TorchDetectorSettings` and refuse it, yet it is the form configs/iopc.yaml
+    documents (the user's ``nn.Module`` class and its arguments)."""
+    from jsonargparse import get_loader
+
+    value = get_loader("yaml")(text)
+    detector = value.get("detector") if isinstance(value, dict) else None
+    torch_section = detector.get("torch") if isinstance(detector, dict) else None
+    if isinstance(torch_section, dict) and "class_path" in torch_section and set(torch_section) <= {"class_path", "init_args"}:
+        detector["torch"] = {"class_path": f"{__name__}.{TorchDetectorSettings.__name__}", "init_args": torch_section}
+    return value
+
+
+def build_parser():
+    import yaml
+    from jsonargparse import ArgumentParser, set_loader
+
+    set_loader(_PARSER_MODE, _load_yaml, exceptions=(yaml.YAMLError,))
+    p = ArgumentParser(prog="python -m camhealth.iopc", description=__doc__.split("\n\n")[0], parser_mode=_PARSER_MODE)
+    p.add_argument("--config", action=config_action(), help="YAML config (configs/iopc.yaml)")
     p.add_argument("--source", type=str, default="street", help="image source spec (camhealth.data.build_source)")
     p.add_argument("--frames", type=FrameSelection, default=FrameSelection())
     p.add_argument("--ground_truth", type=GroundTruthSettings, default=GroundTruthSettings())

@@ -380,8 +380,14 @@ class IOPC:
             return cls.from_dict(json.loads(path.read_text()))
         if path.suffix == ".npz":
             with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta_json"]))
-                data = {k: z[k] for k in z.files if k != "meta_json"}
+                try:
+                    meta = json.loads(str(z["meta_json"]))
+                    data = {k: z[k] for k in z.files if k != "meta_json"}
+                except ValueError as exc:  # an object array: reading it would unpickle it
+                    if "allow_pickle" not in str(exc):
+                        raise
+                    raise ValueError(f"{path}: holds pickled Python objects (object arrays); camhealth refuses pickled "
+                                     "arrays, an IOPC .npz holds plain numbers and a JSON string only") from None
             d = dict(meta)
             d.update({k: v for k, v in data.items() if k not in ("blur_length_px", "blur_mtf")})
             d["blur_relation"] = {"length_px": data["blur_length_px"], "mtf": data["blur_mtf"]}

@@ -68,3 +68,68 @@ def test_cli_errors(tmp_path, crop_folder):
         main(["--config", str(_config(tmp_path, crop_folder)), "--detector.kind", "yolo"])
     with pytest.raises(ValueError, match="class_path"):
         main(["--config", str(_config(tmp_path, crop_folder)), "--detector.kind", "torch"])
+
+
+def _instantiated(argv):
+    from camhealth.iopc.cli import build_parser
+
+    parser = build_parser()
+    cfg = parser.parse_args(argv)
+    return (getattr(parser, "instantiate", None) or parser.instantiate_classes)(cfg)
+
+
+def test_torch_detector_in_yaml_as_configs_iopc_documents(tmp_path):
+    """A second --config with ``detector.torch.class_path`` + ``init_args`` only (the form configs/iopc.yaml shows) is the
+    user's module, not a jsonargparse subclass spec; the first config's other detector.torch settings stay."""
+    from pathlib import Path
+
+    from camhealth.detection import TorchDetector
+    from camhealth.iopc.cli import build_detector
+
+    user = tmp_path / "user.yaml"
+    user.write_text("detector:\n  kind: torch\n  torch:\n    class_path: torch.nn.Linear\n"
+                    "    init_args: {in_features: 2, out_features: 3}\n")
+    base = Path(__file__).resolve().parents[2] / "configs" / "iopc.yaml"
+    init = _instantiated(["--config", str(base), "--detector.torch.channels", "3", "--config", str(user)])
+    t = init.detector.torch
+    assert (t.class_path, t.init_args, t.channels) == ("torch.nn.Linear", {"in_features": 2, "out_features": 3}, 3)
+    detector = build_detector(init.detector)
+    assert isinstance(detector, TorchDetector) and detector.module.out_features == 3
+
+
+def test_torch_detector_class_path_must_be_a_module_class_and_is_not_called_otherwise(tmp_path):
+    marker = tmp_path / "MARKER"
+    cfg = tmp_path / "evil.yaml"
+    cfg.write_text(json.dumps({"detector": {"kind": "torch", "torch": {
+        "class_path": "subprocess.run", "init_args": {"args": ["touch", str(marker)]}}}}))
+    from camhealth.iopc.cli import build_detector
+
+    for argv in (["--config", str(cfg)],
+                 ["--detector.kind", "torch", "--detector.torch.class_path", "subprocess.run",
+                  "--detector.torch.init_args", json.dumps({"args": ["touch", str(marker)]})]):
+        with pytest.raises(ValueError, match=r"class_path 'subprocess.run' is a function, not a torch.nn.Module class"):
+            build_detector(_instantiated(argv).detector)
+    assert not marker.exists()
+    with pytest.raises(ValueError, match="'collections.OrderedDict' is a type, not a torch.nn.Module class"):
+        build_detector(_instantiated(["--detector.kind", "torch", "--detector.torch.class_path", "collections.OrderedDict"]).detector)
+
+
+def test_torch_detector_checkpoint_is_read_as_plain_tensors_naming_the_file(tmp_path):
+    import torch
+
+    from camhealth.iopc.cli import build_detector
+    from tests._evil_files import Payload
+
+    args = ["--detector.kind", "torch", "--detector.torch.class_path", "torch.nn.Linear",
+            "--detector.torch.init_args", '{"in_features": 2, "out_features": 1}']
+    good = tmp_path / "good.pt"
+    torch.save({"state_dict": {"weight": torch.full((1, 2), 7.0), "bias": torch.zeros(1)}}, good)
+    detector = build_detector(_instantiated([*args, "--detector.torch.checkpoint", str(good)]).detector)
+    assert float(detector.module.weight[0, 0]) == 7.0
+    evil, marker = tmp_path / "evil.pt", tmp_path / "MARKER"
+    torch.save({"state_dict": Payload(marker)}, evil)
+    with pytest.raises(ValueError, match=f"detector.torch.checkpoint {evil}: not a state dict of plain tensors") as info:
+        build_detector(_instantiated([*args, "--detector.torch.checkpoint", str(evil)]).detector)
+    assert not marker.exists() and "weights_only" not in str(info.value) and "camhealth never unpickles" in str(info.value)
+    with pytest.raises(FileNotFoundError, match="detector.torch.checkpoint .*missing.pt: no such file"):
+        build_detector(_instantiated([*args, "--detector.torch.checkpoint", str(tmp_path / "missing.pt")]).detector)

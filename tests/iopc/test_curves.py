@@ -95,3 +95,14 @@ def test_figure():
     fig = IOPC.from_records(_records()).figure()
     assert len(fig.axes) >= 3
     plt.close(fig)
+
+
+def test_npz_with_pickled_arrays_is_refused_naming_the_file(tmp_path):
+    from tests._evil_files import Payload
+
+    marker = tmp_path / "MARKER"
+    path = tmp_path / "evil.npz"
+    np.savez(path, meta_json=np.array([Payload(marker)], dtype=object), ap_2d=np.zeros((2, 2)))
+    with pytest.raises(ValueError, match=f"{path}: holds pickled Python objects.*refuses pickled arrays"):
+        IOPC.load(path)
+    assert not marker.exists()
