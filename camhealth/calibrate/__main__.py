@@ -16,7 +16,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from camhealth._cli import BadValue, config_parser
+from camhealth._cli import BadValue, add_debug_flag, config_parser, debugging, run_cli
+from camhealth.physics.metadata import METADATA_RANGES
 
 __all__ = ["build_parser", "main"]
 
@@ -53,6 +54,34 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _gain_db(text: str | float) -> float:
+    """Option type: a gain in dB inside camhealth's metadata range (``METADATA_RANGES['gain_db']``)."""
+    lo, hi = METADATA_RANGES["gain_db"]
+    try:
+        g = float(text)
+    except (TypeError, ValueError):
+        raise BadValue(f"must be a number of dB, got {text!r}") from None
+    if not lo <= g <= hi:
+        raise BadValue(f"must lie in camhealth's gain range {lo:g} … {hi:g} dB, got {text}")
+    return g
+
+
+def _output_problem(args: argparse.Namespace) -> str | None:
+    """Why an output path cannot be written (checked before the frames are read), or ``None``."""
+    out = args.out
+    maps = args.maps if args.maps is not None else out.with_name(out.stem + ".maps.npz")
+    details = out.with_name(out.stem + ".calibration.yaml")
+    for option, path in (("--out", out), ("--maps", maps), ("--out", details)):  # (details: written beside --out)
+        if path.is_dir():
+            return f"argument {option}: {path} is a folder; give the name of the file to write"
+        blocking = [d for d in path.parents if d.exists() and not d.is_dir()]
+        if blocking:
+            return f"argument {option}: cannot write {path}: {blocking[0]} is a file, not a folder"
+    if args.report is not None and args.report.exists() and not args.report.is_dir():
+        return f"argument --report: {args.report} is a file; give a folder for report.md, calibration.png and maps.png"
+    return None
+
+
 def build_parser():
     """jsonargparse parser: every option may also come from ``--config FILE``; ``--print_config`` shows them."""
     p = config_parser(
@@ -65,7 +94,8 @@ def build_parser():
     p.add_argument("--maps", type=Path, default=None, metavar="FILE", help="maps NPZ (default <out stem>.maps.npz)")
     p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N", help="read at most N frames per set")
     g = p.add_argument_group("file names without a gain or temperature token")
-    g.add_argument("--gain-db", type=float, default=0.0, metavar="DB", help="gain of sets whose names give none (default 0)")
+    g.add_argument("--gain-db", type=_gain_db, default=0.0, metavar="DB",
+                   help="gain of sets whose names give none, {:g} … {:g} dB (default 0)".format(*METADATA_RANGES["gain_db"]))
     g.add_argument("--temperature-c", type=float, default=None, metavar="C", help="temperature of sets whose names give none (default: an error)")
     g = p.add_argument_group("datasheet values (override the manifest's camera section; missing ones are assumed and marked so)")
     g.add_argument("--sensor-type", choices=("CCD", "CMOS"), default=None)
@@ -75,6 +105,7 @@ def build_parser():
     g.add_argument("--reset-factor", type=float, default=None, metavar="R", help="CMOS kTC residue 0…1 (default: fitted from ≥ 2 temperatures, else 0)")
     p.add_argument("--operating-point", action="append", default=[], metavar="FIELD=VALUE",  # → _assignment in main
                    help="gain_db, exposure_s or temperature_c written to the metadata (repeatable)")
+    add_debug_flag(p)
     return p
 
 
@@ -85,6 +116,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         operating_point = dict(_assignment(a) for a in args.operating_point)
     except argparse.ArgumentTypeError as exc:
         parser.error(f"argument --operating-point: {exc}")
+    problem = _output_problem(args)  # before the (long) reading of the frames
+    if problem:
+        parser.error(problem)
     from camhealth.calibrate import calibrate
     from camhealth.calibrate.report import write_report
 
@@ -97,9 +131,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = calibrate(args.frames, camera=camera, operating_point=operating_point, max_frames=args.max_frames,
                            gain_db=args.gain_db, temperature_c=args.temperature_c)
     except (FileNotFoundError, ValueError) as exc:
+        if debugging():
+            raise
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    written = result.save(args.out, maps=args.maps, header=f"command: {command}")
+    try:
+        written = result.save(args.out, maps=args.maps, header=f"command: {command}")
+    except OSError as exc:  # (the paths were checked; a permission or a disk can still refuse)
+        if debugging():
+            raise
+        print(f"error: cannot write the calibration: {exc}", file=sys.stderr)
+        return 2
     for n, fe in result.fields.items():
         unc = f" ± {fe.uncertainty:.3g}" if fe.uncertainty else ""
         print(f"{n:<26} {fe.value:<12.6g}{unc:<12} {fe.unit:<7} {fe.source}")
@@ -108,9 +150,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     for kind, path in written.items():
         print(f"wrote {kind}: {path}")
     if args.report is not None:
-        print(f"wrote report: {write_report(result, args.report, command)}")
+        try:
+            print(f"wrote report: {write_report(result, args.report, command)}")
+        except OSError as exc:
+            if debugging():
+                raise
+            print(f"error: cannot write the report to {args.report}: {exc}", file=sys.stderr)
+            return 2
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main, "python -m camhealth.calibrate"))

@@ -165,9 +165,10 @@ class CalibrationResult:
         import yaml
 
         out = Path(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
         details = Path(details) if details is not None else out.with_name(out.stem + ".calibration.yaml")
         maps = Path(maps) if maps is not None else out.with_name(out.stem + ".maps.npz")
+        for folder in {out.parent, details.parent, maps.parent}:  # (created where missing)
+            folder.mkdir(parents=True, exist_ok=True)
         out.write_text(self.yaml_text(header), encoding="utf-8")
         details.write_text(yaml.safe_dump(self.details(), sort_keys=False, allow_unicode=True), encoding="utf-8")
         np.savez_compressed(maps, **self.maps)

@@ -272,3 +272,27 @@ def test_name_without_exposure(tmp_path):
     _write_set(folder, [np.zeros((8, 8))] * 4, bits=8)
     with pytest.raises(ValueError, match="gives no exposure time"):
         calibrate([folder])
+
+
+@pytest.mark.parametrize("gain", ["200", "1e9", "-5", "nan"])
+def test_cli_gain_db_outside_the_metadata_range_is_refused_naming_the_range(gain, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([str(tmp_path / "dark_200ms"), "--out", str(tmp_path / "c.yaml"), f"--gain-db={gain}"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f"argument --gain-db: must lie in camhealth's gain range 0 … 24 dB, got {gain}" in err
+
+
+def test_cli_output_paths_are_checked_before_the_frames_are_read(tmp_path, capsys):
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "afile").write_text("x")
+    frames = str(tmp_path / "never_read")  # a missing set: the output paths are refused first
+    for argv, message in (
+        (["--out", str(tmp_path / "adir")], f"argument --out: {tmp_path / 'adir'} is a folder"),
+        (["--out", str(tmp_path / "c.yaml"), "--maps", str(tmp_path / "adir")], f"argument --maps: {tmp_path / 'adir'} is a folder"),
+        (["--out", str(tmp_path / "afile" / "c.yaml")], f"{tmp_path / 'afile'} is a file, not a folder"),
+        (["--out", str(tmp_path / "c.yaml"), "--report", str(tmp_path / "afile")], f"argument --report: {tmp_path / 'afile'} is a file"),
+    ):
+        with pytest.raises(SystemExit) as info:
+            main([frames, *argv])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and message in err and "Traceback" not in err, (argv, err)
