@@ -4,17 +4,22 @@ Every ``python -m camhealth.<tool>`` (``fit``, ``export``, ``evaluate``, ``monit
 ``iopc``) runs its ``main`` through :func:`run_cli`: an error prints ``<prog>: error: <message>`` on stderr and
 exits with status 2 (Ctrl-C: ``<prog>: interrupted``, status 130); ``--debug`` anywhere on the command line lets
 the exception and its traceback through instead. Usage errors of the argument parser keep their own message
-and status.
+and status. A ``--config`` file that holds no options at all (empty, or only comments) is refused naming it
+(:func:`check_config_file`), where jsonargparse would say only ``Unexpected config:``.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import traceback
 from typing import Any, Callable, Sequence
 
-__all__ = ["DEBUG_FLAG", "BadValue", "add_debug_flag", "config_parser", "debugging", "one_line", "run_cli"]
+__all__ = [
+    "DEBUG_FLAG", "BadValue", "IntAtLeast", "add_debug_flag", "check_config_file", "config_action", "config_parser",
+    "debugging", "one_line", "run_cli",
+]
 
 DEBUG_FLAG = "--debug"
 _debug = False
@@ -30,9 +35,68 @@ class BadValue(argparse.ArgumentTypeError, ValueError):
     ``ValueError`` (``Parser key "x": <message>``): either way one line and exit status 2, never a traceback."""
 
 
+class IntAtLeast:
+    """Option type: an integer >= ``lo`` (a config file's ``true`` or ``2.5`` is none), else :class:`BadValue` naming the
+    value and the bound. Its ``repr`` (``int >= 1``) is what jsonargparse's ``--help`` shows as the type."""
+
+    def __init__(self, lo: int) -> None:
+        self.lo = lo
+
+    def __call__(self, value: Any) -> int:
+        try:
+            if isinstance(value, (bool, float)):
+                raise ValueError
+            n = int(value)
+        except (TypeError, ValueError):
+            raise BadValue(f"must be an integer >= {self.lo}, got {value!r}") from None
+        if n < self.lo:
+            raise BadValue(f"must be >= {self.lo}, got {n}")
+        return n
+
+    def __repr__(self) -> str:
+        return f"int >= {self.lo}"
+
+
 def add_debug_flag(parser: Any) -> None:
     """List ``--debug`` in an argparse/jsonargparse parser's ``--help`` (:func:`run_cli` acts on it)."""
     parser.add_argument(DEBUG_FLAG, action="store_true", help=_HELP)
+
+
+def check_config_file(value: Any, option: str = "--config") -> None:
+    """ValueError naming ``value`` when it is an existing file whose YAML holds nothing (empty, only blanks or
+    comments, a bare ``null``). Anything else (inline YAML, a missing file, a YAML error) is left to the parser, which
+    has its own message for it. The file is read with PyYAML's safe loader: nothing in it runs."""
+    from pathlib import Path
+
+    if not isinstance(value, (str, Path)) or "\n" in str(value):
+        return
+    path = Path(value)
+    try:
+        if not path.is_file():
+            return
+        import yaml
+
+        empty = yaml.safe_load(path.read_text(encoding="utf-8", errors="replace")) is None
+    except Exception:  # noqa: BLE001 - unreadable or invalid: the parser reports it
+        return
+    if empty:
+        raise BadValue(f"{option} {value}: the file is empty (no options in it)")
+
+
+@functools.lru_cache(maxsize=None)
+def config_action() -> Any:
+    """jsonargparse's ``ActionConfigFile`` that refuses an empty config file naming it (:func:`check_config_file`)."""
+    from jsonargparse import ActionConfigFile
+
+    class ConfigFile(ActionConfigFile):
+        def __call__(self, parser, cfg, values, option_string=None):
+            try:
+                check_config_file(values, option_string or "--config")
+            except BadValue as exc:
+                raise TypeError(str(exc)) from None  # jsonargparse: usage, "error: <message>", exit status 2
+            super().__call__(parser, cfg, values, option_string)
+
+    return ConfigFile
 
 
 def config_parser(**kwargs: Any) -> Any:
@@ -40,10 +104,10 @@ def config_parser(**kwargs: Any) -> Any:
     ``--config FILE`` (YAML or JSON of the options, keys as ``--print_config`` writes them; flags after it override
     it) and ``--print_config`` (the resolved options as YAML, then exit). ``kwargs`` go to the parser (``prog``,
     ``description``, ``formatter_class``, …); options are added as with argparse."""
-    from jsonargparse import ActionConfigFile, ArgumentParser
+    from jsonargparse import ArgumentParser
 
     parser = ArgumentParser(**kwargs)
-    parser.add_argument("--config", action=ActionConfigFile,
+    parser.add_argument("--config", action=config_action(),
                         help="YAML/JSON file of these options (keys as --print_config writes them); later flags override it")
     return parser
 

@@ -2,7 +2,7 @@
 
 * :func:`packaged_config` / :func:`resolve_config_args`: ``--config noise_source`` (a name, no folder) is the YAML
   shipped inside the package (``camhealth/configs/noise_source.yaml``), so the training commands work after a plain
-  ``pip install`` from any folder; a path that exists is used as it is.
+  ``pip install`` from any folder; a path that exists is used as it is (an empty file is refused, naming it).
 * :func:`check_top_level_packages`: ``datamodules`` and ``lightning_modules`` are top-level packages installed
   beside ``camhealth``; a user's own folder or module of the same name earlier on ``sys.path`` (the current
   folder, for ``python -m``) would shadow them, which Python reports as a missing submodule. The check names the
@@ -38,7 +38,10 @@ def packaged_config(name: str) -> Path:
     return path
 
 
-def _resolve(value: str) -> str:
+def _resolve(value: str, option: str = "--config") -> str:
+    from camhealth._cli import check_config_file
+
+    check_config_file(value, option)  # (jsonargparse would say only "Unexpected config:")
     if Path(value).exists() or "/" in value or "\\" in value or value.lstrip().startswith(("{", "[")):
         return value  # an existing file, a path (its own error), or inline YAML
     return str(packaged_config(value))
@@ -46,16 +49,16 @@ def _resolve(value: str) -> str:
 
 def resolve_config_args(args: Sequence[str]) -> list[str]:
     """``args`` with every ``--config NAME`` / ``-c NAME`` / ``--config=NAME`` that names no existing file and no
-    folder replaced by the packaged config of that name."""
+    folder replaced by the packaged config of that name; ValueError naming an existing config file that is empty."""
     out: list[str] = []
-    take = False
+    take = None
     for a in args:
         if take:
-            out.append(_resolve(a))
-            take = False
+            out.append(_resolve(a, take))
+            take = None
         elif a in ("--config", "-c"):
             out.append(a)
-            take = True
+            take = a
         elif a.startswith("--config="):
             out.append("--config=" + _resolve(a[len("--config="):]))
         else:

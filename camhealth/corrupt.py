@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from camhealth._cli import add_debug_flag, config_parser, run_cli
+from camhealth._cli import IntAtLeast, add_debug_flag, config_parser, run_cli
 from camhealth.augment import CameraCorruption, RandomDefocusBlur, RandomMotionBlur, RandomSensorNoise
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
@@ -118,6 +118,27 @@ def _camera(args: argparse.Namespace) -> CameraCorruption:
     )
 
 
+#: The MIN MAX range options: name → (largest MAX or None, unit); MIN ≥ 0 and MIN ≤ MAX for each.
+_RANGES = {"defocus": (None, "px"), "motion": (None, "px"), "shake": (1.0, "")}
+
+
+def _check_ranges(args: argparse.Namespace) -> None:
+    """ValueError naming the option when a MIN MAX range is not two numbers with 0 ≤ MIN ≤ MAX (≤ 1 for --shake); a
+    negative range would otherwise switch the corruption off without a word."""
+    for name, (top, unit) in _RANGES.items():
+        values = list(getattr(args, name))
+        text = f"--{name} {' '.join(f'{v:g}' if isinstance(v, (int, float)) else repr(v) for v in values)}"
+        if len(values) != 2 or not all(isinstance(v, (int, float)) and np.isfinite(v) for v in values):
+            raise ValueError(f"{text}: needs two finite numbers MIN MAX")
+        lo, hi = values
+        if lo < 0 or hi < 0:
+            raise ValueError(f"{text}: MIN and MAX must be >= 0{' ' + unit if unit else ''} (0 0 disables it)")
+        if lo > hi:
+            raise ValueError(f"{text}: MIN must be <= MAX")
+        if top is not None and hi > top:
+            raise ValueError(f"{text}: MAX must be <= {top:g}")
+
+
 def build_parser():
     """jsonargparse parser: every option may also come from ``--config FILE``; ``--print_config`` shows them."""
     p = config_parser(
@@ -128,8 +149,8 @@ def build_parser():
     p.add_argument("source", nargs="?", default=argparse.SUPPRESS,  # SUPPRESS: a --config file may give it
                    help="'default' (the default: embedded photos + street clip), 'street', 'skimage', 'deadleaves', a folder or a video file")
     p.add_argument("--out", type=Path, required=True, help="output folder (created)")
-    p.add_argument("--n", type=int, default=8, help="number of patches (default 8)")
-    p.add_argument("--size", type=int, default=192, help="patch size in px (default 192)")
+    p.add_argument("--n", type=IntAtLeast(1), default=8, help="number of patches (default 8)")
+    p.add_argument("--size", type=IntAtLeast(1), default=192, help="patch size in px (default 192)")
     p.add_argument("--defocus", type=float, nargs=2, default=[1.0, 21.0], metavar=("MIN", "MAX"),
                    help="defocus disk diameter range in px (default 1 21; 0 0 disables)")
     p.add_argument("--motion", type=float, nargs=2, default=[1.0, 21.0], metavar=("MIN", "MAX"),
@@ -151,8 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         args.source = "default"
     from camhealth.data import build_source
 
-    if args.n < 1:
-        raise SystemExit(f"--n = {args.n} must be ≥ 1")
+    _check_ranges(args)  # (before the source is read)
     source = build_source(args.source)
     g = torch.Generator().manual_seed(args.seed)
     clean, ids = random_patches(source, args.n, args.size, g)

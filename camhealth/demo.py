@@ -37,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from camhealth._cli import add_debug_flag, config_parser, run_cli
+from camhealth._cli import IntAtLeast, add_debug_flag, config_parser, run_cli
 
 __all__ = ["main", "run_closed_loop", "parse_slice"]
 
@@ -338,7 +338,7 @@ def build_parser():
     c.add_argument("--min-gain", type=float, default=0.01, help="smallest expected AP gain for a change")
     c.add_argument("--pseudo-score", type=float, default=0.6, help="pseudo ground-truth score threshold")
     c.add_argument("--seed", type=int, default=0, help="noise seed of the first repeat")
-    c.add_argument("--repeats", type=int, default=1, help="runs with noise seeds seed, seed+1, … (AP mean ± std)")
+    c.add_argument("--repeats", type=IntAtLeast(1), default=1, help="runs with noise seeds seed, seed+1, … (AP mean ± std)")
     c.add_argument("--threads", type=int, default=None, help="torch threads")
     c.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     sub.add_subcommand("closed-loop", c, help="fixed vs auto-exposure vs IOPC policy on a simulated camera")

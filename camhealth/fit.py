@@ -126,8 +126,11 @@ class FitCLI(LightningCLI):
     def before_instantiate_classes(self) -> None:
         cfg = self._cfg()
         _sync_metadata_set(cfg)
-        if cfg["threads"]:
-            torch.set_num_threads(int(cfg["threads"]))
+        threads = cfg["threads"]
+        if threads is not None:  # (0 would silently keep torch's default)
+            if threads < 1:
+                raise ValueError(f"--threads {threads}: must be >= 1, or null for torch's default")
+            torch.set_num_threads(int(threads))
         # reuse freed tensor memory instead of page-faulting it in again every step (glibc; camhealth.runtime):
         # the on-the-fly corruption and the training step allocate the same large buffers every batch
         keep_freed_memory()
@@ -164,7 +167,7 @@ class FitCLI(LightningCLI):
         parser.add_argument("--mode", type=str, default="min", help="min or max for --monitor")
         parser.add_argument("--test_after_fit", type=bool, default=True, help="fit: test the best checkpoint after fit")
         parser.add_argument("--export_weights", type=str | None, default=None, help="fit: write the best model as camhealth weights here")
-        parser.add_argument("--threads", type=int | None, default=None, help="torch intra-op threads (default: torch's)")
+        parser.add_argument("--threads", type=int | None, default=None, help="torch intra-op threads, >= 1 (default: torch's)")
         parser.add_argument(
             "--init_from", type=str | None, default=None,
             help="fit: start from the weights of this camhealth weights file or checkpoint (same architecture; "

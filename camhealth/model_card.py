@@ -14,12 +14,13 @@ import datetime as _dt
 import json
 import platform
 import re
+import sys
 from pathlib import Path
 from typing import Sequence
 
 import torch
 
-from camhealth._cli import config_parser
+from camhealth._cli import add_debug_flag, config_parser, run_cli
 
 __all__ = ["SECTIONS", "card_text", "main", "read_card", "write_card"]
 
@@ -210,6 +211,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     p.add_argument("--refresh", action="store_true",
                    help="keep the existing card's command and training procedure, measure and write the rest again")
     p.add_argument("--notes", default=None, help="the training procedure (free text); with --refresh: the card's")
+    add_debug_flag(p)
     args = p.parse_args(argv)
     if (args.command is None) == (not args.refresh):
         raise ValueError("give either --command (the command that trained the weights) or --refresh (keep the card's)")
@@ -224,4 +226,4 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    sys.exit(run_cli(main, "python -m camhealth.model_card"))

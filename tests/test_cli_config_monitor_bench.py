@@ -103,6 +103,19 @@ def test_monitor_bad_config_value_exits_2_naming_the_value(content, message, tmp
     assert message in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("content", ["", "\n  \n", "# only a comment\n", "null\n"])
+def test_an_empty_config_file_is_named(content, tmp_path, capsys):
+    """jsonargparse alone says ``Unexpected config:`` and nothing after it."""
+    path = tmp_path / "empty.yaml"
+    path.write_text(content)
+    assert monitor_main(["--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: --config {path}: the file is empty (no options in it)" in err and "Traceback" not in err
+    with pytest.raises(SystemExit) as info:  # a benchmark's own --config, after its name
+        bench_main(["data", "--config", str(path)])
+    assert info.value.code == 2 and f"--config {path}: the file is empty" in capsys.readouterr().err
+
+
 def test_monitor_limits_from_a_config_file_need_two_values(tmp_path, capsys):
     path = tmp_path / "bad.yaml"
     path.write_text("source: street\nsensor: ICX285\nexposure_limits: [0.01]\n")
@@ -261,3 +274,17 @@ def test_documented_command_line_parses(page, tool, rest, capsys):
     else:
         args = bench_parse(argv)
         assert args.benchmark == argv[0]
+
+
+@pytest.mark.filterwarnings("ignore:.*found in sys.modules after import of package")  # (runpy: already imported)
+def test_bench_run_as_a_module_reports_a_bad_value_in_one_line(monkeypatch, capsys):
+    """``python -m camhealth.bench monitor --frames 0`` (through the console script's dispatcher, which runs the module
+    as ``__main__``): one error line naming the option, exit status 2, no traceback."""
+    import sys
+
+    from camhealth.__main__ import main as camhealth_main
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # (the dispatcher sets the tool's command line)
+    assert camhealth_main(["bench", "monitor", "--frames", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("python -m camhealth.bench: error: --frames must be >= 1, got 0"), err

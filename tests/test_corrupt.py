@@ -53,3 +53,22 @@ def test_patch_larger_than_image_is_a_clear_error(tmp_path):
 def test_missing_source_is_a_clear_error(tmp_path):
     with pytest.raises((FileNotFoundError, ValueError), match="nope"):
         main([str(tmp_path / "nope"), "--out", str(tmp_path / "o")])
+
+
+@pytest.mark.parametrize("option,values,message", [
+    ("--defocus", ["-5", "-1"], "--defocus -5 -1: MIN and MAX must be >= 0 px"),  # was: no defocus, without a word
+    ("--defocus", ["21", "1"], "--defocus 21 1: MIN must be <= MAX"),
+    ("--motion", ["-3", "-1"], "--motion -3 -1: MIN and MAX must be >= 0 px"),
+    ("--shake", ["0.5", "2"], "--shake 0.5 2: MAX must be <= 1"),
+])
+def test_ranges_are_checked_naming_the_option(option, values, message, tmp_path):
+    with pytest.raises(ValueError, match=message):  # (before the source is read: it does not exist)
+        main([str(tmp_path / "nope"), "--out", str(tmp_path / "o"), option, *values])
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("option", ["--size", "--n"])
+def test_size_and_count_below_one_are_refused_by_the_parser(option, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([str(tmp_path / "nope"), "--out", str(tmp_path / "o"), option, "0"])
+    assert info.value.code == 2 and f"argument {option}: must be >= 1, got 0" in capsys.readouterr().err

@@ -114,6 +114,25 @@ def test_configs_parse_with_full_variants(name, capsys):
         assert "trainer:" in capsys.readouterr().out
 
 
+def test_threads_below_one_is_refused_before_training(tmp_path):
+    """``--threads 0`` was silently torch's default; refused before the model and data are built."""
+    for threads in ("0", "-2"):
+        with pytest.raises(ValueError, match=f"--threads {threads}: must be >= 1, or null for torch's default"):
+            main(tiny_args("noise_source.yaml", tmp_path, "--threads", threads))
+    assert not (tmp_path / "runs").exists()
+
+
+def test_an_empty_config_file_is_named(tmp_path):
+    """jsonargparse alone says ``Unexpected config:`` and nothing after it (and prints the usage)."""
+    path = tmp_path / "empty.yaml"
+    for content in ("", "# nothing yet\n"):
+        path.write_text(content)
+        for option, argv in (("--config", ["--config", str(path)]), ("-c", ["fit", "-c", str(path)]),
+                             ("--config", ["--config", "configs/noise_source.yaml", f"--config={path}"])):
+            with pytest.raises(ValueError, match=f"{option} {path}: the file is empty"):
+                main(argv)
+
+
 def test_init_from_fine_tunes_from_weights_and_rejects_another_kind(tmp_path):
     import torch
 

@@ -95,3 +95,25 @@ def test_exactly_one_of_command_and_refresh(tmp_path, argv):
     path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt")
     with pytest.raises(ValueError, match="either --command .* or --refresh"):
         main([str(path), *argv])
+
+
+@pytest.mark.filterwarnings("ignore:.*found in sys.modules after import of package")  # (runpy: already imported)
+def test_cli_bad_weights_file_is_one_line_exit_2(tmp_path, monkeypatch, capsys):
+    """``python -m camhealth.model_card`` (run as the module, through the console script's dispatcher): a missing,
+    non-checkpoint or code-carrying file is one error line naming it, exit status 2, and nothing in it runs."""
+    import sys
+
+    from camhealth.__main__ import main as camhealth_main
+    from tests._evil_files import Payload
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # (the dispatcher sets the tool's command line)
+    marker = tmp_path / "MARKER"
+    torch.save({"state_dict": Payload(marker)}, tmp_path / "evil.pt")
+    (tmp_path / "notes.pt").write_text("not a checkpoint")
+    for name, message in (("missing.pt", "no estimator named or at"), ("notes.pt", "not a camhealth checkpoint"),
+                          ("evil.pt", "camhealth never unpickles")):
+        assert camhealth_main(["model-card", str(tmp_path / name), "--command", "python -m camhealth.fit"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("python -m camhealth.model_card: error: ") and name in err[0], err
+        assert message in err[0] and "weights_only" not in err[0]
+    assert not marker.exists() and not (tmp_path / "evil.md").exists()

@@ -181,14 +181,19 @@ CLIS = {
     "camhealth.corrupt": ["/nonexistent/folder", "--out", "/tmp/never-written"],
     "camhealth.demo": ["closed-loop", "--iopc", "/nonexistent/iopc.json"],
     "camhealth.iopc": ["--source", "/nonexistent/folder", "--out_dir", "/tmp/never-written"],
+    "camhealth.model_card": ["/nonexistent/model.pt", "--command", "python -m camhealth.fit"],
+    "camhealth.calibrate": ["/nonexistent/dark_200ms_0dB_25C", "--out", "/tmp/never-written/camera.yaml"],
 }
+
+#: CLIs whose main lives in the package's ``__main__.py`` (the others: ``camhealth/<tool>.py``; iopc: ``cli.py``)
+PACKAGES = ("camhealth.iopc", "camhealth.monitor", "camhealth.calibrate")
 
 
 def _main_of(module: str):
     import importlib
 
     mod = importlib.import_module("camhealth.iopc.cli" if module == "camhealth.iopc" else
-                                  "camhealth.monitor.__main__" if module == "camhealth.monitor" else module)
+                                  f"{module}.__main__" if module in PACKAGES else module)
     return mod.main
 
 
@@ -215,7 +220,7 @@ def test_cli_errors_are_one_line_and_debug_shows_the_traceback(module, capsys, t
 
 @pytest.mark.parametrize("module", sorted(CLIS))
 def test_every_cli_entry_point_goes_through_run_cli(module):
-    path = ROOT / (module.replace(".", "/") + ("/__main__.py" if module in ("camhealth.iopc", "camhealth.monitor") else ".py"))
+    path = ROOT / (module.replace(".", "/") + ("/__main__.py" if module in PACKAGES else ".py"))
     tree = ast.parse(path.read_text())
     guards = [n for n in tree.body if isinstance(n, ast.If) and "__main__" in ast.unparse(n.test)]
     text = ast.unparse(guards[0]) if guards else ""

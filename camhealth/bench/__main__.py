@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from camhealth._cli import BadValue, config_parser
+from camhealth._cli import BadValue, add_debug_flag, config_parser, run_cli
 from camhealth.bench import BENCHMARKS, format_table, load
 
 
@@ -72,6 +72,7 @@ def build_parser():
                        help="write the markdown table into FILE's generated block of this command (appended if none)")
         module.add_arguments(p)
         sub.add_subcommand(name, p, help=module.HELP)
+    add_debug_flag(parser)
     return parser
 
 
@@ -105,5 +106,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # a bad value is one line and exit status 2 (--debug: the traceback)
+    raise SystemExit(run_cli(main, "python -m camhealth.bench"))

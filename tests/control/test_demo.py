@@ -28,6 +28,13 @@ def test_closed_loop_writes_plot_table_and_json(tmp_path, crop_folder, capsys): 
     assert "| IOPC policy |" in table and "26.1 %" in table and "| IOPC policy |" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("repeats", ["0", "-1"])
+def test_repeats_below_one_is_refused_by_the_parser(repeats, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:  # (before the IOPC file is looked for)
+        main(["closed-loop", "--iopc", str(tmp_path / "none.json"), "--repeats", repeats])
+    assert info.value.code == 2 and f"argument --repeats: must be >= 1, got {repeats}" in capsys.readouterr().err
+
+
 def test_missing_iopc_and_slices(tmp_path):
     with pytest.raises(SystemExit, match="python -m camhealth.iopc"):
         main(["closed-loop", "--iopc", str(tmp_path / "none.json")])
