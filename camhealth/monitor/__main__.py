@@ -7,7 +7,8 @@ folder) is read with the camera state of its topics, and ``--diagnostics-out`` w
 ``diagnostic_msgs/DiagnosticArray`` per frame (:mod:`camhealth.monitor.diagnostics`). Exit status: 0 on
 success (unreadable frames in a folder or recording and partly decoded video frames are reported and skipped),
 2 on an error (missing/unreadable source, undecodable video, ``--start`` past the end, damaged recording, unknown
-topic, bad metadata, missing or refused model, …), with a one-line message (``--debug``: the traceback).
+topic, bad metadata, missing or refused model, no frame scored at all, a ``--defects-out`` that cannot be written —
+after ``summary.json`` —, …), with a one-line message (``--debug``: the traceback).
 Every option may also come from ``--config FILE`` (YAML/JSON, keys as ``--print_config`` writes them; ``--set``
 entries as ``FIELD=VALUE`` strings).
 """
@@ -106,6 +107,16 @@ def _non_negative(value: str | float) -> float:
         raise BadValue(f"must be a number, got {value!r}") from None
     if not x >= 0 or x == float("inf"):
         raise BadValue(f"must be a finite number >= 0, got {value}")
+    return x
+
+
+def _positive_number(value: str | float) -> float:
+    try:
+        x = float(value)
+    except ValueError:
+        raise BadValue(f"must be a number, got {value!r}") from None
+    if not x > 0 or x == float("inf"):
+        raise BadValue(f"must be a finite number > 0, got {value}")
     return x
 
 
@@ -234,7 +245,8 @@ def build_parser():
                         "defects on it count as known and the alarm names only the others")
     g.add_argument("--defects-out", type=Path, default=None, metavar="FILE",
                    help="write the run's defect map to FILE (.npz: defective_pixels, the pixels flagged in at least "
-                        "--defects-min-frames frames, and flagged_frames), readable by --defect-map")
+                        "--defects-min-frames frames, and flagged_frames), readable by --defect-map; .npz is appended "
+                        "where missing, FILE's folder is created as --out's is, a folder as FILE is refused before the run")
     g.add_argument("--defects-min-frames", type=_positive, default=2, metavar="N",
                    help="--defects-out: frames a pixel must be flagged in (default 2: recurring; on a static camera "
                         "the scene's own points of light recur too)")
@@ -262,8 +274,8 @@ def build_parser():
     g.add_argument("--overlay", action="store_true",
                    help="write overlay PNGs (noise and blur heat maps) to DIR/overlays/ (needs --out)")
     g.add_argument("--overlay-every", type=_positive, default=1, metavar="N", help="overlay every N-th frame (default 1)")
-    g.add_argument("--sigma-max-dn", type=_non_negative, default=20.0, metavar="DN",
-                   help="top of the overlay's σ colour scale (default 20 DN)")
+    g.add_argument("--sigma-max-dn", type=_positive_number, default=20.0, metavar="DN",
+                   help="top of the overlay's σ colour scale, > 0 (default 20 DN)")
     g.add_argument("--per-patch", action="store_true", help="include every patch's status and values in the JSON lines")
     g.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     _add_recording_arguments(p)
@@ -367,7 +379,7 @@ def _human_summary(summary: dict, out: TextIO) -> None:
         if summary.get(key):
             print(f"  {key}: {summary[key]}", file=out)
     d = summary.get("defects_out")
-    if d:
+    if d and "error" not in d:
         print(f"  defect map: {d['path']} ({d['pixels']} pixels flagged in at least {d['min_frames']} frames)", file=out)
 
 
@@ -391,6 +403,13 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--{name.replace('_', '-')} needs 2 values LO HI, got {getattr(args, name)}")
     if args.iopc_weights is not None and len(args.iopc_weights) != len(args.iopc):
         raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
+    if args.defects_out is not None:  # checked before the run, whose end would otherwise find it unwritable
+        from camhealth.monitor.defect_map import defect_map_path
+
+        try:
+            args.defects_out = defect_map_path(args.defects_out)
+        except ValueError as exc:
+            raise ValueError(f"--defects-out {args.defects_out}: {exc}") from None
     source = open_source(args.source, args.start, args.stride, args.max_frames, bit_depth=args.bit_depth,
                          recording=_recording_options(args))
     if args.static_pairs:
@@ -435,6 +454,8 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         xi_threshold_dn=args.xi_threshold_dn, xi_sigmas=args.xi_sigmas, policy=policy, per_patch=args.per_patch,
         defect_map=args.defect_map, static_pairs=args.static_pairs, exposure_evidence=not args.no_exposure_evidence,
     )
+    if args.defects_out is not None:  # (its folder is created, as --out's)
+        args.defects_out.parent.mkdir(parents=True, exist_ok=True)
     out_dir: Path | None = args.out
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -493,17 +514,29 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         summary["recording"] = source.summary()
     if diagnostics is not None:
         summary["diagnostics"] = diagnostics.summary()
+    defects_error = None
     if args.defects_out is not None and monitor.frames:
+        from camhealth._cli import debugging, one_line
         from camhealth.monitor.defect_map import save_defect_map
 
         found, counts = monitor.found_defects(args.defects_min_frames)
-        written = save_defect_map(args.defects_out, found, counts)
-        summary["defects_out"] = {"path": str(written), "pixels": int(found.sum()), "min_frames": args.defects_min_frames}
+        try:
+            written = save_defect_map(args.defects_out, found, counts)
+            summary["defects_out"] = {"path": str(written), "pixels": int(found.sum()), "min_frames": args.defects_min_frames}
+        except (OSError, ValueError) as exc:  # the run's other results are still written; the error comes after them
+            if debugging():
+                raise
+            defects_error = f"--defects-out {args.defects_out}: the defect map could not be written: {one_line(exc)}"
+            summary["defects_out"] = {"path": str(args.defects_out), "error": defects_error}
     if out_dir is not None:
         summary["jsonl"] = str(out_dir / "monitor.jsonl")
         if overlays:
             summary["overlays"] = f"{out_dir / 'overlays'} ({overlays} PNG)"
         (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, ensure_ascii=False, allow_nan=False, default=str))
+    if frames == 0:  # every frame unreadable or refused: nothing was monitored, which is no success
+        why = f"all {len(unreadable)} unreadable or refused (first: {unreadable[0]})" if unreadable else "none was read"
+        raise ValueError(f"no frame of {source.path} could be scored: {why}"
+                         + (f"; the frame errors are in {out_dir / 'monitor.jsonl'}" if out_dir is not None else ""))
     _human_summary(summary, report_to)
     if source.kind == "recording":
         for line in source.describe():
@@ -512,6 +545,8 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         d = summary["diagnostics"]
         print(f"  diagnostics: {d['path']} ({d['messages']} DiagnosticArray on {d['topic']}: "
               + ", ".join(f"{v} {k}" for k, v in d["levels"].items()) + ")", file=report_to)
+    if defects_error is not None:
+        raise OSError(defects_error + (f" (the run's results are in {out_dir})" if out_dir is not None else ""))
     return 0
 
 

@@ -32,7 +32,10 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "MAX_MAP_PIXELS", "NPZ_KEYS", "load_defect_map", "save_defect_map"]
+__all__ = [
+    "IMAGE_SUFFIXES", "MAX_DEFECT_SHARE", "MAX_MAP_PIXELS", "NPZ_KEYS", "defect_map_path", "load_defect_map",
+    "save_defect_map",
+]
 
 #: Image files read as masks (non-zero = defective).
 IMAGE_SUFFIXES = (".png", ".pgm", ".pbm", ".tif", ".tiff", ".bmp")
@@ -166,10 +169,27 @@ def load_defect_map(source: Any, shape: tuple[int, int] | None = None) -> torch.
     return torch.from_numpy(np.ascontiguousarray(arr))
 
 
+def defect_map_path(path: str | Path) -> Path:
+    """The file :func:`save_defect_map` writes for ``path``: ``.npz`` appended where missing; ValueError when it names
+    a folder (which would otherwise become ``<folder>.npz`` beside it) or lies under a file."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; give the defect map's file name, e.g. {path / 'defects.npz'}")
+    if path.suffix.lower() != ".npz":
+        path = path.with_name(path.name + ".npz")
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; give another file name for the defect map")
+    blocking = [d for d in path.parents if d.exists() and not d.is_dir()]
+    if blocking:
+        raise ValueError(f"cannot write {path}: {blocking[0]} is a file, not a folder")
+    return path
+
+
 def save_defect_map(path: str | Path, defective: torch.Tensor, frames: torch.Tensor | None = None) -> Path:
     """Writes a defect map that :func:`load_defect_map` reads: ``defective_pixels`` (bool H×W) and, where given,
     ``flagged_frames`` (int32 H×W, the frames each pixel was flagged in), compressed, no pickled objects. Returns the
-    path written (``.npz`` appended where missing)."""
+    path written (``.npz`` appended where missing; a folder is refused, see :func:`defect_map_path`); the file's
+    folder must exist."""
     arr = torch.as_tensor(defective).detach().cpu().numpy()
     if arr.ndim != 2 or arr.dtype != np.bool_:
         raise ValueError(f"defective must be a bool H×W array, got {arr.dtype} of shape {tuple(arr.shape)}")
@@ -179,8 +199,6 @@ def save_defect_map(path: str | Path, defective: torch.Tensor, frames: torch.Ten
         if cnt.shape != arr.shape:
             raise ValueError(f"frames has shape {tuple(cnt.shape)}, the map {tuple(arr.shape)}")
         out["flagged_frames"] = cnt
-    path = Path(path)
-    if path.suffix.lower() != ".npz":
-        path = path.with_name(path.name + ".npz")
+    path = defect_map_path(path)
     np.savez_compressed(path, **out)
     return path

@@ -241,3 +241,69 @@ def test_static_pairs_warn_on_lossy_frames(tmp_path, capsys):
         assert code == 0, err
         warned = "warning: --static-pairs reads pairs of lossless frames, and 2 of its 2 frame file(s) are .jpg images"
         assert (warned in err) == (ext == "jpg") and err.count("warning: --static-pairs") == (ext == "jpg")
+
+
+def test_no_frame_scored_at_all_exits_2_after_writing_the_frame_errors(models, tmp_path, capsys):
+    """A folder whose every frame is unreadable is an error (as a single unreadable image is), not a run that exits 0;
+    the frame errors and summary.json are still written."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for name in ("f001.png", "f002.png"):
+        (folder / name).write_bytes(b"not a png at all")
+    code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", "--out", str(tmp_path / "o"), *models], capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert f"no frame of {folder} could be scored: all 2 unreadable or refused (first: " in lines[0] and "f001.png" in lines[0]
+    assert len(_lines((tmp_path / "o" / "monitor.jsonl").read_text())) == 2
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["unreadable_frames"] == 2
+    code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", *models], capsys)  # JSON lines on stdout
+    assert code == 2 and all("frame_error" in d for d in _lines(out)) and len(err.strip().splitlines()) == 1
+
+
+def _defect_run(tmp_path, models, *extra):
+    g = np.random.default_rng(0)
+    png = _png(tmp_path / "frame.png", g.integers(40, 200, (256, 256), dtype=np.uint8))
+    return [str(png), "--sensor", "ICX285", "--no-mtf", "--defects-min-frames", "1", *models, *extra]
+
+
+def test_defects_out_is_checked_before_the_run(models, tmp_path, capsys):
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "afile").write_text("x")
+    for target, message in ((tmp_path / "adir", f"{tmp_path / 'adir'} is a folder"),
+                            (tmp_path / "afile" / "map.npz", f"{tmp_path / 'afile'} is a file, not a folder")):
+        argv = _defect_run(tmp_path, models, "--defects-out", str(target), "--out", str(tmp_path / "o"))
+        code, out, err = _run(argv, capsys)
+        assert code == 2 and out == "" and f"--defects-out {target}: " in err and message in err, err
+        assert not (tmp_path / "o").exists()  # refused before the run
+    assert not (tmp_path / "adir.npz").exists()
+
+
+def test_defects_out_folder_is_created_and_npz_appended(models, tmp_path, capsys):
+    target = tmp_path / "new" / "sub" / "found"
+    code, out, err = _run(_defect_run(tmp_path, models, "--defects-out", str(target)), capsys)
+    assert code == 0, err
+    assert (tmp_path / "new" / "sub" / "found.npz").is_file() and f"defect map: {target}.npz" in err
+
+
+def test_summary_is_written_when_the_defect_map_cannot_be_written(models, tmp_path, capsys, monkeypatch):
+    import camhealth.monitor.defect_map as defect_map
+
+    def disk_full(path, *a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(defect_map, "save_defect_map", disk_full)
+    target = tmp_path / "found.npz"
+    code, out, err = _run(_defect_run(tmp_path, models, "--defects-out", str(target), "--out", str(tmp_path / "o")), capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert f"--defects-out {target}: the defect map could not be written: " in lines[0] and "No space left" in lines[0]
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == 1 and "No space left" in summary["defects_out"]["error"]
+    assert len(_lines((tmp_path / "o" / "monitor.jsonl").read_text())) == 1
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "inf"])
+def test_sigma_max_dn_must_be_positive(value, capsys):
+    with pytest.raises(SystemExit) as info:
+        build_parser().parse_args(["street", "--sigma-max-dn", value])
+    assert info.value.code == 2 and f"argument --sigma-max-dn: must be a finite number > 0, got {value}" in capsys.readouterr().err
