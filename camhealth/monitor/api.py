@@ -984,6 +984,7 @@ class Monitor:
         self._alarms: dict[str, int] = {}
         self._banding: list[tuple[float, float]] = []  # (row, column) σ [DN] of the frames that showed banding
         self._defect_frames: list[tuple[float, int]] = []  # (ppm, recurring) of the frames that showed defective pixels
+        self._causes: dict[str, int] = {}  # most probable noise cause → frames that named it
         self._defect_seen: dict[tuple[int, int], int] = {}  # frame position → frames it was flagged in
         self.defect_map: torch.Tensor | None = None
         if defect_map is not None:
@@ -1496,6 +1497,9 @@ class Monitor:
             self._banding.append((float(noise.banding["row_dn"]), float(noise.banding["col_dn"])))
         if noise is not None and noise.defects:
             self._defect_frames.append((float(noise.defects["ppm"]), int(noise.defects["recurring"])))
+        if noise is not None and noise.cause:
+            top = max(CAUSE_GROUPS, key=lambda k: float(noise.cause.get(k, 0.0)))
+            self._causes[top] = self._causes.get(top, 0) + 1
         self._last = report
         return report
 
@@ -1627,7 +1631,9 @@ class Monitor:
 
     def summary(self) -> dict[str, Any]:
         """Frames, timing (median/mean/max ms), patch counts per task and status, the patches the estimators refused
-        per task and reason, alarm states, the frames with row or column noise (``banding``: their count and the
+        per task and reason, alarm states, the frames whose noise named a cause (``causes``: their count and how many
+        named each as the most probable — ``gain``, ``dark_current``, ``readout``; ``None`` without any; a frame's
+        :attr:`TaskReport.cause`), the frames with row or column noise (``banding``: their count and the
         median and largest σ per direction [DN]; ``None`` without any), the frames with defective pixels (``defects``:
         their count, the median and largest share per million tested, ``recurring_pixels``, the frame positions
         flagged in more than one frame, and ``recurring_xy``, up to :data:`DEFECT_LIST` of them as [x, y, frames],
@@ -1652,6 +1658,7 @@ class Monitor:
                 "frames": len(self._banding),
                 **{f"{name}_dn": {"median": _num(float(np.median(v)), 3), "max": _num(float(np.max(v)), 3)}
                    for name, v in (("row", [b[0] for b in self._banding]), ("col", [b[1] for b in self._banding]))}},
+            "causes": None if not self._causes else {"frames": sum(self._causes.values()), **dict(self._causes)},
             "defects": None if not self._defect_frames else {
                 "frames": len(self._defect_frames),
                 "ppm": {"median": _num(float(np.median([d[0] for d in self._defect_frames])), 1),

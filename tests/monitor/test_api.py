@@ -865,10 +865,12 @@ def test_the_report_names_the_cause_of_a_mismatch(mode):
             r = _strict(report.to_json())
         got = r["noise"]["cause"]  # the last frame: 0.02 s, the other exposure time's evidence kept
         diag = dict(key_values(report, OK))
+        causes = mon.summary()["causes"]  # the run's frames that named a cause, by the most probable one
         if cause is None:
             assert got is None and r["alarm"]["state"] == "ok" and "most likely" not in r["alarm"]["message"]
-            assert diag["noise_cause"] == "" and diag["noise_cause_p"] == "nan"
+            assert diag["noise_cause"] == "" and diag["noise_cause_p"] == "nan" and causes is None
             continue
+        assert causes[cause] >= 2 and causes["frames"] == sum(v for k, v in causes.items() if k != "frames")
         assert diag["noise_cause"] == cause and float(diag["noise_cause_p"]) > 0.9
         assert set(got) == {"gain", "dark_current", "readout", "patches"} and got["patches"] > 0
         assert abs(got["gain"] + got["dark_current"] + got["readout"] - 1.0) < 1e-2
