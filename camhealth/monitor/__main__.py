@@ -63,7 +63,8 @@ Output, one JSON object per frame (keys): frame, index, source_id, size, assessa
   temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
   no_edges, not_assessable, total}}, refused {{reason: patches}}, banding {{row_dn, col_dn, patches}} (row and
   column noise, in total and xi; null without), defects {{hot, dark, checked, ppm, patches, recurring, known
-  (with --defect-map)}} (defective pixels, not in total; null without)}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
+  (with --defect-map)}} (defective pixels, not in total; null without), cause {{gain, dark_current, readout,
+  patches}} (where the noise contradicts the metadata: what it most likely is; null without)}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
   ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
   Unreadable frames of a folder and partly decoded video frames give {{"frame_error": …}} lines, never scores.
   16-bit frames are scaled by their significant bits (--bit-depth; the summary names the scaling used).
@@ -372,6 +373,10 @@ def _human_summary(summary: dict, out: TextIO) -> None:
         print(f"  last frame blur: MTF̃ (f_n = 0.1) {_fmt(mtf['indicator']['median'], '.3f')}", file=out)
     if summary["alarms"]:
         print("  ξ alarm states: " + ", ".join(f"{k} {v}" for k, v in summary["alarms"].items()), file=out)
+    causes = summary.get("causes")
+    if causes:
+        named = ", ".join(f"{k} {v}" for k, v in causes.items() if k != "frames")
+        print(f"  noise departs from the metadata in {causes['frames']} frame(s); most probable cause: {named}", file=out)
     advice = last.get("advice")
     if advice and advice.get("available"):
         print(f"  advice: {advice['explanation']}", file=out)

@@ -228,6 +228,24 @@ def test_static_pairs_on_a_folder_of_lossless_frames(tmp_path, capsys):
     assert "static_pairs" not in _lines(out)[1]["noise"]["coverage"]
 
 
+def test_the_run_summary_counts_the_frames_that_named_a_cause(tmp_path, capsys):
+    """Frames of a smooth ramp with 8 DN of white noise, read as an ICX285 whose metadata predict about 1 DN: every
+    frame is "noisier" and names readout noise; the printed summary and summary.json count them."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    g = np.random.default_rng(1)
+    ramp = np.tile(np.linspace(40.0, 200.0, 384), (256, 1))
+    for i in range(2):
+        _png(folder / f"f{i}.png", np.clip(ramp + 8.0 * g.standard_normal(ramp.shape), 0, 255).round().astype(np.uint8))
+    code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", "--mode", "map", "--out", str(tmp_path / "run")], capsys)
+    assert code == 0, err
+    lines = _lines((tmp_path / "run" / "monitor.jsonl").read_text())
+    assert len(lines) == 2 and all(d["alarm"]["state"] == "noisier" and d["noise"]["cause"]["readout"] > 0.9 for d in lines)
+    assert "noise departs from the metadata in 2 frame(s); most probable cause: readout 2" in out
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["causes"] == {"frames": 2, "readout": 2}
+
+
 def test_static_pairs_warn_on_lossy_frames(tmp_path, capsys):
     """JPEG frames (or a video) with ``--static-pairs``: the run goes on and says, once, that pairs are for lossless
     frames; PNG frames get no warning."""
