@@ -187,14 +187,26 @@ class IOPC:
             if arr.shape != shape:
                 raise ValueError(f"IOPC.{nm} must have shape {shape} for {s} σ bins × {m} MTF bins, got {arr.shape}")
             setattr(self, nm, arr)
-        for nm in ("ap_2d", "ap_sigma", "ap_mtf"):
-            a = getattr(self, nm)
-            if bool(np.any((a[np.isfinite(a)] < 0) | (a[np.isfinite(a)] > 1))):
-                raise ValueError(f"IOPC.{nm} holds AP values outside [0, 1]")
+        for nm, cnt in (("ap_2d", "count_2d"), ("ap_sigma", "count_sigma"), ("ap_mtf", "count_mtf")):
+            a, c = getattr(self, nm), getattr(self, cnt)
+            bad = (~np.isnan(a) & ((a < 0) | (a > 1))) | ((c > 0) & ~np.isfinite(a))  # inf too; NaN only where empty
+            if bool(bad.any()):
+                where = tuple(int(k) for k in np.argwhere(bad)[0])
+                raise ValueError(f"IOPC.{nm}{list(where)} = {a[where]} (count {c[where]}): AP must lie in [0, 1], and be a "
+                                 "number wherever the bin counts detections (NaN only in empty bins)")
         self.blur_length_px = np.asarray(self.blur_length_px, dtype=np.float64).reshape(-1)
         self.blur_mtf = np.asarray(self.blur_mtf, dtype=np.float64).reshape(-1)
         if self.blur_length_px.shape != self.blur_mtf.shape:
             raise ValueError("blur_length_px and blur_mtf must have the same length")
+        L, m = self.blur_length_px, self.blur_mtf
+        if not (np.isfinite(L).all() and np.isfinite(m).all()):
+            raise ValueError(f"IOPC blur relation must be finite: blur_length_px {L.tolist()}, blur_mtf {m.tolist()}")
+        if L.size and (L.min() < 0 or bool(np.any(np.diff(L) <= 0))):
+            raise ValueError(f"IOPC.blur_length_px {L.tolist()} must be ≥ 0 px and strictly increasing (the swept "
+                             "motion lengths in order)")
+        if bool(np.any(np.diff(m) > 0)):
+            raise ValueError(f"IOPC.blur_mtf {m.tolist()} must not increase with the motion length (blur_relation "
+                             "makes it non-increasing)")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -287,14 +299,25 @@ class IOPC:
 
     def length_from_mtf(self, mtf: np.ndarray | float) -> np.ndarray:
         """MB_L(MTF̃): motion length [px] of a blur indicator value, by inverting the relation (linear
-        interpolation; clamped to the swept lengths)."""
+        interpolation; clamped to the swept lengths), so that ``mtf_from_length(length_from_mtf(v)) = v`` within the
+        relation's range. A value the relation holds over a flat stretch maps to the stretch's smallest length (the
+        least blur that reads it); a value below the stretch interpolates from its largest length. NaN stays NaN."""
         if self.blur_length_px.size < 2:
             raise ValueError(f"IOPC {self.name!r} has no MTF → motion-length relation (needs ≥ 2 swept lengths)")
-        # xp must increase: MTF decreases with L, so reverse; flat stretches keep their smallest length
-        m, L = self.blur_mtf[::-1], self.blur_length_px[::-1]
-        m_u = np.unique(m)
-        Lu = np.array([L[m == v].min() for v in m_u])
-        return np.interp(np.asarray(mtf, float), m_u, Lu)
+        L, m = self.blur_length_px, self.blur_mtf  # L increasing, m non-increasing (checked on construction)
+        q = np.asarray(mtf, float)
+        out = np.full(q.shape, L[0])  # at or above the first value: the shortest swept length
+        # segments from the far end to the near one, so that where values repeat the smallest length is written last
+        for i in range(L.size - 2, -1, -1):
+            if m[i] > m[i + 1]:
+                inside = (q <= m[i]) & (q >= m[i + 1])
+                with np.errstate(invalid="ignore"):
+                    t = (m[i] - q) / (m[i] - m[i + 1])
+                out = np.where(inside, L[i] + t * (L[i + 1] - L[i]), out)
+            else:
+                out = np.where(q == m[i], L[i], out)
+        out = np.where(q < m[-1], L[int(np.argmax(m == m[-1]))], out)  # below the range: the least length reading its end
+        return np.where(np.isnan(q), np.nan, out)
 
     def mtf_from_length(self, length_px: np.ndarray | float) -> np.ndarray:
         """The relation's MTF̃ at a motion length [px] (linear interpolation, clamped)."""

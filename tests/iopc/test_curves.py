@@ -106,3 +106,48 @@ def test_npz_with_pickled_arrays_is_refused_naming_the_file(tmp_path):
     with pytest.raises(ValueError, match=f"{path}: holds pickled Python objects.*refuses pickled arrays"):
         IOPC.load(path)
     assert not marker.exists()
+
+
+def _with(iopc, **fields):
+    d = iopc.to_dict()
+    for k, v in fields.items():
+        d["blur_relation" if k in ("length_px", "mtf") else k] = (
+            {**d["blur_relation"], k: v} if k in ("length_px", "mtf") else v)
+    return IOPC.from_dict(d)
+
+
+@pytest.mark.parametrize("fields, match", [
+    ({"length_px": [15.0, 7.0, 0.0], "mtf": [0.62, 0.81, 1.0]}, "strictly increasing"),  # the relation listed backwards
+    ({"length_px": [0.0, 7.0, 15.0], "mtf": [1.0, 0.81, 0.9]}, "must not increase"),
+    ({"length_px": [0.0, 7.0, 15.0], "mtf": [1.0, None, 0.62]}, "must be finite"),
+    ({"length_px": [-1.0, 7.0, 15.0], "mtf": [1.0, 0.81, 0.62]}, "≥ 0 px"),
+])
+def test_a_blur_relation_that_cannot_be_inverted_is_refused(fields, match):
+    """A reversed, rising or non-finite MTF → length relation would make the policy decide wrong (the reversed one
+    read MTF̃ 1 at 5 px): refused naming it."""
+    with pytest.raises(ValueError, match=match):
+        _with(IOPC.from_records(_records()), **fields)
+
+
+@pytest.mark.parametrize("value, match", [(None, "be a number wherever the bin counts"), (float("inf"), r"must lie in \[0, 1\]"),
+                                          (1.5, r"must lie in \[0, 1\]")])
+def test_ap_of_a_counted_bin_must_be_a_number_in_0_1(value, match):
+    d = IOPC.from_records(_records()).to_dict()
+    d["ap_2d"][0][9] = value  # a bin with detections
+    with pytest.raises(ValueError, match=r"IOPC.ap_2d\[0, 9\]"):
+        IOPC.from_dict(d)
+    with pytest.raises(ValueError, match=match):
+        IOPC.from_dict(d)
+
+
+def test_length_from_mtf_inverts_the_relation_across_a_flat_stretch():
+    """L = 0, 5, 10, 15 px read MTF̃ 1, 0.8, 0.8, 0.5 (a running minimum's plateau): a value on the plateau is its
+    smallest length; one below it interpolates from its largest, so the round trip holds (0.6 → 13.3 px → 0.6, where
+    interpolating from the plateau's smallest length gave 11.7 px and read 0.7 back)."""
+    iopc = _with(IOPC.from_records(_records()), length_px=[0.0, 5.0, 10.0, 15.0], mtf=[1.0, 0.8, 0.8, 0.5])
+    assert float(iopc.length_from_mtf(0.6)) == pytest.approx(10.0 + 5.0 * 2.0 / 3.0)
+    for v in (1.0, 0.9, 0.8, 0.7, 0.6, 0.5):
+        assert float(iopc.mtf_from_length(iopc.length_from_mtf(v))) == pytest.approx(v)
+    assert float(iopc.length_from_mtf(0.8)) == 5.0 and float(iopc.length_from_mtf(1.2)) == 0.0
+    assert float(iopc.length_from_mtf(0.3)) == 15.0 and math.isnan(float(iopc.length_from_mtf(float("nan"))))
+    assert iopc.length_from_mtf(np.array([[0.9, 0.6]])).shape == (1, 2)
