@@ -17,7 +17,8 @@ the MTF across the edge is measured in the steps of the standard (e-SFR):
 4. **Fourier transform.** ``MTF(f) = |Σ_i LSF_i w_i e^{−2πi f u_i}| / |Σ_i LSF_i w_i|`` evaluated *exactly*
    at the requested frequencies (a direct DFT, not FFT bins), divided by the known frequency responses of
    the central difference, ``sin(2πfΔ)/(2πfΔ)`` (the ISO 12233:2014 derivative correction), and of the
-   Δ-wide binning, ``sinc(fΔ)``.
+   Δ-wide binning, ``sinc(fΔ)``. A frequency whose correction would exceed :data:`MAX_CORRECTION` (10, sfrmat's cap)
+   is refused: at 1× oversampling the derivative's correction reaches 0 at Nyquist (f_n above ≈ 0.85 is refused).
 
 The result is the MTF along the edge normal, at the angle φ = atan b from the horizontal (for a 5° edge
 the measured direction is 5° off the H axis — exact for isotropic blur, an approximation of the H value
@@ -44,8 +45,10 @@ from camhealth._validation import check_choice, check_image, check_range
 from camhealth.estimators.charts import slanted_edge_rois
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
-__all__ = ["SlantedEdgeResult", "slanted_edge_mtf", "slanted_edge_mtf_hv"]
+__all__ = ["MAX_CORRECTION", "SlantedEdgeResult", "slanted_edge_mtf", "slanted_edge_mtf_hv"]
 
+#: The derivative and binning corrections divide the MTF by at most this factor (a frequency that needs more is refused).
+MAX_CORRECTION = 10.0
 _MIN_SLOPE = math.tan(math.radians(1.0))
 _MAX_SLOPE = math.tan(math.radians(30.0))
 
@@ -146,6 +149,14 @@ def slanted_edge_mtf(
     dev = x.device
     fn = torch.as_tensor(frequencies, dtype=torch.float64, device=dev).reshape(-1)
     check_range(fn, "frequencies", 0.0, 1.0, "× Nyquist")
+    # the derivative and binning corrections (step 4) at Δ = 1/oversample: at 1× the derivative's sinc(2fΔ) reaches 0
+    # at Nyquist; a frequency that needs more than MAX_CORRECTION (sfrmat's cap) is beyond what the ESF resolves
+    f_cyc, delta_px = 0.5 * fn, 1.0 / oversample
+    beyond = torch.sinc(2.0 * f_cyc * delta_px) * torch.sinc(f_cyc * delta_px) < 1.0 / MAX_CORRECTION
+    if bool(beyond.any()):
+        raise ValueError(f"frequencies f_n = {[round(float(v), 4) for v in fn[beyond]]} are beyond what oversample = "
+                         f"{oversample} resolves (the derivative and binning corrections would exceed "
+                         f"{MAX_CORRECTION:g}×); use oversample ≥ 2 (ISO 12233: 4) or lower frequencies")
     img = x[:, 0].double()
     b, h, w = img.shape
     if h < 8 or w < 20:
@@ -220,7 +231,8 @@ def slanted_edge_mtf(
     mtf = torch.sqrt(re.square() + im.square()) / lw.sum(dim=1, keepdim=True).abs()
     deriv = torch.sinc(2.0 * f * delta)  # sin(2πfΔ)/(2πfΔ)
     binning = torch.sinc(f * delta)
-    mtf = mtf / (deriv * binning)[None, :]
+    corr = deriv * binning  # ≥ 1/MAX_CORRECTION: checked with the arguments
+    mtf = mtf / corr[None, :]
     theta = torch.atan(slope)  # normal direction, mtf.py convention
     if aperture:
         ap = torch.sinc(f[None, :] * torch.cos(theta)[:, None]) * torch.sinc(f[None, :] * torch.sin(theta)[:, None])

@@ -102,3 +102,17 @@ def test_errors():
         slanted_edge_mtf(flat, frequencies=[0.5, 1.5])
     with pytest.raises(ValueError, match="square"):
         slanted_edge_mtf_hv(torch.rand(1, 1, 64, 80))
+
+
+def test_frequencies_beyond_what_the_oversampling_resolves_are_refused(chart):
+    """At 1× oversampling the central difference's response sin(2πfΔ)/(2πfΔ) reaches 0 at Nyquist: dividing by it
+    read 4.5e12 at f_n = 1. Such frequencies are refused, naming them; below them 1× agrees with 4× at low frequencies
+    (a 1× ESF aliases: at f_n 0.6 it reads 0.92 against 0.86 — ISO 12233 asks for 4×)."""
+    r0, r1, c0, c1 = slanted_edge_rois(256)["left"]
+    roi = chart[:, :, r0:r1, c0:c1]
+    with pytest.raises(ValueError, match=r"f_n = \[0\.9, 1\.0\] are beyond what oversample = 1 resolves"):
+        slanted_edge_mtf(roi, frequencies=[0.5, 0.9, 1.0], oversample=1)
+    one = slanted_edge_mtf(roi, frequencies=[0.3, 0.6], oversample=1).mtf
+    four = slanted_edge_mtf(roi, frequencies=[0.3, 0.6], oversample=4).mtf
+    assert abs(float(one[0, 0] - four[0, 0])) < 0.01 and abs(float(one[0, 1] - four[0, 1])) < 0.08, (one, four)
+    assert bool(torch.isfinite(slanted_edge_mtf(roi, frequencies=[1.0], oversample=2).mtf).all())
