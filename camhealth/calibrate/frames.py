@@ -204,6 +204,13 @@ def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
         x = fs.frames
         if hasattr(x, "detach"):
             x = x.detach().cpu().float().numpy()
+        if isinstance(x, (list, tuple)):  # a list of frames: one size, or the error names the set and the sizes
+            shapes = [tuple(np.shape(f.detach().cpu() if hasattr(f, "detach") else f))[-2:] for f in x]
+            sizes = {sz: shapes.count(sz) for sz in dict.fromkeys(shapes)}
+            if len(sizes) > 1:
+                detail = "; ".join(f"{h}×{w}: {n} frame(s)" for (h, w), n in sizes.items())
+                raise ValueError(f"{fs.describe()} mixes frame sizes ({detail}); every frame of a calibration must have one size")
+            x = [f.detach().cpu().float().numpy() if hasattr(f, "detach") else f for f in x]
         x = np.asarray(x, dtype=np.float32)
         if x.ndim == 4 and x.shape[1] == 1:
             x = x[:, 0]

@@ -239,6 +239,9 @@ def test_mixed_frame_sizes(tmp_path):
     fs = FrameSet("dark", 0.1, paths=[folder])
     with pytest.raises(ValueError, match=r"mixes frame sizes \(16×16: 3 frame\(s\).*8×16: 1 frame"):
         calibrate([fs] + _sets())
+    ragged = FrameSet("flat", 0.01, frames=[np.zeros((8, 8))] + [np.zeros((4, 8))] + [np.zeros((8, 8))] * 3)
+    with pytest.raises(ValueError, match=r"mixes frame sizes \(8×8: 4 frame\(s\); 4×8: 1 frame\(s\)\)"):
+        calibrate([ragged] + _sets())
 
 
 def test_manifest_naming_missing_files(tmp_path, capsys):
