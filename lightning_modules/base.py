@@ -99,9 +99,28 @@ class EstimatorModule(L.LightningModule):
     @property
     def example_input_array(self) -> tuple[torch.Tensor, ...]:
         """One patch in [0, 1] (B = 1, ``patch_size`` px) as :meth:`forward` takes it: Lightning's model summary
-        shows the input/output sizes with it and TensorBoard draws the graph from it (``log_graph: true``)."""
+        shows the input/output sizes with it."""
         g = torch.Generator().manual_seed(0)
         return (torch.rand(1, 1, self.patch_size, self.patch_size, generator=g),)
+
+    def on_fit_start(self) -> None:
+        """``TensorBoardLogger(log_graph=True)``: draw the graph of the bare network (:meth:`export_module` on
+        :meth:`export_inputs`, what is exported) instead of this module's :meth:`forward`, whose dict output and
+        metadata handling the tracer cannot follow; the logger's own attempt, which comes right after this hook,
+        is then skipped."""
+        from lightning.pytorch.loggers import TensorBoardLogger
+
+        for logger in self.loggers:
+            if isinstance(logger, TensorBoardLogger) and getattr(logger, "_log_graph", False):
+                if self.global_rank == 0:
+                    net = self.export_module()  # (eval mode while traced)
+                    was_training = self.training
+                    inputs = tuple(t.to(self.device) for t in self.export_inputs(1))
+                    try:
+                        logger.experiment.add_graph(net, inputs)
+                    finally:
+                        self.train(was_training)
+                logger._log_graph = False  # Lightning's log_graph(module) would trace forward() and fail
 
     # ------------------------------------------------------------------ export / description
     def export_inputs(self, batch_size: int = 2) -> tuple[torch.Tensor, ...]:  # pragma: no cover - abstract

@@ -135,6 +135,23 @@ def test_built_networks_run_in_fp32_and_under_bf16_autocast(kind, autocast):
     assert torch.allclose(out, ref, rtol=0.1, atol=0.1 * float(ref.abs().max()))
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.bfloat16])
+@pytest.mark.parametrize("kind", sorted(nets.NETWORKS))
+def test_a_network_cast_as_a_whole_runs_in_its_dtype(kind, dtype):
+    """Plain ``nn.Module`` use: ``net.to(float64)`` (or bfloat16, Lightning's "64-true" / "bf16-true") takes inputs of
+    that dtype and answers in it — the float64 answer equals the float32 one to float32 precision."""
+    torch.manual_seed(0)
+    net = nets.NETWORKS[kind].build({"patch_size": 32}).eval()
+    x = torch.rand(3, 1, 32, 32)
+    args = (x, torch.rand(3, 11)) if kind == "noise_source" else (x,)
+    with torch.no_grad():
+        ref = net(*args)
+        out = net.to(dtype)(*(a.to(dtype) for a in args))
+    assert out.dtype == dtype and out.shape == ref.shape and bool(torch.isfinite(out.float()).all())
+    tol = 1e-4 if dtype == torch.float64 else 0.1
+    assert torch.allclose(out.float(), ref, rtol=tol, atol=tol * float(ref.abs().max()))
+
+
 def test_count_flops_and_describe_follow_the_network_to_its_device():
     # a network trained on a GPU is described (FLOPs) at every checkpoint with CPU example inputs; a network on the
     # meta device stands in for the GPU here: without the move, its forward refuses the CPU input

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-__all__ = ["ConvAct", "ResidualBlock", "FullyConnectedBlock", "count_flops", "count_parameters", "GlobalStatsPool"]
+__all__ = ["ConvAct", "ResidualBlock", "FullyConnectedBlock", "count_flops", "count_parameters", "GlobalStatsPool", "autocast_on", "working_dtype"]
 
 
 class ConvAct(nn.Sequential):
@@ -76,6 +76,22 @@ class FullyConnectedBlock(nn.Sequential):
             n_in = h
         layers.append(nn.Linear(n_in, n_out))
         super().__init__(*layers)
+
+
+def working_dtype(x: torch.Tensor, weight: torch.Tensor) -> torch.dtype:
+    """The dtype a network's statistics, pooled features and outputs are kept in: float32 under autocast (whose ops
+    cast their inputs anyway; what ``predict(precision="bf16")`` and bf16-mixed training run), else the weights' dtype
+    (float32 as shipped; a module cast as a whole to bfloat16 or float64, Lightning's "bf16-true" / "64-true")."""
+    return torch.float32 if autocast_on(x) else weight.dtype
+
+
+def autocast_on(x: torch.Tensor) -> bool:
+    """Whether autocast is on for ``x``'s device type (False for one autocast does not know: meta, while counting
+    FLOPs)."""
+    try:
+        return torch.is_autocast_enabled(x.device.type)
+    except RuntimeError:
+        return False
 
 
 def count_parameters(module: nn.Module) -> int:

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from camhealth.nets.blocks import ConvAct, ResidualBlock
+from camhealth.nets.blocks import ConvAct, ResidualBlock, working_dtype
 
 __all__ = ["NoiseLevelNet", "ThesisNoiseNet"]
 
@@ -40,7 +40,7 @@ class NoiseLevelNet(nn.Module):
         local_mean = F.avg_pool2d(F.pad(image, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
         x = torch.cat([image * 2.0 - 1.0, (image - local_mean) * self.highpass_gain], dim=1)
         y = self.shuffle(self.head(self.body(self.stem(self.unshuffle(x)))))
-        return 5.0 * F.softplus(y.float())
+        return 5.0 * F.softplus(y.to(working_dtype(image, self.stem[0].weight)))
 
 
 class ThesisNoiseNet(nn.Module):
@@ -55,4 +55,4 @@ class ThesisNoiseNet(nn.Module):
         self.body = nn.Sequential(*mods)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return 5.0 * F.softplus(self.body(image).float())
+        return 5.0 * F.softplus(self.body(image).to(working_dtype(image, self.body[0][0].weight)))

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
+from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, working_dtype
 
 __all__ = ["MTFPreprocess", "MTFNet", "sobel"]
 
@@ -45,7 +45,8 @@ class MTFPreprocess(nn.Module):
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         b, t, h, w = image.shape
-        x = image.reshape(b * t, 1, h, w).float()
+        x = image.reshape(b * t, 1, h, w)
+        x = x.double() if x.dtype == torch.float64 else x.float()  # the contrast statistics in float32 (or float64)
         mean = x.mean((2, 3), keepdim=True)
         centred = x - mean
         std = centred.pow(2).mean((2, 3), keepdim=True).sqrt()
@@ -100,11 +101,12 @@ class MTFNet(nn.Module):
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         b, t = image.shape[:2]
-        x = self.pre(image)
+        dt = working_dtype(image, self.stem[0].weight)  # statistics, pooled features and outputs
+        x = self.pre(image).to(dt)
         if x.is_contiguous(memory_format=torch.channels_last) is False and image.is_contiguous(memory_format=torch.channels_last):
             x = x.contiguous(memory_format=torch.channels_last)
-        feats = self.pool(self.body(self.stem(x))).float()  # (2·B·T, F)
+        feats = self.pool(self.body(self.stem(x))).to(dt)  # (2·B·T, F)
         feats = feats.view(2, b, t, -1).mean(2)  # average the T patches of a stack
         feats = torch.cat([feats, feats.flip(0)], dim=-1)  # each direction's regressor reads [own, other] features
-        mtf = torch.sigmoid(self.head(feats).float())  # (2, B, 8)
+        mtf = torch.sigmoid(self.head(feats).to(dt))  # (2, B, 8)
         return torch.cat([mtf[0], mtf[1]], dim=1)

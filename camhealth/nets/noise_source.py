@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from camhealth.estimators.noise_features import box_mean3, image_statistics
-from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock
+from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, autocast_on, working_dtype
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS
 
 __all__ = ["NoiseTrunk", "NoiseSourceNet", "BRANCH_FIELDS", "OUTPUTS", "NETWORK_METADATA_SETS"]
@@ -125,12 +125,14 @@ class NoiseSourceNet(nn.Module):
         return float((feats.std(0) > 1e-6).float().mean())
 
     def forward(self, image: torch.Tensor, meta: torch.Tensor) -> torch.Tensor:
-        feats = self.trunk(image).float()
-        stats = image_statistics(image)
+        dt = working_dtype(image, next(self.branches.parameters()))  # features, image statistics and metadata join in it
+        # (under autocast the image goes in as it is, its ops cast it; else in the trunk's weights' dtype)
+        feats = self.trunk(image if autocast_on(image) else image.to(next(self.trunk.parameters()).dtype)).to(dt)
+        stats = image_statistics(image).to(dt)
         base = torch.cat([feats, stats[:, :4], stats[:, 4:6] / 10.0, torch.log(stats[:, 5:6] + 0.1)], dim=1)
         raw = []
         for branch, cols in zip(self.branches, self.branch_columns):
-            parts = [base, meta[:, cols].float()] if cols else [base]
-            raw.append(branch(torch.cat(parts, dim=1)).float())
+            parts = [base, meta[:, cols].to(dt)] if cols else [base]
+            raw.append(branch(torch.cat(parts, dim=1)).to(dt))
         raw_t = torch.cat(raw, dim=1)
         return torch.cat([5.0 * F.softplus(raw_t[:, :3]), 10.0 * raw_t[:, 3:4]], dim=1)
