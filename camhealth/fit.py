@@ -271,17 +271,22 @@ def _checked_ckpt_path(cfg, subcommand: str) -> str:
         from camhealth.export import _load_refusal
 
         raise ValueError(f"--ckpt_path {path}: not a checkpoint of plain data ({_load_refusal(exc)})") from None
+    if not (isinstance(saved, dict) and "state_dict" in saved and "pytorch-lightning_version" in saved):
+        raise ValueError(f"--ckpt_path {path}: not a Lightning checkpoint (a weights file, e.g. from --export_weights or "
+                         "camhealth.export, has no trainer state to resume); start from its weights with --init_from")
     if subcommand != "fit":
         return str(path)
     # the learning-rate schedule is restored with the step: it cannot run past the steps it was made for
-    schedules = saved.get("lr_schedulers") if isinstance(saved, dict) else None
+    schedules = saved.get("lr_schedulers")
     total = schedules[0].get("total_steps") if schedules and isinstance(schedules[0], dict) else None
     max_steps = (cfg.get("trainer") or {}).get("max_steps")
-    if isinstance(total, int) and max_steps is not None and max_steps >= total:
+    if isinstance(total, int) and (max_steps is None or max_steps < 0 or max_steps >= total):
+        beyond = ("trainer.max_steps = -1 (an epoch- or time-limited run) may go beyond it" if max_steps is None or max_steps < 0
+                  else f"trainer.max_steps = {max_steps} goes beyond it")
         raise ValueError(
             f"--ckpt_path {path}: its learning-rate schedule ends at step {total - 1} (the run's max_steps), "
-            f"trainer.max_steps = {max_steps} goes beyond it; resume with max_steps ≤ {total - 1}, or fine-tune from "
-            f"the weights with --init_from (a new schedule)"
+            f"{beyond}; resume with max_steps ≤ {total - 1}, or fine-tune from the weights with --init_from (a new "
+            f"schedule)"
         )
     return str(path)
 

@@ -240,6 +240,10 @@ def test_ckpt_path_last_takes_the_newest_last_ckpt(tmp_path, sigint_raises):
     assert cli.trainer.ckpt_path == str(newest) and cli.trainer.global_step == 4
     with pytest.raises(ValueError, match="schedule ends at step 4"):
         main(tiny_args("noise_source.yaml", tmp_path, *run, "--ckpt_path", "last", "--trainer.max_steps", "9"))
+    # an epoch-limited resume (max_steps -1) could run past the schedule too: refused before training, not mid-run
+    with pytest.raises(ValueError, match=r"max_steps = -1 \(an epoch- or time-limited run\) may go beyond it"):
+        main(tiny_args("noise_source.yaml", tmp_path, *run, "--ckpt_path", "last", "--trainer.max_steps", "-1",
+                       "--trainer.max_epochs", "1"))
 
 
 def test_ckpt_path_is_checked(tmp_path):
@@ -257,6 +261,11 @@ def test_ckpt_path_is_checked(tmp_path):
     assert not marker.exists() and "weights_only" not in str(info.value)
     with pytest.raises(ValueError, match="no last.ckpt"):
         main(tiny_args("noise_source.yaml", tmp_path / "fresh", "--ckpt_path", "last"))
+    weights = tmp_path / "weights.pt"  # plain data, but no trainer state: a weights file
+    torch.save({"format": "camhealth-weights", "state_dict": {}}, weights)
+    for sub in ([], ["test"]):
+        with pytest.raises(ValueError, match="not a Lightning checkpoint .* with --init_from"):
+            main([*sub, *tiny_args("noise_source.yaml", tmp_path, "--ckpt_path", str(weights))])
 
 
 @pytest.mark.parametrize(
