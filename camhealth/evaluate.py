@@ -482,6 +482,7 @@ class Method:
     patch_size: int | None = None
     learned: bool = False
     per_source: bool = False
+    identity: str = ""  # what the cache of ``--resume`` checks besides the name (a learned file's SHA-256)
 
 
 def classical_methods() -> list[Method]:
@@ -500,12 +501,27 @@ def classical_methods() -> list[Method]:
     ]
 
 
+def _file_identity(est: Any) -> str:
+    """SHA-256 of the file a learned estimator was loaded from ("" where it has none: the physics-first estimator)."""
+    import hashlib
+
+    path = Path(str(getattr(est, "source", "")))
+    if not path.is_file():
+        return ""
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def _wrap_learned(label: str, est: Any) -> Method:
     kind, p = getattr(est, "kind"), int(getattr(est, "patch_size"))
     needs_meta = getattr(est, "metadata_set", "none") != "none"
+    identity = _file_identity(est)
 
     if kind == "mtf":
-        return Method(label, "mtf", lambda x: est.predict(x)["mtf"].float(), patch_size=p, learned=True)
+        return Method(label, "mtf", lambda x: est.predict(x)["mtf"].float(), patch_size=p, learned=True, identity=identity)
 
     def noise(x: torch.Tensor, meta: Any = None) -> dict:
         out = est.predict(x, meta if needs_meta else None)
@@ -514,7 +530,7 @@ def _wrap_learned(label: str, est: Any) -> Method:
             res["sigma"] = out["sigma"].float()
         return res
 
-    return Method(label, "noise", noise, patch_size=p, learned=True, per_source=kind == "noise_source")
+    return Method(label, "noise", noise, patch_size=p, learned=True, per_source=kind == "noise_source", identity=identity)
 
 
 def learned_methods(names: Sequence[str] = SHIPPED, checkpoints: Sequence[str | Path] = (), log: Callable[[str], None] = print) -> list[Method]:
@@ -569,7 +585,8 @@ class _Runner:
     def run(self, case: str, method: Method, variant: str, inputs: torch.Tensor, call: Callable[[torch.Tensor, slice], Any], unit: str) -> dict:
         path = None if self.cache is None else self.cache / case / f"{_slug(method.name)}{variant}.pt"
         blob = _read_cache(path, self.log) if self.resume else None
-        if blob is not None and blob.get("config_key") == self.cfg.key() and {"seconds", "items", "out"} <= set(blob):
+        if (blob is not None and blob.get("config_key") == self.cfg.key() and blob.get("identity", "") == method.identity
+                and {"seconds", "items", "out"} <= set(blob)):  # the same method: the same file, not only its name
             self._time(method, blob["seconds"], blob["items"], unit)
             self.reused += 1
             return blob["out"]
@@ -586,7 +603,8 @@ class _Runner:
         out = _cat(parts)
         self._time(method, seconds, len(inputs), unit)
         if path is not None:
-            _write_cache({"config_key": self.cfg.key(), "out": out, "seconds": seconds, "items": len(inputs)}, path)
+            _write_cache({"config_key": self.cfg.key(), "identity": method.identity, "out": out, "seconds": seconds,
+                          "items": len(inputs)}, path)
         return out
 
 
@@ -926,8 +944,12 @@ def _summary(report: dict) -> list[str]:
             rms = comb[n]["Total"]["rms"]
             beats = all(rms < v for v in ref.values())
             fast = all(speed.get(n, math.inf) <= 2.0 * speed.get(k, 0.0) for k in ref)
+            if not ref:  # no classical baseline in this run: nothing to compare with
+                out.append(f"{n} on dead leaves: total RMS {rms:.2f} DN (PCA and B+F not run: no comparison)")
+                continue
+            names = " and ".join(ref)
             out.append(f"{n} on dead leaves: total RMS {rms:.2f} DN vs " + ", ".join(f"{k} {v:.2f}" for k, v in ref.items())
-                       + f" — {'beats' if beats else 'does NOT beat'} PCA and B+F; {speed.get(n, float('nan')):.2f} ms/patch vs "
+                       + f" — {'beats' if beats else 'does NOT beat'} {names}; {speed.get(n, float('nan')):.2f} ms/patch vs "
                        + ", ".join(f"{k} {speed.get(k, float('nan')):.2f}" for k in ref)
                        + f" ({'comparable or better' if fast else 'slower'})")  # fmt: skip
         if not learned:

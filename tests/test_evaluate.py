@@ -261,6 +261,37 @@ def test_resume_survives_a_truncated_cache_entry(tmp_path):
     assert runner.reused == 1 and len(calls) == 2  # the rewritten entry is whole again
 
 
+def test_resume_does_not_reuse_another_files_results_under_the_same_name(tmp_path):
+    """Two checkpoints named alike (the method name is the file's stem): --resume reuses a cached unit only for the same
+    file (its SHA-256), so the second checkpoint is computed, not given the first one's numbers."""
+    logs: list[str] = []
+    calls: list[int] = []
+
+    def call(batch, sl):
+        calls.append(len(batch))
+        return batch * len(calls)
+
+    inputs = torch.arange(4.0)
+    a = ev.Method("checkpoint best", "noise", fn=lambda *x: None, learned=True, identity="a" * 64)
+    b = ev.Method("checkpoint best", "noise", fn=lambda *x: None, learned=True, identity="b" * 64)
+    first = _runner(tmp_path, logs).run("case", a, "", inputs, call, "patch")
+    runner = _runner(tmp_path, logs)
+    second = runner.run("case", b, "", inputs, call, "patch")
+    assert runner.reused == 0 and len(calls) == 2 and not torch.equal(first, second)
+    again = _runner(tmp_path, logs)
+    assert torch.equal(again.run("case", b, "", inputs, call, "patch"), second) and again.reused == 1
+
+
+def test_file_identity_is_the_loaded_files_sha256(tmp_path):
+    import hashlib
+    from types import SimpleNamespace
+
+    f = tmp_path / "w.pt"
+    f.write_bytes(b"weights")
+    assert ev._file_identity(SimpleNamespace(source=str(f))) == hashlib.sha256(b"weights").hexdigest()
+    assert ev._file_identity(SimpleNamespace(source="noise_source_full")) == ""  # no file: the physics-first estimator
+
+
 def test_cache_entries_are_written_atomically(tmp_path, monkeypatch):
     """A write that fails half-way leaves the previous entry intact and no temporary file behind."""
     path = tmp_path / "case" / "entry.pt"
@@ -290,3 +321,16 @@ def test_blur_scenes_rendered_have_an_exact_label_and_a_bad_choice_is_refused():
     assert dataclasses.replace(QUICK, blur_scenes="source").blur_scenes == "source"
     with pytest.raises(ValueError, match=r"blur_scenes = 'photos' must be 'rendered' or 'source'"):
         EvalConfig(blur_scenes="photos")
+
+
+@pytest.mark.parametrize("baselines, expect", [
+    ({"PCA": 10.0}, "— beats PCA;"),
+    ({"PCA": 10.0, "B+F": 2.0}, "— does NOT beat PCA and B+F;"),
+    ({}, "(PCA and B+F not run: no comparison)"),
+])
+def test_summary_names_only_the_baselines_that_ran(baselines, expect):
+    comb = {"checkpoint x": {"Total": {"rms": 3.0}}, **{k: {"Total": {"rms": v}} for k, v in baselines.items()}}
+    report = {"blur": {"amae": {}}, "noise": {"combined": {"deadleaves": comb}},
+              "speed": [{"method": n, "ms_per_item": 1.0} for n in comb]}
+    (line,) = [s for s in ev._summary(report) if s.startswith("checkpoint x")]
+    assert expect in line
