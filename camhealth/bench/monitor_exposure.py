@@ -104,7 +104,7 @@ def _mean(errors: list[float]) -> float:
 def run_exposure_step(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load, machine_description
     from camhealth.monitor import Monitor
-    from camhealth.monitor.api import CAUSE_GROUPS
+    from camhealth.monitor.api import top_cause
     from camhealth.physics import CameraMetadata
 
     ratio = float(args.exposure_ratio)
@@ -149,7 +149,7 @@ def run_exposure_step(args: argparse.Namespace) -> BenchResult:
                 r = reps[i]
                 states.append(r.alarm.get("state"))
                 if r.noise is not None and r.noise.cause:  # the most probable cause of the frame's followed patches
-                    causes.append(max(CAUSE_GROUPS, key=lambda k: float(r.noise.cause.get(k, 0.0))))
+                    causes.append(top_cause(r.noise.cause))
                 other.append(int(r.noise.coverage.get("other_exposures", 0)) if r.noise is not None else 0)
                 if r.noise is None or not r.noise.assessable:
                     continue

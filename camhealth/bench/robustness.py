@@ -518,16 +518,14 @@ def frame_cause(out: dict[str, Any], truth: str) -> tuple[bool, bool]:
     """(the estimator follows the image on most of the frame's assessable patches, and the most probable cause of
     those — the mean of their ``cause`` grouped as the monitor does, :data:`camhealth.monitor.api.CAUSE_GROUPS` — is
     ``truth``)."""
-    from camhealth.monitor.api import CAUSE_GROUPS
+    from camhealth.monitor.api import group_causes, top_cause
 
     fol = out["follows_image"] & out["assessable"]
     cause = out["cause"][fol]
     cause = cause[torch.isfinite(cause).all(1)]
     if 2 * int(fol.sum()) < int(out["assessable"].sum()) or out["assessable"].sum() == 0 or cause.shape[0] == 0:
         return False, False
-    mean = cause.double().mean(0)
-    best = max(CAUSE_GROUPS, key=lambda k: float(mean[list(CAUSE_GROUPS[k])].sum()))
-    return True, best == truth
+    return True, top_cause(group_causes(cause.double().mean(0))) == truth
 
 
 def _bsr(err: torch.Tensor) -> tuple[float, float, float]:

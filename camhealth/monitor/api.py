@@ -94,6 +94,8 @@ __all__ = [
     "mtf_under_banding",
     "CAUSE_GROUPS",
     "cause_text",
+    "group_causes",
+    "top_cause",
     "MTF_BANDING_LIMIT_DN",
 ]
 
@@ -760,6 +762,18 @@ CAUSE_WORDS_CLEANER: dict[str, str] = {"gain": "the gain", "dark_current": "dark
                                        "readout": "readout noise (less white noise than the metadata say, or a denoiser)"}
 
 
+def group_causes(cause: Any) -> dict[str, float]:
+    """The estimator's ``cause`` (the four kinds of :data:`~camhealth.estimators.physics_noise.MISMATCH_CAUSES`,
+    a sequence or tensor of probabilities) summed into the monitor's causes (:data:`CAUSE_GROUPS`)."""
+    c = [float(v) for v in cause]
+    return {name: sum(c[i] for i in idx) for name, idx in CAUSE_GROUPS.items()}
+
+
+def top_cause(cause: Mapping[str, Any]) -> str:
+    """The most probable of a frame's causes (:attr:`TaskReport.cause`, or :func:`group_causes`' result)."""
+    return max(CAUSE_GROUPS, key=lambda k: float(cause.get(k, 0.0)))
+
+
 def cause_text(cause: Mapping[str, Any], noisier: bool = True) -> str:
     """The alarm's words for a frame's :attr:`TaskReport.cause`: the most probable cause and its probability, and the
     runner-up where it has at least a quarter; ``noisier``: the image is noisier than the metadata say (ξ < 0), else
@@ -787,8 +801,7 @@ def _refusals(st: _TaskState) -> dict[str, Any]:
                    "patches": with_any, "recurring": 0}
     cause = None
     if st.causes:  # the mean over this frame's patches that follow the image, by physical cause
-        c = torch.cat(st.causes).double().mean(0)
-        cause = {name: round(float(c[list(idx)].sum()), 3) for name, idx in CAUSE_GROUPS.items()}
+        cause = {name: round(v, 3) for name, v in group_causes(torch.cat(st.causes).double().mean(0)).items()}
         cause["patches"] = int(sum(int(t.shape[0]) for t in st.causes))
     return {"refused": dict(st.refused), "beyond_xi": beyond, "banding": banding, "defects": defects, "cause": cause}
 
@@ -1498,7 +1511,7 @@ class Monitor:
         if noise is not None and noise.defects:
             self._defect_frames.append((float(noise.defects["ppm"]), int(noise.defects["recurring"])))
         if noise is not None and noise.cause:
-            top = max(CAUSE_GROUPS, key=lambda k: float(noise.cause.get(k, 0.0)))
+            top = top_cause(noise.cause)
             self._causes[top] = self._causes.get(top, 0) + 1
         self._last = report
         return report

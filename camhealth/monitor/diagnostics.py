@@ -34,7 +34,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from camhealth.monitor.api import CAUSE_GROUPS, DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text, new_defect_ppm
+from camhealth.monitor.api import DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text, new_defect_ppm, top_cause
 
 __all__ = ["OK", "WARN", "ERROR", "LEVEL_NAMES", "KEYS", "DIAGNOSTICS_TOPIC", "DIAGNOSTICS_SUFFIXES",
            "frame_level", "key_values", "DiagnosticsWriter", "read_diagnostics"]
@@ -111,7 +111,7 @@ def key_values(report: FrameReport, level: int) -> list[tuple[str, str]]:
     band = (noise.banding or {"row_dn": 0.0, "col_dn": 0.0}) if noise is not None and noise.assessable else {}
     defects = ({"ppm": 0.0, "recurring": 0} if noise.defects is None else noise.defects) if noise is not None else {}
     cause = noise.cause if noise is not None and noise.assessable and noise.cause else None
-    top = max(CAUSE_GROUPS, key=lambda k: float(cause.get(k, 0.0))) if cause else None
+    top = top_cause(cause) if cause else None
     md = report.metadata or {}
     values = {
         "level": LEVEL_NAMES[level], "alarm": str(alarm.get("state", "unavailable")),
