@@ -892,6 +892,14 @@ def test_a_cleaner_image_names_its_cause_in_the_words_of_less_noise():
     assert r["alarm"]["message"].endswith(f"; most likely the gain (P 1.00, {r['noise']['cause']['patches']} patches)")
 
 
+def test_the_estimators_four_kinds_group_into_the_monitors_three_causes():
+    from camhealth.monitor.api import group_causes, top_cause
+
+    got = group_causes(torch.tensor([0.1, 0.2, 0.3, 0.4]))  # gain, temperature, white-noise density, beyond
+    assert got == pytest.approx({"gain": 0.1, "dark_current": 0.2, "readout": 0.7})
+    assert top_cause(got) == "readout" and top_cause({"gain": 0.6, "dark_current": 0.4}) == "gain"
+
+
 def test_cause_text_names_the_runner_up_where_it_has_a_quarter():
     assert cause_text({"gain": 0.9, "dark_current": 0.06, "readout": 0.04, "patches": 12}) == "most likely the gain (P 0.90, 12 patches)"
     both = cause_text({"gain": 0.0, "dark_current": 0.55, "readout": 0.45, "patches": 3})
