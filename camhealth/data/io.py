@@ -100,7 +100,9 @@ class ImageScaling:
         file_bits: bits per sample of the file (8 or 16); ``None`` for floating-point or 1-bit data.
         bits: significant bits the values were scaled by (value / (2^bits − 1)); ``None`` when not scaled.
         source: where ``bits`` came from: ``"file"`` (8-bit data, or 16-bit data using the full range),
-            ``"sBIT"`` (the PNG's significant-bits chunk), ``"largest value"`` (a guess from the data) or
+            ``"sBIT"`` (the PNG's significant-bits chunk), ``"largest value"`` (a guess from the data),
+            ``"sequence"`` (a frame of a sequence read at the larger depth its first frame's guess gave,
+            :func:`read_sequence_frame`) or
             ``"given"`` (the caller's ``bit_depth``).
         max_value: the largest value in the file (DN of the file).
     """
@@ -118,7 +120,9 @@ class ImageScaling:
         if self.bits is None:
             return "floating-point data in [0, 1], not rescaled"
         why = {"given": ", as given", "sBIT": ", from the PNG's sBIT chunk",
-               "largest value": f", guessed from the largest value {self.max_value:g}"}.get(self.source, "")
+               "largest value": f", guessed from the largest value {self.max_value:g}",
+               "sequence": ", the sequence's first frame's guess (its own largest value "
+                           f"{self.max_value:g} fits)"}.get(self.source, "")
         return f"{self.file_bits}-bit file read as {self.bits}-bit data (÷{2**self.bits - 1}{why})"
 
 
@@ -289,6 +293,32 @@ def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
     if scaling.source == "largest value":
         warnings.warn(f"{path}: {scaling.describe()}; pass bit_depth=16 to scale by 65535", UserWarning, stacklevel=2)
     return image
+
+
+def read_sequence_frame(path: PathLike, bit_depth: int | str, first_bits: int | None) -> tuple[torch.Tensor, ImageScaling]:
+    """A frame of a sequence (a folder of frames) as :func:`read_image_scaled` reads it, with one scale for the
+    sequence where ``bit_depth`` is ``"auto"`` and the depth is guessed from the largest value: at least
+    ``first_bits`` (the guess from the sequence's first frame; a darker frame is not read brighter), more where the
+    frame itself holds larger values (a brighter frame is not refused). A frame's scale depends only on itself and
+    the first frame, whatever order the frames are read in."""
+    frame, scaling = read_image_scaled(path, bit_depth)
+    if (bit_depth == "auto" and first_bits is not None and scaling.source == "largest value" and scaling.bits is not None
+            and scaling.bits < first_bits):
+        frame = frame * ((2.0**scaling.bits - 1.0) / (2.0**first_bits - 1.0))
+        scaling = ImageScaling(scaling.file_bits, int(first_bits), "sequence", scaling.max_value)
+    return frame, scaling
+
+
+def first_frame_bits(path: PathLike, bit_depth: int | str) -> int | None:
+    """The depth ``"auto"`` guesses from a sequence's first frame's largest value (:func:`read_sequence_frame`), or
+    ``None`` (another ``bit_depth``, a declared or full-range depth, 8-bit or floating-point data, an unreadable file)."""
+    if bit_depth != "auto":
+        return None
+    try:
+        _, scaling = read_image_scaled(path, "auto")
+    except (OSError, ValueError):
+        return None
+    return scaling.bits if scaling.source == "largest value" else None
 
 
 def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[torch.Tensor, ImageScaling]:

@@ -29,7 +29,7 @@ import torch
 
 from camhealth.data._common import check_index, check_int
 from camhealth.data.image_folder import _normalise_extensions, list_images
-from camhealth.data.io import IMAGE_EXTENSIONS, read_image, read_image_scaled, to_gray
+from camhealth.data.io import IMAGE_EXTENSIONS, first_frame_bits, read_image, read_image_scaled, read_sequence_frame, to_gray
 
 __all__ = ["VIDEO_EXTENSIONS", "FrameSequence", "FrameSequenceSource"]
 
@@ -254,12 +254,9 @@ class FrameSequence:
         limit = self.length if self.length is not None else self.max_frames
         if self.kind == "folder":
             assert self.frame_paths is not None
-            bits = self.bit_depth
             for k in range(limit or 0):
                 idx = self.frame_index(k)
-                frame, scaling = read_image_scaled(self.frame_paths[idx], bits)
-                if bits == "auto" and scaling.file_bits == 16:  # one scale for every frame: the first 16-bit frame's
-                    bits = scaling.bits
+                frame, _ = read_sequence_frame(self.frame_paths[idx], self.bit_depth, self._first_bits())
                 yield frame, idx, None
             return
         cap = self._open()
@@ -286,6 +283,14 @@ class FrameSequence:
             cap.release()
             log.close()
 
+    def _first_bits(self) -> int | None:
+        """A folder's ``"auto"`` depth from its first kept frame (:func:`~camhealth.data.io.first_frame_bits`), once."""
+        if not hasattr(self, "_first_bits_cache"):
+            assert self.frame_paths is not None
+            first = self.frame_paths[self.frame_index(0)] if (self.length or 0) > 0 else None
+            self._first_bits_cache = None if first is None else first_frame_bits(first, self.bit_depth)
+        return self._first_bits_cache
+
     def __getitem__(self, k: int) -> tuple[torch.Tensor, int]:
         n = self.length
         if n is None:
@@ -294,7 +299,7 @@ class FrameSequence:
         idx = self.frame_index(k)
         if self.kind == "folder":
             assert self.frame_paths is not None
-            return read_image(self.frame_paths[idx], self.bit_depth), idx
+            return read_sequence_frame(self.frame_paths[idx], self.bit_depth, self._first_bits())[0], idx
         cv2 = _import_cv2()
         if self._cap is not None and self._cap_pid != os.getpid():  # inherited through fork
             self.close()

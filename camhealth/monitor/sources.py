@@ -30,7 +30,7 @@ import torch
 
 from camhealth.data._common import check_frame_range
 from camhealth.data.image_folder import list_images
-from camhealth.data.io import IMAGE_EXTENSIONS, read_image_scaled
+from camhealth.data.io import IMAGE_EXTENSIONS, first_frame_bits, read_image_scaled, read_sequence_frame
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
 
 __all__ = ["SourceFrame", "FrameSource", "open_source", "STREET"]
@@ -101,15 +101,14 @@ class FrameSource:
                 yield SourceFrame(0, str(self.path), self._single, scaling=self._single_scaling)
             return
         if self.kind == "folder":
-            bits = self.bit_depth
+            # one scale for the folder where the depth is guessed: the first frame's, or more where a frame needs it
+            first = first_frame_bits(self._files[0], self.bit_depth) if self._files else None
             for idx, p in zip(self._indices, self._files):
                 try:
-                    frame, scaling = read_image_scaled(p, bits)
+                    frame, scaling = read_sequence_frame(p, self.bit_depth, first)
                 except (OSError, ValueError) as exc:
                     yield SourceFrame(idx, str(p), None, str(exc).splitlines()[0])
                     continue
-                if bits == "auto" and scaling.file_bits == 16:  # one scale for the whole folder: the first 16-bit frame's
-                    bits = scaling.bits                          # (a darker frame would otherwise be guessed brighter)
                 yield SourceFrame(idx, str(p), frame, scaling=scaling.describe())
             return
         assert self._video is not None

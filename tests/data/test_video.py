@@ -134,3 +134,15 @@ def test_a_folder_of_16_bit_frames_gets_one_scale_the_first_frames(tmp_path):
     assert float(frames[0].max()) == pytest.approx(3000 / 4095)
     assert float(frames[1].max()) == pytest.approx(800 / 4095)
     assert float(next(iter(FrameSequence(tmp_path, bit_depth=16)))[0].max()) == pytest.approx(3000 / 65535)
+    # the dark frame first: the bright one needs more bits and gets them (it was refused, and random access read it
+    # otherwise than iteration did); both ways of reading agree
+    dark_first = tmp_path / "dark_first"
+    dark_first.mkdir()
+    Image.fromarray(dark).save(dark_first / "000.png")
+    Image.fromarray(bright).save(dark_first / "001.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        seq = FrameSequence(dark_first)
+        iterated = [float(f.max()) for f, _ in seq]
+        indexed = [float(seq[k][0].max()) for k in range(2)]
+    assert iterated == indexed == pytest.approx([800 / 1023, 3000 / 4095])

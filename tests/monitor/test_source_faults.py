@@ -145,3 +145,10 @@ def test_a_folder_of_16_bit_frames_is_read_with_one_scale(tmp_path):
     items = list(open_source(tmp_path))
     assert [round(float(i.frame.max()) * 4095) for i in items] == [3000, 800]
     assert all("12-bit" in i.scaling for i in items)
+    # the dark frame first: the later bright frame is read at the 12 bits it needs, not refused as beyond 10 bits
+    (tmp_path / "b").mkdir()
+    Image.fromarray(np.full((8, 8), 800, np.uint16)).save(tmp_path / "b" / "000.png")
+    Image.fromarray(np.full((8, 8), 3000, np.uint16)).save(tmp_path / "b" / "001.png")
+    items = list(open_source(tmp_path / "b"))
+    assert [i.error for i in items] == [None, None]
+    assert [round(float(items[0].frame.max()) * 1023), round(float(items[1].frame.max()) * 4095)] == [800, 3000]
