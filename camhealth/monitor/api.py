@@ -41,6 +41,7 @@ batched network calls (``precision="bf16"`` by default, CPU autocast; ``"fp32"``
 
 from __future__ import annotations
 
+import collections
 import inspect
 import json
 import math
@@ -151,9 +152,11 @@ def as_frame(frame: Any) -> torch.Tensor:
             x = x[0]
         if not x.is_floating_point():
             scale = 65535.0 if x.dtype == torch.uint16 else 255.0
-            lo, hi = (float(x.min()), float(x.max())) if x.numel() else (0.0, 0.0)
-            if x.dtype not in (torch.uint8, torch.uint16) and (lo < 0 or hi > 255):
-                raise ValueError(f"integer frame values are 8-bit DN and must lie in [0, 255], got min {lo:g}, max {hi:g}")
+            if x.dtype not in (torch.uint8, torch.uint16):  # (in range by their type; torch has no min of uint16)
+                wide = x.to(torch.float64) if x.dtype in (torch.uint32, torch.uint64) else x  # (no min of those either)
+                lo, hi = (float(wide.min()), float(wide.max())) if x.numel() else (0.0, 0.0)
+                if lo < 0 or hi > 255:
+                    raise ValueError(f"integer frame values are 8-bit DN and must lie in [0, 255], got min {lo:g}, max {hi:g}")
             x = x.float().div_(scale)
             from_integers = True
         if x.ndim == 3:
@@ -207,6 +210,25 @@ def _read_mapping(path: Path) -> dict:
     if not isinstance(data, dict):
         raise ValueError(f"metadata file {path} must hold a mapping of field: value, got {type(data).__name__}")
     return data
+
+
+def _one_number(key: str, value: Any) -> float:
+    """A per-frame metadata value as one number in physical units: an int or float, or a NumPy / torch scalar (a
+    one-element array or tensor); a bool, a string or several values (a batch of camera states) are refused."""
+    if key == "is_cmos" and isinstance(value, (bool, np.bool_)):
+        return float(value)
+    if isinstance(value, bool) or isinstance(value, (np.bool_, str, bytes)):
+        raise ValueError(f"per-frame metadata: field {key} = {value!r} must be a number in physical units")
+    if isinstance(value, (int, float)):
+        return float(value)
+    try:
+        arr = np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"per-frame metadata: field {key} = {value!r} must be a number in physical units") from None
+    if arr.size != 1:
+        raise ValueError(f"per-frame metadata: field {key} holds {arr.size} values; a frame has one camera state "
+                         "(one number per field)")
+    return float(arr.reshape(-1)[0])
 
 
 def load_metadata(
@@ -680,6 +702,7 @@ class _TaskState:
     reference: torch.Tensor | None = None
     pairs: int = 0
     exposures: int = 0  # other exposure times whose noise evidence joined this frame's (exposure_evidence)
+    frames_seen: int = 0  # frames read since the last reset (map mode: the frames behind the answer, up to the window)
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -702,6 +725,7 @@ class _TaskState:
         self.samples_std = torch.full((self.window, self.n_samples, self.k), float("nan"))
         self.sample_slot = 0
         self.previous = self.reference = None
+        self.frames_seen = 0
 
     def push_samples(self, vals: torch.Tensor, std: torch.Tensor) -> None:
         """Sampled mode: this frame's assessable samples (n, K) and their estimator spread (n, K) replace the
@@ -738,6 +762,45 @@ def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, fr
         floor = estimator_std.float() / math.sqrt(max(frames, 1)) if shared else frame_uncertainty(estimator_std, max(n, 1), error_shared)
         se = torch.maximum(se, torch.nan_to_num(floor, nan=0.0))
     return se
+
+
+def _indicator_floor(estimator_std: torch.Tensor, n: int, error_shared: float) -> float:
+    """The least standard error of the MTF indicator MTF̃ = (H + V)/2 at f_n = 0.1 that the estimator's own per-value
+    uncertainty allows (:func:`_uncertainty`'s floor): (u_H + u_V)/2 — the two directions' errors taken as fully
+    correlated, as one scene makes them — through :func:`~camhealth.estimators.mtf_error.frame_uncertainty`; 0 where
+    the estimator states none."""
+    from camhealth.physics.mtf import mtf_indicator
+
+    u = float(mtf_indicator(estimator_std.float().reshape(1, -1))[0]) if estimator_std.numel() == 16 else float("nan")
+    if not math.isfinite(u):
+        return 0.0
+    return float(frame_uncertainty(torch.tensor([u]), max(n, 1), error_shared)[0])
+
+
+#: The run statistics of :meth:`Monitor.summary` keep the medians of at most this many recent frames (count, mean and
+#: maximum cover the whole run), so a monitor that runs for days holds bounded state.
+SUMMARY_RECENT_FRAMES = 10_000
+
+
+class _RunStat:
+    """Count, mean and maximum of a value over a whole run, and its median over the last
+    :data:`SUMMARY_RECENT_FRAMES` values: bounded memory however long the run."""
+
+    def __init__(self) -> None:
+        self.count, self.total, self.max = 0, 0.0, -math.inf
+        self.recent: collections.deque[float] = collections.deque(maxlen=SUMMARY_RECENT_FRAMES)
+
+    def add(self, value: float) -> None:
+        self.count += 1
+        self.total += value
+        self.max = max(self.max, value)
+        self.recent.append(value)
+
+    def stats(self, digits: int) -> dict[str, Any]:
+        if not self.count:
+            return {"median": None, "mean": None, "max": None}
+        return {"median": _num(float(np.median(self.recent)), digits), "mean": _num(self.total / self.count, digits),
+                "max": _num(self.max, digits)}
 
 
 def _pooled_std(std: torch.Tensor, k: int) -> torch.Tensor:
@@ -992,11 +1055,11 @@ class Monitor:
         self._meta_key: tuple | None = None
         self._prior_cache: tuple | None = None
         self._counter = 0
-        self._times: list[float] = []
+        self._times = _RunStat()  # ms per frame
         self._counts: dict[str, dict[str, int]] = {t: {n: 0 for n in STATUS_NAMES} for t in self.estimators}
         self._alarms: dict[str, int] = {}
-        self._banding: list[tuple[float, float]] = []  # (row, column) σ [DN] of the frames that showed banding
-        self._defect_frames: list[tuple[float, int]] = []  # (ppm, recurring) of the frames that showed defective pixels
+        self._banding = (_RunStat(), _RunStat())  # row, column σ [DN] of the frames that showed banding
+        self._defect_frames = _RunStat()  # ppm of the frames that showed defective pixels
         self._causes: dict[str, int] = {}  # most probable noise cause → frames that named it
         self._defect_seen: dict[tuple[int, int], int] = {}  # frame position → frames it was flagged in
         self.defect_map: torch.Tensor | None = None
@@ -1085,6 +1148,8 @@ class Monitor:
             mh, mw = self.defect_map.shape
             raise ValueError(f"the defect map is {mw}×{mh} px (W×H) but this frame is {w}×{h} px: the map must cover "
                              "the whole frame, pixel for pixel")
+        if self._shape is not None:  # another frame size: positions of the old one are not this one's pixels
+            self._defect_seen.clear()
         self._shape = (h, w)
         self._states = {
             task: _TaskState(PatchGrid.fit(h, w, int(handle.est.patch_size)), 5 if task == "noise" else 16, self.window,
@@ -1117,10 +1182,11 @@ class Monitor:
         if isinstance(metadata, CameraMetadata):
             return load_metadata(metadata)
         if isinstance(metadata, Mapping) and self.metadata is not None:
+            changed = {k: _one_number(k, v) for k, v in metadata.items()}  # one camera state: a number per field
             try:
-                return self.metadata.replace(**dict(metadata))
+                return self.metadata.replace(**changed)
             except (TypeError, ValueError) as exc:
-                raise ValueError(f"per-frame metadata {dict(metadata)}: {exc}") from None
+                raise ValueError(f"per-frame metadata {changed}: {exc}") from None
         noise = self.estimators.get("noise")
         required = getattr(noise.est, "metadata_set", "none") if noise else "none"
         return load_metadata(metadata, self.sensor, required)
@@ -1263,6 +1329,7 @@ class Monitor:
         st.refused, st.beyond_xi, st.banding, st.causes = {}, [], [], []
         st.defects, st.defect_xy = [0, 0, 0, 0], []
         st.pairs = st.exposures = 0
+        st.frames_seen += 1  # frames since the aggregation last started afresh (reset, new camera state or size)
         grid, cfg = st.grid, self.selection
         handle = self.estimators[task]
         base = dict(task=task, estimator=handle.name, patch=grid.patch, grid=(grid.rows, grid.cols))
@@ -1414,6 +1481,8 @@ class Monitor:
             ind_unc = max(ind_unc, _MEDIAN_SE * float(spatial_median(ind_frames, dim=0).spread) / math.sqrt(frames)) \
                 if frames > 1 else ind_unc
         est_std = _pooled_std(st.samples_std.reshape(-1, st.k)[has], st.k)
+        if ind_unc is not None:
+            ind_unc = max(ind_unc, _indicator_floor(est_std, n, self._error_shared(task)))
         return TaskReport(**base, assessable=True, median=spatial.median, spread=spatial.spread, temporal_spread=tspread,
                           current=current, indicator=indicator,
                           uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task),
@@ -1426,7 +1495,7 @@ class Monitor:
         counts["total"] = grid.n
         has = torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8)) & torch.isfinite(st.values).any(1)
         n = int(has.sum())
-        frames = min(self._counter + 1, self.window)
+        frames = min(max(st.frames_seen, 1), self.window)
         coverage = self._coverage("map", grid, fresh, informative, n, frames, None, int((st.code == REUSED).sum()))
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
                     grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage, **_refusals(st))
@@ -1454,7 +1523,8 @@ class Monitor:
                           temporal_spread=tspread, current=current, indicator=indicator,
                           uncertainty=_uncertainty(spatial.spread, n, tspread, frames, est_std, self._shared_posterior(task),
                                                   self._error_shared(task)),
-                          indicator_uncertainty=None if indicator is None else se * indicator[1],
+                          indicator_uncertainty=None if indicator is None else max(
+                              se * indicator[1], _indicator_floor(est_std, n, self._error_shared(task))),
                           estimator_std=est_std, n_values=n)
 
     # ------------------------------------------------------------------ public
@@ -1499,7 +1569,7 @@ class Monitor:
         report = FrameReport(self._counter, index, source_id, h, w, md, noise, reports.get("mtf"), alarm, advice,
                              timing, self.per_patch)
         self._counter += 1
-        self._times.append(timing["total"])
+        self._times.add(timing["total"])
         for task, r in reports.items():
             for name in STATUS_NAMES:
                 self._counts[task][name] += int(r.counts.get(name, 0))
@@ -1507,9 +1577,10 @@ class Monitor:
                 self._refused[task][why] = self._refused[task].get(why, 0) + int(n)
         self._alarms[alarm["state"]] = self._alarms.get(alarm["state"], 0) + 1
         if noise is not None and noise.banding:
-            self._banding.append((float(noise.banding["row_dn"]), float(noise.banding["col_dn"])))
+            self._banding[0].add(float(noise.banding["row_dn"]))
+            self._banding[1].add(float(noise.banding["col_dn"]))
         if noise is not None and noise.defects:
-            self._defect_frames.append((float(noise.defects["ppm"]), int(noise.defects["recurring"])))
+            self._defect_frames.add(float(noise.defects["ppm"]))
         if noise is not None and noise.cause:
             top = top_cause(noise.cause)
             self._causes[top] = self._causes.get(top, 0) + 1
@@ -1618,7 +1689,8 @@ class Monitor:
         """The run's defect map: (bool (H, W), True at the pixels flagged as defective in at least ``min_frames``
         frames; int32 (H, W), the frames each pixel was flagged in) in the frames' size. 2 (default) keeps the
         recurring ones: on a moving camera a defect stays at its pixel while the scene moves; on a static one the
-        scene's own points of light recur too. At most :data:`DEFECT_POSITIONS` positions are remembered.
+        scene's own points of light recur too. At most :data:`DEFECT_POSITIONS` positions are remembered, of the frames
+        of the current size (a frame of another size starts them afresh).
         ``python -m camhealth.monitor --defects-out FILE`` writes them for ``--defect-map``."""
         if isinstance(min_frames, bool) or not isinstance(min_frames, int) or min_frames < 1:
             raise ValueError(f"min_frames = {min_frames!r} must be an integer >= 1")
@@ -1655,27 +1727,21 @@ class Monitor:
         ``recurring_new_pixels`` and ``recurring_new_xy`` (the recurring positions the map does not mark: defects
         new since it was made, or the scene's own points of light on a static camera); ``None`` without any), last
         values."""
-        t = sorted(self._times)
         out: dict[str, Any] = {
             "frames": self._counter,
-            "ms_per_frame": {
-                "median": _num(float(np.median(t)), 2) if t else None,
-                "mean": _num(float(np.mean(t)), 2) if t else None,
-                "max": _num(t[-1], 2) if t else None,
-            },
+            "ms_per_frame": self._times.stats(2),
             "estimators": {task: h.name for task, h in self.estimators.items()},
             "patches": {task: dict(c) for task, c in self._counts.items()},
             "refused": {task: dict(c) for task, c in self._refused.items()},
             "alarms": dict(self._alarms),
-            "banding": None if not self._banding else {
-                "frames": len(self._banding),
-                **{f"{name}_dn": {"median": _num(float(np.median(v)), 3), "max": _num(float(np.max(v)), 3)}
-                   for name, v in (("row", [b[0] for b in self._banding]), ("col", [b[1] for b in self._banding]))}},
+            "banding": None if not self._banding[0].count else {
+                "frames": self._banding[0].count,
+                **{f"{name}_dn": {k: v for k, v in stat.stats(3).items() if k != "mean"}
+                   for name, stat in (("row", self._banding[0]), ("col", self._banding[1]))}},
             "causes": None if not self._causes else {"frames": sum(self._causes.values()), **dict(self._causes)},
-            "defects": None if not self._defect_frames else {
-                "frames": len(self._defect_frames),
-                "ppm": {"median": _num(float(np.median([d[0] for d in self._defect_frames])), 1),
-                        "max": _num(float(np.max([d[0] for d in self._defect_frames])), 1)},
+            "defects": None if not self._defect_frames.count else {
+                "frames": self._defect_frames.count,
+                "ppm": {k: v for k, v in self._defect_frames.stats(1).items() if k != "mean"},
                 "recurring_pixels": sum(1 for v in self._defect_seen.values() if v > 1),
                 "recurring_xy": [[x, y, n] for (x, y), n in sorted(self._defect_seen.items(), key=lambda kv: (-kv[1], kv[0]))
                                  if n > 1][:DEFECT_LIST],

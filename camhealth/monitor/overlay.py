@@ -134,8 +134,11 @@ def render_overlay(frame: Any, report: FrameReport, sigma_max_dn: float = 20.0, 
 
     if not isinstance(report, FrameReport):
         raise TypeError(f"report must be a FrameReport, got {type(report).__name__}")
-    if not (np.isfinite(sigma_max_dn) and sigma_max_dn > 0):
-        raise ValueError(f"sigma_max_dn = {sigma_max_dn!r} must be > 0")
+    if isinstance(sigma_max_dn, bool) or not isinstance(sigma_max_dn, (int, float, np.number)) or not (
+            np.isfinite(sigma_max_dn) and sigma_max_dn > 0):
+        raise ValueError(f"sigma_max_dn = {sigma_max_dn!r} must be a finite number > 0 [DN]")
+    if isinstance(max_panel_width, bool) or not isinstance(max_panel_width, (int, np.integer)) or max_panel_width < 64:
+        raise ValueError(f"max_panel_width = {max_panel_width!r} must be an integer ≥ 64 [px]")
     x = as_frame(frame)[0, 0]
     if (x.shape[0], x.shape[1]) != (report.height, report.width):
         raise ValueError(f"frame is {x.shape[1]}×{x.shape[0]} px but the report is for {report.width}×{report.height} px")

@@ -542,6 +542,9 @@ def test_mtf_estimator_std_is_pooled_and_bounds_the_uncertainty(street_frames, m
     assert "NaN" not in rep_json
     assert d["h"]["estimator_std"] == [0.2] * 8 and d["v"]["estimator_std"] == [0.2] * 8
     assert min(d["h"]["uncertainty"]) >= round(floor, 4) - 1e-4
+    # the indicator MTF̃ = (H + V)/2 at f_n 0.1 has the same floor (its two parts' u averaged): patches that happen to
+    # agree do not make it exact
+    assert rep.indicator_uncertainty >= floor - 1e-6
 
     plain = Monitor(None, _MTFWithStd(std=None), **kw).process(frame).mtf  # views 1: no per-patch spread
     assert bool(torch.isnan(plain.estimator_std).all())
@@ -919,3 +922,60 @@ def test_exposure_evidence_must_be_a_bool_and_reset_forgets_it():
     assert len(mon._exposure_cache) == 2
     mon.reset()
     assert not mon._exposure_cache
+
+
+
+@pytest.mark.parametrize("mode", ["map", "sampled"])
+def test_the_frames_behind_an_answer_start_afresh_with_the_aggregation(street_frames, mode):
+    """After a metadata change (or reset) the answer stands on that one frame: ``coverage.frames`` is 1, as for a fresh
+    monitor, and so is the uncertainty (map mode counted the frames of the whole run: 5, an uncertainty √5 too small)."""
+    frame = noisy(street_frames[0], 3.0, seed=0)
+    mon = _monitor(noise="noise_source_full", mtf=None, mode=mode, warmup=False, adaptive=False)
+    for _ in range(6):
+        mon.process(frame)
+    changed = mon.process(frame, {"gain_db": 12.0}).noise
+    fresh = _monitor(noise="noise_source_full", mtf=None, mode=mode, warmup=False, adaptive=False,
+                     metadata={"gain_db": 12.0}).process(frame).noise
+    assert changed.coverage["frames"] == fresh.coverage["frames"] == 1
+    assert torch.allclose(changed.uncertainty, fresh.uncertainty, equal_nan=True)
+    mon.reset()
+    assert mon.process(frame, {"gain_db": 12.0}).noise.coverage["frames"] == 1
+
+
+@pytest.mark.parametrize("value, match", [
+    (np.array([12.0, 24.0]), "gain_db holds 2 values; a frame has one camera state"),
+    (torch.tensor([12.0, 24.0]), "gain_db holds 2 values"),
+    (True, r"gain_db = True must be a number"),
+    ("12", r"gain_db = '12' must be a number"),
+])
+def test_per_frame_metadata_is_one_number_per_field(street_frames, value, match):
+    """A per-frame array became a batch of camera states: a wrong answer on a 2-patch frame, a deep crash elsewhere."""
+    mon = _monitor(noise="noise_source_full", mtf=None, warmup=False)
+    with pytest.raises(ValueError, match=match):
+        mon.process(street_frames[0], {"gain_db": value})
+    one = mon.process(street_frames[0], {"gain_db": np.float32(12.0), "exposure_s": torch.tensor(0.01)})
+    assert one.metadata["gain_db"] == 12.0 and one.metadata["exposure_s"] == pytest.approx(0.01)
+
+
+def test_a_torch_uint16_frame_is_read_as_dn_over_65535():
+    x = torch.full((64, 80), 65535, dtype=torch.uint16)
+    assert float(as_frame(x).max()) == 1.0 and as_frame(torch.zeros(8, 8, dtype=torch.uint32)).shape == (1, 1, 8, 8)
+    with pytest.raises(ValueError, match="must lie in \\[0, 255\\], got min 300"):
+        as_frame(torch.full((8, 8), 300, dtype=torch.uint32))
+
+
+def test_the_run_summary_holds_bounded_state(monkeypatch):
+    """A monitor that runs for days keeps count, mean and maximum of the whole run and the median of the last
+    SUMMARY_RECENT_FRAMES frames (the per-frame lists grew by one entry per frame)."""
+    import camhealth.monitor.api as api
+
+    monkeypatch.setattr(api, "SUMMARY_RECENT_FRAMES", 5)
+    stat = api._RunStat()
+    for v in range(1, 21):
+        stat.add(float(v))
+    assert len(stat.recent) == 5 and stat.stats(2) == {"median": 18.0, "mean": 10.5, "max": 20.0}
+    assert api._RunStat().stats(1) == {"median": None, "mean": None, "max": None}
+    mon = _monitor(warmup=False)
+    for i in range(8):
+        mon.process(torch.rand(64, 64, generator=torch.Generator().manual_seed(i)))
+    assert len(mon._times.recent) == 5 and mon.summary()["ms_per_frame"]["max"] >= mon.summary()["ms_per_frame"]["median"]

@@ -274,6 +274,11 @@ def test_the_runs_recurring_defects_are_a_map_the_monitor_reads_back(mode, tmp_p
     assert d["known"] == d["hot"] + d["dark"] > 0
     with pytest.raises(ValueError, match="must be a bool H×W array"):
         save_defect_map(tmp_path / "x.npz", counts)
+    # a smaller frame: the positions of the old size are not its pixels (found_defects raised IndexError)
+    small = frame[: frame.shape[0] // 2, : frame.shape[1] // 2].contiguous()
+    mon.process(small)
+    found, counts = mon.found_defects(1)
+    assert found.shape == small.shape and int(counts.max()) <= 1
 
 
 def test_the_monitor_counts_only_the_pixels_tested():

@@ -50,5 +50,9 @@ def test_render_and_save(report_and_frame, tmp_path):
         save_overlay(tmp_path / "f.jpg", frame, report)
     with pytest.raises(ValueError, match="report is for"):
         render_overlay(torch.rand(100, 100), report)
-    with pytest.raises(ValueError, match="sigma_max_dn"):
-        render_overlay(frame, report, sigma_max_dn=0.0)
+    for bad in (0.0, "20", float("nan"), True):
+        with pytest.raises(ValueError, match=r"sigma_max_dn = .* must be a finite number > 0"):
+            render_overlay(frame, report, sigma_max_dn=bad)
+    for bad in (0, -5, 10.5):  # a 0-px panel was drawn as a 59×2 px image
+        with pytest.raises(ValueError, match=r"max_panel_width = .* must be an integer ≥ 64"):
+            render_overlay(frame, report, max_panel_width=bad)
