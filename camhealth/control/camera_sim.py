@@ -151,7 +151,10 @@ class SimulatedCamera:
         Exposure and gain must lie in the metadata ranges (Table 4.1: 0.001–0.2 s, 0–24 dB); a value
         outside raises ``ValueError`` naming it.
         """
-        idx = torch.as_tensor(frame_index, dtype=torch.long).reshape(-1)
+        raw = torch.as_tensor(frame_index).reshape(-1)
+        if raw.is_floating_point() and not bool((raw == raw.round()).all()) or raw.dtype == torch.bool:
+            raise ValueError(f"frame_index = {frame_index!r} must be whole frame numbers")
+        idx = raw.to(torch.long)
         t = torch.as_tensor(exposure_s, dtype=torch.float64).reshape(-1)
         g = torch.as_tensor(gain_db, dtype=torch.float64).reshape(-1)
         b = max(idx.numel(), t.numel(), g.numel())

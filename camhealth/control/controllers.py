@@ -58,6 +58,9 @@ class FixedController:
 
     def __init__(self, exposure_s: float, gain_db: float = 0.0, name: str = "fixed") -> None:
         self.exposure_s, self.gain_db, self.name = float(exposure_s), float(gain_db), name
+        if not (math.isfinite(self.exposure_s) and self.exposure_s > 0 and math.isfinite(self.gain_db)):
+            raise ValueError(f"FixedController: exposure_s = {exposure_s!r} s must be a finite number > 0 and gain_db = "
+                             f"{gain_db!r} dB finite")
 
     def reset(self, exposure_s: float | None = None, gain_db: float | None = None) -> tuple[float, float]:
         return self.exposure_s, self.gain_db
@@ -101,6 +104,9 @@ class AutoExposureController:
 
     def update(self, obs: Observation) -> tuple[float, float]:
         mean = float(obs.capture.mean_intensity[0])
+        if not (math.isfinite(mean) and math.isfinite(obs.exposure_s) and math.isfinite(obs.gain_db)):
+            raise ValueError(f"{self.name}: mean intensity {mean!r}, exposure {obs.exposure_s!r} s and gain {obs.gain_db!r} dB "
+                             "must be finite")
         ratio = self.target / max(mean, 1e-4)
         if abs(mean / self.target - 1) < self.deadband:
             return obs.exposure_s, obs.gain_db

@@ -62,7 +62,10 @@ class CameraLimits:
         object.__setattr__(self, "gain_db", (g0, g1))
 
     def clamp(self, exposure_s: float, gain_db: float) -> tuple[float, float]:
-        """(exposure, gain) clipped into the limits."""
+        """(exposure, gain) clipped into the limits; NaN or infinite values are refused (``ValueError``)."""
+        if not (math.isfinite(exposure_s) and math.isfinite(gain_db)):
+            raise ValueError(f"exposure_s = {exposure_s!r} s and gain_db = {gain_db!r} dB must be finite numbers to clamp "
+                             f"into {self.exposure_s} s, {self.gain_db} dB")
         return (min(max(exposure_s, self.exposure_s[0]), self.exposure_s[1]),
                 min(max(gain_db, self.gain_db[0]), self.gain_db[1]))
 

@@ -111,12 +111,20 @@ class TorchDetector:
         return self
 
     def config(self) -> dict[str, Any]:
-        """Settings, for provenance records."""
+        """Settings, for provenance records and the IOPC sweep's cache fingerprint: ``weights`` is a hash of the
+        module's parameters and buffers, so another training of the same architecture is another detector."""
+        import hashlib
+
         n = sum(p.numel() for p in self.module.parameters())
+        h = hashlib.blake2b(digest_size=8)
+        for key, t in sorted(self.module.state_dict().items()):
+            h.update(key.encode())
+            h.update(t.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes() if t.numel() else b"")
         return {
             "name": self.name,
             "module": f"{type(self.module).__module__}.{type(self.module).__qualname__}",
             "parameters": n,
+            "weights": h.hexdigest(),
             "channels": self.channels,
             "input_scale": self.input_scale,
             "box_format": self.box_format,
@@ -132,7 +140,7 @@ class TorchDetector:
                 )
             out = []
             for rows in raw:
-                rows = rows[rows[:, 4] >= 0]
+                rows = rows[~(rows[:, 4] < 0)]  # negative scores are padding; NaN goes on to the finiteness check
                 out.append({"boxes": rows[:, :4], "scores": rows[:, 4], "labels": rows[:, 5]})
             return out
         if isinstance(raw, tuple) and len(raw) == 3 and all(isinstance(t, torch.Tensor) for t in raw):

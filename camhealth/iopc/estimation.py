@@ -160,8 +160,9 @@ def estimator_name(est: Any) -> str:
 
 
 def estimator_fingerprint(est: Any) -> str:
-    """:func:`estimator_name` plus a hash of the weights a learned estimator was loaded from (the file's bytes,
-    else its description), so that retrained weights under the same name never match an old cache entry."""
+    """:func:`estimator_name` plus a hash of the weights a learned estimator was loaded from (the file's bytes; for an
+    estimator in memory — a training's LightningModule, a network — its current parameters and buffers; else its
+    ``description``), so that retrained weights under the same name never match an old cache entry."""
     import hashlib
     import json
     from pathlib import Path
@@ -171,9 +172,15 @@ def estimator_fingerprint(est: Any) -> str:
         return name
     h = hashlib.blake2b(digest_size=8)
     source = getattr(est, "source", None)
+    module = next((m for m in (est, getattr(est, "_net", None), getattr(est, "net", None), getattr(est, "module", None))
+                   if isinstance(m, torch.nn.Module)), None)
     if source and Path(source).is_file():
         h.update(Path(source).read_bytes())
-    else:
+    elif module is not None:  # in memory (a training's module, an injected network): its current weights
+        for key, t in sorted(module.state_dict().items()):
+            h.update(key.encode())
+            h.update(t.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    else:  # no file and no network: its description (an object whose answers depend on other state must say so there)
         h.update(json.dumps(getattr(est, "description", {}), sort_keys=True, default=str).encode())
     return f"{name} [weights {h.hexdigest()}]"
 

@@ -274,8 +274,10 @@ class IOPCSweep:
         h.update(estimator_fingerprint(self.noise_estimator).encode() + b"|" + estimator_fingerprint(self.mtf_estimator).encode())
         h.update("\x1f".join(self.frame_ids).encode())
         h.update(hashlib.blake2b(self.frames.numpy().tobytes(), digest_size=8).digest())
-        for g in self.ground_truth:
-            h.update(g["boxes"].numpy().tobytes() + g["labels"].numpy().tobytes())
+        for g in self.ground_truth:  # every field of it (boxes, labels, iscrowd, …): each can change the AP
+            for key in sorted(g):
+                v = g[key]
+                h.update(key.encode() + (v.detach().cpu().numpy().tobytes() if isinstance(v, torch.Tensor) else repr(v).encode()))
         return h.hexdigest()
 
     def provenance(self) -> dict[str, Any]:

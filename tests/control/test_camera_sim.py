@@ -59,6 +59,10 @@ def test_validation(frames):
         cam.capture(5, 0.01, 0.0)
     with pytest.raises(ValueError, match="batch of 3"):
         cam.capture([0, 1, 0], [0.01, 0.02], 0.0)
+    for bad in (0.7, float("nan"), True):  # 0.7 rendered frame 0
+        with pytest.raises(ValueError, match="must be whole frame numbers"):
+            cam.capture(bad, 0.01, 0.0)
+    assert cam.capture(1.0, 0.01, 0.0).image.shape[0] == 1
     with pytest.raises(ValueError, match="illumination_per_s"):
         SimulatedCamera(frames, illumination_per_s=0.0)
     with pytest.raises(ValueError, match="noise source"):

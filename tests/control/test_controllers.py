@@ -65,3 +65,19 @@ def test_iopc_controller_shortens_exposure_against_blur(decide_every, n_decision
     assert med["mtf_tilde"] == pytest.approx(0.5 * (1 + abs(float(torch.sinc(torch.tensor(0.6))))), abs=0.03)
     assert d.alpha > 1 and t < 0.01 and g > 0
     assert t * 10 ** (g / 20) == pytest.approx(0.01, rel=1e-6)  # intensity kept
+
+
+def test_controllers_refuse_nan_instead_of_passing_it_on():
+    """NaN settings or a NaN mean intensity came back as (nan, nan), and the camera refused them a frame later."""
+    with pytest.raises(ValueError, match="must be a finite number > 0"):
+        FixedController(float("nan"), 0.0)
+    with pytest.raises(ValueError, match="gain_db = .* finite"):
+        FixedController(0.01, float("inf"))
+    ae = AutoExposureController()
+    with pytest.raises(ValueError, match="must be finite numbers to clamp"):
+        ae.reset(float("nan"), float("nan"))
+    cam = SimulatedCamera(smooth_frames(1, 64, 64), illumination_per_s=10.0, motion_px_per_s=0.0, sources=())
+    obs = _obs(cam, 0.005, 0.0)
+    obs.capture.mean_intensity[:] = float("nan")
+    with pytest.raises(ValueError, match="mean intensity nan, .* must be finite"):
+        ae.update(obs)

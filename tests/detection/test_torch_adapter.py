@@ -89,3 +89,22 @@ def test_bad_input_and_args():
         TorchDetector(TensorOut(), box_format="yxyx")
     with pytest.raises(TypeError, match="nn.Module"):
         TorchDetector(lambda x: x)
+
+
+def test_a_nan_score_in_tensor_rows_is_refused_not_dropped_as_padding():
+    """Only negative scores are padding: a NaN score reached no check and the detection vanished silently."""
+
+    class NanRow(torch.nn.Module):
+        def forward(self, x):
+            return torch.tensor([[[1.0, 1.0, 5.0, 5.0, float("nan"), 1.0]]]).expand(x.shape[0], 1, 6)
+
+    with pytest.raises(ValueError, match="finite"):
+        TorchDetector(NanRow())(torch.rand(1, 1, 16, 16))
+
+
+def test_config_names_the_weights():
+    a, b = TensorOut(), TensorOut()
+    with torch.no_grad():
+        b.conv.weight.add_(1.0)
+    assert TorchDetector(a).config()["weights"] != TorchDetector(b).config()["weights"]
+    assert TorchDetector(a).config()["weights"] == TorchDetector(a).config()["weights"]

@@ -138,3 +138,23 @@ def test_estimator_fingerprint_changes_with_the_weights_not_the_name(tmp_path):
     assert estimator_fingerprint(ea) == estimator_fingerprint(load_estimator(str(a)))  # stable
     assert estimator_name(ea) == estimator_name(eb) and estimator_fingerprint(ea) != estimator_fingerprint(eb)
     assert estimator_fingerprint("physics") == "physics" and estimator_fingerprint(None) == "none"
+
+
+def test_estimator_fingerprint_of_a_network_in_memory_follows_its_weights():
+    """An estimator without a file (a training's module, as the IOPC callback sweeps it every few epochs): its
+    current weights, so a later epoch never reuses an earlier epoch's cells."""
+    from camhealth.iopc.estimation import estimator_fingerprint
+
+    class InMemory(torch.nn.Module):
+        kind, patch_size, metadata_set = "mtf", 48, "none"
+
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(3))
+
+    a = InMemory()
+    before = estimator_fingerprint(a)
+    assert estimator_fingerprint(a) == before  # stable
+    with torch.no_grad():
+        a.w.add_(1.0)
+    assert estimator_fingerprint(a) != before

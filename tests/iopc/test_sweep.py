@@ -109,3 +109,29 @@ def test_intensity_and_quantize_set_the_operating_point(tmp_path):
     assert torch.equal(img * 255, (img * 255).round())
     with pytest.raises(ValueError, match="intensity"):
         SweepConfig(intensity=0.0).validate()
+
+
+def test_the_fingerprint_covers_the_detectors_weights_and_every_ground_truth_field(tmp_path):
+    """A TorchDetector retrained (same architecture, other weights) and ground truth that differs only in ``iscrowd``
+    change a cell's AP; both changed the AP but not the fingerprint, so a cache reused the old cells."""
+    from camhealth.detection import TorchDetector
+
+    class Boxes(torch.nn.Module):
+        def __init__(self, w):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.tensor([w]))
+
+        def forward(self, x):
+            return torch.tensor([[[10.0, 10.0, 60.0, 80.0, 0.9, 1.0]]]).expand(x.shape[0], 1, 6) * (self.w > 0)
+
+    frames = smooth_frames(2, 96, 128)
+    gt = [{"boxes": torch.tensor(BOXES), "labels": torch.tensor([1])}] * 2
+    config = SweepConfig(grid=SweepGrid([0.0], [0.0], [0.0]), sensor=SensorSetting())
+
+    def fp(det, truth):
+        return IOPCSweep(frames, truth, det, None, None, config, frame_ids=["a", "b"]).fingerprint()
+
+    one, other = TorchDetector(Boxes(1.0)), TorchDetector(Boxes(-1.0))
+    assert fp(one, gt) == fp(TorchDetector(Boxes(1.0)), gt) and fp(one, gt) != fp(other, gt)
+    crowd = [{**g, "iscrowd": torch.tensor([True])} for g in gt]
+    assert fp(one, crowd) != fp(one, gt)
