@@ -16,7 +16,7 @@ import math
 
 import torch
 
-from camhealth._validation import check_odd_kernel_size
+from camhealth._validation import check_odd_kernel_size, check_range
 from camhealth.physics._psf_common import batch_of, normalise, positive_vector
 from camhealth.physics.defocus_psf import _disk_coverage, _out_dtype, _work_dtype
 from camhealth.physics.thin_lens import _as_tensors, _finish
@@ -49,9 +49,13 @@ def ring_psf(diameter_px: torch.Tensor, obstruction: torch.Tensor, kernel_size: 
 
 
 def ring_mtf(diameter_px, obstruction, f_cycles_per_px):
-    """Continuous MTF of a uniform annulus (outer diameter d px, inner εd): see the module docstring."""
+    """Continuous MTF of a uniform annulus (outer diameter d ≥ 0 px, inner εd, ε in [0, 0.95] as for
+    :func:`ring_psf`): see the module docstring. Written as ``(jinc(2πRf) − ε² jinc(2πεRf)) / (1 − ε²)`` (the
+    module's form with R² divided out), so d → 0 tends to 1 (a point) without a 0/0."""
     (d, eps, f), scal, dt, _ = _as_tensors((diameter_px, "diameter_px"), (obstruction, "obstruction"),
                                           (f_cycles_per_px, "f_cycles_per_px"))
+    check_range(d, "diameter_px", 0.0, math.inf, "px")
+    check_range(eps, "obstruction", 0.0, 0.95)
 
     def jinc(radius: torch.Tensor) -> torch.Tensor:
         z = 2.0 * math.pi * radius * f
@@ -59,6 +63,6 @@ def ring_mtf(diameter_px, obstruction, f_cycles_per_px):
         zs = torch.where(small, torch.ones_like(z), z)
         return torch.where(small, torch.ones_like(z), 2.0 * torch.special.bessel_j1(zs) / zs)
 
-    big, small_r = 0.5 * d, 0.5 * d * eps
-    otf = (big.square() * jinc(big) - small_r.square() * jinc(small_r)) / (big.square() - small_r.square()).clamp_min(1e-30)
+    big, e2 = 0.5 * d, eps.square()
+    otf = (jinc(big) - e2 * jinc(big * eps)) / (1.0 - e2)
     return _finish(otf.abs(), scal, dt)

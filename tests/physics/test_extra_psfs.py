@@ -119,6 +119,19 @@ def test_ring_matches_its_closed_form_and_disk():
     assert float(k[1, 11, 11]) == 0.0  # the centre pixel lies inside the 3.6-px hole
 
 
+def test_ring_mtf_of_a_point_is_one_and_bad_obstruction_is_refused():
+    # d → 0 is a point (MTF 1), not the 0/0 of the area-weighted form; ε = 0 is the disk
+    assert float(ring_mtf(0.0, 0.5, 0.1)) == pytest.approx(1.0)
+    assert float(ring_mtf(1e-16, 0.5, 0.1)) == pytest.approx(1.0)
+    assert float(ring_mtf(7.0, 0.0, 0.1)) == pytest.approx(float(disk_mtf(7.0, 0.1)), abs=1e-12)
+    with pytest.raises(ValueError, match=r"obstruction = 2 is out of the allowed range \[0, 0.95\]"):
+        ring_mtf(5.0, 2.0, 0.1)
+    with pytest.raises(ValueError, match=r"obstruction = -0.1 is out"):
+        ring_mtf(5.0, -0.1, 0.1)
+    with pytest.raises(ValueError, match=r"diameter_px = -1 px is out"):
+        ring_mtf(-1.0, 0.5, 0.1)
+
+
 def test_spherical_zero_is_the_disk_and_sign_moves_mass():
     d = torch.tensor([6.0, 14.0], dtype=torch.float64)
     k0 = spherical_psf(d, torch.zeros(1), 17)
