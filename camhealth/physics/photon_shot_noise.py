@@ -38,7 +38,14 @@ def photon_shot_sigma_dn(intensity: torch.Tensor, meta: CameraMetadata) -> torch
 
 def photon_shot_sigma_patch_dn(intensity: torch.Tensor, meta: CameraMetadata) -> torch.Tensor:
     """Patch-level σ_PN [DN], shape (B,): the root-mean-square of the per-pixel σ over each sample,
-    i.e. √(mean σ²) = 255·√(g·mean(I)/FW) (clipping ignored)."""
+    i.e. √(mean σ²) = 255·√(g·mean(I)/FW) (clipping ignored). Each sample's mean intensity must lie in [0, 1]
+    (DN/255; a DN image, 0…255, is refused with ``ValueError``); single pixels may ring slightly below 0 after a
+    blur and count as 0."""
+    raw = intensity.detach().flatten(1).mean(1)
+    check_finite(raw, "mean intensity")  # (B,): a NaN anywhere in a sample shows here
+    bad = (raw < -1e-6) | (raw > 1.0 + 1e-6)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"mean intensity[{i}] = {float(raw[i]):g} is out of the allowed range [0, 1] (DN/255)")
     mean_i = intensity.clamp_min(0).flatten(1).mean(1)
-    check_finite(mean_i.detach(), "mean intensity")  # (B,): a NaN anywhere in a sample shows here
     return 255.0 * (mean_i * (meta.gain_factor / meta.full_well_e).to(mean_i)).sqrt()

@@ -52,3 +52,19 @@ def test_bad_intensity_is_refused_naming_it(bad):
     if bad != bad or abs(bad) == float("inf"):
         with pytest.raises(ValueError, match="mean intensity"):
             photon_shot_sigma_patch_dn(torch.full((1, 1, 2, 2), bad), m)
+
+
+@pytest.mark.parametrize("value,shown", [(200.0, "200"), (-0.5, "-0.5")])
+def test_patch_sigma_refuses_a_dn_image_or_negative_mean(value, shown):
+    # a DN image (0…255) where [0, 1] is meant would read σ_PN ≈ 121 DN; a negative one 0
+    meta = CameraMetadata.preset("ICX285")
+    with pytest.raises(ValueError, match=rf"mean intensity\[0\] = {shown} is out of the allowed range \[0, 1\] \(DN/255\)"):
+        photon_shot_sigma_patch_dn(torch.full((1, 1, 4, 4), value), meta)
+
+
+def test_patch_sigma_counts_slight_ringing_below_zero_as_zero():
+    x = torch.full((1, 1, 4, 4), 0.5)
+    x[0, 0, 0, 0] = -1e-3  # ringing of one pixel after a blur; the mean stays in [0, 1]
+    meta = CameraMetadata.preset("ICX285")
+    want = photon_shot_sigma_patch_dn(x.clamp_min(0), meta)
+    torch.testing.assert_close(photon_shot_sigma_patch_dn(x, meta), want)
