@@ -7,11 +7,13 @@ exposure time that fills the full well at a radiance of 1 — the sensor collect
     electrons = c · E · t_exp · FW,     output intensity (noise-free) I = c · E · t_exp · g
 
 with g = 10^(gain_dB/20) the digital gain of the conventions' gain model ("the scene delivers I·FW/g
-electrons for an output intensity I"). I is clipped at 1 (the ADC's 255 DN; the full well saturates
-later, at I = g). Scene/camera motion of v [px/s] in direction Φ blurs the frame with the sub-pixel
-linear-motion PSF of length L = v · t_exp (thesis Eq. 3.10 / Sec. 7.2), and the full Fig. 3.7 chain of
+electrons for an output intensity I"). Scene/camera motion of v [px/s] in direction Φ blurs the frame with the
+sub-pixel linear-motion PSF of length L = v · t_exp (thesis Eq. 3.10 / Sec. 7.2), and the full Fig. 3.7 chain of
 :func:`camhealth.physics.form_image` adds photon shot noise (before the motion blur), dark-current shot
-noise and readout noise of the sensor preset at its temperature, then clips and quantises to 8 bit.
+noise and readout noise of the sensor preset at its temperature, then clips and quantises to 8 bit. The chain
+renders I clipped at 1; where the frame is overexposed (I > 1: the ADC's 255 DN; the full well saturates later,
+at I = g), the light beyond full scale, blurred alike, is added back before the clipping, so such pixels read
+255 DN as on a real sensor, not full scale less the noise.
 
 Several captures (e.g. the same frame for three controllers) are requested together; radiometry, PSFs
 and MTF labels are computed for the batch at once, and the noise of each request is drawn from its own
@@ -29,12 +31,12 @@ from typing import Sequence
 import torch
 
 from camhealth._validation import check_choice, check_image
-from camhealth.physics.image_formation import NOISE_SOURCES, form_image
+from camhealth.physics.image_formation import NOISE_SOURCES, apply_psf, form_image
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.motion_psf import linear_motion_psf
 from camhealth.physics.mtf import mtf_hv
 
-__all__ = ["Capture", "SimulatedCamera", "motion_kernel_for"]
+__all__ = ["Capture", "MAX_MOTION_PX", "SimulatedCamera", "motion_kernel_for"]
 
 
 @dataclass
@@ -50,7 +52,7 @@ class Capture:
         blur_length_px: (B,) motion length L = v·t_exp [px].
         sigma_dn: (B, 3) realised σ of PN/DCSN/RN [DN]; sigma_total_dn (B,) all together.
         mean_intensity: (B,) mean of the rendered frame in [0, 1].
-        clipped_fraction: (B,) fraction of pixels at 0 or 255 DN.
+        clipped_fraction: (B,) fraction of the rendered frame's pixels at 0 or 255 DN.
         frame_index: (B,) which clean frame.
     """
 
@@ -68,17 +70,47 @@ class Capture:
     frame_index: torch.Tensor
 
     def __getitem__(self, i: int) -> "Capture":
-        """Capture ``i`` as a batch of one."""
+        """Capture ``i`` (−B ≤ i < B, negative from the end) as a batch of one."""
+        b = int(self.image.shape[0])
+        if isinstance(i, bool) or not isinstance(i, int) and not (isinstance(i, torch.Tensor) and i.numel() == 1
+                                                                  and not i.is_floating_point()):
+            raise TypeError(f"a capture is indexed by an int, got {type(i).__name__} {i!r:.40}")
+        i = int(i)
+        if not -b <= i < b:
+            raise IndexError(f"capture index {i} is out of the allowed range [{-b}, {b - 1}] for a batch of {b}")
+        i %= b
         sl = slice(i, i + 1)
         return Capture(self.image[sl], self.blurred[sl], self.mtf[sl], self.meta[i], self.exposure_s[sl],
                        self.gain_db[sl], self.blur_length_px[sl], self.sigma_dn[sl], self.sigma_total_dn[sl],
                        self.mean_intensity[sl], self.clipped_fraction[sl], self.frame_index[sl])
 
 
+#: Longest motion path [px] a capture renders: the largest odd kernel (255 px) less the 1-px margin each side.
+MAX_MOTION_PX = 253.0
+
+
 def motion_kernel_for(length_px: float) -> int:
     """Smallest odd kernel size that holds a linear motion path of ``length_px`` with a 1 px margin."""
     k = int(math.ceil(max(float(length_px), 1.0))) + 2
     return k + 1 - k % 2
+
+
+def _saturate(image: torch.Tensor, blurred: torch.Tensor, sigma: torch.Tensor, sigma_total: torch.Tensor,
+              excess: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """An overexposed frame's light beyond full scale, put back before the ADC's clipping.
+
+    :func:`form_image` takes signals in [0, 1], so the capture renders the frame clipped at full scale; ``excess``
+    (B×1×H×W ≥ 0, intensity) is what was cut off, blurred by the same PSF. The ADC clips signal plus noise (Fig. 3.7),
+    so the rendered value is min(image + excess, 1): a pixel far above full scale reads 255 DN, not 255 DN less the
+    noise drawn at full scale. The noise-free signal becomes min(blurred + excess, 1), and the realised σ of every
+    source is scaled by the change of the realised total noise (image − noise-free signal) that the newly clipped
+    pixels bring (their noise is cut to 0)."""
+    new_image = (image + excess).clamp_(max=1.0)
+    new_blurred = (blurred + excess).clamp_(max=1.0)
+    before = (image - blurred).flatten(1).double().std(1)
+    after = (new_image - new_blurred).flatten(1).double().std(1)
+    ratio = torch.where(before > 0, after / before.clamp_min(1e-300), torch.ones_like(before)).float().to(sigma.device)
+    return new_image, new_blurred, sigma * ratio[:, None], sigma_total * ratio
 
 
 class SimulatedCamera:
@@ -169,8 +201,14 @@ class SimulatedCamera:
         dev = self.frames.device
         clean = self.frames[idx.to(dev)]
         scale = (self.illumination * t * torch.pow(10.0, g / 20.0)).to(device=dev, dtype=clean.dtype)
-        signal = (clean * scale.view(-1, 1, 1, 1)).clamp_(0.0, 1.0)
+        raw = clean * scale.view(-1, 1, 1, 1)  # [full scale]; above 1 where the frame is overexposed
+        signal = raw.clamp(0.0, 1.0)
         length = self.speed * t
+        if float(length.max()) > MAX_MOTION_PX:
+            j = int(length.argmax())
+            raise ValueError(f"motion_px_per_s · exposure_s = {self.speed:g} px/s · {float(t[j]):g} s = {float(length[j]):g} px "
+                             f"of motion blur is out of the allowed range [0, {MAX_MOTION_PX:g}] px (the largest motion "
+                             f"kernel, 255 px); use a shorter exposure or a slower motion")
         k = motion_kernel_for(float(length.max()))
         psf = linear_motion_psf(length.float(), torch.full((b,), self.angle), k).to(dev)
         mtf = mtf_hv(psf.double()).float()
@@ -185,13 +223,18 @@ class SimulatedCamera:
                 parts.append(form_image(signal[i : i + 1], meta_dev[i], motion_psf=psf[i : i + 1], sources=self.sources,
                                         generator=gen, quantize=self.quantize))
         image = torch.cat([f.image for f in parts])
+        blurred = torch.cat([f.blurred for f in parts]).to(image.dtype)
+        sigma = torch.cat([f.sigma_dn for f in parts]).float()
+        sigma_total = torch.cat([f.sigma_total_dn for f in parts]).float()
+        if bool((raw > 1.0).any()):
+            image, blurred, sigma, sigma_total = _saturate(image, blurred, sigma, sigma_total,
+                                                           apply_psf(raw - signal, psf).to(image.dtype))
         return Capture(
-            image=image, blurred=torch.cat([f.blurred for f in parts]).to(image.dtype), mtf=mtf.cpu(), meta=meta,
+            image=image, blurred=blurred, mtf=mtf.cpu(), meta=meta,
             exposure_s=t.float(), gain_db=g.float(), blur_length_px=length.float(),
-            sigma_dn=torch.cat([f.sigma_dn for f in parts]).float().cpu(),
-            sigma_total_dn=torch.cat([f.sigma_total_dn for f in parts]).float().cpu(),
+            sigma_dn=sigma.cpu(), sigma_total_dn=sigma_total.cpu(),
             mean_intensity=image.mean(dim=(1, 2, 3)).float().cpu(),
-            clipped_fraction=torch.cat([f.clipped_fraction for f in parts]).float().cpu(),
+            clipped_fraction=((image <= 0) | (image >= 1)).flatten(1).float().mean(1).cpu(),
             frame_index=idx.clone(),
         )
 

@@ -38,7 +38,8 @@ def test_motion_length_and_mtf_label(frames, batch):
 
 def test_noise_grows_with_gain_and_is_seeded(frames):
     cam = SimulatedCamera(frames, sensor="EV76C661", illumination_per_s=50.0, motion_px_per_s=0.0, temperature_c=60.0)
-    lo, hi = cam.capture([0, 0], [0.01, 0.01], [0.0, 18.0]).sigma_total_dn.tolist()
+    # 2 ms: even at 18 dB (×7.9) the frame stays below full scale, where saturation would cut the noise
+    lo, hi = cam.capture([0, 0], [0.002, 0.002], [0.0, 18.0]).sigma_total_dn.tolist()
     assert hi > 3 * lo > 0
     a = cam.capture(0, 0.01, 6.0)
     b = cam.capture(0, 0.01, 6.0)
@@ -68,3 +69,47 @@ def test_validation(frames):
     with pytest.raises(ValueError, match="noise source"):
         SimulatedCamera(frames, sources=("shot",))
     assert motion_kernel_for(0.0) == 3 and motion_kernel_for(6.4) == 9 and motion_kernel_for(7.0) == 9
+
+
+@pytest.mark.parametrize("gain_db", [0.0, 24.0])
+def test_overexposed_pixels_read_full_scale_not_full_scale_less_noise(gain_db):
+    # a 0.5 scene at E = 40/s, 0.2 s is 4× (0 dB) to 63× (24 dB) over full scale: the ADC clips signal plus noise
+    cam = SimulatedCamera(torch.full((1, 1, 64, 64), 0.5), illumination_per_s=40.0, motion_px_per_s=0.0)
+    cap = cam.capture(0, 0.2, gain_db)
+    assert cap.image.min().item() == 1.0 and cap.clipped_fraction.item() == 1.0
+    assert cap.blurred.min().item() == 1.0 and cap.sigma_total_dn.item() == 0.0
+    assert cap.sigma_dn.abs().max().item() == 0.0 and cap.mean_intensity.item() == 1.0
+
+
+def test_overexposure_is_blurred_and_leaves_the_rest_of_the_frame_alone():
+    # left half dark (0.1), right half bright (0.9): at 0.05 s and 6 dB the right half is 3.6× over full scale
+    x = torch.full((1, 1, 64, 64), 0.1)
+    x[..., 32:] = 0.9
+    cam = SimulatedCamera(x, illumination_per_s=40.0, motion_px_per_s=100.0)  # 5-px horizontal motion
+    cap = cam.capture(0, 0.05, 6.0)
+    free = SimulatedCamera(x * 0.25, illumination_per_s=40.0, motion_px_per_s=100.0).capture(0, 0.05, 6.0)
+    assert bool((cap.image[..., 40:] == 1.0).all())  # the bright half is saturated everywhere
+    assert bool((cap.image[..., :24] < 1.0).all())  # the dark half keeps its noise, far from the blurred edge
+    # the light beyond full scale spreads across the edge like the rest of the light (5 px of motion)
+    assert bool((cap.image[..., 30] > free.image[..., 30] + 0.2).all())
+    assert 0.5 < cap.clipped_fraction.item() < 0.6 and cap.sigma_total_dn.item() > 0
+
+
+def test_capture_index_from_the_end_and_out_of_range(frames):
+    cam = SimulatedCamera(frames, motion_px_per_s=100.0)
+    cap = cam.capture([0, 1], [0.01, 0.02], 0.0)
+    assert cap[-1].exposure_s.tolist() == pytest.approx([0.02]) and cap[-1].image.shape[0] == 1
+    assert torch.equal(cap[-2].image, cap[0].image) and cap[-1].meta.batch_size == 1
+    for bad in (2, -3):
+        with pytest.raises(IndexError, match=rf"capture index {bad} is out of the allowed range \[-2, 1\] for a batch of 2"):
+            cap[bad]
+    with pytest.raises(TypeError, match="indexed by an int, got float"):
+        cap[0.5]
+
+
+def test_motion_beyond_the_largest_kernel_names_speed_and_exposure(frames):
+    cam = SimulatedCamera(frames, motion_px_per_s=2000.0)
+    with pytest.raises(ValueError, match=r"motion_px_per_s · exposure_s = 2000 px/s · 0.2 s = 400 px of motion blur is "
+                                         r"out of the allowed range \[0, 253\] px"):
+        cam.capture(0, 0.2, 0.0)
+    assert cam.capture(0, 0.1265, 0.0).blur_length_px.item() == pytest.approx(253.0)
