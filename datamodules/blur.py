@@ -36,6 +36,7 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
+from camhealth._validation import check_odd_kernel_size
 from camhealth.augment._base import check_sources
 from camhealth.augment.blur import motion_kernel_size
 from camhealth.physics.defocus_psf import default_kernel_size, defocus_psf
@@ -176,7 +177,7 @@ class BlurDataModule(PatchDataModule):
         need = max(default_kernel_size(self.size_range[1]), motion_kernel_size(self.size_range[1], True))
         if kernel_size is None:
             kernel_size = need
-        elif kernel_size % 2 == 0 or kernel_size < self.size_range[1]:
+        elif check_odd_kernel_size(kernel_size) < self.size_range[1]:
             raise ValueError(f"kernel_size = {kernel_size} must be odd and >= size_range[1] = {self.size_range[1]:g}")
         self.kernel_size = int(kernel_size)
         self.return_psf = bool(return_psf)
@@ -188,6 +189,9 @@ class BlurDataModule(PatchDataModule):
             raise ValueError(f"noise_order = {noise_order!r} must be 'physical' or 'after_blur'")
         self.noise_order = noise_order
         self.noise_sources = check_sources(noise_sources)
+        if self.noise and not self.noise_sources:
+            raise ValueError(f"noise_sources = {list(noise_sources)!r} must name at least one of {list(NOISE_SOURCES)} "
+                             "with noise: true (noisy samples are labelled as carrying noise)")
         self.sensor = sensor
         # a preset name or a metadata file (camera.yaml of camhealth.calibrate), read once
         self._sensor_meta = CameraMetadata.lookup(sensor) if sensor is not None else None
@@ -196,7 +200,7 @@ class BlurDataModule(PatchDataModule):
             ranges = {**{n: METADATA_RANGES[n] for n in MINIMAL_FIELDS}, **ranges}
         self.metadata_ranges = ranges
         self.gain_uniform_in = gain_uniform_in
-        if self.noise:
+        if self.noise or ranges:  # a bad range or preset is refused also where noise is off
             CameraMetadata.sample(1, ranges=self.metadata_ranges, fixed=self._sensor_meta, gain_uniform_in=gain_uniform_in)
 
     # ------------------------------------------------------------------ parameters

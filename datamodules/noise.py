@@ -210,6 +210,9 @@ class NoiseDataModule(PatchDataModule):
             raise ValueError(f"xi_fields {list(xi_fields)} must be a non-empty list of fields from {list(FULL_FIELDS)}")
         self.xi_fields = xi_fields
         self.noise_sources = check_sources(noise_sources)
+        if not self.noise_sources:
+            raise ValueError(f"noise_sources = {list(noise_sources)!r} must name at least one of {list(NOISE_SOURCES)} "
+                             "(every sample is labelled as carrying noise)")
         self.quantize = bool(quantize)
         # Validate the sampling configuration now (a bad preset/range fails at construction).
         CameraMetadata.sample(1, ranges=self.metadata_ranges, fixed=self._sensor_meta, gain_uniform_in=gain_uniform_in)

@@ -10,7 +10,7 @@ import torch
 from kornia.augmentation import IntensityAugmentationBase2D
 
 from camhealth._validation import check_finite, check_float
-from camhealth.augment._generators import metadata_to_params, params_to_metadata
+from camhealth.augment._generators import params_to_metadata
 from camhealth.physics.defocus_psf import defocus_psf
 from camhealth.physics.image_formation import NOISE_SOURCES, ImageFormation, form_image
 from camhealth.physics.metadata import CameraMetadata
@@ -170,7 +170,13 @@ class CorruptionBase(IntensityAugmentationBase2D):
         params = self._params if params is None else params
         if not params:
             raise RuntimeError("no parameters yet: call the module on a batch first, or pass params")
-        b = int(params["forward_input_shape"][0]) if "forward_input_shape" in params else int(params["batch_prob"].numel())
+        if "forward_input_shape" in params:
+            b = int(params["forward_input_shape"][0])
+        elif "batch_prob" in params:
+            b = int(params["batch_prob"].numel())
+        else:
+            raise ValueError(f"params {sorted(params)} hold neither 'forward_input_shape' nor 'batch_prob': pass the params "
+                             "of a call (aug._params, aug.forward_parameters(shape)), which hold the batch size")
         if self._sources and not _same_params(params, self._formation_params):
             raise ValueError(
                 "labels(params=...): the noise labels depend on the image and are those of the last call, which used other "
@@ -218,22 +224,6 @@ class CorruptionBase(IntensityAugmentationBase2D):
             out.update(sigma_dn=f.sigma_dn, sigma_total_dn=f.sigma_total_dn, sigma_expected_dn=f.sigma_expected_dn,
                        sigma_total_expected_dn=f.sigma_total_expected_dn, clipped_fraction=f.clipped_fraction)
         return out
-
-    @staticmethod
-    def params_from_metadata(
-        meta: CameraMetadata, seed: int | None = None, device: torch.device | str | None = None
-    ) -> Dict[str, torch.Tensor]:
-        """Noise parameters for given per-sample metadata, to corrupt with ``aug(x, params=...)``.
-
-        Only valid for noise-only modules (:class:`RandomSensorNoise`); for :class:`CameraCorruption`
-        update the ``meta_<field>`` entries of ``forward_parameters`` output instead.
-        """
-        params = metadata_to_params(meta, device=device)
-        s = int(torch.randint(0, 2**62, (1,))) if seed is None else int(seed)
-        params["noise_seed"] = torch.full((meta.batch_size,), s, dtype=torch.int64, device=device)
-        params["batch_prob"] = torch.ones(meta.batch_size, device=device)
-        params["forward_input_shape"] = torch.tensor([meta.batch_size, 1, 0, 0])
-        return params
 
 
 def _snapshot(params: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:

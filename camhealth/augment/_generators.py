@@ -8,8 +8,10 @@ generator seeded with ``params["noise_seed"]``). Sampling uses torch's global RN
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Mapping
 
+import numpy as np
 import torch
 from kornia.augmentation.random_generator.base import RandomGeneratorBase
 from kornia.augmentation.utils import _adapted_rsampling
@@ -30,12 +32,17 @@ __all__ = [
 
 def as_range(value: float | tuple[float, float] | list[float], name: str, bounds: tuple[float, float]) -> tuple[float, float]:
     """A scalar → (value, value); a pair is checked to lie ordered inside ``bounds``."""
-    if isinstance(value, (int, float)):
+    if isinstance(value, bool):
+        raise TypeError(f"{name} must be a number or a (low, high) pair, got bool {value!r}")
+    if isinstance(value, numbers.Real) or (isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0):
         lo = hi = float(value)
     else:
-        if len(value) != 2:
-            raise ValueError(f"{name} must be a number or a (low, high) pair, got {value!r}")
-        lo, hi = float(value[0]), float(value[1])
+        try:
+            if len(value) != 2:
+                raise ValueError
+            lo, hi = float(value[0]), float(value[1])
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number or a (low, high) pair, got {value!r:.60}") from None
     if not (bounds[0] <= lo <= hi <= bounds[1]):
         raise ValueError(f"{name} = ({lo:g}, {hi:g}) must satisfy {bounds[0]:g} ≤ low ≤ high ≤ {bounds[1]:g}")
     return lo, hi

@@ -92,6 +92,9 @@ class CameraCorruption(CorruptionBase):
         for name, comp, cls in (("defocus", defocus, RandomDefocusBlur), ("motion", motion, RandomMotionBlur), ("noise", noise, RandomSensorNoise)):
             if comp is not None and not isinstance(comp, cls):
                 raise TypeError(f"{name} must be a {cls.__name__} or None, got {type(comp).__name__}")
+        if defocus is None and motion is None and noise is None:
+            raise ValueError("CameraCorruption(defocus=None, motion=None, noise=None) corrupts nothing: it needs at least "
+                             "one component (defocus, motion or noise)")
         self.defocus, self.motion, self.noise = defocus, motion, noise
         self._defocus_ks = defocus._defocus_ks if defocus is not None else None
         self._motion_ks = motion._motion_ks if motion is not None else None

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
 
+import torch
+
 from camhealth.augment._base import CorruptionBase, check_sources
-from camhealth.augment._generators import SensorNoiseGenerator
+from camhealth.augment._generators import SensorNoiseGenerator, metadata_to_params
 from camhealth.physics.image_formation import NOISE_SOURCES, check_rng
 from camhealth.physics.metadata import CameraMetadata
 
@@ -83,3 +85,19 @@ class RandomSensorNoise(CorruptionBase):
         self._quantize = bool(quantize)
         self._rng = check_rng(rng)
         self._param_generator = SensorNoiseGenerator(metadata, ranges, gain_uniform_in)
+
+    @staticmethod
+    def params_from_metadata(
+        meta: CameraMetadata, seed: int | None = None, device: torch.device | str | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Noise parameters for given per-sample metadata, to corrupt with ``aug(x, params=...)``.
+
+        A noise-only module's parameters; for :class:`~camhealth.augment.CameraCorruption` update the
+        ``meta_<field>`` entries of its ``forward_parameters`` output instead.
+        """
+        params = metadata_to_params(meta, device=device)
+        s = int(torch.randint(0, 2**62, (1,))) if seed is None else int(seed)
+        params["noise_seed"] = torch.full((meta.batch_size,), s, dtype=torch.int64, device=device)
+        params["batch_prob"] = torch.ones(meta.batch_size, device=device)
+        params["forward_input_shape"] = torch.tensor([meta.batch_size, 1, 0, 0])
+        return params

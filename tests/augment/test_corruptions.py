@@ -237,3 +237,36 @@ def test_a_kornia_style_positional_call_fails_loudly():
         RandomSensorNoise(("photon",), "ICX285")
     blur = RandomMotionBlur((3.0, 5.0), angle=35.0, intensity=0.5)  # the same settings by name work
     assert blur(torch.rand(2, 1, 32, 32)).shape == (2, 1, 32, 32)
+
+
+def test_camera_without_components_is_refused():
+    with pytest.raises(ValueError, match=r"needs at least one component \(defocus, motion or noise\)"):
+        CameraCorruption(None, None, None)
+    assert CameraCorruption(None, None, RandomSensorNoise()).noise is not None
+
+
+@pytest.mark.parametrize("value", [5, 5.0, "np.int64", "np.float32", "tensor0d"])
+def test_numpy_and_tensor_scalars_are_ranges(value):
+    import numpy as np
+
+    v = {"np.int64": np.int64(5), "np.float32": np.float32(5.0), "tensor0d": torch.tensor(5.0)}.get(value, value)
+    assert RandomDefocusBlur(v)._param_generator.ranges["diameter"] == (5.0, 5.0)
+
+
+@pytest.mark.parametrize("bad,err,shown", [("ab", ValueError, "'ab'"), ([1, 2, 3], ValueError, r"\[1, 2, 3\]"),
+                                           (True, TypeError, "bool True"), (None, ValueError, "None")])
+def test_bad_ranges_name_the_argument(bad, err, shown):
+    with pytest.raises(err, match=rf"diameter must be a number or a \(low, high\) pair, got {shown}"):
+        RandomDefocusBlur(bad)
+
+
+def test_labels_of_params_without_the_batch_size_is_a_clear_error():
+    with pytest.raises(ValueError, match=r"hold neither 'forward_input_shape' nor 'batch_prob'"):
+        RandomDefocusBlur().labels({"diameter": torch.tensor([3.0, 5.0])})
+
+
+def test_params_from_metadata_is_the_noise_modules_alone():
+    # the camera's parameters hold blur entries too: metadata alone cannot make them
+    assert not hasattr(CameraCorruption, "params_from_metadata") and not hasattr(RandomDefocusBlur, "params_from_metadata")
+    meta = CameraMetadata.preset("ICX285", batch_size=2)
+    assert RandomSensorNoise.params_from_metadata(meta, seed=1)["noise_seed"].tolist() == [1, 1]

@@ -176,3 +176,22 @@ def test_sharp_sources_option_is_batched_and_seeded():
     src = dm.source
     i = src.ids.index("street:vtest#000100")
     assert src[i][0].shape == (1, 288, 384)  # area-downsampled by 2
+
+
+def test_noisy_blur_data_need_a_noise_source_and_an_int_kernel_size():
+    # noisy samples with no source would be labelled noisy with σ = 0
+    with pytest.raises(ValueError, match=r"noise_sources = \[\] must name at least one of \['photon', 'dark', 'readout'\]"):
+        BlurDataModule(source="unused", noise=True, noise_sources=())
+    assert BlurDataModule(source="unused", noise=False, noise_sources=()).noise_sources == ()
+    for ks in (33.5, True):
+        with pytest.raises(TypeError, match="kernel_size must be an int"):
+            BlurDataModule(source="unused", kernel_size=ks, size_range=(0.0, 1.0))
+    with pytest.raises(ValueError, match=r"kernel_size = 34 must be an odd integer"):
+        BlurDataModule(source="unused", kernel_size=34, size_range=(0.0, 1.0))
+    with pytest.raises(ValueError, match=r"kernel_size = 5 must be odd and >= size_range\[1\] = 9"):
+        BlurDataModule(source="unused", kernel_size=5, size_range=(0.0, 9.0))
+
+
+def test_metadata_ranges_are_checked_also_without_noise():
+    with pytest.raises(ValueError, match="gain_db"):
+        BlurDataModule(source="unused", noise=False, metadata_ranges={"gain_db": (5.0, 1.0)})

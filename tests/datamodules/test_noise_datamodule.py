@@ -255,3 +255,9 @@ def test_training_corruption_differs_per_rank_of_a_multi_process_run():
         draws.append(dm.corrupt(_clean(4), dm.train_generator()))
     assert not torch.equal(draws[0]["meta_raw"], draws[1]["meta_raw"])
     assert not torch.equal(draws[0]["image"], draws[1]["image"])
+
+
+def test_noise_data_need_a_noise_source():
+    # every sample is labelled as carrying noise (and ξ as altered metadata): none added would contradict it
+    with pytest.raises(ValueError, match=r"noise_sources = \[\] must name at least one of \['photon', 'dark', 'readout'\]"):
+        NoiseDataModule(source="unused", noise_sources=[])
