@@ -202,7 +202,15 @@ class CameraMetadata:
         device = next((v.device for v in vecs.values() if v.device.type != "cpu"), torch.device("cpu"))
         dtype = torch.float64 if any(v.dtype == torch.float64 for v in vecs.values()) else torch.float32
         for name, v in vecs.items():
-            object.__setattr__(self, name, v.to(device=device, dtype=dtype).expand(batch).contiguous())
+            w = v.to(device=device, dtype=dtype)
+            if v.dtype in (torch.float16, torch.bfloat16):
+                # a range end given in half precision is rounded by up to 2^-9 (bf16) or 2^-12 (fp16) of its value:
+                # 0.2 s in bf16 is 0.2002 s. Values within two rounding steps outside the range are the range end.
+                low, high = METADATA_RANGES[name]
+                eps = 2.0 * torch.finfo(v.dtype).eps  # two rounding steps of that end's own value
+                w = torch.where((w < low) & (w >= low - eps * abs(low)), torch.full_like(w, low), w)
+                w = torch.where((w > high) & (w <= high + eps * abs(high)), torch.full_like(w, high), w)
+            object.__setattr__(self, name, w.expand(batch).contiguous())
         self.validate()
 
     # ------------------------------------------------------------------ validation / conversion
@@ -357,6 +365,9 @@ class CameraMetadata:
         names = _field_names(fields)
         if values.ndim != 2 or values.shape[1] != len(names):
             raise ValueError(f"expected normalised metadata of shape (B, {len(names)}) for {names}, got {tuple(values.shape)}")
+        # physical units in float32 at least: fp16 cannot hold a 28.64 MHz pixel clock (it is inf there), nor bf16
+        # a 5e-6 V/e⁻ sense-node gain to the range's precision
+        values = values.to(torch.promote_types(values.dtype, torch.float32)) if values.is_floating_point() else values.float()
         data = {}
         for j, n in enumerate(names):
             low, high = METADATA_RANGES[n]

@@ -157,3 +157,31 @@ def test_from_file_and_lookup(tmp_path):
         CameraMetadata.from_file(tmp_path / "missing.yaml")
     with pytest.raises(ValueError, match="unknown sensor preset"):
         CameraMetadata.lookup("nope")
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_denormalize_half_precision_values_with_a_preset_base(dtype):
+    # fp16 cannot hold the 28.64 MHz pixel clock of the base (inf): the physical units are computed in float32
+    m = CameraMetadata.preset("ICX285", exposure_s=0.05, gain_db=6.0)
+    r = CameraMetadata.denormalize(m.normalize("minimal").to(dtype), "minimal", base="ICX285")
+    assert r.pixel_clock_hz.item() == pytest.approx(28.64e6)
+    assert r.sense_node_gain_v_per_e.item() == pytest.approx(m.sense_node_gain_v_per_e.item(), rel=1e-6)
+    assert r.exposure_s.item() == pytest.approx(0.05, rel=2e-3) and r.gain_db.dtype == torch.float32
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("field,end", [("exposure_s", 0.2), ("exposure_s", 0.001), ("gain_db", 24.0),
+                                       ("sense_node_gain_v_per_e", 1e-6), ("full_well_e", 2000.0)])
+def test_half_precision_range_ends_are_the_range_ends(dtype, field, end):
+    # 0.2 s in bf16 is 0.2002 s: a range end given in half precision is accepted as that end
+    given = torch.tensor([end], dtype=dtype)
+    m = CameraMetadata.preset("ICX285", **{field: given})
+    low, high = METADATA_RANGES[field]
+    assert getattr(m, field).item() == pytest.approx(min(max(given.item(), low), high), rel=1e-7)
+
+
+def test_half_precision_values_beyond_rounding_are_still_refused():
+    with pytest.raises(ValueError, match=r"exposure_s\[0\] = 0.209961 s is out of the allowed range \[0.001, 0.2\] s"):
+        CameraMetadata.preset("ICX285", exposure_s=torch.tensor([0.21], dtype=torch.bfloat16))
+    with pytest.raises(ValueError, match=r"exposure_s\[0\] = -0.000100136 s is out"):
+        CameraMetadata.preset("ICX285", exposure_s=torch.tensor([-1e-4], dtype=torch.bfloat16))
