@@ -180,14 +180,17 @@ def _scaling(arr: np.ndarray, path: Path, bit_depth: int | str) -> ImageScaling:
 
 
 def _normalise(arr: np.ndarray, path: Path, scaling: ImageScaling | None = None) -> np.ndarray:
-    """Integer DN → [0, 1] by ``scaling`` (default: the dtype's maximum); float data must already be in [0, 1]."""
+    """Integer DN → [0, 1] by ``scaling`` (default: the dtype's maximum); float data must already be in [0, 1].
+
+    Integer and boolean data become float32 (exact for 16-bit values; the quotient is the float32 the tensor
+    holds), float16/float32 data float32, float64 data stay float64."""
     if arr.dtype == np.bool_:
-        return arr.astype(np.float64)
+        return arr.astype(np.float32)
     if arr.dtype in (np.uint8, np.uint16):
         divisor = scaling.divisor if scaling is not None else float(np.iinfo(arr.dtype).max)
-        return arr.astype(np.float64) / divisor
+        return arr.astype(np.float32) / np.float32(divisor)
     if np.issubdtype(arr.dtype, np.floating):
-        arr = arr.astype(np.float64)
+        arr = arr.astype(np.promote_types(arr.dtype, np.float32), copy=False)
         if not np.isfinite(arr).all() or arr.min() < 0.0 or arr.max() > 1.0:
             raise ValueError(
                 f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got range "
@@ -200,17 +203,32 @@ def _normalise(arr: np.ndarray, path: Path, scaling: ImageScaling | None = None)
     )
 
 
-def _png_header(path: Path) -> tuple[int, int] | None:
-    """(bit depth, colour type) from a PNG's IHDR chunk, or None if the file is not a PNG."""
+def _png_header(path: Path) -> tuple[int, int, int, int] | None:
+    """(bit depth, colour type, width, height) from a PNG's IHDR chunk, or None if the file is not a PNG."""
     with open(path, "rb") as f:
         head = f.read(26)
     if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         return None
-    return head[24], head[25]
+    width, height = struct.unpack(">II", head[16:24])
+    return head[24], head[25], width, height
 
 
-def _read_16bit_colour_png(path: Path) -> np.ndarray:
+def _check_pixels(path: Path, width: int, height: int) -> None:
+    """Refuse an image of more than ``PIL.Image.MAX_IMAGE_PIXELS`` pixels (read now; ``None`` = no limit) before
+    it is decoded: the decoders that are not Pillow (OpenCV, tifffile) apply no limit of their own."""
+    from PIL import Image
+
+    limit = Image.MAX_IMAGE_PIXELS
+    if limit is not None and int(width) * int(height) > limit:
+        raise ValueError(
+            f"cannot read image {path}: {width}×{height} = {int(width) * int(height)} pixels is more than the limit "
+            f"of {limit} pixels (PIL.Image.MAX_IMAGE_PIXELS)"
+        )
+
+
+def _read_16bit_colour_png(path: Path, width: int, height: int) -> np.ndarray:
     """Pillow truncates 16-bit colour / gray+alpha PNGs to 8 bits; OpenCV reads them losslessly."""
+    _check_pixels(path, width, height)
     try:
         import cv2
     except ImportError:  # pragma: no cover - cv2 is a dependency; fall back to 8-bit precision
@@ -250,11 +268,17 @@ def _read_pillow(path: Path) -> np.ndarray:
     return arr
 
 
-def _read_tiff(path: Path) -> np.ndarray:
+def _read_tiff(path: Path) -> tuple[np.ndarray, bool]:
+    """The first page's samples, and whether they are palette colours (16-bit full scale by the TIFF standard)."""
     import tifffile
 
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
+        _check_pixels(path, page.imagewidth, page.imagelength * max(1, int(page.imagedepth)))
+        if page.samplesperpixel > 4:
+            raise ValueError(
+                f"cannot read image {path}: {page.samplesperpixel} samples per pixel (supported: 1 to 4)"
+            )
         arr = page.asarray()
         photometric = int(page.photometric)
         planar = int(page.planarconfig)
@@ -263,12 +287,14 @@ def _read_tiff(path: Path) -> np.ndarray:
         arr = np.moveaxis(arr, 0, -1)
     if photometric == 3 and colormap is not None:  # palette
         cmap = np.asarray(colormap)  # 3×N, 16-bit
-        arr = np.moveaxis(cmap[:, arr], 0, -1).astype(np.uint16)
-    elif photometric == 0 and arr.dtype in (np.uint8, np.uint16):  # MINISWHITE
+        return np.moveaxis(cmap[:, arr], 0, -1).astype(np.uint16), True
+    if photometric == 0 and arr.dtype in (np.uint8, np.uint16):  # MINISWHITE
         arr = np.iinfo(arr.dtype).max - arr
+    elif photometric == 0 and arr.dtype == np.bool_:  # 1-bit MINISWHITE: a set sample is black
+        arr = ~arr
     elif photometric not in (0, 1, 2, 3):
         raise ValueError(f"cannot read image {path}: unsupported TIFF photometric interpretation {photometric}")
-    return arr
+    return arr, False
 
 
 def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
@@ -280,14 +306,17 @@ def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
     ``bit_depth``: significant bits of 16-bit data, 1…16 (values are divided by 2^bit_depth − 1; a value above
     that raises), or ``"auto"`` (default): the PNG's ``sBIT`` chunk where there is one, else the fewest of 8, 10,
     12, 14 or 16 bits that hold the largest value — a guess, announced with a ``UserWarning`` that names the
-    scaling when it is not 16 bits (pass ``bit_depth=16`` for DN/65535). :func:`read_image_scaled` returns the
+    scaling when it is not 16 bits (pass ``bit_depth=16`` for DN/65535). A palette TIFF's colours are 16-bit full
+    scale (÷65535 under ``"auto"``), so it reads like the same palette PNG. :func:`read_image_scaled` returns the
     scaling with the image.
 
     Raises:
         FileNotFoundError: ``path`` does not exist (the message names it).
-        ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), the file is
-            corrupt/unreadable or has an unsupported pixel type, or holds values beyond ``bit_depth`` (the
-            message names the file).
+        ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), ``path`` is not a
+            regular file (a directory, FIFO, ...), the file is corrupt/unreadable or has an unsupported pixel
+            type, holds values beyond ``bit_depth``, or has more pixels than ``PIL.Image.MAX_IMAGE_PIXELS``
+            (checked from the header, before decoding, for the 16-bit colour PNGs and TIFFs Pillow does not decode;
+            Pillow applies its own limit to the others) (the message names the file).
     """
     image, scaling = read_image_scaled(path, bit_depth)
     if scaling.source == "largest value":
@@ -329,18 +358,21 @@ def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[to
         raise FileNotFoundError(f"image file not found: {p}")
     if p.is_dir():
         raise ValueError(f"cannot read image {p}: it is a directory, not an image file")
+    if not p.is_file():
+        raise ValueError(f"cannot read image {p}: not a regular file (a FIFO, socket or device); give an image file")
     ext = p.suffix.lower()
     if ext not in IMAGE_EXTENSIONS:
         raise ValueError(
             f"cannot read image {p}: unsupported extension {p.suffix!r}; allowed: {', '.join(IMAGE_EXTENSIONS)}"
         )
+    palette = False
     try:
         if ext in (".tif", ".tiff"):
-            arr = _read_tiff(p)
+            arr, palette = _read_tiff(p)
         else:
             header = _png_header(p) if ext == ".png" else None
             if header is not None and header[0] == 16 and header[1] in (2, 4, 6):
-                arr = _read_16bit_colour_png(p)
+                arr = _read_16bit_colour_png(p, header[2], header[3])
             else:
                 arr = _read_pillow(p)
     except ValueError as e:
@@ -358,7 +390,9 @@ def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[to
         raise ValueError(f"cannot read image {p}: unsupported array shape {arr.shape}")
     if arr.shape[0] == 0 or arr.shape[1] == 0:
         raise ValueError(f"cannot read image {p}: the image is empty (shape {arr.shape})")
-    if arr.dtype in (np.uint8, np.uint16):
+    if palette and bit_depth == "auto":  # palette colours are 16-bit full scale, as a palette PNG's 8-bit ones
+        scaling = ImageScaling(16, 16, "file", float(arr.max()))
+    elif arr.dtype in (np.uint8, np.uint16):
         scaling = _scaling(arr, p, bit_depth)
     else:
         scaling = ImageScaling(None, None, "file", float(np.nanmax(arr)) if arr.size else 0.0)

@@ -29,7 +29,8 @@ Frames (:func:`image_to_gray`): ``sensor_msgs/Image`` and ``sensor_msgs/Compress
   estimate low (ξ towards "cleaner");
 - ``CompressedImage``: JPEG or PNG decoded by OpenCV as stored (8 or 16 bit, gray or BGR(A)), then as
   above; a ``format`` such as ``"bayer_rggb8; png compressed"`` is treated as that Bayer encoding;
-  ``compressedDepth`` (depth images) is refused.
+  ``compressedDepth`` (depth images) is refused, and so is an image whose header declares more than
+  ``PIL.Image.MAX_IMAGE_PIXELS`` pixels (before it is decoded).
 
 Any other encoding (``yuv422``, ``32FC1``, ``8UC3`` of unknown channel order, …) is refused with a message
 that names it. A message that cannot be decoded (short data, corrupt JPEG, value beyond ``bit_depth``) is a
@@ -204,6 +205,31 @@ def _raw_image(msg: Any, encoding: str, kind: str, nchan: int, dtype: np.dtype) 
     return raw.reshape(h, w, nchan) if nchan > 1 else raw.reshape(h, w)
 
 
+def _check_compressed_size(data: np.ndarray, fmt: str) -> None:
+    """Refuse a compressed image whose header (read by Pillow, which decodes nothing) declares more pixels than
+    ``PIL.Image.MAX_IMAGE_PIXELS`` (read now; ``None`` = no limit), or whose header cannot be read, before OpenCV
+    decodes it."""
+    import io
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data.tobytes())) as im:
+                width, height = im.size
+    except Image.DecompressionBombError as exc:
+        raise FrameDecodeError(f"CompressedImage (format {fmt!r}) is too large to decode: {exc}") from None
+    except Exception:  # noqa: BLE001 - PIL.UnidentifiedImageError, a truncated header, ...
+        raise FrameDecodeError(f"cannot decode CompressedImage (format {fmt!r}, {data.size} bytes): corrupt or not "
+                               "JPEG/PNG") from None
+    limit = Image.MAX_IMAGE_PIXELS
+    if limit is not None and width * height > limit:
+        raise FrameDecodeError(f"CompressedImage (format {fmt!r}) is {width}×{height} = {width * height} pixels, more "
+                               f"than the limit of {limit} pixels (PIL.Image.MAX_IMAGE_PIXELS)")
+
+
 def _compressed_to_gray(msg: Any, bit_depth: int | None, bayer: str) -> np.ndarray:
     import cv2
 
@@ -213,7 +239,12 @@ def _compressed_to_gray(msg: Any, bit_depth: int | None, bayer: str) -> np.ndarr
     data = np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data.view(np.uint8).ravel()
     if data.size == 0:
         raise FrameDecodeError(f"CompressedImage (format {fmt!r}) holds no data")
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    _check_compressed_size(data, fmt)
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except (cv2.error, MemoryError) as exc:
+        raise FrameDecodeError(f"cannot decode CompressedImage (format {fmt!r}, {data.size} bytes): "
+                               f"{_first_line(exc)}") from None
     if img is None:
         raise FrameDecodeError(f"cannot decode CompressedImage (format {fmt!r}, {data.size} bytes): corrupt or not JPEG/PNG")
     if img.dtype not in (np.uint8, np.uint16):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import tifffile
@@ -138,3 +140,82 @@ def test_to_gray_tensor_weights_dtypes_and_layouts(dtype):
     rgba = torch.cat([eye[:1], torch.ones(1, 1, 2, 2)], 1).to(torch.float64)  # alpha dropped, C×H×W too
     assert torch.allclose(to_gray(rgba[0]), torch.full((1, 2, 2), BT601_WEIGHTS[0], dtype=torch.float64))
     assert torch.equal(to_gray(rgba[:, :2]), rgba[:, :1])  # gray + alpha: gray kept
+
+
+def _png_bytes(width: int, height: int, depth: int, colour_type: int, channels: int) -> bytes:
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    raw = (b"\x00" + b"\x00" * (width * channels * depth // 8)) * height
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour_type, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+
+
+@pytest.mark.parametrize("kind", ["png16rgb", "tif"])
+def test_pixel_limit_holds_for_decoders_other_than_pillow(tmp_path, monkeypatch, kind):
+    """16-bit colour PNGs (OpenCV) and TIFFs (tifffile) are refused from the header above PIL.Image.MAX_IMAGE_PIXELS."""
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    if kind == "png16rgb":
+        p = tmp_path / "big.png"
+        p.write_bytes(_png_bytes(64, 32, 16, 2, 3))
+    else:
+        p = tmp_path / "big.tif"
+        tifffile.imwrite(p, np.zeros((32, 64), np.uint8), compression="zlib")
+    with pytest.raises(ValueError, match=r"big\.(png|tif).*64×32 = 2048 pixels.*1000"):
+        read_image(p)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 2048)
+    assert read_image(p, bit_depth=16 if kind == "png16rgb" else "auto").shape == (1, 32, 64)
+
+
+def test_palette_tiff_reads_like_the_same_palette_png(tmp_path):
+    """Palette TIFF colours are 16-bit full scale: no bit-depth guess from the largest colour."""
+    cmap = np.zeros((3, 256), np.uint16)
+    cmap[:, 1] = 48 * 257
+    idx = np.array([[0, 1]], np.uint8)
+    tifffile.imwrite(tmp_path / "p.tif", idx, photometric="palette", colormap=cmap)
+    im = Image.fromarray(idx, "P")
+    im.putpalette([0, 0, 0, 48, 48, 48] + [0] * 750)
+    im.save(tmp_path / "p.png")
+    x_png = read_image(tmp_path / "p.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "guessed from the largest value" warning
+        x_tif = read_image(tmp_path / "p.tif")
+    assert x_tif[0, 0, 1].item() == pytest.approx(48 / 255, abs=1e-6)
+    assert torch.allclose(x_tif, x_png, atol=1e-6)
+
+
+def test_one_bit_miniswhite_tiff_is_inverted_like_8_bit(tmp_path):
+    a = np.zeros((2, 2), bool)
+    a[0, 0] = True  # a set sample is black in MINISWHITE
+    tifffile.imwrite(tmp_path / "mw1.tif", a, photometric="miniswhite")
+    tifffile.imwrite(tmp_path / "mw8.tif", a.astype(np.uint8) * 255, photometric="miniswhite")
+    x1 = read_image(tmp_path / "mw1.tif")
+    assert x1[0].tolist() == [[0.0, 1.0], [1.0, 1.0]]
+    assert torch.equal(x1, read_image(tmp_path / "mw8.tif"))
+
+
+def test_fifo_is_refused_without_opening_it(tmp_path):
+    import os
+
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no FIFOs on this platform")
+    import threading
+    import time
+
+    p = tmp_path / "pipe.png"
+    os.mkfifo(p)  # opening it for reading blocks until a writer comes
+
+    def unblock_readers():  # so that code that does open the FIFO fails the test instead of hanging it
+        for _ in range(200):
+            try:
+                os.close(os.open(p, os.O_WRONLY | os.O_NONBLOCK))  # ENXIO while no reader waits
+            except OSError:
+                pass
+            time.sleep(0.02)
+
+    threading.Thread(target=unblock_readers, daemon=True).start()
+    with pytest.raises(ValueError, match=r"pipe\.png.*not a regular file"):
+        read_image(p)

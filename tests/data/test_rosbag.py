@@ -212,6 +212,38 @@ def test_compressed_png_jpeg_bayer_and_corrupt(tmp_path):
     assert (it.decoded, it.undecodable) == (4, 2)
 
 
+def test_compressed_image_over_the_pixel_limit_or_that_opencv_cannot_decode_is_a_frame_error(tmp_path, monkeypatch):
+    """A CompressedImage whose header declares more than PIL.Image.MAX_IMAGE_PIXELS pixels is refused before it is
+    decoded, and an OpenCV error or a MemoryError while decoding is a frame error too; the next frame is read."""
+    from PIL import Image
+
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 24 * 32)
+    big = np.zeros((25, 32), np.uint8)
+    frames, it = _one(tmp_path, lambda w: (
+        w.add_compressed("/cam/image", cv2.imencode(".png", big)[1], "png", T0),
+        w.add_compressed("/cam/image", cv2.imencode(".png", np.dstack([big] * 3).astype(np.uint16))[1], "png", T0 + 1),
+        w.add_compressed("/cam/image", cv2.imencode(".jpg", big)[1], "jpeg", T0 + 2),
+        w.add_compressed("/cam/image", cv2.imencode(".png", _ramp())[1], "png", T0 + 3),
+    ))
+    for f, fmt in zip(frames[:3], ("png", "png", "jpeg")):
+        assert f.frame is None and f"CompressedImage (format {fmt!r}) is 32×25 = 800 pixels, more than the limit of " \
+                                  "768 pixels" in f.error, f.error
+    assert frames[3].error is None and frames[3].frame.shape == (1, 24, 32) and (it.decoded, it.undecodable) == (1, 3)
+
+    def failing(exc):
+        def imdecode(*args):
+            raise exc
+        return imdecode
+
+    png = cv2.imencode(".png", _ramp())[1]
+    for exc, text in ((cv2.error("OpenCV(4) error: (-215:Assertion failed) in imdecode"), "Assertion failed"),
+                      (MemoryError("out of memory"), "out of memory")):
+        monkeypatch.setattr(cv2, "imdecode", failing(exc))
+        frames, it = _one(tmp_path, lambda w: w.add_compressed("/cam/image", png, "png", T0), name=type(exc).__name__)
+        assert frames[0].frame is None and "cannot decode CompressedImage (format 'png'" in frames[0].error
+        assert text in frames[0].error and it.undecodable == 1
+
+
 def test_unconvertible_encoding_is_refused_naming_it(tmp_path):
     path = tmp_path / "float.bag"
     with RecordingWriter(path) as w:
