@@ -388,6 +388,37 @@ def _human_summary(summary: dict, out: TextIO) -> None:
         print(f"  defect map: {d['path']} ({d['pixels']} pixels flagged in at least {d['min_frames']} frames)", file=out)
 
 
+def _printable(text: str) -> str:
+    """``text`` as it can be written as UTF-8: the bytes of a file name that are not UTF-8 (which Python holds as
+    surrogates, ``os.fsdecode``) become ``\\xNN`` escapes; text that is valid UTF-8 is returned unchanged."""
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        try:
+            return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        except UnicodeEncodeError:  # a surrogate that is no escaped byte
+            return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def _input_overwritten(args: argparse.Namespace, out: Path) -> str | None:
+    """The input file (``"OPTION PATH"``) that writing ``out`` would overwrite, or ``None``."""
+    import os
+
+    inputs = [("SOURCE", args.source), ("--defect-map", args.defect_map), ("--metadata", args.metadata),
+              *(("--iopc", f) for f in args.iopc)]
+    for option, given in inputs:
+        if given is None:
+            continue
+        path = Path(given)
+        try:
+            if out.resolve() == path.resolve() or (out.exists() and path.exists() and os.path.samefile(out, path)):
+                return f"{option} {path}"
+        except (OSError, RuntimeError):  # (RuntimeError: a symlink loop)
+            continue
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -415,6 +446,10 @@ def run(args: argparse.Namespace) -> int:
             args.defects_out = defect_map_path(args.defects_out)
         except ValueError as exc:
             raise ValueError(f"--defects-out {args.defects_out}: {exc}") from None
+        overwritten = _input_overwritten(args, args.defects_out)
+        if overwritten is not None:
+            raise ValueError(f"--defects-out {args.defects_out} would overwrite the input {overwritten}; give another "
+                             "file for the run's defect map")
     source = open_source(args.source, args.start, args.stride, args.max_frames, bit_depth=args.bit_depth,
                          recording=_recording_options(args))
     if args.static_pairs:
@@ -482,19 +517,21 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     t0 = time.perf_counter()
     try:
         for item in source:
+            source_id = _printable(item.source_id)  # (a file name need not be UTF-8; the outputs are)
             if item.error is not None:
-                unreadable.append(f"{item.source_id}: {item.error}")
-                line = {"frame_error": item.error, "index": item.index, "source_id": item.source_id}
+                error = _printable(item.error)
+                unreadable.append(f"{source_id}: {error}")
+                line = {"frame_error": error, "index": item.index, "source_id": source_id}
                 sink.write(json.dumps(line, ensure_ascii=False) + "\n")
                 if diagnostics is not None:
-                    diagnostics.write_error(item.error, item.index, item.source_id, item.stamp_ns, item.log_time_ns or 0,
+                    diagnostics.write_error(error, item.index, source_id, item.stamp_ns, item.log_time_ns or 0,
                                             item.frame_id)
                 progress.update("unreadable frame")
                 continue
             frames += 1
             if item.scaling is not None:
                 scalings[item.scaling] = scalings.get(item.scaling, 0) + 1
-            report = monitor.process(item.frame, metadata=item.metadata, index=item.index, source_id=item.source_id)
+            report = monitor.process(item.frame, metadata=item.metadata, index=item.index, source_id=source_id)
             if diagnostics is not None:
                 diagnostics.write_report(report, item.stamp_ns, item.log_time_ns or 0, item.frame_id)
             sink.write(report.to_json() + "\n")
@@ -513,7 +550,7 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     if frames == 0 and not unreadable and args.start > 0:  # a video that does not report its frame count
         raise ValueError(f"--start {args.start} is past the end of {source.path}: no frame was read")
     summary = monitor.summary()
-    summary.update(source=str(source.path), kind=source.kind, unreadable_frames=len(unreadable), unreadable=unreadable[:20],
+    summary.update(source=_printable(str(source.path)), kind=source.kind, unreadable_frames=len(unreadable), unreadable=unreadable[:20],
                    wall_s=time.perf_counter() - t0, input_scaling=scalings)
     if source.kind == "recording":
         summary["recording"] = source.summary()
@@ -537,7 +574,8 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
         summary["jsonl"] = str(out_dir / "monitor.jsonl")
         if overlays:
             summary["overlays"] = f"{out_dir / 'overlays'} ({overlays} PNG)"
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, ensure_ascii=False, allow_nan=False, default=str))
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, ensure_ascii=False, allow_nan=False, default=str),
+                                              encoding="utf-8")
     if frames == 0:  # every frame unreadable or refused: nothing was monitored, which is no success
         why = f"all {len(unreadable)} unreadable or refused (first: {unreadable[0]})" if unreadable else "none was read"
         raise ValueError(f"no frame of {source.path} could be scored: {why}"

@@ -16,7 +16,9 @@ Accepted forms (:func:`load_defect_map`):
   ``allow_pickle=False``, so loading never runs code from the file, and only after its header declares at most
   :data:`MAX_MAP_PIXELS` elements;
 - ``.npy`` — one array, the same way;
-- ``.png``, ``.pgm``, ``.pbm``, ``.tif``, ``.tiff``, ``.bmp`` — a one-channel image, non-zero at the defects;
+- ``.png``, ``.pgm``, ``.pbm``, ``.tif``, ``.tiff``, ``.bmp`` — a one-channel image, non-zero at the defects; its
+  size is read from the header first (Pillow, which refuses more than twice ``PIL.Image.MAX_IMAGE_PIXELS``), and
+  an image of more than :data:`MAX_MAP_PIXELS` pixels is refused before it is decoded;
 - an array (NumPy or torch) of H×W.
 
 Values must be boolean or whole numbers 0/1 (an image: zero and non-zero); the map may mark no pixel (a calibration
@@ -55,22 +57,28 @@ class _Refused(ValueError):
 
 
 def _declared_size(fp: Any, name: str) -> None:
-    """Reads the ``.npy`` header at ``fp`` and refuses an array of more than :data:`MAX_MAP_PIXELS` elements."""
+    """Reads the ``.npy`` header at ``fp`` and refuses an array of more than :data:`MAX_MAP_PIXELS` elements, or of
+    a dtype other than bool, integer or float (kinds ``b``, ``i``, ``u``, ``f``), before its data are read."""
     fmt = np.lib.format
     try:
         version = fmt.read_magic(fp)
         if version == (1, 0):
-            shape, _, _ = fmt.read_array_header_1_0(fp)
-        elif version == (2, 0):
-            shape, _, _ = fmt.read_array_header_2_0(fp)
+            shape, _, dtype = fmt.read_array_header_1_0(fp)
+        elif version in ((2, 0), (3, 0)):  # 3.0 differs from 2.0 only in the header's text encoding (UTF-8)
+            shape, _, dtype = fmt.read_array_header_2_0(fp)
         else:
-            return  # a newer header: np.load reads it (and checks it) itself
+            raise ValueError(f"header version {version[0]}.{version[1]}; readable: 1.0, 2.0, 3.0")
     except ValueError as err:
         raise _Refused(f"{name} is not a plain NumPy array ({err})") from None
     n = int(np.prod(shape, dtype=np.float64)) if len(shape) else 1
     if n > MAX_MAP_PIXELS:
         raise _Refused(f"{name} declares an array of shape {tuple(shape)} ({n} elements, at most {MAX_MAP_PIXELS} "
                          "allowed): not read")
+    if dtype.hasobject:
+        raise _Refused(f"{name} declares an array of Python objects (dtype {dtype}): pickled arrays are refused")
+    if dtype.kind not in "biuf" or n * dtype.itemsize > 8 * MAX_MAP_PIXELS:
+        raise _Refused(f"{name} declares an array of dtype {dtype} ({dtype.itemsize} bytes per element): a defect map "
+                       "must be bool or whole numbers 0/1 (bool, integer or float dtype): not read")
 
 
 def _from_file(path: Path) -> tuple[np.ndarray, str]:
@@ -112,8 +120,23 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
             raise ValueError(f"defect map {str(path)!r} cannot be read as a plain .npy array ({err}); pickled arrays "
                              "are refused") from None
     if suffix in IMAGE_SUFFIXES:
-        import cv2
+        import warnings
 
+        import cv2
+        from PIL import Image
+
+        try:  # the size from the header, before OpenCV decodes the image
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(path) as im:
+                    width, height = im.size
+        except Image.DecompressionBombError as err:
+            raise _Refused(f"defect map {str(path)!r} is an image larger than Pillow allows ({err}): not read") from None
+        except (OSError, SyntaxError, ValueError) as err:  # PIL.UnidentifiedImageError is an OSError
+            raise ValueError(f"defect map {str(path)!r} is not a readable image ({err})") from None
+        if width * height > MAX_MAP_PIXELS:
+            raise _Refused(f"defect map {str(path)!r} is a {width}×{height} image ({width * height} pixels, at most "
+                           f"{MAX_MAP_PIXELS} allowed): not read")
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise ValueError(f"defect map {str(path)!r} is not a readable image")

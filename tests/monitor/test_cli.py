@@ -325,3 +325,44 @@ def test_sigma_max_dn_must_be_positive(value, capsys):
     with pytest.raises(SystemExit) as info:
         build_parser().parse_args(["street", "--sigma-max-dn", value])
     assert info.value.code == 2 and f"argument --sigma-max-dn: must be a finite number > 0, got {value}" in capsys.readouterr().err
+
+
+def test_defects_out_may_not_overwrite_an_input(models, tmp_path, capsys):
+    """--defects-out naming the --defect-map it reads (also as the name .npz is appended to), or another input file,
+    is refused before the run, naming both; the input is left as it was."""
+    argv = _defect_run(tmp_path, models)
+    maps = tmp_path / "camera.maps.npz"
+    np.savez(maps, hot_pixels=np.zeros((256, 256), bool), master_dark_dn=np.ones((256, 256), np.float32))
+    policy = tmp_path / "policy.npz"
+    policy.write_bytes(b"an IOPC file")
+    for extra, target, given in ((["--defect-map", str(maps)], maps, f"--defect-map {maps}"),
+                                 (["--defect-map", str(maps)], tmp_path / "sub" / ".." / "camera.maps", f"--defect-map {maps}"),
+                                 (["--iopc", str(policy)], policy, f"--iopc {policy}")):
+        code, out, err = _run([*argv, *extra, "--defects-out", str(target), "--out", str(tmp_path / "o")], capsys)
+        assert code == 2 and out == "" and "would overwrite the input " + given in err, err
+        assert not (tmp_path / "o").exists()  # refused before the run
+    assert set(np.load(maps).files) == {"hot_pixels", "master_dark_dn"} and policy.read_bytes() == b"an IOPC file"
+
+
+def test_a_file_name_that_is_not_utf8_is_written_with_escapes(models, tmp_path, capsys):
+    """A frame whose file name is not UTF-8 (bytes Python holds as surrogates) is scored, and its id is written to
+    monitor.jsonl and summary.json (UTF-8) with \\xNN escapes; so is an unreadable one's."""
+    import os
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    good, bad = os.fsencode(folder) + b"/caf\xe9.png", os.fsencode(folder) + b"/z\xff.png"
+    try:
+        _png(folder / "tmp.png", np.random.default_rng(0).integers(40, 200, (256, 256), dtype=np.uint8))
+        os.rename(folder / "tmp.png", good)
+        with open(bad, "wb") as f:
+            f.write(b"not a png at all")
+    except (OSError, UnicodeError):
+        pytest.skip("the file system does not take file names that are not UTF-8")
+    code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", *models, "--out", str(tmp_path / "o")], capsys)
+    assert code == 0, err
+    scored, unreadable = _lines((tmp_path / "o" / "monitor.jsonl").read_text(encoding="utf-8"))
+    assert scored["source_id"].endswith("caf\\xe9.png") and scored["noise"]["assessable"]
+    assert unreadable["source_id"].endswith("z\\xff.png") and "frame_error" in unreadable
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text(encoding="utf-8"))
+    assert summary["unreadable_frames"] == 1 and "z\\xff.png" in summary["unreadable"][0]

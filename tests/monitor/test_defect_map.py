@@ -246,6 +246,56 @@ def test_a_file_that_declares_a_huge_array_is_refused_before_it_is_read(suffix, 
         load_defect_map(path)
 
 
+def _npy_v3(arr):
+    """``arr`` as a .npy file with a 3.0 header (UTF-8 text; np.save writes it only for non-Latin-1 field names)."""
+    import struct
+
+    d = repr({"descr": np.lib.format.dtype_to_descr(arr.dtype), "fortran_order": False, "shape": arr.shape})
+    h = (d + " " * (64 - (12 + len(d) + 1) % 64) + "\n").encode()
+    return b"\x93NUMPY\x03\x00" + struct.pack("<I", len(h)) + h + arr.tobytes()
+
+
+@pytest.mark.parametrize("form", ["npy_v3", "npz_v3", "png", "tiff"])
+def test_the_size_limit_holds_for_every_header_version_and_for_images(form, tmp_path, monkeypatch):
+    """.npy 3.0 headers are checked like 1.0 and 2.0; a mask image's size is read from its header before decoding."""
+    import zipfile
+
+    import cv2
+
+    import camhealth.monitor.defect_map as dm
+
+    monkeypatch.setattr(dm, "MAX_MAP_PIXELS", 1000)
+    arr = np.zeros((32, 64), dtype=bool)
+    path = tmp_path / {"npy_v3": "m.npy", "npz_v3": "m.npz", "png": "m.png", "tiff": "m.tiff"}[form]
+    if form == "npy_v3":
+        path.write_bytes(_npy_v3(arr))
+    elif form == "npz_v3":
+        with zipfile.ZipFile(path, "w") as zf:
+            zf.writestr("defective_pixels.npy", _npy_v3(arr))
+    else:
+        assert cv2.imwrite(str(path), arr.astype(np.uint8))
+    with pytest.raises(ValueError, match=r"'[^']*m\.(npy|npz|png|tiff)'.*2048.*at most 1000 allowed\): not read"):
+        load_defect_map(path)
+    monkeypatch.setattr(dm, "MAX_MAP_PIXELS", 2048)
+    assert load_defect_map(path).shape == (32, 64)
+
+
+@pytest.mark.parametrize("descr", ["|S100000", "<c16", "|V8"])
+def test_a_dtype_that_is_not_bool_integer_or_float_is_refused_before_it_is_read(descr, tmp_path):
+    """The header's dtype is checked with its shape: 10 × 10 strings of 100 kB are refused, not read."""
+    import io
+    import zipfile
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": descr, "fortran_order": False, "shape": (10, 10)})
+    path = tmp_path / "big_items.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("defective_pixels.npy", header.getvalue())  # the data are missing: reading them would fail
+    with pytest.raises(ValueError, match=r"big_items\.npz.*declares an array of dtype .* must be bool or whole "
+                                         r"numbers 0/1 .*: not read$"):
+        load_defect_map(path)
+
+
 @pytest.mark.parametrize("mode", ["sampled", "map"])
 def test_the_runs_recurring_defects_are_a_map_the_monitor_reads_back(mode, tmp_path):
     """found_defects: the pixels flagged in at least min_frames frames, in the frames' size; saved (defective_pixels
