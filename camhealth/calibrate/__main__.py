@@ -11,6 +11,7 @@ Writes the metadata YAML (accepted as-is by ``predict``, the monitor and ``fit``
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -66,17 +67,32 @@ def _gain_db(text: str | float) -> float:
     return g
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name the same file (the same resolved path, or hard links to one file)."""
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except (OSError, RuntimeError):  # (RuntimeError: a symlink loop)
+        return False
+
+
 def _output_problem(args: argparse.Namespace) -> str | None:
-    """Why an output path cannot be written (checked before the frames are read), or ``None``."""
+    """Why an output path cannot be written (checked before the frames are read), or ``None``: a folder, a path under
+    a file, or a file that is one of the inputs (FRAMES) or another output."""
     out = args.out
     maps = args.maps if args.maps is not None else out.with_name(out.stem + ".maps.npz")
     details = out.with_name(out.stem + ".calibration.yaml")
-    for option, path in (("--out", out), ("--maps", maps), ("--out", details)):  # (details: written beside --out)
+    outputs = (("--out", out), ("--maps", maps), ("--out", details))  # (details: written beside --out)
+    for option, path in outputs:
         if path.is_dir():
             return f"argument {option}: {path} is a folder; give the name of the file to write"
         blocking = [d for d in path.parents if d.exists() and not d.is_dir()]
         if blocking:
             return f"argument {option}: cannot write {path}: {blocking[0]} is a file, not a folder"
+        for frames in map(Path, args.frames):
+            if _same_file(path, frames):
+                return f"argument {option}: writing {path} would overwrite the input {frames}; give another path"
+    if _same_file(maps, out) or _same_file(maps, details):
+        return f"argument --maps: {maps} is also a file --out writes ({out}, {details}); give another path"
     if args.report is not None and args.report.exists() and not args.report.is_dir():
         return f"argument --report: {args.report} is a file; give a folder for report.md, calibration.png and maps.png"
     return None

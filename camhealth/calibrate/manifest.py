@@ -91,6 +91,18 @@ def _number(value: Any, key: str, where: str) -> float:
         raise ValueError(f"{where}: {key} = {value!r} must be a number") from None
 
 
+def _section(data: dict, name: str, origin: str) -> dict[str, Any]:
+    """A YAML manifest's optional section ``name`` (a mapping of field: value; absent or empty: ``{}``)."""
+    value = data.get(name)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        raise ValueError(f"{origin}: section {name!r} must be a mapping of field: value, got {type(value).__name__} "
+                         f"{shown}")
+    return dict(value)
+
+
 def _sets(rows: list[dict], base: Path, defaults: dict, origin: str) -> list[FrameSet]:
     sets, missing = [], []
     for i, row in enumerate(rows):
@@ -129,7 +141,8 @@ def read_manifest(path: str | Path) -> Manifest:
 
     Raises:
         FileNotFoundError: the manifest, or files/folders it names, do not exist (all missing ones listed).
-        ValueError: unknown keys, a missing exposure/gain/temperature, a bad kind, unparsable content.
+        ValueError: unknown keys, a missing exposure/gain/temperature, a bad kind, a section that is not a mapping,
+            text that is not UTF-8, unparsable content (the message names the manifest).
     """
     p = Path(path)
     if not p.is_file():
@@ -144,6 +157,9 @@ def read_manifest(path: str | Path) -> Manifest:
             data = yaml.safe_load(p.read_text(encoding="utf-8"))
         except yaml.YAMLError as exc:
             raise ValueError(f"cannot parse {origin}: {str(exc).splitlines()[0]}") from None
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"cannot read {origin}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it as "
+                             "UTF-8") from None
         if not isinstance(data, dict) or "sets" not in data:
             raise ValueError(f"{origin} must be a mapping with a 'sets' list (and optional camera, operating_point, defaults)")
         unknown = sorted(set(data) - {"sets", "camera", "operating_point", "defaults"})
@@ -152,16 +168,16 @@ def read_manifest(path: str | Path) -> Manifest:
         rows = data.get("sets") or []
         if not isinstance(rows, list):
             raise ValueError(f"{origin}: 'sets' must be a list of sets")
-        camera = dict(data.get("camera") or {})
+        camera = _section(data, "camera", origin)
         bad = sorted(set(camera) - set(CAMERA_FIELDS))
         if bad:
             raise ValueError(f"{origin}: unknown camera field(s) {bad}; known: {list(CAMERA_FIELDS)}")
-        op = dict(data.get("operating_point") or {})
+        op = _section(data, "operating_point", origin)
         bad = sorted(set(op) - set(OPERATING_POINT_FIELDS))
         if bad:
             raise ValueError(f"{origin}: unknown operating_point field(s) {bad}; known: {list(OPERATING_POINT_FIELDS)}")
         op = {k: _number(v, k, f"{origin}, operating_point") for k, v in op.items()}
-        defaults = dict(data.get("defaults") or {})
+        defaults = _section(data, "defaults", origin)
         bad = sorted(set(defaults) - {"gain_db", "temperature_c", "exposure_s"})
         if bad:
             raise ValueError(f"{origin}: unknown default(s) {bad}; known: gain_db, temperature_c, exposure_s")
@@ -170,14 +186,20 @@ def read_manifest(path: str | Path) -> Manifest:
                 camera[k] = _number(v, k, f"{origin}, camera")
         return Manifest(_sets(rows, base, defaults, origin), camera, op, p)
     if suffix == ".csv":
-        with p.open(newline="", encoding="utf-8") as fh:
-            reader = csv.DictReader(fh)
-            if reader.fieldnames is None:
-                raise ValueError(f"{origin} is empty; expected a header line {','.join(_SET_KEYS)}")
-            header = [h.strip() for h in reader.fieldnames]
-            unknown = sorted(set(header) - set(_SET_KEYS))
-            if unknown or "kind" not in header or "path" not in header:
-                raise ValueError(f"{origin}: header {header} must name columns from {list(_SET_KEYS)}, with kind and path")
-            rows = [{k.strip(): (v.strip() if isinstance(v, str) else v) for k, v in r.items() if k is not None and v not in (None, "")} for r in reader]
+        try:
+            with p.open(newline="", encoding="utf-8") as fh:
+                reader = csv.DictReader(fh)
+                if reader.fieldnames is None:
+                    raise ValueError(f"{origin} is empty; expected a header line {','.join(_SET_KEYS)}")
+                header = [h.strip() for h in reader.fieldnames]
+                unknown = sorted(set(header) - set(_SET_KEYS))
+                if unknown or "kind" not in header or "path" not in header:
+                    raise ValueError(f"{origin}: header {header} must name columns from {list(_SET_KEYS)}, with kind and path")
+                rows = [{k.strip(): (v.strip() if isinstance(v, str) else v) for k, v in r.items() if k is not None and v not in (None, "")} for r in reader]
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"cannot read {origin}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it as "
+                             "UTF-8") from None
+        except csv.Error as exc:
+            raise ValueError(f"cannot parse {origin}: {exc}") from None
         return Manifest(_sets(rows, base, {}, origin), {}, {}, p)
     raise ValueError(f"manifest {p} must be .yaml, .yml or .csv, got {p.suffix!r}")

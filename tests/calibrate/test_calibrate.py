@@ -2,6 +2,7 @@
 predict / the monitor / fit, the CLI with a manifest and with named files, and every bad input."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -270,6 +271,28 @@ def test_manifest_never_executes_code_and_names_bad_keys(tmp_path):
         read_manifest(tmp_path / "m.csv")
 
 
+@pytest.mark.parametrize("section, shown", [("camera: [1, 2]", "list [1, 2]"), ("defaults: abc", "str 'abc'"),
+                                            ("operating_point: 5", "int 5")])
+def test_manifest_section_of_the_wrong_type_is_named(section, shown, tmp_path):
+    (tmp_path / "b").mkdir()
+    p = tmp_path / "m.yaml"
+    p.write_text(section + "\nsets:\n  - {kind: bias, path: b, exposure_s: 0.001, gain_db: 0, temperature_c: 25}\n")
+    name = section.split(":")[0]
+    with pytest.raises(ValueError, match=rf"manifest {re.escape(str(p))}: section '{name}' must be a mapping of field: "
+                                         rf"value, got {re.escape(shown)}$"):
+        read_manifest(p)
+
+
+@pytest.mark.parametrize("name, text", [("m.yaml", "# caméra\nsets: []\n"),
+                                        ("m.csv", "kind,path,exposure_s,gain_db,temperature_c\nbias,bïas,0.001,0,25\n")])
+def test_manifest_that_is_not_utf8_is_named(name, text, tmp_path):
+    p = tmp_path / name
+    p.write_bytes(text.encode("latin-1"))
+    with pytest.raises(ValueError, match=rf"cannot read manifest {re.escape(str(p))}: not UTF-8 text \(invalid "
+                                         r"continuation byte at byte \d+\); save it as UTF-8"):
+        read_manifest(p)
+
+
 def test_name_without_exposure(tmp_path):
     folder = tmp_path / "dark_12dB_25C"
     _write_set(folder, [np.zeros((8, 8))] * 4, bits=8)
@@ -299,3 +322,26 @@ def test_cli_output_paths_are_checked_before_the_frames_are_read(tmp_path, capsy
             main([frames, *argv])
         err = capsys.readouterr().err
         assert info.value.code == 2 and message in err and "Traceback" not in err, (argv, err)
+
+
+def test_cli_outputs_may_not_overwrite_an_input_or_each_other(tmp_path, capsys):
+    """--out, --maps and the <stem>.calibration.yaml beside --out are refused when they name a FRAMES input (the
+    manifest read) or another output, before anything is read or written."""
+    man = tmp_path / "cal.yaml"
+    man.write_text("sets: []\n")
+    (tmp_path / "cam.calibration.yaml").write_text("sets: []\n")
+    (tmp_path / "sub").mkdir()
+    for frames, argv, message in (
+        (man, ["--out", str(man)], f"argument --out: writing {man} would overwrite the input {man}"),
+        (man, ["--out", str(tmp_path / "sub" / ".." / "cal.yaml")], "would overwrite the input"),
+        (man, ["--out", str(tmp_path / "c.yaml"), "--maps", str(man)], f"argument --maps: writing {man} would overwrite"),
+        (tmp_path / "cam.calibration.yaml", ["--out", str(tmp_path / "cam.yaml")],
+         f"writing {tmp_path / 'cam.calibration.yaml'} would overwrite the input"),
+        (man, ["--out", str(tmp_path / "c.yaml"), "--maps", str(tmp_path / "c.yaml")], "argument --maps: "),
+    ):
+        with pytest.raises(SystemExit) as info:
+            main([str(frames), *argv])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and message in err and "Traceback" not in err, (argv, err)
+    assert man.read_text() == "sets: []\n" and not (tmp_path / "c.yaml").exists()
+    assert (tmp_path / "cam.calibration.yaml").read_text() == "sets: []\n"
