@@ -204,6 +204,11 @@ def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
     bad = [k for k, v in state.items() if not isinstance(v, torch.Tensor)]
     if bad:
         raise ValueError(f"{path}: state_dict entries {bad[:4]} are not tensors")
+    for key, value in state.items():
+        if (value.is_floating_point() or value.is_complex()) and not bool(torch.isfinite(value).all()):
+            n = int((~torch.isfinite(value)).sum())
+            raise ValueError(f"{path}: state_dict entry {key!r} holds {n} NaN or infinite value(s) of {value.numel()}; "
+                             "weights must be finite")
     head = state.get("head.0.weight")
     if desc.get("kind") == "mtf" and head is not None and head.ndim == 2:
         width = int(list(init_args.get("widths", (32, 64, 96)))[-1])
@@ -214,6 +219,14 @@ def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
 
 
 def _load_state(net: torch.nn.Module, state: Mapping[str, torch.Tensor], path: Path, class_path: str) -> None:
+    """Load ``state`` into ``net``; a tensor of another kind than the network's (integer, bool or complex values for
+    a floating-point parameter or buffer), a missing or an unexpected entry is a ``ValueError`` naming it."""
+    expected = net.state_dict()
+    for key, value in state.items():
+        want = expected.get(key)
+        if want is not None and want.is_floating_point() and not value.is_floating_point():
+            raise ValueError(f"{path}: state_dict entry {key!r} is a {value.dtype} tensor; {class_path} holds "
+                             f"{want.dtype} values there (a floating-point tensor is needed)")
     try:
         missing, unexpected = net.load_state_dict(state, strict=False)
     except RuntimeError as exc:

@@ -69,7 +69,7 @@ import torch
 from camhealth.estimators.defective_pixels import repair_defective_pixels
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches, haar_noise_dn  # noqa: F401
 from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
-from camhealth.export import BY_PHYSICS, FORMAT_TAG, check_retired, load_net
+from camhealth.export import BY_PHYSICS, FORMAT_TAG, _check_description, check_retired, load_net
 from camhealth.nets import NetworkSpec
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 
@@ -308,6 +308,21 @@ def _torch_runner(net: torch.nn.Module, channels_last: bool, device: torch.devic
     return run
 
 
+def _exported_description(text: str, path: Path) -> dict:
+    """The ``camhealth.json`` description of a ``.pt2`` or ``.onnx`` file, checked as a weights file's is
+    (:func:`camhealth.export._check_description`); a ``ValueError`` naming the file and the field otherwise."""
+    try:
+        desc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: the camhealth.json description is not valid JSON ({exc.msg} at character "
+                         f"{exc.pos})") from None
+    desc = _check_description(desc, path)
+    graph = desc.get("onnx_graph")
+    if graph is not None and not isinstance(graph, dict):
+        raise ValueError(f"{path}: description onnx_graph must be a JSON object, got {type(graph).__name__}")
+    return desc
+
+
 def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
     from camhealth._pt2_check import check_pt2_archive
 
@@ -319,7 +334,7 @@ def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
         raise ValueError(f"{path} is not a readable torch.export archive: {str(exc).splitlines()[0][:200]}") from None
     if not extra["camhealth.json"]:
         raise ValueError(f"{path} is an exported program but not a camhealth estimator (no camhealth.json inside)")
-    desc = json.loads(extra["camhealth.json"])
+    desc = _exported_description(extra["camhealth.json"], path)
     module = ep.module()
     return desc, lambda *x: module(*x)
 
@@ -335,7 +350,7 @@ def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
     if "camhealth.json" not in meta:
         raise ValueError(f"{path} is an ONNX model but not a camhealth estimator (no camhealth.json metadata)")
     names = [i.name for i in session.get_inputs()]
-    desc = json.loads(meta["camhealth.json"])
+    desc = _exported_description(meta["camhealth.json"], path)
     self_contained = bool((desc.get("onnx_graph") or {}).get("self_contained"))
 
     def run(*inputs: torch.Tensor) -> torch.Tensor:

@@ -138,6 +138,26 @@ def test_loader_refuses_unknown_class(tmp_path):
         load_estimator(path)
 
 
+@pytest.mark.parametrize("edit", ["nan", "inf", "int32", "bool"])
+def test_weights_that_are_not_finite_floats_are_refused_at_load_naming_the_entry(edit, tmp_path):
+    """A NaN or infinite weight, or integer/bool tensors where the network holds floats (load_state_dict would cast
+    them silently), is one ValueError naming the file and the state_dict entry."""
+    path = export_weights(_perturbed("drne"), tmp_path / "w.pt")
+    payload = torch.load(path, weights_only=True)
+    state = {k: v.clone() for k, v in payload["state_dict"].items()}
+    key = next(k for k, v in state.items() if v.is_floating_point() and v.numel() > 1)
+    if edit in ("nan", "inf"):
+        state[key].view(-1)[1] = float(edit)
+        match = rf"w\.pt: state_dict entry '{key}' holds 1 NaN or infinite value\(s\)"
+    else:
+        state[key] = state[key].to(getattr(torch, edit))
+        match = rf"w\.pt: state_dict entry '{key}' is a torch\.{edit} tensor; .* holds torch\.float32 values there"
+    torch.save({**payload, "state_dict": state}, path)
+    for load in (load_estimator, load_module):
+        with pytest.raises(ValueError, match=match):
+            load(path)
+
+
 def _ort_session(path):
     import onnxruntime as ort
 

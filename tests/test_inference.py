@@ -442,3 +442,64 @@ def test_predict_on_each_device_gives_the_cpu_answer(device, name):
     if name == "mtf":
         with torch.no_grad():
             assert est.predict(x, precision="bf16")["mtf"].device.type == "cpu"
+
+
+@pytest.fixture(scope="module")
+def exported_pt2(tmp_path_factory):
+    """A .pt2 export of an MTF network (patch 32) and its camhealth.json description."""
+    import json
+    import zipfile
+
+    from camhealth.export import export_pt2
+
+    path = export_pt2(MTFEstimator(patch_size=32), tmp_path_factory.mktemp("pt2") / "mtf.pt2")
+    with zipfile.ZipFile(path) as zf:
+        (name,) = [n for n in zf.namelist() if n.endswith("extra/camhealth.json")]
+        return path, json.loads(zf.read(name))
+
+
+def _with_description(fmt, exported_pt2, text, out):
+    """``out``: a .pt2 (the export with its camhealth.json replaced) or an .onnx (an Identity graph) holding ``text``."""
+    import zipfile
+
+    if fmt == "pt2":
+        with zipfile.ZipFile(exported_pt2[0]) as zin, zipfile.ZipFile(out, "w") as zout:
+            for n in zin.namelist():
+                zout.writestr(n, text.encode() if n.endswith("extra/camhealth.json") else zin.read(n))
+        return out
+    import onnx
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("patch", TensorProto.FLOAT, ["b", 1, 32, 32])
+    y = helper.make_tensor_value_info("mtf", TensorProto.FLOAT, ["b", 1, 32, 32])
+    model = helper.make_model(helper.make_graph([helper.make_node("Identity", ["patch"], ["mtf"])], "g", [x], [y]),
+                              opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "camhealth.json", text
+    onnx.save(model, out)
+    return out
+
+
+@pytest.mark.parametrize("fmt", ["pt2", "onnx"])
+def test_exported_descriptions_are_checked_like_a_weights_files(fmt, exported_pt2, tmp_path):
+    """The camhealth.json of a .pt2 or .onnx file: malformed JSON, not an object, a bad patch_size, metadata_set or
+    onnx_graph is one ValueError naming the file and the field, as for a .pt file."""
+    import json
+
+    good = exported_pt2[1]
+    est = load_estimator(_with_description(fmt, exported_pt2, json.dumps(good), tmp_path / f"ok.{fmt}"))
+    assert est.kind == "mtf" and est.patch_size == 32
+    cases = [
+        ("{x", "the camhealth.json description is not valid JSON"),
+        ("[1]", "the description must be a JSON object, got list"),
+        (json.dumps({**good, "patch_size": -5}), "description patch_size = -5 must be a positive integer"),
+        (json.dumps({**good, "patch_size": "abc"}), "description patch_size = 'abc' must be a positive integer"),
+        (json.dumps({k: v for k, v in good.items() if k != "patch_size"}), "description patch_size = None must be"),
+        (json.dumps({**good, "metadata_set": "bogus"}), "description metadata_set = 'bogus' must be 'none', 'minimal'"),
+        (json.dumps({**good, "onnx_graph": [1]}), "description onnx_graph must be a JSON object, got list"),
+    ]
+    for text, match in cases[:3] if fmt == "pt2" else cases:  # (the same check; a .pt2 takes longer to open)
+        path = _with_description(fmt, exported_pt2, text, tmp_path / f"bad.{fmt}")
+        with pytest.raises(ValueError, match=rf"bad\.{fmt}: {match}"):
+            load_estimator(path)
