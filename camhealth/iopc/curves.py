@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -141,6 +143,10 @@ def _none_to_nan(x: Any) -> Any:
     if isinstance(x, list):
         return [_none_to_nan(v) for v in x]
     return float("nan") if x is None else x
+
+
+class _Refused(ValueError):
+    """A file :meth:`IOPC.load` refuses with a message of its own (naming the file), not wrapped."""
 
 
 @dataclass
@@ -378,7 +384,7 @@ class IOPC:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.suffix == ".json":
-            path.write_text(json.dumps(self.to_dict(), indent=1, ensure_ascii=False))
+            path.write_text(json.dumps(self.to_dict(), indent=1, ensure_ascii=False), encoding="utf-8")
         elif path.suffix == ".npz":
             d = self.to_dict()
             np.savez(
@@ -395,29 +401,60 @@ class IOPC:
 
     @classmethod
     def load(cls, path: str | Path) -> "IOPC":
-        """Read a file written by :meth:`save`."""
+        """Read a file written by :meth:`save` (JSON text in UTF-8). A file that is not one (not JSON or not a zip
+        archive, a missing or malformed entry) is a ``ValueError`` ``"<path>: not a camhealth IOPC file (<why>)"``;
+        pickled arrays in a ``.npz`` are refused, never loaded."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"IOPC file not found: {path}")
-        if path.suffix == ".json":
-            return cls.from_dict(json.loads(path.read_text()))
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                try:
-                    meta = json.loads(str(z["meta_json"]))
-                    data = {k: z[k] for k in z.files if k != "meta_json"}
-                except ValueError as exc:  # an object array: reading it would unpickle it
-                    if "allow_pickle" not in str(exc):
-                        raise
-                    raise ValueError(f"{path}: holds pickled Python objects (object arrays); camhealth refuses pickled "
-                                     "arrays, an IOPC .npz holds plain numbers and a JSON string only") from None
-            d = dict(meta)
-            d.update({k: v for k, v in data.items() if k not in ("blur_length_px", "blur_mtf")})
-            d["blur_relation"] = {"length_px": data["blur_length_px"], "mtf": data["blur_mtf"]}
-            for k in ("ap_2d", "ap_sigma", "ap_mtf", "sigma_bins_dn", "mtf_bins"):
-                d[k] = d[k].tolist()
+        if path.suffix not in (".json", ".npz"):
+            raise ValueError(f"IOPC files are .json or .npz, got {path.name!r}")
+        try:
+            d = json.loads(path.read_text(encoding="utf-8")) if path.suffix == ".json" else cls._npz_dict(path)
+            if not isinstance(d, dict):
+                raise TypeError(f"it holds a JSON {type(d).__name__}, not an object")
             return cls.from_dict(d)
-        raise ValueError(f"IOPC files are .json or .npz, got {path.name!r}")
+        except _Refused as exc:
+            raise ValueError(str(exc)) from None
+        except (FileNotFoundError, PermissionError, IsADirectoryError):
+            raise
+        except (OSError, EOFError, ValueError, TypeError, KeyError, AttributeError, IndexError, zipfile.BadZipFile,
+                zlib.error) as exc:
+            why = str(exc).splitlines()[0].strip() if str(exc).strip() else type(exc).__name__
+            if why.startswith(("not a camhealth IOPC file (", "IOPC file version")):  # from_dict's own words
+                raise ValueError(f"{path}: {why}") from None
+            if isinstance(exc, KeyError):
+                why = f"missing entry {exc.args[0]!r}"
+            elif isinstance(exc, UnicodeDecodeError):
+                why = f"not UTF-8 text: {exc.reason} at byte {exc.start}"
+            elif isinstance(exc, json.JSONDecodeError):
+                why = f"not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}"
+            raise ValueError(f"{path}: not a camhealth IOPC file ({why})") from None
+
+    @staticmethod
+    def _npz_dict(path: Path) -> dict[str, Any]:
+        """The :meth:`from_dict` mapping of an ``.npz`` file written by :meth:`save` (object arrays refused)."""
+        if not zipfile.is_zipfile(path):
+            raise ValueError("an .npz file is a zip archive; this one is not")
+        with np.load(path, allow_pickle=False) as z:
+            if "meta_json" not in z.files:
+                raise KeyError("meta_json")
+            try:
+                meta = json.loads(str(z["meta_json"]))
+                data = {k: z[k] for k in z.files if k != "meta_json"}
+            except ValueError as exc:  # an object array: reading it would unpickle it
+                if "allow_pickle" not in str(exc):
+                    raise
+                raise _Refused(f"{path}: holds pickled Python objects (object arrays); camhealth refuses pickled "
+                               "arrays, an IOPC .npz holds plain numbers and a JSON string only") from None
+        if not isinstance(meta, dict):
+            raise TypeError(f"meta_json holds a JSON {type(meta).__name__}, not an object")
+        d = dict(meta)
+        d.update({k: v for k, v in data.items() if k not in ("blur_length_px", "blur_mtf")})
+        d["blur_relation"] = {"length_px": data["blur_length_px"], "mtf": data["blur_mtf"]}
+        for k in ("ap_2d", "ap_sigma", "ap_mtf", "sigma_bins_dn", "mtf_bins"):
+            d[k] = d[k].tolist()
+        return d
 
     # ------------------------------------------------------------------ plots
     def save_all(self, out_dir: str | Path) -> Path:

@@ -1,6 +1,7 @@
 """IOPC binning, 1-D/2-D curves, marked cells, MTF→length relation, JSON/NPZ round trip."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -106,6 +107,30 @@ def test_npz_with_pickled_arrays_is_refused_naming_the_file(tmp_path):
     with pytest.raises(ValueError, match=f"{path}: holds pickled Python objects.*refuses pickled arrays"):
         IOPC.load(path)
     assert not marker.exists()
+
+
+@pytest.mark.parametrize("name, data, why", [
+    ("a.json", b"{x", r"not valid JSON: Expecting property name .* at line 1, column 2"),
+    ("b.json", b"[1]", "it holds a JSON list, not an object"),
+    ("c.json", b'{"format": "camhealth-iopc"}', "missing entry 'sigma_bins_dn'"),
+    ("d.json", '{"format": "camhealth-iopc", "name": "caméra"}'.encode("latin-1"), "not UTF-8 text"),
+    ("e.json", b'{"format": "camhealth-iopc", "version": "x"}', "invalid literal for int"),
+    ("f.npz", b"not a zip", "an .npz file is a zip archive; this one is not"),
+    ("g.npz", b"", "an .npz file is a zip archive; this one is not"),
+    ("h.npz", None, "missing entry 'meta_json'"),
+    ("i.npz", "[1]", "meta_json holds a JSON list, not an object"),
+])
+def test_load_errors_name_the_file_and_why(name, data, why, tmp_path):
+    """A file that is not an IOPC file is one ValueError naming it, never a raw parser error nor numpy's
+    allow_pickle advice."""
+    path = tmp_path / name
+    if isinstance(data, bytes):
+        path.write_bytes(data)
+    else:
+        np.savez(path, **({"a": np.zeros(3)} if data is None else {"meta_json": np.array(data)}))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: not a camhealth IOPC file \((.*){why}") as info:
+        IOPC.load(path)
+    assert "allow_pickle" not in str(info.value)
 
 
 def _with(iopc, **fields):
