@@ -399,7 +399,11 @@ class CameraMetadata:
         suffix = p.suffix.lower()
         if suffix not in METADATA_FILE_SUFFIXES:
             raise ValueError(f"metadata file {p} must be one of {list(METADATA_FILE_SUFFIXES)}, got {p.suffix!r}")
-        text = p.read_text(encoding="utf-8")
+        try:
+            text = p.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"metadata file {p} is not UTF-8 text: byte 0x{exc.object[exc.start]:02x} at position "
+                             f"{exc.start} (save it as UTF-8)") from None
         try:
             if suffix == ".json":
                 import json
@@ -419,7 +423,7 @@ class CameraMetadata:
                 raise ValueError(f"metadata file {p}: field {key} = {value!r} must be a number in physical units")
         try:
             return cls.from_dict(data, base=str(base) if base is not None else None)
-        except ValueError as exc:
+        except (TypeError, ValueError) as exc:  # (TypeError: a sensor_type that is not a string)
             raise ValueError(f"metadata file {p}: {exc}") from None
 
     @classmethod

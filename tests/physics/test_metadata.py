@@ -185,3 +185,14 @@ def test_half_precision_values_beyond_rounding_are_still_refused():
         CameraMetadata.preset("ICX285", exposure_s=torch.tensor([0.21], dtype=torch.bfloat16))
     with pytest.raises(ValueError, match=r"exposure_s\[0\] = -0.000100136 s is out"):
         CameraMetadata.preset("ICX285", exposure_s=torch.tensor([-1e-4], dtype=torch.bfloat16))
+
+
+def test_from_file_errors_name_the_file_for_text_that_is_not_utf8_and_a_sensor_type_that_is_not_a_string(tmp_path):
+    (tmp_path / "latin1.yaml").write_bytes("# caméra\nsensor: ICX285\ngain_db: 3\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"metadata file .*latin1\.yaml is not UTF-8 text: byte 0xe9 at position 5 "
+                                         r"\(save it as UTF-8\)"):
+        CameraMetadata.from_file(tmp_path / "latin1.yaml")
+    (tmp_path / "st.yaml").write_text("sensor: ICX285\nsensor_type: 5\n")
+    with pytest.raises(ValueError, match=r"metadata file .*st\.yaml: camera metadata sensor_type must be 'CCD' or "
+                                         r"'CMOS', got int 5"):
+        CameraMetadata.from_file(tmp_path / "st.yaml")
