@@ -299,7 +299,7 @@ def load_metadata(
             base = "ICX285"  # fields a Min-Meta network (or none) never reads
     try:
         return CameraMetadata.from_dict(data, base=base)
-    except ValueError as exc:
+    except (ValueError, TypeError) as exc:  # (TypeError: a sensor_type that is no string)
         raise ValueError(f"{origin}: {exc}") from None
 
 

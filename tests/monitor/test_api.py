@@ -979,3 +979,10 @@ def test_the_run_summary_holds_bounded_state(monkeypatch):
     for i in range(8):
         mon.process(torch.rand(64, 64, generator=torch.Generator().manual_seed(i)))
     assert len(mon._times.recent) == 5 and mon.summary()["ms_per_frame"]["max"] >= mon.summary()["ms_per_frame"]["median"]
+
+
+def test_load_metadata_sensor_type_that_is_not_a_string_names_the_file(tmp_path):
+    f = tmp_path / "cam.yaml"
+    f.write_text("sensor: ICX285\nsensor_type: 5\n")
+    with pytest.raises(ValueError, match=rf"metadata file {f}: camera metadata sensor_type must be 'CCD' or 'CMOS', got int 5"):
+        load_metadata(str(f))
