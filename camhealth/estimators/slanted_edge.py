@@ -12,8 +12,11 @@ the MTF across the edge is measured in the steps of the standard (e-SFR):
    Δ = 1/``oversample`` px (default 4× oversampling) — the edge spread function (ESF). The slant makes
    the rows sample the edge at different sub-pixel phases; only whole phase cycles of rows are used
    (``⌊⌊H·|b|⌋ / |b|⌋`` rows), so all phases count alike. Empty bins are filled by linear interpolation.
+   The ESF of each ROI reaches as far along the normal as its own edge-to-border distance (less 1 px), so an
+   ROI's MTF does not depend on the other ROIs of the batch; the batch shares one bin grid, and an ROI whose
+   edge has less room holds its ESF at its end values beyond its reach (its LSF is 0 there).
 3. **LSF.** The line spread function is the derivative of the ESF (central difference over ±Δ), times a
-   Hamming window centred on its centroid (``window``).
+   Hamming window centred on its centroid that reaches the farther end of the ROI's own ESF (``window``).
 4. **Fourier transform.** ``MTF(f) = |Σ_i LSF_i w_i e^{−2πi f u_i}| / |Σ_i LSF_i w_i|`` evaluated *exactly*
    at the requested frequencies (a direct DFT, not FFT bins), divided by the known frequency responses of
    the central difference, ``sin(2πfΔ)/(2πfΔ)`` (the ISO 12233:2014 derivative correction), and of the
@@ -61,9 +64,12 @@ class SlantedEdgeResult:
         mtf: (B, F) MTF at the requested normalised frequencies (dimensionless).
         angle_deg: (B,) direction of the edge normal = direction of the measured MTF, degrees
             (0 = horizontal, counter-clockwise positive with y down, as in :mod:`camhealth.physics.mtf`).
-        positions: (N,) ESF bin centres along the normal, px (0 = the fitted edge).
-        esf: (B, N) edge spread function (intensity, polarity as in the image).
-        lsf: (B, N) line spread function (derivative of the ESF, edge made positive, before the window).
+        positions: (N,) ESF bin centres along the normal, px (0 = the fitted edge), shared by the batch: N is set by
+            the ROI with the most room on both sides of its edge.
+        esf: (B, N) edge spread function (intensity, polarity as in the image); beyond an ROI's own reach it
+            holds the value of the ROI's end bin.
+        lsf: (B, N) line spread function (derivative of the ESF, edge made positive, before the window); 0 at an
+            ROI's end bins and beyond its reach.
     """
 
     mtf: torch.Tensor
@@ -190,30 +196,38 @@ def slanted_edge_mtf(
     edge_x = a[:, None] + slope[:, None] * yy[None, :]  # (B, H)
     room = torch.minimum(edge_x, (w - 1) - edge_x)
     room = torch.where(row_ok, room, torch.full_like(room, math.inf)).amin(dim=1) * cos_t  # (B,)
-    half_u = float(room.min()) - 1.0
-    if half_u < 4.0:
-        raise ValueError(f"the edge is only {half_u + 1:.1f} px from the ROI border; centre the edge in the ROI (≥ 5 px each side)")
+    half_u = room - 1.0  # (B,) each ROI's own ESF half-length: its bins do not depend on the other ROIs of the batch
+    short = half_u < 4.0
+    if bool(short.any()):
+        i = int(short.nonzero()[0, 0])
+        raise ValueError(f"roi[{i}]: the edge is only {float(room[i]):.1f} px from the ROI border; centre the edge in "
+                         f"the ROI (≥ 5 px each side)")
     delta = 1.0 / oversample
-    nb = 2 * int(half_u / delta)
+    half_nb = torch.floor(half_u / delta).long()  # (B,) bins each side of the edge
+    nb = 2 * int(half_nb.max())
     xx = torch.arange(w, device=dev, dtype=torch.float64)
     u = (xx[None, None, :] - edge_x[:, :, None]) * cos_t[:, None, None]  # (B, H, W) px along the normal
-    idx = torch.floor(u / delta).long() + nb // 2
-    ok = (idx >= 0) & (idx < nb) & row_ok[:, :, None]
-    flat = torch.where(ok, idx, torch.zeros_like(idx)).reshape(b, -1)
+    k = torch.floor(u / delta).long()  # bin index, 0 = the first bin past the edge
+    ok = (k >= -half_nb[:, None, None]) & (k < half_nb[:, None, None]) & row_ok[:, :, None]
+    flat = torch.where(ok, k + nb // 2, torch.zeros_like(k)).reshape(b, -1)
     okf = ok.reshape(b, -1).double()
     sums = torch.zeros(b, nb, device=dev, dtype=torch.float64).scatter_add_(1, flat, img.reshape(b, -1) * okf)
     counts = torch.zeros(b, nb, device=dev, dtype=torch.float64).scatter_add_(1, flat, okf)
     esf = _fill_empty(sums / counts.clamp_min(1.0), counts)
     pos = (torch.arange(nb, device=dev, dtype=torch.float64) - nb // 2 + 0.5) * delta
+    kb = torch.arange(nb, device=dev) - nb // 2
+    own = (kb[None, :] >= -half_nb[:, None]) & (kb[None, :] < half_nb[:, None])  # (B, N) the ROI's own bins
 
-    # 3. LSF (central difference), window centred on its centroid
+    # 3. LSF (central difference over the ROI's own bins, 0 at and beyond its end bins), window centred on its centroid
     lsf = torch.zeros_like(esf)
     lsf[:, 1:-1] = (esf[:, 2:] - esf[:, :-2]) / (2.0 * delta)
-    lsf = lsf * pol[:, None]
+    inner = own & torch.roll(own, 1, dims=1) & torch.roll(own, -1, dims=1)
+    inner[:, [0, -1]] = False
+    lsf = torch.where(inner, lsf, torch.zeros_like(lsf)) * pol[:, None]
     mass = lsf.sum(dim=1, keepdim=True)
     centre = (lsf * pos).sum(dim=1, keepdim=True) / mass
     dist = pos[None, :] - centre
-    reach = dist.abs().amax(dim=1, keepdim=True) + delta
+    reach = torch.where(own, dist.abs(), torch.zeros_like(dist)).amax(dim=1, keepdim=True) + delta
     if window == "hamming":
         win = _hamming(dist, reach)
     elif window == "tukey":
