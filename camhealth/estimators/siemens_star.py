@@ -30,7 +30,9 @@ The measurement, for every image of a batch:
    by the series at f = 0 instead would inflate the MTF whenever the fit puts μ > 0, which it does to
    follow the flat top of a square-wave response, CTF_D = 1 while the stripes are wider than the blur.)
 
-With ``aperture=True`` the pixel aperture of an area-rendered chart, sinc(f), is divided out (H and V).
+With ``aperture=True`` the pixel aperture of an area-rendered chart, sinc(f), is divided out (H and V). The MTF is
+then clamped to [0, 1]: the max − min CTF of a sharp area-rendered chart already reads 1 (each ring holds pixels
+wholly inside a stripe), so dividing it by sinc(f) would read above 1.
 The Gaussian model is smooth and cannot follow the zeros and contrast reversals of large defocus
 (|jinc| side lobes), which bounds the accuracy for large blur; see ``docs/estimators_classical.md``.
 """
@@ -177,7 +179,7 @@ class SiemensStarResult:
     """Result of :func:`siemens_star_mtf` for B images.
 
     Attributes:
-        mtf: (B, 2F) ``[H×F, V×F]`` MTF at the requested normalised frequencies.
+        mtf: (B, 2F) ``[H×F, V×F]`` MTF at the requested normalised frequencies, in [0, 1].
         frequencies: (R,) normalised frequency of every ring (f_n = f_s / (π r)).
         ctf_d: (B, 2, R) discrete CTF (Eq. 3.23) per ring, H and V (NaN where a ring was not used).
         mu, s: (B, 2) Gaussian parameters (in f_n) of the fitted CTF, H and V.
@@ -205,10 +207,11 @@ def siemens_star_ctf(
         images: ``B×1×S×S`` images of a Siemens star (default geometry: the star of
             :func:`~camhealth.estimators.charts.siemens_star_chart` for that size).
         centre: (row, col) of the star centre, px; radius: star radius, px.
-        n_cycles: f_s, the number of bright/dark pairs.
+        n_cycles: f_s, the number of bright/dark pairs, an int ≥ 4 (as
+            :func:`~camhealth.estimators.charts.siemens_star_chart`).
         n_sectors: angular sectors (multiple of 4); H uses the two sectors centred at 90° and 270°.
-        margin: px kept away from the star's rim (where the blur mixes in the reference areas) and, for the
-            reference levels, from the rim and the quadrant borders.
+        margin: px (finite, ≥ 0) kept away from the star's rim (where the blur mixes in the reference areas) and,
+            for the reference levels, from the rim and the quadrant borders.
         levels: (dark, bright) chart levels; default: measured in the reference corners.
     """
     x = check_image(images, "images", channels=1)
@@ -221,6 +224,10 @@ def siemens_star_ctf(
         radius = radius if radius is not None else rad
     if isinstance(n_sectors, bool) or not isinstance(n_sectors, int) or n_sectors < 4 or n_sectors % 4:
         raise ValueError(f"n_sectors = {n_sectors!r} must be a multiple of 4, >= 4")
+    if isinstance(n_cycles, bool) or not isinstance(n_cycles, int) or n_cycles < 4:
+        raise ValueError(f"n_cycles = {n_cycles!r} must be an int in [4, ∞) (bright/dark pairs of the star)")
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not math.isfinite(margin) or margin < 0:
+        raise ValueError(f"margin = {margin!r} must be a finite number of px in [0, ∞)")
     dev = x.device
     img = x[:, 0].double().reshape(b, -1)
     yy, xx = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float64), torch.arange(w, device=dev, dtype=torch.float64), indexing="ij")
@@ -287,7 +294,8 @@ def siemens_star_mtf(
             charts of :mod:`~camhealth.estimators.charts`).
 
     Returns:
-        :class:`SiemensStarResult`; ``mtf`` float32 (float64 for float64 input).
+        :class:`SiemensStarResult`; ``mtf`` in [0, 1] (clamped after the aperture correction), float32 (float64 for
+        float64 input).
     """
     out_dtype = torch.float64 if images.dtype == torch.float64 else torch.float32
     fq = torch.as_tensor(frequencies, dtype=torch.float64, device=images.device).reshape(-1)
@@ -303,6 +311,7 @@ def siemens_star_mtf(
     mtf = mtf_from_ctf(ctf_fn, fq) / (math.pi / 4.0 * float(bk.sum()))  # a CTF ≡ 1 gives MTF ≡ 1
     if aperture:
         mtf = mtf / torch.sinc(0.5 * fq).abs()
+    mtf = mtf.clamp(0.0, 1.0)  # the aperture correction of a CTF that already reads 1 would exceed 1
     b = mtf.shape[0]
     return SiemensStarResult(
         mtf=mtf.reshape(b, -1).to(out_dtype), frequencies=fn.to(out_dtype), ctf_d=ctf_d.to(out_dtype),

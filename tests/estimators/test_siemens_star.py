@@ -92,3 +92,29 @@ def test_errors(star):
         siemens_star_ctf(torch.rand(1, 1, 64, 80))
     with pytest.raises(ValueError, match="frequencies"):
         siemens_star_mtf(star, frequencies=[2.0])
+
+
+@pytest.mark.parametrize(
+    "kw,match",
+    [({"n_cycles": 0}, r"n_cycles = 0 must be an int in \[4, ∞\)"), ({"n_cycles": -5}, r"n_cycles = -5 must be an int in \[4, ∞\)"),
+     ({"n_cycles": 32.5}, r"n_cycles = 32.5 must be an int in \[4, ∞\)"), ({"n_cycles": True}, "n_cycles = True"),
+     ({"margin": -50.0}, r"margin = -50.0 must be a finite number of px in \[0, ∞\)"),
+     ({"margin": float("nan")}, r"margin = nan must be a finite")],
+)
+def test_bad_star_geometry_is_refused(kw, match):
+    """A star geometry the measurement cannot use (n_cycles = −5 would give MTF ≡ 0, n_cycles = 0 ≈ 1) is refused,
+    naming the value and the allowed range."""
+    star = siemens_star_chart(256)
+    with pytest.raises(ValueError, match=match):
+        siemens_star_mtf(star, **kw)
+    with pytest.raises(ValueError, match=match):
+        siemens_star_ctf(star, **kw)
+
+
+def test_sharp_chart_reads_at_most_1_after_the_aperture_correction():
+    """The max − min CTF of a sharp area-rendered chart reads 1 already, so dividing by the pixel aperture would give
+    up to 1.165 (f_n 0.6): the MTF is clamped to [0, 1]."""
+    star = siemens_star_chart(256)
+    m = siemens_star_mtf(star).mtf
+    assert float(m.min()) >= 0.0 and float(m.max()) <= 1.0
+    assert torch.allclose(m, torch.ones_like(m), atol=0.02)
