@@ -24,8 +24,11 @@ MAD² = (1.4826·median|Δ − median Δ|)². Its significance is T = MAD²(Δ_j
 the scene's spread along each row (each Δ is standardised by its own rows' spread), larger with banding. Pooled (the
 patches of one frame share one camera), the Δ of all patches enter one MAD.
 
-**Detected** where T exceeds :data:`T_LIMIT`, σ̂ exceeds :data:`MIN_BANDING_DN` and the offsets look independent from
-row to row (:attr:`RowColumnNoise.serial`). The scene can imitate banding: structure coherent along whole rows
+**Detected** where at least :data:`MIN_DIFFERENCES` differences Δ_j enter the estimate, T exceeds :data:`T_LIMIT`, σ̂
+exceeds :data:`MIN_BANDING_DN` and the offsets look independent from row to row (:attr:`RowColumnNoise.serial`).
+Fewer differences leave the MAD too loose for the limit (white noise on 16-px patches, 7 differences: T above it on
+3 % of patches), so a patch under 34 px tall (wide) reports no row (column) noise alone; pooled, the differences of
+all the frame's patches count. The scene can imitate banding: structure coherent along whole rows
 (horizontal edges across the patch, stripes) gives the same Δ. On the robustness benchmark's clean scenes with
 matched noise (``python -m camhealth.bench robustness``) T reaches 12.6 on single patches of photographs and 4.0
 pooled over a frame. Such structure is mostly not independent from row to row (a stripe pattern, periodic or
@@ -46,7 +49,8 @@ import torch
 from camhealth._order import lower_median, sorted_values
 from camhealth.estimators.noise_features import _block_pixels
 
-__all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", "MIN_BANDING_DN", "SERIAL_LIMIT"]
+__all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", "MIN_BANDING_DN", "MIN_DIFFERENCES",
+           "SERIAL_LIMIT"]
 
 #: Significance T above which row or column noise counts as detected. Pixel noise alone: T ≈ 1, 99th percentile
 #: 2.0–2.2 over 128-px patches of white noise (float or 8-bit), the largest of 512 2.7. Clean scenes with their right
@@ -55,6 +59,10 @@ __all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", 
 T_LIMIT = 6.0
 #: Smallest σ_row or σ_col [DN] reported as banding.
 MIN_BANDING_DN = 0.5
+#: Fewest adjacent differences Δ_j (block rows − 1 per patch, summed over the patches when pooled) for which banding is
+#: reported in that direction: T_LIMIT holds for the MAD of at least this many (white noise: T above it on 0.02 % of
+#: 34-px patches, 16 differences; on 3 % of 16-px ones, 7).
+MIN_DIFFERENCES = 16
 #: Largest Σ ρ_k² (lags 1…4) of the block rows' values that still counts as offsets drawn independently per row (an
 #: RMS correlation of 0.16 per lag): a scene's stripes, periodic or smooth, are correlated from row to row.
 SERIAL_LIMIT = 0.1
@@ -74,8 +82,9 @@ class RowColumnNoise:
         significance: T (1 for pixel noise alone).
         serial: Σ ρ_k² over lags 1…4 of the block rows' (columns') values: ≈ 4/J for offsets independent from row to
             row, large for a scene's periodic or smooth structure.
-        detected: T > :data:`T_LIMIT`, σ̂ > :data:`MIN_BANDING_DN` and the offsets independent from row to row
-            (``serial`` within max(χ²₄ at 99.9 % / n, :data:`SERIAL_LIMIT`), n the block rows behind it) (bool).
+        detected: at least :data:`MIN_DIFFERENCES` differences behind the estimate, T > :data:`T_LIMIT`, σ̂ >
+            :data:`MIN_BANDING_DN` and the offsets independent from row to row (``serial`` within max(χ²₄ at 99.9 % /
+            n, :data:`SERIAL_LIMIT`), n the block rows behind it) (bool).
     """
 
     sigma_dn: torch.Tensor
@@ -173,10 +182,14 @@ def row_column_noise(patches: torch.Tensor, pool: bool = False) -> RowColumnNois
     else:
         both = tuple(torch.cat(p) for p in zip(_directions(h.unsqueeze(0), pool), _directions(vt.unsqueeze(0), pool)))
     sig2, se, tt, serial = (q.t() for q in both)  # each (B, 2): rows, columns
-    n = (h.shape[-2] * (h.shape[0] if pool else 1), v.shape[-1] * (v.shape[0] if pool else 1))
-    white = serial <= torch.tensor([max(_SERIAL_CHI2 / k, SERIAL_LIMIT) for k in n], dtype=serial.dtype, device=serial.device)
+    k = h.shape[0] if pool else 1
+    n = (h.shape[-2] * k, v.shape[-1] * k)
+    white = serial <= torch.tensor([max(_SERIAL_CHI2 / m, SERIAL_LIMIT) for m in n], dtype=serial.dtype, device=serial.device)
+    enough = torch.tensor([(h.shape[-2] - 1) * k >= MIN_DIFFERENCES, (v.shape[-1] - 1) * k >= MIN_DIFFERENCES],
+                          device=serial.device)  # differences Δ_j behind the MAD, rows and columns
     sigma = sig2.sqrt().contiguous()
-    return RowColumnNoise(sigma, se.contiguous(), tt.contiguous(), serial.contiguous(), (tt > T_LIMIT) & (sigma > MIN_BANDING_DN) & white)
+    detected = (tt > T_LIMIT) & (sigma > MIN_BANDING_DN) & white & enough
+    return RowColumnNoise(sigma, se.contiguous(), tt.contiguous(), serial.contiguous(), detected)
 
 
 def debanded_details(x: torch.Tensor, m: torch.Tensor, d2: torch.Tensor, g2: torch.Tensor, detected: torch.Tensor

@@ -7,7 +7,7 @@ import torch
 
 from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.row_column_noise import (
-    MIN_BANDING_DN, SERIAL_LIMIT, T_LIMIT, _midmean_constants, debanded_details, row_column_noise,
+    MIN_BANDING_DN, MIN_DIFFERENCES, SERIAL_LIMIT, T_LIMIT, _midmean_constants, debanded_details, row_column_noise,
 )
 
 
@@ -68,6 +68,22 @@ def test_banding_is_detected_and_measured(kind, col, dtype):
     assert pooled.sigma_dn[0, col] == pytest.approx(2.0, rel=0.1 if dtype == torch.bfloat16 else 0.05)
     se = pooled.var_se_dn2[0, col]
     assert 0 < se < 0.2 * 4.0  # the standard error of σ̂² [DN²]
+
+
+@pytest.mark.parametrize("size", [8, 12, 16])
+def test_small_patches_of_white_noise_are_not_banding(size):
+    """A patch of fewer than 34 px gives fewer than MIN_DIFFERENCES differences, too few for T_LIMIT (white noise
+    exceeds it on 3–11 % of 8–16 px patches): it reports no banding alone."""
+    x = _eight_bit(_white(400, 5.0, seed=size, size=size))
+    assert size // 2 - 1 < MIN_DIFFERENCES
+    assert float(row_column_noise(x).detected.double().mean()) <= 0.01
+    assert not row_column_noise(x, pool=True).detected.any()
+
+
+def test_banding_on_a_large_patch_is_still_detected():
+    """3 DN of row offsets over 5 DN of pixel noise on 128-px patches (63 differences): detected on every patch."""
+    r = row_column_noise(_eight_bit(_band(_white(32, 5.0, seed=3), 3.0, "rows")))
+    assert r.detected[:, 0].all() and not r.detected[:, 1].any()
 
 
 @pytest.mark.parametrize("batch", [1, 256])
