@@ -11,7 +11,8 @@ strided view of the frame axis, no loop), together with the **spread** of the es
 window — ``1.4826 · median(|σ̂ − σ̃|)`` (the median absolute deviation, scaled to equal the standard
 deviation for Gaussian scatter) — and the min/max of the window, as an uncertainty estimate that comes
 with every aggregated value. :func:`spatial_median` does the same over the patches of one frame (or any
-dimension), and both accept NaN for patches that could not be assessed.
+dimension), and both accept NaN for patches that could not be assessed. Float16/bfloat16 estimates are aggregated
+in float32 and returned in their own dtype.
 
 The thesis measures the benefit by the dispersion of the distribution P_σ̃n of all aggregated estimates:
 its standard deviation σ_σ̃n, and the change ``Δ_{1→n} = σ_σ̃1 − σ_σ̃n`` (Eq. 5.5, Tab. 5.3).
@@ -68,7 +69,12 @@ def _check_estimates(x: object, name: str) -> torch.Tensor:
 
 def _reduce_last(w: torch.Tensor) -> Aggregate:
     """Median, spread, min, max and count over the last dim, ignoring NaN (NaN and count 0 where nothing is left,
-    an empty last dim included)."""
+    an empty last dim included). Half-precision estimates are reduced in float32 (torch.nanquantile needs it) and the
+    results cast back to their dtype."""
+    if w.dtype in (torch.float16, torch.bfloat16):
+        agg = _reduce_last(w.float())
+        return Aggregate(median=agg.median.to(w.dtype), spread=agg.spread.to(w.dtype), low=agg.low.to(w.dtype),
+                         high=agg.high.to(w.dtype), count=agg.count)
     if w.shape[-1] == 0 or w.numel() == 0:  # nothing to reduce (no patches or frames): NaN, count 0
         nan = torch.full(w.shape[:-1], float("nan"), dtype=w.dtype, device=w.device)
         return Aggregate(median=nan, spread=nan.clone(), low=nan.clone(), high=nan.clone(),

@@ -81,3 +81,20 @@ def test_bad_estimates():
         temporal_median(torch.tensor([1, 2]), window=1)
     with pytest.raises(ValueError, match="stride"):
         uncertainty_by_window(torch.rand(5, 2), stride="overlap")
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_estimates_are_aggregated_in_float32_and_returned_in_their_dtype(dtype):
+    """torch.nanquantile takes float32/float64 only: half-precision estimates (NaN included) give the float32 result
+    of the same values, cast back to their dtype."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(10, 5, generator=g).to(dtype)
+    x[2, 1] = float("nan")
+    for half, full in ((temporal_median(x, 3), temporal_median(x.float(), 3)),
+                       (spatial_median(x, dim=1), spatial_median(x.float(), dim=1))):
+        for name in ("median", "spread", "low", "high"):
+            got, want = getattr(half, name), getattr(full, name)
+            assert got.dtype == dtype and torch.equal(got, want.to(dtype)), name
+        assert torch.equal(half.count, full.count)
+    empty = spatial_median(torch.zeros(3, 0, dtype=dtype), dim=1)
+    assert empty.median.dtype == dtype and bool(torch.isnan(empty.median).all())
