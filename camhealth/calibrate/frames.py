@@ -28,7 +28,9 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["KINDS", "MIN_FRAMES", "FrameSet", "parse_set_name", "sets_from_paths", "load_frames"]
+from camhealth.physics.metadata import METADATA_RANGES
+
+__all__ = ["KINDS", "MIN_FRAMES", "FrameSet", "parse_set_name", "sets_from_paths", "check_max_frames", "load_frames"]
 
 #: Kinds of calibration sets.
 KINDS: tuple[str, ...] = ("bias", "dark", "flat")
@@ -48,7 +50,8 @@ class FrameSet:
     Attributes:
         kind: ``"bias"``, ``"dark"`` or ``"flat"``.
         exposure_s: exposure time [s] (any positive value; calibration frames may be longer than 0.2 s).
-        gain_db: camera gain [dB] (the model's "digital gain": DN per electron scales with 10^(dB/20)).
+        gain_db: camera gain [dB] (the model's "digital gain": DN per electron scales with 10^(dB/20)), within
+            camhealth's gain range ``METADATA_RANGES['gain_db']`` (0 … 24 dB).
         temperature_c: sensor temperature [°C].
         paths: image files, one folder of frames, or one video file; or empty when ``frames`` is given.
         frames: in-memory frames ``N×H×W`` or ``N×1×H×W`` in [0, 1] (numpy or torch).
@@ -77,6 +80,11 @@ class FrameSet:
             setattr(self, attr, v)
         if self.exposure_s <= 0:
             raise ValueError(f"set {self.name or self.paths!s}: exposure_s = {self.exposure_s:g} s must be > 0")
+        g_lo, g_hi = METADATA_RANGES["gain_db"]
+        if not g_lo <= self.gain_db <= g_hi:
+            raise ValueError(
+                f"set {self.name or self.paths!s}: gain_db = {self.gain_db:g} dB is outside camhealth's gain range [{g_lo:g}, {g_hi:g}] dB"
+            )
         if not -60.0 <= self.temperature_c <= 150.0:
             raise ValueError(f"set {self.name or self.paths!s}: temperature_c = {self.temperature_c:g} °C is not a sensor temperature")
         self.paths = [Path(p) for p in self.paths]
@@ -195,11 +203,21 @@ def _file_bits(path: Path) -> int | str:
     return scaling.bits if scaling.source == "sBIT" else scaling.file_bits
 
 
-def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
-    """The frames of a set as float32 ``N×H×W`` in [0, 1] (at most ``max_frames``).
+def check_max_frames(max_frames: int | None) -> None:
+    """Raises ``ValueError`` unless ``max_frames`` is None (every frame) or an integer ≥ :data:`MIN_FRAMES`."""
+    if max_frames is None:
+        return
+    if isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < MIN_FRAMES:
+        raise ValueError(f"max_frames = {max_frames!r} must be None (every frame) or an integer ≥ {MIN_FRAMES} (the frames a set needs)")
 
-    Raises ``ValueError`` naming the set for mixed frame sizes, values outside [0, 1] or unreadable files.
+
+def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
+    """The frames of a set as float32 ``N×H×W`` in [0, 1] (at most ``max_frames``: None or ≥ :data:`MIN_FRAMES`).
+
+    Raises ``ValueError`` naming the set for mixed frame sizes, values outside [0, 1] or unreadable files, and for
+    a ``max_frames`` that is neither None nor ≥ :data:`MIN_FRAMES`.
     """
+    check_max_frames(max_frames)
     if fs.frames is not None:
         x = fs.frames
         if hasattr(x, "detach"):

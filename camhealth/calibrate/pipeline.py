@@ -24,12 +24,14 @@ import numpy as np
 from camhealth.calibrate.dark_signal import (
     DarkPoint, arrhenius_factor, dfm_from_c, doubling_temperature, fit_dark, fit_read_noise_law, model_doubling_temperature,
 )
-from camhealth.calibrate.frames import MIN_FRAMES, FrameSet, load_frames, sets_from_paths
+from camhealth.calibrate.frames import MIN_FRAMES, FrameSet, check_max_frames, load_frames, sets_from_paths
 from camhealth.calibrate.manifest import CAMERA_FIELDS, OPERATING_POINT_FIELDS, read_manifest
-from camhealth.calibrate.photon_transfer import FlatPoint, fit_photon_transfer
+from camhealth.calibrate.photon_transfer import MAX_CHI2_DOF, FlatPoint, fit_photon_transfer
 from camhealth.calibrate.readout import white_noise_from_sigma
 from camhealth.calibrate.result import CalibrationResult, FieldEstimate, SetRecord
-from camhealth.calibrate.statistics import SetStatistics, detect_dead_pixels, detect_hot_pixels, set_statistics
+from camhealth.calibrate.statistics import (
+    QUANTISATION_LIMITED_BELOW, SetStatistics, detect_dead_pixels, detect_hot_pixels, set_statistics,
+)
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, UNITS, CameraMetadata
 
 __all__ = ["ASSUMED", "calibrate", "resolve_sets"]
@@ -133,16 +135,16 @@ def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | 
     return x
 
 
-def _stats_with_hot(x: np.ndarray, known_hot: np.ndarray | None) -> tuple[SetStatistics, np.ndarray]:
+def _stats_with_hot(x: np.ndarray, known_hot: np.ndarray | None, name: str = "the set") -> tuple[SetStatistics, np.ndarray]:
     """Statistics of a dark set with its own hot pixels (and ``known_hot``) excluded; returns the hot mask."""
-    st = set_statistics(x, known_hot)
+    st = set_statistics(x, known_hot, name=name)
     if st.method == "clipped":
         return st, known_hot if known_hot is not None else np.zeros(x.shape[1:], dtype=bool)
     hot = detect_hot_pixels(st.master_dn, st.sigma_dn, st.n_frames, st.step_dn)
     if known_hot is not None:
         hot = hot | known_hot
     if hot.any() and (known_hot is None or (hot & ~known_hot).any()):
-        st = set_statistics(x, hot, step_dn=st.step_dn)
+        st = set_statistics(x, hot, step_dn=st.step_dn, name=name)
     return st, hot
 
 
@@ -164,7 +166,7 @@ def calibrate(
             assumed (:data:`ASSUMED`) and marked so.
         operating_point: ``gain_db``, ``exposure_s``, ``temperature_c`` written to the metadata (default: the
             lowest flat gain, the median flat exposure within 1 ms … 0.2 s, the median dark temperature).
-        max_frames: read at most this many frames per set.
+        max_frames: read at most this many frames per set (None: all; else at least ``MIN_FRAMES``).
         gain_db, temperature_c: values for file names that do not give them.
 
     Returns:
@@ -172,10 +174,13 @@ def calibrate(
 
     Raises:
         FileNotFoundError: a manifest or a file it names is missing (all missing ones listed).
-        ValueError: too few frames in a set, too few sets of a kind, exposures or flat levels that do not span a
-            range, saturated flats, mixed frame sizes, a result outside camhealth's parameter ranges — each
-            message names what is missing and how many are needed.
+        ValueError: too few frames in a set (or a ``max_frames`` below ``MIN_FRAMES``), a set whose frames are all
+            identical, a bias/dark set whose noise is below about half a code step (quantisation-limited), too few
+            sets of a kind, exposures or flat levels that do not span a range, saturated flats, flats whose per-gain
+            K0 contradict K = g·K0, mixed frame sizes, a result outside camhealth's parameter ranges — each message
+            names the set or value and what is needed.
     """
+    check_max_frames(max_frames)
     sets, cam_manifest, op_manifest = resolve_sets(frames, gain_db=gain_db, temperature_c=temperature_c)
     cam = _camera_values({**cam_manifest, **dict(camera or {})})
     op = {**op_manifest, **dict(operating_point or {})}
@@ -206,18 +211,34 @@ def calibrate(
         x = _load_checked(fs, max_frames, size, size_from)
         if size is None:
             size, size_from = tuple(x.shape[1:]), fs.describe()
-        st, hot = _stats_with_hot(x, hot)
+        st, hot = _stats_with_hot(x, hot, fs.describe())
         if st.method == "clipped":
             raise ValueError(
                 f"{fs.describe()} is clipped: {100 * st.clipped_low:.1f} % of its values at 0 DN and {100 * st.clipped_high:.1f} % at "
-                "255 DN leave nothing to fit; record it at a lower gain (or, at 0 DN, with a camera offset)"
+                f"{st.upper_dn:.4g} DN leave nothing to fit; record it at a lower gain (or, at 0 DN, with a camera offset)"
+            )
+        if st.quantisation_limited:
+            raise ValueError(
+                f"{fs.describe()} is quantisation-limited: its raw temporal variance {st.raw_var_dn2:.3g} DN² is below "
+                f"{QUANTISATION_LIMITED_BELOW:g}·step² (step {st.step_dn:.4g} DN), i.e. its noise is below about half a code step, "
+                "where the quantisation correction step²/12 does not hold and no read noise or dark current can be measured; "
+                "record it at a higher gain or bit depth"
             )
         dark_stats.append((fs, st))
         del x
+    pooled = sorted(((st.spatial_var_dn2 / st.var_dn2, fs) for fs, st in dark_stats if st.method == "censored" and st.var_dn2 > 0),
+                    key=lambda r: -r[0])
+    if pooled and pooled[0][0] > POOLED_PATTERN_WARN_FRACTION:
+        many = sum(r > POOLED_PATTERN_WARN_FRACTION for r, _ in pooled)
+        warnings.append(
+            f"{many} clipped dark set(s) have a fixed pattern (DSNU) of more than {100 * POOLED_PATTERN_WARN_FRACTION:g} % of their "
+            f"fitted variance (largest: {pooled[0][1].name!r}, {100 * pooled[0][0]:.0f} %); their censored fit pools the pixels, so the "
+            "read noise and dark current include it — record the darks with a camera offset that keeps them off 0 DN (temporal estimator)"
+        )
     flat_stats: list[tuple[FrameSet, SetStatistics]] = []
     for fs in flats:
         x = _load_checked(fs, max_frames, size, size_from)
-        flat_stats.append((fs, set_statistics(x, hot)))
+        flat_stats.append((fs, set_statistics(x, hot, name=fs.describe())))
         del x
     # ---- dark fit (Gaussian statistics), photon transfer; then the clipped dark sets refitted with their
     # Poisson skew and the clipping model the frames show, and both fits repeated
@@ -236,7 +257,8 @@ def calibrate(
         the dark variance at a flat temperature without dark sets follows the law instead of the nearest one."""
         fpoints = [
             FlatPoint(fs.name, fs.exposure_s, fs.temperature_k, fs.gain_factor, st.mean_dn, st.mean_err_dn, st.var_dn2,
-                      st.var_err_dn2, dark_level(fs, latent), st.clipped_high, fs.gain_db)
+                      st.var_err_dn2, dark_level(fs, latent), st.clipped_high, fs.gain_db, st.clipped_low, st.method,
+                      st.quantisation_limited)
             for fs, st in flat_stats
         ]
         intercept_at = None
@@ -266,6 +288,13 @@ def calibrate(
         )
     for p, why in ptc.excluded:
         warnings.append(f"flat set {p.name!r} left out of the photon transfer: {why}")
+    if ptc.chi2_dof > MAX_CHI2_DOF:
+        worst = sorted(zip(np.abs(ptc.residuals), ptc.used), key=lambda r: -r[0])[:3]
+        warnings.append(
+            f"the photon transfer fits poorly: χ²/dof = {ptc.chi2_dof:.3g} (above {MAX_CHI2_DOF:g}; K0's uncertainty is inflated by "
+            f"its square root); largest normalised residuals: {', '.join(f'{p.name} {r:.1f}' for r, p in worst)} — saturation or "
+            "non-linearity near the top, light that changes during a set, or a wrong gain_db"
+        )
     k0, k0_err = ptc.k0, ptc.k0_err
     full_well = 255.0 / k0
     full_well_err = full_well * k0_err / k0
@@ -419,6 +448,9 @@ def calibrate(
 
 #: Log-likelihood advantage of "charge clipped in the well" needed before the dark sets are analysed with it.
 WELL_CLIPPING_MIN_DELTA_NLL = 10.0
+#: A clipped (censored) dark set whose fixed-pattern variance exceeds this fraction of its fitted variance is warned
+#: about: the censored fit pools the pixels, so the DSNU enters its σ².
+POOLED_PATTERN_WARN_FRACTION = 0.1
 
 
 def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: float) -> dict[str, Any]:

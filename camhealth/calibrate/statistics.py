@@ -7,8 +7,11 @@ Two estimators of the temporal noise, chosen per set by how much of it is clippe
 
 * **temporal** (EMVA 1288 Release 4.0, Sec. 6: the temporal variance of each pixel over the frames,
   averaged over the pixels; fixed-pattern noise does not enter it) when at most
-  :data:`CENSORED_ABOVE` of the pixels sit at the lowest or highest code. The quantisation noise of the
-  input's step q, σ_q² = q²/12 (EMVA 1288 Eq. 13 [DN²]), is subtracted.
+  :data:`CENSORED_ABOVE` of the pixels sit at the lowest or highest code. Each frame's mean is removed first
+  (as EMVA's pair difference y_A − y_B − (µ_A − µ_B) does), so that a light or offset that changes from frame
+  to frame does not enter the variance. The quantisation noise of the input's step q, σ_q² = q²/12 (EMVA
+  1288 Eq. 13 [DN²]), is subtracted; below a raw variance of :data:`QUANTISATION_LIMITED_BELOW`·q² (σ below
+  about half a step) that correction does not hold and the set is marked ``quantisation_limited``.
 * **censored** (a Gaussian fitted by maximum likelihood to all values of the set, with the values at the
   lowest code treated as "at or below it" and those at the highest code as "at or above it") otherwise. A
   camera without offset clips half of its dark noise at 0 DN (thesis Sec. 3.3.2: "the intensity
@@ -22,6 +25,10 @@ Two estimators of the temporal noise, chosen per set by how much of it is clippe
 The censored fit pools pixels, so a fixed pattern (DSNU/PRNU) adds to its σ²; the temporal estimator is
 free of it. EMVA 1288 asks for an offset high enough that the dark signal is not clipped; give a camera
 that allows it such an offset and the temporal estimator is used.
+
+The highest code is 255 DN (full scale), or the set's highest value where the values pile up there
+(:func:`top_clip_level`): a pixel full well reached below the ADC's range, or 10/12-bit data in a 16-bit word
+whose top code lies below 255 DN. A set whose frames are all identical has no temporal noise and is refused.
 """
 
 from __future__ import annotations
@@ -34,9 +41,12 @@ from scipy import optimize, special
 
 __all__ = [
     "CENSORED_ABOVE",
+    "PILE_UP_FRACTION",
+    "QUANTISATION_LIMITED_BELOW",
     "HOT_PIXEL_SIGMAS",
     "SetStatistics",
     "quantisation_step",
+    "top_clip_level",
     "mirrored_histogram_fit",
     "censored_normal_fit",
     "binned_censored_normal_fit",
@@ -50,8 +60,16 @@ __all__ = [
 
 #: A set whose clipped fraction (lowest + highest code) exceeds this is analysed with the censored fit.
 CENSORED_ABOVE = 1e-4
-#: A set with fewer than this fraction of its values inside (0, 255) DN is not fitted (method "clipped").
+#: A set with fewer than this fraction of its values strictly between its lowest and highest code is not fitted
+#: (method "clipped").
 MIN_UNCLIPPED_FRACTION = 0.02
+#: A set's highest value below 255 DN is a clip level when at least this fraction of its values sit there (and a
+#: normal distribution would have put values above it: :func:`top_clip_level`).
+PILE_UP_FRACTION = 1e-3
+#: A temporal set whose raw temporal variance (before the q²/12 correction) is below this many q² is
+#: quantisation-limited: its σ is below ≈ 0.45 q, where q²/12 misses the quantisation noise by 10 % and more
+#: depending on where the level sits between two codes (two codes alone give up to 0.25 q² whatever σ is).
+QUANTISATION_LIMITED_BELOW = 0.3
 #: A pixel whose master-frame level lies this many robust standard deviations above the median is hot.
 HOT_PIXEL_SIGMAS = 6.0
 #: A pixel whose flat-field signal lies this many robust standard deviations below the median is dead (or dim).
@@ -60,6 +78,8 @@ DEAD_PIXEL_SIGMAS = 6.0
 DEAD_PIXEL_WINDOW = 5
 #: Frames are rounded to this many codes over [0, 1] to test for integer coding (16-bit resolution).
 _CODES = 65535
+#: Full-scale codes of b-bit data (b = 8 … 16) stored MSB-aligned in a 16-bit word: 65536 − 2^(16−b).
+_FULL_SCALE_CODES = frozenset(_CODES + 1 - 2**k for k in range(9))
 
 
 @dataclass
@@ -72,8 +92,8 @@ class SetStatistics:
         var_dn2: temporal noise variance σ² [DN²].
         var_err_dn2: 1σ uncertainty of ``var_dn2`` [DN²].
         method: ``"temporal"``, ``"censored"`` (module docstring) or ``"clipped"`` (fewer than
-            :data:`MIN_UNCLIPPED_FRACTION` of the values inside (0, 255) DN: nothing fitted, σ² NaN).
-        clipped_low, clipped_high: fraction of the values at the lowest / highest code.
+            :data:`MIN_UNCLIPPED_FRACTION` of the values inside (0, ``upper_dn``): nothing fitted, σ² NaN).
+        clipped_low, clipped_high: fraction of the values at the lowest code (0 DN) / at ``upper_dn``.
         mirrored_sigma_dn: σ of the thesis's histogram rectification (Alg. 1) [DN] (reported for comparison).
         spatial_var_dn2: variance of the fixed pattern (master frame minus its mean, with the temporal
             noise's share σ²/N removed and, for clipped sets, scaled back to the latent level) [DN²].
@@ -81,6 +101,10 @@ class SetStatistics:
         n_frames, height, width: frames and their size.
         n_pixels: pixels used (hot pixels excluded).
         master_dn: per-pixel mean over the frames, H×W float32 [DN].
+        upper_dn: the highest code [DN]: 255, or the level the values pile up at (:func:`top_clip_level`).
+        raw_var_dn2: temporal variance before the quantisation correction [DN²] (temporal method; else NaN).
+        quantisation_limited: temporal method with ``raw_var_dn2`` < :data:`QUANTISATION_LIMITED_BELOW`·step²:
+            ``var_dn2`` is not a measurement of σ² (the noise is below about half a code step).
     """
 
     mean_dn: float
@@ -100,6 +124,9 @@ class SetStatistics:
     master_dn: np.ndarray = field(repr=False)
     hist_edges_dn: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
     hist_counts: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    upper_dn: float = 255.0
+    raw_var_dn2: float = float("nan")
+    quantisation_limited: bool = False
 
     @property
     def sigma_dn(self) -> float:
@@ -110,15 +137,44 @@ class SetStatistics:
 def quantisation_step(frames: np.ndarray) -> float:
     """Quantisation step of frames in [0, 1], in DN of 255: 1.0 for 8-bit data, 255/65535 for 16-bit data,
     255·k/65535 for data on every k-th 16-bit code (10/12-bit data stored in 16 bits), 0.0 for continuous
-    values (floats that are not on a 16-bit code grid)."""
+    values (floats that are not on a 16-bit code grid).
+
+    The step is the greatest common divisor of the distinct codes below the 16-bit top (0 included: it divides by
+    every step); it needs at least 2 of them — one code alone, e.g. a constant frame at 128 DN, would give its own
+    value as the step. With fewer, the step is one 16-bit code (the finest the input can have)."""
     codes = frames.astype(np.float64) * _CODES
     rounded = np.rint(codes)
     if float(np.abs(codes - rounded).max(initial=0.0)) > 0.02:
         return 0.0
     unique = np.unique(rounded.astype(np.int64))
-    inner = unique[(unique > 0) & (unique < _CODES)]  # the clipped ends say nothing about the step
-    step = int(np.gcd.reduce(inner)) if inner.size else 1
+    below = unique[unique < _CODES]  # the clipped top says nothing about the step
+    step = int(np.gcd.reduce(below)) if below.size >= 2 else 1
     return 255.0 * max(step, 1) / _CODES
+
+
+def top_clip_level(values_dn: np.ndarray, step_dn: float) -> float:
+    """The level [DN] at which a set's values are clipped at the top: 255 DN (full scale); the set's highest value
+    when it is the full-scale code of 8…16-bit data stored MSB-aligned in 16 bits (12-bit: 65520/65535·255 =
+    254.94 DN); or the set's highest value where the values pile up: at least :data:`PILE_UP_FRACTION` of them
+    (and ≥ 2) sit at it, while a normal distribution with the values' mean and σ would put at least 10 values —
+    and at least a tenth as many as sit there — above it (above its code interval, for quantised input), where
+    there are none (a pixel full well reached below the ADC's range clips so). An unclipped set's highest code holds
+    that many values only where its σ is below about one step, and then a normal distribution puts next to nothing
+    above it."""
+    v = np.asarray(values_dn, dtype=np.float64).ravel()
+    top = float(v.max())
+    if top >= 255.0 - 1e-9:
+        return 255.0
+    if step_dn > 0 and int(round(top / 255.0 * _CODES)) in _FULL_SCALE_CODES:
+        return top
+    n_top = int((v >= top - 1e-9).sum())
+    if n_top < max(PILE_UP_FRACTION * v.size, 2):
+        return 255.0
+    sd = float(v.std())
+    if not sd > 0:  # one value throughout: nothing to tell a pile-up from
+        return 255.0
+    beyond = v.size * float(special.ndtr(-(top + step_dn / 2 - float(v.mean())) / sd))
+    return top if beyond >= max(10.0, 0.1 * n_top) else 255.0
 
 
 def mirrored_histogram_fit(values_dn: np.ndarray, step_dn: float, upper_dn: float = 255.0) -> tuple[float, float]:
@@ -316,10 +372,14 @@ def detect_dead_pixels(signal_dn: np.ndarray, temporal_sigma_dn: float, n_frames
     return (resid < -DEAD_PIXEL_SIGMAS * scale) & keep
 
 
-def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_dn: float | None = None) -> SetStatistics:
-    """Statistics of a set of frames (N×H×W in [0, 1]); ``exclude`` (H×W bool) masks pixels (hot pixels).
+def set_statistics(
+    frames: np.ndarray, exclude: np.ndarray | None = None, step_dn: float | None = None, name: str = "the set",
+) -> SetStatistics:
+    """Statistics of a set of frames (N×H×W in [0, 1]); ``exclude`` (H×W bool) masks pixels (hot pixels); ``name``
+    labels the set in errors.
 
-    Raises ``ValueError`` for fewer than 2 frames or an empty set.
+    Raises ``ValueError`` for fewer than 2 frames, an empty set, or frames that are all identical (no pixel
+    changes from frame to frame: no temporal noise to measure) unless (almost) every value is clipped.
     """
     x = np.asarray(frames, dtype=np.float32)
     if x.ndim != 3:
@@ -335,26 +395,40 @@ def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_d
         raise ValueError("every pixel of the set is excluded (hot)")
     vals = dn[:, keep]  # N × P
     n_pix = int(keep.sum())
+    upper = top_clip_level(vals, step)
     low = vals <= 0.0 + 1e-9
-    high = vals >= 255.0 - 1e-9
+    high = vals >= upper - 1e-9
     n_low, n_high = int(low.sum()), int(high.sum())
     total = vals.size
     clipped = (n_low + n_high) / total
-    if clipped > 1.0 - MIN_UNCLIPPED_FRACTION:  # (almost) every value at 0 or 255 DN: nothing to fit
+    if clipped > 1.0 - MIN_UNCLIPPED_FRACTION:  # (almost) every value at the lowest or highest code: nothing to fit
         return SetStatistics(
             mean_dn=float(vals.mean()), mean_err_dn=float("nan"), var_dn2=float("nan"), var_err_dn2=float("nan"),
             method="clipped", clipped_low=n_low / total, clipped_high=n_high / total, mirrored_sigma_dn=float("nan"),
             spatial_var_dn2=float("nan"), step_dn=step, n_frames=n, height=h, width=w, n_pixels=n_pix,
-            master_dn=master.astype(np.float32),
+            master_dn=master.astype(np.float32), upper_dn=upper,
         )
-    mir_mu, mir_sigma = mirrored_histogram_fit(vals, step)
+    if not (vals != vals[:1]).any():
+        lo_v, hi_v = float(vals.min()), float(vals.max())
+        raise ValueError(
+            f"{name}: its {n} frames are identical (no pixel changes from frame to frame"
+            + (f"; every value is {lo_v:.6g} DN: a frozen image, or saturated at one code" if lo_v == hi_v else "")
+            + "), so there is no temporal noise to measure; "
+            "record separate frames of the sensor (not one buffer or still image repeated)"
+        )
+    mir_mu, mir_sigma = mirrored_histogram_fit(vals, step, upper)
+    raw, limited = float("nan"), False
     if clipped <= CENSORED_ABOVE:
-        var_t = vals.var(axis=0, ddof=1)
-        var = float(var_t.mean()) - step * step / 12.0
-        var_err = float(math.sqrt(2.0 / (n_pix * (n - 1)))) * max(float(var_t.mean()), 1e-12)
+        # each frame's mean removed (E[·] = σ²·(1 − 1/P), hence the factor): a changing light or offset drops out
+        resid = vals - vals.mean(axis=1, keepdims=True) if n_pix > 1 else vals
+        var_t = resid.var(axis=0, ddof=1) * (n_pix / (n_pix - 1) if n_pix > 1 else 1.0)
+        raw = float(var_t.mean())
+        var = raw - step * step / 12.0
+        limited = step > 0 and raw < QUANTISATION_LIMITED_BELOW * step * step
+        var_err = float(math.sqrt(2.0 / (n_pix * (n - 1)))) * max(raw, 1e-12)
         mean = float(vals.mean())
         mean_err = math.sqrt(max(var, 0.0) / total)
-        spatial = float(master[keep].var(ddof=1)) - float(var_t.mean()) / n
+        spatial = float(master[keep].var(ddof=1)) - raw / n
         method = "temporal"
     else:
         start = (mir_mu, max(mir_sigma, 1e-6))
@@ -362,30 +436,32 @@ def set_statistics(frames: np.ndarray, exclude: np.ndarray | None = None, step_d
             codes = np.rint(vals / step).astype(np.int64).ravel()
             counts = np.bincount(codes - codes.min())
             centres = (np.arange(counts.size) + codes.min()) * step
-            mu, sigma, cov = binned_censored_normal_fit(centres, counts, step, 0.0, 255.0, start)
+            mu, sigma, cov = binned_censored_normal_fit(centres, counts, step, 0.0, upper, start)
         else:
             inner = vals[~low & ~high]
             mu, sigma, cov = censored_normal_fit(
-                n_low, n_high, inner.size, float(inner.sum()), float(np.square(inner).sum()), 0.0, 255.0, start
+                n_low, n_high, inner.size, float(inner.sum()), float(np.square(inner).sum()), 0.0, upper, start
             )
         var = sigma * sigma
         var_err = 2.0 * sigma * math.sqrt(cov[1, 1]) if np.isfinite(cov[1, 1]) else float("nan")
         mean, mean_err = mu, (math.sqrt(cov[0, 0]) if np.isfinite(cov[0, 0]) else float("nan"))
-        _, var_clipped, p_in = _censored_moments(mu, sigma, 0.0, 255.0)
+        _, var_clipped, p_in = _censored_moments(mu, sigma, 0.0, upper)
         spatial = (float(master[keep].var(ddof=1)) - var_clipped / n) / max(p_in, 1e-6) ** 2
         method = "censored"
-    edges, counts = _histogram(vals, step, math.sqrt(max(var, 1e-12)))
+    edges, counts = _histogram(vals, step, math.sqrt(max(var, 1e-12)), upper)
     return SetStatistics(
         mean_dn=mean, mean_err_dn=mean_err, var_dn2=var, var_err_dn2=var_err, method=method,
         clipped_low=n_low / total, clipped_high=n_high / total, mirrored_sigma_dn=mir_sigma,
         spatial_var_dn2=max(spatial, 0.0), step_dn=step, n_frames=n, height=h, width=w, n_pixels=n_pix,
-        master_dn=master.astype(np.float32), hist_edges_dn=edges, hist_counts=counts,
+        master_dn=master.astype(np.float32), hist_edges_dn=edges, hist_counts=counts, upper_dn=upper,
+        raw_var_dn2=raw, quantisation_limited=bool(limited),
     )
 
 
-def _histogram(vals: np.ndarray, step: float, sigma: float, max_bins: int = 512) -> tuple[np.ndarray, np.ndarray]:
+def _histogram(vals: np.ndarray, step: float, sigma: float, upper: float = 255.0,
+               max_bins: int = 512) -> tuple[np.ndarray, np.ndarray]:
     """Interval histogram of all values [DN]: bin k holds the values in [e_k, e_{k+1}); the first bin starts at
-    −∞ (values at the lowest code) and the last ends at +∞ (values at the highest code) when those occur.
+    −∞ (values at 0 DN) and the last ends at +∞ (values at the highest code ``upper``) when those occur.
     Quantised data: one bin per code (whole codes merged when there would be more than ``max_bins``);
     continuous data: bins of σ/16 (at most ``max_bins``)."""
     v = vals.ravel()
@@ -403,7 +479,7 @@ def _histogram(vals: np.ndarray, step: float, sigma: float, max_bins: int = 512)
     counts, _ = np.histogram(v, bins=edges)
     if lo_v <= 1e-9:  # values at 0 DN stand for everything at or below it
         edges[0] = -np.inf
-    if hi_v >= 255.0 - 1e-9:
+    if hi_v >= upper - 1e-9:
         edges[-1] = np.inf
     return edges, counts.astype(np.float64)
 

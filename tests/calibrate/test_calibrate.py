@@ -345,3 +345,115 @@ def test_cli_outputs_may_not_overwrite_an_input_or_each_other(tmp_path, capsys):
         assert info.value.code == 2 and message in err and "Traceback" not in err, (argv, err)
     assert man.read_text() == "sets: []\n" and not (tmp_path / "c.yaml").exists()
     assert (tmp_path / "cam.calibration.yaml").read_text() == "sets: []\n"
+
+
+# ------------------------------------------------------------------------------------------------ physics of odd stacks
+def _simulator(offset_dn=0.0, bits=8, top_dn=255.0, flicker=0.0, prnu=0.0, dsnu_dn=0.0):
+    """offset + DSNU + K·(Poisson photo-e·(1 + PRNU)·(1 + per-frame flicker) + Poisson dark-e − their mean) + N(0, K·σ_R) [DN],
+    clipped to [0, top_dn] and quantised to ``bits`` (K = g·255/FW)."""
+    def simulate(clean, meta, g):
+        m = meta.to(dtype=torch.float64)
+        gain, fw = float(10 ** (m.gain_db[0] / 20)), float(m.full_well_e[0])
+        k = gain * 255 / fw
+        s_d = float(dark_current_e_per_s(m)[0] * m.exposure_s[0])
+        c = clean.double()
+        fixed = torch.Generator().manual_seed(1)
+        pattern = 1 + prnu * torch.randn(c.shape[-2:], generator=fixed, dtype=torch.float64)
+        dsnu = dsnu_dn * torch.randn(c.shape[-2:], generator=fixed, dtype=torch.float64)
+        light = 1 + flicker * torch.randn((c.shape[0], 1, 1, 1), generator=g, dtype=torch.float64)
+        e = torch.poisson(c * fw / gain * pattern * light, generator=g) + torch.poisson(torch.full_like(c, s_d), generator=g) - s_d
+        y = offset_dn + dsnu + k * e + k * float(readout_sigma_e(m)[0]) * torch.randn(c.shape, generator=g, dtype=torch.float64)
+        y = torch.clamp(y, 0, top_dn)
+        return (torch.round(y / 255 * (2**bits - 1)) / (2**bits - 1)).float()
+    return simulate
+
+
+def _icx(frames=6, size=48, **protocol_and_sim):
+    sim = {k: protocol_and_sim.pop(k) for k in list(protocol_and_sim) if k not in Protocol.__dataclass_fields__}
+    true = CameraMetadata.preset("ICX285")
+    sets = synthetic_sets(true, Protocol(**{**SMALL.__dict__, **protocol_and_sim}), frames=frames, size=size, seed=3,
+                          simulate=_simulator(**sim))
+    return sets, _datasheet(true)
+
+
+def test_a_repeated_bias_frame_is_refused_naming_the_set():
+    """The same frame returned N times has no temporal noise; it was read as a read noise of 0 e⁻."""
+    sets = _sets()
+    bias = next(s for s in sets if s.name == "bias_1ms_12dB_40C")
+    bias.frames = np.repeat(bias.frames[:1], len(bias.frames), 0)
+    with pytest.raises(ValueError, match=r"bias set 'bias_1ms_12dB_40C' .*: its 4 frames are identical"):
+        calibrate(sets)
+
+
+@pytest.mark.parametrize("offset", [10.0, 10.5])
+def test_darks_below_half_a_code_step_are_refused(offset):
+    """ICX285's darks at 0 dB in 8 bits: σ ≈ 0.23 DN, on 1–2 codes. σ² − 1/12 DN² gave a read noise of 0 e⁻ (offset 10)
+    or 24 e⁻ (10.5) for the true 12.5 e⁻."""
+    sets, sheet = _icx(frames=4, size=16, dark_gain_db=0.0, offset_dn=offset)
+    with pytest.raises(ValueError, match=r"bias set 'bias_1ms_0dB_40C' .* is quantisation-limited: .*higher gain or bit depth"):
+        calibrate(sets, camera=sheet)
+
+
+def test_flats_saturating_below_255_dn_are_left_out():
+    """The pixels clip at 230 DN (a full well below the ADC's range): the 90 % flats pile up at 230 DN and are left
+    out as saturated (they gave a full well 60 % too high with χ²/dof 443)."""
+    sets, sheet = _icx(flat_levels=(0.1, 0.3, 0.6, 0.9), top_dn=230.0)
+    res = calibrate(sets, camera=sheet)
+    assert abs(res.fields["full_well_e"].value / 14000 - 1) < 0.02
+    assert {s.name for s in res.sets if not s.used} == {"flat_10ms_0dB_25C_L0.9", "flat_10ms_12dB_25C_L0.9"}
+    assert all("saturated" in s.note for s in res.sets if not s.used)
+
+
+def test_frame_to_frame_flicker_does_not_bias_the_gain():
+    """0.5 % rms light change between frames: its variance of the frame means entered the temporal variance."""
+    sets, sheet = _icx(flicker=0.005)
+    fw = calibrate(sets, camera=sheet).fields["full_well_e"]
+    assert abs(fw.value / 14000 - 1) < 0.02 and abs(fw.value - 14000) < 3 * fw.uncertainty
+
+
+def test_partly_clipped_flats_are_left_out_with_the_reason():
+    """Flats at 241 DN with 1 % PRNU: a few of their values at 255 DN sent them to the censored fit, whose pooled σ²
+    includes the PRNU (full well −3.6 %, χ²/dof 196)."""
+    sets, sheet = _icx(flat_levels=(0.1, 0.3, 0.6, 0.945), prnu=0.01)
+    res = calibrate(sets, camera=sheet)
+    assert abs(res.fields["full_well_e"].value / 14000 - 1) < 0.01 and res.photon_transfer.chi2_dof < 5
+    left_out = [s for s in res.sets if not s.used]
+    assert left_out and all(s.name.endswith("L0.945") and s.note.startswith("partly clipped") for s in left_out)
+
+
+def test_a_poor_photon_transfer_fit_is_warned_about():
+    sets, sheet = _icx()
+    flat = next(s for s in sets if s.name == "flat_10ms_0dB_25C_L0.3")
+    master = flat.frames.mean(0, keepdims=True)
+    flat.frames = np.clip(master + 1.4 * (flat.frames - master), 0, 1)  # its noise 1.4× too large
+    res = calibrate(sets, camera=sheet)
+    assert res.photon_transfer.chi2_dof > 5
+    assert any(w.startswith("the photon transfer fits poorly") and "flat_10ms_0dB_25C_L0.3" in w for w in res.warnings)
+
+
+def test_flats_whose_gain_contradicts_k_proportional_to_g_are_refused():
+    sets, sheet = _icx()
+    for s in sets:
+        if s.kind == "flat" and s.gain_db == 12.0:
+            s.gain_db = 6.0  # the 12 dB flats labelled 6 dB
+    with pytest.raises(ValueError, match=r"flats at 0 dB and 6 dB give K0 .*σ apart .*check the flats' gain_db"):
+        calibrate(sets, camera=sheet)
+
+
+def test_a_dsnu_pooled_into_clipped_darks_is_warned_about():
+    sets, sheet = _icx(dsnu_dn=0.5)
+    res = calibrate(sets, camera=sheet)
+    assert any("fixed pattern (DSNU)" in w and "censored fit pools the pixels" in w for w in res.warnings)
+    assert not any("DSNU" in w for w in calibrate(*_icx()).warnings)
+
+
+@pytest.mark.parametrize("gain", [40.0, -5.0])
+def test_frame_set_gain_outside_the_metadata_range_is_refused_naming_the_range(gain):
+    with pytest.raises(ValueError, match=rf"set d: gain_db = {gain:g} dB is outside camhealth's gain range \[0, 24\] dB"):
+        FrameSet("dark", 0.1, gain_db=gain, frames=np.zeros((4, 8, 8), np.float32), name="d")
+
+
+@pytest.mark.parametrize("max_frames", [-3, 0, 2, 4.5])
+def test_max_frames_below_the_minimum_is_refused(max_frames):
+    with pytest.raises(ValueError, match=rf"max_frames = {max_frames!r} must be None \(every frame\) or an integer ≥ 4"):
+        calibrate(_sets(), max_frames=max_frames)

@@ -142,3 +142,87 @@ def test_dead_pixels_against_the_local_median_survive_vignetting():
     flat[50, 60] = 0.0  # excluded: not flagged
     found = detect_dead_pixels(flat, 2.0, 16, 0.0, exclude)
     assert {tuple(p) for p in np.argwhere(found)} == {(100, 100), (10, 10), (100, 150)}
+
+
+def test_identical_or_constant_frames_are_refused_and_one_code_gives_no_step():
+    """A constant set (one code) is not a quantisation step of 128 DN with a variance of −1365 DN², and a frame
+    repeated N times has no temporal noise: both are refused naming the set."""
+    const = np.full((6, 32, 32), 128 / 255, np.float32)
+    assert quantisation_step(const) == pytest.approx(255 / 65535)  # the finest step, not the code's own value
+    with pytest.raises(ValueError, match=r"^bias 7: its 6 frames are identical .*every value is 128 DN"):
+        set_statistics(const, name="bias 7")
+    rng = np.random.default_rng(0)
+    frame = np.clip(np.rint(100 + 3 * rng.standard_normal((32, 32))), 0, 255) / 255
+    with pytest.raises(ValueError, match="frames are identical"):
+        set_statistics(np.repeat(frame[None], 6, 0).astype(np.float32))
+    assert quantisation_step(np.array([0, 1]) / 255.0) == pytest.approx(1.0)  # 0 and one code: still 8-bit
+
+
+@pytest.mark.parametrize("level", [10.0, 10.5])
+def test_noise_below_half_a_code_step_is_quantisation_limited(level):
+    """σ = 0.25 DN in 8-bit data: q²/12 is no correction there (σ² − q²/12 comes out 0 or 3× too large, depending on
+    where the level sits between codes); the set is marked, and σ = 0.7 DN is not."""
+    rng = np.random.default_rng(5)
+    st = set_statistics((np.rint(level + 0.25 * rng.standard_normal((20, 32, 32))) / 255).astype(np.float32))
+    assert st.method == "temporal" and st.quantisation_limited and st.raw_var_dn2 < 0.3
+    st = set_statistics((np.rint(level + 0.7 * rng.standard_normal((20, 32, 32))) / 255).astype(np.float32))
+    assert not st.quantisation_limited and st.sigma_dn == pytest.approx(0.7, rel=0.03)
+
+
+def test_temporal_variance_removes_each_frames_mean():
+    """A light that changes by 2 % rms from frame to frame (4 DN² at 100 DN) does not enter the temporal variance."""
+    rng = np.random.default_rng(6)
+    flicker = 1 + 0.02 * rng.standard_normal((10, 1, 1))
+    x = (100 + rng.normal(0, 5.0, (64, 64))) * flicker + rng.normal(0, 2.0, (10, 64, 64))
+    st = set_statistics((x / 255).astype(np.float32))
+    assert st.method == "temporal" and st.sigma_dn == pytest.approx(2.0, rel=0.03)
+
+
+def test_values_piling_up_below_255_dn_are_clipped_there():
+    """A pixel full well at 230 DN and 12-bit data MSB-aligned in 16 bits (top code 254.94 DN) clip below 255 DN; a
+    coarse 8-bit set whose highest code holds 0.3 % of its values by chance (σ = 0.72 DN) does not."""
+    from camhealth.calibrate.statistics import top_clip_level
+
+    rng = np.random.default_rng(7)
+    clipped = np.minimum(np.rint(225 + 2.5 * rng.standard_normal((8, 64, 64))), 230.0)
+    assert top_clip_level(clipped, 1.0) == 230.0
+    st = set_statistics((clipped / 255).astype(np.float32))
+    assert st.upper_dn == pytest.approx(230.0) and st.method == "censored" and st.clipped_high == pytest.approx((clipped == 230).mean())
+    assert st.sigma_dn == pytest.approx(2.5, rel=0.03)  # the censored fit with the values at 230 DN as "≥ 230"
+    msb = np.minimum(np.rint(np.clip(250 + 3 * rng.standard_normal((8, 64, 64)), 0, 255) / 255 * 4095), 4095) * 16 / 65535
+    assert top_clip_level(msb * 255, 255 * 16 / 65535) == pytest.approx(65520 / 65535 * 255)
+    coarse = np.rint(25.5 + 0.72 * rng.standard_normal((20, 64, 64)))
+    assert top_clip_level(coarse, 1.0) == 255.0 and set_statistics((coarse / 255).astype(np.float32)).method == "temporal"
+
+
+def _flats(k0, gains=(0.0, 12.0), mus=(10.0, 50.0, 120.0), k_of_gain=None):
+    pts = []
+    for gdb in gains:
+        g = 10 ** (gdb / 20)
+        k = (k_of_gain or {}).get(gdb, k0)
+        for mu in mus:
+            pts.append(FlatPoint(f"{gdb:g}dB-{mu:g}", 0.01, 298.15, g, mu, 0.01, g * k * mu + 0.3 * g * g, 0.01 * g * k * mu, 0.0, 0.0, gdb))
+    return pts
+
+
+def test_photon_transfer_leaves_out_partly_clipped_quantisation_limited_and_saturating_flats():
+    k0 = 255.0 / 12000.0
+    pts = _flats(k0)
+    pts[2].method, pts[2].clipped_high = "censored", 0.0025  # 0 dB, 120 DN: 0.25 % at the top code
+    pts[3].quantisation_limited = True
+    pts.append(FlatPoint("12dB-200", 0.01, 298.15, 10 ** 0.6, 200.0, 0.01, 0.5 * 10 ** 0.6 * k0 * 200, 0.01, 0.0, 0.0, 12.0))
+    fit = fit_photon_transfer(pts, lambda t, tk, g: (0.3 * g * g, 1e-4))
+    why = {p.name: w for p, w in fit.excluded}
+    assert set(why) == {"0dB-120", "12dB-10", "12dB-120", "12dB-200"}
+    assert why["0dB-120"].startswith("partly clipped") and why["12dB-10"].startswith("quantisation-limited")
+    # the variance falls beyond 120 DN at 12 dB: that flat and the one at the maximum are saturated (EMVA 1288)
+    assert why["12dB-200"].startswith("at or beyond the maximum of the variance at 12 dB") and why["12dB-120"] == why["12dB-200"]
+    assert fit.k0 == pytest.approx(k0, rel=1e-6)
+
+
+def test_gains_whose_k0_contradict_k_proportional_to_g_are_refused():
+    k0 = 255.0 / 12000.0
+    with pytest.raises(ValueError, match=r"flats at 0 dB and 12 dB give K0 0\.02125 and 0\.03188 DN/e⁻, [\d.]+σ apart .*check the flats' gain_db"):
+        fit_photon_transfer(_flats(k0, k_of_gain={12.0: 1.5 * k0}), lambda t, tk, g: (0.3 * g * g, 1e-4))
+    fit = fit_photon_transfer(_flats(k0, k_of_gain={12.0: 1.001 * k0}), lambda t, tk, g: (0.3 * g * g, 1e-4))  # within its σ
+    assert set(fit.per_gain) == {0.0, 12.0}
