@@ -150,7 +150,8 @@ from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_e
 
-__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
+__all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "LESS_NOISE",
+           "QUIET_Z_LIMIT", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
            "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor",
            "noise_evidence"]
 
@@ -161,6 +162,12 @@ PAIR_SCENE_ALLOWANCE_DN = 0.0
 VALIDATED_SIGMA_DN = 64.0
 #: The ``reason`` of a patch whose σ_Total (before clipping) is above :data:`VALIDATED_SIGMA_DN`.
 BEYOND_VALIDATED = "noise beyond validated range"
+#: The ``reason`` of a patch that reads far less noise than any camera state in the metadata's ranges makes
+#: (``quiet_z`` below −:data:`QUIET_Z_LIMIT`): a denoiser, a codec that removed the noise, a rendered or rescaled
+#: image. No hypothesis explains it, so the posterior cannot tell; the closed form is returned, not assessable.
+LESS_NOISE = "less noise than the metadata allow"
+#: Standard errors below the best-fitting hypothesis (``quiet_z``) from which a patch is :data:`LESS_NOISE`.
+QUIET_Z_LIMIT = 5.0
 #: Relative standard error × √n of Donoho's MAD estimate σ̂ = median|d|/0.6745 over n Gaussian details:
 #: 1/(2·f(0.6745)·0.6745) with f = 2φ(0.6745) the density of |d|/σ at its median.
 _MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * _MAD_NORMAL**2) / math.sqrt(2.0 * math.pi) * _MAD_NORMAL)
@@ -195,7 +202,7 @@ PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "pn_dn", "dcsn_dn", "rn_dn", "total_dn", "xi_dn", "xi_std_dn", "p_match", "details", "texture", "follows_image",
     "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
     "row_dn", "col_dn", "patch_details", "patch_texture", "patch_detail_corr_check",
-    "p_cause_gain", "p_cause_temperature", "p_cause_white_noise", "p_cause_beyond",
+    "p_cause_gain", "p_cause_temperature", "p_cause_white_noise", "p_cause_beyond", "quiet_z",
 )
 #: What a visible mismatch may be (the hypotheses' kinds, in the order of the ``cause`` output): one of
 #: :data:`MISMATCH_FIELDS` wrong, or noise beyond what any field in range explains.
@@ -571,7 +578,7 @@ def physics_noise_posterior(
     other_evidence: torch.Tensor | None = None,
     return_evidence: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Physics-first noise sources of each patch, (B, 25) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 26) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
@@ -586,7 +593,10 @@ def physics_noise_posterior(
     details used and its own texture and neighbour checks (pooled, read with the frame's noise model; per patch,
     the three columns above again); the cause: P(kind | a visible mismatch) for each of :data:`MISMATCH_CAUSES` — the
     gain, the temperature or the white noise wrong, or noise beyond them — summing to 1 (NaN where the patch is not
-    readable: too few flat details, or textured).
+    readable: too few flat details, or textured); ``quiet_z``: the goodness of fit, how many standard errors (the
+    details' sampling and the model error η) the image's noise reads below that of the best-fitting camera state any
+    hypothesis allows (the largest over the hypotheses of their weighted mean log-variance residual; negative: the
+    image is quieter than every one; 0 without evidence).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -643,6 +653,10 @@ def physics_noise_posterior(
         raise TypeError(f"image must be a floating-point tensor in [0, 1], got {image.dtype}")
     if not bool(torch.isfinite(image).all()):
         raise ValueError("image contains NaN or inf; physics_noise_posterior needs finite intensities in [0, 1]")
+    if image.numel() > 0:
+        lo, hi = torch.aminmax(image.detach())
+        if lo < 0 or hi > 1:
+            raise ValueError(f"image must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
     for name, value, low, high in (("eta", eta, 0.0, 10.0), ("eta_bin", eta_bin, 0.0, 10.0),
                                    ("scene_allowance_dn", scene_allowance_dn, 0.0, 64.0),
                                    ("scene_allowance_min_dn", scene_allowance_min_dn, 0.0, 64.0),
@@ -665,6 +679,10 @@ def physics_noise_posterior(
             raise TypeError(f"reference must be a floating-point tensor in [0, 1], got {reference.dtype}")
         if not bool(torch.isfinite(reference).all()):
             raise ValueError("reference contains NaN or inf; physics_noise_posterior needs finite intensities in [0, 1]")
+        if reference.numel() > 0:
+            lo, hi = torch.aminmax(reference.detach())
+            if lo < 0 or hi > 1:
+                raise ValueError(f"reference must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
     b, dev, f64 = image.shape[0], image.device, torch.float64
     if meta.batch_size not in (1, b):
         raise ValueError(f"metadata batch {meta.batch_size} does not match the {b} patches")
@@ -809,6 +827,12 @@ def physics_noise_posterior(
             quad, lin, inv_sum, clip_cost = own if other is None else own + other[:4].unsqueeze(1)
             ll = -0.5 * (quad - eta2 * lin.square() / (1.0 + eta2 * inv_sum)) + clip_cost
             post = torch.softmax(ll + prior_h, 1).expand(b, -1)
+            # goodness of fit: the image's common log-variance offset from each hypothesis (the bins' weighted mean
+            # residual) in standard errors (its sampling and the model error η); the largest over the hypotheses says
+            # how far the image reads below every camera state the metadata's ranges allow (negative: quieter)
+            inv_c = inv_sum.clamp_min(1e-300)
+            fit_z = ((lin / inv_c) / (1.0 / inv_c + eta2).sqrt()).amax(1)
+            fit_z = torch.where(evidence[:h], fit_z, torch.zeros_like(fit_z)).expand(b)
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
         tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
@@ -880,7 +904,8 @@ def physics_noise_posterior(
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
                          corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1),
-                         torch.where(readable.unsqueeze(1), cause, torch.full_like(cause, float("nan")))], dim=1)
+                         torch.where(readable.unsqueeze(1), cause, torch.full_like(cause, float("nan"))),
+                         fit_z.unsqueeze(1)], dim=1)
     if not return_evidence:
         return out.float()
     # this frame's own bins (row 0: pooled, every row is the frame) and which hypotheses move its σ_Total visibly at
@@ -1074,6 +1099,8 @@ class PhysicsNoiseEstimator:
                 reason[i] = "textured"
             elif raw[i, 10] > VALIDATED_SIGMA_DN or too_strong[i]:
                 reason[i] = BEYOND_VALIDATED
+            elif raw[i, 25] < -QUIET_Z_LIMIT:
+                reason[i] = LESS_NOISE
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
         defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
@@ -1086,7 +1113,7 @@ class PhysicsNoiseEstimator:
 
     def _read(self, patches: torch.Tensor, ref: torch.Tensor | None, meta: CameraMetadata, settings: dict[str, Any],
               batch_size: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """The posterior of the patches (CPU, (B, 25)) — read from their static pair where ``ref`` is given and the
+        """The posterior of the patches (CPU, (B, 26)) — read from their static pair where ``ref`` is given and the
         scene stood still, alone elsewhere (:meth:`predict`) — whether each was read from the pair ((B,) bool, None
         without ``ref``), and, pooled, the frame's own evidence summed over the readings (:func:`noise_evidence`)."""
         b = patches.shape[0]
@@ -1166,7 +1193,7 @@ class PhysicsNoiseEstimator:
 
     def _posterior(self, patches: torch.Tensor, meta: CameraMetadata, settings: dict[str, Any], batch_size: int,
                    reference: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 25): pooled in one call (with the
+        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 26): pooled in one call (with the
         patches of a textured frame that pass both checks on their own details read alone), else in chunks; and,
         pooled, the frame's own evidence of that call (:func:`noise_evidence`; None per patch)."""
         b = patches.shape[0]

@@ -55,7 +55,7 @@ import torch
 
 from camhealth.estimators.aggregation import spatial_median, temporal_median
 from camhealth.estimators.mtf_error import frame_uncertainty
-from camhealth.estimators.physics_noise import BEYOND_VALIDATED, VALIDATED_SIGMA_DN
+from camhealth.estimators.physics_noise import BEYOND_VALIDATED, LESS_NOISE, VALIDATED_SIGMA_DN
 from camhealth.monitor.tiling import (
     ESTIMATED,
     INTERPOLATED,
@@ -873,6 +873,10 @@ def _refusals(st: _TaskState) -> dict[str, Any]:
 #: is fine texture everywhere, noise that is not white does it — demosaicing, denoising, sharpening and compression
 #: correlate neighbouring pixels' noise: a smooth ramp demosaiced or Gaussian-filtered (σ 0.7 px) after 2–10 DN of white
 #: noise, or JPEG-compressed (q 90) after 2–5 DN, is refused as textured on every patch (``docs/monitor.md``).
+#: The alarm's note where every refused noise patch reads far less noise than the metadata's camera makes.
+QUIET_HINT = ("every refused patch reads far less noise than any camera state in the metadata's ranges makes: a denoised, "
+              "compressed, rescaled or rendered frame, or the metadata of a noisier camera (check gain and sensor); "
+              "the metadata cannot be checked on it")
 TEXTURED_HINT = ("every refused patch looks textured: a scene of fine texture everywhere, or noise that is not white — "
                  "a demosaiced, denoised, sharpened or compressed frame, which camhealth's sensor noise model does not "
                  "describe (give frames as the sensor delivers them; a recording's bayer_* images: --bayer green, the default, "
@@ -1620,6 +1624,8 @@ class Monitor:
                 out["message"] += f" (refused: {_reasons_text(noise.refused)})"
                 if set(noise.refused) == {"textured"}:
                     out["message"] += "; " + TEXTURED_HINT
+                elif set(noise.refused) == {LESS_NOISE}:
+                    out["message"] += "; " + QUIET_HINT
             return out
         i = NOISE_FIELDS.index("xi")
         count = noise.n_values

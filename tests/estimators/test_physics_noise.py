@@ -392,6 +392,17 @@ def test_bad_input_is_refused():
         PhysicsNoiseEstimator().predict(torch.rand(1, 1, 128, 128), meta, views=2)
 
 
+@pytest.mark.parametrize("scale,offset,lo,hi", [(255.0, 0.0, "127.5", "127.5"), (1.0, -0.6, "-0.1", "-0.1")])
+def test_intensities_outside_the_unit_range_are_refused(scale, offset, lo, hi):
+    """DN-scaled (×255) or shifted patches are refused, not read as a confident match; so is such a reference."""
+    meta = CameraMetadata.preset("ICX285")
+    x = torch.full((1, 1, 32, 32), 0.5) * scale + offset
+    with pytest.raises(ValueError, match=rf"image must lie in \[0, 1\] \(DN/255\), got values in \[{lo}, {hi}\]"):
+        physics_noise_posterior(x, meta)
+    with pytest.raises(ValueError, match=rf"reference must lie in \[0, 1\] \(DN/255\), got values in \[{lo}, {hi}\]"):
+        physics_noise_posterior(torch.full((1, 1, 32, 32), 0.5), meta, reference=x)
+
+
 @pytest.mark.parametrize("pool", [False, True])
 def test_texture_that_only_the_neighbour_check_sees_is_refused(pool):
     """A fine texture (−1)^(x+y+bx+by) · 6 DN (bx, by: the 2×2-block indices) has zero block means and zero horizontal
@@ -873,3 +884,33 @@ def test_the_cause_is_nan_where_a_patch_is_not_readable():
     matched, _ = simulate_variant(_ramp(2), meta, (), torch.Generator().manual_seed(4))
     cause = PhysicsNoiseEstimator().predict(matched, meta)["cause"]  # readable: a distribution even where it matches
     assert torch.isfinite(cause).all() and torch.allclose(cause.sum(1), torch.ones(2), atol=1e-5)
+
+
+@pytest.mark.parametrize("sigma_dn", [0.0, 0.3, 0.75])
+def test_a_patch_far_quieter_than_any_camera_state_is_not_a_confident_match(sigma_dn):
+    """ICX285 at 0 dB makes σ_Total ≈ 1.54 DN at 128 DN, and no gain, temperature or white-noise density in range
+    makes much less: a patch of 0–0.75 DN fits no hypothesis. It is not assessable ("less noise than the metadata
+    allow", quiet_z far below −QUIET_Z_LIMIT) — the closed form is still returned — instead of P(match) = 1 with a
+    σ_Total uncertainty of 0.0005 DN."""
+    from camhealth.estimators.physics_noise import LESS_NOISE, QUIET_Z_LIMIT
+
+    meta = CameraMetadata.preset("ICX285", gain_db=0.0)
+    g = torch.Generator().manual_seed(0)
+    x = (128.0 + sigma_dn * torch.randn(4, 1, 128, 128, generator=g)).round().clamp(0, 255)
+    raw = physics_noise_posterior(x / 255.0, meta)
+    assert (raw[:, _COL["quiet_z"]] < -QUIET_Z_LIMIT).all()
+    out = PhysicsNoiseEstimator().predict(x, meta, input_range="dn")
+    assert not out["assessable"].any() and set(out["reason"]) == {LESS_NOISE}
+    assert torch.allclose(out["sigma_total"], raw[:, _COL["total_dn"]]) and (out["xi"] == 0).all()
+
+
+@pytest.mark.parametrize("variants", [(), VARIANTS])
+def test_matched_patches_fit_their_camera(variants):
+    """The same camera's own noise (and another simulator's) reads within the model error of its closed form."""
+    from camhealth.estimators.physics_noise import QUIET_Z_LIMIT
+
+    for meta in (CameraMetadata.preset("ICX285", gain_db=0.0), CameraMetadata.preset("EV76C661", gain_db=12.0)):
+        noisy, _ = simulate_variant(_levels(), meta, variants, torch.Generator().manual_seed(3))
+        raw = physics_noise_posterior(noisy, meta)
+        assert (raw[:, _COL["quiet_z"]] > -QUIET_Z_LIMIT / 2).all()
+        assert PhysicsNoiseEstimator().predict(noisy, meta)["assessable"].all()

@@ -986,3 +986,16 @@ def test_load_metadata_sensor_type_that_is_not_a_string_names_the_file(tmp_path)
     f.write_text("sensor: ICX285\nsensor_type: 5\n")
     with pytest.raises(ValueError, match=rf"metadata file {f}: camera metadata sensor_type must be 'CCD' or 'CMOS', got int 5"):
         load_metadata(str(f))
+
+
+def test_a_frame_far_quieter_than_its_metadata_says_so():
+    """A flat 0.3-DN frame for an ICX285 (≈ 1.5 DN at mid grey): no camera state in range explains it, so its noise
+    patches are refused as quieter than the metadata allow and the alarm says what that may be."""
+    from camhealth.estimators.physics_noise import LESS_NOISE
+    from camhealth.monitor.api import QUIET_HINT
+
+    rng = np.random.default_rng(0)
+    img = np.clip(np.tile(np.linspace(60, 190, 640), (512, 1)) + 0.3 * rng.standard_normal((512, 640)), 0, 255)
+    r = Monitor("noise_source_full", None, sensor="ICX285", warmup=False).process(img.round().astype(np.uint8))
+    assert not r.noise.assessable and set(r.noise.refused) == {LESS_NOISE}
+    assert r.alarm["state"] == "not_assessable" and QUIET_HINT in r.alarm["message"]

@@ -332,13 +332,16 @@ def test_the_runs_recurring_defects_are_a_map_the_monitor_reads_back(mode, tmp_p
 
 
 def test_the_monitor_counts_only_the_pixels_tested():
-    """A frame half a 1-px grid pattern (not tested) and half a camera ramp with 1 % defects: the monitor's pixels
-    tested exclude the pattern's patches, so the share per million is the ramp's own."""
+    """A frame half a 1-px grid pattern (not tested) and half a camera ramp with 1 % defects, both imaged by the same
+    ICX285: the monitor's pixels tested exclude the pattern's patches, so the share per million is the ramp's own."""
+    from camhealth.bench.sensor_variants import simulate_variant
     from camhealth.monitor import Monitor
+    from camhealth.physics import CameraMetadata
     from tests.estimators.test_defective_pixels import _camera_ramp, _inject
 
     i = torch.arange(256) % 2
-    grid = ((i.view(-1, 1) + i.view(1, -1)).float() * 0.04 + 0.3)
+    pattern = ((i.view(-1, 1) + i.view(1, -1)).float() * 0.04 + 0.3).view(1, 1, 256, 256)
+    grid = simulate_variant(pattern, CameraMetadata.preset("ICX285"), ("round8",), torch.Generator().manual_seed(2))[0][0, 0]
     ramp, truth = _inject(_camera_ramp(4), 160, (60.0, 120.0), seed=9)  # 4 patches of 128 px
     right = torch.cat([torch.cat([ramp[0, 0], ramp[1, 0]], 1), torch.cat([ramp[2, 0], ramp[3, 0]], 1)], 0)
     frame = torch.cat([grid, right], 1)  # 256 × 512: 2×2 patches of the grid, 2×2 of the ramps
