@@ -123,7 +123,10 @@ the evidence: the closed form is returned and ξ is not trusted), and ``"noise b
 :data:`VALIDATED_SIGMA_DN`: there the clipping takes so much of the noise that the closed-form correction is
 not validated; or the patch's finest-scale fluctuations, measured over all of its blocks, above that limit by more
 than their sampling error — :func:`beyond_validated_range`: noise that is not clipped Gaussian noise, such as
-uniform noise, can read below the limit through the clipped-Gaussian model).
+uniform noise, can read below the limit through the clipped-Gaussian model), and ``"less noise than the metadata
+allow"`` (``quiet_z`` below −:data:`QUIET_Z_LIMIT`: the image's noise reads far below that of every camera state the
+hypotheses span — a denoised, compressed, rescaled or rendered image, or the metadata of a noisier camera — which
+no hypothesis explains, so P(match) would mean nothing; the closed form is returned).
 """
 
 from __future__ import annotations
