@@ -468,7 +468,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_source(args: argparse.Namespace, source: Any) -> int:
-    from camhealth.monitor.api import Monitor, _read_mapping, load_policy
+    from camhealth.monitor.api import Monitor, load_policy
+    from camhealth.physics.metadata import read_metadata_mapping
     from camhealth.monitor.overlay import save_overlay
     from camhealth.monitor.tiling import SelectionConfig
 
@@ -479,7 +480,7 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     mtf_model = None if args.no_mtf else args.mtf_model
     metadata: Any = args.metadata
     if args.set:  # overrides go on top of the file's fields; the preset (if any) fills the rest
-        metadata = {**(_read_mapping(Path(args.metadata)) if args.metadata else {}), **_overrides(args.set)}
+        metadata = {**(read_metadata_mapping(Path(args.metadata)) if args.metadata else {}), **_overrides(args.set)}
     policy = None
     if args.iopc:
         policy = load_policy(args.iopc, tuple(args.exposure_limits), tuple(args.gain_limits), args.iopc_weights)

@@ -73,7 +73,7 @@ from camhealth.monitor.tiling import (
     select_patches,
     status_counts,
 )
-from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS, MINIMAL_FIELDS, PRESETS, CameraMetadata
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS, MINIMAL_FIELDS, PRESETS, CameraMetadata, read_metadata_mapping
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
 __all__ = [
@@ -181,37 +181,6 @@ def as_frame(frame: Any) -> torch.Tensor:
     return x.clamp(0, 1).contiguous()[None, None]
 
 
-def _read_mapping(path: Path) -> dict:
-    if not path.is_file():
-        raise FileNotFoundError(f"metadata file not found: {path}")
-    suffix = path.suffix.lower()
-    if suffix not in (".json", ".yaml", ".yml"):
-        raise ValueError(f"metadata file {path} must be .json, .yaml or .yml, got {path.suffix!r}")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"metadata file {path} is not UTF-8 text: byte 0x{exc.object[exc.start]:02x} at position "
-                         f"{exc.start} (save it as UTF-8)") from None
-    try:
-        if suffix == ".json":
-            data = json.loads(text)
-        elif suffix in (".yaml", ".yml"):
-            import yaml
-
-            data = yaml.safe_load(text)
-        else:
-            raise ValueError(f"metadata file {path} must be .json, .yaml or .yml, got {path.suffix!r}")
-    except (json.JSONDecodeError, ValueError) as exc:
-        if isinstance(exc, ValueError) and "must be .json" in str(exc):
-            raise
-        raise ValueError(f"cannot parse metadata file {path}: {str(exc).splitlines()[0]}") from None
-    except Exception as exc:  # yaml.YAMLError
-        raise ValueError(f"cannot parse metadata file {path}: {str(exc).splitlines()[0]}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"metadata file {path} must hold a mapping of field: value, got {type(data).__name__}")
-    return data
-
-
 def _one_number(key: str, value: Any) -> float:
     """A per-frame metadata value as one number in physical units: an int or float, or a NumPy / torch scalar (a
     one-element array or tensor); a bool, a string or several values (a batch of camera states) are refused."""
@@ -269,7 +238,7 @@ def load_metadata(
     origin = "metadata"
     if isinstance(source, (str, Path)):
         origin = f"metadata file {source}"
-        data = _read_mapping(Path(source))
+        data = read_metadata_mapping(Path(source))
     elif isinstance(source, Mapping):
         data = dict(source)
     else:

@@ -155,6 +155,39 @@ def _as_vector(name: str, value: Any) -> torch.Tensor:
     return t
 
 
+def read_metadata_mapping(path: Any) -> dict:
+    """The mapping of a ``.yaml``/``.yml``/``.json`` metadata file (``yaml.safe_load``/``json``: a file never executes
+    code). Raises ``FileNotFoundError``, or ``ValueError`` naming the file: another suffix, text that is not UTF-8,
+    text that does not parse, or content that is not a mapping."""
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"metadata file not found: {p}")
+    suffix = p.suffix.lower()
+    if suffix not in METADATA_FILE_SUFFIXES:
+        raise ValueError(f"metadata file {p} must be .json, .yaml or .yml, got {p.suffix!r}")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"metadata file {p} is not UTF-8 text: byte 0x{exc.object[exc.start]:02x} at position "
+                         f"{exc.start} (save it as UTF-8)") from None
+    try:
+        if suffix == ".json":
+            import json
+
+            data = json.loads(text)
+        else:
+            import yaml
+
+            data = yaml.safe_load(text)
+    except Exception as exc:  # json.JSONDecodeError, yaml.YAMLError
+        raise ValueError(f"cannot parse metadata file {p}: {str(exc).splitlines()[0]}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"metadata file {p} must hold a mapping of field: value, got {type(data).__name__}")
+    return data
+
+
 @dataclass
 class CameraMetadata:
     """Batched camera metadata: one value per sample for each of the 11 variable parameters.
@@ -391,32 +424,8 @@ class CameraMetadata:
 
         Raises ``FileNotFoundError`` or ``ValueError`` naming the file and what is wrong with it.
         """
-        from pathlib import Path
-
-        p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"metadata file not found: {p}")
-        suffix = p.suffix.lower()
-        if suffix not in METADATA_FILE_SUFFIXES:
-            raise ValueError(f"metadata file {p} must be one of {list(METADATA_FILE_SUFFIXES)}, got {p.suffix!r}")
-        try:
-            text = p.read_text(encoding="utf-8")
-        except UnicodeDecodeError as exc:
-            raise ValueError(f"metadata file {p} is not UTF-8 text: byte 0x{exc.object[exc.start]:02x} at position "
-                             f"{exc.start} (save it as UTF-8)") from None
-        try:
-            if suffix == ".json":
-                import json
-
-                data = json.loads(text)
-            else:
-                import yaml
-
-                data = yaml.safe_load(text)
-        except Exception as exc:  # json.JSONDecodeError, yaml.YAMLError
-            raise ValueError(f"cannot parse metadata file {p}: {str(exc).splitlines()[0]}") from None
-        if not isinstance(data, dict):
-            raise ValueError(f"metadata file {p} must hold a mapping of field: value, got {type(data).__name__}")
+        p = path
+        data = read_metadata_mapping(p)
         base = data.pop("sensor", None)
         for key, value in data.items():
             if key != "sensor_type" and (isinstance(value, bool) or not isinstance(value, (int, float))):

@@ -100,7 +100,7 @@ def test_load_metadata_file_errors(tmp_path):
     with pytest.raises(ValueError, match=".json, .yaml"):
         load_metadata(tmp_path / "m.txt")
     (tmp_path / "m.png").write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")  # binary: refused by its suffix, not decoded
-    with pytest.raises(ValueError, match=r"m.png must be .json, .yaml or .yml"):
+    with pytest.raises(ValueError, match=r"m.png must be .json, .yaml or .yml, got '.png'"):
         load_metadata(tmp_path / "m.png")
     (tmp_path / "latin1.yaml").write_bytes("sensor: ICX285\ntemperature_c: 40 # 40 °C\n".encode("latin-1"))
     with pytest.raises(ValueError, match=r"latin1.yaml is not UTF-8 text: byte 0xb0 at position \d+"):
