@@ -16,7 +16,7 @@ from camhealth._order import lower_median
 from camhealth.physics.metadata import CameraMetadata
 
 __all__ = [
-    "MAX_CLIPPED_FRACTION", "MIN_CONTRAST_DN", "MIN_EDGE_KURTOSIS", "STRUCTURE_BLOCK", "assess_patches", "edge_kurtosis",
+    "CONTRAST_NOISE_SIGMAS", "MAX_CLIPPED_FRACTION", "MIN_CONTRAST_DN", "MIN_EDGE_KURTOSIS", "STRUCTURE_BLOCK", "assess_patches", "contrast_limit_dn", "edge_kurtosis",
     "edge_kurtosis_from_moments", "has_edges", "structure_contrast_dn",
 ]
 
@@ -31,6 +31,9 @@ MIN_CONTRAST_DN = 2.0
 #: patches read −0.15 … 0.9 (10th–90th percentile, with 1–10 DN of noise); dead leaves, line art, polygons and
 #: street frames read 2 … 26 (``python -m camhealth.bench robustness --task mtf``).
 MIN_EDGE_KURTOSIS = 0.5
+#: Sampling standard deviations of the noise's share in the structure contrast² added to :data:`MIN_CONTRAST_DN`²
+#: (:func:`contrast_limit_dn`).
+CONTRAST_NOISE_SIGMAS = 3.0
 #: Block side [px] of the block means whose spread is the structure contrast.
 STRUCTURE_BLOCK = 8
 #: 1 / Φ⁻¹(0.75): median absolute value of a standard normal → σ.
@@ -186,13 +189,26 @@ def _without_banding(patches: torch.Tensor, std_dn: torch.Tensor, noise_dn: torc
     return out
 
 
+def contrast_limit_dn(noise_dn: torch.Tensor, n_means: int, pixels_per_mean: int) -> torch.Tensor:
+    """The structure contrast [DN] a patch must reach to count as a scene, (B,) float32: :data:`MIN_CONTRAST_DN`, raised
+    in quadrature by :data:`CONTRAST_NOISE_SIGMAS` sampling standard deviations of what the noise leaves in it. The
+    contrast² is the variance of ``n_means`` means of ``pixels_per_mean`` pixels less the noise's share
+    σ̂²/``pixels_per_mean``; on a flat patch that difference scatters by σ̂²/``pixels_per_mean``·√(2/``n_means``)
+    (the sample variance of n normal values). 2.07 DN at σ̂ = 10 DN and 192-px patches, 3.9 DN at 64 DN, where a flat
+    patch would otherwise pass 2 DN by chance one time in seven."""
+    spread = noise_dn.double().square() / pixels_per_mean * math.sqrt(2.0 / max(int(n_means), 1))
+    return (MIN_CONTRAST_DN**2 + CONTRAST_NOISE_SIGMAS * spread).sqrt().float()
+
+
 def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | None = None) -> tuple[torch.Tensor, list[str]]:
     """Which B×1×P×P patches (in [0, 1]) an estimator of ``kind`` can assess, and why not.
 
     black / saturated: more than half of the pixels within 0.5 DN of 0 / 255 (noise is clipped away,
     blur invisible); featureless (MTF only): noise-corrected structure contrast (:func:`structure_contrast_dn`)
-    below :data:`MIN_CONTRAST_DN` = 2 DN — no structure to measure blur on, however strong the noise (a flat patch
-    with 20 DN of noise has the contrast of its noise, not of a scene), nor row and column noise (a flat patch with
+    below :data:`MIN_CONTRAST_DN` = 2 DN, raised by three sampling standard deviations of the noise's share
+    (:func:`contrast_limit_dn`: 2.07 DN at 10 DN of noise, 3.9 DN at 64 DN) — no structure to measure blur on,
+    however strong the noise (a flat patch with 20 DN of noise has the contrast of its noise, not of a scene), nor
+    row and column noise (a flat patch with
     10 DN of it: :func:`_without_banding`); no edges (MTF only): the scene's gradients are
     not shown to be sparser than a random-phase texture's (:func:`has_edges`: :func:`edge_kurtosis` two standard
     errors above :data:`MIN_EDGE_KURTOSIS`), so a steep spectrum and blur cannot be told apart on the patch.
@@ -209,16 +225,19 @@ def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | No
         std_dn, noise_dn, means = _structure_stats(p, noise_dn)
         std_dn = _without_banding(p, std_dn, noise_dn, means)
         edges = has_edges(*edge_kurtosis(p, noise_dn))
+        limit = contrast_limit_dn(noise_dn, means.shape[1] * means.shape[2] if means is not None else p.shape[-2] * p.shape[-1],
+                                  STRUCTURE_BLOCK**2 if means is not None else 1)
     else:
         std_dn = torch.full((x.shape[0],), float("inf"))
         edges = torch.ones(x.shape[0], dtype=torch.bool)
+        limit = torch.full((x.shape[0],), MIN_CONTRAST_DN)
     reason = []
-    for lo, hi, s, k in zip(low.tolist(), high.tolist(), std_dn.tolist(), edges.tolist()):
+    for lo, hi, s, k, c in zip(low.tolist(), high.tolist(), std_dn.tolist(), edges.tolist(), limit.tolist()):
         if lo > MAX_CLIPPED_FRACTION:
             reason.append("black")
         elif hi > MAX_CLIPPED_FRACTION:
             reason.append("saturated")
-        elif kind == "mtf" and s < MIN_CONTRAST_DN:
+        elif kind == "mtf" and s < c:
             reason.append("featureless")
         elif kind == "mtf" and not k:
             reason.append("no edges")

@@ -186,3 +186,20 @@ def test_statistics_of_tiny_patches_stay_on_the_patches_device(device):
     one = torch.rand(2, 1, 1, 5, generator=torch.Generator().manual_seed(1)).to(device)
     s, noise, means = _structure_stats(one)
     assert s.device.type == noise.device.type == device.type and means is None
+
+
+@pytest.mark.parametrize("mean_dn", [20.0, 40.0, 235.0])
+def test_flat_patches_under_heavily_clipped_noise_are_not_assessable_for_mtf(mean_dn):
+    """64 DN of noise on a flat 20 or 235 DN patch clips a third of it: the structure contrast² of pure noise scatters by
+    σ²/64·√(2/576) ≈ 3.8 DN², so a fixed 2 DN (4 DN²) let one flat patch in seven through as a scene; the limit raised by
+    three of those standard deviations (3.9 DN there) lets at most one in a hundred."""
+    from camhealth._inputs import contrast_limit_dn
+
+    g = torch.Generator().manual_seed(0)
+    x = (mean_dn + 64.0 * torch.randn(200, 1, 192, 192, generator=g)).clamp(0, 255).round() / 255.0
+    ok, reason = assess_patches(x, "mtf")
+    assert ok.float().mean() <= 0.01 and reason.count("featureless") >= 190
+    # the closed form: √(2² + 3·σ²/64·√(2/576)); the fixed 2 DN where there is no noise
+    limit = contrast_limit_dn(torch.tensor([0.0, 10.0, 64.0], dtype=torch.float64), 576, 64)
+    want = [(4.0 + 3.0 * s * s / 64.0 * math.sqrt(2.0 / 576)) ** 0.5 for s in (0.0, 10.0, 64.0)]
+    assert limit.tolist() == pytest.approx(want, rel=1e-6) and limit[0].item() == pytest.approx(2.0)
