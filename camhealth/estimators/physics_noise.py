@@ -126,7 +126,10 @@ than their sampling error — :func:`beyond_validated_range`: noise that is not 
 uniform noise, can read below the limit through the clipped-Gaussian model), and ``"less noise than the metadata
 allow"`` (``quiet_z`` below −:data:`QUIET_Z_LIMIT`: the image's noise reads far below that of every camera state the
 hypotheses span — a denoised, compressed, rescaled or rendered image, or the metadata of a noisier camera — which
-no hypothesis explains, so P(match) would mean nothing; the closed form is returned).
+no hypothesis explains, so P(match) would mean nothing; the closed form is returned). Pooled, a patch that reads so
+alone (a noiseless overlay, letterbox or masked area) is refused with its own ``quiet_z`` and, where such patches
+are at most half of the frame's, left out of the frame's evidence, so the rest of the frame is read as it is; where
+they are most of it, every patch of the frame is refused.
 """
 
 from __future__ import annotations
@@ -563,6 +566,44 @@ def _neighbour_check(x: torch.Tensor, v_ref: torch.Tensor, ok: torch.Tensor, poo
     return (check(*(t.sum().expand(b) for t in (cov, var, pairs))) if pool else own), own
 
 
+def _bin_residuals(
+    count: torch.Tensor, sq: torch.Tensor, sm: torch.Tensor, a: torch.Tensor, c: torch.Tensor, q: torch.Tensor,
+    tau2: torch.Tensor, eta_bin: float, c_counts: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The NLF residuals of the intensity bins that carry evidence (≥ _MIN_BIN_DETAILS details) of ``rows`` rows.
+
+    Args: per bin (rows, bins) float64 the detail count, the sum of the squared diagonal details [DN²] and of the
+    block means [DN]; the hypotheses' a [DN/DN] and c [DN²] (rows, hypotheses), the quantisation variance q [DN²] and
+    the scene allowance τ² [DN²] per row; a pair's per-bin clipping-limit counts (rows, bins, _PAIR_C_BINS) or None.
+
+    Returns (row, bin) index of each bin e, its log-variance residual r against every hypothesis's kept variance,
+    D⁻¹ = 1/(2/n + η_bin² + the scene's one-sided log-variance ln(1 + τ²/v)² where r > 0), and the bin's a and c rows.
+    """
+    pe, ke = (count >= _MIN_BIN_DETAILS).nonzero(as_tuple=True)
+    n_e = count[pe, ke].unsqueeze(1)
+    s_hat = sq[pe, ke].unsqueeze(1) / _TRUNCATED_CHI2 / n_e
+    mk = (sm[pe, ke].unsqueeze(1) / n_e)
+    a_e, c_e = a.index_select(0, pe), c.index_select(0, pe)
+    v = (a_e * mk + c_e + q[pe].unsqueeze(1)).clamp_min(1e-9)
+    # the details of the blocks kept (no pixel clipped): one frame infers the loss from the block means, a pair
+    # knows each pixel's limit
+    kept = _kept_variance_factor(mk, v) if c_counts is None else pair_kept_variance_factor(c_counts[pe, ke], v)
+    v = v * kept
+    r = s_hat.clamp_min(1e-9).log() - v.log()
+    # the scene's own fine-scale content adds up to about τ² to a bin (never removes any): a reading above the
+    # hypothesis carries the extra log-variance ln(1 + τ²/v)², one below it none
+    scene = torch.log1p(kept * tau2[pe].unsqueeze(1) / v).square() * (r > 0)
+    return pe, ke, r, 1.0 / (2.0 / n_e + eta_bin**2 + scene), a_e, c_e
+
+
+def _fit_z(lin: torch.Tensor, inv_sum: torch.Tensor, eta2: torch.Tensor) -> torch.Tensor:
+    """Goodness of fit (rows,): the image's common log-variance offset from each hypothesis (its bins' weighted mean
+    residual Σr/D / Σ1/D) in standard errors (sampling and the model error η², (rows, 1)), the largest over the
+    hypotheses: how far the image reads below every camera state the metadata's ranges allow (negative: quieter)."""
+    inv_c = inv_sum.clamp_min(1e-300)
+    return ((lin / inv_c) / (1.0 / inv_c + eta2).sqrt()).amax(1)
+
+
 def physics_noise_posterior(
     image: torch.Tensor,
     meta: CameraMetadata,
@@ -599,7 +640,8 @@ def physics_noise_posterior(
     readable: too few flat details, or textured); ``quiet_z``: the goodness of fit, how many standard errors (the
     details' sampling and the model error η) the image's noise reads below that of the best-fitting camera state any
     hypothesis allows (the largest over the hypotheses of their weighted mean log-variance residual; negative: the
-    image is quieter than every one; 0 without evidence).
+    image is quieter than every one; 0 without evidence; pooled, the frame's, except for a patch below
+    −:data:`QUIET_Z_LIMIT` alone, which keeps its own, and at most the median patch's where most patches are).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -630,7 +672,9 @@ def physics_noise_posterior(
             ``scene_allowance_dn``². Equal to ``scene_allowance_dn``: τ fixed pooled as well.
         pool: the patches show one camera state (``meta`` of batch 1, e.g. the patches of one frame): add up their
             NLF evidence and texture check, so that every patch gets the posterior of the whole frame (noise is a
-            property of the camera, not of the scene); σ after clipping stays per patch.
+            property of the camera, not of the scene); σ after clipping stays per patch. Patches far quieter alone
+            than every camera state (``quiet_z`` below −:data:`QUIET_Z_LIMIT`: no sensor noise) are left out of the
+            sums where they are at most half of the patches with evidence.
         reference: the same patches from another exposure of a static scene in the same camera state (B×1×H×W in
             [0, 1]), or None. Given, the evidence — the details, their block means, the row and column noise and the
             texture and neighbour checks — is read from :func:`~camhealth.estimators.static_pair.static_pair_image`,
@@ -748,13 +792,18 @@ def physics_noise_posterior(
         a_h, c_h, prior_h = a_all[:h], c_all[:h], prior[:h]
         q_h = q.mean().view(1) if pool else q
         # (h, bins): the clipping penalty's bins, read from the image's own blocks (a pair's fold has other block means)
-        if reference is None:
-            clip_n, clip_m, clip_o = _clip_bin_stats(x, m, idx, bins, pool, h)
-        else:
-            m_x = sum(_block_pixels(x)) / 4.0
-            k_x = (m_x / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
-            idx_x = (torch.arange(b, device=dev).view(b, 1) * bins + k_x).flatten()
-            clip_n, clip_m, clip_o = _clip_bin_stats(x, m_x, idx_x, bins, pool, h)
+        m_x = m if reference is None else sum(_block_pixels(x)) / 4.0
+        k_x = kbin if reference is None else (m_x / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
+
+        def clip_input(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            """The patches (B,) bool ``rows``, their block means and (patch, bin) index of each block."""
+            n = int(rows.sum())
+            return x[rows], m_x[rows], (torch.arange(n, device=dev).view(n, 1) * bins + k_x[rows]).flatten()
+
+        clip_n, clip_m, clip_o = _clip_bin_stats(*clip_input(torch.ones(b, dtype=torch.bool, device=dev)), bins, pool, h)
+        # pooled: the patches far quieter alone than every camera state, left out of the frame's sums, and their own fit
+        quiet_alone = torch.zeros(b, dtype=torch.bool, device=dev)
+        own_z, quiet_frame = torch.zeros(b, dtype=f64, device=dev), None
         post = torch.softmax(prior, 1)
         tau2 = torch.full((b,), scene_allowance_dn**2, dtype=f64, device=dev)  # τ² [DN²] per patch
         tau2_min = min(scene_allowance_min_dn, scene_allowance_dn) ** 2
@@ -789,10 +838,32 @@ def physics_noise_posterior(
                                           minlength=b * bins * _PAIR_C_BINS).view(b, bins, _PAIR_C_BINS)
             own_texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
             own_count = count.sum(1)
-            if pool:  # one camera state: the frame's evidence for every patch
-                hv, dd, n3 = (t.sum().expand(b) for t in (hv, dd, n3))
-                count, sq, sm = (t.sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
-                c_counts = None if c_counts is None else c_counts.sum(0, keepdim=True)
+            if pool and step == 0:
+                # a patch far quieter alone than every camera state in the metadata's ranges (an overlay, a letterbox,
+                # a rendered or masked area: no sensor noise at all) would pull the whole frame below them, or be
+                # given the frame's answer; it is refused alone (quiet_z its own). Where such patches are at most half
+                # of those with evidence they are left out of the frame's sums, so the rest of the frame is read as it
+                # is; where they are most of it, the frame as a whole is the quiet one (a denoiser, a codec): pooled as
+                # it stands, every patch is given the median patch's quiet_z at most
+                own_evidence = own_count >= _MIN_FIT_BLOCKS
+                pe_o, _, r_o, inv_o, _, _ = _bin_residuals(count, sq, sm, a_all, c_all, q, torch.full_like(tau2, scene_allowance_dn**2),
+                                                           eta_bin, c_counts)
+                lin_o = torch.zeros(b, a_all.shape[1], dtype=f64, device=dev).index_add_(0, pe_o, r_o * inv_o)
+                inv_o = torch.zeros(b, a_all.shape[1], dtype=f64, device=dev).index_add_(0, pe_o, inv_o)
+                eta2_own = (eta**2 + own_texture.clamp_min(0).square()).unsqueeze(1)
+                own_z = torch.where(own_evidence, _fit_z(lin_o, inv_o, eta2_own), torch.zeros_like(own_texture))
+                quiet = own_evidence & (own_z < -QUIET_Z_LIMIT)
+                if 2 * int(quiet.sum()) > int(own_evidence.sum()):
+                    quiet_frame = own_z[own_evidence].median()
+                elif bool(quiet.any()):
+                    quiet_alone = quiet
+                    # and out of the clipping penalty's bins and the neighbour check
+                    clip_n, clip_m, clip_o = _clip_bin_stats(*clip_input(~quiet_alone), bins, pool, h)
+            if pool:  # one camera state: the frame's evidence for every patch (but the quiet ones above)
+                w_in = (~quiet_alone).to(f64)
+                hv, dd, n3 = ((t * w_in).sum().expand(b) for t in (hv, dd, n3))
+                count, sq, sm = ((t * w_in.unsqueeze(1)).sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
+                c_counts = None if c_counts is None else (c_counts * w_in.view(b, 1, 1)).sum(0, keepdim=True)
             texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
             if pool and tau2_min < scene_allowance_dn**2:
                 # the frame's own fine content, read off its inliers: white noise puts as much energy into the
@@ -805,21 +876,7 @@ def physics_noise_posterior(
             evidence = count.sum(1) >= _MIN_FIT_BLOCKS
             # only the bins that carry evidence (≥ _MIN_BIN_DETAILS details; a patch spans a few of the bins) enter
             # ℓ: each such bin e of row pe is one row of (E, hypotheses) arrays, summed back per row
-            pe, ke = (count[:h] >= _MIN_BIN_DETAILS).nonzero(as_tuple=True)
-            n_e = count[pe, ke].unsqueeze(1)
-            s_hat = (sq[pe, ke] / _TRUNCATED_CHI2 / n_e.squeeze(1)).unsqueeze(1)
-            mk = (sm[pe, ke] / n_e.squeeze(1)).unsqueeze(1)
-            a_e, c_e = a_h.index_select(0, pe), c_h.index_select(0, pe)
-            v = (a_e * mk + c_e + q_h[pe].unsqueeze(1)).clamp_min(1e-9)
-            # the details of the blocks kept (no pixel clipped): one frame infers the loss from the block means, a pair
-            # knows each pixel's limit
-            kept = _kept_variance_factor(mk, v) if c_counts is None else pair_kept_variance_factor(c_counts[pe, ke], v)
-            v = v * kept
-            r = s_hat.clamp_min(1e-9).log() - v.log()
-            # the scene's own fine-scale content adds up to about τ² to a bin (never removes any): a reading above the
-            # hypothesis carries the extra log-variance ln(1 + τ²/v)², one below it none
-            scene = torch.log1p(kept * tau2[:h][pe].unsqueeze(1) / v).square() * (r > 0)
-            inv = 1.0 / (2.0 / n_e + eta_bin**2 + scene)  # D⁻¹ per hypothesis
+            pe, ke, r, inv, a_e, c_e = _bin_residuals(count[:h], sq[:h], sm[:h], a_h, c_h, q_h, tau2[:h], eta_bin, c_counts)
             per_row = torch.zeros(4, h, a_h.shape[1], dtype=f64, device=dev).index_add_(
                 1, pe, torch.stack([r.square() * inv, r * inv, inv,
                                     _clip_cost(clip_n[pe, ke].unsqueeze(1), clip_m[pe, ke].unsqueeze(1),
@@ -833,9 +890,11 @@ def physics_noise_posterior(
             # goodness of fit: the image's common log-variance offset from each hypothesis (the bins' weighted mean
             # residual) in standard errors (its sampling and the model error η); the largest over the hypotheses says
             # how far the image reads below every camera state the metadata's ranges allow (negative: quieter)
-            inv_c = inv_sum.clamp_min(1e-300)
-            fit_z = ((lin / inv_c) / (1.0 / inv_c + eta2).sqrt()).amax(1)
+            fit_z = _fit_z(lin, inv_sum, eta2)
             fit_z = torch.where(evidence[:h], fit_z, torch.zeros_like(fit_z)).expand(b)
+            # the patches read as far quieter alone (a noiseless overlay) keep their own goodness of fit; a frame
+            # mostly of them reads as its median patch at most
+            fit_z = torch.where(quiet_alone, own_z, fit_z if quiet_frame is None else fit_z.clamp_max(quiet_frame))
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
         tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
@@ -853,7 +912,7 @@ def physics_noise_posterior(
         e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
         # texture does not
-        corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0], pool)
+        corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0] * (~quiet_alone).view(b, 1, 1, 1), pool)
         readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
         follows = readable & (p_match < 0.5)
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that

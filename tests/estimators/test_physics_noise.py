@@ -914,3 +914,49 @@ def test_matched_patches_fit_their_camera(variants):
         raw = physics_noise_posterior(noisy, meta)
         assert (raw[:, _COL["quiet_z"]] > -QUIET_Z_LIMIT / 2).all()
         assert PhysicsNoiseEstimator().predict(noisy, meta)["assessable"].all()
+
+
+def _overlaid_frame(noiseless_rows: int, seed: int = 0) -> tuple[torch.Tensor, CameraMetadata]:
+    """The 20 patches (4 × 5 of 128 px) of an ICX285 frame of a ramp whose top ``noiseless_rows`` rows of patches are
+    a noiseless mid-grey overlay (128 DN, no sensor noise at all), and its metadata."""
+    meta = CameraMetadata.preset("ICX285")
+    ramp = torch.linspace(0.25, 0.75, 640).expand(512, 640).clone().view(1, 1, 512, 640)
+    frame = simulate_variant(ramp, meta, ("round8",), torch.Generator().manual_seed(seed))[0][0, 0]
+    frame[: 128 * noiseless_rows] = 128.0 / 255.0
+    return frame.unfold(0, 128, 128).unfold(1, 128, 128).reshape(-1, 1, 128, 128), meta
+
+
+@pytest.mark.parametrize("noiseless_rows", [1, 2])
+def test_pooled_noiseless_overlay_patches_are_refused_alone_and_left_out(noiseless_rows):
+    """Pooled, a quarter or half of the frame a noiseless overlay: those patches are refused as quieter than the
+    metadata allow (each read alone) and left out of the frame's evidence, so the camera's own patches read exactly
+    what the frame without the overlay reads — instead of every patch being given the frame's answer (the overlay's
+    patches a confident closed form) with a fit pulled toward 'quieter'."""
+    from camhealth.estimators.physics_noise import LESS_NOISE, QUIET_Z_LIMIT
+
+    patches, meta = _overlaid_frame(noiseless_rows)
+    clean, _ = _overlaid_frame(0)
+    n = 5 * noiseless_rows
+    raw = physics_noise_posterior(patches, meta, pool=True)
+    alone = physics_noise_posterior(patches[:n], meta)  # the overlay's patches read one by one
+    assert torch.allclose(raw[:n, _COL["quiet_z"]], alone[:, _COL["quiet_z"]], rtol=1e-4)
+    assert (raw[:n, _COL["quiet_z"]] < -QUIET_Z_LIMIT).all() and (raw[n:, _COL["quiet_z"]].abs() < 1.0).all()
+    # the camera's own patches read as from the frame without the overlay
+    rest = physics_noise_posterior(clean[n:], meta, pool=True)
+    assert torch.allclose(raw[n:, :7], rest[:, :7], atol=1e-5)
+    out = PhysicsNoiseEstimator().predict(patches, meta, pool=True)
+    assert out["reason"] == [LESS_NOISE] * n + [""] * (20 - n)
+    assert (out["xi"][n:] == 0).all() and (out["p_match"][n:] > 0.99).all()
+
+
+def test_a_pooled_frame_mostly_noiseless_is_refused_as_a_whole():
+    """Three quarters of the frame without sensor noise: the frame as a whole is the quiet one (as a denoised frame
+    would be), so every patch is refused — none is given a confident answer pooled with the noiseless ones."""
+    from camhealth.estimators.physics_noise import LESS_NOISE
+
+    patches, meta = _overlaid_frame(3)
+    out = PhysicsNoiseEstimator().predict(patches, meta, pool=True)
+    assert out["reason"] == [LESS_NOISE] * 20
+    # per patch, the camera's own patches are what they are
+    alone = PhysicsNoiseEstimator().predict(patches, meta)
+    assert alone["reason"] == [LESS_NOISE] * 15 + [""] * 5
