@@ -57,6 +57,22 @@ class IntAtLeast:
         return f"int >= {self.lo}"
 
 
+class BitDepthOption:
+    """Option type of ``--bit-depth``: ``'auto'`` or an integer number of bits 1…16 (as ``camhealth.data.read_image``
+    checks it), else :class:`BadValue` naming the value. Its ``repr`` is what ``--help`` shows."""
+
+    def __call__(self, value) -> int | str:
+        from camhealth.data.io import _check_bit_depth
+
+        try:
+            return _check_bit_depth(value if value == "auto" or isinstance(value, (bool, int)) else int(str(value)))
+        except (TypeError, ValueError):
+            raise BadValue(f"must be 'auto' or an integer number of bits in [1, 16] (8, 10, 12, 14 or 16), got {value!r}") from None
+
+    def __repr__(self) -> str:
+        return "auto or int in [1, 16]"
+
+
 def add_debug_flag(parser: Any) -> None:
     """List ``--debug`` in an argparse/jsonargparse parser's ``--help`` (:func:`run_cli` acts on it)."""
     parser.add_argument(DEBUG_FLAG, action="store_true", help=_HELP)

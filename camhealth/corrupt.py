@@ -15,30 +15,44 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from camhealth._cli import IntAtLeast, add_debug_flag, config_parser, run_cli
+from camhealth._cli import BadValue, BitDepthOption, IntAtLeast, add_debug_flag, config_parser, run_cli
 from camhealth.augment import CameraCorruption, RandomDefocusBlur, RandomMotionBlur, RandomSensorNoise
+from camhealth.augment.blur import MAX_DIAMETER_PX, MAX_LENGTH_PX
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
 __all__ = ["main", "random_patches"]
 
 
 def random_patches(source, n: int, size: int, generator: torch.Generator) -> tuple[torch.Tensor, list[str]]:
-    """``n`` random ``size``×``size`` crops (B×1×size×size) from random images of ``source``."""
+    """``n`` random ``size``×``size`` crops (B×1×size×size) from random images of ``source``.
+
+    Images smaller than ``size`` on a side are skipped: each crop comes from an image drawn uniformly from those
+    at least ``size``×``size`` px (a drawn image that is too small is set aside and another one drawn).
+    ValueError naming the patch size (``--size``) and the largest patch the images hold when none is large enough."""
     if len(source) == 0:
         raise ValueError("the image source is empty")
+    candidates = list(range(len(source)))  # images not yet known to be too small
+    largest = 0  # the largest short side among the images set aside
     patches, ids = [], []
     for _ in range(n):
-        idx = int(torch.randint(len(source), (1,), generator=generator))
-        img, img_id = source[idx]
-        h, w = img.shape[-2:]
-        if h < size or w < size:
-            raise ValueError(f"image {img_id!r} is {h}×{w} px, smaller than the patch size {size}")
+        while True:
+            if not candidates:
+                raise ValueError(f"every image of the source is smaller than the patch size {size}×{size} px (--size "
+                                 f"{size}); the largest patch they hold is {largest}×{largest} px")
+            k = int(torch.randint(len(candidates), (1,), generator=generator))
+            img, img_id = source[candidates[k]]
+            h, w = img.shape[-2:]
+            if h >= size and w >= size:
+                break
+            largest = max(largest, min(h, w))
+            del candidates[k]
         y = int(torch.randint(h - size + 1, (1,), generator=generator))
         x = int(torch.randint(w - size + 1, (1,), generator=generator))
         patches.append(img[..., y : y + size, x : x + size].reshape(1, size, size))
@@ -118,16 +132,22 @@ def _camera(args: argparse.Namespace) -> CameraCorruption:
     )
 
 
-#: The MIN MAX range options: name → (largest MAX or None, unit); MIN ≥ 0 and MIN ≤ MAX for each.
-_RANGES = {"defocus": (None, "px"), "motion": (None, "px"), "shake": (1.0, "")}
+#: The MIN MAX range options: name → (largest MAX or None, unit); MIN ≥ 0 and MIN ≤ MAX for each. The largest defocus
+#: diameter and motion length are those the blur modules' largest kernel holds.
+_RANGES = {"defocus": (MAX_DIAMETER_PX, "px"), "motion": (MAX_LENGTH_PX, "px"), "shake": (1.0, "")}
+
+
+def _range_text(name: str, values) -> str:
+    return f"--{name} {' '.join(f'{v:g}' if isinstance(v, (int, float)) else repr(v) for v in values)}"
 
 
 def _check_ranges(args: argparse.Namespace) -> None:
-    """ValueError naming the option when a MIN MAX range is not two numbers with 0 ≤ MIN ≤ MAX (≤ 1 for --shake); a
-    negative range would otherwise switch the corruption off without a word."""
+    """ValueError naming the option when a MIN MAX range is not two numbers with 0 ≤ MIN ≤ MAX ≤ its largest value
+    (253 px defocus, 252 px motion, 1 shake), or when --shake asks for camera shake with motion blur off; a negative
+    range would otherwise switch the corruption off, and a shake without motion be dropped, without a word."""
     for name, (top, unit) in _RANGES.items():
         values = list(getattr(args, name))
-        text = f"--{name} {' '.join(f'{v:g}' if isinstance(v, (int, float)) else repr(v) for v in values)}"
+        text = _range_text(name, values)
         if len(values) != 2 or not all(isinstance(v, (int, float)) and np.isfinite(v) for v in values):
             raise ValueError(f"{text}: needs two finite numbers MIN MAX")
         lo, hi = values
@@ -136,7 +156,44 @@ def _check_ranges(args: argparse.Namespace) -> None:
         if lo > hi:
             raise ValueError(f"{text}: MIN must be <= MAX")
         if top is not None and hi > top:
-            raise ValueError(f"{text}: MAX must be <= {top:g}")
+            raise ValueError(f"{text}: MAX must be <= {top:g}{' ' + unit if unit else ''}")
+    if args.shake[1] > 0 and args.motion[1] == 0:
+        raise ValueError(f"{_range_text('shake', args.shake)}: camera shake needs motion blur; "
+                         f"{_range_text('motion', args.motion)} switches it off")
+
+
+#: Names of the files a run writes into --out (besides overview.png): the patch pairs and the labels.
+_PAIR = re.compile(r"^\d{4,}_(clean|corrupted)\.png$")
+_LABELS = "labels.jsonl"
+_OVERVIEW = "overview.png"
+
+
+def _earlier_outputs(out: Path) -> list[Path]:
+    """The files of an earlier run in ``out`` (NNNN_clean.png, NNNN_corrupted.png, labels.jsonl, overview.png)."""
+    if not out.is_dir():
+        return []
+    return sorted(f for f in out.iterdir() if (_PAIR.match(f.name) or f.name in (_LABELS, _OVERVIEW)) and not f.is_dir())
+
+
+def _check_out(args: argparse.Namespace) -> None:
+    """ValueError naming both paths when --out is the source folder, lies inside it or contains it (the run would
+    write over the input images, or into a folder a later run reads back as input); ValueError naming --out and
+    --overwrite when --out holds an earlier run's files and --overwrite is not given."""
+    spec = str(args.source)
+    folder = Path(spec[len("frames:"):] if spec.startswith("frames:") else spec)
+    if spec.strip().lower() not in ("default", "street", "skimage", "deadleaves") and folder.is_dir():
+        src, out = folder.resolve(), args.out.resolve()
+        if out == src:
+            raise ValueError(f"--out {args.out} is the source folder {folder}; give another output folder")
+        if out.is_relative_to(src):
+            raise ValueError(f"--out {args.out} is inside the source folder {folder}; give a folder outside it")
+        if src.is_relative_to(out):
+            raise ValueError(f"--out {args.out} contains the source folder {folder}; give a folder outside it")
+    earlier = _earlier_outputs(args.out)
+    if earlier and not args.overwrite:
+        names = ", ".join(f.name for f in earlier[:3]) + (f" and {len(earlier) - 3} more" if len(earlier) > 3 else "")
+        raise ValueError(f"--out {args.out} already holds the output of a run ({names}); pass --overwrite to replace it "
+                         "or give another folder")
 
 
 def build_parser():
@@ -148,7 +205,13 @@ def build_parser():
     )
     p.add_argument("source", nargs="?", default=argparse.SUPPRESS,  # SUPPRESS: a --config file may give it
                    help="'default' (the default: embedded photos + street clip), 'street', 'skimage', 'deadleaves', a folder or a video file")
-    p.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder (created); not the source folder, nor inside it, nor containing it")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier run's output in --out: all its NNNN_clean.png, NNNN_corrupted.png, "
+                   "labels.jsonl and overview.png are deleted before this run writes its own, so none is left over "
+                   "(patches beyond --n, overview.png without --overview); other files are kept. Without it an --out "
+                   "that holds any of these files is refused")
     p.add_argument("--n", type=IntAtLeast(1), default=8, help="number of patches (default 8)")
     p.add_argument("--size", type=IntAtLeast(1), default=192, help="patch size in px (default 192)")
     p.add_argument("--defocus", type=float, nargs=2, default=[1.0, 21.0], metavar=("MIN", "MAX"),
@@ -160,6 +223,10 @@ def build_parser():
     p.add_argument("--sensor", default=None, help="sensor preset (ICX285, EV76C661); default: random cameras")
     p.add_argument("--no-noise", action="store_true", help="blur only")
     p.add_argument("--quantize", action="store_true", help="round the output to whole DN")
+    p.add_argument("--bit-depth", type=BitDepthOption(), default="auto",
+                   help="significant bits of the images of a folder source (or frames:<folder>): 'auto' (default: "
+                   "each file's PNG sBIT chunk, else a guess from its largest value) or 1-16, e.g. 12 for a 12-bit "
+                   "camera's frames in 16-bit files (DN/4095)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--overview", action="store_true", help="also write overview.png (each corruption of the most textured patch)")
     add_debug_flag(p)
@@ -173,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     from camhealth.data import build_source
 
     _check_ranges(args)  # (before the source is read)
-    source = build_source(args.source)
+    _check_out(args)
+    source = build_source(args.source, bit_depth=args.bit_depth)
     g = torch.Generator().manual_seed(args.seed)
     clean, ids = random_patches(source, args.n, args.size, g)
     torch.manual_seed(args.seed)
@@ -181,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     out = cam(clean)
     lab = cam.labels()
     args.out.mkdir(parents=True, exist_ok=True)
+    for f in _earlier_outputs(args.out):  # (only with --overwrite: _check_out refused the folder otherwise)
+        f.unlink()  # (all of them: a file left over from the earlier run is never listed or unlisted by this one)
     meta = lab.get("metadata")
     with open(args.out / "labels.jsonl", "w") as fh:
         for i, pid in enumerate(ids):

@@ -11,8 +11,10 @@
     Lists the generated blocks of a Markdown file: ``<!-- generated: COMMAND -->`` … ``<!-- end generated -->``.
 
 Generated blocks are written by the command they name (``python -m camhealth.bench robustness --docs
-docs/benchmarks.md``, ``python -m camhealth.evaluate --docs docs/results.md``): :func:`replace_generated` puts the new
-text between the block's markers and leaves the rest of the file as it is.
+docs/benchmarks.md``): :func:`replace_generated` puts the new text between the block's markers and leaves the rest of
+the file as it is. ``python -m camhealth.evaluate --docs FILE`` writes a whole page instead, the results page
+(``docs/results.md``): FILE is (re)written whole when it does not exist or its first line is the page's title
+(``# camhealth evaluation: …``); any other existing FILE is refused (exit status 2, naming it) before the evaluation runs.
 """
 
 from __future__ import annotations

@@ -53,7 +53,7 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from camhealth._cli import add_debug_flag, config_parser, run_cli
+from camhealth._cli import BitDepthOption, IntAtLeast, add_debug_flag, config_parser, run_cli
 
 __all__ = [
     "NOISE_LEVELS_DN",
@@ -86,6 +86,8 @@ SLE_CHART = 256
 STAR_CHART = 512
 AGG_SIGMA_DN = 25.0
 SHIPPED = ("mtf", "drne", "noise_source_none", "noise_source_min", "noise_source_full")
+#: The first line of the results page (``results.md``, and the file ``--docs`` writes).
+RESULTS_TITLE = "# camhealth evaluation: classical and learned estimators on one benchmark"
 
 
 @dataclass(frozen=True)
@@ -97,7 +99,8 @@ class EvalConfig:
     blur patches come from — ``"rendered"`` (default): line art, shaded shapes and 1/f textures rendered with an
     exact pixel aperture (:mod:`camhealth.bench.rendered_scenes`, in no training source), whose own MTF is 1, so
     the label (the kernel's MTF) is the patch's whole MTF; ``"source"``: crops of ``source`` (a label that ignores
-    the source's own blur: the street clip's native MTF is ≈ 0.08 at f_n 0.6)."""
+    the source's own blur: the street clip's native MTF is ≈ 0.08 at f_n 0.6). ``bit_depth``: significant bits of the
+    image files of a folder ``source`` (:func:`camhealth.data.build_source`; ``"auto"``: each file's own)."""
 
     source: str = "default"
     seed: int = 0
@@ -114,14 +117,22 @@ class EvalConfig:
     charts: bool = True
     batch: int = 32
     blur_scenes: str = "rendered"
+    bit_depth: int | str = "auto"
 
     def __post_init__(self) -> None:
         if self.blur_scenes not in ("rendered", "source"):
             raise ValueError(f"blur_scenes = {self.blur_scenes!r} must be 'rendered' or 'source'")
+        from camhealth.data.io import _check_bit_depth
+
+        _check_bit_depth(self.bit_depth)
 
     def key(self) -> str:
-        """Hash of the configuration (cache entries are only reused for the same key)."""
-        return hashlib.sha1(json.dumps(dataclasses.asdict(self), sort_keys=True).encode()).hexdigest()[:16]
+        """Hash of the configuration (cache entries are only reused for the same key; ``bit_depth`` enters it only when
+        it is not ``"auto"``)."""
+        fields = dataclasses.asdict(self)
+        if fields["bit_depth"] == "auto":
+            del fields["bit_depth"]
+        return hashlib.sha1(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
 DEFAULT = EvalConfig()
@@ -405,7 +416,7 @@ def build_cases(cfg: EvalConfig, cache: Path | None = None, resume: bool = False
     """Build (or, with ``resume``, load) the benchmark data of every case for ``cfg``."""
     from camhealth.data import build_source
 
-    source = build_source(cfg.source)
+    source = build_source(cfg.source, bit_depth=cfg.bit_depth)
     images = _ImageCache(source)
     builders: dict[str, Callable[[], dict]] = {
         "noise_isolated": lambda: _case_noise_isolated(cfg, images),
@@ -817,17 +828,22 @@ def _speed_rows(timing: dict) -> list[dict]:
     return rows
 
 
+def _depth_note(cfg: dict) -> str:
+    depth = cfg.get("bit_depth", "auto")
+    return "" if depth == "auto" else f" read as {depth}-bit data"
+
+
 def _markdown(report: dict) -> str:
     cfg = report["config"]
     lines = [
-        "# camhealth evaluation: classical and learned estimators on one benchmark",
+        RESULTS_TITLE,
         "",
         f"command: `{report['command']}`  ",
         f"machine: {report['machine']}  ",
         f"date: {report['date']}; wall time {report['wall_s']:.0f} s; configuration key `{report['config_key']}`"
         + (" (--quick)" if report.get("quick") else ""),
         "",
-        f"Data: source `{cfg['source']}` (+ dead leaves as the texture-rich set), seed {cfg['seed']}; learned-MTF blur patches from "
+        f"Data: source `{cfg['source']}`{_depth_note(cfg)} (+ dead leaves as the texture-rich set), seed {cfg['seed']}; learned-MTF blur patches from "
         f"{'rendered scenes with an exact pixel aperture (native MTF 1: the label is exact)' if cfg.get('blur_scenes', 'rendered') == 'rendered' else 'the source (labels ignore its own blur)'}; noise patches 128 px, "
         f"blur patches 192 px, charts {SLE_CHART} px (slanted edge) and {STAR_CHART} px (Siemens star).",
         "",
@@ -1168,6 +1184,10 @@ def build_parser():
     p = config_parser(prog="python -m camhealth.evaluate", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     p.add_argument("--source", default="default", help="image source: 'default' (embedded), a folder or a video (default: default)")
+    p.add_argument("--bit-depth", type=BitDepthOption(), default="auto",
+                   help="significant bits of the images of a folder --source (or frames:<folder>): 'auto' (default: each "
+                   "file's PNG sBIT chunk, else a guess from its largest value) or 1-16, e.g. 12 for a 12-bit camera's "
+                   "frames in 16-bit files (DN/4095)")
     p.add_argument("--out", type=Path, default=Path("runs/evaluate"), help="output folder (default runs/evaluate)")
     p.add_argument("--quick", action="store_true", help="reduced benchmark (≤ 2 min on a 2-core CPU)")
     p.add_argument("--resume", action="store_true", help="reuse cached data/estimates of the same configuration in OUT/cache")
@@ -1177,17 +1197,39 @@ def build_parser():
     p.add_argument("--blur-scenes", choices=("rendered", "source"), default="rendered",
                    help="scenes of the learned MTF's blur patches: 'rendered' (exact pixel aperture, native MTF 1: the "
                    "kernel's MTF is the whole label) or 'source' (labels ignore the source's own blur); default rendered")
-    p.add_argument("--seed", type=int, default=0, help="seed of the benchmark (default 0)")
+    p.add_argument("--seed", type=IntAtLeast(0), default=0, help="seed of the benchmark (default 0)")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
-    p.add_argument("--docs", type=Path, default=None, help="also write the Markdown report to this file (e.g. docs/results.md)")
+    p.add_argument("--docs", type=Path, default=None, metavar="FILE",
+                   help="also write the Markdown report to FILE (e.g. docs/results.md), as the whole page: a FILE that "
+                   "does not exist or is an earlier results page (first line '# camhealth evaluation: ...') is "
+                   "(re)written whole; any other existing FILE is refused before the evaluation runs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     add_debug_flag(p)
     return p
 
 
+def _check_docs_file(path: Path) -> None:
+    """SystemExit (status 2) naming ``path`` unless ``--docs`` may write it whole: it does not exist, or its first line is
+    :data:`RESULTS_TITLE` (an evaluate results page). Any other file is not overwritten."""
+    if not path.exists():
+        return
+    first = None
+    if path.is_file():
+        try:
+            with open(path, encoding="utf-8") as fh:
+                first = fh.readline(len(RESULTS_TITLE) + 2).rstrip("\r\n")
+        except (OSError, UnicodeDecodeError):
+            first = None
+    if first != RESULTS_TITLE:
+        raise SystemExit(f"--docs {path}: not overwriting it: it is not an evaluate results page (its first line is not "
+                         f"{RESULTS_TITLE!r}); --docs writes the whole page, so give a new file or an earlier results page")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.docs is not None:
+        _check_docs_file(args.docs)  # (before anything runs)
     if args.threads is not None:
         if args.threads < 1:
             raise SystemExit(f"--threads must be >= 1, got {args.threads}")
@@ -1197,7 +1239,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not methods:
         raise SystemExit("no method to evaluate (the selected learned estimators are not available)")
     cfg = dataclasses.replace(QUICK if args.quick else DEFAULT, source=str(args.source), seed=args.seed,
-                              blur_scenes=args.blur_scenes, charts=any(m.kind.startswith("chart") for m in methods))  # fmt: skip
+                              blur_scenes=args.blur_scenes, bit_depth=args.bit_depth,
+                              charts=any(m.kind.startswith("chart") for m in methods))  # fmt: skip
     command = "python -m camhealth.evaluate " + " ".join(sys.argv[1:] if argv is None else list(argv))
     report = run_evaluation(cfg, args.out, methods, resume=args.resume, quick=args.quick, command=command.strip(),
                             notes=notes, progress=not args.no_progress, plots=not args.no_plots)  # fmt: skip

@@ -1,9 +1,12 @@
 import json
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 from skimage.io import imread, imsave
 
+from camhealth._cli import run_cli
 from camhealth.corrupt import main, random_patches
 
 
@@ -46,8 +49,22 @@ def test_patch_larger_than_image_is_a_clear_error(tmp_path):
     from camhealth.data import build_source
 
     src = build_source(_folder(tmp_path, n=1, size=40))
-    with pytest.raises(ValueError, match="smaller than the patch size"):
+    with pytest.raises(ValueError, match=r"smaller than the patch size 64×64 px \(--size 64\); the largest patch they hold is 40×40"):
         random_patches(src, 1, 64, torch.Generator().manual_seed(0))
+
+
+def test_patches_come_only_from_images_at_least_the_patch_size(tmp_path):
+    """A source with a small and a large image: every seed succeeds, every crop is from the large one."""
+    from camhealth.data import build_source
+
+    d = tmp_path / "mixed"
+    d.mkdir()
+    imsave(d / "big.png", np.full((80, 80), 100, np.uint8), check_contrast=False)
+    imsave(d / "small.png", np.full((40, 80), 200, np.uint8), check_contrast=False)
+    src = build_source(d)
+    for seed in range(5):
+        patches, ids = random_patches(src, 4, 64, torch.Generator().manual_seed(seed))
+        assert patches.shape == (4, 1, 64, 64) and all(i.startswith("big.png@") for i in ids)
 
 
 def test_missing_source_is_a_clear_error(tmp_path):
@@ -60,6 +77,8 @@ def test_missing_source_is_a_clear_error(tmp_path):
     ("--defocus", ["21", "1"], "--defocus 21 1: MIN must be <= MAX"),
     ("--motion", ["-3", "-1"], "--motion -3 -1: MIN and MAX must be >= 0 px"),
     ("--shake", ["0.5", "2"], "--shake 0.5 2: MAX must be <= 1"),
+    ("--defocus", ["1", "300"], "--defocus 1 300: MAX must be <= 253 px"),  # the largest blur kernel's disk
+    ("--motion", ["1", "300"], "--motion 1 300: MAX must be <= 252 px"),
 ])
 def test_ranges_are_checked_naming_the_option(option, values, message, tmp_path):
     with pytest.raises(ValueError, match=message):  # (before the source is read: it does not exist)
@@ -72,3 +91,62 @@ def test_size_and_count_below_one_are_refused_by_the_parser(option, tmp_path, ca
     with pytest.raises(SystemExit) as info:
         main([str(tmp_path / "nope"), "--out", str(tmp_path / "o"), option, "0"])
     assert info.value.code == 2 and f"argument {option}: must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_shake_without_motion_blur_is_refused_naming_both_flags(tmp_path):
+    with pytest.raises(ValueError, match="--shake 0.5 1: camera shake needs motion blur; --motion 0 0 switches it off"):
+        main([str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--motion", "0", "0", "--shake", "0.5", "1"])
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("where", ["same", "inside", "contains"])
+def test_out_is_refused_when_it_is_in_or_around_the_source_folder(where, tmp_path, capsys):
+    src = _folder(tmp_path, n=1, size=40)
+    before = (src / "img0.png").read_bytes()
+    out = {"same": src, "inside": src / "sub", "contains": tmp_path}[where]
+    rc = run_cli(main, "python -m camhealth.corrupt", [str(src), "--n", "1", "--size", "32", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"--out {out}" in err and f"source folder {src}" in err
+    assert sorted(p.name for p in src.rglob("*")) == ["img0.png"] and (src / "img0.png").read_bytes() == before
+
+
+def test_earlier_output_is_kept_without_overwrite_and_replaced_whole_with_it(tmp_path, capsys):
+    src = _folder(tmp_path, n=1, size=40)
+    out = tmp_path / "o"
+    args = [str(src), "--size", "32", "--out", str(out), "--no-noise", "--motion", "0", "0"]
+    assert main([*args, "--n", "3"]) == 0
+    (out / "mine.txt").write_text("not an output")
+    first = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert run_cli(main, "python -m camhealth.corrupt", [*args, "--n", "1", "--seed", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {out} already holds the output of a run" in err and "--overwrite" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == first
+    assert main([*args, "--n", "1", "--seed", "1", "--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["0000_clean.png", "0000_corrupted.png", "labels.jsonl", "mine.txt"]
+    assert len((out / "labels.jsonl").read_text().splitlines()) == 1
+
+
+def _png16(path, top):
+    arr = np.full((64, 64), 500, np.uint16)  # DN 500 everywhere but one pixel: the file's largest value
+    arr[0, 0] = top
+    Image.fromarray(arr).save(path)
+
+
+def test_bit_depth_reads_every_file_of_a_folder_at_one_scale(tmp_path):
+    """A 12-bit camera's dark and bright frames (16-bit PNGs, no sBIT): with --bit-depth 12 DN 500 is 500/4095 in both."""
+    d = tmp_path / "raw16"
+    d.mkdir()
+    _png16(d / "dark.png", 1000)  # "auto" would guess 10 bits: DN 500 read 4× too bright
+    _png16(d / "bright.png", 4000)
+    out = tmp_path / "o"
+    assert main([str(d), "--n", "4", "--size", "64", "--out", str(out), "--no-noise", "--defocus", "1", "1", "--motion", "0",
+                 "0", "--bit-depth", "12"]) == 0
+    for rec in map(json.loads, (out / "labels.jsonl").read_text().splitlines()):
+        assert np.median(imread(out / rec["clean"])) == round(500 / 4095 * 255)
+
+
+@pytest.mark.parametrize("value", ["20", "twelve"])
+def test_bad_bit_depth_is_refused_by_the_parser(value, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--bit-depth", value])
+    assert info.value.code == 2 and "argument --bit-depth: must be 'auto' or an integer number of bits" in capsys.readouterr().err

@@ -156,6 +156,66 @@ def test_cli_rejects_unknown_methods():
         ev.main(["--methods", "pca,gbb", "--out", "/nonexistent"])
 
 
+@pytest.fixture
+def fake_run(monkeypatch):
+    """``run_evaluation`` replaced by a stand-in that writes a one-line results page and records its configurations."""
+    runs = []
+
+    def run(cfg, out, methods, **kwargs):
+        runs.append(cfg)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "results.md").write_text(f"{ev.RESULTS_TITLE}\n\nnew page\n", encoding="utf-8")
+        return {"summary": [], "plots": [], "wall_s": 0.0}
+
+    monkeypatch.setattr(ev, "run_evaluation", run)
+    return runs
+
+
+def test_docs_refuses_a_file_that_is_not_a_results_page_before_running(tmp_path, fake_run, capsys):
+    from camhealth._cli import run_cli
+
+    page = tmp_path / "page.md"
+    text = "intro\n\n<!-- generated: python -m camhealth.evaluate --quick -->\nold\n<!-- end generated -->\n\noutro\n"
+    page.write_text(text)
+    rc = run_cli(ev.main, "python -m camhealth.evaluate", ["--methods", "pca", "--out", str(tmp_path / "o"), "--docs", str(page)])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"--docs {page}" in err and "not an evaluate results page" in err
+    assert page.read_text() == text and fake_run == []  # nothing overwritten, nothing evaluated
+
+
+def test_docs_writes_a_new_file_and_rewrites_a_results_page_whole(tmp_path, fake_run):
+    new, old = tmp_path / "docs" / "new.md", tmp_path / "results.md"
+    old.write_text(f"{ev.RESULTS_TITLE}\n\nold page\n")
+    for page in (new, old):
+        assert ev.main(["--methods", "pca", "--out", str(tmp_path / "o"), "--docs", str(page)]) == 0
+        assert page.read_text() == f"{ev.RESULTS_TITLE}\n\nnew page\n"
+
+
+def test_seed_below_zero_is_refused_by_the_parser(tmp_path, fake_run, capsys):
+    with pytest.raises(SystemExit) as info:
+        ev.main(["--seed", "-1", "--methods", "pca", "--out", str(tmp_path / "o")])
+    assert info.value.code == 2 and "argument --seed: must be >= 0, got -1" in capsys.readouterr().err
+    assert fake_run == []
+
+
+def test_bit_depth_reaches_the_folder_source(tmp_path, fake_run, monkeypatch):
+    import camhealth.data
+
+    assert ev.main(["--methods", "pca", "--out", str(tmp_path / "o"), "--bit-depth", "12"]) == 0
+    (cfg,) = fake_run
+    assert cfg.bit_depth == 12 and cfg.key() != dataclasses.replace(cfg, bit_depth="auto").key()
+    asked = {}
+
+    def build_source(spec, **kwargs):
+        asked.update(kwargs, spec=spec)
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(camhealth.data, "build_source", build_source)
+    with pytest.raises(RuntimeError, match="stop"):
+        ev.build_cases(dataclasses.replace(cfg, source="my_frames"))
+    assert asked == {"spec": "my_frames", "bit_depth": 12}
+
+
 # --------------------------------------------------------------------------------- learned rows (fake)
 class FakeEstimator:
     """Stands in for camhealth.inference.Estimator: same attributes and predict() contract."""

@@ -8,13 +8,14 @@ without reading any pixels — what :func:`camhealth.data.split_ids` needs).
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Iterable, Sequence, Union
 
 import torch
 
 from camhealth.data._common import check_index, natural_sort_key
-from camhealth.data.io import IMAGE_EXTENSIONS, read_image
+from camhealth.data.io import IMAGE_EXTENSIONS, _check_bit_depth, read_image_scaled
 
 __all__ = ["natural_sort_key", "list_images", "ImageFolderSource"]
 
@@ -66,6 +67,12 @@ class ImageFolderSource(torch.utils.data.Dataset):
         recursive: also look in sub-folders.
         extensions: file extensions to include (case-insensitive), a subset of
             :data:`camhealth.data.IMAGE_EXTENSIONS`.
+        bit_depth: significant bits of the folder's files, 1…16 (every file is read as DN / (2^bit_depth − 1); a file
+            holding a larger value, or 8-bit data under a bit_depth above 8, raises when it is read), or ``"auto"``
+            (default): each file on its own as :func:`camhealth.data.read_image` reads it — the PNG's ``sBIT`` chunk,
+            else a guess from the file's largest value, with a ``UserWarning`` naming this argument. Give the camera's
+            depth (e.g. 12) for 16-bit files without an ``sBIT`` chunk: a guess reads a dark frame brighter than a
+            bright one of the same camera.
 
     The file list is fixed at construction and sorted in natural order of the path relative to ``root``
     (deterministic on every OS). The id of an image is that relative path in POSIX form
@@ -76,12 +83,17 @@ class ImageFolderSource(torch.utils.data.Dataset):
     Raises:
         FileNotFoundError: ``root`` does not exist.
         ValueError: no image with one of ``extensions`` was found (the message names the folder and the
-            extensions).
+            extensions); ``bit_depth`` is neither ``"auto"`` nor an integer in [1, 16].
     """
 
     def __init__(
-        self, root: PathLike, recursive: bool = True, extensions: Sequence[str] = IMAGE_EXTENSIONS
+        self,
+        root: PathLike,
+        recursive: bool = True,
+        extensions: Sequence[str] = IMAGE_EXTENSIONS,
+        bit_depth: int | str = "auto",
     ) -> None:
+        self.bit_depth = _check_bit_depth(bit_depth)
         self.root = Path(root)
         self.recursive = bool(recursive)
         self.extensions = _normalise_extensions(extensions)
@@ -98,7 +110,13 @@ class ImageFolderSource(torch.utils.data.Dataset):
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, str]:
         index = check_index(index, len(self), f"ImageFolderSource({self.root})")
-        return read_image(self.paths[index]), self.ids[index]
+        image, scaling = read_image_scaled(self.paths[index], self.bit_depth)
+        if scaling.source == "largest value":
+            warnings.warn(f"{self.paths[index]}: {scaling.describe()}; pass bit_depth=16 (ImageFolderSource, build_source; "
+                          "--bit-depth 16 on the command line) to scale by 65535, or the camera's bit depth",
+                          UserWarning, stacklevel=2)
+        return image, self.ids[index]
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(root={str(self.root)!r}, n={len(self)})"
+        depth = "" if self.bit_depth == "auto" else f", bit_depth={self.bit_depth}"
+        return f"{type(self).__name__}(root={str(self.root)!r}, n={len(self)}{depth})"

@@ -99,8 +99,9 @@ def spectral_native_mtf(
     power = torch.zeros(tile, tile, dtype=torch.float64)
     noise_power = 0.0
     n_tiles = 0
-    for img in images:
-        x = check_image(img[None] if img.ndim == 3 else img, "images")[0, 0].double()
+    grays = [x for img in images for x in check_image(img[None] if img.ndim == 3 else img, "images")[:, 0]]
+    for x in grays:  # every image of every element (a B×1×H×W element gives B images)
+        x = x.double()
         h, w = x.shape
         if min(h, w) < tile:
             raise ValueError(f"an image of {h}×{w} px is smaller than tile = {tile} px")

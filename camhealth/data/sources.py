@@ -25,6 +25,7 @@ import torch
 from camhealth.data._common import check_index, check_int
 from camhealth.data.dead_leaves import DeadLeavesSource
 from camhealth.data.image_folder import ImageFolderSource
+from camhealth.data.io import _check_bit_depth
 from camhealth.data.skimage_photos import SkimagePhotosSource
 from camhealth.data.street_sample import StreetSampleSource
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
@@ -197,19 +198,32 @@ def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
       as one clip of frames (one split group);
     * a video file → its frames (``stride``, ``max_frames``, ``start``) as one clip;
     * ``area_downsample=k`` (any spec but ``"deadleaves"``): the images area-downsampled by k
-      (:class:`AreaDownsampledSource`; for ``"default"`` the photos and street frames only).
+      (:class:`AreaDownsampledSource`; for ``"default"`` the photos and street frames only);
+    * ``bit_depth`` (``"auto"``, the default, or 1…16): the significant bits of the image files of a folder or
+      ``"frames:<folder>"`` (:class:`ImageFolderSource`, :class:`FrameSequence`); any other depth than ``"auto"``
+      for a built-in source or a video file is a ``ValueError`` (their scaling is fixed).
 
     Every result has ``len()``, ``source[i] -> (image 1×H×W float32 in [0, 1], id)`` and ``.ids``.
     """
+    bit_depth = _check_bit_depth(kwargs.pop("bit_depth", "auto"))
+
+    def fixed_scaling(what: str) -> None:
+        if bit_depth != "auto":
+            raise ValueError(f"bit_depth = {bit_depth!r} applies to a folder of image files; {what} {str(spec)!r} has its own "
+                             "scaling (leave bit_depth 'auto')")
+
     if isinstance(spec, str) and spec.strip().lower() == "default":
+        fixed_scaling("the built-in source")
         return DefaultSource(**kwargs)
     k = kwargs.pop("area_downsample", 1)
     if k != 1:
         if isinstance(spec, str) and spec.strip().lower() == "deadleaves":
             raise ValueError(f"area_downsample = {k!r}: dead leaves are rendered, not downsampled; pass supersample= instead")
-        return AreaDownsampledSource(build_source(spec, **kwargs), k)
+        return AreaDownsampledSource(build_source(spec, bit_depth=bit_depth, **kwargs), k)
     if isinstance(spec, str):
         key = spec.strip().lower()
+        if key in ("deadleaves", "skimage", "street"):
+            fixed_scaling("the built-in source")
         if key == "deadleaves":
             kwargs.setdefault("n_images", 1000)
             return DeadLeavesSource(**kwargs)
@@ -218,7 +232,7 @@ def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
         if key == "street":
             return StreetSampleSource(**kwargs)
         if spec.startswith("frames:"):
-            return FrameSequence(spec[len("frames:"):], **kwargs).as_source()
+            return FrameSequence(spec[len("frames:"):], bit_depth=bit_depth, **kwargs).as_source()
     elif not isinstance(spec, Path):
         raise TypeError(f"spec must be a str or a Path, got {type(spec).__name__}")
     path = Path(spec)
@@ -228,8 +242,9 @@ def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
             "'street') nor an existing folder or video file"
         )
     if path.is_dir():
-        return ImageFolderSource(path, **kwargs)
+        return ImageFolderSource(path, bit_depth=bit_depth, **kwargs)
     if path.suffix.lower() in VIDEO_EXTENSIONS:
+        fixed_scaling("the video file")
         return FrameSequence(path, **kwargs).as_source()
     raise ValueError(
         f"cannot use {path} as an image source: expected a folder of images or a video file "

@@ -56,3 +56,33 @@ def test_natural_sort_key():
     names = ["frame10.png", "frame2.png", "Frame1.png", "frame02.png", "frame1.png"]
     assert sorted(names, key=natural_sort_key)[:2] == ["Frame1.png", "frame1.png"]
     assert sorted(names, key=natural_sort_key)[-1] == "frame10.png"
+
+
+def _save16(path, top):
+    arr = np.full((4, 5), 500, np.uint16)  # DN 500, and the file's largest value in one pixel
+    arr[0, 0] = top
+    Image.fromarray(arr).save(path)
+
+
+def test_bit_depth_reads_every_file_at_one_scale(tmp_path):
+    """A 12-bit camera's dark and bright frames in 16-bit PNGs without sBIT: bit_depth=12 reads DN 500 as 500/4095 in
+    both; "auto" guesses per file and its warning names the argument to pass."""
+    import warnings
+
+    _save16(tmp_path / "dark.png", 1000)
+    _save16(tmp_path / "bright.png", 4000)
+    src = ImageFolderSource(tmp_path, bit_depth=12)
+    assert [src[i][0][0, 1, 1].item() for i in range(2)] == [pytest.approx(500 / 4095)] * 2
+    assert "bit_depth=12" in repr(src)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        dark = ImageFolderSource(tmp_path)[src.ids.index("dark.png")][0]
+    assert dark[0, 1, 1].item() == pytest.approx(500 / 1023)
+    assert [str(w.message) for w in caught] == [
+        f"{tmp_path / 'dark.png'}: 16-bit file read as 10-bit data (÷1023, guessed from the largest value 1000); pass "
+        "bit_depth=16 (ImageFolderSource, build_source; --bit-depth 16 on the command line) to scale by 65535, or the "
+        "camera's bit depth"]
+    with pytest.raises(ValueError, match=r"holds values up to 4000 \(more than 1023\)"):
+        ImageFolderSource(tmp_path, bit_depth=10)[src.ids.index("bright.png")]
+    with pytest.raises(ValueError, match="bit_depth = 20 must be 'auto' or an integer"):
+        ImageFolderSource(tmp_path, bit_depth=20)

@@ -36,6 +36,23 @@ def test_spectral_estimate_reads_a_blurred_source_as_softer():
     assert abs(float(sharp[0]) - 1.0) < 0.05 and abs(float(soft[0]) - 1.0) < 0.05  # in the fit band: 1 by construction
 
 
+def test_spectral_list_element_with_a_batch_pools_all_its_images():
+    """A B×1×H×W element of the list gives all its B images, as the same images stacked in one tensor or listed one by
+    one (not only its first)."""
+    from camhealth.data.dead_leaves import dead_leaves
+
+    sharp = torch.as_tensor(dead_leaves((128, 128), seed=0)).double().reshape(1, 1, 128, 128)
+    k = gaussian_psf(torch.tensor([1.5], dtype=torch.float64), 13)
+    blurred = torch.cat([apply_psf(torch.as_tensor(dead_leaves((128, 128), seed=i)).double().reshape(1, 1, 128, 128), k)
+                         for i in (1, 2, 3)])  # 3×1×H×W
+    fn = (0.3, 0.6)
+    stacked = spectral_native_mtf(torch.cat([sharp, blurred]), fn, tile=64)
+    one_by_one = spectral_native_mtf([sharp[0], *blurred], fn, tile=64)
+    assert torch.allclose(spectral_native_mtf([sharp, blurred], fn, tile=64), stacked)
+    assert torch.allclose(one_by_one, stacked)
+    assert bool((spectral_native_mtf([sharp, blurred[:1]], fn, tile=64) > stacked + 0.05).all())  # fewer soft images: sharper
+
+
 @pytest.mark.parametrize("kwargs,match", [
     ({"tile": 16}, "tile"), ({"fit_band": (0.3, 0.2)}, "fit_band"), ({"frequencies": (0.0, 0.5)}, "frequencies"),
 ])

@@ -148,6 +148,22 @@ def test_build_source_specs(tmp_path):
         build_source(str(tmp_path / "f0.png"))
 
 
+def test_build_source_forwards_bit_depth_to_folders_and_refuses_it_elsewhere(tmp_path):
+    arr = np.full((8, 8), 500, np.uint16)
+    arr[0, 0] = 1000  # "auto" would guess 10 bits
+    Image.fromarray(arr).save(tmp_path / "f0.png")
+    for spec in (str(tmp_path), f"frames:{tmp_path}"):
+        src = build_source(spec, bit_depth=12)
+        assert src[0][0][0, 1, 1].item() == pytest.approx(500 / 4095)
+    assert build_source(str(tmp_path), bit_depth=12, area_downsample=2)[0][0][0, 1, 1].item() == pytest.approx(500 / 4095)
+    assert isinstance(build_source("skimage", bit_depth="auto"), SkimagePhotosSource)
+    for spec in ("default", "skimage", "deadleaves"):
+        with pytest.raises(ValueError, match=f"bit_depth = 12 applies to a folder of image files; the built-in source '{spec}'"):
+            build_source(spec, bit_depth=12)
+    with pytest.raises(ValueError, match="bit_depth = 0 must be 'auto'"):
+        build_source(str(tmp_path), bit_depth=0)
+
+
 def test_group_key():
     assert group_key("street:vtest#000123") == "street:vtest"
     assert group_key("video:a#b.avi#000001") == "video:a#b.avi"
