@@ -95,7 +95,7 @@ def run_closed_loop(args: argparse.Namespace) -> dict[str, Any]:
     frames, ids = _frames(args.source, parse_slice(args.frames))
     detector = HOGPeopleDetector()
     gt = pseudo_ground_truth(detector, frames, args.pseudo_score)
-    limits = CameraLimits(tuple(args.limits_exposure), tuple(args.limits_gain))
+    limits = CameraLimits(_exposure_limits(args), tuple(args.limits_gain))
     policy = ExposurePolicy(iopc, limits, min_gain=args.min_gain)
     reference = _reference_intensity(iopc) if args.normalize_intensity else None
     size = tuple(frames.shape[-2:])
@@ -122,6 +122,7 @@ def run_closed_loop(args: argparse.Namespace) -> dict[str, Any]:
     examples = first["examples"]
     res = {
         "config": {k: (v if not isinstance(v, Path) else str(v)) for k, v in vars(args).items() if k != "func"},
+        "exposure_limits_s": list(limits.exposure_s),
         "frames": ids, "n_gt": results[0]["n_gt"], "iopc": str(iopc_path), "iopc_name": iopc.name,
         "estimators": {"noise": noise_spec, "mtf": mtf_spec},
         "results": results, "decisions": decisions, "repeats": args.repeats,
@@ -188,12 +189,50 @@ def _run_once(camera: Any, controllers: list[Any], detector: Any, gt: list[Any],
     return {"results": results, "decisions": decisions, "examples": examples}
 
 
+def _exposure_limits(args: argparse.Namespace) -> tuple[float, float]:
+    """The controllers' exposure limits [s]: ``--limits-exposure``, with the longest exposure capped at what the
+    simulated camera renders for the scene motion, MAX_MOTION_PX / motion (253 px of blur: 168.7 ms at 1500 px/s),
+    so that no controller asks for an exposure the camera refuses."""
+    from camhealth.control.camera_sim import MAX_MOTION_PX
+
+    t_min, t_max = (float(v) for v in args.limits_exposure)
+    if args.motion > 0:
+        cap = MAX_MOTION_PX / float(args.motion)
+        while float(args.motion) * cap > MAX_MOTION_PX:  # the camera computes v·t: stay within it after rounding
+            cap = math.nextafter(cap, 0.0)
+        if cap < t_min:
+            raise SystemExit(f"--motion {args.motion:g} px/s: the simulated camera renders at most {MAX_MOTION_PX:g} px of "
+                             f"motion blur, i.e. exposures up to {cap * 1e3:.4g} ms, below the shortest exposure "
+                             f"--limits-exposure {t_min * 1e3:g} ms; lower the motion or the exposure limit")
+        t_max = min(t_max, cap)
+    return t_min, t_max
+
+
 def _reference_intensity(iopc: Any) -> float:
-    ref = iopc.provenance.get("frames", {}).get("mean_intensity")
+    """The mean intensity in (0, 1] of the IOPC's frames as its sweep's detector saw them (``--normalize-intensity``).
+
+    The provenance's ``frames.mean_intensity`` is that mean, after ``SweepConfig.intensity`` scaled (and clipped)
+    the frames, when the file also records ``frames.source_mean_intensity`` (the clean frames' mean). A file without
+    ``source_mean_intensity`` records the clean frames' mean as ``mean_intensity``; its swept mean is estimated below.
+    """
+    frames = iopc.provenance.get("frames", {})
+    ref = frames.get("mean_intensity")
     if ref is None:
         raise SystemExit("--normalize-intensity needs an IOPC whose provenance has frames.mean_intensity "
                          "(made by this version of python -m camhealth.iopc)")
-    return float(ref)
+    ref = float(ref)
+    if "source_mean_intensity" not in frames:
+        # mean_intensity is the unscaled mean m of the clean frames f; the sweep showed the detector min(k·f, 1) with
+        # k = config.intensity. The mean of min(k·f, 1) cannot be recovered from m alone; k·m clipped to 1 is exact
+        # when no pixel saturates (k <= 1 always) and an upper bound otherwise (min(·, 1) is concave).
+        k = iopc.provenance.get("config", {}).get("intensity", 1.0)
+        if not (isinstance(k, (int, float)) and not isinstance(k, bool) and math.isfinite(k) and k > 0):
+            raise SystemExit(f"--normalize-intensity: the IOPC's provenance config.intensity = {k!r} is not a number > 0")
+        ref = min(ref * float(k), 1.0)
+    if not (math.isfinite(ref) and 0 < ref <= 1):
+        raise SystemExit(f"--normalize-intensity: the IOPC frames' mean intensity {ref!r} is out of the allowed range "
+                         "(0, 1]")
+    return ref
 
 
 def _finite(x: Any) -> Any:
@@ -209,11 +248,13 @@ def _finite(x: Any) -> Any:
 def format_table(res: dict[str, Any]) -> str:
     """Markdown table of the closed-loop result, with the thesis's numbers for orientation."""
     c = res["config"]
+    lim = res.get("exposure_limits_s", c["limits_exposure"])
+    capped = " (longest exposure capped by the camera's motion-blur limit)" if lim[1] < c["limits_exposure"][1] else ""
     lines = [
         f"Closed loop on {len(res['frames'])} street frames ({c['frames']}), {res['n_gt']} pseudo-GT people; "
         f"{c['sensor']} at {c['temperature']:g} °C, illumination {c['illumination']:g}/s, motion "
         f"{c['motion']:g} px/s at {c['angle']:g}°; start {c['exposure'] * 1e3:g} ms / {c['gain']:g} dB; limits "
-        f"{c['limits_exposure'][0] * 1e3:g}–{c['limits_exposure'][1] * 1e3:g} ms, {c['limits_gain'][0]:g}–"
+        f"{lim[0] * 1e3:g}–{lim[1] * 1e3:g} ms{capped}, {c['limits_gain'][0]:g}–"
         f"{c['limits_gain'][1]:g} dB; estimators noise={res['estimators']['noise']}, mtf={res['estimators']['mtf']}.",
         "",
         "| controller | AP@0.5 (seed 1) | AP@0.5 mean ± std over repeats | detections | exposure [ms] | gain [dB] "

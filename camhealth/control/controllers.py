@@ -12,8 +12,9 @@ the detector's output) and returns the (exposure [s], gain [dB]) for the next fr
 * :class:`IOPCController` — the framework: estimates σ̂ and MTF̂ on the tiles overlapping the current
   detections (Eq. 4.4 medians; all tiles when nothing is detected), asks the
   :class:`~camhealth.control.policy.ExposurePolicy` for α* and applies it (exposure ÷ α, gain × α, so
-  the intensity stays). It decides after the first frame it sees (as in the thesis's Parking Lot run)
-  and, with ``decide_every = n``, again every n frames (the policy's ``min_gain`` is the hysteresis).
+  the intensity stays). It decides after the first frame on which σ̂ and MTF̂ can be estimated (as in the
+  thesis's Parking Lot run, where that is the first frame) and, with ``decide_every = n``, on frames 0, n,
+  2n, … (the policy's ``min_gain`` is the hysteresis).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Any, Protocol
 from camhealth.control.camera_sim import Capture
 from camhealth.control.policy import CameraLimits, Decision, ExposurePolicy
 from camhealth.detection.protocol import Detection
-from camhealth.iopc.estimation import PHYSICS, estimate_regions, median_estimates
+from camhealth.iopc.estimation import PHYSICS, estimate_regions, median_estimates, resolve_estimator
 
 __all__ = ["Observation", "Controller", "FixedController", "AutoExposureController", "IOPCController"]
 
@@ -120,13 +121,20 @@ class IOPCController:
 
     Args:
         policy: :class:`~camhealth.control.policy.ExposurePolicy`.
-        noise_estimator, mtf_estimator: resolved estimators or ``"physics"`` (the simulator's labels).
-        decide_every: decide after frame 0 and then every n frames (``None``: only after frame 0).
+        noise_estimator, mtf_estimator: estimators or specs as :func:`camhealth.iopc.resolve_estimator` takes them
+            (``"physics"``: the simulator's labels, ``"immerkaer"``, a name or path for ``load_estimator``, an object
+            with the predict contract); resolved, and refused if they do not fit their role, when the controller is
+            built.
+        decide_every: ``None``: decide once, after the first frame on which something can be assessed (a frame
+            where σ̂ or MTF̂ is not available, e.g. a black frame, keeps the parameters and the next frame is tried).
+            ``n``: decide on the frames 0, n, 2n, … counted from :meth:`reset`; a due frame with nothing
+            assessable keeps the parameters, and the next attempt is the next due frame (no retry in between).
         score_threshold: detections that define the regions to estimate on.
         use_sources: pass the per-source σ̂ (noise-source estimators, physics labels) to the policy.
-        reference_intensity: optional mean intensity of the frames the IOPC was measured on (the
-            sweep's provenance ``frames.mean_intensity``). When given, σ̂ is rescaled to that brightness,
-            σ_eff = σ̂ · reference / mean, before the IOPC is consulted: for a contrast-invariant detector
+        reference_intensity: optional mean intensity in (0, 1] of the frames the IOPC was measured on, as the
+            detector saw them (the sweep's provenance ``frames.mean_intensity``: after ``SweepConfig.intensity``).
+            When given, σ̂ is rescaled to that brightness, σ_eff = σ̂ · reference / mean, before the IOPC is
+            consulted: for a contrast-invariant detector
             (HOG's block normalisation, CNNs with normalisation) a darker image with the same σ̂ is as
             hard as a brighter one with proportionally more noise. This is an extension of the thesis,
             whose IOPCs and policy ignore the image intensity (Sec. 7.2: "we did not investigate the
@@ -138,7 +146,8 @@ class IOPCController:
                  reference_intensity: float | None = None, name: str = "IOPC policy") -> None:
         if decide_every is not None and (int(decide_every) != decide_every or decide_every < 1):
             raise ValueError(f"decide_every = {decide_every!r} must be a positive integer or None")
-        self.policy, self.noise, self.mtf = policy, noise_estimator, mtf_estimator
+        self.policy = policy
+        self.noise, self.mtf = resolve_estimator(noise_estimator, "noise"), resolve_estimator(mtf_estimator, "mtf")
         self.decide_every, self.score_threshold, self.use_sources, self.name = decide_every, score_threshold, use_sources, name
         if reference_intensity is not None and not 0 < reference_intensity <= 1:
             raise ValueError(f"reference_intensity = {reference_intensity!r} must lie in (0, 1]")
@@ -152,9 +161,11 @@ class IOPCController:
         return self.policy.limits.clamp(exposure_s, gain_db)
 
     def _due(self) -> bool:
+        """Whether this frame is one to decide on (counts the frame). ``decide_every=None``: every frame until the
+        first decision has been made; ``n``: frames 0, n, 2n, …"""
         n = self._n_updates
         self._n_updates += 1
-        return n == 0 if self.decide_every is None else n % self.decide_every == 0
+        return not self.decisions if self.decide_every is None else n % self.decide_every == 0
 
     def estimate(self, obs: Observation) -> dict[str, Any]:
         """Eq. 4.4 medians of σ̂ and MTF̂ over the tiles overlapping the current detections."""
@@ -181,7 +192,7 @@ class IOPCController:
             med["intensity_scale"] = scale
             sigma = sigma * scale
             sources = [v * scale for v in sources] if sources is not None else None
-        d = self.policy.decide(sigma, min(med["mtf_tilde"], 1.0), obs.exposure_s, obs.gain_db,
-                               sigma_sources=sources)
+        mtf = min(max(med["mtf_tilde"], 0.0), 1.0)  # an MTF lies in [0, 1]; an estimator may overshoot either side
+        d = self.policy.decide(sigma, mtf, obs.exposure_s, obs.gain_db, sigma_sources=sources)
         self.decisions.append((obs.frame, d, med))
         return d.exposure_s, d.gain_db

@@ -23,9 +23,9 @@ application i (bilinear between bin centres; empty bins take the nearest measure
 explanation says so). Ties go to the α closest to 1, and a change is only made if the expected gain is
 at least ``min_gain`` (hysteresis).
 
-Look-up table. All of this is precomputed on a grid of σ̂ (0.5 DN steps, finer for finer σ bins), MTF̂ (0.01 steps), ρ (5
-levels) and α (65 log-spaced values in [1/16, 16], step 2^(1/8) ≈ 9 %): ``table[s, m, r, a]`` is the
-weighted AP. A decision is an index lookup, a feasibility mask over the 65 α and an argmax — a few
+Look-up table. All of this is precomputed on a grid of σ̂ (0.5 DN steps, finer for finer σ bins), MTF̂ (0.01 steps,
+from 0 to exactly 1), ρ (5 levels) and α (65 log-spaced values in [1/16, 16], step 2^(1/8) ≈ 9 %): ``table[s, m, r, a]``
+is the weighted AP. A decision is an index lookup, a feasibility mask over the 65 α and an argmax — a few
 microseconds (``docs/control.md``). :meth:`ExposurePolicy.objective` evaluates the same function
 directly (no table) for checks.
 """
@@ -169,9 +169,15 @@ class ExposurePolicy:
         n_alpha: number of log-spaced α (odd, so that α = 1 is on the grid).
         sigma_max_dn: largest σ̂ in the table [DN] (default: last σ bin + one bin spacing); larger σ̂
             use the last row (noted in the explanation).
-        sigma_step_dn, mtf_step: table resolution (σ default: half the finest σ-bin spacing, <= 0.5 DN).
-        rho_levels: number of ρ levels in [0, 1].
+        sigma_step_dn, mtf_step: table resolution (σ [DN], default: half the finest σ-bin spacing, <= 0.5 DN;
+            MTF̂, dimensionless, in (0, 0.5]). The MTF̂ axis runs from 0 to exactly 1 in ceil(1/mtf_step) equal
+            intervals, so the step used (``self.mtf_step``) is 1/ceil(1/mtf_step): ``mtf_step`` itself where it
+            divides 1, else slightly smaller (0.03 → 1/34 ≈ 0.0294).
+        rho_levels: number of ρ levels in [0, 1] (an integer >= 2).
         min_gain: smallest expected AP gain that justifies a change.
+
+    Decisions never leave the limits: a decision "on a limit" is exactly on it (exposure t_min or t_max [s], gain
+    g_min or g_max [dB]), and the result is clamped into :class:`CameraLimits` against float rounding.
     """
 
     def __init__(
@@ -195,8 +201,12 @@ class ExposurePolicy:
             raise ValueError(f"n_alpha = {n_alpha!r} must be an odd integer >= 3 (α = 1 on the grid)")
         if sigma_step_dn is None:  # half the finest σ-bin spacing, at most 0.5 DN
             sigma_step_dn = min(0.5, min(float(np.diff(a.iopc.sigma_bins).min()) for a in self.apps) / 2)
-        if not (sigma_step_dn > 0 and 0 < mtf_step <= 0.5 and int(rho_levels) == rho_levels and rho_levels >= 2):
-            raise ValueError("sigma_step_dn and mtf_step must be > 0 (mtf_step <= 0.5) and rho_levels an integer >= 2")
+        if not (_is_real(sigma_step_dn) and math.isfinite(sigma_step_dn) and sigma_step_dn > 0):
+            raise ValueError(f"sigma_step_dn = {sigma_step_dn!r} DN is out of the allowed range: a finite number > 0")
+        if not (_is_real(mtf_step) and 0 < mtf_step <= 0.5):
+            raise ValueError(f"mtf_step = {mtf_step!r} is out of the allowed range (0, 0.5]")
+        if not (_is_real(rho_levels) and int(rho_levels) == rho_levels and rho_levels >= 2):
+            raise ValueError(f"rho_levels = {rho_levels!r} is out of the allowed range: an integer >= 2")
         if not (math.isfinite(min_gain) and min_gain >= 0):
             raise ValueError(f"min_gain = {min_gain!r} must be >= 0")
         self.min_gain = float(min_gain)
@@ -213,8 +223,11 @@ class ExposurePolicy:
             raise ValueError(f"sigma_max_dn = {sigma_max_dn!r} must be > 0")
         self.sigma_step = float(sigma_step_dn)
         self.sigma_grid = np.arange(0.0, smax + 0.5 * self.sigma_step, self.sigma_step)
-        self.mtf_step = float(mtf_step)
-        self.mtf_grid = np.clip(np.arange(0.0, 1.0 + 0.5 * self.mtf_step, self.mtf_step), 0.0, 1.0)
+        # 0 … 1 exactly, in n equal intervals (the step used is 1/n <= mtf_step): an arange with a step that does not
+        # divide 1 (0.03, 0.3) would end short of 1 and look a sharp frame (MTF̂ = 1) up as a blurred one
+        n_mtf = max(1, math.ceil(1.0 / float(mtf_step) - 1e-9))
+        self.mtf_step = 1.0 / n_mtf
+        self.mtf_grid = np.linspace(0.0, 1.0, n_mtf + 1)
         self.rho_grid = np.linspace(0.0, 1.0, int(rho_levels))
         self.table = self._build_table()
         # plain-Python copies for the per-decision fast path
@@ -259,11 +272,18 @@ class ExposurePolicy:
         lo, hi = self._alpha_interval(exposure_s, gain_db)
         return (self.alphas >= lo) & (self.alphas <= hi)
 
-    def _alpha_interval(self, exposure_s: float, gain_db: float) -> tuple[float, float]:
-        """[α_lo, α_hi] with t/α ∈ exposure limits and gain·α ∈ gain limits (relative tolerance 1e-9)."""
+    def _alpha_limits(self, exposure_s: float, gain_db: float) -> tuple[float, float]:
+        """Exact [α_lo, α_hi] with t/α ∈ exposure limits and gain·α ∈ gain limits: the α that put exposure or gain
+        on a limit."""
         (t0, t1), (g0, g1) = self.limits.exposure_s, self.limits.gain_db
         lo = max(exposure_s / t1, 10.0 ** ((g0 - gain_db) / 20.0))
         hi = min(exposure_s / t0, 10.0 ** ((g1 - gain_db) / 20.0))
+        return lo, hi
+
+    def _alpha_interval(self, exposure_s: float, gain_db: float) -> tuple[float, float]:
+        """:meth:`_alpha_limits` widened by a relative tolerance of 1e-9, for the feasibility test only (a grid α
+        within float rounding of a limit counts as feasible; its result is clamped into the limits)."""
+        lo, hi = self._alpha_limits(exposure_s, gain_db)
         return lo * (1 - 1e-9), hi * (1 + 1e-9)
 
     def _row_at(self, row: np.ndarray, alpha: float) -> float:
@@ -287,7 +307,8 @@ class ExposurePolicy:
 
         Candidates are the table's α inside the camera limits plus the two α that put exposure or gain
         exactly on a limit (their AP interpolated in log α), so a policy that wants "as much as the camera
-        allows" gets exactly the limit.
+        allows" gets exactly the limit; the new (exposure, gain) are clamped into the limits, so float
+        rounding never puts them outside.
 
         Args:
             sigma_hat: total noise estimate σ̂ [DN] (Eq. 4.4 median), >= 0.
@@ -308,7 +329,8 @@ class ExposurePolicy:
         s = min(int(sigma_hat / self.sigma_step + 0.5), self._n_sigma - 1)
         m = min(int(mtf_hat / self.mtf_step + 0.5), self._n_mtf - 1)
         r = int(rho_v * self._n_rho_1 + 0.5)
-        lo, hi = self._alpha_interval(exposure_s, gain_db)
+        lo_x, hi_x = self._alpha_limits(exposure_s, gain_db)
+        lo, hi = lo_x * (1 - 1e-9), hi_x * (1 + 1e-9)  # = _alpha_interval: feasibility with a float tolerance
         lo_c, hi_c = max(lo, self._alpha_list[0]), min(hi, self._alpha_list[-1])
         if lo_c > hi_c:
             raise ValueError(
@@ -319,7 +341,8 @@ class ExposurePolicy:
         a0, a1 = bisect.bisect_left(self._alpha_list, lo_c), bisect.bisect_right(self._alpha_list, hi_c)
         cand_a: list[float] = self._alpha_list[a0:a1]
         cand_v: list[float] = row[a0:a1].tolist()
-        for e in (lo_c, hi_c):  # the limits themselves, if they fall between grid points
+        # the limits themselves (exact, not widened), if they fall between grid points
+        for e in (min(max(lo_x, self._alpha_list[0]), hi_c), max(min(hi_x, self._alpha_list[-1]), lo_c)):
             if not cand_a or (e < cand_a[0] * (1 - 1e-12) or e > cand_a[-1] * (1 + 1e-12)):
                 cand_a.append(e)
                 cand_v.append(self._row_at(row, e))
@@ -331,10 +354,11 @@ class ExposurePolicy:
         if cur_ok and alpha != 1.0 and best - current < self.min_gain:
             held, alpha = best - current, 1.0
         expected = current if alpha == 1.0 and cur_ok else best
+        # t/α and gain + 20·log10 α can miss a limit by float rounding (or by the feasibility tolerance): clamp
+        t_new, g_new = self.limits.clamp(exposure_s / alpha, gain_db + 20.0 * math.log10(alpha))
         args = (alpha, float(sigma_hat), float(mtf_hat), float(exposure_s), float(gain_db), rho_v, current, expected,
-                cur_ok, held, (lo, hi))
-        return Decision(alpha, exposure_s / alpha, gain_db + 20.0 * math.log10(alpha), expected, current,
-                        alpha != 1.0, lambda: self._explain(*args))
+                cur_ok, held, (lo, hi), (t_new, g_new))
+        return Decision(alpha, t_new, g_new, expected, current, alpha != 1.0, lambda: self._explain(*args))
 
     def _rho(self, sigma_sources: Sequence[float] | None, rho: float | None) -> float:
         if rho is not None and sigma_sources is not None:
@@ -353,8 +377,8 @@ class ExposurePolicy:
 
     def _explain(self, alpha: float, sigma_hat: float, mtf_hat: float, t: float, g: float, rho: float,
                  current: float, expected: float, cur_ok: bool, held: float | None,
-                 interval: tuple[float, float]) -> tuple[str, dict[str, Any]]:
-        t_new, g_new = t / alpha, g + 20.0 * math.log10(alpha)
+                 interval: tuple[float, float], new: tuple[float, float]) -> tuple[str, dict[str, Any]]:
+        t_new, g_new = new
         per_app = []
         sigma_new = float(sigma_hat * noise_scale(alpha, rho))
         for app in self.apps:
@@ -370,9 +394,9 @@ class ExposurePolicy:
         at_limit = []
         lo, hi = interval
         if alpha >= hi * (1 - 1e-6):  # cannot shorten further
-            at_limit.append("shortest exposure" if t / alpha <= t0 * (1 + 1e-6) else "highest gain")
+            at_limit.append("shortest exposure" if t_new <= t0 * (1 + 1e-6) else "highest gain")
         if alpha <= lo * (1 + 1e-6):  # cannot lengthen further
-            at_limit.append("longest exposure" if t / alpha >= t1 * (1 - 1e-6) else "lowest gain")
+            at_limit.append("longest exposure" if t_new >= t1 * (1 - 1e-6) else "lowest gain")
         details = {
             "alpha": alpha, "rho": rho, "sigma_hat_dn": sigma_hat, "mtf_hat": mtf_hat,
             "sigma_new_dn": sigma_new, "applications": per_app, "limits_reached": at_limit,
@@ -417,6 +441,11 @@ class ExposurePolicy:
             "" if ins_s and ins_m else ", beyond the curve (clamped)")
         return {"sigma_bin": float(iopc.sigma_bins[i]), "mtf_bin": float(iopc.mtf_bins[j]), "measured": measured,
                 "status": status, "count": int(iopc.count_2d[i, j])}
+
+
+def _is_real(v: Any) -> bool:
+    """A real number (Python or numpy), not a bool."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
 def _as_applications(applications: Any) -> list[Application]:

@@ -5,7 +5,9 @@ Thesis Sec. 4.4.1 scores a detector on corrupted images against ground-truth box
 1. **COCO annotation files** (when a dataset has them): :func:`load_coco_annotations` reads the standard
    ``{"images": [...], "annotations": [{"image_id", "category_id", "bbox": [x, y, w, h], "iscrowd"}]}``
    JSON and returns xyxy boxes per image file name; :func:`ground_truth_for` matches them to image ids
-   or paths of a camhealth source by file name (exact, then base name, then stem).
+   or paths of a camhealth source by file name (exact, then base name, then stem). A repeated image ``id`` or
+   ``file_name`` in the file, or a base name / stem that fits several annotated images, is refused
+   (``ValueError``), never resolved by picking one.
 2. **Pseudo ground truth** (what the embedded street clip uses — it has no annotations): the frozen
    detector itself on the *clean* frame, keeping detections with score >= ``PSEUDO_GT_SCORE`` = 0.6.
    For the HOG detector (score = sigmoid(SVM margin)) this is a margin >= 0.41, i.e. the confident
@@ -50,16 +52,18 @@ def pseudo_ground_truth(
         detector: frozen detector (protocol of :mod:`~camhealth.detection.protocol`).
         clean_images: B×1×H×W float in [0, 1].
         score_threshold: confidence a clean detection needs to become a ground-truth box.
-        batch_size: images per detector call.
+        batch_size: images per detector call, an integer >= 1.
     """
     if not 0.0 <= score_threshold <= 1.0:
         raise ValueError(f"score_threshold = {score_threshold!r} must lie in [0, 1]")
+    if not (isinstance(batch_size, int) and not isinstance(batch_size, bool) and batch_size >= 1):
+        raise ValueError(f"batch_size = {batch_size!r} is out of the allowed range: an integer >= 1")
     if not callable(detector):
         raise TypeError(f"detector must be callable (images -> list of detections), got {type(detector).__name__}")
     if not isinstance(clean_images, torch.Tensor) or clean_images.ndim != 4:
         raise ValueError("clean_images must be a B×1×H×W tensor")
     out: list[GroundTruth] = []
-    for start in range(0, clean_images.shape[0], max(1, int(batch_size))):
+    for start in range(0, clean_images.shape[0], batch_size):
         chunk = clean_images[start : start + batch_size]
         dets = validate_detections(detector(chunk), chunk.shape[0], tuple(chunk.shape[-2:]), name="detector output")
         for d in filter_by_score(dets, score_threshold):
@@ -70,7 +74,9 @@ def pseudo_ground_truth(
 def load_coco_annotations(path: PathLike, category_ids: Iterable[int] | None = None) -> dict[str, GroundTruth]:
     """Read a COCO-style annotation JSON → ``{file_name: GroundTruth}`` (xyxy px boxes, category labels).
 
-    Images without annotations get empty ground truth. ``category_ids`` keeps only those categories.
+    Images without annotations get empty ground truth. ``category_ids`` keeps only those categories. An image
+    ``id`` or ``file_name`` that appears twice in ``images`` is refused (``ValueError`` naming both entries): the
+    boxes of one of them would otherwise be lost or attached to the other.
     """
     path = Path(path)
     if not path.is_file():
@@ -83,10 +89,19 @@ def load_coco_annotations(path: PathLike, category_ids: Iterable[int] | None = N
         raise ValueError(f"{path} is not a COCO annotation file (needs top-level 'images' and 'annotations')")
     keep = None if category_ids is None else {int(c) for c in category_ids}
     names: dict[int, str] = {}
+    ids_of: dict[str, object] = {}
     for im in data["images"]:
         if "id" not in im or "file_name" not in im:
             raise ValueError(f"{path}: every image needs 'id' and 'file_name', got {im!r}")
-        names[im["id"]] = str(im["file_name"])
+        name = str(im["file_name"])
+        if im["id"] in names:
+            raise ValueError(f"{path}: image id {im['id']!r} appears twice in 'images' (file_name {names[im['id']]!r} "
+                             f"and {name!r}); every image needs its own id")
+        if name in ids_of:
+            raise ValueError(f"{path}: file_name {name!r} appears twice in 'images' (ids {ids_of[name]!r} and "
+                             f"{im['id']!r}); every image file needs one entry")
+        names[im["id"]] = name
+        ids_of[name] = im["id"]
     boxes: dict[int, list[list[float]]] = {i: [] for i in names}
     labels: dict[int, list[int]] = {i: [] for i in names}
     crowd: dict[int, list[bool]] = {i: [] for i in names}
@@ -119,17 +134,30 @@ def ground_truth_for(ids: Sequence[str], annotations: Mapping[str, GroundTruth])
     """Ground truth for each image id/path in ``ids`` from :func:`load_coco_annotations`'s mapping.
 
     An id matches an annotation file name exactly, by base name, or by stem (``"dir/a.png"`` ↔ ``"a.png"``
-    ↔ ``"a"``). Raises ``KeyError`` naming the ids without annotations.
+    ↔ ``"a"``), in that order. Raises ``KeyError`` naming the ids without annotations, and ``ValueError`` naming
+    the id and the candidates when the base name or stem it falls back to fits more than one annotated file
+    (``"cam1/0001.png"`` and ``"cam2/0001.png"`` for ``"/data/cam1/0001.png"``): give ids that match exactly.
     """
-    by_base = {Path(k).name: v for k, v in annotations.items()}
-    by_stem = {Path(k).stem: v for k, v in annotations.items()}
+    by_base: dict[str, list[str]] = {}
+    by_stem: dict[str, list[str]] = {}
+    for k in annotations:
+        by_base.setdefault(Path(k).name, []).append(k)
+        by_stem.setdefault(Path(k).stem, []).append(k)
     out, missing = [], []
     for i in ids:
-        g = annotations.get(i) or by_base.get(Path(i).name) or by_stem.get(Path(i).stem)
-        if g is None:
-            missing.append(i)
+        if i in annotations:
+            out.append(annotations[i])
+            continue
+        for how, table, key in (("base name", by_base, Path(i).name), ("stem", by_stem, Path(i).stem)):
+            found = table.get(key, [])
+            if len(found) > 1:
+                raise ValueError(f"image {i!r}: its {how} {key!r} fits {len(found)} annotated files {sorted(found)}; "
+                                 "cannot tell which is its ground truth (use ids that match a file_name exactly)")
+            if found:
+                out.append(annotations[found[0]])
+                break
         else:
-            out.append(g)
+            missing.append(i)
     if missing:
         raise KeyError(f"no annotations for {len(missing)} image(s), e.g. {missing[:3]}")
     return out

@@ -12,7 +12,15 @@ Thesis Sec. 4.4.1 and Ch. 7.1.
 - ``python -m camhealth.iopc --config configs/iopc.yaml`` — the standalone sweep (:mod:`camhealth.iopc.cli`).
 """
 
-from camhealth.iopc.curves import FORMAT_VERSION, IOPC, MTF_BINS, SIGMA_BINS_DN, bin_index, blur_relation
+from camhealth.iopc.curves import (
+    FORMAT_VERSION,
+    IOPC,
+    MTF_BINS,
+    SIGMA_BINS_DN,
+    bin_index,
+    blur_relation,
+    blur_relation_noise_level,
+)
 from camhealth.iopc.estimation import (
     PHYSICS,
     ImmerkaerNoiseEstimator,
@@ -40,7 +48,7 @@ def __getattr__(name: str):
 
 
 __all__ = [
-    "IOPC", "SIGMA_BINS_DN", "MTF_BINS", "FORMAT_VERSION", "bin_index", "blur_relation",
+    "IOPC", "SIGMA_BINS_DN", "MTF_BINS", "FORMAT_VERSION", "bin_index", "blur_relation", "blur_relation_noise_level",
     "PHYSICS", "ImmerkaerNoiseEstimator", "RegionEstimates", "estimate_regions", "estimator_name", "extract_tiles",
     "median_estimates", "overlap_mask", "resolve_estimator", "tile_grid",
     "IOPCSweep", "IOPCSweepModule", "CellDataset", "SweepConfig", "SweepGrid", "SensorSetting", "log_iopc",

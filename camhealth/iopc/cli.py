@@ -51,7 +51,7 @@ __all__ = [
 
 @dataclass
 class FrameSelection:
-    """Which images of the source: ``source[start:stop:stride]``."""
+    """Which images of the source: ``source[start:stop:stride]`` (``stride``: an integer >= 1)."""
 
     start: int = 0
     stop: Optional[int] = None
@@ -164,8 +164,11 @@ def load_frames(source: str, selection: FrameSelection) -> tuple[torch.Tensor, l
     has files, their paths (for annotation matching; else the ids)."""
     from camhealth.data import build_source
 
+    stride = selection.stride
+    if not (isinstance(stride, int) and not isinstance(stride, bool) and stride >= 1):
+        raise ValueError(f"frames.stride = {stride!r} is out of the allowed range: an integer >= 1")
     src = build_source(source)
-    idx = list(range(len(src)))[selection.start : selection.stop : selection.stride]
+    idx = list(range(len(src)))[selection.start : selection.stop : stride]
     if not idx:
         raise ValueError(f"frames {selection} select no image of {source!r} ({len(src)} images)")
     images, ids = [], []
@@ -230,7 +233,7 @@ def main(argv: Sequence[str] | None = None) -> IOPC:
     init = instantiate(cfg)
     frames_sel: FrameSelection = init.frames
     gt_cfg: GroundTruthSettings = init.ground_truth
-    sweep_cfg: SweepConfig = init.sweep
+    sweep_cfg: SweepConfig = init.sweep.validate()  # before frames, detector and ground truth are loaded
     frames, ids, paths = load_frames(init.source, frames_sel)
     detector = build_detector(init.detector)
     if gt_cfg.annotations:

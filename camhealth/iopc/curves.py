@@ -15,7 +15,9 @@ outside the curve and the cell is *marked* (not clipped into the edge bin) — a
 * the **1-D IOPCs** of isolated corruptions (thesis Fig. 7.1): ``ap_sigma`` from the cells without blur
   (motion length 0) and ``ap_mtf`` from the cells without noise (noise level 0), with counts;
 * the **MTF → motion-length relation** MB_L used by the policy (Eq. 4.7): for every swept length L the
-  median MTF̃ over directions (and images) of the noise-free cells, made non-increasing in L.
+  median MTF̃ over directions (and images) of the unmarked cells at the *lowest swept noise level*, made
+  non-increasing in L. That level is noise-free (0 DN) only when the grid sweeps σ = 0; it is stored as
+  ``blur_noise_level_dn`` [DN] so that a relation measured on noisy cells is recognisable.
 
 Cells are kept as ``records`` (one dict per cell, the full sweep result) with a ``marked`` flag and a
 ``reason`` when a cell's corruption lies outside the estimators' valid range, its noise level cannot be
@@ -47,6 +49,7 @@ __all__ = [
     "IOPC",
     "bin_index",
     "blur_relation",
+    "blur_relation_noise_level",
     "FORMAT_VERSION",
 ]
 
@@ -56,6 +59,74 @@ SIGMA_BINS_DN: tuple[float, ...] = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0)
 MTF_BINS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 #: Version of the file layout written by :meth:`IOPC.save`.
 FORMAT_VERSION = 1
+
+
+#: Allowed values of the bin centres: σ̃ is a standard deviation [DN] (>= 0), MTF̃ an MTF value in [0, 1].
+_BIN_RANGES: dict[str, tuple[float, float, str]] = {"sigma": (0.0, math.inf, ">= 0 DN"), "mtf": (0.0, 1.0, "in [0, 1]")}
+
+
+def _is_number(v: Any) -> bool:
+    """A real number (Python or numpy), not a bool and not text."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _leaves(x: Any, where: tuple[int, ...] = ()) -> Any:
+    """(index, value) of every leaf of nested lists/tuples (a scalar is its own leaf, index ())."""
+    if isinstance(x, (list, tuple)):
+        for i, v in enumerate(x):
+            yield from _leaves(v, where + (i,))
+    else:
+        yield where, x
+
+
+def _numeric(x: Any, field: str, allowed: str, null_ok: bool = False, integer: bool = False) -> np.ndarray:
+    """``x`` (nested lists or an array) as a float64 array (int64 with ``integer``), refusing what is not a number.
+
+    Text and booleans are refused (numpy would turn ``"0.7"`` into 0.7 and ``true`` into 1); ``None`` becomes NaN
+    where ``null_ok``. With ``integer`` every value must be a whole number >= 0 (a count: 0.9 is refused, not truncated
+    to 0). Errors name ``IOPC.<field>[index]``, the value and ``allowed``.
+    """
+    if isinstance(x, np.ndarray):
+        if x.dtype.kind not in "iuf":
+            raise ValueError(f"IOPC.{field} must hold numbers ({allowed}), got an array of {x.dtype}")
+        arr = x.astype(np.float64)
+    else:
+        for where, v in _leaves(x):
+            if not (_is_number(v) or (null_ok and v is None)):
+                raise ValueError(f"IOPC.{field}{list(where)} = {v!r} is not a number; allowed: {allowed}")
+        arr = np.asarray(_none_to_nan(x) if null_ok else x, dtype=np.float64)
+    if integer:
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(arr) | (arr < 0) | (arr != np.round(arr))
+        if bool(bad.any()):
+            where = tuple(int(k) for k in np.argwhere(bad)[0]) if arr.ndim else ()
+            raise ValueError(f"IOPC.{field}{list(where)} = {float(arr[where]):g} is out of the allowed range: {allowed}")
+        return arr.astype(np.int64)
+    return arr
+
+
+def _bin_centres(bins: Any, name: str, kind: str) -> np.ndarray:
+    """Bin centres an IOPC can use: at least 2 numbers (not text or bool), finite, strictly increasing, and inside
+    the range of ``kind`` (``"sigma"``: >= 0 DN, ``"mtf"``: [0, 1]). Errors name ``name``, the value and the range.
+    :class:`IOPC` and :meth:`camhealth.iopc.SweepConfig.validate` share it, so a sweep refuses up front the bins its
+    curves would refuse after all cells are computed."""
+    low, high, rng = _BIN_RANGES[kind]
+    allowed = f"at least 2 finite numbers {rng}, strictly increasing"
+    if isinstance(bins, np.ndarray):
+        if bins.dtype.kind not in "iuf":
+            raise ValueError(f"{name} = {bins.tolist()!r} is not allowed: {allowed}")
+    else:
+        vals = list(bins) if isinstance(bins, (list, tuple)) else [bins]
+        if not all(_is_number(v) for v in vals):
+            raise ValueError(f"{name} = {bins!r} is not allowed: {allowed}")
+    b = np.asarray(bins, dtype=np.float64).reshape(-1)
+    if b.size < 2:
+        raise ValueError(f"{name} = {b.tolist()} needs at least 2 bin centres ({allowed})")
+    if not np.all(np.isfinite(b)) or not np.all(np.diff(b) > 0):
+        raise ValueError(f"{name} = {b.tolist()} must be finite and strictly increasing ({allowed})")
+    if b[0] < low or b[-1] > high:
+        raise ValueError(f"{name} = {b.tolist()} is out of the allowed range: {allowed}")
+    return b
 
 
 def _check_bins(bins: Sequence[float], name: str) -> np.ndarray:
@@ -85,10 +156,11 @@ def bin_index(values: np.ndarray | Sequence[float] | float, bins: Sequence[float
 def blur_relation(records: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, np.ndarray]:
     """MTF → motion-length relation from sweep records: (lengths [px], MTF̃) with MTF̃ non-increasing.
 
-    Uses the unmarked cells with finite MTF̃ at the lowest swept noise level; per length the median MTF̃
-    over directions. A running minimum makes it non-increasing so that it can be inverted (MB_L).
+    Uses the unmarked cells with finite MTF̃ at the lowest swept noise level (:func:`blur_relation_noise_level`;
+    noise-free only if the sweep has σ = 0 cells); per length the median MTF̃ over directions. A running minimum
+    makes it non-increasing so that it can be inverted (MB_L).
     """
-    rows = [r for r in records if not r.get("marked") and _finite(r.get("mtf_tilde"))]
+    rows = _blur_rows(records)
     if not rows:
         return np.zeros(0), np.zeros(0)
     low = min(float(r["noise_level_dn"]) for r in rows)
@@ -96,6 +168,17 @@ def blur_relation(records: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, np.
     lengths = sorted({float(r["length_px"]) for r in rows})
     mtf = np.array([np.median([float(r["mtf_tilde"]) for r in rows if float(r["length_px"]) == L]) for L in lengths])
     return np.asarray(lengths, dtype=np.float64), np.minimum.accumulate(mtf)
+
+
+def _blur_rows(records: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    return [r for r in records if not r.get("marked") and _finite(r.get("mtf_tilde"))]
+
+
+def blur_relation_noise_level(records: Sequence[Mapping[str, Any]]) -> float:
+    """The noise level [DN] whose cells :func:`blur_relation` uses (the lowest swept level among the unmarked cells
+    with a finite MTF̃); NaN if there is none."""
+    rows = _blur_rows(records)
+    return min(float(r["noise_level_dn"]) for r in rows) if rows else float("nan")
 
 
 def _finite(x: Any) -> bool:
@@ -132,13 +215,6 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def _array(x: Any, dtype: Any = np.float64) -> np.ndarray:
-    """JSON list (null = NaN) → array."""
-    if dtype is np.float64:
-        return np.asarray(_none_to_nan(x), dtype=np.float64)
-    return np.asarray(x, dtype=dtype)
-
-
 def _none_to_nan(x: Any) -> Any:
     if isinstance(x, list):
         return [_none_to_nan(v) for v in x]
@@ -160,11 +236,18 @@ class IOPC:
         count_2d: (S, M) cells per bin.
         ap_sigma, count_sigma: (S,) 1-D curve of isolated noise (cells without blur).
         ap_mtf, count_mtf: (M,) 1-D curve of isolated blur (cells without noise).
-        blur_length_px, blur_mtf: (K,) the MTF → motion-length relation (see :func:`blur_relation`).
+        blur_length_px, blur_mtf: (K,) the MTF → motion-length relation (see :func:`blur_relation`): swept motion
+            lengths [px] (>= 0, increasing) and their MTF̃ (in [0, 1], non-increasing).
         records: every sweep cell (dicts with ``length_px``, ``angle_deg``, ``noise_level_dn``,
             ``sigma_tilde``, ``mtf_tilde``, ``ap``, ``marked``, ``reason``, …).
         provenance: how the curves were made.
         name: the application metric, e.g. ``"AP@0.5 opencv-hog-people"``.
+        blur_noise_level_dn: the sweep noise level [DN] of the cells the MTF → motion-length relation was measured
+            on (the lowest swept level; 0 = noise-free). NaN when unknown or there is no relation.
+
+    Counts are whole numbers >= 0, AP values numbers in [0, 1] (NaN only in empty bins), σ̃ bins >= 0 DN and MTF̃
+    bins in [0, 1]; anything else (text, booleans, 0.9 cells, -5 cells) is refused with a ``ValueError`` naming the
+    field, the value and the allowed range, never converted.
     """
 
     sigma_bins: np.ndarray
@@ -180,16 +263,19 @@ class IOPC:
     records: list[dict[str, Any]] = field(default_factory=list)
     provenance: dict[str, Any] = field(default_factory=dict)
     name: str = "AP"
+    blur_noise_level_dn: float = float("nan")
 
     def __post_init__(self) -> None:
-        self.sigma_bins = _check_bins(self.sigma_bins, "sigma_bins")
-        self.mtf_bins = _check_bins(self.mtf_bins, "mtf_bins")
+        self.sigma_bins = _bin_centres(self.sigma_bins, "IOPC.sigma_bins", "sigma")
+        self.mtf_bins = _bin_centres(self.mtf_bins, "IOPC.mtf_bins", "mtf")
         s, m = self.sigma_bins.size, self.mtf_bins.size
         for nm, shape in (
             ("ap_2d", (s, m)), ("count_2d", (s, m)), ("ap_sigma", (s,)), ("count_sigma", (s,)),
             ("ap_mtf", (m,)), ("count_mtf", (m,)),
         ):
-            arr = np.asarray(getattr(self, nm), dtype=np.int64 if nm.startswith("count") else np.float64)
+            count = nm.startswith("count")
+            allowed = "a whole number >= 0 (cells per bin)" if count else "a number in [0, 1], or null (NaN) in an empty bin"
+            arr = _numeric(getattr(self, nm), nm, allowed, null_ok=not count, integer=count)
             if arr.shape != shape:
                 raise ValueError(f"IOPC.{nm} must have shape {shape} for {s} σ bins × {m} MTF bins, got {arr.shape}")
             setattr(self, nm, arr)
@@ -200,8 +286,10 @@ class IOPC:
                 where = tuple(int(k) for k in np.argwhere(bad)[0])
                 raise ValueError(f"IOPC.{nm}{list(where)} = {a[where]} (count {c[where]}): AP must lie in [0, 1], and be a "
                                  "number wherever the bin counts detections (NaN only in empty bins)")
-        self.blur_length_px = np.asarray(self.blur_length_px, dtype=np.float64).reshape(-1)
-        self.blur_mtf = np.asarray(self.blur_mtf, dtype=np.float64).reshape(-1)
+        self.blur_length_px = _numeric(self.blur_length_px, "blur_length_px", "finite numbers >= 0 px, strictly increasing",
+                                       null_ok=True).reshape(-1)
+        self.blur_mtf = _numeric(self.blur_mtf, "blur_mtf", "finite numbers in [0, 1], non-increasing",
+                                 null_ok=True).reshape(-1)
         if self.blur_length_px.shape != self.blur_mtf.shape:
             raise ValueError("blur_length_px and blur_mtf must have the same length")
         L, m = self.blur_length_px, self.blur_mtf
@@ -210,9 +298,16 @@ class IOPC:
         if L.size and (L.min() < 0 or bool(np.any(np.diff(L) <= 0))):
             raise ValueError(f"IOPC.blur_length_px {L.tolist()} must be ≥ 0 px and strictly increasing (the swept "
                              "motion lengths in order)")
+        if m.size and (m.min() < 0 or m.max() > 1):
+            raise ValueError(f"IOPC.blur_mtf {m.tolist()} is out of the allowed range [0, 1] (MTF values)")
         if bool(np.any(np.diff(m) > 0)):
             raise ValueError(f"IOPC.blur_mtf {m.tolist()} must not increase with the motion length (blur_relation "
                              "makes it non-increasing)")
+        lvl = float("nan") if self.blur_noise_level_dn is None else self.blur_noise_level_dn
+        if not (_is_number(lvl) and (math.isnan(lvl) or (math.isfinite(lvl) and lvl >= 0))):
+            raise ValueError(f"IOPC.blur_noise_level_dn = {self.blur_noise_level_dn!r} is out of the allowed range: a "
+                             "number >= 0 DN, or null (NaN) when unknown")
+        self.blur_noise_level_dn = float(lvl)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -230,7 +325,7 @@ class IOPC:
         ``noise_level_dn``; ``marked`` records are kept but not binned. Returns a new IOPC whose
         ``records`` are copies with the bin indices (``sigma_bin``, ``mtf_bin``) filled in.
         """
-        sb, mb = _check_bins(sigma_bins, "sigma_bins"), _check_bins(mtf_bins, "mtf_bins")
+        sb, mb = _bin_centres(sigma_bins, "sigma_bins", "sigma"), _bin_centres(mtf_bins, "mtf_bins", "mtf")
         recs = [dict(r) for r in records]
         for k, r in enumerate(recs):
             for key in ("sigma_tilde", "mtf_tilde", "ap", "length_px", "noise_level_dn"):
@@ -266,7 +361,8 @@ class IOPC:
         aps, cs = _mean_by_bin(i[no_blur], None, ap[no_blur], (sb.size,))
         apm, cm = _mean_by_bin(j[no_noise], None, ap[no_noise], (mb.size,))
         lengths, mtf = blur_relation(recs)
-        return cls(sb, mb, ap2, c2, aps, cs, apm, cm, lengths, mtf, recs, dict(provenance or {}), name)
+        return cls(sb, mb, ap2, c2, aps, cs, apm, cm, lengths, mtf, recs, dict(provenance or {}), name,
+                   blur_relation_noise_level(recs))
 
     # ------------------------------------------------------------------ queries
     @property
@@ -347,7 +443,8 @@ class IOPC:
                 "count_sigma": self.count_sigma,
                 "ap_mtf": self.ap_mtf,
                 "count_mtf": self.count_mtf,
-                "blur_relation": {"length_px": self.blur_length_px, "mtf": self.blur_mtf},
+                "blur_relation": {"length_px": self.blur_length_px, "mtf": self.blur_mtf,
+                                  "noise_level_dn": self.blur_noise_level_dn},
                 "records": self.records,
                 "provenance": self.provenance,
             }
@@ -358,25 +455,31 @@ class IOPC:
         """Inverse of :meth:`to_dict`."""
         if data.get("format") != "camhealth-iopc":
             raise ValueError("not a camhealth IOPC file (missing format: camhealth-iopc)")
-        if int(data.get("version", 0)) > FORMAT_VERSION:
-            raise ValueError(f"IOPC file version {data.get('version')} is newer than this camhealth ({FORMAT_VERSION})")
+        version = data.get("version", 0)
+        if not (isinstance(version, (int, np.integer)) and not isinstance(version, (bool, np.bool_)) and version >= 0):
+            raise ValueError(f"version = {version!r} is out of the allowed range: an integer in [0, {FORMAT_VERSION}] "
+                             "(the file layouts this camhealth reads)")
+        if version > FORMAT_VERSION:
+            raise ValueError(f"IOPC file version {version} is newer than this camhealth ({FORMAT_VERSION})")
         rel = data.get("blur_relation", {"length_px": [], "mtf": []})
         records = [{k: (float("nan") if v is None and k in ("sigma_tilde", "mtf_tilde", "ap") else v) for k, v in r.items()}
                    for r in data.get("records", [])]
+        # the arrays go to the constructor as read: it checks their types and ranges before any conversion
         return cls(
-            sigma_bins=_array(data["sigma_bins_dn"]),
-            mtf_bins=_array(data["mtf_bins"]),
-            ap_2d=_array(data["ap_2d"]),
-            count_2d=_array(data["count_2d"], np.int64),
-            ap_sigma=_array(data["ap_sigma"]),
-            count_sigma=_array(data["count_sigma"], np.int64),
-            ap_mtf=_array(data["ap_mtf"]),
-            count_mtf=_array(data["count_mtf"], np.int64),
-            blur_length_px=_array(rel["length_px"]),
-            blur_mtf=_array(rel["mtf"]),
+            sigma_bins=data["sigma_bins_dn"],
+            mtf_bins=data["mtf_bins"],
+            ap_2d=data["ap_2d"],
+            count_2d=data["count_2d"],
+            ap_sigma=data["ap_sigma"],
+            count_sigma=data["count_sigma"],
+            ap_mtf=data["ap_mtf"],
+            count_mtf=data["count_mtf"],
+            blur_length_px=rel["length_px"],
+            blur_mtf=rel["mtf"],
             records=records,
             provenance=dict(data.get("provenance", {})),
             name=str(data.get("name", "AP")),
+            blur_noise_level_dn=rel.get("noise_level_dn"),
         )
 
     def save(self, path: str | Path) -> Path:
@@ -392,7 +495,8 @@ class IOPC:
                 sigma_bins_dn=self.sigma_bins, mtf_bins=self.mtf_bins, ap_2d=self.ap_2d, count_2d=self.count_2d,
                 ap_sigma=self.ap_sigma, count_sigma=self.count_sigma, ap_mtf=self.ap_mtf, count_mtf=self.count_mtf,
                 blur_length_px=self.blur_length_px, blur_mtf=self.blur_mtf,
-                meta_json=np.array(json.dumps({k: d[k] for k in ("format", "version", "name", "records", "provenance")},
+                meta_json=np.array(json.dumps({**{k: d[k] for k in ("format", "version", "name", "records", "provenance")},
+                                               "blur_noise_level_dn": d["blur_relation"]["noise_level_dn"]},
                                               ensure_ascii=False)),
             )
         else:
@@ -451,7 +555,8 @@ class IOPC:
             raise TypeError(f"meta_json holds a JSON {type(meta).__name__}, not an object")
         d = dict(meta)
         d.update({k: v for k, v in data.items() if k not in ("blur_length_px", "blur_mtf")})
-        d["blur_relation"] = {"length_px": data["blur_length_px"], "mtf": data["blur_mtf"]}
+        d["blur_relation"] = {"length_px": data["blur_length_px"], "mtf": data["blur_mtf"],
+                              "noise_level_dn": d.pop("blur_noise_level_dn", None)}
         for k in ("ap_2d", "ap_sigma", "ap_mtf", "sigma_bins_dn", "mtf_bins"):
             d[k] = d[k].tolist()
         return d

@@ -52,7 +52,7 @@ from camhealth._validation import check_image
 from camhealth.detection.average_precision import GroundTruth, evaluate_detections, validate_ground_truth
 from camhealth.detection.protocol import Detector, validate_detections
 from camhealth.detection.torch_adapter import TorchDetector
-from camhealth.iopc.curves import IOPC, MTF_BINS, SIGMA_BINS_DN
+from camhealth.iopc.curves import IOPC, MTF_BINS, SIGMA_BINS_DN, _bin_centres
 from camhealth.iopc.estimation import estimate_regions, estimator_fingerprint, estimator_name, median_estimates
 from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.image_formation import NOISE_SOURCES, form_image
@@ -117,16 +117,20 @@ class SweepConfig:
         sensor: :class:`SensorSetting`.
         valid_sigma_dn: [low, high] σ [DN] the noise estimator was trained for (cells outside: marked).
         valid_length_px: [low, high] blur length [px] the MTF estimator was trained for.
-        sigma_bins_dn, mtf_bins: IOPC bins (thesis defaults).
+        sigma_bins_dn, mtf_bins: IOPC bin centres (thesis defaults): at least 2 each, finite and strictly
+            increasing; σ̃ bins >= 0 DN, MTF̃ bins in [0, 1].
         score_threshold, iou_threshold: AP settings (App. A.1).
         intensity: scene brightness of the sweep: the clean frames are multiplied by this (and clipped at
             1, saturation) before the corruption — 1 = the frames as they are (the thesis's IOPCs). Set it
             to the operating point's exposure level so that photon noise and 8-bit quantisation match the
             camera the curves are used for (e.g. the closed-loop demo's camera renders the clip at 0.5).
         quantize: round the corrupted frames to whole DN (an 8-bit camera), as the simulated camera does.
-        seed: noise seed.
-        detector_batch_size: frames per detector call.
-        estimator_batch_size: tiles per estimator call.
+        seed: noise seed (an integer).
+        detector_batch_size: frames per detector call (an integer >= 1).
+        estimator_batch_size: tiles per estimator call (an integer >= 1).
+
+    :meth:`validate` checks every field before any cell is computed; each error names the key, the value and the
+    allowed range.
     """
 
     grid: SweepGrid = field(default_factory=SweepGrid)
@@ -169,7 +173,21 @@ class SweepConfig:
             raise ValueError(f"intensity = {self.intensity!r} is out of the allowed range (0, 4]")
         if not 0.0 <= self.score_threshold <= 1.0 or not 0.0 < self.iou_threshold < 1.0:
             raise ValueError("score_threshold must lie in [0, 1] and iou_threshold in (0, 1)")
+        # the bins are only used after every cell is computed (IOPC.from_records): refuse bad ones before that
+        _bin_centres(self.sigma_bins_dn, "sigma_bins_dn", "sigma")
+        _bin_centres(self.mtf_bins, "mtf_bins", "mtf")
+        for name in ("detector_batch_size", "estimator_batch_size"):
+            v = getattr(self, name)
+            if not (_is_int(v) and v >= 1):
+                raise ValueError(f"{name} = {v!r} is out of the allowed range: an integer >= 1")
+        if not _is_int(self.seed):
+            raise ValueError(f"seed = {self.seed!r} is not allowed: the noise seed must be an integer")
         return self
+
+
+def _is_int(v: Any) -> bool:
+    """An integer (Python or numpy), not a bool."""
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
 
 
 def make_cells(grid: SweepGrid) -> list[dict[str, Any]]:
@@ -281,7 +299,12 @@ class IOPCSweep:
         return h.hexdigest()
 
     def provenance(self) -> dict[str, Any]:
-        """How the curves are made (stored in the IOPC file)."""
+        """How the curves are made (stored in the IOPC file).
+
+        ``frames.mean_intensity`` is the mean of the frames as swept, in [0, 1]: the clean frames multiplied by
+        ``config.intensity`` and clipped at 1 (what :class:`~camhealth.control.IOPCController`'s
+        ``reference_intensity`` needs); ``frames.source_mean_intensity`` is the mean of the clean frames as given.
+        """
         import datetime as _dt
         import platform
         import subprocess
@@ -306,8 +329,11 @@ class IOPCSweep:
             "detector": self._detector_config(),
             "noise_estimator": estimator_name(self.noise_estimator),
             "mtf_estimator": estimator_name(self.mtf_estimator),
+            # mean_intensity: the frames as swept (after the config's intensity and its clipping at 1), i.e. the
+            # brightness the detector saw; source_mean_intensity: the clean frames as given
             "frames": {"n": len(self.frame_ids), "ids": self.frame_ids, "size_hw": list(self.frames.shape[-2:]),
-                       "mean_intensity": float(self.frames.mean())},
+                       "mean_intensity": float(self._scaled(self.frames).mean()),
+                       "source_mean_intensity": float(self.frames.mean())},
             "ground_truth_boxes": int(sum(g["boxes"].shape[0] for g in self.ground_truth)),
             "fingerprint": self.fingerprint(),
             "versions": {p: version(p) for p in ("camhealth", "torch", "kornia", "lightning", "pycocotools",

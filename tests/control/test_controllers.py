@@ -81,3 +81,69 @@ def test_controllers_refuse_nan_instead_of_passing_it_on():
     obs.capture.mean_intensity[:] = float("nan")
     with pytest.raises(ValueError, match="mean intensity nan, .* must be finite"):
         ae.update(obs)
+
+
+def _dark_first_run(decide_every, n_frames=4):
+    """The IOPC controller over ``n_frames`` frames whose first is black (lens cap, tunnel, start-up frame): Immerkær
+    refuses tiles with more than 5 % of the pixels at 0 DN, so nothing is assessable on it."""
+    from camhealth.iopc import ImmerkaerNoiseEstimator
+
+    cam = SimulatedCamera(smooth_frames(2, 192, 192), illumination_per_s=60.0, motion_px_per_s=1200.0, temperature_c=25.0)
+    ctrl = IOPCController(ExposurePolicy(BLUR_HATER, **FAST), ImmerkaerNoiseEstimator(), "physics",
+                          decide_every=decide_every)
+    t, g = ctrl.reset(0.01, 0.0)
+    trace = []
+    for k in range(n_frames):
+        obs = _obs(cam, t, g, frame=k % 2)
+        obs = Observation(k, obs.capture, obs.detections, t, g)
+        if k == 0:
+            obs.capture.image.zero_()
+            obs.capture.mean_intensity.zero_()
+        t, g = ctrl.update(obs)
+        trace.append((t, g))
+    return ctrl, trace
+
+
+def test_iopc_controller_decides_on_the_first_assessable_frame():
+    """decide_every=None (the demo's default) used its single decision on frame 0 even when nothing could be
+    assessed there, and then kept 10 ms / 0 dB for good."""
+    ctrl, trace = _dark_first_run(None)
+    assert trace[0] == (0.01, 0.0)  # black frame: kept
+    assert [f for f, _, _ in ctrl.decisions] == [1]  # then the first assessable frame, once
+    assert trace[1][0] < 0.01 and trace[-1] == trace[1]
+
+
+def test_iopc_controller_with_a_cadence_waits_for_the_next_due_frame():
+    """decide_every=n keeps its cadence: the black frame 0 is skipped, the next decision is on frame n."""
+    ctrl, trace = _dark_first_run(2, n_frames=5)
+    assert [f for f, _, _ in ctrl.decisions] == [2, 4]
+    assert trace[0] == trace[1] == (0.01, 0.0) and trace[2][0] < 0.01
+
+
+@pytest.mark.parametrize("noise, mtf", [("immerkaer", "physics"), ("physics", "Physics"), (" IMMERKAER ", "physics")])
+def test_iopc_controller_resolves_estimator_specs_when_built(noise, mtf):
+    """The specs resolve_estimator documents ("immerkaer", "Physics") were stored as strings and failed on the first
+    frame: 'str' object has no attribute 'patch_size'."""
+    from camhealth.iopc import PHYSICS, ImmerkaerNoiseEstimator
+
+    ctrl = IOPCController(ExposurePolicy(BLUR_HATER, **FAST), noise, mtf)
+    assert isinstance(ctrl.noise, ImmerkaerNoiseEstimator) or ctrl.noise == PHYSICS
+    assert ctrl.mtf == PHYSICS
+    cam = SimulatedCamera(smooth_frames(1, 192, 192), illumination_per_s=60.0, motion_px_per_s=1200.0, temperature_c=25.0)
+    t, g = ctrl.update(_obs(cam, 0.01, 0.0))
+    assert len(ctrl.decisions) == 1 and t < 0.01
+    with pytest.raises(ValueError, match="'immerkaer' is a noise estimator"):
+        IOPCController(ExposurePolicy(BLUR_HATER, **FAST), "physics", "immerkaer")
+
+
+@pytest.mark.parametrize("value, used", [(-0.01, 0.0), (1.02, 1.0)])
+def test_iopc_controller_clips_the_mtf_estimate_to_0_1(value, used):
+    """An MTF̂ of 1.02 was clipped, -0.01 (a regression undershoot under heavy blur) stopped the loop: mtf_hat must
+    lie in [0, 1]."""
+    from tests.iopc.fakes import FakeMTFEstimator
+
+    ctrl = IOPCController(ExposurePolicy(BLUR_HATER, **FAST), "physics", FakeMTFEstimator(value, 48))
+    cam = SimulatedCamera(smooth_frames(1, 192, 192), illumination_per_s=60.0, motion_px_per_s=1200.0, temperature_c=25.0)
+    ctrl.update(_obs(cam, 0.01, 0.0))
+    (_, d, med), = ctrl.decisions
+    assert med["mtf_tilde"] == pytest.approx(value) and d.details["mtf_hat"] == used

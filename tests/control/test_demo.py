@@ -1,5 +1,7 @@
 """``python -m camhealth.demo closed-loop`` on two street crops with a synthetic IOPC."""
 
+import argparse
+import dataclasses
 import json
 
 import pytest
@@ -40,3 +42,54 @@ def test_missing_iopc_and_slices(tmp_path):
         main(["closed-loop", "--iopc", str(tmp_path / "none.json")])
     assert parse_slice("25:50") == slice(25, 50) and parse_slice("::2") == slice(None, None, 2)
     assert parse_slice("3") == slice(3, 4)
+
+
+def test_dark_scene_runs_with_exposure_limits_the_camera_accepts(tmp_path, crop_folder):  # noqa: F811
+    """In a dark scene auto-exposure asked for an exposure inside --limits-exposure (1–200 ms) but beyond what the
+    camera renders at the scene's motion (253 px of blur): the demo stopped with rc 2. The controllers' longest
+    exposure is now capped at 253 px / motion (25.3 ms at 10 000 px/s)."""
+    iopc_path = BLUR_HATER.save(tmp_path / "iopc.json")
+    out = tmp_path / "demo"
+    rc = main(["closed-loop", "--iopc", str(iopc_path), "--source", str(crop_folder), "--frames", "0:2",
+               "--illumination", "5", "--motion", "10000", "--out", str(out)])
+    assert rc == 0
+    res = json.loads((out / "closed_loop.json").read_text())
+    assert res["exposure_limits_s"] == [0.001, pytest.approx(253.0 / 10000.0)]
+    auto = res["results"][1]["trajectory"]
+    assert auto[1]["exposure_ms"] == pytest.approx(25.3) and auto[1]["blur_px"] <= 253.0  # at the cap, not beyond
+    assert "capped by the camera's motion-blur limit" in (out / "closed_loop.md").read_text()
+
+
+@pytest.mark.parametrize("motion, limits", [
+    (1500.0, (0.001, 253.0 / 1500.0)),  # the default scene: 168.7 ms
+    (800.0, (0.001, 0.2)),  # the cap (316 ms) does not bind
+    (0.0, (0.001, 0.2)),  # no motion, no blur
+])
+def test_exposure_limits_are_capped_by_the_motion(motion, limits):
+    from camhealth.control.camera_sim import MAX_MOTION_PX
+    from camhealth.demo import _exposure_limits
+
+    args = argparse.Namespace(limits_exposure=[0.001, 0.2], motion=motion)
+    t_min, t_max = _exposure_limits(args)
+    assert t_min == limits[0] and t_max == pytest.approx(limits[1], rel=1e-12)
+    assert motion * t_max <= MAX_MOTION_PX  # as the camera computes it: never past the limit by rounding
+    with pytest.raises(SystemExit, match=r"--motion 300000 px/s: .* exposures up to 0.8433 ms, below the shortest "
+                                         r"exposure --limits-exposure 1 ms"):
+        _exposure_limits(argparse.Namespace(limits_exposure=[0.001, 0.2], motion=300000.0))
+
+
+def _with_frames_provenance(frames, intensity=0.5):
+    return dataclasses.replace(BLUR_HATER, provenance={"frames": frames, "config": {"intensity": intensity}})
+
+
+def test_reference_intensity_is_the_mean_of_the_frames_as_swept():
+    """--normalize-intensity rescales σ̂ by reference / mean; the reference must be what the sweep's detector saw."""
+    from camhealth.demo import _reference_intensity
+
+    # a file that records both: mean_intensity is already after the intensity scaling
+    assert _reference_intensity(_with_frames_provenance({"mean_intensity": 0.2497, "source_mean_intensity": 0.4994})) == 0.2497
+    # a file with mean_intensity only holds the clean frames' mean: times config.intensity, at most 1
+    assert _reference_intensity(_with_frames_provenance({"mean_intensity": 0.4994})) == pytest.approx(0.2497)
+    assert _reference_intensity(_with_frames_provenance({"mean_intensity": 0.6}, intensity=2.0)) == 1.0
+    with pytest.raises(SystemExit, match="needs an IOPC whose provenance has frames.mean_intensity"):
+        _reference_intensity(_with_frames_provenance({}))

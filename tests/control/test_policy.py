@@ -139,3 +139,46 @@ def test_explanation_names_bins_curve_and_limit():
     assert "highest gain" in text and d.details["limits_reached"] == ["highest gain"]
     assert d.length_px == pytest.approx(15.0, abs=0.5) and d.length_new_px < d.length_px
     assert math.isfinite(d.mtf_new[0]) and d.mtf_new[0] > _mtf_of_length(15.0)
+
+
+@pytest.mark.parametrize("mtf_step", [0.01, 0.03, 0.15, 0.3, 0.5])
+def test_mtf_axis_ends_at_one_for_any_step(mtf_step):
+    """With mtf_step 0.03 (0.3) the axis ended at 0.99 (0.90): a sharp, noise-free frame (MTF̂ = 1) was looked up as
+    a blurred one, and the policy cut the exposure 16× (α = 15.8) where nothing was to gain."""
+    pol = ExposurePolicy(BLUR_HATER, CameraLimits((0.001, 0.2), (0.0, 24.0)), mtf_step=mtf_step)
+    assert pol.mtf_grid[0] == 0.0 and pol.mtf_grid[-1] == 1.0
+    assert pol.mtf_step <= mtf_step and np.allclose(np.diff(pol.mtf_grid), pol.mtf_step)
+    d = pol.decide(0.0, 1.0, 0.02, 0.0)
+    assert d.alpha == 1.0 and not d.changed
+    assert d.current_ap == pytest.approx(float(pol.objective(0.0, 1.0, 1.0)), abs=1e-6)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"mtf_step": 0.0}, r"mtf_step = 0.0 is out of the allowed range \(0, 0.5\]"),
+    ({"mtf_step": 0.6}, r"mtf_step = 0.6 is out of the allowed range \(0, 0.5\]"),
+    ({"mtf_step": float("nan")}, r"mtf_step = nan is out of the allowed range \(0, 0.5\]"),
+    ({"sigma_step_dn": -1.0}, r"sigma_step_dn = -1.0 DN is out of the allowed range: a finite number > 0"),
+    ({"rho_levels": 1}, r"rho_levels = 1 is out of the allowed range: an integer >= 2"),
+])
+def test_table_steps_are_refused_naming_the_value_and_the_range(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ExposurePolicy(BLUR_HATER, **kwargs)
+
+
+def test_decisions_on_a_limit_are_exactly_on_it():
+    """The ±1e-9 feasibility tolerance was baked into the limit candidates: "the shortest exposure" came out as
+    0.000999999999 s < t_min = 1 ms (and 20.0000000087 dB), "the lowest gain" as -8.69e-09 dB < g_min = 0 dB — values
+    a camera SDK that checks its range strictly refuses."""
+    lim = CameraLimits((0.001, 0.2), (0.0, 24.0))
+    d = ExposurePolicy(BLUR_HATER, lim).decide(2.0, _mtf_of_length(15.0), 0.010, 0.0)  # α = 10: not on the grid
+    assert d.exposure_s == 0.001 and d.gain_db == pytest.approx(20.0, abs=1e-9)
+    assert lim.exposure_s[0] <= d.exposure_s and lim.gain_db[0] <= d.gain_db <= lim.gain_db[1]
+    d = ExposurePolicy(NOISE_HATER, lim).decide(10.0, _mtf_of_length(3.0), 0.01, 5.0)  # wants the lowest gain
+    assert d.gain_db == 0.0 and lim.exposure_s[0] <= d.exposure_s <= lim.exposure_s[1]
+    rng = np.random.default_rng(1)
+    for iopc in (BLUR_HATER, NOISE_HATER):
+        pol = ExposurePolicy(iopc, CameraLimits((0.0005, 0.05), (3.0, 9.0)), **FAST)
+        for _ in range(40):
+            t, g = float(rng.uniform(0.0006, 0.04)), float(rng.uniform(3.0, 9.0))
+            d = pol.decide(float(rng.uniform(0, 20)), float(rng.uniform(0.5, 1.0)), t, g)
+            assert 0.0005 <= d.exposure_s <= 0.05 and 3.0 <= d.gain_db <= 9.0

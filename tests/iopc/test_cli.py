@@ -70,6 +70,21 @@ def test_cli_errors(tmp_path, crop_folder):
         main(["--config", str(_config(tmp_path, crop_folder)), "--detector.kind", "torch"])
 
 
+@pytest.mark.parametrize("stride", ["0", "-1"])
+def test_frames_stride_below_one_is_refused_naming_the_key(tmp_path, crop_folder, stride):
+    """--frames.stride 0 failed with Python's "slice step cannot be zero", which names no flag; -1 reversed the
+    frames silently."""
+    with pytest.raises(ValueError, match=rf"frames.stride = {stride} is out of the allowed range: an integer >= 1"):
+        main(["--config", str(_config(tmp_path, crop_folder)), "--frames.stride", stride])
+
+
+def test_bad_sweep_bins_are_refused_before_the_sweep(tmp_path, crop_folder):
+    """Bins the curves cannot use failed only after every cell was computed."""
+    with pytest.raises(ValueError, match=r"sigma_bins_dn = \[5.0\] needs at least 2 bin centres"):
+        main(["--config", str(_config(tmp_path, crop_folder)), "--sweep.sigma_bins_dn", "[5]"])
+    assert not (tmp_path / "cache").exists()
+
+
 def _instantiated(argv):
     from camhealth.iopc.cli import build_parser
 

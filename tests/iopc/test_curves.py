@@ -1,5 +1,6 @@
 """IOPC binning, 1-D/2-D curves, marked cells, MTF→length relation, JSON/NPZ round trip."""
 
+import json
 import math
 import re
 
@@ -114,7 +115,7 @@ def test_npz_with_pickled_arrays_is_refused_naming_the_file(tmp_path):
     ("b.json", b"[1]", "it holds a JSON list, not an object"),
     ("c.json", b'{"format": "camhealth-iopc"}', "missing entry 'sigma_bins_dn'"),
     ("d.json", '{"format": "camhealth-iopc", "name": "caméra"}'.encode("latin-1"), "not UTF-8 text"),
-    ("e.json", b'{"format": "camhealth-iopc", "version": "x"}', "invalid literal for int"),
+    ("e.json", b'{"format": "camhealth-iopc", "version": "x"}', r"version = 'x' is out of the allowed range: an integer in \[0, 1\]"),
     ("f.npz", b"not a zip", "an .npz file is a zip archive; this one is not"),
     ("g.npz", b"", "an .npz file is a zip archive; this one is not"),
     ("h.npz", None, "missing entry 'meta_json'"),
@@ -176,3 +177,48 @@ def test_length_from_mtf_inverts_the_relation_across_a_flat_stretch():
     assert float(iopc.length_from_mtf(0.8)) == 5.0 and float(iopc.length_from_mtf(1.2)) == 0.0
     assert float(iopc.length_from_mtf(0.3)) == 15.0 and math.isnan(float(iopc.length_from_mtf(float("nan"))))
     assert iopc.length_from_mtf(np.array([[0.9, 0.6]])).shape == (1, 2)
+
+
+def _set(d, path, value):
+    *head, last = path
+    for k in head:
+        d = d[k]
+    d[last] = value
+
+
+@pytest.mark.parametrize("path, value, match", [
+    (("count_2d", 0, 9), 0.9, r"IOPC.count_2d\[0, 9\] = 0.9 is out of the allowed range: a whole number >= 0"),
+    (("count_2d", 0, 9), -5, r"IOPC.count_2d\[0, 9\] = -5 is out of the allowed range: a whole number >= 0"),
+    (("count_sigma", 0), True, r"IOPC.count_sigma\[0\] = True is not a number; allowed: a whole number >= 0"),
+    (("ap_2d", 0, 9), "0.7", r"IOPC.ap_2d\[0, 9\] = '0.7' is not a number; allowed: a number in \[0, 1\]"),
+    (("ap_mtf", 9), False, r"IOPC.ap_mtf\[9\] = False is not a number; allowed: a number in \[0, 1\]"),
+    (("sigma_bins_dn", 0), -5.0, r"IOPC.sigma_bins = \[-5.0, 5.0, .*\] is out of the allowed range: .* >= 0 DN"),
+    (("mtf_bins", 9), 1.5, r"IOPC.mtf_bins = \[0.1, .*, 1.5\] is out of the allowed range: .* in \[0, 1\]"),
+    (("blur_relation", "mtf"), [5.0, 0.81, 0.62], r"IOPC.blur_mtf \[5.0, 0.81, 0.62\] is out of the allowed range \[0, 1\]"),
+    (("blur_relation", "mtf"), [1.0, 0.81, -2.0], r"IOPC.blur_mtf \[1.0, 0.81, -2.0\] is out of the allowed range \[0, 1\]"),
+    (("version",), 1.9, r"version = 1.9 is out of the allowed range: an integer in \[0, 1\]"),
+    (("version",), True, r"version = True is out of the allowed range: an integer in \[0, 1\]"),
+])
+def test_load_refuses_wrong_typed_and_out_of_range_fields_naming_file_field_value_and_range(path, value, match, tmp_path):
+    """A count of 0.9 was truncated to an empty bin (its AP replaced by a neighbour's in surface()), -5 and true were
+    kept as counts, the AP "0.7" was read as a number, σ̃ bins below 0 DN, a relation MTF̃ of 5 and a version of 1.9
+    or true were accepted: each is refused, naming the file, the field, the value and the allowed range."""
+    d = IOPC.from_records(_records()).to_dict()
+    _set(d, path, value)
+    file = tmp_path / "bad.json"
+    file.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(file))}: .*{match}"):
+        IOPC.load(file)
+
+
+@pytest.mark.parametrize("suffix", [".json", ".npz"])
+def test_blur_relation_records_the_noise_level_it_was_measured_at(tmp_path, suffix):
+    """A sweep without σ = 0 cells measures the MTF → length relation on its lowest level (here 5 DN), not on
+    noise-free cells: the IOPC says so, and the level survives the file round trip."""
+    noisy = [r for r in _records() if r["noise_level_dn"] > 0]
+    iopc = IOPC.from_records(noisy)
+    assert iopc.blur_noise_level_dn == 5.0
+    assert iopc.blur_mtf.tolist() == pytest.approx([1.0, 0.81, 0.62])
+    back = IOPC.load(iopc.save(tmp_path / f"curves{suffix}"))
+    assert back.blur_noise_level_dn == 5.0 and back.to_dict() == iopc.to_dict()
+    assert IOPC.from_records(_records()).blur_noise_level_dn == 0.0

@@ -135,3 +135,39 @@ def test_the_fingerprint_covers_the_detectors_weights_and_every_ground_truth_fie
     assert fp(one, gt) == fp(TorchDetector(Boxes(1.0)), gt) and fp(one, gt) != fp(other, gt)
     crowd = [{**g, "iscrowd": torch.tensor([True])} for g in gt]
     assert fp(one, crowd) != fp(one, gt)
+
+
+@pytest.mark.parametrize("intensity", [0.5, 2.0])
+def test_provenance_mean_intensity_is_that_of_the_frames_as_swept(tmp_path, intensity):
+    """With intensity 0.5 the detector saw a mean of 0.25 but the provenance recorded the clean frames' 0.5, so
+    --normalize-intensity scaled σ̂ by twice what it should. Now: the mean after the scaling (and the clipping at 1),
+    with the clean frames' mean kept as source_mean_intensity."""
+    sw, det = _sweep(tmp_path, noise_levels=(0.0,), lengths=(0.0,), intensity=intensity, cache=False)
+    sw.run_cell(sw.cells[0])  # no noise, no blur: the detector sees the scaled clean frames
+    frames = sw.provenance()["frames"]
+    assert frames["mean_intensity"] == pytest.approx(float(det.last_images.mean()), abs=1e-6)
+    assert frames["mean_intensity"] == pytest.approx(float((sw.frames * intensity).clamp(max=1.0).mean()), abs=1e-6)
+    assert frames["source_mean_intensity"] == pytest.approx(float(sw.frames.mean()), abs=1e-6)
+
+
+@pytest.mark.parametrize("cfg, match", [
+    ({"detector_batch_size": 0}, r"detector_batch_size = 0 is out of the allowed range: an integer >= 1"),
+    ({"detector_batch_size": -1}, r"detector_batch_size = -1 is out of the allowed range: an integer >= 1"),
+    ({"detector_batch_size": 2.5}, r"detector_batch_size = 2.5 is out of the allowed range: an integer >= 1"),
+    ({"estimator_batch_size": 0}, r"estimator_batch_size = 0 is out of the allowed range: an integer >= 1"),
+    ({"estimator_batch_size": True}, r"estimator_batch_size = True is out of the allowed range: an integer >= 1"),
+    ({"sigma_bins_dn": [5]}, r"sigma_bins_dn = \[5.0\] needs at least 2 bin centres \(.*>= 0 DN"),
+    ({"mtf_bins": [1.0, 0.5]}, r"mtf_bins = \[1.0, 0.5\] must be finite and strictly increasing \(.*in \[0, 1\]"),
+    ({"sigma_bins_dn": [0.0, float("nan")]}, r"sigma_bins_dn = \[0.0, nan\] must be finite and strictly increasing"),
+    ({"sigma_bins_dn": [-5.0, 0.0, 5.0]}, r"sigma_bins_dn = \[-5.0, 0.0, 5.0\] is out of the allowed range: .*>= 0 DN"),
+    ({"mtf_bins": [0.5, 1.5]}, r"mtf_bins = \[0.5, 1.5\] is out of the allowed range: .*in \[0, 1\]"),
+    ({"mtf_bins": ["0.5", 1.0]}, r"mtf_bins = \['0.5', 1.0\] is not allowed"),
+    ({"seed": "abc"}, r"seed = 'abc' is not allowed: the noise seed must be an integer"),
+])
+def test_validate_refuses_bad_batch_sizes_bins_and_seed_before_any_cell(tmp_path, cfg, match):
+    """Batch sizes of 0 or -1 failed inside the first cell (range() step 0, or 0 detections for 2 frames), bins the
+    curves refuse failed only after every cell was computed, and a text seed was accepted."""
+    with pytest.raises(ValueError, match=match):
+        SweepConfig(**cfg).validate()
+    with pytest.raises(ValueError, match=match):  # the sweep refuses it before any detector call
+        _sweep(tmp_path, cache=False, **cfg)
