@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
 from typing import Any, Sequence, TextIO
 
 from camhealth._cli import BadValue, add_debug_flag, config_parser, run_cli
-from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS, UNITS
 
 __all__ = ["build_parser", "main"]
 
@@ -257,10 +258,11 @@ def build_parser():
                         "Enables the policy's advice (needs camhealth.control)")
     g.add_argument("--iopc-weights", type=_non_negative, nargs="+", metavar="W",
                    help="weights λ of the IOPCs (Eq. 4.8), one per --iopc")
-    g.add_argument("--exposure-limits", type=float, nargs=2, default=[0.001, 0.2], metavar=("LO", "HI"),
-                   help="camera exposure limits in s (default 0.001 0.2)")
-    g.add_argument("--gain-limits", type=float, nargs=2, default=[0.0, 24.0], metavar=("LO", "HI"),
-                   help="camera gain limits in dB (default 0 24)")
+    for name, key, what in (("exposure", "exposure_s", "exposure"), ("gain", "gain_db", "gain")):
+        lo, hi = METADATA_RANGES[key]
+        g.add_argument(f"--{name}-limits", type=float, nargs=2, default=[lo, hi], metavar=("LO", "HI"),
+                       help=f"camera {what} limits in {UNITS[key]}, LO <= HI within the metadata range {lo:g} … {hi:g} "
+                            f"(default {lo:g} {hi:g})")
     g = p.add_argument_group("frames")
     g.add_argument("--start", type=_non_negative_int, default=0, metavar="N", help="first frame index (default 0)")
     g.add_argument("--stride", type=_positive, default=1, metavar="N", help="use every N-th frame (default 1)")
@@ -401,22 +403,99 @@ def _printable(text: str) -> str:
             return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
-def _input_overwritten(args: argparse.Namespace, out: Path) -> str | None:
-    """The input file (``"OPTION PATH"``) that writing ``out`` would overwrite, or ``None``."""
+def _source_files(source: Any) -> list[Path]:
+    """The files an opened SOURCE reads: an image, a video or a recording file itself, a folder's frame images, every
+    file of a rosbag2 folder (its storage files and ``metadata.yaml``)."""
+    path = Path(source.path)
+    if source.kind == "folder":
+        from camhealth.data.image_folder import list_images
+
+        return list(list_images(path, recursive=False))
+    if path.is_dir():
+        return [p for p in path.rglob("*") if p.is_file()]
+    return [path]
+
+
+def _input_files(args: argparse.Namespace, members: Sequence[Path] = ()) -> dict[Any, str]:
+    """Every input of the run (``SOURCE`` and the files it reads, ``--defect-map``, ``--metadata``, ``--iopc``) by its
+    resolved path and by its file identity (device, inode: a hard link or a link to it) → ``"OPTION PATH"``."""
     import os
 
-    inputs = [("SOURCE", args.source), ("--defect-map", args.defect_map), ("--metadata", args.metadata),
-              *(("--iopc", f) for f in args.iopc)]
+    inputs = [("SOURCE", args.source), *(("SOURCE", m) for m in members), ("--defect-map", args.defect_map),
+              ("--metadata", args.metadata), *(("--iopc", f) for f in args.iopc)]
+    out: dict[Any, str] = {}
     for option, given in inputs:
         if given is None:
             continue
         path = Path(given)
+        label = f"{option} {path}"
         try:
-            if out.resolve() == path.resolve() or (out.exists() and path.exists() and os.path.samefile(out, path)):
-                return f"{option} {path}"
+            out.setdefault(path.resolve(), label)
+            if path.exists():
+                st = os.stat(path)
+                out.setdefault((st.st_dev, st.st_ino), label)
         except (OSError, RuntimeError):  # (RuntimeError: a symlink loop)
             continue
-    return None
+    return out
+
+
+def _input_overwritten(args: argparse.Namespace, out: Path, inputs: dict[Any, str] | None = None) -> str | None:
+    """The input file (``"OPTION PATH"``) that writing ``out`` would overwrite, or ``None``; ``inputs``:
+    :func:`_input_files` (default: the inputs the options name, without the files of an opened SOURCE)."""
+    import os
+
+    inputs = _input_files(args) if inputs is None else inputs
+    try:
+        hit = inputs.get(out.resolve())
+        if hit is None and out.exists():
+            st = os.stat(out)
+            hit = inputs.get((st.st_dev, st.st_ino))
+    except (OSError, RuntimeError):
+        return None
+    return hit
+
+
+#: The names of the overlay PNGs under ``DIR/overlays/`` (``frame_`` and the frame's index).
+_OVERLAY_NAME = re.compile(r"frame_\d{6,}\.png")
+
+
+def _check_outputs(args: argparse.Namespace, source: Any) -> None:
+    """Refuses, before anything is written, an output that would overwrite an input (SOURCE, a file it reads, or
+    another input file) and a ``--diagnostics-out`` that cannot be written (ValueError naming both)."""
+    if args.diagnostics_out is not None and source.kind != "recording":
+        raise ValueError(f"--diagnostics-out needs a ROS recording as SOURCE (.bag, .db3, .mcap or a rosbag2 folder), "
+                         f"got {source.kind} {source.path}")
+    outputs = [(option, path) for option, path in (("--defects-out", args.defects_out),
+                                                   ("--diagnostics-out", args.diagnostics_out)) if path is not None]
+    if args.out is not None:
+        outputs += [("--out", args.out / "monitor.jsonl"), ("--out", args.out / "summary.json")]
+    inputs = _input_files(args, _source_files(source)) if outputs else {}
+    for option, path in outputs:
+        overwritten = _input_overwritten(args, Path(path), inputs)
+        if overwritten is not None:
+            raise ValueError(f"{option} {args.out if option == '--out' else path} would overwrite the input {overwritten}"
+                             + (f" (as {path})" if option == "--out" else "") + "; give another file or folder")
+    if args.overlay:  # DIR/overlays/frame_NNNNNN.png: a frame of SOURCE there, or an overlay file that is an input
+        folder = args.out / "overlays"
+        try:
+            where = folder.resolve()
+            hit = next((label for key, label in inputs.items()
+                        if isinstance(key, Path) and key.parent == where and _OVERLAY_NAME.fullmatch(key.name)), None)
+            if hit is None and folder.is_dir():
+                hit = next((found for p in folder.iterdir() if _OVERLAY_NAME.fullmatch(p.name)
+                            for found in [_input_overwritten(args, p, inputs)] if found is not None), None)
+        except (OSError, RuntimeError):
+            hit = None
+        if hit is not None:
+            raise ValueError(f"--overlay would write its PNGs (frame_NNNNNN.png) to {folder} over the input {hit}; "
+                             "give another --out DIR")
+    if args.diagnostics_out is not None:
+        from camhealth.monitor.diagnostics import check_diagnostics_path
+
+        try:
+            check_diagnostics_path(args.diagnostics_out)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"--diagnostics-out {args.diagnostics_out}: {exc}") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -434,9 +513,16 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--no-noise and --no-mtf together leave nothing to monitor")
     if args.max_clipped > 1:
         raise ValueError(f"--max-clipped = {args.max_clipped:g} must lie in [0, 1]")
-    for name in ("exposure_limits", "gain_limits"):  # (a --config file is not held to the flag's two values)
-        if len(getattr(args, name)) != 2:
-            raise ValueError(f"--{name.replace('_', '-')} needs 2 values LO HI, got {getattr(args, name)}")
+    for name, key in (("exposure_limits", "exposure_s"), ("gain_limits", "gain_db")):
+        flag, values = f"--{name.replace('_', '-')}", getattr(args, name)
+        if len(values) != 2:  # (a --config file is not held to the flag's two values)
+            raise ValueError(f"{flag} needs 2 values LO HI, got {values}")
+        lo, hi = (float(v) for v in values)
+        low, high = METADATA_RANGES[key]  # the advice's exposure and gain are metadata the monitor must accept
+        if not low <= lo <= hi <= high:  # (NaN fails too)
+            why = f"LO {lo:g} > HI {hi:g}" if lo > hi else "outside the range"
+            raise ValueError(f"{flag} {lo:g} {hi:g}: {why}; need LO <= HI, both within the metadata range "
+                             f"[{low:g}, {high:g}] {UNITS[key]}")
     if args.iopc_weights is not None and len(args.iopc_weights) != len(args.iopc):
         raise ValueError(f"--iopc-weights has {len(args.iopc_weights)} value(s) for {len(args.iopc)} --iopc file(s)")
     if args.defects_out is not None:  # checked before the run, whose end would otherwise find it unwritable
@@ -452,14 +538,15 @@ def run(args: argparse.Namespace) -> int:
                              "file for the run's defect map")
     source = open_source(args.source, args.start, args.stride, args.max_frames, bit_depth=args.bit_depth,
                          recording=_recording_options(args))
-    if args.static_pairs:
-        from camhealth.monitor.sources import lossy_source
-
-        why = lossy_source(source)
-        if why is not None:
-            print(f"warning: --static-pairs reads pairs of lossless frames, and {why}: on dense texture a codec's "
-                  "re-quantisation can pass for noise (docs/monitor.md, Static camera)", file=sys.stderr)
     try:
+        _check_outputs(args, source)  # before anything is written
+        if args.static_pairs:
+            from camhealth.monitor.sources import lossy_source
+
+            why = lossy_source(source)
+            if why is not None:
+                print(f"warning: --static-pairs reads pairs of lossless frames, and {why}: on dense texture a codec's "
+                      "re-quantisation can pass for noise (docs/monitor.md, Static camera)", file=sys.stderr)
         return _run_source(args, source)
     finally:
         close = getattr(source, "close", None)
@@ -473,9 +560,6 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     from camhealth.monitor.overlay import save_overlay
     from camhealth.monitor.tiling import SelectionConfig
 
-    if args.diagnostics_out is not None and source.kind != "recording":
-        raise ValueError(f"--diagnostics-out needs a ROS recording as SOURCE (.bag, .db3, .mcap or a rosbag2 folder), "
-                         f"got {source.kind} {source.path}")
     noise_model = None if args.no_noise else args.noise_model
     mtf_model = None if args.no_mtf else args.mtf_model
     metadata: Any = args.metadata
@@ -497,19 +581,24 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     )
     if args.defects_out is not None:  # (its folder is created, as --out's)
         args.defects_out.parent.mkdir(parents=True, exist_ok=True)
-    out_dir: Path | None = args.out
-    if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        sink: TextIO = (out_dir / "monitor.jsonl").open("w", encoding="utf-8")
-        report_to: TextIO = sys.stdout
-    else:
-        sink, report_to = sys.stdout, sys.stderr
     diagnostics = None
-    if args.diagnostics_out is not None:
+    if args.diagnostics_out is not None:  # (before monitor.jsonl is opened: a writer that fails truncates nothing)
         from camhealth.monitor.diagnostics import DiagnosticsWriter
 
         diagnostics = DiagnosticsWriter(args.diagnostics_out, f"camhealth: {source.topic}",
                                         xi_threshold_dn=args.xi_threshold_dn, topic=source.topic)
+    out_dir: Path | None = args.out
+    if out_dir is not None:
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            sink: TextIO = (out_dir / "monitor.jsonl").open("w", encoding="utf-8")
+        except BaseException:
+            if diagnostics is not None:
+                diagnostics.abort()
+            raise
+        report_to: TextIO = sys.stdout
+    else:
+        sink, report_to = sys.stdout, sys.stderr
     progress = _Progress(source.length, not args.no_progress)
     unreadable: list[str] = []
     scalings: dict[str, int] = {}

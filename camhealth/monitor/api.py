@@ -73,7 +73,15 @@ from camhealth.monitor.tiling import (
     select_patches,
     status_counts,
 )
-from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS, MINIMAL_FIELDS, PRESETS, CameraMetadata, read_metadata_mapping
+from camhealth.physics.metadata import (
+    FULL_FIELDS,
+    METADATA_RANGES,
+    METADATA_SETS,
+    MINIMAL_FIELDS,
+    PRESETS,
+    CameraMetadata,
+    read_metadata_mapping,
+)
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
 __all__ = [
@@ -113,16 +121,52 @@ MODES: tuple[str, ...] = ("auto", "sampled", "map")
 
 
 # ---------------------------------------------------------------------------------------------- inputs
-def as_frame(frame: Any) -> torch.Tensor:
+def _check_bit_depth(bit_depth: Any) -> int | None:
+    """``bit_depth`` of :func:`as_frame`: ``None`` or an integer 8…16 (ValueError naming the value otherwise)."""
+    if bit_depth is None:
+        return None
+    if isinstance(bit_depth, (bool, np.bool_)) or not isinstance(bit_depth, (int, np.integer)) or not 8 <= bit_depth <= 16:
+        raise ValueError(f"bit_depth = {bit_depth!r} must be None or an integer 8…16: the significant bits of uint16 "
+                         "frames (10, 12 or 14 for a camera that stores such data in 16-bit words; None or 16: the full "
+                         "16-bit word)")
+    return int(bit_depth)
+
+
+def _integer_scale(dtype: str, bit_depth: int | None) -> float:
+    """The divisor of an integer frame of ``dtype`` (``"uint8"``, ``"uint16"``, another integer type of 8-bit DN) for
+    ``bit_depth`` (:func:`as_frame`); ValueError where ``bit_depth`` does not fit the frame's type."""
+    if dtype == "uint16":
+        return float(2 ** (16 if bit_depth is None else bit_depth) - 1)
+    if bit_depth not in (None, 8):
+        raise ValueError(f"bit_depth = {bit_depth} is for uint16 frames; this frame is {dtype}, read as 8-bit DN "
+                         "(DN/255): give bit_depth=None (or 8)")
+    return 255.0
+
+
+def _check_bits(hi: float, bit_depth: int | None) -> None:
+    """A uint16 frame's largest value ``hi`` must fit ``bit_depth`` bits (:func:`as_frame`)."""
+    if bit_depth is not None and bit_depth < 16 and hi > 2**bit_depth - 1:
+        raise ValueError(f"uint16 frame value {hi:g} exceeds the {bit_depth}-bit range 0…{2**bit_depth - 1} "
+                         f"(bit_depth = {bit_depth}); give the camera's real bit depth (None or 16 if it fills the "
+                         "16-bit word)")
+
+
+def as_frame(frame: Any, bit_depth: int | None = None) -> torch.Tensor:
     """A frame as a 1×1×H×W float32 tensor in [0, 1].
 
     Accepts a torch tensor (H×W, C×H×W or 1×C×H×W, channels first) or a NumPy array (H×W or H×W×C,
-    channels last, RGB order), C ∈ {1, 2, 3, 4} (colour → BT.601 luma, alpha dropped). uint8 is DN/255,
-    uint16 DN/65535 (as :func:`camhealth.data.read_image`), other integers are 8-bit DN that must lie in
-    [0, 255]; floats must lie in [0, 1]. Raises ``TypeError``/``ValueError`` naming the problem.
+    channels last, RGB order), C ∈ {1, 2, 3, 4} (colour → BT.601 luma, alpha dropped). uint8 is DN/255;
+    uint16 is DN/(2^bit_depth − 1): ``bit_depth`` ``None`` (default) or 16 divides by 65535 (the full 16-bit word),
+    10, 12 or 14 (any integer 8…16) by 1023, 4095 or 16383 — a value above that range is refused. Nothing is guessed
+    here: :func:`camhealth.data.read_image` (the CLI's reader) takes the depth of a 16-bit file from its PNG
+    ``sBIT`` chunk or its largest value by default, so pass the camera's ``bit_depth`` for 10-, 12- or 14-bit data in
+    uint16 arrays. Other integers are 8-bit DN that must lie in [0, 255]; floats must lie in [0, 1]; ``bit_depth``
+    applies to uint16 frames only (``None`` or 8 for other integers, ``None`` for floats). Raises
+    ``TypeError``/``ValueError`` naming the problem.
     """
     from camhealth.data.io import to_gray
 
+    bit_depth = _check_bit_depth(bit_depth)
     from_integers = False
     if isinstance(frame, np.ndarray):
         if frame.dtype == np.bool_ or frame.dtype.kind not in "uif":
@@ -133,13 +177,19 @@ def as_frame(frame: Any) -> torch.Tensor:
         if arr.ndim not in (2, 3):
             raise ValueError(f"frame must be H×W or H×W×C (channels last), got shape {arr.shape}")
         if arr.dtype.kind in "ui":
-            scale = 65535.0 if arr.dtype == np.uint16 else 255.0
+            scale = _integer_scale(str(arr.dtype) if arr.dtype in (np.uint8, np.uint16) else f"{arr.dtype} (8-bit DN)",
+                                   bit_depth)
             hi = float(arr.max()) if arr.size else 0.0
             lo = float(arr.min()) if arr.size else 0.0
             if arr.dtype not in (np.uint8, np.uint16) and (lo < 0 or hi > 255):
                 raise ValueError(f"integer frame values are 8-bit DN and must lie in [0, 255], got min {lo:g}, max {hi:g}")
+            if arr.dtype == np.uint16:
+                _check_bits(hi, bit_depth)
             arr = arr.astype(np.float32) / np.float32(scale)
             from_integers = True
+        elif bit_depth is not None:
+            raise ValueError(f"bit_depth = {bit_depth} is for uint16 frames; this frame is {arr.dtype} in [0, 1]: give "
+                             "bit_depth=None")
         gray = to_gray(arr) if arr.ndim == 3 else arr
         x = torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32))
     elif isinstance(frame, torch.Tensor):
@@ -151,14 +201,21 @@ def as_frame(frame: Any) -> torch.Tensor:
                 raise ValueError(f"process one frame at a time: got a batch of {x.shape[0]} (shape {tuple(x.shape)})")
             x = x[0]
         if not x.is_floating_point():
-            scale = 65535.0 if x.dtype == torch.uint16 else 255.0
+            names = {torch.uint8: "uint8", torch.uint16: "uint16"}
+            scale = _integer_scale(names.get(x.dtype, f"{x.dtype} (8-bit DN)"), bit_depth)
             if x.dtype not in (torch.uint8, torch.uint16):  # (in range by their type; torch has no min of uint16)
                 wide = x.to(torch.float64) if x.dtype in (torch.uint32, torch.uint64) else x  # (no min of those either)
                 lo, hi = (float(wide.min()), float(wide.max())) if x.numel() else (0.0, 0.0)
                 if lo < 0 or hi > 255:
                     raise ValueError(f"integer frame values are 8-bit DN and must lie in [0, 255], got min {lo:g}, max {hi:g}")
-            x = x.float().div_(scale)
+            x = x.float()
+            if names.get(frame.dtype) == "uint16" and x.numel():
+                _check_bits(float(x.max()), bit_depth)
+            x = x.div_(scale)
             from_integers = True
+        elif bit_depth is not None:
+            raise ValueError(f"bit_depth = {bit_depth} is for uint16 frames; this frame is {x.dtype} in [0, 1]: give "
+                             "bit_depth=None")
         if x.ndim == 3:
             if x.shape[0] not in (1, 2, 3, 4):
                 raise ValueError(f"frame must be C×H×W with C in 1…4 (channels first), got shape {tuple(frame.shape)}")
@@ -274,8 +331,8 @@ def load_metadata(
 
 def load_policy(
     iopc_files: Sequence[str | Path],
-    exposure_limits_s: tuple[float, float] = (0.001, 0.2),
-    gain_limits_db: tuple[float, float] = (0.0, 24.0),
+    exposure_limits_s: tuple[float, float] = METADATA_RANGES["exposure_s"],
+    gain_limits_db: tuple[float, float] = METADATA_RANGES["gain_db"],
     weights: Sequence[float] | None = None,
 ) -> Any:
     """An :class:`camhealth.control.ExposurePolicy` from IOPC files (``.json``/``.npz`` written by
@@ -339,13 +396,14 @@ class TaskReport:
             posterior's spread (:func:`camhealth.estimators.physics_noise.physics_noise_posterior`). NaN (JSON
             ``null``) when the estimator gives none (a network, or an MTF file without an error table at
             ``mtf_views`` 1). It is the typical error bar of one patch's value, not of ``median``.
-        n_values: number of values behind ``median`` (map mode: patches with a value; sampled mode: samples
-            in the window).
+        n_values: number of values behind ``median``, the n of its standard error (map mode: patches with a value;
+            sampled mode: the distinct estimates among the window's samples — a static patch's kept estimate, reused in
+            several frames, counts once).
         coverage: where the networks ran this frame (see :meth:`Monitor.process`): ``mode``, ``estimated``
-            (patches sent to the network and assessable), ``informative``, ``total``, ``area_fraction``
-            (estimated area / frame area), ``values`` (= n_values), ``frames`` (frames behind the answer),
-            ``patches_xy`` (sampled mode: top-left corners [px] of the estimated patches; map mode: ``None``,
-            the per-patch map says where).
+            (patches sent to the network this frame and assessable), ``reused`` (patches that kept their last estimate,
+            no network call), ``informative``, ``total``, ``area_fraction`` (estimated area / frame area), ``values``
+            (= n_values), ``frames`` (frames behind the answer), ``patches_xy`` (sampled mode: top-left corners [px]
+            of the patches estimated this frame; map mode: ``None``, the per-patch map says where).
         counts: patches per status (:data:`~camhealth.monitor.tiling.STATUS_NAMES`) and ``total``.
         refused: this frame's patches the estimator refused (status ``not_assessable``), by the reason it gave —
             e.g. ``{"textured": 3, "noise beyond validated range": 1}`` for the noise sources, ``{"no edges": 2}``
@@ -356,21 +414,23 @@ class TaskReport:
             when there were none.
         banding: noise only: row and column noise (offsets shared by whole pixel rows or columns, which no metadata
             field makes; :mod:`camhealth.estimators.row_column_noise`) on this frame's assessable patches where the
-            estimator reports it (``row_column_dn``): ``{"row_dn", "col_dn"}`` the medians over the patches with any
+            estimator reports it (``row_column_dn``) — those estimated this frame and those reused, with the evidence
+            of their last estimate (as their values): ``{"row_dn", "col_dn"}`` the medians over the patches with any
             [DN] (0 for a direction none shows) and ``"patches"``; ``None`` when no patch shows any. It is part of
             σ_Total and ξ, and the alarm names it.
         defects: noise only: pixels that stand above (``hot``) or below (``dark``) all their neighbours by far more
             than the local noise (hot, stuck or dead pixels, impulses, or the scene's own points of light;
-            :mod:`camhealth.estimators.defective_pixels`) on this frame's freshly estimated patches, every one of them
-            (assessable or not): ``{"hot", "dark", "checked"`` (pixels tested), ``"ppm"`` (per million tested),
+            :mod:`camhealth.estimators.defective_pixels`) on this frame's estimated patches, every one of them
+            (assessable or not), and on its reused patches as their last estimate found them: ``{"hot", "dark",
+            "checked"`` (pixels tested), ``"ppm"`` (per million tested),
             ``"patches"`` (with any), ``"recurring"}`` (at a pixel where an earlier frame of the run had one too: a
             defect stays where it is while the scene moves), and with a defect map (``Monitor(defect_map=...)``)
             ``"known"`` (at a pixel the map marks); ``None`` when no pixel stands out. Not part of σ_Total; the alarm
             names them from :data:`DEFECT_ALARM_PPM` on, with a map counting only the pixels it does not mark
             (:func:`new_defect_ppm`).
-        cause: noise only, where this frame's assessable patches follow the image (their noise contradicts the
-            metadata): which kind of cause the evidence names — ``{"gain", "dark_current", "readout"}``, the
-            probabilities (summing to 1) that the gain is wrong, that the dark current is (the sensor's temperature),
+        cause: noise only, where this frame's assessable patches (estimated, or reused with the evidence of their last
+            estimate) follow the image (their noise contradicts the metadata): which kind of cause the evidence names —
+            ``{"gain", "dark_current", "readout"}``, the probabilities (summing to 1) that the gain is wrong, that the dark current is (the sensor's temperature),
             or that there is more readout-like white noise than the metadata say (the white-noise density, or noise
             beyond what any field in range explains), the mean of the estimator's ``cause`` over those patches
             (:data:`CAUSE_GROUPS`), and ``"patches"``; ``None`` where no patch follows the image. One exposure time
@@ -570,9 +630,10 @@ def mtf_under_banding(mtf: TaskReport, banding: Mapping[str, Any], estimated: in
     """The frame's MTF report, not assessable where the frame's row or column noise reaches
     :data:`MTF_BANDING_LIMIT_DN` (a copy with ``assessable=False`` and a note that names it); else ``mtf`` itself.
 
-    ``estimated``: the noise patches estimated this frame. Banding belongs to the camera, so it shows on most of
-    them; where fewer than half show it (each patch judged on its own, ``pool_noise=False``), it is a few patches'
-    stripes and the MTF stands."""
+    ``estimated``: the noise patches whose evidence makes the frame's banding — estimated this frame (and assessable)
+    or reused with the evidence of their last estimate. Banding belongs to the camera, so it shows on most of them;
+    where fewer than half show it (each patch judged on its own, ``pool_noise=False``), it is a few patches' stripes
+    and the MTF stands."""
     worst = max(float(banding.get("row_dn", 0.0)), float(banding.get("col_dn", 0.0)))
     if not mtf.assessable or worst < MTF_BANDING_LIMIT_DN:
         return mtf
@@ -662,10 +723,22 @@ class _TaskState:
     # this frame's refusals: reason → patches, and ξ [DN] of the patches refused as beyond the validated range
     refused: dict[str, int] = field(default_factory=dict)
     beyond_xi: list[float] = field(default_factory=list)
+    # this frame's noise evidence (:meth:`gather`, from the patches with an estimate of their own this frame: fresh or
+    # reused — a reused patch keeps the evidence of its last estimate, as it keeps its values)
     banding: list[tuple[float, float]] = field(default_factory=list)  # (row, column) σ [DN] of this frame's patches
     causes: list[torch.Tensor] = field(default_factory=list)  # (n, 4) the estimator's cause of the patches that follow the image
     defects: list[int] = field(default_factory=lambda: [0, 0, 0, 0])  # this frame's hot, dark, checked pixels, patches with any
     defect_xy: list[tuple[int, int]] = field(default_factory=list)  # their frame coordinates (x, y) [px]
+    # each patch's noise evidence from its last estimate, kept beside its values (``values``, ``memory``)
+    band: torch.Tensor = field(init=False)  # (n, 2) row, column σ [DN]; NaN where the last estimate was not assessable
+    cause_p: torch.Tensor | None = None  # (n, C) the estimator's cause where the patch followed the image, else NaN
+    defect_n: torch.Tensor = field(init=False)  # (n, 3) hot, dark and tested pixels
+    defect_at: dict[int, list[tuple[int, int]]] = field(default_factory=dict)  # patch → its defects' (x, y) [px]
+    # sampled mode: the identity of each patch's last estimate and of every sample in the window (one estimate that a
+    # static patch keeps over several frames is one value of the window, not several)
+    memory_id: torch.Tensor = field(init=False)
+    samples_id: torch.Tensor = field(init=False)
+    next_id: int = 0
     # static pairs (noise): the previous frame's patches, this frame's reference for them, and the patches read from a pair
     previous: torch.Tensor | None = None
     reference: torch.Tensor | None = None
@@ -692,18 +765,65 @@ class _TaskState:
         self.std = torch.full((n, self.k), float("nan"))
         self.memory_std = torch.full((n, self.k), float("nan"))
         self.samples_std = torch.full((self.window, self.n_samples, self.k), float("nan"))
+        self.memory_id = torch.full((n,), -1, dtype=torch.long)
+        self.samples_id = torch.full((self.window, self.n_samples), -1, dtype=torch.long)
         self.sample_slot = 0
         self.previous = self.reference = None
         self.frames_seen = 0
+        self.band = torch.full((n, 2), float("nan"))
+        self.cause_p = None
+        self.defect_n = torch.zeros(n, 3, dtype=torch.long)
+        self.defect_at = {}
 
-    def push_samples(self, vals: torch.Tensor, std: torch.Tensor) -> None:
-        """Sampled mode: this frame's assessable samples (n, K) and their estimator spread (n, K) replace the
-        oldest frame of the window."""
-        for buf, v in ((self.samples, vals), (self.samples_std, std)):
+    def clear_evidence(self, index: torch.Tensor) -> None:
+        """Forget the noise evidence of the patches ``index`` (re-estimated, or given an interpolated value)."""
+        if index.numel() == 0:
+            return
+        self.band[index] = float("nan")
+        if self.cause_p is not None:
+            self.cause_p[index] = float("nan")
+        self.defect_n[index] = 0
+        for i in index.tolist():
+            self.defect_at.pop(i, None)
+
+    def gather(self, index: torch.Tensor) -> None:
+        """This frame's ``banding``, ``causes``, ``defects`` and ``defect_xy`` from the evidence of the patches ``index``
+        (those with an estimate of their own this frame: fresh, or reused with the evidence of their last estimate)."""
+        band = self.band[index]
+        shows = torch.isfinite(band).all(1) & (band > 0).any(1)
+        self.banding = [tuple(b) for b in band[shows].tolist()]
+        self.causes = []
+        if self.cause_p is not None:
+            cause = self.cause_p[index]
+            cause = cause[torch.isfinite(cause).all(1)]
+            if cause.numel():
+                self.causes = [cause]
+        d = self.defect_n[index]
+        self.defects = [int(d[:, 0].sum()), int(d[:, 1].sum()), int(d[:, 2].sum()), int((d[:, :2].sum(1) > 0).sum())]
+        self.defect_xy = [xy for i in index.tolist() for xy in self.defect_at.get(i, ())]
+
+    def push_samples(self, vals: torch.Tensor, std: torch.Tensor, ids: torch.Tensor) -> None:
+        """Sampled mode: this frame's assessable samples (n, K), their estimator spread (n, K) and the identities of
+        their estimates (n,) replace the oldest frame of the window."""
+        for buf, v, empty in ((self.samples, vals, float("nan")), (self.samples_std, std, float("nan")),
+                              (self.samples_id, ids, -1)):
             row = buf[self.sample_slot]
-            row.fill_(float("nan"))
+            row.fill_(empty)
             row[: v.shape[0]] = v[: self.n_samples]
         self.sample_slot = (self.sample_slot + 1) % self.window
+
+    def distinct_samples(self) -> torch.Tensor:
+        """(window·n_samples,) bool: the samples of the window with a value, each estimate once (a reused sample is the
+        estimate it repeats: counted where it first appears)."""
+        flat = self.samples.reshape(-1, self.k)
+        keep = torch.isfinite(flat[:, -1])
+        seen: set[int] = set()
+        for i, ident in enumerate(self.samples_id.reshape(-1).tolist()):
+            if keep[i] and ident >= 0:
+                if ident in seen:
+                    keep[i] = False
+                seen.add(ident)
+        return keep
 
     def push(self, index: torch.Tensor, vals: torch.Tensor) -> None:
         """Append fresh estimates to the patches' ring buffers."""
@@ -816,6 +936,12 @@ def cause_text(cause: Mapping[str, Any], noisier: bool = True) -> str:
     if ranked[1][0] >= 0.25:
         text += f"; {words[ranked[1][1]]} P {ranked[1][0]:.2f}"
     return text + f", {cause.get('patches', 0)} patches)"
+
+
+def _judged(noise: TaskReport) -> int:
+    """The noise patches whose evidence makes a frame's ``banding`` and ``cause``: those estimated (and assessable) this
+    frame and those reused with the evidence of their last estimate (``coverage`` ``estimated`` + ``reused``)."""
+    return int(noise.coverage.get("estimated", 0)) + int(noise.coverage.get("reused", 0))
 
 
 def _refusals(st: _TaskState) -> dict[str, Any]:
@@ -1260,19 +1386,21 @@ class Monitor:
                 xi = float(torch.as_tensor(out["xi"]).reshape(n)[i])
                 if math.isfinite(xi):
                     st.beyond_xi.append(xi)
+        if task == "noise":  # each patch's evidence beside its values (kept where a later frame reuses them)
+            st.clear_evidence(index)
         if task == "noise" and out.get("row_column_dn") is not None:
             band = torch.as_tensor(out["row_column_dn"]).float().reshape(n, 2)
-            st.banding += [tuple(band[i].tolist()) for i in ((band > 0).any(1) & ok).nonzero()[:, 0].tolist()]
+            st.band[index[ok]] = band[ok]
         if task == "noise" and out.get("cause") is not None and out.get("follows_image") is not None:
             follows = torch.as_tensor(out["follows_image"]).bool().reshape(n) & ok
-            cause = torch.as_tensor(out["cause"]).float().reshape(n, -1)[follows]
-            cause = cause[torch.isfinite(cause).all(1)]
-            if cause.numel():
-                st.causes.append(cause)
+            cause = torch.as_tensor(out["cause"]).float().reshape(n, -1)
+            if st.cause_p is None or st.cause_p.shape[1] != cause.shape[1]:
+                st.cause_p = torch.full((st.grid.n, cause.shape[1]), float("nan"))
+            st.cause_p[index[follows]] = cause[follows]
         if task == "noise" and out.get("defects") is not None:
             checked = out.get("defects_checked")  # pixels tested per patch (0 where a patch is a pattern, not tested)
-            checked = (int(torch.as_tensor(checked).sum()) if checked is not None
-                       else n * int(patches.shape[-2] - 2) * int(patches.shape[-1] - 2))
+            checked = (torch.as_tensor(checked).reshape(n).long() if checked is not None
+                       else torch.full((n,), int(patches.shape[-2] - 2) * int(patches.shape[-1] - 2), dtype=torch.long))
             self._count_defects(st, index, torch.as_tensor(out["defects"]).reshape(n, 2), out.get("defect_mask"), checked)
         ok &= torch.isfinite(vals[:, -1])
         vals[~ok] = float("nan")
@@ -1280,14 +1408,11 @@ class Monitor:
         return vals, ok, std
 
     @staticmethod
-    def _count_defects(st: _TaskState, index: torch.Tensor, counts: torch.Tensor, mask: Any, checked: int) -> None:
-        """Adds the defective pixels the noise estimator found on the patches ``index`` of the grid (``counts`` (n, 2):
-        hot, dark; ``checked`` pixels tested on them) to this frame's, with their frame coordinates where ``mask``
-        (n, 1, P, P) gives them."""
-        st.defects[0] += int(counts[:, 0].sum())
-        st.defects[1] += int(counts[:, 1].sum())
-        st.defects[2] += checked
-        st.defects[3] += int((counts.sum(1) > 0).sum())
+    def _count_defects(st: _TaskState, index: torch.Tensor, counts: torch.Tensor, mask: Any, checked: torch.Tensor) -> None:
+        """Keeps the defective pixels the noise estimator found on the patches ``index`` of the grid (``counts`` (n, 2):
+        hot, dark; ``checked`` (n,) pixels tested on each) as each patch's evidence, with their frame coordinates where
+        ``mask`` (n, 1, P, P) gives them."""
+        st.defect_n[index] = torch.cat([counts.long(), checked.reshape(-1, 1)], 1)
         if mask is None or not bool((counts > 0).any()):
             return
         mask = torch.as_tensor(mask)
@@ -1295,7 +1420,9 @@ class Monitor:
             return
         where = (mask[:, 0] != 0).nonzero()  # (m, 3): patch, y, x
         origin = st.grid.boxes()[index][where[:, 0]]
-        st.defect_xy += list(zip((origin[:, 0] + where[:, 2]).tolist(), (origin[:, 1] + where[:, 1]).tolist()))
+        for p, x, y in zip(index[where[:, 0]].tolist(), (origin[:, 0] + where[:, 2]).tolist(),
+                           (origin[:, 1] + where[:, 1]).tolist()):
+            st.defect_at.setdefault(p, []).append((x, y))
 
     def _run_task(self, task: str, frame: torch.Tensor, meta: CameraMetadata | None) -> TaskReport:
         st = self._states[task]
@@ -1331,6 +1458,8 @@ class Monitor:
             new_vals, new_ok, new_std = self._estimate(task, patches, new, meta)
             st.memory[new] = new_vals
             st.memory_std[new] = new_std
+            st.memory_id[new] = torch.arange(st.next_id, st.next_id + new.numel())  # a new estimate each
+            st.next_id += int(new.numel())
             if self.reuse_static:
                 st.static.update(new[new_ok], stats, self._counter)
             vals = st.memory[idx]
@@ -1341,11 +1470,12 @@ class Monitor:
             code[idx[~ok]] = NOT_ASSESSABLE
             values[idx] = vals
             st.last_sampled[idx] = self._counter
-            st.push_samples(vals[ok], st.memory_std[idx][ok])
+            st.push_samples(vals[ok], st.memory_std[idx][ok], st.memory_id[idx][ok])
             st.values, st.code = values, code
-            boxes = grid.boxes()[idx[ok]]
+            st.gather(torch.cat([new, idx[reuse]]))  # a reused sample keeps its estimate's evidence
+            boxes = grid.boxes()[idx[ok & ~reuse]]  # the patches estimated (and assessable) this frame
             return self._with_pairs(task, st, self._aggregate_sampled(task, st, handle.name, int(informative.sum()), boxes,
-                                                                      int(reuse.sum())))
+                                                                      int(reuse.sum()), int(ok.sum())))
         if self.reuse_static:
             had = torch.isfinite(st.values).any(1) & torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8))
             reuse = informative & had & ~st.static.changed(stats) & ~st.static.due(self._counter)
@@ -1359,6 +1489,7 @@ class Monitor:
         fresh = torch.zeros(grid.n, dtype=torch.bool)
         idx = first.nonzero()[:, 0]
         vals, ok, vstd = self._estimate(task, patches, idx, meta)
+        estimated = [idx]  # the patches estimated this frame (assessable or not)
         values[idx] = vals
         std[idx] = vstd
         code[idx[~ok]] = NOT_ASSESSABLE
@@ -1383,8 +1514,11 @@ class Monitor:
                 interpolated, ivals = refine_plan(grid, remaining, values, valid, cfg.value_tol_mtf, cues)
             values[interpolated] = ivals[interpolated]
             code[interpolated] = INTERPOLATED
+            if task == "noise":  # an interpolated value has no evidence of its own (nor does it, when reused later)
+                st.clear_evidence(interpolated.nonzero()[:, 0])
             idx2 = (remaining & ~interpolated).nonzero()[:, 0]
             vals2, ok2, vstd2 = self._estimate(task, patches, idx2, meta)
+            estimated.append(idx2)
             values[idx2] = vals2
             std[idx2] = vstd2
             code[idx2[~ok2]] = NOT_ASSESSABLE
@@ -1394,6 +1528,7 @@ class Monitor:
             st.static.update(new_idx, stats, self._counter)
         st.push(new_idx, values[new_idx])
         st.values, st.code, st.std = values, code, std
+        st.gather(torch.cat([*estimated, (code == REUSED).nonzero()[:, 0]]))  # a reused patch keeps its evidence
         fresh_n = int(fresh.sum())
         return self._with_pairs(task, st, self._aggregate(task, st, handle.name, int(informative.sum()), fresh_n))
 
@@ -1416,27 +1551,29 @@ class Monitor:
                 "patches_xy": None if boxes is None else boxes[:, :2].tolist()}
 
     def _aggregate_sampled(self, task: str, st: _TaskState, name: str, informative: int, boxes: torch.Tensor,
-                           reused: int = 0) -> TaskReport:
-        """Frame answer of sampled mode: median of all samples of the last ``window`` frames (``reused`` of this
-        frame's samples are the earlier estimates of unchanged patches)."""
+                           reused: int = 0, valued: int | None = None) -> TaskReport:
+        """Frame answer of sampled mode: median of all samples of the last ``window`` frames (``boxes``: this frame's
+        patches estimated and assessable; ``reused`` of this frame's samples are the earlier estimates of unchanged
+        patches, each standing for its frame's sample; ``valued``: this frame's samples with a value, estimated or
+        reused). Its standard error counts each estimate once: n = the distinct estimates in the window
+        (``coverage["values"]``), not a kept estimate once per frame it recurs in."""
         grid = st.grid
         counts = status_counts(st.code)
         counts["total"] = grid.n
         flat = st.samples.reshape(-1, st.k)
         has = torch.isfinite(flat[:, -1])
         vals = flat[has]
+        n = int(st.distinct_samples().sum())
         frames = int(torch.isfinite(st.samples[..., -1]).any(1).sum())
-        coverage = self._coverage("sampled", grid, int(boxes.shape[0]), informative, int(vals.shape[0]), frames, boxes,
-                                  reused)
+        coverage = self._coverage("sampled", grid, int(boxes.shape[0]), informative, n, frames, boxes, reused)
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
                     grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage, **_refusals(st))
-        if boxes.shape[0] == 0:  # as in map mode: a frame without an informative patch is not assessable
+        if (int(boxes.shape[0]) if valued is None else valued) == 0:  # as in map mode: no informative patch
             skipped = {k: v for k, v in counts.items() if k in ("black", "saturated", "featureless", "no_edges", "not_assessable") and v}
             why = ", ".join(f"{v} {k}" for k, v in skipped.items()) or "no patch"
             return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}"
                               + (f"; refused: {_reasons_text(st.refused)})" if st.refused else ")"))
         spatial = spatial_median(vals, dim=0)
-        n = int(vals.shape[0])
         per_frame = torch.nanmedian(st.samples, dim=1).values  # (window, K), NaN for frames without samples
         tspread = spatial_median(per_frame, dim=0).spread
         cur = st.samples[(st.sample_slot - 1) % st.window]
@@ -1501,14 +1638,18 @@ class Monitor:
                           estimator_std=est_std, n_values=n)
 
     # ------------------------------------------------------------------ public
-    def process(self, frame: Any, metadata: Any = None, index: int | None = None, source_id: str | None = None) -> FrameReport:
+    def process(self, frame: Any, metadata: Any = None, index: int | None = None, source_id: str | None = None,
+                bit_depth: int | None = None) -> FrameReport:
         """Monitor one frame (see :func:`as_frame` for accepted inputs) → :class:`FrameReport`.
 
         ``metadata``: this frame's metadata if it differs from the monitor's (CameraMetadata, a mapping of
-        changed fields such as ``{"gain_db": 12}``, or a file); a change restarts the aggregation."""
+        changed fields such as ``{"gain_db": 12}``, or a file); a change restarts the aggregation.
+        ``bit_depth``: the significant bits of a uint16 frame (:func:`as_frame`): ``None`` (default) or 16 reads it as
+        DN/65535, 10, 12 or 14 as DN/(2^bit_depth − 1) — nothing is guessed from the values (the CLI's image files are
+        read by :func:`camhealth.data.read_image` with ``--bit-depth``, ``auto`` by default)."""
         t0 = time.perf_counter()
         with torch.inference_mode():
-            x = as_frame(frame)
+            x = as_frame(frame, bit_depth)
             meta = self._frame_metadata(metadata)
             h, w = int(x.shape[-2]), int(x.shape[-1])
             self._prepare(h, w)
@@ -1527,7 +1668,7 @@ class Monitor:
             t2 = time.perf_counter()
             noise = reports.get("noise")
             if "mtf" in reports and noise is not None and noise.banding:
-                reports["mtf"] = mtf_under_banding(reports["mtf"], noise.banding, int(noise.coverage.get("estimated", 0)))
+                reports["mtf"] = mtf_under_banding(reports["mtf"], noise.banding, _judged(noise))
             if noise is not None and noise.defects:
                 xy = self._states["noise"].defect_xy
                 noise.defects["recurring"] = self._recurring(xy)
@@ -1604,8 +1745,7 @@ class Monitor:
             out["message"] += "; " + banding_text(noise.banding)
         elif noise.cause and out["state"] in ("noisier", "cleaner"):
             out["message"] += "; " + cause_text(noise.cause, out["state"] == "noisier")
-        elif (noise.cause and out["state"] == "ok"
-              and 2 * int(noise.cause.get("patches", 0)) >= int(noise.coverage.get("estimated", 0))):
+        elif noise.cause and out["state"] == "ok" and 2 * int(noise.cause.get("patches", 0)) >= _judged(noise):
             # the frame's ξ is within the limit, but its sources depart from the metadata's (a mismatch that moves the
             # total less than the alarm waits for): say what they point to
             out["message"] += ("; the noise sources depart from the metadata's closed form: "

@@ -97,8 +97,17 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
                         with z.zip.open(key + ".npy") as fp:
                             _declared_size(fp, f"defect map {str(path)!r}[{key}]")
                     arrays = [np.asarray(z[key]) for key in keys]
-                    if len(arrays) == 2 and arrays[0].shape == arrays[1].shape and all(a.dtype == np.bool_ for a in arrays):
-                        return arrays[0] | arrays[1], f"{path.name}[{' | '.join(keys)}]"
+                    if len(arrays) == 2:  # calibration's hot and dead pixels: their union, each checked as a map
+                        hot, dead = (f"{path.name}[{key}]" for key in keys)
+                        if arrays[0].shape != arrays[1].shape:
+                            raise _Refused(f"defect map {str(path)!r}: {keys[0]} has shape {tuple(arrays[0].shape)} but "
+                                           f"{keys[1]} has shape {tuple(arrays[1].shape)}: both must cover the same frame, "
+                                           "pixel for pixel")
+                        try:
+                            union = _mask(arrays[0], hot) | _mask(arrays[1], dead)
+                        except ValueError as err:  # (final: not the archive's own read errors below)
+                            raise _Refused(str(err)) from None
+                        return union, f"{path.name}[{' | '.join(keys)}]"
                     return arrays[0], f"{path.name}[{keys[0]}]"
         except _Refused:
             raise
@@ -148,6 +157,24 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
                      f"{['.npz', '.npy', *IMAGE_SUFFIXES]}")
 
 
+def _mask(arr: np.ndarray, name: str) -> np.ndarray:
+    """``arr`` as a bool H×W map: 2-D, not empty, bool or whole numbers 0/1 (ValueError naming ``name`` otherwise)."""
+    if arr.ndim != 2:
+        raise ValueError(f"{name} has shape {tuple(arr.shape)}: a defect map must be 2-D (H×W)")
+    if arr.size == 0:
+        raise ValueError(f"{name} is empty (shape {tuple(arr.shape)})")
+    if arr.dtype == np.bool_:
+        return arr
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"{name} has dtype {arr.dtype}: expected bool or whole numbers 0/1")
+    values = np.unique(arr)
+    if not np.isin(values, (0, 1)).all():
+        shown = ", ".join(f"{v:g}" for v in values[:6].astype(float))
+        raise ValueError(f"{name} holds the values {shown}{' …' if values.size > 6 else ''}: a defect map must be "
+                         "bool or 0/1")
+    return arr != 0
+
+
 def load_defect_map(source: Any, shape: tuple[int, int] | None = None) -> torch.Tensor:
     """The known defective pixels as a bool tensor (H, W) (module docstring for the forms accepted).
 
@@ -169,19 +196,7 @@ def load_defect_map(source: Any, shape: tuple[int, int] | None = None) -> torch.
         arr, name = source, "defect map"
     else:
         raise TypeError(f"defect map must be a path or an H×W array, got {type(source).__name__}")
-    if arr.ndim != 2:
-        raise ValueError(f"{name} has shape {tuple(arr.shape)}: a defect map must be 2-D (H×W)")
-    if arr.size == 0:
-        raise ValueError(f"{name} is empty (shape {tuple(arr.shape)})")
-    if arr.dtype != np.bool_:
-        if arr.dtype.kind not in "biuf":
-            raise ValueError(f"{name} has dtype {arr.dtype}: expected bool or whole numbers 0/1")
-        values = np.unique(arr)
-        if not np.isin(values, (0, 1)).all():
-            shown = ", ".join(f"{v:g}" for v in values[:6].astype(float))
-            raise ValueError(f"{name} holds the values {shown}{' …' if values.size > 6 else ''}: a defect map must be "
-                             "bool or 0/1")
-        arr = arr != 0
+    arr = _mask(arr, name)
     if shape is not None and tuple(arr.shape) != tuple(shape):
         raise ValueError(f"{name} is {arr.shape[1]}×{arr.shape[0]} px (W×H) but the frames are {shape[1]}×{shape[0]} "
                          "px: the map must cover the whole frame, pixel for pixel")

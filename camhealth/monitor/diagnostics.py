@@ -37,7 +37,7 @@ from typing import Any
 from camhealth.monitor.api import DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text, new_defect_ppm, top_cause
 
 __all__ = ["OK", "WARN", "ERROR", "LEVEL_NAMES", "KEYS", "DIAGNOSTICS_TOPIC", "DIAGNOSTICS_SUFFIXES",
-           "frame_level", "key_values", "DiagnosticsWriter", "read_diagnostics"]
+           "frame_level", "key_values", "check_diagnostics_path", "DiagnosticsWriter", "read_diagnostics"]
 
 OK, WARN, ERROR = 0, 1, 2
 #: ``DiagnosticStatus.level`` → name.
@@ -136,6 +136,22 @@ def key_values(report: FrameReport, level: int) -> list[tuple[str, str]]:
     return [(k, values[k]) for k in KEYS]
 
 
+def check_diagnostics_path(path: str | Path) -> Path:
+    """``path`` as the file a :class:`DiagnosticsWriter` can write: ending in ``.mcap`` or ``.bag``, not a folder, in a
+    folder that exists. Raises ``ValueError`` (``FileNotFoundError`` for a missing folder) naming the path, before
+    anything is written (``python -m camhealth.monitor`` checks ``--diagnostics-out`` so before the run)."""
+    path = Path(path)
+    if path.suffix.lower() not in DIAGNOSTICS_SUFFIXES:
+        raise ValueError(f"diagnostics file {path} must end in .mcap (ROS 2) or .bag (ROS 1), got {path.suffix!r}")
+    if path.is_dir():
+        raise ValueError(f"diagnostics file {path} is a folder; give a file name ending in .mcap or .bag")
+    if not path.parent.exists():
+        raise FileNotFoundError(f"folder of the diagnostics file does not exist: {path.parent}")
+    if not path.parent.is_dir():
+        raise ValueError(f"cannot write diagnostics file {path}: {path.parent} is a file, not a folder")
+    return path
+
+
 class DiagnosticsWriter:
     """Writes one ``DiagnosticArray`` per frame to ``path`` (``.mcap``: MCAP with ROS 2 CDR messages;
     ``.bag``: ROS 1 bag). ``hardware_id`` of every status: the one given, else the image's ``frame_id``, else
@@ -144,14 +160,8 @@ class DiagnosticsWriter:
 
     def __init__(self, path: str | Path, status_name: str, hardware_id: str = "", xi_threshold_dn: float = 1.0,
                  topic: str = "") -> None:
-        self.path = Path(path)
+        self.path = check_diagnostics_path(path)
         suffix = self.path.suffix.lower()
-        if suffix not in DIAGNOSTICS_SUFFIXES:
-            raise ValueError(f"diagnostics file {self.path} must end in .mcap (ROS 2) or .bag (ROS 1), got {self.path.suffix!r}")
-        if self.path.is_dir():
-            raise ValueError(f"diagnostics file {self.path} is a folder; give a file name ending in .mcap or .bag")
-        if not self.path.parent.exists():
-            raise FileNotFoundError(f"folder of the diagnostics file does not exist: {self.path.parent}")
         from rosbags.typesys import Stores, get_typestore
 
         self.ros1 = suffix == ".bag"
@@ -229,6 +239,18 @@ class DiagnosticsWriter:
         try:
             writer.close()
             os.replace(self._file, self.path)
+        finally:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def abort(self) -> None:
+        """Give up: the file is not written (an older one at :attr:`path` stays as it was)."""
+        if self._writer is None:
+            return
+        writer, self._writer = self._writer, None
+        try:
+            writer.close()
+        except Exception:  # noqa: BLE001 - what it had written is discarded anyway
+            pass
         finally:
             shutil.rmtree(self._tmp, ignore_errors=True)
 

@@ -117,6 +117,7 @@ class RecordingSource:
             self.recording.close()
             raise
         self.state_errors = 0
+        self._scalings: dict[str, str] = {}  # encoding → how its frames were scaled (:meth:`scaling`)
 
     @property
     def length(self) -> int:
@@ -151,11 +152,32 @@ class RecordingSource:
             return "dB" if self.options.gain_unit == "db" else "(factor)"
         return "°C" if self.options.temperature_unit == "c" else "K"
 
+    def scaling(self, encoding: str) -> str:
+        """How a frame of ``encoding`` (an ``Image`` encoding or a ``CompressedImage`` format) was scaled to [0, 1] —
+        the divisor the reader used (:func:`camhealth.data.rosbag.image_to_gray`): 8-bit data ÷255, 16-bit data
+        ÷(2^N − 1), N = ``bit_depth`` (16 unless given); the summary's ``input_scaling`` counts the frames per text."""
+        text = self._scalings.get(encoding)
+        if text is None:
+            from camhealth.data.rosbag import FrameDecodeError, _encoding_info
+
+            bits = 16 if self.options.bit_depth is None else int(self.options.bit_depth)
+            wide = f"read as {bits}-bit data (÷{2**bits - 1}{', as given' if self.options.bit_depth else ', the full 16-bit word'})"
+            declared = encoding.split(";")[0].strip()
+            try:
+                sixteen = _encoding_info(declared)[2].itemsize == 2
+            except FrameDecodeError:  # a CompressedImage format that names no encoding ("png", "jpeg"): as decoded
+                sixteen = None if "png" in encoding.lower() else False
+            name = declared or "image"
+            text = (f"{name}: 8-bit data (÷255)" if sixteen is False else f"{name} (16-bit) {wide}" if sixteen
+                    else f"{name}: 8-bit data ÷255, 16-bit data {wide}")
+            self._scalings[encoding] = text
+        return text
+
     def __iter__(self) -> Iterator[SourceFrame]:
         for rf in self.frames:
             source_id = f"{self.topic}@{format_stamp(rf.stamp_ns if rf.stamp_ns is not None else rf.log_time_ns)}"
             item = SourceFrame(rf.index, source_id, rf.frame, rf.error, stamp_ns=rf.stamp_ns, log_time_ns=rf.log_time_ns,
-                               frame_id=rf.frame_id)
+                               frame_id=rf.frame_id, scaling=None if rf.error is not None else self.scaling(rf.encoding))
             if rf.error is None and rf.state:
                 item.metadata, err = self._metadata(rf.state, rf.index)
                 if err is not None:

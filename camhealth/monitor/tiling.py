@@ -542,15 +542,18 @@ def refine_plan(
 
 def _sector_ids(grid: PatchGrid, k: int) -> torch.Tensor:
     """(N,) long: sector of every patch for ``k`` sectors — a rows × cols split of the grid with
-    rows·cols >= k chosen close to the grid's aspect; sectors beyond k merge into the last."""
-    best = (1, k)
+    rows·cols >= k chosen close to the grid's aspect (the split whose sectors come closest to square: the least
+    |rows/r − cols/c|, the fewest sector rows among equals); 1 × k where no split fits the grid; sectors beyond k merge
+    into the last."""
+    best: tuple[int, int] | None = None
+    best_aspect = math.inf
     for r in range(1, k + 1):
         c = -(-k // r)
         if r <= max(grid.rows, 1) and c <= max(grid.cols, 1):
             aspect = abs((grid.rows / r) - (grid.cols / c))
-            if best == (1, k) or aspect < abs((grid.rows / best[0]) - (grid.cols / best[1])):
-                best = (r, c)
-    r, c = best
+            if best is None or aspect < best_aspect:
+                best, best_aspect = (r, c), aspect
+    r, c = best if best is not None else (1, k)
     rc = grid.row_col()
     sr = (rc[:, 0] * r) // max(grid.rows, 1)
     sc = (rc[:, 1] * c) // max(grid.cols, 1)

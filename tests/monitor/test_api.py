@@ -670,6 +670,59 @@ def test_mtf_is_not_assessable_under_banding_from_the_limit_on():
     assert mtf_under_banding(not_assessable, {"row_dn": 9.0, "col_dn": 0.0, "patches": 8}) is not_assessable
 
 
+class _BandedNoise(FakeNoise):
+    """A noise estimator that finds 3 DN of row noise, a readout-like cause and one hot pixel (at (5, 7) of the patch)
+    on every patch it estimates, and ξ = −5 DN (the image noisier than the metadata allow)."""
+
+    def __init__(self) -> None:
+        super().__init__(xi_dn=-5.0)
+
+    def predict(self, patches, metadata=None, precision="fp32", batch_size=256):
+        out = super().predict(patches, metadata, precision, batch_size)
+        n, p = patches.shape[0], patches.shape[-1]
+        mask = torch.zeros(n, 1, p, p, dtype=torch.int8)
+        mask[:, 0, 7, 5] = 1
+        return {**out, "row_column_dn": torch.tensor([[3.0, 0.0]]).repeat(n, 1),
+                "cause": torch.tensor([[0.1, 0.0, 0.8, 0.1]]).repeat(n, 1), "follows_image": torch.ones(n, dtype=torch.bool),
+                "defects": torch.tensor([[1, 0]]).repeat(n, 1), "defects_checked": torch.full((n,), (p - 2) ** 2),
+                "defect_mask": mask}
+
+
+@pytest.mark.parametrize("mode", ["sampled", "map"])
+def test_reused_patches_keep_the_banding_cause_and_defects_of_their_estimate(mode, street_frames):
+    """A static camera whose noise patches show row noise, a cause and a hot pixel each: from the frames on where the
+    patches keep their estimates (reused, no estimator call) the frame keeps their banding, cause and defects — the MTF
+    stays not assessable under the banding, the alarm keeps naming it, the diagnostics carry it — as on the first
+    frame, where they were estimated."""
+    from camhealth.monitor.diagnostics import frame_level, key_values
+
+    fake = _BandedNoise()
+    mon = Monitor(fake, FakeMTF(), sensor="ICX285", mode=mode, coarse_refine=False, noise_samples=4, window=3)
+    frame = noisy(street_frames[0], 3.0, seed=0)
+    first = None
+    for i in range(6):
+        before = fake.patches
+        r = mon.process(frame)
+        d = _strict(r.to_json())
+        n = d["noise"]
+        judged = n["coverage"]["estimated"] + n["coverage"]["reused"]
+        assert judged > 0 and fake.patches - before == n["patches"]["estimated"] + n["patches"]["not_assessable"]
+        assert n["banding"] == {"row_dn": 3.0, "col_dn": 0.0, "patches": judged}, (i, n["coverage"])
+        assert n["cause"] == {"gain": 0.1, "dark_current": 0.0, "readout": 0.9, "patches": judged}
+        assert n["defects"]["hot"] == judged and n["defects"]["checked"] == judged * 126 * 126
+        if mode == "map":  # the same patches every frame: every hot pixel where it was
+            assert n["defects"]["recurring"] == (0 if i == 0 else judged)
+        assert d["mtf"]["assessable"] is False and "row noise ≈ 3.00 DN" in d["mtf"]["note"]
+        assert d["alarm"]["state"] == "noisier" and "row noise ≈ 3.00 DN" in d["alarm"]["message"]
+        assert dict(key_values(r, frame_level(r)[0]))["noise_row_dn"] == "3"
+        if first is None:
+            first = (n["banding"], n["cause"], n["defects"]["ppm"], d["alarm"]["message"])
+        elif mode == "map":  # the same patches every frame: the same frame verdict, estimated or kept
+            assert (n["banding"], n["cause"], n["defects"]["ppm"], d["alarm"]["message"]) == first
+    assert n["coverage"]["reused"] > 0 and n["coverage"]["estimated"] < judged  # the last frames kept their estimates
+    assert mon.summary()["banding"]["frames"] == 6
+
+
 @pytest.mark.parametrize("mode", ["sampled", "map"])
 def test_defective_pixels_are_counted_named_and_recur(mode):
     """A ramp frame with the camera's own noise and 0.5 % of its pixels hot or dead: the noise report counts them
@@ -962,6 +1015,48 @@ def test_a_torch_uint16_frame_is_read_as_dn_over_65535():
     assert float(as_frame(x).max()) == 1.0 and as_frame(torch.zeros(8, 8, dtype=torch.uint32)).shape == (1, 1, 8, 8)
     with pytest.raises(ValueError, match="must lie in \\[0, 255\\], got min 300"):
         as_frame(torch.full((8, 8), 300, dtype=torch.uint32))
+
+
+@pytest.mark.parametrize("bits", [10, 12, 14])
+def test_a_uint16_frame_of_fewer_bits_is_read_with_its_bit_depth(bits, tmp_path):
+    """12-bit (or 10-, 14-bit) data in uint16: ``bit_depth`` divides by 2^bits − 1 — the frame the CLI reads from the
+    same data in a PNG with ``--bit-depth``; without it (or 16) DN/65535 as before, for NumPy arrays and torch tensors
+    alike; ``process`` takes it too."""
+    import cv2
+
+    from camhealth.data.io import read_image
+
+    g = np.random.default_rng(0)
+    top = 2**bits - 1
+    arr = np.clip(top / 2 + g.normal(0, top / 100, (256, 384)), 0, top).astype(np.uint16)
+    arr[0, 0] = top
+    assert cv2.imwrite(str(tmp_path / "f.png"), arr)
+    cli = read_image(tmp_path / "f.png", bit_depth=bits)
+    for x in (arr, torch.from_numpy(arr.astype(np.int32)).to(torch.uint16)):
+        f = as_frame(x, bit_depth=bits)
+        assert torch.allclose(f[0, 0], cli.reshape(f.shape[-2:]), atol=1e-6) and float(f.max()) == 1.0
+        assert torch.equal(as_frame(x), as_frame(x, bit_depth=16))
+        assert float(as_frame(x).max()) == pytest.approx(top / 65535)  # the default: DN/65535
+    mon = Monitor(FakeNoise(), None, sensor="ICX285", mode="map")
+    assert mon.process(arr, bit_depth=bits).noise.value("total") == pytest.approx(
+        mon.process((cli[0] * 255).round().to(torch.uint8).numpy()).noise.value("total"), rel=0.1)
+
+
+@pytest.mark.parametrize("x,bit_depth,match", [
+    (np.full((8, 8), 4096, np.uint16), 12, r"uint16 frame value 4096 exceeds the 12-bit range 0…4095 \(bit_depth = 12\)"),
+    (torch.full((8, 8), 1024, dtype=torch.int32).to(torch.uint16), 10, "value 1024 exceeds the 10-bit range 0…1023"),
+    (np.zeros((8, 8), np.uint16), 7, r"bit_depth = 7 must be None or an integer 8…16"),
+    (np.zeros((8, 8), np.uint16), 17, r"bit_depth = 17 must be None or an integer 8…16"),
+    (np.zeros((8, 8), np.uint16), 12.0, r"bit_depth = 12.0 must be None or an integer"),
+    (np.zeros((8, 8), np.uint8), 12, "bit_depth = 12 is for uint16 frames; this frame is uint8"),
+    (np.zeros((8, 8), np.float32), 12, "bit_depth = 12 is for uint16 frames; this frame is float32"),
+    (torch.zeros(8, 8), 10, "bit_depth = 10 is for uint16 frames; this frame is torch.float32"),
+])
+def test_a_bit_depth_that_does_not_fit_the_frame_is_refused(x, bit_depth, match):
+    with pytest.raises(ValueError, match=match):
+        as_frame(x, bit_depth=bit_depth)
+    with pytest.raises(ValueError, match=match):
+        Monitor(FakeNoise(), None, sensor="ICX285").process(x, bit_depth=bit_depth)
 
 
 def test_the_run_summary_holds_bounded_state(monkeypatch):

@@ -366,3 +366,64 @@ def test_a_file_name_that_is_not_utf8_is_written_with_escapes(models, tmp_path, 
     assert unreadable["source_id"].endswith("z\\xff.png") and "frame_error" in unreadable
     summary = json.loads((tmp_path / "o" / "summary.json").read_text(encoding="utf-8"))
     assert summary["unreadable_frames"] == 1 and "z\\xff.png" in summary["unreadable"][0]
+
+
+def test_overlays_may_not_overwrite_a_source_frame(models, tmp_path, capsys):
+    """SOURCE a frame under DIR/overlays/ named as an overlay (or a folder of such frames, or DIR/overlays holding a link
+    to the frame) with --out DIR --overlay: refused before the run (exit 2, naming the input); the frame is left as
+    it was, and nothing else is written."""
+    import os
+
+    overlays = tmp_path / "run" / "overlays"
+    overlays.mkdir(parents=True)
+    frame = _png(overlays / "frame_000000.png", np.random.default_rng(0).integers(60, 180, (256, 384), dtype=np.uint8))
+    original = frame.read_bytes()
+    elsewhere = _png(tmp_path / "elsewhere.png", np.random.default_rng(1).integers(60, 180, (256, 384), dtype=np.uint8))
+    other = tmp_path / "other"
+    (other / "overlays").mkdir(parents=True)
+    os.symlink(elsewhere, other / "overlays" / "frame_000000.png")
+    for source, out, given in ((frame, tmp_path / "run", f"SOURCE {frame}"), (overlays, tmp_path / "run", f"SOURCE {frame}"),
+                               (elsewhere, other, f"SOURCE {elsewhere}")):
+        code, stdout, err = _run([str(source), "--sensor", "ICX285", "--no-mtf", "--out", str(out), "--overlay", *models],
+                                 capsys)
+        assert code == 2 and stdout == "" and f"over the input {given}" in err and "--overlay" in err, err
+        assert not (out / "monitor.jsonl").exists() and not (out / "summary.json").exists()
+    assert frame.read_bytes() == original and os.path.islink(other / "overlays" / "frame_000000.png")
+    code, _, err = _run([str(frame), "--sensor", "ICX285", "--no-mtf", "--out", str(tmp_path / "new"), "--overlay", *models],
+                        capsys)
+    assert code == 0 and (tmp_path / "new" / "overlays" / "frame_000000.png").is_file(), err
+
+
+def test_out_may_not_overwrite_an_input(models, tmp_path, capsys):
+    """--out DIR whose summary.json is the --metadata file it reads: refused before the run, naming both."""
+    meta = tmp_path / "summary.json"
+    meta.write_text('{"sensor": "ICX285"}')
+    png = _png(tmp_path / "frame.png", np.random.default_rng(0).integers(40, 200, (256, 256), dtype=np.uint8))
+    code, out, err = _run([str(png), "--metadata", str(meta), "--no-mtf", "--out", str(tmp_path), *models], capsys)
+    assert code == 2 and out == "" and f"--out {tmp_path} would overwrite the input --metadata {meta}" in err, err
+    assert meta.read_text() == '{"sensor": "ICX285"}' and not (tmp_path / "monitor.jsonl").exists()
+
+
+@pytest.mark.parametrize("flag,values,allowed", [
+    ("--exposure-limits", ["0.2", "0.001"], "[0.001, 0.2] s"),   # LO > HI
+    ("--exposure-limits", ["0.001", "5"], "[0.001, 0.2] s"),     # beyond the metadata range
+    ("--exposure-limits", ["0", "0.1"], "[0.001, 0.2] s"),
+    ("--gain-limits", ["30", "-5"], "[0, 24] dB"),
+    ("--gain-limits", ["0", "30"], "[0, 24] dB"),
+])
+def test_exposure_and_gain_limits_are_checked_with_or_without_iopc(flag, values, allowed, models, tmp_path, capsys):
+    """--exposure-limits / --gain-limits LO HI: LO <= HI, both within the metadata ranges (the advice's exposure and
+    gain are metadata the monitor must accept); otherwise exit 2 before the run, naming the flag, the values and the
+    allowed range — also without --iopc."""
+    from camhealth.physics.metadata import METADATA_RANGES
+
+    assert METADATA_RANGES["exposure_s"] == (0.001, 0.2) and METADATA_RANGES["gain_db"] == (0.0, 24.0)
+    code, out, err = _run(_defect_run(tmp_path, models, flag, *values, "--out", str(tmp_path / "o")), capsys)
+    shown = " ".join(f"{float(v):g}" for v in values)
+    assert code == 2 and out == "" and f"{flag} {shown}: " in err and allowed in err and "LO <= HI" in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_exposure_and_gain_limits_within_the_ranges_are_accepted(models, tmp_path, capsys):
+    code, _, err = _run(_defect_run(tmp_path, models, "--exposure-limits", "0.001", "0.2", "--gain-limits", "6", "6"), capsys)
+    assert code == 0, err

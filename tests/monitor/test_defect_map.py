@@ -105,6 +105,27 @@ def test_missing_and_unreadable_files_are_named(setup, error, match, tmp_path):
     assert path.name in str(exc.value)
 
 
+@pytest.mark.parametrize("dtype", [bool, np.uint8, np.int64, np.float32])
+def test_calibration_hot_and_dead_pixels_give_their_union_in_every_accepted_dtype(dtype, tmp_path):
+    """camera.maps.npz with ``hot_pixels`` and ``dead_pixels`` as bool or as whole numbers 0/1 (both allowed): the map
+    marks the pixels of both."""
+    hot, dead = _mask(at=((1, 2),)), _mask(at=((4, 7), (5, 0)))
+    path = tmp_path / "camera.maps.npz"
+    np.savez_compressed(path, hot_pixels=hot.astype(dtype), dead_pixels=dead.astype(dtype))
+    out = load_defect_map(path)
+    assert out.dtype == torch.bool and torch.equal(out, torch.from_numpy(hot | dead))
+
+
+def test_calibration_hot_and_dead_pixels_of_different_shapes_or_values_are_refused(tmp_path):
+    path = tmp_path / "camera.maps.npz"
+    np.savez_compressed(path, hot_pixels=np.zeros((64, 64), np.uint8), dead_pixels=np.zeros((32, 32), np.uint8))
+    with pytest.raises(ValueError, match=r"hot_pixels has shape \(64, 64\) but dead_pixels has shape \(32, 32\)"):
+        load_defect_map(path)
+    np.savez_compressed(path, hot_pixels=np.zeros((6, 8), np.uint8), dead_pixels=np.full((6, 8), 2, np.uint8))
+    with pytest.raises(ValueError, match=r"dead_pixels\] holds the values 2: a defect map must be bool or 0/1"):
+        load_defect_map(path)
+
+
 def test_an_archive_without_hot_pixels_names_its_arrays(tmp_path):
     path = tmp_path / "two.npz"
     np.savez(path, a=_mask(), b=_mask())

@@ -17,6 +17,7 @@ from camhealth.monitor import Monitor
 from camhealth.monitor.__main__ import build_parser
 from camhealth.monitor.diagnostics import ERROR, KEYS, OK, WARN, frame_level, read_diagnostics
 from camhealth.monitor.recording import RecordingOptions
+from camhealth.monitor.sources import open_source
 from tests.monitor.conftest import FakeMTF, FakeNoise, run_monitor_cli
 
 T0 = 1_700_000_000 * 10**9
@@ -192,6 +193,71 @@ def test_bad_recordings_and_options_exit_2_with_one_line(fakes, street_frames, t
         assert code == 2 and match in err and "Traceback" not in err, (argv, err)
         assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "d.txt").exists() and not list(tmp_path.glob(".d.*"))
+
+
+def test_diagnostics_out_may_not_overwrite_the_recording(fakes, street_frames, tmp_path, capsys):
+    """--diagnostics-out naming the recording it reads (as a file, or a storage file of a rosbag2 folder): exit 2
+    before the run, naming the input; the recording is left as it was."""
+    models = ["--sensor", "ICX285", "--noise-model", "fake_noise", "--mtf-model", "fake_mtf"]
+    rec = write_street_recording(tmp_path / "run.mcap", street_frames, corrupt_last=False)
+    folder = write_street_recording(tmp_path / "run_bag", street_frames, corrupt_last=False)
+    (member,) = folder.glob("*.mcap")
+    before = {p: p.read_bytes() for p in (rec, member, folder / "metadata.yaml")}
+    for source, target, given in ((rec, rec, f"SOURCE {rec}"), (rec, tmp_path / "sub" / ".." / "run.mcap", f"SOURCE {rec}"),
+                                  (folder, member, f"SOURCE {member}")):
+        code, out, err = _run([str(source), "--topic", TOPIC, *models, "--diagnostics-out", str(target),
+                               "--out", str(tmp_path / "o")], capsys)
+        assert code == 2 and out == "" and f"--diagnostics-out {target} would overwrite the input {given}" in err, err
+        assert not (tmp_path / "o").exists()  # refused before the run
+    assert all(p.read_bytes() == data for p, data in before.items())
+
+
+def test_a_bad_diagnostics_out_is_refused_before_the_outputs_are_opened(fakes, street_frames, tmp_path, capsys):
+    """A --diagnostics-out in a missing folder (or under a file): exit 2 before the run; the monitor.jsonl of an
+    earlier run in --out DIR is left as it was."""
+    rec = write_street_recording(tmp_path / "run.mcap", street_frames, corrupt_last=False)
+    argv = [str(rec), "--topic", TOPIC, "--sensor", "ICX285", "--noise-model", "fake_noise", "--mtf-model", "fake_mtf",
+            "--out", str(tmp_path / "o")]
+    code, _, err = _run(argv, capsys)
+    assert code == 0, err
+    earlier = (tmp_path / "o" / "monitor.jsonl").read_text()
+    assert len(_lines(earlier)) == 4
+    (tmp_path / "afile").write_text("x")
+    for target, why in ((tmp_path / "nodir" / "d.mcap", f"folder of the diagnostics file does not exist: {tmp_path / 'nodir'}"),
+                        (tmp_path / "afile" / "d.mcap", f"{tmp_path / 'afile'} is a file, not a folder"),
+                        (tmp_path, "must end in .mcap")):
+        code, out, err = _run([*argv, "--diagnostics-out", str(target)], capsys)
+        assert (tmp_path / "o" / "monitor.jsonl").read_text() == earlier  # not truncated
+        assert code == 2 and f"--diagnostics-out {target}: " in err and why in err, err
+    assert not (tmp_path / "nodir").exists()
+
+
+@pytest.mark.parametrize("bit_depth", [None, 12])
+def test_the_summary_names_the_scaling_of_a_recordings_frames(bit_depth, fakes, tmp_path, capsys):
+    """mono16 images (12-bit data in 16-bit words) and mono8 ones: the summary's ``input_scaling`` names the divisor
+    the reader used — ÷65535 by default, ÷4095 with --bit-depth 12 — and ÷255 for the 8-bit frames."""
+    g = np.random.default_rng(0)
+    rec = tmp_path / "run.mcap"
+    with RecordingWriter(rec) as w:
+        for i in range(2):
+            w.add_image(TOPIC, np.clip(2048 + g.normal(0, 40, (256, 256)), 0, 4095).astype(np.uint16), T0 + i * PERIOD)
+        w.add_image(TOPIC, g.integers(60, 190, (256, 256), dtype=np.uint8), T0 + 2 * PERIOD)
+    extra = [] if bit_depth is None else ["--bit-depth", str(bit_depth)]
+    code, out, err = _run([str(rec), "--topic", TOPIC, "--sensor", "ICX285", "--noise-model", "fake_noise", "--no-mtf",
+                           "--out", str(tmp_path / "o"), *extra], capsys)
+    assert code == 0, err
+    wide = ("mono16 (16-bit) read as 16-bit data (÷65535, the full 16-bit word)" if bit_depth is None
+            else "mono16 (16-bit) read as 12-bit data (÷4095, as given)")
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["input_scaling"] == {wide: 2, "mono8: 8-bit data (÷255)": 1}
+    assert f"input: {wide} (2 frame(s))" in out
+    source = open_source(rec, bit_depth=bit_depth or "auto", recording=RecordingOptions(topic=TOPIC))
+    try:  # the frames the monitor reads: divided by the divisor named
+        first = next(iter(source))
+    finally:
+        source.close()
+    assert first.scaling == wide
+    assert float(first.frame.mean()) == pytest.approx(2048 / (65535 if bit_depth is None else 4095), rel=0.01)
 
 
 def test_out_of_order_stamps_are_reported(fakes, street_frames, tmp_path, capsys):

@@ -229,11 +229,62 @@ def test_sampled_mode_reuses_unchanged_patches_of_a_static_camera():
     fresh = Monitor(FakeNoise(), None, sensor="ICX285", mode="sampled", noise_samples=4, adaptive=False)
     for _ in range(12):
         a, f = adaptive.process(frame), fresh.process(frame)
-        assert a.noise.coverage["estimated"] == f.noise.coverage["estimated"] == 4
+        cov = a.noise.coverage  # every sample has a value: estimated this frame, or its kept estimate
+        assert cov["estimated"] + cov["reused"] == f.noise.coverage["estimated"] == 4
         assert torch.allclose(a.noise.median, f.noise.median, equal_nan=True)
+        assert a.noise.n_values <= f.noise.n_values  # a kept estimate is one value, however many frames it recurs in
     assert a.noise.coverage["reused"] == a.noise.counts["reused"] > 0
     assert f.noise.coverage["reused"] == 0
     assert counting.patches < 12 * 4  # the first visit of each of the 24 patches, then reuse
     before = counting.patches
     adaptive.process(frame.flip(-1))  # another scene: every sampled patch is estimated again
     assert counting.patches - before == 4
+
+
+class _EveryEstimateItsOwn(FakeNoise):
+    """Every patch it estimates gets a σ of its own (1.00, 1.01, … DN in call order): a value says which estimate it is."""
+
+    def predict(self, patches, metadata=None, precision="fp32", batch_size=256):
+        out = super().predict(patches, metadata, precision, batch_size)
+        total = 1.0 + 0.01 * torch.arange(self.patches - patches.shape[0], self.patches, dtype=torch.float32)
+        out["sigma_total"], out["sigma"] = total, out["sigma"] * (total / out["sigma_total"])[:, None]
+        return out
+
+
+def test_sampled_coverage_and_window_count_each_estimate_once_on_a_static_camera():
+    """A static scene in sampled mode, whose samples keep their estimates: ``coverage.estimated``, ``area_fraction`` and
+    ``patches_xy`` count the patches estimated this frame only (as ``patches.estimated`` and the estimator's calls do),
+    ``coverage.reused`` the kept ones; the window's median is that of its frames' samples, and its standard error counts
+    the distinct estimates in it (``coverage.values``), not one kept estimate once per frame."""
+    from camhealth.estimators.aggregation import spatial_median
+    from camhealth.monitor.api import _MEDIAN_SE
+
+    frame, _ = _ramp_frame(seed=5)
+    fake = _EveryEstimateItsOwn()
+    mon = Monitor(fake, None, sensor="ICX285", mode="sampled", noise_samples=4, window=5)
+    seen: list[set[float]] = []
+    samples: list[torch.Tensor] = []
+    for i in range(10):
+        before = fake.patches
+        r = mon.process(frame)
+        sent = fake.patches - before
+        cov, grid = r.noise.coverage, r.noise.grid_obj
+        est = (r.noise.code == ESTIMATED).nonzero()[:, 0]
+        assert cov["estimated"] == r.noise.counts["estimated"] == est.numel() == sent  # (every patch assessable here)
+        assert cov["reused"] == r.noise.counts["reused"] and cov["estimated"] + cov["reused"] == 4
+        assert cov["patches_xy"] == grid.boxes()[est][:, :2].tolist()
+        assert cov["area_fraction"] == pytest.approx(sent * 128**2 / (512 * 768), abs=1e-4)
+        total = r.noise.values[:, -1]
+        samples.append(total[torch.isfinite(total)])
+        seen.append(set(samples[-1].tolist()))
+        n = len(set().union(*seen[-5:]))  # the estimates in the window, each once
+        assert cov["values"] == r.noise.n_values == n, (i, cov)
+        window = spatial_median(torch.cat(samples[-5:]), dim=0)  # the answer: the samples of the window's frames
+        assert float(r.noise.median[-1]) == pytest.approx(float(window.median), abs=1e-6)
+        frames = min(i + 1, 5)
+        per_frame = spatial_median(torch.stack([v.median() for v in samples[-5:]]), dim=0).spread  # (lower median)
+        expected = max(_MEDIAN_SE * float(window.spread) / math.sqrt(n),
+                       _MEDIAN_SE * float(per_frame) / math.sqrt(frames) if frames > 1 else 0.0)
+        assert float(r.noise.uncertainty[-1]) == pytest.approx(expected, rel=1e-4), i
+    assert sum(len(v) for v in seen[-5:]) == 20 and r.noise.n_values < 20  # kept estimates recur in the window
+    assert r.noise.coverage["reused"] > 0

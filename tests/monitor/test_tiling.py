@@ -270,3 +270,21 @@ def test_clipped_fractions_counted_on_the_patches_that_reach_the_bounds_equal_a_
     assert torch.equal(s.clipped_high, (patches >= 1 - tol).flatten(1).float().mean(1))
     assert torch.equal(s.clipped_low, (patches <= tol).flatten(1).float().mean(1))
     assert int((s.clipped_high > 0).sum()) == len(set(k * 5 % 16 for k in range(clipped_patches)))
+
+
+@pytest.mark.parametrize("h,w,split", [
+    (400, 2400, (1, 6)),   # a 2×12 MTF grid: six sectors of 2×2 patches, not 2×3 of 1×4
+    (384, 3840, (1, 6)),   # 2×20: 1×6 (|2 − 20/6| = 1.33) beats 2×3 (|1 − 20/3| = 5.67)
+    (1024, 1280, (2, 3)),  # 5×6: the documented 2×3 sectors
+    (576, 768, (2, 3)),    # 3×4
+])
+def test_sector_split_is_the_one_closest_to_the_grids_aspect(h, w, split):
+    """The MTF samples' sectors (:func:`_sector_ids`): the rows × cols split with rows·cols ≥ k whose sectors come
+    closest to square; the 1 × k split is a candidate like any other and is kept where it fits best."""
+    from camhealth.monitor.tiling import _sector_ids
+
+    grid = PatchGrid.fit(h, w, 192)
+    ids = _sector_ids(grid, 6).reshape(grid.rows, grid.cols)
+    rows, cols = len(set(ids[:, 0].tolist())), len(set(ids[0].tolist()))
+    assert (rows, cols) == split, ids.tolist()
+    assert sorted(set(ids.reshape(-1).tolist())) == list(range(6))  # every sector has patches
