@@ -59,10 +59,10 @@ from typing import Any, Mapping, Sequence
 import torch
 
 from camhealth._cli import add_debug_flag, config_parser, debugging, run_cli
-from camhealth.nets import NETWORKS, network_for
+from camhealth.nets import NETWORKS, check_patch_size, network_for
 
 __all__ = ["CARRIED", "FORMAT_TAG", "set_description_entries", "SelfContainedNoiseSource", "ONNX_NOISE_OUTPUTS", "ONNX_REASONS", "export_weights", "export_pt2",
-           "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES", "check_retired"]
+           "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES", "check_retired", "network_metadata_set"]
 
 FORMAT_TAG = "camhealth-estimator"
 FORMAT_VERSION = 1
@@ -186,11 +186,31 @@ def _check_description(desc: Any, path: Path) -> dict:
     size = desc.get("patch_size")
     if isinstance(size, bool) or not isinstance(size, int) or size < 1:
         raise ValueError(f"{path}: description patch_size = {size!r} must be a positive integer (px)")
+    try:
+        check_patch_size(size)
+    except ValueError as exc:
+        raise ValueError(f"{path}: description {exc}") from None
     if "patch_size" in init_args and init_args["patch_size"] != size:
         raise ValueError(f"{path}: description patch_size = {size!r} differs from init_args patch_size = {init_args['patch_size']!r}")
     if desc.get("metadata_set", "none") not in ("none", "minimal", "full"):
         raise ValueError(f"{path}: description metadata_set = {desc.get('metadata_set')!r} must be 'none', 'minimal' or 'full'")
+    check_retired(desc, path)  # (a retired network is named as such, not as an inconsistent description)
+    network_set = network_metadata_set(desc["kind"], init_args)
+    if "metadata_set" in desc and desc["metadata_set"] != network_set:
+        raise ValueError(f"{path}: description metadata_set = {desc['metadata_set']!r} differs from the network's "
+                         f"init_args metadata_set = {network_set!r}")
     return desc
+
+
+def network_metadata_set(kind: str, init_args: Mapping[str, Any]) -> Any:
+    """The metadata a file's network reads: a noise-source network's ``init_args`` ``metadata_set`` (the network's
+    default where the file does not give it), ``"none"`` for the other kinds."""
+    if kind != "noise_source":
+        return "none"
+    import inspect
+
+    default = inspect.signature(NETWORKS["noise_source"].network.__init__).parameters["metadata_set"].default
+    return init_args.get("metadata_set", default)
 
 
 def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
@@ -201,6 +221,15 @@ def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
     init_args = {k: v for k, v in dict(desc.get("init_args", {})).items() if not str(k).startswith("_")}
     retired = {"noise_source": RETIRED_OPTIONS, "mtf": RETIRED_MTF_OPTIONS}.get(str(desc.get("kind")), {})
     init_args = {k: v for k, v in init_args.items() if k not in retired}  # at their only remaining value: as if absent
+    init_args.setdefault("patch_size", desc["patch_size"])  # both loaders build for the description's patch size
+    try:
+        network_for(desc["class_path"]).check_training_args(init_args)
+    except ValueError as exc:
+        raise ValueError(f"{path}: description init_args: {exc}") from None
+    if desc.get("kind") == "mtf" and desc.get("mtf_error") is not None:
+        from camhealth.estimators.mtf_error import MTFErrorTable
+
+        MTFErrorTable.from_dict(desc["mtf_error"], str(path))
     bad = [k for k, v in state.items() if not isinstance(v, torch.Tensor)]
     if bad:
         raise ValueError(f"{path}: state_dict entries {bad[:4]} are not tensors")
@@ -218,39 +247,62 @@ def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
     return path, desc, init_args, state
 
 
-def _load_state(net: torch.nn.Module, state: Mapping[str, torch.Tensor], path: Path, class_path: str) -> None:
-    """Load ``state`` into ``net``; a tensor of another kind than the network's (integer, bool or complex values for
-    a floating-point parameter or buffer), a missing or an unexpected entry is a ``ValueError`` naming it."""
-    expected = net.state_dict()
-    for key, value in state.items():
-        want = expected.get(key)
-        if want is not None and want.is_floating_point() and not value.is_floating_point():
-            raise ValueError(f"{path}: state_dict entry {key!r} is a {value.dtype} tensor; {class_path} holds "
-                             f"{want.dtype} values there (a floating-point tensor is needed)")
-    try:
-        missing, unexpected = net.load_state_dict(state, strict=False)
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: weights do not fit {class_path}: {str(exc).splitlines()[-1].strip()[:200]}") from None
+def _check_state(expected: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor], path: Path, class_path: str) -> None:
+    """Compare a file's ``state`` with the state dict the network would have (``expected``: shapes and dtypes only,
+    e.g. of a network on the meta device): a missing or unexpected entry, a tensor of another shape, or one of
+    another kind than the network's (integer, bool or complex values for a floating-point parameter or buffer) is a
+    ``ValueError`` naming the entry."""
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
     if missing or unexpected:
         raise ValueError(f"{path}: weights do not fit {class_path} (missing {missing[:4]}, unexpected {unexpected[:4]})")
+    for key, want in expected.items():
+        value = state[key]
+        if tuple(value.shape) != tuple(want.shape):
+            raise ValueError(f"{path}: weights do not fit {class_path}: state_dict entry {key!r} has shape "
+                             f"{tuple(value.shape)}, the network described by the file has {tuple(want.shape)}")
+        if want.is_floating_point() and not value.is_floating_point():
+            raise ValueError(f"{path}: state_dict entry {key!r} is a {value.dtype} tensor; {class_path} holds "
+                             f"{want.dtype} values there (a floating-point tensor is needed)")
 
 
-def load_net(source: str | Path) -> tuple[torch.nn.Module, dict]:
-    """The bare network of a weights file or Lightning checkpoint (a :mod:`camhealth.nets` module, eval mode, float32)
-    and the file's description, without importing Lightning or the LightningModule. Only allow-listed classes are
-    built and only tensors are loaded; a tampered description (bad JSON, an argument the LightningModule does not take,
-    a value the network refuses) is one ``ValueError`` naming the file."""
-    path, desc, init_args, state = _read(source)
+def _checked_network(path: Path, desc: Mapping[str, Any], init_args: Mapping[str, Any], state: Mapping[str, torch.Tensor]):
+    """The network a file describes, built on the meta device (no memory, however large its arguments say it is)
+    and compared with the file's tensors (:func:`_check_state`) — before anything is allocated for it."""
     class_path = desc["class_path"]
     spec = network_for(class_path)
     unknown = sorted(k for k in init_args if k not in spec.init_args)
     if unknown:
         raise ValueError(f"{path}: description init_args {unknown} are not arguments of {class_path}")
     try:
-        net = spec.build(init_args)
+        with torch.device("meta"):
+            net = spec.build(init_args)
     except (TypeError, ValueError, RuntimeError) as exc:
         raise ValueError(f"{path}: description init_args do not build {class_path}: {str(exc).splitlines()[0][:200]}") from None
-    _load_state(net, state, path, class_path)
+    _check_state(net.state_dict(), state, path, class_path)
+    return net
+
+
+def _load_state(net: torch.nn.Module, state: Mapping[str, torch.Tensor], path: Path, class_path: str) -> None:
+    """Load ``state`` into ``net`` (checked by :func:`_check_state` first; the values are copied into the network's
+    tensors, in their dtype)."""
+    _check_state(net.state_dict(), state, path, class_path)
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as exc:
+        raise ValueError(f"{path}: weights do not fit {class_path}: {str(exc).splitlines()[-1].strip()[:200]}") from None
+
+
+def load_net(source: str | Path) -> tuple[torch.nn.Module, dict]:
+    """The bare network of a weights file or Lightning checkpoint (a :mod:`camhealth.nets` module, eval mode, float32)
+    and the file's description, without importing Lightning or the LightningModule. Only allow-listed classes are
+    built and only tensors are loaded; a tampered description (bad JSON, an argument the LightningModule does not take,
+    a value the network or the LightningModule refuses) is one ``ValueError`` naming the file. The network is built on
+    the meta device and its shapes compared with the file's tensors before any memory is allocated for it."""
+    path, desc, init_args, state = _read(source)
+    net = _checked_network(path, desc, init_args, state)
+    net = net.to_empty(device="cpu")  # (uninitialised: every tensor is loaded next)
+    _load_state(net, state, path, desc["class_path"])
     return net.eval(), desc
 
 
@@ -258,8 +310,11 @@ def load_module(source: str | Path):
     """Rebuild the :class:`EstimatorModule` (a LightningModule: imports Lightning) of a weights file or Lightning
     checkpoint (eval mode), plus its description — for exporting and fine-tuning; inference uses :func:`load_net`.
     Only allow-listed classes are built and only tensors are loaded; a tampered description (bad JSON, an argument
-    the class does not take, a value it refuses) is one ``ValueError`` naming the file."""
+    the class does not take, a value it refuses) is one ``ValueError`` naming the file. The file is checked as
+    :func:`load_net` checks it (its network built on the meta device and compared with its tensors) before the
+    LightningModule is built."""
     path, desc, init_args, state = _read(source)
+    _checked_network(path, desc, init_args, state)
     cls = _class_for(desc.get("class_path", ""))
     import inspect
 
@@ -286,8 +341,8 @@ def _description(module, metrics: Mapping[str, float] | None, carried: Mapping[s
     desc["format"] = FORMAT_TAG
     desc["version"] = FORMAT_VERSION
     desc["init_args"] = json.loads(json.dumps(desc["init_args"], default=list))
-    if metrics:
-        desc["metrics"] = {k: float(v) for k, v in metrics.items()}
+    if metrics:  # a metric without data (None, NaN: a blur family with no test sample) is null
+        desc["metrics"] = {k: None if v is None or float(v) != float(v) else float(v) for k, v in metrics.items()}
     return desc
 
 

@@ -151,6 +151,19 @@ class FitCLI(LightningCLI):
                 raise ValueError("--init_from starts a new training from weights, --ckpt_path resumes one; give one of them")
             _init_from(self.model, cfg["init_from"])
 
+    def instantiate_trainer(self, **kwargs):
+        """The trainer, with the callbacks of the configuration; ``--trainer.enable_checkpointing false`` drops the
+        ``checkpoint:`` callback (Lightning refuses a ``ModelCheckpoint`` then): the run writes no checkpoints, and
+        after fitting the final weights are tested and exported."""
+        from lightning.pytorch.callbacks import ModelCheckpoint
+
+        parser = self._parser(self.subcommand)
+        extra = [self._get(self.config_init, c) for c in parser.callback_keys]
+        config = {**self._get(self.config_init, "trainer", default={}), **kwargs}
+        if config.get("enable_checkpointing") is False:
+            extra = [c for c in extra if not isinstance(c, ModelCheckpoint)]
+        return self._instantiate_trainer(config, extra)
+
     def _parse_ckpt_path(self) -> None:
         """``--ckpt_path``: ``last`` is the newest ``last.ckpt`` under the logger's folder; the file must hold plain
         data. The model is the config's (the checkpoint gives the weights, not the hyperparameters)."""
@@ -204,7 +217,8 @@ class FitCLI(LightningCLI):
         results: dict = {"best_checkpoint": best}
         if cfg["test_after_fit"]:
             tested = trainer.test(self.model, datamodule=self.datamodule, ckpt_path=best or None)
-            results["test"] = {k: float(v) for k, v in (tested[0] if tested else {}).items()}
+            # a metric without data (NaN: e.g. a blur family with no test sample) is written as null
+            results["test"] = {k: _metric_value(v) for k, v in (tested[0] if tested else {}).items()}
         # trainer.log_dir is a collective in a multi-process run: every rank reads it; only rank zero writes files
         log_dir = Path(trainer.log_dir or ".")
         if cfg["export_weights"] and trainer.is_global_zero:
@@ -217,6 +231,12 @@ class FitCLI(LightningCLI):
             (log_dir / "fit_results.json").write_text(json.dumps(results, indent=2))
             print(json.dumps(results, indent=2))
         self.results = results
+
+
+def _metric_value(value) -> float | None:
+    """A logged metric as a JSON number; None (null) for NaN, a metric without data."""
+    value = float(value)
+    return None if value != value else value
 
 
 def _sync_metadata_set(config) -> None:
@@ -235,10 +255,93 @@ def _init_from(model, path: str) -> None:
     source, _ = load_module(Path(path))
     if type(source) is not type(model):
         raise ValueError(f"--init_from {path}: holds a {type(source).__name__}, the config trains a {type(model).__name__}")
+    differs = _network_difference(type(model), source.hparams, model.hparams)
+    if differs:
+        key, theirs, ours = differs
+        raise ValueError(f"--init_from {path}: architecture differs from the config's: the file's network has "
+                         f"{key} = {theirs!r}, the config's {key} = {ours!r}")
     try:
         model.net.load_state_dict(source.net.state_dict())
     except (RuntimeError, ValueError) as exc:
         raise ValueError(f"--init_from {path}: architecture differs from the config's: {str(exc).splitlines()[0]}") from None
+
+
+def _plain(value):
+    """A network argument for comparison: lists and tuples alike (nested too)."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_plain(v) for v in value)
+    return value
+
+
+def _network_difference(cls, theirs, ours) -> tuple[str, object, object] | None:
+    """The first argument that shapes the network (:data:`camhealth.nets.NETWORKS`) of the LightningModule ``cls``
+    whose value differs between the argument mappings ``theirs`` and ``ours`` (an argument one of them does not give
+    takes ``cls``'s default), as ``(name, theirs, ours)``; None when the networks are the same."""
+    import inspect
+
+    from camhealth.nets import NETWORKS
+
+    spec = NETWORKS.get(getattr(cls, "kind", ""))
+    if spec is None:
+        return None
+    params = inspect.signature(cls.__init__).parameters
+    for key in spec.network_args:
+        default = params[key].default if key in params else None
+        a = theirs.get(key, default) if hasattr(theirs, "get") else default
+        b = ours.get(key, default) if hasattr(ours, "get") else default
+        if _plain(a) != _plain(b):
+            return key, _plain(a), _plain(b)
+    return None
+
+
+def _config_model_class(cfg):
+    """The LightningModule class the configuration's ``model:`` names (None where it names none that imports)."""
+    import importlib
+
+    model = cfg.get("model") if hasattr(cfg, "get") else None
+    class_path = model.get("class_path") if hasattr(model, "get") else None
+    if not isinstance(class_path, str) or "." not in class_path:
+        return None
+    module, name = class_path.rsplit(".", 1)
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):
+        return None
+
+
+def _check_ckpt_network(saved, cfg, path: Path) -> None:
+    """Refuse a checkpoint whose network is not the one the configuration builds, naming the first argument that
+    differs (the checkpoint's arguments: its camhealth description's ``init_args``, else Lightning's
+    ``hyper_parameters``) — before Lightning's state-dict error, which names no argument."""
+    from camhealth.export import ALLOWED_CLASSES
+
+    cls = _config_model_class(cfg)
+    if cls is None or getattr(cls, "kind", "") not in ALLOWED_CLASSES.values():
+        return
+    info = saved.get("camhealth")
+    args = info.get("init_args") if isinstance(info, dict) else None
+    if not isinstance(args, dict):
+        args = saved.get("hyper_parameters")
+    if not isinstance(args, dict):
+        return
+    kind = info.get("kind") if isinstance(info, dict) else None
+    if kind is not None and kind != cls.kind:
+        raise ValueError(f"--ckpt_path {path}: holds a {kind!r} estimator ({info.get('class_path')}), the config's "
+                         f"model is a {cls.kind!r} estimator ({cls.__name__})")
+    model_args = (cfg.get("model") or {}).get("init_args") or {}
+    differs = _network_difference(cls, args, model_args)
+    if differs:
+        key, theirs, ours = differs
+        raise ValueError(f"--ckpt_path {path}: the checkpoint's network has {key} = {theirs!r}, the config's model "
+                         f"{key} = {ours!r}; give the configuration it was trained with (its run's config.yaml) or "
+                         f"--model.init_args.{key} {_cli_value(theirs)}")
+
+
+def _cli_value(value) -> str:
+    """``value`` as a command-line argument (a string as it is, lists as JSON; quoted for the shell where needed)."""
+    import shlex
+
+    return shlex.quote(value if isinstance(value, str) else json.dumps(value))
 
 
 def _logger_root(cfg) -> Path:
@@ -253,7 +356,8 @@ def _logger_root(cfg) -> Path:
 
 def _checked_ckpt_path(cfg, subcommand: str) -> str:
     """The checkpoint ``--ckpt_path`` names (``last``: the newest ``last.ckpt`` under the logger's folder), checked
-    to hold plain data only, and for ``fit`` to end its learning-rate schedule after ``trainer.max_steps``."""
+    to hold plain data only and a network with the configuration's arguments (:func:`_check_ckpt_network`), and for
+    ``fit`` to end its learning-rate schedule after ``trainer.max_steps``."""
     value = str(cfg["ckpt_path"])
     if value == "last":
         root = _logger_root(cfg)
@@ -274,6 +378,7 @@ def _checked_ckpt_path(cfg, subcommand: str) -> str:
     if not (isinstance(saved, dict) and "state_dict" in saved and "pytorch-lightning_version" in saved):
         raise ValueError(f"--ckpt_path {path}: not a Lightning checkpoint (a weights file, e.g. from --export_weights or "
                          "camhealth.export, has no trainer state to resume); start from its weights with --init_from")
+    _check_ckpt_network(saved, cfg, path)
     if subcommand != "fit":
         return str(path)
     # the learning-rate schedule is restored with the step: it cannot run past the steps it was made for

@@ -69,7 +69,7 @@ import torch
 from camhealth.estimators.defective_pixels import repair_defective_pixels
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches, haar_noise_dn  # noqa: F401
 from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
-from camhealth.export import BY_PHYSICS, FORMAT_TAG, _check_description, check_retired, load_net
+from camhealth.export import BY_PHYSICS, FORMAT_TAG, _check_description, check_retired, load_net, network_metadata_set
 from camhealth.nets import NetworkSpec
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
 
@@ -435,7 +435,7 @@ def load_estimator(path_or_name: str | Path, device: torch.device | str | None =
     return Estimator(
         kind=desc["kind"],
         patch_size=int(desc["patch_size"]),
-        metadata_set=str(desc.get("metadata_set", "none")),
+        metadata_set=str(network_metadata_set(desc["kind"], desc.get("init_args", {}))),  # what the network reads
         description=desc,
         source=str(path),
         backend=backend,

@@ -154,7 +154,7 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
         "",
         "| metric | value |",
         "|---|---:|",
-        *[f"| {k} | {v:.3f} |" for k, v in sorted(metrics.items())],
+        *[f"| {k} | {_metric_cell(v)} |" for k, v in sorted(metrics.items())],
         "",
         "Units: σ metrics (bias/std/rms) in DN of 255 (Eq. 6.2); AMAE in % (Eq. 5.1).",
         "",
@@ -175,6 +175,14 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
     if notes:
         lines += ["", "## Training procedure", "", notes]
     return "\n".join(lines) + "\n"
+
+
+def _metric_cell(value) -> str:
+    """A metric of the file in the card's table: three decimals, or "no samples" for one without data (null or NaN:
+    e.g. a blur family the test split had no patch of)."""
+    if value is None or (isinstance(value, float) and value != value):
+        return "no samples"
+    return f"{value:.3f}"
 
 
 def read_card(path: str | Path) -> tuple[str, str]:

@@ -13,7 +13,7 @@ import lightning as L
 import torch
 from torch import nn
 
-from camhealth.nets import check_patch_size
+from camhealth.nets import NETWORKS, check_patch_size
 from camhealth.nets.blocks import count_flops, count_parameters
 
 __all__ = ["EstimatorModule"]
@@ -67,6 +67,11 @@ class EstimatorModule(L.LightningModule):
             opt, max_lr=self.lr, total_steps=int(total) + 1, pct_start=0.15, div_factor=10.0, final_div_factor=100.0
         )
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def _check_training_args(self) -> None:
+        """The training arguments' values, checked as the loaders check a file's
+        (:meth:`camhealth.nets.NetworkSpec.check_training_args`): what trains also loads."""
+        NETWORKS[self.kind].check_training_args(self.hparams)
 
     def _set_patch_size(self, patch_size: int) -> None:
         self.patch_size = check_patch_size(patch_size)

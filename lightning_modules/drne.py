@@ -67,6 +67,7 @@ class NoiseLevelEstimator(EstimatorModule):
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
+        self._check_training_args()
         self._set_patch_size(patch_size)
         self.net = NoiseLevelNet(width, tuple(dilations))
         self.map_weight = float(map_weight)

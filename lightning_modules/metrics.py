@@ -3,7 +3,12 @@
 - :class:`NoiseErrorStats` — Bias = |E[σ − σ̂]|, Std = std(σ̂ − σ), RMS = √(Bias² + Std²) in DN per output
   column (conventions.md, thesis Eq. 6.2), accumulated as running sums so it syncs across processes.
 - :class:`AMAEPerFamily` — AMAE (Eq. 5.1): mean over H and V of the mean absolute MTF error over the 8
-  frequencies, in %, averaged per blur family (defocus, linear motion, non-linear motion) and overall.
+  frequencies, in %, averaged per blur family (defocus, linear motion, non-linear motion) and overall; NaN for a
+  family without samples (no data, not a perfect score).
+
+The accumulators are float64 at every training precision: a cast of the module (Lightning's ``bf16-true`` and
+``64-true``: ``module.to(dtype)``, ``.half()``, ``.double()``) moves them to the module's device and leaves their
+dtype alone (:class:`Float64States`).
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from torchmetrics import Metric
 
 from camhealth import metrics as _metrics
 
-__all__ = ["NoiseErrorStats", "AMAEPerFamily", "bias_std_rms", "amae_percent"]
+__all__ = ["Float64States", "NoiseErrorStats", "AMAEPerFamily", "bias_std_rms", "amae_percent"]
 
 
 def bias_std_rms(estimate: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -31,7 +36,25 @@ def amae_percent(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return _metrics.amae(estimate, truth)
 
 
-class NoiseErrorStats(Metric):
+class Float64States(Metric):
+    """A torchmetrics ``Metric`` whose states keep their dtype (float64 sums and counts) when the module holding it
+    is cast: torchmetrics guards its states against ``.half()`` / ``.float()`` / ``.double()`` only, not against
+    ``module.to(torch.bfloat16)`` (what Lightning's ``bf16-true`` does), under which a count stops growing at 256
+    and ``index_add_`` refuses float64 sources. A move to another device still moves them."""
+
+    def _apply(self, fn, exclude_state=()):  # type: ignore[override]
+        states = tuple(self._defaults)
+        this = super()._apply(fn, exclude_state=(*exclude_state, *states))
+        device = this.device  # (where torchmetrics moved its own bookkeeping)
+        for key in states:
+            default = this._defaults[key]
+            if isinstance(default, torch.Tensor):
+                this._defaults[key] = default.to(device)
+                setattr(this, key, getattr(this, key).to(device))
+        return this
+
+
+class NoiseErrorStats(Float64States):
     """Accumulates Bias/Std/RMS (DN) for ``names`` columns of (B, n) estimates against (B, n) truths."""
 
     full_state_update = False
@@ -67,8 +90,9 @@ class NoiseErrorStats(Metric):
         return out
 
 
-class AMAEPerFamily(Metric):
-    """AMAE [%] per blur family and over all samples."""
+class AMAEPerFamily(Float64States):
+    """AMAE [%] per blur family and over all samples. ``family`` holds each sample's index into ``families``; an
+    index outside them is a ``ValueError`` naming it. A family without samples (or no samples at all) gives NaN."""
 
     full_state_update = False
 
@@ -82,12 +106,25 @@ class AMAEPerFamily(Metric):
     def update(self, estimate: torch.Tensor, truth: torch.Tensor, family: torch.Tensor) -> None:  # type: ignore[override]
         if estimate.shape != truth.shape or estimate.ndim != 2 or estimate.shape[1] != 16:
             raise ValueError(f"estimate {tuple(estimate.shape)} and truth {tuple(truth.shape)} must both be (B, 16)")
+        k = len(self.families)
+        if family.numel() != estimate.shape[0]:
+            raise ValueError(f"family has {family.numel()} labels for {estimate.shape[0]} samples")
+        labels = family.detach().reshape(-1)
+        bad = (labels < 0) | (labels >= k)
+        if labels.is_floating_point():
+            bad |= labels != labels.floor()  # (NaN included)
+        if bool(bad.any()):
+            value = labels[bad][0].item()
+            raise ValueError(f"family label {value!r} is not a family index 0..{k - 1} (families {list(self.families)})")
+        fam = labels.long()
         a = amae_percent(estimate.detach().double(), truth.detach().double())
-        fam = family.long().clamp(0, len(self.families) - 1)
         self.sum_amae.index_add_(0, fam, a)
         self.count.index_add_(0, fam, torch.ones_like(a))
 
     def compute(self) -> dict[str, torch.Tensor]:  # type: ignore[override]
-        out = {f"amae_{f}": (self.sum_amae[i] / self.count[i].clamp_min(1)).float() for i, f in enumerate(self.families)}
-        out["amae"] = (self.sum_amae.sum() / self.count.sum().clamp_min(1)).float()
+        nan = torch.full_like(self.sum_amae, float("nan"))
+        per_family = torch.where(self.count > 0, self.sum_amae / self.count.clamp_min(1), nan)
+        out = {f"amae_{f}": per_family[i].float() for i, f in enumerate(self.families)}
+        total = self.count.sum()
+        out["amae"] = (self.sum_amae.sum() / total if total > 0 else nan[0]).float()
         return out

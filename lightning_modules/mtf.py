@@ -49,6 +49,7 @@ class MTFEstimator(EstimatorModule):
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
+        self._check_training_args()
         self._set_patch_size(patch_size)
         self.net = MTFNet(tuple(widths), tuple(hidden), downsample)
         self.val_amae = AMAEPerFamily(FAMILIES)

@@ -58,6 +58,7 @@ class NoiseSourceEstimator(EstimatorModule):
     ) -> None:
         super().__init__(lr, weight_decay, channels_last, log_figures, max_figure_samples)
         self.save_hyperparameters()
+        self._check_training_args()
         self._set_patch_size(patch_size)
         self.metadata_set = metadata_set
         self.net = NoiseSourceNet(metadata_set, width, tuple(hidden))

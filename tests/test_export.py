@@ -234,3 +234,20 @@ def test_shipped_noise_network_exports_self_contained(tmp_path):
     assert (torch.from_numpy(sigma) - want["sigma"]).abs().max() < 1e-3
     assert (torch.from_numpy(xi) - want["xi"]).abs().max() < 1e-3
     assert (torch.from_numpy(total) - want["sigma_total"]).abs().max() < 1e-3
+
+
+def test_a_metric_without_data_is_null_in_the_description(tmp_path):
+    """The AMAE of a blur family with no test sample is NaN (no data): the weights file says null, in strict JSON."""
+    import json
+
+    def no_nan(token):
+        raise ValueError(f"{token} in the description")
+
+    path = export_weights(_perturbed("mtf"), tmp_path / "w.pt",
+                          metrics={"test/amae": torch.tensor(3.5), "test/amae_nonlinear": float("nan"), "test/amae_linear": None})
+    desc = json.loads(torch.load(path, weights_only=True)["description"], parse_constant=no_nan)
+    assert desc["metrics"] == {"test/amae": 3.5, "test/amae_nonlinear": None, "test/amae_linear": None}
+    _, again = load_module(path)
+    assert again["metrics"] == desc["metrics"]
+    assert json.loads(torch.load(export_weights(path, tmp_path / "again.pt"), weights_only=True)["description"],
+                      parse_constant=no_nan)["metrics"] == desc["metrics"]  # exported again: still null

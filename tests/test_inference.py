@@ -503,3 +503,76 @@ def test_exported_descriptions_are_checked_like_a_weights_files(fmt, exported_pt
         path = _with_description(fmt, exported_pt2, text, tmp_path / f"bad.{fmt}")
         with pytest.raises(ValueError, match=rf"bad\.{fmt}: {match}"):
             load_estimator(path)
+
+
+def _redescribed(src, edit, out):
+    import json
+
+    payload = torch.load(src, weights_only=True)
+    desc = json.loads(payload["description"])
+    edit(desc)
+    payload["description"] = json.dumps(desc)
+    torch.save(payload, out)
+    return out
+
+
+@pytest.mark.parametrize(
+    "make,edit,stated,network",
+    [
+        (lambda: NoiseSourceEstimator(patch_size=32, metadata_set="minimal"), lambda d: d.update(metadata_set="none"),
+         "none", "minimal"),
+        (lambda: NoiseSourceEstimator(patch_size=32, metadata_set="none"), lambda d: d.update(metadata_set="minimal"),
+         "minimal", "none"),
+        # a file whose init_args do not give it: the network's default (minimal)
+        (lambda: NoiseSourceEstimator(patch_size=32, metadata_set="minimal"),
+         lambda d: (d.update(metadata_set="none"), d["init_args"].pop("metadata_set")), "none", "minimal"),
+        (lambda: MTFEstimator(patch_size=32), lambda d: d.update(metadata_set="minimal"), "minimal", "none"),
+    ],
+)
+def test_a_description_metadata_set_other_than_the_networks_is_refused(tmp_path, make, edit, stated, network):
+    """A Min-Meta network whose description said ``none`` ran without metadata (zeros fed to its metadata inputs) and
+    answered wrong; the description's metadata_set must be what the network's init_args build."""
+    from camhealth.export import load_module
+
+    path = _redescribed(export_weights(make(), tmp_path / "w.pt"), edit, tmp_path / "edited.pt")
+    for load in (load_estimator, load_module):
+        with pytest.raises(ValueError, match=rf"edited\.pt: description metadata_set = '{stated}' differs from the "
+                                             rf"network's init_args metadata_set = '{network}'"):
+            load(path)
+
+
+def test_the_estimators_metadata_set_is_the_networks(tmp_path):
+    """A description without the top-level field: the estimator reads what the network reads (init_args)."""
+    path = _redescribed(export_weights(NoiseSourceEstimator(patch_size=32, metadata_set="minimal"), tmp_path / "w.pt"),
+                        lambda d: d.pop("metadata_set"), tmp_path / "edited.pt")
+    est = load_estimator(path)
+    assert est.metadata_set == "minimal"
+    with pytest.raises(ValueError, match="reads 'minimal' metadata: pass metadata="):
+        est.predict(_patches(2))
+
+
+@pytest.mark.parametrize("size", [18, 100, 8])
+def test_a_description_patch_size_that_is_not_a_multiple_of_16_is_refused(tmp_path, size):
+    from camhealth.export import load_module
+
+    def edit(d):
+        d["patch_size"] = size
+        d["init_args"].pop("patch_size")
+
+    path = _redescribed(export_weights(MTFEstimator(patch_size=32), tmp_path / "w.pt"), edit, tmp_path / "edited.pt")
+    for load in (load_estimator, load_module):
+        with pytest.raises(ValueError, match=rf"edited\.pt: description patch_size = {size} must be a positive multiple of 16 px"):
+            load(path)
+
+
+def test_both_loaders_read_the_description_patch_size(tmp_path):
+    """init_args without patch_size: the inference estimator and the LightningModule take the description's."""
+    from camhealth.export import load_module
+
+    def edit(d):
+        d["patch_size"] = 48
+        d["init_args"].pop("patch_size")
+
+    path = _redescribed(export_weights(MTFEstimator(patch_size=32), tmp_path / "w.pt"), edit, tmp_path / "edited.pt")
+    module, _ = load_module(path)
+    assert load_estimator(path).patch_size == module.patch_size == 48

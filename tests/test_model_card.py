@@ -117,3 +117,14 @@ def test_cli_bad_weights_file_is_one_line_exit_2(tmp_path, monkeypatch, capsys):
         assert len(err) == 1 and err[0].startswith("python -m camhealth.model_card: error: ") and name in err[0], err
         assert message in err[0] and "weights_only" not in err[0]
     assert not marker.exists() and not (tmp_path / "evil.md").exists()
+
+
+def test_card_says_no_samples_for_a_metric_without_data(tmp_path):
+    """A blur family with no test sample has no AMAE (null in the file): the card says so instead of a number."""
+    from lightning_modules import MTFEstimator
+
+    path = export_weights(MTFEstimator(patch_size=32), tmp_path / "m.pt",
+                          metrics={"test/amae": 4.25, "test/amae_nonlinear": float("nan")})
+    text = card_text(path, "python -m camhealth.fit --config configs/mtf.yaml", timing={"fp32": 1.0, "bf16": 0.5})
+    assert "| test/amae_nonlinear | no samples |" in text and "| test/amae | 4.250 |" in text
+    assert re.search(r"\bnan\b", text, flags=re.I) is None

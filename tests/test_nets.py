@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import re
 
 import numpy as np
 import pytest
@@ -201,3 +202,117 @@ def test_mtf_preprocess_refuses_sizes_not_divisible_by_the_downsampling():
 
     with pytest.raises(RuntimeError, match="divisible|30"):
         MTFPreprocess(4)(torch.rand(1, 1, 30, 30))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.bfloat16])
+@pytest.mark.parametrize("kind", [*sorted(nets.NETWORKS), "thesis"])
+def test_a_network_cast_as_a_whole_takes_float32_inputs_in_its_dtype(kind, dtype):
+    """Lightning's "64-true" / "bf16-true" cast the module, not the inputs it describes itself with (example inputs,
+    FLOP count at each checkpoint): every network casts a float32 input to its weights' dtype when autocast is off."""
+    torch.manual_seed(0)
+    net = nets.ThesisNoiseNet(width=8, layers=3) if kind == "thesis" else nets.NETWORKS[kind].build({"patch_size": 32})
+    x = torch.rand(2, 1, 32, 32)
+    args = (x, torch.rand(2, 11)) if kind == "noise_source" else (x,)
+    with torch.no_grad():
+        ref = net.eval()(*args)
+        out = net.to(dtype)(*args)
+    assert out.dtype == dtype and out.shape == ref.shape
+    tol = 1e-4 if dtype == torch.float64 else 0.1
+    assert torch.allclose(out.float(), ref, rtol=tol, atol=tol * float(ref.abs().max()))
+    assert nets.count_flops(net, *args) > 0
+
+
+@pytest.mark.parametrize("dilations", [(0, 2, 4), (1, -1, 4), (1.5,), (True,)])
+def test_noise_level_net_refuses_dilations_below_one_naming_the_value(dilations):
+    with pytest.raises(ValueError, match=rf"dilations = {re.escape(repr(tuple(dilations)))}: each must be an integer >= 1"):
+        nets.NoiseLevelNet(8, dilations)
+
+
+def _edited_file(tmp_path, module, edit):
+    path = export_weights(module, tmp_path / "w.pt")
+    payload = torch.load(path, weights_only=True)
+    desc = json.loads(payload["description"])
+    edit(desc)
+    payload["description"] = json.dumps(desc)
+    torch.save(payload, path)
+    return path
+
+
+@pytest.mark.parametrize(
+    "kind,edit,match",
+    [
+        ("drne", lambda d: d["init_args"].__setitem__("dilations", [-1, 2, 4]), r"dilations = \(-1, 2, 4\)"),
+        ("noise_source", lambda d: d["init_args"].__setitem__("lr", -1), r"init_args: lr = -1 must be > 0"),
+        ("noise_source", lambda d: d["init_args"].__setitem__("loss_weights", {"bogus": 1.0}),
+         r"loss_weights has unknown key\(s\) \['bogus'\]"),
+        ("drne", lambda d: d["init_args"].__setitem__("map_weight", "half"), r"map_weight = 'half' must be a finite number"),
+        ("drne", lambda d: d["init_args"].__setitem__("channels_last", "false"), r"channels_last = 'false' must be true or false"),
+        ("mtf", lambda d: d.__setitem__("mtf_error", {"x": 1}), r"mtf_error has unknown fields \['x'\]"),
+    ],
+)
+def test_load_net_and_load_module_refuse_the_same_file_with_the_same_message(tmp_path, kind, edit, match):
+    """One reader checks a file for both loaders: the network's and the training arguments, the MTF error table."""
+    module = {"drne": lambda: lightning_modules.NoiseLevelEstimator(patch_size=32, width=8),
+              "noise_source": lambda: lightning_modules.NoiseSourceEstimator(patch_size=32, width=8),
+              "mtf": lambda: lightning_modules.MTFEstimator(patch_size=32)}[kind]()
+    path = _edited_file(tmp_path, module, edit)
+    messages = []
+    for load in (load_net, load_module):
+        with pytest.raises(ValueError, match=match) as info:
+            load(path)
+        assert str(path) in str(info.value)
+        messages.append(str(info.value))
+    assert messages[0] == messages[1]
+
+
+@pytest.mark.parametrize(
+    "cls,kwargs,match",
+    [
+        ("NoiseLevelEstimator", {"map_weight": 1.5}, r"map_weight = 1.5 must lie in \[0, 1\]"),
+        ("NoiseSourceEstimator", {"loss_weights": {"pn": -1.0}}, r"loss_weights\['pn'\] = -1.0 must be ≥ 0"),
+        ("MTFEstimator", {"max_figure_samples": -1}, r"max_figure_samples = -1 must be an integer ≥ 0"),
+    ],
+)
+def test_lightning_modules_refuse_what_the_loaders_refuse(cls, kwargs, match):
+    """What trains also loads: the LightningModules check their training arguments as the loaders check a file's."""
+    with pytest.raises(ValueError, match=match):
+        getattr(lightning_modules, cls)(patch_size=32, **kwargs)
+    with pytest.raises(ValueError, match=match):
+        nets.NETWORKS[getattr(lightning_modules, cls).kind].check_training_args(kwargs)
+
+
+def test_a_tampered_width_is_refused_before_the_network_is_allocated(tmp_path, monkeypatch):
+    """A one-number edit (width 32 → 100 000: ~0.4 TB of weights) is refused by comparing the file's tensor shapes with
+    those of the network built on the meta device; no convolution is ever initialised in real memory for it."""
+    path = _edited_file(tmp_path, lightning_modules.NoiseLevelEstimator(patch_size=32, width=32),
+                        lambda d: d["init_args"].__setitem__("width", 100_000))
+    reset = torch.nn.Conv2d.reset_parameters
+
+    def on_meta_only(self):
+        if not self.weight.is_meta and self.weight.numel() > 10**6:
+            raise AssertionError(f"a {tuple(self.weight.shape)} convolution was allocated before the shapes were compared")
+        reset(self)
+
+    monkeypatch.setattr(torch.nn.Conv2d, "reset_parameters", on_meta_only)
+    for load in (load_net, load_module):
+        with pytest.raises(ValueError, match=r"state_dict entry 'stem.0.weight' has shape \(32, 8, 3, 3\), the network "
+                                             r"described by the file has \(100000, 8, 3, 3\)") as info:
+            load(path)
+        assert str(path) in str(info.value)
+
+
+def test_load_net_gives_plain_float32_tensors_of_the_file(tmp_path):
+    """The network is built on the meta device and then filled: every tensor is the file's, float32 and contiguous
+    (a float64 checkpoint of "64-true" training included), and nothing stays on the meta device."""
+    torch.manual_seed(3)
+    module = lightning_modules.NoiseLevelEstimator(patch_size=32, width=8)
+    path = export_weights(module, tmp_path / "w.pt")
+    net, _ = load_net(path)
+    for key, value in net.state_dict().items():
+        assert value.device.type == "cpu" and value.dtype == torch.float32 and value.is_contiguous(), key
+        assert torch.equal(value, module.net.state_dict()[key]), key
+    ckpt = {"state_dict": {f"net.{k}": v.double() for k, v in module.net.state_dict().items()},
+            "camhealth": {"format": "camhealth-estimator", "version": 1, **module.describe()}}
+    torch.save(ckpt, tmp_path / "m.ckpt")
+    net64, _ = load_net(tmp_path / "m.ckpt")
+    assert all(v.dtype == torch.float32 for v in net64.state_dict().values())

@@ -31,12 +31,66 @@ from camhealth.nets.noise_source import NoiseSourceNet, NoiseTrunk
 __all__ = [
     "NoiseSourceNet", "NoiseTrunk", "NoiseLevelNet", "ThesisNoiseNet", "MTFNet", "MTFPreprocess", "ConvAct",
     "ResidualBlock", "GlobalStatsPool", "FullyConnectedBlock", "count_flops", "count_parameters", "NetworkSpec",
-    "NETWORKS", "COMMON_TRAINING_ARGS", "check_patch_size", "network_for",
+    "NETWORKS", "COMMON_TRAINING_ARGS", "LOSS_TERMS", "check_patch_size", "network_for",
 ]
 
 #: Arguments every estimator LightningModule takes that do not change its network (``channels_last`` is the memory
 #: format the network runs in, read by :meth:`NetworkSpec.channels_last`).
 COMMON_TRAINING_ARGS: tuple[str, ...] = ("lr", "weight_decay", "channels_last", "log_figures", "max_figure_samples")
+
+
+#: The loss terms of the noise-source network (the keys ``loss_weights`` may set).
+LOSS_TERMS: tuple[str, ...] = ("pn", "dcsn", "rn", "total", "xi")
+
+
+def _finite(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError(f"{name} = {value!r} must be a finite number")
+    return float(value)
+
+
+def _positive(name: str, value: Any) -> None:
+    if not _finite(name, value) > 0:
+        raise ValueError(f"{name} = {value!r} must be > 0")
+
+
+def _non_negative(name: str, value: Any) -> None:
+    if _finite(name, value) < 0:
+        raise ValueError(f"{name} = {value!r} must be ≥ 0")
+
+
+def _fraction(name: str, value: Any) -> None:
+    if not 0 <= _finite(name, value) <= 1:
+        raise ValueError(f"{name} = {value!r} must lie in [0, 1]")
+
+
+def _flag(name: str, value: Any) -> None:
+    if not isinstance(value, bool):
+        raise ValueError(f"{name} = {value!r} must be true or false")
+
+
+def _count(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+        raise ValueError(f"{name} = {value!r} must be an integer ≥ 0")
+
+
+def _loss_weights(name: str, value: Any) -> None:
+    if value is None:
+        return
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{name} = {value!r} must be a mapping of loss terms {list(LOSS_TERMS)} to weights, or null")
+    unknown = sorted(str(k) for k in value if k not in LOSS_TERMS)
+    if unknown:
+        raise ValueError(f"{name} has unknown key(s) {unknown}; allowed {list(LOSS_TERMS)}")
+    for key, weight in value.items():
+        _non_negative(f"{name}[{key!r}]", weight)
+
+
+#: How each training argument's value is checked (:meth:`NetworkSpec.check_training_args`).
+_TRAINING_CHECKS = {
+    "lr": _positive, "weight_decay": _non_negative, "channels_last": _flag, "log_figures": _flag,
+    "max_figure_samples": _count, "huber_beta_dn": _non_negative, "map_weight": _fraction, "loss_weights": _loss_weights,
+}
 
 
 def check_patch_size(patch_size: Any) -> int:
@@ -70,6 +124,16 @@ class NetworkSpec:
     def init_args(self) -> tuple[str, ...]:
         """Every argument of the LightningModule (what a file's ``init_args`` may hold)."""
         return ("patch_size", *self.network_args, *self.training_args, *COMMON_TRAINING_ARGS)
+
+    def check_training_args(self, init_args: Mapping[str, Any]) -> None:
+        """Refuse a value of a training argument (``lr``, ``weight_decay``, ``loss_weights``, ``map_weight``,
+        ``huber_beta_dn``, ``channels_last``, …) that the LightningModule refuses: one ``ValueError`` naming the
+        argument and its value. The LightningModules run it on their own arguments, and both loaders of
+        :mod:`camhealth.export` on a file's, so ``load_net`` (no LightningModule built) refuses what ``load_module``
+        refuses. Arguments the file does not give are not checked (they take the defaults)."""
+        for key in (*self.training_args, *COMMON_TRAINING_ARGS):
+            if key in init_args:
+                _TRAINING_CHECKS[key](key, init_args[key])
 
     def build(self, init_args: Mapping[str, Any]) -> nn.Module:
         """The network (untrained, eval mode) for a file's ``init_args``; arguments it does not give take the

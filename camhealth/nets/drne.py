@@ -15,11 +15,13 @@ Plain ``torch.nn.Module``s: inference imports no training framework. The Lightni
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from camhealth.nets.blocks import ConvAct, ResidualBlock, working_dtype
+from camhealth.nets.blocks import ConvAct, ResidualBlock, autocast_on, working_dtype
 
 __all__ = ["NoiseLevelNet", "ThesisNoiseNet"]
 
@@ -29,6 +31,9 @@ class NoiseLevelNet(nn.Module):
 
     def __init__(self, width: int = 32, dilations: tuple[int, ...] = (1, 2, 4), highpass_gain: float = 32.0) -> None:
         super().__init__()
+        bad = [d for d in dilations if isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 1]
+        if bad:
+            raise ValueError(f"dilations = {tuple(dilations)!r}: each must be an integer >= 1, got {bad[0]!r}")
         self.highpass_gain = float(highpass_gain)
         self.unshuffle = nn.PixelUnshuffle(2)
         self.stem = ConvAct(8, width)
@@ -37,6 +42,8 @@ class NoiseLevelNet(nn.Module):
         self.shuffle = nn.PixelShuffle(2)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        if not autocast_on(image):  # the input in the weights' dtype (autocast casts it itself)
+            image = image.to(self.stem[0].weight.dtype)
         local_mean = F.avg_pool2d(F.pad(image, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
         x = torch.cat([image * 2.0 - 1.0, (image - local_mean) * self.highpass_gain], dim=1)
         y = self.shuffle(self.head(self.body(self.stem(self.unshuffle(x)))))
@@ -55,4 +62,7 @@ class ThesisNoiseNet(nn.Module):
         self.body = nn.Sequential(*mods)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return 5.0 * F.softplus(self.body(image).to(working_dtype(image, self.body[0][0].weight)))
+        weight = self.body[0][0].weight
+        if not autocast_on(image):  # the input in the weights' dtype (autocast casts it itself)
+            image = image.to(weight.dtype)
+        return 5.0 * F.softplus(self.body(image).to(working_dtype(image, weight)))

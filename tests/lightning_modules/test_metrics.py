@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -37,5 +39,53 @@ def test_amae_hand_computed_and_per_family():
     out = m.compute()
     assert out["amae_defocus"].item() == pytest.approx(5.0)
     assert out["amae_nonlinear"].item() == pytest.approx(2.0)
-    assert out["amae_linear"].item() == 0.0
+    assert math.isnan(out["amae_linear"].item())  # no sample of the family: no data, not a perfect 0 %
     assert out["amae"].item() == pytest.approx(3.5)
+    assert all(math.isnan(v.item()) for v in AMAEPerFamily().compute().values())  # no samples at all
+
+
+@pytest.mark.parametrize("labels,bad", [([5, 0], "5"), ([0, -1], "-1"), ([0, 3], "3"), ([0.5, 1.0], "0.5"),
+                                        ([float("nan"), 0.0], "nan")])
+def test_amae_refuses_family_labels_outside_the_families(labels, bad):
+    """A label outside 0..2 was clamped into the first or last family; now it is refused, naming the value."""
+    m = AMAEPerFamily()
+    with pytest.raises(ValueError, match=rf"family label {bad} is not a family index 0..2"):
+        m.update(torch.rand(2, 16), torch.rand(2, 16), torch.tensor(labels))
+    assert m.count.sum().item() == 0  # nothing was counted
+
+
+@pytest.mark.parametrize("cast", ["bfloat16", "float16", "half", "double", "float64", "meta"])
+def test_metric_states_stay_float64_when_the_module_is_cast(cast):
+    """Lightning's bf16-true casts the module with .to(torch.bfloat16) (64-true with .double()): the accumulators keep
+    float64 (a bf16 count stops growing at 256, index_add_ refuses float64 sources) and move with the device only."""
+    from lightning_modules import MTFEstimator, NoiseSourceEstimator
+
+    def apply(module):
+        if cast in ("half", "double"):
+            return getattr(module, cast)()
+        return module.to(cast if cast == "meta" else getattr(torch, cast))
+
+    device = "meta" if cast == "meta" else "cpu"
+    for module in (NoiseSourceEstimator(patch_size=32), MTFEstimator(patch_size=32)):
+        apply(module)
+        for metric in module.modules():
+            if isinstance(metric, (NoiseErrorStats, AMAEPerFamily)):
+                for key in metric._defaults:
+                    state = getattr(metric, key)
+                    assert state.dtype == metric._defaults[key].dtype == torch.float64, (type(metric).__name__, key)
+                    assert state.device.type == metric._defaults[key].device.type == device, (type(metric).__name__, key)
+    if cast == "meta":
+        return
+    g = torch.Generator().manual_seed(0)
+    est, truth = torch.rand(600, 16, generator=g), torch.rand(600, 16, generator=g)
+    family = torch.randint(0, 3, (600,), generator=g)
+    ref, low = AMAEPerFamily(), apply(AMAEPerFamily())
+    noise_ref, noise_low = NoiseErrorStats(["total"]), apply(NoiseErrorStats(["total"]))
+    for i in range(0, 600, 8):
+        ref.update(est[i:i + 8], truth[i:i + 8], family[i:i + 8])
+        low.update(est[i:i + 8], truth[i:i + 8], family[i:i + 8])
+        noise_ref.update(est[i:i + 8, :1] * 10, truth[i:i + 8, :1] * 10)
+        noise_low.update(est[i:i + 8, :1] * 10, truth[i:i + 8, :1] * 10)
+    assert noise_low.count.item() == 600
+    for a, b in ((ref.compute(), low.compute()), (noise_ref.compute(), noise_low.compute())):
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
