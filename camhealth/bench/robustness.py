@@ -7,7 +7,8 @@ Every noise estimator is scored beside the closed form of the metadata alone on 
 
 - **simulator**: :mod:`camhealth.bench.sensor_variants`, an independent NumPy implementation of the sensor model,
   as it is and with each of its variants (whole electrons, readout rounded to whole electrons, log-normal kTC,
-  clipping after every source, reverse source order, 8-bit rounding) and all of them at once;
+  clipping after every source, reverse source order with clipping after every source, 8-bit rounding) and all of
+  them at once;
 - **scenes**: the scikit-image photographs and every 5th frame of the committed street clip (no dead leaves) at two
   scales, the frames of every condition alternating between them, 16 random 128-px patches per frame; JPEG
   (quality 75–95, OpenCV) after the noise. *Full resolution*: the images as they are (the scale a camera delivers;
@@ -18,7 +19,11 @@ Every noise estimator is scored beside the closed form of the metadata alone on 
   and 7: the downsampling packs scene structure into the pixel scale, it does not remove the scenes' own noise;
 - **metadata**: matched; and one field altered while the estimator is told the unaltered value — gain +6…12 dB,
   temperature +15…30 K, thermal white noise ×2…4 (thesis Sec. 6.3.2);
-- **strong noise**: extra white noise that brings σ_Total to 10–60 DN while the metadata are unchanged;
+- **strong noise**: extra white noise while the metadata are unchanged, one target σ_Total per frame drawn uniform in
+  10–60 DN (before clipping: the extra σ is √(target² − the camera's own σ²), added with the readout noise). The truth
+  is the realised σ_Total after clipping, which is lower and, with 16 frames, covers the range unevenly: the header
+  prints the targets and the realised range per scale (seed 0: targets 20.5–54.5 DN, realised 20.1–51.0 DN, no patch below 20 DN; seeds 7 and 3
+  reach down to 8.2 and 9.9 DN; clipping keeps every seed below about 52 DN);
 - **row and column noise** (banding): offsets N(0, σ²) per pixel row, per pixel column or both, σ 1–8 DN, on a
   matched camera (:func:`add_banding`, written here from that description) — noise no metadata field makes, which the
   image shows as whole rows or columns out of step. Its truth per source is the camera's; σ_Total and ξ include it.
@@ -32,7 +37,10 @@ gain 0–12 dB, exposure 1–200 ms, temperature 0–50 °C. Truth per source is
 clipping; ξ = σ_Total(image made with the told metadata) − σ_Total(image made with the real ones), the same
 random numbers in both, so ξ is exactly 0 where the metadata are right. A mismatch is *visible* where
 |ξ| ≥ max(0.5 DN, 15 % of σ_Total); detection is scored by ROC AUC of |ξ̂| per patch and of |median ξ̂| per frame
-(16 patches, one camera state) between the matched conditions and the visible mismatches; again with the estimator's
+(16 patches, one camera state) between the matched conditions and the visible mismatches. A frame's "median" of its 16
+patches, here and wherever a frame is labelled or scored (ξ, ξ̂, σ_Total, σ̂_Total, p_match), is torch's lower median
+(``Tensor.median``: the 8th smallest of the 16, not the mean of the 8th and 9th). The ROC AUC is the Mann–Whitney
+statistic (ties counted ½). Again with the estimator's
 evidence — |ξ̂|, its ties broken by the estimator's probability of a visible mismatch 1 − p_match where it reports
 one (the physics-first estimator's ξ̂ is 0 wherever it keeps the closed form) — and at its decision: the shares of
 visible mismatches (TPR) and of matched patches or frames (FPR) whose estimate is itself visible,
@@ -160,6 +168,7 @@ class Frame:
     variants: tuple[str, ...] = ()  # the simulator variants the frame was made with
     overrides: dict | None = None  # the fields the real camera has where the told metadata are wrong
     seed: int = 0  # the seed of its random numbers
+    target: float = float("nan")  # strong condition: the frame's target σ_Total [DN] before clipping (10–60 DN)
 
 
 def _scenes() -> dict[str, list[torch.Tensor]]:
@@ -230,6 +239,23 @@ def scene_floor_lines(frames: list[Frame]) -> list[str]:
     return out
 
 
+def strong_range_lines(frames: list[Frame]) -> list[str]:
+    """One line per scene scale: the strong-noise frames' target σ_Total (before clipping) and the range and median of
+    their patches' realised σ_Total after clipping (the truth the strong-noise columns are scored against)."""
+    out = []
+    for scale in SCENE_SCALES:
+        sel = [f for f in frames if f.scale == scale and f.condition in STRONG]
+        if not sel:
+            continue
+        targets = np.array([f.target for f in sel], dtype=float)
+        real = torch.cat([f.total for f in sel]).double()
+        out.append(f"strong noise, {SCALE_LABELS[scale]} ({len(sel)} frames, {real.numel()} patches): target σ_Total "
+                   f"{np.nanmin(targets):.1f}–{np.nanmax(targets):.1f} DN before clipping (one per frame, drawn uniform "
+                   f"in 10–60 DN); realised σ_Total after clipping (the truth) {float(real.min()):.1f}–{float(real.max()):.1f} DN "
+                   f"per patch, median {float(real.quantile(0.5)):.1f} DN")
+    return out
+
+
 def make_frames(frames: int, seed: int = 0) -> list[Frame]:
     """``frames`` frames of 16 patches for every condition of :data:`CONDITIONS` (module docstring); within each
     condition the frames alternate between the scales of :data:`SCENE_SCALES` (the first gets the odd one out), each
@@ -252,7 +278,7 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
             xs = torch.randint(0, w - PATCH + 1, (16,), generator=gen).tolist()
             clean = torch.stack([scene[:, y:y + PATCH, x:x + PATCH] for y, x in zip(ys, xs)]).float().clamp(0, 1)
             variants = VARIANTS if cond == "all_variants" else (cond,) if cond in VARIANTS else ()
-            overrides, extra = None, None
+            overrides, extra, target = None, None, float("nan")
             if cond == "gain":
                 overrides = {"gain_db": float(told.gain_db) + float(torch.empty(1).uniform_(6.0, 12.0, generator=gen))}
             elif cond == "temperature":
@@ -260,7 +286,7 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
             elif cond == "white_noise":
                 overrides = {"white_noise_v_per_rthz": float(told.white_noise_v_per_rthz) * float(torch.empty(1).uniform_(2.0, 4.0, generator=gen))}
             seed_k = int(torch.randint(0, 2**62, (1,), generator=gen))
-            if cond == "strong":  # extra white noise to a σ_Total of 10–60 DN (mid-grey clean level)
+            if cond == "strong":  # extra white noise to a target σ_Total of 10–60 DN before clipping (mid-grey clean level)
                 _, base = simulate_variant(clean, told, (), torch.Generator().manual_seed(seed_k))
                 target = float(torch.empty(1).uniform_(10.0, 60.0, generator=gen))
                 extra = float(np.sqrt(max(target**2 - float(base.square().sum(1).mean()), 1.0)))
@@ -298,7 +324,7 @@ def make_frames(frames: int, seed: int = 0) -> list[Frame]:
                 noisy = torch.stack([_jpeg(p, q) for p in noisy])
                 second = torch.stack([_jpeg(p, q) for p in second])
             out.append(Frame(cond, clean, noisy, told, sigma, total, xi, scale, scene_floor_dn(clean), second=second,
-                             variants=tuple(variants), overrides=overrides, seed=seed_k))
+                             variants=tuple(variants), overrides=overrides, seed=seed_k, target=target))
     return out
 
 
@@ -539,11 +565,22 @@ TIE_BREAK_DN = 1e-6
 
 
 def _auc(score: torch.Tensor, label: torch.Tensor) -> float:
-    from torchmetrics.functional.classification import binary_auroc
-
-    if label.all() or not label.any():
+    """ROC AUC of ``score`` separating ``label`` True from False: the Mann–Whitney statistic in float64 from the scores'
+    ranks, a tie between a positive and a negative counted ½ (so any scores, however large: no squashing into [0, 1]).
+    NaN where one class is missing; NaN scores are refused (ValueError), not dropped."""
+    s = score.detach().double().reshape(-1).cpu().numpy()
+    y = label.detach().bool().reshape(-1).cpu().numpy()
+    if s.shape != y.shape:
+        raise ValueError(f"{s.size} scores for {y.size} labels")
+    if np.isnan(s).any():
+        raise ValueError(f"{int(np.isnan(s).sum())} of {s.size} scores are NaN: an AUC of them is undefined")
+    n_pos = int(y.sum())
+    n_neg = y.size - n_pos
+    if n_pos == 0 or n_neg == 0:
         return float("nan")
-    return float(binary_auroc(score.double(), label.long()))
+    _, group, count = np.unique(s, return_inverse=True, return_counts=True)
+    rank = (np.cumsum(count) - (count - 1) / 2.0)[group.reshape(-1)]  # tied scores share their mean rank (1-based)
+    return float((rank[y].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
 def _visible(fr: Frame, xi: torch.Tensor) -> torch.Tensor:
@@ -717,17 +754,36 @@ def _defect_scores(rows: dict[str, list]) -> dict[str, Any]:
     return out
 
 
+#: The numbers derived from the estimator's ξ̂ (its mismatch alarm): NaN for an estimator that reports no ξ (a total-σ
+#: baseline such as ``drne``), which the tables print as "–" instead of scoring a ξ̂ = 0 it never said.
+XI_KEYS = ("auc_patch", "auc_frame", "auc_frame_quiet", "auc_frame_busy", "auc_patch_evidence", "auc_frame_evidence",
+           "declared_tpr_patch", "declared_fpr_patch", "declared_tpr_frame", "declared_fpr_frame", "strong_xi_sign_right",
+           "strong_xi_sign_right_assessable", "banding_declared_patch", "banding_declared_frame", "defects_noisier_frames")
+
+
+def _without_xi(part: dict[str, Any]) -> None:
+    """Set the ξ-derived numbers (:data:`XI_KEYS`, every group's ξ RMS) of one pooled or per-scale result to NaN."""
+    for k in XI_KEYS:
+        part[k] = float("nan")
+    for g in part["groups"].values():
+        g["xi_rms"] = float("nan")
+
+
 def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
     """Every number of one estimator on ``frames`` (module docstring): pooled over all frames, and under ``"scales"``
-    the same numbers for the frames of each scene scale of :data:`SCENE_SCALES` (each frame is predicted once)."""
+    the same numbers for the frames of each scene scale of :data:`SCENE_SCALES` (each frame is predicted once).
+    ``"reports_xi"``: whether the estimator returns ξ̂; where it does not, its ξ-derived numbers are NaN
+    (:data:`XI_KEYS`; the ξ̂ = 0 the aggregation puts in its place is no answer of the estimator's)."""
     answers = []
     times, assessable = [], []
+    reports_xi = True
     for fr in frames:
         out, ms = _predict(est, fr)
         times.append(ms)
         assessable.append(torch.as_tensor(out.get("assessable", torch.ones(16, dtype=torch.bool))).float().mean().item())
         has_sources = "sigma" in out
         sig = out["sigma"].float() if has_sources else torch.full((16, 3), float("nan"))
+        reports_xi &= "xi" in out
         xi = out["xi"].float() if "xi" in out else torch.zeros(16)
         ok = torch.as_tensor(out.get("assessable", torch.ones(16, dtype=torch.bool))).bool().reshape(-1)
         p_match = torch.as_tensor(out["p_match"]).float().reshape(-1) if "p_match" in out else None
@@ -749,11 +805,25 @@ def score(est: Any, frames: list[Frame]) -> dict[str, Any]:
     for scale in SCENE_SCALES:
         sel = [a for a, fr in zip(assessable, frames) if fr.scale == scale]
         res["scales"][scale] = {**_aggregate(rows_of(scale)), "assessable": float(np.mean(sel)) if sel else float("nan")}
+    res["reports_xi"] = reports_xi
+    if not reports_xi:
+        for part in (res, *res["scales"].values()):
+            _without_xi(part)
     return res
 
 
 def _fmt3(t: tuple[float, float, float]) -> str:
     return f"{t[0]:.2f} / {t[1]:.2f} / **{t[2]:.2f}**"
+
+
+def _pct(v: float) -> str:
+    return f"{100 * v:.0f} %"
+
+
+def _xi(r: dict[str, Any], text: str, cells: int = 1) -> str:
+    """``text`` (``cells`` table cells), or "–" in each of them where the estimator reports no ξ (``r["reports_xi"]``):
+    a ξ-derived number of an estimator without ξ is not measured."""
+    return text if r.get("reports_xi", True) else " | ".join(["–"] * cells)
 
 
 def run(args: argparse.Namespace) -> BenchResult:
@@ -774,6 +844,7 @@ def run(args: argparse.Namespace) -> BenchResult:
     header = [f"{len(frames)} frames × 16 patches of 128 px ({args.frames} per condition), seed {args.seed}; "
               f"data made in {time.perf_counter() - t0:.0f} s", f"command: {args.command_line}"]
     header += scene_floor_lines(frames)
+    header += strong_range_lines(frames)
     sets = [("pooled", None), *[(SCALE_LABELS[k], k) for k in SCENE_SCALES]]
 
     def part(r: dict[str, Any], key: str | None) -> dict[str, Any]:
@@ -787,7 +858,7 @@ def run(args: argparse.Namespace) -> BenchResult:
             for gname in ("matched", "mismatched", "visible mismatch", "strong", "banding", "defects"):
                 g = part(r, key)["groups"][gname]
                 summary.append(f"| {name} | {label} | {gname} ({g['n']}) | {_fmt3(g['PN'])} | {_fmt3(g['DCSN'])} | {_fmt3(g['RN'])} | "
-                               f"{_fmt3(g['DCSN+RN'])} | {_fmt3(g['total'])} | {g['xi_rms']:.2f} |")
+                               f"{_fmt3(g['DCSN+RN'])} | {_fmt3(g['total'])} | {_xi(r, format(g['xi_rms'], '.2f'))} |")
     summary += ["", "Per-source RMS [DN] by condition, both scene scales pooled (PN / DCSN / RN / total):", "",
                 "| estimator | " + " | ".join(MATCHED + MISMATCH) + " |", "|---|" + "---|" * (len(MATCHED) + len(MISMATCH))]
     for name, r in results.items():
@@ -796,8 +867,8 @@ def run(args: argparse.Namespace) -> BenchResult:
         summary.append(f"| {name} | " + " | ".join(cells) + " |")
     summary += ["", "Detection of a visible mismatch and strong noise, pooled and per scene scale:", "",
                 "| estimator | scenes | AUC per patch | AUC per frame | per frame, quiet scenes (floor ≤ σ_Total/3) | per frame, busy scenes | "
-                "σ ≥ 10 DN: median / p90 abs. rel. error of σ_Total | ξ sign right | σ ≥ 10 DN, patches called assessable: share, "
-                "p90 abs. rel. error, ξ sign right | assessable | ms/patch fp32 |",
+                "strong noise (realised σ_Total in the header): median / p90 abs. rel. error of σ_Total | ξ sign right | "
+                "strong noise, patches called assessable: share, p90 abs. rel. error, ξ sign right | assessable | ms/patch fp32 |",
                 "|---|---|---:|---:|---:|---:|---|---:|---|---:|---:|"]
     def per_scale(cells) -> None:
         """One table row per estimator and scene set: ``| name | scenes | cells(q, r) |``."""
@@ -805,11 +876,12 @@ def run(args: argparse.Namespace) -> BenchResult:
             for label, key in sets:
                 summary.append(f"| {name} | {label} | {cells(part(r, key), r)} |")
 
-    per_scale(lambda q, r: f"{q['auc_patch']:.3f} | {q['auc_frame']:.3f} | {q['auc_frame_quiet']:.3f} | "
-                           f"{q['auc_frame_busy']:.3f} | {100 * q['strong_total_rel_median']:.1f} % / "
-                           f"{100 * q['strong_total_rel_p90']:.1f} % | {100 * q['strong_xi_sign_right']:.0f} % | "
+    per_scale(lambda q, r: _xi(r, f"{q['auc_patch']:.3f} | {q['auc_frame']:.3f} | {q['auc_frame_quiet']:.3f} | "
+                                  f"{q['auc_frame_busy']:.3f}", 4) + f" | {100 * q['strong_total_rel_median']:.1f} % / "
+                           f"{100 * q['strong_total_rel_p90']:.1f} % | {_xi(r, _pct(q['strong_xi_sign_right']))} | "
                            f"{100 * q['strong_assessable']:.0f} %, {100 * q['strong_total_rel_p90_assessable']:.1f} %, "
-                           f"{100 * q['strong_xi_sign_right_assessable']:.0f} % | {100 * q['assessable']:.0f} % | {r['ms_per_patch']:.2f}")
+                           f"{_xi(r, _pct(q['strong_xi_sign_right_assessable']))} | {100 * q['assessable']:.0f} % | "
+                           f"{r['ms_per_patch']:.2f}")
     summary += ["", "Detection by the estimator's evidence and by its decision, pooled and per scene scale. *Evidence*: |ξ̂|, "
                 "its ties broken by the estimator's own probability of a visible mismatch 1 − p_match (the physics-first "
                 "estimator: ξ̂ is 0 wherever it keeps the closed form, p_match still ranks those patches; networks: |ξ̂| "
@@ -817,19 +889,20 @@ def run(args: argparse.Namespace) -> BenchResult:
                 "mismatches declared (TPR) and of matched patches or frames declared (FPR):", "",
                 "| estimator | scenes | AUC per patch, abs. ξ̂ / evidence | AUC per frame, abs. ξ̂ / evidence | declared per patch: TPR / FPR | "
                 "declared per frame: TPR / FPR |", "|---|---|---|---|---|---|"]
-    per_scale(lambda q, r: f"{q['auc_patch']:.3f} / {q['auc_patch_evidence']:.3f} | "
-                           f"{q['auc_frame']:.3f} / {q['auc_frame_evidence']:.3f} | "
-                           f"{100 * q['declared_tpr_patch']:.0f} % / {100 * q['declared_fpr_patch']:.0f} % | "
-                           f"{100 * q['declared_tpr_frame']:.0f} % / {100 * q['declared_fpr_frame']:.0f} %")
+    per_scale(lambda q, r: _xi(r, f"{q['auc_patch']:.3f} / {q['auc_patch_evidence']:.3f} | "
+                                  f"{q['auc_frame']:.3f} / {q['auc_frame_evidence']:.3f} | "
+                                  f"{100 * q['declared_tpr_patch']:.0f} % / {100 * q['declared_fpr_patch']:.0f} % | "
+                                  f"{100 * q['declared_tpr_frame']:.0f} % / {100 * q['declared_fpr_frame']:.0f} %", 4))
     summary += ["", "Row and column noise (σ 1–8 DN of offsets per pixel row, per column or both, metadata right): the "
                 "median abs. rel. error of σ_Total (which includes it), the share of the patches and frames whose banding "
                 "is visible (ξ ≤ −max(0.5 DN, 15 % of σ_Total)) that the estimate declares noisier (ξ̂ ≤ −max(0.5 DN, 15 % "
                 "of σ̂_Total); per frame the medians), and the share of patches called assessable:", "",
                 "| estimator | scenes | σ_Total: median abs. rel. error | declared noisier: patches | declared noisier: frames | assessable |",
                 "|---|---|---:|---|---|---:|"]
-    per_scale(lambda q, r: f"{100 * q['banding_total_rel_median']:.1f} % | {100 * q['banding_declared_patch']:.0f} % of "
-                           f"{q['banding_visible_patches']} | {100 * q['banding_declared_frame']:.0f} % of "
-                           f"{q['banding_visible_frames']} | {100 * q['banding_assessable']:.0f} %")
+    per_scale(lambda q, r: f"{100 * q['banding_total_rel_median']:.1f} % | "
+                           + _xi(r, f"{100 * q['banding_declared_patch']:.0f} % of {q['banding_visible_patches']} | "
+                                    f"{100 * q['banding_declared_frame']:.0f} % of {q['banding_visible_frames']}", 2)
+                           + f" | {100 * q['banding_assessable']:.0f} %")
     summary += ["", "Defective pixels (100 ppm–1 % of the pixels with a bright or dark offset of 10–200 DN of their own, "
                 "metadata right; `defect_mask`): of the injected ones away from the patch border the share found, of "
                 "those found the share injected, the median over frames of found/injected, the pixels flagged per "
@@ -838,7 +911,8 @@ def run(args: argparse.Namespace) -> BenchResult:
                 "| estimator | scenes | found | of those found, injected | found/injected per frame | flagged elsewhere [ppm] | declared noisier |",
                 "|---|---|---:|---:|---:|---:|---:|"]
     per_scale(lambda q, r: f"{100 * q['defects_recall']:.1f} % | {100 * q['defects_precision']:.1f} % | "
-                           f"{q['defects_count_ratio']:.2f} | {q['defects_false_ppm']:.1f} | {100 * q['defects_noisier_frames']:.0f} %")
+                           f"{q['defects_count_ratio']:.2f} | {q['defects_false_ppm']:.1f} | "
+                           f"{_xi(r, _pct(q['defects_noisier_frames']))}")
     with_u = {n: r for n, r in results.items() if "within_u" in r["groups"]["matched"]}
     if with_u:
         summary += ["", "Per-source uncertainty `sigma_std` (u) against the error |σ̂ − σ| (PN / DCSN / RN): the share within u and within "

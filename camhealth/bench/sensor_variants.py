@@ -18,7 +18,14 @@ variant                what changes
                        V_ref·(exp(s·z) − 1)/A_SN electrons with s = σ_kTC·A_SN/V_ref, instead of additive
                        Gaussian electrons
 ``sequential_clip``    the charge is clipped to [0, FW/g] e⁻ (0…255 DN) after every source, not once at the end
-``reverse_order``      the sources are applied readout → dark current → photon (matters with clipping)
+``reverse_order``      the sources are applied in the other order, readout → dark current → photon, and the
+                       charge is clipped to [0, FW/g] e⁻ (0…255 DN) after every source (so it implies
+                       ``sequential_clip``): a stage that clips takes away charge that a later stage would have
+                       moved back into range, so the image depends on the order. Without a clip between the stages
+                       the order would change nothing but which random numbers each stage gets (no stage reads the
+                       running charge: photon shot noise is drawn from the clean signal N, not from the charge
+                       after readout), so the variant is this order *with* clipping; where no stage's running
+                       charge leaves [0, FW/g] the image equals the reference order's for the same random numbers
 ``round8``             the output is rounded to whole DN (8-bit quantisation) at the end
 =====================  ====================================================================================
 
@@ -31,8 +38,8 @@ of variance S = DC·t_exp with DC = 2.55e15·d_p²·D_FM·T^1.5·exp(−E_g(T)/(
 
 Labels: each source's realised noise in DN after clipping. With clipping only at the end, the clipped part of
 a pixel's total noise is shared among the sources in proportion to their realised noise (the conventions'
-rule); with ``sequential_clip`` a source's contribution is what its stage changed after that stage's clip. The
-8-bit rounding error is part of the total but of no source.
+rule); with ``sequential_clip`` or ``reverse_order`` a source's contribution is what its stage changed after that
+stage's clip. The 8-bit rounding error is part of the total but of no source.
 """
 
 from __future__ import annotations
@@ -200,12 +207,12 @@ def simulate_variant(
         return np.round(n) if "rn_whole_electrons" in variants else n
 
     stages = [("pn", photon), ("dc", dark), ("rn", readout)]
-    if "reverse_order" in variants:
+    if "reverse_order" in variants:  # another order only matters with a clip between the stages (module docstring)
         stages = stages[::-1]
     signal = x * full
     q = signal.copy()
     contrib = {}
-    sequential = "sequential_clip" in variants
+    sequential = "sequential_clip" in variants or "reverse_order" in variants
     for name, draw in stages:
         before = q
         q = q + draw(q)

@@ -286,3 +286,79 @@ def test_other_exposure_lines_score_each_estimator_alone_and_with_the_other_expo
         assert f"| {name} | this exposure | 0.0" in text  # matched: the closed form, ~0 DN
         assert f"| {name} | + the other exposure time" in text
     assert rb.other_exposure_lines([rb._ClosedForm()], frames) == []  # nothing to read it with
+
+
+def _pairwise_auc(score, label) -> float:
+    """The AUC by hand: over every (positive, negative) pair, 1 where the positive scores higher, ½ on a tie."""
+    pos = [s for s, y in zip(score, label) if y]
+    neg = [s for s, y in zip(score, label) if not y]
+    return sum(1.0 if p > n else 0.5 if p == n else 0.0 for p in pos for n in neg) / (len(pos) * len(neg))
+
+
+@pytest.mark.parametrize("score, label, expect", [
+    ([0.1, 0.4, 0.35, 0.8], [0, 0, 1, 1], 0.75),
+    ([0, 0, 0, 0, 0, 2.0, 0.7], [0, 0, 0, 1, 1, 1, 1], 0.75),  # ties at ξ̂ = 0 count ½
+    ([0.0] * 6, [0, 0, 0, 1, 1, 1], 0.5),
+    ([38.0, 40.0, 45.0, 39.0], [0, 1, 1, 0], 1.0),  # scores far above 1 (a sigmoid would tie them at 1.0)
+    ([60.0, 40.0, 45.0, 40.0, 37.5], [0, 1, 1, 0, 1], 1.5 / 6),  # 40 ties 40 (½), 45 beats 40 (1), the rest lose
+    ([1e-6 * 0.2, 1e-6 * 0.9, 50.0, 1e-6 * 0.5], [0, 1, 1, 0], 1.0),  # the evidence's tie-break
+])
+def test_auc_is_the_mann_whitney_statistic_with_ties_counted_half(score, label, expect):
+    got = rb._auc(torch.tensor(score, dtype=torch.float64), torch.tensor(label, dtype=torch.bool))
+    assert got == pytest.approx(expect, abs=1e-12) and got == pytest.approx(_pairwise_auc(score, label), abs=1e-12)
+
+
+def test_auc_agrees_with_pairs_on_random_tied_scores_and_refuses_nan():
+    gen = torch.Generator().manual_seed(0)
+    score = torch.randint(0, 12, (300,), generator=gen).double() * 7.5  # many ties, up to 82.5
+    label = torch.rand(300, generator=gen) < 0.3
+    assert rb._auc(score, label) == pytest.approx(_pairwise_auc(score.tolist(), label.tolist()), abs=1e-12)
+    assert rb._auc(torch.tensor([1.0, 2.0]), torch.tensor([True, True])) != rb._auc(torch.tensor([1.0, 2.0]), torch.tensor([True, True]))
+    assert np.isnan(rb._auc(torch.tensor([1.0, 2.0]), torch.tensor([False, False])))
+    with pytest.raises(ValueError, match="NaN"):
+        rb._auc(torch.tensor([0.1, float("nan"), 0.3]), torch.tensor([False, False, True]))
+
+
+class _TotalOnly:
+    """A total-σ baseline (as drne): σ_Total only, no sources and no ξ."""
+
+    kind, metadata_set, name = "drne", "none", "total_only"
+
+    def predict(self, noisy):
+        return {"sigma_total": torch.full((noisy.shape[0],), 5.0)}
+
+
+def test_an_estimator_without_xi_gets_dashes_not_a_xi_of_zero(frames, monkeypatch):
+    res = rb.score(_TotalOnly(), frames)
+    assert res["reports_xi"] is False and rb.score(rb._ClosedForm(), frames)["reports_xi"] is True
+    for part in (res, *res["scales"].values()):
+        assert all(part[k] != part[k] for k in rb.XI_KEYS)  # NaN, not the 0.5 / 0 % of an imputed ξ̂ = 0
+        assert all(g["xi_rms"] != g["xi_rms"] for g in part["groups"].values())
+        assert part["strong_total_rel_median"] == part["strong_total_rel_median"]  # σ_Total is still scored
+    monkeypatch.setattr(rb, "make_frames", lambda n, seed=0: frames)
+    monkeypatch.setattr(rb, "_estimators", lambda names: [rb._ClosedForm(), _TotalOnly()])
+    args = argparse.Namespace(task="noise", frames=2, seed=0, models=[], json=None, command_line="test")
+    text = "\n".join(rb.run(args).summary)
+    for label in ("pooled", "full resolution", "3× area-downsampled"):
+        assert f"| total_only | {label} | matched (" in text and f"| closed_form | {label} | 0.500 |" in text
+        detection = text.split("Detection of a visible mismatch")[1].split("Detection by the estimator's evidence")[0]
+        assert f"| total_only | {label} | – | – | – | – | " in detection
+        assert "% | – | " in detection.split(f"| total_only | {label} |")[1].split("\n")[0]  # ξ sign right
+        assert f"| total_only | {label} | – | – | – | – |" in text.split("Detection by the estimator's evidence")[1]
+        banding = text.split("Row and column noise")[1].split("Defective pixels")[0]
+        assert f"| total_only | {label} | " in banding and "| – | – |" in banding.split(f"| total_only | {label} |")[1].split("\n")[0]
+    rows = [line for line in text.splitlines() if line.startswith("| total_only | pooled | ") and "(" in line.split("|")[3]]
+    assert rows and all(line.endswith("| – |") for line in rows)  # ξ RMS
+
+
+def test_header_gives_the_strong_frames_targets_and_realised_range_per_scale(frames):
+    lines = rb.strong_range_lines(frames)
+    assert len(lines) == len(rb.SCENE_SCALES)
+    for scale, line in zip(rb.SCENE_SCALES, lines):
+        strong = [f for f in frames if f.condition == "strong" and f.scale == scale]
+        assert all(10.0 <= f.target <= 60.0 for f in strong)
+        real = torch.cat([f.total for f in strong])
+        assert line.startswith(f"strong noise, {rb.SCALE_LABELS[scale]} ({len(strong)} frames, {real.numel()} patches)")
+        assert f"realised σ_Total after clipping (the truth) {float(real.min()):.1f}–{float(real.max()):.1f} DN" in line
+        assert float(real.max()) <= max(f.target for f in strong) + 1.0  # clipping only lowers it
+    assert all(f.target != f.target for f in frames if f.condition != "strong")
