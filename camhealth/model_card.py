@@ -32,7 +32,7 @@ _DATA = {
     "sampled uniformly over thesis Table 4.1, half of the samples with altered metadata M′ (ξ ≠ 0).",
     "drne": "`datamodules.NoiseDataModule` as for the noise-source models (no metadata given to the network).",
     "mtf": "`datamodules.BlurDataModule` — procedural dead-leaves scenes rendered with the exact pixel aperture "
-    "(`supersample: 4`, native MTF 1.00 at f_n = 0.6; each image its own edge density, contrast, shading and share of thin "
+    "(`supersample: 4`, native MTF 1.009 at f_n = 0.6; each image its own edge density, contrast, shading and share of thin "
     "leaves 0.5–4 px wide), 192-px patches, "
     "defocus / linear / non-linear motion blur of 1–25 px (one family per sample, defocus twice as often as each "
     "motion family), sensor noise on half of the samples; labels = exact MTF of the applied PSF, which is the "
