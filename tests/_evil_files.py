@@ -97,3 +97,14 @@ def retargeted_pt2(src: Path, dst: Path, target: str) -> Path:
         return _edit_json(files, "models/model.json", retarget)
 
     return _rewrite(src, dst, edit)
+
+
+def redescribed(src: Path, edit, out: Path) -> Path:
+    """A copy of the weights file ``src`` at ``out`` whose JSON description ``edit`` (a function of the dict) changed
+    in place: a tampered file that still holds only tensors."""
+    payload = torch.load(src, weights_only=True)
+    desc = json.loads(payload["description"])
+    edit(desc)
+    payload["description"] = json.dumps(desc)
+    torch.save(payload, out)
+    return out

@@ -229,13 +229,10 @@ def test_noise_level_net_refuses_dilations_below_one_naming_the_value(dilations)
 
 
 def _edited_file(tmp_path, module, edit):
+    from tests._evil_files import redescribed
+
     path = export_weights(module, tmp_path / "w.pt")
-    payload = torch.load(path, weights_only=True)
-    desc = json.loads(payload["description"])
-    edit(desc)
-    payload["description"] = json.dumps(desc)
-    torch.save(payload, path)
-    return path
+    return redescribed(path, edit, path)
 
 
 @pytest.mark.parametrize(
