@@ -26,6 +26,7 @@ import io
 import os
 import pkgutil
 import re
+import shlex
 import sys
 import warnings
 from pathlib import Path
@@ -37,6 +38,7 @@ __all__ = [
     "build_api",
     "cli_help",
     "cli_reference",
+    "command_key",
     "generated_blocks",
     "help_options",
     "main",
@@ -173,14 +175,47 @@ def generated_blocks(text: str) -> list[tuple[str, int, int]]:
     return blocks
 
 
+#: Options that do not change a generated table: the table is the same Markdown with or without them.
+_PRESENTATION_ONLY = {"--markdown": 0, "--out": 1, "--docs": 1}
+
+
+def command_key(command: str) -> tuple:
+    """What a command line runs, for matching a generated block: ``--opt=value`` and ``--opt value`` are one option,
+    options may come in any order, ``--markdown``, ``--out FILE`` and ``--docs FILE`` (which only say where and how
+    the table is written) are left out. Words before the first option (program, subcommand) keep their order."""
+    words = shlex.split(command)
+    head: list[str] = []
+    groups: list[tuple[str, ...]] = []
+    for w in words:
+        if w.startswith("--"):
+            name, eq, value = w.partition("=")
+            groups.append((name, value) if eq else (name,))
+        elif groups:
+            groups[-1] = (*groups[-1], w)
+        else:
+            head.append(w)
+    kept = []
+    for g in groups:
+        n = _PRESENTATION_ONLY.get(g[0])
+        if n is None:
+            kept.append(g)
+        elif len(g) > 1 + n:  # a presentation flag followed by positional words: keep those words
+            kept.append(("", *g[1 + n:]))
+    return tuple(head), tuple(sorted(kept))
+
+
 def replace_generated(path: str | Path, command: str, content: str) -> bool:
     """Replace the content of the block of ``path`` whose begin marker names ``command`` by ``content`` and return
-    True; without such a block append a new one at the end and return False. The rest of the file is kept."""
+    True; without such a block append a new one at the end and return False. The rest of the file is kept.
+
+    Commands are matched by :func:`command_key` (``--frames=16`` matches ``--frames 16``, option order and
+    ``--markdown`` do not matter); a block found so keeps its marker as written."""
     path = Path(path)
     text = path.read_text(encoding="utf-8") if path.exists() else ""
     body = content.rstrip("\n") + "\n"
+    key = command_key(command)
     for cmd, start, end in generated_blocks(text):
-        if cmd == command:
+        if command_key(cmd) == key:
             path.write_text(text[:start] + body + text[end:], encoding="utf-8")
             return True
     sep = "" if not text or text.endswith("\n\n") else ("\n" if text.endswith("\n") else "\n\n")

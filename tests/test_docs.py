@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from camhealth.docs import CLI_COMMANDS, build_api, cli_help, generated_blocks, help_options, main, replace_generated
+from camhealth.docs import CLI_COMMANDS, build_api, cli_help, command_key, generated_blocks, help_options, main, replace_generated
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI_DOC = ROOT / "docs" / "cli.md"
@@ -55,6 +55,22 @@ def test_replace_generated_keeps_the_rest_of_the_page(tmp_path):
     page.write_text("<!-- generated: python -m z -->\nno end\n")
     with pytest.raises(ValueError, match="python -m z.*end marker"):
         generated_blocks(page.read_text())
+
+
+def test_replace_generated_matches_the_command_not_its_spelling(tmp_path):
+    """``--opt=value`` and ``--opt value``, option order and ``--markdown`` name the same block; other values do not."""
+    page = tmp_path / "p.md"
+    page.write_text("<!-- generated: python -m b robustness --frames 16 --threads 2 --markdown -->\nold\n<!-- end generated -->\n")
+    assert replace_generated(page, "python -m b robustness --threads=2 --frames=16", "new") is True
+    ((command, start, end),) = generated_blocks(page.read_text())
+    assert command == "python -m b robustness --frames 16 --threads 2 --markdown"  # the marker as written
+    assert page.read_text()[start:end] == "new\n"
+    for other in ("python -m b robustness --frames 8 --threads 2", "python -m b robustness --frames 16",
+                  "python -m b mtf_error --frames 16 --threads 2", "python -m b robustness --frames 16 --threads 2 --seed 3"):
+        assert command_key(other) != command_key(command), other
+    assert command_key("python -m b estimators --models a b --no-reference") == command_key(
+        "python -m b estimators --no-reference --models a b")
+    assert command_key("python -m b estimators --models a b") != command_key("python -m b estimators --models b a")
 
 
 def test_docs_pages_name_the_command_of_each_generated_block(capsys):

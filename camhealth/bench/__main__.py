@@ -5,8 +5,9 @@ Each benchmark is a subcommand with ``--config FILE`` and ``--print_config`` aft
 the whole command: the benchmark's options nested under its name, as LightningCLI's subcommands).
 
 ``--docs FILE`` writes the markdown table into FILE between the markers ``<!-- generated: COMMAND -->`` and
-``<!-- end generated -->`` of the block whose command is this one (without ``--docs``), so a page's tables are
-regenerated in place by the commands they name (:mod:`camhealth.docs`)."""
+``<!-- end generated -->`` of the block whose command is this one (without ``--docs``; ``--opt=value`` and
+``--opt value``, the options' order and ``--markdown`` do not matter), so a page's tables are regenerated in place
+by the commands they name (:mod:`camhealth.docs`)."""
 
 from __future__ import annotations
 
