@@ -68,6 +68,7 @@ from camhealth.monitor.tiling import (
     StaticRegions,
     coarse_lattice,
     grid_statistics,
+    quiet_patches,
     refine_plan,
     sample_patches,
     select_patches,
@@ -1449,7 +1450,9 @@ class Monitor:
         values = torch.full((grid.n, st.k), float("nan"))
         std = torch.full((grid.n, st.k), float("nan"))
         if self.mode == "sampled":
-            idx = sample_patches(grid, stats, informative, self.n_samples[task], task, st.last_sampled)
+            scale = self._noise_scale(stats, meta) if task == "noise" else None
+            quiet = None if scale is None else quiet_patches(stats, scale[:, 3])  # e.g. a noiseless overlay
+            idx = sample_patches(grid, stats, informative, self.n_samples[task], task, st.last_sampled, quiet)
             reuse = torch.zeros(idx.numel(), dtype=torch.bool)
             if self.reuse_static and idx.numel():  # a sampled patch unchanged since its last estimate keeps it
                 reuse = (torch.isfinite(st.memory[idx, -1]) & ~st.static.changed(stats)[idx]

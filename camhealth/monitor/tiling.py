@@ -57,7 +57,8 @@ informative patches per frame are estimated and the frame answer is aggregated o
 - noise: the informative patches are split into ``k`` strata of equal count by their mean intensity Ī
   (so that the samples follow the frame's intensity distribution, σ_PN ∝ √Ī); in each stratum the flatter
   half (lowest s + e: texture least confused with noise) is eligible and the one sampled longest ago is
-  taken (rotation over the frame across frames; ties → the flattest);
+  taken (rotation over the frame across frames; ties → the flattest); patches far quieter than the camera's
+  closed-form noise (``quiet``, :func:`quiet_patches`: a noiseless overlay) are left out while others remain;
 - blur: only where there are edges — the informative patches (structure contrast s ≥ ``min_structure_dn``,
   not clipped); the grid is split into ``k`` sectors (rows × columns close to the grid's aspect), so that
   a blur that varies over the frame (depth, field curvature) is seen everywhere; in each sector the
@@ -97,6 +98,8 @@ __all__ = [
     "SKIP_CODES",
     "PatchGrid",
     "PatchStats",
+    "QUIET_FRACTION",
+    "quiet_patches",
     "SelectionConfig",
     "patch_statistics",
     "grid_statistics",
@@ -560,8 +563,24 @@ def _sector_ids(grid: PatchGrid, k: int) -> torch.Tensor:
     return (sr * c + sc).clamp_max(k - 1)
 
 
+#: A patch whose noise level σ̂ (:class:`PatchStats` ``noise_dn``) is below this fraction of the camera's closed-form
+#: σ_Total at its mean intensity is "quiet" (:func:`quiet_patches`): a real patch reads so only with a gain about
+#: 12 dB below the metadata's, an overlay or masked area with no sensor noise reads 0.
+QUIET_FRACTION = 0.25
+
+
+def quiet_patches(stats: PatchStats, model_sigma_dn: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: the patches whose noise level σ̂ is below :data:`QUIET_FRACTION` of ``model_sigma_dn`` (N,), the
+    closed-form σ_Total [DN] of the camera's metadata at each patch's mean intensity — patches with (nearly) no
+    sensor noise, such as a noiseless overlay; see :func:`sample_patches`."""
+    if model_sigma_dn.shape != stats.noise_dn.shape:
+        raise ValueError(f"model_sigma_dn must be {tuple(stats.noise_dn.shape)}, got {tuple(model_sigma_dn.shape)}")
+    return stats.noise_dn < QUIET_FRACTION * model_sigma_dn.to(stats.noise_dn.dtype)
+
+
 def sample_patches(
-    grid: PatchGrid, stats: PatchStats, informative: torch.Tensor, k: int, task: str, last_sampled: torch.Tensor
+    grid: PatchGrid, stats: PatchStats, informative: torch.Tensor, k: int, task: str, last_sampled: torch.Tensor,
+    quiet: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Indices (≤ ``k``, long) of the patches to estimate in sampled mode (see the module docstring).
 
@@ -572,6 +591,11 @@ def sample_patches(
         k: number of samples (>= 1).
         task: ``"noise"`` (flattest, spread over intensity) or ``"mtf"`` (edges, spread over the frame).
         last_sampled: (N,) long, frame counter of each patch's last sample (−1: never) — the rotation.
+        quiet: (N,) bool or ``None`` — noise only: patches far quieter than the camera's closed-form noise
+            (:func:`quiet_patches`: a noiseless overlay, a masked area). Where any other candidate is left they
+            are not sampled (strata are formed over the others), so a frame whose flattest patches are an overlay
+            samples the camera's own patches and its pooled answer is not outvoted by refused ones; a frame quiet
+            everywhere (a denoised stream, a noisier camera's metadata) is sampled as before and reported as such.
     """
     if task not in ("noise", "mtf"):
         raise ValueError(f"task = {task!r} must be 'noise' or 'mtf'")
@@ -580,6 +604,10 @@ def sample_patches(
     if informative.shape != (grid.n,) or last_sampled.shape != (grid.n,):
         raise ValueError(f"informative and last_sampled must be ({grid.n},), got {tuple(informative.shape)}, "
                          f"{tuple(last_sampled.shape)}")
+    if quiet is not None and (quiet.shape != (grid.n,) or quiet.dtype != torch.bool):
+        raise ValueError(f"quiet must be a ({grid.n},) bool tensor, got {tuple(quiet.shape)} {quiet.dtype}")
+    if task == "noise" and quiet is not None and bool((informative & ~quiet).any()):
+        informative = informative & ~quiet
     cand = informative.nonzero()[:, 0]
     if cand.numel() <= k:
         return cand

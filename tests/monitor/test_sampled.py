@@ -14,8 +14,10 @@ from camhealth.monitor import Monitor
 from camhealth.monitor.tiling import (
     ESTIMATED,
     UNSAMPLED,
+    QUIET_FRACTION,
     PatchGrid,
     grid_statistics,
+    quiet_patches,
     sample_patches,
     select_patches,
 )
@@ -81,6 +83,56 @@ def test_sample_patches_rejects_bad_k(k):
         sample_patches(grid, stats, inf[:3], 2, "noise", torch.full((grid.n,), -1, dtype=torch.long))
     with pytest.raises(ValueError, match="task"):
         sample_patches(grid, stats, inf, 2, "blur", torch.full((grid.n,), -1, dtype=torch.long))
+
+
+def test_quiet_patches_are_sampled_only_where_nothing_else_is():
+    """Noise: patches far quieter than the camera's closed form (a noiseless overlay) are not sampled while any other
+    candidate is left — the strata are formed over the others — and a frame quiet everywhere is sampled as before."""
+    frame, grid = _ramp_frame()
+    frame[..., :256, :] = 128 / 255  # the top two rows of patches (12 of 24): a noiseless mid-grey overlay
+    stats = grid_statistics(frame, grid)
+    informative, _ = select_patches(stats, "noise")
+    assert bool(informative[:12].all())  # flat and unclipped: candidates, and the flattest of all
+    model = torch.full((grid.n,), 2.0)  # the camera's σ_Total [DN]
+    quiet = quiet_patches(stats, model)
+    assert quiet[:12].all() and not quiet[12:].any()
+    assert bool((stats.noise_dn[12:] > QUIET_FRACTION * 2.0).all())
+    last = torch.full((grid.n,), -1, dtype=torch.long)
+    without = sample_patches(grid, stats, informative, 8, "noise", last)
+    assert bool((without < 12).any())  # the old choice: overlay patches among the samples
+    idx = sample_patches(grid, stats, informative, 8, "noise", last, quiet)
+    assert idx.numel() == 8 and bool((idx >= 12).all())
+    few = informative.clone()
+    few[14:] = False  # two camera patches left: those two only, no overlay patch to outvote them
+    assert sample_patches(grid, stats, few, 8, "noise", last, quiet).tolist() == [12, 13]
+    everywhere = torch.ones(grid.n, dtype=torch.bool)  # quiet everywhere: sampled as without the flag
+    assert torch.equal(sample_patches(grid, stats, informative, 8, "noise", last, everywhere), without)
+    mtf = sample_patches(grid, stats, informative, 4, "mtf", last)  # the MTF's sampling ignores it
+    assert torch.equal(sample_patches(grid, stats, informative, 4, "mtf", last, quiet), mtf)
+    with pytest.raises(ValueError, match="quiet must be"):
+        sample_patches(grid, stats, informative, 8, "noise", last, quiet[:3])
+    with pytest.raises(ValueError, match="model_sigma_dn must be"):
+        quiet_patches(stats, model[:3])
+
+
+def test_a_noiseless_overlay_does_not_take_the_first_frames_samples():
+    """A still camera (ICX285, its metadata right) whose frame is half a noiseless mid-grey overlay: the sampled
+    monitor's noise samples go to the camera's own patches from the first frame on, and the frame is assessable
+    (the overlay, the flattest patches, took every first-frame sample and the frame was refused as 'less noise than
+    the metadata allow')."""
+    from camhealth.bench.sensor_variants import simulate_variant
+    from camhealth.physics.metadata import CameraMetadata
+
+    meta = CameraMetadata.preset("ICX285")
+    mon = Monitor(metadata=meta, mtf_model=None, mode="sampled", warmup=False)
+    ramp = torch.linspace(0.25, 0.75, 640).expand(512, 640).clone().view(1, 1, 512, 640)
+    for seed in range(2):
+        frame = simulate_variant(ramp, meta, ("round8",), torch.Generator().manual_seed(seed))[0]
+        frame[..., :256, :] = 128 / 255
+        d = mon.process(frame).noise.to_dict()
+        assert d["assessable"] and not d["refused"], d
+        assert all(y >= 256 for _, y in d["coverage"]["patches_xy"]), d["coverage"]  # the camera's own patches
+        assert abs(d["sigma_dn"]["xi"]["median"]) < 0.5, d["sigma_dn"]
 
 
 @pytest.mark.parametrize("kw,match", [({"mode": "fast"}, "mode"), ({"noise_samples": 0}, "noise_samples"),
