@@ -98,3 +98,30 @@ def test_no_development_diary_in_the_product():
     if out.returncode not in (0, 1):
         pytest.skip("not a git checkout")
     assert out.stdout == "", out.stdout
+
+
+def _generated(text: str, command_start: str) -> list[str]:
+    """The contents of the generated blocks of ``text`` whose command starts with ``command_start``."""
+    return [text[start:end] for command, start, end in generated_blocks(text) if command.startswith(command_start)]
+
+
+def test_benchmark_prose_states_the_numbers_of_its_generated_tables():
+    """docs/benchmarks.md's prose next to a generated table quotes that table: the largest RMS of the MTF error table
+    (it said ≈ 0.18; the table peaks at 0.166) and the range of the recording-read rows in ms and % (it said
+    0.7–1.1 ms, 1.6–2.4 %; the tables say 2.1–2.6 ms, 2.2–4.0 %)."""
+    text = (ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8")
+    (mtf,) = _generated(text, "python -m camhealth.bench mtf_error")
+    knots = re.search(r"^\| Ĥ \|(.*)\|$", mtf, re.M).group(1).split("|")
+    rms = [float(v) for v in re.search(r"^\| RMS \|(.*)\|$", mtf, re.M).group(1).split("|")]
+    top = max(range(len(rms)), key=rms.__getitem__)
+    stated = re.search(r"at most ([0-9.]+) at Ĥ = ([0-9.]+) in the table below", text)
+    assert stated, "the MTF error prose states the table's largest RMS"
+    assert float(stated.group(1)) == rms[top] and float(stated.group(2)) == float(knots[top])
+    rows = [m for block in _generated(text, "python -m camhealth.bench monitor --threads 2 --frames 16")
+            for m in re.findall(r"\| reading the recording \(\.\w+\) \| ([0-9.]+) \|.*?; ([0-9.]+) % of", block)]
+    assert len(rows) >= 6
+    ms, pct = [float(a) for a, _ in rows], [float(b) for _, b in rows]
+    claim = re.search(r"frame costs\s+\*\*([0-9.]+)–([0-9.]+) ms\*\*.*?\*\*([0-9.]+)–([0-9.]+) % of the adaptive", text, re.S)
+    assert claim, "the recording-read prose states a range"
+    assert (float(claim.group(1)), float(claim.group(2))) == (min(ms), max(ms))
+    assert (float(claim.group(3)), float(claim.group(4))) == (min(pct), max(pct))

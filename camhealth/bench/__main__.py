@@ -7,7 +7,9 @@ the whole command: the benchmark's options nested under its name, as LightningCL
 ``--docs FILE`` writes the markdown table into FILE between the markers ``<!-- generated: COMMAND -->`` and
 ``<!-- end generated -->`` of the block whose command is this one (without ``--docs``; ``--opt=value`` and
 ``--opt value``, the options' order and ``--markdown`` do not matter), so a page's tables are regenerated in place
-by the commands they name (:mod:`camhealth.docs`)."""
+by the commands they name (:mod:`camhealth.docs`). Options are written in full (``--doc`` for ``--docs`` is an
+error), and a ``--docs`` file that cannot be written (a folder, a missing folder, a page whose generated blocks do not
+parse) is refused before the benchmark runs."""
 
 from __future__ import annotations
 
@@ -40,6 +42,34 @@ def _non_negative(value: str | int) -> int:
     return n
 
 
+def check_docs_file(path: Path) -> None:
+    """Refuse a ``--docs`` target the table could not be written to, before the benchmark runs: a folder, a file in
+    a folder that does not exist, a file that cannot be written or whose generated blocks do not parse (``BadValue``
+    naming the path; exit status 2)."""
+    import os
+
+    from camhealth.docs import generated_blocks
+
+    if path.is_dir():
+        raise BadValue(f"--docs {path}: is a folder; give a Markdown file (its generated block is written there)")
+    parent = path.parent
+    if not parent.is_dir():
+        raise BadValue(f"--docs {path}: the folder {parent} does not exist (create it, or give another file)")
+    if path.exists():
+        if not path.is_file():
+            raise BadValue(f"--docs {path}: not a regular file; give a Markdown file")
+        if not os.access(path, os.R_OK | os.W_OK):
+            raise BadValue(f"--docs {path}: the file cannot be read and written (permissions)")
+        try:
+            generated_blocks(path.read_text(encoding="utf-8"))
+        except UnicodeDecodeError as exc:
+            raise BadValue(f"--docs {path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
+        except ValueError as exc:
+            raise BadValue(f"--docs {path}: {exc}") from None
+    elif not os.access(parent, os.W_OK | os.X_OK):
+        raise BadValue(f"--docs {path}: the file cannot be created in {parent} (permissions)")
+
+
 def _without_docs(argv: Sequence[str]) -> list[str]:
     """The command line less ``--docs FILE`` (the block's name is the command that makes it)."""
     out, skip = [], False
@@ -55,12 +85,16 @@ def _without_docs(argv: Sequence[str]) -> list[str]:
 
 def build_parser():
     """jsonargparse parser with one subcommand per benchmark (each with the common options and its module's own)."""
-    parser = config_parser(prog="python -m camhealth.bench", description=__doc__, formatter_class=argparse.HelpFormatter)
+    # allow_abbrev=False: an option is its whole name (``--doc`` is no ``--docs``), so the command line a --docs block is
+    # named by is the command as every other spelling of it writes it
+    parser = config_parser(prog="python -m camhealth.bench", description=__doc__, formatter_class=argparse.HelpFormatter,
+                           allow_abbrev=False)
     sub = parser.add_subcommands(dest="benchmark", required=True, metavar="BENCHMARK")
     for name in BENCHMARKS:
         module = load(name)
         p = config_parser(prog=f"python -m camhealth.bench {name}", description=module.HELP,
-                          formatter_class=argparse.HelpFormatter)  # (argparse's help, as the benchmarks' own texts expect)
+                          formatter_class=argparse.HelpFormatter,  # (argparse's help, as the benchmarks' own texts expect)
+                          allow_abbrev=False)
         p.add_argument("--batch", type=_positive, default=32, help="batch size B (default 32)")
         p.add_argument("--size", type=_positive, default=192, help="image side H = W in px (default 192)")
         p.add_argument("--repeats", type=_positive, default=20, help="timed repeats per row (default 20)")
@@ -87,6 +121,8 @@ def parse(argv: Sequence[str] | None = None):
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse(argv)
+    if args.docs is not None:
+        check_docs_file(args.docs)  # now, not after a benchmark of minutes
     import torch
 
     if args.threads is not None:

@@ -3,7 +3,8 @@
 Every repeat starts new interpreters (nothing is cached in-process; the OS file cache is warm after the first):
 
 * ``python -c pass`` — the interpreter alone (the floor of every row);
-* ``import camhealth.monitor`` — the interpreter plus the monitor's imports (torch, Kornia, camhealth; no Lightning);
+* ``import camhealth.monitor`` — the interpreter plus the monitor's imports (torch and camhealth; neither Lightning
+  nor Kornia is imported);
 * ``CLI → first report`` — ``python -m camhealth.monitor SOURCE --max-frames 1 --sensor ICX285 --threads T
   --noise-model N`` until its first JSON line is on stdout (what a robot's launch waits for);
 * the phases of the same work through the API in one process (``camhealth.monitor.Monitor``; default models):
@@ -15,7 +16,9 @@ Every repeat starts new interpreters (nothing is cached in-process; the OS file 
 The summary gives ``CLI → first report`` minus the median warm-up: the cold start excluding the warm-up of the
 kernels, with the warm-up reported beside it. Whether ``lightning`` was imported is checked in the API process.
 ``--batch``/``--size``/``--warmup`` of the common options are not used; ``--repeats`` is the number of fresh
-processes per row (default here 5 when left at the common default).
+processes per row (default 5 here; any value given, 20 included, is used). ``--source FILE`` is a path relative to
+the folder the command runs in (the child processes run in the repository root, so it is made absolute first) and
+must be an existing image file.
 """
 
 from __future__ import annotations
@@ -56,11 +59,36 @@ print(json.dumps({{"import": t1 - t0, "load": t3 - t2, "first": t4 - t3, "frame"
 """
 
 
+#: Fresh processes per row unless --repeats says otherwise (the common default, 20, is for in-process timings).
+DEFAULT_REPEATS = 5
+
+
+def resolve_source(value: str) -> str:
+    """``--source``: ``"street"`` as it is, else the image file as an absolute path (a relative one is relative to the
+    folder the command runs in, not to the repository root the child processes run in); ``BadValue`` naming the
+    value when there is no such file."""
+    from camhealth._cli import BadValue
+
+    if value == "street":
+        return value
+    path = Path(value).expanduser()
+    if not path.is_file():
+        raise BadValue(f"no such image file: {value} ({'a folder' if path.is_dir() else 'not found'}, relative to "
+                       f"{Path.cwd()}); give an image file or 'street'")
+    return str(path.resolve())
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--source", default="street",
-                        help="an image file, or 'street' (default: the embedded clip's first frame, 768×576)")
+    parser.add_argument("--source", type=resolve_source, default="street",
+                        help="an image file (relative to the current folder), or 'street' (default: the embedded "
+                             "clip's first frame, 768×576)")
     parser.add_argument("--noise-model", default="noise_source_full",
                         help="noise estimator of the monitor (default noise_source_full, the monitor's default)")
+    # its own default: the common --repeats default (20) cannot be told from an explicit --repeats 20
+    parser.set_defaults(repeats=DEFAULT_REPEATS)
+    for action in parser._actions:
+        if action.dest == "repeats":
+            action.help = f"fresh processes per row (default {DEFAULT_REPEATS})"
 
 
 def _env() -> dict[str, str]:
@@ -97,12 +125,16 @@ def _frame_expr(source: str) -> str:
 
 
 def run(args: argparse.Namespace) -> BenchResult:
-    repeats = 5 if args.repeats == 20 else args.repeats
+    repeats = args.repeats
+    try:
+        source = resolve_source(args.source)  # (the parser did this already; run() may be called with a namespace)
+    except ValueError as exc:
+        raise ValueError(f"--source: {exc}") from None
     threads = args.threads or 2
     py = sys.executable
-    cli = [py, "-m", "camhealth.monitor", args.source, "--max-frames", "1", "--sensor", "ICX285", "--threads",
+    cli = [py, "-m", "camhealth.monitor", source, "--max-frames", "1", "--sensor", "ICX285", "--threads",
            str(threads), "--no-progress", "--noise-model", args.noise_model]
-    phases_script = PHASES_SCRIPT.format(threads=threads, noise=args.noise_model, frame=_frame_expr(args.source))
+    phases_script = PHASES_SCRIPT.format(threads=threads, noise=args.noise_model, frame=_frame_expr(source))
     cols: dict[str, list[float]] = {k: [] for k in ("pass", "import", "cli", "p_import", "p_load", "p_first", "p_frame",
                                                     "p_warmup")}
     leaked: set[str] = set()
@@ -136,7 +168,7 @@ def run(args: argparse.Namespace) -> BenchResult:
         rows=rows,
         baseline="python -c pass",
         header=[
-            f"repeats: {repeats} fresh processes per row; torch threads {threads}; source {args.source!r}; "
+            f"repeats: {repeats} fresh processes per row; torch threads {threads}; source {source!r}; "
             f"noise model {args.noise_model!r}",
             f"lightning / lightning_modules / datamodules imported by the API process: {sorted(leaked) or 'none'}",
         ],

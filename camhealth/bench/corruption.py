@@ -33,6 +33,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from camhealth._cli import IntAtLeast
 from camhealth.bench import BenchResult, Row, add_allocator_argument, apply_allocator
 from camhealth.bench.reference_loop import N_FREQUENCIES, corrupt_batch, params_from_torch, source_follower_sigma_e_loop
 
@@ -53,10 +54,14 @@ TARGET_SPEEDUP_VS_LOOP = 20.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--loop-images", type=int, default=4, help="images the reference loop is timed on (default 4)")
-    parser.add_argument("--loop-repeats", type=int, default=3, help="timed repeats of the loop rows (default 3)")
+    # counts ≥ 1, refused when parsed (exit status 2): 0 frequencies divided by zero after the whole run, a negative
+    # count gave a σ_SF loop of no frequencies (σ_SF = 0) and 0 or negative loop images silently became 1
+    parser.add_argument("--loop-images", type=IntAtLeast(1), default=4,
+                        help="images the reference loop is timed on, ≥ 1 (default 4; at most --batch are used)")
+    parser.add_argument("--loop-repeats", type=IntAtLeast(1), default=3, help="timed repeats of the loop rows, ≥ 1 (default 3)")
     parser.add_argument(
-        "--sf-frequencies", type=int, default=N_FREQUENCIES, help=f"length of the σ_SF loop (default {N_FREQUENCIES})"
+        "--sf-frequencies", type=IntAtLeast(1), default=N_FREQUENCIES,
+        help=f"length of the σ_SF loop, ≥ 1 (default {N_FREQUENCIES})"
     )
     add_allocator_argument(parser)
 
@@ -119,6 +124,10 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.physics.metadata import CameraMetadata
     from camhealth.physics.readout_noise import source_follower_sigma_e
 
+    for option in ("loop_images", "loop_repeats", "sf_frequencies"):  # (the parser refuses these; run() called directly)
+        value = getattr(args, option)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"--{option.replace('_', '-')} = {value!r} must be an integer ≥ 1")
     b, s = args.batch, args.size
     allocator = apply_allocator(args)  # as python -m camhealth.fit runs the corruption (camhealth.runtime)
     load_before = _load()

@@ -10,8 +10,14 @@ closed-form MTF sin(πf)/(s·sin(πf/s))/sinc(f) (f = f_n/2 cycles/px): 1.002 at
 (:func:`camhealth.data.native_mtf.rendered_native_mtf`), so the native MTF of these scenes is 1 within 0.3 % over
 the label band (f_n ≤ 0.6) and the truth of a blurred crop is the kernel's exact MTF.
 
-Classes (:data:`CLASSES`), none of them dead leaves (the training source: occluding flat disks), each on a
-smooth linear gradient background (two levels in [0.15, 0.85] across the image):
+Classes (:data:`CLASSES`), none of them dead leaves (the training source: occluding flat disks); ``strokes`` and
+``shapes`` are drawn on a smooth linear ramp background: level a at the image's top-left corner, changing by b − a
+across the image along a random direction (a, b uniform in [0.15, 0.85]). The ramp is not confined to the two
+levels: depending on the direction it runs anywhere from a − |b − a| to a + |b − a| (−0.55 … 1.55 at the extremes),
+and :func:`render_scenes` clamps each output pixel to [0, 1], so about one background in eight has flat black or
+white areas (a translucent shape over them is clamped too). The clamp acts on the scene before any blur is applied,
+so the MTF truth of a blurred crop (the kernel's MTF) is unaffected; the published tables and the shipped
+``mtf_std`` calibration were made with the scenes as they are, so the ramp is kept:
 
 - ``strokes`` — line art: straight segments, polylines and quadratic Bézier curves of widths 1–6 px (log-uniform)
   with round caps and joins, each an opaque random gray level in [0, 1]; thin features like text and drawings.
@@ -71,7 +77,10 @@ def _window(u: np.ndarray, lo: float, hi: float) -> slice:
 
 
 def _gradient_background(rng: np.random.Generator, u: np.ndarray) -> np.ndarray:
-    """Linear gradient between two levels in [0.15, 0.85] along a random direction across the image."""
+    """Linear ramp along a random direction φ: level a at the top-left sample, changing by b − a across the image
+    (a, b uniform in [0.15, 0.85]). The projection t spans an interval of length 1 that contains 0 (anywhere in
+    [−1, 1]), so the level can leave [min(a, b), max(a, b)] and [0, 1] (a − |b − a| … a + |b − a|); it is not clipped
+    here — :func:`render_scenes` clamps its output to [0, 1] (module docstring)."""
     a, b = rng.uniform(0.15, 0.85, 2)
     phi = rng.uniform(0, 2 * math.pi)
     n = float(u[-1] - u[0]) or 1.0
@@ -205,7 +214,8 @@ def render_scenes(cls: str, n: int, size: int = 320, seed: int = 0, supersample:
         supersample: fine-grid factor s (1 … 16): each pixel is the mean of s × s point samples.
 
     Returns:
-        (n, 1, size, size) float32 gray levels in [0, 1].
+        (n, 1, size, size) float32 gray levels, clamped to [0, 1] (a ``strokes``/``shapes`` background ramp can run
+        beyond it before the clamp: module docstring).
     """
     if cls not in _RENDER:
         raise ValueError(f"cls = {cls!r} is not one of the rendered scene classes {CLASSES}")

@@ -6,7 +6,11 @@ yourself) with values in [0, 1] = DN / (2^bits − 1): DN/255 for 8-bit files; a
 would read 5 DN of noise as 0.3 DN). :func:`read_image` takes ``bit_depth`` (8…16) or detects it
 (``"auto"``): from a PNG's significant-bits chunk (``sBIT``) where there is one, else from the largest
 value (the fewest of 8, 10, 12, 14, 16 bits that hold it), and warns when it had to guess;
-:func:`read_image_scaled` also returns which scaling it used (:class:`ImageScaling`).
+:func:`read_image_scaled` also returns which scaling it used (:class:`ImageScaling`). A PNG with ``sBIT`` = b < 16
+is read as the PNG specification writes it (ISO/IEC 15948 §12.5): the b-bit samples scaled up to the full 16-bit
+range (shifted left by 16 − b bits, with or without bit replication) are read as (value >> (16 − b)) / (2^b − 1);
+a file whose samples do not have that layout but fit in b bits (the low b bits, as some cameras write it) is read
+as value / (2^b − 1).
 Colour is converted to gray with the ITU-R BT.601 luma weights
 
     Y = 0.299 R + 0.587 G + 0.114 B
@@ -100,17 +104,23 @@ class ImageScaling:
         file_bits: bits per sample of the file (8 or 16); ``None`` for floating-point or 1-bit data.
         bits: significant bits the values were scaled by (value / (2^bits − 1)); ``None`` when not scaled.
         source: where ``bits`` came from: ``"file"`` (8-bit data, or 16-bit data using the full range),
-            ``"sBIT"`` (the PNG's significant-bits chunk), ``"largest value"`` (a guess from the data),
+            ``"sBIT"`` (the PNG's significant-bits chunk: the samples are either scaled up to 16 bits as the PNG
+            specification says, ``shift`` > 0, or held in the low ``bits`` bits, ``shift`` = 0),
+            ``"largest value"`` (a guess from the data),
             ``"sequence"`` (a frame of a sequence read at the larger depth its first frame's guess gave,
             :func:`read_sequence_frame`) or
             ``"given"`` (the caller's ``bit_depth``).
         max_value: the largest value in the file (DN of the file).
+        shift: bits the file's samples were shifted right before the division (16 − ``bits`` for a PNG whose
+            ``sBIT`` samples are scaled up to 16 bits as the PNG specification says, else 0): the value read is
+            (sample >> shift) / (2^bits − 1), an integer code over 2^bits − 1 either way.
     """
 
     file_bits: int | None
     bits: int | None
     source: str
     max_value: float
+    shift: int = 0
 
     @property
     def divisor(self) -> float | None:
@@ -123,7 +133,8 @@ class ImageScaling:
                "largest value": f", guessed from the largest value {self.max_value:g}",
                "sequence": ", the sequence's first frame's guess (its own largest value "
                            f"{self.max_value:g} fits)"}.get(self.source, "")
-        return f"{self.file_bits}-bit file read as {self.bits}-bit data (÷{2**self.bits - 1}{why})"
+        shifted = f"samples >> {self.shift}, " if self.shift else ""
+        return f"{self.file_bits}-bit file read as {self.bits}-bit data ({shifted}÷{2**self.bits - 1}{why})"
 
 
 _BIT_DEPTHS = (8, 10, 12, 14, 16)
@@ -158,9 +169,42 @@ def _png_sbit(path: Path) -> int | None:
         return None
 
 
+def _spec_scaled(arr: np.ndarray, bits: int) -> bool:
+    """Whether every 16-bit sample is a ``bits``-bit code scaled up to 16 bits as the PNG specification writes it
+    (ISO/IEC 15948 §12.5): shifted left by 16 − ``bits`` (low bits zero), or with bit replication (the low bits
+    repeat the code's top bits), one rule for the whole image."""
+    if not 1 <= bits < 16 or arr.size == 0:
+        return False
+    shift = 16 - bits
+    v = arr.astype(np.uint32, copy=False)
+    code = v >> shift
+    if not np.any(v & ((1 << shift) - 1)):  # left shift, low bits zero
+        return True
+    replicated = code << shift
+    pos = shift
+    while pos > 0:  # fill the low bits with the code's top bits, again and again (b < 8 repeats it more than once)
+        pos -= bits
+        replicated |= (code << pos) if pos >= 0 else (code >> -pos)
+    return bool(np.array_equal(replicated, v))
+
+
+def _sbit_scaling(arr: np.ndarray, bits: int, top: int, source: str) -> ImageScaling | None:
+    """The scaling of a 16-bit PNG whose ``sBIT`` chunk says ``bits`` (< 16): samples scaled up to 16 bits as the PNG
+    specification says → shifted back; samples held in the low ``bits`` bits → as they are; else ``None``."""
+    if _spec_scaled(arr, bits):
+        return ImageScaling(16, bits, source, float(top), shift=16 - bits)
+    if top <= 2**bits - 1:
+        return ImageScaling(16, bits, source, float(top))
+    return None
+
+
 def _scaling(arr: np.ndarray, path: Path, bit_depth: int | str) -> ImageScaling:
     file_bits = 8 if arr.dtype == np.uint8 else 16
     top = int(arr.max()) if arr.size else 0
+    if bit_depth != "auto" and file_bits == 16 and bit_depth < 16 and path.suffix.lower() == ".png":
+        # the depth the PNG's sBIT chunk declares, given as the bit depth: its spec-scaled samples are read as codes
+        if _png_sbit(path) == bit_depth and _spec_scaled(arr, int(bit_depth)):
+            return ImageScaling(16, int(bit_depth), "given", float(top), shift=16 - int(bit_depth))
     if bit_depth != "auto":
         if bit_depth > file_bits:
             raise ValueError(f"cannot read image {path} as {bit_depth}-bit data: the file stores {file_bits}-bit values")
@@ -173,8 +217,12 @@ def _scaling(arr: np.ndarray, path: Path, bit_depth: int | str) -> ImageScaling:
     if file_bits == 8:
         return ImageScaling(8, 8, "file", float(top))
     sbit = _png_sbit(path) if path.suffix.lower() == ".png" else None
-    if sbit is not None and 1 <= sbit <= 16 and top <= 2**sbit - 1:
-        return ImageScaling(16, sbit, "file" if sbit == 16 else "sBIT", float(top))
+    if sbit == 16:
+        return ImageScaling(16, 16, "file", float(top))
+    if sbit is not None and 1 <= sbit < 16:
+        scaling = _sbit_scaling(arr, sbit, top, "sBIT")
+        if scaling is not None:
+            return scaling
     bits = next(b for b in _BIT_DEPTHS if top <= 2**b - 1)
     return ImageScaling(16, bits, "file" if bits == 16 else "largest value", float(top))
 
@@ -188,6 +236,8 @@ def _normalise(arr: np.ndarray, path: Path, scaling: ImageScaling | None = None)
         return arr.astype(np.float32)
     if arr.dtype in (np.uint8, np.uint16):
         divisor = scaling.divisor if scaling is not None else float(np.iinfo(arr.dtype).max)
+        if scaling is not None and scaling.shift:
+            arr = arr >> np.uint16(scaling.shift)  # PNG sBIT samples scaled up to 16 bits: back to their codes
         return arr.astype(np.float32) / np.float32(divisor)
     if np.issubdtype(arr.dtype, np.floating):
         arr = arr.astype(np.promote_types(arr.dtype, np.float32), copy=False)
@@ -245,7 +295,15 @@ def _read_16bit_colour_png(path: Path, width: int, height: int) -> np.ndarray:
 def _read_pillow(path: Path) -> np.ndarray:
     from PIL import Image, ImageOps
 
-    with Image.open(path) as im:
+    try:
+        with warnings.catch_warnings():  # Pillow only warns between 1× and 2× its limit: refused below instead
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            opened = Image.open(path)
+    except Image.DecompressionBombError as e:  # more than 2× the limit: Pillow refuses to open it
+        raise ValueError(f"cannot read image {path}: more than twice the limit of {Image.MAX_IMAGE_PIXELS} pixels "
+                         f"(PIL.Image.MAX_IMAGE_PIXELS; Pillow: {e})") from None
+    with opened as im:
+        _check_pixels(path, *im.size)  # the limit itself, before decoding, as for the other decoders
         fmt = im.format
         im.load()
         im = ImageOps.exif_transpose(im)  # camera JPEGs: show the image upright, as a viewer would
@@ -304,7 +362,10 @@ def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
     or RGBA. Colour → gray by BT.601 luma (:func:`to_gray`); alpha is dropped. JPEG EXIF orientation is applied.
 
     ``bit_depth``: significant bits of 16-bit data, 1…16 (values are divided by 2^bit_depth − 1; a value above
-    that raises), or ``"auto"`` (default): the PNG's ``sBIT`` chunk where there is one, else the fewest of 8, 10,
+    that raises — except in a PNG whose ``sBIT`` chunk declares this depth and whose samples are scaled up to 16
+    bits as the PNG specification says, read as (value >> (16 − bit_depth)) / (2^bit_depth − 1)), or ``"auto"``
+    (default): the PNG's ``sBIT`` chunk where there is one (samples scaled up to 16 bits as the PNG specification
+    says, or held in the low bits: module docstring), else the fewest of 8, 10,
     12, 14 or 16 bits that hold the largest value — a guess, announced with a ``UserWarning`` that names the
     scaling when it is not 16 bits (pass ``bit_depth=16`` for DN/65535). A palette TIFF's colours are 16-bit full
     scale (÷65535 under ``"auto"``), so it reads like the same palette PNG. :func:`read_image_scaled` returns the
@@ -315,8 +376,8 @@ def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
         ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), ``path`` is not a
             regular file (a directory, FIFO, ...), the file is corrupt/unreadable or has an unsupported pixel
             type, holds values beyond ``bit_depth``, or has more pixels than ``PIL.Image.MAX_IMAGE_PIXELS``
-            (checked from the header, before decoding, for the 16-bit colour PNGs and TIFFs Pillow does not decode;
-            Pillow applies its own limit to the others) (the message names the file).
+            (read when the file is opened; checked from the header, before decoding, for every format — Pillow
+            alone would only warn up to twice that limit) (the message names the file).
     """
     image, scaling = read_image_scaled(path, bit_depth)
     if scaling.source == "largest value":

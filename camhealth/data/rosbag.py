@@ -40,7 +40,9 @@ Camera state (:meth:`Recording.read_state`): a numeric value from a topic — ``
 (``Float64``, ``Int32``, … field ``data``), ``sensor_msgs/Temperature`` (``temperature``) or a field path
 into any standard message (``field="a.b[0]"``). Each frame gets the latest value at or before its time:
 messages with a ``header`` are compared by ``header.stamp`` with the image's header stamp, messages without
-one (``std_msgs`` numbers) by the recording's log time with the image's log time.
+one (``std_msgs`` numbers) by the recording's log time with the image's log time. A zero (unset) header stamp is
+no time: such a state message is placed at its log time, and a topic whose stamps are all zero is compared by log
+time with the images' log times (a note says so, :attr:`RecordingFrames.notes`).
 """
 
 from __future__ import annotations
@@ -230,7 +232,8 @@ def _check_compressed_size(data: np.ndarray, fmt: str) -> None:
                                f"than the limit of {limit} pixels (PIL.Image.MAX_IMAGE_PIXELS)")
 
 
-def _compressed_to_gray(msg: Any, bit_depth: int | None, bayer: str) -> np.ndarray:
+def _compressed_decode(msg: Any, bit_depth: int | None, bayer: str) -> tuple[np.ndarray, int]:
+    """A ``CompressedImage`` → gray, and the bits per sample of the decoded image (8 or 16)."""
     import cv2
 
     fmt = str(msg.format)
@@ -249,15 +252,16 @@ def _compressed_to_gray(msg: Any, bit_depth: int | None, bayer: str) -> np.ndarr
         raise FrameDecodeError(f"cannot decode CompressedImage (format {fmt!r}, {data.size} bytes): corrupt or not JPEG/PNG")
     if img.dtype not in (np.uint8, np.uint16):
         raise FrameDecodeError(f"CompressedImage (format {fmt!r}) decodes to {img.dtype} pixels; only 8 and 16 bit are read")
+    bits = 8 * img.dtype.itemsize
     declared = fmt.split(";")[0].strip()
     if declared.startswith("bayer_") and img.ndim == 2:
         kind, _, _, pattern = _encoding_info(declared)
-        return _gray_from(img, kind, declared, pattern, bit_depth, bayer)
+        return _gray_from(img, kind, declared, pattern, bit_depth, bayer), bits
     if img.ndim == 2 or img.shape[-1] == 1:
-        return _to_unit(img.reshape(img.shape[0], img.shape[1]), bit_depth)
+        return _to_unit(img.reshape(img.shape[0], img.shape[1]), bit_depth), bits
     if img.shape[-1] == 2:  # gray + alpha
-        return _to_unit(np.ascontiguousarray(img[..., 0]), bit_depth)
-    return _gray_from(img, "bgr", "bgr8", None, bit_depth, bayer)
+        return _to_unit(np.ascontiguousarray(img[..., 0]), bit_depth), bits
+    return _gray_from(img, "bgr", "bgr8", None, bit_depth, bayer), bits
 
 
 def image_to_gray(msg: Any, bit_depth: int | None = None, bayer: str = "green") -> np.ndarray:
@@ -265,14 +269,21 @@ def image_to_gray(msg: Any, bit_depth: int | None = None, bayer: str = "green") 
 
     ``bit_depth`` (1…16, default 16) sets the scale of 16-bit data; ``bayer`` is ``"green"`` or ``"luma"``
     (module docstring). Raises :class:`FrameDecodeError` naming the encoding or the defect."""
+    return _decode(msg, bit_depth, bayer)[0]
+
+
+def _decode(msg: Any, bit_depth: int | None = None, bayer: str = "green") -> tuple[np.ndarray, int]:
+    """:func:`image_to_gray` and the bits per sample of the message's pixels (8 or 16: the encoding's for an
+    ``Image``, the decoded image's for a ``CompressedImage``)."""
     bit_depth = _check_bit_depth(bit_depth)
     if bayer not in BAYER_MODES:
         raise ValueError(f"bayer = {bayer!r} must be one of {BAYER_MODES}")
     if hasattr(msg, "format") and not hasattr(msg, "encoding"):
-        return _compressed_to_gray(msg, bit_depth, bayer)
+        return _compressed_decode(msg, bit_depth, bayer)
     encoding = str(msg.encoding)
     kind, nchan, dtype, pattern = _encoding_info(encoding)
-    return _gray_from(_raw_image(msg, encoding, kind, nchan, dtype), kind, encoding, pattern, bit_depth, bayer)
+    gray = _gray_from(_raw_image(msg, encoding, kind, nchan, dtype), kind, encoding, pattern, bit_depth, bayer)
+    return gray, 8 * dtype.itemsize
 
 
 # ---------------------------------------------------------------------------------------------- stamps
@@ -371,7 +382,11 @@ class StateTopic:
 
 @dataclass
 class StateSeries:
-    """All values of one :class:`StateTopic`, sorted by time; :meth:`at` gives the latest at or before a time."""
+    """All values of one :class:`StateTopic`, sorted by time; :meth:`at` gives the latest at or before a time.
+
+    ``clock`` is ``"header"`` when the messages have a header with a set (non-zero) stamp; a message whose stamp is
+    zero (unset) is placed at its log time (``unstamped`` counts those), and a topic whose stamps are all zero is
+    read on the ``"log"`` clock; ``notes`` says so."""
 
     spec: StateTopic
     msgtype: str
@@ -381,6 +396,8 @@ class StateSeries:
     values: list[float]
     out_of_order: int = 0
     dropped: int = 0  # messages without a finite value
+    unstamped: int = 0  # messages with a header whose stamp is zero (unset): their log time stands in
+    notes: list[str] = field(default_factory=list)
 
     def at(self, t_ns: int | None) -> float | None:
         if t_ns is None or not self.times:
@@ -435,7 +452,7 @@ class RecordingFrames:
         self.first_out_of_order: str | None = None
         self.damaged: str | None = None
         self.missing_state = {s.spec.key: 0 for s in self.state}
-        self.notes: list[str] = []
+        self.notes: list[str] = [note for s in self.state for note in s.notes]  # e.g. a state topic's unset stamps
         self._bit_note = bit_depth is None
 
     @property
@@ -444,11 +461,11 @@ class RecordingFrames:
         return n if self.max_frames is None else min(n, self.max_frames)
 
     def _convert(self, msg: Any) -> np.ndarray:
-        gray = image_to_gray(msg, self.bit_depth, self.bayer)
+        gray, bits = _decode(msg, self.bit_depth, self.bayer)
         if self._bit_note:  # once: a 16-bit stream that never uses its top bits is probably 10/12-bit data
             self._bit_note = False
             enc = str(getattr(msg, "encoding", getattr(msg, "format", "")))
-            if enc in ("mono16", "16UC1") or enc.endswith("16"):
+            if bits == 16:  # by the decoded samples: raw mono16/16UC1/…16, or a CompressedImage's 16-bit PNG
                 hi = float(gray.max()) * 65535.0 if gray.size else 0.0
                 if hi < 4096:
                     self.notes.append(
@@ -748,6 +765,8 @@ class Recording:
                 raise RecordingError(f"{who}: topic {spec.topic!r} carries images ({c.msgtype}), not a number")
             self._check_type(c, f"{who}: topic {spec.topic!r}")
         times: list[int] = []
+        log_times: list[int] = []
+        stamped: list[bool] = []  # the message's time is its (non-zero) header stamp
         values: list[float] = []
         path = spec.field
         clock = "log"
@@ -784,16 +803,29 @@ class Recording:
                 if t is None or not math.isfinite(value):
                     dropped += 1
                     continue
+                stamped.append(clock == "header" and t != 0)
+                if clock == "header" and t == 0:  # an unset stamp: the log time stands in, as for images
+                    t = int(log_ns)
                 times.append(t)
+                log_times.append(int(log_ns))
                 values.append(value)
         except RecordingError:
             raise
         except Exception as exc:  # noqa: BLE001 - damage while reading the state topic
             raise RecordingError(f"{who}: {_damaged(self.path, exc)}") from None
+        notes: list[str] = []
+        unstamped = sum(1 for s in stamped if not s) if clock == "header" else 0
+        if clock == "header" and times and unstamped == len(times):
+            clock, times = "log", log_times  # every stamp unset: compared by log time with the images' log times
+            notes.append(f"{who}: every header stamp is zero (unset), so its values are matched to the frames by the "
+                         "recording's log time")
+        elif unstamped:
+            notes.append(f"{who}: {unstamped} of {len(times)} messages have a zero (unset) header stamp: their log "
+                         "time stands in for it")
         out_of_order = sum(1 for a, b in zip(times, times[1:]) if b < a)
         order = sorted(range(len(times)), key=times.__getitem__)  # stable: equal times keep their recorded order
         return StateSeries(spec, msgtype, path or "data", clock, [times[i] for i in order], [values[i] for i in order],
-                           out_of_order, dropped)
+                           out_of_order, dropped, unstamped, notes)
 
 
 # ---------------------------------------------------------------------------------------------- writing

@@ -259,7 +259,14 @@ def group_key(image_id: str) -> str:
 
 
 def _unit_hash(seed: int, key: str) -> float:
-    digest = hashlib.blake2b(f"{seed}\x1f{key}".encode("utf-8"), digest_size=8).digest()
+    # surrogateescape: an id from a file name that is not valid UTF-8 (its bytes kept as surrogates by os.listdir)
+    # hashes its original bytes; a valid name gives the same digest as plain UTF-8
+    text = f"{seed}\x1f{key}"
+    try:
+        data = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # another lone surrogate (an id made in memory): still one fixed byte string
+        data = text.encode("utf-8", "surrogatepass")
+    digest = hashlib.blake2b(data, digest_size=8).digest()
     return int.from_bytes(digest, "big") / 2.0**64
 
 

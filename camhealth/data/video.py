@@ -10,7 +10,9 @@ a video is opened, with one decoder thread so that each frame comes out of the r
 the decoder reports damage in while reading (FFmpeg's error log on the process's stderr: a truncated last frame,
 a corrupt packet, concealed macroblocks) is only partly decoded: :meth:`FrameSequence.frames` yields it with the
 decoder's message instead of pixels, iteration skips it with a warning, ``seq[k]`` raises ``ValueError``. (FFmpeg
-must log errors — OpenCV's default; ``OPENCV_FFMPEG_LOGLEVEL`` below 16 hides them.)
+must log errors — OpenCV's default; ``OPENCV_FFMPEG_LOGLEVEL`` below 16 hides them.) A video whose last frames are
+missing (a file cut short) has the length of the frames that decode, with a warning naming the file when it is
+opened (:class:`FrameSequence`).
 """
 
 from __future__ import annotations
@@ -65,15 +67,19 @@ class _DecoderLog:
         self._file = tempfile.TemporaryFile()
 
     def read(self, cap) -> tuple[bool, np.ndarray | None, str | None]:
+        (ok, frame), message = self.call(cap.read)
+        return ok, frame, message
+
+    def call(self, fn):
+        """``(fn(), FFmpeg's error lines while it ran or None)``."""
         try:
             sys.stderr.flush()
             saved = os.dup(2)
-        except (OSError, ValueError):  # no usable stderr: read without the check
-            ok, frame = cap.read()
-            return ok, frame, None
+        except (OSError, ValueError):  # no usable stderr: run without the check
+            return fn(), None
         os.dup2(self._file.fileno(), 2)
         try:
-            ok, frame = cap.read()
+            result = fn()
         finally:
             os.dup2(saved, 2)
             os.close(saved)
@@ -82,12 +88,12 @@ class _DecoderLog:
         self._file.seek(0)
         self._file.truncate()
         if not text:
-            return ok, frame, None
+            return result, None
         errors = [m.group(1).decode(errors="replace") for m in _FFMPEG_LINE.finditer(text)]
         rest = _FFMPEG_LINE.sub(b"", text).strip()
         if rest:
             os.write(2, rest + b"\n")
-        return ok, frame, ("; ".join(e for e in errors if e) or None) if errors else None
+        return result, ("; ".join(e for e in errors if e) or None) if errors else None
 
     def close(self) -> None:
         self._file.close()
@@ -119,9 +125,13 @@ class FrameSequence:
 
     Iterating yields ``(frame, index)`` with ``frame`` a float32 tensor ``1×H×W`` in [0, 1] and ``index`` the
     original frame index. ``len()`` is exact for a folder; for a video it comes from the container's frame
-    count (``CAP_PROP_FRAME_COUNT``), which most formats store exactly; if the container does not report
-    one, ``len()`` raises ``TypeError`` and :attr:`length` is ``None``. ``seq[k]`` returns the ``k``-th kept
-    frame as ``(frame, index)`` (for a video by seeking, which is slower than iterating).
+    count (``CAP_PROP_FRAME_COUNT``), checked when the video is opened by decoding its last frame: where that
+    frame cannot be decoded (a truncated file), the frames that can be are counted, the length is that count and a
+    ``UserWarning`` names the file and both counts (so ``len()``, iteration and ``seq[k]`` agree); should the
+    decoder still stop before the length, iteration ends with a ``UserWarning`` naming the file and the frame. If
+    the container does not report a count, ``len()`` raises ``TypeError`` and :attr:`length` is ``None``.
+    ``seq[k]`` returns the ``k``-th kept frame as ``(frame, index)`` (for a video by seeking, which is slower
+    than iterating).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
@@ -180,20 +190,40 @@ class FrameSequence:
         return cap
 
     def _probe_video(self) -> int | None:
+        """The video's frame count: the container's, checked by decoding its last frame; where that frame cannot be
+        read (a truncated file), the frames that can be, counted, with a warning (``len()`` is what iteration gives)."""
         cv2 = _import_cv2()
         cap = self._open()
+        log = _DecoderLog()
         try:
             n = cap.get(cv2.CAP_PROP_FRAME_COUNT)
-            ok, frame = cap.read()
+            ok, frame, _ = log.read(cap)
             if not ok or frame is None:
                 raise ValueError(f"cannot read video {self.path}: no frame could be decoded (corrupt or empty file)")
             self.frame_shape = tuple(frame.shape[:2])
             self.fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
+            if not math.isfinite(n) or n < 1:
+                return None
+            n = int(round(n))
+            if n > 1:
+                log.call(lambda: cap.set(cv2.CAP_PROP_POS_FRAMES, n - 1))
+                ok, frame, _ = log.read(cap)
+                if not ok or frame is None:  # the last frame is missing: count the frames there are
+                    cap.release()
+                    cap = self._open()
+                    counted = 0
+                    while log.call(cap.grab)[0]:
+                        counted += 1
+                    if counted < n:
+                        warnings.warn(
+                            f"video {self.path}: its container declares {n} frames, but only frames 0…{counted - 1} "
+                            f"({counted}) can be decoded (a truncated or damaged file?); its length is {counted}",
+                            UserWarning, stacklevel=3)
+                        n = max(counted, 1)
+            return n
         finally:
             cap.release()
-        if not math.isfinite(n) or n < 1:
-            return None
-        return int(round(n))
+            log.close()
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -259,11 +289,17 @@ class FrameSequence:
                 frame, _ = read_sequence_frame(self.frame_paths[idx], self.bit_depth, self._first_bits())
                 yield frame, idx, None
             return
+        def ended(k: int, at: int) -> None:  # fewer frames than the (checked) length: damage the probe did not see
+            if self.length is not None and k < self.length:
+                warnings.warn(f"video {self.path} ended at frame {at}: {k} of the {self.length} frames its length "
+                              "promised were read (a truncated or damaged file?)", UserWarning, stacklevel=4)
+
         cap = self._open()
         log = _DecoderLog()
         try:
-            for _ in range(self.start):  # skip to start without converting
+            for j in range(self.start):  # skip to start without converting
                 if not cap.grab():
+                    ended(0, j)
                     return
             k = 0
             while limit is None or k < limit:
@@ -272,12 +308,16 @@ class FrameSequence:
                 if message is not None and ok and frame is not None:
                     yield None, idx, _damaged(idx, self.path, message)
                 elif not ok or frame is None:
+                    ended(k, idx)
                     return
                 else:
                     yield _bgr_to_tensor(frame), idx, None
                 k += 1
-                for _ in range(self.stride - 1):
+                if limit is not None and k >= limit:
+                    return
+                for j in range(self.stride - 1):
                     if not cap.grab():
+                        ended(k, idx + 1 + j)
                         return
         finally:
             cap.release()

@@ -231,3 +231,30 @@ def test_library_reuse_comparison_checks_agreement_and_names_rows(capsys):
     assert "| bias_std_rms: 2000 (library = camhealth.metrics) |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main(["--threads", "0"])
+
+
+@pytest.mark.parametrize("option,value", [("--sf-frequencies", "0"), ("--sf-frequencies", "-1"), ("--loop-images", "0"),
+                                          ("--loop-images", "-3"), ("--loop-repeats", "0")])
+def test_counts_below_one_are_refused_when_parsed(option, value, capsys, monkeypatch):
+    """Exit status 2 naming the option before anything runs (--sf-frequencies 0 divided by zero after the whole run,
+    -1 gave σ_SF = 0 for the "same chain" loop, --loop-images 0 silently became 1)."""
+    from camhealth.bench import corruption
+
+    monkeypatch.setattr(corruption, "run", lambda args: pytest.fail("the benchmark ran"))
+    argv = [a for a in TINY if a != option]
+    if option in TINY:
+        del argv[TINY.index(option)]  # (its value, now at the option's place)
+    with pytest.raises(SystemExit) as info:
+        main(argv + [option, value])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f"argument {option}: must be >= 1, got {value}" in err
+
+
+def test_run_called_directly_refuses_counts_below_one():
+    from types import SimpleNamespace
+
+    from camhealth.bench.corruption import run
+
+    args = SimpleNamespace(batch=2, size=32, repeats=1, warmup=0, seed=0, loop_images=1, loop_repeats=1, sf_frequencies=-1)
+    with pytest.raises(ValueError, match="--sf-frequencies = -1 must be an integer ≥ 1"):
+        run(args)

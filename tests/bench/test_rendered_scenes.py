@@ -50,3 +50,30 @@ def test_bad_arguments_name_the_value_and_the_range(kwargs, match):
 def test_slanted_edge_rejects_a_bad_angle():
     with pytest.raises(ValueError, match=r"angle_deg = 30 is out of the allowed range 1°…20°"):
         render_slanted_edge(64, angle_deg=30.0)
+
+
+def test_the_background_ramp_is_documented_as_it_is_rendered():
+    """The background of strokes/shapes is a ramp of total change b − a from level a at the top-left sample: it can
+    leave [min(a, b), max(a, b)] and [0, 1] (render_scenes clamps), as the docstrings now say (they claimed a gradient
+    between two levels in [0.15, 0.85]). The ramp itself is kept: the published tables were made with it."""
+    import numpy as np
+
+    from camhealth.bench import rendered_scenes as rs
+
+    u = rs._fine_coords(64, 1)
+    beyond_levels = beyond_unit = 0
+    for i in range(300):
+        a, b = np.random.default_rng([0, 0, i]).uniform(0.15, 0.85, 2)
+        img = rs._gradient_background(np.random.default_rng([0, 0, i]), u)
+        lo, hi = float(img.min()), float(img.max())
+        assert img[0, 0] == pytest.approx(a, abs=1e-6)  # level a at the top-left sample
+        assert hi - lo == pytest.approx(abs(b - a), abs=1e-5)  # total change |b − a| across the image
+        assert a - abs(b - a) - 1e-6 <= lo and hi <= a + abs(b - a) + 1e-6  # the documented bounds
+        beyond_levels += lo < min(a, b) - 1e-6 or hi > max(a, b) + 1e-6
+        beyond_unit += lo < 0 or hi > 1
+    assert beyond_levels > 0 and beyond_unit > 0  # it does leave both, as documented
+    doc = " ".join((rs.__doc__ + rs._gradient_background.__doc__ + rs.render_scenes.__doc__).split())
+    assert "two levels in [0.15, 0.85] across the image" not in doc
+    assert "a − |b − a| … a + |b − a|" in doc and "clamps" in doc and "MTF truth" in doc
+    scenes = rs.render_scenes("shapes", 1, 32, seed=0)
+    assert 0.0 <= float(scenes.min()) and float(scenes.max()) <= 1.0

@@ -11,6 +11,7 @@ import torch
 from PIL import Image
 
 from camhealth.data import BT601_WEIGHTS, IMAGE_EXTENSIONS, read_image, to_gray
+from camhealth.data.io import read_image_scaled
 
 
 def _bt601(rgb: np.ndarray) -> np.ndarray:
@@ -219,3 +220,88 @@ def test_fifo_is_refused_without_opening_it(tmp_path):
     threading.Thread(target=unblock_readers, daemon=True).start()
     with pytest.raises(ValueError, match=r"pipe\.png.*not a regular file"):
         read_image(p)
+
+
+# ------------------------------------------------------------------ PNG sBIT as the PNG specification writes it
+def _png16_sbit(path, values: np.ndarray, sbit: int):
+    """A 16-bit gray PNG of ``values`` (stored as they are) with an ``sBIT`` chunk before the image data."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    h, w = values.shape
+    raw = b"".join(b"\x00" + values[i].astype(">u2").tobytes() for i in range(h))
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0))
+    png += chunk(b"sBIT", bytes([sbit])) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+    path.write_bytes(png)
+    return path
+
+
+def _spec_scale(codes: np.ndarray, bits: int, replicate: bool) -> np.ndarray:
+    """ISO/IEC 15948 §12.5: a ``bits``-bit code scaled up to 16 bits by left shift, optionally with bit replication."""
+    c = codes.astype(np.uint32)
+    out = c << (16 - bits)
+    pos = 16 - bits
+    while replicate and pos > 0:
+        pos -= bits
+        out |= (c << pos) if pos >= 0 else (c >> -pos)
+    return out.astype(np.uint16)
+
+
+@pytest.mark.parametrize("bits", [5, 10, 12])
+@pytest.mark.parametrize("replicate", [False, True])
+@pytest.mark.parametrize("top_fraction", [0.06, 0.25, 1.0])
+def test_png_sbit_samples_scaled_up_as_the_png_spec_says_read_as_their_codes(tmp_path, bits, replicate, top_fraction):
+    """A dark, a mid and a bright frame of b-bit codes scaled up to 16 bits (sBIT = b): code/(2^b − 1), no warning.
+    (A dark 12-bit frame read 16× too bright, a mid one 4× too bright before.)"""
+    top = max(1, int(round((2**bits - 1) * top_fraction)))
+    codes = np.random.default_rng(bits).integers(0, top + 1, (24, 24))
+    codes[0, 0] = top
+    p = _png16_sbit(tmp_path / "spec.png", _spec_scale(codes, bits, replicate), bits)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        image, scaling = read_image_scaled(p)
+    want = torch.from_numpy((codes / (2**bits - 1)).astype(np.float32))
+    assert torch.allclose(image[0], want, atol=1e-7)
+    assert (scaling.file_bits, scaling.bits, scaling.source, scaling.shift) == (16, bits, "sBIT", 16 - bits)
+    assert f"samples >> {16 - bits}, ÷{2**bits - 1}, from the PNG's sBIT chunk" in scaling.describe()
+    given, given_scaling = read_image_scaled(p, bits)  # the declared depth given (as a calibration does): the same
+    assert torch.equal(given, image) and given_scaling.bits == bits
+
+
+def test_png_sbit_samples_in_the_low_bits_are_still_read_as_they_are(tmp_path):
+    """A 12-bit camera's values written as they are (low bits) with sBIT 12: value/4095, as before."""
+    values = np.random.default_rng(1).integers(0, 4096, (24, 24)).astype(np.uint16)
+    p = _png16_sbit(tmp_path / "low.png", values, 12)
+    image, scaling = read_image_scaled(p)
+    assert torch.allclose(image[0], torch.from_numpy((values / 4095).astype(np.float32)), atol=1e-7)
+    assert (scaling.bits, scaling.source, scaling.shift) == (12, "sBIT", 0)
+    assert scaling.describe() == "16-bit file read as 12-bit data (÷4095, from the PNG's sBIT chunk)"
+    assert torch.equal(read_image(p, bit_depth=12), image)
+
+
+def test_png_sbit_that_fits_neither_layout_falls_back_to_the_largest_value(tmp_path):
+    values = np.random.default_rng(2).integers(0, 60000, (16, 16)).astype(np.uint16)
+    values[0, 0] = 60001  # not a multiple of 16, above 4095
+    p = _png16_sbit(tmp_path / "odd.png", values, 12)
+    _, scaling = read_image_scaled(p)
+    assert (scaling.bits, scaling.source, scaling.shift) == (16, "file", 0)
+
+
+@pytest.mark.parametrize("pixels", [1600, 2500])  # between 1× and 2× the limit (Pillow only warned), and above 2×
+@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp"])
+def test_pixel_limit_holds_for_pillow_formats(tmp_path, monkeypatch, pixels, ext):
+    """8-bit PNG/JPEG/BMP files above PIL.Image.MAX_IMAGE_PIXELS are refused, as the docstring says."""
+    side = int(round(pixels**0.5))
+    p = tmp_path / f"big{ext}"
+    Image.fromarray(np.zeros((side, side, 3), np.uint8)).save(p)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no DecompressionBombWarning: a refusal
+        with pytest.raises(ValueError, match=rf"cannot read image .*big\{ext}: .*limit of 1000 pixels") as caught:
+            read_image(p)
+    assert str(pixels) in str(caught.value)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", pixels)
+    assert read_image(p).shape == (1, side, side)

@@ -337,3 +337,48 @@ def test_zero_header_stamp_falls_back_to_the_log_time(tmp_path):
                                            w.add_image("/cam/image", _ramp(), T0 + MS)))
     assert [f.stamp_ns for f in frames] == [None, T0 + MS] and it.unstamped == 1
     assert "zero (unset) header stamp" in it.notes[0]
+
+
+@pytest.mark.parametrize("suffix", [".mcap", ".bag"])
+def test_state_topic_with_zero_header_stamps_is_matched_by_log_time(suffix, tmp_path):
+    """A driver that never sets the Temperature header stamp: each frame gets the latest value logged at or before it,
+    with a note (every value was placed at time 0 before, so every frame got the recording's last value)."""
+    path = tmp_path / f"zero{suffix}"
+    with RecordingWriter(path) as w:
+        for i in range(5):
+            w.add_temperature("/cam/temp", 20.0 + 10 * i, stamp_ns=0, log_time_ns=T0 + i * 100 * MS - 1)
+            w.add_image("/cam/image", _ramp(), T0 + i * 100 * MS)
+    frames, it = _frames(path, state=[StateTopic.parse("temperature_c", "/cam/temp")])
+    assert [f.state["temperature_c"] for f in frames] == [20.0, 30.0, 40.0, 50.0, 60.0]
+    assert it.state[0].clock == "log" and it.state[0].unstamped == 5
+    assert any("/cam/temp: every header stamp is zero (unset)" in n and "log time" in n for n in it.notes)
+
+
+def test_state_messages_with_some_zero_stamps_use_their_log_time(tmp_path):
+    """Stamped state messages keep the header clock; an unset one in between is placed at its log time (noted)."""
+    path = tmp_path / "mixed.mcap"
+    with RecordingWriter(path) as w:
+        w.add_temperature("/cam/temp", 20.0, stamp_ns=T0 - MS, log_time_ns=T0 - MS)
+        w.add_temperature("/cam/temp", 30.0, stamp_ns=0, log_time_ns=T0 + 50 * MS)  # unset: at its log time
+        for i in range(3):
+            w.add_image("/cam/image", _ramp(), T0 + i * 100 * MS)
+        w.add_temperature("/cam/temp", 40.0, stamp_ns=T0 + 150 * MS, log_time_ns=T0 + 250 * MS)
+    frames, it = _frames(path, state=[StateTopic.parse("temperature_c", "/cam/temp")])
+    assert [f.state["temperature_c"] for f in frames] == [20.0, 30.0, 40.0]  # (30 was last of all at time 0 before)
+    assert it.state[0].clock == "header" and it.state[0].unstamped == 1
+    assert any("1 of 3 messages have a zero (unset) header stamp" in n for n in it.notes)
+
+
+def test_16_bit_png_compressed_stream_gets_the_bit_depth_hint(tmp_path):
+    """12-bit data in a 16-bit PNG CompressedImage ("mono16; png compressed") gets the same --bit-depth note as raw
+    mono16 (the hint was chosen from the format string, which does not end in 16)."""
+    img16 = (_ramp(top=4095).astype(np.uint16) * 13) % 4096
+    for fmt in ("mono16; png compressed", "png"):
+        frames, it = _one(tmp_path, lambda w, fmt=fmt: w.add_compressed("/cam/image", cv2.imencode(".png", img16)[1], fmt, T0),
+                          name=f"c16_{fmt[:4]}")
+        np.testing.assert_allclose(frames[0].frame[0].numpy(), img16 / 65535.0, rtol=0, atol=1e-7)
+        assert len(it.notes) == 1 and "--bit-depth 12" in it.notes[0] and fmt in it.notes[0]
+    eight = _ramp()
+    _, it = _one(tmp_path, lambda w: w.add_compressed("/cam/image", cv2.imencode(".png", eight)[1], "mono8; png compressed", T0),
+                 name="c8")
+    assert not it.notes  # 8-bit data: no hint

@@ -313,3 +313,30 @@ def test_default_source_area_downsample():
         DefaultSource(area_downsample=0)
     with pytest.raises(ValueError, match="switched off"):
         DefaultSource(area_downsample=2, include_skimage=False, include_street=False, deadleaves=2)
+
+
+def test_split_ids_of_a_folder_with_a_file_name_that_is_not_utf8(tmp_path):
+    """A Latin-1 file name (its id holds a surrogate escape) splits like any other id, deterministically, instead of a
+    raw UnicodeEncodeError; valid names keep their old digest (plain UTF-8)."""
+    import hashlib
+    import os
+
+    from camhealth.data.sources import _unit_hash
+
+    root = os.fsencode(tmp_path)
+    img = Image.fromarray(np.zeros((8, 8), np.uint8))
+    img.save(tmp_path / "a.png")
+    try:
+        with open(root + b"/caf\xe9.png", "wb") as f:
+            img.save(f, format="PNG")
+    except (OSError, UnicodeError):
+        pytest.skip("this file system does not take non-UTF-8 file names")
+    src = ImageFolderSource(tmp_path)
+    assert "caf\udce9.png" in src.ids
+    parts = split_ids(src.ids, 0.5, 0.0, seed=3)
+    assert sorted(i for v in parts.values() for i in v) == [0, 1] and parts == split_ids(src.ids, 0.5, 0.0, seed=3)
+    assert _unit_hash(3, "caf\udce9.png") == int.from_bytes(
+        hashlib.blake2b(b"3\x1fcaf\xe9.png", digest_size=8).digest(), "big") / 2.0**64  # the file's own bytes
+    assert _unit_hash(7, "street#000001") == int.from_bytes(
+        hashlib.blake2b("7\x1fstreet#000001".encode(), digest_size=8).digest(), "big") / 2.0**64
+    assert 0.0 <= _unit_hash(0, "lone \ud800 surrogate") < 1.0  # any other lone surrogate: still a fixed number

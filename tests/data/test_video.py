@@ -146,3 +146,43 @@ def test_a_folder_of_16_bit_frames_gets_one_scale_the_first_frames(tmp_path):
         iterated = [float(f.max()) for f, _ in seq]
         indexed = [float(seq[k][0].max()) for k in range(2)]
     assert iterated == indexed == pytest.approx([800 / 1023, 3000 / 4095])
+
+
+def test_truncated_video_has_the_length_of_the_frames_that_decode(tmp_path):
+    """A video cut in half: its container still declares 20 frames, 9 decode. The length is 9 (with a warning naming
+    the file and both counts), so iteration, len() and the source's last item agree (len() said 20 and the
+    source's items 9…19 raised in the middle of an epoch before)."""
+    cv2 = pytest.importorskip("cv2")
+    full = tmp_path / "full.avi"
+    writer = cv2.VideoWriter(str(full), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    if not writer.isOpened():
+        pytest.skip("OpenCV has no MJPG writer")
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        writer.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    writer.release()
+    assert len(FrameSequence(full)) == 20
+    data = full.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.warns(UserWarning, match=r"cut\.avi: its container declares 20 frames, but only frames 0…(\d+) \((\d+)\)"):
+        seq = FrameSequence(cut)
+    n = len(seq)
+    assert 1 <= n < 20
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # iteration yields exactly len() frames, without a further warning
+        assert [i for _, i in seq] == list(range(n))
+    src = seq.as_source()
+    assert len(src) == n and src[n - 1][1] == f"video:cut.avi#{n - 1:06d}"
+    seq.close()
+
+
+def test_a_video_that_ends_before_its_length_warns_naming_the_frame(tmp_path, monkeypatch):
+    """Should the decoder stop before the (checked) length, iteration ends with a warning naming the file and frame."""
+    p = _write_avi(tmp_path / "clip.avi", n=6)
+    seq = FrameSequence(p)
+    seq.total_frames = 8  # as if the probe had been fooled: two frames more than decode
+    with pytest.warns(UserWarning, match=r"clip\.avi ended at frame 6: 6 of the 8 frames"):
+        assert [i for _, i in seq] == list(range(6))
