@@ -26,6 +26,7 @@ from typing import Callable
 
 import torch
 
+from camhealth._cli import IntAtLeast
 from camhealth.bench import BenchResult, Row
 
 HELP = "error and ms/patch of the classical estimators (PCA, B+F, wavelet; slanted edge, Siemens star)"
@@ -35,8 +36,9 @@ SIGMAS_DN = (5.0, 10.0, 15.0, 20.0, 25.0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--noise-size", type=int, default=128, help="noise patch size in px (default 128)")
-    parser.add_argument("--charts", type=int, default=4, help="blurred charts per chart row (default 4)")
+    parser.add_argument("--noise-size", type=IntAtLeast(32), default=128,
+                        help="noise patch size in px, ≥ 32 (PCA needs 64 sub-patches of 8×8; default 128)")
+    parser.add_argument("--charts", type=IntAtLeast(1), default=4, help="blurred charts per chart row, ≥ 1 (default 4)")
     parser.add_argument("--source", default="default", help="image source of the natural crops (default: embedded)")
 
 

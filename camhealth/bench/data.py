@@ -21,6 +21,7 @@ import time
 
 import torch
 
+from camhealth._cli import IntAtLeast
 from camhealth.bench import BenchResult, Row, add_allocator_argument, apply_allocator
 
 HELP = "patches/s delivered by NoiseDataModule and BlurDataModule (loading + on-the-fly corruption)"
@@ -30,9 +31,9 @@ NOISE_TRAIN = "NoiseDataModule train"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default="default", help="image source spec (default: the embedded images)")
-    parser.add_argument("--workers", type=int, default=0, help="DataLoader workers (default 0)")
-    parser.add_argument("--noise-patch", type=int, default=128, help="noise patch size in px (default 128)")
-    parser.add_argument("--blur-patch", type=int, default=192, help="blur patch size in px (default 192)")
+    parser.add_argument("--workers", type=IntAtLeast(0), default=0, help="DataLoader workers, ≥ 0 (default 0)")
+    parser.add_argument("--noise-patch", type=IntAtLeast(1), default=128, help="noise patch size in px, ≥ 1 (default 128)")
+    parser.add_argument("--blur-patch", type=IntAtLeast(1), default=192, help="blur patch size in px, ≥ 1 (default 192)")
     add_allocator_argument(parser)
 
 

@@ -86,3 +86,15 @@ def test_a_new_docs_file_in_an_existing_folder_is_accepted(tmp_path, monkeypatch
     with pytest.raises(Stop):
         bench_cli.main(TINY + ["--docs", str(tmp_path / "new.md")])
     assert seen["docs"] == tmp_path / "new.md" and not (tmp_path / "new.md").exists()
+
+
+@pytest.mark.parametrize("bench,option,value,bound", [("classical", "--noise-size", "16", 32), ("classical", "--charts", "0", 1),
+                                                      ("data", "--workers", "-1", 0), ("data", "--noise-patch", "0", 1),
+                                                      ("data", "--blur-patch", "-4", 1)])
+def test_sizes_and_counts_are_checked_when_parsed(bench, option, value, bound, no_run, capsys):
+    """Exit status 2 naming the option and its bound before the benchmark runs (they were refused only by the
+    estimator or the DataModule, after the batches were built)."""
+    with pytest.raises(SystemExit) as info:
+        bench_cli.main([bench, option, value])
+    assert info.value.code == 2 and f"argument {option}: must be >= {bound}, got {value}" in capsys.readouterr().err
+
