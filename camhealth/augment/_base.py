@@ -13,7 +13,7 @@ from camhealth._validation import check_finite, check_float
 from camhealth.augment._generators import params_to_metadata
 from camhealth.physics.defocus_psf import defocus_psf
 from camhealth.physics.image_formation import NOISE_SOURCES, ImageFormation, form_image
-from camhealth.physics.metadata import CameraMetadata
+from camhealth.physics.metadata import CameraMetadata, SensorConstants
 from camhealth.physics.motion_psf import linear_motion_psf, nonlinear_motion_psf
 from camhealth.physics.mtf import mtf_hv
 from camhealth.physics.readout_noise import source_follower_sigma_e
@@ -42,7 +42,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
         super().__init__(p=float(p), same_on_batch=same_on_batch, p_batch=1.0, keepdim=keepdim)
         self._formation: ImageFormation | None = None
         self._formation_params: Dict[str, torch.Tensor] | None = None  # the params the formation was made with
-        self._sf_cache: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._sf_cache: tuple[torch.Tensor, torch.Tensor, SensorConstants] | None = None
         self._untouched_clipped: torch.Tensor | None = None  # (B,) clipped fraction of the samples left without noise
 
     # ------------------------------------------------------------------ helpers
@@ -78,33 +78,52 @@ class CorruptionBase(IntensityAugmentationBase2D):
             g = g & (params["batch_prob"].to(device).reshape(-1).expand(b) > 0.5)
         return g
 
-    def defocus_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None) -> torch.Tensor:
-        """(B, k, k) defocus kernels of ``params`` (delta where the component is gated off)."""
-        d = params["diameter"].to(device=device, dtype=torch.float32)
+    def defocus_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None,
+                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(B, k, k) defocus kernels of ``params`` (delta where the component is gated off), in ``dtype``
+        (float32, or float64 for float64 images)."""
+        d = params["diameter"].to(device=device, dtype=dtype)
         if "defocus_gate" in params:
             d = torch.where(params["defocus_gate"].to(d.device) > 0.5, d, torch.zeros_like(d))
         return defocus_psf(d, self._defocus_ks)
 
-    def motion_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None) -> torch.Tensor:
-        """(B, k, k) motion kernels of ``params`` (delta where the component is gated off)."""
-        length = params["length"].to(device=device, dtype=torch.float32)
+    def motion_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None,
+                   dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(B, k, k) motion kernels of ``params`` (delta where the component is gated off), in ``dtype``
+        (float32, or float64 for float64 images)."""
+        length = params["length"].to(device=device, dtype=dtype)
         if "motion_gate" in params:
             length = torch.where(params["motion_gate"].to(length.device) > 0.5, length, torch.zeros_like(length))
-        angle = params["angle"].to(device=length.device, dtype=torch.float32)
-        intensity = params["intensity"].to(device=length.device, dtype=torch.float32)
+        angle = params["angle"].to(device=length.device, dtype=dtype)
+        intensity = params["intensity"].to(device=length.device, dtype=dtype)
         if bool((intensity == 0).all()):
             return linear_motion_psf(length, angle, self._motion_ks)
-        shake = params["shake_noise"].to(device=length.device, dtype=torch.float32)
+        shake = params["shake_noise"].to(device=length.device, dtype=dtype)
         return nonlinear_motion_psf(length, angle, intensity, shake, self._motion_ks)
 
     def _source_follower(self, meta: CameraMetadata) -> torch.Tensor:
-        """σ_SF depends only on (W, f_clock, A_SN, sensor type): cache it across batches with fixed sensors."""
+        """σ_SF depends only on (W, f_clock, A_SN, sensor type) and the fixed constants: cache it across batches
+        with fixed sensors."""
         key = torch.stack([meta.white_noise_v_per_rthz, meta.pixel_clock_hz, meta.sense_node_gain_v_per_e, meta.is_cmos])
-        if self._sf_cache is not None and self._sf_cache[0].shape == key.shape and torch.equal(self._sf_cache[0], key):
-            return self._sf_cache[1]
+        cache = self._sf_cache
+        if (cache is not None and cache[2] == meta.constants and cache[0].shape == key.shape
+                and cache[0].dtype == key.dtype and torch.equal(cache[0], key)):
+            return cache[1]
         sf = source_follower_sigma_e(meta)
-        self._sf_cache = (key, sf)
+        self._sf_cache = (key, sf, meta.constants)
         return sf
+
+    @staticmethod
+    def _noise_seed_groups(params: Dict[str, torch.Tensor], b: int) -> list[tuple[int, torch.Tensor | None]]:
+        """The samples of each noise seed: ``[(seed, indices)]`` (int64 indices on the CPU), or ``[(seed, None)]``
+        when the whole batch shares one seed (one scalar, or the same value in every row)."""
+        seeds = torch.as_tensor(params["noise_seed"]).detach().reshape(-1).cpu()
+        if seeds.numel() not in (1, b):
+            raise ValueError(f"noise_seed has {seeds.numel()} values for a batch of {b}: give one seed, or one per sample")
+        if seeds.numel() == 1 or bool((seeds == seeds[0]).all()):
+            return [(int(seeds[0]), None)]
+        uniq, inverse = torch.unique(seeds, return_inverse=True)
+        return [(int(u), (inverse == j).nonzero().squeeze(1)) for j, u in enumerate(uniq.tolist())]
 
     # ------------------------------------------------------------------ the transform
     def apply_transform(
@@ -120,27 +139,37 @@ class CorruptionBase(IntensityAugmentationBase2D):
         if input.shape[0] == 0:  # an empty batch comes back empty, with empty labels
             self._formation = _empty_formation(input)
             return input.clone()
-        dpsf = self.defocus_psf(params, dev) if self._defocus_ks is not None else None
-        mpsf = self.motion_psf(params, dev) if self._motion_ks is not None else None
-        meta = None
-        generator = None
-        if self._sources:
+        # the kernels in the physics' work dtype: float64 for float64 images, float32 otherwise
+        pdt = torch.float64 if input.dtype == torch.float64 else torch.float32
+        dpsf = self.defocus_psf(params, dev, pdt) if self._defocus_ks is not None else None
+        mpsf = self.motion_psf(params, dev, pdt) if self._motion_ks is not None else None
+        if not self._sources:
+            result = form_image(input, None, defocus_psf=dpsf, motion_psf=mpsf, sources=(), quantize=self._quantize)
+        else:
             meta = params_to_metadata(params)
             if meta.device != dev:
                 meta = meta.to(device=dev)
-            generator = torch.Generator(device=dev)
-            generator.manual_seed(int(params["noise_seed"].reshape(-1)[0]))
-        result = form_image(
-            input,
-            meta,
-            defocus_psf=dpsf,
-            motion_psf=mpsf,
-            sources=self._sources,
-            generator=generator,
-            quantize=self._quantize,
-            source_follower_e=self._source_follower(meta) if meta is not None else None,
-            rng=self._rng,
-        )
+            sf = self._source_follower(meta)
+            groups = self._noise_seed_groups(params, input.shape[0])
+            parts, order = [], []
+            for seed, idx in groups:  # one group (the whole batch) unless the samples carry different seeds
+                generator = torch.Generator(device=dev)
+                generator.manual_seed(seed)
+                sel = (lambda t: t) if idx is None else (lambda t, i=idx.to(dev): t.index_select(0, i))
+                parts.append(form_image(
+                    sel(input),
+                    meta if idx is None else meta[idx.to(meta.device)],
+                    defocus_psf=None if dpsf is None else sel(dpsf),
+                    motion_psf=None if mpsf is None else sel(mpsf),
+                    sources=self._sources,
+                    generator=generator,
+                    quantize=self._quantize,
+                    source_follower_e=sel(sf),
+                    rng=self._rng,
+                ))
+                if idx is not None:
+                    order.append(idx)
+            result = parts[0] if len(parts) == 1 else _merge_formations(parts, torch.cat(order).to(dev))
         out = result.image
         if self._sources:
             on = self._component_gate(params, "noise", input.shape[0], dev)
@@ -241,6 +270,15 @@ def _same_params(params: Dict[str, torch.Tensor], snapshot: Dict[str, torch.Tens
     return all(
         mine[k].shape == v.shape and torch.equal(mine[k].detach().to(v.device, v.dtype), v) for k, v in snapshot.items()
     )
+
+
+def _merge_formations(parts: Sequence[ImageFormation], order: torch.Tensor) -> ImageFormation:
+    """One :class:`ImageFormation` of the batch from results of its sample groups: ``parts`` hold the samples
+    ``order`` (their batch indices, concatenated in the parts' order). Differentiable (a gather)."""
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(order.numel(), device=order.device)
+    return ImageFormation(*(torch.cat([getattr(p, f.name) for p in parts]).index_select(0, inverse)
+                            for f in dataclasses.fields(ImageFormation)))
 
 
 def _empty_formation(input: torch.Tensor) -> ImageFormation:

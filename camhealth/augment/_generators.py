@@ -1,13 +1,15 @@
 """Parameter generators: all randomness of the corruption modules lives here (Kornia convention).
 
 Each generator returns a dict of per-sample tensors (first dim B). Replaying a corruption with
-``aug(x, params=aug._params)`` reproduces it exactly, including the noise field (drawn from a torch
-generator seeded with ``params["noise_seed"]``). Sampling uses torch's global RNG, so
-``torch.manual_seed`` makes a run reproducible, as in Kornia.
+``aug(x, params=aug._params)`` reproduces it exactly, including the noise field (drawn from torch
+generators seeded with ``params["noise_seed"]``: the samples that share a seed draw their noise together, a
+sample with a seed of its own draws it alone). Sampling uses torch's global RNG, so ``torch.manual_seed`` makes
+a run reproducible, as in Kornia.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 from typing import Any, Mapping
 
@@ -17,15 +19,17 @@ from kornia.augmentation.random_generator.base import RandomGeneratorBase
 from kornia.augmentation.utils import _adapted_rsampling
 from torch.distributions import Uniform
 
-from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
+from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata, SensorConstants
 from camhealth.physics.motion_psf import sample_shake_noise
 
 __all__ = [
     "DefocusGenerator",
     "MotionGenerator",
     "SensorNoiseGenerator",
+    "CONSTANT_FIELDS",
     "as_range",
     "metadata_to_params",
+    "params_to_constants",
     "params_to_metadata",
 ]
 
@@ -104,7 +108,9 @@ class MotionGenerator(_UniformFieldsGenerator):
 
 
 class SensorNoiseGenerator(RandomGeneratorBase):
-    """Camera metadata per sample (keys ``meta_<field>``) and the ``noise_seed`` of the noise field.
+    """Camera metadata per sample (keys ``meta_<field>``, and the fixed :class:`SensorConstants` as
+    ``const_<field>``) and the ``noise_seed`` of the noise field: one seed per call, the same for every sample
+    (the whole batch draws its noise together).
 
     Args:
         metadata: fixed metadata (a preset name, :class:`CameraMetadata` of batch 1, or a dict of
@@ -147,16 +153,51 @@ class SensorNoiseGenerator(RandomGeneratorBase):
         return params
 
 
+#: The fields of :class:`SensorConstants`, carried in the parameters as ``const_<field>``.
+CONSTANT_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(SensorConstants))
+
+
 def metadata_to_params(meta: CameraMetadata, device: torch.device | str | None = None) -> dict[str, torch.Tensor]:
-    """Flatten metadata into ``meta_<field>`` parameter tensors of shape (B,)."""
-    return {f"meta_{n}": getattr(meta, n).to(device=device, dtype=torch.float32) for n in FULL_FIELDS}
+    """Flatten metadata into parameter tensors of shape (B,): ``meta_<field>`` (float32) for the 11 fields and
+    ``const_<field>`` (float64, the same value in every row: the fixed :class:`SensorConstants` of the batch)."""
+    params = {f"meta_{n}": getattr(meta, n).to(device=device, dtype=torch.float32) for n in FULL_FIELDS}
+    b = meta.batch_size
+    for n in CONSTANT_FIELDS:
+        params[f"const_{n}"] = torch.full((b,), float(getattr(meta.constants, n)), dtype=torch.float64, device=device)
+    return params
+
+
+def params_to_constants(params: Mapping[str, torch.Tensor], prefix: str = "") -> SensorConstants:
+    """The :class:`SensorConstants` of ``const_<field>`` parameters (the defaults where params carry none; a batch
+    has one set of constants, so each entry must hold one value, else ``ValueError`` naming it)."""
+    keys = [f"{prefix}const_{n}" for n in CONSTANT_FIELDS]
+    present = [k for k in keys if k in params]
+    if not present:
+        return SensorConstants()
+    if len(present) != len(keys):
+        missing = [k for k in keys if k not in params]
+        raise ValueError(f"params carry some fixed sensor constants but lack {missing}; give all of {keys} or none")
+    try:
+        table = torch.stack([torch.as_tensor(params[k]).detach().reshape(-1) for k in keys]).to("cpu", torch.float64)
+    except RuntimeError:
+        raise ValueError(f"params {keys} must each hold one value per sample, got shapes "
+                         f"{[tuple(torch.as_tensor(params[k]).shape) for k in keys]}") from None
+    if table.shape[1] == 0:
+        return SensorConstants()  # an empty batch: no value to read
+    bad = ~torch.isfinite(table).all(1) | (table != table[:, :1]).any(1)
+    if bool(bad.any()):
+        j = int(bad.nonzero()[0, 0])
+        raise ValueError(f"params {keys[j]} = {table[j].tolist()} must hold one finite value for the whole batch (the "
+                         "fixed SensorConstants are shared by all samples)")
+    return SensorConstants(**{n: float(v) for n, v in zip(CONSTANT_FIELDS, table[:, 0].tolist())})
 
 
 def params_to_metadata(params: Mapping[str, torch.Tensor], prefix: str = "") -> CameraMetadata:
-    """Rebuild :class:`CameraMetadata` from ``meta_<field>`` parameters (validated)."""
+    """Rebuild :class:`CameraMetadata` from ``meta_<field>`` parameters (validated) and the ``const_<field>``
+    constants (:func:`params_to_constants`)."""
     try:
         data = {n: params[f"{prefix}meta_{n}"] for n in FULL_FIELDS}
     except KeyError as err:
         raise ValueError(f"params lack the metadata entry {err.args[0]!r}; expected keys meta_<field> for {list(FULL_FIELDS)}") from None
-    return CameraMetadata(**data)
+    return CameraMetadata(**data, constants=params_to_constants(params, prefix))
 

@@ -54,7 +54,8 @@ class CameraCorruption(CorruptionBase):
         motion: a :class:`RandomMotionBlur` or ``None``. Default: linear, lengths 1–21 px.
         noise: a :class:`RandomSensorNoise` or ``None``. Default: all sources, metadata sampled. Its
             ``quantize`` and ``rng`` settings apply to the chain.
-        p, same_on_batch, keepdim: as in Kornia (``p`` gates the whole camera per sample).
+        p, same_on_batch, keepdim: as in Kornia (``p`` gates the whole camera per sample); keyword-only
+            (only the three components are positional).
 
     Labels (``aug.labels()``): ``mtf`` (B, 16) of the combined PSF (product of the components' MTFs),
     the noise labels of :class:`RandomSensorNoise`, and ``metadata``.
@@ -81,6 +82,7 @@ class CameraCorruption(CorruptionBase):
         defocus: RandomDefocusBlur | None | str = "default",
         motion: RandomMotionBlur | None | str = "default",
         noise: RandomSensorNoise | None | str = "default",
+        *,
         p: float = 1.0,
         same_on_batch: bool = False,
         keepdim: bool = False,

@@ -24,8 +24,10 @@ class RandomSensorNoise(CorruptionBase):
     Args:
         sources: which sources to realise, subset of ``("photon", "dark", "readout")``.
         metadata: fixed camera metadata: a preset name (``"ICX285"``, ``"EV76C661"``), a
-            :class:`CameraMetadata` of batch 1, or a dict of fields; ``None`` (default) samples every
-            field from its range (thesis Table 4.1).
+            :class:`CameraMetadata` of batch 1 (its :class:`~camhealth.physics.SensorConstants` are used), or a
+            dict of fields read as :meth:`CameraMetadata.from_dict` reads one (``sensor_type: CCD|CMOS`` accepted,
+            an unknown key is a ``ValueError``); ``None`` (default) samples every field from its range (thesis
+            Table 4.1).
         ranges: per-field (low, high) ranges to sample instead of the fixed value, e.g.
             ``{"gain_db": (0, 24), "temperature_c": (0, 80)}``.
         quantize: round to whole DN (straight-through gradient). Default False.
@@ -37,9 +39,18 @@ class RandomSensorNoise(CorruptionBase):
         p, same_on_batch, keepdim: as in Kornia; ``same_on_batch`` shares the metadata, the noise field
             stays independent per sample (as two frames of one camera would be).
 
-    Parameters: ``meta_<field>`` (B,) for the 11 metadata fields and ``noise_seed`` (B,). Replaying with
-    ``aug(x, params=aug._params)`` reproduces the noise exactly. To corrupt with your own per-sample
+    Parameters: ``meta_<field>`` (B,) for the 11 metadata fields, ``const_<field>`` (B,) for the fixed
+    :class:`~camhealth.physics.SensorConstants` (one value repeated: a batch has one set) and ``noise_seed`` (B,).
+    Replaying with ``aug(x, params=aug._params)`` reproduces the noise exactly. To corrupt with your own per-sample
     metadata use ``aug(x, params=RandomSensorNoise.params_from_metadata(meta))``.
+
+    Noise seeds: the samples that share a ``noise_seed`` draw their noise together, as one batch in batch order
+    (one torch generator seeded with it); a sample with a seed of its own draws it alone, from a generator seeded
+    with its seed. The parameter generator draws one seed per call for the whole batch (the fastest: one pass), so
+    a replay reproduces the batch, or any set of whole seed groups, exactly; a sub-batch of it gets other noise.
+    For samples that replay alone, give each its own seed (``params_from_metadata(meta, seed=[s₀, s₁, …])`` or
+    ``params["noise_seed"] = …``): sample i is then ``form_image(x[i:i+1], meta[i], generator=
+    torch.Generator().manual_seed(s_i))``, whatever else is in its batch (one form_image pass per seed).
 
     Labels (``aug.labels()`` after a call): ``sigma_dn`` (B, 3) realised σ of (PN, DCSN, RN) in DN after
     gain and clipping, ``sigma_total_dn``, the analytic ``sigma_expected_dn``/``sigma_total_expected_dn``,
@@ -88,16 +99,33 @@ class RandomSensorNoise(CorruptionBase):
 
     @staticmethod
     def params_from_metadata(
-        meta: CameraMetadata, seed: int | None = None, device: torch.device | str | None = None
+        meta: CameraMetadata, seed: int | Sequence[int] | torch.Tensor | None = None,
+        device: torch.device | str | None = None,
     ) -> dict[str, torch.Tensor]:
-        """Noise parameters for given per-sample metadata, to corrupt with ``aug(x, params=...)``.
+        """Noise parameters for given per-sample metadata (with its fixed constants), to corrupt with
+        ``aug(x, params=...)``.
+
+        ``seed``: one integer for the whole batch (``None``: a random one), or one per sample (B,) — then every
+        sample's noise depends on its own seed only and a sub-batch replays exactly (class docstring).
 
         A noise-only module's parameters; for :class:`~camhealth.augment.CameraCorruption` update the
-        ``meta_<field>`` entries of its ``forward_parameters`` output instead.
+        ``meta_<field>`` (and ``const_<field>``) entries of its ``forward_parameters`` output instead.
         """
+        b = meta.batch_size
         params = metadata_to_params(meta, device=device)
-        s = int(torch.randint(0, 2**62, (1,))) if seed is None else int(seed)
-        params["noise_seed"] = torch.full((meta.batch_size,), s, dtype=torch.int64, device=device)
+        if seed is None:
+            seeds = torch.full((b,), int(torch.randint(0, 2**62, (1,))), dtype=torch.int64)
+        else:
+            raw = seed if isinstance(seed, torch.Tensor) else torch.as_tensor(seed)
+            if raw.is_floating_point() or raw.is_complex() or raw.dtype == torch.bool or raw.ndim > 1:
+                raise TypeError(f"seed must be an integer or a 1-D sequence of integers (one per sample), got {seed!r:.60}")
+            seeds = raw.detach().to("cpu", torch.int64).reshape(-1)
+            if seeds.numel() == 1:
+                seeds = seeds.expand(b)
+            elif seeds.numel() != b:
+                raise ValueError(f"seed has {seeds.numel()} values for metadata of batch size {b}: give one seed, or one "
+                                 "per sample")
+        params["noise_seed"] = seeds.contiguous().to(device)
         params["batch_prob"] = torch.ones(meta.batch_size, device=device)
         params["forward_input_shape"] = torch.tensor([meta.batch_size, 1, 0, 0])
         return params

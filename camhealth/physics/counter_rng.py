@@ -22,6 +22,10 @@ u₁ ≥ 2⁻²⁵ caps |z| at 5.9 (probability of a larger |z| under N(0, 1): 4
 32×192×192 would have been larger). Keys come from the caller's :class:`torch.Generator` (three int32 per
 field), so a seeded generator reproduces every field exactly.
 
+Dtypes: draws are computed in float32 or float64. For float16/bfloat16 they are computed in float32 and rounded
+to the requested dtype at the end (uniforms are then capped at the largest number below 1 of that dtype, so
+they stay in [0, 1); normals stay finite, |z| ≤ 5.9).
+
 Statistics are tested (``tests/physics/test_counter_rng.py``): moments, χ² of the uniform histogram,
 normal quantiles (Kolmogorov–Smirnov), and correlation between neighbouring pixels, between the two draws of
 one pixel and between fields of different keys.
@@ -70,13 +74,36 @@ def counter_bits24(index: torch.Tensor, keys: torch.Tensor) -> tuple[torch.Tenso
     return (_mix(h ^ keys[1]) >> 8) & 0xFFFFFF, (_mix(h ^ keys[2]) >> 8) & 0xFFFFFF
 
 
+def _work_dtype(dtype: torch.dtype) -> torch.dtype:
+    """Compute dtype of the draws: float32/float64 as requested, float32 for the half-precision dtypes (a 24-bit
+    integer in float16 overflows, and both half formats round the 2⁻²⁴ grid up to 1.0)."""
+    return dtype if dtype in (torch.float32, torch.float64) else torch.float32
+
+
+def _check_dtype(dtype: torch.dtype) -> torch.dtype:
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point or dtype.is_complex:
+        raise TypeError(f"dtype must be a floating torch.dtype (float16, bfloat16, float32 or float64), got {dtype}")
+    return dtype
+
+
+def _uniform_as(u: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Work-dtype uniforms in ``dtype``, capped below 1 (rounding to a half format can round 1 − 2⁻²⁴ up to 1)."""
+    if u.dtype == dtype:
+        return u
+    out = u.to(dtype)
+    below_one = torch.nextafter(torch.ones((), dtype=dtype, device=out.device), torch.zeros((), dtype=dtype, device=out.device))
+    return out.clamp_(max=below_one)
+
+
 def counter_normal_expr(index: torch.Tensor, keys: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """The standard normals of the elements ``index`` (int32) of the field ``keys`` as an element-wise
-    expression, for use inside other compiled kernels."""
+    expression, for use inside other compiled kernels (computed in float32 for half-precision ``dtype``)."""
+    wd = _work_dtype(dtype)
     a, b = counter_bits24(index, keys)
-    u1 = (a.to(dtype) + 0.5) * _INV24
-    u2 = b.to(dtype) * _INV24
-    return torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(_TWO_PI * u2)
+    u1 = (a.to(wd) + 0.5) * _INV24
+    u2 = b.to(wd) * _INV24
+    z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(_TWO_PI * u2)
+    return z if wd == dtype else z.to(dtype)
 
 
 # ---------------------------------------------------------------------------------------------- kernels
@@ -167,29 +194,35 @@ def _numel(shape: Sequence[int]) -> int:
 
 
 def counter_uniform(shape: Sequence[int], keys: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Uniform draws in [0, 1) on the 2⁻²⁴ grid, of ``shape``, on the keys' device."""
-    return _uniform(_numel(shape), keys, dtype).view(*shape)
+    """Uniform draws in [0, 1) on the 2⁻²⁴ grid, of ``shape``, on the keys' device (for float16/bfloat16: those
+    draws rounded to ``dtype``, capped below 1)."""
+    wd = _work_dtype(_check_dtype(dtype))
+    return _uniform_as(_uniform(_numel(shape), keys, wd), dtype).view(*shape)
 
 
 def counter_normal(
     shape: Sequence[int], keys: torch.Tensor, dtype: torch.dtype = torch.float32, scale: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Standard-normal draws of ``shape`` (B, …), multiplied by a per-sample ``scale`` (B,) if given."""
+    """Standard-normal draws of ``shape`` (B, …), multiplied by a per-sample ``scale`` (B,) if given (computed in
+    float32 for float16/bfloat16 ``dtype``, then rounded to it)."""
+    wd = _work_dtype(_check_dtype(dtype))
     n = _numel(shape)
     if scale is None:
-        return _normal_field(n, keys, dtype).view(*shape)
+        return _normal_field(n, keys, wd).view(*shape).to(dtype)
     b = int(shape[0])
-    scale = scale.to(device=keys.device, dtype=dtype).reshape(-1)
+    scale = scale.to(device=keys.device, dtype=wd).reshape(-1)
     if scale.shape[0] != b:
         raise ValueError(f"scale must have one value per sample ({b}), got {scale.shape[0]}")
-    return _normal_scaled(scale.view(b, 1), n // max(b, 1), keys).view(*shape)
+    return _normal_scaled(scale.view(b, 1), n // max(b, 1), keys).view(*shape).to(dtype)
 
 
 def counter_uniform_at(index: torch.Tensor, keys: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """The uniforms of a field with ``keys`` at the flat element indices ``index`` (integers in [0, 2³¹))."""
-    return _uniform_at(index, keys, dtype)
+    wd = _work_dtype(_check_dtype(dtype))
+    return _uniform_as(_uniform_at(index, keys, wd), dtype)
 
 
 def counter_normal_at(index: torch.Tensor, keys: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """The normals of a field with ``keys`` at the flat element indices ``index`` (integers in [0, 2³¹))."""
-    return _normal_at(index, keys, dtype)
+    wd = _work_dtype(_check_dtype(dtype))
+    return _normal_at(index, keys, wd).to(dtype)

@@ -33,7 +33,7 @@ from typing import Sequence
 
 import torch
 
-from camhealth._validation import check_image, check_tensor
+from camhealth._validation import check_finite, check_image, check_tensor
 from camhealth.physics.counter_rng import (
     LazyCompiled, check_counter_size, counter_keys, counter_normal, counter_normal_at, counter_normal_expr,
 )
@@ -253,6 +253,9 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = T
             the batch's largest blur needs. Same result up to float summation order (the dropped taps
             are exact zeros; the padding is chosen from the full kernel size either way).
 
+    The kernels must be finite (else ``ValueError``); they are applied as given (any sum, any sign): the checks
+    that a blur kernel is non-negative and sums to 1 are :func:`form_image`'s.
+
     Odd kernels of size >= ``FFT_MIN_KERNEL`` are applied in the Fourier domain (same padding, same
     result up to float rounding; faster than the direct convolution for the 45 px kernels of non-linear
     motion, while oneDNN's direct convolution wins up to ~31 px on CPU).
@@ -262,6 +265,7 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = T
         raise ValueError(f"psf must have shape (B, k, k), got {tuple(psf.shape)}")
     if psf.shape[0] not in (1, image.shape[0]):
         raise ValueError(f"psf batch {psf.shape[0]} does not match image batch {image.shape[0]}")
+    check_finite(psf, "psf")  # a NaN tap would turn every image it touches into NaN
     k = psf.shape[-1]
     if k == 1:
         return image * psf.to(image.dtype).view(-1, 1, 1, 1)
@@ -360,11 +364,23 @@ def _poisson_fixup(rate: torch.Tensor, z: torch.Tensor, k: torch.Tensor, frac: t
     return out.to(rate.dtype)
 
 
+def _raise_bad_rate(rate: torch.Tensor, flat: torch.Tensor) -> None:
+    """ValueError naming the first rate of ``rate`` (flattened: ``flat``) that is NaN, infinite or negative."""
+    bad = ~torch.isfinite(flat) | (flat < 0)
+    i = int(bad.nonzero()[0, 0])
+    where = ", ".join(str(int(j)) for j in torch.unravel_index(torch.tensor(i), tuple(rate.shape))) if rate.ndim else ""
+    raise ValueError(
+        f"Poisson rate[{where}] = {float(flat[i]):g} is out of the allowed range [0, inf) (expected counts must be "
+        f"finite and non-negative; {int(bad.sum())} of {flat.numel()} rates are not)"
+    )
+
+
 def sample_poisson(
     rate: torch.Tensor, generator: torch.Generator | None = None, exact_below: float = 1e3, rng: str = "torch"
 ) -> torch.Tensor:
-    """Poisson samples of ``rate`` (≥ 0). Rates ≥ ``exact_below`` use the normal approximation
-    N(λ, λ) (skewness 1/√λ ≤ 0.03 there); smaller rates are drawn exactly.
+    """Poisson samples of ``rate`` (finite, ≥ 0; a NaN, infinite or negative rate raises ``ValueError`` naming it).
+    Rates ≥ ``exact_below`` use the normal approximation N(λ, λ) (skewness 1/√λ ≤ 0.03 there); smaller rates are
+    drawn exactly.
 
     ``rng`` picks the source of the standard normals z: ``"torch"`` (``torch.randn`` from ``generator``) or
     ``"counter"`` (:mod:`~camhealth.physics.counter_rng`, keys drawn from ``generator``). With ``"counter"``
@@ -384,6 +400,8 @@ def sample_poisson(
         return rate.clone()
     work = (rate if rate.dtype in (torch.float32, torch.float64) else rate.float()).reshape(-1)
     lo, hi = (float(t) for t in torch.aminmax(work))
+    if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0:  # NaN propagates into lo/hi
+        _raise_bad_rate(rate, work)
     small_below = min(_EXPANSION_MIN_RATE, exact_below)
     if hi < small_below:  # all small: exact scalar sampler
         return torch.poisson(work, generator=generator).to(rate.dtype).view_as(rate)
@@ -393,7 +411,7 @@ def sample_poisson(
         return out.to(rate.dtype).view_as(rate)
     # N(λ, λ) everywhere first (the answer for λ ≥ exact_below); the exact regimes overwrite their entries
     z = torch.randn(work.shape, generator=generator, device=work.device, dtype=work.dtype)
-    out = (work.clamp_min(0) if lo < 0 else work).sqrt().mul_(z).add_(work)
+    out = work.sqrt().mul_(z).add_(work)
     if lo < exact_below:
         # the exact regimes run only on their own entries, found by one nonzero (a gather costs less than
         # the expansion's ~25 full-size passes); then split into expansion (λ ≥ 10) and scalar (λ < 10) draws
@@ -643,12 +661,19 @@ def sample_poisson_per_sample(
     about one ``rand`` plus three gathers per element, ~10× less than ``torch.poisson`` (a scalar sampler per
     element) at λ ≈ 5.
 
+    ``dtype`` is float32 or float64 (else ``TypeError``): half-precision formats cannot hold the counts.
+
     ``rng``: ``"torch"`` draws u and z with ``torch.rand``/``torch.randn`` from ``generator``. ``"counter"``
     inverts at the counter normal z of each element (:mod:`~camhealth.physics.counter_rng`, keys from
     ``generator``) with a per-sample z-space table (:func:`poisson_z_table`): the draw is min{k : F(k) ≥ Φ(z)}
     for λ < ``exact_below`` and λ + √λ·z above, in one compiled pass with a single table lookup per element.
     """
     check_rng(rng)
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(
+            f"dtype must be torch.float32 or torch.float64 for Poisson counts (float16 overflows above 65 504 e⁻ and "
+            f"bfloat16 rounds counts above 256), got {dtype}"
+        )
     rate = torch.as_tensor(rate)
     b = int(shape[0])
     if rate.ndim != 1 or rate.shape[0] != b:
@@ -761,6 +786,43 @@ def _per_sample(v: torch.Tensor, dtype: torch.dtype, device: torch.device) -> to
     return v.to(device=device, dtype=dtype).view(-1, 1, 1, 1)
 
 
+#: Largest |sum − 1| of a blur kernel that :func:`form_image` accepts (or the dtype's machine epsilon, if larger:
+#: a bfloat16 kernel's sum is only known to ~4e-3).
+_PSF_SUM_TOLERANCE = 1e-3
+
+
+def _check_blur_psf(psf: object, name: str = "psf") -> torch.Tensor:
+    """``psf`` if it is a (B, k, k) floating tensor (k ≥ 1) of finite, non-negative kernels that each sum to 1
+    (within ``_PSF_SUM_TOLERANCE``; values down to −10⁻⁶ of a kernel's largest magnitude count as rounding of 0),
+    else ``TypeError``/``ValueError`` naming ``name``, the kernel and what is wrong (conventions.md: a PSF
+    spreads the light of a pixel, it neither adds nor removes any)."""
+    check_tensor(psf, name)
+    if psf.dtype not in (torch.float16, torch.bfloat16, torch.float32, torch.float64):
+        raise TypeError(f"{name} must be a floating tensor (float16, bfloat16, float32 or float64), got dtype {psf.dtype}")
+    if psf.ndim != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] < 1:
+        raise ValueError(f"{name} must have shape (B, k, k) with k >= 1, got {tuple(psf.shape)}")
+    if psf.shape[0] == 0:
+        return psf
+    check_finite(psf, name)
+    flat = psf.detach().reshape(psf.shape[0], -1)
+    flat = flat if flat.dtype in (torch.float32, torch.float64) else flat.float()
+    low, at = flat.min(dim=1)
+    bad = low < -1e-6 * flat.abs().amax(dim=1)
+    if bool(bad.any()):
+        i = int(torch.nonzero(bad)[0, 0])
+        r, c = divmod(int(at[i]), psf.shape[2])
+        raise ValueError(f"{name} must be non-negative (a blur kernel spreads light); kernel {i} has {float(low[i]):g} "
+                         f"at row {r}, column {c}")
+    total = flat.double().sum(dim=1)
+    tol = max(_PSF_SUM_TOLERANCE, torch.finfo(psf.dtype).eps)
+    bad = (total - 1.0).abs() > tol
+    if bool(bad.any()):
+        i = int(torch.nonzero(bad)[0, 0])
+        raise ValueError(f"{name} kernel {i} sums to {float(total[i]):g}; a blur kernel must sum to 1 (±{tol:g}) so that it "
+                         "keeps the image's mean (normalise it: psf / psf.sum((-2, -1), keepdim=True))")
+    return psf
+
+
 def form_image(
     clean: torch.Tensor,
     meta: CameraMetadata | None = None,
@@ -780,8 +842,10 @@ def form_image(
             (C = 1), other C are corrupted channel by channel with independent noise.
         meta: per-sample camera metadata (batch 1 or B); required when ``sources`` is not empty.
         defocus_psf: (B, k, k) defocus kernels, or ``None`` for none.
-        motion_psf: (B, k, k) motion kernels, or ``None``.
-        sources: which noise sources to realise, a subset of ``("photon", "dark", "readout")``.
+        motion_psf: (B, k, k) motion kernels, or ``None``. Both must be floating, finite, non-negative and
+            sum to 1 per kernel (:func:`_check_blur_psf`; else ``TypeError``/``ValueError`` naming the argument).
+        sources: which noise sources to realise, a subset of ``("photon", "dark", "readout")`` (a single name such
+            as ``"photon"`` stands for that one source).
         generator: torch generator on the image's device for reproducible noise.
         quantize: round the output to whole DN (straight-through gradient).
         source_follower_e: optional cached :func:`~camhealth.physics.readout_noise.source_follower_sigma_e`.
@@ -800,10 +864,13 @@ def form_image(
     if lo < 0 or hi > 1:
         raise ValueError(f"clean images must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
     check_rng(rng)
-    sources = tuple(sources)
+    sources = (sources,) if isinstance(sources, str) else tuple(sources)
     unknown = [s for s in sources if s not in NOISE_SOURCES]
     if unknown:
         raise ValueError(f"unknown noise source(s) {unknown}; choose from {list(NOISE_SOURCES)}")
+    for psf_name, psf in (("defocus_psf", defocus_psf), ("motion_psf", motion_psf)):
+        if psf is not None:
+            _check_blur_psf(psf, psf_name)
     b = clean.shape[0]
     out_dtype = clean.dtype
     wd = _work_dtype(out_dtype)

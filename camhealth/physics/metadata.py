@@ -106,8 +106,10 @@ class SensorConstants:
         rtn_current_a: random-telegraph source-follower current modulation ΔI [A] (CMOS only).
         rtn_time_factor: τ_RTN = rtn_time_factor · τ_D [–].
         source_follower_gain: A_SF [V/V].
-        reference_voltage_v: sense-node reference voltage [V] (informative; the ADC maps the full well
-            to 255 DN).
+        reference_voltage_v: sense-node reference voltage [V]: the conventions' fixed 5 V for every preset
+            (informative: no camhealth.physics function reads it, the ADC maps the full well to 255 DN; the
+            EV76C661's own 3.3 V would change nothing here, and one set of constants keeps presets
+            concatenable into one batch — give ``SensorConstants(reference_voltage_v=3.3)`` to carry it).
     """
 
     offset_dn: float = 0.0
@@ -188,6 +190,35 @@ def read_metadata_mapping(path: Any) -> dict:
     return data
 
 
+def _normalise_metadata_mapping(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A mapping of metadata field → value(s) with ``sensor_type: CCD|CMOS`` turned into ``is_cmos`` (0/1), as
+    :meth:`CameraMetadata.from_dict`, :meth:`CameraMetadata.sample` (``fixed=``) and the corruption modules
+    (``metadata=``) read it. Raises ``TypeError``/``ValueError`` on a ``sensor_type`` that is not ``"CCD"`` or
+    ``"CMOS"``, one that contradicts ``is_cmos``, or an unknown key (listing the known fields)."""
+    if not isinstance(data, Mapping):
+        raise TypeError(f"metadata must be a mapping of field: value, got {type(data).__name__}")
+    data = dict(data)
+    if "sensor_type" in data:
+        raw = data.pop("sensor_type")
+        if not isinstance(raw, str):
+            raise TypeError(f"camera metadata sensor_type must be 'CCD' or 'CMOS', got {type(raw).__name__} {raw!r}")
+        st = raw.upper()
+        check_choice(st, "sensor_type", ("CCD", "CMOS"))
+        is_cmos = 1.0 if st == "CMOS" else 0.0
+        if "is_cmos" in data:
+            given = _as_vector("is_cmos", data["is_cmos"])
+            if not bool((given == is_cmos).all()):
+                raise ValueError(
+                    f"camera metadata sensor_type = {raw!r} contradicts is_cmos = {data['is_cmos']!r} "
+                    f"(CMOS is is_cmos = 1, CCD is 0); give one of them"
+                )
+        data["is_cmos"] = is_cmos
+    unknown = set(data) - set(FULL_FIELDS)
+    if unknown:
+        raise ValueError(f"unknown metadata field(s) {sorted(unknown, key=str)}; known fields: {list(FULL_FIELDS)}")
+    return data
+
+
 @dataclass
 class CameraMetadata:
     """Batched camera metadata: one value per sample for each of the 11 variable parameters.
@@ -252,10 +283,10 @@ class CameraMetadata:
         for name in FULL_FIELDS:
             v = getattr(self, name)
             low, high = METADATA_RANGES[name]
-            # A relative slack of 1e-6 absorbs float32 rounding of the range ends (0.2 s stored in
-            # float32 is 0.2000000030 in float64) without admitting physically different values.
-            slack = 1e-6 * max(abs(low), abs(high))
-            bad = ~torch.isfinite(v) | (v < low - slack) | (v > high + slack)
+            # A relative slack of 1e-6 of each range end absorbs float32 rounding of that end (0.2 s stored in
+            # float32 is 0.2000000030 in float64) without admitting physically different values. An end at 0 is
+            # exact in every dtype and gets none: a negative D_FM or reset factor is refused (σ would be NaN).
+            bad = ~torch.isfinite(v) | (v < low - 1e-6 * abs(low)) | (v > high + 1e-6 * abs(high))
             if name == "is_cmos":
                 bad = bad | ((v != 0) & (v != 1))
             if bool(bad.any()):
@@ -332,8 +363,13 @@ class CameraMetadata:
         if not items:
             raise ValueError("CameraMetadata.cat needs at least one item")
         consts = items[0].constants
-        if any(m.constants != consts for m in items):
-            raise ValueError("cannot concatenate metadata with different fixed SensorConstants")
+        for j, m in enumerate(items):
+            if m.constants != consts:
+                diff = ", ".join(f"{f.name} = {getattr(m.constants, f.name)!r} vs {getattr(consts, f.name)!r}"
+                                 for f in dataclasses.fields(SensorConstants)
+                                 if getattr(m.constants, f.name) != getattr(consts, f.name))
+                raise ValueError(f"cannot concatenate metadata with different fixed SensorConstants: item {j} has {diff} "
+                                 "(item 0); a batch has one set of constants")
         kw = {n: torch.cat([getattr(m, n) for m in items]) for n in FULL_FIELDS}
         return CameraMetadata(**kw, constants=consts)
 
@@ -346,25 +382,7 @@ class CameraMetadata:
         """Build from a mapping of field → value(s). Missing fields come from ``base`` (a preset name or
         metadata); unknown keys raise ``ValueError`` listing the known ones. ``sensor_type: CCD|CMOS`` is
         accepted for ``is_cmos``."""
-        data = dict(data)
-        if "sensor_type" in data:
-            raw = data.pop("sensor_type")
-            if not isinstance(raw, str):
-                raise TypeError(f"camera metadata sensor_type must be 'CCD' or 'CMOS', got {type(raw).__name__} {raw!r}")
-            st = raw.upper()
-            check_choice(st, "sensor_type", ("CCD", "CMOS"))
-            is_cmos = 1.0 if st == "CMOS" else 0.0
-            if "is_cmos" in data:
-                given = _as_vector("is_cmos", data["is_cmos"])
-                if not bool((given == is_cmos).all()):
-                    raise ValueError(
-                        f"camera metadata sensor_type = {raw!r} contradicts is_cmos = {data['is_cmos']!r} "
-                        f"(CMOS is is_cmos = 1, CCD is 0); give one of them"
-                    )
-            data["is_cmos"] = is_cmos
-        unknown = set(data) - set(FULL_FIELDS)
-        if unknown:
-            raise ValueError(f"unknown metadata field(s) {sorted(unknown)}; known fields: {list(FULL_FIELDS)}")
+        data = _normalise_metadata_mapping(data)
         if base is None:
             missing = [n for n in FULL_FIELDS if n not in data]
             if missing:
@@ -449,7 +467,8 @@ class CameraMetadata:
         """Metadata of a known sensor (``"ICX285"`` CCD or ``"EV76C661"`` CMOS) at an operating point.
 
         ``operating_point`` overrides any field, typically ``gain_db``, ``exposure_s`` and
-        ``temperature_c`` (defaults 0 dB, 0.01 s, 25 °C).
+        ``temperature_c`` (defaults 0 dB, 0.01 s, 25 °C). The fixed constants are :class:`SensorConstants`' defaults
+        (conventions.md's fixed metadata), the same for every preset, so presets concatenate into one batch.
         """
         key = name.upper()
         if key not in PRESETS:
@@ -458,7 +477,7 @@ class CameraMetadata:
         unknown = set(data) - set(FULL_FIELDS)
         if unknown:
             raise ValueError(f"unknown metadata field(s) {sorted(unknown)}; known fields: {list(FULL_FIELDS)}")
-        meta = cls(**data)
+        meta = cls(**data, constants=SensorConstants())
         return meta.expand(batch_size) if meta.batch_size == 1 else meta
 
     @classmethod
@@ -477,10 +496,12 @@ class CameraMetadata:
             batch_size: number of samples B.
             generator: torch generator for reproducibility (CPU generator; values moved to ``device``).
             ranges: per-field (low, high) overriding ``METADATA_RANGES`` (each must lie inside it).
-                ``is_cmos`` is drawn as a fair coin unless its range is (0, 0) or (1, 1).
+                ``is_cmos`` takes (0, 0) (CCD), (1, 1) (CMOS) or (0, 1) (a fair coin); any other range is a
+                ``ValueError``.
             fixed: fields held fixed instead of sampled: a preset name or metadata file path
-                (:meth:`lookup`), metadata of batch 1 or B, or a dict; only fields *not* named in ``ranges``
-                are taken from it.
+                (:meth:`lookup`), metadata of batch 1 or B (its :class:`SensorConstants` are kept), or a dict read
+                as :meth:`from_dict` reads one (``sensor_type: CCD|CMOS`` accepted, an unknown key is a
+                ``ValueError``); only fields *not* named in ``ranges`` are taken from it.
             gain_uniform_in: ``"factor"`` (the thesis: uniform in the linear gain factor, converted to dB)
                 or ``"db"``.
         """
@@ -494,6 +515,9 @@ class CameraMetadata:
             glo, ghi = METADATA_RANGES[n]
             if not (glo <= lo <= hi <= ghi):
                 raise ValueError(f"range for {n} = ({lo:g}, {hi:g}) must satisfy {glo:g} ≤ low ≤ high ≤ {ghi:g}")
+            if n == "is_cmos" and (float(lo), float(hi)) not in ((0.0, 0.0), (1.0, 1.0), (0.0, 1.0)):
+                raise ValueError(f"range for is_cmos = ({lo:g}, {hi:g}) must be (0, 0) (CCD only), (1, 1) (CMOS only) "
+                                 "or (0, 1) (either, a fair coin)")
             rng[n] = (float(lo), float(hi))
         # Fields taken from ``fixed`` (all of a preset/metadata, the keys of a dict), unless sampled
         # explicitly through ``ranges``.
@@ -506,7 +530,7 @@ class CameraMetadata:
             fixed_values = {n: getattr(fm, n).float().cpu() for n in FULL_FIELDS}
             constants = fixed.constants
         elif isinstance(fixed, Mapping):
-            fixed_values = dict(fixed)
+            fixed_values = _normalise_metadata_mapping(fixed)
         elif fixed is not None:
             raise TypeError(f"fixed must be a preset name, CameraMetadata or dict, got {type(fixed).__name__}")
         for n in ranges or {}:

@@ -2,8 +2,10 @@
 kernels of no parametric family).
 
 :func:`sample_tiny_psf` draws, per sample, weights from the flat Dirichlet distribution (normalised
-independent Exp(1) draws) on an s×s support (s = ``support_px``), placed at the kernel centre (for even s the
-support starts one pixel left of / above the centre). s = 1 is the delta kernel. Kernels sum to 1 by
+independent Exp(1) draws) on an s×s support (s = ``support_px``), placed at the kernel centre c = k//2: it covers
+rows and columns c − s//2 … c − s//2 + s − 1, i.e. for odd s (s − 1)/2 pixels on each side of the centre, and
+for even s s/2 pixels left of / above the centre and s/2 − 1 right of / below it (s = 4 in k = 7: columns 1…4
+about the centre 3). s = 1 is the delta kernel. Kernels sum to 1 by
 construction. The MTF of such a kernel has no closed form beyond its DFT (:func:`camhealth.physics.mtf_hv`).
 """
 

@@ -270,3 +270,33 @@ def test_params_from_metadata_is_the_noise_modules_alone():
     assert not hasattr(CameraCorruption, "params_from_metadata") and not hasattr(RandomDefocusBlur, "params_from_metadata")
     meta = CameraMetadata.preset("ICX285", batch_size=2)
     assert RandomSensorNoise.params_from_metadata(meta, seed=1)["noise_seed"].tolist() == [1, 1]
+
+
+@pytest.mark.parametrize("name", ["defocus", "linear", "nonlinear"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_blur_kernels_are_built_in_the_physics_dtype(name, dtype):
+    """float64 images are blurred with float64 kernels (float32 kernels left errors of ~2e-8), float32 images with
+    float32 ones: the output is apply_psf with the kernel of the parameters built in that dtype."""
+    from camhealth.physics.image_formation import apply_psf
+    from camhealth.physics.motion_psf import linear_motion_psf, nonlinear_motion_psf
+
+    aug = _modules()[name]()
+    x = torch.rand(6, 1, 40, 40, dtype=dtype)
+    y = aug(x)
+    p = {k: v.to(dtype) for k, v in aug._params.items() if v.is_floating_point()}
+    if name == "defocus":
+        psf = defocus_psf(p["diameter"], aug._defocus_ks)
+    elif name == "linear":
+        psf = linear_motion_psf(p["length"], p["angle"], aug._motion_ks)
+    else:
+        psf = nonlinear_motion_psf(p["length"], p["angle"], p["intensity"], p["shake_noise"], aug._motion_ks)
+    assert psf.dtype == dtype
+    assert torch.allclose(y, apply_psf(x, psf).clamp(0, 1), rtol=0, atol=4 * torch.finfo(dtype).eps)
+
+
+def test_camera_corruption_takes_only_its_components_positionally():
+    """``CameraCorruption(None, blur, None, 0.5, True, True)`` was read as p = 0.5, same_on_batch and keepdim."""
+    with pytest.raises(TypeError, match="positional"):
+        CameraCorruption(None, RandomMotionBlur(), None, 0.5)
+    cam = CameraCorruption(None, RandomMotionBlur(), None, p=0.5, same_on_batch=True, keepdim=True)
+    assert cam.p == 0.5 and cam.same_on_batch and cam.keepdim

@@ -102,3 +102,28 @@ def test_size_and_scale_errors():
         counter_uniform((2**16, 2**16), keys)
     with pytest.raises(ValueError, match="one value per sample"):
         counter_normal((3, 10), keys, scale=torch.ones(2))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_draws_are_the_float32_draws_rounded(dtype):
+    """A 24-bit integer overflows float16 and the 2⁻²⁴ grid rounds up to 1.0 in both half formats: the draws are
+    computed in float32 and rounded at the end, uniforms kept below 1, normals finite."""
+    keys = _keys(4)
+    n = 1 << 16
+    u, u32 = counter_uniform((n,), keys, dtype), counter_uniform((n,), keys)
+    assert u.dtype == dtype and float(u.min()) >= 0.0 and float(u.max()) < 1.0
+    below_one = torch.nextafter(torch.ones((), dtype=dtype), torch.zeros((), dtype=dtype))
+    assert torch.equal(u, u32.to(dtype).clamp(max=below_one))
+    z, z32 = counter_normal((n,), keys, dtype), counter_normal((n,), keys)
+    assert z.dtype == dtype and bool(torch.isfinite(z).all()) and torch.equal(z, z32.to(dtype))
+    assert abs(float(z.float().mean())) < 0.02 and abs(float(z.float().std()) - 1.0) < 0.02
+    scale = torch.tensor([1.0, 3.0])
+    assert torch.equal(counter_normal((2, n // 2), keys, dtype, scale), counter_normal((2, n // 2), keys, scale=scale).to(dtype))
+    idx = torch.arange(0, n, 13)
+    assert torch.equal(counter_uniform_at(idx, keys, dtype), u[idx])
+    assert torch.equal(counter_normal_at(idx, keys, dtype), counter_normal_at(idx, keys).to(dtype))
+
+
+def test_a_dtype_that_is_not_floating_is_a_type_error():
+    with pytest.raises(TypeError, match="dtype must be a floating torch.dtype"):
+        counter_uniform((4,), _keys(), torch.int32)

@@ -189,3 +189,23 @@ def test_half_precision_inputs_give_float32():
     assert k.dtype == torch.float32 and abs(float(k.sum()) - 1) < 1e-6
     k = ring_psf(torch.tensor([5.0], dtype=torch.bfloat16), torch.tensor([0.5], dtype=torch.bfloat16), 9)
     assert k.dtype == torch.float32 and abs(float(k.sum()) - 1) < 1e-6
+
+
+@pytest.mark.parametrize("support", [1, 2, 3, 4, 5])
+@pytest.mark.parametrize("kernel", [5, 7, 9])
+def test_tiny_psf_support_placement_is_the_documented_one(support, kernel):
+    """Rows and columns c − s//2 … c − s//2 + s − 1 about the centre c = k//2: for even s, s/2 pixels left of /
+    above the centre and s/2 − 1 right of / below it (s = 4 in k = 7: columns 1…4)."""
+    import camhealth.physics.tiny_psf as tiny_psf
+
+    if support > kernel:
+        pytest.skip("support larger than the kernel")
+    psf = tiny_psf.sample_tiny_psf(3, support, kernel, generator=torch.Generator().manual_seed(0))
+    nz = (psf != 0).any(0)
+    rows, cols = nz.any(1).nonzero().flatten().tolist(), nz.any(0).nonzero().flatten().tolist()
+    c = kernel // 2
+    first = c - support // 2
+    assert rows == cols == list(range(first, first + support))
+    if support % 2 == 0:
+        assert c - rows[0] == support // 2 and rows[-1] - c == support // 2 - 1
+    assert "s/2 − 1 right of / below it" in " ".join(tiny_psf.__doc__.split())

@@ -402,3 +402,73 @@ def test_apply_psf_is_true_convolution_with_asymmetric_kernels(k):
     if k >= image_formation.FFT_MIN_KERNEL:
         lib = kornia.filters.fft_conv(x, psf, border_type="reflect", behaviour="conv")
         assert torch.allclose(image_formation._fft_convolve(x, psf, "reflect"), lib, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_poisson_per_sample_refuses_half_precision_counts(dtype, rng):
+    """float16 holds no count above 65 504 (a 7e4 e⁻ rate was all inf) and bfloat16 rounds counts above 256."""
+    with pytest.raises(TypeError, match="float32 or torch.float64 .*got torch.(float16|bfloat16)"):
+        image_formation.sample_poisson_per_sample(torch.tensor([7e4]), (1, 100), _gen(), dtype=dtype, rng=rng)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sources_given_as_one_name_are_that_source(dtype, rng):
+    m = CameraMetadata.preset("ICX285", batch_size=2, gain_db=12.0)
+    x = torch.full((2, 1, 16, 16), 0.4, dtype=dtype)
+    for name in ("photon", "dark", "readout"):
+        one = form_image(x, m, sources=name, generator=_gen(3), rng=rng)
+        ref = form_image(x, m, sources=(name,), generator=_gen(3), rng=rng)
+        assert torch.equal(one.image, ref.image) and torch.equal(one.sigma_dn, ref.sigma_dn)
+
+
+@pytest.mark.parametrize("bad,shown", [(float("nan"), "nan"), (float("inf"), "inf"), (-3.0, "-3")])
+@pytest.mark.parametrize("others", [[50.0, 5000.0], [20.0, 30.0], [0.5, 2.0]])  # mid, expansion-only and small regimes
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sample_poisson_refuses_nan_infinite_and_negative_rates(bad, shown, others, dtype, rng):
+    rate = torch.tensor([[others[0], bad, others[1]]], dtype=dtype)
+    with pytest.raises(ValueError, match=rf"Poisson rate\[0, 1\] = {shown} is out of the allowed range \[0, inf\)"):
+        image_formation.sample_poisson(rate, _gen(), rng=rng)
+
+
+def _psf_cases():
+    ok = defocus_psf(torch.tensor([3.0, 5.0]), 7)
+    unnormalised = ok.clone()
+    unnormalised[1] *= 9.0
+    negative = ok.clone()
+    negative[1, 0, 0] = -0.1
+    nan = ok.clone()
+    nan[1, 3, 3] = float("nan")
+    return [
+        (unnormalised, ValueError, r"kernel 1 sums to 9; a blur kernel must sum to 1"),
+        (negative, ValueError, r"must be non-negative .* kernel 1 has -0.1 at row 0, column 0"),
+        (nan, ValueError, r"must be finite"),
+        (torch.ones(2, 3, 3, dtype=torch.int64), TypeError, r"must be a floating tensor .* got dtype torch.int64$"),
+        (ok[:, :, :6], ValueError, r"must have shape \(B, k, k\)"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(5))
+@pytest.mark.parametrize("arg", ["defocus_psf", "motion_psf"])
+def test_form_image_refuses_kernels_that_are_not_normalised_blurs(case, arg):
+    """A kernel summing to 9 brightened the scene ×9 (and clipping hid it), a negative one darkened it, an integer
+    one failed later with a misleading message about the image: each is refused, naming the argument."""
+    psf, exc, match = _psf_cases()[case]
+    x = torch.full((2, 1, 16, 16), 0.5)
+    with pytest.raises(exc, match=f"^{arg}.*{match}" if exc is ValueError else f"^{arg} {match}"):
+        form_image(x, None, sources=(), **{arg: psf})
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+def test_form_image_accepts_normalised_kernels_in_every_dtype(dtype):
+    x = torch.full((3, 1, 16, 16), 0.5)
+    d = defocus_psf(torch.tensor([1.0, 4.5, 11.0]), 13).to(dtype)
+    mo = linear_motion_psf(torch.tensor([2.0, 7.5, 11.0]), torch.tensor([0.0, 30.0, 135.0]), 13).to(dtype)
+    out = form_image(x, None, defocus_psf=d, motion_psf=mo, sources=())
+    assert torch.allclose(out.image.mean((1, 2, 3)), torch.full((3,), 0.5), atol=5e-3)
+
+
+def test_apply_psf_refuses_a_kernel_with_nan():
+    psf = torch.full((1, 3, 3), 1 / 9)
+    psf[0, 1, 1] = float("nan")
+    with pytest.raises(ValueError, match="psf must be finite"):
+        apply_psf(torch.rand(1, 1, 8, 8), psf)

@@ -8,6 +8,7 @@ from camhealth.physics.metadata import (
     METADATA_RANGES,
     MINIMAL_FIELDS,
     CameraMetadata,
+    SensorConstants,
     celsius_to_kelvin,
     db_to_factor,
     factor_to_db,
@@ -196,3 +197,57 @@ def test_from_file_errors_name_the_file_for_text_that_is_not_utf8_and_a_sensor_t
     with pytest.raises(ValueError, match=r"metadata file .*st\.yaml: camera metadata sensor_type must be 'CCD' or "
                                          r"'CMOS', got int 5"):
         CameraMetadata.from_file(tmp_path / "st.yaml")
+
+
+@pytest.mark.parametrize("field", ["dark_fom_na_per_cm2", "reset_factor", "gain_db", "temperature_c"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_range_end_at_zero_has_no_slack(field, dtype):
+    """The rounding slack of 1e-6 × |range end| is 0 at an end of 0: −5e-7 nA/cm² (which gave σ_DCSN = NaN) and a
+    reset factor of −1e-6 are refused with the field, the value and the range; 0 itself is fine."""
+    lo, hi = METADATA_RANGES[field]
+    assert lo == 0.0
+    with pytest.raises(ValueError, match=rf"^camera metadata {field}\[0\] = -5e-07.* is out of the allowed range \[0, {hi:g}\]"):
+        CameraMetadata.preset("ICX285", **{field: torch.tensor([-5e-7], dtype=dtype)})
+    assert float(getattr(CameraMetadata.preset("ICX285", **{field: torch.tensor([0.0], dtype=dtype)}), field)) == 0.0
+
+
+def test_nonzero_range_ends_keep_their_rounding_slack():
+    m = CameraMetadata.preset("ICX285", exposure_s=torch.tensor([0.2], dtype=torch.float32).double(),
+                              pixel_size_um=torch.tensor([0.9], dtype=torch.float32).double())
+    assert float(m.exposure_s) > 0.2 and float(m.pixel_size_um) != 0.9  # float32 rounding of the ends, accepted
+    with pytest.raises(ValueError, match="exposure_s"):
+        CameraMetadata.preset("ICX285", exposure_s=0.2 * (1 + 1e-5))
+
+
+@pytest.mark.parametrize("bounds", [(0.2, 0.3), (0.0, 0.4), (0.5, 1.0), (0.3, 0.3)])
+def test_is_cmos_ranges_other_than_the_three_choices_are_refused(bounds):
+    with pytest.raises(ValueError, match=r"range for is_cmos = .* must be \(0, 0\) \(CCD only\), \(1, 1\) \(CMOS only\) or \(0, 1\)"):
+        CameraMetadata.sample(6, ranges={"is_cmos": bounds})
+
+
+@pytest.mark.parametrize("bounds,allowed", [((0, 0), {0.0}), ((1, 1), {1.0}), ((0, 1), {0.0, 1.0})])
+def test_is_cmos_ranges_of_the_three_choices(bounds, allowed):
+    m = CameraMetadata.sample(64, torch.Generator().manual_seed(0), ranges={"is_cmos": bounds})
+    assert set(m.is_cmos.tolist()) == allowed
+
+
+def test_sample_reads_a_fixed_dict_as_from_dict_does():
+    m = CameraMetadata.sample(3, torch.Generator().manual_seed(0), fixed={"sensor_type": "cmos", "gain_db": 6.0})
+    assert m.is_cmos.tolist() == [1.0, 1.0, 1.0] and torch.all(m.gain_db == 6.0)
+    with pytest.raises(ValueError, match=r"unknown metadata field\(s\) \['gain'\]; known fields: \['gain_db'"):
+        CameraMetadata.sample(2, fixed={"gain": 6.0})
+    with pytest.raises(ValueError, match="sensor_type = 'CCD' contradicts is_cmos"):
+        CameraMetadata.sample(2, fixed={"sensor_type": "CCD", "is_cmos": 1.0})
+    with pytest.raises(ValueError, match="sensor_type = 'CMOSS' is not one of"):
+        CameraMetadata.sample(2, fixed={"sensor_type": "CMOSS"})
+
+
+def test_presets_share_one_set_of_constants_and_concatenate():
+    """Every preset carries the conventions' fixed constants (reference voltage 5 V, informative only), so metadata
+    of both presets form one batch; constants that differ are refused by ``cat``, naming the field."""
+    ev, icx = CameraMetadata.preset("EV76C661"), CameraMetadata.preset("ICX285")
+    assert ev.constants == icx.constants == SensorConstants() and SensorConstants().reference_voltage_v == 5.0
+    assert CameraMetadata.cat([ev, icx]).batch_size == 2
+    other = ev.replace(constants=SensorConstants(reference_voltage_v=3.3))
+    with pytest.raises(ValueError, match="different fixed SensorConstants: item 1 has reference_voltage_v = 3.3 vs 5.0"):
+        CameraMetadata.cat([icx, other])

@@ -68,3 +68,22 @@ def test_patch_sigma_counts_slight_ringing_below_zero_as_zero():
     meta = CameraMetadata.preset("ICX285")
     want = photon_shot_sigma_patch_dn(x.clamp_min(0), meta)
     torch.testing.assert_close(photon_shot_sigma_patch_dn(x, meta), want)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_intensities_get_float32_accuracy(dtype):
+    """FW/g = 1e5 e⁻ overflows float16 and g/FW = 1e-5 is subnormal there: the arithmetic runs in float32, so the
+    only error left is the rounding of the input intensity and of the result."""
+    m = CameraMetadata.preset("ICX285", full_well_e=100_000.0)  # 0 dB: FW/g = 1e5
+    i = torch.tensor([[0.01, 0.02, 0.05, 0.5]]).to(dtype)
+    i64 = i.double()  # the intensities the function sees, exactly
+    tol = torch.finfo(dtype).eps  # one rounding of the result (the σ ≤ 255 DN fit the format)
+    electrons = photo_electrons(i, m)
+    assert electrons.dtype == torch.float32  # counts up to 1e5 do not fit float16
+    assert torch.allclose(electrons.double(), i64 * 1e5, rtol=1e-6)
+    sigma = photon_shot_sigma_dn(i, m)
+    assert sigma.dtype == dtype
+    assert torch.allclose(sigma.double(), 255.0 * (i64 / 1e5).sqrt(), rtol=tol)
+    patch = photon_shot_sigma_patch_dn(i.view(4, 1, 1, 1), m.expand(4))
+    assert patch.dtype == dtype
+    assert torch.allclose(patch.double(), 255.0 * (i64[0] / 1e5).sqrt(), rtol=tol)
