@@ -5,7 +5,9 @@ flat frames named by the convention ``<kind>_<exposure>_<gain>_<temperature>`` (
 Writes the metadata YAML (accepted as-is by ``predict``, the monitor and ``fit``), ``<out>.calibration.yaml``
 (uncertainties, EMVA 1288 figures, sets, fits) and ``<out>.maps.npz`` (hot pixels, DSNU, PRNU, masters); with
 ``--report DIR`` also ``DIR/report.md`` with ``calibration.png`` and ``maps.png``. Exit status 0 on success,
-2 on an input error (one line naming what is missing and how many are needed). See docs/calibration.md.
+2 on an input error (one line naming what is missing and how many are needed), before anything is written: no
+output may overwrite an input (the command line's FRAMES and every file a manifest names), be written into a
+frame folder, or put the report into a frame folder or a folder of input files. See docs/calibration.md.
 """
 
 from __future__ import annotations
@@ -29,9 +31,13 @@ dark sets at ≥ 4× longer exposures (several temperatures measure the dark cur
 
 Examples:
   python -m camhealth.calibrate manifest.yaml --out camera.yaml --report calib_report
-  python -m camhealth.calibrate bias_1ms_12dB_25C/ dark_200ms_12dB_25C/ flat_10ms_0dB_25C_L1.mp4 \\
-      flat_10ms_0dB_25C_L2.mp4 --sensor-type CMOS --pixel-size-um 5.3 --out camera.yaml
+  python -m camhealth.calibrate bias_1ms_12dB_25C/ dark_200ms_12dB_25C/ flat_10ms_0dB_25C_L1.mkv \\
+      flat_10ms_0dB_25C_L2.mkv --sensor-type CMOS --pixel-size-um 5.3 --out camera.yaml
   python -m camhealth.monitor clip.mp4 --metadata camera.yaml --set gain_db=12
+
+Videos must be lossless (FFV1, HuffYUV, PNG, uncompressed …); lossy codecs (MJPEG, H.264 …) are refused.
+16-bit files without an sBIT chunk whose values never exceed 4095 (1/16 of full scale) are refused as
+low-bit data unless --bit-depth gives their significant bits.
 """
 
 
@@ -67,6 +73,34 @@ def _gain_db(text: str | float) -> float:
     return g
 
 
+def _temperature_c(text: str | float) -> float:
+    """Option type: a sensor temperature in °C inside :data:`~camhealth.calibrate.frames.TEMPERATURE_RANGE_C`."""
+    from camhealth.calibrate.frames import TEMPERATURE_RANGE_C
+
+    lo, hi = TEMPERATURE_RANGE_C
+    try:
+        t = float(text)
+    except (TypeError, ValueError):
+        raise BadValue(f"must be a number of °C, got {text!r}") from None
+    if not lo <= t <= hi:
+        raise BadValue(f"must lie in [{lo:g}, {hi:g}] °C (a sensor temperature), got {text}")
+    return t
+
+
+def _bit_depth(text: str | int) -> int:
+    """Option type: significant bits of 16-bit files without sBIT, in :data:`~camhealth.calibrate.frames.BIT_DEPTH_RANGE`."""
+    from camhealth.calibrate.frames import BIT_DEPTH_RANGE
+
+    lo, hi = BIT_DEPTH_RANGE
+    try:
+        b = int(str(text).strip())
+    except ValueError:
+        raise BadValue(f"must be a whole number of bits, got {text!r}") from None
+    if not lo <= b <= hi:
+        raise BadValue(f"must lie in [{lo}, {hi}] bits, got {text}")
+    return b
+
+
 def _same_file(a: Path, b: Path) -> bool:
     """Whether ``a`` and ``b`` name the same file (the same resolved path, or hard links to one file)."""
     try:
@@ -75,13 +109,65 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
+def _outputs(args: argparse.Namespace) -> tuple[tuple[str, Path], ...]:
+    """(option, path) of every file the calibration writes (the details file is written beside --out)."""
+    out = args.out
+    maps = args.maps if args.maps is not None else out.with_name(out.stem + ".maps.npz")
+    details = out.with_name(out.stem + ".calibration.yaml")
+    return (("--out", out), ("--maps", maps), ("--out", details))
+
+
+def _resolved(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):
+        return path.absolute()
+
+
+def _input_problem(args: argparse.Namespace, sets) -> str | None:
+    """Why an output cannot be written given the frame sets (read from FRAMES and manifests, no frame read), or
+    ``None``: an output file that is a frame of a set (a file a manifest names, or an image in a set's folder), an
+    output file inside a set's folder, or a report folder that is a set's folder, lies inside one, or holds a set's
+    files (the report's PNGs would join the frames)."""
+    folders: dict[Path, Path] = {}  # resolved → as given: set folders
+    parents: dict[Path, Path] = {}  # resolved → a file in it: folders of loose input files and videos
+    files: list[Path] = []
+    for fs in sets:
+        for p in fs.paths:
+            if p.is_dir():
+                folders.setdefault(_resolved(p), p)
+                try:
+                    files.extend(q for q in p.iterdir() if q.is_file())
+                except OSError:
+                    pass
+            else:
+                files.append(p)
+                parents.setdefault(_resolved(p.parent), p)
+    for option, path in _outputs(args):
+        for f in files:
+            if _same_file(path, f):
+                return f"argument {option}: writing {path} would overwrite the input {f}; give another path"
+        parent = _resolved(path.parent)
+        if parent in folders:
+            return f"argument {option}: {path} lies in the frame folder {folders[parent]} (an input); write it elsewhere"
+    if args.report is not None:
+        report = _resolved(args.report)
+        for r, given in folders.items():
+            if report == r or r in report.parents:
+                return (f"argument --report: {args.report} is {'the' if report == r else 'inside the'} frame folder {given} (an "
+                        "input); its calibration.png and maps.png would join the frames; give another folder")
+        if report in parents:
+            return (f"argument --report: {args.report} holds the input {parents[report]}; its calibration.png and maps.png "
+                    "would join the frames; give another folder")
+    return None
+
+
 def _output_problem(args: argparse.Namespace) -> str | None:
     """Why an output path cannot be written (checked before the frames are read), or ``None``: a folder, a path under
     a file, or a file that is one of the inputs (FRAMES) or another output."""
     out = args.out
-    maps = args.maps if args.maps is not None else out.with_name(out.stem + ".maps.npz")
-    details = out.with_name(out.stem + ".calibration.yaml")
-    outputs = (("--out", out), ("--maps", maps), ("--out", details))  # (details: written beside --out)
+    outputs = _outputs(args)
+    maps, details = outputs[1][1], outputs[2][1]
     for option, path in outputs:
         if path.is_dir():
             return f"argument {option}: {path} is a folder; give the name of the file to write"
@@ -112,7 +198,11 @@ def build_parser():
     g = p.add_argument_group("file names without a gain or temperature token")
     g.add_argument("--gain-db", type=_gain_db, default=0.0, metavar="DB",
                    help="gain of sets whose names give none, {:g} … {:g} dB (default 0)".format(*METADATA_RANGES["gain_db"]))
-    g.add_argument("--temperature-c", type=float, default=None, metavar="C", help="temperature of sets whose names give none (default: an error)")
+    g.add_argument("--temperature-c", type=_temperature_c, default=None, metavar="C",
+                   help="temperature of sets whose names give none, -60 … 150 °C (default: an error)")
+    p.add_argument("--bit-depth", type=_bit_depth, default=None, metavar="BITS",
+                   help="significant bits of 16-bit image files without an sBIT chunk (e.g. 12 for 12-bit data in the low bits; "
+                        "8 … 16; default: the whole 16-bit range); a manifest's bit_depth takes precedence")
     g = p.add_argument_group("datasheet values (override the manifest's camera section; missing ones are assumed and marked so)")
     g.add_argument("--sensor-type", choices=("CCD", "CMOS"), default=None)
     g.add_argument("--pixel-size-um", type=float, default=None, metavar="UM")
@@ -136,7 +226,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     if problem:
         parser.error(problem)
     from camhealth.calibrate import calibrate
+    from camhealth.calibrate.pipeline import resolve_sets, video_problems
     from camhealth.calibrate.report import write_report
+
+    try:  # the sets (manifests read, names parsed, videos' codecs checked; no frame read) for the outputs' check
+        sets, _, _ = resolve_sets(args.frames, gain_db=args.gain_db, temperature_c=args.temperature_c, bit_depth=args.bit_depth)
+        video_problems(sets)
+    except (FileNotFoundError, ValueError) as exc:
+        if debugging():
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    problem = _input_problem(args, sets)
+    if problem:
+        parser.error(problem)
 
     camera = {k: v for k, v in {
         "sensor_type": args.sensor_type, "pixel_size_um": args.pixel_size_um, "pixel_clock_hz": args.pixel_clock_hz,
@@ -145,7 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = "python -m camhealth.calibrate " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     try:
         result = calibrate(args.frames, camera=camera, operating_point=operating_point, max_frames=args.max_frames,
-                           gain_db=args.gain_db, temperature_c=args.temperature_c)
+                           gain_db=args.gain_db, temperature_c=args.temperature_c, bit_depth=args.bit_depth)
     except (FileNotFoundError, ValueError) as exc:
         if debugging():
             raise

@@ -12,10 +12,18 @@ in-memory array/tensor ``N×H×W`` / ``N×1×H×W`` in [0, 1]. Colour input is c
 camhealth's BT.601 rule (:func:`camhealth.data.io.to_gray`), exactly as everywhere else in camhealth.
 
 File-name convention (when no manifest is given): ``<kind>_<token>_<token>…``, the kind first, then in any
-order ``<t>s`` / ``<t>ms`` / ``<t>us`` (exposure), ``<g>dB`` (gain), ``<T>C`` (sensor temperature in °C);
-other tokens (e.g. ``L3`` for a light level) name the set; a trailing frame number of an image file
-(``dark_100ms_12dB_40C_0007.png``) is dropped, so the image files of one set group together. Folders and
-videos are named the same way (``flat_10ms_0dB_25C_L3/``, ``dark_200ms_0dB_60C.mp4``).
+order ``<t>s`` / ``<t>ms`` / ``<t>us`` (exposure), ``<g>dB`` (gain, ``+6dB`` too), ``<T>C`` / ``<T>°C`` /
+``<T>degC`` (sensor temperature in °C, ``-10C`` too); other tokens (e.g. ``L3`` for a light level) name the set;
+a trailing frame number of an image file (``dark_100ms_12dB_40C_0007.png``) is dropped, so the image files of one
+set group together. Folders and videos are named the same way (``flat_10ms_0dB_25C_L3/``,
+``dark_200ms_0dB_60C.mkv``). A token shaped like an exposure, gain or temperature (a number and one of those
+units) that is not a valid number, lies outside its range, or repeats a kind of token already given is an error
+naming it, never a label.
+
+Image files are read at the bit depth they declare: 8-bit files as value/255, 16-bit PNGs with an ``sBIT`` chunk
+as value/(2^sBIT − 1), other 16-bit files as value/65535 unless the set's ``bit_depth`` (``--bit-depth``) says how
+many of their low bits are used. Every frame of a set must have one bit depth and scaling. A video must use a
+lossless codec (:data:`LOSSLESS_CODECS`): lossy ones remove the noise being measured, and are refused.
 """
 
 from __future__ import annotations
@@ -30,17 +38,46 @@ import numpy as np
 
 from camhealth.physics.metadata import METADATA_RANGES
 
-__all__ = ["KINDS", "MIN_FRAMES", "FrameSet", "parse_set_name", "sets_from_paths", "check_max_frames", "load_frames"]
+__all__ = [
+    "KINDS", "MIN_FRAMES", "TEMPERATURE_RANGE_C", "BIT_DEPTH_RANGE", "LOSSLESS_CODECS", "FrameSet", "FrameDepth",
+    "LoadedDepth", "parse_set_name", "convention_stem", "sets_from_paths", "check_max_frames", "check_bit_depth",
+    "check_video_codec", "load_frames", "load_frames_with_depth",
+]
 
 #: Kinds of calibration sets.
 KINDS: tuple[str, ...] = ("bias", "dark", "flat")
 #: Frames a set needs at least (temporal variance, hot pixels, master frames); 20 are recommended.
 MIN_FRAMES = 4
 
-_EXPOSURE = re.compile(r"^(\d+(?:\.\d+)?(?:e-?\d+)?)(s|ms|us)$", re.IGNORECASE)
-_GAIN = re.compile(r"^(\d+(?:\.\d+)?)db$", re.IGNORECASE)
-_TEMPERATURE = re.compile(r"^(-?\d+(?:\.\d+)?)c$", re.IGNORECASE)
+#: Sensor temperatures [°C] a set may have (the operating point written to the metadata is clipped to camhealth's
+#: ``METADATA_RANGES['temperature_c']``).
+TEMPERATURE_RANGE_C: tuple[float, float] = (-60.0, 150.0)
+#: Significant bits a set's ``bit_depth`` may give for 16-bit image files without an ``sBIT`` chunk.
+BIT_DEPTH_RANGE: tuple[int, int] = (8, 16)
+#: Video codecs (FOURCC as OpenCV reports it, case-insensitive) accepted as lossless: FFV1, HuffYUV, Lagarith,
+#: Ut Video, MagicYUV, PNG and uncompressed video (OpenCV reports raw video as FOURCC 0).
+LOSSLESS_CODECS: dict[str, str] = {
+    "ffv1": "FFV1", "hfyu": "HuffYUV", "ffvh": "HuffYUV", "huff": "HuffYUV", "lags": "Lagarith",
+    "uly0": "Ut Video", "uly2": "Ut Video", "uly4": "Ut Video", "ulh0": "Ut Video", "ulh2": "Ut Video",
+    "ulh4": "Ut Video", "ulrg": "Ut Video", "ulra": "Ut Video", "magy": "MagicYUV", "mpng": "PNG", "png": "PNG",
+    "y800": "uncompressed gray", "grey": "uncompressed gray", "y8": "uncompressed gray", "y16": "uncompressed gray",
+    "dib": "uncompressed", "rgb": "uncompressed", "raw": "uncompressed", "rawv": "uncompressed", "": "uncompressed",
+}
+
+_NUMBER = r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:e[+-]?\d+)?"
+_EXPOSURE = re.compile(rf"^({_NUMBER})(s|ms|us|µs)$", re.IGNORECASE)
+_GAIN = re.compile(rf"^({_NUMBER})db$", re.IGNORECASE)
+_TEMPERATURE = re.compile(rf"^({_NUMBER})(?:c|°c|ºc|degc)$", re.IGNORECASE)
+#: A token that looks like a number with a unit: digits, signs, points, commas, exponent letters before the unit.
+_SHAPED = re.compile(r"^[+-]?[\d.,]+(?:e[+-]?[\d.,]*)?\s*(ms|us|µs|s|db|degc|°c|ºc|c)$", re.IGNORECASE)
 _FRAME_NUMBER = re.compile(r"^\d+$")
+_UNIT_ONLY = {"s": "exposure_s", "ms": "exposure_s", "us": "exposure_s", "µs": "exposure_s", "db": "gain_db",
+              "c": "temperature_c", "°c": "temperature_c", "ºc": "temperature_c", "degc": "temperature_c"}
+_SPELLINGS = {
+    "exposure_s": "exposure: 100ms, 0.1s, 500us",
+    "gain_db": "gain: 12dB, +6dB, 0.5dB",
+    "temperature_c": "temperature: 40C, 40°C, 40degC, -10C",
+}
 
 
 @dataclass
@@ -56,6 +93,10 @@ class FrameSet:
         paths: image files, one folder of frames, or one video file; or empty when ``frames`` is given.
         frames: in-memory frames ``N×H×W`` or ``N×1×H×W`` in [0, 1] (numpy or torch).
         name: label in reports and errors (default: the path or the parameters).
+        bit_depth: significant bits of its 16-bit image files that have no ``sBIT`` chunk (values 0 … 2^bits − 1
+            stored in the low bits, e.g. 12 for a 12-bit camera written by OpenCV), in :data:`BIT_DEPTH_RANGE`;
+            ``None``: such files use the whole 16-bit range. 8-bit files, PNGs with ``sBIT``, videos and in-memory
+            frames ignore it.
     """
 
     kind: str
@@ -65,6 +106,7 @@ class FrameSet:
     paths: list[Path] = field(default_factory=list)
     frames: object | None = field(default=None, repr=False)
     name: str = ""
+    bit_depth: int | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -85,8 +127,15 @@ class FrameSet:
             raise ValueError(
                 f"set {self.name or self.paths!s}: gain_db = {self.gain_db:g} dB is outside camhealth's gain range [{g_lo:g}, {g_hi:g}] dB"
             )
-        if not -60.0 <= self.temperature_c <= 150.0:
-            raise ValueError(f"set {self.name or self.paths!s}: temperature_c = {self.temperature_c:g} °C is not a sensor temperature")
+        t_lo, t_hi = TEMPERATURE_RANGE_C
+        if not t_lo <= self.temperature_c <= t_hi:
+            m_lo, m_hi = METADATA_RANGES["temperature_c"]
+            raise ValueError(
+                f"set {self.name or self.paths!s}: temperature_c = {self.temperature_c:g} °C is not a sensor temperature: it "
+                f"must lie in [{t_lo:g}, {t_hi:g}] °C (the operating point written to the metadata is clipped to camhealth's "
+                f"{m_lo:g} … {m_hi:g} °C)"
+            )
+        self.bit_depth = check_bit_depth(self.bit_depth, f"set {self.name or self.paths!s}")
         self.paths = [Path(p) for p in self.paths]
         if not self.paths and self.frames is None:
             raise ValueError(f"set {self.name!r} ({self.kind}) has neither paths nor frames")
@@ -114,7 +163,10 @@ def parse_set_name(stem: str) -> dict:
     """Kind, exposure, gain, temperature and label from a name following the convention (module docstring).
 
     Returns a dict with ``kind`` and those of ``exposure_s``, ``gain_db``, ``temperature_c`` the name gives,
-    plus ``label`` (the remaining tokens). Raises ``ValueError`` if the first token is not a kind.
+    plus ``label`` (the remaining tokens). Raises ``ValueError`` if the first token is not a kind, and naming the
+    token and the accepted spellings for a token shaped like an exposure, gain or temperature that is not a valid
+    number (``12,5dB``), lies outside its range (an exposure ≤ 0 s, a gain outside ``METADATA_RANGES['gain_db']``,
+    a temperature outside :data:`TEMPERATURE_RANGE_C`), or repeats a kind of token the name already gave.
     """
     tokens = [t for t in re.split(r"[_\s]+", stem) if t]
     if not tokens or tokens[0].lower() not in KINDS:
@@ -123,16 +175,43 @@ def parse_set_name(stem: str) -> dict:
             "(e.g. dark_100ms_12dB_40C), or give a manifest"
         )
     out: dict = {"kind": tokens[0].lower()}
+    seen: dict[str, str] = {}
     rest = []
+    g_lo, g_hi = METADATA_RANGES["gain_db"]
+    t_lo, t_hi = TEMPERATURE_RANGE_C
+
+    def refuse(tok: str, key: str, why: str) -> ValueError:
+        return ValueError(f"{stem!r}: token {tok!r} {why}; accepted spellings of the {_SPELLINGS[key]} "
+                          "(or give the set in a manifest)")
+
     for tok in tokens[1:]:
         if m := _EXPOSURE.match(tok):
-            out["exposure_s"] = float(m.group(1)) * {"s": 1.0, "ms": 1e-3, "us": 1e-6}[m.group(2).lower()]
+            key, value = "exposure_s", float(m.group(1)) * {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6}[m.group(2).lower()]
+            if not (math.isfinite(value) and value > 0):
+                raise refuse(tok, key, f"gives an exposure of {value:g} s, which must be > 0 s")
         elif m := _GAIN.match(tok):
-            out["gain_db"] = float(m.group(1))
+            key, value = "gain_db", float(m.group(1))
+            if not g_lo <= value <= g_hi:
+                raise refuse(tok, key, f"gives a gain of {value:g} dB, outside camhealth's gain range [{g_lo:g}, {g_hi:g}] dB")
         elif m := _TEMPERATURE.match(tok):
-            out["temperature_c"] = float(m.group(1))
+            key, value = "temperature_c", float(m.group(1))
+            if not t_lo <= value <= t_hi:
+                raise refuse(tok, key, f"gives a sensor temperature of {value:g} °C, outside [{t_lo:g}, {t_hi:g}] °C")
+        elif m := _SHAPED.match(tok):
+            unit = m.group(1).lower()
+            key = "gain_db" if unit == "db" else "exposure_s" if unit.endswith("s") else "temperature_c"
+            raise refuse(tok, key, f"looks like {'an exposure' if key == 'exposure_s' else 'a gain' if key == 'gain_db' else 'a temperature'} "
+                                   "but is not a number with that unit")
+        elif (u := _UNIT_ONLY.get(tok.lower())) and rest and re.fullmatch(_NUMBER, rest[-1], re.IGNORECASE):
+            raise refuse(f"{rest[-1]} {tok}", u, "splits a number from its unit")
         else:
             rest.append(tok)
+            continue
+        if key in seen:
+            raise ValueError(f"{stem!r}: tokens {seen[key]!r} and {tok!r} both give the {key.split('_')[0]}; a name gives each "
+                             f"of exposure, gain and temperature at most once ({_SPELLINGS[key]})")
+        seen[key] = tok
+        out[key] = value
     out["label"] = "_".join(rest)
     return out
 
@@ -143,12 +222,29 @@ def _is_video(p: Path) -> bool:
     return p.suffix.lower() in VIDEO_EXTENSIONS
 
 
-def sets_from_paths(paths: Sequence[str | Path], gain_db: float | None = None, temperature_c: float | None = None) -> list[FrameSet]:
+def convention_stem(path: str | Path) -> str:
+    """The part of a path the file-name convention reads: a folder's name, a video's stem, or an image file's stem
+    without its trailing frame number (``dark_100ms_12dB_40C_0007.png`` → ``dark_100ms_12dB_40C``)."""
+    p = Path(path)
+    if p.is_dir():
+        return p.name
+    if _is_video(p):
+        return p.stem
+    tokens = p.stem.split("_")
+    if len(tokens) > 1 and _FRAME_NUMBER.match(tokens[-1]):
+        tokens = tokens[:-1]
+    return "_".join(tokens)
+
+
+def sets_from_paths(paths: Sequence[str | Path], gain_db: float | None = None, temperature_c: float | None = None,
+                    bit_depth: int | None = None) -> list[FrameSet]:
     """Frame sets from folders, videos and image files named by the convention (module docstring).
 
     Image files whose names differ only in a trailing frame number form one set. ``gain_db`` and
     ``temperature_c`` fill in a name that does not give them; a name without an exposure is an error, as is
-    a missing gain or temperature with no default.
+    a missing gain or temperature with no default, and a malformed, out-of-range or repeated token
+    (:func:`parse_set_name`; the message names the path). ``bit_depth`` is every set's
+    :attr:`FrameSet.bit_depth`.
     """
     from camhealth.data.io import IMAGE_EXTENSIONS
 
@@ -159,16 +255,13 @@ def sets_from_paths(paths: Sequence[str | Path], gain_db: float | None = None, t
         raise FileNotFoundError(f"{len(missing)} frame path(s) not found: {', '.join(missing[:10])}" + (" …" if len(missing) > 10 else ""))
     for raw in paths:
         p = Path(raw)
-        if p.is_dir() or _is_video(p):
-            stem, key_paths = p.name if p.is_dir() else p.stem, [p]
-        elif p.suffix.lower() in IMAGE_EXTENSIONS:
-            tokens = p.stem.split("_")
-            if len(tokens) > 1 and _FRAME_NUMBER.match(tokens[-1]):
-                tokens = tokens[:-1]
-            stem, key_paths = "_".join(tokens), [p]
-        else:
+        if not (p.is_dir() or _is_video(p) or p.suffix.lower() in IMAGE_EXTENSIONS):
             raise ValueError(f"cannot use {p} as calibration frames: expected a folder, a video or an image file ({', '.join(IMAGE_EXTENSIONS)})")
-        info = parse_set_name(stem)
+        key_paths = [p]
+        try:
+            info = parse_set_name(convention_stem(p))
+        except ValueError as exc:
+            raise ValueError(f"{p}: {exc}") from None
         if "exposure_s" not in info:
             raise ValueError(f"{p}: the name gives no exposure time (a token like 100ms, 0.1s or 500us); rename it or use a manifest")
         for key, default in (("gain_db", gain_db), ("temperature_c", temperature_c)):
@@ -187,20 +280,22 @@ def sets_from_paths(paths: Sequence[str | Path], gain_db: float | None = None, t
     for key, ps in groups.items():
         info = params[key]
         name = str(ps[0]) if len(ps) == 1 else f"{ps[0].parent / ('_'.join(ps[0].stem.split('_')[:-1]) or ps[0].stem)}_* ({len(ps)} files)"
-        sets.append(FrameSet(info["kind"], info["exposure_s"], info["gain_db"], info["temperature_c"], paths=sorted(ps), name=name))
+        sets.append(FrameSet(info["kind"], info["exposure_s"], info["gain_db"], info["temperature_c"], paths=sorted(ps), name=name,
+                             bit_depth=bit_depth))
     return sets
 
 
-def _file_bits(path: Path) -> int | str:
-    """The scale of an image file's integers for a calibration: the PNG's ``sBIT`` bits where it has them, else the
-    file's own (8 or 16) — never a guess from the frame's content, which would scale a dark frame and a flat frame of
-    one camera differently. ``"auto"`` for floating-point files (read as [0, 1])."""
-    from camhealth.data.io import read_image_scaled
-
-    _, scaling = read_image_scaled(path)
-    if scaling.file_bits is None:
-        return "auto"
-    return scaling.bits if scaling.source == "sBIT" else scaling.file_bits
+def check_bit_depth(bit_depth: int | None, where: str = "bit_depth") -> int | None:
+    """``bit_depth`` as an int, or None; raises ``ValueError`` naming ``where``, the value and :data:`BIT_DEPTH_RANGE`
+    unless it is None or a whole number of bits in that range."""
+    if bit_depth is None:
+        return None
+    lo, hi = BIT_DEPTH_RANGE
+    ok = not isinstance(bit_depth, bool) and isinstance(bit_depth, (int, np.integer, float)) and float(bit_depth).is_integer()
+    if not ok or not lo <= int(bit_depth) <= hi:
+        raise ValueError(f"{where}: bit_depth = {bit_depth!r} must be None (16-bit files use their whole range) or a whole "
+                         f"number of significant bits in [{lo}, {hi}]")
+    return int(bit_depth)
 
 
 def check_max_frames(max_frames: int | None) -> None:
@@ -211,11 +306,113 @@ def check_max_frames(max_frames: int | None) -> None:
         raise ValueError(f"max_frames = {max_frames!r} must be None (every frame) or an integer ≥ {MIN_FRAMES} (the frames a set needs)")
 
 
-def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
-    """The frames of a set as float32 ``N×H×W`` in [0, 1] (at most ``max_frames``: None or ≥ :data:`MIN_FRAMES`).
+def _fourcc_text(value: float) -> str:
+    code = int(value) & 0xFFFFFFFF
+    return "".join(chr((code >> (8 * i)) & 0xFF) for i in range(4)).replace("\x00", "").strip()
 
-    Raises ``ValueError`` naming the set for mixed frame sizes, values outside [0, 1] or unreadable files, and for
-    a ``max_frames`` that is neither None nor ≥ :data:`MIN_FRAMES`.
+
+def check_video_codec(path: str | Path) -> str:
+    """The codec of a video (its FOURCC as OpenCV reports it; "" for uncompressed video), or ``ValueError`` naming
+    the file and the codec when it is not one of :data:`LOSSLESS_CODECS`: a lossy codec (MJPEG, H.264, MPEG-4, VP8/9
+    …) removes part of the temporal noise a calibration measures and adds its own, so its read noise and full well
+    are wrong."""
+    try:
+        import cv2
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError("reading video files needs OpenCV: pip install 'opencv-python-headless<5'") from exc
+
+    p = Path(path)
+    cap = cv2.VideoCapture(str(p))
+    try:
+        if not cap.isOpened():
+            raise ValueError(f"cannot open video {p}: OpenCV could not open it (corrupt or unsupported codec)")
+        codec = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+    finally:
+        cap.release()
+    if codec.lower() not in LOSSLESS_CODECS:
+        names = sorted(set(LOSSLESS_CODECS.values()) - {"uncompressed gray"})
+        raise ValueError(
+            f"video {p} uses the codec {codec!r}, which is not lossless: a lossy codec removes part of the temporal noise a "
+            f"calibration measures (and adds its own), so its read noise and full well would be wrong; record the set "
+            f"losslessly ({', '.join(names)}; e.g. ffmpeg -c:v ffv1 -pix_fmt gray) or as 16-bit PNG/TIFF frames"
+        )
+    return codec
+
+
+@dataclass(frozen=True)
+class FrameDepth:
+    """How a frame's integers were scaled to [0, 1]: ``file_bits`` (8 or 16; None: floating-point data),
+    ``bits`` (the values were divided by 2^bits − 1; None: not scaled) and ``source`` (``"file"``: the file's own
+    depth, ``"sBIT"``: the PNG's sBIT chunk, ``"given"``: the set's ``bit_depth``, ``"video"``: a video's 8-bit
+    frames, ``"float"``: floating-point data)."""
+
+    file_bits: int | None
+    bits: int | None
+    source: str
+
+    def describe(self) -> str:
+        if self.source == "float":
+            return "floating-point data"
+        if self.source == "video":
+            return "8-bit video frames"
+        if self.file_bits == self.bits:
+            return f"{self.file_bits}-bit"
+        why = {"sBIT": "its sBIT chunk", "given": "the set's bit_depth"}.get(self.source, self.source)
+        return f"{self.file_bits}-bit with {self.bits} significant bits ({why})"
+
+
+def _read_frame(p: Path, bit_depth: int | None) -> tuple[np.ndarray, FrameDepth, float | None]:
+    """One image file as H×W float32 in [0, 1] at the depth it declares (module docstring), its :class:`FrameDepth`,
+    and its largest value in codes when it is a 16-bit file read at 16 bits with neither sBIT nor ``bit_depth``
+    (else None)."""
+    from camhealth.data.io import read_image_scaled
+
+    image, sc = read_image_scaled(p)
+    frame = image[0].numpy()
+    if sc.file_bits is None:
+        return frame, FrameDepth(None, None, "float"), None
+    if sc.file_bits == 8:
+        return frame, FrameDepth(8, 8, "file"), None
+    if sc.source == "sBIT":
+        return frame, FrameDepth(16, int(sc.bits), "sBIT"), None
+    want, source = (bit_depth, "given") if bit_depth is not None else (16, "file")
+    if sc.max_value > 2**want - 1:
+        raise ValueError(f"cannot read image {p} as {want}-bit data (the set's bit_depth): it holds values up to "
+                         f"{sc.max_value:g}, more than {2**want - 1}; give the camera's bit depth, or none for 16-bit data")
+    if sc.bits != want:  # "auto" guessed a depth from the largest value: the codes at the declared depth instead
+        codes = frame.astype(np.float64) * (2.0**sc.bits - 1.0)
+        rounded = np.rint(codes)
+        if float(np.abs(codes - rounded).max(initial=0.0)) < 1e-2:  # gray: exactly what a read at ``want`` bits gives
+            frame = rounded.astype(np.float32) / np.float32(2**want - 1)
+        else:  # colour turned gray: read it again at that depth
+            frame = read_image_scaled(p, want)[0][0].numpy()
+    return frame, FrameDepth(16, want, source), (float(sc.max_value) if source == "file" else None)
+
+
+@dataclass
+class LoadedDepth:
+    """The depth of a loaded set: ``depth`` (its frames' :class:`FrameDepth`; None for in-memory frames) and
+    ``undeclared_max`` (the largest value, in codes of 65535, of 16-bit files read at 16 bits with neither sBIT nor
+    ``bit_depth``; None when the set has none)."""
+
+    depth: FrameDepth | None = None
+    undeclared_max: float | None = None
+    undeclared_file: str = ""
+
+
+def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
+    """The frames of a set as float32 ``N×H×W`` in [0, 1] (:func:`load_frames_with_depth` without the depth)."""
+    return load_frames_with_depth(fs, max_frames)[0]
+
+
+def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple[np.ndarray, LoadedDepth]:
+    """The frames of a set as float32 ``N×H×W`` in [0, 1] (at most ``max_frames``: None or ≥ :data:`MIN_FRAMES`), and
+    how they were scaled (:class:`LoadedDepth`).
+
+    Raises ``ValueError`` naming the set for mixed frame sizes, mixed bit depths or scalings (naming the files of
+    each), values outside [0, 1] or unreadable files, a video whose codec is not lossless
+    (:func:`check_video_codec`), a file with values above its set's ``bit_depth``, and for a ``max_frames`` that is
+    neither None nor ≥ :data:`MIN_FRAMES`.
     """
     check_max_frames(max_frames)
     if fs.frames is not None:
@@ -238,25 +435,36 @@ def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
             raise ValueError(f"{fs.describe()}: in-memory frames must be N×H×W or N×1×H×W, got shape {x.shape}")
         if not np.isfinite(x).all() or x.min(initial=0.0) < 0 or x.max(initial=0.0) > 1:
             raise ValueError(f"{fs.describe()}: frame values must be finite and in [0, 1] (DN/255)")
-        return x[:max_frames] if max_frames else x
-    from camhealth.data.io import read_image_scaled
+        return (x[:max_frames] if max_frames else x), LoadedDepth()
     from camhealth.data.video import FrameSequence
 
     frames: list[np.ndarray] = []
     sources: list[str] = []
+    depths: list[FrameDepth] = []
+    loaded = LoadedDepth()
+
+    def add(frame: np.ndarray, depth: FrameDepth, undeclared: float | None, source: str) -> None:
+        frames.append(frame)
+        sources.append(source)
+        depths.append(depth)
+        if undeclared is not None and (loaded.undeclared_max is None or undeclared > loaded.undeclared_max):
+            loaded.undeclared_max, loaded.undeclared_file = undeclared, source
+
     for p in fs.paths:
-        if p.is_dir() or _is_video(p):
+        if p.is_dir():
             seq = FrameSequence(p, max_frames=max_frames)
-            bits = _file_bits(seq.frame_paths[0]) if seq.kind == "folder" and seq.frame_paths else "auto"
-            for frame, idx in FrameSequence(p, max_frames=max_frames, bit_depth=bits):
-                frames.append(frame[0].numpy())
-                sources.append(f"{p}#{idx}")
+            for fp in (seq.frame_paths or [])[: seq.length]:
+                add(*_read_frame(fp, fs.bit_depth), str(fp))
+                if max_frames and len(frames) >= max_frames:
+                    break
+        elif _is_video(p):
+            check_video_codec(p)
+            for frame, idx in FrameSequence(p, max_frames=max_frames):
+                add(frame[0].numpy(), FrameDepth(8, 8, "video"), None, f"{p}#{idx}")
                 if max_frames and len(frames) >= max_frames:
                     break
         else:
-            image, _ = read_image_scaled(p, _file_bits(p))
-            frames.append(image[0].numpy())
-            sources.append(str(p))
+            add(*_read_frame(p, fs.bit_depth), str(p))
         if max_frames and len(frames) >= max_frames:
             break
     shapes = {f.shape for f in frames}
@@ -266,4 +474,13 @@ def load_frames(fs: FrameSet, max_frames: int | None = None) -> np.ndarray:
             by_shape.setdefault(f.shape, []).append(s)
         detail = "; ".join(f"{h}×{w}: {len(v)} frame(s), e.g. {v[0]}" for (h, w), v in by_shape.items())
         raise ValueError(f"{fs.describe()} mixes frame sizes ({detail}); every frame of a calibration must have one size")
-    return np.stack(frames).astype(np.float32) if frames else np.zeros((0, 1, 1), np.float32)
+    by_depth: dict[FrameDepth, list[str]] = {}
+    for d, s in zip(depths, sources):
+        by_depth.setdefault(d, []).append(s)
+    if len(by_depth) > 1:
+        detail = "; ".join(f"{d.describe()}: {len(v)} frame(s) ({', '.join(v[:3])}{', …' if len(v) > 3 else ''})"
+                           for d, v in by_depth.items())
+        raise ValueError(f"{fs.describe()} mixes bit depths ({detail}); every frame of a set must have one bit depth and "
+                         "scaling: its quantisation step (and the q²/12 removed from its variance) is the set's")
+    loaded.depth = depths[0] if depths else None
+    return (np.stack(frames).astype(np.float32) if frames else np.zeros((0, 1, 1), np.float32)), loaded

@@ -1,6 +1,6 @@
 """Calibration manifests: which frames form which set, at which exposure, gain and temperature.
 
-YAML (read with ``yaml.safe_load``: a manifest never executes code)::
+YAML (read with a ``yaml.SafeLoader`` that also refuses aliases: a manifest never executes code)::
 
     camera:                      # optional datasheet values (CameraMetadata fields)
       sensor_type: CMOS          # CCD | CMOS
@@ -15,9 +15,10 @@ YAML (read with ``yaml.safe_load``: a manifest never executes code)::
     defaults:                    # optional: values of sets that do not give them
       gain_db: 0
       temperature_c: 25
+      bit_depth: 12              # optional: significant bits of 16-bit files without an sBIT chunk
     sets:
       - {kind: bias, path: bias, exposure_s: 0.001}            # a folder of frames
-      - {kind: dark, path: dark_200ms.mp4, exposure_s: 0.2}    # a video
+      - {kind: dark, path: dark_200ms.mkv, exposure_s: 0.2}    # a lossless video (FFV1)
       - {kind: flat, path: [f1.png, f2.png, f3.png, f4.png], exposure_s: 0.01, name: L1}   # image files
       - {kind: flat, path: "flat_L2/*.tif", exposure_s: 0.02}  # a glob pattern
 
@@ -25,21 +26,29 @@ CSV: a header line and one row per set (``;`` separates several files or globs i
 
     kind,path,exposure_s,gain_db,temperature_c,name
     bias,bias,0.001,0,25,
-    dark,dark_200ms.mp4,0.2,0,25,
+    dark,dark_200ms.mkv,0.2,0,25,
 
 Relative paths are relative to the manifest's folder. Camera fields go on the command line with a CSV
 manifest (``--pixel-size-um`` …).
+
+A set's path whose name follows the file-name convention (:mod:`camhealth.calibrate.frames`, e.g.
+``dark_200ms_12dB_40C/``) must agree with the set's values: a kind (flat or not), exposure, gain or temperature in
+the name that differs from the manifest's is an error naming both. ``path`` is a string or a list of strings.
+YAML aliases (``*name``) are refused: a manifest spells its values out (``defaults`` gives values shared by sets),
+so that a few hundred bytes cannot expand into gigabytes.
 """
 
 from __future__ import annotations
 
 import csv
 import glob
+import math
+import reprlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from camhealth.calibrate.frames import KINDS, FrameSet
+from camhealth.calibrate.frames import KINDS, FrameSet, check_bit_depth, convention_stem, parse_set_name
 
 __all__ = ["CAMERA_FIELDS", "OPERATING_POINT_FIELDS", "Manifest", "read_manifest"]
 
@@ -49,7 +58,16 @@ CAMERA_FIELDS: tuple[str, ...] = (
 )
 #: Fields of the operating point written to the output metadata.
 OPERATING_POINT_FIELDS: tuple[str, ...] = ("gain_db", "exposure_s", "temperature_c")
-_SET_KEYS = ("kind", "path", "exposure_s", "gain_db", "temperature_c", "name")
+_SET_KEYS = ("kind", "path", "exposure_s", "gain_db", "temperature_c", "name", "bit_depth")
+_DEFAULT_KEYS = ("gain_db", "temperature_c", "exposure_s", "bit_depth")
+_SHOW = reprlib.Repr()
+_SHOW.maxlevel, _SHOW.maxlist, _SHOW.maxtuple, _SHOW.maxdict, _SHOW.maxstring, _SHOW.maxother = 2, 4, 4, 4, 60, 60
+
+
+def _shown(value: Any) -> str:
+    """A bounded repr of a manifest value for a message (a nested or aliased value is not expanded)."""
+    text = _SHOW.repr(value)
+    return text if len(text) <= 120 else text[:117] + "..."
 
 
 @dataclass
@@ -63,9 +81,21 @@ class Manifest:
 
 
 def _expand(entry: Any, base: Path, where: str) -> tuple[list[Path], list[str]]:
-    """Paths of one set's ``path`` entry (string, list, globs), and the ones that do not exist."""
-    items = entry if isinstance(entry, (list, tuple)) else str(entry).split(";") if entry is not None else []
-    items = [str(i).strip() for i in items if str(i).strip()]
+    """Paths of one set's ``path`` entry (a string — ``;`` separates several — or a list of strings, globs), and the
+    ones that do not exist. Anything else (a number, a nested list, a mapping) is refused with a bounded message."""
+    if entry is None:
+        items = []
+    elif isinstance(entry, str):
+        items = entry.split(";")
+    elif isinstance(entry, (list, tuple)):
+        bad = [i for i in entry if not isinstance(i, str)]
+        if bad:
+            raise ValueError(f"{where}: path items must be strings (file, folder or glob names), got {type(bad[0]).__name__} "
+                             f"{_shown(bad[0])}")
+        items = list(entry)
+    else:
+        raise ValueError(f"{where}: path must be a string or a list of strings, got {type(entry).__name__} {_shown(entry)}")
+    items = [i.strip() for i in items if i.strip()]
     if not items:
         raise ValueError(f"{where}: no path given")
     found, missing = [], []
@@ -83,12 +113,39 @@ def _expand(entry: Any, base: Path, where: str) -> tuple[list[Path], list[str]]:
 
 
 def _number(value: Any, key: str, where: str) -> float:
-    if isinstance(value, bool):
-        raise ValueError(f"{where}: {key} = {value!r} must be a number")
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise ValueError(f"{where}: {key} = {_shown(value)} must be a number")
     try:
         return float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: {key} = {value!r} must be a number") from None
+        raise ValueError(f"{where}: {key} = {_shown(value)} must be a number") from None
+
+
+def _name_conflicts(kind: str, values: dict[str, float], paths: list[Path], where: str) -> None:
+    """Raises ``ValueError`` when a path's name follows the file-name convention and gives a kind (flat or not),
+    exposure, gain or temperature other than the manifest's, naming both; names that do not follow it are skipped."""
+    checked: set[str] = set()
+    for p in paths:
+        stems = [convention_stem(p)]
+        if not p.is_dir():
+            stems.append(p.parent.name)  # image files in a folder named by the convention
+        for stem in stems:
+            if stem in checked:
+                continue
+            checked.add(stem)
+            try:
+                info = parse_set_name(stem)
+            except ValueError:
+                continue
+            if (info["kind"] == "flat") != (kind == "flat"):
+                raise ValueError(f"{where}: kind {kind!r} contradicts the name {stem!r} ({info['kind']}) of {p}; correct the "
+                                 "manifest or the name")
+            clash = [f"{key} = {values[key]:g} {unit} (the name: {info[key]:g} {unit})"
+                     for key, unit in (("exposure_s", "s"), ("gain_db", "dB"), ("temperature_c", "°C"))
+                     if key in info and not math.isclose(info[key], values[key], rel_tol=1e-6, abs_tol=1e-9)]
+            if clash:
+                raise ValueError(f"{where}: {'; '.join(clash)} contradict{'s' if len(clash) == 1 else ''} the name {stem!r} of "
+                                 f"{p}; correct the manifest or the name")
 
 
 def _section(data: dict, name: str, origin: str) -> dict[str, Any]:
@@ -109,12 +166,13 @@ def _sets(rows: list[dict], base: Path, defaults: dict, origin: str) -> list[Fra
         where = f"{origin}, set {i + 1}"
         if not isinstance(row, dict):
             raise ValueError(f"{where}: each set must be a mapping with keys {list(_SET_KEYS)}, got {type(row).__name__}")
-        unknown = sorted(set(row) - set(_SET_KEYS))
+        unknown = sorted(map(str, set(row) - set(_SET_KEYS)))
         if unknown:
-            raise ValueError(f"{where}: unknown key(s) {unknown}; known: {list(_SET_KEYS)}")
-        kind = str(row.get("kind", "")).strip().lower()
+            raise ValueError(f"{where}: unknown key(s) {_shown(unknown)}; known: {list(_SET_KEYS)}")
+        kind = row.get("kind", "")
+        kind = kind.strip().lower() if isinstance(kind, str) else kind
         if kind not in KINDS:
-            raise ValueError(f"{where}: kind {row.get('kind')!r} must be one of {list(KINDS)}")
+            raise ValueError(f"{where}: kind {_shown(row.get('kind'))} must be one of {list(KINDS)}")
         values = {}
         for key in ("exposure_s", "gain_db", "temperature_c"):
             v = row.get(key)
@@ -123,11 +181,22 @@ def _sets(rows: list[dict], base: Path, defaults: dict, origin: str) -> list[Fra
             if v is None:
                 raise ValueError(f"{where} ({kind}): {key} is missing; give it in the set or under 'defaults'")
             values[key] = _number(v, key, where)
+        bits = row.get("bit_depth")
+        if bits is None or (isinstance(bits, str) and not bits.strip()):
+            bits = defaults.get("bit_depth")
+        if isinstance(bits, str):
+            bits = _number(bits, "bit_depth", where)
+        bits = check_bit_depth(bits, where)
+        name = row.get("name")
+        if name is not None and not isinstance(name, (str, int, float)):
+            raise ValueError(f"{where}: name = {_shown(name)} must be a string")
         paths, miss = _expand(row.get("path"), base, where)
         missing.extend(f"{where} ({kind}): {m}" for m in miss)
         if not miss:
-            name = str(row.get("name") or "").strip()
-            sets.append(FrameSet(kind, paths=paths, name=name or str(row.get("path")), **values))
+            _name_conflicts(kind, values, paths, where)
+            name = str(name or "").strip()
+            label = row.get("path") if isinstance(row.get("path"), str) else f"{paths[0]}" + (f" (+{len(paths) - 1} files)" if len(paths) > 1 else "")
+            sets.append(FrameSet(kind, paths=paths, name=name or label, bit_depth=bits, **values))
     if missing:
         raise FileNotFoundError(
             f"{origin} names {len(missing)} missing file(s)/folder(s):\n  " + "\n  ".join(missing[:20])
@@ -136,13 +205,36 @@ def _sets(rows: list[dict], base: Path, defaults: dict, origin: str) -> list[Fra
     return sets
 
 
+class _AliasRefused(ValueError):
+    """A manifest that uses a YAML alias."""
+
+
+def _manifest_loader():
+    """``yaml.SafeLoader`` (no Python objects) that also refuses aliases (:class:`_AliasRefused`)."""
+    import yaml
+
+    class ManifestLoader(yaml.SafeLoader):
+        def compose_node(self, parent, index):
+            if self.check_event(yaml.events.AliasEvent):
+                event = self.peek_event()
+                raise _AliasRefused(
+                    f"line {event.start_mark.line + 1}: YAML alias *{str(event.anchor)[:40]} refused; a manifest spells its "
+                    "values out (give values shared by sets under 'defaults'), so that a short file cannot expand into "
+                    "gigabytes"
+                )
+            return super().compose_node(parent, index)
+
+    return ManifestLoader
+
+
 def read_manifest(path: str | Path) -> Manifest:
     """Read a YAML (``.yaml``/``.yml``) or CSV (``.csv``) manifest (module docstring).
 
     Raises:
         FileNotFoundError: the manifest, or files/folders it names, do not exist (all missing ones listed).
         ValueError: unknown keys, a missing exposure/gain/temperature, a bad kind, a section that is not a mapping,
-            text that is not UTF-8, unparsable content (the message names the manifest).
+            text that is not UTF-8, unparsable content, a YAML alias, a ``path`` that is not a string or a list of
+            strings, a set whose values contradict its path's name (the message names the manifest).
     """
     p = Path(path)
     if not p.is_file():
@@ -154,7 +246,9 @@ def read_manifest(path: str | Path) -> Manifest:
         import yaml
 
         try:
-            data = yaml.safe_load(p.read_text(encoding="utf-8"))
+            data = yaml.load(p.read_text(encoding="utf-8"), Loader=_manifest_loader())
+        except _AliasRefused as exc:
+            raise ValueError(f"{origin}: {exc}") from None
         except yaml.YAMLError as exc:
             raise ValueError(f"cannot parse {origin}: {str(exc).splitlines()[0]}") from None
         except UnicodeDecodeError as exc:
@@ -178,9 +272,9 @@ def read_manifest(path: str | Path) -> Manifest:
             raise ValueError(f"{origin}: unknown operating_point field(s) {bad}; known: {list(OPERATING_POINT_FIELDS)}")
         op = {k: _number(v, k, f"{origin}, operating_point") for k, v in op.items()}
         defaults = _section(data, "defaults", origin)
-        bad = sorted(set(defaults) - {"gain_db", "temperature_c", "exposure_s"})
+        bad = sorted(map(str, set(defaults) - set(_DEFAULT_KEYS)))
         if bad:
-            raise ValueError(f"{origin}: unknown default(s) {bad}; known: gain_db, temperature_c, exposure_s")
+            raise ValueError(f"{origin}: unknown default(s) {_shown(bad)}; known: {', '.join(_DEFAULT_KEYS)}")
         for k, v in camera.items():
             if k != "sensor_type":
                 camera[k] = _number(v, k, f"{origin}, camera")

@@ -4,7 +4,9 @@ Order of the analysis (each step's physics in its module):
 
 1. every bias/dark set: master frame, hot pixels (:func:`~camhealth.calibrate.statistics.detect_hot_pixels`),
    temporal noise (temporal or censored estimator, :mod:`~camhealth.calibrate.statistics`);
-2. every flat set: the same, hot pixels of the darks excluded;
+2. every flat set: the same, hot pixels of the darks and its own pixels at 0 DN in every frame (dead:
+   :func:`~camhealth.calibrate.statistics.stuck_at_zero`) excluded; 16-bit files that look like low-bit data
+   without a declared bit depth are refused (:data:`LOW_BITS_CODES`);
 3. dark fit in DN² at unit gain (:mod:`~camhealth.calibrate.dark_signal`): read noise per temperature and the
    dark current's Eq. 3.14 law;
 4. photon transfer (:mod:`~camhealth.calibrate.photon_transfer`): K0 [DN/e⁻] → full well FW = 255/K0;
@@ -16,6 +18,7 @@ Order of the analysis (each step's physics in its module):
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -24,17 +27,25 @@ import numpy as np
 from camhealth.calibrate.dark_signal import (
     DarkPoint, arrhenius_factor, dfm_from_c, doubling_temperature, fit_dark, fit_read_noise_law, model_doubling_temperature,
 )
-from camhealth.calibrate.frames import MIN_FRAMES, FrameSet, check_max_frames, load_frames, sets_from_paths
+from camhealth.calibrate.frames import (
+    MIN_FRAMES, FrameSet, check_bit_depth, check_max_frames, check_video_codec, load_frames_with_depth, sets_from_paths,
+)
 from camhealth.calibrate.manifest import CAMERA_FIELDS, OPERATING_POINT_FIELDS, read_manifest
 from camhealth.calibrate.photon_transfer import MAX_CHI2_DOF, FlatPoint, fit_photon_transfer
 from camhealth.calibrate.readout import white_noise_from_sigma
 from camhealth.calibrate.result import CalibrationResult, FieldEstimate, SetRecord
 from camhealth.calibrate.statistics import (
-    QUANTISATION_LIMITED_BELOW, SetStatistics, detect_dead_pixels, detect_hot_pixels, set_statistics,
+    QUANTISATION_LIMITED_BELOW, SetStatistics, detect_dead_pixels, detect_hot_pixels, quantisation_step, set_statistics,
+    stuck_at_zero,
 )
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, UNITS, CameraMetadata
 
-__all__ = ["ASSUMED", "calibrate", "resolve_sets"]
+__all__ = ["ASSUMED", "LOW_BITS_CODES", "calibrate", "resolve_sets", "video_problems"]
+
+#: 16-bit image files without an sBIT chunk or a ``bit_depth`` whose values, over every set of a calibration, stay at
+#: or below this code (of 65535: 1/16 of full scale) hold 12-bit (or 10/8-bit) data in their low bits, not 16-bit
+#: data: the calibration refuses them (read as value/65535 their full well comes out 16× and more too large).
+LOW_BITS_CODES = 4095
 
 #: Values used for datasheet fields that are not given (each is marked "assumed" in the output). The noise
 #: model's σ_RN and dark current are reproduced whatever these are: W absorbs the sense-node gain and pixel
@@ -73,12 +84,16 @@ def _camera_values(camera: Mapping[str, Any]) -> dict[str, float]:
 
 def resolve_sets(
     frames: Sequence[FrameSet | str | Path] | str | Path, gain_db: float | None = None, temperature_c: float | None = None,
+    bit_depth: int | None = None,
 ) -> tuple[list[FrameSet], dict[str, Any], dict[str, float]]:
-    """Frame sets (with manifest camera fields and operating point) from FrameSets, manifests and paths.
+    """Frame sets (with manifest camera fields and operating point) from FrameSets, manifests and paths; reads no
+    frames.
 
     A ``.yaml``/``.yml``/``.csv`` path is read as a manifest; other paths are folders, videos or image files
-    named by the convention of :mod:`camhealth.calibrate.frames`.
+    named by the convention of :mod:`camhealth.calibrate.frames`. ``bit_depth`` is the
+    :attr:`~camhealth.calibrate.frames.FrameSet.bit_depth` of every set that does not give one.
     """
+    bit_depth = check_bit_depth(bit_depth)
     items = [frames] if isinstance(frames, (str, Path)) else list(frames)
     sets: list[FrameSet] = []
     camera: dict[str, Any] = {}
@@ -96,6 +111,8 @@ def resolve_sets(
             loose.append(Path(item))
     if loose:
         sets.extend(sets_from_paths(loose, gain_db=gain_db, temperature_c=temperature_c))
+    if bit_depth is not None:
+        sets = [fs if fs.bit_depth is not None or fs.frames is not None else replace(fs, bit_depth=bit_depth) for fs in sets]
     if not sets:
         raise ValueError("no frame sets given: pass a manifest, or folders/videos/images of bias, dark and flat frames")
     return sets, camera, op
@@ -123,8 +140,20 @@ def _record(fs: FrameSet, st: SetStatistics, used: bool = True, note: str = "") 
     )
 
 
-def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | None, size_from: str) -> np.ndarray:
-    x = load_frames(fs, max_frames)
+def video_problems(sets: Sequence[FrameSet]) -> None:
+    """Raises ``ValueError`` (:func:`~camhealth.calibrate.frames.check_video_codec`) for the first video of ``sets``
+    whose codec is not lossless — before any frame is read."""
+    from camhealth.calibrate.frames import _is_video
+
+    for fs in sets:
+        for p in fs.paths:
+            if not p.is_dir() and _is_video(p):
+                check_video_codec(p)
+
+
+def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | None, size_from: str):
+    """The set's frames (N×H×W in [0, 1]), their quantisation step [DN] and how they were scaled."""
+    x, depth = load_frames_with_depth(fs, max_frames)
     if x.shape[0] < MIN_FRAMES:
         raise ValueError(f"{fs.describe()} has {x.shape[0]} frame(s); at least {MIN_FRAMES} are needed per set (20 recommended)")
     if size is not None and tuple(x.shape[1:]) != size:
@@ -132,12 +161,15 @@ def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | 
             f"{fs.describe()} has {x.shape[1]}×{x.shape[2]} px frames but {size_from} has {size[0]}×{size[1]} px; "
             "every set of a calibration must have one frame size"
         )
-    return x
+    # the step of the scale the files were read with (b-bit data as value/(2^b − 1)), else found from the values
+    step = quantisation_step(x, depth.depth.bits if depth.depth is not None else None)
+    return x, step, depth
 
 
-def _stats_with_hot(x: np.ndarray, known_hot: np.ndarray | None, name: str = "the set") -> tuple[SetStatistics, np.ndarray]:
+def _stats_with_hot(x: np.ndarray, known_hot: np.ndarray | None, name: str = "the set",
+                    step_dn: float | None = None) -> tuple[SetStatistics, np.ndarray]:
     """Statistics of a dark set with its own hot pixels (and ``known_hot``) excluded; returns the hot mask."""
-    st = set_statistics(x, known_hot, name=name)
+    st = set_statistics(x, known_hot, step_dn=step_dn, name=name)
     if st.method == "clipped":
         return st, known_hot if known_hot is not None else np.zeros(x.shape[1:], dtype=bool)
     hot = detect_hot_pixels(st.master_dn, st.sigma_dn, st.n_frames, st.step_dn)
@@ -155,6 +187,7 @@ def calibrate(
     max_frames: int | None = None,
     gain_db: float | None = 0.0,
     temperature_c: float | None = None,
+    bit_depth: int | None = None,
 ) -> CalibrationResult:
     """A camera's metadata from bias, dark and flat frames (module docstring; ``docs/calibration.md``).
 
@@ -168,6 +201,9 @@ def calibrate(
             lowest flat gain, the median flat exposure within 1 ms … 0.2 s, the median dark temperature).
         max_frames: read at most this many frames per set (None: all; else at least ``MIN_FRAMES``).
         gain_db, temperature_c: values for file names that do not give them.
+        bit_depth: significant bits of 16-bit image files without an ``sBIT`` chunk, for sets that do not give their
+            own (:attr:`~camhealth.calibrate.frames.FrameSet.bit_depth`; None: those files use the whole 16-bit
+            range).
 
     Returns:
         :class:`~camhealth.calibrate.result.CalibrationResult`.
@@ -177,11 +213,12 @@ def calibrate(
         ValueError: too few frames in a set (or a ``max_frames`` below ``MIN_FRAMES``), a set whose frames are all
             identical, a bias/dark set whose noise is below about half a code step (quantisation-limited), too few
             sets of a kind, exposures or flat levels that do not span a range, saturated flats, flats whose per-gain
-            K0 contradict K = g·K0, mixed frame sizes, a result outside camhealth's parameter ranges — each message
-            names the set or value and what is needed.
+            K0 contradict K = g·K0, mixed frame sizes, mixed bit depths within a set, a video whose codec is not
+            lossless, 16-bit files that look like 12-bit data in their low bits (:data:`LOW_BITS_CODES`), a result
+            outside camhealth's parameter ranges — each message names the set or value and what is needed.
     """
     check_max_frames(max_frames)
-    sets, cam_manifest, op_manifest = resolve_sets(frames, gain_db=gain_db, temperature_c=temperature_c)
+    sets, cam_manifest, op_manifest = resolve_sets(frames, gain_db=gain_db, temperature_c=temperature_c, bit_depth=bit_depth)
     cam = _camera_values({**cam_manifest, **dict(camera or {})})
     op = {**op_manifest, **dict(operating_point or {})}
     unknown = sorted(set(op) - set(OPERATING_POINT_FIELDS))
@@ -201,17 +238,21 @@ def calibrate(
             f"{len(flats)} flat set(s) given; at least 2 are needed at different light levels or exposures below "
             "saturation (e.g. 10 % … 70 % of full scale) to measure the conversion gain"
         )
+    video_problems(sets)
     warnings: list[str] = []
     records: list[SetRecord] = []
+    undeclared: list[tuple[float, str, FrameSet]] = []  # 16-bit files read at 16 bits: (largest value, file, set)
     size: tuple[int, int] | None = None
     size_from = ""
     hot: np.ndarray | None = None
     dark_stats: list[tuple[FrameSet, SetStatistics]] = []
     for fs in sorted(darks, key=lambda s: (s.temperature_c, s.gain_db, s.exposure_s)):
-        x = _load_checked(fs, max_frames, size, size_from)
+        x, step, depth = _load_checked(fs, max_frames, size, size_from)
+        if depth.undeclared_max is not None:
+            undeclared.append((depth.undeclared_max, depth.undeclared_file, fs))
         if size is None:
             size, size_from = tuple(x.shape[1:]), fs.describe()
-        st, hot = _stats_with_hot(x, hot, fs.describe())
+        st, hot = _stats_with_hot(x, hot, fs.describe(), step)
         if st.method == "clipped":
             raise ValueError(
                 f"{fs.describe()} is clipped: {100 * st.clipped_low:.1f} % of its values at 0 DN and {100 * st.clipped_high:.1f} % at "
@@ -236,10 +277,24 @@ def calibrate(
             "read noise and dark current include it — record the darks with a camera offset that keeps them off 0 DN (temporal estimator)"
         )
     flat_stats: list[tuple[FrameSet, SetStatistics]] = []
+    stuck: dict[int, np.ndarray] = {}  # id(flat stats) → its pixels at 0 DN in every frame (dead), left out of it
     for fs in flats:
-        x = _load_checked(fs, max_frames, size, size_from)
-        flat_stats.append((fs, set_statistics(x, hot, name=fs.describe())))
+        x, step, depth = _load_checked(fs, max_frames, size, size_from)
+        if depth.undeclared_max is not None:
+            undeclared.append((depth.undeclared_max, depth.undeclared_file, fs))
+        dead0 = stuck_at_zero(x, hot)
+        st = set_statistics(x, hot | dead0 if dead0.any() else hot, step_dn=step, name=fs.describe(), flat=True)
+        if dead0.any():
+            stuck[id(st)] = dead0
+        flat_stats.append((fs, st))
         del x
+    _refuse_low_bits(undeclared)
+    if stuck:
+        n_dead = int(np.logical_or.reduce(list(stuck.values())).sum())
+        warnings.append(
+            f"{n_dead} pixel(s) read 0 DN in every frame of {len(stuck)} flat set(s) (dead: no response): left out of those flats' "
+            "statistics and flagged in dead_pixels"
+        )
     # ---- dark fit (Gaussian statistics), photon transfer; then the clipped dark sets refitted with their
     # Poisson skew and the clipping model the frames show, and both fits repeated
     def dark_points(latent: dict) -> list[DarkPoint]:
@@ -271,6 +326,7 @@ def calibrate(
     dark = fit_dark(dark_points({}))
     fpoints, ptc = photon_transfer(dark, {})
     clipping = _refit_censored_darks(dark_stats, ptc.k0)
+    warnings.extend(clipping["warnings"])
     if clipping["latent"]:
         dark = fit_dark(dark_points(clipping["latent"]))
         fpoints, ptc = photon_transfer(dark, clipping["latent"])
@@ -418,7 +474,7 @@ def calibrate(
     for (fs, st), p in zip(flat_stats, fpoints):
         why = next((w for q, w in ptc.excluded if q is p), "")
         records.append(_record(fs, st, used=id(p) in used_names, note=why))
-    maps, nonuni = _maps(dark_stats, flat_stats, ptc, hot)
+    maps, nonuni = _maps(dark_stats, flat_stats, ptc, hot, stuck)
     t_ref = op_values["temperature_c"] + 273.15
     rn_ref = math.sqrt(max(rn_law.var_e2(t_ref), 0.0))
     emva = _emva(dark, ptc, rn_law, k0, k0_err, c_e, c_e_err, full_well, rn_ref, nonuni, hot, t_ref)
@@ -453,6 +509,36 @@ WELL_CLIPPING_MIN_DELTA_NLL = 10.0
 POOLED_PATTERN_WARN_FRACTION = 0.1
 
 
+def _refuse_low_bits(undeclared: list[tuple[float, str, FrameSet]]) -> None:
+    """Raises ``ValueError`` when 16-bit image files read at 16 bits (no sBIT chunk, no ``bit_depth``) hold, over every
+    such set, no value above :data:`LOW_BITS_CODES` (1/16 of full scale): 12-bit (or 10/8-bit) data stored in the low
+    bits, which read as value/65535 would give a full well 16× (or more) too large. A photon-transfer series reaches
+    10 … 70 % of full scale, so 16-bit data of a calibration do not stay below 1/16 of it."""
+    if not undeclared:
+        return
+    top, file, fs = max(undeclared, key=lambda u: u[0])
+    if top > LOW_BITS_CODES:
+        return
+    bits = max(8, int(math.ceil(math.log2(top + 1)))) if top > 0 else 8
+    bits = next(b for b in (8, 10, 12) if bits <= b)
+    raise ValueError(
+        f"the 16-bit image files of {len(undeclared)} set(s) (no sBIT chunk) hold values up to {top:g} of 65535 only (largest: "
+        f"{file}, {fs.describe()}), at most {LOW_BITS_CODES} = 1/16 of full scale: these look like {bits}-bit data stored in the "
+        f"low bits of 16-bit words (as OpenCV and many camera SDKs write them), which read as 16-bit data would give a full "
+        f"well 16× or more too large; give the camera's bit depth (--bit-depth {bits}, calibrate(bit_depth={bits}), or "
+        f"bit_depth in the manifest), save the files with an sBIT chunk, or give bit depth 16 if they really are 16-bit data "
+        "this dark"
+    )
+
+
+#: A refitted dark group is not used when its log-likelihood is worse than that of a normal distribution fitted to
+#: each of its sets by more than this many standard deviations of that difference (a fit that did not converge).
+REFIT_WORSE_SIGMAS = 10.0
+#: A refitted dark group is not used when its dark-signal variance at the longest exposure falls below this fraction
+#: of the rise the sets' own (Gaussian) fits measure, while that rise is significant (a fit stuck at DC = 0).
+REFIT_MIN_DARK_FRACTION = 0.05
+
+
 def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: float) -> dict[str, Any]:
     """Refit the clipped dark sets with the dark signal's Poisson skew, and pick the clipping model they show.
 
@@ -465,9 +551,18 @@ def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: 
     noise cannot make the well's charge negative). The second is used when its log-likelihood, summed over the
     groups, is better by more than :data:`WELL_CLIPPING_MIN_DELTA_NLL`.
 
-    Returns ``model`` ("end" or "well"), ``delta_nll`` and ``latent``: id(stats) → (σ_R² + K²·DC·t [DN²], 1σ, o [DN]).
+    The fit starts at the group's shortest set's fitted mean (its latent mean for a clipped set: the offset o; 0, the
+    offset-free model, when that mean lies within half its σ of 0), its σ and the dark current its sets' variances
+    give. Its variance replaces only that of the group's clipped
+    (``censored``) sets; sets measured by the temporal estimator keep theirs. A group fit is not used (its sets keep
+    their Gaussian fits, with a warning) when its log-likelihood is worse than a normal distribution fitted to each
+    set by more than :data:`REFIT_WORSE_SIGMAS` standard deviations, or when its dark signal at the longest exposure
+    falls below :data:`REFIT_MIN_DARK_FRACTION` of the significant rise the sets' own fits measure.
+
+    Returns ``model`` ("end" or "well"), ``delta_nll``, ``latent``: id(stats) → (σ_R² + K²·DC·t [DN²], 1σ, o [DN]),
+    and ``warnings``.
     """
-    from camhealth.calibrate.statistics import poisson_gaussian_group_fit
+    from camhealth.calibrate.statistics import binned_normal_nll, poisson_gaussian_group_fit
 
     groups: dict[tuple[float, float], list[tuple[FrameSet, SetStatistics]]] = {}
     for fs, st in dark_stats:
@@ -480,30 +575,60 @@ def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: 
             continue
         k = members[0][0].gain_factor * k0
         (fb, sb), (fl, sl) = members[0], members[-1]
-        dc0 = max((sl.var_dn2 - sb.var_dn2) / (k * k * max(fl.exposure_s - fb.exposure_s, 1e-12)), 1e-3)
+        rise = sl.var_dn2 - sb.var_dn2
+        dc0 = max(rise / (k * k * max(fl.exposure_s - fb.exposure_s, 1e-12)), 1e-3)
+        # the offset starts at the shortest set's fitted (latent) mean; within σ/2 of 0 at 0, camhealth's offset-free
+        # model (a start several σ from the truth leaves the optimiser where every bin's likelihood is floored)
+        o0 = sb.mean_dn if math.isfinite(sb.mean_dn) and abs(sb.mean_dn) > 0.5 * sb.sigma_dn else 0.0
         hists = [(st.hist_edges_dn, st.hist_counts) for _, st in members]
         ts = [fs.exposure_s for fs, _ in members]
+        gauss = sum(binned_normal_nll(st.hist_edges_dn, st.hist_counts, (st.mean_dn, max(st.sigma_dn, 1e-6))) for _, st in members)
         nll = {}
         for model in ("end", "well"):
-            p, cov, nll[model] = poisson_gaussian_group_fit(hists, ts, k, model == "well", (0.0, max(sb.sigma_dn, 1e-6), dc0))
-            fits[model].append((members, k, p, cov))
+            p, cov, nll[model] = poisson_gaussian_group_fit(hists, ts, k, model == "well", (o0, max(sb.sigma_dn, 1e-6), dc0))
+            fits[model].append((members, k, p, cov, nll[model], gauss, rise))
         delta += nll["end"] - nll["well"]
     model = "well" if delta > WELL_CLIPPING_MIN_DELTA_NLL else "end"
-    latent = {}
-    for members, k, p, cov in fits[model]:
+    latent: dict[int, tuple[float, float, float]] = {}
+    warnings: list[str] = []
+    for members, k, p, cov, nll, gauss, rise in fits[model]:
         o, sr, dc = p
+        (fb, sb), (fl, sl) = members[0], members[-1]
+        dof = sum(int((st.hist_counts > 0).sum()) for _, st in members)  # bins with counts: the scale of the NLL's spread
+        worse = (nll - gauss) / math.sqrt(max(dof, 1))
+        rise_err = math.hypot(sl.var_err_dn2, sb.var_err_dn2)
+        dark_var = k * k * dc * fl.exposure_s
+        where = f"{fb.temperature_c:g} °C, {fb.gain_db:g} dB"
+        if worse > REFIT_WORSE_SIGMAS:
+            why = (f"its log-likelihood is {nll - gauss:.4g} worse than a normal distribution fitted to each set "
+                   f"({worse:.1f}σ; the fit did not converge, or the dark level changes with exposure)")
+        elif rise > 5 * rise_err and dark_var < REFIT_MIN_DARK_FRACTION * rise:
+            why = (f"it puts the dark signal at the longest exposure at {dark_var:.3g} DN², where the sets' own fits measure a "
+                   f"rise of {rise:.3g} ± {rise_err:.2g} DN² (the fit stuck at no dark current)")
+        else:
+            why = ""
+        if why:
+            warnings.append(
+                f"the Poisson refit of the clipped dark sets at {where} ({', '.join(repr(fs.name) for fs, _ in members)}) is not used: "
+                f"{why}; their Gaussian (censored) fits are used instead, whose dark current can be a few % high"
+            )
+            continue
         for fs, st in members:
+            if st.method != "censored":  # measured by the temporal estimator: kept
+                continue
             var = sr**2 + k * k * dc * fs.exposure_s
             grad = np.array([0.0, 2 * sr, k * k * fs.exposure_s])
             err = float(np.sqrt(max(grad @ cov @ grad, 0.0))) if np.all(np.isfinite(cov)) else st.var_err_dn2
             latent[id(st)] = (var, err, o)
-    return {"model": model, "delta_nll": delta, "latent": latent}
+    return {"model": model, "delta_nll": delta, "latent": latent, "warnings": warnings}
 
 
-def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+def _maps(dark_stats, flat_stats, ptc, hot, stuck=None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Hot pixels, dead pixels (:func:`~camhealth.calibrate.statistics.detect_dead_pixels` on the brightest unsaturated
-    flat's signal), DSNU map [DN] (master bias minus its mean), PRNU map [–] (that flat's master over the dark level,
-    relative to its mean), the masters, and the spatial non-uniformities."""
+    flat's signal, and the pixels at 0 DN in every frame of a flat: ``stuck``, id(flat stats) → mask), DSNU map [DN]
+    (master bias minus its mean), PRNU map [–] (that flat's master over the dark level, relative to its mean), the
+    masters, and the spatial non-uniformities."""
+    stuck = stuck or {}
     bias_fs, bias_st = min(dark_stats, key=lambda d: (d[0].exposure_s, d[0].temperature_c, d[0].gain_db))
     long_fs, long_st = max(dark_stats, key=lambda d: (d[0].temperature_c, d[0].exposure_s, d[0].gain_db))
     keep = ~hot if hot is not None else np.ones_like(bias_st.master_dn, dtype=bool)
@@ -513,9 +638,10 @@ def _maps(dark_stats, flat_stats, ptc, hot) -> tuple[dict[str, np.ndarray], dict
     flat_fs, flat_st = max(cands, key=lambda d: d[1].mean_dn / d[0].gain_factor)
     flat_point = next(p for p in ptc.used if p.name == flat_fs.name)
     signal = flat_st.master_dn - flat_point.dark_mean_dn
-    mean_signal = float(signal[keep].mean())
+    dead0 = np.logical_or.reduce(list(stuck.values())) if stuck else np.zeros_like(keep)
+    mean_signal = float(signal[keep & ~dead0].mean())
     prnu = signal / mean_signal - 1.0 if mean_signal > 0 else np.zeros_like(signal)
-    dead = detect_dead_pixels(signal, flat_st.sigma_dn, flat_st.n_frames, flat_st.step_dn, hot)
+    dead = detect_dead_pixels(signal, flat_st.sigma_dn, flat_st.n_frames, flat_st.step_dn, hot) | (dead0 & keep)
     maps = {
         "hot_pixels": (hot if hot is not None else np.zeros_like(dsnu, dtype=bool)).astype(bool),
         "dead_pixels": dead.astype(bool),

@@ -28,7 +28,13 @@ that allows it such an offset and the temporal estimator is used.
 
 The highest code is 255 DN (full scale), or the set's highest value where the values pile up there
 (:func:`top_clip_level`): a pixel full well reached below the ADC's range, or 10/12-bit data in a 16-bit word
-whose top code lies below 255 DN. A set whose frames are all identical has no temporal noise and is refused.
+whose top code lies below 255 DN; for a flat whose every value sits at one code above 0 DN, that code (a flat
+saturated at its full well). Any other set whose frames are all identical has no temporal noise and is refused.
+
+The quantisation step is that of the code grid the values lie on (:func:`quantisation_step`): the scale the files
+were read with when it is known (b-bit data read as value/(2^b − 1)), else the 16-bit grid or the grid of b = 9 … 15
+bits. Pixels at 0 DN in every frame of a lit set whose other values stay off 0 DN are dead, not clipping
+(:func:`stuck_at_zero`): the pipeline leaves them out of the flats' statistics.
 """
 
 from __future__ import annotations
@@ -54,6 +60,8 @@ __all__ = [
     "detect_dead_pixels",
     "DEAD_PIXEL_SIGMAS",
     "set_statistics",
+    "stuck_at_zero",
+    "binned_normal_nll",
     "poisson_gaussian_cdf",
     "poisson_gaussian_group_fit",
 ]
@@ -134,22 +142,37 @@ class SetStatistics:
         return math.sqrt(max(self.var_dn2, 0.0))
 
 
-def quantisation_step(frames: np.ndarray) -> float:
+def quantisation_step(frames: np.ndarray, bits: int | None = None) -> float:
     """Quantisation step of frames in [0, 1], in DN of 255: 1.0 for 8-bit data, 255/65535 for 16-bit data,
-    255·k/65535 for data on every k-th 16-bit code (10/12-bit data stored in 16 bits), 0.0 for continuous
-    values (floats that are not on a 16-bit code grid).
+    255·k/65535 for data on every k-th 16-bit code (10/12-bit data stored MSB-aligned in 16 bits), 255/(2^b − 1)
+    for b-bit data read as value/(2^b − 1) (a PNG's ``sBIT`` chunk, 10/12-bit data in the low bits, b = 9 … 15),
+    0.0 for continuous values (floats that are on none of these code grids).
 
-    The step is the greatest common divisor of the distinct codes below the 16-bit top (0 included: it divides by
+    ``bits``: the scale the frames were read with (value/(2^bits − 1)), when known: its grid is tried first. Without
+    it (or when the values are not on that grid), the 16-bit grid is tried, then the grids of b = 9 … 15 bits
+    (every value within 0.02 codes of a code of one of them).
+
+    The step is the greatest common divisor of the distinct codes below the grid's top (0 included: it divides by
     every step); it needs at least 2 of them — one code alone, e.g. a constant frame at 128 DN, would give its own
-    value as the step. With fewer, the step is one 16-bit code (the finest the input can have)."""
-    codes = frames.astype(np.float64) * _CODES
-    rounded = np.rint(codes)
-    if float(np.abs(codes - rounded).max(initial=0.0)) > 0.02:
-        return 0.0
-    unique = np.unique(rounded.astype(np.int64))
-    below = unique[unique < _CODES]  # the clipped top says nothing about the step
-    step = int(np.gcd.reduce(below)) if below.size >= 2 else 1
-    return 255.0 * max(step, 1) / _CODES
+    value as the step. With fewer, the step is one code of the grid (the finest the input can have)."""
+    flat = np.asarray(frames).ravel()
+    grids = [_CODES] + [2**b - 1 for b in range(9, 16)]
+    if bits is not None and 2 <= int(bits) <= 16:
+        grids = [2 ** int(bits) - 1] + [g for g in grids if g != 2 ** int(bits) - 1]
+    for top in grids:
+        if not _on_grid(flat[:4096], top) or not _on_grid(flat, top):
+            continue
+        unique = np.unique(np.rint(flat.astype(np.float64) * top).astype(np.int64))
+        below = unique[unique < top]  # the clipped top says nothing about the step
+        step = int(np.gcd.reduce(below)) if below.size >= 2 else 1
+        return 255.0 * max(step, 1) / top
+    return 0.0
+
+
+def _on_grid(values: np.ndarray, top: int) -> bool:
+    """Whether every value·top lies within 0.02 of an integer (values on the code grid k/top)."""
+    codes = values.astype(np.float64) * top
+    return float(np.abs(codes - np.rint(codes)).max(initial=0.0)) <= 0.02
 
 
 def top_clip_level(values_dn: np.ndarray, step_dn: float) -> float:
@@ -372,11 +395,31 @@ def detect_dead_pixels(signal_dn: np.ndarray, temporal_sigma_dn: float, n_frames
     return (resid < -DEAD_PIXEL_SIGMAS * scale) & keep
 
 
+def stuck_at_zero(frames: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
+    """Pixels (H×W bool) at 0 DN in every frame of a lit set (dead pixels: no response), when the set's other pixels
+    have at most :data:`CENSORED_ABOVE` of their values at 0 DN; else none. Under that condition a pixel whose
+    distribution reaches 0 DN in every one of N ≥ 2 frames is not part of the set's distribution (its chance is
+    below CENSORED_ABOVE^N), so it is left out of the set's statistics instead of being counted as clipping; in a
+    set whose values reach 0 DN by themselves (a dark frame of a camera without offset) nothing is left out."""
+    x = np.asarray(frames)
+    stuck = (x <= 0.0).all(axis=0)
+    if exclude is not None:
+        stuck &= ~np.asarray(exclude, dtype=bool)
+    if x.shape[0] < 2 or not stuck.any():
+        return np.zeros(x.shape[1:], dtype=bool)
+    others = ~stuck if exclude is None else ~stuck & ~np.asarray(exclude, dtype=bool)
+    if not others.any() or float((x[:, others] <= 0.0).mean()) > CENSORED_ABOVE:
+        return np.zeros(x.shape[1:], dtype=bool)
+    return stuck
+
+
 def set_statistics(
     frames: np.ndarray, exclude: np.ndarray | None = None, step_dn: float | None = None, name: str = "the set",
+    flat: bool = False,
 ) -> SetStatistics:
     """Statistics of a set of frames (N×H×W in [0, 1]); ``exclude`` (H×W bool) masks pixels (hot pixels); ``name``
-    labels the set in errors.
+    labels the set in errors. ``flat``: a lit set, whose values all at one code above 0 DN are saturated (a full
+    well below the ADC's range; method ``"clipped"`` with every value at the top code), not a frozen image.
 
     Raises ``ValueError`` for fewer than 2 frames, an empty set, or frames that are all identical (no pixel
     changes from frame to frame: no temporal noise to measure) unless (almost) every value is clipped.
@@ -396,6 +439,8 @@ def set_statistics(
     vals = dn[:, keep]  # N × P
     n_pix = int(keep.sum())
     upper = top_clip_level(vals, step)
+    if flat and float(vals.min()) == float(vals.max()) > 0.0:  # one code throughout a lit set: saturated there
+        upper = float(vals.max())
     low = vals <= 0.0 + 1e-9
     high = vals >= upper - 1e-9
     n_low, n_high = int(low.sum()), int(high.sum())
@@ -482,6 +527,25 @@ def _histogram(vals: np.ndarray, step: float, sigma: float, upper: float = 255.0
     if hi_v >= upper - 1e-9:
         edges[-1] = np.inf
     return edges, counts.astype(np.float64)
+
+
+def binned_normal_nll(edges: np.ndarray, counts: np.ndarray, start: tuple[float, float]) -> float:
+    """The smallest negative log-likelihood of a normal distribution (µ, σ free) for a histogram with bin ``edges``
+    (the first may be −∞, the last +∞: clipped values) and ``counts``, started at ``start`` = (µ, σ): the
+    Gaussian fit a model of the same histogram is compared with."""
+    e = np.asarray(edges, dtype=np.float64)
+    n = np.asarray(counts, dtype=np.float64)
+    total = max(float(n.sum()), 1.0)
+
+    def nll(mu: float, sd: float) -> float:
+        a, b = (e[:-1] - mu) / sd, (e[1:] - mu) / sd
+        p = np.where(a > 0, special.ndtr(-a) - special.ndtr(-b), special.ndtr(b) - special.ndtr(a))
+        return float(-(n * np.log(np.maximum(p, 1e-300))).sum())
+
+    x0 = np.array([float(start[0]), math.log(max(float(start[1]), 1e-6))])
+    res = optimize.minimize(lambda q: nll(q[0], math.exp(q[1])) / total, x0, method="Nelder-Mead",
+                            options={"xatol": 1e-9, "fatol": 1e-13, "maxiter": 4000})
+    return min(nll(float(res.x[0]), math.exp(float(res.x[1]))), nll(float(x0[0]), math.exp(float(x0[1]))))
 
 
 def _nll_binned(cdf, edges: np.ndarray, counts: np.ndarray) -> float:

@@ -457,3 +457,283 @@ def test_frame_set_gain_outside_the_metadata_range_is_refused_naming_the_range(g
 def test_max_frames_below_the_minimum_is_refused(max_frames):
     with pytest.raises(ValueError, match=rf"max_frames = {max_frames!r} must be None \(every frame\) or an integer ≥ 4"):
         calibrate(_sets(), max_frames=max_frames)
+
+
+# ------------------------------------------------------------------------------------------------ audited inputs and physics
+def test_clipped_darks_of_a_camera_with_an_offset_give_the_dark_current():
+    """A 5000 e⁻ camera with an 8 DN offset: a few % of its dark values reach 0 DN (censored estimator), and the Poisson
+    refit, started at o = 0 where every bin's likelihood is floored, converged to no dark current (−100 %, read noise
+    +11 %) with only a "no dark current detected" warning."""
+    true = CameraMetadata.preset("ICX285").replace(full_well_e=5000.0)
+    sets = synthetic_sets(true, SMALL, frames=8, size=64, seed=3, simulate=_simulator(offset_dn=8.0, bits=16))
+    res = calibrate(sets, camera=_datasheet(true))
+    assert {r.method for r in res.sets if r.kind != "flat"} == {"censored"}
+    fw, rn, dc = _errors(true, res.metadata)
+    assert abs(fw) < 0.02 and abs(rn) < 0.02 and abs(dc) < 4 * res.fields["dark_fom_na_per_cm2"].relative + 0.02
+    assert not any("dark current" in w or "refit" in w for w in res.warnings)
+
+
+def _lsb(frames, bits):
+    """The same codes as b-bit data read as value/(2^b − 1) (a PNG with sBIT, or data in the low bits)."""
+    q = 2**bits - 1
+    return (np.rint(frames * q) / q).astype(np.float32)
+
+
+@pytest.mark.parametrize("bits", [10, 12])
+def test_b_bit_codes_read_as_value_over_2b_minus_1_give_the_msb_aligned_numbers(bits):
+    """10/12-bit codes read as k/(2^b − 1) lost their quantisation step (read noise +5.4 % at 10 bits, −2.7 % at 12
+    bits against the same codes MSB-aligned in 16 bits)."""
+    true = CameraMetadata.preset("ICX285")
+    base = synthetic_sets(true, SMALL, frames=8, size=64, seed=3)
+    q = 2**bits - 1
+    msb = [FrameSet(s.kind, s.exposure_s, s.gain_db, s.temperature_c, frames=(np.rint(s.frames * q) * 2 ** (16 - bits) / 65535).astype(np.float32),
+                    name=s.name) for s in base]
+    lsb = [FrameSet(s.kind, s.exposure_s, s.gain_db, s.temperature_c, frames=_lsb(s.frames, bits), name=s.name) for s in base]
+    a, b = calibrate(msb, camera=_datasheet(true)), calibrate(lsb, camera=_datasheet(true))
+    assert all(r.step_dn == pytest.approx(255 / q) for r in b.sets)
+    for f in ("full_well_e", "white_noise_v_per_rthz", "dark_fom_na_per_cm2"):
+        assert b.fields[f].value == pytest.approx(a.fields[f].value, rel=0.3 * a.fields[f].relative), f
+
+
+def _png(path, codes, sbit=None):
+    """A gray PNG of integer ``codes`` (uint8 or uint16), with an sBIT chunk of ``sbit`` bits."""
+    import struct
+    import zlib
+    from PIL import Image
+
+    Image.fromarray(codes).save(path)
+    if sbit is not None:
+        data = path.read_bytes()
+        chunk = b"sBIT" + bytes([sbit])
+        path.write_bytes(data[:33] + struct.pack(">I", 1) + chunk + struct.pack(">I", zlib.crc32(chunk) & 0xFFFFFFFF) + data[33:])
+
+
+def test_a_png_with_sbit_is_read_with_its_step(tmp_path):
+    from camhealth.calibrate.frames import load_frames_with_depth
+    from camhealth.calibrate.pipeline import _load_checked
+
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        _png(tmp_path / f"{i}.png", rng.integers(1000, 1100, (8, 8)).astype(np.uint16), sbit=12)
+    fs = FrameSet("dark", 0.1, paths=sorted(tmp_path.glob("*.png")))
+    x, depth = load_frames_with_depth(fs)
+    assert depth.depth.bits == 12 and depth.depth.source == "sBIT" and x.max() < 1100 / 4095 + 1e-6
+    assert _load_checked(fs, None, None, "")[1] == pytest.approx(255 / 4095)
+
+
+def test_a_set_mixing_8_and_16_bit_files_is_refused_naming_them(disk_stack, tmp_path, capsys):
+    """Every other frame of a set saved as 8-bit PNG: accepted, with the 16-bit step (0.0039 DN) for the whole set, so
+    the 8-bit frames' q²/12 = 0.083 DN² stayed in the variance (full well −2.9 %, dark current −11 %)."""
+    from camhealth.calibrate.frames import load_frames
+
+    rng = np.random.default_rng(1)
+    files = []
+    for i in range(4):
+        f = np.clip(rng.normal(0.3, 0.01, (32, 32)), 0, 1)
+        p = tmp_path / f"dark_100ms_0dB_25C_{i:04d}.png"
+        _png(p, np.rint(f * 65535).astype(np.uint16) if i % 2 == 0 else np.rint(f * 255).astype(np.uint8))
+        files.append(p)
+    with pytest.raises(ValueError, match=r"dark set .* mixes bit depths \(16-bit: 2 frame\(s\) \(.*_0000\.png, .*_0002\.png\); "
+                                         r"8-bit: 2 frame\(s\) \(.*_0001\.png, .*_0003\.png\)\)"):
+        load_frames(FrameSet("dark", 0.1, paths=files))
+    root, _, _ = disk_stack
+    manifest = yaml.safe_load((root / "manifest.yaml").read_text())
+    for entry in manifest["sets"]:
+        entry["path"] = str(root / entry["path"])
+    manifest["sets"].append({"kind": "dark", "path": [f.name for f in files], "exposure_s": 0.1, "gain_db": 0, "temperature_c": 25})
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(manifest))
+    assert main([str(tmp_path / "m.yaml"), "--out", str(tmp_path / "o" / "c.yaml")]) == 2
+    assert "mixes bit depths" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def _disk_copy(sets, root, lsb_bits=None):
+    """Sets as 16-bit PNG folders named by the convention (``lsb_bits``: b-bit codes in the low bits, no sBIT)."""
+    folders = []
+    for i, s in enumerate(sets):
+        name = f"{s.kind}_{s.exposure_s * 1e3:g}ms_{s.gain_db:g}dB_{s.temperature_c:g}C" + (f"_L{i}" if s.kind == "flat" else "")
+        (root / name).mkdir(parents=True)
+        q = 65535 if lsb_bits is None else 2**lsb_bits - 1
+        for j, f in enumerate(s.frames):
+            _png(root / name / f"{j:03d}.png", np.rint(f * q).astype(np.uint16))
+        folders.append(root / name)
+    return folders
+
+
+def test_12_bit_data_in_the_low_bits_of_16_bit_files_are_refused_unless_the_bit_depth_is_given(tmp_path, capsys):
+    """12-bit codes in 16-bit PNGs without sBIT (OpenCV, many SDKs) were read as value/65535: every value below 16 DN,
+    a full well 16× too large (ICX285: 220 000 e⁻ for 14 000 e⁻) and no warning."""
+    true = CameraMetadata.preset("ICX285")
+    folders = _disk_copy(synthetic_sets(true, SMALL, frames=4, size=32, seed=7), tmp_path / "stack", lsb_bits=12)
+    sheet = _datasheet(true)
+    with pytest.raises(ValueError, match=r"hold values up to \d+ of 65535 only .* look like 12-bit data stored in the low bits.*--bit-depth 12"):
+        calibrate(folders, camera=sheet, gain_db=None)
+    res = calibrate(folders, camera=sheet, gain_db=None, bit_depth=12)
+    assert abs(res.fields["full_well_e"].value / 14000 - 1) < 0.05
+    assert all(r.step_dn == pytest.approx(255 / 4095) for r in res.sets)
+    out = tmp_path / "out" / "c.yaml"
+    assert main([*map(str, folders), "--out", str(out), "--sensor-type", "CCD"]) == 2
+    assert "low bits" in capsys.readouterr().err and not out.parent.exists()
+    assert main([*map(str, folders), "--out", str(out), "--sensor-type", "CCD", "--bit-depth", "12"]) == 0
+    with pytest.raises(SystemExit) as info:
+        main([*map(str, folders), "--out", str(out), "--bit-depth", "20"])
+    assert info.value.code == 2 and "argument --bit-depth: must lie in [8, 16] bits, got 20" in capsys.readouterr().err
+
+
+def test_a_flat_saturated_at_one_code_below_255_dn_is_left_out():
+    """A flat whose every value sits at the pixels' full well (200 DN): EMVA 1288's series runs up to saturation, but it
+    aborted the calibration as a "frozen image"."""
+    sets, sheet = _icx(flat_levels=(0.1, 0.3, 0.6, 0.95), top_dn=200.0)
+    res = calibrate(sets, camera=sheet)
+    assert abs(res.fields["full_well_e"].value / 14000 - 1) < 0.02
+    left_out = {s.name: s.note for s in res.sets if not s.used}
+    assert set(left_out) == {"flat_10ms_0dB_25C_L0.95", "flat_10ms_12dB_25C_L0.95"}
+    assert all(n.startswith("saturated: 100.0 %") for n in left_out.values())
+
+
+def test_dead_pixels_at_0_dn_are_left_out_of_the_flats_and_flagged():
+    """One pixel at 0 DN in every flat frame (0.043 % of a 48×48 frame: above the 0.01 % clipping limit) sent every flat
+    to the censored estimator and out of the photon transfer: "0 usable flat set(s) of 6"."""
+    true = CameraMetadata.preset("ICX285")
+    sets = synthetic_sets(true, SMALL, frames=6, size=48, seed=4)
+    for s in sets:
+        if s.kind == "flat":
+            s.frames[:, 20, 30] = 0.0
+    res = calibrate(sets, camera=_datasheet(true))
+    assert all(r.used and r.method == "temporal" for r in res.sets if r.kind == "flat")
+    assert abs(_errors(true, res.metadata)[0]) < 0.02
+    assert {tuple(p) for p in np.argwhere(res.maps["dead_pixels"])} == {(20, 30)} and res.emva["dead_pixels"] == 1
+    assert any(w.startswith("1 pixel(s) read 0 DN in every frame of 6 flat set(s)") for w in res.warnings)
+
+
+def test_a_lossy_video_is_refused_naming_its_codec(tmp_path, capsys):
+    """MJPEG (or H.264, MPEG-4 …) removes part of the temporal noise: 12 dB flats only gave a full well +13 % and a read
+    noise −47 % with one generic warning. A lossless FFV1 video of the same frames is read as they are."""
+    import cv2
+
+    from camhealth.calibrate.frames import load_frames
+
+    rng = np.random.default_rng(2)
+    frames = np.clip(np.rint(rng.normal(60, 3, (4, 32, 32))), 0, 255).astype(np.uint8)
+    for name, codec in (("flat_10ms_12dB_25C_L1.avi", "MJPG"), ("flat_10ms_12dB_25C_L2.mkv", "FFV1")):
+        w = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*codec), 10, (32, 32), isColor=False)
+        for f in frames:
+            w.write(f)
+        w.release()
+    lossless = load_frames(FrameSet("flat", 0.01, paths=[tmp_path / "flat_10ms_12dB_25C_L2.mkv"]))
+    assert np.array_equal(np.rint(lossless * 255), frames)
+    with pytest.raises(ValueError, match=r"flat_10ms_12dB_25C_L1\.avi uses the codec 'MJPG', which is not lossless.*FFV1"):
+        load_frames(FrameSet("flat", 0.01, paths=[tmp_path / "flat_10ms_12dB_25C_L1.avi"]))
+    out = tmp_path / "o" / "c.yaml"
+    assert main([str(tmp_path / "flat_10ms_12dB_25C_L1.avi"), "--out", str(out), "--temperature-c", "25"]) == 2
+    assert "codec 'MJPG', which is not lossless" in capsys.readouterr().err and not out.parent.exists()
+
+
+def test_outputs_may_not_overwrite_files_a_manifest_names_nor_the_report_go_into_a_frame_folder(disk_stack, tmp_path, capsys):
+    """The overwrite check compared the outputs with the command line's FRAMES only: --out onto a frame the manifest
+    names overwrote it (exit 0), and --report onto a set's folder put calibration.png and maps.png among its frames."""
+    import shutil
+
+    src, _, _ = disk_stack
+    root = tmp_path / "stack"
+    shutil.copytree(src, root)
+    man = root / "manifest.yaml"
+    folder = root / yaml.safe_load(man.read_text())["sets"][3]["path"]
+    frame = folder / "000.png"
+    before = frame.read_bytes()
+    for argv, message in (
+        (["--out", str(frame)], f"argument --out: writing {frame} would overwrite the input {frame}"),
+        (["--out", str(folder / "cam.yaml")], f"argument --out: {folder / 'cam.yaml'} lies in the frame folder {folder}"),
+        (["--out", str(tmp_path / "c.yaml"), "--maps", str(folder / "001.png")], "argument --maps: writing"),
+        (["--out", str(tmp_path / "c.yaml"), "--report", str(folder)], f"argument --report: {folder} is the frame folder"),
+        (["--out", str(tmp_path / "c.yaml"), "--report", str(folder / "rep")], "argument --report: "),
+    ):
+        with pytest.raises(SystemExit) as info:
+            main([str(man), *argv])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and message in err and "Traceback" not in err, (argv, err)
+    assert frame.read_bytes() == before and sorted(p.name for p in folder.iterdir()) == [f"{i:03d}.png" for i in range(5)]
+    assert not (tmp_path / "c.yaml").exists()
+    loose = tmp_path / "loose"  # image files named on the command line: the report may not go into their folder
+    loose.mkdir()
+    files = []
+    for i in range(4):
+        p = loose / f"dark_100ms_0dB_25C_{i:04d}.png"
+        _png(p, np.full((8, 8), 10 + i, np.uint8))
+        files.append(str(p))
+    with pytest.raises(SystemExit) as info:
+        main([*files, "--out", str(tmp_path / "c.yaml"), "--report", str(loose)])
+    assert info.value.code == 2 and f"argument --report: {loose} holds the input" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name, message", [
+    ("flat_10ms_-6dB_25C_L1", r"token '-6dB' gives a gain of -6 dB, outside camhealth's gain range \[0, 24\] dB; accepted spellings of the gain: 12dB"),
+    ("dark_100ms_12dB_40C_200ms", r"tokens '100ms' and '200ms' both give the exposure"),
+    ("dark_100ms_12,5dB_40C", r"token '12,5dB' looks like a gain but is not a number with that unit"),
+    ("dark_100ms_12dB_200C", r"token '200C' gives a sensor temperature of 200 °C, outside \[-60, 150\] °C; accepted spellings of the temperature: 40C, 40°C, 40degC"),
+    ("dark_100ms_6dB_25C_40degC", r"tokens '25C' and '40degC' both give the temperature"),
+    ("dark_100 ms_6dB_40C", r"token '100 ms' splits a number from its unit"),
+])
+def test_malformed_name_tokens_are_refused_naming_them(name, message):
+    """Such tokens became part of the label and the --gain-db default (0 dB) or the last exposure replaced them."""
+    with pytest.raises(ValueError, match=message):
+        parse_set_name(name)
+
+
+def test_signed_and_degree_temperature_and_gain_tokens_are_read(tmp_path):
+    assert parse_set_name("dark_100ms_+6dB_25°C") == {"kind": "dark", "exposure_s": pytest.approx(0.1), "gain_db": 6.0,
+                                                     "temperature_c": 25.0, "label": ""}
+    assert parse_set_name("dark_100ms_6dB_40degC")["temperature_c"] == 40.0
+    assert parse_set_name("bias_1ms_0dB_-10C")["temperature_c"] == -10.0
+    from camhealth.calibrate import sets_from_paths
+
+    folder = tmp_path / "flat_10ms_-6dB_25C_L1"
+    _write_set(folder, [np.zeros((8, 8))] * 4, bits=8)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(folder))}: 'flat_10ms_-6dB_25C_L1': token '-6dB'"):
+        sets_from_paths([folder], gain_db=0.0)
+
+
+def test_a_manifest_contradicting_its_folders_name_is_refused_naming_both(tmp_path):
+    folder = tmp_path / "dark_200ms_12dB_40C"
+    _write_set(folder, [np.full((8, 8), 0.1)] * 4, bits=8)
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"sets": [
+        {"kind": "bias", "path": folder.name, "exposure_s": 0.001, "gain_db": 0, "temperature_c": 75}]}))
+    with pytest.raises(ValueError, match=r"set 1: exposure_s = 0\.001 s \(the name: 0\.2 s\); gain_db = 0 dB \(the name: 12 dB\); "
+                                         r"temperature_c = 75 °C \(the name: 40 °C\) contradict the name 'dark_200ms_12dB_40C'"):
+        read_manifest(tmp_path / "m.yaml")
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"sets": [
+        {"kind": "flat", "path": folder.name, "exposure_s": 0.2, "gain_db": 12, "temperature_c": 40}]}))
+    with pytest.raises(ValueError, match=r"kind 'flat' contradicts the name 'dark_200ms_12dB_40C' \(dark\)"):
+        read_manifest(tmp_path / "m.yaml")
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"sets": [  # agreeing values (bias/dark alike) are accepted
+        {"kind": "bias", "path": folder.name, "exposure_s": 0.2, "gain_db": 12, "temperature_c": 40}]}))
+    assert read_manifest(tmp_path / "m.yaml").sets[0].exposure_s == 0.2
+
+
+def test_a_yaml_alias_bomb_is_refused_at_once_with_a_short_message(tmp_path):
+    """Nested aliases in a set's path: str() of each item expanded them (a 296-byte manifest, a 73 kB error message;
+    10× per level)."""
+    import time
+
+    nested = "&a0 [x]"
+    for i in range(1, 4):
+        nested = f"&a{i} [" + ", ".join([nested] + [f"*a{i - 1}"] * 9) + "]"
+    p = tmp_path / "bomb.yaml"
+    p.write_text("sets:\n  - {kind: dark, exposure_s: 0.1, gain_db: 0, temperature_c: 25, path: [" + ", ".join([nested] + ["*a3"] * 9) + "]}\n")
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError) as info:
+        read_manifest(p)
+    assert time.perf_counter() - t0 < 1.0 and len(str(info.value)) < 400
+    assert re.search(r"line \d+: YAML alias \*a0 refused", str(info.value))
+    p.write_text("sets:\n  - {kind: dark, exposure_s: 0.1, gain_db: 0, temperature_c: 25, path: [[a, [b, [c, [d, [e]]]]]]}\n")
+    with pytest.raises(ValueError, match=r"set 1: path items must be strings \(file, folder or glob names\), got list \['a', \[.*\]\]$"):
+        read_manifest(p)
+
+
+@pytest.mark.parametrize("temperature", [500.0, -100.0])
+def test_an_out_of_range_temperature_is_refused_naming_the_range(temperature, tmp_path, capsys):
+    with pytest.raises(ValueError, match=rf"set d: temperature_c = {temperature:g} °C is not a sensor temperature: it must lie in "
+                                         r"\[-60, 150\] °C \(the operating point written to the metadata is clipped to camhealth's 0 … 80 °C\)"):
+        FrameSet("dark", 0.1, temperature_c=temperature, frames=np.zeros((4, 8, 8), np.float32), name="d")
+    with pytest.raises(SystemExit) as info:
+        main([str(tmp_path / "dark_200ms"), "--out", str(tmp_path / "c.yaml"), f"--temperature-c={temperature:g}"])
+    assert info.value.code == 2 and f"argument --temperature-c: must lie in [-60, 150] °C (a sensor temperature), got {temperature:g}" in capsys.readouterr().err

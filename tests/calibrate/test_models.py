@@ -226,3 +226,89 @@ def test_gains_whose_k0_contradict_k_proportional_to_g_are_refused():
         fit_photon_transfer(_flats(k0, k_of_gain={12.0: 1.5 * k0}), lambda t, tk, g: (0.3 * g * g, 1e-4))
     fit = fit_photon_transfer(_flats(k0, k_of_gain={12.0: 1.001 * k0}), lambda t, tk, g: (0.3 * g * g, 1e-4))  # within its σ
     assert set(fit.per_gain) == {0.0, 12.0}
+
+
+@pytest.mark.parametrize("bits", [10, 12, 14])
+def test_quantisation_step_of_b_bit_data_read_as_value_over_2b_minus_1(bits):
+    """b-bit codes read as k/(2^b − 1) (a PNG's sBIT chunk, 10/12-bit data in the low bits) are off the 16-bit grid;
+    their step 255/(2^b − 1) DN was lost (0: "continuous"), so no q²/12 was removed and clipped sets were not fitted
+    as code intervals."""
+    q = 2**bits - 1
+    rng = np.random.default_rng(bits)
+    x = (np.clip(np.rint(rng.normal(0.3 * q, 0.01 * q, (4, 16, 16))), 0, q) / q).astype(np.float32)
+    assert quantisation_step(x) == pytest.approx(255 / q)
+    assert quantisation_step(x, bits) == pytest.approx(255 / q)
+    assert quantisation_step((np.rint(x * q) * 3 / q).astype(np.float32) / 3) == pytest.approx(255 / q)  # same codes
+    assert quantisation_step(rng.random((4, 16, 16)).astype(np.float32)) == 0.0  # continuous values stay continuous
+
+
+def test_a_flat_at_one_code_below_255_dn_is_saturated_not_frozen():
+    """Every value of a flat at 200 DN (a full well below the ADC's range): saturated (method "clipped", every value at
+    the top code), where it was refused as a frozen image; a bias set so is still refused."""
+    const = np.full((6, 16, 16), 200 / 255, np.float32)
+    st = set_statistics(const, flat=True)
+    assert st.method == "clipped" and st.clipped_high == 1.0 and st.upper_dn == pytest.approx(200.0)
+    with pytest.raises(ValueError, match="frames are identical"):
+        set_statistics(const)
+
+
+def test_pixels_at_0_dn_in_every_frame_of_a_lit_set_are_stuck_but_not_in_a_clipped_dark():
+    from camhealth.calibrate.statistics import stuck_at_zero
+
+    rng = np.random.default_rng(8)
+    flat = np.clip(rng.normal(100, 3, (6, 64, 64)), 0, 255)
+    flat[:, 20, 30] = 0.0
+    stuck = stuck_at_zero((flat / 255).astype(np.float32))
+    assert {tuple(p) for p in np.argwhere(stuck)} == {(20, 30)}
+    st = set_statistics((flat / 255).astype(np.float32), stuck, flat=True)
+    assert st.method == "temporal" and st.clipped_low == 0.0 and st.sigma_dn == pytest.approx(3.0, rel=0.03)
+    # a zero-offset dark clips half of its values: a pixel at 0 DN in all frames is part of its distribution
+    dark = np.clip(rng.normal(0, 2, (2, 64, 64)), 0, 255)
+    assert (dark <= 0).all(0).any() and not stuck_at_zero((dark / 255).astype(np.float32)).any()
+
+
+def _dark_group(offset_dn, k=0.204, sr_e=12.5, dc=700.0, temps=(0.001, 0.1, 0.2), seed=1):
+    """Dark sets at one temperature: offset + K·(Poisson(DC·t) − DC·t) + N(0, K·σ_R), 16-bit, clipped at 0."""
+    from camhealth.calibrate.frames import FrameSet
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for t in temps:
+        s = dc * t
+        y = offset_dn + k * (rng.poisson(s, (8, 64, 64)) - s) + k * sr_e * rng.standard_normal((8, 64, 64))
+        x = (np.rint(np.clip(y, 0, 255) / 255 * 65535) / 65535).astype(np.float32)
+        fs = FrameSet("bias" if t == temps[0] else "dark", t, 12.0, 75.0, frames=x, name=f"d{t:g}")
+        out.append((fs, set_statistics(x)))
+    return out
+
+
+@pytest.mark.parametrize("offset", [6.0, 10.0])
+def test_dark_refit_starts_at_the_offset_and_keeps_the_temporal_sets(offset):
+    """Offsets of a few σ: the refit started at o = 0, where every bin's likelihood is floored, and converged to no dark
+    current (−100 % at 6 DN, −43 % at 10 DN, the read noise +7…9 %), and wrote that over the sets the temporal estimator
+    had measured. It starts at the sets' offset now and replaces the variance of the clipped (censored) sets only."""
+    from camhealth.calibrate.pipeline import _refit_censored_darks
+
+    k0 = 0.204 / 10 ** (12 / 20)
+    stats = _dark_group(offset)
+    methods = [st.method for _, st in stats]
+    assert "censored" in methods and ("temporal" in methods) == (offset == 10.0)
+    out = _refit_censored_darks(stats, k0)
+    var, _, o = out["latent"][id(stats[-1][1])]
+    assert o == pytest.approx(offset, abs=0.05)
+    assert var == pytest.approx(0.204**2 * (12.5**2 + 700.0 * 0.2), rel=0.03)
+    assert set(out["latent"]) == {id(st) for _, st in stats if st.method == "censored"}  # temporal sets keep theirs
+    assert not out.get("warnings") and out["model"] == "end"
+
+
+def test_a_dark_refit_stuck_at_no_dark_current_is_not_used(monkeypatch):
+    """A refit that converges to DC = 0 (here: forced to start at o = 0 with the offset at 6 DN) is worse than the sets'
+    own Gaussian fits: it is not used, with a warning, and the sets keep their censored variance."""
+    import camhealth.calibrate.statistics as statistics
+    from camhealth.calibrate.pipeline import _refit_censored_darks
+
+    fit = statistics.poisson_gaussian_group_fit
+    monkeypatch.setattr(statistics, "poisson_gaussian_group_fit", lambda h, t, k, c, start: fit(h, t, k, c, (0.0, *start[1:])))
+    out = _refit_censored_darks(_dark_group(6.0), 0.204 / 10 ** (12 / 20))
+    assert out["latent"] == {} and len(out["warnings"]) == 1
+    assert out["warnings"][0].startswith("the Poisson refit of the clipped dark sets at 75 °C, 12 dB ('d0.001', 'd0.1', 'd0.2') is not used")
