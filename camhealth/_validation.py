@@ -50,13 +50,20 @@ def check_finite(x: torch.Tensor, name: str) -> torch.Tensor:
     return x
 
 
-def check_image(x: object, name: str = "input", channels: int | None = 1) -> torch.Tensor:
-    """Validate a Kornia-style image batch ``B×C×H×W`` in [0, 1].
+def check_image(
+    x: object, name: str = "input", channels: int | None = 1, value_range: tuple[float, float] | None = None
+) -> torch.Tensor:
+    """Validate a Kornia-style image batch ``B×C×H×W``: a floating, finite, non-empty 4-D tensor.
 
     Args:
         x: candidate image batch.
         name: name used in error messages.
         channels: required channel count (camhealth images are monochrome, C = 1); ``None`` accepts any.
+        value_range: ``(low, high)``: also require every value in ``[low, high]`` (camhealth images: ``(0.0, 1.0)``,
+            intensities DN/255); ``None`` (default) checks no range.
+
+    Raises ``TypeError`` for a non-tensor or a non-floating dtype, ``ValueError`` for a wrong shape or channel count,
+    an empty batch, NaN/inf, or (with ``value_range``) a value outside the range, naming the offending value(s).
     """
     x = check_float(check_tensor(x, name), name)
     if x.ndim != 4:
@@ -68,7 +75,16 @@ def check_image(x: object, name: str = "input", channels: int | None = 1) -> tor
         )
     if x.shape[0] == 0 or x.shape[2] == 0 or x.shape[3] == 0:
         raise ValueError(f"{name} must not be empty, got shape {tuple(x.shape)}")
-    check_finite(x, name)
+    if value_range is None:
+        check_finite(x, name)
+    else:  # one reduction for both checks: NaN propagates into min and max, ±inf lands in one of them
+        low, high = float(value_range[0]), float(value_range[1])
+        lo, hi = torch.aminmax(x.detach())
+        if not bool(torch.isfinite(lo) & torch.isfinite(hi)):
+            check_finite(x, name)
+        if lo < low or hi > high:
+            hint = " (DN/255)" if (low, high) == (0.0, 1.0) else ""
+            raise ValueError(f"{name} must lie in [{low:g}, {high:g}]{hint}, got values in [{lo.item():g}, {hi.item():g}]")
     return x
 
 

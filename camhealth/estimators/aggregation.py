@@ -32,7 +32,7 @@ from typing import Sequence
 
 import torch
 
-from camhealth._validation import check_choice, check_float, check_tensor
+from camhealth._validation import FLOAT_DTYPES, check_choice, check_tensor
 
 __all__ = ["WINDOW_SIZES", "MAD_TO_STD", "Aggregate", "temporal_median", "spatial_median", "uncertainty_by_window"]
 
@@ -61,7 +61,11 @@ class Aggregate:
 
 
 def _check_estimates(x: object, name: str) -> torch.Tensor:
-    x = check_float(check_tensor(x, name), name)
+    """A floating tensor of estimates in their own unit (DN, dimensionless MTF …); NaN allowed, ±inf not."""
+    x = check_tensor(x, name)
+    if x.dtype not in FLOAT_DTYPES:  # estimates are not images: no "/ 255" hint, their unit stays as it is
+        raise TypeError(f"{name} must be a floating tensor (float16, bfloat16, float32 or float64), got dtype {x.dtype}; "
+                        f"convert with {name}.float() (the values keep their unit)")
     if bool(torch.isinf(x).any()):
         raise ValueError(f"{name} must not hold ±inf (use NaN for patches that could not be assessed)")
     return x
@@ -151,7 +155,7 @@ def uncertainty_by_window(
 ) -> dict[int, dict[str, float]]:
     """Dispersion of the aggregated estimates versus the window size (Eq. 5.5, Tab. 5.3).
 
-    For every n in ``windows`` that fits the T frames: aggregate with :func:`temporal_median`
+    For every n in ``windows`` (ints; sizes outside [1, T] are skipped) that fits the T frames: aggregate with :func:`temporal_median`
     (``stride="sliding"``: one window per frame position; ``"disjoint"``: non-overlapping windows) and
     pool all aggregated values (every window position and patch) into P_σ̃n. Returns, per n,
     ``{"std": σ_σ̃n, "median": median of P_σ̃n, "delta": Δ_{1→n} = σ_σ̃1 − σ_σ̃n, "mean_spread": mean
@@ -160,8 +164,13 @@ def uncertainty_by_window(
     """
     check_choice(stride, "stride", ("sliding", "disjoint"))
     x = _check_estimates(estimates, "estimates")
+    if x.ndim == 0:
+        raise ValueError("estimates must have a frame axis, got a scalar")
+    for n in windows:
+        if isinstance(n, bool) or not isinstance(n, int):
+            raise TypeError(f"every window must be an int (frames), got {n!r} ({type(n).__name__})")
     t = x.shape[dim % x.ndim]
-    sizes = sorted({int(n) for n in windows if 1 <= int(n) <= t} | {1})
+    sizes = sorted({n for n in windows if 1 <= n <= t} | {1})
     out: dict[int, dict[str, float]] = {}
     for n in sizes:  # a handful of window sizes, each one vectorised
         agg = temporal_median(x, n, stride=1 if stride == "sliding" else n, dim=dim)

@@ -76,8 +76,13 @@ def prefilter_mtf(d2: float = PREFILTER_DIAMETER_PX) -> torch.Tensor:
 
 
 def prefilter(images: torch.Tensor, d2: float = PREFILTER_DIAMETER_PX) -> torch.Tensor:
-    """Apply the defocus disk b₂ (diameter ``d2`` px, reflect borders) to a batch ``B×1×H×W``; same dtype."""
-    x = check_image(images, "images", channels=1)
+    """Apply the defocus disk b₂ (diameter ``d2`` px, reflect borders) to a batch ``B×1×H×W`` in [0, 1]; same dtype.
+
+    Images outside [0, 1] (DN/255; e.g. 8-bit DN values not divided by 255) raise a ``ValueError`` naming their range.
+    b₂ is non-negative and sums to 1, so the result stays in the input's range; the final clamp to [0, 1] only
+    removes the last-bit rounding of the convolution at 0 and 1.
+    """
+    x = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
     d2 = _check_diameter(d2)
     work = torch.float64 if x.dtype == torch.float64 else torch.float32
     return apply_psf(x.to(work), _kernel(d2, work, x.device)).clamp(0.0, 1.0).to(x.dtype)
@@ -113,11 +118,12 @@ def estimate_blur_under_noise(
     """Pre-filter with b₂, estimate the overall MTF with ``mtf_estimator`` and divide out MTF(b₂).
 
     Args:
-        images: noisy ``B×1×H×W`` batch in [0, 1].
+        images: noisy ``B×1×H×W`` batch in [0, 1] (DN/255; values outside raise a ``ValueError``).
         mtf_estimator: callable images → (B, 16) H/V MTF.
         d2: pre-filter diameter in px (thesis: 7 or 11; 7 worked best).
         epsilon: precondition threshold ε.
     """
+    images = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
     filtered = prefilter(images, d2)
     overall = mtf_estimator(filtered)
     overall = check_float(check_tensor(overall, "mtf_estimator output"), "mtf_estimator output")

@@ -95,19 +95,40 @@ def slanted_edge_chart(size: int = 256, angle_deg: float = 5.0, square_frac: flo
 
 
 def slanted_edge_rois(size: int = 256, angle_deg: float = 5.0, square_frac: float = 0.5) -> dict[str, tuple[int, int, int, int]]:
-    """Regions of interest ``(row0, row1, col0, col1)`` (end exclusive) around the four square edges.
+    """Regions of interest ``(row0, row1, col0, col1)`` (end exclusive) around the four edges of
+    :func:`slanted_edge_chart` with the same ``size``, ``angle_deg`` and ``square_frac``.
 
     ``"left"``/``"right"`` hold near-vertical edges (horizontal MTF), ``"top"``/``"bottom"`` near-horizontal
-    ones (vertical MTF). Each ROI covers the middle 70 % of its edge and reaches ±(0.6·half side) px across
-    it (at most up to 2 px from the image border), so corners and the other edges stay out.
+    ones (vertical MTF). Each ROI is centred where the unrotated square's edge would be and reaches
+    W = min(0.6·a, room to the image border less 2 px) px across its edge (a = half side, px). Along the edge it
+    covers at most the middle 70 % of the side, and less where the rotation by θ = ``angle_deg`` would bring a
+    corner or an adjacent edge near: with the square's coordinate along the edge v = x·sin θ + y·cos θ (chart
+    centre frame), the whole ROI keeps |v| ≤ a − W/4, i.e. every ROI pixel stays at least W/4 px from the
+    adjacent edges, so the ROI holds one straight edge and nothing else. The half length along the edge is
+    therefore ``min(0.7·a, (a − W/4 − (a + W)·|sin θ|)/cos θ)`` px (the 0.7·a cap is the one that holds at the
+    ISO 5°); it also keeps the edge within W/2 of the ROI's centre column over all its rows.
+
+    Raises ``ValueError`` if the chart leaves less than 8 px across or fewer than 8 rows along an edge.
     """
     size = _check_size(size, 32)
+    if isinstance(angle_deg, bool) or not isinstance(angle_deg, (int, float)) or not (1.0 <= abs(float(angle_deg)) <= 30.0):
+        raise ValueError(f"angle_deg = {angle_deg!r}° is out of the allowed range 1°…30° (|angle|; ISO 12233 asks for ≈ 5°)")
+    if isinstance(square_frac, bool) or not isinstance(square_frac, (int, float)) or not (0.0 < float(square_frac) < 1.0):
+        raise ValueError(f"square_frac = {square_frac!r} is out of the allowed range (0, 1)")
+    th = math.radians(abs(float(angle_deg)))
+    cos, sin = math.cos(th), math.sin(th)
     c = (size - 1) / 2.0
     a = 0.5 * float(square_frac) * size
-    along = 0.7 * a
     across = min(0.6 * a, c - a - 2.0)
     if across < 8:
         raise ValueError(f"chart of {size} px leaves only {across:.1f} px beside the square edge; use a larger size")
+    # along the edge: the ROI (centre v_c = −a·sin θ, half extents W across and H along) stays within |v| ≤ a − W/4,
+    # and the edge, at a·(1/cos θ − 1) + H·tan θ px from the ROI's centre column at its end rows, within W/2 of it
+    along = min(0.7 * a, (a - 0.25 * across - (a + across) * sin) / cos,
+                (0.5 * across - a * (1.0 / cos - 1.0)) / math.tan(th))
+    if along < 3.5:
+        raise ValueError(f"chart of {size} px at {float(angle_deg):g}° leaves only {2 * along:.1f} px along each edge "
+                         f"clear of the corners (at least 8 rows needed); use a larger size or a smaller angle")
     lo, hi = int(round(c - along)), int(round(c + along)) + 1
     rois = {}
     for name, centre in (("left", c - a), ("right", c + a)):

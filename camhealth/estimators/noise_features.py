@@ -218,7 +218,7 @@ def box_mean3(x: torch.Tensor) -> torch.Tensor:
 
 
 def image_statistics(image: torch.Tensor) -> torch.Tensor:
-    """Per-patch scalars (B, 5) in the order of :data:`IMAGE_STATISTICS` (float32; see module docstring).
+    """Per-patch scalars (B, 6) = (B, len(IMAGE_STATISTICS)) in the order of :data:`IMAGE_STATISTICS` (float32; see module docstring).
 
     Always computed in float32, also under bf16 autocast (bf16 cannot resolve 1 DN at 255 DN)."""
     if torch.is_autocast_enabled(image.device.type):

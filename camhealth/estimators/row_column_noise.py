@@ -47,6 +47,7 @@ from dataclasses import dataclass
 import torch
 
 from camhealth._order import lower_median, sorted_values
+from camhealth._validation import check_finite, check_float, check_tensor
 from camhealth.estimators.noise_features import _block_pixels
 
 __all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", "MIN_BANDING_DN", "MIN_DIFFERENCES",
@@ -71,6 +72,10 @@ _SERIAL_CHI2 = 18.47  # χ²₄ at 99.9 %
 # 1.4826 = 1/Φ⁻¹(¾): the MAD of a normal sample times it is its standard deviation
 _MAD_TO_SD = 1.4826
 
+
+#: The values :func:`row_column_noise` accepts: intensities in [0, 1], and a static pair's unclamped fold, whose scaled
+#: difference (I₁ − I₂)/√2 reaches 1/√2 beyond either bound.
+_LOWEST, _HIGHEST = -1.0 / math.sqrt(2.0), 1.0 + 1.0 / math.sqrt(2.0)
 
 @dataclass
 class RowColumnNoise:
@@ -172,10 +177,26 @@ def row_column_noise(patches: torch.Tensor, pool: bool = False) -> RowColumnNois
     """Row and column noise of B×1×H×W patches in [0, 1] (H, W ≥ 8; module docstring).
 
     ``pool``: the patches show one camera (a frame's patches): their differences enter one estimate, the same for
-    every patch. Returns :class:`RowColumnNoise`."""
-    if patches.ndim != 4 or patches.shape[1] != 1 or min(patches.shape[-2:]) < 8:
-        raise ValueError(f"row_column_noise needs B×1×H×W patches with H, W ≥ 8, got {tuple(patches.shape)}")
-    h, v = _signed_details(patches.detach())
+    every patch. Returns :class:`RowColumnNoise` (fields (0, 2) for an empty batch).
+
+    The patches must be a floating tensor (``TypeError`` otherwise: integer DN images, divide by 255 first) of finite
+    intensities in [0, 1] (DN/255); a static pair's unclamped fold
+    (:func:`~camhealth.estimators.static_pair.static_pair_image` with ``clamp=False``), whose scaled difference reaches
+    1/√2 beyond either bound, is accepted as well: values outside [−1/√2, 1 + 1/√2] (DN-scale input) raise a
+    ``ValueError`` naming the range found, as do NaN/inf."""
+    x = check_float(check_tensor(patches, "patches"), "patches")
+    if x.ndim != 4 or x.shape[1] != 1 or min(x.shape[-2:]) < 8:
+        raise ValueError(f"row_column_noise needs B×1×H×W patches with H, W ≥ 8, got {tuple(x.shape)}")
+    if x.shape[0] == 0:
+        z = torch.zeros(0, 2, dtype=torch.float64, device=x.device)
+        return RowColumnNoise(z, z.clone(), z.clone(), z.clone(), torch.zeros(0, 2, dtype=torch.bool, device=x.device))
+    lo, hi = torch.aminmax(x.detach())
+    if not bool(torch.isfinite(lo) & torch.isfinite(hi)):
+        check_finite(x, "patches")
+    if lo < _LOWEST or hi > _HIGHEST:
+        raise ValueError(f"patches must lie in [0, 1] (DN/255; a static pair's unclamped fold in [{_LOWEST:.3f}, "
+                         f"{_HIGHEST:.3f}]), got values in [{lo.item():g}, {hi.item():g}]")
+    h, v = _signed_details(x.detach())
     vt = v.transpose(-1, -2)
     if h.shape == vt.shape:  # square patches: both directions in one call
         both = _directions(torch.stack([h, vt]), pool)

@@ -33,6 +33,11 @@ The measurement, for every image of a batch:
 With ``aperture=True`` the pixel aperture of an area-rendered chart, sinc(f), is divided out (H and V). The MTF is
 then clamped to [0, 1]: the max − min CTF of a sharp area-rendered chart already reads 1 (each ring holds pixels
 wholly inside a stripe), so dividing it by sinc(f) would read above 1.
+**Clipping.** ISO 15775 needs an unclipped star: in a clipped ring I_max or I_min is the clip level, not the
+stripe's, and clipped reference corners hide the chart's contrast. Pixels within ½ DN of 0 or 1 are clipped; an image
+whose measured reference level (a median) is clipped, or with a ring (H and V sectors) of which more than 10 % of the
+pixels sit on clipped plateaus (clipped, with a 4-neighbour clipped at the same bound — noise alone rarely clips two
+neighbours), raises a ``ValueError`` naming the image, the rings and the clipped share.
 The Gaussian model is smooth and cannot follow the zeros and contrast reversals of large defocus
 (|jinc| side lobes), which bounds the accuracy for large blur; see ``docs/estimators_classical.md``.
 """
@@ -174,6 +179,56 @@ def gaussian_ctf_fit(
     return mu, torch.exp(log_s)
 
 
+#: A pixel within half a DN (8-bit) of 0 or 1 is clipped.
+CLIP_MARGIN = 0.5 / 255.0
+#: Largest share of a ring's pixels (in the H and V sectors) that may sit on a clipped plateau.
+MAX_CLIPPED_SHARE = 0.1
+
+
+def _check_clipped_rings(img: torch.Tensor, use: torch.Tensor, ring: torch.Tensor, sector: torch.Tensor, n_rings: int,
+                         n_sectors: int, n_cycles: int, r_lo: float) -> None:
+    """Refuse stars whose measured rings are clipped.
+
+    A pixel is on a clipped plateau when it and at least one of its four neighbours lie within :data:`CLIP_MARGIN`
+    (½ DN) of the same bound, 0 or 1 (a stripe's clipped top or bottom; noise alone clips single pixels, rarely two
+    side by side). In a ring whose stripes are clipped, I_max or I_min is the clip level rather than the stripe's, and
+    CTF_D is wrong; a ring of the H and V sectors with more than :data:`MAX_CLIPPED_SHARE` of its pixels (and at least
+    6) on clipped plateaus raises a ``ValueError`` naming the image, the ring and the share.
+
+    img: (B, H, W); use: (H·W,) the ring pixels; ring, sector: their ring and sector index.
+    """
+    b = img.shape[0]
+    hi_c, lo_c = img >= 1.0 - CLIP_MARGIN, img <= CLIP_MARGIN
+    if not bool((hi_c | lo_c).any()):
+        return
+
+    def plateau(m: torch.Tensor) -> torch.Tensor:
+        p = torch.nn.functional.pad(m[:, None].to(torch.uint8), (1, 1, 1, 1))[:, 0].bool()
+        nbr = p[:, :-2, 1:-1] | p[:, 2:, 1:-1] | p[:, 1:-1, :-2] | p[:, 1:-1, 2:]
+        return m & nbr
+
+    flat = (plateau(hi_c) | plateau(lo_c)).reshape(b, -1)[:, use]  # (B, P) the ring pixels
+    q = n_sectors // 4
+    measured = (sector % q) == 0  # the H (q, 3q) and V (0, 2q) sectors
+    idx = ring[measured]
+    n_px = torch.zeros(n_rings, dtype=torch.float64, device=img.device).scatter_add_(0, idx, torch.ones_like(idx, dtype=torch.float64))
+    n_cl = torch.zeros(b, n_rings, dtype=torch.float64, device=img.device).scatter_add_(
+        1, idx.expand(b, -1), flat[:, measured].to(torch.float64))
+    share = n_cl / n_px.clamp_min(1.0)
+    bad = (share > MAX_CLIPPED_SHARE) & (n_cl >= 6)
+    if bool(bad.any()):
+        i, k = (int(v) for v in bad.nonzero()[0])
+        rings = bad[i].nonzero()[:, 0]
+        r0, r1 = r_lo + float(rings.min()), r_lo + float(rings.max()) + 1.0
+        raise ValueError(
+            f"images[{i}]: the star is clipped: {int(rings.numel())} of its {n_rings} measured rings (r = {r0:.0f}…{r1:.0f} px, "
+            f"f_n = {n_cycles / (math.pi * r1):.3f}…{n_cycles / (math.pi * r0):.3f}) have more than "
+            f"{100 * MAX_CLIPPED_SHARE:g} % of their pixels on clipped plateaus (within ½ DN of 0 or 1; up to "
+            f"{100 * float(share[i].max()):.0f} %), where I_max or I_min is the clip level and CTF_D reads wrong; "
+            f"ISO 15775 needs an unclipped star: lower the exposure or gain"
+        )
+
+
 @dataclass
 class SiemensStarResult:
     """Result of :func:`siemens_star_mtf` for B images.
@@ -204,8 +259,9 @@ def siemens_star_ctf(
     """Discrete CTF (Eq. 3.23) per 1-px ring, H and V: returns (f_n (R,), ctf_d (B, 2, R), ring radius (R,)).
 
     Args:
-        images: ``B×1×S×S`` images of a Siemens star (default geometry: the star of
-            :func:`~camhealth.estimators.charts.siemens_star_chart` for that size).
+        images: ``B×1×S×S`` images of an unclipped Siemens star in [0, 1] (DN/255; default geometry: the star of
+            :func:`~camhealth.estimators.charts.siemens_star_chart` for that size). A star whose reference corners
+            or measured rings are clipped raises a ``ValueError`` (module docstring).
         centre: (row, col) of the star centre, px; radius: star radius, px.
         n_cycles: f_s, the number of bright/dark pairs, an int ≥ 4 (as
             :func:`~camhealth.estimators.charts.siemens_star_chart`).
@@ -214,7 +270,7 @@ def siemens_star_ctf(
             for the reference levels, from the rim and the quadrant borders.
         levels: (dark, bright) chart levels; default: measured in the reference corners.
     """
-    x = check_image(images, "images", channels=1)
+    x = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
     b, _, h, w = x.shape
     if centre is None or radius is None:
         if h != w:
@@ -242,15 +298,27 @@ def siemens_star_ctf(
         bright_px = img[:, far & (dx * dy > 0)]
         dark_px = img[:, far & (dx * dy < 0)]
         i_w, i_b = bright_px.median(dim=1).values, dark_px.median(dim=1).values
+        ref_px = ((i_w, bright_px, "bright"), (i_b, dark_px, "dark"))
     else:
         i_b = torch.full((b,), float(levels[0]), dtype=torch.float64, device=dev)
         i_w = torch.full((b,), float(levels[1]), dtype=torch.float64, device=dev)
+        ref_px = ()
     m0 = (i_w - i_b) / (i_w + i_b)
     bad = ~(m0 > 0.05)  # NaN too: both reference levels 0 (a black image) give 0/0
     if bool(bad.any()):
         i = int(bad.nonzero()[0, 0])
         raise ValueError(f"chart modulation (I_w − I_b)/(I_w + I_b) of image {i} = {float(m0[i]):.3f} must exceed 0.05 "
                          f"(reference levels I_b = {float(i_b[i]):.3f}, I_w = {float(i_w[i]):.3f}): is this a Siemens star chart?")
+    # a reference level within ½ DN of 0 or 1 is clipped (its median too: more than half its pixels are): the
+    # chart's true contrast, which every CTF_D is normalised by, is then unknown
+    for lvl, px, what in ref_px:
+        bad = (lvl >= 1.0 - CLIP_MARGIN) | (lvl <= CLIP_MARGIN)
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0, 0])
+            share = float(((px[i] >= 1.0 - CLIP_MARGIN) | (px[i] <= CLIP_MARGIN)).double().mean())
+            raise ValueError(f"images[{i}]: the {what} reference corners are clipped ({100 * share:.0f} % of their pixels "
+                             f"within ½ DN of 0 or 1, median {float(lvl[i]):.4f}), so the chart's contrast is unknown; "
+                             f"ISO 15775 needs an unclipped star: lower the exposure or gain (or pass levels=(dark, bright))")
     r_lo = n_cycles / math.pi  # f_n = 1 (Nyquist)
     r_hi = radius - margin
     if r_hi <= r_lo + 4:
@@ -266,6 +334,7 @@ def siemens_star_ctf(
     idx = cell.expand(b, -1)
     i_max = torch.full((b, n_cells), -math.inf, dtype=torch.float64, device=dev).scatter_reduce(1, idx, vals, "amax")
     i_min = torch.full((b, n_cells), math.inf, dtype=torch.float64, device=dev).scatter_reduce(1, idx, vals, "amin")
+    _check_clipped_rings(x[:, 0], use, ring, sector, n_rings, n_sectors, n_cycles, r_lo)
     ctf = ((i_max - i_min) / (i_max + i_min).clamp_min(1e-12)) / m0[:, None]
     ctf = torch.where(torch.isfinite(i_max) & torch.isfinite(i_min), ctf, torch.full_like(ctf, float("nan")))
     ctf = ctf.reshape(b, n_rings, n_sectors)
@@ -297,10 +366,11 @@ def siemens_star_mtf(
         :class:`SiemensStarResult`; ``mtf`` in [0, 1] (clamped after the aperture correction), float32 (float64 for
         float64 input).
     """
-    out_dtype = torch.float64 if images.dtype == torch.float64 else torch.float32
-    fq = torch.as_tensor(frequencies, dtype=torch.float64, device=images.device).reshape(-1)
+    x = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
+    out_dtype = torch.float64 if x.dtype == torch.float64 else torch.float32
+    fq = torch.as_tensor(frequencies, dtype=torch.float64, device=x.device).reshape(-1)
     check_range(fq, "frequencies", 0.0, 1.0, "× Nyquist")
-    fn, ctf_d, r_mean = siemens_star_ctf(images, **kwargs)
+    fn, ctf_d, r_mean = siemens_star_ctf(x, **kwargs)
     weight = fn.square()  # |df/dr| per 1-px ring ∝ f²: the sum approximates ∫ … df (Eq. 3.24)
     mu, s = gaussian_ctf_fit(fn, ctf_d, weight)  # (B, 2)
 

@@ -17,6 +17,13 @@ the MTF across the edge is measured in the steps of the standard (e-SFR):
    edge has less room holds its ESF at its end values beyond its reach (its LSF is 0 there).
 3. **LSF.** The line spread function is the derivative of the ESF (central difference over ±Δ), times a
    Hamming window centred on its centroid that reaches the farther end of the ROI's own ESF (``window``).
+   The window narrows an LSF that has not settled well inside that reach, so an ROI is refused (``ValueError``
+   naming its room and the LSF's 10–90 % rise) where the ESF still changes by more than :data:`MAX_UNSETTLED`
+   (1 %) of the edge step over the outer half of the reach (the mean over 50–70 % of it against the mean over its
+   last 10 %, both sides) — beyond the scatter its noise allows (6 standard errors, measured on 8 blocks of rows, so
+   that spatially correlated noise counts as it is). An edge whose clipped pixels (within ½ DN of 0 or 1) form a plateau that reaches
+   into the transition (the LSF still above :data:`MAX_CLIPPED_LSF` of its peak next to it) is refused too: a
+   clipped edge reads too sharp (ISO 12233 asks for an unclipped edge).
 4. **Fourier transform.** ``MTF(f) = |Σ_i LSF_i w_i e^{−2πi f u_i}| / |Σ_i LSF_i w_i|`` evaluated *exactly*
    at the requested frequencies (a direct DFT, not FFT bins), divided by the known frequency responses of
    the central difference, ``sin(2πfΔ)/(2πfΔ)`` (the ISO 12233:2014 derivative correction), and of the
@@ -52,6 +59,20 @@ __all__ = ["MAX_CORRECTION", "SlantedEdgeResult", "slanted_edge_mtf", "slanted_e
 
 #: The derivative and binning corrections divide the MTF by at most this factor (a frequency that needs more is refused).
 MAX_CORRECTION = 10.0
+#: Largest share of the edge step by which the ESF may still change over the outer half of an ROI's reach (the mean
+#: over 50–70 % of it against the mean over its last 10 %, both sides together); beyond it the Hamming window, whose
+#: half-width is that reach, cuts and narrows the LSF and the MTF reads too high (for a Gaussian LSF of σ px the
+#: limit falls at a reach of ≈ 4.6·σ, where the window's bias is at most 3.3 % AMAE; it is ≈ 1.3 % at 6.5·σ).
+MAX_UNSETTLED = 0.01
+#: The noise of that share is measured on this many blocks of consecutive rows; an ROI is refused only where the
+#: share exceeds :data:`MAX_UNSETTLED` by more than ``_SETTLE_Z`` of its standard errors.
+_SETTLE_BLOCKS = 8
+_SETTLE_Z = 6.0
+#: A pixel within half a DN (8-bit) of 0 or 1 is clipped.
+CLIP_MARGIN = 0.5 / 255.0
+#: A clipped plateau (ESF bins with at least half their pixels clipped) may begin only where the LSF (mean over 1 px)
+#: has fallen below this share of its peak; closer to the edge the clipping cuts the transition and the MTF reads high.
+MAX_CLIPPED_LSF = 0.1
 _MIN_SLOPE = math.tan(math.radians(1.0))
 _MAX_SLOPE = math.tan(math.radians(30.0))
 
@@ -126,6 +147,139 @@ def _fill_empty(esf: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
     return torch.where(filled, esf, vl + t * (vr - vl))
 
 
+def _check_settled(img: torch.Tensor, u_px: torch.Tensor, ok: torch.Tensor, flat: torch.Tensor, esf: torch.Tensor,
+                   pol: torch.Tensor, kb: torch.Tensor, half_nb: torch.Tensor, start: torch.Tensor, n_rows: torch.Tensor,
+                   room: torch.Tensor, oversample: int) -> None:
+    """Refuse ROIs whose ESF has not settled over the outer half of their reach (:data:`MAX_UNSETTLED`).
+
+    On each side of the edge, with j the distance in bins from it (0 … half_nb − 1), the mean ESF over
+    j ∈ [0.5, 0.7)·half_nb is compared with the mean over the last 10 % of the bins (at least one); the two
+    differences, summed over both sides, are the share ``u`` of the edge step (between the two outer means) by which
+    the ESF still changes there. Noise moves ``u`` too, spatially correlated noise (blurred or filtered after the
+    noise) more than the bins' pixel counts suggest, so its standard error is measured: the pixels' residuals from
+    the ESF (interpolated at each pixel) give the same combination of band means in :data:`_SETTLE_BLOCKS` blocks of
+    consecutive rows, and the spread of those block values, over √blocks, is the standard error. An ROI is refused
+    where ``u`` exceeds :data:`MAX_UNSETTLED` by more than :data:`_SETTLE_Z` standard errors.
+
+    img, u_px, ok: (B, H, W) pixels, their distance along the normal (px) and use; flat: (B, H·W) their bin; esf:
+    (B, N); pol: (B,) edge polarity; kb: (N,) bin index (0 = the first bin past the edge); half_nb: (B,) own bins per
+    side; start, n_rows: (B,) the rows used; room: (B,) edge-to-border distance, px.
+    """
+    b, h, w = img.shape
+    n = esf.shape[1]
+    delta = 1.0 / oversample
+    e = esf * pol[:, None]  # rising
+    j = torch.where(kb >= 0, kb, -kb - 1)[None, :]  # (1, N) distance in bins from the edge
+    right = (kb >= 0)[None, :]
+    hn = half_nb[:, None]
+    own = j < hn
+    n_out = torch.clamp(torch.round(0.1 * half_nb.double()).long(), min=1)[:, None]
+    inner_band = own & (j >= torch.div(hn, 2, rounding_mode="floor")) & (j < torch.ceil(0.7 * hn.double()).long())
+    outer_band = own & (j >= hn - n_out)
+    # band of every bin: 0 inner left, 1 outer left, 2 outer right, 3 inner right, 4 none; u = Σ coef·(band mean)
+    band = torch.full((b, n), 4, dtype=torch.long, device=e.device)
+    band = torch.where(inner_band & ~right, 0, band)
+    band = torch.where(outer_band & ~right, 1, band)
+    band = torch.where(outer_band & right, 2, band)
+    band = torch.where(inner_band & right, 3, band)
+    coef = torch.tensor([1.0, -1.0, 1.0, -1.0, 0.0], dtype=e.dtype, device=e.device)
+    n_band = torch.zeros(b, 5, dtype=e.dtype, device=e.device).scatter_add_(1, band, torch.ones_like(e))
+    m_band = torch.zeros(b, 5, dtype=e.dtype, device=e.device).scatter_add_(1, band, e) / n_band.clamp_min(1.0)
+    step = m_band[:, 2] - m_band[:, 1]
+    u = (m_band * coef).sum(dim=1) / step.clamp_min(1e-12)
+    cand = ((u > MAX_UNSETTLED) | ~(step > 0)).nonzero()[:, 0]
+    if cand.numel() == 0:  # settled everywhere (the common case): nothing to refuse, no noise to measure
+        return
+    # standard error, for the candidates only: residuals from the ESF (linear between bin centres), band means per
+    # block of consecutive rows
+    bc = cand.numel()
+    esf_c, pol_c, band_c = esf[cand], pol[cand], band[cand]
+    t = (u_px[cand] / delta - 0.5 + n // 2).clamp(0.0, n - 1.0).reshape(bc, -1)
+    i0 = torch.floor(t).long().clamp(max=n - 2)
+    wt = t - i0.to(e.dtype)
+    e_px = esf_c.gather(1, i0) * (1.0 - wt) + esf_c.gather(1, i0 + 1) * wt
+    res = (img[cand].reshape(bc, -1) - e_px) * pol_c[:, None]
+    g_n = torch.clamp(n_rows[cand] // 2, max=_SETTLE_BLOCKS)  # (Bc,) blocks of consecutive rows
+    rows = torch.arange(h, device=e.device)[None, :]
+    blk = ((rows - start[cand, None]).clamp_min(0) * g_n[:, None] // n_rows[cand, None]).clamp(max=_SETTLE_BLOCKS - 1)
+    pb = band_c.gather(1, flat[cand])  # band of every pixel's bin
+    use = ok[cand].reshape(bc, -1) & (pb < 4)
+    idx = torch.where(use, (blk[:, :, None] * 4).expand(bc, h, w).reshape(bc, -1) + pb, torch.zeros_like(pb))
+    cnt = torch.zeros(bc, 4 * _SETTLE_BLOCKS, dtype=e.dtype, device=e.device).scatter_add_(1, idx, use.to(e.dtype))
+    tot = torch.zeros(bc, 4 * _SETTLE_BLOCKS, dtype=e.dtype, device=e.device).scatter_add_(1, idx, res * use)
+    z = ((tot / cnt.clamp_min(1.0)).reshape(bc, _SETTLE_BLOCKS, 4) * coef[:4]).sum(dim=2)  # (Bc, G) per block
+    has = (cnt.reshape(bc, _SETTLE_BLOCKS, 4) > 0).all(dim=2)
+    g = has.sum(dim=1).to(e.dtype)
+    zm = (z * has).sum(dim=1) / g.clamp_min(1.0)
+    var_z = ((z - zm[:, None]).square() * has).sum(dim=1) / (g - 1.0).clamp_min(1.0)
+    se = torch.full_like(u, 0.0)
+    se[cand] = torch.where(g >= 2, torch.sqrt(var_z / g), torch.full_like(g, math.inf)) / step[cand].clamp_min(1e-12)
+    bad = (u - _SETTLE_Z * se > MAX_UNSETTLED) | ~(step > 0)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        z10 = (e[i] - m_band[i, 1]) / step[i].clamp_min(1e-12)
+        rise = float(((z10 > 0.1) & (z10 < 0.9) & own[i]).sum()) * delta  # 10–90 % rise: a count of bins, robust
+        raise ValueError(
+            f"roi[{i}]: the edge has too little room for its blur: the ROI leaves {float(room[i]):.1f} px beside the edge "
+            f"(along its normal) and the LSF is {rise:.1f} px wide (10–90 % edge rise), so the ESF still changes by "
+            f"{100 * float(u[i]):.1f} % of the edge step over the outer half of that room (at most "
+            f"{100 * MAX_UNSETTLED:g} % allowed); the LSF window would cut its tails and read the MTF too high. Use an ROI "
+            f"with more room on both sides of the edge (about {max(2.0 * rise + 1.0, 5.0):.0f} px or more for this blur)"
+        )
+
+
+def _check_clipping(img: torch.Tensor, ok: torch.Tensor, flat: torch.Tensor, counts: torch.Tensor, e: torch.Tensor,
+                    own: torch.Tensor, kb: torch.Tensor, oversample: int) -> None:
+    """Refuse ROIs whose clipped plateau reaches into the edge transition (:data:`MAX_CLIPPED_LSF`).
+
+    A pixel within :data:`CLIP_MARGIN` (½ DN) of 0 or 1 is clipped; an own ESF bin with at least half its pixels
+    clipped belongs to a clipped plateau (scattered noise clipping never fills half a bin). Where such a plateau
+    begins (its bin nearest the edge on either side), the LSF over the 1 px before it (ESF difference over 1 px)
+    must be below :data:`MAX_CLIPPED_LSF` of the LSF's peak (the largest such 1-px difference)."""
+    b, n = e.shape
+    lo, hi = torch.aminmax(img)
+    if bool((lo > CLIP_MARGIN) & (hi < 1.0 - CLIP_MARGIN)):  # nothing clipped (the common case): one reduction
+        return
+    clipped = (img <= CLIP_MARGIN) | (img >= 1.0 - CLIP_MARGIN)  # (B, H, W)
+    if not bool((clipped & ok).any()):
+        return
+    cf = (clipped & ok).reshape(b, -1).to(e.dtype)
+    n_clip = torch.zeros(b, n, device=e.device, dtype=e.dtype).scatter_add_(1, flat, cf)
+    plateau = own & (counts > 0) & (n_clip >= 0.5 * counts)
+    if not bool(plateau.any()):
+        return
+    k = oversample  # 1 px of bins
+    d = torch.zeros_like(e)
+    d[:, k:] = (e[:, k:] - e[:, :-k]) * oversample  # mean LSF over the px ending at each bin, per px
+    d_ok = torch.zeros_like(own)
+    d_ok[:, k:] = own[:, k:] & own[:, :-k]
+    peak = torch.where(d_ok, d, torch.zeros_like(d)).amax(dim=1)
+    prev = torch.zeros_like(plateau)
+    prev[:, 1:] = plateau[:, :-1]
+    nxt = torch.zeros_like(plateau)
+    nxt[:, :-1] = plateau[:, 1:]
+    right = (kb >= 0)[None, :]
+    # right side: a plateau bin whose left neighbour is not plateau; the LSF over the 1 px before it ends at that bin
+    start_r = plateau & ~prev & right & d_ok
+    # left side: a plateau bin whose right neighbour is not plateau; the 1 px after it ends k bins further right
+    start_l = plateau & ~nxt & ~right
+    d_after = torch.zeros_like(d)
+    d_after[:, :-k] = torch.where(d_ok[:, k:], d[:, k:], torch.zeros_like(d[:, k:]))
+    edge_lsf = torch.maximum(torch.where(start_r, d, torch.zeros_like(d)).amax(dim=1),
+                             torch.where(start_l, d_after, torch.zeros_like(d)).amax(dim=1))
+    ratio = edge_lsf / peak.clamp_min(1e-12)
+    bad = ratio > MAX_CLIPPED_LSF
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        share = float(cf[i].sum() / ok[i].sum().clamp_min(1))
+        raise ValueError(
+            f"roi[{i}]: {100 * share:.0f} % of its pixels are clipped (within ½ DN of 0 or 1) and the clipped plateau "
+            f"reaches into the edge transition (the LSF next to it is still {100 * float(ratio[i]):.0f} % of its peak, at "
+            f"most {100 * MAX_CLIPPED_LSF:g} % allowed): a clipped edge reads too sharp, and ISO 12233 needs an unclipped "
+            f"edge; lower the exposure or gain"
+        )
+
+
 def slanted_edge_mtf(
     roi: torch.Tensor,
     frequencies: Union[Sequence[float], torch.Tensor] = NORMALIZED_FREQUENCIES,
@@ -136,8 +290,11 @@ def slanted_edge_mtf(
     """MTF across a near-vertical slanted edge (ISO 12233), for a batch of ROIs of one size.
 
     Args:
-        roi: ``B×1×H×W`` float images holding one straight edge slanted by 1°…30° from the vertical
-            (ISO: ≈ 5°), crossing every row, at least 8 px from the left/right ROI border.
+        roi: ``B×1×H×W`` float images in [0, 1] (DN/255) holding one straight, unclipped edge slanted by 1°…30° from the vertical
+            (ISO: ≈ 5°), crossing every row, at least 5 px from the left/right ROI border (along the edge normal)
+            and far enough from it that the ESF has settled over the outer half of that distance (for a Gaussian
+            blur of σ px: ≳ 4.6·σ + 1 px; see step 3 of the module docstring). ROIs that break these rules are refused
+            with a ``ValueError``.
         frequencies: F normalised frequencies in [0, 1] (fraction of Nyquist; f = f_n/2 cycles/px).
         oversample: ESF bins per px (ISO: 4), 1…16.
         window: LSF window, ``"hamming"`` (ISO), ``"tukey"`` (flat over the inner half, cosine taper) or
@@ -147,7 +304,7 @@ def slanted_edge_mtf(
     Returns:
         :class:`SlantedEdgeResult`; ``mtf`` is (B, F) float32 (float64 for float64 input).
     """
-    x = check_image(roi, "roi", channels=1)
+    x = check_image(roi, "roi", channels=1, value_range=(0.0, 1.0))
     check_choice(window, "window", ("hamming", "tukey", "none"))
     if isinstance(oversample, bool) or not isinstance(oversample, int) or not (1 <= oversample <= 16):
         raise ValueError(f"oversample = {oversample!r} must be an int in [1, 16]")
@@ -211,7 +368,8 @@ def slanted_edge_mtf(
     ok = (k >= -half_nb[:, None, None]) & (k < half_nb[:, None, None]) & row_ok[:, :, None]
     flat = torch.where(ok, k + nb // 2, torch.zeros_like(k)).reshape(b, -1)
     okf = ok.reshape(b, -1).double()
-    sums = torch.zeros(b, nb, device=dev, dtype=torch.float64).scatter_add_(1, flat, img.reshape(b, -1) * okf)
+    vals = img.reshape(b, -1)
+    sums = torch.zeros(b, nb, device=dev, dtype=torch.float64).scatter_add_(1, flat, vals * okf)
     counts = torch.zeros(b, nb, device=dev, dtype=torch.float64).scatter_add_(1, flat, okf)
     esf = _fill_empty(sums / counts.clamp_min(1.0), counts)
     pos = (torch.arange(nb, device=dev, dtype=torch.float64) - nb // 2 + 0.5) * delta
@@ -224,6 +382,8 @@ def slanted_edge_mtf(
     inner = own & torch.roll(own, 1, dims=1) & torch.roll(own, -1, dims=1)
     inner[:, [0, -1]] = False
     lsf = torch.where(inner, lsf, torch.zeros_like(lsf)) * pol[:, None]
+    _check_clipping(img, ok, flat, counts, esf * pol[:, None], own, kb, oversample)
+    _check_settled(img, u, ok, flat, esf, pol, kb, half_nb, start, n_rows, room, oversample)
     mass = lsf.sum(dim=1, keepdim=True)
     centre = (lsf * pos).sum(dim=1, keepdim=True) / mass
     dist = pos[None, :] - centre
@@ -275,7 +435,7 @@ def slanted_edge_mtf_hv(
     ``aperture`` defaults to True (the charts of :mod:`~camhealth.estimators.charts` are area-rendered);
     further keyword arguments go to :func:`slanted_edge_mtf`.
     """
-    x = check_image(charts, "charts", channels=1)
+    x = check_image(charts, "charts", channels=1, value_range=(0.0, 1.0))
     if rois is None:
         if x.shape[-1] != x.shape[-2]:
             raise ValueError(f"default ROIs need a square chart, got {x.shape[-2]}×{x.shape[-1]}; pass rois=")

@@ -62,14 +62,15 @@ from typing import Any, NamedTuple
 import torch
 
 from camhealth._order import sorted_values
+from camhealth._validation import check_finite
 
 __all__ = ["static_pair_image", "static_pair_blocks", "difference_limits_dn", "pair_fold", "PairFold", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
            "pair_stillness"]
 
 
 def _check_pair(image: Any, reference: Any, min_side: int = 3) -> None:
-    """Two floating-point B×1×H×W tensors of one shape (H, W ≥ ``min_side``): ``TypeError``/``ValueError`` naming
-    what was given otherwise."""
+    """Two floating-point B×1×H×W tensors of one shape (H, W ≥ ``min_side``; B = 0 allowed), finite and in [0, 1]
+    (DN/255): ``TypeError``/``ValueError`` naming what was given otherwise."""
     if not isinstance(image, torch.Tensor) or not isinstance(reference, torch.Tensor):
         raise TypeError(f"image and reference must be tensors, got {type(image).__name__} and {type(reference).__name__}")
     if image.shape != reference.shape:
@@ -79,6 +80,14 @@ def _check_pair(image: Any, reference: Any, min_side: int = 3) -> None:
         raise ValueError(f"image must be a B×1×H×W tensor with H, W ≥ {min_side}, got {tuple(image.shape)}")
     if not image.is_floating_point() or not reference.is_floating_point():
         raise TypeError(f"image and reference must be floating point in [0, 1], got {image.dtype} and {reference.dtype}")
+    if image.numel() == 0:
+        return
+    for x, name in ((image, "image"), (reference, "reference")):
+        lo, hi = torch.aminmax(x.detach())  # one reduction: NaN propagates into both, ±inf lands in one
+        if not bool(torch.isfinite(lo) & torch.isfinite(hi)):
+            check_finite(x, name)  # names how many values are NaN/inf and the first
+        if lo < 0 or hi > 1:
+            raise ValueError(f"{name} must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
 
 
 def static_pair_image(image: torch.Tensor, reference: torch.Tensor, clamp: bool = True) -> torch.Tensor:
@@ -247,7 +256,7 @@ def scene_leak(image: torch.Tensor, reference: torch.Tensor, pool: bool = False)
     infinite error. ``pool``: one camera state — the NLF v̂ is fitted over all patches, the ratio stays per patch.
 
     Args:
-        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8).
+        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8); B = 0 gives empty results.
     """
     diff, avg, clip = _pair_dn(image, reference)
     return _scene_leak(diff, avg, clip, pool)
@@ -307,7 +316,7 @@ def pair_shift(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tens
     1/√n; a patch shifted by δ px reads the share of its difference that δ·∇S explains. Fewer than 64 pixels: 0.
 
     Args:
-        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 3).
+        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 3); B = 0 gives empty results.
     """
     diff, avg, clip = _pair_dn(image, reference)
     return _pair_shift(diff, avg, clip)
@@ -321,8 +330,7 @@ def _pair_shift(diff: torch.Tensor, avg: torch.Tensor, clip: torch.Tensor) -> tu
     gy = (avg[..., 2:, 1:-1] - avg[..., :-2, 1:-1]) * 0.5
     rows = clip[..., :, :-2] | clip[..., :, 1:-1] | clip[..., :, 2:]  # the 3×3 neighbourhood, one axis at a time
     ok = (~(rows[..., :-2, :] | rows[..., 1:-1, :] | rows[..., 2:, :])).flatten(1).float()
-    b = d.shape[0]
-    d, gx, gy = d.reshape(b, -1), gx.reshape(b, -1), gy.reshape(b, -1)
+    d, gx, gy = d.flatten(1), gx.flatten(1), gy.flatten(1)
     n = ok.sum(1)
     scale = 1.0 / n.clamp_min(1.0)
 
@@ -343,16 +351,21 @@ def _pair_shift(diff: torch.Tensor, avg: torch.Tensor, clip: torch.Tensor) -> tu
 
 
 def pair_stillness(image: torch.Tensor, reference: torch.Tensor, pool: bool = False) -> torch.Tensor:
-    """Whether each patch of a pair shows a still scene, (B,) bool: :func:`scene_leak` within
+    """Whether each patch of a pair is shown to hold a still scene, (B,) bool: :func:`scene_leak` within
     max(:data:`SCENE_LEAK_LIMIT`, 4 standard errors) of 1 and both :func:`pair_shift` correlations within
     max(:data:`PAIR_SHIFT_LIMIT`, 4/√n) of 0 — the two tests on one pass over the pair. ``pool``: one camera state
     (the scene-leak NLF over all patches; the tests stay per patch).
 
+    A patch without the evidence for both tests — fewer than 64 usable blocks for :func:`scene_leak` (its error is
+    infinite) or fewer than 64 pixels for :func:`pair_shift`, e.g. a patch clipped (within ½ DN of 0 or 255 DN) in
+    either frame almost everywhere — is not shown still: False ("cannot tell" is not "still").
+
     Args:
-        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8).
+        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8); B = 0 gives an empty result.
     """
     diff, avg, clip = _pair_dn(image, reference)
     leak, leak_se = _scene_leak(diff, avg, clip, pool)
     shift, n = _pair_shift(diff, avg, clip)
-    return (((leak - 1.0).abs() <= torch.clamp_min(4.0 * leak_se, SCENE_LEAK_LIMIT))
+    evidence = torch.isfinite(leak_se) & (n >= 64)
+    return (evidence & ((leak - 1.0).abs() <= torch.clamp_min(4.0 * leak_se, SCENE_LEAK_LIMIT))
             & (shift.abs().amax(1) <= torch.clamp_min(4.0 / n.clamp_min(1.0).sqrt(), PAIR_SHIFT_LIMIT)))

@@ -98,3 +98,25 @@ def test_half_precision_estimates_are_aggregated_in_float32_and_returned_in_thei
         assert torch.equal(half.count, full.count)
     empty = spatial_median(torch.zeros(3, 0, dtype=dtype), dim=1)
     assert empty.median.dtype == dtype and bool(torch.isnan(empty.median).all())
+
+
+def test_integer_estimates_get_a_hint_that_keeps_their_unit():
+    """Integer σ in DN: the image hint "x.float() / 255" would have turned DN into DN/255 silently."""
+    with pytest.raises(TypeError, match=r"estimates must be a floating tensor .* got dtype torch\.int64; convert with "
+                                        r"estimates\.float\(\) \(the values keep their unit\)") as err:
+        temporal_median(torch.tensor([[3], [4], [5]]), window=2)
+    assert "255" not in str(err.value)
+    with pytest.raises(TypeError, match="keep their unit"):
+        uncertainty_by_window(torch.tensor([[3], [4], [5]]))
+
+
+def test_uncertainty_by_window_checks_like_temporal_median():
+    """A scalar crashed with a ZeroDivisionError and a window of 2.9 frames silently became 2."""
+    with pytest.raises(ValueError, match="estimates must have a frame axis, got a scalar"):
+        uncertainty_by_window(torch.tensor(3.0))
+    x = torch.rand(10, 4)
+    with pytest.raises(TypeError, match=r"every window must be an int \(frames\), got 2\.9 \(float\)"):
+        uncertainty_by_window(x, windows=[1, 2.9])
+    with pytest.raises(TypeError, match="got True"):
+        uncertainty_by_window(x, windows=[True])
+    assert sorted(uncertainty_by_window(x, windows=[1, 2, 40])) == [1, 2]  # sizes beyond the frames are skipped

@@ -69,3 +69,42 @@ def test_bad_arguments():
         divide_out_prefilter(torch.rand(1, 16), prefilter_mtf(), epsilon=1.5)
     with pytest.raises(ValueError, match=r"\(B, 16\)"):
         estimate_blur_under_noise(torch.rand(2, 1, 32, 32), lambda x: torch.rand(2, 8))
+
+
+@pytest.mark.parametrize("scale", [255.0, 1.4])
+def test_images_outside_0_1_are_refused(scale):
+    """A DN-scale chart went through ``prefilter``'s clamp as a uniform 1.0 (and then "no edge found"); a chart reaching
+    1.12 was clamped silently and read MTF 0.818 where the truth is 0.062. Both are refused, naming the range."""
+    chart = apply_psf(slanted_edge_chart(256).double(), defocus_psf(torch.tensor([5.0], dtype=torch.float64), 7)) * scale
+    hi = 0.8 * scale
+    with pytest.raises(ValueError, match=rf"images must lie in \[0, 1\] \(DN/255\), got values in \[[\d.]+, {hi:g}"):
+        prefilter(chart)
+    with pytest.raises(ValueError, match=r"images must lie in \[0, 1\] \(DN/255\)"):
+        estimate_blur_under_noise(chart, slanted_edge_mtf_hv)
+
+
+def test_prefilter_stays_in_the_input_range():
+    """b₂ is non-negative and sums to 1: the filtered image never leaves [min, max] of the input, beyond rounding."""
+    g = torch.Generator().manual_seed(0)
+    x = (torch.rand(3, 1, 48, 48, generator=g, dtype=torch.float64) > 0.5).double()
+    y = prefilter(x)
+    assert float(y.min()) >= 0.0 and float(y.max()) <= 1.0
+    z = apply_psf(x, defocus_psf(torch.tensor([7.0], dtype=torch.float64), 9))  # the convolution alone
+    assert float((y - z).abs().max()) < 1e-12
+
+
+@pytest.mark.parametrize("value_range, x, ok", [
+    (None, torch.full((1, 1, 4, 4), 204.0), True),
+    ((0.0, 1.0), torch.full((1, 1, 4, 4), 1.0), True),
+    ((0.0, 1.0), torch.full((1, 1, 4, 4), 204.0), False),
+    ((0.0, 1.0), torch.full((1, 1, 4, 4), -0.01), False),
+    ((-1.0, 2.0), torch.full((1, 1, 4, 4), 1.5), True),
+])
+def test_check_image_range_is_opt_in(value_range, x, ok):
+    from camhealth._validation import check_image
+
+    if ok:
+        assert check_image(x, "img", value_range=value_range) is x
+    else:
+        with pytest.raises(ValueError, match=r"img must lie in \[-?[\d.]+, [\d.]+\].*, got values in \["):
+            check_image(x, "img", value_range=value_range)

@@ -198,3 +198,12 @@ def test_truncated_second_moment_is_the_truncated_normals_variance():
     assert float(truncated_second_moment(torch.tensor(1e-3))) == pytest.approx(1e-6 / 3.0, rel=1e-3)
     assert truncated_second_moment(torch.tensor([3.0], dtype=torch.float32)).dtype == torch.float32
     assert _TRUNCATED_CHI2 == pytest.approx(0.97333692, rel=1e-7)  # the inlier cut at 3 σ
+
+
+def test_image_statistics_docstring_states_its_shape():
+    """The docstring promised (B, 5); it returns one column per name of IMAGE_STATISTICS, (B, 6)."""
+    from camhealth.estimators.noise_features import IMAGE_STATISTICS
+
+    out = image_statistics(torch.rand(3, 1, 32, 32))
+    assert out.shape == (3, len(IMAGE_STATISTICS)) == (3, 6)
+    assert f"(B, {len(IMAGE_STATISTICS)})" in image_statistics.__doc__

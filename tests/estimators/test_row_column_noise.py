@@ -155,3 +155,45 @@ def test_constant_black_saturated_and_non_square_patches():
     assert r.sigma_dn.shape == (16, 2)
     assert r.detected[:, 0].float().mean() > 0.9 and not r.detected[:, 1].any()
     assert r.sigma_dn[:, 0].median() == pytest.approx(3.0, rel=0.15)
+
+
+@pytest.mark.parametrize("bad, error, match", [
+    ("uint8", TypeError, r"patches must be a floating tensor .* got dtype torch\.uint8"),
+    ("dn", ValueError, r"patches must lie in \[0, 1\] \(DN/255; .*\), got values in \["),
+    ("nan", ValueError, r"patches must be finite, but 1 of \d+ values are NaN/inf"),
+    ("numpy", TypeError, "patches must be a torch.Tensor, got ndarray"),
+])
+def test_bad_patches_are_refused(bad, error, match):
+    """8-bit or DN-scale input read σ_row 255× too large (1666 DN for 5 DN), a NaN pixel was ignored, a numpy array
+    failed with an AttributeError: each is refused, naming the dtype or the values."""
+    x = _band(_white(2, seed=3), 5.0, "rows")
+    if bad == "uint8":
+        x = (x.clamp(0, 1) * 255).round().to(torch.uint8)
+    elif bad == "dn":
+        x = x * 255.0
+    elif bad == "nan":
+        x[0, 0, 3, 3] = float("nan")
+    else:
+        x = x.numpy()
+    with pytest.raises(error, match=match):
+        row_column_noise(x)
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_an_empty_batch_gives_empty_fields(pool):
+    """``pool=True`` on an empty batch raised an IndexError from ``median``."""
+    out = row_column_noise(torch.zeros(0, 1, 64, 64), pool=pool)
+    for field in (out.sigma_dn, out.var_se_dn2, out.significance, out.serial, out.detected):
+        assert field.shape == (0, 2)
+
+
+def test_a_static_pairs_unclamped_fold_is_accepted():
+    """The fold of a static pair (``static_pair_image(clamp=False)``) swings up to 1/√2 beyond [0, 1]: accepted."""
+    from camhealth.estimators.static_pair import static_pair_image
+
+    g = torch.Generator().manual_seed(2)
+    a = (0.97 + 60 / 255 * torch.randn(2, 1, 64, 64, generator=g)).clamp(0, 1)
+    b = (0.97 + 60 / 255 * torch.randn(2, 1, 64, 64, generator=g)).clamp(0, 1)
+    fold = static_pair_image(a, b, clamp=False)
+    assert float(fold.max()) > 1.0
+    assert row_column_noise(fold).sigma_dn.shape == (2, 2)

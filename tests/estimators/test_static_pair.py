@@ -302,10 +302,10 @@ def test_a_pair_under_strong_noise_is_read_from_the_pair(level, extra):
 @pytest.mark.parametrize("level, reason", [(0.0, "black"), (1.0, "saturated")])
 @pytest.mark.parametrize("pool", [False, True])
 def test_a_black_or_saturated_pair_is_not_read(level, reason, pool):
-    """Every pixel clipped in both frames: the stillness tests have nothing to read (they let it through), the pair's
-    fold has no flat area, so it is read alone — and a clipped patch is not assessable, with finite numbers."""
+    """Every pixel clipped in both frames: the stillness tests have nothing to read, so the pair is not shown still
+    ("cannot tell" is not "still") and is read alone — and a clipped patch is not assessable, with finite numbers."""
     x = torch.full((3, 1, 128, 128), level)
-    assert pair_stillness(x, x.clone(), pool=pool).all()
+    assert not pair_stillness(x, x.clone(), pool=pool).any()
     out = PhysicsNoiseEstimator().predict(x, META, reference=x.clone(), pool=pool)
     assert not out["static"].any() and out["reason"] == [reason] * 3
     assert torch.isfinite(out["sigma"]).all() and torch.isfinite(out["xi"]).all()
@@ -350,3 +350,64 @@ def test_a_pair_on_each_device_gives_the_cpu_answer(device):
     dev = load_estimator("noise_source_full", device=str(device)).predict(a, META, reference=b, pool=True)
     assert torch.equal(cpu["static"], dev["static"]) and dev["sigma"].device.type == "cpu"
     assert torch.allclose(cpu["sigma"], dev["sigma"], atol=1e-3) and torch.allclose(cpu["xi"], dev["xi"], atol=1e-3)
+
+
+_PAIR_FUNCTIONS = {
+    "static_pair_image": lambda a, b: static_pair_image(a, b),
+    "pair_fold": lambda a, b: pair_fold(a, b).fold,
+    "scene_leak": lambda a, b: scene_leak(a, b)[0],
+    "pair_shift": lambda a, b: pair_shift(a, b)[0],
+    "pair_stillness": lambda a, b: pair_stillness(a, b),
+    "pair_stillness_pooled": lambda a, b: pair_stillness(a, b, pool=True),
+}
+
+
+@pytest.mark.parametrize("fn", sorted(_PAIR_FUNCTIONS))
+@pytest.mark.parametrize("bad, match", [
+    (float("nan"), r"image must be finite, but 1 of 8192 values are NaN/inf \(first: nan\)"),
+    (float("inf"), r"image must be finite, but 1 of 8192 values are NaN/inf \(first: inf\)"),
+    ("dn", r"image must lie in \[0, 1\] \(DN/255\), got values in \["),
+])
+def test_bad_pair_values_are_refused(fn, bad, match):
+    """NaN and inf went through (a NaN patch "moved", the fold held NaN), and DN-scale frames read every pixel as
+    clipped ("still", a fold of 1.0): each public function refuses them, naming the value."""
+    g = torch.Generator().manual_seed(0)
+    a = 0.5 + 0.02 * torch.randn(2, 1, 64, 64, generator=g)
+    b = a + 0.01 * torch.randn(2, 1, 64, 64, generator=g)
+    if bad == "dn":
+        a = a * 255.0
+    else:
+        a[1, 0, 5, 5] = bad
+    with pytest.raises(ValueError, match=match):
+        _PAIR_FUNCTIONS[fn](a, b)
+    with pytest.raises(ValueError, match=match.replace("image must", "reference must")):
+        _PAIR_FUNCTIONS[fn](b, a)
+
+
+def test_an_empty_pair_gives_empty_results():
+    """An empty batch crashed pair_stillness (``reshape`` of 0 elements); every function returns empty results."""
+    e = torch.zeros(0, 1, 32, 32)
+    assert static_pair_image(e, e).shape == (0, 1, 32, 32) and pair_fold(e, e).fold.shape == (0, 1, 32, 32)
+    for pool in (False, True):
+        assert pair_stillness(e, e, pool=pool).shape == (0,)
+        leak, se = scene_leak(e, e, pool=pool)
+        assert leak.shape == se.shape == (0,)
+    shift, n = pair_shift(e, e)
+    assert shift.shape == (0, 2) and n.shape == (0,)
+
+
+@pytest.mark.parametrize("case", ["small_and_moved", "saturated_vs_black"])
+def test_a_pair_without_evidence_is_not_shown_still(case):
+    """Fewer than 64 usable blocks (scene_leak's error is infinite) or 64 usable pixels (pair_shift reads 0): the tests
+    cannot tell, and the pair is not called still. An 8-px pair moved by 3 px and a white frame against a black one
+    were both reported still."""
+    g = torch.Generator().manual_seed(1)
+    if case == "small_and_moved":
+        scene = torch.rand(1, 1, 8, 14, generator=g) * 0.6 + 0.2
+        a, b = scene[..., :8], scene[..., 3:11]
+    else:
+        a, b = torch.ones(1, 1, 64, 64), torch.zeros(1, 1, 64, 64)
+    leak, se = scene_leak(a, b)
+    _, n = pair_shift(a, b)
+    assert not bool(torch.isfinite(se).all()) or int(n.min()) < 64  # no evidence
+    assert not pair_stillness(a, b).any()
