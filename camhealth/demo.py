@@ -37,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from camhealth._cli import IntAtLeast, add_debug_flag, config_parser, run_cli
+from camhealth._cli import BadValue, IntAtLeast, add_debug_flag, config_parser, run_cli
 
 __all__ = ["main", "run_closed_loop", "parse_slice"]
 
@@ -45,15 +45,33 @@ THESIS_AP = {"built-in auto-exposure": 0.2608, "fixed": 0.4754, "framework (IOPC
 
 
 def parse_slice(text: str) -> slice:
-    """``"25:50"`` / ``"::2"`` / ``"10"`` → slice."""
-    parts = text.split(":")
-    if len(parts) == 1:
-        n = int(parts[0])
-        return slice(n, n + 1)
-    if len(parts) > 3:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a slice start:stop[:step]")
-    vals = [int(p) if p.strip() else None for p in parts] + [None] * (3 - len(parts))
+    """``"25:50"`` / ``"::2"`` / ``"10"`` → slice; anything else (``"abc"``, ``"1:2:3:4"``, a step of 0) is a
+    :class:`~camhealth._cli.BadValue` (an ``argparse.ArgumentTypeError`` and ``ValueError``) naming the text."""
+    parts = str(text).split(":")
+    try:
+        if len(parts) > 3:
+            raise ValueError
+        if len(parts) == 1:
+            n = int(parts[0])
+            return slice(n, n + 1) if n != -1 else slice(n, None)
+        vals = [int(p) if p.strip() else None for p in parts] + [None] * (3 - len(parts))
+    except ValueError:
+        raise BadValue(f"must be a frame index or a slice start:stop[:step] of integers (e.g. 25:50), got {text!r}") from None
+    if vals[2] == 0:
+        raise BadValue(f"the step of a slice start:stop:step must not be 0, got {text!r}")
     return slice(*vals)
+
+
+class SliceOption:
+    """Option type of ``--frames``: a text :func:`parse_slice` accepts (kept as text, as the results record it), else
+    :class:`~camhealth._cli.BadValue` naming it, at parse time. Its ``repr`` is what ``--help`` shows."""
+
+    def __call__(self, value: Any) -> str:
+        parse_slice(value)
+        return str(value)
+
+    def __repr__(self) -> str:
+        return "start:stop[:step]"
 
 
 def _frames(spec: str, sl: slice) -> tuple[torch.Tensor, list[str]]:
@@ -196,6 +214,7 @@ def _exposure_limits(args: argparse.Namespace) -> tuple[float, float]:
     from camhealth.control.camera_sim import MAX_MOTION_PX
 
     t_min, t_max = (float(v) for v in args.limits_exposure)
+    _check_limits("--limits-exposure", t_min, t_max, "s")
     if args.motion > 0:
         cap = MAX_MOTION_PX / float(args.motion)
         while float(args.motion) * cap > MAX_MOTION_PX:  # the camera computes v·t: stay within it after rounding
@@ -206,6 +225,12 @@ def _exposure_limits(args: argparse.Namespace) -> tuple[float, float]:
                              f"--limits-exposure {t_min * 1e3:g} ms; lower the motion or the exposure limit")
         t_max = min(t_max, cap)
     return t_min, t_max
+
+
+def _check_limits(option: str, low: float, high: float, unit: str) -> None:
+    """A ``MIN MAX`` pair of finite numbers with MIN <= MAX, else ``SystemExit`` naming the option and both values."""
+    if not (math.isfinite(low) and math.isfinite(high)) or low > high:
+        raise SystemExit(f"{option} {low:g} {high:g}: MIN must be <= MAX (both finite, in {unit})")
 
 
 def _reference_intensity(iopc: Any) -> float:
@@ -257,7 +282,7 @@ def format_table(res: dict[str, Any]) -> str:
         f"{lim[0] * 1e3:g}–{lim[1] * 1e3:g} ms{capped}, {c['limits_gain'][0]:g}–"
         f"{c['limits_gain'][1]:g} dB; estimators noise={res['estimators']['noise']}, mtf={res['estimators']['mtf']}.",
         "",
-        "| controller | AP@0.5 (seed 1) | AP@0.5 mean ± std over repeats | detections | exposure [ms] | gain [dB] "
+        f"| controller | AP@0.5 (seed {c['seed']}) | AP@0.5 mean ± std over repeats | detections | exposure [ms] | gain [dB] "
         "| motion blur [px] | σ [DN] | mean intensity |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
@@ -358,7 +383,8 @@ def build_parser():
     c.add_argument("--iopc", default="runs/iopc_closed_loop/iopc.json",
                    help="IOPC file (default: the one configs/iopc_closed_loop.yaml writes, matched to this camera)")
     c.add_argument("--source", default="street", help="clean frames (camhealth.data.build_source spec)")
-    c.add_argument("--frames", default="25:50", help="slice of the source's frames (default 25:50)")
+    c.add_argument("--frames", type=SliceOption(), default="25:50",
+                   help="slice start:stop[:step] (or one index) of the source's frames (default 25:50)")
     c.add_argument("--sensor", default="ICX285", choices=["ICX285", "EV76C661"])
     c.add_argument("--temperature", type=float, default=25.0, help="sensor temperature [°C]")
     c.add_argument("--illumination", type=float, default=60.0,
@@ -380,7 +406,7 @@ def build_parser():
     c.add_argument("--pseudo-score", type=float, default=0.6, help="pseudo ground-truth score threshold")
     c.add_argument("--seed", type=int, default=0, help="noise seed of the first repeat")
     c.add_argument("--repeats", type=IntAtLeast(1), default=1, help="runs with noise seeds seed, seed+1, … (AP mean ± std)")
-    c.add_argument("--threads", type=int, default=None, help="torch threads")
+    c.add_argument("--threads", type=IntAtLeast(1), default=None, help="torch threads, ≥ 1 (default: torch's)")
     c.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     sub.add_subcommand("closed-loop", c, help="fixed vs auto-exposure vs IOPC policy on a simulated camera")
     DEMOS["closed-loop"] = run_closed_loop
@@ -391,7 +417,11 @@ def build_parser():
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     options = args[args.demo]
-    if getattr(options, "threads", None):
+    for option in ("limits_exposure", "limits_gain"):  # before any work (the IOPC, frames and detector load slowly)
+        if getattr(options, option, None) is not None:
+            low, high = (float(v) for v in getattr(options, option))
+            _check_limits("--" + option.replace("_", "-"), low, high, "s" if option == "limits_exposure" else "dB")
+    if getattr(options, "threads", None) is not None:
         torch.set_num_threads(options.threads)
     DEMOS[args.demo](options)
     return 0

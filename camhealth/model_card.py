@@ -35,7 +35,8 @@ _DATA = {
     "(`supersample: 4`, native MTF 1.009 at f_n = 0.6; each image its own edge density, contrast, shading and share of thin "
     "leaves 0.5–4 px wide), 192-px patches, "
     "defocus / linear / non-linear motion blur of 1–25 px (one family per sample, defocus twice as often as each "
-    "motion family), sensor noise on half of the samples; labels = exact MTF of the applied PSF, which is the "
+    "motion family), sensor noise on half of the samples (in the Fig. 3.7 order: photon noise before the motion "
+    "blur); labels = exact MTF of the applied PSF, which is the "
     "patch's whole MTF because the scenes have none of their own. No photographs or street frames (their own blur "
     "is unknown or large: `docs/data.md`).",
 }
@@ -208,15 +209,34 @@ def _trunk_line(est) -> list[str]:
 
 
 def write_card(weights: str | Path, command: str, notes: str = "") -> Path:
-    weights = Path(weights)
+    """Write the card of ``weights`` (a file, or a shipped model's name: :func:`weights_path`) next to the file."""
+    weights = weights_path(weights)
     out = weights.with_suffix(".md")
     out.write_text(card_text(weights, command, notes), encoding="utf-8")
     return out
 
 
+def weights_path(weights: str | Path) -> Path:
+    """The weights file a card is for: an existing path as given, else a shipped model's name resolved to its file in
+    ``camhealth/weights`` (``"drne"`` → ``camhealth/weights/drne.pt``). ``noise_source_full`` (the closed-form noise
+    model, no weights) and retired names are refused naming them; anything else is left to the loader's error."""
+    from camhealth.inference import PHYSICS_NOISE_MODEL, RETIRED, shipped_models
+
+    path = Path(weights)
+    if path.exists() or not isinstance(weights, str):
+        return path
+    if weights == PHYSICS_NOISE_MODEL:
+        raise ValueError(f"{weights!r} is the closed-form noise model: it has no weights file and no model card; "
+                         f"give a weights file (.pt) or one of the shipped names {sorted(shipped_models())}")
+    if weights in RETIRED:
+        raise ValueError(f"the shipped model {weights!r} is retired: {RETIRED[weights]}")
+    return shipped_models().get(weights, path)
+
+
 def main(argv: Sequence[str] | None = None) -> Path:
     p = config_parser(prog="python -m camhealth.model_card", description=__doc__)
-    p.add_argument("weights", help="camhealth weights file (.pt); the card is written next to it (.md)")
+    p.add_argument("weights", help="camhealth weights file (.pt), or a shipped model's name (e.g. drne: "
+                                   "camhealth/weights/drne.pt); the card is written next to the file (.md)")
     p.add_argument("--command", default=None, help="the command that trained it (or --refresh)")
     p.add_argument("--refresh", action="store_true",
                    help="keep the existing card's command and training procedure, measure and write the rest again")
@@ -225,7 +245,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     args = p.parse_args(argv)
     if (args.command is None) == (not args.refresh):
         raise ValueError("give either --command (the command that trained the weights) or --refresh (keep the card's)")
-    weights = Path(args.weights)
+    weights = weights_path(args.weights)
     command, notes = args.command, args.notes
     if args.refresh:
         command, old_notes = read_card(weights.with_suffix(".md"))

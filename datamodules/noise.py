@@ -11,7 +11,9 @@ key                       shape       meaning
 ``meta``                  (B, k)      M normalised to [0, 1] for ``metadata_set`` (k = 0, 3 or 11)
 ``meta_image_raw``        (B, 11)     metadata M' the image was actually corrupted with (= M unless altered)
 ``sigma``                 (B, 3)      realised σ of (PN, DCSN, RN) in the image [DN], after gain + clipping
-``sigma_total``           (B,)        realised σ of all noise in the image [DN], after clipping
+                                      (before the rounding of ``quantize: true``, see below)
+``sigma_total``           (B,)        realised σ of all noise in ``image`` [DN]: std(image − noise-free image),
+                                      after clipping and, with ``quantize: true``, rounding to whole DN
 ``sigma_expected``        (B, 3)      analytic σ of (PN, DCSN, RN) under M' [DN] (before clipping)
 ``xi``                    (B,)        residual noise ξ = σ_Model(M) − σ_Image(M') [DN]
 ``xi_norm``               (B,)        ξ / 255 ∈ [−1, 1]
@@ -22,6 +24,16 @@ key                       shape       meaning
 **Which metadata the labels refer to.** ``sigma``, ``sigma_total`` and ``sigma_expected`` describe the noise
 that is really in the image, i.e. they refer to the image metadata M'. ``meta``/``meta_raw`` is what the
 network is told (M). Where ``altered`` is False, M' = M.
+
+**Rounding (``quantize: true``).** The image is rounded to whole DN after clipping. ``sigma_total`` is then
+measured on the rounded image, std(``image`` − noise-free image), so it is the σ of the noise really in
+``image``. The per-source ``sigma`` are measured before rounding: rounding adds an error of its own, which no
+source owns. For noise of a few DN or more this error is about uniform, 1/12 DN² of variance; for noise well
+below 1 DN on a clean patch already on the 8-bit grid, rounding mostly snaps a pixel back to its clean value and
+*removes* noise. So with ``quantize: true`` the per-source ``sigma`` do not add up to ``sigma_total``. With
+``quantize: false`` (the default, and what every shipped noise model was trained on) ``sigma`` and ``sigma_total``
+describe the same noise, and ``sigma_total`` is std(``image`` − noise-free image) as well. ``sigma_expected`` and
+ξ are analytic and never include the rounding.
 
 **ξ (conventions.md Eq. 4.3, thesis Eq. 4.3).** With probability ``xi_probability`` a sample is corrupted
 with altered metadata M' = M with ONE field of ``xi_fields`` (default gain, temperature, white noise)
@@ -44,7 +56,8 @@ sampled; ``metadata_ranges`` narrows/overrides any field's range (fields named t
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+import numbers
+from typing import Any, Mapping, Sequence
 
 import torch
 
@@ -55,12 +68,38 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, METADATA_SE
 from camhealth.physics.photon_shot_noise import photon_shot_sigma_patch_dn
 from camhealth.physics.readout_noise import readout_sigma_e, source_follower_sigma_e
 
-from datamodules.patches import PatchDataModule
+from datamodules.patches import PatchDataModule, _check_number, check_flag
 
-__all__ = ["NoiseDataModule", "expected_sigma_dn", "metadata_matrix", "XI_FIELDS"]
+__all__ = ["NoiseDataModule", "check_metadata_ranges", "expected_sigma_dn", "metadata_matrix", "realised_sigma_dn",
+           "XI_FIELDS"]
 
 #: Fields that may be altered for ξ (any metadata field is allowed; these are the defaults).
 XI_FIELDS: tuple[str, ...] = ("gain_db", "temperature_c", "white_noise_v_per_rthz")
+
+
+def check_metadata_ranges(metadata_ranges: Any) -> dict[str, tuple[float, float]]:
+    """``metadata_ranges`` (``None`` or field → ``[low, high]``) as ``{field: (low, high)}`` floats; an entry that is
+    not a pair of numbers is a ``ValueError`` naming its field (which fields exist and which ranges they allow is
+    :meth:`CameraMetadata.sample`'s check)."""
+    if metadata_ranges is None:
+        return {}
+    if not isinstance(metadata_ranges, Mapping):
+        raise ValueError(f"metadata_ranges = {metadata_ranges!r} must be a mapping of field to [low, high], "
+                         "e.g. {gain_db: [0, 12]}")
+    out = {}
+    for k, v in metadata_ranges.items():
+        pair = list(v) if isinstance(v, (list, tuple)) else None
+        if pair is None or len(pair) != 2 or any(isinstance(x, bool) or not isinstance(x, numbers.Real) for x in pair):
+            raise ValueError(f"metadata_ranges[{k!r}] = {v!r} must be a [low, high] pair of numbers")
+        out[k] = (float(pair[0]), float(pair[1]))
+    return out
+
+
+def realised_sigma_dn(image: torch.Tensor, noise_free: torch.Tensor) -> torch.Tensor:
+    """Realised σ [DN] of the noise in ``image``: the per-sample (unbiased) standard deviation of
+    ``image − noise_free`` over all pixels, in float64, shape (B,)."""
+    d = image.detach().double() - noise_free.detach().double()
+    return d.flatten(1).std(1) * 255.0
 
 
 def metadata_matrix(meta: CameraMetadata) -> torch.Tensor:
@@ -124,10 +163,12 @@ class NoiseDataModule(PatchDataModule):
             file (``camera.yaml`` from ``python -m camhealth.calibrate``) whose sensor fields stay fixed while gain,
             exposure and temperature are sampled.
         metadata_ranges: per-field ``[low, high]`` sampling ranges (inside Table 4.1), e.g.
-            ``{gain_db: [0, 12]}``.
+            ``{gain_db: [0, 12]}``; each entry must be a pair of numbers.
         gain_uniform_in: sample the gain uniformly in the linear ``"factor"`` (thesis) or in ``"db"``.
         noise_sources: which sources to realise, subset of ``["photon", "dark", "readout"]``.
-        quantize: round the noisy image to whole DN.
+        quantize: round the noisy image to whole DN (a bool). ``sigma_total`` is then the σ of the noise in the
+            rounded image; the per-source ``sigma`` stay the σ before rounding (rounding's own error, ≈ 1/12 DN²
+            for noise of a few DN, belongs to no source; see the module docstring).
         xi_probability: probability that a sample's image is corrupted with altered metadata M'.
         xi_fields: fields of which one (chosen uniformly) is redrawn for M'.
 
@@ -196,14 +237,12 @@ class NoiseDataModule(PatchDataModule):
         self.sensor = sensor
         # a preset name or a metadata file (camera.yaml of camhealth.calibrate), read once
         self._sensor_meta = CameraMetadata.lookup(sensor) if sensor is not None else None
-        ranges = {k: (float(v[0]), float(v[1])) for k, v in (metadata_ranges or {}).items()}
+        ranges = check_metadata_ranges(metadata_ranges)
         if sensor is not None:  # a preset fixes the sensor; the operating point is still sampled
             ranges = {**{n: METADATA_RANGES[n] for n in MINIMAL_FIELDS}, **ranges}
         self.metadata_ranges = ranges
         self.gain_uniform_in = gain_uniform_in
-        if not (0.0 <= xi_probability <= 1.0):
-            raise ValueError(f"xi_probability = {xi_probability!r} must be in [0, 1]")
-        self.xi_probability = float(xi_probability)
+        self.xi_probability = _check_number(xi_probability, "xi_probability", 0.0, 1.0)
         xi_fields = tuple(xi_fields)
         bad = [f for f in xi_fields if f not in FULL_FIELDS]
         if bad or (not xi_fields and self.xi_probability > 0):
@@ -213,7 +252,7 @@ class NoiseDataModule(PatchDataModule):
         if not self.noise_sources:
             raise ValueError(f"noise_sources = {list(noise_sources)!r} must name at least one of {list(NOISE_SOURCES)} "
                              "(every sample is labelled as carrying noise)")
-        self.quantize = bool(quantize)
+        self.quantize = check_flag(quantize, "quantize")
         # Validate the sampling configuration now (a bad preset/range fails at construction).
         CameraMetadata.sample(1, ranges=self.metadata_ranges, fixed=self._sensor_meta, gain_uniform_in=gain_uniform_in)
 
@@ -266,13 +305,15 @@ class NoiseDataModule(PatchDataModule):
         same = torch.ones(b, dtype=torch.bool, device=dev)
         for n in FULL_FIELDS:
             same = same & (getattr(meta, n) == getattr(meta_image, n))
+        # form_image measures σ before it rounds: with quantize, the total is measured on the image it returns
+        sigma_total = realised_sigma_dn(formed.image, formed.blurred) if self.quantize else formed.sigma_total_dn
         return {
             "image": formed.image,
             "meta_raw": metadata_matrix(meta).float(),
             "meta": meta.normalize(self.metadata_set).float(),
             "meta_image_raw": metadata_matrix(meta_image).float(),
             "sigma": formed.sigma_dn.float(),
-            "sigma_total": formed.sigma_total_dn.float(),
+            "sigma_total": sigma_total.float(),
             "sigma_expected": formed.sigma_expected_dn.float(),
             "xi": xi,
             "xi_norm": xi / 255.0,

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import numbers
 import time
 import warnings
 from typing import Any, Callable, Mapping, Sequence
@@ -37,7 +38,8 @@ from torch.utils.data import DataLoader, Dataset
 from camhealth.physics.image_formation import check_rng
 from camhealth.data import build_source, group_key, split_ids
 
-__all__ = ["PatchDataset", "PatchDataModule", "is_hard_patch", "STAGES", "rank_seed", "sample_seed"]
+__all__ = ["PatchDataset", "PatchDataModule", "check_flag", "check_patch_options", "is_hard_patch", "STAGES", "rank_seed",
+           "sample_seed"]
 
 #: Dataset stages. ``"predict"`` uses the test split.
 STAGES = ("train", "val", "test")
@@ -118,13 +120,9 @@ class PatchDataset(Dataset):
             raise ValueError(f"the {stage} split has no images")
         _check_positive_int(patch_size, "patch_size")
         _check_positive_int(patches_per_image, "patches_per_image")
-        _check_positive_int(max_tries, "max_tries")
-        if not (math.isfinite(brightness_dn) and 0.0 <= brightness_dn <= 255.0):
-            raise ValueError(f"brightness_dn = {brightness_dn!r} must be in [0, 255]")
-        if not (0.0 <= max_clipped_fraction <= 1.0):
-            raise ValueError(f"max_clipped_fraction = {max_clipped_fraction!r} must be in [0, 1]")
-        if not (math.isfinite(min_std_dn) and min_std_dn >= 0.0):
-            raise ValueError(f"min_std_dn = {min_std_dn!r} must be >= 0")
+        check_patch_options(flips=flips, rot90=rot90, brightness_dn=brightness_dn, min_std_dn=min_std_dn,
+                            max_clipped_fraction=max_clipped_fraction, keep_hard_patches=keep_hard_patches,
+                            max_tries=max_tries)
         for img, image_id in zip(images, ids):
             if img.ndim != 3 or img.shape[0] != 1:
                 raise ValueError(f"image {image_id!r} must be a gray 1×H×W tensor, got shape {tuple(img.shape)}")
@@ -138,11 +136,11 @@ class PatchDataset(Dataset):
         self.stage = stage
         self.patches_per_image = int(patches_per_image)
         self.seed = int(seed)
-        self.flips, self.rot90 = bool(flips), bool(rot90)
+        self.flips, self.rot90 = flips, rot90
         self.brightness_dn = float(brightness_dn)
         self.min_std_dn = float(min_std_dn)
         self.max_clipped_fraction = float(max_clipped_fraction)
-        self.keep_hard_patches = bool(keep_hard_patches)
+        self.keep_hard_patches = keep_hard_patches
         self.max_tries = int(max_tries)
         self.n_fallback = 0
         #: generator of the training crops and augmentation (``None``: torch's global RNG)
@@ -236,6 +234,41 @@ def _check_positive_int(v: Any, name: str) -> int:
     return v
 
 
+def check_flag(v: Any, name: str) -> bool:
+    """``v`` if it is a real bool, else a ``ValueError`` naming the option (``bool("false")`` would be True)."""
+    if not isinstance(v, bool):
+        raise ValueError(f"{name} = {v!r} must be true or false (a bool)")
+    return v
+
+
+def _check_number(v: Any, name: str, low: float, high: float = math.inf) -> float:
+    """``v`` as a float if it is a finite real number in [low, high] (a bool is none), else a ``ValueError`` naming it."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or not low <= v <= high:
+        allowed = f"[{low:g}, {high:g}]" if math.isfinite(high) else f">= {low:g}"
+        raise ValueError(f"{name} = {v!r} must be a finite number {'in ' if math.isfinite(high) else ''}{allowed}")
+    return float(v)
+
+
+def check_patch_options(
+    flips: Any = True,
+    rot90: Any = True,
+    brightness_dn: Any = 20.0,
+    min_std_dn: Any = 2.0,
+    max_clipped_fraction: Any = 0.05,
+    keep_hard_patches: Any = False,
+    max_tries: Any = 20,
+) -> None:
+    """The augmentation and rejection options of :class:`PatchDataset` (and of the DataModules, which check them at
+    construction): a ``ValueError`` naming the first bad value and its allowed range."""
+    check_flag(flips, "flips")
+    check_flag(rot90, "rot90")
+    _check_number(brightness_dn, "brightness_dn", 0.0, 255.0)
+    _check_number(min_std_dn, "min_std_dn", 0.0)
+    _check_number(max_clipped_fraction, "max_clipped_fraction", 0.0, 1.0)
+    check_flag(keep_hard_patches, "keep_hard_patches")
+    _check_positive_int(max_tries, "max_tries")
+
+
 def _folder_group(image_id: str) -> str:
     """Group by sub-folder: ``"clipA/0001.png"`` → ``"clipA"``; files at the root are their own group."""
     return image_id.rsplit("/", 1)[0] if "/" in image_id else group_key(image_id)
@@ -304,11 +337,16 @@ class PatchDataModule(L.LightningDataModule):
         self.num_workers = num_workers
         self.patches_per_image = _check_positive_int(patches_per_image, "patches_per_image")
         self.val_patches_per_image = _check_positive_int(val_patches_per_image, "val_patches_per_image")
+        # the split's own checks (fractions in [0, 1] summing to <= 1, seed an int >= 0), now rather than at setup
+        split_ids([], val_fraction, test_fraction, seed)
         self.val_fraction, self.test_fraction = val_fraction, test_fraction
         self.seed = int(seed)
         self.group_by = group_by
-        self.pin_memory = bool(pin_memory)
+        self.pin_memory = check_flag(pin_memory, "pin_memory")
         self.train_rng = check_rng(train_rng)
+        check_patch_options(flips=flips, rot90=rot90, brightness_dn=brightness_dn, min_std_dn=min_std_dn,
+                            max_clipped_fraction=max_clipped_fraction, keep_hard_patches=keep_hard_patches,
+                            max_tries=max_tries)
         self._patch_kwargs = dict(
             flips=flips,
             rot90=rot90,

@@ -13,7 +13,8 @@ from camhealth.fit import main
 TINY = {
     "noise_source.yaml": ["--data.init_args.source_kwargs", "{n_images: 8, size: [80, 80]}"],
     "drne.yaml": ["--data.init_args.source_kwargs", "{n_images: 8, size: [80, 80]}"],
-    "mtf.yaml": ["--data.init_args.source_kwargs", "{n_images: 8, size: [80, 80]}"],
+    # blur up to 9 px (13-px kernel): a 32-px patch must be >= 2·kernel_size − 1 (BlurDataModule refuses smaller ones)
+    "mtf.yaml": ["--data.init_args.source_kwargs", "{n_images: 8, size: [80, 80]}", "--data.init_args.size_range", "[1.0, 9.0]"],
 }
 
 
@@ -452,3 +453,13 @@ def test_ddp_on_two_cpu_processes_exits_0_with_own_corruption_per_rank_and_singl
     assert set(single) == set(results["test"])
     for k, v in single.items():
         assert results["test"][k] == pytest.approx(v, rel=1e-5, abs=1e-6), k
+
+
+def test_every_config_names_itself_in_its_usage_line():
+    """configs/drne_full.yaml's usage line said `--config configs/drne.yaml` (copied from drne.yaml)."""
+    root = Path(__file__).resolve().parents[1] / "configs"
+    for config in sorted(root.glob("*.yaml")):
+        header = [ln for ln in config.read_text().splitlines() if ln.startswith("#")]
+        usage = [ln for ln in header if "--config configs/" in ln]
+        if usage:
+            assert any(f"--config configs/{config.name}" in ln for ln in usage), (config.name, usage)

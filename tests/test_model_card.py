@@ -128,3 +128,52 @@ def test_card_says_no_samples_for_a_metric_without_data(tmp_path):
     text = card_text(path, "python -m camhealth.fit --config configs/mtf.yaml", timing={"fp32": 1.0, "bf16": 0.5})
     assert "| test/amae_nonlinear | no samples |" in text and "| test/amae | 4.250 |" in text
     assert re.search(r"\bnan\b", text, flags=re.I) is None
+
+
+def test_a_shipped_name_means_its_file_in_the_package(tmp_path, monkeypatch):
+    """``python -m camhealth.model_card drne`` was refused with "no estimator named or at 'drne': shipped names are
+    ['drne', …]", and ``drne --refresh`` looked for ./drne.md. A shipped name now stands for its file in
+    camhealth/weights (as load_estimator reads it); nothing is written here (write_card is replaced)."""
+    import camhealth.model_card as mc
+
+    monkeypatch.chdir(tmp_path)  # no drne.pt / drne.md here
+    written = []
+
+    def fake_write(weights, command, notes=""):
+        written.append((Path(weights), command, notes))
+        return Path(weights).with_suffix(".md")
+
+    monkeypatch.setattr(mc, "write_card", fake_write)
+    command, notes = read_card(WEIGHTS / "drne.md")
+    assert mc.main(["drne", "--refresh"]) == WEIGHTS / "drne.md"
+    assert written == [(WEIGHTS / "drne.pt", command, notes)]
+    mc.main(["mtf", "--command", "python -m camhealth.fit --config configs/mtf_full.yaml"])
+    assert written[-1][0] == WEIGHTS / "mtf.pt"
+    with pytest.raises(ValueError, match=r"'noise_source_full' is the closed-form noise model: it has no weights file"):
+        mc.main(["noise_source_full", "--command", "python -m camhealth.fit"])
+    assert mc.weights_path("nosuch") == Path("nosuch")  # left to the loader's "no estimator named or at" error
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("weights", SHIPPED, ids=lambda p: p.stem)
+def test_shipped_training_data_section_is_what_a_regenerated_card_writes(weights):
+    """The card's "Training data" paragraph is model_card's text for its kind, so a refresh keeps it."""
+    from camhealth.model_card import _DATA
+
+    text = weights.with_suffix(".md").read_text(encoding="utf-8")
+    kind = re.search(r"^- \*\*Kind\*\*: (\w+) ", text, flags=re.M).group(1)
+    section = re.search(r"## Training data\n\n(.*?)\n\n## ", text, flags=re.S).group(1)
+    assert section == _DATA[kind]
+
+
+def test_mtf_card_states_the_noise_order_its_config_uses():
+    """The card said "Half of the samples get sensor noise after the blur", but configs/mtf_full.yaml keeps
+    noise_order: physical (Fig. 3.7), where a motion-blurred sample's photon noise comes before the blur."""
+    from camhealth.model_card import _DATA
+
+    init = yaml.safe_load((ROOT / "configs" / "mtf_full.yaml").read_text())["data"]["init_args"]
+    assert init.get("noise", False) and init.get("noise_order", "physical") == "physical"
+    command, notes = read_card(WEIGHTS / "mtf.md")
+    assert "configs/mtf_full.yaml" in command
+    for text in (notes, _DATA["mtf"]):
+        assert "after the blur" not in text and "Fig. 3.7 order" in text and "photon noise" in text

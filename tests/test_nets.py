@@ -313,3 +313,28 @@ def test_load_net_gives_plain_float32_tensors_of_the_file(tmp_path):
     torch.save(ckpt, tmp_path / "m.ckpt")
     net64, _ = load_net(tmp_path / "m.ckpt")
     assert all(v.dtype == torch.float32 for v in net64.state_dict().values())
+
+
+@pytest.mark.parametrize("module, net, size", [
+    ("camhealth.nets.mtf", lambda: nets.MTFNet(), 192),
+    ("camhealth.nets.drne", lambda: nets.NoiseLevelNet(), 128),
+    ("camhealth.nets.noise_source", lambda: nets.NoiseSourceNet("minimal"), 128),
+])
+def test_module_docstring_gflop_figures_are_what_count_flops_gives(module, net, size):
+    """The MTF module docstring said ≈ 0.6 GFLOP per 192-px patch; ``count_flops`` gives 0.778. Each module's
+    "≈ X GFLOP per N-px patch" must be the computed figure to its stated digits."""
+    doc = importlib.import_module(module).__doc__
+    m = re.search(r"≈ (\d+\.\d+) GFLOP per (\d+)-px patch", doc)
+    assert m and int(m.group(2)) == size, doc
+    n = net()
+    inputs = (torch.rand(1, 1, size, size),) + ((torch.rand(1, 11),) if isinstance(n, nets.NoiseSourceNet) else ())
+    gflop = nets.count_flops(n, *inputs) / 1e9
+    digits = len(m.group(1).split(".")[1])
+    assert round(gflop, digits) == float(m.group(1)), (module, gflop, m.group(1))
+
+
+def test_thesis_noise_net_size_is_the_documented_one():
+    """docs/estimators.md listed ThesisNoiseNet as 0.56 M parameters; it has 518,209 (0.52 M), 16.9 GFLOP."""
+    net = nets.ThesisNoiseNet()
+    assert nets.count_parameters(net) == 518_209
+    assert round(nets.count_flops(net, torch.rand(1, 1, 128, 128)) / 1e9, 1) == 16.9

@@ -33,7 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default="default", help="image source spec (default: the embedded images)")
     parser.add_argument("--workers", type=IntAtLeast(0), default=0, help="DataLoader workers, ≥ 0 (default 0)")
     parser.add_argument("--noise-patch", type=IntAtLeast(1), default=128, help="noise patch size in px, ≥ 1 (default 128)")
-    parser.add_argument("--blur-patch", type=IntAtLeast(1), default=192, help="blur patch size in px, ≥ 1 (default 192)")
+    parser.add_argument("--blur-patch", type=IntAtLeast(69), default=192,
+                        help="blur patch size in px, ≥ 69 (2 × the 35-px kernel − 1; default 192)")
     add_allocator_argument(parser)
 
 

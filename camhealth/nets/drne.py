@@ -5,7 +5,7 @@ noise, for signal-dependent (Poisson–Gaussian) sensor noise.
 convolutions for context, residual blocks — at CPU cost: the patch and its ×32 high-pass residual are
 folded 2×2 into 8 channels (space-to-depth), processed at half resolution by a stem, three dilated
 residual blocks (dilation 1, 2, 4) and a head, and unfolded back to full resolution with a pixel shuffle
-(depth-to-space), so the map is still per pixel. ≈ 0.5 GFLOP per 128-px patch at ``width = 32``.
+(depth-to-space), so the map is still per pixel. ≈ 0.56 GFLOP per 128-px patch at ``width = 32``.
 :class:`ThesisNoiseNet` is the thesis-size reference (16 full-resolution 64-channel 3×3 layers,
 ≈ 17 GFLOP per 128-px patch) used by the benchmarks.
 

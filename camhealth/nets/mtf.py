@@ -10,7 +10,7 @@ layers while keeping every pixel (the finest frequencies are still there).
 
 :class:`MTFNet`: a stem and five residual blocks (two strided: 48 → 24 → 12 px), global max/mean/std pooling,
 **feature averaging over the T patches of a stack** (the thesis's intermediate representation layer), and a
-three-layer fully connected regressor with a sigmoid output. ≈ 0.6 GFLOP per 192-px patch (both directions).
+three-layer fully connected regressor with a sigmoid output. ≈ 0.78 GFLOP per 192-px patch (both directions).
 
 **Both directions at once**: the H and V passes share the convolutional body, and the regressor of each direction
 reads [own, other] pooled features: H = head([f_H, f_V]), V = head([f_V, f_H]). So it can see isotropy (a disk has

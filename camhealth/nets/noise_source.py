@@ -11,7 +11,7 @@ Architecture (:class:`NoiseSourceNet`), sized for a 2-core CPU:
 - **Shared image trunk** (:class:`NoiseTrunk`): the patch in [0, 1] and a 3×3 high-pass residual
   (amplified ×32 so 1-DN noise is O(0.1)) are folded by space-to-depth 2×2 into 8 channels at half
   resolution (no pixel is dropped), then a stem and four residual blocks (two strided) at 1/2, 1/4, 1/8
-  resolution; global max/mean/std pooling. With ``width = 32`` this is ≈ 0.55 GFLOP per 128-px patch,
+  resolution; global max/mean/std pooling. With ``width = 32`` this is ≈ 0.56 GFLOP per 128-px patch,
   ≈ 30× fewer than the thesis's 16 full-resolution 64-channel layers (≈ 17 GFLOP).
 - **Four fully connected branches** (PN, DCSN, RN, ξ; the thesis's FCBs) fed the pooled features, cheap
   image statistics (:func:`~camhealth.estimators.noise_features.image_statistics`, including a robust

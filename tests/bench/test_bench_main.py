@@ -90,7 +90,7 @@ def test_a_new_docs_file_in_an_existing_folder_is_accepted(tmp_path, monkeypatch
 
 @pytest.mark.parametrize("bench,option,value,bound", [("classical", "--noise-size", "16", 32), ("classical", "--charts", "0", 1),
                                                       ("data", "--workers", "-1", 0), ("data", "--noise-patch", "0", 1),
-                                                      ("data", "--blur-patch", "-4", 1)])
+                                                      ("data", "--blur-patch", "68", 69)])
 def test_sizes_and_counts_are_checked_when_parsed(bench, option, value, bound, no_run, capsys):
     """Exit status 2 naming the option and its bound before the benchmark runs (they were refused only by the
     estimator or the DataModule, after the batches were built)."""

@@ -93,3 +93,56 @@ def test_reference_intensity_is_the_mean_of_the_frames_as_swept():
     assert _reference_intensity(_with_frames_provenance({"mean_intensity": 0.6}, intensity=2.0)) == 1.0
     with pytest.raises(SystemExit, match="needs an IOPC whose provenance has frames.mean_intensity"):
         _reference_intensity(_with_frames_provenance({}))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--frames", "abc"], "argument --frames: must be a frame index or a slice start:stop[:step] of integers (e.g. 25:50), "
+                          "got 'abc'"),
+    (["--frames", "1:2:3:4"], "argument --frames: must be a frame index or a slice"),
+    (["--frames", "0:2:0"], "argument --frames: the step of a slice start:stop:step must not be 0, got '0:2:0'"),
+    (["--threads", "0"], "argument --threads: must be >= 1, got 0"),
+    (["--threads", "-2"], "argument --threads: must be >= 1, got -2"),
+])
+def test_frames_and_threads_are_checked_by_the_parser(argv, message, tmp_path, capsys):
+    """``--frames abc`` failed after parsing with "invalid literal for int() with base 10: 'abc'" (no option named),
+    ``--threads 0`` was silently ignored and ``--threads -2`` failed with torch's message."""
+    with pytest.raises(SystemExit) as info:  # (before the IOPC file is looked for)
+        main(["closed-loop", "--iopc", str(tmp_path / "none.json"), *argv])
+    assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_exposure_limits_min_above_max_is_named_as_such(tmp_path):
+    """``--limits-exposure 0.2 0.001`` was reported as a motion-blur cap problem ("renders at most 253 px … below the
+    shortest exposure --limits-exposure 200 ms")."""
+    from camhealth.demo import _exposure_limits
+
+    for argv, match in ((["--limits-exposure", "0.2", "0.001"], r"--limits-exposure 0.2 0.001: MIN must be <= MAX"),
+                        (["--limits-gain", "24", "0"], r"--limits-gain 24 0: MIN must be <= MAX")):
+        with pytest.raises(SystemExit, match=match):  # before the IOPC file is looked for
+            main(["closed-loop", "--iopc", str(tmp_path / "none.json"), *argv])
+    with pytest.raises(SystemExit, match=r"--limits-exposure 0.2 0.001: MIN must be <= MAX"):
+        _exposure_limits(argparse.Namespace(limits_exposure=[0.2, 0.001], motion=1500.0))
+
+
+def test_parse_slice_names_what_it_refuses():
+    from camhealth._cli import BadValue
+
+    assert parse_slice("-1") == slice(-1, None) and parse_slice("-2") == slice(-2, -1)
+    for bad in ("abc", "1:x", "1:2:3:4", "::0", ""):
+        with pytest.raises(BadValue, match=repr(bad)):
+            parse_slice(bad)
+
+
+def test_table_header_names_the_first_repeats_seed():
+    """The header said "AP@0.5 (seed 1)" whatever --seed was (default 0)."""
+    from camhealth.demo import format_table
+
+    row = dict(controller="fixed", ap=0.5, ap_mean=0.5, ap_std=0.0, ap_runs=[0.5], n_detections=3, exposure_ms_median=8.0,
+               gain_db_median=0.0, blur_px_median=12.0, sigma_dn_median=1.5, mean_intensity_median=0.4)
+    for seed in (0, 7):
+        config = dict(limits_exposure=[0.001, 0.2], limits_gain=[0.0, 24.0], frames="25:50", sensor="ICX285",
+                      temperature=25.0, illumination=60.0, motion=1500.0, angle=0.0, exposure=0.008, gain=0.0, seed=seed)
+        res = dict(config=config, exposure_limits_s=[0.001, 0.2], frames=["a"], n_gt=1, results=[row], decisions=[],
+                   estimators={"noise": "physics", "mtf": "physics"})
+        table = format_table(res)
+        assert f"| AP@0.5 (seed {seed}) |" in table and ("seed 1)" not in table)

@@ -10,7 +10,7 @@ import torch
 
 from camhealth.physics import defocus_psf, form_image, linear_motion_psf, mtf_hv, nonlinear_motion_psf
 from datamodules import BlurDataModule
-from tests.datamodules.conftest import SMALL, textured
+from tests.datamodules.conftest import SMALL, save_png, textured
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -37,7 +37,9 @@ def test_default_source_yields_real_mtf_batches():
 
 
 def test_labels_match_the_physics_core(image_folder):
-    dm = BlurDataModule(source=str(image_folder), size_range=(2.0, 15.0), return_psf=True, **{**SMALL, "batch_size": 8})
+    # 48 px: the 19-px kernel of 15-px blur needs patches of at least 2·19 − 1 = 37 px
+    dm = BlurDataModule(source=str(image_folder), size_range=(2.0, 15.0), return_psf=True,
+                        **{**SMALL, "batch_size": 8, "patch_size": 48})
     dm.setup("validate")
     batch = next(iter(dm.val_dataloader()))
     out = dm.on_after_batch_transfer(batch)
@@ -73,13 +75,13 @@ def test_same_seed_gives_same_validation_batch(image_folder):
 
 
 def test_family_mix_and_sizes():
-    clean = _clean(16)
-    only = BlurDataModule(source="unused", patch_size=48, families={"linear": 1.0}, size_range=(31.0, 31.0))
+    clean = _clean(16, 72)  # 31-px blur: 35-px kernel, patches of at least 69 px
+    only = BlurDataModule(source="unused", patch_size=72, families={"linear": 1.0}, size_range=(31.0, 31.0))
     out = only.corrupt(clean, None)
     assert (out["family"] == 1).all() and torch.equal(out["size"], torch.full((16,), 31.0))
     assert (out["intensity"] == 0).all()
-    mix = BlurDataModule(source="unused", patch_size=48, families={"defocus": 1, "nonlinear": 3})
-    fams = mix.corrupt(_clean(32), torch.Generator().manual_seed(0))["family"]
+    mix = BlurDataModule(source="unused", patch_size=72, families={"defocus": 1, "nonlinear": 3})
+    fams = mix.corrupt(_clean(32, 72), torch.Generator().manual_seed(0))["family"]
     assert set(fams.tolist()) == {0, 2}
     with pytest.raises(ValueError, match="famil"):
         BlurDataModule(families={"gaussian": 1.0})
@@ -88,17 +90,17 @@ def test_family_mix_and_sizes():
 
 
 def test_noise_after_blur():
-    clean = _clean(6)
+    clean = _clean(6, 72)
     g = torch.Generator().manual_seed(0)
-    dm = BlurDataModule(source="unused", patch_size=48, noise=True, families={"defocus": 1.0, "linear": 1.0})
+    dm = BlurDataModule(source="unused", patch_size=72, noise=True, families={"defocus": 1.0, "linear": 1.0})
     out = dm.corrupt(clean, g)
     assert out["sigma"].shape == (6, 3) and out["meta_raw"].shape == (6, 11) and out["noisy"].all()
     assert (out["sigma_total"] > 0).all()
     # the MTF label is the blur's alone, the image has noise on top of the blur
-    quiet = BlurDataModule(source="unused", patch_size=48, families={"defocus": 1.0, "linear": 1.0})
+    quiet = BlurDataModule(source="unused", patch_size=72, families={"defocus": 1.0, "linear": 1.0})
     ref = quiet.corrupt(clean, torch.Generator().manual_seed(0))
     assert torch.equal(ref["mtf"], out["mtf"]) and not torch.equal(ref["image"], out["image"])
-    fast = BlurDataModule(source="unused", patch_size=48, noise=True, families={"defocus": 1.0, "linear": 1.0},
+    fast = BlurDataModule(source="unused", patch_size=72, noise=True, families={"defocus": 1.0, "linear": 1.0},
                           train_rng="counter")
     torch.manual_seed(1)
     a = fast.on_after_batch_transfer({"clean": clean, "stage": ["train"] * 6})
@@ -106,7 +108,7 @@ def test_noise_after_blur():
     b = dm.on_after_batch_transfer({"clean": clean, "stage": ["train"] * 6})
     assert torch.equal(a["mtf"], b["mtf"]) and not torch.equal(a["image"], b["image"])  # same blur, other noise draws
     assert torch.allclose(a["sigma"].sum(0), b["sigma"].sum(0), rtol=0.1)
-    after = BlurDataModule(source="unused", patch_size=48, noise=True, noise_order="after_blur", noise_probability=0.0)
+    after = BlurDataModule(source="unused", patch_size=72, noise=True, noise_order="after_blur", noise_probability=0.0)
     out2 = after.corrupt(clean, None)
     assert not out2["noisy"].any() and torch.equal(out2["sigma"], torch.zeros(6, 3))
 
@@ -126,18 +128,21 @@ def test_yaml_config_instantiates_with_lightning_cli():
 
 
 def test_corruption_runs_on_the_batch_device(device):
-    dm = BlurDataModule(source="unused", patch_size=48, noise=True)
-    batch = {"clean": _clean(4).to(device), "index": torch.arange(4, device=device), "stage": ["test"] * 4}
+    dm = BlurDataModule(source="unused", patch_size=72, noise=True)
+    batch = {"clean": _clean(4, 72).to(device), "index": torch.arange(4, device=device), "stage": ["test"] * 4}
     out = dm.on_after_batch_transfer(batch, 0)
     assert all(v.device.type == device.type for v in out.values() if isinstance(v, torch.Tensor))
     assert torch.equal(out["image"], dm.on_after_batch_transfer({**batch}, 0)["image"])
 
 
-def test_bench_data_subcommand_reports_patches_per_second(image_folder, capsys):
+def test_bench_data_subcommand_reports_patches_per_second(tmp_path, capsys):
     from camhealth.bench.__main__ import main
 
-    argv = ["data", "--source", str(image_folder), "--batch", "4", "--repeats", "1", "--warmup", "0",
-            "--noise-patch", "32", "--blur-patch", "48"]
+    folder = tmp_path / "images"  # 80-px images: the bench's 31-px blur (35-px kernel) needs patches >= 69 px
+    for i in range(10):
+        save_png(folder / f"img{i:02d}.png", textured(80, i))
+    argv = ["data", "--source", str(folder), "--batch", "4", "--repeats", "1", "--warmup", "0",
+            "--noise-patch", "32", "--blur-patch", "72"]
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "BlurDataModule train + noise" in out and "patches/s delivered incl. corruption" in out
@@ -195,3 +200,56 @@ def test_noisy_blur_data_need_a_noise_source_and_an_int_kernel_size():
 def test_metadata_ranges_are_checked_also_without_noise():
     with pytest.raises(ValueError, match="gain_db"):
         BlurDataModule(source="unused", noise=False, metadata_ranges={"gain_db": (5.0, 1.0)})
+
+
+def test_patches_too_small_for_the_kernel_are_refused_naming_both_and_the_rule():
+    """A patch hardly larger than its PSF is blurred mostly with the padded border: the MTF label then no longer
+    describes the image (31-px linear blur, f_n = 0.1: label 0.204, modulation in a 40-px patch 0.189). The rule
+    patch_size >= 2·kernel_size − 1 keeps an exactly blurred centre at least one kernel wide."""
+    from datamodules.blur import min_patch_size
+
+    for patch, kw in ((16, {}), (40, {}), (68, {}), (32, {"size_range": (1.0, 25.0)})):
+        k = BlurDataModule(source="unused", **kw).kernel_size
+        with pytest.raises(ValueError, match=rf"patch_size = {patch} is too small for kernel_size = {k} .*"
+                                             rf"patch_size must be >= 2·kernel_size − 1 = {2 * k - 1}"):
+            BlurDataModule(source="unused", patch_size=patch, **kw)
+    assert min_patch_size(35) == 69 and BlurDataModule(source="unused", patch_size=69).kernel_size == 35
+    with pytest.raises(ValueError, match=r"patch_size = 64 is too small for kernel_size = 63"):  # an explicit kernel
+        BlurDataModule(source="unused", patch_size=64, size_range=(1.0, 9.0), kernel_size=63)
+    # the defaults and every shipped blur config pass (192-px patches; 35- and 29-px kernels)
+    import yaml
+
+    assert BlurDataModule(source="unused").patch_size == 192
+    for name in ("data_blur.yaml", "mtf.yaml", "mtf_full.yaml"):
+        init = dict(yaml.safe_load((CONFIGS / name).read_text())["data"]["init_args"], source="unused")
+        dm = BlurDataModule(**init)
+        assert dm.patch_size >= min_patch_size(dm.kernel_size), name
+
+
+@pytest.mark.parametrize("option", ["return_psf", "noise", "flips", "rot90", "keep_hard_patches", "pin_memory"])
+@pytest.mark.parametrize("value", ["false", "no", 1, 0, None])
+def test_boolean_options_must_be_bools(option, value):
+    """``bool("false")`` is True: a string or number is refused naming the option instead of switching it on."""
+    with pytest.raises(ValueError, match=rf"{option} = {value!r} must be true or false"):
+        BlurDataModule(source="unused", **{option: value})
+
+
+@pytest.mark.parametrize("ranges, shown", [
+    ({"gain_db": 6}, "6"), ({"gain_db": [0, 1, 2]}, r"\[0, 1, 2\]"), ({"gain_db": "0, 12"}, "'0, 12'"),
+    ({"gain_db": [0, "12"]}, r"\[0, '12'\]"), ({"gain_db": [True, 3]}, r"\[True, 3\]"),
+])
+def test_metadata_ranges_entries_must_be_pairs_naming_the_field(ranges, shown):
+    """A 3-element range was truncated to its first two values, a single number failed with "'int' object is not
+    subscriptable"."""
+    for noise in (True, False):
+        with pytest.raises(ValueError, match=rf"metadata_ranges\['gain_db'\] = {shown} must be a \[low, high\] pair"):
+            BlurDataModule(source="unused", noise=noise, metadata_ranges=ranges)
+
+
+def test_size_range_and_probabilities_name_the_option():
+    with pytest.raises(ValueError, match=r"size_range must be a number or a \[low, high\] pair of numbers, got 'ab'"):
+        BlurDataModule(source="unused", size_range="ab")
+    with pytest.raises(ValueError, match=r"noise_probability = True must be a finite number in \[0, 1\]"):
+        BlurDataModule(source="unused", noise=True, noise_probability=True)
+    with pytest.raises(ValueError, match=r"gain_uniform_in = 'linear' is not one of"):
+        BlurDataModule(source="unused", gain_uniform_in="linear")  # also with noise off

@@ -261,3 +261,85 @@ def test_noise_data_need_a_noise_source():
     # every sample is labelled as carrying noise (and ξ as altered metadata): none added would contradict it
     with pytest.raises(ValueError, match=r"noise_sources = \[\] must name at least one of \['photon', 'dark', 'readout'\]"):
         NoiseDataModule(source="unused", noise_sources=[])
+
+
+def _eight_bit(b: int, size: int = 64, seed: int = 0) -> torch.Tensor:
+    """Clean patches already on the 8-bit grid (as photos and street frames are)."""
+    g = torch.Generator().manual_seed(seed)
+    return ((torch.rand(b, 1, size, size, generator=g) * 0.2 + 0.3) * 255).round() / 255
+
+
+@pytest.mark.parametrize("sources, ranges", [
+    (["readout"], {"gain_db": [0, 0], "temperature_c": [20, 20]}),  # ≈ 0.23 DN: rounding removes noise
+    (["photon", "dark", "readout"], {"gain_db": [0, 0], "exposure_s": [0.001, 0.001], "temperature_c": [0, 0]}),
+    (["photon", "dark", "readout"], {"gain_db": [12, 12], "temperature_c": [40, 40]}),  # several DN: + 1/12 DN²
+])
+def test_quantized_sigma_total_is_the_noise_really_in_the_image(sources, ranges):
+    """With ``quantize: true`` the label was the σ before rounding: 0.229 DN where the rounded image carries
+    0.168–0.174 DN (readout only, ICX285 at 0 dB), 1.226 where it carries 1.259 (all sources). ``sigma_total`` is now
+    std(image − clean) of the returned image; the per-source ``sigma`` are documented as before rounding, and with
+    ``quantize: false`` nothing changes."""
+    clean = _eight_bit(4)
+    out = {}
+    for q in (False, True):
+        dm = NoiseDataModule(source="unused", quantize=q, xi_probability=0.0, sensor="ICX285", noise_sources=sources,
+                             metadata_ranges=ranges)
+        meta, mi, _ = dm.sample_metadata(4, torch.Generator().manual_seed(0))
+        out[q] = dm.corrupt_with(clean, meta, mi, noise_seed=1)
+        realised = (out[q]["image"].double() - clean.double()).flatten(1).std(1) * 255
+        assert torch.allclose(out[q]["sigma_total"].double(), realised, rtol=1e-5, atol=1e-6), (q, out[q]["sigma_total"], realised)
+    plain, rounded = out[False], out[True]
+    assert torch.allclose(rounded["image"] * 255, (rounded["image"] * 255).round(), atol=1e-4)  # whole DN
+    assert (rounded["image"] - plain["image"]).abs().max() <= 0.5 / 255 + 1e-6  # the same noise field, rounded
+    assert torch.equal(rounded["sigma"], plain["sigma"])  # per source: before rounding, as documented
+    assert torch.equal(rounded["sigma_expected"], plain["sigma_expected"]) and torch.equal(rounded["xi"], plain["xi"])
+    assert not torch.allclose(rounded["sigma_total"], plain["sigma_total"], rtol=1e-3)  # rounding changes the noise
+
+
+def test_quantize_docs_say_what_the_labels_measure():
+    import datamodules.noise as noise_module
+
+    docs = Path(__file__).resolve().parents[2] / "docs" / "data.md"
+    yaml_text = (CONFIGS / "data_noise.yaml").read_text()
+    for text in (noise_module.__doc__, NoiseDataModule.__doc__, docs.read_text(), yaml_text):
+        assert "1/12 DN" in text and "before rounding" in text
+
+
+@pytest.mark.parametrize("option", ["quantize", "flips", "rot90", "keep_hard_patches", "pin_memory"])
+@pytest.mark.parametrize("value", ["false", "no", 1, 0, None])
+def test_boolean_options_must_be_bools(option, value):
+    """``bool("false")`` is True: ``NoiseDataModule(flips="false")`` trained with flips on."""
+    with pytest.raises(ValueError, match=rf"{option} = {value!r} must be true or false"):
+        NoiseDataModule(source="unused", **{option: value})
+
+
+@pytest.mark.parametrize("ranges, shown", [
+    ({"gain_db": 6}, "6"), ({"gain_db": [0, 1, 2]}, r"\[0, 1, 2\]"), ({"gain_db": "0, 12"}, "'0, 12'"),
+    ({"gain_db": [0, None]}, r"\[0, None\]"),
+])
+def test_metadata_ranges_entries_must_be_pairs_naming_the_field(ranges, shown):
+    """``{gain_db: [0, 1, 2]}`` was truncated to [0, 1]; ``{gain_db: 6}`` failed with "'int' object is not
+    subscriptable"."""
+    with pytest.raises(ValueError, match=rf"metadata_ranges\['gain_db'\] = {shown} must be a \[low, high\] pair"):
+        NoiseDataModule(source="unused", metadata_ranges=ranges)
+    with pytest.raises(ValueError, match=r"metadata_ranges = .* must be a mapping"):
+        NoiseDataModule(source="unused", metadata_ranges=[0, 12])
+    assert NoiseDataModule(source="unused", metadata_ranges={"gain_db": (0, 12)}).metadata_ranges == {"gain_db": (0.0, 12.0)}
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(val_fraction=1.5), r"val_fraction = 1.5 must be a number in \[0, 1\]"),
+    (dict(test_fraction=float("nan")), r"test_fraction = nan must be a number in \[0, 1\]"),
+    (dict(val_fraction=0.6, test_fraction=0.6), r"val_fraction \+ test_fraction = 1.2 must be <= 1"),
+    (dict(seed=-1), r"seed = -1 must be >= 0"),
+    (dict(brightness_dn=-5.0), r"brightness_dn = -5.0 must be a finite number in \[0, 255\]"),
+    (dict(brightness_dn=float("inf")), r"brightness_dn = inf must be a finite number in \[0, 255\]"),
+    (dict(min_std_dn=float("nan")), r"min_std_dn = nan must be a finite number >= 0"),
+    (dict(max_clipped_fraction=1.5), r"max_clipped_fraction = 1.5 must be a finite number in \[0, 1\]"),
+    (dict(max_tries=0), r"max_tries = 0 must be a positive int"),
+    (dict(xi_probability=True), r"xi_probability = True must be a finite number in \[0, 1\]"),
+])
+def test_patch_and_split_options_are_checked_at_construction(kwargs, match):
+    """These were stored unchecked and refused only at ``setup``, after the CLI had built the model and Trainer."""
+    with pytest.raises(ValueError, match=match):
+        NoiseDataModule(source="unused", **kwargs)
