@@ -61,30 +61,27 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _number_in(text: str | float, lo: float, hi: float, unit: str, what: str) -> float:
+    """``text`` as a number of ``unit`` in [lo, hi], else :class:`BadValue` naming the value and the range."""
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise BadValue(f"must be a number of {unit}, got {text!r}") from None
+    if not lo <= v <= hi:
+        raise BadValue(f"must lie in {what} {lo:g} … {hi:g} {unit}, got {text}")
+    return v
+
+
 def _gain_db(text: str | float) -> float:
     """Option type: a gain in dB inside camhealth's metadata range (``METADATA_RANGES['gain_db']``)."""
-    lo, hi = METADATA_RANGES["gain_db"]
-    try:
-        g = float(text)
-    except (TypeError, ValueError):
-        raise BadValue(f"must be a number of dB, got {text!r}") from None
-    if not lo <= g <= hi:
-        raise BadValue(f"must lie in camhealth's gain range {lo:g} … {hi:g} dB, got {text}")
-    return g
+    return _number_in(text, *METADATA_RANGES["gain_db"], "dB", "camhealth's gain range")
 
 
 def _temperature_c(text: str | float) -> float:
     """Option type: a sensor temperature in °C inside :data:`~camhealth.calibrate.frames.TEMPERATURE_RANGE_C`."""
     from camhealth.calibrate.frames import TEMPERATURE_RANGE_C
 
-    lo, hi = TEMPERATURE_RANGE_C
-    try:
-        t = float(text)
-    except (TypeError, ValueError):
-        raise BadValue(f"must be a number of °C, got {text!r}") from None
-    if not lo <= t <= hi:
-        raise BadValue(f"must lie in [{lo:g}, {hi:g}] °C (a sensor temperature), got {text}")
-    return t
+    return _number_in(text, *TEMPERATURE_RANGE_C, "°C", "the sensor temperature range")
 
 
 def _bit_depth(text: str | int) -> int:

@@ -736,4 +736,4 @@ def test_an_out_of_range_temperature_is_refused_naming_the_range(temperature, tm
         FrameSet("dark", 0.1, temperature_c=temperature, frames=np.zeros((4, 8, 8), np.float32), name="d")
     with pytest.raises(SystemExit) as info:
         main([str(tmp_path / "dark_200ms"), "--out", str(tmp_path / "c.yaml"), f"--temperature-c={temperature:g}"])
-    assert info.value.code == 2 and f"argument --temperature-c: must lie in [-60, 150] °C (a sensor temperature), got {temperature:g}" in capsys.readouterr().err
+    assert info.value.code == 2 and f"argument --temperature-c: must lie in the sensor temperature range -60 … 150 °C, got {temperature:g}" in capsys.readouterr().err
