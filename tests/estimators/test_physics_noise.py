@@ -960,3 +960,32 @@ def test_a_pooled_frame_mostly_noiseless_is_refused_as_a_whole():
     # per patch, the camera's own patches are what they are
     alone = PhysicsNoiseEstimator().predict(patches, meta)
     assert alone["reason"] == [LESS_NOISE] * 15 + [""] * 5
+
+
+def test_kept_share_of_both_bounds_stays_positive():
+    """Noise as wide as the distance to both bounds keeps a positive share of its variance in the kept blocks (each
+    bound's share, multiplied): their summed losses floored it at 1e-3 at 128 DN with 128 DN of noise, where a Monte
+    Carlo of four pixels kept inside both bounds leaves 0.29."""
+    f = _kept_variance_factor(torch.tensor([128.0, 128.0, 20.0, 128.0]), torch.tensor([128.0, 60.0, 15.0, 10.0]) ** 2)
+    assert 0.2 < float(f[0]) < 0.35 and 0.85 < float(f[1]) < 0.9 and 0.6 < float(f[2]) < 0.7 and float(f[3]) == 1.0
+    # one bound binding: that bound's share alone, the same near either bound
+    near = _kept_variance_factor(torch.tensor([20.0, 235.0]), torch.tensor([15.0**2, 15.0**2]))
+    assert torch.isclose(near[0], near[1], atol=1e-6)
+
+
+@pytest.mark.parametrize("level", [100.0, 128.0, 150.0])
+def test_a_noiseless_patch_under_a_noisy_cameras_metadata_is_less_noise_with_the_closed_form(level):
+    """A constant patch (a denoised or rendered frame) told EV76C661 at 24 dB / 80 °C / 0.2 s (σ_Total 58 DN): far
+    quieter than every camera state, refused as such with the closed form and ξ = 0. It read "noise beyond validated
+    range" with ξ = −35 DN (noisier), and a quiet patch refused as quieter kept the image's answer (ξ = +52 DN)."""
+    from camhealth.estimators.physics_noise import LESS_NOISE
+
+    meta = CameraMetadata.preset("EV76C661", gain_db=24.0, temperature_c=80.0, exposure_s=0.2)
+    x = torch.full((2, 1, 128, 128), level / 255.0)
+    x[1] += torch.randn(1, 128, 128, generator=torch.Generator().manual_seed(0)) * 0.3 / 255.0  # 0.3 DN: denoised
+    x = (x * 255.0).round() / 255.0
+    out = load_estimator(PHYSICS_NOISE_MODEL).predict(x, meta)
+    assert out["reason"] == [LESS_NOISE, LESS_NOISE]
+    prior = physics_prior_dn(x, meta, clipping=True)[:, 4:8]
+    assert torch.allclose(out["sigma_total"], prior[:, 3], atol=1e-3) and torch.allclose(out["sigma"], prior[:, :3], atol=1e-3)
+    assert (out["xi"] == 0).all() and not out["follows_image"].any()
