@@ -33,7 +33,7 @@ from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
     "metadata_from_matrix", "physics_prior_dn", "clipped_prior_dn", "image_statistics", "laplace_difference", "box_mean3",
-    "IMAGE_STATISTICS", "CLIP_TOLERANCE", "block_details", "truncated_second_moment",
+    "IMAGE_STATISTICS", "CLIP_TOLERANCE", "block_details", "plane_free_details", "truncated_second_moment",
 ]
 
 #: Names of the columns of :func:`image_statistics`.
@@ -145,6 +145,37 @@ def block_details(image: torch.Tensor, caller: str = "block_details") -> tuple[t
     g2[..., 1:-1, :] += (m[..., 2:, :] - m[..., :-2, :]).square()
     g2[..., :, 1:-1] += (m[..., :, 2:] - m[..., :, :-2]).square()
     return m, d2, usable, g2
+
+
+def plane_free_details(image: torch.Tensor, d2: torch.Tensor, usable: torch.Tensor) -> torch.Tensor:
+    """The squared details of :func:`block_details` with each patch's plane taken out of the horizontal and vertical
+    ones.
+
+    A scene that is a plane I = a + s_y·r + s_x·c [DN] puts −s_y into every horizontal Haar detail
+    h = (I₀₀ + I₀₁ − I₁₀ − I₁₁)/2 and −s_x into every vertical one v = (I₀₀ − I₀₁ + I₁₀ − I₁₁)/2; the diagonal one never
+    sees it. The patch's slopes are read as the medians of its usable blocks' signed h and v (robust to the edges and
+    texture a few blocks carry; texture has slopes of both signs, which the median leaves at about 0) and subtracted,
+    so a smooth ramp, vignetting or a sky gradient leaves white noise's σ² in them (the medians of n blocks add
+    about πσ²/(2n), 4·10⁻⁴ σ² on a 128-px patch).
+
+    Args:
+        image: B×1×H×W patches in [0, 1] (H, W ≥ 8).
+        d2: squared details [DN²] (3, B, 1, h, w) and ``usable`` the mask (B, 1, h, w), both of :func:`block_details`.
+
+    Returns d² (3, B, 1, h, w) [DN²] float32, the diagonal as given; a patch without a usable block keeps its raw
+    details.
+    """
+    p00, p01, p10, p11 = _block_pixels(image.detach().float())
+    signed = torch.stack([(p00 + p01 - p10 - p11) / 2.0, (p00 - p01 + p10 - p11) / 2.0])  # (2, B, 1, h, w)
+    b = signed.shape[1]
+    # the median of the usable blocks by one order statistic of whole rows: the unusable ones go to −∞ and +∞ in
+    # turn, so as many lie below as above the usable ones (where an odd number of blocks is unusable, the order
+    # statistic next to their median)
+    off = (~usable).reshape(b, -1)
+    side = torch.where(off.cumsum(1) % 2 == 1, float("-inf"), float("inf"))
+    rows = torch.where(off.unsqueeze(0), side.unsqueeze(0), signed.reshape(2, b, -1))
+    slope = torch.where(off.all(1), 0.0, lower_median(rows)).view(2, b, 1, 1, 1)
+    return torch.cat([d2[:1].float(), (signed - slope).square()])
 
 
 def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor) -> torch.Tensor:

@@ -60,7 +60,11 @@ Hypotheses (the thesis's mismatch model, Sec. 6.3.2: one field of M is wrong at 
 
 The texture check — ln of the horizontal-and-vertical to diagonal detail energy on the inliers, ≈ 0 for white
 noise — widens the common model error: η_eff² = η² + max(texture, 0)² (texture adds to the horizontal and vertical
-details first, so it bounds what it may have added to the diagonal one).
+details first, so it bounds what it may have added to the diagonal one). It reads the horizontal and vertical details
+with the patch's plane taken out (:func:`~camhealth.estimators.noise_features.plane_free_details`: the medians of the
+usable blocks' signed details), as does the inlier test: a smooth ramp puts its slope into them and nothing into the
+diagonal detail, so it is no texture. The pooled scene allowance reads them as they are (a scene's gradients are part
+of its fine content).
 
 The neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated, and a scene's fine
 texture does not (grass or gravel seen under strong noise, where the texture ratio is near 0 because the noise
@@ -78,7 +82,10 @@ limit, add up in quadrature to 1 or more — each alone at its limit, or two mar
 posterior-mean variances) and ξ = σ_Total(M) − σ_Total(image) (Eq. 4.3, both after clipping). ``xi_std`` is the
 posterior standard deviation of σ_Total (∞ without evidence). Inliers are chosen in two passes — against a
 metadata-free per-intensity median of the details, then against the first pass's posterior NLF — so a camera far
-noisier than its metadata keeps its details.
+noisier than its metadata keeps its details. Where the first pass found no flat block (a ramp steeper than about half
+the noise σ per pixel fails the flatness test on its slope), that posterior is the prior, whose wide NLF admits nearly
+every block: the texture and neighbour checks then decide whether the patch is read (a ramp is, an edge-filled or
+textured patch is not).
 
 **Row and column noise** (banding, :mod:`camhealth.estimators.row_column_noise`): offsets shared by whole pixel rows or
 columns, which no source of the metadata makes. The diagonal detail never sees them; the horizontal and vertical ones
@@ -147,6 +154,7 @@ from camhealth._order import sorted_values
 from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, haar_noise_dn
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
+    plane_free_details,
     metadata_from_matrix, truncated_second_moment,
 )
 from camhealth.estimators.defective_pixels import defective_pixels
@@ -766,6 +774,12 @@ def physics_noise_posterior(
         x_ev = x if pair is None else pair.fold
 
         m, d2, usable, g2 = block_details(x_ev, "physics_noise_posterior")
+        # the horizontal and vertical details as they are (a scene's fine content: the scene allowance below reads its
+        # excess) and with the local plane taken out (a smooth ramp is no texture: the texture check and the inlier
+        # test read these); a pair's fold holds no scene and keeps its own
+        d2_raw = d2
+        if pair is None:
+            d2 = plane_free_details(x_ev, d2, usable)
         m_g, lo_hi = m, None  # the block means whose gradients test flatness; each block's pixel range [DN]
         c_index = None  # a pair's per-pixel clipping limits, as intervals of the log grid (B, h·w, 4)
         if pair is not None:  # a pair's details hold no scene: flatness of the difference, the range of the pixels
@@ -782,6 +796,8 @@ def physics_noise_posterior(
             usable[..., :, -1] = False
             c_index = _pair_c_index(pair.limits).view(b, -1, 4)
         band = row_column_noise(x_ev, pool)  # row and column offsets: out of the details the fits read
+        if d2_raw is not d2 and bool(band.detected.any()):
+            d2_raw = debanded_details(x_ev, m_g, d2_raw, g2, band.detected)[0]
         d2, g2 = debanded_details(x_ev, m_g, d2, g2, band.detected)
         kbin = (m / 255.0 * bins).floor().clamp(0, bins - 1).long().flatten(1)
         idx = (torch.arange(b, device=dev).view(b, 1) * bins + kbin).flatten()
@@ -831,6 +847,7 @@ def physics_noise_posterior(
             # one, so it widens the common model error: η_eff² = η² + max(texture, 0)²
             all3 = inl_all.prod(0)
             hv = ((d2[1] + d2[2]) * all3).flatten(1).sum(1).to(f64) / 2.0
+            hv_raw = hv if d2_raw is d2 else ((d2_raw[1] + d2_raw[2]) * all3).flatten(1).sum(1).to(f64) / 2.0
             dd = (d2[0] * all3).flatten(1).sum(1).to(f64)
             n3 = all3.flatten(1).sum(1).to(f64)
             count, sq, sm = per_bin(inl), per_bin(d2[0].flatten().to(f64) * inl), per_bin(m_flat * inl)
@@ -863,7 +880,7 @@ def physics_noise_posterior(
                     clip_n, clip_m, clip_o = _clip_bin_stats(*clip_input(~quiet_alone), bins, pool, h)
             if pool:  # one camera state: the frame's evidence for every patch (but the quiet ones above)
                 w_in = (~quiet_alone).to(f64)
-                hv, dd, n3 = ((t * w_in).sum().expand(b) for t in (hv, dd, n3))
+                hv, hv_raw, dd, n3 = ((t * w_in).sum().expand(b) for t in (hv, hv_raw, dd, n3))
                 count, sq, sm = ((t * w_in.unsqueeze(1)).sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
                 c_counts = None if c_counts is None else (c_counts * w_in.view(b, 1, 1)).sum(0, keepdim=True)
             texture = torch.where(n3 >= _MIN_FIT_BLOCKS, torch.log((hv + 1e-6) / (dd + 1e-6)), torch.zeros_like(hv))
@@ -871,7 +888,7 @@ def physics_noise_posterior(
                 # the frame's own fine content, read off its inliers: white noise puts as much energy into the
                 # horizontal and vertical details as into the diagonal one, a scene at least SCENE_DETAIL_RATIO
                 # times as much, so the excess bounds what the scene added to the diagonal detail
-                excess = ((hv - dd) / n3.clamp_min(1.0) / _TRUNCATED_CHI2).clamp_min(0.0)
+                excess = ((hv_raw - dd) / n3.clamp_min(1.0) / _TRUNCATED_CHI2).clamp_min(0.0)
                 tau2 = torch.where(n3 >= _MIN_FIT_BLOCKS, (tau2_min + excess / (SCENE_DETAIL_RATIO - 1.0)).clamp_max(scene_allowance_dn**2),
                                    torch.full_like(excess, scene_allowance_dn**2))
             eta2 = (eta**2 + texture.clamp_min(0).square()).unsqueeze(1)[:h]

@@ -9,7 +9,8 @@ from camhealth.physics.dark_current import dark_current_shot_sigma_dn
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.readout_noise import readout_sigma_dn
 from camhealth.estimators.noise_features import (
-    _TRUNCATED_CHI2, image_statistics, metadata_from_matrix, physics_prior_dn, truncated_second_moment,
+    _TRUNCATED_CHI2, block_details, image_statistics, metadata_from_matrix, physics_prior_dn, plane_free_details,
+    truncated_second_moment,
 )
 
 
@@ -207,3 +208,47 @@ def test_image_statistics_docstring_states_its_shape():
     out = image_statistics(torch.rand(3, 1, 32, 32))
     assert out.shape == (3, len(IMAGE_STATISTICS)) == (3, 6)
     assert f"(B, {len(IMAGE_STATISTICS)})" in image_statistics.__doc__
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_plane_free_details_hold_no_plane(dtype):
+    """A plane of any slope (here up to ±1.5 DN/px in both directions, one per patch) leaves the horizontal and vertical
+    details at 0, which block_details gives as the squared slopes; the diagonal detail is block_details'. A step edge
+    through the plane does not move the slopes read (the median of the blocks)."""
+    g = torch.Generator().manual_seed(0)
+    sy, sx = (torch.rand(4, 1, 1, 1, generator=g, dtype=dtype) * 3.0 - 1.5 for _ in range(2))
+    r = torch.arange(64, dtype=dtype).view(1, 1, 64, 1)
+    c = torch.arange(64, dtype=dtype).view(1, 1, 1, 64)
+    plane = (128.0 + sy * r + sx * c) / 255.0
+    _, d2, usable, _ = block_details(plane)
+    inner = usable.expand_as(d2[0])
+    assert torch.allclose(d2[1][inner], sy.float().square().expand(4, 1, 32, 32)[inner], rtol=1e-3, atol=1e-4)
+    out = plane_free_details(plane, d2, usable)
+    assert float(out[1:].abs().amax()) < 1e-3
+    assert torch.equal(out[0], d2[0].float())
+    edge = plane.clone()
+    edge[..., 33:, :] += 40.0 / 255.0  # an edge inside a block row: one row of blocks carries it
+    _, d2e, usable_e, _ = block_details(edge)
+    out = plane_free_details(edge, d2e, usable_e)
+    assert float(out[1:, ..., :16, :].abs().amax()) < 1e-3  # blocks away from the edge: no plane left
+    clipped = plane.clone()
+    clipped[..., :20, :] = 1.0  # a saturated band: its blocks are not usable and do not count in the slopes
+    _, d2c, usable_c, _ = block_details(clipped)
+    assert int((~usable_c[..., 1:-1, 1:-1]).sum()) > 0
+    out = plane_free_details(clipped, d2c, usable_c)
+    assert float((out[1:] * usable_c).abs().amax()) < 1e-3
+    black = torch.zeros(2, 1, 64, 64, dtype=dtype)  # nothing usable: the raw details
+    _, d2b, usable_b, _ = block_details(black)
+    assert not usable_b.any() and torch.equal(plane_free_details(black, d2b, usable_b), d2b.float())
+
+
+def test_plane_free_details_keep_white_noise_variance():
+    """White noise of σ = 5 DN on a 1.2 DN/px ramp: each detail's mean square is σ² (the median slope adds ~πσ²/(2n))."""
+    g = torch.Generator().manual_seed(1)
+    ramp = 1.2 * torch.arange(128, dtype=torch.float64).view(1, 1, 1, 128)
+    x = (40.0 + ramp + 5.0 * torch.randn(16, 1, 128, 128, generator=g, dtype=torch.float64)) / 255.0
+    _, d2, usable, _ = block_details(x)
+    assert float(d2[2][usable.expand_as(d2[2])].mean()) > 25.0 + 0.9  # the raw vertical detail carries the slope² (1.44)
+    out = plane_free_details(x, d2, usable)
+    inner = torch.stack([out[k][usable.expand_as(out[k])].mean() for k in range(3)])
+    assert torch.allclose(inner, torch.full_like(inner, 25.0), rtol=0.02)

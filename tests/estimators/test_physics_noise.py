@@ -989,3 +989,26 @@ def test_a_noiseless_patch_under_a_noisy_cameras_metadata_is_less_noise_with_the
     prior = physics_prior_dn(x, meta, clipping=True)[:, 4:8]
     assert torch.allclose(out["sigma_total"], prior[:, 3], atol=1e-3) and torch.allclose(out["sigma"], prior[:, :3], atol=1e-3)
     assert (out["xi"] == 0).all() and not out["follows_image"].any()
+
+
+@pytest.mark.parametrize("pool", [False, True])
+@pytest.mark.parametrize("slope", [1.5, 3.0])
+def test_a_steep_ramp_is_read_not_called_textured(slope, pool):
+    """A smooth ramp of 1.5–3 DN/px (steeper than the camera's σ ≈ 1.4 DN) is no texture: matched it is assessable and
+    the closed form, under an 18 dB gain excess the image is followed and reads noisier (the local plane out of the
+    horizontal and vertical details, :func:`~camhealth.estimators.noise_features.plane_free_details`)."""
+    told = CameraMetadata.preset("ICX285", gain_db=0.0, exposure_s=0.01, temperature_c=20.0)
+    x = torch.arange(128, dtype=torch.float32) * slope
+    clean = ((40.0 + x % 160.0) / 255.0).view(1, 1, 1, 128).expand(4, 1, 128, 128).contiguous()
+    est = PhysicsNoiseEstimator(settings={"pool": pool})
+    matched, _ = simulate_variant(clean, told, (), torch.Generator().manual_seed(5))
+    out = est.predict(matched, told)
+    prior = physics_prior_dn(matched, told, clipping=True)[:, 4:8]
+    assert out["assessable"].all(), out["reason"]
+    assert torch.allclose(out["sigma_total"].double(), prior[:, 3].double(), atol=1e-4) and (out["xi"] == 0).all()
+    noisier, _ = simulate_variant(clean, told, (), torch.Generator().manual_seed(5), overrides={"gain_db": 18.0})
+    out = est.predict(noisier, told)
+    truth = ((noisier - clean) * 255).flatten(1).std(1)
+    assert out["assessable"].all(), out["reason"]
+    assert (out["xi"] < -2.0).all()
+    assert torch.allclose(out["sigma_total"], truth, rtol=0.12)
