@@ -156,8 +156,8 @@ def as_frame(frame: Any, bit_depth: int | None = None) -> torch.Tensor:
     """A frame as a 1×1×H×W float32 tensor in [0, 1].
 
     Accepts a torch tensor (H×W, C×H×W or 1×C×H×W, channels first) or a NumPy array (H×W or H×W×C,
-    channels last, RGB order), C ∈ {1, 2, 3, 4} (colour → BT.601 luma, alpha dropped). uint8 is DN/255;
-    uint16 is DN/(2^bit_depth − 1): ``bit_depth`` ``None`` (default) or 16 divides by 65535 (the full 16-bit word),
+    channels last, RGB order), C ∈ {1, 2, 3, 4} (colour → BT.601 luma, alpha dropped); an array of either byte order
+    (e.g. big-endian ``>u2``) is read as its values. uint8 is DN/255; uint16 is DN/(2^bit_depth − 1): ``bit_depth`` ``None`` (default) or 16 divides by 65535 (the full 16-bit word),
     10, 12 or 14 (any integer 8…16) by 1023, 4095 or 16383 — a value above that range is refused. Nothing is guessed
     here: :func:`camhealth.data.read_image` (the CLI's reader) takes the depth of a 16-bit file from its PNG
     ``sBIT`` chunk or its largest value by default, so pass the camera's ``bit_depth`` for 10-, 12- or 14-bit data in
@@ -173,6 +173,8 @@ def as_frame(frame: Any, bit_depth: int | None = None) -> torch.Tensor:
         if frame.dtype == np.bool_ or frame.dtype.kind not in "uif":
             raise TypeError(f"frame must be a numeric array (uint8 DN or float in [0, 1]), got dtype {frame.dtype}")
         arr = frame
+        if not arr.dtype.isnative:  # e.g. '>u2' (a big-endian uint16 image): the same values in this machine's order
+            arr = arr.astype(arr.dtype.newbyteorder("="))
         if arr.ndim == 3 and arr.shape[-1] not in (1, 2, 3, 4) and arr.shape[0] == 1:
             arr = arr[0]
         if arr.ndim not in (2, 3):
@@ -283,6 +285,15 @@ def load_metadata(
         FileNotFoundError / ValueError naming the file, the missing fields or the field, value and allowed
         range (:data:`camhealth.physics.metadata.METADATA_RANGES`).
     """
+    return _load_metadata(source, sensor, required)[0]
+
+
+def _load_metadata(
+    source: CameraMetadata | Mapping[str, Any] | str | Path | None, sensor: str | None, required: str
+) -> tuple[CameraMetadata | None, set[str] | None]:
+    """:func:`load_metadata`, and the fields the caller gave where the ICX285 preset filled the others without anyone
+    naming it (``required`` ``"none"`` or ``"minimal"``, no ``sensor``); ``None`` where every field was given or came
+    from a named preset."""
     if required not in METADATA_SETS:
         raise ValueError(f"required = {required!r} must be one of {list(METADATA_SETS)}")
     if sensor is not None and str(sensor).upper() not in PRESETS:
@@ -290,9 +301,9 @@ def load_metadata(
     if isinstance(source, CameraMetadata):
         if source.batch_size != 1:
             raise ValueError(f"monitor metadata must describe one camera state (batch 1), got batch {source.batch_size}")
-        return source
+        return source, None
     if source is None:
-        return None if sensor is None else CameraMetadata.preset(sensor)
+        return (None if sensor is None else CameraMetadata.preset(sensor)), None
     origin = "metadata"
     if isinstance(source, (str, Path)):
         origin = f"metadata file {source}"
@@ -314,6 +325,7 @@ def load_metadata(
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f"{origin}: field {key} = {value!r} must be a number in physical units")
     given = set(data) | ({"is_cmos"} if "sensor_type" in data else set())
+    filled = None
     if base is None:
         need = FULL_FIELDS if required == "full" else MINIMAL_FIELDS if required == "minimal" else ()
         missing = [f for f in need if f not in given]
@@ -323,9 +335,9 @@ def load_metadata(
                 f"add them or name a sensor preset ({sorted(PRESETS)}) that fills them"
             )
         if required != "full" and any(f not in given for f in FULL_FIELDS):
-            base = "ICX285"  # fields a Min-Meta network (or none) never reads
+            base, filled = "ICX285", given  # fields a Min-Meta network (or none) never reads
     try:
-        return CameraMetadata.from_dict(data, base=base)
+        return CameraMetadata.from_dict(data, base=base), filled
     except (ValueError, TypeError) as exc:  # (TypeError: a sensor_type that is no string)
         raise ValueError(f"{origin}: {exc}") from None
 
@@ -403,7 +415,8 @@ class TaskReport:
         coverage: where the networks ran this frame (see :meth:`Monitor.process`): ``mode``, ``estimated``
             (patches sent to the network this frame and assessable), ``reused`` (patches that kept their last estimate,
             no network call), ``informative``, ``total``, ``area_fraction`` (estimated area / frame area), ``values``
-            (= n_values), ``frames`` (frames behind the answer), ``patches_xy`` (sampled mode: top-left corners [px]
+            (= n_values), ``frames`` (frames behind the answer, up to the window: those that gave a value — a
+            black, saturated or wholly refused frame adds none), ``patches_xy`` (sampled mode: top-left corners [px]
             of the patches estimated this frame; map mode: ``None``, the per-patch map says where).
         counts: patches per status (:data:`~camhealth.monitor.tiling.STATUS_NAMES`) and ``total``.
         refused: this frame's patches the estimator refused (status ``not_assessable``), by the reason it gave —
@@ -523,7 +536,9 @@ class FrameReport:
         index: index of the frame in its source (file order / video frame), if known.
         source_id: file or stream name, if known.
         height, width: frame size [px].
-        metadata: gain [dB], exposure [s], temperature [°C] used (``None`` without metadata).
+        metadata: gain [dB], exposure [s], temperature [°C] used (``None`` without metadata); where the estimators
+            read no metadata and neither a preset nor a full set of fields was given, only the fields given (no
+            preset fills the others).
         noise, mtf: :class:`TaskReport` (``None`` when the task is disabled).
         alarm: ξ alarm (state, ξ̃, limit, message).
         advice: policy decision, or why there is none (``None`` without a policy).
@@ -745,7 +760,9 @@ class _TaskState:
     reference: torch.Tensor | None = None
     pairs: int = 0
     exposures: int = 0  # other exposure times whose noise evidence joined this frame's (exposure_evidence)
-    frames_seen: int = 0  # frames read since the last reset (map mode: the frames behind the answer, up to the window)
+    # map mode: frames since the last reset that gave a value (estimated, interpolated or reused) — the frames behind
+    # the answer, up to the window; a frame with no value (black, saturated, every patch refused) adds none
+    frames_valued: int = 0
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -770,7 +787,7 @@ class _TaskState:
         self.samples_id = torch.full((self.window, self.n_samples), -1, dtype=torch.long)
         self.sample_slot = 0
         self.previous = self.reference = None
-        self.frames_seen = 0
+        self.frames_valued = 0
         self.band = torch.full((n, 2), float("nan"))
         self.cause_p = None
         self.defect_n = torch.zeros(n, 3, dtype=torch.long)
@@ -948,10 +965,12 @@ def _judged(noise: TaskReport) -> int:
 def _refusals(st: _TaskState) -> dict[str, Any]:
     """The ``refused``, ``beyond_xi``, ``banding``, ``defects`` and ``cause`` fields of a :class:`TaskReport` from this
     frame's task state."""
-    beyond = float(torch.tensor(st.beyond_xi).median()) if st.beyond_xi else None
+    # the true median (the mean of the two middle values for an even count), as the frame values: torch.median would
+    # give the lower one (with two patches, their minimum)
+    beyond = float(torch.tensor(st.beyond_xi, dtype=torch.float64).quantile(0.5)) if st.beyond_xi else None
     banding = None
     if st.banding:
-        med = torch.tensor(st.banding).median(0).values
+        med = torch.tensor(st.banding, dtype=torch.float64).quantile(0.5, dim=0)
         banding = {"row_dn": round(float(med[0]), 3), "col_dn": round(float(med[1]), 3), "patches": len(st.banding)}
     hot, dark, checked, with_any = st.defects
     defects = None
@@ -1129,7 +1148,13 @@ class Monitor:
             raise ValueError("nothing to monitor: noise_model and mtf_model are both None")
         noise = self.estimators.get("noise")
         required = getattr(noise.est, "metadata_set", "none") if noise else "none"
-        self.metadata = load_metadata(metadata, sensor, required if required in METADATA_SETS else "full")
+        self.metadata, given = _load_metadata(metadata, sensor, required if required in METADATA_SETS else "full")
+        # an estimator that reads no metadata, given some fields only: those fields are reported (and a change of them
+        # restarts the aggregation), but no camera state is made up from a preset nobody named (no ξ alarm on it)
+        self._given: dict[str, float] | None = None
+        if given is not None and required == "none" and self.metadata is not None:
+            self._given = {k: float(getattr(self.metadata, k)[0]) for k in MINIMAL_FIELDS if k in given}
+            self.metadata = None
         self.sensor = sensor
         if noise is not None and required != "none" and self.metadata is None:
             raise ValueError(
@@ -1276,20 +1301,27 @@ class Monitor:
                 views = {"views": self.mtf_views} if task == "mtf" and self.mtf_views > 1 else {}
                 handle.est.predict(dummy, metadata=meta, precision=self.precision, batch_size=self.batch_size, **views)
 
-    def _frame_metadata(self, metadata: Any) -> CameraMetadata | None:
+    def _frame_metadata(self, metadata: Any) -> tuple[CameraMetadata | None, dict[str, float] | None]:
+        """This frame's metadata, and the fields given (gain, exposure, temperature) where the estimators read none
+        and no preset or file gave the others: those are reported as they are, not completed from a preset."""
         if metadata is None:
-            return self.metadata
+            return self.metadata, self._given
         if isinstance(metadata, CameraMetadata):
-            return load_metadata(metadata)
+            return load_metadata(metadata), None
         if isinstance(metadata, Mapping) and self.metadata is not None:
             changed = {k: _one_number(k, v) for k, v in metadata.items()}  # one camera state: a number per field
             try:
-                return self.metadata.replace(**changed)
+                return self.metadata.replace(**changed), None
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"per-frame metadata {changed}: {exc}") from None
         noise = self.estimators.get("noise")
         required = getattr(noise.est, "metadata_set", "none") if noise else "none"
-        return load_metadata(metadata, self.sensor, required)
+        if isinstance(metadata, Mapping) and self._given is not None:  # this frame's fields over the monitor's
+            metadata = {**self._given, **metadata}
+        meta, given = _load_metadata(metadata, self.sensor, required)
+        if given is not None and required == "none" and meta is not None:
+            return None, {k: float(getattr(meta, k)[0]) for k in MINIMAL_FIELDS if k in given}
+        return meta, None
 
     # ------------------------------------------------------------------ estimation
     def _noise_scale(self, stats: Any, meta: CameraMetadata | None) -> torch.Tensor | None:
@@ -1430,14 +1462,13 @@ class Monitor:
         st.refused, st.beyond_xi, st.banding, st.causes = {}, [], [], []
         st.defects, st.defect_xy = [0, 0, 0, 0], []
         st.pairs = st.exposures = 0
-        st.frames_seen += 1  # frames since the aggregation last started afresh (reset, new camera state or size)
         grid, cfg = st.grid, self.selection
         handle = self.estimators[task]
         base = dict(task=task, estimator=handle.name, patch=grid.patch, grid=(grid.rows, grid.cols))
         if grid.empty:
             counts = {**{n: 0 for n in STATUS_NAMES}, "total": 0}
             note = f"frame {grid.width}×{grid.height} px is smaller than one {grid.patch}-px patch: {task} not estimated"
-            return TaskReport(**base, assessable=False, counts=counts, note=note)
+            return TaskReport(**base, assessable=False, counts=counts, note=note, grid_obj=grid)  # (heat_map: all NaN)
         patches = grid.extract(frame)
         if task == "noise" and self.static_pairs:  # the previous frame's patches are this frame's second exposure
             same = st.previous is not None and st.previous.shape == patches.shape
@@ -1577,7 +1608,7 @@ class Monitor:
             return TaskReport(**base, assessable=False, note=f"not assessable: no informative patch ({why}"
                               + (f"; refused: {_reasons_text(st.refused)})" if st.refused else ")"))
         spatial = spatial_median(vals, dim=0)
-        per_frame = torch.nanmedian(st.samples, dim=1).values  # (window, K), NaN for frames without samples
+        per_frame = torch.nanquantile(st.samples, 0.5, dim=1)  # (window, K), NaN for frames without samples
         tspread = spatial_median(per_frame, dim=0).spread
         cur = st.samples[(st.sample_slot - 1) % st.window]
         cur = cur[torch.isfinite(cur[:, -1])]
@@ -1608,7 +1639,8 @@ class Monitor:
         counts["total"] = grid.n
         has = torch.isin(st.code, torch.tensor(_VALUE_STATUS, dtype=torch.int8)) & torch.isfinite(st.values).any(1)
         n = int(has.sum())
-        frames = min(max(st.frames_seen, 1), self.window)
+        st.frames_valued += int(n > 0)
+        frames = min(max(st.frames_valued, 1), self.window)
         coverage = self._coverage("map", grid, fresh, informative, n, frames, None, int((st.code == REUSED).sum()))
         base = dict(task=task, estimator=name, patch=grid.patch, grid=(grid.rows, grid.cols), counts=counts,
                     grid_obj=grid, values=st.values.clone(), code=st.code.clone(), coverage=coverage, **_refusals(st))
@@ -1622,7 +1654,7 @@ class Monitor:
         per_patch = torch.where(torch.isfinite(tm), tm, st.values)[has]
         spatial = spatial_median(per_patch, dim=0)
         tspread = agg.spread[0][has]
-        tspread = torch.nanmedian(tspread, dim=0).values if tspread.numel() else torch.full((st.k,), float("nan"))
+        tspread = torch.nanquantile(tspread, 0.5, dim=0) if tspread.numel() else torch.full((st.k,), float("nan"))
         current = spatial_median(st.values[has], dim=0).median
         indicator = None
         if task == "mtf":
@@ -1653,10 +1685,12 @@ class Monitor:
         t0 = time.perf_counter()
         with torch.inference_mode():
             x = as_frame(frame, bit_depth)
-            meta = self._frame_metadata(metadata)
+            meta, given = self._frame_metadata(metadata)
             h, w = int(x.shape[-2]), int(x.shape[-1])
             self._prepare(h, w)
             key = None if meta is None else tuple(round(float(v[0]), 12) for v in meta.to_dict().values())
+            if meta is None and given:  # fields given without a camera state (estimators that read none)
+                key = tuple(sorted((k, round(v, 12)) for k, v in given.items()))
             if key != self._meta_key:
                 if self._meta_key is not None:
                     self._reset_aggregation()
@@ -1682,7 +1716,7 @@ class Monitor:
             advice = self._advice(noise, reports.get("mtf"), meta)
             timing["aggregate"] = (time.perf_counter() - t2) * 1e3
         timing["total"] = (time.perf_counter() - t0) * 1e3
-        md = None if meta is None else {k: float(getattr(meta, k)[0]) for k in MINIMAL_FIELDS}
+        md = (given or None) if meta is None else {k: float(getattr(meta, k)[0]) for k in MINIMAL_FIELDS}
         report = FrameReport(self._counter, index, source_id, h, w, md, noise, reports.get("mtf"), alarm, advice,
                              timing, self.per_patch)
         self._counter += 1

@@ -28,6 +28,8 @@ defects is an inverted mask or the wrong file).
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -93,8 +95,9 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
                 keys = [k for k in NPZ_KEYS[:2] if k in names] or [k for k in NPZ_KEYS[2:] if k in names]
                 keys = keys or (names[:1] if len(names) == 1 else [])
                 if keys:
-                    for key in keys:
-                        with z.zip.open(key + ".npy") as fp:
+                    members = set(z.zip.namelist())
+                    for key in keys:  # (np.load lists a member without the .npy suffix under its full name)
+                        with z.zip.open(key + ".npy" if key + ".npy" in members else key) as fp:
                             _declared_size(fp, f"defect map {str(path)!r}[{key}]")
                     arrays = [np.asarray(z[key]) for key in keys]
                     if len(arrays) == 2:  # calibration's hot and dead pixels: their union, each checked as a map
@@ -114,7 +117,7 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
         except ValueError as err:  # an object (pickled) array, or not an archive
             raise ValueError(f"defect map {str(path)!r} cannot be read as a plain NumPy archive ({err}); pickled "
                              "arrays are refused") from None
-        except (OSError, EOFError) as err:
+        except (OSError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as err:  # (a truncated or corrupt zip)
             raise ValueError(f"defect map {str(path)!r} is not a readable .npz archive ({err})") from None
         raise ValueError(f"defect map {str(path)!r} holds the arrays {names}: expected one of {list(NPZ_KEYS)} "
                          "(camera.maps.npz of python -m camhealth.calibrate, or a monitor's --defects-out) or a single array")

@@ -40,6 +40,7 @@ GAIN_UNITS = ("db", "factor")
 TEMPERATURE_UNITS = ("c", "k")
 #: metadata field → the CLI option that names its topic.
 STATE_OPTIONS = {"exposure_s": "--exposure-topic", "gain_db": "--gain-topic", "temperature_c": "--temperature-topic"}
+_FIELDS = {"exposure": "exposure_s", "gain": "gain_db", "temperature": "temperature_c"}
 
 
 @dataclass
@@ -52,7 +53,8 @@ class RecordingOptions:
         exposure_topic, gain_topic, temperature_topic: ``TOPIC`` or ``TOPIC:FIELD.PATH`` of a camera-state
             value (``None``: from the metadata).
         exposure_unit: ``s``, ``ms``, ``us`` or ``ns``; gain_unit: ``db`` or ``factor``; temperature_unit:
-            ``c`` or ``k``.
+            ``c`` or ``k`` — the unit of the matching topic's values: a unit other than the default (``s``, ``db``,
+            ``c``) without its topic is refused (ValueError).
         bit_depth: bits that carry data in 16-bit pixels (1…16; ``None`` = 16).
         bayer: ``green`` (half-resolution green samples, raw noise kept) or ``luma`` (demosaic + BT.601).
     """
@@ -76,6 +78,12 @@ class RecordingOptions:
             raise ValueError(f"temperature unit {self.temperature_unit!r} must be one of {list(TEMPERATURE_UNITS)}")
         if self.bayer not in BAYER_MODES:
             raise ValueError(f"bayer = {self.bayer!r} must be one of {list(BAYER_MODES)}")
+        for name, unit, default, topic in (("exposure", self.exposure_unit, "s", self.exposure_topic),
+                                           ("gain", self.gain_unit, "db", self.gain_topic),
+                                           ("temperature", self.temperature_unit, "c", self.temperature_topic)):
+            if unit != default and not topic:  # a unit of values nobody reads: the user most likely forgot the topic
+                raise ValueError(f"--{name}-unit {unit} needs --{name}-topic: it is the unit of that topic's values "
+                                 f"(without a topic the {name} comes from the metadata, in {UNITS[_FIELDS[name]]})")
 
     def state_topics(self) -> list[StateTopic]:
         specs = (("exposure_s", self.exposure_topic), ("gain_db", self.gain_topic), ("temperature_c", self.temperature_topic))

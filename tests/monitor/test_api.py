@@ -1094,3 +1094,104 @@ def test_a_frame_far_quieter_than_its_metadata_says_so():
     r = Monitor("noise_source_full", None, sensor="ICX285", warmup=False).process(img.round().astype(np.uint8))
     assert not r.noise.assessable and set(r.noise.refused) == {LESS_NOISE}
     assert r.alarm["state"] == "not_assessable" and QUIET_HINT in r.alarm["message"]
+
+
+def test_as_frame_reads_big_endian_uint16_as_uint16():
+    """A big-endian uint16 array (``>u2``: ``np.frombuffer`` of a ROS Image with ``is_bigendian``, a 16-bit PGM or FITS
+    reader) is uint16: DN/65535, or DN/(2^bit_depth − 1) — not 8-bit DN (200 would read 257× too bright)."""
+    native = as_frame(np.full((8, 8), 200, "<u2"))
+    big = as_frame(np.full((8, 8), 200, ">u2"))
+    assert torch.equal(big, native) and float(big[0, 0, 0, 0]) == pytest.approx(200 / 65535)
+    assert float(as_frame(np.full((8, 8), 4000, ">u2"), bit_depth=12).mean()) == pytest.approx(4000 / 4095)
+    with pytest.raises(ValueError, match="5000 exceeds the 12-bit range"):
+        as_frame(np.full((8, 8), 5000, ">u2"), bit_depth=12)
+
+
+def test_map_mode_frames_count_only_frames_that_gave_a_value():
+    """Black frames give no value: they are not among the ``coverage.frames`` behind the answer, and do not shrink the
+    pooled noise estimator's uncertainty floor (estimator_std/√frames) of the first real frame after them."""
+    rng = np.random.default_rng(0)
+    grey = np.clip(np.round(rng.normal(100, 12, (128, 256))), 0, 255).astype(np.uint8)  # two noise patches
+    black = np.zeros((128, 256), np.uint8)
+    reports = []
+    for frames in ([grey], [black] * 4 + [grey]):
+        mon = Monitor("noise_source_full", None, sensor="ICX285", mode="map", warmup=False)
+        for f in frames:
+            r = mon.process(f)
+        reports.append(r.noise)
+    alone, after = reports
+    assert after.assessable and after.coverage["frames"] == alone.coverage["frames"] == 1
+    from camhealth.monitor import NOISE_FIELDS
+
+    xi = NOISE_FIELDS.index("xi")
+    assert float(after.uncertainty[xi]) == pytest.approx(float(alone.uncertainty[xi]), rel=1e-6)
+    assert float(after.uncertainty[xi]) >= float(after.estimator_std[xi]) - 1e-6
+
+
+class _TwoBanded(FakeNoise):
+    """Every patch assessable; row noise 1.6 DN on the first patch, 2.6 DN on the second (median 2.1 DN)."""
+
+    def predict(self, patches, metadata=None, **kw):
+        out = super().predict(patches, metadata)
+        n = patches.shape[0]
+        out["assessable"] = torch.ones(n, dtype=torch.bool)
+        out["row_column_dn"] = torch.tensor([[1.6, 0.0], [2.6, 0.0]])[:n]
+        return out
+
+
+class _TwoBeyond(FakeNoise):
+    """Every patch refused as beyond the validated range, with ξ −1.5 and −0.3 DN (median −0.9 DN)."""
+
+    def predict(self, patches, metadata=None, **kw):
+        from camhealth.estimators.physics_noise import BEYOND_VALIDATED
+
+        out = super().predict(patches, metadata)
+        n = patches.shape[0]
+        out["assessable"] = torch.zeros(n, dtype=torch.bool)
+        out["reason"] = [BEYOND_VALIDATED] * n
+        out["xi"] = torch.tensor([-1.5, -0.3])[:n]
+        return out
+
+
+def test_banding_and_beyond_range_xi_are_true_medians_over_an_even_count_of_patches():
+    """Two noise patches: the frame's banding and beyond-range ξ are the mean of the two (the median), not the lower
+    one — 2.1 DN of row noise reaches MTF_BANDING_LIMIT_DN (2 DN), and ξ −0.9 DN is within the 1-DN threshold."""
+    from camhealth.monitor import MTF_BANDING_LIMIT_DN
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.linspace(0, 1, 256)[None, :].expand(192, 256)
+    frame = (0.2 + 0.6 * ((x * 12).floor() % 2) + torch.randn(192, 256, generator=g) * 2 / 255).clamp(0, 1)
+    r = Monitor(_TwoBanded(), FakeMTF(), sensor="ICX285", mode="map", adaptive=False, warmup=False).process(frame)
+    assert r.noise.banding["patches"] == 2 and r.noise.banding["row_dn"] == pytest.approx(2.1)
+    assert r.noise.banding["row_dn"] >= MTF_BANDING_LIMIT_DN and r.mtf.assessable is False
+    r = Monitor(_TwoBeyond(), FakeMTF(), sensor="ICX285", mode="map", adaptive=False, warmup=False).process(frame)
+    assert r.noise.beyond_xi == pytest.approx(-0.9)
+    assert r.alarm["state"] == "not_assessable", r.alarm
+
+
+class _NoMetadataNoiseSource(FakeNoise):
+    metadata_set = "none"
+
+
+def test_fields_given_without_a_preset_are_reported_as_given_not_completed_from_one():
+    """Estimators that read no metadata, no sensor and no full set of fields: a frame's ``metadata`` holds the fields
+    given (no exposure and temperature from the ICX285 preset that nobody named), ``None`` without any, a change of
+    them restarts the aggregation, and ξ is not checked against made-up values."""
+    x = torch.linspace(0, 1, 512)[None, None, :].expand(1, 384, 512)
+    frame = noisy(0.2 + 0.6 * ((x * 24).floor() % 2), 2.0, 0)  # stripes: edges for the MTF
+    mon = Monitor(None, FakeMTF(), mode="map", warmup=False)
+    assert mon.process(frame).metadata is None
+    r = mon.process(frame, metadata={"gain_db": 12})
+    assert r.metadata == {"gain_db": 12.0}
+    assert _strict(r.to_json())["metadata"] == {"gain_db": 12.0}
+    kv = dict(key_values(r, OK))
+    assert kv["gain_db"] == "12" and kv["exposure_s"] == kv["temperature_c"] == "nan"
+    assert mon.process(frame, metadata={"gain_db": 12}).mtf.coverage["frames"] == 3
+    assert mon.process(frame, metadata={"gain_db": 13}).mtf.coverage["frames"] == 1  # a change restarts it
+    mon = Monitor(_NoMetadataNoiseSource(), None, metadata={"gain_db": 6.0}, warmup=False)
+    r = mon.process(frame)
+    assert r.metadata == {"gain_db": 6.0} and r.alarm["state"] == "unavailable"
+    assert mon.process(frame, metadata={"temperature_c": 40}).metadata == {"gain_db": 6.0, "temperature_c": 40.0}
+    # a named preset or a full set still gives the whole camera state
+    full = mon.process(frame, metadata={"sensor": "ICX285", "gain_db": 6.0}).metadata
+    assert set(full) == {"gain_db", "exposure_s", "temperature_c"}

@@ -372,3 +372,25 @@ def test_the_monitor_counts_only_the_pixels_tested():
     d = report.defects
     assert d["checked"] == 4 * 126 * 126  # but only the ramps' pixels were tested
     assert d["ppm"] >= 0.9 * 1e6 * 160 / (126 * 126)
+
+
+def test_npz_members_without_the_npy_suffix_are_read_or_refused_as_defect_maps(tmp_path):
+    """``np.load`` lists a member without the ``.npy`` suffix under its full name: a NumPy array stored so is read as
+    the map it is; a member that is no NumPy array (a text file), or a corrupt or truncated archive, is a ValueError
+    that names the defect map — never a KeyError or a zip error."""
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    np.save(buf, _mask())
+    with zipfile.ZipFile(tmp_path / "nosuffix.npz", "w") as z:
+        z.writestr("hot_pixels", buf.getvalue())
+    mask = load_defect_map(tmp_path / "nosuffix.npz")
+    assert np.array_equal(np.asarray(mask), _mask())
+    with zipfile.ZipFile(tmp_path / "notes.npz", "w") as z:
+        z.writestr("readme.txt", b"hello")
+    with pytest.raises(ValueError, match=r"defect map .*notes\.npz.*readme\.txt.* not a plain NumPy array"):
+        load_defect_map(tmp_path / "notes.npz")
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04" + b"x" * 40)
+    with pytest.raises(ValueError, match=r"defect map .*cut\.npz.* not a readable \.npz archive"):
+        load_defect_map(tmp_path / "cut.npz")

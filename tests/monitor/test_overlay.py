@@ -56,3 +56,12 @@ def test_render_and_save(report_and_frame, tmp_path):
     for bad in (0, -5, 10.5):  # a 0-px panel was drawn as a 59×2 px image
         with pytest.raises(ValueError, match=r"max_panel_width = .* must be an integer ≥ 64"):
             render_overlay(frame, report, max_panel_width=bad)
+
+
+def test_heat_map_of_a_frame_smaller_than_one_patch_is_all_nan():
+    """A frame smaller than one patch is a documented skip: its heat map is the H×W map, NaN everywhere (no grid)."""
+    r = Monitor(FakeNoise(), FakeMTF(), sensor="ICX285", warmup=False).process(np.full((100, 90), 128, np.uint8))
+    for task in (r.noise, r.mtf):
+        assert not task.assessable and "smaller than one" in task.note
+        hm = heat_map(task)
+        assert hm.shape == (100, 90) and hm.dtype == np.float32 and np.isnan(hm).all()

@@ -363,3 +363,30 @@ def test_static_pairs_warn_on_a_compressed_topic_unless_png(fmt, lossy, fakes, t
     assert code == 0, err
     warned = f"topic {TOPIC} holds sensor_msgs/CompressedImage messages (format {fmt!r}; only PNG is lossless)"
     assert (warned in err) == bool(lossy) and err.count("warning: --static-pairs") == int(bool(lossy))
+
+
+@pytest.mark.parametrize("unit", [["--exposure-unit", "ms"], ["--gain-unit", "factor"], ["--temperature-unit", "k"]])
+def test_a_state_unit_without_its_topic_is_refused(unit, fakes, street_frames, tmp_path, capsys):
+    """A unit option names the unit of its topic's values: without that topic it would be ignored (a forgotten
+    ``--exposure-topic``), so it is a one-line error (exit 2) naming both options; RecordingOptions says the same."""
+    rec = write_street_recording(tmp_path / "run.mcap", street_frames, corrupt_last=False)
+    code, out, err = _run([str(rec), "--topic", TOPIC, "--sensor", "ICX285", "--noise-model", "fake_noise",
+                           "--mtf-model", "fake_mtf", *unit], capsys)
+    name = unit[0][2:].split("-")[0]
+    assert code == 2 and out == "" and f"{unit[0]} {unit[1]} needs --{name}-topic" in err, err
+    with pytest.raises(ValueError, match=f"{unit[0]} {unit[1]} needs --{name}-topic"):
+        RecordingOptions(topic=TOPIC, **{f"{name}_unit": unit[1]})
+    assert RecordingOptions(topic=TOPIC, **{f"{name}_unit": unit[1], f"{name}_topic": "/t"}).state_topics()
+
+
+def test_a_gain_topic_without_metadata_reports_only_the_recorded_gain(fakes, street_frames, tmp_path, capsys):
+    """No ``--metadata``/``--sensor`` and no noise model reading metadata: a frame's ``metadata`` and the diagnostics
+    hold the recorded gain only — no exposure and temperature from a preset nobody named."""
+    rec = write_street_recording(tmp_path / "run.mcap", street_frames, corrupt_last=False)
+    diag = tmp_path / "d.mcap"
+    code, out, err = _run([str(rec), "--topic", TOPIC, "--gain-topic", "/camera/gain", "--no-noise",
+                           "--mtf-model", "fake_mtf", "--diagnostics-out", str(diag)], capsys)
+    assert code == 0, err
+    assert [d["metadata"] for d in _lines(out)] == [{"gain_db": g} for g in GAINS]
+    values = read_diagnostics(diag)[0]["values"]
+    assert float(values["gain_db"]) == 0.0 and values["exposure_s"] == values["temperature_c"] == "nan"
