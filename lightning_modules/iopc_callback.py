@@ -13,10 +13,11 @@ which role it takes. The module is switched to eval mode and run without gradien
 and its training mode is restored afterwards.
 
 Distribution. Inside a running ``fit`` a second Trainer cannot be started, so the callback splits the
-cells over the ranks itself (rank r takes cells r, r + W, …), each rank runs its share on its own
-device, the ranks meet at a barrier and rank 0 reads all cells from the shared cache and writes the
-curves. With one process this is a plain loop with a progress bar. For the standalone sweep use
-``python -m camhealth.iopc``, which runs the cells through ``Trainer.predict``.
+cells over the ranks itself (rank r takes cells r, r + W, … of the grid, whatever the shared cache holds
+when it gets there, and skips those already cached), each rank runs its share on its own device, the
+ranks meet at a barrier and rank 0 reads all cells from the shared cache and writes the curves. With one
+process this is a plain loop with a progress bar. For the standalone sweep use ``python -m camhealth.iopc``,
+which runs the cells through ``Trainer.predict``.
 
 Example::
 

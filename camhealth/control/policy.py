@@ -162,8 +162,9 @@ class ExposurePolicy:
     """α* = argmax AP(σ_new, MTF_new) from one or more IOPCs, with camera limits, as a look-up table.
 
     Args:
-        applications: an :class:`~camhealth.iopc.IOPC`, or a list of IOPCs / ``(IOPC, λ)`` /
-            :class:`Application` (Eq. 4.8 weights λ).
+        applications: an :class:`~camhealth.iopc.IOPC`, an ``(IOPC, λ)`` pair, an :class:`Application`, or a
+            list or tuple of IOPCs / ``(IOPC, λ)`` pairs / Applications (Eq. 4.8 weights λ). A pair's λ is a real
+            number, so a tuple of two IOPCs is two applications.
         limits: :class:`CameraLimits`.
         alpha_range: (min, max) α considered.
         n_alpha: number of log-spaced α (odd, so that α = 1 is on the grid).
@@ -448,21 +449,32 @@ def _is_real(v: Any) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
+def _is_pair(a: Any) -> bool:
+    """An ``(IOPC, λ)`` pair: two items, an IOPC and a real number."""
+    return isinstance(a, (tuple, list)) and len(a) == 2 and isinstance(a[0], IOPC) and _is_real(a[1])
+
+
 def _as_applications(applications: Any) -> list[Application]:
+    forms = "an IOPC, an Application, or a list/tuple of IOPCs, (IOPC, weight λ) pairs and Applications"
     if isinstance(applications, (IOPC, Application)):
         applications = [applications]
-    if isinstance(applications, tuple) and len(applications) == 2 and isinstance(applications[0], IOPC):
+    # a bare (IOPC, λ) pair is one application; a tuple of two IOPCs is two
+    if _is_pair(applications):
         applications = [applications]
+    if not isinstance(applications, (list, tuple)):
+        raise TypeError(f"applications must be {forms}; got {type(applications).__name__}")
     out = []
     for a in applications:
         if isinstance(a, Application):
             out.append(a)
         elif isinstance(a, IOPC):
             out.append(Application(a))
-        elif isinstance(a, (tuple, list)) and len(a) == 2:
+        elif _is_pair(a):
             out.append(Application(a[0], float(a[1])))
+        elif isinstance(a, (tuple, list)) and len(a) == 2 and isinstance(a[0], IOPC):
+            raise TypeError(f"application weight λ = {a[1]!r} is not allowed: a real number >= 0 (pair (IOPC, λ))")
         else:
-            raise TypeError(f"applications must be IOPCs, (IOPC, weight) pairs or Application, got {type(a).__name__}")
+            raise TypeError(f"applications must be {forms}; got an item of type {type(a).__name__}")
     if not out:
         raise ValueError("the policy needs at least one application (IOPC)")
     if sum(a.weight for a in out) <= 0:

@@ -44,6 +44,7 @@ __all__ = [
     "EstimatorSettings",
     "build_parser",
     "build_detector",
+    "CategoryFilter",
     "load_frames",
     "main",
 ]
@@ -61,7 +62,9 @@ class FrameSelection:
 @dataclass
 class GroundTruthSettings:
     """``annotations``: COCO JSON path (``null``: pseudo ground truth); ``category_ids``: keep these
-    categories; ``pseudo_score``: score a clean detection needs to become pseudo ground truth."""
+    categories only (``null``: all), in the ground truth — COCO annotations or pseudo ground truth alike — and in
+    the detections the AP is computed from; ``pseudo_score``: score a clean detection needs to become pseudo
+    ground truth."""
 
     annotations: Optional[str] = None
     category_ids: Optional[list[int]] = None
@@ -159,6 +162,52 @@ def build_detector(settings: DetectorSettings) -> Any:
     raise ValueError(f"detector.kind = {settings.kind!r} must be 'hog' or 'torch'")
 
 
+class CategoryFilter:
+    """A detector whose detections keep only the labels in ``category_ids`` (``ground_truth.category_ids``): the
+    pseudo ground truth and the AP then cover only those categories. ``config()`` (the sweep's fingerprint and
+    provenance) is the detector's own, with the categories added."""
+
+    def __init__(self, detector: Any, category_ids: Sequence[int]) -> None:
+        self.detector = detector
+        self.category_ids = sorted({int(c) for c in category_ids})
+        self.name = getattr(detector, "name", type(detector).__name__)
+
+    def to(self, device: Any) -> "CategoryFilter":
+        to = getattr(self.detector, "to", None)
+        if callable(to):
+            to(device)
+        return self
+
+    def config(self) -> dict[str, Any]:
+        cfg = getattr(self.detector, "config", None)
+        base = cfg() if callable(cfg) else {"name": self.name}
+        return {**base, "category_ids": self.category_ids}
+
+    def __call__(self, images: torch.Tensor) -> list[dict[str, torch.Tensor]]:
+        from camhealth.detection import Detection
+        from camhealth.detection.protocol import validate_detections
+
+        keep_ids = torch.tensor(self.category_ids, dtype=torch.int64)
+        dets = validate_detections(self.detector(images), images.shape[0], tuple(images.shape[-2:]),
+                                   name=f"{self.name} output")
+        out = []
+        for d in dets:
+            keep = torch.isin(d["labels"].to(torch.int64), keep_ids.to(d["labels"].device))
+            out.append(Detection(boxes=d["boxes"][keep], scores=d["scores"][keep], labels=d["labels"][keep]))
+        return out
+
+
+def _check_category_ids(ids: Any) -> None:
+    """``ground_truth.category_ids``: ``None`` or a non-empty list of integers >= 0."""
+    if ids is None:
+        return
+    ok = isinstance(ids, (list, tuple)) and len(ids) > 0 and all(
+        isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in ids)
+    if not ok:
+        raise ValueError(f"ground_truth.category_ids = {ids!r} is out of the allowed range: null (all categories) or "
+                         "a non-empty list of category ids (integers >= 0)")
+
+
 def load_frames(source: str, selection: FrameSelection) -> tuple[torch.Tensor, list[str], list[str]]:
     """Frames N×1×H×W of ``build_source(source)[start:stop:stride]``, their ids and, where the source
     has files, their paths (for annotation matching; else the ids)."""
@@ -234,8 +283,11 @@ def main(argv: Sequence[str] | None = None) -> IOPC:
     frames_sel: FrameSelection = init.frames
     gt_cfg: GroundTruthSettings = init.ground_truth
     sweep_cfg: SweepConfig = init.sweep.validate()  # before frames, detector and ground truth are loaded
+    _check_category_ids(gt_cfg.category_ids)
     frames, ids, paths = load_frames(init.source, frames_sel)
     detector = build_detector(init.detector)
+    if gt_cfg.category_ids is not None:  # the same categories in the ground truth and in the detections
+        detector = CategoryFilter(detector, gt_cfg.category_ids)
     if gt_cfg.annotations:
         ann = load_coco_annotations(gt_cfg.annotations, gt_cfg.category_ids)
         gt = ground_truth_for(paths, ann)
@@ -243,6 +295,8 @@ def main(argv: Sequence[str] | None = None) -> IOPC:
     else:
         gt = pseudo_ground_truth(detector, frames, gt_cfg.pseudo_score)
         gt_note = {"ground_truth": f"pseudo: detector on the clean frames, score >= {gt_cfg.pseudo_score:g}"}
+    if gt_cfg.category_ids is not None:
+        gt_note["ground_truth"] += f", categories {sorted(set(gt_cfg.category_ids))}"
     noise = resolve_estimator(init.estimators.noise, "noise")
     mtf = resolve_estimator(init.estimators.mtf, "mtf")
     sweep = IOPCSweep(frames, gt, detector, noise, mtf, sweep_cfg, cache_dir=init.cache_dir, frame_ids=ids,

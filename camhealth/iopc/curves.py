@@ -70,34 +70,65 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
-def _leaves(x: Any, where: tuple[int, ...] = ()) -> Any:
-    """(index, value) of every leaf of nested lists/tuples (a scalar is its own leaf, index ())."""
-    if isinstance(x, (list, tuple)):
-        for i, v in enumerate(x):
-            yield from _leaves(v, where + (i,))
-    else:
-        yield where, x
+#: Largest count an IOPC holds: every whole number up to 2^53 is exact in float64 (and fits int64); a larger one is
+#: not a count of sweep cells but a corrupt file.
+_MAX_COUNT = 2**53
 
 
-def _numeric(x: Any, field: str, allowed: str, null_ok: bool = False, integer: bool = False) -> np.ndarray:
+def _fits_float(v: Any) -> bool:
+    """False for an integer beyond float64's range (JSON reads 1 followed by 400 zeros as a Python int)."""
+    try:
+        float(v)
+    except OverflowError:
+        return False
+    except (TypeError, ValueError):
+        pass
+    return True
+
+
+def _short(v: Any) -> str:
+    """``v`` for an error message; an integer too large for a float as its number of digits."""
+    return repr(v) if _fits_float(v) else f"an integer of {len(str(abs(int(v))))} digits"
+
+
+def _leaves(x: Any, field: str, max_depth: int) -> Any:
+    """(index, value) of every leaf of nested lists/tuples (a scalar is its own leaf, index ()), walked without
+    recursion; nesting deeper than ``max_depth`` (the field's number of dimensions) is refused, naming the field."""
+    stack: list[tuple[tuple[int, ...], Any]] = [((), x)]
+    while stack:
+        where, v = stack.pop()
+        if isinstance(v, (list, tuple)):
+            if len(where) >= max_depth:
+                raise ValueError(f"IOPC.{field}{list(where)} is nested deeper than the field's {max_depth} "
+                                 f"dimension(s); allowed: a {max_depth}-D array of numbers")
+            stack.extend(((*where, i), item) for i, item in reversed(list(enumerate(v))))
+        else:
+            yield where, v
+
+
+def _numeric(x: Any, field: str, allowed: str, null_ok: bool = False, integer: bool = False,
+             ndim: int = 1) -> np.ndarray:
     """``x`` (nested lists or an array) as a float64 array (int64 with ``integer``), refusing what is not a number.
 
     Text and booleans are refused (numpy would turn ``"0.7"`` into 0.7 and ``true`` into 1); ``None`` becomes NaN
-    where ``null_ok``. With ``integer`` every value must be a whole number >= 0 (a count: 0.9 is refused, not truncated
-    to 0). Errors name ``IOPC.<field>[index]``, the value and ``allowed``.
+    where ``null_ok``; lists nested deeper than ``ndim`` are refused before they are walked. With ``integer`` every
+    value must be a whole number in [0, 2^53] (a count: 0.9 is refused, not truncated to 0; 1e19 is refused, not
+    wrapped to a negative int64). Errors name ``IOPC.<field>[index]``, the value and ``allowed``.
     """
     if isinstance(x, np.ndarray):
         if x.dtype.kind not in "iuf":
             raise ValueError(f"IOPC.{field} must hold numbers ({allowed}), got an array of {x.dtype}")
         arr = x.astype(np.float64)
     else:
-        for where, v in _leaves(x):
+        for where, v in _leaves(x, field, ndim):
             if not (_is_number(v) or (null_ok and v is None)):
                 raise ValueError(f"IOPC.{field}{list(where)} = {v!r} is not a number; allowed: {allowed}")
+            if not _fits_float(v):
+                raise ValueError(f"IOPC.{field}{list(where)} = {_short(v)} is out of the allowed range: {allowed}")
         arr = np.asarray(_none_to_nan(x) if null_ok else x, dtype=np.float64)
     if integer:
         with np.errstate(invalid="ignore"):
-            bad = ~np.isfinite(arr) | (arr < 0) | (arr != np.round(arr))
+            bad = ~np.isfinite(arr) | (arr < 0) | (arr != np.round(arr)) | (arr > _MAX_COUNT)
         if bool(bad.any()):
             where = tuple(int(k) for k in np.argwhere(bad)[0]) if arr.ndim else ()
             raise ValueError(f"IOPC.{field}{list(where)} = {float(arr[where]):g} is out of the allowed range: {allowed}")
@@ -119,6 +150,9 @@ def _bin_centres(bins: Any, name: str, kind: str) -> np.ndarray:
         vals = list(bins) if isinstance(bins, (list, tuple)) else [bins]
         if not all(_is_number(v) for v in vals):
             raise ValueError(f"{name} = {bins!r} is not allowed: {allowed}")
+        huge = [v for v in vals if not _fits_float(v)]
+        if huge:
+            raise ValueError(f"{name} holds {_short(huge[0])}, out of the allowed range: {allowed}")
     b = np.asarray(bins, dtype=np.float64).reshape(-1)
     if b.size < 2:
         raise ValueError(f"{name} = {b.tolist()} needs at least 2 bin centres ({allowed})")
@@ -245,9 +279,10 @@ class IOPC:
         blur_noise_level_dn: the sweep noise level [DN] of the cells the MTF → motion-length relation was measured
             on (the lowest swept level; 0 = noise-free). NaN when unknown or there is no relation.
 
-    Counts are whole numbers >= 0, AP values numbers in [0, 1] (NaN only in empty bins), σ̃ bins >= 0 DN and MTF̃
-    bins in [0, 1]; anything else (text, booleans, 0.9 cells, -5 cells) is refused with a ``ValueError`` naming the
-    field, the value and the allowed range, never converted.
+    Counts are whole numbers in [0, 2^53], AP values numbers in [0, 1] (NaN only in empty bins), σ̃ bins >= 0 DN and
+    MTF̃ bins in [0, 1], each array nested no deeper than its dimensions; anything else (text, booleans, 0.9 cells,
+    -5 cells, 1e19 cells) is refused with a ``ValueError`` naming the field, the value and the allowed range, never
+    converted.
     """
 
     sigma_bins: np.ndarray
@@ -274,8 +309,9 @@ class IOPC:
             ("ap_mtf", (m,)), ("count_mtf", (m,)),
         ):
             count = nm.startswith("count")
-            allowed = "a whole number >= 0 (cells per bin)" if count else "a number in [0, 1], or null (NaN) in an empty bin"
-            arr = _numeric(getattr(self, nm), nm, allowed, null_ok=not count, integer=count)
+            allowed = ("a whole number >= 0 and <= 2^53 (cells per bin)" if count
+                       else "a number in [0, 1], or null (NaN) in an empty bin")
+            arr = _numeric(getattr(self, nm), nm, allowed, null_ok=not count, integer=count, ndim=len(shape))
             if arr.shape != shape:
                 raise ValueError(f"IOPC.{nm} must have shape {shape} for {s} σ bins × {m} MTF bins, got {arr.shape}")
             setattr(self, nm, arr)
@@ -304,8 +340,8 @@ class IOPC:
             raise ValueError(f"IOPC.blur_mtf {m.tolist()} must not increase with the motion length (blur_relation "
                              "makes it non-increasing)")
         lvl = float("nan") if self.blur_noise_level_dn is None else self.blur_noise_level_dn
-        if not (_is_number(lvl) and (math.isnan(lvl) or (math.isfinite(lvl) and lvl >= 0))):
-            raise ValueError(f"IOPC.blur_noise_level_dn = {self.blur_noise_level_dn!r} is out of the allowed range: a "
+        if not (_is_number(lvl) and _fits_float(lvl) and (math.isnan(lvl) or (math.isfinite(lvl) and lvl >= 0))):
+            raise ValueError(f"IOPC.blur_noise_level_dn = {_short(self.blur_noise_level_dn)} is out of the allowed range: a "
                              "number >= 0 DN, or null (NaN) when unknown")
         self.blur_noise_level_dn = float(lvl)
 
@@ -506,8 +542,8 @@ class IOPC:
     @classmethod
     def load(cls, path: str | Path) -> "IOPC":
         """Read a file written by :meth:`save` (JSON text in UTF-8). A file that is not one (not JSON or not a zip
-        archive, a missing or malformed entry) is a ``ValueError`` ``"<path>: not a camhealth IOPC file (<why>)"``;
-        pickled arrays in a ``.npz`` are refused, never loaded."""
+        archive, a missing or malformed entry, JSON nested too deeply to read) is a ``ValueError``
+        ``"<path>: not a camhealth IOPC file (<why>)"``; pickled arrays in a ``.npz`` are refused, never loaded."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"IOPC file not found: {path}")
@@ -522,8 +558,11 @@ class IOPC:
             raise ValueError(str(exc)) from None
         except (FileNotFoundError, PermissionError, IsADirectoryError):
             raise
-        except (OSError, EOFError, ValueError, TypeError, KeyError, AttributeError, IndexError, zipfile.BadZipFile,
-                zlib.error) as exc:
+        except RecursionError:  # the JSON parser's nesting limit
+            raise ValueError(f"{path}: not a camhealth IOPC file (nested too deeply to read: an IOPC file's arrays "
+                             "are at most 2-D)") from None
+        except (OSError, EOFError, ValueError, TypeError, KeyError, AttributeError, IndexError, OverflowError,
+                zipfile.BadZipFile, zlib.error) as exc:
             why = str(exc).splitlines()[0].strip() if str(exc).strip() else type(exc).__name__
             if why.startswith(("not a camhealth IOPC file (", "IOPC file version")):  # from_dict's own words
                 raise ValueError(f"{path}: {why}") from None

@@ -10,8 +10,10 @@ independent:
    thesis Sec. 7.1 the default noise is *sensor noise only* (dark-current shot noise + readout noise,
    no photon noise); the level σ is reached by the camera gain, the physical way to "amplify the raw
    noise" (both sources scale with the gain g, so g = σ / σ(0 dB); with photon noise, whose σ grows as
-   √g, the quadratic σ² = a·g + b·g² is solved). A level that needs a gain outside 0–24 dB (Table 4.1)
-   cannot be produced by that sensor: the cell is **marked** and skipped, never approximated;
+   √g, the quadratic σ² = a·g + b·g² is solved, where the photon term a is multiplied by the PSF energy
+   Σpsf², because photon shot noise arises before the motion blur and the blur averages it). A level that
+   needs a gain outside 0–24 dB (Table 4.1) cannot be produced by that sensor: the cell is **marked** and
+   skipped, never approximated;
 2. estimate σ̂ and MTF̂ only on the tiles overlapping ground-truth boxes and take the Eq. 4.4 medians
    (:mod:`camhealth.iopc.estimation`);
 3. run the frozen detector on the corrupted frames and compute COCO AP at IoU 0.5 over detections with
@@ -154,10 +156,10 @@ class SweepConfig:
             ("grid.angles_deg", g.angles_deg, -360.0, 360.0),
             ("grid.noise_levels_dn", g.noise_levels_dn, 0.0, 255.0),
         ):
-            if not vals:
-                raise ValueError(f"{name} must not be empty")
+            if not isinstance(vals, (list, tuple)) or not vals:
+                raise ValueError(f"{name} = {vals!r} is not allowed: a non-empty list of numbers in [{lo:g}, {hi:g}]")
             for v in vals:
-                if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+                if not (_is_real(v) and math.isfinite(v) and lo <= v <= hi):  # a bool is no length/angle/level
                     raise ValueError(f"{name} value {v!r} is out of the allowed range [{lo:g}, {hi:g}]")
         bad = [s for s in self.sensor.sources if s not in NOISE_SOURCES]
         if bad:
@@ -167,12 +169,17 @@ class SweepConfig:
         CameraMetadata.preset(self.sensor.preset, temperature_c=self.sensor.temperature_c,
                               exposure_s=self.sensor.exposure_s)  # validates the operating point
         for name, rng in (("valid_sigma_dn", self.valid_sigma_dn), ("valid_length_px", self.valid_length_px)):
-            if len(rng) != 2 or not rng[0] <= rng[1]:
-                raise ValueError(f"{name} = {rng!r} must be [low, high] with low <= high")
-        if not (isinstance(self.intensity, (int, float)) and math.isfinite(self.intensity) and 0 < self.intensity <= 4):
+            if not (isinstance(rng, (list, tuple)) and len(rng) == 2 and all(_is_real(v) and not math.isnan(v) for v in rng)
+                    and rng[0] <= rng[1]):
+                raise ValueError(f"{name} = {rng!r} is out of the allowed range: [low, high], two numbers with low <= high")
+        if not (_is_real(self.intensity) and math.isfinite(self.intensity) and 0 < self.intensity <= 4):
             raise ValueError(f"intensity = {self.intensity!r} is out of the allowed range (0, 4]")
-        if not 0.0 <= self.score_threshold <= 1.0 or not 0.0 < self.iou_threshold < 1.0:
-            raise ValueError("score_threshold must lie in [0, 1] and iou_threshold in (0, 1)")
+        if not isinstance(self.quantize, (bool, np.bool_)):
+            raise ValueError(f"quantize = {self.quantize!r} is not allowed: true or false")
+        if not (_is_real(self.score_threshold) and 0.0 <= self.score_threshold <= 1.0):
+            raise ValueError(f"score_threshold = {self.score_threshold!r} is out of the allowed range [0, 1]")
+        if not (_is_real(self.iou_threshold) and 0.0 < self.iou_threshold < 1.0):
+            raise ValueError(f"iou_threshold = {self.iou_threshold!r} is out of the allowed range (0, 1)")
         # the bins are only used after every cell is computed (IOPC.from_records): refuse bad ones before that
         _bin_centres(self.sigma_bins_dn, "sigma_bins_dn", "sigma")
         _bin_centres(self.mtf_bins, "mtf_bins", "mtf")
@@ -185,9 +192,27 @@ class SweepConfig:
         return self
 
 
+def _is_real(v: Any) -> bool:
+    """A real number (Python or numpy), not a bool and not text."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
 def _is_int(v: Any) -> bool:
     """An integer (Python or numpy), not a bool."""
     return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def _check_patches_fit(size_hw: tuple[int, int], noise_estimator: Any, mtf_estimator: Any) -> None:
+    """Refuse frames that cannot hold one estimator tile (128 px noise / 192 px MTF for ``"physics"``, else the
+    estimator's ``patch_size``) before any cell is computed; ``None`` (no estimate) needs none."""
+    h, w = size_hw
+    for role, est, physics_patch in (("noise", noise_estimator, 128), ("MTF", mtf_estimator, 192)):
+        if est is None:
+            continue
+        p = physics_patch if isinstance(est, str) and est == "physics" else getattr(est, "patch_size", None)
+        if p is not None and int(p) > min(h, w):
+            raise ValueError(f"frames of {w}×{h} px cannot hold one {int(p)}-px {role} estimator patch; the frames' "
+                             f"height and width must be >= {int(p)} px")
 
 
 def make_cells(grid: SweepGrid) -> list[dict[str, Any]]:
@@ -202,15 +227,21 @@ def make_cells(grid: SweepGrid) -> list[dict[str, Any]]:
     return cells
 
 
-def noise_gain_db(level_dn: float, meta: CameraMetadata, sources: Sequence[str], mean_intensity: float) -> float:
+def noise_gain_db(level_dn: float, meta: CameraMetadata, sources: Sequence[str], mean_intensity: float,
+                  psf_energy: float = 1.0) -> float:
     """Gain [dB] at which ``sources`` reach a total σ of ``level_dn`` [DN] for ``meta`` (at its other
     settings) and a mean output intensity ``mean_intensity`` in [0, 1] (photon noise only).
 
-    σ²(g) = a·g + b·g² with a = 255²·I/FW (photon, "digital gain" model) and b = σ_DCSN² + σ_RN² at
-    0 dB (both scale with g). Returns ``nan`` if no positive gain reaches the level.
+    σ²(g) = a·g + b·g² with a = 255²·I·E/FW (photon, "digital gain" model) and b = σ_DCSN² + σ_RN² at
+    0 dB (both scale with g). E = ``psf_energy`` = Σpsf² of the motion PSF (1 without blur): photon shot
+    noise arises before the motion blur (physics chain: photon noise → blur → DCSN → readout), and blurring
+    independent per-pixel noise with the PSF multiplies its variance by Σpsf² (0.14 at L = 7 px). Returns
+    ``nan`` if no positive gain reaches the level.
     """
+    if not (_is_real(psf_energy) and 0.0 < psf_energy <= 1.0):
+        raise ValueError(f"psf_energy = {psf_energy!r} is out of the allowed range (0, 1] (Σpsf² of a normalised PSF)")
     m0 = meta.replace(gain_db=0.0)
-    a = 255.0**2 * mean_intensity / float(m0.full_well_e[0]) if "photon" in sources else 0.0
+    a = 255.0**2 * mean_intensity * float(psf_energy) / float(m0.full_well_e[0]) if "photon" in sources else 0.0
     b = 0.0
     if "dark" in sources:
         b += float(dark_current_shot_sigma_dn(m0)[0]) ** 2
@@ -272,6 +303,7 @@ class IOPCSweep:
         self.noise_estimator = noise_estimator
         self.mtf_estimator = mtf_estimator
         self.config = (config or SweepConfig()).validate()
+        _check_patches_fit(tuple(frames.shape[-2:]), noise_estimator, mtf_estimator)
         self.cells = make_cells(self.config.grid)
         self.frame_ids = list(frame_ids) if frame_ids is not None else [f"frame{i}" for i in range(frames.shape[0])]
         self.extra_provenance = dict(provenance or {})
@@ -288,6 +320,10 @@ class IOPCSweep:
         """Hash of everything that determines a cell's result (16 hex digits)."""
         h = hashlib.blake2b(digest_size=8)
         h.update(json.dumps(asdict(self.config), sort_keys=True).encode())
+        if "photon" in self.config.sensor.sources:
+            # the gain of a blurred cell with photon noise accounts for the PSF energy (Σpsf²); cells cached by a
+            # camhealth that solved it for unblurred photon noise have other noise levels and are not reused
+            h.update(b"photon gain: psf energy")
         h.update(json.dumps(self._detector_config(), sort_keys=True, default=str).encode())
         h.update(estimator_fingerprint(self.noise_estimator).encode() + b"|" + estimator_fingerprint(self.mtf_estimator).encode())
         h.update("\x1f".join(self.frame_ids).encode())
@@ -399,27 +435,32 @@ class IOPCSweep:
         n = self.frames.shape[0]
         meta = None
         sources: tuple[str, ...] = ()
+        psf = None
+        if length > 0:  # the PSF does not depend on the gain; its energy sets the blurred photon noise
+            k = int(math.ceil(length)) + 2
+            k += 1 - k % 2
+            psf = linear_motion_psf(torch.tensor([length]), torch.tensor([angle]), k)
         if level > 0:
             sources = tuple(cfg.sensor.sources)
-            gain = noise_gain_db(level, self.meta0, sources, float(self._scaled(self.frames).mean()))
+            energy = float(psf.double().pow(2).sum()) if psf is not None else 1.0
+            gain = noise_gain_db(level, self.meta0, sources, float(self._scaled(self.frames).mean()), energy)
             lo, hi = METADATA_RANGES["gain_db"]
             if not (math.isfinite(gain) and lo - 1e-6 <= gain <= hi + 1e-6):
+                blur = (f" (the {length:g}-px motion blur averages the photon noise: Σpsf² = {energy:.3f})"
+                        if psf is not None and "photon" in sources else "")
                 rec.update(gain_db=gain, marked=True, reason=(
                     f"noise level {level:g} DN needs gain {gain:.1f} dB with {cfg.sensor.preset} at "
-                    f"{cfg.sensor.temperature_c:g} °C, {cfg.sensor.exposure_s:g} s; outside [{lo:g}, {hi:g}] dB"))
+                    f"{cfg.sensor.temperature_c:g} °C, {cfg.sensor.exposure_s:g} s{blur}; outside [{lo:g}, {hi:g}] dB"))
                 rec["seconds"] = time.perf_counter() - t0
                 self._store(cell, rec)
                 return rec
             gain = min(max(gain, lo), hi)
             rec["gain_db"] = gain
             meta = self.meta0.replace(gain_db=gain).expand(n).to(device=dev)
-        psf = None
-        if length > 0:
-            k = int(math.ceil(length)) + 2
-            k += 1 - k % 2
-            psf = linear_motion_psf(torch.tensor([length]), torch.tensor([angle]), k).to(dev)
+        if psf is not None:
+            psf = psf.to(dev)
             mtf_true = mtf_hv(psf.double()).float()
-            psf = psf.expand(n, k, k)
+            psf = psf.expand(n, *psf.shape[-2:])
         else:
             mtf_true = torch.ones(1, 16)
         rec["mtf_true"] = float(mtf_indicator(mtf_true)[0])
@@ -490,7 +531,10 @@ class IOPCSweep:
         """Run all cells through ``trainer.predict`` (a new CPU/auto Trainer if none) and bin them.
 
         With several processes (DDP) every rank runs its share of the cells; the ranks' records meet in
-        the cache, which must then be set (``cache_dir``) on a file system all ranks see.
+        the cache, which must then be set (``cache_dir``) on a file system all ranks see. The loader then
+        holds the whole grid on every rank, so that the distributed sampler's split depends only on the grid
+        (never on which cells a rank found cached at its own moment); cached cells are read, not recomputed,
+        and every rank reaches the barrier.
         """
         if trainer is None:
             kw = {"accelerator": "auto", "devices": 1, "logger": False, "enable_checkpointing": False,
@@ -499,20 +543,28 @@ class IOPCSweep:
             trainer = L.Trainer(**kw)
         if trainer.world_size > 1 and self.cache_dir is None:
             raise ValueError("a distributed sweep needs cache_dir (on a file system all ranks share)")
-        todo = self.remaining_cells()
+        distributed = trainer.world_size > 1
+        # one process: only the uncached cells; several: the whole grid on every rank (see above)
+        todo = list(self.cells) if distributed else self.remaining_cells()
         records: list[dict[str, Any]] = []
         if todo:
             loader = torch.utils.data.DataLoader(CellDataset(todo), batch_size=1, shuffle=False, collate_fn=_single)
             out = trainer.predict(IOPCSweepModule(self), dataloaders=loader, return_predictions=True)
             records = list(out or [])
-            trainer.strategy.barrier()
+        trainer.strategy.barrier()
         return self.to_iopc(self.collect(records))
 
     def run_local(self, device: torch.device | str = "cpu", rank: int = 0, world_size: int = 1,
                   progress: bool = True) -> list[dict[str, Any]]:
-        """Run this rank's share of the remaining cells in-process (no Trainer; used by the callback
-        inside a running fit). Returns the records this rank computed."""
-        todo = self.remaining_cells()[rank::world_size]
+        """Run this rank's share of the grid in-process (no Trainer; used by the callback inside a running fit):
+        cells ``rank``, ``rank + world_size``, … of :attr:`cells`, skipping those already cached. The share
+        depends only on the grid, so the ranks cover it disjointly whenever each of them gets here. Returns the
+        records this rank computed."""
+        if not (_is_int(world_size) and world_size >= 1):
+            raise ValueError(f"world_size = {world_size!r} is out of the allowed range: an integer >= 1")
+        if not (_is_int(rank) and 0 <= rank < world_size):
+            raise ValueError(f"rank = {rank!r} is out of the allowed range: an integer in [0, {world_size - 1}]")
+        todo = [c for c in self.cells[rank::world_size] if self.cached(c) is None]
         it: Any = todo
         if progress and todo:
             from tqdm.auto import tqdm

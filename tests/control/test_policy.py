@@ -182,3 +182,15 @@ def test_decisions_on_a_limit_are_exactly_on_it():
             t, g = float(rng.uniform(0.0006, 0.04)), float(rng.uniform(3.0, 9.0))
             d = pol.decide(float(rng.uniform(0, 20)), float(rng.uniform(0.5, 1.0)), t, g)
             assert 0.0005 <= d.exposure_s <= 0.05 and 3.0 <= d.gain_db <= 9.0
+
+
+def test_a_tuple_of_two_iopcs_is_two_applications_and_a_pair_needs_a_number():
+    """(iopc_a, iopc_b) was read as one (IOPC, λ) pair and failed with float(IOPC)'s TypeError."""
+    assert [a.iopc for a in ExposurePolicy((BLUR_HATER, NOISE_HATER), **FAST).apps] == [BLUR_HATER, NOISE_HATER]
+    pair = ExposurePolicy((BLUR_HATER, 0.5), **FAST).apps
+    assert len(pair) == 1 and pair[0].weight == 0.5 and pair[0].iopc is BLUR_HATER
+    assert [a.weight for a in ExposurePolicy([(BLUR_HATER, 0.5), NOISE_HATER], **FAST).apps] == [0.5, 1.0]
+    with pytest.raises(TypeError, match=r"application weight λ = '0.5' is not allowed: a real number >= 0"):
+        ExposurePolicy([(BLUR_HATER, "0.5")], **FAST)
+    with pytest.raises(TypeError, match=r"applications must be an IOPC, .*; got str"):
+        ExposurePolicy("curves.json", **FAST)

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 from PIL import Image
 
 from camhealth.data import StreetSampleSource
@@ -148,3 +149,31 @@ def test_torch_detector_checkpoint_is_read_as_plain_tensors_naming_the_file(tmp_
     assert not marker.exists() and "weights_only" not in str(info.value) and "camhealth never unpickles" in str(info.value)
     with pytest.raises(FileNotFoundError, match="detector.torch.checkpoint .*missing.pt: no such file"):
         build_detector(_instantiated([*args, "--detector.torch.checkpoint", str(tmp_path / "missing.pt")]).detector)
+
+
+class TwoClassDetector(torch.nn.Module):
+    """One 'person' (label 1) and one 'car' (label 3) box per image, score 0.9."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.zeros(1))
+
+    def forward(self, x):
+        boxes = torch.tensor([[20.0, 20.0, 80.0, 150.0], [120.0, 100.0, 220.0, 160.0]])
+        return [{"boxes": boxes, "scores": torch.tensor([0.9, 0.9]), "labels": torch.tensor([1, 3])}
+                for _ in range(x.shape[0])]
+
+
+def test_category_ids_filter_pseudo_ground_truth_and_detections(tmp_path, crop_folder):
+    """With pseudo ground truth (annotations null) category_ids was ignored: the cars (3) stayed in the ground truth,
+    n_gt was 4 instead of 2 and the AP averaged over a category the user excluded."""
+    detector = {"kind": "torch", "torch": {"class_path": f"{__name__}.TwoClassDetector"}}
+    cfg = _config(tmp_path, crop_folder, detector=detector, ground_truth={"annotations": None, "category_ids": [1]},
+                  tensorboard=False)
+    iopc = main(["--config", str(cfg), "--sweep.grid.noise_levels_dn", "[0]"])
+    assert iopc.records[0]["n_gt"] == 2 and iopc.provenance["ground_truth_boxes"] == 2
+    assert iopc.records[0]["n_detections"] == 2 and iopc.records[0]["ap"] == pytest.approx(1.0)
+    assert iopc.provenance["ground_truth"].endswith("categories [1]")
+    assert iopc.provenance["detector"]["category_ids"] == [1]  # in the fingerprint: other categories, other cells
+    with pytest.raises(ValueError, match=r"ground_truth.category_ids = \[\] is out of the allowed range"):
+        main(["--config", str(cfg), "--ground_truth.category_ids", "[]"])

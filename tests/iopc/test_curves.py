@@ -189,6 +189,11 @@ def _set(d, path, value):
 @pytest.mark.parametrize("path, value, match", [
     (("count_2d", 0, 9), 0.9, r"IOPC.count_2d\[0, 9\] = 0.9 is out of the allowed range: a whole number >= 0"),
     (("count_2d", 0, 9), -5, r"IOPC.count_2d\[0, 9\] = -5 is out of the allowed range: a whole number >= 0"),
+    (("count_2d", 0, 9), 1e19, r"IOPC.count_2d\[0, 9\] = 1e\+19 is out of the allowed range: a whole number >= 0 and <= 2\^53"),
+    (("count_2d", 0, 9), 2**64 + 5, r"IOPC.count_2d\[0, 9\] = 1.84467e\+19 is out of the allowed range: .* <= 2\^53"),
+    (("count_mtf", 9), 10**400, r"IOPC.count_mtf\[9\] = an integer of 401 digits is out of the allowed range"),
+    (("ap_2d", 0, 9), 10**400, r"IOPC.ap_2d\[0, 9\] = an integer of 401 digits is out of the allowed range: a number in"),
+    (("blur_relation", "noise_level_dn"), 10**400, r"IOPC.blur_noise_level_dn = an integer of 401 digits is out of the"),
     (("count_sigma", 0), True, r"IOPC.count_sigma\[0\] = True is not a number; allowed: a whole number >= 0"),
     (("ap_2d", 0, 9), "0.7", r"IOPC.ap_2d\[0, 9\] = '0.7' is not a number; allowed: a number in \[0, 1\]"),
     (("ap_mtf", 9), False, r"IOPC.ap_mtf\[9\] = False is not a number; allowed: a number in \[0, 1\]"),
@@ -200,7 +205,8 @@ def _set(d, path, value):
     (("version",), True, r"version = True is out of the allowed range: an integer in \[0, 1\]"),
 ])
 def test_load_refuses_wrong_typed_and_out_of_range_fields_naming_file_field_value_and_range(path, value, match, tmp_path):
-    """A count of 0.9 was truncated to an empty bin (its AP replaced by a neighbour's in surface()), -5 and true were
+    """A count of 0.9 was truncated to an empty bin (its AP replaced by a neighbour's in surface()), 1e19 wrapped to a
+    negative int64 (the clean bin then read as empty), 10^400 escaped as an OverflowError, -5 and true were
     kept as counts, the AP "0.7" was read as a number, σ̃ bins below 0 DN, a relation MTF̃ of 5 and a version of 1.9
     or true were accepted: each is refused, naming the file, the field, the value and the allowed range."""
     d = IOPC.from_records(_records()).to_dict()
@@ -222,3 +228,23 @@ def test_blur_relation_records_the_noise_level_it_was_measured_at(tmp_path, suff
     back = IOPC.load(iopc.save(tmp_path / f"curves{suffix}"))
     assert back.blur_noise_level_dn == 5.0 and back.to_dict() == iopc.to_dict()
     assert IOPC.from_records(_records()).blur_noise_level_dn == 0.0
+
+
+def test_deeply_nested_files_are_a_value_error_naming_the_file(tmp_path):
+    """200 kB of brackets, and a valid IOPC whose ap_2d is wrapped in 900 extra list levels, escaped IOPC.load as a
+    RecursionError (from the JSON parser and from the constructor's recursive walk) instead of the documented
+    ValueError."""
+    brackets = tmp_path / "brackets.json"
+    brackets.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(brackets))}: not a camhealth IOPC file \(nested too deeply"):
+        IOPC.load(brackets)
+    d = IOPC.from_records(_records()).to_dict()
+    for _ in range(900):
+        d["ap_2d"] = [d["ap_2d"]]
+    deep = tmp_path / "deep.json"
+    deep.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(deep))}: not a camhealth IOPC file \(IOPC.ap_2d\[0, 0\] is "
+                                         r"nested deeper than the field's 2 dimension\(s\)"):
+        IOPC.load(deep)
+    with pytest.raises(ValueError, match=r"IOPC.ap_2d\[0, 0\] is nested deeper"):
+        IOPC.from_dict(d)

@@ -171,3 +171,114 @@ def test_validate_refuses_bad_batch_sizes_bins_and_seed_before_any_cell(tmp_path
         SweepConfig(**cfg).validate()
     with pytest.raises(ValueError, match=match):  # the sweep refuses it before any detector call
         _sweep(tmp_path, cache=False, **cfg)
+
+
+def test_blurred_cells_with_photon_noise_reach_their_nominal_level():
+    """Photon shot noise arises before the motion blur, which multiplies its variance by Σpsf² (0.14 at 7 px); the
+    gain was solved for unblurred photon noise, so the closed-loop config's 2-DN cell at L = 7 px realised 1.00 DN
+    (and 4 DN realised 2.54 DN, where it needs more than 24 dB and must be marked)."""
+    frames = smooth_frames(2, 96, 128)
+    gt = [{"boxes": torch.tensor(BOXES), "labels": torch.tensor([1])}] * 2
+    sensor = SensorSetting(preset="ICX285", temperature_c=25.0, exposure_s=0.008, sources=["photon", "dark", "readout"])
+    config = SweepConfig(grid=SweepGrid([0.0, 7.0], [0.0], [2.0, 4.0]), sensor=sensor, intensity=0.5)
+    sw = IOPCSweep(frames, gt, NoiseSensitiveDetector(BOXES), FakeNoiseEstimator(32), FakeMTFEstimator(0.8, 48), config)
+    recs = {c["key"]: sw.run_cell(c) for c in sw.cells}
+    for key in ("L0_a0_s2", "L7_a0_s2", "L0_a0_s4"):
+        assert recs[key]["sigma_true_dn"] == pytest.approx(recs[key]["noise_level_dn"], rel=0.1), key
+        assert not recs[key]["marked"], key
+    assert recs["L7_a0_s2"]["gain_db"] > recs["L0_a0_s2"]["gain_db"] + 5  # the blur averages the photon noise
+    blurred4 = recs["L7_a0_s4"]
+    assert blurred4["marked"] and "outside [0, 24] dB" in blurred4["reason"] and "Σpsf²" in blurred4["reason"]
+    assert blurred4["gain_db"] > 24 and math.isnan(blurred4["sigma_true_dn"])
+
+
+def test_noise_gain_solves_the_quadratic_with_the_psf_energy():
+    meta = CameraMetadata.preset("ICX285", temperature_c=25.0, exposure_s=0.008)
+    src = ["photon", "dark", "readout"]
+    assert noise_gain_db(2.0, meta, src, 0.25, 1.0) == noise_gain_db(2.0, meta, src, 0.25)
+    assert noise_gain_db(2.0, meta, src, 0.25, 0.143) > noise_gain_db(2.0, meta, src, 0.25) + 5
+    # without photon noise the blur does not change the gain (DCSN and readout arise after it)
+    assert noise_gain_db(2.0, meta, ["dark", "readout"], 0.25, 0.143) == noise_gain_db(2.0, meta, ["dark", "readout"], 0.25)
+    for bad in (0.0, 1.5, float("nan"), True):
+        with pytest.raises(ValueError, match=r"psf_energy = .* is out of the allowed range \(0, 1\]"):
+            noise_gain_db(2.0, meta, src, 0.25, bad)
+
+
+def test_ranks_cover_the_grid_whatever_the_cache_holds_when_each_lists_its_cells(tmp_path):
+    """run_local sliced each rank's own list of *remaining* cells: with rank 0 one cell ahead, rank 1's slice shifted,
+    cells L5_a0_s0, L0_a0_s6 and L5_a90_s6 were run by nobody and rank 0's collect() raised."""
+    rank0, _ = _sweep(tmp_path, noise_levels=(0.0, 6.0))
+    rank1, _ = _sweep(tmp_path, noise_levels=(0.0, 6.0))
+    assert len(rank0.cells) == 6
+    share0 = rank0.cells[0::2]
+    rank0.run_cell(share0[0])  # rank 0 is ahead when rank 1 lists its cells
+    ran1 = rank1.run_local(rank=1, world_size=2, progress=False)
+    assert [r["key"] for r in ran1] == [c["key"] for c in rank0.cells[1::2]]
+    ran0 = rank0.run_local(rank=0, world_size=2, progress=False)
+    assert [r["key"] for r in ran0] == [c["key"] for c in share0[1:]]  # its cached cell is skipped
+    assert len(rank0.collect()) == 6
+    with pytest.raises(ValueError, match=r"rank = 2 is out of the allowed range: an integer in \[0, 1\]"):
+        rank0.run_local(rank=2, world_size=2, progress=False)
+
+
+class _FakeDDPTrainer:
+    """Stands in for one rank of a 2-process Trainer: predict runs the rank's share of the loader's cells (the
+    distributed sampler's split: items rank, rank + 2, …); the barrier runs ``at_barrier`` (the other rank)."""
+
+    world_size = 2
+
+    def __init__(self, rank, at_barrier=None):
+        self.rank = rank
+        self.strategy = self
+        self._at_barrier = at_barrier
+
+    def predict(self, module, dataloaders, return_predictions=True):
+        cells = dataloaders.dataset.cells
+        return [module.predict_step(cells[i], i) for i in range(self.rank, len(cells), self.world_size)]
+
+    def barrier(self, *args):
+        if self._at_barrier is not None:
+            self._at_barrier()
+
+
+def test_distributed_run_splits_the_grid_not_each_ranks_remaining_cells(tmp_path):
+    """IOPCSweep.run gave the distributed sampler each rank's own list of remaining cells: with rank 0 one cell ahead,
+    the shares overlapped and a cell was run by nobody, so collect() raised."""
+    rank0, _ = _sweep(tmp_path, noise_levels=(0.0, 6.0))
+    rank1, _ = _sweep(tmp_path, noise_levels=(0.0, 6.0))
+    rank0.run_cell(rank0.cells[0])
+    result = {}
+    iopc1 = rank1.run(_FakeDDPTrainer(1, at_barrier=lambda: result.setdefault("rank0", rank0.run(_FakeDDPTrainer(0)))))
+    assert len(result["rank0"].records) == 6 and len(iopc1.records) == 6
+
+
+@pytest.mark.parametrize("cfg, match", [
+    ({"valid_sigma_dn": ["0", "30"]}, r"valid_sigma_dn = \['0', '30'\] is out of the allowed range: \[low, high\]"),
+    ({"valid_length_px": [None, None]}, r"valid_length_px = \[None, None\] is out of the allowed range: \[low, high\]"),
+    ({"valid_length_px": [5.0, 1.0]}, r"valid_length_px = \[5.0, 1.0\] is out of the allowed range: .*low <= high"),
+    ({"valid_sigma_dn": [0.0, float("nan")]}, r"valid_sigma_dn = \[0.0, nan\] is out of the allowed range"),
+    ({"grid": SweepGrid([True], [0.0], [0.0])}, r"grid.lengths_px value True is out of the allowed range \[0, 63\]"),
+    ({"grid": SweepGrid([0.0], [0.0], [False])}, r"grid.noise_levels_dn value False is out of the allowed range"),
+    ({"quantize": "no"}, r"quantize = 'no' is not allowed: true or false"),
+    ({"score_threshold": "0.5"}, r"score_threshold = '0.5' is out of the allowed range \[0, 1\]"),
+    ({"iou_threshold": 1.0}, r"iou_threshold = 1.0 is out of the allowed range \(0, 1\)"),
+])
+def test_validate_refuses_bad_valid_ranges_grid_values_and_flags_naming_the_key(tmp_path, cfg, match):
+    """Text valid ranges and boolean grid values passed validate() (text then failed inside the first cell, after the
+    detector ran; True was swept as L = 1 px), [None, None] raised a bare TypeError, and quantize = "no" quantised."""
+    with pytest.raises(ValueError, match=match):
+        SweepConfig(**cfg).validate()
+
+
+def test_frames_too_small_for_an_estimator_patch_are_refused_before_any_detector_call():
+    """160-px frames with the 192-px physics MTF patch failed in the first cell, after the corruption and the
+    detector had run."""
+    det = NoiseSensitiveDetector(BOXES)
+    gt = [{"boxes": torch.tensor(BOXES), "labels": torch.tensor([1])}]
+    config = SweepConfig(grid=SweepGrid([0.0], [0.0], [0.0]))
+    with pytest.raises(ValueError, match=r"frames of 256×160 px cannot hold one 192-px MTF estimator patch"):
+        IOPCSweep(smooth_frames(1, 160, 256), gt, det, "physics", "physics", config)
+    with pytest.raises(ValueError, match=r"frames of 128×96 px cannot hold one 128-px noise estimator patch"):
+        IOPCSweep(smooth_frames(1, 96, 128), gt, det, FakeNoiseEstimator(128), FakeMTFEstimator(0.8, 48), config)
+    assert det.n_calls == 0
+    IOPCSweep(smooth_frames(1, 192, 256), gt, det, "physics", "physics", config)  # fits
