@@ -27,7 +27,8 @@ with seeded patch positions and noise, so every run of the same configuration se
 
 Methods: PCA, B+F and wavelet MAD (noise), the slanted edge and the Siemens star (charts), and the learned
 estimators of :func:`camhealth.inference.load_estimator` — every shipped model that loads and every
-``--checkpoint``. If ``camhealth.inference`` cannot be imported the learned rows are left out with a
+``--checkpoint`` (row ``checkpoint STEM``; files of the same name, the ``last.ckpt`` of two runs, with as many
+parent folders as tell them apart: :func:`checkpoint_labels`). If ``camhealth.inference`` cannot be imported the learned rows are left out with a
 printed note. Every method is timed in the same run (ms per 128/192-px patch, or per chart).
 
 Outputs in ``--out``: ``results.md`` (Markdown tables), ``results.json`` (all numbers, configuration,
@@ -560,9 +561,31 @@ def learned_methods(names: Sequence[str] = SHIPPED, checkpoints: Sequence[str | 
             out.append(_wrap_learned(f"{kind} {name}", est))
         except Exception as err:  # a shipped model that is not there (yet) is skipped, with the reason
             log(f"note: learned estimator {name!r} not available ({type(err).__name__}: {err}); its rows are left out")
-    for path in checkpoints:
-        out.append(_wrap_learned(f"checkpoint {Path(path).stem}", load_estimator(str(path))))
+    for path, label in zip(checkpoints, checkpoint_labels(checkpoints)):
+        out.append(_wrap_learned(label, load_estimator(str(path))))
     return out
+
+
+def checkpoint_labels(paths: Sequence[str | Path]) -> list[str]:
+    """The row names of ``--checkpoint`` files: ``checkpoint STEM``; files whose stems repeat (the ``last.ckpt`` of
+    two runs) get as many of their parent folders as tell them apart (``checkpoint version_1/checkpoints/last``),
+    and their whole path where only the suffix differs. The same file given twice is a ``ValueError``."""
+    full = [Path(p).resolve() for p in paths]
+    for i, p in enumerate(full):
+        if p in full[:i]:
+            raise ValueError(f"--checkpoint {paths[i]} is given twice (the file {p})")
+
+    def label(p: Path, k: int) -> str:  # the stem and (up to) k parent folders, the root "/" left out
+        folders = p.parent.parts[1:] if p.parent.anchor else p.parent.parts
+        return "/".join([*folders[len(folders) - min(k, len(folders)):], p.stem])
+
+    labels = []
+    for p in full:
+        group = [q for q in full if q.stem == p.stem]
+        depth = max(len(q.parts) for q in group)
+        k = next((k for k in range(depth) if len({label(q, k) for q in group}) == len(group)), None)
+        labels.append(f"checkpoint {label(p, k) if k is not None else p}")
+    return labels
 
 
 def _slug(name: str) -> str:
@@ -791,6 +814,25 @@ def _bun_tables(cases: dict, results: dict, methods: list[Method]) -> dict:
     return {"blur": blur, "noise": noise}
 
 
+def _window_errors(est: torch.Tensor, truth: torch.Tensor, windows: Sequence[int]) -> dict[int, dict[str, float]]:
+    """The error of the aggregated estimate, σ̃_n − σ_n, per window size n (frames along dim 0, (T, P)): σ̃_n the
+    median of the estimates over each sliding window of n frames (Eq. 5.4), σ_n the median of the realised σ over
+    the same window. Per n: ``std`` (population, over the finite values of every window position and patch),
+    ``median`` and ``delta`` = std at n = 1 − std at n, as :func:`~camhealth.estimators.aggregation.uncertainty_by_window`
+    gives them for the estimates."""
+    from camhealth.estimators.aggregation import temporal_median
+
+    out: dict[int, dict[str, float]] = {}
+    for n in sorted({int(n) for n in windows} | {1}):
+        err = temporal_median(est, n, stride=1).median - temporal_median(truth, n, stride=1).median
+        vals = err[torch.isfinite(err)].double()
+        out[n] = {"std": float(vals.std(unbiased=False)) if vals.numel() else float("nan"),
+                  "median": float(vals.median()) if vals.numel() else float("nan")}
+    for n in out:
+        out[n]["delta"] = out[1]["std"] - out[n]["std"]
+    return out
+
+
 def _agg_table(cases: dict, results: dict, methods: list[Method], windows: Sequence[int]) -> dict:
     from camhealth.estimators.aggregation import uncertainty_by_window
 
@@ -803,8 +845,8 @@ def _agg_table(cases: dict, results: dict, methods: list[Method], windows: Seque
         est = results[("aggregation", m.name, "")]["total"].reshape(t, p).double()
         truth = data["total"].reshape(t, p).double()
         out[m.name] = {str(k): v for k, v in uncertainty_by_window(est, windows).items()}
-        # the same for the error σ̂ − σ: removes the true patch-to-patch differences (photon noise ∝ √I)
-        for k, v in uncertainty_by_window(est - truth, windows).items():
+        # the same for the error σ̃_n − σ_n: removes the true patch-to-patch differences (photon noise ∝ √I)
+        for k, v in _window_errors(est, truth, [int(n) for n in out[m.name]]).items():
             out[m.name][str(k)].update(err_std=v["std"], err_delta=v["delta"], err_median=v["median"])
     out["_truth_median_dn"] = float(data["total"].median())
     return out

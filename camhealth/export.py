@@ -384,8 +384,14 @@ def set_description_entries(source: str | Path, entries: Mapping[str, Any], out:
     return out
 
 
+#: Largest batch an exported ``.pt2``/``.onnx`` program is exported for (the dynamic batch dimension's upper bound;
+#: a ``.pt2`` program's guard refuses more, so :meth:`camhealth.inference.Estimator.predict` runs it in chunks of at
+#: most this many patches).
+MAX_EXPORT_BATCH = 4096
+
+
 def _dynamic_batch(inputs: Sequence[torch.Tensor]):
-    batch = torch.export.Dim("batch", min=1, max=4096)
+    batch = torch.export.Dim("batch", min=1, max=MAX_EXPORT_BATCH)
     return tuple({0: batch} for _ in inputs)
 
 

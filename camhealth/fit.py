@@ -24,7 +24,10 @@ continues from it: weights, optimiser, learning-rate schedule, step/epoch and th
 **Checks before training.** The ``--monitor`` metric must be one the model logs: a validation metric is looked for
 in the metrics of Lightning's sanity-check validation (before the first step; with ``num_sanity_val_steps: 0`` at
 the first validation), a ``train/`` metric after the first step — a typo is refused there, naming the metrics
-that are logged, not when the first checkpoint would be written.
+that are logged, not when the first checkpoint would be written; an empty validation split (no validation batches)
+is named as such. ``--export_weights``, ``--test_after_fit`` and ``--init_from`` are options of ``fit``: on the
+command line of ``validate``, ``test`` or ``predict`` they are refused; a run's saved ``config.yaml``, which holds the
+fit's values of them, configures those subcommands as it is (they ignore the three).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import torch
 from lightning.pytorch.callbacks import Callback, OnExceptionCheckpoint
@@ -93,8 +96,21 @@ class _MonitoredMetricCheck(Callback):
             )
         self.checked = True
 
+    def _check_validation_data(self, batches) -> None:
+        """A validation metric needs validation batches: an empty validation split is named as such, not as a
+        misspelt ``--monitor``."""
+        if self.checked or self.monitor.startswith("train/"):
+            return
+        if not any(batches or []):  # (a count per validation loader)
+            raise ValueError(
+                f"--monitor {self.monitor!r} is a validation metric, but the validation split is empty (0 validation "
+                f"batches): give the data module a validation split (val_fraction > 0, more images) or monitor a "
+                f"train/ metric with --trainer.limit_val_batches 0"
+            )
+
     def on_sanity_check_end(self, trainer, pl_module) -> None:  # noqa: D102
         if not self.monitor.startswith("train/"):
+            self._check_validation_data(trainer.num_sanity_val_batches)
             self._check(trainer, "sanity-check validation")
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:  # noqa: D102
@@ -123,7 +139,30 @@ class FitCLI(LightningCLI):
         """The parsed configuration of the running subcommand."""
         return self.config[self.subcommand] if self.subcommand else self.config
 
+    def parse_arguments(self, parser, args) -> None:  # noqa: D102
+        # the command line as given: fit-only options are refused there for other subcommands (a --config file, e.g.
+        # a run's saved config.yaml, carries the fit's values of them, which test/validate/predict ignore)
+        self._argv = [str(a) for a in (sys.argv[1:] if args is None else args)] if not isinstance(args, Mapping) else []
+        super().parse_arguments(parser, args)
+
+    def _given(self, option: str) -> bool:
+        """``--option`` is on the command line (as ``--option VALUE`` or ``--option=VALUE``)."""
+        return any(a == f"--{option}" or a.startswith(f"--{option}=") for a in getattr(self, "_argv", []))
+
+    def _refuse_fit_options(self) -> None:
+        """``--export_weights`` and ``--test_after_fit`` act after ``fit`` only: another subcommand refuses them on
+        its command line (``--init_from``: :meth:`after_instantiate_classes`)."""
+        if self.subcommand in (None, "fit"):
+            return
+        if self._given("export_weights") and self._cfg().get("export_weights"):
+            raise ValueError(f"--export_weights is an option of fit; {self.subcommand} writes no weights: export the "
+                             f"checkpoint with python -m camhealth.export CKPT --format weights --out PATH")
+        if self._given("test_after_fit"):
+            raise ValueError(f"--test_after_fit is an option of fit (the test of the best checkpoint after fitting); "
+                             f"{self.subcommand} does not fit")
+
     def before_instantiate_classes(self) -> None:
+        self._refuse_fit_options()
         cfg = self._cfg()
         _sync_metadata_set(cfg)
         threads = cfg["threads"]
@@ -144,9 +183,11 @@ class FitCLI(LightningCLI):
         self.trainer.callbacks.insert(0, _MonitoredMetricCheck(cfg["monitor"]))  # before ModelCheckpoint looks for it
         if not any(isinstance(c, (OnExceptionCheckpoint, _LastCheckpointOnException)) for c in self.trainer.callbacks):
             self.trainer.callbacks.append(_LastCheckpointOnException())
-        if cfg.get("init_from"):
-            if self.subcommand not in (None, "fit"):
+        if cfg.get("init_from") and self.subcommand not in (None, "fit"):
+            if self._given("init_from"):
                 raise ValueError(f"--init_from is an option of fit; {self.subcommand} takes the weights from --ckpt_path")
+            # (from a --config file: a fine-tuning run's saved config.yaml; the weights are --ckpt_path's)
+        elif cfg.get("init_from"):
             if cfg.get("ckpt_path"):
                 raise ValueError("--init_from starts a new training from weights, --ckpt_path resumes one; give one of them")
             _init_from(self.model, cfg["init_from"])

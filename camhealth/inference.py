@@ -10,7 +10,9 @@
   tensors only, never arbitrary pickled code; anything else is rejected with a clear error;
 - an **exported program** (``.pt2``, run with :func:`torch.export.load` after
   :func:`camhealth._pt2_check.check_pt2_archive` has refused pickled entries, non-operator call targets, guard code
-  and symbolic shapes that are not plain arithmetic) or an **ONNX** file (``.onnx``, run with ONNX Runtime).
+  and symbolic shapes that are not plain arithmetic) or an **ONNX** file (``.onnx``, run with ONNX Runtime); the
+  graph's inputs and outputs (their number, names in ONNX, and shapes) must be those of the estimator its
+  ``camhealth.json`` description names (kind, patch size, metadata fields), else a ``ValueError`` names the file.
 
 ``Estimator.predict(images, metadata=None)``:
 
@@ -23,7 +25,9 @@
 - ``metadata``: required when ``metadata_set`` is ``"minimal"`` or ``"full"``:
   a :class:`~camhealth.physics.CameraMetadata` (batch 1 or B), a dict of fields in physical units
   (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``
-  with ``base_preset="ICX285"``), a preset name, or the path of a ``.yaml``/``.json`` metadata file (the
+  with ``base_preset="ICX285"``; without ``base_preset`` the dict must hold every field the network reads —
+  gain, exposure and temperature for Min-Meta, whose other fields come from ICX285 — and a missing one is a
+  ``ValueError`` naming it), a preset name, or the path of a ``.yaml``/``.json`` metadata file (the
   ``camera.yaml`` of ``python -m camhealth.calibrate``). Out-of-range values raise, naming field and range.
 - returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V, ``mtf_std`` and ``mtf_spread`` (B, 16) [kind ``mtf``]; ``sigma_total`` (B,) DN
   [noise kinds; for noise-source networks √(Σ σ_s²)]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
@@ -60,6 +64,7 @@ from __future__ import annotations
 
 import copy
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -69,9 +74,10 @@ import torch
 from camhealth.estimators.defective_pixels import repair_defective_pixels
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches, haar_noise_dn  # noqa: F401
 from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
-from camhealth.export import BY_PHYSICS, FORMAT_TAG, _check_description, check_retired, load_net, network_metadata_set
+from camhealth.export import (BY_PHYSICS, FORMAT_TAG, MAX_EXPORT_BATCH, ONNX_NOISE_OUTPUTS, _check_description,
+                              check_retired, load_net, network_metadata_set)
 from camhealth.nets import NetworkSpec
-from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS, CameraMetadata
 
 __all__ = ["Estimator", "load_estimator", "check_device", "shipped_models", "WEIGHTS_DIR", "assess_patches", "bucket_size",
            "PHYSICS_NOISE_MODEL", "RETIRED"]
@@ -168,7 +174,9 @@ class Estimator:
         """Estimate blur or noise of patches; see the module docstring for inputs and outputs.
 
         ``precision``: ``"fp32"`` or ``"bf16"`` (CPU autocast; torch backend only). ``views`` (MTF only): 1, 2 or
-        4 flipped copies of each patch whose estimates are averaged (module docstring)."""
+        4 flipped copies of each patch whose estimates are averaged (module docstring). ``batch_size``: patches per
+        call of the network (≥ 1; a ``.pt2`` program, exported for at most
+        :data:`~camhealth.export.MAX_EXPORT_BATCH` = 4096, runs chunks of at most that many)."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         if batch_size < 1:
@@ -199,12 +207,12 @@ class Estimator:
                     f"estimator {self.name!r} reads {self.metadata_set!r} metadata: pass metadata= (CameraMetadata, "
                     f"a dict of fields in physical units, or a preset name)"
                 )
-            # Min-Meta networks read only gain, exposure and temperature: other fields may come from any preset.
-            base = base_preset or ("ICX285" if self.metadata_set == "minimal" else None)
-            meta = _to_metadata(metadata, b, base)
+            meta = self._metadata(metadata, b, base_preset)
         outs = []
-        for start in range(0, b, batch_size):
-            sl = slice(start, start + batch_size)
+        # a .pt2 program's batch dimension ends at MAX_EXPORT_BATCH (its guard refuses more): chunks no larger
+        step = min(batch_size, MAX_EXPORT_BATCH) if self.backend == "pt2" else batch_size
+        for start in range(0, b, step):
+            sl = slice(start, start + step)
             chunk = patches[sl]
             n = chunk.shape[0]
             if self.backend == "torch":  # pad to a bucket size: oneDNN reuses its kernels per batch shape
@@ -243,13 +251,29 @@ class Estimator:
         return result
 
 
+    def _metadata(self, metadata: Any, batch: int, base_preset: str | None) -> CameraMetadata:
+        """``metadata`` as :class:`CameraMetadata` for ``batch`` patches. A dict without ``base_preset`` must give
+        every field the network reads (``METADATA_SETS[metadata_set]``; a ``ValueError`` names the missing ones);
+        the fields a Min-Meta network does not read come from the ICX285 preset."""
+        if isinstance(metadata, Mapping) and base_preset is None:
+            given = set(metadata) | ({"is_cmos"} if "sensor_type" in metadata else set())
+            missing = [f for f in METADATA_SETS[self.metadata_set] if f not in given]
+            if missing:
+                raise ValueError(
+                    f"estimator {self.name!r} reads {self.metadata_set!r} metadata {list(METADATA_SETS[self.metadata_set])}; "
+                    f"metadata= lacks {missing}: give them, or base_preset= (e.g. 'ICX285') to take them from a preset"
+                )
+        # Min-Meta networks read only gain, exposure and temperature: the other fields may come from any preset.
+        base = base_preset or ("ICX285" if self.metadata_set == "minimal" else None)
+        return _to_metadata(metadata, batch, base)
+
     def _empty_result(self, metadata: Any, base_preset: str | None = None) -> dict[str, Any]:
         """The outputs of :meth:`predict` for an empty batch: every entry with 0 rows (the metadata checked as for
         a full batch: a field out of range is an error whatever the number of patches)."""
         if self.metadata_set != "none":
             if metadata is None:
                 raise ValueError(f"estimator {self.name!r} reads {self.metadata_set!r} metadata: pass metadata=")
-            _to_metadata(metadata, 0, base_preset or ("ICX285" if self.metadata_set == "minimal" else None))
+            self._metadata(metadata, 0, base_preset)
         z = torch.zeros(0)
         result: dict[str, Any] = {"assessable": torch.zeros(0, dtype=torch.bool), "reason": []}
         if self.kind == "mtf":
@@ -323,6 +347,84 @@ def _exported_description(text: str, path: Path) -> dict:
     return desc
 
 
+#: A graph's signature: (name or None, shape with None for a symbolic dimension) per input or output.
+_Signature = list[tuple[str | None, tuple[int | None, ...]]]
+
+
+def _expected_signature(desc: dict, onnx: bool) -> tuple[_Signature, _Signature]:
+    """The inputs and outputs (names, shapes; batch None) that the graph of the estimator ``desc`` describes has:
+    the bare network in a ``.pt2`` (names not checked), the named graph of :func:`camhealth.export.export_onnx`."""
+    p, kind = int(desc["patch_size"]), desc["kind"]
+    patch = ("patch" if onnx else None, (None, 1, p, p))
+    if kind == "mtf":
+        return [patch], [("mtf" if onnx else None, (None, 16))]
+    if kind == "drne":
+        return [patch], [("sigma_map" if onnx else None, (None, 1, p, p))]
+    graph = desc.get("onnx_graph") or {}
+    if onnx and graph.get("self_contained"):  # SelfContainedNoiseSource: raw metadata of the network's own fields
+        k = len(METADATA_SETS[network_metadata_set(kind, desc.get("init_args", {}))])
+        shapes = {"sigma": (None, 3)}
+        return ([patch] + ([("metadata", (None, k))] if k else []),
+                [(n, shapes.get(n, (None,))) for n in ONNX_NOISE_OUTPUTS])
+    # the bare NoiseSourceNet: patches and the normalised (B, 11) metadata → σ_PN, σ_DCSN, σ_RN, ξ
+    return [patch, (None, (None, len(FULL_FIELDS)))], [(None, (None, 4))]
+
+
+def _signature_text(sig: _Signature) -> str:
+    return ", ".join(f"{n or ''}[{', '.join('B' if d is None else str(d) for d in shape)}]" for n, shape in sig)
+
+
+def _check_signature(path: Path, desc: dict, inputs: _Signature, outputs: _Signature, onnx: bool) -> None:
+    """Refuse an exported graph whose inputs or outputs are not those of the estimator its description names (kind,
+    patch size, metadata): a ``ValueError`` naming the file, what the graph has and what the description needs.
+    A symbolic dimension of the graph matches any size; the batch dimension is not compared."""
+    if onnx and desc["kind"] == "noise_source":
+        graph = desc.get("onnx_graph") or {}
+        if "self_contained" in graph and not isinstance(graph["self_contained"], bool):
+            raise ValueError(f"{path}: description onnx_graph self_contained = {graph['self_contained']!r} must be "
+                             "true or false")
+        if graph.get("self_contained"):
+            fields = list(METADATA_SETS[network_metadata_set(desc["kind"], desc.get("init_args", {}))])
+            if graph.get("metadata_fields") != fields:
+                raise ValueError(f"{path}: description onnx_graph metadata_fields = {graph.get('metadata_fields')!r} "
+                                 f"must be {fields} (the fields the network reads, in the graph's column order)")
+    want_in, want_out = _expected_signature(desc, onnx)
+
+    def same(got: _Signature, want: _Signature) -> bool:
+        return len(got) == len(want) and all(
+            (wn is None or gn == wn) and len(gs) == len(ws)
+            and all(g is None or w is None or g == w for g, w in zip(gs[1:], ws[1:]))
+            for (gn, gs), (wn, ws) in zip(got, want)
+        )
+
+    if not (same(inputs, want_in) and same(outputs, want_out)):
+        raise ValueError(
+            f"{path}: the graph's inputs ({_signature_text(inputs)}) and outputs ({_signature_text(outputs)}) do not "
+            f"match a {desc['kind']!r} estimator of patch size {desc['patch_size']}, as its description says (inputs "
+            f"{_signature_text(want_in)}, outputs {_signature_text(want_out)}; B: the batch)"
+        )
+
+
+def _dims(shape) -> tuple[int | None, ...]:
+    """A shape's dimensions: ints where fixed, None where symbolic (a SymInt, an ONNX dimension name or unknown)."""
+    return tuple(d if isinstance(d, int) and not isinstance(d, bool) else None for d in shape)
+
+
+def _pt2_signature(ep, path: Path) -> tuple[_Signature, _Signature]:
+    """The user inputs and outputs of an exported program with the shapes the exporter recorded."""
+    sig = ep.graph_signature
+    nodes = {n.name: n for n in ep.graph.nodes}
+    out_node = next((n for n in ep.graph.nodes if n.op == "output"), None)
+    try:
+        inputs = [(None, _dims(nodes[name].meta["val"].shape)) for name in sig.user_inputs]
+        returned = {getattr(a, "name", None): a for a in (out_node.args[0] if out_node is not None else ())}
+        outputs = [(None, _dims(returned[name].meta["val"].shape)) for name in sig.user_outputs]
+    except (KeyError, AttributeError, TypeError):
+        raise ValueError(f"{path}: the exported program does not record the shapes of its inputs and outputs; "
+                         "re-export it with python -m camhealth.export") from None
+    return inputs, outputs
+
+
 def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
     from camhealth._pt2_check import check_pt2_archive
 
@@ -335,6 +437,7 @@ def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
     if not extra["camhealth.json"]:
         raise ValueError(f"{path} is an exported program but not a camhealth estimator (no camhealth.json inside)")
     desc = _exported_description(extra["camhealth.json"], path)
+    _check_signature(path, desc, *_pt2_signature(ep, path), onnx=False)
     module = ep.module()
     return desc, lambda *x: module(*x)
 
@@ -351,6 +454,8 @@ def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
         raise ValueError(f"{path} is an ONNX model but not a camhealth estimator (no camhealth.json metadata)")
     names = [i.name for i in session.get_inputs()]
     desc = _exported_description(meta["camhealth.json"], path)
+    _check_signature(path, desc, [(i.name, _dims(i.shape)) for i in session.get_inputs()],
+                     [(o.name, _dims(o.shape)) for o in session.get_outputs()], onnx=True)
     self_contained = bool((desc.get("onnx_graph") or {}).get("self_contained"))
 
     def run(*inputs: torch.Tensor) -> torch.Tensor:

@@ -5,8 +5,9 @@ reference); their names stay importable from here.
 
 Targets (from :class:`datamodules.NoiseDataModule`, physics at training time): the analytic per-pixel σ
 of the image's metadata M', σ(x)² = 255²·g·I(x)/FW + σ_DCSN² + σ_RN² [DN²] with I the clean patch (before
-clipping), and the realised patch σ after clipping (``sigma_total``). The patch estimate is the
-root-mean-square of the map, √(mean σ̂(x)²), which is the σ of all noise in the patch when the map is right.
+clipping) and only the sources the data module realises (``noise_sources``; a source it leaves out has
+``sigma_expected`` 0 and no term), and the realised patch σ after clipping (``sigma_total``). The patch estimate is
+the root-mean-square of the map, √(mean σ̂(x)²), which is the σ of all noise in the patch when the map is right.
 """
 
 from __future__ import annotations
@@ -26,13 +27,30 @@ from lightning_modules.metrics import NoiseErrorStats
 __all__ = ["NoiseLevelNet", "ThesisNoiseNet", "NoiseLevelEstimator", "sigma_map_target_dn"]
 
 
-def sigma_map_target_dn(clean: torch.Tensor, meta_image_raw: torch.Tensor) -> torch.Tensor:
+def sigma_map_target_dn(
+    clean: torch.Tensor, meta_image_raw: torch.Tensor, sigma_expected: torch.Tensor | None = None
+) -> torch.Tensor:
     """Analytic per-pixel σ [DN] of the noise model for clean patches under metadata M' (B, 11), before
-    clipping: √(255²·g·I/FW + σ_DCSN² + σ_RN²)."""
+    clipping: √(255²·g·I/FW + σ_DCSN² + σ_RN²).
+
+    ``sigma_expected`` (B, 3): the batch's analytic σ of (PN, DCSN, RN) [DN] (:class:`datamodules.NoiseDataModule`),
+    0 for a source the data module does not realise (``noise_sources``). Each source whose entry is 0 is left out
+    of the map, so the map describes the noise that is in the image; without it all three sources are in."""
     meta = metadata_from_matrix(meta_image_raw.to(clean.device).double())
     dn = meta.dn_per_electron
-    const = (dark_current_shot_sigma_e(meta) * dn).pow(2) + (readout_sigma_e(meta) * dn).pow(2)
+    dcsn = (dark_current_shot_sigma_e(meta) * dn).pow(2)
+    rn = (readout_sigma_e(meta) * dn).pow(2)
     slope = 255.0**2 * meta.gain_factor / meta.full_well_e
+    if sigma_expected is not None:
+        se = sigma_expected.to(clean.device)
+        if se.ndim != 2 or se.shape[1] != 3 or se.shape[0] != clean.shape[0]:
+            raise ValueError(f"sigma_expected has shape {tuple(se.shape)}; it must be (B, 3) = ({clean.shape[0]}, 3): "
+                             "σ of PN, DCSN, RN per patch")
+        realised = se > 0
+        slope = torch.where(realised[:, 0], slope, torch.zeros_like(slope))
+        dcsn = torch.where(realised[:, 1], dcsn, torch.zeros_like(dcsn))
+        rn = torch.where(realised[:, 2], rn, torch.zeros_like(rn))
+    const = dcsn + rn
     var = slope.view(-1, 1, 1, 1) * clean.double().clamp(0, 1) + const.view(-1, 1, 1, 1)
     return var.sqrt().float()
 
@@ -92,7 +110,8 @@ class NoiseLevelEstimator(EstimatorModule):
 
     def _step(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         out = self(batch["image"])
-        target_map = sigma_map_target_dn(batch["clean"], batch["meta_image_raw"])
+        # the sources the data realise (noise_sources): their analytic σ is 0 in sigma_expected for the others
+        target_map = sigma_map_target_dn(batch["clean"], batch["meta_image_raw"], batch.get("sigma_expected"))
         beta = self.huber_beta_dn
         map_loss = F.smooth_l1_loss(out["sigma_map"], target_map, beta=beta)
         patch_loss = F.smooth_l1_loss(out["sigma_total"], batch["sigma_total"].to(out["sigma_total"]), beta=beta)

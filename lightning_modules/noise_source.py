@@ -34,7 +34,8 @@ class NoiseSourceEstimator(EstimatorModule):
             (w/o-Meta). With all metadata camhealth answers in closed form (``noise_source_full``).
         width: channels of the first trunk stage (the others use 2× and 4×).
         hidden: neurons of the hidden layers of each branch (thesis: 32, 16, 8).
-        loss_weights: weights of the smooth-L1 terms ``pn``, ``dcsn``, ``rn``, ``total``, ``xi``.
+        loss_weights: weights (≥ 0, at least one > 0; 1 for a term not given) of the smooth-L1 terms ``pn``,
+            ``dcsn``, ``rn``, ``total``, ``xi``; the loss is their weighted mean.
         huber_beta_dn: smooth-L1 transition [DN].
         lr, weight_decay, channels_last, log_figures, max_figure_samples: see :class:`EstimatorModule`.
     """
@@ -66,6 +67,10 @@ class NoiseSourceEstimator(EstimatorModule):
         unknown = set(weights) - set(self.metric_names)
         if unknown:
             raise ValueError(f"loss_weights has unknown key(s) {sorted(unknown)}; allowed {list(self.metric_names)}")
+        weights = {k: float(v) for k, v in weights.items()}
+        if not sum(weights.values()) > 0:  # the loss is their weighted mean: 0/0 otherwise
+            raise ValueError(f"loss_weights = {dict(loss_weights or {})!r}: at least one loss term needs a weight > 0 "
+                             f"(terms not given weigh 1; weights are ≥ 0, got {weights})")
         self.loss_weights = weights
         self.huber_beta_dn = float(huber_beta_dn)
         self.val_stats = NoiseErrorStats(self.metric_names)

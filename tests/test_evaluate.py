@@ -394,3 +394,45 @@ def test_summary_names_only_the_baselines_that_ran(baselines, expect):
               "speed": [{"method": n, "ms_per_item": 1.0} for n in comb]}
     (line,) = [s for s in ev._summary(report) if s.startswith("checkpoint x")]
     assert expect in line
+
+
+# ---------------------------------------------------------------------------------------------- aggregation error
+def test_aggregation_error_is_the_windowed_estimate_minus_the_windowed_truth():
+    """The error table is σ̃_n − σ_n as the report says (median over the window of the estimates minus that of the
+    realised σ), not the window median of the per-frame differences σ̂ − σ; they differ for n ≥ 3."""
+    from types import SimpleNamespace
+
+    from camhealth.estimators.aggregation import temporal_median
+
+    est = torch.tensor([[1.0, 5.0, 2.0], [4.0, 0.0, 3.0], [2.0, 3.0, 9.0], [8.0, 1.0, 1.0], [0.0, 7.0, 4.0]])
+    truth = torch.tensor([[3.0, 1.0, 0.0], [0.0, 4.0, 6.0], [5.0, 2.0, 1.0], [1.0, 6.0, 2.0], [2.0, 0.0, 5.0]])
+    t, p = est.shape
+    cases = {"aggregation": {"frames": t, "per_frame": p, "total": truth.flatten()}}
+    method = SimpleNamespace(name="fake", kind="noise")
+    results = {("aggregation", "fake", ""): {"total": est.flatten()}}
+    tab = ev._agg_table(cases, results, [method], (1, 2, 4))["fake"]
+    for n in (1, 2, 4):
+        want = temporal_median(est.double(), n).median - temporal_median(truth.double(), n).median
+        assert tab[str(n)]["err_median"] == pytest.approx(float(want.median()), abs=1e-12), n
+        assert tab[str(n)]["err_std"] == pytest.approx(float(want.std(unbiased=False)), abs=1e-12), n
+    per_frame = temporal_median((est - truth).double(), 4).median
+    assert tab["4"]["err_median"] != pytest.approx(float(per_frame.median()))  # the two definitions differ here
+    assert tab["4"]["err_delta"] == pytest.approx(tab["1"]["err_std"] - tab["4"]["err_std"])
+
+
+# ---------------------------------------------------------------------------------------------- checkpoint rows
+def test_two_checkpoints_with_the_same_file_name_get_their_own_rows(tmp_path):
+    """``--checkpoint a/last.pt --checkpoint b/last.pt`` (two runs' last checkpoints): both rows were named
+    'checkpoint last' and the evaluation refused to start."""
+    from camhealth.export import export_weights
+    from lightning_modules import NoiseLevelEstimator
+
+    torch.manual_seed(0)
+    a = export_weights(NoiseLevelEstimator(patch_size=32, width=4, dilations=(1,)), tmp_path / "run0" / "last.pt")
+    b = export_weights(NoiseLevelEstimator(patch_size=32, width=4, dilations=(1,)), tmp_path / "run1" / "last.pt")
+    methods = ev.learned_methods([], [a, b], log=lambda s: None)
+    assert [m.name for m in methods] == ["checkpoint run0/last", "checkpoint run1/last"]
+    assert ev.checkpoint_labels([a, tmp_path / "best.pt"]) == ["checkpoint last", "checkpoint best"]
+    assert methods[0].identity != methods[1].identity  # two files: two cache identities as well
+    with pytest.raises(ValueError, match="given twice"):
+        ev.checkpoint_labels([a, tmp_path / "run0" / ".." / "run0" / "last.pt"])

@@ -384,6 +384,53 @@ def test_a_monitor_that_names_no_logged_metric_is_refused_early(tmp_path, monito
     assert steps == ([2] if when == "first validation" else [1] if when == "first training step" else [])
 
 
+def test_an_empty_validation_split_is_named_not_blamed_on_the_monitor(tmp_path):
+    """``val_fraction 0``: no validation batches. The error said that ``val/rms_total`` (a metric the model logs)
+    'names no metric the model logs' and to 'set monitor: to one of them' (an empty list)."""
+    with pytest.raises(ValueError, match=r"--monitor 'val/rms_total' is a validation metric, but the validation split "
+                                         r"is empty \(0 validation batches\)") as info:
+        main(tiny_args("noise_source.yaml", tmp_path, "--data.init_args.val_fraction", "0"))
+    assert "names no metric" not in str(info.value)
+    assert not list(tmp_path.rglob("*.ckpt"))  # before the first step
+    # what the message offers works: a train/ metric without validation
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--data.init_args.val_fraction", "0", "--trainer.limit_val_batches",
+                         "0", "--monitor", "train/loss", "--test_after_fit", "false"))
+    assert cli.trainer.global_step == 2
+
+
+def test_fit_only_options_are_refused_by_the_other_subcommands(tmp_path):
+    """``test --export_weights PATH`` exited 0 and wrote nothing; ``--test_after_fit`` did nothing outside fit. Given
+    on the command line of test/validate/predict they are refused, before anything runs (a run's saved config.yaml,
+    which holds the fit's values: the next test)."""
+    out = tmp_path / "exported.pt"
+    for sub in ("test", "validate", "predict"):
+        with pytest.raises(ValueError, match=f"--export_weights is an option of fit; {sub} writes no weights"):
+            main([sub, *tiny_args("noise_source.yaml", tmp_path, "--export_weights", str(out))])
+    with pytest.raises(ValueError, match="--test_after_fit is an option of fit .*; test does not fit"):
+        main(["test", *tiny_args("noise_source.yaml", tmp_path, "--test_after_fit=false")])
+    assert not out.exists() and not list(tmp_path.rglob("*.ckpt"))
+
+
+def test_the_saved_config_of_a_run_tests_its_checkpoint_whatever_fit_options_it_holds(tmp_path):
+    """A run's config.yaml holds its ``export_weights`` and, for a fine-tuning run, ``init_from``: ``test --config``
+    that file takes the weights from ``--ckpt_path`` and writes none (``--init_from`` on test's command line is
+    refused)."""
+    import yaml
+
+    weights = tmp_path / "fit.pt"
+    cli = main(tiny_args("noise_source.yaml", tmp_path, "--test_after_fit", "false", "--export_weights", str(weights)))
+    best = cli.trainer.checkpoint_callback.best_model_path
+    saved = Path(cli.trainer.log_dir) / "config.yaml"
+    tuned = tmp_path / "tuned.yaml"  # the config.yaml of a run started with --init_from
+    tuned.write_text(yaml.safe_dump({**yaml.safe_load(saved.read_text()), "init_from": str(weights)}))
+    before = weights.stat().st_mtime_ns
+    for config in (saved, tuned):
+        tested = main(["test", "--config", str(config), "--ckpt_path", best, "--trainer.logger", "false"])
+        assert "test/rms_total" in tested.trainer.callback_metrics and weights.stat().st_mtime_ns == before
+    with pytest.raises(ValueError, match="--init_from is an option of fit; test takes the weights from --ckpt_path"):
+        main(["test", "--config", str(saved), "--ckpt_path", best, "--trainer.logger", "false", "--init_from", str(weights)])
+
+
 def test_fit_without_a_logger_runs_without_the_learning_rate_monitor(tmp_path):
     cli = main(tiny_args("noise_source.yaml", tmp_path, "--trainer.logger", "false", "--test_after_fit", "false"))
     assert cli.trainer.global_step == 2

@@ -107,6 +107,24 @@ def test_metadata_batch_and_dict(noise_est, min_est):
     assert torch.isfinite(out["sigma"]).all()
 
 
+@pytest.mark.parametrize("metadata,missing", [({}, "'gain_db', 'exposure_s', 'temperature_c'"),
+                                              ({"gain_db": 12.0}, "'exposure_s', 'temperature_c'"),
+                                              ({"gain_db": 12.0, "exposure_s": 0.2}, "'temperature_c'")])
+def test_min_meta_refuses_a_dict_without_the_fields_it_reads(min_est, metadata, missing):
+    """A Min-Meta network reads gain, exposure and temperature: a dict that lacks one of them (and no base_preset)
+    is a ValueError naming the missing fields, for a full and an empty batch alike — not ICX285's operating point
+    (0 dB, 10 ms, 25 °C) in their place."""
+    x = _patches(2)
+    with pytest.raises(ValueError, match=rf"lacks \[{missing}\].*base_preset="):
+        min_est.predict(x, metadata)
+    with pytest.raises(ValueError, match=rf"lacks \[{missing}\]"):
+        min_est.predict(x[:0], metadata)
+    # with base_preset= the preset gives them, as documented (ICX285: 0 dB, 10 ms, 25 °C)
+    given = min_est.predict(x, metadata, base_preset="ICX285")["sigma"]
+    full = {"gain_db": 0.0, "exposure_s": 0.01, "temperature_c": 25.0, **metadata}
+    assert torch.allclose(given, min_est.predict(x, full)["sigma"], atol=1e-6)
+
+
 @pytest.mark.parametrize("fill,reason", [(0.0, "black"), (1.0, "saturated")])
 def test_black_and_saturated_are_finite_and_flagged(noise_est, fill, reason):
     out = noise_est.predict(torch.full((2, 1, 32, 32), fill), "ICX285")
@@ -459,7 +477,8 @@ def exported_pt2(tmp_path_factory):
 
 
 def _with_description(fmt, exported_pt2, text, out):
-    """``out``: a .pt2 (the export with its camhealth.json replaced) or an .onnx (an Identity graph) holding ``text``."""
+    """``out``: a .pt2 (the export with its camhealth.json replaced) or an .onnx (a small graph with an MTF network's
+    inputs and outputs) holding ``text``."""
     import zipfile
 
     if fmt == "pt2":
@@ -470,10 +489,12 @@ def _with_description(fmt, exported_pt2, text, out):
     import onnx
     from onnx import TensorProto, helper
 
+    # the signature of an MTF graph: patch (B, 1, 32, 32) → mtf (B, 16), the 8×8 block means
     x = helper.make_tensor_value_info("patch", TensorProto.FLOAT, ["b", 1, 32, 32])
-    y = helper.make_tensor_value_info("mtf", TensorProto.FLOAT, ["b", 1, 32, 32])
-    model = helper.make_model(helper.make_graph([helper.make_node("Identity", ["patch"], ["mtf"])], "g", [x], [y]),
-                              opset_imports=[helper.make_opsetid("", 17)])
+    y = helper.make_tensor_value_info("mtf", TensorProto.FLOAT, ["b", 16])
+    nodes = [helper.make_node("AveragePool", ["patch"], ["pooled"], kernel_shape=[8, 8], strides=[8, 8]),
+             helper.make_node("Flatten", ["pooled"], ["mtf"], axis=1)]
+    model = helper.make_model(helper.make_graph(nodes, "g", [x], [y]), opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     entry = model.metadata_props.add()
     entry.key, entry.value = "camhealth.json", text
@@ -571,3 +592,80 @@ def test_both_loaders_read_the_description_patch_size(tmp_path):
     path = _redescribed(export_weights(MTFEstimator(patch_size=32), tmp_path / "w.pt"), edit, tmp_path / "edited.pt")
     module, _ = load_module(path)
     assert load_estimator(path).patch_size == module.patch_size == 48
+
+
+def test_pt2_predicts_batches_beyond_its_exported_batch_bound(tmp_path):
+    """A .pt2 program's batch dimension ends at MAX_EXPORT_BATCH (4096): ``predict(batch_size=8192)`` runs it in
+    chunks no larger (its guard assertion refused 4100 patches) and answers as the weights file does."""
+    from camhealth.export import MAX_EXPORT_BATCH, export_pt2
+    from lightning_modules import NoiseLevelEstimator
+
+    torch.manual_seed(0)
+    module = NoiseLevelEstimator(patch_size=16, width=4, dilations=(1,))
+    weights = load_estimator(export_weights(module, tmp_path / "d.pt"))
+    pt2 = load_estimator(export_pt2(module, tmp_path / "d.pt2"))
+    x = torch.rand(MAX_EXPORT_BATCH + 4, 1, 16, 16, generator=torch.Generator().manual_seed(1))
+    out = pt2.predict(x, batch_size=2 * MAX_EXPORT_BATCH)
+    assert out["sigma_total"].shape == (MAX_EXPORT_BATCH + 4,)
+    ref = weights.predict(x, batch_size=2 * MAX_EXPORT_BATCH)
+    assert torch.allclose(out["sigma_total"], ref["sigma_total"], atol=1e-4)
+
+
+def _relabel_onnx(src, edit, out):
+    """A copy of the .onnx file ``src`` whose camhealth.json description ``edit`` changed in place."""
+    import json
+
+    import onnx
+
+    model = onnx.load(str(src))
+    for prop in model.metadata_props:
+        if prop.key == "camhealth.json":
+            desc = json.loads(prop.value)
+            edit(desc)
+            prop.value = json.dumps(desc)
+    onnx.save(model, str(out))
+    return out
+
+
+def _as_drne(desc):
+    desc.update(kind="drne", class_path="lightning_modules.drne.NoiseLevelEstimator", init_args={"patch_size": 32},
+                onnx_graph={"inputs": ["patch"], "outputs": ["sigma_map"]})
+
+
+@pytest.mark.parametrize("fmt", ["pt2", "onnx"])
+def test_an_exported_graph_that_is_not_the_described_estimator_is_refused(fmt, exported_pt2, tmp_path):
+    """An MTF graph whose description says ``kind: drne`` loaded and returned the RMS of 16 MTF values as σ [DN]:
+    the graph's inputs and outputs are checked against the description's kind and patch size at load time."""
+    import json
+
+    if fmt == "pt2":
+        desc = dict(exported_pt2[1])
+        _as_drne(desc)
+        desc.pop("onnx_graph")
+        path = _with_description("pt2", exported_pt2, json.dumps(desc), tmp_path / "as_drne.pt2")
+    else:
+        from camhealth.export import export_onnx
+
+        src = export_onnx(MTFEstimator(patch_size=32), tmp_path / "mtf.onnx")
+        assert load_estimator(src).kind == "mtf"
+        path = _relabel_onnx(src, _as_drne, tmp_path / "as_drne.onnx")
+    with pytest.raises(ValueError, match=rf"as_drne\.{fmt}: the graph's inputs .* and outputs \(\w*\[B, 16\]\) do not "
+                                         r"match a 'drne' estimator of patch size 32"):
+        load_estimator(path)
+
+
+def test_onnx_metadata_fields_must_be_the_networks_fields(tmp_path):
+    """``onnx_graph.metadata_fields`` of a self-contained noise-source graph: a string or other fields are refused
+    at load (not an AttributeError at predict time)."""
+    from camhealth.export import export_onnx
+
+    src = export_onnx(NoiseSourceEstimator(patch_size=32, metadata_set="minimal"), tmp_path / "ns.onnx")
+    assert load_estimator(src).predict(_patches(2), "ICX285")["sigma"].shape == (2, 3)
+    for bad in ("gain", ["gain_db"], ["exposure_s", "gain_db", "temperature_c"]):
+        def edit(desc, bad=bad):
+            desc["onnx_graph"]["metadata_fields"] = bad
+
+        path = _relabel_onnx(src, edit, tmp_path / "bad.onnx")
+        with pytest.raises(ValueError, match=r"bad\.onnx: description onnx_graph metadata_fields = .* must be "
+                                             r"\['gain_db', 'exposure_s', 'temperature_c'\]"):
+            load_estimator(path)

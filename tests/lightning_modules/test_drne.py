@@ -42,3 +42,46 @@ def test_step_uses_map_and_patch_targets(noisy_batch):
     loss.backward()
     assert all(p.grad is not None for p in m.net.parameters())
     assert est.shape == truth.shape == (4, 1)
+
+
+@pytest.mark.parametrize("sources", [["photon", "dark", "readout"], ["photon"], ["dark"], ["dark", "readout"]])
+def test_map_target_holds_only_the_realised_noise_sources(sources):
+    """``noise_sources`` a subset: the RMS of the map target over each patch is the analytic σ of the noise in the
+    image (``sigma_expected``), not that of all three sources (['dark']: 7.38 against 2.11 DN before)."""
+    from datamodules import NoiseDataModule
+
+    g = torch.Generator().manual_seed(0)
+    clean = torch.rand(4, 1, 32, 32, generator=g) * 0.6 + 0.2
+    meta = CameraMetadata.preset("ICX285", batch_size=4, gain_db=torch.tensor([0.0, 6.0, 12.0, 24.0]),
+                                 temperature_c=60.0, exposure_s=0.2)
+    dm = NoiseDataModule(source="deadleaves", source_kwargs={"n_images": 2, "size": (64, 64)}, patch_size=32,
+                         noise_sources=sources)
+    batch = dm.corrupt_with(clean, meta, meta, noise_seed=1)
+    target = sigma_map_target_dn(clean, batch["meta_image_raw"], batch["sigma_expected"])
+    rms = target.flatten(1).pow(2).mean(1).sqrt()
+    expected = batch["sigma_expected"].pow(2).sum(1).sqrt()
+    assert torch.allclose(rms, expected, rtol=0.01), (rms, expected)
+    # the training step uses the same target: with all sources it is the one without sigma_expected
+    if len(sources) == 3:
+        assert torch.equal(target, sigma_map_target_dn(clean, batch["meta_image_raw"]))
+
+
+def test_step_map_target_follows_the_batch_noise_sources(monkeypatch):
+    """``_step`` passes the batch's ``sigma_expected``: a photon-only batch gives a map target without the
+    dark-current and readout terms."""
+    from datamodules import NoiseDataModule
+    from lightning_modules import drne
+
+    g = torch.Generator().manual_seed(0)
+    clean = torch.rand(2, 1, 32, 32, generator=g) * 0.6 + 0.2
+    meta = CameraMetadata.preset("ICX285", batch_size=2, gain_db=12.0, temperature_c=60.0, exposure_s=0.2)
+    dm = NoiseDataModule(source="deadleaves", source_kwargs={"n_images": 2, "size": (64, 64)}, patch_size=32,
+                         noise_sources=["dark"])
+    batch = dm.corrupt_with(clean, meta, meta, noise_seed=1)
+    batch["clean"] = clean
+    seen = []
+    real = drne.sigma_map_target_dn
+    monkeypatch.setattr(drne, "sigma_map_target_dn", lambda *a, **k: seen.append(real(*a, **k)) or seen[-1])
+    NoiseLevelEstimator(patch_size=32)._step(batch)
+    rms = seen[0].flatten(1).pow(2).mean(1).sqrt()
+    assert torch.allclose(rms, batch["sigma_expected"].pow(2).sum(1).sqrt(), rtol=0.01)

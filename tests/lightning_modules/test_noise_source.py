@@ -99,6 +99,18 @@ def test_loss_weights_are_checked():
         NoiseSourceEstimator(loss_weights={"photon": 1.0})
 
 
+def test_all_zero_loss_weights_are_refused():
+    """The loss is the weighted mean of the terms: weights that are all 0 made it 0/0 = NaN at the first step."""
+    zero = {k: 0.0 for k in NoiseSourceEstimator.metric_names}
+    with pytest.raises(ValueError, match=r"loss_weights = .*at least one loss term needs a weight > 0"):
+        NoiseSourceEstimator(patch_size=32, loss_weights=zero)
+    # one term left: a finite loss of that term alone
+    m = NoiseSourceEstimator(patch_size=32, loss_weights={**zero, "total": 2.0})
+    est, truth = torch.rand(4, 5), torch.rand(4, 5)
+    loss, terms = m._loss(est, truth)
+    assert torch.isfinite(loss) and loss.item() == pytest.approx(terms["total"].item())
+
+
 @pytest.mark.parametrize("size", [0, 40, 100])
 def test_patch_size_must_be_a_multiple_of_16(size):
     with pytest.raises(ValueError, match="multiple of 16"):
