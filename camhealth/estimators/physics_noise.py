@@ -165,7 +165,7 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetad
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "LESS_NOISE",
-           "QUIET_Z_LIMIT", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
+           "QUIET_Z_LIMIT", "LOUD_RATIO", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
            "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor",
            "noise_evidence"]
 
@@ -182,6 +182,9 @@ BEYOND_VALIDATED = "noise beyond validated range"
 LESS_NOISE = "less noise than the metadata allow"
 #: Standard errors below the best-fitting hypothesis (``quiet_z``) from which a patch is :data:`LESS_NOISE`.
 QUIET_Z_LIMIT = 5.0
+#: Pooled: a patch whose noise σ reads more than this many times the frame's median patch's (and QUIET_Z_LIMIT
+#: standard errors above it) is far noisier than its frame — amp glow, a hot or a pasted region — and is read alone.
+LOUD_RATIO = 2.0
 #: Relative standard error × √n of Donoho's MAD estimate σ̂ = median|d|/0.6745 over n Gaussian details:
 #: 1/(2·f(0.6745)·0.6745) with f = 2φ(0.6745) the density of |d|/σ at its median.
 _MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * _MAD_NORMAL**2) / math.sqrt(2.0 * math.pi) * _MAD_NORMAL)
@@ -684,7 +687,10 @@ def physics_noise_posterior(
             NLF evidence and texture check, so that every patch gets the posterior of the whole frame (noise is a
             property of the camera, not of the scene); σ after clipping stays per patch. Patches far quieter alone
             than every camera state (``quiet_z`` below −:data:`QUIET_Z_LIMIT`: no sensor noise) are left out of the
-            sums where they are at most half of the patches with evidence.
+            sums where they are at most half of the patches with evidence. Patches far noisier than the frame's
+            median patch (their σ more than :data:`LOUD_RATIO` times its, and :data:`QUIET_Z_LIMIT` standard errors
+            above it: amp glow, a hot or a pasted region) are left out of the sums where they are at most half of
+            the others, and read alone (their rows are those of ``pool=False``).
         reference: the same patches from another exposure of a static scene in the same camera state (B×1×H×W in
             [0, 1]), or None. Given, the evidence — the details, their block means, the row and column noise and the
             texture and neighbour checks — is read from :func:`~camhealth.estimators.static_pair.static_pair_image`,
@@ -821,6 +827,7 @@ def physics_noise_posterior(
         clip_n, clip_m, clip_o = _clip_bin_stats(*clip_input(torch.ones(b, dtype=torch.bool, device=dev)), bins, pool, h)
         # pooled: the patches far quieter alone than every camera state, left out of the frame's sums, and their own fit
         quiet_alone = torch.zeros(b, dtype=torch.bool, device=dev)
+        loud_alone = torch.zeros(b, dtype=torch.bool, device=dev)  # pooled: patches far noisier than their frame
         own_z, quiet_frame = torch.zeros(b, dtype=f64, device=dev), None
         post = torch.softmax(prior, 1)
         tau2 = torch.full((b,), scene_allowance_dn**2, dtype=f64, device=dev)  # τ² [DN²] per patch
@@ -876,10 +883,23 @@ def physics_noise_posterior(
                     quiet_frame = own_z[own_evidence].median()
                 elif bool(quiet.any()):
                     quiet_alone = quiet
-                    # and out of the clipping penalty's bins and the neighbour check
-                    clip_n, clip_m, clip_o = _clip_bin_stats(*clip_input(~quiet_alone), bins, pool, h)
-            if pool:  # one camera state: the frame's evidence for every patch (but the quiet ones above)
-                w_in = (~quiet_alone).to(f64)
+                # a patch far noisier than the rest of its frame (amp glow, a hot or a pasted region) would pull the
+                # frame's answer and be given it: its own log-variance offset from the metadata's NLF (the bins'
+                # weighted mean residual) lies more than LOUD_RATIO² above the median patch's and QUIET_Z_LIMIT standard
+                # errors (its sampling and the model error η) beyond it. Where such patches are at most half of the
+                # others they are left out of the frame's sums and read alone
+                rest = own_evidence & ~quiet_alone & ~quiet
+                if int(rest.sum()) >= 3:
+                    off0 = lin_o[:, 0] / inv_o[:, 0].clamp_min(1e-12)
+                    excess = off0 - off0[rest].median()
+                    loud = rest & (excess > 2.0 * math.log(LOUD_RATIO)) & (
+                        excess > QUIET_Z_LIMIT * (1.0 / inv_o[:, 0].clamp_min(1e-12) + eta**2).sqrt())
+                    if 2 * int(loud.sum()) <= int(rest.sum()):
+                        loud_alone = loud
+                if bool((quiet_alone | loud_alone).any()):  # and out of the clipping penalty's bins and the neighbour check
+                    clip_n, clip_m, clip_o = _clip_bin_stats(*clip_input(~(quiet_alone | loud_alone)), bins, pool, h)
+            if pool:  # one camera state: the frame's evidence for every patch (but the quiet and loud ones above)
+                w_in = (~(quiet_alone | loud_alone)).to(f64)
                 hv, hv_raw, dd, n3 = ((t * w_in).sum().expand(b) for t in (hv, hv_raw, dd, n3))
                 count, sq, sm = ((t * w_in.unsqueeze(1)).sum(0, keepdim=True).expand(b, bins) for t in (count, sq, sm))
                 c_counts = None if c_counts is None else (c_counts * w_in.view(b, 1, 1)).sum(0, keepdim=True)
@@ -931,7 +951,7 @@ def physics_noise_posterior(
         e_var = (w.unsqueeze(-1) * var_all[:, 1:]).sum(1)
         # neighbour check: white noise leaves the diagonal details of adjacent blocks uncorrelated; a scene's fine
         # texture does not
-        corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0] * (~quiet_alone).view(b, 1, 1, 1), pool)
+        corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0] * (~(quiet_alone | loud_alone)).view(b, 1, 1, 1), pool)
         readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
         # far quieter than every camera state (LESS_NOISE): no hypothesis explains the image, so it keeps the closed form
         follows = readable & (p_match < 0.5) & ~(fit_z < -QUIET_Z_LIMIT)
@@ -988,13 +1008,21 @@ def physics_noise_posterior(
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1),
                          torch.where(readable.unsqueeze(1), cause, torch.full_like(cause, float("nan"))),
                          fit_z.unsqueeze(1)], dim=1)
+    out = out.float()
+    if bool(loud_alone.any()):  # the patches far noisier than their frame, read alone
+        sel = loud_alone.nonzero(as_tuple=True)[0]
+        out[sel] = physics_noise_posterior(
+            image[sel], meta, eta=eta, eta_bin=eta_bin, mismatch_probability=mismatch_probability,
+            beyond_probability=beyond_probability, grid=grid, bins=bins, bound_margin=bound_margin,
+            fallback_margin=fallback_margin, pool=False, scene_allowance_dn=scene_allowance_dn,
+            scene_allowance_min_dn=scene_allowance_min_dn, reference=None if reference is None else reference[sel])
     if not return_evidence:
-        return out.float()
+        return out
     # this frame's own bins (row 0: pooled, every row is the frame) and which hypotheses move its σ_Total visibly at
     # the frame's mean level; none where it is not readable
     frame_tot = (a_all[:1] * mean_i.mean() + c_all[:1]).clamp_min(0).sqrt()
     frame_ev = torch.cat([own[:, 0], _visible(frame_tot).to(f64)])
-    return out.float(), torch.where(readable[0], frame_ev, torch.zeros_like(frame_ev))
+    return out, torch.where(readable[0], frame_ev, torch.zeros_like(frame_ev))
 
 
 def _visible(tot: torch.Tensor) -> torch.Tensor:
@@ -1283,7 +1311,9 @@ class PhysicsNoiseEstimator:
             raw, evidence = physics_noise_posterior(patches, meta, reference=reference, return_evidence=True, **settings)
             # texture the frame's summed details show may live in a few of its patches: where the frame as a whole is
             # textured, the patches whose own details pass both checks are read on their own
-            if b > 1 and bool(textured(raw[0, 8], raw[0, 11])):
+            # (the frame's row: the checks every pooled patch shares; a patch far noisier than its frame has its own)
+            f = int((raw[:, 8] == raw[:, 8].mode().values).nonzero()[0, 0]) if b > 1 else 0
+            if b > 1 and bool(textured(raw[f, 8], raw[f, 11])):
                 alone = ((raw[:, 18] >= MIN_FOLLOW_DETAILS) & ~textured(raw[:, 19], raw[:, 20])).nonzero(as_tuple=True)[0]
                 if alone.numel():
                     own = {**settings, "pool": False}

@@ -1012,3 +1012,61 @@ def test_a_steep_ramp_is_read_not_called_textured(slope, pool):
     assert out["assessable"].all(), out["reason"]
     assert (out["xi"] < -2.0).all()
     assert torch.allclose(out["sigma_total"], truth, rtol=0.12)
+
+
+def _camera_frame(told, overrides=None, seed=0):
+    from camhealth.data.skimage_photos import load_skimage_photo
+
+    img = load_skimage_photo("camera")
+    clean = torch.stack([img[:, 128 * (i // 4):128 * (i // 4) + 128, 128 * (i % 4):128 * (i % 4) + 128] for i in range(16)]).float()
+    noisy, _ = simulate_variant(clean, told, (), torch.Generator().manual_seed(seed), overrides=overrides)
+    return clean, noisy
+
+
+def _louder(noisy, loud, seed=9):
+    out = noisy.clone()
+    for k, (i, extra_dn) in enumerate(loud):
+        g = torch.Generator().manual_seed(seed + k)
+        out[i] = (out[i] + extra_dn / 255.0 * torch.randn(out[i].shape, generator=g)).clamp(0, 1)
+    return out
+
+
+@pytest.mark.parametrize("where", [0, 3])
+@pytest.mark.parametrize("overrides", [None, {"gain_db": 14.0}])
+def test_pooled_a_far_noisier_patch_is_read_alone(overrides, where):
+    """Pooled over a frame (the photograph 'camera', 16 patches), one patch (the first or another) with 30 DN of extra noise (amp glow, a
+    pasted area) is left out of the frame's sums and read alone: it reads its own σ and says noisier, and the other
+    patches get the answer the other 15 give pooled without it — the closed form where the metadata are right, the
+    14 dB gain excess where they are not (with the loud patch in the sums the excess read 30 % low)."""
+    told = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    clean, noisy = _camera_frame(told, overrides)
+    est = PhysicsNoiseEstimator(settings={"pool": True})
+    rest = torch.arange(16) != where
+    base = est.predict(noisy[rest], told)  # the frame's other 15 patches alone
+    loud = _louder(noisy, [(where, 30.0)])
+    out = est.predict(loud, told)
+    truth = ((loud - clean) * 255).flatten(1).std(1)
+    assert float(out["xi"][where]) < -20.0 and out["assessable"][where]
+    assert float(out["sigma_total"][where]) == pytest.approx(float(truth[where]), rel=0.05)
+    assert torch.allclose(out["sigma_total"][rest], base["sigma_total"], atol=0.01)
+    assert torch.allclose(out["xi"][rest], base["xi"], atol=0.01)
+    if overrides is None:
+        assert (out["xi"][rest] == 0).all()
+    else:
+        assert (out["xi"][rest] < -1.0).all()
+
+
+def test_pooled_several_far_noisier_patches_each_read_alone():
+    """Three patches of 16 with 10, 20 and 40 DN of extra noise each read their own σ (within 5 %) and say noisier; the
+    other patches keep the closed form."""
+    told = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    clean, noisy = _camera_frame(told)
+    est = PhysicsNoiseEstimator(settings={"pool": True})
+    loud = _louder(noisy, [(1, 10.0), (4, 20.0), (9, 40.0)])
+    out = est.predict(loud, told)
+    truth = ((loud - clean) * 255).flatten(1).std(1)
+    for i in (1, 4, 9):
+        assert float(out["xi"][i]) < -5.0
+        assert float(out["sigma_total"][i]) == pytest.approx(float(truth[i]), rel=0.05)
+    quiet = torch.tensor([i not in (1, 4, 9) for i in range(16)])
+    assert (out["xi"][quiet] == 0).all()
