@@ -503,7 +503,7 @@ def test_ddp_on_two_cpu_processes_exits_0_with_own_corruption_per_rank_and_singl
 
 
 def test_every_config_names_itself_in_its_usage_line():
-    """configs/drne_full.yaml's usage line said `--config configs/drne.yaml` (copied from drne.yaml)."""
+    """A config's usage line names the config itself, not the one it was copied from."""
     root = Path(__file__).resolve().parents[1] / "configs"
     for config in sorted(root.glob("*.yaml")):
         header = [ln for ln in config.read_text().splitlines() if ln.startswith("#")]
