@@ -183,7 +183,8 @@ LESS_NOISE = "less noise than the metadata allow"
 #: Standard errors below the best-fitting hypothesis (``quiet_z``) from which a patch is :data:`LESS_NOISE`.
 QUIET_Z_LIMIT = 5.0
 #: Pooled: a patch whose noise σ reads more than this many times the frame's median patch's (and QUIET_Z_LIMIT
-#: standard errors above it) is far noisier than its frame — amp glow, a hot or a pasted region — and is read alone.
+#: standard errors above it) is far noisier than its frame — amp glow, a hot or a pasted region — and is read alone;
+#: so is a noise-like patch above a gap of this ratio between the frame's noise-like patches (two noise levels).
 LOUD_RATIO = 2.0
 #: Relative standard error × √n of Donoho's MAD estimate σ̂ = median|d|/0.6745 over n Gaussian details:
 #: 1/(2·f(0.6745)·0.6745) with f = 2φ(0.6745) the density of |d|/σ at its median.
@@ -690,7 +691,9 @@ def physics_noise_posterior(
             sums where they are at most half of the patches with evidence. Patches far noisier than the frame's
             median patch (their σ more than :data:`LOUD_RATIO` times its, and :data:`QUIET_Z_LIMIT` standard errors
             above it: amp glow, a hot or a pasted region) are left out of the sums where they are at most half of
-            the others, and read alone (their rows are those of ``pool=False``).
+            the others, and read alone (their rows are those of ``pool=False``); so are, in a frame of two noise
+            levels (a failing tap), the patches that read like noise above the lowest gap between the noise-like
+            patches' offsets wider than :data:`LOUD_RATIO`² and :data:`QUIET_Z_LIMIT` standard errors.
         reference: the same patches from another exposure of a static scene in the same camera state (B×1×H×W in
             [0, 1]), or None. Given, the evidence — the details, their block means, the row and column noise and the
             texture and neighbour checks — is read from :func:`~camhealth.estimators.static_pair.static_pair_image`,
@@ -896,6 +899,21 @@ def physics_noise_posterior(
                         excess > QUIET_Z_LIMIT * (1.0 / inv_o[:, 0].clamp_min(1e-12) + eta**2).sqrt())
                     if 2 * int(loud.sum()) <= int(rest.sum()):
                         loud_alone = loud
+                    # two noise levels in one frame in comparable shares (a failing tap of a multi-tap sensor, a region
+                    # of another readout), where the median patch is itself one of the loud ones: among the patches
+                    # whose details read like noise (own texture check under TEXTURE_LIMIT), the lowest gap between
+                    # consecutive offsets wider than LOUD_RATIO² and QUIET_Z_LIMIT standard errors of the difference
+                    # (their sampling; the model error η is common to one frame) parts them, and the noise-like
+                    # patches above it are read alone
+                    like_all = rest & (own_texture < TEXTURE_LIMIT)
+                    like = like_all.nonzero(as_tuple=True)[0]
+                    if like.numel() >= 2:
+                        o_l, order = off0[like].sort()
+                        v_l = (1.0 / inv_o[like, 0].clamp_min(1e-12))[order]
+                        gap = o_l[1:] - o_l[:-1]
+                        wide = (gap > 2.0 * math.log(LOUD_RATIO)) & (gap > QUIET_Z_LIMIT * (v_l[1:] + v_l[:-1]).sqrt())
+                        if bool(wide.any()):
+                            loud_alone = loud_alone | (like_all & (off0 >= o_l[1:][wide][0]))
                 if bool((quiet_alone | loud_alone).any()):  # and out of the clipping penalty's bins and the neighbour check
                     clip_n, clip_m, clip_o = _clip_bin_stats(*clip_input(~(quiet_alone | loud_alone)), bins, pool, h)
             if pool:  # one camera state: the frame's evidence for every patch (but the quiet and loud ones above)

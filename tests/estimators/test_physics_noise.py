@@ -1056,6 +1056,28 @@ def test_pooled_a_far_noisier_patch_is_read_alone(overrides, where):
         assert (out["xi"][rest] < -1.0).all()
 
 
+@pytest.mark.parametrize("overrides", [None, {"gain_db": 14.0}])
+def test_pooled_a_frame_of_two_noise_levels_is_parted(overrides):
+    """Pooled, a frame whose patches carry two noise levels in comparable shares (10 of 16 patches with 20 DN of
+    extra noise, like a failing tap of a multi-tap sensor) has no one noise level: the noise-like patches above the
+    widest-enough gap between the patches' offsets are read alone, each its own σ (within 10 %), and the rest of the
+    frame gets what those patches give pooled without them — the closed form where the metadata are right, the gain
+    excess where they are not."""
+    told = CameraMetadata.preset("EV76C661", gain_db=6.0, exposure_s=0.02, temperature_c=30.0)
+    clean, noisy = _camera_frame(told, overrides)
+    est = PhysicsNoiseEstimator(settings={"pool": True})
+    loud_ids = torch.arange(16) < 10
+    base = est.predict(noisy[~loud_ids], told)  # the frame's other 6 patches alone
+    loud = _louder(noisy, [(i, 20.0) for i in range(10)])
+    out = est.predict(loud, told)
+    truth = ((loud - clean) * 255).flatten(1).std(1)
+    assert out["assessable"][loud_ids].all(), out["reason"]
+    assert (out["xi"][loud_ids] < -10.0).all()
+    assert torch.allclose(out["sigma_total"][loud_ids], truth[loud_ids], rtol=0.1)
+    assert torch.allclose(out["sigma_total"][~loud_ids], base["sigma_total"], atol=0.01)
+    assert torch.allclose(out["xi"][~loud_ids], base["xi"], atol=0.01)
+
+
 def test_pooled_several_far_noisier_patches_each_read_alone():
     """Three patches of 16 with 10, 20 and 40 DN of extra noise each read their own σ (within 5 %) and say noisier; the
     other patches keep the closed form."""
