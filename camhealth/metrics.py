@@ -34,21 +34,31 @@ N_MTF: int = len(NORMALIZED_FREQUENCIES)
 
 
 def _pair(pred: object, target: object, name_pred: str, name_target: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """``pred`` and ``target`` with ``target`` broadcast to ``pred``'s shape — one way only: a target that would
+    enlarge ``pred`` (a (B,) estimate against a (B, 1) truth makes B × B pairs) is refused."""
     p = check_float(check_tensor(pred, name_pred), name_pred)
     t = check_float(check_tensor(target, name_target), name_target)
     try:
-        p, t = torch.broadcast_tensors(p, t)
+        shape = torch.broadcast_shapes(p.shape, t.shape)
     except RuntimeError as err:
         raise ValueError(
             f"{name_pred} {tuple(p.shape)} and {name_target} {tuple(t.shape)} cannot be broadcast together"
         ) from err
-    return p, t
+    if shape != p.shape:
+        raise ValueError(
+            f"{name_target} {tuple(t.shape)} must broadcast to {name_pred} {tuple(p.shape)} without enlarging it, but "
+            f"together they broadcast to {tuple(shape)} (every {name_pred} paired with every {name_target}); give both "
+            "the same shape, e.g. reshape one of them"
+        )
+    return p, t.expand_as(p)
 
 
 def mae_hv(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """MAE of Eq. 5.1 per direction, in %: ``(…, 16)`` → ``(…, 2)`` = ``[MAE(H), MAE(V)]``.
 
-    ``target`` (the ground truth) must be finite; NaN entries of ``pred`` are skipped (see module doc).
+    ``target`` (the ground truth) must be finite and of ``pred``'s shape or broadcastable to it without enlarging it
+    (one (16,) truth for every row; a (B, 1, 16) target against (B, 16) estimates is refused); NaN entries of ``pred``
+    are skipped (see module doc).
     """
     p, t = _pair(pred, target, "pred", "target")
     if p.ndim < 1 or p.shape[-1] != 2 * N_MTF:
@@ -76,12 +86,18 @@ def bias_std_rms(estimate: torch.Tensor, truth: torch.Tensor, dim: int | tuple[i
     ~1e-16·(bias/std)² in std²).
 
     Args:
-        estimate: σ̂, any shape; truth: σ, broadcastable to it. Both finite.
+        estimate: σ̂, any shape; truth: σ, of the same shape or broadcastable to it without enlarging it (a (B,)
+            estimate against a (B, 1) truth is refused: it would pair every estimate with every truth). Both finite.
         dim: dimension(s) to reduce (the samples); ``None`` reduces everything.
 
     Returns:
         dict with ``bias`` = |mean(σ − σ̂)|, ``std`` = population std of (σ̂ − σ), ``rms`` = √(bias² + std²)
-        and ``n`` (number of samples reduced), computed in float64 and returned in the input dtype.
+        and ``n`` (number of samples reduced), computed in float64 and returned in the promoted dtype of the two
+        inputs (``torch.promote_types``: the same for either argument order; fp16 with fp64 gives fp64).
+
+    Raises:
+        ValueError: shapes as above, NaN/inf, an empty input, or a result that the output dtype cannot hold (|bias|
+        or RMS above 65504 for float16 would be inf: pass float32 or float64 inputs).
     """
     e, t = _pair(estimate, truth, "estimate", "truth")
     if e.numel() == 0:
@@ -98,12 +114,15 @@ def bias_std_rms(estimate: torch.Tensor, truth: torch.Tensor, dim: int | tuple[i
         raise ValueError("the squared errors overflow float64 (|estimate − truth| above ~1e154)")
     std = (msq - mean.square()).clamp_min(0).sqrt()
     n = err.numel() // max(mean.numel(), 1)
-    return {
-        "bias": mean.abs().to(e.dtype),
-        "std": std.to(e.dtype),
-        "rms": msq.sqrt().to(e.dtype),  # = √(bias² + std²)
-        "n": torch.tensor(n),
-    }
+    out_dtype = torch.promote_types(e.dtype, t.dtype)
+    out = {"bias": mean.abs(), "std": std, "rms": msq.sqrt()}  # rms = √(bias² + std²)
+    big = max(float(v.max()) for v in out.values()) if mean.numel() else 0.0
+    if big > torch.finfo(out_dtype).max:
+        raise ValueError(
+            f"Bias/Std/RMS up to {big:.6g} do not fit the output dtype {out_dtype} (largest finite "
+            f"{torch.finfo(out_dtype).max:g}); pass the estimates and truths as float32 or float64"
+        )
+    return {**{k: v.to(out_dtype) for k, v in out.items()}, "n": torch.tensor(n)}
 
 
 def noise_errors(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:

@@ -8,13 +8,18 @@ it builds COCO-format dicts from the tensors and runs ``pycocotools.cocoeval.COC
 
 * ``iouThrs = [0.5]`` — COCO matches at IoU >= 0.5 (the thesis writes > 0.5; the two differ only for a
   box pair at exactly 0.5);
-* one area range (all sizes), ``maxDets = [max_detections]`` per image;
+* one area range (all sizes), ``maxDets = [max_detections]``: as in COCO, the highest-scoring
+  ``max_detections`` detections per image *and category* are evaluated (with 2 categories and
+  ``max_detections = 1`` two detections of an image count);
 * COCO's 101-point interpolated precision (precision made monotone, sampled at recall 0, 0.01, …, 1):
   the numerical integration of Eq. A.3. AP is the mean over categories that have ground truth.
 
 Degenerate cases, explicit: no ground-truth box in any image → AP is NaN (undefined; ``n_gt = 0``);
 ground truth but no detection with score >= 0.5 → AP 0. Boxes are xyxy pixels (COCO stores xywh; the
-conversion is done here). Image ids are 1…N in the order of the lists.
+conversion is done here). Image ids are 1…N in the order of the lists. A ground-truth box of zero width or height
+can never be matched (its IoU with every box is 0), so it is refused (:func:`validate_ground_truth`) unless marked
+``iscrowd`` (ignored). The score threshold is applied to the scores as given (float64 included), before their
+conversion to float32.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from typing import Mapping, Sequence, TypedDict
 import numpy as np
 import torch
 
-from camhealth.detection.protocol import Detection, filter_by_score, validate_detections
+from camhealth.detection.protocol import Detection, validate_detections
 
 __all__ = [
     "GroundTruth",
@@ -67,7 +72,8 @@ class APResult:
         precision: (101,) interpolated precision at recall 0, 0.01, …, 1 (mean over categories; −1 where
             undefined, as in COCO).
         n_gt: number of ground-truth boxes (non-crowd).
-        n_detections: detections with score >= the threshold that were evaluated.
+        n_detections: detections that were evaluated: those with score >= the threshold, at most
+            ``max_detections`` per image and category (the highest-scoring ones).
         n_images: number of images.
     """
 
@@ -80,7 +86,12 @@ class APResult:
 
 
 def validate_ground_truth(ground_truth: object, name: str = "ground_truth") -> list[GroundTruth]:
-    """Check ground truth (list of {boxes, labels} per image) and return it canonically (CPU tensors)."""
+    """Check ground truth (list of {boxes, labels} per image) and return it canonically (CPU tensors).
+
+    Besides the checks of :func:`~camhealth.detection.protocol.validate_detections`, a box of zero width or height
+    (x2 = x1 or y2 = y1) that is not ``iscrowd`` is refused, naming the image and the box: its IoU with every
+    detection is 0, so it could never be matched and even a perfect detector would score it as missed.
+    """
     if isinstance(ground_truth, Mapping) or not isinstance(ground_truth, (list, tuple)):
         raise TypeError(f"{name} must be a list with one dict {{boxes, labels}} per image, got {type(ground_truth).__name__}")
     dets = []
@@ -97,11 +108,20 @@ def validate_ground_truth(ground_truth: object, name: str = "ground_truth") -> l
     out: list[GroundTruth] = []
     for i, (d, gt) in enumerate(zip(checked, ground_truth)):
         g = GroundTruth(boxes=d["boxes"], labels=d["labels"])
+        crowd = torch.zeros(d["boxes"].shape[0], dtype=torch.bool)
         if "iscrowd" in gt:
             crowd = torch.as_tensor(gt["iscrowd"]).reshape(-1).to(torch.bool)
             if crowd.shape[0] != d["boxes"].shape[0]:
                 raise ValueError(f"{name}[{i}]['iscrowd'] has {crowd.shape[0]} values for {d['boxes'].shape[0]} boxes")
             g["iscrowd"] = crowd
+        b = d["boxes"]
+        flat = ((b[:, 2] <= b[:, 0]) | (b[:, 3] <= b[:, 1])) & ~crowd
+        if bool(flat.any()):
+            j = int(torch.nonzero(flat)[0, 0])
+            raise ValueError(
+                f"{name}[{i}]['boxes'][{j}] = {b[j].tolist()} has zero width or height: a ground-truth box of no area "
+                "can never be matched (IoU 0 with every detection); drop it, or mark it iscrowd to ignore it"
+            )
         out.append(g)
     return out
 
@@ -111,13 +131,39 @@ def _xywh(boxes: torch.Tensor) -> list[list[float]]:
     return torch.stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]], dim=1).tolist()
 
 
-def _image_sizes(image_sizes: Sequence[int] | Sequence[Sequence[int]], n: int) -> list[tuple[int, int]]:
+def _is_number(v: object) -> bool:
+    if isinstance(v, torch.Tensor):
+        return v.ndim == 0
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _pixels(v: object, where: str) -> int:
+    """A size in px: a whole number >= 1 (int, integer-valued float, numpy scalar or 0-d tensor)."""
+    x = v.item() if isinstance(v, (torch.Tensor, np.generic)) else v
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x != int(x) or x < 1:
+        raise ValueError(f"{where} = {x!r} must be a whole number of pixels >= 1")
+    return int(x)
+
+
+def _image_sizes(image_sizes: object, n: int) -> list[tuple[int, int]]:
+    """One (H, W) per image from one (H, W) for all or one per image; sizes may be ints, integer-valued floats, numpy
+    scalars or tensors ((2,) for one size, (N, 2) for one per image)."""
+    if isinstance(image_sizes, torch.Tensor) and image_sizes.ndim in (1, 2):
+        image_sizes = image_sizes.tolist()
+    if isinstance(image_sizes, (str, bytes, Mapping)) or not isinstance(image_sizes, (Sequence, np.ndarray)):
+        raise TypeError(f"image_sizes must be (H, W) or a list of (H, W), one per image, got {type(image_sizes).__name__}")
     sizes = list(image_sizes)
-    if len(sizes) == 2 and all(isinstance(s, (int, np.integer)) for s in sizes):
-        return [(int(sizes[0]), int(sizes[1]))] * n
+    if len(sizes) == 2 and all(_is_number(s) for s in sizes):
+        return [(_pixels(sizes[0], "image_sizes H"), _pixels(sizes[1], "image_sizes W"))] * n
     if len(sizes) != n:
         raise ValueError(f"image_sizes has {len(sizes)} entries for {n} images; give one (H, W) or one per image")
-    return [(int(h), int(w)) for h, w in sizes]
+    out = []
+    for i, s in enumerate(sizes):
+        s = s.tolist() if isinstance(s, (torch.Tensor, np.ndarray)) else s
+        if isinstance(s, (str, bytes)) or not isinstance(s, Sequence) or len(s) != 2:
+            raise ValueError(f"image_sizes[{i}] = {s!r} must be one (H, W)")
+        out.append((_pixels(s[0], f"image_sizes[{i}] H"), _pixels(s[1], f"image_sizes[{i}] W")))
+    return out
 
 
 def coco_ground_truth(
@@ -150,8 +196,9 @@ def coco_ground_truth(
 
 def coco_results(detections: Sequence[Detection], score_threshold: float = SCORE_THRESHOLD) -> list[dict]:
     """COCO result list (``image_id``, ``category_id``, ``bbox`` xywh, ``score``) of the detections with
-    score >= ``score_threshold``; image ids are 1…N in list order."""
-    dets = filter_by_score(validate_detections(list(detections)), score_threshold)
+    score >= ``score_threshold`` (compared on the scores as given, float64 included); image ids are 1…N in list
+    order."""
+    dets = validate_detections(list(detections), min_score=score_threshold)
     out = []
     for i, d in enumerate(dets, start=1):
         for box, s, lab in zip(_xywh(d["boxes"]), d["scores"].tolist(), d["labels"].tolist()):
@@ -174,8 +221,10 @@ def evaluate_detections(
         ground_truth: one {boxes, labels} per image, same order.
         image_sizes: ``(H, W)`` of all images or one per image [px].
         iou_threshold: IoU a match needs (>=), default 0.5.
-        score_threshold: minimum confidence, default 0.5.
-        max_detections: highest-scoring detections per image that are evaluated.
+        score_threshold: minimum confidence, default 0.5 (compared on the scores as given, before their
+            conversion to float32).
+        max_detections: highest-scoring detections per image *and category* that are evaluated (COCO's
+            ``maxDets``; see the module docstring).
     """
     from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
@@ -186,7 +235,8 @@ def evaluate_detections(
         raise ValueError(f"score_threshold = {score_threshold!r} must lie in [0, 1]")
     if int(max_detections) != max_detections or max_detections < 1:
         raise ValueError(f"max_detections = {max_detections!r} must be an integer >= 1")
-    dets = validate_detections(list(detections), name="detections")
+    detections = list(detections)
+    dets = validate_detections(detections, name="detections")
     gts = validate_ground_truth(list(ground_truth))
     if len(dets) != len(gts):
         raise ValueError(f"{len(dets)} detection entries for {len(gts)} ground-truth entries; give one per image")
@@ -194,9 +244,14 @@ def evaluate_detections(
         raise ValueError("evaluate_detections needs at least one image")
     labels = {int(c) for g in gts for c in g["labels"].tolist()} | {int(c) for d in dets for c in d["labels"].tolist()}
     gt_dict = coco_ground_truth(gts, image_sizes, categories=sorted(labels) or [1])
-    results = coco_results(dets, score_threshold)
+    results = coco_results(detections, score_threshold)  # thresholded on the scores as given, not on dets' float32
     n_gt = sum(1 for a in gt_dict["annotations"] if not a["iscrowd"])
-    out = APResult(ap=float("nan"), n_gt=n_gt, n_detections=len(results), n_images=len(gts))
+    per_cell: dict[tuple[int, int], int] = {}
+    for r in results:
+        key = (r["image_id"], r["category_id"])
+        per_cell[key] = per_cell.get(key, 0) + 1
+    n_eval = sum(min(c, int(max_detections)) for c in per_cell.values())  # COCO's maxDets cut per image and category
+    out = APResult(ap=float("nan"), n_gt=n_gt, n_detections=n_eval, n_images=len(gts))
     if n_gt == 0:
         return out
     quiet = io.StringIO()

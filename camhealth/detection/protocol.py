@@ -78,6 +78,7 @@ def validate_detections(
     name: str = "detector output",
     check_scores: bool = True,
     check_box_order: bool = True,
+    min_score: float | None = None,
 ) -> list[Detection]:
     """Check a detector's output and return it in canonical form (CPU float32 boxes/scores, int64 labels).
 
@@ -91,6 +92,9 @@ def validate_detections(
         check_scores: require scores in [0, 1] (confidences, as the AP filter at 0.5 assumes).
         check_box_order: require x1 <= x2 and y1 <= y2 (off for a structural check of boxes that are
             still in another format, e.g. xywh).
+        min_score: keep only the detections with score >= ``min_score``, compared in float64 on the scores as
+            given, *before* their conversion to float32 (a float64 score of 0.49999999 rounds to 0.5 in float32
+            and would pass :func:`filter_by_score` at 0.5); ``None`` keeps all.
 
     Raises:
         TypeError: not a list of mappings, or non-numeric content.
@@ -127,6 +131,7 @@ def validate_detections(
         if boxes.dtype == torch.bool or boxes.dtype.is_complex:
             raise TypeError(f"{where}['boxes'] must be real numbers, got dtype {boxes.dtype}")
         boxes = boxes.to(torch.float32)
+        scores64 = scores.to(torch.float64)  # the threshold is applied to these, not to the rounded float32 ones
         scores = scores.to(torch.float32)
         for key, t in (("boxes", boxes), ("scores", scores)):
             if not bool(torch.isfinite(t).all()):
@@ -160,12 +165,17 @@ def validate_detections(
                 raise ValueError(f"{where}['labels'] must be integer class ids, got {labels[:5].tolist()}")
         elif labels.dtype == torch.bool or labels.dtype.is_complex:
             raise TypeError(f"{where}['labels'] must be integer class ids, got dtype {labels.dtype}")
-        out.append(Detection(boxes=boxes.contiguous(), scores=scores.contiguous(), labels=labels.to(torch.int64)))
+        labels = labels.to(torch.int64)
+        if min_score is not None:
+            keep = scores64 >= float(min_score)
+            boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
+        out.append(Detection(boxes=boxes.contiguous(), scores=scores.contiguous(), labels=labels))
     return out
 
 
 def filter_by_score(detections: Sequence[Detection], threshold: float) -> list[Detection]:
-    """Keep the detections with ``score >= threshold`` (thesis App. A.1: 0.5)."""
+    """Keep the detections with ``score >= threshold`` (thesis App. A.1: 0.5), compared on their canonical float32
+    scores; to threshold scores given in float64 at their own precision use ``validate_detections(..., min_score=)``."""
     out = []
     for d in detections:
         keep = d["scores"] >= threshold

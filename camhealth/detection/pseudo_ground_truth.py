@@ -17,7 +17,10 @@ Thesis Sec. 4.4.1 scores a detector on corrupted images against ground-truth box
    pseudo-GT box is detected, and clean detections with 0.5 <= score < 0.6 rank below all of them, so
    they cannot lower the interpolated precision); the IOPCs then measure how much of the detector's own
    confident clean behaviour survives blur and noise — not its absolute accuracy, which needs real
-   annotations.
+   annotations. A clean detection of zero width or height is not made a ground-truth box: no detection could ever
+   match it (IoU 0), so it would cap every AP below 1
+   (:func:`~camhealth.detection.average_precision.validate_ground_truth` refuses such boxes; a COCO file's zero-area
+   annotation that is not ``iscrowd`` is refused by :func:`load_coco_annotations`, naming it).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from typing import Iterable, Mapping, Sequence, Union
 import torch
 
 from camhealth.detection.average_precision import GroundTruth, validate_ground_truth
-from camhealth.detection.protocol import Detector, filter_by_score, validate_detections
+from camhealth.detection.protocol import Detector, validate_detections
 
 __all__ = ["PSEUDO_GT_SCORE", "pseudo_ground_truth", "load_coco_annotations", "ground_truth_for"]
 
@@ -46,7 +49,8 @@ def pseudo_ground_truth(
     score_threshold: float = PSEUDO_GT_SCORE,
     batch_size: int = 8,
 ) -> list[GroundTruth]:
-    """Detections of ``detector`` on clean images with score >= ``score_threshold``, as ground truth.
+    """Detections of ``detector`` on clean images with score >= ``score_threshold`` (compared on the scores as the
+    detector gave them) and a non-zero width and height, as ground truth.
 
     Args:
         detector: frozen detector (protocol of :mod:`~camhealth.detection.protocol`).
@@ -65,9 +69,12 @@ def pseudo_ground_truth(
     out: list[GroundTruth] = []
     for start in range(0, clean_images.shape[0], batch_size):
         chunk = clean_images[start : start + batch_size]
-        dets = validate_detections(detector(chunk), chunk.shape[0], tuple(chunk.shape[-2:]), name="detector output")
-        for d in filter_by_score(dets, score_threshold):
-            out.append(GroundTruth(boxes=d["boxes"], labels=d["labels"]))
+        dets = validate_detections(detector(chunk), chunk.shape[0], tuple(chunk.shape[-2:]), name="detector output",
+                                   min_score=score_threshold)
+        for d in dets:
+            b = d["boxes"]
+            area = (b[:, 2] > b[:, 0]) & (b[:, 3] > b[:, 1])  # a box of no area cannot be matched: not ground truth
+            out.append(GroundTruth(boxes=b[area], labels=d["labels"][area]))
     return out
 
 
@@ -116,6 +123,9 @@ def load_coco_annotations(path: PathLike, category_ids: Iterable[int] | None = N
         x, y, w, h = (float(v) for v in ann["bbox"])
         if w < 0 or h < 0:
             raise ValueError(f"{path}: annotation {k} has a negative width/height in bbox {ann['bbox']}")
+        if (w == 0 or h == 0) and not ann.get("iscrowd", 0):
+            raise ValueError(f"{path}: annotation {k} has zero width or height in bbox {ann['bbox']}: a box of no area "
+                             "can never be matched (IoU 0 with every detection); drop it or mark it iscrowd")
         boxes[ann["image_id"]].append([x, y, x + w, y + h])
         labels[ann["image_id"]].append(cat)
         crowd[ann["image_id"]].append(bool(ann.get("iscrowd", 0)))

@@ -6,8 +6,11 @@ detector can never be trained through camhealth (thesis Sec. 4.4.1: pre-trained 
 settings). :class:`TorchDetector` is deliberately *not* an ``nn.Module``: stored on a LightningModule it
 is not a sub-module, so no optimizer sees it and no checkpoint stores it.
 
-Input: camhealth images ``B×1×H×W`` float in [0, 1]. ``channels = 3`` repeats the gray channel for RGB
-detectors (the thesis applied its detectors to grayscale images), ``input_scale = 255`` feeds DN.
+Input: camhealth images ``B×1×H×W`` float in [0, 1] (any float dtype). The module gets its own copy, in the dtype of
+its first floating parameter or buffer (float32 without one) on its device, so a ``forward`` that works in place
+(``x.sub_(mean)``) never changes the caller's images. ``channels = 3`` repeats the gray channel for RGB detectors
+(the thesis applied its detectors to grayscale images; a real copy, not a stride-0 view), ``input_scale = 255``
+feeds DN.
 
 Output parsing (before :func:`~camhealth.detection.protocol.validate_detections`), in this order:
 
@@ -98,6 +101,14 @@ class TorchDetector:
             self.to(device)
 
     @property
+    def dtype(self) -> torch.dtype:
+        """The module's input dtype: that of its first floating parameter or buffer, float32 without one."""
+        for t in (*self.module.parameters(), *self.module.buffers()):
+            if t.is_floating_point():
+                return t.dtype
+        return torch.float32
+
+    @property
     def device(self) -> torch.device:
         p = next(iter(self.module.parameters()), None)
         if p is None:
@@ -159,7 +170,8 @@ class TorchDetector:
         )
 
     def __call__(self, images: torch.Tensor) -> list[Detection]:
-        """Run the frozen module on ``images`` (B×1×H×W float in [0, 1]); one dict per image."""
+        """Run the frozen module on ``images`` (B×1×H×W float in [0, 1], any float dtype) — a copy in the module's
+        dtype (:attr:`dtype`), never the caller's tensor; one dict per image."""
         check_image(images, "images")
         lo, hi = torch.aminmax(images.detach())
         if lo < 0 or hi > 1:
@@ -167,9 +179,9 @@ class TorchDetector:
         if self.module.training:
             self.module.eval()
         b, _, h, w = images.shape
-        x = images.detach().to(self.device)
+        x = images.detach().to(device=self.device, dtype=self.dtype, copy=True)  # the module may work in place
         if self.channels == 3:
-            x = x.expand(-1, 3, -1, -1)
+            x = x.repeat(1, 3, 1, 1)
         if self.input_scale != 1.0:
             x = x * self.input_scale
         with torch.inference_mode():

@@ -22,6 +22,25 @@ Sub-patch size 8 and stride 3 are the defaults (r = 64 dimensions; a 128×128 pa
 samples); a stride of 1 uses every position (more samples, slower). The covariance is accumulated by
 one batched matmul in float32 (float64 for float64 input) after subtracting the mean, and its eigenvalues
 are computed in float64.
+
+**Few samples bias σ̂ low.** With n samples of r dimensions the noise eigenvalues spread over
+σ²(1 ± √(r/n))² with a long upper tail, so the mean-equals-median rule stops early and σ̂ falls short by
+about 0.7·r/n (relative; pure Gaussian noise, σ = 2–30 DN, 64 patches each, p = 8, s = 3):
+
+=============  =====  ======  ======
+patch [px]       n     n/r    bias
+=============  =====  ======  ======
+32               81    1.3    −65 %
+48              196    3.1    −25 %
+64              361    5.6    −13 %
+80              625    9.8     −7 %
+128            1681   26.3     −2 %
+=============  =====  ======  ======
+
+The bias follows the nominal n/r even where the sub-patches overlap (64 px at stride 1: n/r = 51, −1.6 %).
+:func:`pca_noise_sigma` therefore requires ``n >= MIN_SAMPLES_PER_DIMENSION · r`` (5: at most ≈ 14 % low;
+with the defaults H, W >= 59 px) and refuses smaller images, naming the stride that would do;
+:func:`patch_covariance_eigenvalues` only needs n >= r.
 """
 
 from __future__ import annotations
@@ -30,7 +49,11 @@ import torch
 
 from camhealth.estimators._common import DN, check_patches, work_dtype
 
-__all__ = ["pca_noise_sigma", "patch_covariance_eigenvalues", "mean_median_noise_eigenvalue"]
+__all__ = ["pca_noise_sigma", "patch_covariance_eigenvalues", "mean_median_noise_eigenvalue", "MIN_SAMPLES_PER_DIMENSION"]
+
+#: Sub-patches per dimension (n / p²) that :func:`pca_noise_sigma` requires: below it σ̂ is more than ≈ 14 % low
+#: (module docstring).
+MIN_SAMPLES_PER_DIMENSION = 5
 
 
 def _check_int(v: object, name: str, low: int) -> int:
@@ -41,27 +64,42 @@ def _check_int(v: object, name: str, low: int) -> int:
     return v
 
 
-def patch_covariance_eigenvalues(images: torch.Tensor, patch_size: int = 8, stride: int = 3) -> torch.Tensor:
-    """Ascending eigenvalues of the covariance of the ``patch_size²`` sub-patches: (B, patch_size²), float64.
+def _n_subpatches(h: int, w: int, p: int, s: int) -> int:
+    return ((h - p) // s + 1) * ((w - p) // s + 1)
 
-    Units: intensity² (images in [0, 1]). ``stride`` is the step between sampled sub-patch positions (px).
-    """
+
+def _eigenvalues(images: object, patch_size: object, stride: object, per_dim: int) -> torch.Tensor:
     p = _check_int(patch_size, "patch_size", 2)
     s = _check_int(stride, "stride", 1)
     x = check_patches(images, "images", min_size=(p + s, p + s))
+    h, w = x.shape[-2:]
+    n = _n_subpatches(h, w, p, s)
+    need = per_dim * p * p
+    if n < need:
+        fits = [(t, _n_subpatches(h, w, p, t)) for t in range(s - 1, 0, -1)]
+        fits = [f"stride={t} (n = {m}), " for t, m in fits if m >= need][:1]
+        why = (f"the {need} dimensions" if per_dim == 1 else
+               f"the {need} ({per_dim} per dimension of {p * p}) that keep σ̂ within ≈ 14 % (fewer bias it low; module docstring)")
+        raise ValueError(
+            f"images of {h}×{w} px give only n = {n} sub-patches of {p}×{p} at stride {s}, fewer than {why}; "
+            f"use a larger patch, {''.join(fits)}or a smaller patch_size"
+        )
     work = work_dtype(x)
     # (B, n, p²) sub-patch vectors from a strided view (one copy); covariance by one batched matmul in the
     # work dtype (float32 unless the input is float64), eigenvalues in float64
     cols = x.to(work).unfold(2, p, s).unfold(3, p, s).reshape(x.shape[0], -1, p * p)
-    n = cols.shape[1]
-    if n < p * p:
-        raise ValueError(
-            f"images of {x.shape[-2]}×{x.shape[-1]} px give only {n} sub-patches of {p}×{p} at stride {s}, fewer than "
-            f"the {p * p} dimensions; use a larger patch, a smaller patch_size or stride"
-        )
     cols = cols - cols.mean(dim=1, keepdim=True)
     cov = (cols.transpose(1, 2) @ cols).double() / n
     return torch.linalg.eigvalsh(cov).clamp_min(0.0)
+
+
+def patch_covariance_eigenvalues(images: torch.Tensor, patch_size: int = 8, stride: int = 3) -> torch.Tensor:
+    """Ascending eigenvalues of the covariance of the ``patch_size²`` sub-patches: (B, patch_size²), float64.
+
+    Units: intensity² (images in [0, 1]). ``stride`` is the step between sampled sub-patch positions (px). Needs at
+    least as many sub-patches n = (⌊(H − p)/s⌋ + 1)·(⌊(W − p)/s⌋ + 1) as dimensions p².
+    """
+    return _eigenvalues(images, patch_size, stride, 1)
 
 
 def mean_median_noise_eigenvalue(eigenvalues: torch.Tensor) -> torch.Tensor:
@@ -85,14 +123,16 @@ def pca_noise_sigma(images: torch.Tensor, patch_size: int = 8, stride: int = 3) 
     """Noise level σ̂ [DN] of each image of a batch ``B×1×H×W`` in [0, 1] (Chen, Zhu & Heng 2015).
 
     Args:
-        images: float batch in [0, 1] (DN/255), H and W at least ``patch_size + stride``.
+        images: float batch in [0, 1] (DN/255) of at least :data:`MIN_SAMPLES_PER_DIMENSION` · p² sub-patches,
+            n = (⌊(H − p)/s⌋ + 1)·(⌊(W − p)/s⌋ + 1) >= 5·p²: with the defaults H = W >= 59 px (64 px: ≈ 13 % low,
+            128 px: ≈ 2 % low; module docstring). Smaller images raise ``ValueError``.
         patch_size: side p of the sub-patches (r = p² dimensions), >= 2.
-        stride: step between sub-patch positions in px, >= 1.
+        stride: step s between sub-patch positions in px, >= 1 (1 for small patches: more samples, less bias).
 
     Returns:
         (B,) σ̂ in DN (float32, float64 for float64 input).
     """
-    lam = patch_covariance_eigenvalues(images, patch_size, stride)
+    lam = _eigenvalues(images, patch_size, stride, MIN_SAMPLES_PER_DIMENSION)
     tau = mean_median_noise_eigenvalue(lam)
     out = torch.float64 if images.dtype == torch.float64 else torch.float32
     return (DN * tau.clamp_min(0.0).sqrt()).to(out)

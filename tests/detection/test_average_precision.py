@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -95,3 +96,115 @@ def test_coco_dicts():
 def test_mismatched_lengths_error():
     with pytest.raises(ValueError, match="2 detection entries for 1 ground-truth"):
         evaluate_detections([{"boxes": [], "scores": [], "labels": []}] * 2, GT[:1], SIZE)
+
+
+# ----------------------------------------------------------------------------------- degenerate and edge inputs
+def test_zero_area_ground_truth_is_refused_naming_the_box_unless_crowd():
+    """A ground-truth box of zero width or height has IoU 0 with every box: a perfect detection of it scored AP 0.
+    It is refused, naming image and box; marked iscrowd it is ignored (as COCO ignores crowd boxes)."""
+    from camhealth.detection import validate_ground_truth
+
+    flat = [{"boxes": torch.tensor([[0.0, 0, 10, 10], [10.0, 10, 10, 20]]), "labels": torch.tensor([1, 1])}]
+    det = [{"boxes": flat[0]["boxes"].clone(), "scores": torch.tensor([0.9, 0.9]), "labels": torch.tensor([1, 1])}]
+    with pytest.raises(ValueError, match=r"ground_truth\[0\]\['boxes'\]\[1\] = \[10.0, 10.0, 10.0, 20.0\] has zero width"):
+        evaluate_detections(det, flat, (30, 30))
+    with pytest.raises(ValueError, match=r"zero width or height"):
+        validate_ground_truth([{"boxes": torch.tensor([[3.0, 5, 9, 5]]), "labels": torch.tensor([2])}])
+    crowd = [dict(flat[0], iscrowd=torch.tensor([False, True]))]
+    first = [{k: v[:1] for k, v in det[0].items()}]  # the detection of the box with an area
+    res = evaluate_detections(first, crowd, (30, 30))
+    assert res.ap == pytest.approx(1.0) and res.n_gt == 1
+
+
+def test_pseudo_ground_truth_leaves_out_zero_area_detections():
+    """A detector's zero-area box on the clean frame used to become a ground-truth box no detection can match, so the
+    detector scored AP ≈ 0.5 against its own clean output; it is left out and the clean frames score AP 1."""
+    from camhealth.detection import pseudo_ground_truth
+
+    def det(images):
+        return [{"boxes": torch.tensor([[0.0, 0, 4, 4], [2.0, 2, 2, 6]]), "scores": torch.tensor([0.9, 0.7]),
+                 "labels": torch.tensor([1, 1])} for _ in range(images.shape[0])]
+
+    gt = pseudo_ground_truth(det, torch.rand(3, 1, 8, 8))
+    assert [g["boxes"].tolist() for g in gt] == [[[0.0, 0.0, 4.0, 4.0]]] * 3
+    assert evaluate_detections(det(torch.rand(3, 1, 8, 8)), gt, (8, 8)).ap == pytest.approx(1.0)
+
+
+def test_coco_file_with_a_zero_area_annotation_is_refused(tmp_path):
+    import json
+
+    from camhealth.detection import load_coco_annotations
+
+    data = {"images": [{"id": 1, "file_name": "a.png"}],
+            "annotations": [{"image_id": 1, "category_id": 1, "bbox": [5, 5, 0, 10]},
+                            {"image_id": 1, "category_id": 1, "bbox": [5, 5, 10, 0], "iscrowd": 1}]}
+    p = tmp_path / "ann.json"
+    p.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"annotation 0 has zero width or height"):
+        load_coco_annotations(p)
+    data["annotations"] = data["annotations"][1:]  # the crowd one alone: ignored by the evaluation, kept
+    p.write_text(json.dumps(data))
+    assert load_coco_annotations(p)["a.png"]["iscrowd"].tolist() == [True]
+
+
+@pytest.mark.parametrize("batch", [1, 256])
+def test_max_detections_is_per_image_and_category_and_n_detections_counts_the_evaluated(batch):
+    """COCO applies maxDets per image and category: with two categories and max_detections = 1 both detections of an
+    image are evaluated (AP 1); with one category only the higher-scoring one (AP 51/101: recall 1/2 at precision 1).
+    n_detections used to count every detection above the threshold (2 per image) in both cases."""
+    boxes = torch.tensor([[0.0, 0, 10, 10], [20, 20, 30, 30]])
+    two = [{"boxes": boxes, "labels": torch.tensor([1, 2])}] * batch
+    det2 = [{"boxes": boxes, "scores": torch.tensor([0.9, 0.8]), "labels": torch.tensor([1, 2])}] * batch
+    r = evaluate_detections(det2, two, (40, 40), max_detections=1)
+    assert r.ap == pytest.approx(1.0) and r.n_detections == 2 * batch
+    one = [{"boxes": boxes, "labels": torch.tensor([1, 1])}] * batch
+    det1 = [{"boxes": boxes, "scores": torch.tensor([0.9, 0.8]), "labels": torch.tensor([1, 1])}] * batch
+    r = evaluate_detections(det1, one, (40, 40), max_detections=1)
+    assert r.ap == pytest.approx(51 / 101) and r.n_detections == batch and r.n_gt == 2 * batch
+    assert evaluate_detections(det1, one, (40, 40), max_detections=2).n_detections == 2 * batch
+
+
+def test_the_score_threshold_is_applied_before_the_float32_conversion():
+    """A float64 score of 0.49999999 rounds to 0.5 in float32 and used to pass the >= 0.5 filter (AP 1, one detection
+    evaluated); it is now compared as given (float32 scores as before). A score of exactly 0.5 passes in either dtype;
+    pseudo ground truth at 0.6 is thresholded the same way."""
+    from camhealth.detection import pseudo_ground_truth
+
+    gt = [{"boxes": torch.tensor([[0.0, 0, 10, 10]]), "labels": torch.tensor([1])}]
+    for dtype, below in ((torch.float64, 0.49999999), (torch.float32, 0.4999999)):
+        for score, ap, n in ((below, 0.0, 0), (0.5, 1.0, 1)):
+            det = [{"boxes": torch.tensor([[0.0, 0, 10, 10]]), "scores": torch.tensor([score], dtype=dtype),
+                    "labels": torch.tensor([1])}]
+            r = evaluate_detections(det, gt, (40, 40))
+            assert (r.ap, r.n_detections) == (pytest.approx(ap), n), (dtype, score)
+            assert len(coco_results(det)) == n
+    clean = [{"boxes": torch.tensor([[0.0, 0, 10, 10]]), "scores": torch.tensor([0.59999999], dtype=torch.float64),
+              "labels": torch.tensor([1])}]
+    assert pseudo_ground_truth(lambda im: clean, torch.rand(1, 1, 40, 40))[0]["boxes"].shape == (0, 4)
+
+
+def test_image_sizes_accept_integer_valued_numbers_and_tensors():
+    """(40.0, 40.0) or a tensor [40, 40] for one image used to raise "image_sizes has 2 entries for 1 images"; every
+    form of one (H, W) or one per image gives the same answer."""
+    det = [{"boxes": torch.tensor([[0.0, 0, 10, 10]]), "scores": torch.tensor([0.9]), "labels": torch.tensor([1])}]
+    gt = [{"boxes": torch.tensor([[0.0, 0, 10, 10]]), "labels": torch.tensor([1])}]
+    for sizes in [(40.0, 40.0), torch.tensor([40, 40]), (torch.tensor(40), torch.tensor(40.0)), [(40, 40.0)],
+                  torch.tensor([[40, 40]]), torch.Size([40, 40]), (np.int64(40), np.float32(40.0))]:
+        assert average_precision(det, gt, sizes) == pytest.approx(1.0), sizes
+        assert coco_ground_truth(gt, sizes)["images"][0]["height"] == 40, sizes
+
+
+@pytest.mark.parametrize("sizes, match", [
+    ((-5, 0), r"image_sizes H = -5 must be a whole number of pixels >= 1"),
+    ((40, 0), r"image_sizes W = 0 must be"),
+    ((40.5, 40), r"image_sizes H = 40.5 must be"),
+    ((float("nan"), 40), r"image_sizes H = nan must be"),
+    ([(40, 40), (30, -1)], r"image_sizes\[1\] W = -1 must be"),
+    ([(40, 40), (30,)], r"image_sizes\[1\] = \(30,\) must be one \(H, W\)"),
+])
+def test_image_sizes_out_of_range_are_refused_naming_the_value(sizes, match):
+    """Negative and zero sizes used to be accepted without a word."""
+    gt = [{"boxes": torch.tensor([[0.0, 0, 5, 5]]), "labels": torch.tensor([1])}] * 2
+    det = [{"boxes": torch.tensor([[0.0, 0, 5, 5]]), "scores": torch.tensor([0.9]), "labels": torch.tensor([1])}] * 2
+    with pytest.raises(ValueError, match=match):
+        evaluate_detections(det, gt, sizes)

@@ -108,3 +108,57 @@ def test_config_names_the_weights():
         b.conv.weight.add_(1.0)
     assert TorchDetector(a).config()["weights"] != TorchDetector(b).config()["weights"]
     assert TorchDetector(a).config()["weights"] == TorchDetector(a).config()["weights"]
+
+
+class ConvBoxes(torch.nn.Module):
+    """Runs a real convolution (its weights fix the dtype the input must have) and returns one box per image whose
+    score is the mean of the convolved image, so what the module saw is checked through the output."""
+
+    def __init__(self, channels: int = 1):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(channels, 1, 3, bias=True)
+        with torch.no_grad():
+            self.conv.weight.fill_(1.0 / (9 * channels))
+            self.conv.bias.zero_()
+
+    def forward(self, x):
+        y = self.conv(x)
+        return [{"boxes": torch.tensor([[1.0, 1.0, 5.0, 5.0]]), "scores": y[i].mean().reshape(1).float(),
+                 "labels": torch.ones(1)} for i in range(x.shape[0])]
+
+
+@pytest.mark.parametrize("image_dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("module_dtype", [torch.float32, torch.bfloat16, torch.float64])
+@pytest.mark.parametrize("batch", [1, 256])
+def test_any_float_image_runs_in_the_modules_dtype(image_dtype, module_dtype, batch):
+    """check_image accepts fp16/bf16/fp32/fp64 images, but the adapter used to hand them to the module unconverted
+    ("Input type (c10::Half) and bias type (float) should be the same"). They are now cast to the dtype of the
+    module's weights (fp32, or a module cast to bf16/fp64) and give the same detections."""
+    g = torch.Generator().manual_seed(batch)
+    images = torch.rand(batch, 1, 16, 16, generator=g)
+    det = TorchDetector(ConvBoxes().to(module_dtype))
+    assert det.dtype == module_dtype
+    out = det(images.to(image_dtype))
+    want = images.mean(dim=(1, 2, 3))  # the 3×3 box filter's mean over the valid area ≈ the image mean
+    got = torch.stack([d["scores"][0] for d in out])
+    assert len(out) == batch and got.dtype == torch.float32
+    assert torch.allclose(got, want, atol=0.03)
+
+
+class InPlaceNormalise(torch.nn.Module):
+    """A module whose forward normalises its input in place (as some exported detectors do)."""
+
+    def forward(self, x):
+        x.sub_(0.5).div_(0.25)
+        return [{"boxes": torch.zeros(0, 4), "scores": torch.zeros(0), "labels": torch.zeros(0)} for _ in range(x.shape[0])]
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+def test_a_module_that_works_in_place_does_not_change_the_callers_images(channels, dtype):
+    """With channels 1 and a float32 image the module used to get the caller's own tensor (a pixel went 0.75 → 1.0);
+    with channels 3 a stride-0 expand view, on which an in-place op raised. The module now gets its own copy."""
+    images = torch.full((2, 1, 8, 8), 0.75, dtype=dtype)
+    before = images.clone()
+    TorchDetector(InPlaceNormalise(), channels=channels)(images)
+    assert torch.equal(images, before)

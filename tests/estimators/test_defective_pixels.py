@@ -147,12 +147,64 @@ def test_batch_of_one_small_and_non_square_patches():
     (torch.zeros(1, 3, 16, 16), "B×1×H×W"),
     (torch.zeros(16, 16), "B×1×H×W"),
     (torch.zeros(1, 1, 2, 16), "H, W ≥ 3"),
-    (torch.zeros(1, 1, 16, 16, dtype=torch.uint8), "floating-point"),
     (torch.full((1, 1, 16, 16), float("nan")), "NaN"),
+    (torch.full((1, 1, 16, 16), 100.0), r"\[0, 1\] \(DN/255\), got values in \[100, 100\]"),
+    (torch.full((1, 1, 16, 16), -0.5), r"\[0, 1\] \(DN/255\), got values in \[-0.5, -0.5\]"),
 ])
 def test_bad_input_is_refused(bad, match):
     with pytest.raises(ValueError, match=match):
         defective_pixels(bad)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (torch.zeros(1, 1, 16, 16, dtype=torch.uint8), "floating"),
+    (torch.zeros(0, 1, 16, 16, dtype=torch.int64), "floating"),
+    (torch.zeros(1, 1, 16, 16).numpy(), "torch.Tensor, got ndarray"),
+])
+def test_wrong_types_are_refused(bad, match):
+    with pytest.raises(TypeError, match=match):
+        defective_pixels(bad)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+def test_dn_scaled_patches_are_refused_not_read_with_a_tiny_floor(dtype):
+    """A 3 DN bump is below MIN_DEFECT_DN; the same patch given in DN (× 255) used to be accepted and the bump reported
+    as a hot pixel (the 8 DN floor became 8/255 DN). Now the range is checked, in every float dtype."""
+    x = torch.full((1, 1, 64, 64), 100 / 255)
+    x[0, 0, 30, 30] = 103 / 255
+    assert int(defective_pixels(x.to(dtype)).hot) == 0
+    with pytest.raises(ValueError, match=r"patches must lie in \[0, 1\] \(DN/255\)"):
+        defective_pixels((x * 255).to(dtype))
+    with pytest.raises(ValueError, match=r"patches must lie in \[0, 1\]"):
+        defective_pixels((x - 1).to(dtype))
+
+
+@pytest.mark.parametrize("level, sigma", [(0.0, 3.0), (-3.0, 5.0), (-6.0, 8.0), (255.0, 20.0), (258.0, 5.0), (262.0, 20.0)])
+def test_noise_clipped_at_black_or_saturation_is_not_a_defect(level, sigma):
+    """White noise around a level at or beyond 0 or 255 DN, 8-bit: the clipped pixels hide the noise's spread from σ_n
+    (at mean 0 DN, σ 3 DN it reads 1.5 DN), and noise peaks amid them used to be reported — 20 to 5800 per million
+    pixels. The censored-noise level of the window (σ_c) restores the 6 σ test: nothing flagged in 32 patches."""
+    g = torch.Generator().manual_seed(int(level * 10 + sigma))
+    x = ((level + sigma * torch.randn(32, 1, 128, 128, generator=g)).round().clamp(0, 255)) / 255.0
+    d = defective_pixels(x)
+    assert int(d.hot.sum() + d.dark.sum()) == 0 and d.checked.tolist() == [126 * 126] * 32
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [1, 256])
+def test_clear_defects_on_clipped_noise_are_still_found(dtype, batch):
+    """On a black frame with σ = 3 DN (half the pixels at 0 DN) hot pixels of 60 DN (20 σ) are found and the noise is
+    not; on a frame at 255 DN with σ = 5 DN dead pixels 80 DN (16 σ) below it are found; batch 1 and 256, every float
+    dtype."""
+    g = torch.Generator().manual_seed(batch)
+    black = (3.0 * torch.randn(batch, 1, 48, 48, generator=g)).round().clamp(0, 255)
+    white = (255.0 + 5.0 * torch.randn(batch, 1, 48, 48, generator=g)).round().clamp(0, 255)
+    truth = torch.zeros(batch, 1, 48, 48, dtype=torch.bool)
+    truth[..., 8:-8:8, 8:-8:8] = True
+    x = torch.cat([torch.where(truth, black + 60.0, black), torch.where(truth, white - 80.0, white)]) / 255.0
+    d = defective_pixels(x.to(dtype))
+    assert torch.equal(d.mask[:batch] == 1, truth) and torch.equal(d.mask[batch:] == -1, truth)
+    assert int(d.dark[:batch].sum() + d.hot[batch:].sum()) == 0
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])

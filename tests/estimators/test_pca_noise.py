@@ -3,7 +3,12 @@
 import pytest
 import torch
 
-from camhealth.estimators.pca_noise import mean_median_noise_eigenvalue, patch_covariance_eigenvalues, pca_noise_sigma
+from camhealth.estimators.pca_noise import (
+    MIN_SAMPLES_PER_DIMENSION,
+    mean_median_noise_eigenvalue,
+    patch_covariance_eigenvalues,
+    pca_noise_sigma,
+)
 from tests.estimators.conftest import add_noise
 
 
@@ -38,7 +43,34 @@ def test_batch_independence(flat, textured):
 
 
 def test_constant_image_gives_zero():
-    assert torch.equal(pca_noise_sigma(torch.full((2, 1, 32, 32), 0.3)), torch.zeros(2))
+    assert torch.equal(pca_noise_sigma(torch.full((2, 1, 64, 64), 0.3)), torch.zeros(2))
+
+
+@pytest.mark.parametrize("size", [32, 48, 58, 59, 64, 128])
+def test_too_few_sub_patches_are_refused_not_biased(size):
+    """Pure noise of σ = 10 DN: σ̂ falls short by ≈ 0.7·r/n (−65 % at 32 px, n/r = 1.3, which used to be accepted).
+    Sizes below MIN_SAMPLES_PER_DIMENSION · r sub-patches are refused naming n; every accepted size is within 15 %."""
+    g = torch.Generator().manual_seed(size)
+    x = (0.5 + torch.randn(32, 1, size, size, generator=g, dtype=torch.float64) * 10.0 / 255.0).clamp(0.0, 1.0)
+    n = ((size - 8) // 3 + 1) ** 2
+    if n < MIN_SAMPLES_PER_DIMENSION * 64:
+        with pytest.raises(ValueError, match=rf"{size}×{size} px give only n = {n} sub-patches of 8×8 at stride 3"):
+            pca_noise_sigma(x)
+    else:
+        assert abs(float(pca_noise_sigma(x).mean()) - 10.0) < 1.5
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [1, 256])
+def test_small_patches_name_the_stride_that_suffices(dtype, batch):
+    """32 px at stride 3 is refused with the stride that gives enough sub-patches; with it σ̂ is within 10 %."""
+    g = torch.Generator().manual_seed(batch)
+    x = (0.5 + torch.randn(batch, 1, 32, 32, generator=g) * 10.0 / 255.0).clamp(0.0, 1.0).to(dtype)
+    with pytest.raises(ValueError, match=r"n = 81 sub-patches.*stride=1 \(n = 625\)"):
+        pca_noise_sigma(x)
+    est = pca_noise_sigma(x, stride=1)
+    assert est.shape == (batch,) and est.dtype == (torch.float64 if dtype == torch.float64 else torch.float32)
+    assert abs(float(est.float().median()) - 10.0) < 1.0 + (1.5 if batch == 1 else 0.0)
 
 
 def test_criterion_on_hand_made_eigenvalues():
