@@ -253,6 +253,15 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         if images.dtype == object or images.dtype.kind not in "uif":
             raise TypeError(f"images must be a numeric array, got dtype {images.dtype}")
         is_int = images.dtype.kind in "ui"
+        if not images.dtype.isnative:  # big-endian data (FITS, some TIFF readers): the same values in native order
+            images = images.astype(images.dtype.newbyteorder("="))
+        if images.dtype.kind == "f" and images.dtype.itemsize > 8:  # long double: torch has no such dtype
+            wide = images
+            with np.errstate(over="ignore"):
+                images = wide.astype(np.float64)
+            if not np.isfinite(images).all() and np.isfinite(wide).all():
+                raise ValueError(f"images of dtype {wide.dtype} hold values beyond float64's range (min {str(wide.min())}, "
+                                 f"max {str(wide.max())}); allowed: DN 0…255 or [0, 1]")
         t = torch.from_numpy(np.ascontiguousarray(images))
     elif isinstance(images, torch.Tensor):
         if images.dtype == torch.bool or images.is_complex():
@@ -298,6 +307,10 @@ def _gray_patch_layout(t: torch.Tensor, patch_size: int) -> torch.Tensor:
         layout = "an H×W×C" if t.ndim == 3 else "a B×H×W×C"
         raise ValueError(f"images of shape {shape} look like {layout} colour image (channels last); the estimators take "
                          f"{_LAYOUTS}: {colour}")
+    if t.ndim in (3, 4) and t.shape[-1] == 1 and min(t.shape[-3:-1]) > 4:
+        layout = "an H×W×1" if t.ndim == 3 else "a B×H×W×1"
+        raise ValueError(f"images of shape {shape} look like {layout} gray image (channels last); the estimators take "
+                         f"{_LAYOUTS}: drop the channel axis (x[..., 0])")
     if t.ndim == 2:
         return t[None, None]
     if t.ndim == 3:

@@ -2,7 +2,11 @@
 
 Takes patches from an image source (the embedded default data, a folder, or a video), applies
 :class:`~camhealth.augment.CameraCorruption` and writes, per patch, the clean and corrupted 8-bit PNG
-and one JSON line of labels (16 MTF values, realised and expected σ per noise source, metadata). With
+and one JSON line of labels (16 MTF values, realised and expected σ per noise source, metadata). The labels describe
+the PNG that is written: ``sigma_total_dn`` is the realised σ [DN] of (corrupted PNG − noise-free blurred image), the
+unbiased standard deviation over the patch's pixels measured on the 8-bit values written (with their rounding, as
+the training data's total with ``quantize`` is); ``sigma_dn`` gives each source's share of the clipped noise before
+that rounding (the ±½ DN rounding error is no source's). With
 ``--overview`` it also draws one figure that shows each corruption of the first patch on its own with
 its MTF curves and noise levels (the README's tour picture).
 
@@ -60,11 +64,29 @@ def random_patches(source, n: int, size: int, generator: torch.Generator) -> tup
     return torch.stack(patches), ids
 
 
+#: Smallest --size [px]: the noise labels are standard deviations over a patch's pixels (unbiased: at least two).
+MIN_SIZE = 2
+
+
+def _dn8(img: torch.Tensor) -> torch.Tensor:
+    """The 8-bit values [DN] (float32, whole numbers 0…255) that :func:`_save_png` writes for ``img`` in [0, 1]."""
+    return (img.detach().float().clamp(0, 1) * 255.0 + 0.5).floor()
+
+
 def _save_png(path: Path, img: torch.Tensor) -> None:
+    """``img`` (…×H×W in [0, 1]) as an 8-bit gray PNG of H×W px (also 1×1: no dimension is squeezed away)."""
     from skimage.io import imsave
 
-    arr = (img.detach().float().clamp(0, 1).squeeze().cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    arr = _dn8(img).reshape(img.shape[-2:]).cpu().numpy().astype(np.uint8)
     imsave(path, arr, check_contrast=False)
+
+
+def _written_sigma_total_dn(corrupted: torch.Tensor, noise_free: torch.Tensor) -> torch.Tensor:
+    """Realised σ [DN] of the noise the written PNGs hold, (B,) float64: the unbiased standard deviation over each
+    patch's pixels of its 8-bit values (:func:`_dn8`) minus the noise-free blurred image in DN (``noise_free`` in
+    [0, 1]) — the definition of ``datamodules.noise.realised_sigma_dn``, on the rounded image."""
+    d = _dn8(corrupted).double() - noise_free.detach().double() * 255.0
+    return d.flatten(1).std(1)
 
 
 def _overview(path: Path, clean: torch.Tensor, args: argparse.Namespace) -> None:
@@ -213,7 +235,9 @@ def build_parser():
                    "(patches beyond --n, overview.png without --overview); other files are kept. Without it an --out "
                    "that holds any of these files is refused")
     p.add_argument("--n", type=IntAtLeast(1), default=8, help="number of patches (default 8)")
-    p.add_argument("--size", type=IntAtLeast(1), default=192, help="patch size in px (default 192)")
+    p.add_argument("--size", type=IntAtLeast(MIN_SIZE), default=192,
+                   help=f"patch size in px (default 192; at least {MIN_SIZE}: the noise labels are standard deviations "
+                   "over the patch's pixels)")
     p.add_argument("--defocus", type=float, nargs=2, default=[1.0, 21.0], metavar=("MIN", "MAX"),
                    help="defocus disk diameter range in px (default 1 21; 0 0 disables)")
     p.add_argument("--motion", type=float, nargs=2, default=[1.0, 21.0], metavar=("MIN", "MAX"),
@@ -222,7 +246,9 @@ def build_parser():
                    help="camera-shake intensity range in [0, 1] (default 0 0: linear motion)")
     p.add_argument("--sensor", default=None, help="sensor preset (ICX285, EV76C661); default: random cameras")
     p.add_argument("--no-noise", action="store_true", help="blur only")
-    p.add_argument("--quantize", action="store_true", help="round the output to whole DN")
+    p.add_argument("--quantize", action="store_true",
+                   help="round to whole DN inside the camera model (the PNGs are 8-bit either way, and sigma_total_dn "
+                   "is measured on the 8-bit values written)")
     p.add_argument("--bit-depth", type=BitDepthOption(), default="auto",
                    help="significant bits of the images of a folder source (or frames:<folder>): 'auto' (default: "
                    "each file's PNG sBIT chunk, else a guess from its largest value) or 1-16, e.g. 12 for a 12-bit "
@@ -252,6 +278,8 @@ def main(argv: list[str] | None = None) -> int:
     for f in _earlier_outputs(args.out):  # (only with --overwrite: _check_out refused the folder otherwise)
         f.unlink()  # (all of them: a file left over from the earlier run is never listed or unlisted by this one)
     meta = lab.get("metadata")
+    if meta is not None:  # the total σ of the PNG that is written, with its 8-bit rounding
+        lab["sigma_total_dn"] = _written_sigma_total_dn(out, cam._formation.blurred)
     with open(args.out / "labels.jsonl", "w") as fh:
         for i, pid in enumerate(ids):
             stem = f"{i:04d}"

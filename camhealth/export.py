@@ -25,7 +25,8 @@ arguments, params, FLOPs, metrics and, for an MTF model, its error table ``mtf_e
   out ``sigma_total``       (B,)        √(Σ σ_s²) [DN]
   out ``assessable``        (B,)        bool
   out ``reason_code``       (B,)        int64: 0 assessable, 1 black, 2 saturated, 3 metadata outside
-                                        ``METADATA_RANGES`` (or not finite)
+                                        ``METADATA_RANGES`` (or not finite), 4 noise beyond the validated range,
+                                        5 less noise than any camera state in the metadata's ranges makes
   ========================  ==========  ========================================================================
 
   The metadata normalisation (``CameraMetadata.normalize``), the clamp of σ at 0, the total and the flags of
@@ -411,7 +412,8 @@ def export_pt2(source, out: str | Path, metrics: Mapping[str, float] | None = No
 ONNX_NOISE_OUTPUTS: tuple[str, ...] = ("sigma", "xi", "sigma_total", "assessable", "reason_code")
 #: ``reason_code`` of a self-contained noise-source ONNX graph → the ``reason`` of :meth:`Estimator.predict`
 #: (3: metadata that ``predict`` would refuse with an error).
-ONNX_REASONS: tuple[str, ...] = ("", "black", "saturated", "metadata out of range")
+ONNX_REASONS: tuple[str, ...] = ("", "black", "saturated", "metadata out of range", "noise beyond validated range",
+                                 "less noise than the metadata allow")
 
 
 class SelfContainedNoiseSource(torch.nn.Module):
@@ -421,8 +423,10 @@ class SelfContainedNoiseSource(torch.nn.Module):
     docstring for shapes and units): metadata in physical units (the ``metadata_fields`` columns) are normalised
     with ``METADATA_RANGES`` into the (B, 11) vector the network reads (zeros where the metadata set has no field),
     σ is clamped at 0, σ_total = √(Σ σ_s²), and a patch is not assessable where more than
-    ``MAX_CLIPPED_FRACTION`` of its pixels lie within 0.5 DN of 0 (black, code 1) or of 255 (saturated, 2), or its
-    metadata lie outside their range or are not finite (3).
+    ``MAX_CLIPPED_FRACTION`` of its pixels lie within 0.5 DN of 0 (black, code 1) or of 255 (saturated, 2), its
+    metadata lie outside their range or are not finite (3), its finest-scale fluctuations exceed the validated σ
+    beyond doubt (4, :func:`~camhealth.estimators.physics_noise.beyond_validated_range`) or it holds far less noise
+    than any camera state makes (5, :func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`).
 
     Args:
         net: the bare :class:`~lightning_modules.noise_source.NoiseSourceNet` (eval mode).
@@ -471,7 +475,12 @@ class SelfContainedNoiseSource(torch.nn.Module):
         black = (flat <= tol).float().mean(1) > MAX_CLIPPED_FRACTION
         saturated = (flat >= 1.0 - tol).float().mean(1) > MAX_CLIPPED_FRACTION
         zero = torch.zeros_like(black, dtype=torch.int64)
-        reason = torch.where(black, zero + 1, torch.where(saturated, zero + 2, torch.where(meta_ok, zero, zero + 3)))
+        from camhealth.estimators.physics_noise import beyond_validated_range, quieter_than_any_camera
+
+        beyond = beyond_validated_range(x).to(black.device)  # the refusals predict adds for the networks
+        quiet = quieter_than_any_camera(x).to(black.device)
+        reason = torch.where(black, zero + 1, torch.where(saturated, zero + 2, torch.where(
+            ~meta_ok, zero + 3, torch.where(beyond, zero + 4, torch.where(quiet, zero + 5, zero)))))
         return sigma, xi, total, reason == 0, reason
 
 

@@ -32,8 +32,17 @@
 - returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V, ``mtf_std`` and ``mtf_spread`` (B, 16) [kind ``mtf``]; ``sigma_total`` (B,) DN
   [noise kinds; for noise-source networks √(Σ σ_s²)]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
-  ``"black"``, ``"saturated"``, ``"featureless"``, ``"no edges"`` [MTF: Gaussian-like texture, :func:`camhealth._inputs.has_edges`]). Not-assessable patches still get finite numbers; do not
-  trust them.
+  ``"black"``, ``"saturated"``, ``"featureless"``, ``"no edges"`` [MTF: Gaussian-like texture, :func:`camhealth._inputs.has_edges`];
+  noise-source networks also ``"noise beyond validated range"`` (the patch's finest-scale fluctuations above 64 DN
+  beyond doubt, :func:`~camhealth.estimators.physics_noise.beyond_validated_range`) and ``"less noise than the
+  metadata allow"`` (far less noise than photon noise alone makes for any camera in the metadata's ranges, from
+  98 DN up, :func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`)). Not-assessable patches still get
+  finite numbers; do not trust them.
+- noise-source networks (``noise_source_min``, ``noise_source_none``) state **no uncertainty**: ``xi_std`` (B,) is NaN
+  (the physics-first estimator's is a number, ∞ where it has no evidence). Their ξ is the network's regression, which
+  stayed near 0 on every mismatch tried (``noise_source_min`` on an ICX285 ramp told 6 dB: at 24 dB ξ −0.08 DN
+  against a true −4.8 DN, with 10–60 DN of extra noise −0.10…−0.15 DN against −8…−53 DN); read a ξ alarm from
+  ``noise_source_full`` where the full metadata are known.
 - ``views`` (MTF models): 1 (default), 2 or 4 — also run the patch flipped (2: rotated by 180°; 4: flipped
   left–right, up–down and both) and average the estimates. A flip leaves the MTF along H and V unchanged
   (|OTF(−u, v)| = |OTF(u, v)| for a real PSF), so the views are estimates of the same 16 values with partly
@@ -236,6 +245,8 @@ class Estimator:
             raw, spread = per_view.mean(0), per_view.std(0)
             patches = assessed
         assessable, reason = assess_patches(patches, self.kind, noise_dn)
+        if self.kind == "noise_source":  # what the network cannot vouch for: noise beyond the range, or none at all
+            assessable, reason = _noise_source_limits(patches, reason)
         result: dict[str, Any] = {"assessable": assessable, "reason": reason}
         if self.kind == "mtf":
             result["mtf"] = raw.clamp(0, 1)
@@ -247,7 +258,9 @@ class Estimator:
             result.update(sigma_map=raw, sigma_total=flat.pow(2).mean(1).sqrt(), sigma_median=flat.median(1).values)
         else:
             sigma = raw[:, :3].clamp_min(0)
-            result.update(sigma=sigma, sigma_total=sigma.pow(2).sum(1).sqrt(), xi=raw[:, 3])
+            # the network states no uncertainty of its ξ (NaN: not known, unlike the physics-first estimator's)
+            result.update(sigma=sigma, sigma_total=sigma.pow(2).sum(1).sqrt(), xi=raw[:, 3],
+                          xi_std=torch.full((raw.shape[0],), float("nan")))
         return result
 
 
@@ -284,8 +297,26 @@ class Estimator:
         elif self.kind == "drne":
             result.update(sigma_map=torch.zeros(0, 1, self.patch_size, self.patch_size), sigma_total=z, sigma_median=z)
         else:
-            result.update(sigma=torch.zeros(0, 3), sigma_total=z, xi=z)
+            result.update(sigma=torch.zeros(0, 3), sigma_total=z, xi=z, xi_std=z)
         return result
+
+
+def _noise_source_limits(patches: torch.Tensor, reason: list[str]) -> tuple[torch.Tensor, list[str]]:
+    """The assessability of a noise-source network's patches (B×1×P×P in [0, 1]) given the ``reason`` of
+    :func:`assess_patches`: also refused, with the physics-first estimator's reasons, are patches whose finest-scale
+    fluctuations exceed the validated σ beyond doubt (:func:`~camhealth.estimators.physics_noise.beyond_validated_range`:
+    ``"noise beyond validated range"``) and patches far quieter than any camera state in the metadata's ranges makes
+    (:func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`: ``"less noise than the metadata allow"``) —
+    the network was trained on neither and answers them with a number near its training range."""
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED, LESS_NOISE, beyond_validated_range, quieter_than_any_camera
+
+    beyond = beyond_validated_range(patches).tolist()
+    quiet = quieter_than_any_camera(patches).tolist()
+    out = list(reason)
+    for i, r in enumerate(out):
+        if not r:
+            out[i] = BEYOND_VALIDATED if beyond[i] else LESS_NOISE if quiet[i] else ""
+    return torch.tensor([r == "" for r in out], dtype=torch.bool), out
 
 
 def bucket_size(n: int) -> int:

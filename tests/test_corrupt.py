@@ -86,11 +86,39 @@ def test_ranges_are_checked_naming_the_option(option, values, message, tmp_path)
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("option", ["--size", "--n"])
-def test_size_and_count_below_one_are_refused_by_the_parser(option, tmp_path, capsys):
+@pytest.mark.parametrize("option, value, least", [("--size", "0", 2), ("--size", "1", 2), ("--n", "0", 1)])
+def test_size_and_count_below_their_least_are_refused_by_the_parser_before_any_file(option, value, least, tmp_path, capsys):
+    """--size 1 crashed inside imageio (a 1×1 patch squeezed to a 0-d array) after labels.jsonl was opened, and its
+    noise labels (a standard deviation over one pixel) would have been NaN: at least 2 px, said by the parser."""
+    src = _folder(tmp_path, n=1, size=40)
     with pytest.raises(SystemExit) as info:
-        main([str(tmp_path / "nope"), "--out", str(tmp_path / "o"), option, "0"])
-    assert info.value.code == 2 and f"argument {option}: must be >= 1, got 0" in capsys.readouterr().err
+        main([str(src), "--out", str(tmp_path / "o"), option, value])
+    assert info.value.code == 2 and f"argument {option}: must be >= {least}, got {value}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_one_pixel_patch_is_written_as_a_one_pixel_png(tmp_path):
+    from camhealth.corrupt import _save_png
+
+    _save_png(tmp_path / "p.png", torch.full((1, 1, 1), 0.5))
+    img = imread(tmp_path / "p.png")
+    assert img.shape == (1, 1) and int(img[0, 0]) == 128
+
+
+@pytest.mark.parametrize("quantize", [False, True])
+def test_the_total_sigma_label_is_that_of_the_png_written(quantize, tmp_path):
+    """labels.jsonl's sigma_total_dn was the realised σ of the float image before the 8-bit rounding of the PNG (also
+    with --quantize, whose image form_image measures before it rounds): 2 % low at 1.4 DN. It is the σ of the PNG's
+    values minus the noise-free image (here, without blur, the clean PNG), unbiased over the patch's pixels."""
+    d = tmp_path / "flat"
+    d.mkdir()
+    imsave(d / "flat.png", np.full((64, 64), 100, np.uint8), check_contrast=False)
+    out = tmp_path / "o"
+    assert main([str(d), "--n", "4", "--size", "48", "--out", str(out), "--sensor", "ICX285", "--defocus", "0", "0",
+                 "--motion", "0", "0", *(["--quantize"] if quantize else [])]) == 0
+    for rec in map(json.loads, (out / "labels.jsonl").read_text().splitlines()):
+        noise = imread(out / rec["corrupted"]).astype(np.float64) - imread(out / rec["clean"]).astype(np.float64)
+        assert rec["sigma_total_dn"] == pytest.approx(noise.std(ddof=1), abs=6e-5)
 
 
 def test_shake_without_motion_blur_is_refused_naming_both_flags(tmp_path):

@@ -210,6 +210,25 @@ def test_self_contained_noise_onnx_matches_predict(kind, tmp_path):
     assert torch.allclose(a["sigma_total"], b["sigma_total"], atol=1e-3) and a["reason"] == b["reason"]
 
 
+def test_self_contained_noise_onnx_refuses_what_predict_refuses(tmp_path):
+    """The graph holds predict's two refusals of a noise-source network: noise beyond the validated range (uniform
+    noise of σ 97.5 DN: pixels at 30 or 225 DN at random, code 4) and a patch quieter than any camera state makes (a
+    constant 128 DN patch, code 5)."""
+    from camhealth.export import ONNX_REASONS
+
+    m = _perturbed("noise_source_none")
+    ref = load_estimator(export_weights(m, tmp_path / "w.pt"))
+    session = _ort_session(export_onnx(m, tmp_path / "m.onnx"))
+    g = torch.Generator().manual_seed(5)
+    x = torch.stack([(30.0 + 195.0 * (torch.rand(1, 32, 32, generator=g) < 0.5)) / 255, torch.full((1, 32, 32), 128 / 255),
+                     ((128 + 5 * torch.randn(1, 32, 32, generator=g)).round().clamp(0, 255)) / 255])
+    assessable, code = (torch.from_numpy(a) for a in session.run(None, {"patch": x.numpy()})[3:])
+    want = ref.predict(x)
+    assert [ONNX_REASONS[int(c)] for c in code] == want["reason"] == ["noise beyond validated range",
+                                                                         "less noise than the metadata allow", ""]
+    assert assessable.tolist() == [False, False, True]
+
+
 def test_self_contained_noise_onnx_flags_metadata_out_of_range(tmp_path):
     """The graph cannot raise: metadata that predict refuses (out of range, NaN) make the patch not assessable."""
     session = _ort_session(export_onnx(_perturbed("noise_source"), tmp_path / "m.onnx"))

@@ -669,3 +669,41 @@ def test_onnx_metadata_fields_must_be_the_networks_fields(tmp_path):
         with pytest.raises(ValueError, match=r"bad\.onnx: description onnx_graph metadata_fields = .* must be "
                                              r"\['gain_db', 'exposure_s', 'temperature_c'\]"):
             load_estimator(path)
+
+
+@pytest.mark.parametrize("name", ["noise_source_min", "noise_source_none"])
+def test_noise_source_networks_refuse_what_they_cannot_vouch_for_and_state_no_uncertainty(name):
+    """Uniform noise of σ 73.6 DN (beyond the validated 64 DN beyond doubt) and a noiseless 128 DN patch (less than any
+    camera in range makes: photon noise alone is ≥ 0.57 DN there) were assessable, with σ_Total 76 and 0.5 DN and
+    ξ ≈ 0 whatever the metadata. They are refused with the physics-first estimator's reasons; a patch of 50 DN of
+    Gaussian noise is read. ``xi_std`` is NaN: the networks state no uncertainty of their ξ."""
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED, LESS_NOISE
+
+    net = load_estimator(name)
+    g = torch.Generator().manual_seed(0)
+    x = torch.stack([(torch.rand(1, 128, 128, generator=g) * 255).round() / 255, torch.full((1, 128, 128), 0.5),
+                     ((128 + 50 * torch.randn(1, 128, 128, generator=g)).clamp(0, 255).round()) / 255])
+    for md, base in (({"gain_db": 6.0, "exposure_s": 0.01, "temperature_c": 25.0}, "ICX285"),
+                     ({"gain_db": 24.0, "exposure_s": 0.2, "temperature_c": 80.0}, "EV76C661")):
+        out = net.predict(x, md if net.metadata_set != "none" else None, base_preset=base)
+        assert out["reason"] == [BEYOND_VALIDATED, LESS_NOISE, ""] and out["assessable"].tolist() == [False, False, True]
+        assert out["xi_std"].shape == (3,) and torch.isnan(out["xi_std"]).all()
+        assert torch.isfinite(out["xi"]).all() and torch.isfinite(out["sigma"]).all()
+    empty = net.predict(torch.zeros(0, 1, 128, 128), {"gain_db": 6.0, "exposure_s": 0.01, "temperature_c": 25.0}
+                        if net.metadata_set != "none" else None)
+    assert empty["xi_std"].shape == (0,)
+    # never a camera in range: ICX285 at 0 dB and the quietest camera the ranges allow (0.16 DN at 10 DN, 0.57 DN at
+    # 128 DN), made 8-bit; nor a noiseless patch below 98 DN, where rounding may remove a quiet camera's noise altogether
+    from camhealth.bench.sensor_variants import simulate_variant
+
+    quiet = dict(gain_db=0.0, exposure_s=0.001, temperature_c=0.0, dark_fom_na_per_cm2=0.0, full_well_e=100000.0,
+                 pixel_clock_hz=8e6, sense_node_gain_v_per_e=5e-6, reset_factor=0.0, pixel_size_um=0.9,
+                 white_noise_v_per_rthz=1e-9)
+    levels = torch.tensor([20.0, 60.0, 100.0, 128.0, 240.0]).view(-1, 1, 1, 1).expand(-1, 1, 128, 128) / 255
+    md = {"gain_db": 0.0, "exposure_s": 0.001, "temperature_c": 0.0}
+    for meta in (CameraMetadata.preset("ICX285", gain_db=0.0), CameraMetadata.preset("ICX285", **quiet)):
+        noisy, _ = simulate_variant(levels.contiguous(), meta, ("round8",), torch.Generator().manual_seed(2))
+        assert net.predict(noisy, md if net.metadata_set != "none" else None, base_preset="ICX285")["reason"] == [""] * 5
+    flat = torch.tensor([20.0, 60.0, 97.0]).view(-1, 1, 1, 1).expand(-1, 1, 128, 128) / 255
+    assert net.predict(flat.contiguous(), md if net.metadata_set != "none" else None, base_preset="ICX285")["reason"] == [""] * 3
+

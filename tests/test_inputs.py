@@ -203,3 +203,41 @@ def test_flat_patches_under_heavily_clipped_noise_are_not_assessable_for_mtf(mea
     limit = contrast_limit_dn(torch.tensor([0.0, 10.0, 64.0], dtype=torch.float64), 576, 64)
     want = [(4.0 + 3.0 * s * s / 64.0 * math.sqrt(2.0 / 576)) ** 0.5 for s in (0.0, 10.0, 64.0)]
     assert limit.tolist() == pytest.approx(want, rel=1e-6) and limit[0].item() == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("dtype", [">f4", ">f8", ">u2", ">i4", "longdouble"])
+def test_big_endian_and_long_double_arrays_are_read_as_their_values(dtype):
+    """A big-endian array (FITS, some TIFF readers) raised torch's "byte order different from the native byte order",
+    and a long double one torch's "can't convert np.ndarray of type numpy.longdouble"; both are the same DN or
+    [0, 1] values as the native array."""
+    import numpy as np
+
+    from camhealth._inputs import _to_patches
+
+    dn = np.round(np.random.default_rng(0).random((2, 32, 32)) * 255.0)
+    native = dn / 255.0 if dtype[-2] == "f" or dtype == "longdouble" else dn.astype(np.uint8)
+    want = _to_patches(native, 32, "auto")
+    arr = native.astype(np.longdouble if dtype == "longdouble" else np.dtype(dtype))
+    got = _to_patches(arr, 32, "auto")
+    assert got.dtype == torch.float32 and torch.equal(got, want)
+
+
+def test_long_double_values_beyond_float64_are_named():
+    import numpy as np
+
+    from camhealth._inputs import _to_patches
+
+    arr = np.full((1, 32, 32), np.longdouble("1e400"))
+    if not np.isfinite(arr).all():
+        pytest.skip("this platform's long double is float64")
+    with pytest.raises(ValueError, match=r"beyond float64's range \(min 1e\+400, max 1e\+400\); allowed: DN 0…255 or \[0, 1\]"):
+        _to_patches(arr, 32, "auto")
+
+
+@pytest.mark.parametrize("shape, layout", [((32, 32, 1), "an H×W×1"), ((3, 32, 32, 1), "a B×H×W×1")])
+def test_a_gray_image_with_its_channel_last_is_named_as_such(shape, layout):
+    """H×W×1 gray input said "patches must be 32×32 px, got 32×1"; it names the channels-last layout and the fix."""
+    from camhealth._inputs import _to_patches
+
+    with pytest.raises(ValueError, match=rf"look like {layout} gray image \(channels last\).*drop the channel axis"):
+        _to_patches(torch.full(shape, 0.5), 32, "auto")

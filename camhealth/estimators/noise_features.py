@@ -25,7 +25,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from camhealth._order import lower_median
+from camhealth._order import _traced, lower_median
+from camhealth.estimators._common import check_patches
 from camhealth.physics.clipping import _NEAR_SIGMAS, clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
@@ -58,7 +59,9 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
     ``clipping``).
 
     Args:
-        image: B×1×H×W noisy patches in [0, 1]; only their mean intensity is used (for σ_PN).
+        image: B×1×H×W noisy patches in [0, 1] (floating point; integer DN images: divide by 255 first); only their
+            mean intensity is used (for σ_PN), and with ``clipping`` their 3×3 means. Anything else raises a
+            ``TypeError`` (not a floating tensor) or ``ValueError`` (shape, NaN/inf, values outside [0, 1]) naming it.
         meta: metadata of batch 1 or B, physical units.
         cache: optional dict that keeps (σ_DCSN, σ_RN) [DN] per distinct metadata row between calls (an
             inference loop that sees the same camera state on every frame integrates the readout noise
@@ -66,6 +69,7 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
         clipping: also return, as columns 4–7, the σ [DN] of (PN, DCSN, RN, total) that the metadata predict
             *after* clipping to [0, 255] DN (:func:`clipped_prior_dn`), shape (B, 8).
     """
+    check_patches(image, "image")
     b = image.shape[0]
     if meta.batch_size not in (1, b):
         raise ValueError(f"metadata batch {meta.batch_size} does not match the {b} patches")
@@ -108,8 +112,10 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
 
 def truncated_second_moment(u: torch.Tensor) -> torch.Tensor:
     """h(u) = E[z² | |z| < u] for z ~ N(0, 1): 1 − 2u·φ(u)/(2Φ(u) − 1), → u²/3 as u → 0 and 1 as u → ∞ (h(1) = 0.291,
-    h(2) = 0.774, h(3) = 0.973). Elementwise, float64 inside, the input's dtype out (float64 for an integer input)."""
-    t = u.double().clamp_min(0.0)
+    h(2) = 0.774, h(3) = 0.973; h(∞) = 1, h(u < 0) = h(0) = 0, NaN stays NaN). Elementwise, float64 inside, the input's
+    dtype out (float64 for an integer input)."""
+    # beyond u = 40 the tail 2u·φ(u) is below 1e-340, 0 in float64: h = 1 exactly (and ∞·e^−∞ gives no NaN)
+    t = u.double().clamp(0.0, 40.0)
     tail = 2.0 * t * torch.exp(-0.5 * t * t) / math.sqrt(2.0 * math.pi) / torch.erf(t / math.sqrt(2.0)).clamp_min(1e-300)
     return torch.where(t < 1e-2, t * t / 3.0, 1.0 - tail).to(u.dtype if u.is_floating_point() else torch.float64)
 
@@ -251,7 +257,14 @@ def box_mean3(x: torch.Tensor) -> torch.Tensor:
 def image_statistics(image: torch.Tensor) -> torch.Tensor:
     """Per-patch scalars (B, 6) = (B, len(IMAGE_STATISTICS)) in the order of :data:`IMAGE_STATISTICS` (float32; see module docstring).
 
+    ``image``: B×1×H×W patches in [0, 1] (floating point; integer DN images: divide by 255 first), H, W ≥ 3 (Immerkær's
+    3×3 mask needs one full window). Anything else raises a ``TypeError`` (not a floating tensor) or ``ValueError``
+    (shape, size, NaN/inf, values outside [0, 1]) naming it — except while the caller is traced or exported
+    (a network's forward), where the graph cannot hold the data-dependent check.
+
     Always computed in float32, also under bf16 autocast (bf16 cannot resolve 1 DN at 255 DN)."""
+    if not _traced():
+        check_patches(image, "image", min_size=(3, 3))
     if torch.is_autocast_enabled(image.device.type):
         with torch.autocast(device_type=image.device.type, enabled=False):
             return _image_statistics(image.float())

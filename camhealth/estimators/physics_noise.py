@@ -122,21 +122,44 @@ the physics. A mismatch that moves σ_Total visibly in any of the frames is visi
 told shows at the long exposure, and the short one, whose σ_Total it moves too little to see, follows it as well.
 :meth:`PhysicsNoiseEstimator.predict` takes such frames (``other_exposures``) or their kept evidence.
 
-Not assessable (``assessable=False`` with ``reason``): black or saturated patches (more than half clipped),
-``"no flat area"`` (fewer than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere —
-the metadata cannot be checked; the closed form is still returned), ``"textured"`` (the horizontal and vertical details carry clearly
-more energy than the diagonal one on the inliers, or adjacent diagonal details are correlated, so texture leaked into
-the evidence: the closed form is returned and ξ is not trusted), and ``"noise beyond validated range"`` (σ_Total before clipping above
-:data:`VALIDATED_SIGMA_DN`: there the clipping takes so much of the noise that the closed-form correction is
-not validated; or the patch's finest-scale fluctuations, measured over all of its blocks, above that limit by more
-than their sampling error — :func:`beyond_validated_range`: noise that is not clipped Gaussian noise, such as
-uniform noise, can read below the limit through the clipped-Gaussian model), and ``"less noise than the metadata
-allow"`` (``quiet_z`` below −:data:`QUIET_Z_LIMIT`: the image's noise reads far below that of every camera state the
-hypotheses span — a denoised, compressed, rescaled or rendered image, or the metadata of a noisier camera — which
-no hypothesis explains, so P(match) would mean nothing; the closed form is returned). Pooled, a patch that reads so
+Not assessable (``assessable=False`` with ``reason``), in this order: black or saturated patches (more than half
+clipped); ``"noise beyond validated range"`` where that is known without a reading — the patch's finest-scale
+fluctuations, measured over all of its blocks, above :data:`VALIDATED_SIGMA_DN` by more than three of their sampling
+standard errors (:func:`beyond_validated_range`: noise that is not clipped Gaussian noise, such as uniform noise, can
+read below the limit through the clipped-Gaussian model, and noise so strong that no block is left unclipped reads
+nothing), or the metadata's own σ_Total before clipping above it (the closed form, which such a patch returns: there
+the clipping takes so much of the noise that the closed-form correction is not validated); ``"no flat area"`` (fewer
+than :data:`MIN_FOLLOW_DETAILS` usable details: texture or clipping nearly everywhere — the metadata cannot be
+checked; the closed form is still returned); ``"textured"`` (the horizontal and vertical details carry clearly more
+energy than the diagonal one on the inliers, or adjacent diagonal details are correlated, so texture leaked into the
+evidence: the closed form is returned and ξ is not trusted); ``"noise beyond validated range"`` where the image's
+reading of σ_Total before clipping exceeds the limit by three of its sampling standard errors, σ/√(2N) from its N
+details (the rule of :func:`beyond_validated_range`; near 0 or 255 DN, where a 128-px patch keeps ≈ 380 details,
+60 DN of noise reads up to 68 DN and is read, 80 DN is refused; the posterior's spread, which also carries the model
+error η, is 2–4× the estimates' spread there and is not used); ``"less noise than the metadata allow"``
+(``quiet_z`` below −:data:`QUIET_Z_LIMIT`: the image's noise reads far below that of every camera state the
+hypotheses span — a denoised, compressed, rescaled or rendered image, or the metadata of a noisier camera — which no
+hypothesis explains: the closed form is returned, ``xi_std`` and ``sigma_std`` are ∞ (no stated uncertainty) and
+``cause`` NaN; ``p_match`` is still the posterior's and only says whether the camera states that fit least badly are
+visible mismatches — no verdict on the metadata); and ``"noise below the quantisation step"`` instead of it on
+8-bit input where the quietest of those camera states makes less than :data:`QUANTISATION_SIGMA_DN` at the patch's
+level (rounding a flat area at a whole DN removes such noise rather than adding 1/12 DN² to it, so a matched quiet
+camera reads that quiet; the closed form is returned). Pooled, a patch that reads so
 alone (a noiseless overlay, letterbox or masked area) is refused with its own ``quiet_z`` and, where such patches
 are at most half of the frame's, left out of the frame's evidence, so the rest of the frame is read as it is; where
 they are most of it, every patch of the frame is refused.
+
+The reference variance of the first pass (the per-intensity median of the details) is floored at the quantisation
+variance of 8-bit input: a quiet 8-bit patch (σ ≲ 0.4 DN) has mostly zero details, whose median 0 would call nearly
+every block non-flat (ICX285 as preset at 3–5 DN: 0.33–0.38 DN, read as the closed form, not "no flat area").
+
+σ per source after clipping are those of the labels' attribution (:func:`~camhealth.physics.clipping.clipped_sigma_dn`):
+each source keeps its share n_k·f of the clipped noise y, f = y/n. On a flat scene y spans at most 255 DN, so the
+total's σ is at most 127.5 DN; a source's share is not so confined (where it outweighs the total, the other sources
+cancelling part of it), so beyond the validated range a source's σ may exceed the clipped total and 127.5 DN, as the
+rule realises (a Monte Carlo of the rule, ``tests/estimators/test_physics_noise.py``). And the scene recovered from a patch with such noise
+is not flat (its 3×3 means vary by σ/3), so there even the total may read above 127.5 DN: a camera of 520 DN at
+128 DN reads σ_DCSN 164 DN against a total of 145 DN. Such patches are refused (beyond the validated range).
 """
 
 from __future__ import annotations
@@ -165,7 +188,8 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetad
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "LESS_NOISE",
-           "QUIET_Z_LIMIT", "LOUD_RATIO", "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
+           "QUIET_Z_LIMIT", "BELOW_QUANTISATION", "QUANTISATION_SIGMA_DN", "quieter_than_any_camera", "LOUD_RATIO",
+           "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
            "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor",
            "noise_evidence"]
 
@@ -182,6 +206,16 @@ BEYOND_VALIDATED = "noise beyond validated range"
 LESS_NOISE = "less noise than the metadata allow"
 #: Standard errors below the best-fitting hypothesis (``quiet_z``) from which a patch is :data:`LESS_NOISE`.
 QUIET_Z_LIMIT = 5.0
+#: σ [DN] below which 8-bit rounding removes noise instead of adding 1/12 DN² to it. A flat area at clean level s
+#: rounds to r = round(s + n), whose variance depends on the fractional part φ of s: at σ = 0.6 DN within ±0.3 % of
+#: σ² + 1/12 DN² for every φ, at 0.5 DN within ±2.4 %, at 0.4 DN −13…+13 %, at 0.3 DN −45…+37 %, at 0.16 DN
+#: 1.6 %…2.3× (Var r = Σₖ k²·pₖ − (Σₖ k·pₖ)², pₖ = Φ((k + ½ − φ)/σ) − Φ((k − ½ − φ)/σ)). Below it a quiet 8-bit patch
+#: may read far less noise than its camera makes without anything having removed it.
+QUANTISATION_SIGMA_DN = 0.5
+#: The ``reason`` of an 8-bit patch that reads :data:`LESS_NOISE` where the quietest camera state the metadata's ranges
+#: allow makes less than :data:`QUANTISATION_SIGMA_DN` at the patch's level: the rounding, not a denoiser, may have
+#: removed the noise, so the image cannot check the metadata. The closed form is returned, not assessable.
+BELOW_QUANTISATION = "noise below the quantisation step"
 #: Pooled: a patch whose noise σ reads more than this many times the frame's median patch's (and QUIET_Z_LIMIT
 #: standard errors above it) is far noisier than its frame — amp glow, a hot or a pasted region — and is read alone;
 #: so is a noise-like patch above a gap of this ratio between the frame's noise-like patches (two noise levels).
@@ -221,6 +255,7 @@ PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
     "row_dn", "col_dn", "patch_details", "patch_texture", "patch_detail_corr_check",
     "p_cause_gain", "p_cause_temperature", "p_cause_white_noise", "p_cause_beyond", "quiet_z",
+    "quietest_total_dn",
 )
 #: What a visible mismatch may be (the hypotheses' kinds, in the order of the ``cause`` output): one of
 #: :data:`MISMATCH_FIELDS` wrong, or noise beyond what any field in range explains.
@@ -499,6 +534,9 @@ def _quantisation_variance(image: torch.Tensor) -> torch.Tensor:
     distance comes within 1e-5 of the tolerance is read again in float64, so the verdict is the exact one at a fifth
     of the memory traffic."""
     flat = image.detach().flatten(1)
+    if torch.compiler.is_exporting() or torch.onnx.is_in_onnx_export():  # a graph: no data-dependent branch
+        dn = flat.double() * 255.0
+        return ((dn - dn.round()).abs().amax(1) < 1e-3).double() / 12.0
     if flat.dtype != torch.float32:
         flat = flat.double()
     dn = flat * 255.0
@@ -636,7 +674,7 @@ def physics_noise_posterior(
     other_evidence: torch.Tensor | None = None,
     return_evidence: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Physics-first noise sources of each patch, (B, 26) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 27) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
@@ -655,7 +693,12 @@ def physics_noise_posterior(
     details' sampling and the model error η) the image's noise reads below that of the best-fitting camera state any
     hypothesis allows (the largest over the hypotheses of their weighted mean log-variance residual; negative: the
     image is quieter than every one; 0 without evidence; pooled, the frame's, except for a patch below
-    −:data:`QUIET_Z_LIMIT` alone, which keeps its own, and at most the median patch's where most patches are).
+    −:data:`QUIET_Z_LIMIT` alone, which keeps its own, and at most the median patch's where most patches are; below
+    −:data:`QUIET_Z_LIMIT` no hypothesis explains the image: the closed form is kept, the uncertainties are ∞ and the
+    cause NaN, and P(match) only says whether the camera states that fit least badly are visible mismatches — no
+    verdict); and the least σ_Total [DN] before clipping of any
+    camera state the hypotheses span, at the patch's mean intensity (what :meth:`PhysicsNoiseEstimator.predict`
+    compares with :data:`QUANTISATION_SIGMA_DN`).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -717,6 +760,8 @@ def physics_noise_posterior(
         raise ValueError(f"image must be a B×1×H×W tensor, got {tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__}")
     if not image.is_floating_point():
         raise TypeError(f"image must be a floating-point tensor in [0, 1], got {image.dtype}")
+    if image.shape[-2] < 8 or image.shape[-1] < 8:
+        raise ValueError(f"physics_noise_posterior needs patches of at least 8×8 px, got {tuple(image.shape[-2:])}")
     if not bool(torch.isfinite(image).all()):
         raise ValueError("image contains NaN or inf; physics_noise_posterior needs finite intensities in [0, 1]")
     if image.numel() > 0:
@@ -774,6 +819,9 @@ def physics_noise_posterior(
             if not bool(torch.isfinite(other_evidence).all()):
                 raise ValueError("other_evidence contains NaN or inf")
             other = other_evidence.to(device=dev, dtype=f64)
+        if b == 0:  # an empty batch: a table of 0 rows (and, pooled, a frame without evidence)
+            empty = torch.zeros(0, len(PHYSICS_NOISE_COLUMNS), device=dev)
+            return (empty, torch.zeros(5, a_all.shape[1], dtype=f64, device=dev)) if return_evidence else empty
         a0, var0 = a0.expand(b), var0.expand(b, 2)
         a_all, var_all, c_all, prior = a_all.expand(b, -1), var_all.expand(b, -1, 2), c_all.expand(b, -1), prior.expand(b, -1)
         q = _quantisation_variance(x)
@@ -813,7 +861,10 @@ def physics_noise_posterior(
         m_flat = m.flatten().to(f64)
         # a pair's pixels by (patch, intensity bin, interval of their clipping limit), flattened from (B, h·w, 4)
         c_key = None if c_index is None else (idx.view(b, -1, 1).int() * _PAIR_C_BINS + c_index).flatten()
-        v_ref = _median_variance(m, d2[0], usable, 4)
+        # the metadata-free reference, floored at the 8-bit rounding's variance: where most details of a quiet 8-bit
+        # patch are exactly 0 (σ well under ½ DN) their median is 0, and a reference of 0 would call every block
+        # with a 1 DN step in its block means non-flat (no flat area)
+        v_ref = torch.maximum(_median_variance(m, d2[0], usable, 4), q.float().view(b, 1, 1, 1))
         # pooled, every patch has the same evidence and hypotheses (metadata of batch 1): one row is computed for all
         h = 1 if pool else b
         a_h, c_h, prior_h = a_all[:h], c_all[:h], prior[:h]
@@ -952,6 +1003,10 @@ def physics_noise_posterior(
             # the patches read as far quieter alone (a noiseless overlay) keep their own goodness of fit; a frame
             # mostly of them reads as its median patch at most
             fit_z = torch.where(quiet_alone, own_z, fit_z if quiet_frame is None else fit_z.clamp_max(quiet_frame))
+        # far quieter than every camera state (LESS_NOISE): no hypothesis explains the image, so the closed form is kept
+        # with no stated uncertainty (∞, below) and no cause; P(match) stays the posterior's, which here only says
+        # whether the camera states that fit least badly are visible mismatches — no verdict on the metadata
+        quiet = fit_z < -QUIET_Z_LIMIT
         # a mismatch too small to see (|Δσ_Total| < max(0.5 DN, 15 %)) is no mismatch: its mass counts for M
         mean_i = x.clamp(0, 1).flatten(1).mean(1).double() * 255.0
         tot = (a_all * mean_i.unsqueeze(1) + c_all).clamp_min(0).sqrt()  # σ_Total before clipping, (B, 1 + H)
@@ -971,8 +1026,7 @@ def physics_noise_posterior(
         # texture does not
         corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0] * (~(quiet_alone | loud_alone)).view(b, 1, 1, 1), pool)
         readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
-        # far quieter than every camera state (LESS_NOISE): no hypothesis explains the image, so it keeps the closed form
-        follows = readable & (p_match < 0.5) & ~(fit_z < -QUIET_Z_LIMIT)
+        follows = readable & (p_match < 0.5) & ~quiet
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
         # follow it (the only ones that use it): one batched call
         sel = follows.nonzero(as_tuple=True)[0]
@@ -988,7 +1042,7 @@ def physics_noise_posterior(
         e_tot = (post * tot).sum(1)
         sd_tot = ((post * tot.square()).sum(1) - e_tot.square()).clamp_min(0).sqrt()
         scale = (prior_clipped[:, 3] / tot[:, 0].clamp_min(1e-12)).clamp(0, 1)
-        xi_std = torch.where(evidence, sd_tot * scale, torch.full_like(sd_tot, float("inf")))
+        xi_std = torch.where(evidence & ~quiet, sd_tot * scale, torch.full_like(sd_tot, float("inf")))
         e_tot_image = (w * tot[:, 1:]).sum(1)
         unclipped_answer = torch.where(follows, e_tot_image, tot[:, 0])
         # per source: the posterior RMS deviation of every hypothesis's σ (before clipping) from the answer's, scaled
@@ -1002,7 +1056,7 @@ def physics_noise_posterior(
         src_scale = torch.where(answer_src > 1e-12, out_sigma[:, :3] / answer_src.clamp_min(1e-12), torch.ones_like(answer_src)).clamp(0, 1)
         # and the patch's own sampling: the realised σ of n pixels' noise differs from its expected σ by σ/√(2n)
         sd_src = (sd_src.square() * src_scale.square() + out_sigma[:, :3].square() / (2.0 * x.shape[-1] * x.shape[-2])).sqrt()
-        sigma_std = torch.where(evidence.unsqueeze(1), sd_src, torch.full_like(sd_src, float("inf")))
+        sigma_std = torch.where((evidence & ~quiet).unsqueeze(1), sd_src, torch.full_like(sd_src, float("inf")))
         # row and column noise, which no source of the metadata makes: where it is detected on a patch that is not
         # textured once it is taken out, and moves σ_Total visibly, it adds to the image's σ_Total and so to ξ (the
         # per-source σ stay the pixel noise's)
@@ -1011,7 +1065,7 @@ def physics_noise_posterior(
         white_total = out_sigma[:, 3].double()
         banded_total = (white_total.square() + band_var).sqrt()
         prior_total = prior_clipped[:, 3]
-        banded = ((band_var > 0) & readable
+        banded = ((band_var > 0) & readable & ~quiet
                   & ((banded_total - prior_total).abs() >= torch.clamp_min(VISIBLE_XI_FRACTION * prior_total, VISIBLE_XI_DN)))
         out_sigma = torch.cat([out_sigma[:, :3], torch.where(banded, banded_total, white_total).unsqueeze(1)], 1)
         xi = torch.where(banded, prior_total - banded_total, xi.double())
@@ -1024,8 +1078,8 @@ def physics_noise_posterior(
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
                          corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1),
-                         torch.where(readable.unsqueeze(1), cause, torch.full_like(cause, float("nan"))),
-                         fit_z.unsqueeze(1)], dim=1)
+                         torch.where((readable & ~quiet).unsqueeze(1), cause, torch.full_like(cause, float("nan"))),
+                         fit_z.unsqueeze(1), tot.amin(1, keepdim=True)], dim=1)
     out = out.float()
     if bool(loud_alone.any()):  # the patches far noisier than their frame, read alone
         sel = loud_alone.nonzero(as_tuple=True)[0]
@@ -1095,6 +1149,41 @@ def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None 
     step = 4 if h2 >= 8 else 2  # structure_contrast_dn reads the details of every other row of 2×2 blocks
     n = max(-(-h2 // step) * (w2 // 2), 1)
     return mad > VALIDATED_SIGMA_DN * (1.0 + 3.0 * _MAD_RELATIVE_SE / math.sqrt(n))
+
+
+def quieter_than_any_camera(patches: torch.Tensor, eta: float = 0.12) -> torch.Tensor:
+    """Whether B×1×H×W patches in [0, 1] read far less noise than any camera state in ``METADATA_RANGES`` makes,
+    whatever its metadata → (B,) bool (the :data:`LESS_NOISE` of estimators that are given no metadata, or only some).
+
+    Photon noise alone bounds every camera's noise from below: σ_PN² = 255²·g·Ī/FW ≥ 255²·Ī/FW_max [DN²] with the
+    least gain g = 1 (0 dB) and the largest full well FW_max = 100 000 e⁻, at the patch's mean intensity Ī ∈ [0, 1]
+    (white noise of variance a·I per pixel averages a·Ī over the pixels), and the other sources only add to it.
+    Only where that bound is at least :data:`QUANTISATION_SIGMA_DN` (Ī ≥ 98 DN: 0.57 DN at 128 DN, 0.81 DN at 255 DN)
+    does 8-bit rounding add its q = 1/12 DN² instead of removing noise, so there the blocks' diagonal Haar details
+    d = (I₀₀ − I₀₁ − I₁₀ + I₁₁)/2 have E[d²] ≥ v_min = σ_PN,min² + q (q = 0 for input that is not whole DN). It is read
+    on the n blocks none of whose pixels lies within ½ DN of a bound and whose mean lies in 5…250 DN (clipping takes
+    no noise there: 6·σ_PN,min ≤ 5 DN), as v̂ = mean d² (texture and edges only add to it), and the patch is
+    refused where ln(v̂/v_min) lies more than :data:`QUIET_Z_LIMIT` standard errors below 0 — its sampling √(2/n) and
+    the model error ``eta`` of :func:`physics_noise_posterior` in quadrature, as ``quiet_z`` there — with at least
+    32 such blocks. Below 98 DN a quiet camera's rounded 8-bit patch may hold no noise at all, and nothing is refused.
+    """
+    b = patches.shape[0]
+    if b == 0:
+        return torch.zeros(0, dtype=torch.bool)
+    x = patches.detach().float()
+    p00, p01, p10, p11 = _block_pixels(x)  # [DN]
+    m = (p00 + p01 + p10 + p11) / 4.0
+    lo = torch.minimum(torch.minimum(p00, p01), torch.minimum(p10, p11))
+    hi = torch.maximum(torch.maximum(p00, p01), torch.maximum(p10, p11))
+    used = ((lo > 0.5) & (hi < 254.5) & (m >= 5.0) & (m <= 250.0)).flatten(1)
+    d2 = ((p00 - p01 - p10 + p11) / 2.0).square().flatten(1).double()
+    n = used.sum(1).double()
+    v = (d2 * used).sum(1) / n.clamp_min(1.0)
+    g_fw = 10.0 ** (METADATA_RANGES["gain_db"][0] / 20.0) / METADATA_RANGES["full_well_e"][1]
+    sig2 = 255.0**2 * x.flatten(1).mean(1).double() * g_fw
+    v_min = sig2 + _quantisation_variance(x)
+    z = torch.log(v.clamp_min(1e-300) / v_min) / (2.0 / n.clamp_min(1.0) + eta**2).sqrt()
+    return ((sig2.sqrt() >= QUANTISATION_SIGMA_DN) & (n >= _MIN_FIT_BLOCKS) & (z < -QUIET_Z_LIMIT)).cpu()
 
 
 @dataclass
@@ -1170,7 +1259,10 @@ class PhysicsNoiseEstimator:
         (:data:`MISMATCH_CAUSES`); each row sums to 1, NaN where the patch is not readable. A gain changes the
         signal-dependent part of the noise and the signal-independent part together, so one frame names it; a hotter
         sensor, more white noise and noise beyond the fields all add a signal-independent variance, which one exposure
-        time shares between them by their priors and physical ranges, and ``other_exposures`` tells apart."""
+        time shares between them by their priors and physical ranges, and ``other_exposures`` tells apart.
+
+        An empty batch gives every output with 0 rows, and the ``"evidence"`` (zeros) and ``"exposures_read"`` the
+        arguments ask for; its arguments are checked as a full batch's are."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         if batch_size < 1:
@@ -1191,15 +1283,6 @@ class PhysicsNoiseEstimator:
             if ref.shape != patches.shape:
                 raise ValueError(f"reference must hold the same patches as images, {tuple(patches.shape)}, got {tuple(ref.shape)}")
         meta = _to_metadata(metadata, b, base_preset)  # checked whatever the number of patches
-        if b == 0:  # an empty batch: every output with 0 rows
-            z = torch.zeros(0)
-            return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
-                    "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool),
-                    "row_column_dn": torch.zeros(0, 2), "cause": torch.zeros(0, len(MISMATCH_CAUSES)),
-                    "defects": torch.zeros(0, 2, dtype=torch.int64),
-                    "defects_checked": torch.zeros(0, dtype=torch.int64),
-                    "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8),
-                    **({} if ref is None else {"static": torch.zeros(0, dtype=torch.bool)})}
         settings = {**self.settings, **({"pool": True} if pool else {})}
         exposures_read = None
         if (other_evidence is not None or return_evidence) and not settings.get("pool"):
@@ -1212,23 +1295,47 @@ class PhysicsNoiseEstimator:
                 raise TypeError(f"other_evidence must be a tensor (noise_evidence), got {type(other_evidence).__name__}")
             given = other_evidence.detach().to(self.device, torch.float64)
             settings["other_evidence"] = given if "other_evidence" not in settings else settings["other_evidence"] + given
+        if b == 0:  # an empty batch: every output with 0 rows, and the keys the arguments ask for
+            z = torch.zeros(0)
+            evidence = None
+            if settings.get("pool"):  # a frame without patches adds no evidence (other_evidence checked as for any frame)
+                on_device = meta if self.device.type == "cpu" else meta.to(self.device)
+                evidence = physics_noise_posterior(patches.to(self.device), on_device, return_evidence=True, **settings)[1]
+            return {"assessable": torch.zeros(0, dtype=torch.bool), "reason": [], "sigma": torch.zeros(0, 3), "sigma_std": torch.zeros(0, 3), "sigma_total": z,
+                    "xi": z, "xi_std": z, "p_match": z, "follows_image": torch.zeros(0, dtype=torch.bool),
+                    "row_column_dn": torch.zeros(0, 2), "cause": torch.zeros(0, len(MISMATCH_CAUSES)),
+                    "defects": torch.zeros(0, 2, dtype=torch.int64),
+                    "defects_checked": torch.zeros(0, dtype=torch.int64),
+                    "defect_mask": torch.zeros(0, 1, *patches.shape[-2:], dtype=torch.int8),
+                    **({} if ref is None else {"static": torch.zeros(0, dtype=torch.bool)}),
+                    **({} if exposures_read is None else {"exposures_read": exposures_read}),
+                    **({"evidence": evidence.cpu()} if return_evidence else {})}
         raw, static, evidence = self._read(patches, ref, meta, settings, batch_size)
         assessable, reason = assess_patches(patches, "noise_source")
         reason = list(reason)
         is_textured = textured(raw[:, 8], raw[:, 11]).tolist()
         noise_dn = haar_noise_dn(patches)
         too_strong = beyond_validated_range(patches, noise_dn).tolist()
+        eight_bit = (_quantisation_variance(patches) > 0).tolist()
         for i in range(b):
             if reason[i]:
                 continue
-            if raw[i, 7] < MIN_FOLLOW_DETAILS:
+            follows = bool(raw[i, 9] > 0.5)
+            if too_strong[i] or (not follows and raw[i, 10] > VALIDATED_SIGMA_DN):
+                # known without a reading: the patch's finest-scale fluctuations beyond the limit beyond doubt, or the
+                # metadata's own σ_Total (the closed form, which a patch that does not follow the image returns)
+                reason[i] = BEYOND_VALIDATED
+            elif raw[i, 7] < MIN_FOLLOW_DETAILS:
                 reason[i] = "no flat area"
             elif is_textured[i]:
                 reason[i] = "textured"
-            elif raw[i, 10] > VALIDATED_SIGMA_DN or too_strong[i]:
+            elif raw[i, 10] * (1.0 - 3.0 / math.sqrt(2.0 * float(raw[i, 7]))) > VALIDATED_SIGMA_DN:
+                # the image's reading above the limit by three of its sampling standard errors, σ/√(2N) from its N
+                # details (beyond_validated_range's rule); a patch that does not follow the image is decided above
                 reason[i] = BEYOND_VALIDATED
             elif raw[i, 25] < -QUIET_Z_LIMIT:
-                reason[i] = LESS_NOISE
+                # far quieter than every camera state: a quiet 8-bit camera's rounding may have removed its noise
+                reason[i] = BELOW_QUANTISATION if eight_bit[i] and raw[i, 26] < QUANTISATION_SIGMA_DN else LESS_NOISE
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
         defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
@@ -1241,7 +1348,7 @@ class PhysicsNoiseEstimator:
 
     def _read(self, patches: torch.Tensor, ref: torch.Tensor | None, meta: CameraMetadata, settings: dict[str, Any],
               batch_size: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """The posterior of the patches (CPU, (B, 26)) — read from their static pair where ``ref`` is given and the
+        """The posterior of the patches (CPU, (B, 27)) — read from their static pair where ``ref`` is given and the
         scene stood still, alone elsewhere (:meth:`predict`) — whether each was read from the pair ((B,) bool, None
         without ``ref``), and, pooled, the frame's own evidence summed over the readings (:func:`noise_evidence`)."""
         b = patches.shape[0]
@@ -1321,7 +1428,7 @@ class PhysicsNoiseEstimator:
 
     def _posterior(self, patches: torch.Tensor, meta: CameraMetadata, settings: dict[str, Any], batch_size: int,
                    reference: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 26): pooled in one call (with the
+        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 27): pooled in one call (with the
         patches of a textured frame that pass both checks on their own details read alone), else in chunks; and,
         pooled, the frame's own evidence of that call (:func:`noise_evidence`; None per patch)."""
         b = patches.shape[0]

@@ -423,9 +423,9 @@ class TaskReport:
             e.g. ``{"textured": 3, "noise beyond validated range": 1}`` for the noise sources, ``{"no edges": 2}``
             for the MTF; empty when it refused none.
         beyond_xi: noise only: the median ξ [DN] the estimator still reports on this frame's patches refused as
-            ``"noise beyond validated range"`` (σ above :data:`~camhealth.estimators.physics_noise.VALIDATED_SIGMA_DN`;
-            there the image's σ reads low, so the ξ is a bound: the image is at least that much noisier); ``None``
-            when there were none.
+            ``"noise beyond validated range"`` whose noise it read (``follows_image``; σ above
+            :data:`~camhealth.estimators.physics_noise.VALIDATED_SIGMA_DN`; there the image's σ reads low, so the ξ is
+            a bound: the image is at least that much noisier); ``None`` when there were none.
         banding: noise only: row and column noise (offsets shared by whole pixel rows or columns, which no metadata
             field makes; :mod:`camhealth.estimators.row_column_noise`) on this frame's assessable patches where the
             estimator reports it (``row_column_dn``) — those estimated this frame and those reused, with the evidence
@@ -1415,7 +1415,10 @@ class Monitor:
         for i in (~ok).nonzero()[:, 0].tolist():
             why = str(reasons[i]) if i < len(reasons) and reasons[i] else "no value"
             st.refused[why] = st.refused.get(why, 0) + 1
-            if task == "noise" and why == BEYOND_VALIDATED and "xi" in out:
+            # a bound on ξ only where the estimator read the patch's noise (followed the image): a refusal from the
+            # metadata's own σ or the finest-scale check alone carries the closed form's ξ = 0, a network's its regression
+            if (task == "noise" and why == BEYOND_VALIDATED and "xi" in out and out.get("follows_image") is not None
+                    and bool(torch.as_tensor(out["follows_image"]).reshape(n)[i])):
                 xi = float(torch.as_tensor(out["xi"]).reshape(n)[i])
                 if math.isfinite(xi):
                     st.beyond_xi.append(xi)

@@ -23,6 +23,14 @@ The patch's σ per source is then √(mean E[(n_k f)²] − (mean E[n_k f])²) o
 definition (standard deviation over the patch) up to the sampling noise of one realisation. Checks: far
 from the bounds every moment is that of n (f = 1); at x = 0 exactly, E[(n_k f)²] = σ_k²/2 for every source.
 
+A source's σ after clipping may exceed the total's. y = clamp(n, −x, 255 − x) spans at most 255 DN, so on a flat
+scene σ_y ≤ 127.5 DN; n_k·f = n_k·y/n is not so confined (|n_k| > |n| where the other sources cancel part of n_k),
+and the shares are negatively correlated: with e_k = n_k − β_k·n, E[e_j·e_k] = −σ_j²σ_k²/σ² for j ≠ k, so
+E[(n_j f)(n_k f)] = β_jβ_k·E[y²] − (σ_j²σ_k²/σ²)·E[f²] can be negative and the shares' variances add up to more than
+the total's. Under strong clipping a source's σ then exceeds the clipped total and 127.5 DN (x = 128 DN, σ_k = 8.9,
+300 and 425 DN: 5.2, 147 and 163 DN against a total of 119 DN; Monte Carlo of the rule gives the same). That is the
+attribution rule, not an error of these moments; clamping a source at the total would no longer describe the labels.
+
 :func:`estimate_clean_dn` recovers the clean intensity near the bounds from a noisy, clipped image: the
 3×3 mean of the observed values estimates E[clamp(x + n)], which is inverted for x (bisection; the censored
 mean is increasing in x). Away from the bounds the 3×3 mean is the estimate. All functions are pure, batched

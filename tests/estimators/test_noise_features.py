@@ -49,7 +49,7 @@ def test_metadata_from_matrix_rejects_bad_shape_and_range(meta_raw):
 @pytest.mark.parametrize("sigma_dn", [0.0, 2.0, 5.0, 35.0])
 def test_immerkaer_recovers_gaussian_sigma_on_flat_image(sigma_dn):
     g = torch.Generator().manual_seed(3)
-    x = 0.5 + sigma_dn / 255 * torch.randn(2, 1, 128, 128, generator=g, dtype=torch.float64)
+    x = (0.5 + sigma_dn / 255 * torch.randn(2, 1, 128, 128, generator=g, dtype=torch.float64)).clamp(0, 1)  # 35 DN: 3.6 σ
     stats = image_statistics(x.float())
     assert stats[:, 4].tolist() == pytest.approx([sigma_dn] * 2, rel=0.03, abs=1e-3)
     assert stats[:, 0].tolist() == pytest.approx([0.5] * 2, abs=0.01)
@@ -73,7 +73,7 @@ def test_haar_mad_is_robust_to_edges(sigma_dn):
     g = torch.Generator().manual_seed(4)
     x = torch.zeros(1, 1, 128, 128, dtype=torch.float64)
     x[..., :, 64:] = 0.6  # a strong vertical edge
-    x = x + 0.2 + sigma_dn / 255 * torch.randn(x.shape, generator=g, dtype=torch.float64)
+    x = (x + 0.2 + sigma_dn / 255 * torch.randn(x.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
     stats = image_statistics(x.float())
     assert stats[0, 5].item() == pytest.approx(sigma_dn, rel=0.06)
 
@@ -252,3 +252,39 @@ def test_plane_free_details_keep_white_noise_variance():
     out = plane_free_details(x, d2, usable)
     inner = torch.stack([out[k][usable.expand_as(out[k])].mean() for k in range(3)])
     assert torch.allclose(inner, torch.full_like(inner, 25.0), rtol=0.02)
+
+
+def test_truncated_second_moment_is_one_at_infinity_and_keeps_nan():
+    """h(∞) = 1, the limit the docstring states (∞·e^−∞ gave NaN); beyond u = 40 it is 1 exactly, NaN stays NaN."""
+    for dtype in (torch.float32, torch.float64):
+        h = truncated_second_moment(torch.tensor([40.0, 41.0, 1e30, float("inf"), float("nan"), -1.0], dtype=dtype))
+        assert h[:4].tolist() == [1.0] * 4 and math.isnan(h[4]) and h[5] == 0.0 and h.dtype == dtype
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+@pytest.mark.parametrize("bad, kind, message", [
+    (lambda x: x * 255.0, ValueError, r"image must lie in \[0, 1\] \(DN/255\), got values in \[127.5, 127.5\]"),
+    (lambda x: (x * 255.0).to(torch.uint8), TypeError, "image must be a floating tensor.*got dtype torch.uint8.*x.float\\(\\) / 255"),
+    (lambda x: x.clone().fill_(float("nan")), ValueError, "image must be finite"),
+    (lambda x: x.expand(-1, 3, -1, -1), ValueError, "C = 1 channel"),
+    (lambda x: x[:, 0], ValueError, r"B×C×H×W \(4 dims\)"),
+])
+def test_image_statistics_and_the_prior_refuse_what_is_not_a_patch_in_the_unit_range(bad, kind, message, batch):
+    """DN values (mean 127.5, "100 % saturated"), uint8 (Immerkær ≈ 5 000 DN) or NaN were read silently or failed deep
+    inside (NaN named as ``image_dn`` by the clipping); both name the value and the allowed range now."""
+    x = bad(torch.full((batch, 1, 16, 16), 0.5))
+    meta = CameraMetadata.preset("ICX285")
+    for call in (lambda: image_statistics(x), lambda: physics_prior_dn(x, meta), lambda: physics_prior_dn(x, meta, clipping=True)):
+        with pytest.raises(kind, match=message):
+            call()
+
+
+@pytest.mark.parametrize("size", [1, 2])
+def test_image_statistics_need_a_3x3_window(size):
+    """Immerkær's 3×3 mask needs one full window: a 1×1 patch raised an IndexError from inside ``median`` and a 2×2 one
+    gave NaN; both name the size and the least one. The prior reads only the mean: any size."""
+    x = torch.full((2, 1, size, size), 0.5)
+    with pytest.raises(ValueError, match=rf"image must be at least 3×3 px, got {size}×{size}"):
+        image_statistics(x)
+    assert torch.isfinite(physics_prior_dn(x, CameraMetadata.preset("ICX285"), clipping=True)).all()
+    assert torch.isfinite(image_statistics(torch.full((2, 1, 3, 3), 0.5))).all()

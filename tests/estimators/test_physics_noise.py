@@ -886,15 +886,17 @@ def test_the_cause_is_nan_where_a_patch_is_not_readable():
     assert torch.isfinite(cause).all() and torch.allclose(cause.sum(1), torch.ones(2), atol=1e-5)
 
 
+@pytest.mark.parametrize("gain_db", [0.0, 6.0])
 @pytest.mark.parametrize("sigma_dn", [0.0, 0.3, 0.75])
-def test_a_patch_far_quieter_than_any_camera_state_is_not_a_confident_match(sigma_dn):
+def test_a_patch_far_quieter_than_any_camera_state_is_not_a_confident_match(sigma_dn, gain_db):
     """ICX285 at 0 dB makes σ_Total ≈ 1.54 DN at 128 DN, and no gain, temperature or white-noise density in range
     makes much less: a patch of 0–0.75 DN fits no hypothesis. It is not assessable ("less noise than the metadata
-    allow", quiet_z far below −QUIET_Z_LIMIT) — the closed form is still returned — instead of P(match) = 1 with a
-    σ_Total uncertainty of 0.0005 DN."""
+    allow", quiet_z far below −QUIET_Z_LIMIT) — the closed form is still returned — with no stated uncertainty (∞) and
+    no cause (NaN), instead of P(match) = 1 with a σ_Total uncertainty of 0.0005 DN (0 dB), or ξ = 0 ± 0 DN (6 dB).
+    P(match) stays a probability, of the camera states that fit least badly: no verdict."""
     from camhealth.estimators.physics_noise import LESS_NOISE, QUIET_Z_LIMIT
 
-    meta = CameraMetadata.preset("ICX285", gain_db=0.0)
+    meta = CameraMetadata.preset("ICX285", gain_db=gain_db)
     g = torch.Generator().manual_seed(0)
     x = (128.0 + sigma_dn * torch.randn(4, 1, 128, 128, generator=g)).round().clamp(0, 255)
     raw = physics_noise_posterior(x / 255.0, meta)
@@ -902,6 +904,8 @@ def test_a_patch_far_quieter_than_any_camera_state_is_not_a_confident_match(sigm
     out = PhysicsNoiseEstimator().predict(x, meta, input_range="dn")
     assert not out["assessable"].any() and set(out["reason"]) == {LESS_NOISE}
     assert torch.allclose(out["sigma_total"], raw[:, _COL["total_dn"]]) and (out["xi"] == 0).all()
+    assert torch.isinf(out["xi_std"]).all() and torch.isinf(out["sigma_std"]).all() and torch.isnan(out["cause"]).all()
+    assert ((out["p_match"] >= 0) & (out["p_match"] <= 1)).all() and not out["follows_image"].any()
 
 
 @pytest.mark.parametrize("variants", [(), VARIANTS])
@@ -1092,3 +1096,120 @@ def test_pooled_several_far_noisier_patches_each_read_alone():
         assert float(out["sigma_total"][i]) == pytest.approx(float(truth[i]), rel=0.05)
     quiet = torch.tensor([i not in (1, 4, 9) for i in range(16)])
     assert (out["xi"][quiet] == 0).all()
+
+
+@pytest.mark.parametrize("level", [30.0, 225.0])
+def test_60_dn_of_noise_near_the_bounds_is_read_not_refused_as_beyond_the_validated_range(level):
+    """Gaussian noise of 60 DN, inside the validated 64 DN, on 32 flat patches: near 30 and 225 DN the few blocks the
+    clipping leaves read up to 68 DN, which is within three of their sampling standard errors (σ/√(2N), N ≈ 380
+    details: 2.3 DN) of 64 DN — read, not refused (they were: 6 and 10 of 32). Beyond doubt it still is: 80 DN of
+    noise at 128 DN (read ≈ 77 DN, N ≈ 1 400) is refused on every patch."""
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED
+
+    meta = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.01, temperature_c=25.0)
+    g = torch.Generator().manual_seed(int(level))
+    x = (level + 60.0 * torch.randn(32, 1, 128, 128, generator=g)).clamp(0, 255).round() / 255
+    out = PhysicsNoiseEstimator().predict(x, meta)
+    assert out["assessable"].all(), out["reason"]
+    truth = ((x * 255 - level).flatten(1).std(1))
+    assert (out["xi"] < 0).all() and ((out["sigma_total"] / truth - 1).abs() < 0.15).all()
+    louder = ((128.0 + 80.0 * torch.randn(8, 1, 128, 128, generator=g)).clamp(0, 255).round() / 255)
+    assert PhysicsNoiseEstimator().predict(louder, meta)["reason"] == [BEYOND_VALIDATED] * 8
+
+
+def test_noise_known_to_be_beyond_the_validated_range_is_named_so_before_any_flat_area():
+    """The reason says what is known: 200 DN of noise trips the fine-scale check (its σ̂ far above 64 DN) and leaves no
+    flat block, and a camera whose own closed form makes 520 DN (every field at its loud end) is beyond the range
+    whatever the patch shows; both said "no flat area" (texture or clipping), which hid it. Their per-source σ after
+    clipping are the attribution rule's (:func:`~camhealth.physics.clipping.clipped_sigma_dn`), which may exceed the
+    clipped total and 127.5 DN, as a Monte Carlo of the rule on a flat scene shows — not assessable either way."""
+    from camhealth.physics.clipping import clipped_sigma_dn
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED
+
+    told = CameraMetadata.preset("ICX285", gain_db=6.0, exposure_s=0.01, temperature_c=25.0)
+    g = torch.Generator().manual_seed(1)
+    x = (128.0 + 200.0 * torch.randn(2, 1, 128, 128, generator=g)).clamp(0, 255).round() / 255
+    assert bool(beyond_validated_range(x).all())
+    out = PhysicsNoiseEstimator().predict(x, told)
+    assert out["reason"] == [BEYOND_VALIDATED] * 2 and not out["assessable"].any()
+    loud = CameraMetadata.preset("ICX285", gain_db=24.0, exposure_s=0.2, temperature_c=80.0, dark_fom_na_per_cm2=1.0,
+                                 full_well_e=2000.0, pixel_clock_hz=150e6, sense_node_gain_v_per_e=1e-6, reset_factor=1.0,
+                                 pixel_size_um=10, white_noise_v_per_rthz=60e-9)
+    noisy, _ = simulate_variant(torch.full((2, 1, 128, 128), 0.5), loud, ("round8",), torch.Generator().manual_seed(0))
+    assert (physics_prior_dn(noisy, loud)[:, 3] > 500).all()
+    out = PhysicsNoiseEstimator().predict(noisy, loud)
+    assert out["reason"] == [BEYOND_VALIDATED] * 2 and (out["xi"] == 0).all()
+    assert torch.allclose(out["sigma"], physics_prior_dn(noisy, loud, clipping=True)[:, 4:7], atol=1e-3)
+    # the attribution: source k keeps n_k·y/n of the clipped noise y; on a flat scene y spans 255 DN (σ ≤ 127.5 DN),
+    # a source's share does not (where it outweighs n, the others cancelling part of it)
+    sig = (8.9, 300.0, 425.0)
+    n_k = [s * torch.randn(2_000_000, generator=g, dtype=torch.float64) for s in sig]
+    n = sum(n_k)
+    y = (128.0 + n).clamp(0, 255) - 128.0
+    want = [(nk * y / n).std().item() for nk in n_k] + [y.std().item()]
+    got = clipped_sigma_dn(torch.full((1, 1, 4, 4), 128.0), [torch.tensor(s**2) for s in sig])[0].tolist()
+    assert got == pytest.approx(want, rel=0.005) and got[3] <= 127.5 < got[2] and got[1] > got[3]
+
+
+def _quietest_camera(**overrides) -> CameraMetadata:
+    """ICX285 with every field at the quiet end of its range: 0.16 DN at 10 DN, 0.57 DN at 128 DN (photon noise)."""
+    quiet = dict(gain_db=0.0, exposure_s=0.001, temperature_c=0.0, dark_fom_na_per_cm2=0.0, full_well_e=100000.0,
+                 pixel_clock_hz=8e6, sense_node_gain_v_per_e=5e-6, reset_factor=0.0, pixel_size_um=0.9,
+                 white_noise_v_per_rthz=1e-9)
+    return CameraMetadata.preset("ICX285", **{**quiet, **overrides})
+
+
+@pytest.mark.parametrize("level", [3.0, 5.0])
+def test_a_matched_quiet_8bit_camera_has_a_flat_area(level):
+    """ICX285 as preset makes 0.33–0.38 DN at 3–5 DN: in 8 bit most diagonal details are exactly 0, so their median
+    is 0. The metadata-free reference is floored at the rounding's 1/12 DN², so the flat blocks are found — the patch
+    is read and is the closed form (it was "no flat area": a reference of 1e-6 DN² called nearly every block
+    non-flat)."""
+    meta = CameraMetadata.preset("ICX285")
+    noisy, _ = simulate_variant(torch.full((8, 1, 128, 128), level / 255), meta, ("round8",), torch.Generator().manual_seed(5))
+    out = PhysicsNoiseEstimator().predict(noisy, meta)
+    assert out["reason"] == [""] * 8
+    assert (out["xi"] == 0).all() and torch.allclose(out["sigma_total"], physics_prior_dn(noisy, meta, clipping=True)[:, 7], atol=1e-4)
+
+
+@pytest.mark.parametrize("level", [10.0, 30.0])
+def test_a_quiet_camera_below_the_quantisation_step_is_named_so_not_less_noise(level):
+    """The quietest camera in range makes 0.16–0.28 DN at 10–30 DN: rounding a flat area at a whole DN removes most of
+    that noise (at 0.16 DN, 99.8 % of the pixels keep the level), so the matched patch reads far below every camera
+    state. Not a denoised image — "noise below the quantisation step", with the closed form (it was "less noise than
+    the metadata allow"). A noiseless patch told a camera that makes 1.5 DN is still "less noise"."""
+    from camhealth.estimators.physics_noise import BELOW_QUANTISATION, LESS_NOISE, QUANTISATION_SIGMA_DN
+
+    meta = _quietest_camera()
+    noisy, _ = simulate_variant(torch.full((4, 1, 128, 128), level / 255), meta, ("round8",), torch.Generator().manual_seed(0))
+    raw = physics_noise_posterior(noisy, meta)
+    assert (raw[:, _COL["quietest_total_dn"]] < QUANTISATION_SIGMA_DN).all()
+    out = PhysicsNoiseEstimator().predict(noisy, meta)
+    assert out["reason"] == [BELOW_QUANTISATION] * 4 and (out["xi"] == 0).all()
+    assert torch.allclose(out["sigma_total"], physics_prior_dn(noisy, meta, clipping=True)[:, 7], atol=1e-4)
+    flat = torch.full((1, 1, 128, 128), 128.0 / 255)
+    assert PhysicsNoiseEstimator().predict(flat, CameraMetadata.preset("ICX285", gain_db=0.0))["reason"] == [LESS_NOISE]
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_an_empty_batch_gives_every_output_a_full_one_gives(pool):
+    """No patches: a table of 0 rows (pooled with the frame's evidence: zeros), and from predict every key a batch of
+    patches gives for the same arguments — "evidence" and "exposures_read" included — instead of a RuntimeError
+    (cannot reshape a tensor of 0 elements) or a missing key."""
+    meta = CameraMetadata.preset("ICX285")
+    empty = torch.zeros(0, 1, 128, 128)
+    raw = physics_noise_posterior(empty, meta, pool=pool)
+    assert raw.shape == (0, len(PHYSICS_NOISE_COLUMNS)) and raw.dtype == torch.float32
+    one, _ = simulate_variant(_levels(2), meta, (), torch.Generator().manual_seed(0))
+    kwargs = {"pool": True, "return_evidence": True,
+              "other_exposures": [(one, CameraMetadata.preset("ICX285", exposure_s=0.05))]} if pool else {}
+    out = PhysicsNoiseEstimator().predict(empty, meta, **kwargs)
+    full = PhysicsNoiseEstimator().predict(one, meta, **kwargs)
+    assert set(out) == set(full)
+    for k, v in out.items():
+        if isinstance(v, torch.Tensor) and k != "evidence":
+            assert v.shape[0] == 0 and v.shape[1:] == full[k].shape[1:] and v.dtype == full[k].dtype, k
+    if pool:
+        assert out["evidence"].shape == full["evidence"].shape and not out["evidence"].any()
+        assert out["exposures_read"] == 1
+        assert noise_evidence(empty, meta).shape == full["evidence"].shape

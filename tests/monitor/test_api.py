@@ -1150,6 +1150,7 @@ class _TwoBeyond(FakeNoise):
         out["assessable"] = torch.zeros(n, dtype=torch.bool)
         out["reason"] = [BEYOND_VALIDATED] * n
         out["xi"] = torch.tensor([-1.5, -0.3])[:n]
+        out["follows_image"] = torch.ones(n, dtype=torch.bool)  # read from the image: their ξ is a bound
         return out
 
 
@@ -1167,6 +1168,30 @@ def test_banding_and_beyond_range_xi_are_true_medians_over_an_even_count_of_patc
     r = Monitor(_TwoBeyond(), FakeMTF(), sensor="ICX285", mode="map", adaptive=False, warmup=False).process(frame)
     assert r.noise.beyond_xi == pytest.approx(-0.9)
     assert r.alarm["state"] == "not_assessable", r.alarm
+
+
+class _BeyondUnread(_TwoBeyond):
+    """Refused as beyond the validated range without a reading (the closed form's ξ = 0, ``follows_image`` False)."""
+
+    def predict(self, patches, metadata=None, **kw):
+        out = super().predict(patches, metadata)
+        out["xi"] = torch.zeros(patches.shape[0])
+        out["follows_image"] = torch.zeros(patches.shape[0], dtype=torch.bool)
+        return out
+
+
+def test_beyond_range_patches_without_a_reading_give_no_bound():
+    """Patches refused as beyond the validated range whose noise was not read (clipped nearly everywhere: the
+    finest-scale check alone) carry no ξ bound: the frame is not assessable with that reason named, not "the
+    metadata predict as much"."""
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED
+
+    x = torch.linspace(0, 1, 256)[None, :].expand(192, 256)
+    frame = noisy(0.2 + 0.6 * ((x * 12).floor() % 2), 2.0, 0)
+    r = Monitor(_BeyondUnread(), FakeMTF(), sensor="ICX285", mode="map", adaptive=False, warmup=False).process(frame)
+    assert r.noise.beyond_xi is None
+    assert r.alarm["state"] == "not_assessable" and BEYOND_VALIDATED in r.alarm["message"], r.alarm
+    assert "predict as much" not in r.alarm["message"]
 
 
 class _NoMetadataNoiseSource(FakeNoise):
