@@ -67,6 +67,34 @@ def test_odd_frame_counts_give_the_first_scale_the_extra_frame(monkeypatch):
         assert [f.scale for f in out if f.condition == cond] == ["full", "3x", "full"]
 
 
+@pytest.mark.parametrize("n", [2, 3])
+def test_paired_frames_put_one_set_of_frames_under_every_condition(monkeypatch, n):
+    """--paired: every condition's j-th frame has the same scene crop, told camera and random-number seed, so two
+    conditions differ only by what they name (the matched variants' frames and a mismatch's image as told are the
+    reference's own frames); unpaired, the conditions take turns through the scenes and draw their own cameras."""
+    scenes = {sc: [torch.full((1, 160, 160), v) for v in (0.2, 0.4, 0.6, 0.8)] for sc in rb.SCENE_SCALES}
+    monkeypatch.setattr(rb, "_scenes", lambda: scenes)
+    monkeypatch.setattr(rb, "CONDITIONS", ("reference", "round8", "gain", "white_noise"))
+    out = rb.make_frames(n, seed=3, paired=True)
+    by = {c: [f for f in out if f.condition == c] for c in rb.CONDITIONS}
+    ref = by["reference"]
+    assert [f.scale for f in ref] == ["full", "3x", "full"][:n]
+    for cond, fs in by.items():
+        for f, r in zip(fs, ref):
+            assert torch.equal(f.clean, r.clean) and f.seed == r.seed and f.scale == r.scale
+            assert float(f.told.gain_db) == float(r.told.gain_db)
+    # the gain frames' image as told is the reference frame itself: only the altered field differs
+    for g, r in zip(by["gain"], ref):
+        assert g.overrides is not None and 6.0 <= g.overrides["gain_db"] - float(r.told.gain_db) <= 12.0
+        torch.testing.assert_close(g.total + g.xi, r.total)
+    # another seed pairs other scenes (an offset drawn per seed) and the design is reproducible
+    again = rb.make_frames(n, seed=3, paired=True)
+    assert all(torch.equal(a.noisy, b.noisy) for a, b in zip(out, again))
+    unpaired = rb.make_frames(n, seed=3)
+    u = [f for f in unpaired if f.condition == "reference"], [f for f in unpaired if f.condition == "round8"]
+    assert not torch.equal(u[0][0].clean, u[1][0].clean)  # unpaired: the next condition takes the next scenes
+
+
 def test_score_has_pooled_and_per_scale_groups(frames):
     res = rb.score(rb._ClosedForm(), frames)
     assert set(res["scales"]) == set(rb.SCENE_SCALES)
@@ -85,7 +113,7 @@ def test_score_has_pooled_and_per_scale_groups(frames):
 
 
 def test_report_prints_floors_and_tables_per_scale(frames, monkeypatch, tmp_path):
-    monkeypatch.setattr(rb, "make_frames", lambda n, seed=0: frames)
+    monkeypatch.setattr(rb, "make_frames", lambda n, seed=0, paired=False: frames)
     args = argparse.Namespace(task="noise", frames=2, seed=0, models=[], json=tmp_path / "r.json", command_line="test")
     res = rb.run(args)
     header = "\n".join(res.header)
@@ -335,7 +363,7 @@ def test_an_estimator_without_xi_gets_dashes_not_a_xi_of_zero(frames, monkeypatc
         assert all(part[k] != part[k] for k in rb.XI_KEYS)  # NaN, not the 0.5 / 0 % of an imputed ξ̂ = 0
         assert all(g["xi_rms"] != g["xi_rms"] for g in part["groups"].values())
         assert part["strong_total_rel_median"] == part["strong_total_rel_median"]  # σ_Total is still scored
-    monkeypatch.setattr(rb, "make_frames", lambda n, seed=0: frames)
+    monkeypatch.setattr(rb, "make_frames", lambda n, seed=0, paired=False: frames)
     monkeypatch.setattr(rb, "_estimators", lambda names: [rb._ClosedForm(), _TotalOnly()])
     args = argparse.Namespace(task="noise", frames=2, seed=0, models=[], json=None, command_line="test")
     text = "\n".join(rb.run(args).summary)

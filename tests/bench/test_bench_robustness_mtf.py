@@ -154,6 +154,7 @@ def test_tiny_benchmark_reports_every_scene_group(monkeypatch, tmp_path):
     # the PSF generalisation alone: held-out over training generators, both clean on the same rendered scenes
     fam = out["fake"]["families"]["defocus"]
     assert fam["clean_over_in_dist_rendered"] == pytest.approx(fam["clean"] / fam["in_dist_rendered"])
+    assert fam["clean_over_in_dist_dead_leaves"] == pytest.approx(fam["clean"] / fam["in_dist_dead_leaves"])
     assert "| clean / in-dist. gen. × rendered |" in text
     # the uncertainty table: per scene group and views, the shares within u and 2u, the spread alone beside it
     unc = out["fake"]["uncertainty"]
