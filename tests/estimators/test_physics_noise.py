@@ -9,7 +9,7 @@ from camhealth.estimators.noise_features import physics_prior_dn
 from camhealth.estimators.noise_features import block_details
 from camhealth.estimators.physics_noise import (
     MISMATCH_CAUSES, PHYSICS_NOISE_COLUMNS, SCENE_ALLOWANCE_DN, SCENE_ALLOWANCE_MIN_DN, TEXTURE_LIMIT, VALIDATED_SIGMA_DN,
-    PATCH_CHUNK, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, beyond_validated_range,
+    PATCH_CHUNK, QUANTISATION_SIGMA_DN, PhysicsNoiseEstimator, _clipping_penalty, _kept_variance_factor, beyond_validated_range,
     noise_evidence, physics_noise_posterior, textured,
 )
 from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator
@@ -1213,3 +1213,27 @@ def test_an_empty_batch_gives_every_output_a_full_one_gives(pool):
         assert out["evidence"].shape == full["evidence"].shape and not out["evidence"].any()
         assert out["exposures_read"] == 1
         assert noise_evidence(empty, meta).shape == full["evidence"].shape
+
+
+def test_pooled_pair_leaves_bins_below_the_quantisation_step_out_of_the_frame():
+    """A still pair of 8-bit frames (6 patches of an independent simulator's frame, every variant, metadata right: a
+    random sensor at 3 dB with σ_Total 1.0 DN at mid-grey) whose first patch is dark (17 DN, the metadata's σ 0.38 DN:
+    below the quantisation step, where rounding moves the noise by an amount that depends on each level's fraction).
+    Pooled, that patch's bins stay out of the frame's sums and the frame reads the closed form; with them it read a
+    gain excess (ξ −0.59 DN, P(match) 0.12)."""
+    import cv2
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data"
+    x, y = (torch.from_numpy(cv2.imread(str(data / f"pair_dark_quantised_{n}.png"), cv2.IMREAD_UNCHANGED)).float()
+            .view(6, 1, 128, 128) / 255 for n in ("noisy", "second"))
+    told = CameraMetadata.from_dict({
+        "gain_db": 3.0448672771453857, "exposure_s": 0.011217026971280575, "temperature_c": 22.59701156616211,
+        "dark_fom_na_per_cm2": 0.566319465637207, "full_well_e": 54695.12109375, "pixel_clock_hz": 119327728.0,
+        "sense_node_gain_v_per_e": 1.3891069556848379e-06, "reset_factor": 0.2753300964832306,
+        "pixel_size_um": 3.9886929988861084, "is_cmos": 0.0, "white_noise_v_per_rthz": 3.312914387265664e-09})
+    prior = physics_prior_dn(x, told, clipping=True)[:, 4:8]
+    assert float(prior[0, 3]) < QUANTISATION_SIGMA_DN < float(prior[1:, 3].min())
+    out = PhysicsNoiseEstimator(settings={"pool": True}).predict(x, told, reference=y)
+    assert (out["xi"] == 0).all() and bool((out["p_match"] > 0.5).all())
+    assert torch.allclose(out["sigma_total"], prior[:, 3].float(), atol=1e-3)
