@@ -144,7 +144,13 @@ hypothesis explains: the closed form is returned, ``xi_std`` and ``sigma_std`` a
 visible mismatches — no verdict on the metadata); and ``"noise below the quantisation step"`` instead of it on
 8-bit input where the quietest of those camera states makes less than :data:`QUANTISATION_SIGMA_DN` at the patch's
 level (rounding a flat area at a whole DN removes such noise rather than adding 1/12 DN² to it, so a matched quiet
-camera reads that quiet; the closed form is returned). Pooled, a patch that reads so
+camera reads that quiet; the closed form is returned); and ``"a lossy codec removed noise"`` on 8-bit input that would
+be read as less noise than the metadata's and shows JPEG's quantised 8×8 block grid
+(:mod:`camhealth.estimators.jpeg_quantisation`; pooled, on at least half of the frame's patches): the codec sets the
+transform coefficients below its quantisation steps to zero, noise included, so a JPEG frame of a camera that is as
+noisy as its metadata say reads cleaner (at quality 75–95, a 2.6 DN camera's readout noise read as 0.5 DN). The
+closed form is returned with no verdict, as for less noise than the metadata allow; a JPEG image that reads *more*
+noise than its metadata is read as it is (the codec only takes noise away, so the excess is at least that). Pooled, a patch that reads so
 alone (a noiseless overlay, letterbox or masked area) is refused with its own ``quiet_z`` and, where such patches
 are at most half of the frame's, left out of the frame's evidence, so the rest of the frame is read as it is; where
 they are most of it, every patch of the frame is refused.
@@ -181,6 +187,7 @@ from camhealth.estimators.noise_features import (
     metadata_from_matrix, truncated_second_moment,
 )
 from camhealth.estimators.defective_pixels import defective_pixels
+from camhealth.estimators.jpeg_quantisation import MIN_COEFFICIENTS, jpeg_grid
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
 from camhealth.estimators.static_pair import pair_fold, pair_stillness
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
@@ -188,7 +195,7 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetad
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "LESS_NOISE",
-           "QUIET_Z_LIMIT", "BELOW_QUANTISATION", "QUANTISATION_SIGMA_DN", "quieter_than_any_camera", "LOUD_RATIO",
+           "QUIET_Z_LIMIT", "BELOW_QUANTISATION", "CODEC_REMOVED_NOISE", "QUANTISATION_SIGMA_DN", "quieter_than_any_camera", "LOUD_RATIO",
            "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
            "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor",
            "noise_evidence"]
@@ -216,6 +223,11 @@ QUANTISATION_SIGMA_DN = 0.5
 #: allow makes less than :data:`QUANTISATION_SIGMA_DN` at the patch's level: the rounding, not a denoiser, may have
 #: removed the noise, so the image cannot check the metadata. The closed form is returned, not assessable.
 BELOW_QUANTISATION = "noise below the quantisation step"
+#: The ``reason`` of an 8-bit patch that reads less noise than its metadata and shows JPEG's quantised 8×8 block grid
+#: (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled: half of the frame's patches do): the codec
+#: set the coefficients below its quantisation steps to zero, and the noise with them, so the quiet reading is the
+#: codec's. The image cannot check the metadata; the closed form is returned, not assessable (column ``codec``).
+CODEC_REMOVED_NOISE = "a lossy codec removed noise"
 #: Pooled: a patch whose noise σ reads more than this many times the frame's median patch's (and QUIET_Z_LIMIT
 #: standard errors above it) is far noisier than its frame — amp glow, a hot or a pasted region — and is read alone;
 #: so is a noise-like patch above a gap of this ratio between the frame's noise-like patches (two noise levels).
@@ -255,7 +267,7 @@ PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
     "row_dn", "col_dn", "patch_details", "patch_texture", "patch_detail_corr_check",
     "p_cause_gain", "p_cause_temperature", "p_cause_white_noise", "p_cause_beyond", "quiet_z",
-    "quietest_total_dn",
+    "quietest_total_dn", "codec",
 )
 #: What a visible mismatch may be (the hypotheses' kinds, in the order of the ``cause`` output): one of
 #: :data:`MISMATCH_FIELDS` wrong, or noise beyond what any field in range explains.
@@ -674,7 +686,7 @@ def physics_noise_posterior(
     other_evidence: torch.Tensor | None = None,
     return_evidence: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Physics-first noise sources of each patch, (B, 27) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 28) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
@@ -698,7 +710,11 @@ def physics_noise_posterior(
     cause NaN, and P(match) only says whether the camera states that fit least badly are visible mismatches — no
     verdict); and the least σ_Total [DN] before clipping of any
     camera state the hypotheses span, at the patch's mean intensity (what :meth:`PhysicsNoiseEstimator.predict`
-    compares with :data:`QUANTISATION_SIGMA_DN`).
+    compares with :data:`QUANTISATION_SIGMA_DN`); ``codec``: 1 where an 8-bit patch (pooled: frame) would follow the
+    image to less noise than the metadata's and shows JPEG's quantised block grid
+    (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, on half of the frame's patches that hold
+    enough blocks): the codec removed the noise, so the closed form is kept with no verdict — uncertainties ∞, cause
+    NaN — as below −:data:`QUIET_Z_LIMIT`; 0 elsewhere (the grid is tested only there).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -1033,6 +1049,23 @@ def physics_noise_posterior(
         corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0] * (~(quiet_alone | loud_alone)).view(b, 1, 1, 1), pool)
         readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
         follows = readable & (p_match < 0.5) & ~quiet
+        # a lossy codec removes noise: an 8-bit image that reads quieter than its metadata and shows JPEG's quantised
+        # block grid (jpeg_grid) read the codec's work, not the camera's, and cannot check the metadata: the closed
+        # form with no verdict, as where it is quieter than every camera state. Tested only there (a pass over the
+        # pixels); pooled, the frame is coded where at least half of its patches that hold enough blocks are
+        e_tot_image = (w * tot[:, 1:]).sum(1)
+        codec = follows & (e_tot_image < tot[:, 0]) & (q > 0)
+        if bool(codec.any()):
+            if pool:
+                grid_read = jpeg_grid(x)
+                held = grid_read.coefficients >= MIN_COEFFICIENTS
+                frame_coded = bool(held.any()) and 2 * int(grid_read.coded.sum()) >= int(held.sum())
+                codec = codec & frame_coded
+            else:
+                sel = codec.nonzero(as_tuple=True)[0]
+                codec = torch.zeros_like(codec).index_put_((sel,), jpeg_grid(x[sel]).coded.to(dev))
+        follows = follows & ~codec
+        no_verdict = quiet | codec
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
         # follow it (the only ones that use it): one batched call
         sel = follows.nonzero(as_tuple=True)[0]
@@ -1048,8 +1081,7 @@ def physics_noise_posterior(
         e_tot = (post * tot).sum(1)
         sd_tot = ((post * tot.square()).sum(1) - e_tot.square()).clamp_min(0).sqrt()
         scale = (prior_clipped[:, 3] / tot[:, 0].clamp_min(1e-12)).clamp(0, 1)
-        xi_std = torch.where(evidence & ~quiet, sd_tot * scale, torch.full_like(sd_tot, float("inf")))
-        e_tot_image = (w * tot[:, 1:]).sum(1)
+        xi_std = torch.where(evidence & ~no_verdict, sd_tot * scale, torch.full_like(sd_tot, float("inf")))
         unclipped_answer = torch.where(follows, e_tot_image, tot[:, 0])
         # per source: the posterior RMS deviation of every hypothesis's σ (before clipping) from the answer's, scaled
         # to the clipped answer — the spread where the image is followed, and what a mismatch would move where the
@@ -1062,7 +1094,7 @@ def physics_noise_posterior(
         src_scale = torch.where(answer_src > 1e-12, out_sigma[:, :3] / answer_src.clamp_min(1e-12), torch.ones_like(answer_src)).clamp(0, 1)
         # and the patch's own sampling: the realised σ of n pixels' noise differs from its expected σ by σ/√(2n)
         sd_src = (sd_src.square() * src_scale.square() + out_sigma[:, :3].square() / (2.0 * x.shape[-1] * x.shape[-2])).sqrt()
-        sigma_std = torch.where((evidence & ~quiet).unsqueeze(1), sd_src, torch.full_like(sd_src, float("inf")))
+        sigma_std = torch.where((evidence & ~no_verdict).unsqueeze(1), sd_src, torch.full_like(sd_src, float("inf")))
         # row and column noise, which no source of the metadata makes: where it is detected on a patch that is not
         # textured once it is taken out, and moves σ_Total visibly, it adds to the image's σ_Total and so to ξ (the
         # per-source σ stay the pixel noise's)
@@ -1084,8 +1116,8 @@ def physics_noise_posterior(
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
                          corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1),
-                         torch.where((readable & ~quiet).unsqueeze(1), cause, torch.full_like(cause, float("nan"))),
-                         fit_z.unsqueeze(1), tot.amin(1, keepdim=True)], dim=1)
+                         torch.where((readable & ~no_verdict).unsqueeze(1), cause, torch.full_like(cause, float("nan"))),
+                         fit_z.unsqueeze(1), tot.amin(1, keepdim=True), codec.to(f64).unsqueeze(1)], dim=1)
     out = out.float()
     if bool(loud_alone.any()):  # the patches far noisier than their frame, read alone
         sel = loud_alone.nonzero(as_tuple=True)[0]
@@ -1100,7 +1132,7 @@ def physics_noise_posterior(
     # the frame's mean level; none where it is not readable
     frame_tot = (a_all[:1] * mean_i.mean() + c_all[:1]).clamp_min(0).sqrt()
     frame_ev = torch.cat([own[:, 0], _visible(frame_tot).to(f64)])
-    return out, torch.where(readable[0], frame_ev, torch.zeros_like(frame_ev))
+    return out, torch.where(readable[0] & ~codec[0], frame_ev, torch.zeros_like(frame_ev))
 
 
 def _visible(tot: torch.Tensor) -> torch.Tensor:
@@ -1342,6 +1374,8 @@ class PhysicsNoiseEstimator:
             elif raw[i, 25] < -QUIET_Z_LIMIT:
                 # far quieter than every camera state: a quiet 8-bit camera's rounding may have removed its noise
                 reason[i] = BELOW_QUANTISATION if eight_bit[i] and raw[i, 26] < QUANTISATION_SIGMA_DN else LESS_NOISE
+            elif raw[i, 27] > 0.5:  # quieter than the metadata, and the codec's block grid is there
+                reason[i] = CODEC_REMOVED_NOISE
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
         defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
@@ -1354,7 +1388,7 @@ class PhysicsNoiseEstimator:
 
     def _read(self, patches: torch.Tensor, ref: torch.Tensor | None, meta: CameraMetadata, settings: dict[str, Any],
               batch_size: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """The posterior of the patches (CPU, (B, 27)) — read from their static pair where ``ref`` is given and the
+        """The posterior of the patches (CPU, (B, 28)) — read from their static pair where ``ref`` is given and the
         scene stood still, alone elsewhere (:meth:`predict`) — whether each was read from the pair ((B,) bool, None
         without ``ref``), and, pooled, the frame's own evidence summed over the readings (:func:`noise_evidence`)."""
         b = patches.shape[0]
@@ -1434,7 +1468,7 @@ class PhysicsNoiseEstimator:
 
     def _posterior(self, patches: torch.Tensor, meta: CameraMetadata, settings: dict[str, Any], batch_size: int,
                    reference: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 27): pooled in one call (with the
+        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 28): pooled in one call (with the
         patches of a textured frame that pass both checks on their own details read alone), else in chunks; and,
         pooled, the frame's own evidence of that call (:func:`noise_evidence`; None per patch)."""
         b = patches.shape[0]

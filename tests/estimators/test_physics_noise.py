@@ -1237,3 +1237,74 @@ def test_pooled_pair_leaves_bins_below_the_quantisation_step_out_of_the_frame():
     out = PhysicsNoiseEstimator(settings={"pool": True}).predict(x, told, reference=y)
     assert (out["xi"] == 0).all() and bool((out["p_match"] > 0.5).all())
     assert torch.allclose(out["sigma_total"], prior[:, 3].float(), atol=1e-3)
+
+
+def _jpeg(x: torch.Tensor, quality: int) -> torch.Tensor:
+    """Each B×1×H×W patch in [0, 1] coded as an 8-bit gray JPEG of ``quality`` (OpenCV) and decoded."""
+    import cv2
+    import numpy as np
+
+    out = []
+    for p in x:
+        ok, buf = cv2.imencode(".jpg", (p[0].numpy() * 255.0).round().astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        assert ok
+        out.append(torch.from_numpy(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0))
+    return torch.stack(out).unsqueeze(1)
+
+
+def test_a_jpeg_frame_that_reads_cleaner_than_its_camera_keeps_the_closed_form_and_names_the_codec():
+    """ICX285 at 12 dB makes 3.1 DN; coded at quality 95 its noise is no longer Gaussian (the coefficients below the
+    codec's steps zeroed, the others rounded to them), and the frame's robust NLF reads less of it: its pooled posterior
+    would follow a quieter camera (the ``codec`` column is 1 only there). The codec's block grid is there: the closed form, no verdict (ξ 0, uncertainties ∞, cause NaN), "a lossy codec removed
+    noise". The same camera noisier than its metadata say stays "noisier" through the same codec."""
+    from camhealth.estimators.physics_noise import CODEC_REMOVED_NOISE
+
+    meta = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    noisy, _ = simulate_variant(_levels(), meta, ("round8",), torch.Generator().manual_seed(1))
+    coded = _jpeg(noisy, 95)
+    raw = physics_noise_posterior(coded, meta, pool=True)
+    assert (raw[:, _COL["codec"]] == 1).all() and (raw[:, _COL["follows_image"]] == 0).all()
+    assert torch.allclose(raw[:, :4], physics_prior_dn(coded, meta, clipping=True)[:, 4:8], atol=1e-4)
+    assert (raw[:, _COL["xi_dn"]] == 0).all() and torch.isinf(raw[:, _COL["xi_std_dn"]]).all()
+    assert torch.isinf(raw[:, _COL["pn_std_dn"]]).all() and torch.isnan(raw[:, _COL["p_cause_gain"]]).all()
+    out = PhysicsNoiseEstimator().predict(coded, meta, pool=True)
+    assert out["reason"] == [CODEC_REMOVED_NOISE] * 16 and not out["assessable"].any()
+    _, evidence = physics_noise_posterior(coded, meta, pool=True, return_evidence=True)
+    assert not evidence.any()  # a coded frame lends no evidence to other exposure times
+    # uncoded, the frame is its camera's: the closed form, assessable, nothing tested
+    plain = physics_noise_posterior(noisy, meta, pool=True)
+    assert (plain[:, _COL["codec"]] == 0).all() and (plain[:, _COL["xi_dn"]] == 0).all()
+    # a camera 6 dB noisier than told, through the same codec: followed, noisier (the codec only takes noise away)
+    louder, _ = simulate_variant(_levels(), meta, ("round8",), torch.Generator().manual_seed(1), {"gain_db": 18.0})
+    loud = physics_noise_posterior(_jpeg(louder, 95), meta, pool=True)
+    assert (loud[:, _COL["codec"]] == 0).all() and (loud[:, _COL["follows_image"]] == 1).all()
+    assert (loud[:, _COL["xi_dn"]] < -0.5).all()
+
+
+def test_a_camera_quieter_than_told_without_a_codec_is_followed():
+    """The codec rule needs the codec's grid: told 18 dB, the camera at 12 dB, 8-bit and uncoded — the image is read
+    (ξ > 0, "cleaner"), per patch and pooled."""
+    real = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    told = CameraMetadata.preset("ICX285", gain_db=18.0, exposure_s=0.05, temperature_c=40.0)
+    noisy, _ = simulate_variant(_levels(), real, ("round8",), torch.Generator().manual_seed(2))
+    for pool in (False, True):
+        raw = physics_noise_posterior(noisy, told, pool=pool)
+        assert (raw[:, _COL["codec"]] == 0).all() and (raw[:, _COL["follows_image"]] == 1).all(), pool
+        assert (raw[:, _COL["xi_dn"]] > 0.5).all()
+
+
+def test_per_patch_the_codec_rule_holds_the_patches_that_would_read_cleaner():
+    """Per patch each coded patch is tested alone: those that would follow a quieter camera keep the closed form
+    with the codec's reason; the others are read as they would be anyway."""
+    from camhealth.estimators.physics_noise import CODEC_REMOVED_NOISE
+
+    meta = CameraMetadata.preset("EV76C661", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    noisy, _ = simulate_variant(_ramp(16), meta, ("round8",), torch.Generator().manual_seed(1))
+    coded = _jpeg(noisy, 90)
+    raw = physics_noise_posterior(coded, meta)
+    held = raw[:, _COL["codec"]] == 1
+    assert held.any() and (raw[held, _COL["follows_image"]] == 0).all() and (raw[held, _COL["xi_dn"]] == 0).all()
+    prior = physics_prior_dn(coded, meta, clipping=True)[:, 4:8]
+    assert torch.allclose(raw[held, :4], prior[held], atol=1e-4)
+    out = PhysicsNoiseEstimator().predict(coded, meta)
+    assert [r == CODEC_REMOVED_NOISE for r in out["reason"]] == held.tolist()
