@@ -151,8 +151,9 @@ PATCH = 128
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--task", choices=("noise", "mtf"), default="noise",
-                        help="noise (default): noise-source estimators; mtf: MTF estimators (camhealth.bench.robustness_mtf)")
+    parser.add_argument("--task", choices=("noise", "mtf", "jpeg"), default="noise",
+                        help="noise (default): noise-source estimators; mtf: MTF estimators (camhealth.bench.robustness_mtf); "
+                             "jpeg: the noise estimator's JPEG grid test on the paired frames (camhealth.bench.robustness_jpeg)")
     parser.add_argument("--per-cell", type=int, default=8,
                         help="--task mtf: patches per generator × size × condition × scene group (default 8)")
     parser.add_argument("--mtf-sizes", type=float, nargs="+", default=[3.0, 5.0, 9.0, 15.0, 21.0],
@@ -883,6 +884,10 @@ def run(args: argparse.Namespace) -> BenchResult:
         return robustness_mtf.run(args)
     if args.frames < 2:
         raise SystemExit(f"--frames {args.frames} must be ≥ 2")
+    if getattr(args, "task", "noise") == "jpeg":
+        from camhealth.bench import robustness_jpeg
+
+        return robustness_jpeg.run(args)
     t0 = time.perf_counter()
     paired = bool(getattr(args, "paired", False))
     frames = make_frames(args.frames, args.seed, paired=paired)
