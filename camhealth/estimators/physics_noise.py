@@ -146,7 +146,7 @@ visible mismatches — no verdict on the metadata); and ``"noise below the quant
 level (rounding a flat area at a whole DN removes such noise rather than adding 1/12 DN² to it, so a matched quiet
 camera reads that quiet; the closed form is returned); and ``"a lossy codec removed noise"`` on 8-bit input that would
 be read as less noise than the metadata's and shows JPEG's quantised 8×8 block grid
-(:mod:`camhealth.estimators.jpeg_quantisation`; pooled, on at least half of the frame's patches): the codec sets the
+(:mod:`camhealth.estimators.jpeg_quantisation`; pooled, on 4 of the frame's patches): the codec sets the
 transform coefficients below its quantisation steps to zero, noise included, so a JPEG frame of a camera that is as
 noisy as its metadata say reads cleaner (at quality 75–95, a 2.6 DN camera's readout noise read as 0.5 DN). The
 closed form is returned with no verdict, as for less noise than the metadata allow; a JPEG image that reads *more*
@@ -187,7 +187,7 @@ from camhealth.estimators.noise_features import (
     metadata_from_matrix, truncated_second_moment,
 )
 from camhealth.estimators.defective_pixels import defective_pixels
-from camhealth.estimators.jpeg_quantisation import MIN_COEFFICIENTS, jpeg_grid
+from camhealth.estimators.jpeg_quantisation import coded_frame, jpeg_grid
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
 from camhealth.estimators.static_pair import pair_fold, pair_stillness
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
@@ -712,8 +712,8 @@ def physics_noise_posterior(
     camera state the hypotheses span, at the patch's mean intensity (what :meth:`PhysicsNoiseEstimator.predict`
     compares with :data:`QUANTISATION_SIGMA_DN`); ``codec``: 1 where an 8-bit patch (pooled: frame) would follow the
     image to less noise than the metadata's and shows JPEG's quantised block grid
-    (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, on half of the frame's patches that hold
-    enough blocks): the codec removed the noise, so the closed form is kept with no verdict — uncertainties ∞, cause
+    (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, on the frame:
+    :func:`~camhealth.estimators.jpeg_quantisation.coded_frame`): the codec removed the noise, so the closed form is kept with no verdict — uncertainties ∞, cause
     NaN — as below −:data:`QUIET_Z_LIMIT`; 0 elsewhere (the grid is tested only there).
 
     Args:
@@ -1052,15 +1052,12 @@ def physics_noise_posterior(
         # a lossy codec removes noise: an 8-bit image that reads quieter than its metadata and shows JPEG's quantised
         # block grid (jpeg_grid) read the codec's work, not the camera's, and cannot check the metadata: the closed
         # form with no verdict, as where it is quieter than every camera state. Tested only there (a pass over the
-        # pixels); pooled, the frame is coded where at least half of its patches that hold enough blocks are
+        # pixels); pooled, the frame is coded where its sampled patches are (coded_frame)
         e_tot_image = (w * tot[:, 1:]).sum(1)
         codec = follows & (e_tot_image < tot[:, 0]) & (q > 0)
         if bool(codec.any()):
             if pool:
-                grid_read = jpeg_grid(x)
-                held = grid_read.coefficients >= MIN_COEFFICIENTS
-                frame_coded = bool(held.any()) and 2 * int(grid_read.coded.sum()) >= int(held.sum())
-                codec = codec & frame_coded
+                codec = codec & coded_frame(x)
             else:
                 sel = codec.nonzero(as_tuple=True)[0]
                 codec = torch.zeros_like(codec).index_put_((sel,), jpeg_grid(x[sel]).coded.to(dev))
@@ -1274,7 +1271,9 @@ class PhysicsNoiseEstimator:
         ``images`` (its clipping, its σ). Patches whose difference carries the scene
         (:func:`~camhealth.estimators.static_pair.scene_leak`, :func:`~camhealth.estimators.static_pair.pair_shift`:
         the scene or the camera moved, or a lossy codec re-quantised the two frames differently) or reads textured or
-        without a flat area are read from ``images`` alone; pooled, a frame of which fewer than half the patches are
+        without a flat area are read from ``images`` alone, and so are JPEG frames (the codec's block grid,
+        :func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, the frame's) where the pair would declare a
+        mismatch; pooled, a frame of which fewer than half the patches are
         still (the camera moved) is read alone as a whole. The output then has
         ``"static"`` (B,) bool: the answer read the pair.
 
@@ -1415,6 +1414,17 @@ class PhysicsNoiseEstimator:
                 raw[sel] = raw_sel.cpu()
                 # a pair that is still textured or without a flat area (clipped nearly everywhere) is read alone too
                 static[sel] = ~textured(raw[sel, 8], raw[sel, 11]) & (raw[sel, 7] >= MIN_FOLLOW_DETAILS)
+                # and so is a pair of JPEG frames that would declare a mismatch: the codec quantises each exposure's
+                # noise and scene differently, and on dense texture their difference passes for noise (tested only
+                # where the pair would be followed; pooled, the frame: coded_frame)
+                declared = sel[static[sel] & (raw[sel, 9] > 0.5)]
+                if declared.numel():
+                    if settings.get("pool"):
+                        if coded_frame(patches):
+                            static[:] = False
+                            evidence = None
+                    else:
+                        static[declared[jpeg_grid(patches[declared]).coded]] = False
             moved = (~static).nonzero(as_tuple=True)[0]
             if moved.numel():
                 moved_dev = moved.to(on_device.device)

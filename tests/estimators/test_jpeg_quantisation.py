@@ -155,3 +155,25 @@ def test_pillows_jpegs_are_coded_too(options):
     gray = np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("L"))
     out = jpeg_grid(_patches([gray[7:135, 2:130]]))
     assert out.coded.tolist() == [True] and out.offset.tolist() == [[1, 6]]
+
+
+def test_a_frame_is_coded_by_the_patches_it_samples():
+    from camhealth.estimators.jpeg_quantisation import FRAME_SAMPLE, coded_frame
+
+    scenes = _scene(10, 128, 13)
+    coded = _patches([_code(_noisy(s, 2.0, 14), 80) for s in scenes])
+    plain = _patches([_noisy(s, 2.0, 14) for s in scenes])
+    clipped = torch.ones(10, 1, 128, 128)
+    assert coded_frame(coded) and not coded_frame(plain) and not coded_frame(clipped)
+    # evenly spaced: patches 0, 3, 6, 9 of 10 are read; a frame coded only there is coded, one coded elsewhere is not
+    mixed = plain.clone()
+    mixed[[0, 3, 6, 9]] = coded[[0, 3, 6, 9]]
+    assert FRAME_SAMPLE == 4 and coded_frame(mixed)
+    other = coded.clone()
+    other[[0, 3, 6, 9]] = plain[[0, 3, 6, 9]]
+    assert not coded_frame(other) and coded_frame(other, sample=10) is True  # 6 of 10 coded: at least half
+    assert coded_frame(coded[:1]) and not coded_frame(torch.zeros(0, 1, 128, 128))
+    with pytest.raises(ValueError, match="sample = 0"):
+        coded_frame(coded, sample=0)
+    with pytest.raises(ValueError, match="B×1×H×W"):
+        coded_frame(torch.zeros(128, 128))

@@ -1308,3 +1308,27 @@ def test_per_patch_the_codec_rule_holds_the_patches_that_would_read_cleaner():
     assert torch.allclose(raw[held, :4], prior[held], atol=1e-4)
     out = PhysicsNoiseEstimator().predict(coded, meta)
     assert [r == CODEC_REMOVED_NOISE for r in out["reason"]] == held.tolist()
+
+
+def test_a_jpeg_pair_that_would_declare_a_mismatch_is_read_alone():
+    """Four patches of dense grass from a JPEG frame of the robustness benchmark (seed 0) and its next exposure, coded
+    alike, metadata right. The codec quantises each exposure's texture differently, and here the pair passes the
+    stillness tests: read from it, every patch would be about 3 DN noisier than its camera. Their block grid says JPEG,
+    so they are read alone — the closed form, nothing declared — per patch and pooled."""
+    import cv2
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data"
+    x, y = (torch.from_numpy(cv2.imread(str(data / f"pair_jpeg_grass_{n}.png"), cv2.IMREAD_UNCHANGED)).float()
+            .view(4, 1, 128, 128) / 255 for n in ("noisy", "second"))
+    told = CameraMetadata.from_dict({
+        "gain_db": 11.573198318481445, "exposure_s": 0.0026963758282363415, "temperature_c": 9.71207046508789,
+        "dark_fom_na_per_cm2": 0.9570000171661377, "full_well_e": 8400.0, "pixel_clock_hz": 90000000.0,
+        "sense_node_gain_v_per_e": 4.999999873689376e-06, "reset_factor": 0.0, "pixel_size_um": 5.300000190734863,
+        "is_cmos": 1.0, "white_noise_v_per_rthz": 5.900000132896821e-08})
+    pair = physics_noise_posterior(x, told, reference=y, scene_allowance_dn=0.0, scene_allowance_min_dn=0.0)
+    assert (pair[:, _COL["follows_image"]] == 1).all() and (pair[:, _COL["xi_dn"]] < -0.5).all()
+    for pool in (False, True):
+        out = PhysicsNoiseEstimator().predict(x, told, reference=y, pool=pool)
+        assert not out["static"].any() and (out["xi"] == 0).all(), pool
+        assert torch.allclose(out["sigma_total"], physics_prior_dn(x, told, clipping=True)[:, 7].float(), atol=1e-3)
