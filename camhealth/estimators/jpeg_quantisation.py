@@ -46,6 +46,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from camhealth._validation import check_float, check_range
+
 __all__ = ["BLOCK", "FREQUENCIES", "ZERO_EXCESS_LIMIT", "JITTER_RATIO_LIMIT", "MIN_COEFFICIENTS", "FRAME_SAMPLE", "JpegGrid",
            "jpeg_grid", "coded_frame", "noise_jitter_ratio", "codec_jitter_ratio"]
 
@@ -144,19 +146,13 @@ def jpeg_grid(patches: torch.Tensor) -> JpegGrid:
     Patches under 15 px in either side hold no whole block at every offset and are not coded (their counts 0).
 
     Raises:
-        ValueError: not a B×1×H×W floating-point tensor, values outside [0, 1] or not finite.
+        ValueError: not a B×1×H×W tensor, values outside [0, 1] or not finite (naming the first).
+        TypeError: not a floating-point tensor.
     """
     if not isinstance(patches, torch.Tensor) or patches.ndim != 4 or patches.shape[1] != 1:
         raise ValueError(f"patches must be a B×1×H×W tensor, got "
                          f"{tuple(patches.shape) if isinstance(patches, torch.Tensor) else type(patches).__name__}")
-    if not patches.is_floating_point():
-        raise TypeError(f"patches must be a floating-point tensor in [0, 1], got {patches.dtype}")
-    if not bool(torch.isfinite(patches).all()):
-        raise ValueError("patches contain NaN or inf; jpeg_grid needs finite intensities in [0, 1]")
-    if patches.numel() > 0:
-        lo, hi = torch.aminmax(patches.detach())
-        if lo < 0 or hi > 1:
-            raise ValueError(f"patches must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
+    check_range(check_float(patches, "patches"), "patches", 0.0, 1.0, "(DN/255)")
     b, _, h, w = patches.shape
     excess = torch.zeros(b, dtype=torch.float64)
     ratio = torch.full((b,), float("nan"), dtype=torch.float64)

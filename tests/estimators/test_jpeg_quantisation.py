@@ -135,7 +135,7 @@ def test_bad_input_is_refused_with_what_was_given():
         jpeg_grid(torch.zeros(1, 1, 128, 128, dtype=torch.uint8))
     with pytest.raises(ValueError, match="NaN"):
         jpeg_grid(torch.full((1, 1, 128, 128), float("nan")))
-    with pytest.raises(ValueError, match=r"\[0, 1\].*255"):
+    with pytest.raises(ValueError, match=r"255.*\[0, 1\]"):
         jpeg_grid(torch.full((1, 1, 128, 128), 255.0))
 
 

@@ -1215,18 +1215,25 @@ def test_an_empty_batch_gives_every_output_a_full_one_gives(pool):
         assert noise_evidence(empty, meta).shape == full["evidence"].shape
 
 
+def _pair_fixture(stem: str, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The committed still pair ``tests/estimators/data/{stem}_{noisy,second}.png``: n 128-px patches stacked
+    vertically, 8-bit → two n×1×128×128 tensors in [0, 1]."""
+    import cv2
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data"
+    x, y = (torch.from_numpy(cv2.imread(str(data / f"{stem}_{k}.png"), cv2.IMREAD_UNCHANGED)).float().view(n, 1, 128, 128)
+            / 255 for k in ("noisy", "second"))
+    return x, y
+
+
 def test_pooled_pair_leaves_bins_below_the_quantisation_step_out_of_the_frame():
     """A still pair of 8-bit frames (6 patches of an independent simulator's frame, every variant, metadata right: a
     random sensor at 3 dB with σ_Total 1.0 DN at mid-grey) whose first patch is dark (17 DN, the metadata's σ 0.38 DN:
     below the quantisation step, where rounding moves the noise by an amount that depends on each level's fraction).
     Pooled, that patch's bins stay out of the frame's sums and the frame reads the closed form; with them it read a
     gain excess (ξ −0.59 DN, P(match) 0.12)."""
-    import cv2
-    from pathlib import Path
-
-    data = Path(__file__).parent / "data"
-    x, y = (torch.from_numpy(cv2.imread(str(data / f"pair_dark_quantised_{n}.png"), cv2.IMREAD_UNCHANGED)).float()
-            .view(6, 1, 128, 128) / 255 for n in ("noisy", "second"))
+    x, y = _pair_fixture("pair_dark_quantised", 6)
     told = CameraMetadata.from_dict({
         "gain_db": 3.0448672771453857, "exposure_s": 0.011217026971280575, "temperature_c": 22.59701156616211,
         "dark_fom_na_per_cm2": 0.566319465637207, "full_well_e": 54695.12109375, "pixel_clock_hz": 119327728.0,
@@ -1315,12 +1322,7 @@ def test_a_jpeg_pair_that_would_declare_a_mismatch_is_read_alone():
     alike, metadata right. The codec quantises each exposure's texture differently, and here the pair passes the
     stillness tests: read from it, every patch would be about 3 DN noisier than its camera. Their block grid says JPEG,
     so they are read alone — the closed form, nothing declared — per patch and pooled."""
-    import cv2
-    from pathlib import Path
-
-    data = Path(__file__).parent / "data"
-    x, y = (torch.from_numpy(cv2.imread(str(data / f"pair_jpeg_grass_{n}.png"), cv2.IMREAD_UNCHANGED)).float()
-            .view(4, 1, 128, 128) / 255 for n in ("noisy", "second"))
+    x, y = _pair_fixture("pair_jpeg_grass", 4)
     told = CameraMetadata.from_dict({
         "gain_db": 11.573198318481445, "exposure_s": 0.0026963758282363415, "temperature_c": 9.71207046508789,
         "dark_fom_na_per_cm2": 0.9570000171661377, "full_well_e": 8400.0, "pixel_clock_hz": 90000000.0,
