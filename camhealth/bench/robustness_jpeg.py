@@ -1,7 +1,7 @@
 """``python -m camhealth.bench robustness --task jpeg``: the JPEG grid test on the robustness benchmark's frames.
 
-:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid` decides whether a lossy codec removed the noise that the
-noise-source estimator reads (its reason "a lossy codec removed noise"). Scored on the paired frames of
+:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid` decides whether a lossy codec coded the noise that the
+noise-source estimator reads (its reason "a lossy codec changed the noise"). Scored on the paired frames of
 :func:`camhealth.bench.robustness.make_frames` (``--frames`` per condition, 16 patches of 128 px each; ``--seed``):
 
 - every condition as that benchmark makes it — the ``jpeg`` condition coded per patch at quality 75–95, every other

@@ -18,22 +18,24 @@ s plus noise of σ_t² = σ² + 1/12 DN² (its own 8-bit rounding included), who
 erf(a) and whose share within 0.5–1 DN is erf(2a) − erf(a) at s = 0, a = 0.5/(σ_t·√2) (:func:`noise_jitter_ratio`:
 2.0 at σ = 0.5 DN, 1.3 at 1 DN, 3.6 at 0.3 DN); any other s and any mixture of them gives less.
 
-**Test.** At each of the 64 grid offsets (dy, dx) the patch's whole 8×8 blocks — those without a pixel within ½ DN of
-0 or 255, where the clipping bends the comb — give the share z of their 16 highest-frequency coefficients
+**Test.** The patch is cut into 16×16-px tiles, each of which holds one whole 8×8 block starting at every grid
+offset (dy, dx) ∈ 0…7² (64 per offset on a 128-px patch). At each offset its blocks — those without a pixel within
+½ DN of 0 or 255, where the clipping bends the comb — give the share z of their 16 highest-frequency coefficients
 (u, v ∈ 4…7: the codec's largest steps, a scene's least content) within ±0.5 DN. A codec's grid holds far more of them
 than the other offsets, whose blocks straddle two coded blocks; noise added afterwards makes every offset alike. The
 patch is **coded** where, at the offset with the most,
 
-- z exceeds the median offset's by :data:`ZERO_EXCESS_LIMIT` (0.1; without a codec at most 0.03 over the robustness
-  benchmark's 7 000 patches, sampling alone, except a scene that was itself a JPEG and got its noise afterwards: up to
-  0.18), and
-- those coefficients' jitter ratio is at least :data:`JITTER_RATIO_LIMIT` (3: noise of σ ≥ 0.35 DN stays below it
-  whatever the scene, a codec's rounding reads 11 at the median), so a comb of the codec's width, not of noise, is
-  what sits at zero — which tells a coded patch from a JPEG scene that was exposed to noise afterwards, and
-- at least :data:`MIN_COEFFICIENTS` coefficients (64 blocks, a 64-px patch) were counted there.
+- z exceeds the median offset's by :data:`ZERO_EXCESS_LIMIT` (0.1; without a codec sampling keeps it near 0.02, but
+  a scene that was itself a JPEG and got a quiet camera's noise afterwards keeps its grid's zeros: up to 0.25 on the
+  robustness benchmark's frames at 0.8 DN), and
+- those coefficients' jitter ratio exceeds :data:`JITTER_RATIO_LIMIT` (3: noise of σ ≥ 0.35 DN stays below it
+  whatever the scene, a codec's rounding reads 11 at the median) by three standard errors of the counts
+  (near − 3·ring > 3·√(near + 9·ring)), so a comb of the codec's width, not of noise, is what sits at zero — which
+  tells a coded patch from a JPEG scene that was exposed to noise afterwards (1.3 there), and
+- at least :data:`MIN_COEFFICIENTS` coefficients (32 unclipped blocks) were counted there.
 
 What it finds on the robustness benchmark's frames, coded again at other qualities, crop offsets and in colour:
-``python -m camhealth.bench robustness --jpeg-grid`` (docs/benchmarks.md). Strong noise coded at quality ≥ 95, whose
+``python -m camhealth.bench robustness --task jpeg`` (docs/benchmarks.md). Strong noise coded at quality ≥ 95, whose
 steps are below the noise and whose codec removed little of it, is often not coded by the test — nor is quality 100
 (steps of 1 DN, nothing removed).
 """
@@ -59,12 +61,12 @@ FREQUENCIES: tuple[int, ...] = (4, 5, 6, 7)
 ZERO_EXCESS_LIMIT = 0.1
 #: Least jitter ratio (share within ±0.5 DN over share within 0.5–1 DN) of the coefficients at the best offset.
 JITTER_RATIO_LIMIT = 3.0
-#: Fewest coefficients counted at the best offset.
-MIN_COEFFICIENTS = 1024
+#: Fewest coefficients counted at the best offset (32 blocks: half of a 128-px patch's tiles unclipped).
+MIN_COEFFICIENTS = 512
 #: Patches of a frame :func:`coded_frame` reads: one codec codes the whole frame, so a few patches tell.
 FRAME_SAMPLE = 4
-# patches per batched call (B×16×(H−7)×(W−7) float32 coefficients: 0.9 MB per 128-px patch)
-_CHUNK = 32
+# patches per batched call (16 frequencies × 64 offsets per 16-px tile, float32: 0.26 MB per 128-px patch)
+_CHUNK = 64
 
 
 @dataclass(frozen=True)
@@ -116,18 +118,24 @@ _WEIGHTS = _dct_weights()
 
 
 def _read(x: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Per patch of B×1×H×W whole DN (H, W ≥ 15): (zero_excess, jitter ratio, offset, coefficients) at the best offset."""
-    b, _, h, w = x.shape
-    c = F.conv2d(x, _WEIGHTS.to(x.device)).abs_()  # every block position: (B, 16, H − 7, W − 7)
-    near = (c < 0.5).sum(1, dtype=torch.float32)
-    ring = ((c >= 0.5) & (c < 1.0)).sum(1, dtype=torch.float32)
-    clip = ((x < 0.5) | (x > 254.5)).float()
-    clipped = F.max_pool2d(F.max_pool2d(clip, (BLOCK, 1), stride=1), (1, BLOCK), stride=1)[:, 0]  # any pixel of the block
-    hh, ww = (near.shape[-2] // BLOCK) * BLOCK, (near.shape[-1] // BLOCK) * BLOCK
-    used = 1.0 - clipped[:, :hh, :ww]
+    """Per patch of B×1×H×W whole DN (H, W ≥ 16): (zero_excess, jitter ratio, offset, coefficients) at the best offset.
 
-    def per_offset(t: torch.Tensor) -> torch.Tensor:  # sum over the blocks of each grid offset (dy, dx) → (B, 64)
-        return (t[:, :hh, :ww] * used).reshape(b, hh // BLOCK, BLOCK, ww // BLOCK, BLOCK).sum((1, 3)).flatten(1).double()
+    The patch is cut into 16×16-px tiles; each tile holds, for every grid offset (dy, dx) ∈ 0…7², one whole block
+    starting there, so one batched DCT over the tiles' 8×8 block positions gives every offset its blocks (one per
+    tile: 64 on a 128-px patch) at a third of the work of every block position."""
+    b, _, h, w = x.shape
+    th, tw = h // (2 * BLOCK), w // (2 * BLOCK)
+    tiles = (x[..., :th * 2 * BLOCK, :tw * 2 * BLOCK].reshape(b, th, 2 * BLOCK, tw, 2 * BLOCK)
+             .permute(0, 1, 3, 2, 4).reshape(b * th * tw, 1, 2 * BLOCK, 2 * BLOCK))
+    c = F.conv2d(tiles, _WEIGHTS.to(x.device))[..., :BLOCK, :BLOCK].abs_()  # (tiles, 16 frequencies, dy, dx)
+    near = (c < 0.5).sum(1, dtype=torch.float32)
+    ring = (c < 1.0).sum(1, dtype=torch.float32) - near
+    clip = ((tiles < 0.5) | (tiles > 254.5)).float()
+    clipped = F.max_pool2d(F.max_pool2d(clip, (BLOCK, 1), stride=1), (1, BLOCK), stride=1)[:, 0, :BLOCK, :BLOCK]
+    used = 1.0 - clipped  # a block with a pixel within ½ DN of a bound is not read
+
+    def per_offset(t: torch.Tensor) -> torch.Tensor:  # sum over the tiles → (B, 64), offset dy·8 + dx
+        return (t * used).view(b, th * tw, BLOCK * BLOCK).sum(1).double()
 
     n_near, n_ring = per_offset(near), per_offset(ring)
     counted = per_offset(torch.ones_like(near)) * (len(FREQUENCIES) ** 2)
@@ -143,7 +151,7 @@ def _read(x: torch.Tensor) -> tuple[torch.Tensor, ...]:
 def jpeg_grid(patches: torch.Tensor) -> JpegGrid:
     """Whether B×1×H×W 8-bit patches in [0, 1] (values k/255) show JPEG's quantised 8×8 block grid (module docstring).
 
-    Patches under 15 px in either side hold no whole block at every offset and are not coded (their counts 0).
+    Patches under 16 px in either side hold no 16-px tile and are not coded (their counts 0).
 
     Raises:
         ValueError: not a B×1×H×W tensor, values outside [0, 1] or not finite (naming the first).
@@ -158,7 +166,7 @@ def jpeg_grid(patches: torch.Tensor) -> JpegGrid:
     ratio = torch.full((b,), float("nan"), dtype=torch.float64)
     offset = torch.zeros(b, 2, dtype=torch.int64)
     count = torch.zeros(b, dtype=torch.int64)
-    if b > 0 and h >= 2 * BLOCK - 1 and w >= 2 * BLOCK - 1:
+    if b > 0 and h >= 2 * BLOCK and w >= 2 * BLOCK:
         with torch.autocast(device_type=patches.device.type, enabled=False):
             x = (patches.detach().double() * 255.0).round().float()
             for i in range(0, b, _CHUNK):
@@ -173,7 +181,7 @@ def coded_frame(patches: torch.Tensor, sample: int = FRAME_SAMPLE) -> bool:
     """Whether the B×1×H×W patches of one frame (8-bit, in [0, 1]) show JPEG's block grid: :func:`jpeg_grid` on
     ``sample`` of them evenly spaced (all, if fewer), coded where at least half of those that hold
     :data:`MIN_COEFFICIENTS` coefficients are (a frame whose sampled patches hold none — clipped nearly everywhere, or
-    under 64 px — is not). One codec codes a whole frame, so a few patches tell at a fraction of the cost (1.4 ms per
+    under 64 px — is not). One codec codes a whole frame, so a few patches tell at a fraction of the cost (0.7 ms per
     128-px patch)."""
     if sample < 1:
         raise ValueError(f"sample = {sample} must be ≥ 1")

