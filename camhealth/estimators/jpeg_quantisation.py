@@ -181,7 +181,7 @@ def coded_frame(patches: torch.Tensor, sample: int = FRAME_SAMPLE) -> bool:
     """Whether the B×1×H×W patches of one frame (8-bit, in [0, 1]) show JPEG's block grid: :func:`jpeg_grid` on
     ``sample`` of them evenly spaced (all, if fewer), coded where at least half of those that hold
     :data:`MIN_COEFFICIENTS` coefficients are (a frame whose sampled patches hold none — clipped nearly everywhere, or
-    under 64 px — is not). One codec codes a whole frame, so a few patches tell at a fraction of the cost (0.7 ms per
+    under 96 px — is not). One codec codes a whole frame, so a few patches tell at a fraction of the cost (0.4 ms per
     128-px patch)."""
     if sample < 1:
         raise ValueError(f"sample = {sample} must be ≥ 1")
