@@ -54,8 +54,9 @@ import numpy as np
 import torch
 
 from camhealth.estimators.aggregation import spatial_median, temporal_median
+from camhealth.estimators.jpeg_quantisation import coded_frame
 from camhealth.estimators.mtf_error import frame_uncertainty
-from camhealth.estimators.physics_noise import BEYOND_VALIDATED, LESS_NOISE, VALIDATED_SIGMA_DN
+from camhealth.estimators.physics_noise import BEYOND_VALIDATED, LESS_NOISE, LOSSY_CODEC, VALIDATED_SIGMA_DN
 from camhealth.monitor.tiling import (
     ESTIMATED,
     INTERPOLATED,
@@ -987,11 +988,17 @@ def _refusals(st: _TaskState) -> dict[str, Any]:
 #: Appended to the alarm message where every noise patch a frame refused was refused as textured: besides a scene that
 #: is fine texture everywhere, noise that is not white does it — demosaicing, denoising, sharpening and compression
 #: correlate neighbouring pixels' noise: a smooth ramp demosaiced or Gaussian-filtered (σ 0.7 px) after 2–10 DN of white
-#: noise, or JPEG-compressed (q 90) after 2–5 DN, is refused as textured on every patch (``docs/monitor.md``).
+#: noise is refused as textured on every patch (``docs/monitor.md``); a JPEG's patches are named by :data:`CODEC_HINT`.
 #: The alarm's note where every refused noise patch reads far less noise than the metadata's camera makes.
 QUIET_HINT = ("every refused patch reads far less noise than any camera state in the metadata's ranges makes: a denoised, "
               "compressed, rescaled or rendered frame, or the metadata of a noisier camera (check gain and sensor); "
               "the metadata cannot be checked on it")
+#: The alarm's note where noise patches were refused because the frame is a JPEG (``"a lossy codec changed the noise"``:
+#: the noise estimator's reason, and the monitor's for patches refused as textured on a frame that shows JPEG's 8×8
+#: block grid, :func:`~camhealth.estimators.jpeg_quantisation.coded_frame`).
+CODEC_HINT = ("the frame is a JPEG (its 8×8 block grid is there): the codec removes noise and adds its own quantisation "
+              "error, so the metadata cannot be checked on it — give frames as the sensor delivers them or losslessly "
+              "coded (raw, PNG, a ROS Image topic)")
 TEXTURED_HINT = ("every refused patch looks textured: a scene of fine texture everywhere, or noise that is not white — "
                  "a demosaiced, denoised, sharpened or compressed frame, which camhealth's sensor noise model does not "
                  "describe (give frames as the sensor delivers them; a recording's bayer_* images: --bayer green, the default, "
@@ -1412,6 +1419,11 @@ class Monitor:
             std = torch.cat([torch.as_tensor(out["sigma_std"]).float().reshape(n, 3), xi_std, xi_std], 1)
         ok = torch.as_tensor(out.get("assessable", torch.ones(n, dtype=torch.bool))).bool().reshape(n)
         reasons = list(out.get("reason") or [""] * n)
+        textured_at = [i for i in (~ok).nonzero()[:, 0].tolist() if i < len(reasons) and reasons[i] == "textured"]
+        if task == "noise" and textured_at and coded_frame(patches[index[textured_at]]):
+            # JPEG's blocking and quantisation error read as texture: the frame's refusals name the codec instead
+            for i in textured_at:
+                reasons[i] = LOSSY_CODEC
         for i in (~ok).nonzero()[:, 0].tolist():
             why = str(reasons[i]) if i < len(reasons) and reasons[i] else "no value"
             st.refused[why] = st.refused.get(why, 0) + 1
@@ -1776,6 +1788,8 @@ class Monitor:
                     out["message"] += "; " + TEXTURED_HINT
                 elif set(noise.refused) == {LESS_NOISE}:
                     out["message"] += "; " + QUIET_HINT
+                elif LOSSY_CODEC in noise.refused:
+                    out["message"] += "; " + CODEC_HINT
             return out
         i = NOISE_FIELDS.index("xi")
         count = noise.n_values

@@ -791,6 +791,25 @@ def test_noise_that_is_not_white_is_refused_with_a_hint_at_its_cause(process):
     assert ok.noise.assessable and TEXTURED_HINT not in ok.alarm["message"]
 
 
+@pytest.mark.parametrize("quality", [75, 95])
+def test_a_jpeg_frame_is_refused_as_coded_with_a_hint(quality):
+    """The same ramp with 3 DN of white noise, coded as a JPEG: the codec's blocking and quantisation error read as
+    texture, and the frame shows JPEG's 8×8 block grid, so its refused noise patches name the codec and the alarm says
+    why the metadata cannot be checked on it."""
+    import cv2
+
+    from camhealth.estimators.physics_noise import LOSSY_CODEC
+    from camhealth.monitor.api import CODEC_HINT, TEXTURED_HINT
+
+    rng = np.random.default_rng(0)
+    raw = np.clip(np.tile(np.linspace(40, 210, 640), (512, 1)) + 3 * rng.standard_normal((512, 640)), 0, 255)
+    ok, buf = cv2.imencode(".jpg", raw.round().astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    r = Monitor("noise_source_full", None, sensor="ICX285", warmup=False).process(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
+    assert not r.noise.assessable and set(r.noise.refused) == {LOSSY_CODEC}
+    assert r.alarm["state"] == "not_assessable" and CODEC_HINT in r.alarm["message"]
+    assert TEXTURED_HINT not in r.alarm["message"]
+
+
 def test_the_estimators_run_on_the_monitors_device(device, street_frames):
     """``device=`` puts the named estimators' networks (and the noise posterior) there; the frame's answer is the
     CPU's: the same patches and alarm, σ and MTF within float32 convolution rounding (TF32 on a GPU)."""
