@@ -28,7 +28,7 @@ patch is **coded** where, at the offset with the most,
 - z exceeds the median offset's by :data:`ZERO_EXCESS_LIMIT` (0.1; without a codec sampling keeps it near 0.02, but
   a scene that was itself a JPEG and got a quiet camera's noise afterwards keeps its grid's zeros: up to 0.25 on the
   robustness benchmark's frames at 0.8 DN), and
-- those coefficients' jitter ratio exceeds :data:`JITTER_RATIO_LIMIT` (3: noise of σ ≥ 0.35 DN stays below it
+- those coefficients' jitter ratio exceeds :data:`JITTER_RATIO_LIMIT` (3: noise of σ above 0.35 DN stays below it
   whatever the scene, a codec's rounding reads 11 at the median) by three standard errors of the counts
   (near − 3·ring > 3·√(near + 9·ring)), so a comb of the codec's width, not of noise, is what sits at zero — which
   tells a coded patch from a JPEG scene that was exposed to noise afterwards (1.3 there), and
@@ -118,7 +118,8 @@ _WEIGHTS = _dct_weights()
 
 
 def _read(x: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Per patch of B×1×H×W whole DN (H, W ≥ 16): (zero_excess, jitter ratio, offset, coefficients) at the best offset.
+    """Per patch of B×1×H×W whole DN (H, W ≥ 16): the zero excess, and at the best offset the coefficients within
+    ±0.5 DN and within 0.5–1 DN, the offset and the coefficients counted.
 
     The patch is cut into 16×16-px tiles; each tile holds, for every grid offset (dy, dx) ∈ 0…7², one whole block
     starting there, so one batched DCT over the tiles' 8×8 block positions gives every offset its blocks (one per
@@ -143,9 +144,8 @@ def _read(x: torch.Tensor) -> tuple[torch.Tensor, ...]:
     best = share.argmax(1, keepdim=True)
     excess = share.gather(1, best)[:, 0] - share.median(1).values
     near_b, ring_b = n_near.gather(1, best)[:, 0], n_ring.gather(1, best)[:, 0]
-    ratio = torch.where(ring_b > 0, near_b / ring_b.clamp_min(1.0), torch.where(near_b > 0, torch.inf, torch.nan))
     offset = torch.stack([best[:, 0] // BLOCK, best[:, 0] % BLOCK], 1)
-    return excess, ratio.double(), offset, counted.gather(1, best)[:, 0].long()
+    return excess, near_b, ring_b, offset, counted.gather(1, best)[:, 0].long()
 
 
 def jpeg_grid(patches: torch.Tensor) -> JpegGrid:
@@ -162,18 +162,21 @@ def jpeg_grid(patches: torch.Tensor) -> JpegGrid:
                          f"{tuple(patches.shape) if isinstance(patches, torch.Tensor) else type(patches).__name__}")
     check_range(check_float(patches, "patches"), "patches", 0.0, 1.0, "(DN/255)")
     b, _, h, w = patches.shape
-    excess = torch.zeros(b, dtype=torch.float64)
-    ratio = torch.full((b,), float("nan"), dtype=torch.float64)
+    excess, near, ring = (torch.zeros(b, dtype=torch.float64) for _ in range(3))
     offset = torch.zeros(b, 2, dtype=torch.int64)
     count = torch.zeros(b, dtype=torch.int64)
     if b > 0 and h >= 2 * BLOCK and w >= 2 * BLOCK:
         with torch.autocast(device_type=patches.device.type, enabled=False):
             x = (patches.detach().double() * 255.0).round().float()
             for i in range(0, b, _CHUNK):
-                e, r, o, n = _read(x[i:i + _CHUNK])
-                excess[i:i + _CHUNK], ratio[i:i + _CHUNK] = e.cpu(), r.cpu()
+                e, n_near, n_ring, o, n = _read(x[i:i + _CHUNK])
+                excess[i:i + _CHUNK], near[i:i + _CHUNK], ring[i:i + _CHUNK] = e.cpu(), n_near.cpu(), n_ring.cpu()
                 offset[i:i + _CHUNK], count[i:i + _CHUNK] = o.cpu(), n.cpu()
-    coded = (excess > ZERO_EXCESS_LIMIT) & (ratio >= JITTER_RATIO_LIMIT) & (count >= MIN_COEFFICIENTS)
+    ratio = torch.where(ring > 0, near / ring.clamp_min(1.0), torch.where(near > 0, torch.inf, torch.nan))
+    # the jitter ratio above its limit beyond the counts' sampling (Poisson): near − r·ring > 3·√(near + r²·ring)
+    r = JITTER_RATIO_LIMIT
+    beyond = near - r * ring > 3.0 * (near + r * r * ring).sqrt()
+    coded = (excess > ZERO_EXCESS_LIMIT) & beyond & (count >= MIN_COEFFICIENTS)
     return JpegGrid(coded, excess, ratio, offset, count)
 
 

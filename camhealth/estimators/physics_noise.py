@@ -1104,7 +1104,7 @@ def physics_noise_posterior(
         white_total = out_sigma[:, 3].double()
         banded_total = (white_total.square() + band_var).sqrt()
         prior_total = prior_clipped[:, 3]
-        banded = ((band_var > 0) & readable & ~quiet
+        banded = ((band_var > 0) & readable & ~no_verdict
                   & ((banded_total - prior_total).abs() >= torch.clamp_min(VISIBLE_XI_FRACTION * prior_total, VISIBLE_XI_DN)))
         out_sigma = torch.cat([out_sigma[:, :3], torch.where(banded, banded_total, white_total).unsqueeze(1)], 1)
         xi = torch.where(banded, prior_total - banded_total, xi.double())
@@ -1133,7 +1133,7 @@ def physics_noise_posterior(
     # the frame's mean level; none where it is not readable
     frame_tot = (a_all[:1] * mean_i.mean() + c_all[:1]).clamp_min(0).sqrt()
     frame_ev = torch.cat([own[:, 0], _visible(frame_tot).to(f64)])
-    return out, torch.where(readable[0] & ~codec[0], frame_ev, torch.zeros_like(frame_ev))
+    return out, torch.where(readable[0] & ~codec.any(), frame_ev, torch.zeros_like(frame_ev))
 
 
 def _visible(tot: torch.Tensor) -> torch.Tensor:

@@ -178,3 +178,25 @@ def test_a_frame_is_coded_by_the_patches_it_samples():
         coded_frame(coded, sample=0)
     with pytest.raises(ValueError, match="B×1×H×W"):
         coded_frame(torch.zeros(128, 128))
+
+
+def test_the_jitter_ratio_must_exceed_its_limit_beyond_the_counts_sampling(monkeypatch):
+    """The same ratio 6.4 is a comb from 700 and 110 coefficients, and not beyond doubt from 70 and 11
+    (70 − 3·11 = 37 < 3·√(70 + 9·11) = 39)."""
+    import camhealth.estimators.jpeg_quantisation as jq
+
+    def fake(counts):
+        def read(x):
+            b = x.shape[0]
+            near, ring = (torch.full((b,), float(v), dtype=torch.float64) for v in counts)
+            return (torch.full((b,), 0.3, dtype=torch.float64), near, ring, torch.zeros(b, 2, dtype=torch.int64),
+                    torch.full((b,), 1024, dtype=torch.int64))
+        return read
+
+    x = torch.full((1, 1, 128, 128), 0.5)
+    monkeypatch.setattr(jq, "_read", fake((700, 110)))
+    many = jpeg_grid(x)
+    monkeypatch.setattr(jq, "_read", fake((70, 11)))
+    few = jpeg_grid(x)
+    assert float(many.jitter_ratio) == pytest.approx(float(few.jitter_ratio)) == pytest.approx(70 / 11)
+    assert many.coded.tolist() == [True] and few.coded.tolist() == [False]

@@ -1262,8 +1262,10 @@ def _jpeg(x: torch.Tensor, quality: int) -> torch.Tensor:
 def test_a_jpeg_frame_that_would_contradict_its_metadata_keeps_the_closed_form_and_names_the_codec():
     """ICX285 at 12 dB makes 3.1 DN; coded at quality 95 its noise is no longer Gaussian (the coefficients below the
     codec's steps zeroed, the others rounded to them), and the frame's robust NLF reads less of it: its pooled posterior
-    would follow a quieter camera (the ``codec`` column is 1 only there). The codec's block grid is there: the closed form, no verdict (ξ 0, uncertainties ∞, cause NaN), "a lossy codec removed
-    noise". The same camera noisier than its metadata say stays "noisier" through the same codec."""
+    would follow a quieter camera (the ``codec`` column is 1 only there). The codec's block grid is there: the closed
+    form, no verdict (ξ 0, uncertainties ∞, cause NaN), "a lossy codec changed the noise", and no evidence for other
+    exposure times — also where a noiseless overlay (read alone, not followed) is the frame's first patch. A camera
+    noisier than its metadata say is followed uncoded and held through the codec, with row noise on top too."""
     from camhealth.estimators.physics_noise import LOSSY_CODEC
 
     meta = CameraMetadata.preset("ICX285", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
@@ -1288,6 +1290,18 @@ def test_a_jpeg_frame_that_would_contradict_its_metadata_keeps_the_closed_form_a
     assert (loud[:, _COL["follows_image"]] == 1).all() and (loud[:, _COL["xi_dn"]] < -0.5).all()
     loud = physics_noise_posterior(_jpeg(louder, 95), meta, pool=True)
     assert (loud[:, _COL["codec"]] == 1).all() and (loud[:, _COL["xi_dn"]] == 0).all()
+    # visible row noise does not bring a verdict back on a coded frame
+    rows = torch.randn(16, 1, 128, 1, generator=torch.Generator().manual_seed(5)) * 3.0 / 255
+    for pool in (True, False):
+        banded = physics_noise_posterior(_jpeg(((louder + rows).clamp(0, 1) * 255).round() / 255, 95), meta, pool=pool)
+        held = banded[:, _COL["codec"]] == 1
+        assert held.sum() >= 12 and (banded[held, _COL["follows_image"]] == 0).all(), pool
+        assert (banded[held, _COL["xi_dn"]] == 0).all() and (banded[held, _COL["p_match"]] > 0).all()
+    # a noiseless overlay as the first patch (read alone, not followed): the coded frame still lends no evidence
+    overlaid = _jpeg(louder, 95)
+    overlaid[0] = 100.0 / 255.0
+    raw, evidence = physics_noise_posterior(overlaid, meta, pool=True, return_evidence=True)
+    assert raw[0, _COL["codec"]] == 0 and (raw[1:, _COL["codec"]] == 1).all() and not evidence.any()
 
 
 def test_a_camera_quieter_than_told_without_a_codec_is_followed():
@@ -1317,6 +1331,15 @@ def test_per_patch_the_codec_rule_holds_the_patches_that_would_be_followed():
     assert torch.allclose(raw[held, :4], prior[held], atol=1e-4)
     out = PhysicsNoiseEstimator().predict(coded, meta)
     assert [r == LOSSY_CODEC for r in out["reason"]] == held.tolist()
+    # the rule off (no grid found anywhere): the held patches are followed, the others read exactly as here
+    import camhealth.estimators.physics_noise as pn
+    from camhealth.estimators.jpeg_quantisation import JpegGrid
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pn, "jpeg_grid", lambda p: JpegGrid(torch.zeros(p.shape[0], dtype=torch.bool), *[None] * 4))
+        off = physics_noise_posterior(coded, meta)
+    assert (off[held, _COL["follows_image"]] == 1).all() and (off[:, _COL["codec"]] == 0).all()
+    assert torch.equal(off[~held, :27].nan_to_num(-1.0), raw[~held, :27].nan_to_num(-1.0))
 
 
 def test_a_jpeg_pair_that_would_declare_a_mismatch_keeps_the_closed_form():

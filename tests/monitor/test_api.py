@@ -793,9 +793,12 @@ def test_noise_that_is_not_white_is_refused_with_a_hint_at_its_cause(process):
 
 @pytest.mark.parametrize("quality", [75, 95])
 def test_a_jpeg_frame_is_refused_as_coded_with_a_hint(quality):
-    """The same ramp with 3 DN of white noise, coded as a JPEG: the codec's blocking and quantisation error read as
-    texture, and the frame shows JPEG's 8×8 block grid, so its refused noise patches name the codec and the alarm says
-    why the metadata cannot be checked on it."""
+    """The same ramp with 3 DN of white noise, coded as a JPEG. At quality 75 the estimator refuses the pooled patches
+    as textured (the codec's blocking reads as texture) and the monitor finds JPEG's 8×8 block grid on them; at 95 the
+    pooled posterior would be followed and the estimator names the codec itself. Either way the refused noise patches
+    name the codec and the alarm says why the metadata cannot be checked on it."""
+    import functools
+
     import cv2
 
     from camhealth.estimators.physics_noise import LOSSY_CODEC
@@ -804,7 +807,21 @@ def test_a_jpeg_frame_is_refused_as_coded_with_a_hint(quality):
     rng = np.random.default_rng(0)
     raw = np.clip(np.tile(np.linspace(40, 210, 640), (512, 1)) + 3 * rng.standard_normal((512, 640)), 0, 255)
     ok, buf = cv2.imencode(".jpg", raw.round().astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
-    r = Monitor("noise_source_full", None, sensor="ICX285", warmup=False).process(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
+    img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    mon = Monitor("noise_source_full", None, sensor="ICX285", warmup=False)
+    est = mon.estimators["noise"].est
+    own = est.predict  # what the estimator itself says, before the monitor's relabel
+    said: list[str] = []
+
+    @functools.wraps(own)  # (the monitor reads predict's signature: pool=, reference=)
+    def spy(*args, **kwargs):
+        out = own(*args, **kwargs)
+        said.extend(out["reason"])
+        return out
+
+    est.predict = spy
+    r = mon.process(img)
+    assert set(said) == ({"textured"} if quality == 75 else {LOSSY_CODEC})
     assert not r.noise.assessable and set(r.noise.refused) == {LOSSY_CODEC}
     assert r.alarm["state"] == "not_assessable" and CODEC_HINT in r.alarm["message"]
     assert TEXTURED_HINT not in r.alarm["message"]
