@@ -253,6 +253,7 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         if images.dtype == object or images.dtype.kind not in "uif":
             raise TypeError(f"images must be a numeric array, got dtype {images.dtype}")
         is_int = images.dtype.kind in "ui"
+        wide_int, dtype_name = is_int and images.dtype.itemsize > 1, images.dtype.name
         if not images.dtype.isnative:  # big-endian data (FITS, some TIFF readers): the same values in native order
             images = images.astype(images.dtype.newbyteorder("="))
         if images.dtype.kind == "f" and images.dtype.itemsize > 8:  # long double: torch has no such dtype
@@ -267,6 +268,7 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         if images.dtype == torch.bool or images.is_complex():
             raise TypeError(f"images must be a real numeric tensor, got dtype {images.dtype}")
         is_int = not images.is_floating_point()
+        wide_int, dtype_name = is_int and images.element_size() > 1, str(images.dtype).replace("torch.", "")
         t = images.detach().cpu()
     else:
         raise TypeError(f"images must be a torch.Tensor or numpy.ndarray, got {type(images).__name__}")
@@ -284,6 +286,12 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
     if not (np.isfinite(lo) and np.isfinite(hi)):
         bad = int((~torch.isfinite(t)).sum())
         raise ValueError(f"images contain {bad} non-finite value(s) (NaN/Inf); allowed: finite DN 0…255 or [0, 1]")
+    if is_int and input_range == "auto" and wide_int:
+        raise ValueError(
+            f"images of dtype {dtype_name} may hold more than 8 bits (a 10-, 12- or 16-bit camera), which would be read "
+            f"as 8-bit DN (min {lo:g}, max {hi:g}); scale them to 8-bit DN (× 255 / (2**bits − 1)) or to floats in "
+            f"[0, 1], or pass input_range='dn' if they are 8-bit DN (0…255)"
+        )
     if is_int or input_range == "dn":
         if lo < 0 or hi > 255:
             raise ValueError(f"images in DN must lie in [0, 255], got min {lo:g}, max {hi:g} (8-bit DN only)")

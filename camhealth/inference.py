@@ -19,9 +19,11 @@
 - ``images``: B×1×P×P gray patches (also B×P×P or P×P) as a torch tensor or NumPy array, P = ``patch_size``
   (128 for noise, 192 for MTF); an empty batch gives outputs with 0 rows. Colour is refused with a message naming
   the layout it looks like (H×W×C or B×H×W×C channels last, B×C×H×W), and so is a 3×P×P or 4×P×P array, which could
-  be gray patches or one colour image (pass B×1×P×P). Integer arrays (uint8/uint16 …) are **DN**; floating arrays are
+  be gray patches or one colour image (pass B×1×P×P). uint8 arrays are **DN**; floating arrays are
   **[0, 1]** (= DN/255) unless ``input_range="dn"``; a float input above 1 with the default
-  ``input_range="auto"`` is refused with a hint, never silently rescaled.
+  ``input_range="auto"`` is refused with a hint, never silently rescaled. Integers wider than 8 bits (uint16,
+  int32 …) are 8-bit DN only with ``input_range="dn"``: by default they are refused, as a 10–16-bit camera's dark
+  frame holds values ≤ 255 too and would be read as 8-bit DN (scale such data to 8 bits or to [0, 1] first).
 - ``metadata``: required when ``metadata_set`` is ``"minimal"`` or ``"full"``:
   a :class:`~camhealth.physics.CameraMetadata` (batch 1 or B), a dict of fields in physical units
   (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``

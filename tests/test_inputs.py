@@ -218,8 +218,27 @@ def test_big_endian_and_long_double_arrays_are_read_as_their_values(dtype):
     native = dn / 255.0 if dtype[-2] == "f" or dtype == "longdouble" else dn.astype(np.uint8)
     want = _to_patches(native, 32, "auto")
     arr = native.astype(np.longdouble if dtype == "longdouble" else np.dtype(dtype))
-    got = _to_patches(arr, 32, "auto")
+    got = _to_patches(arr, 32, "dn" if dtype[-2] in "ui" else "auto")  # wider integers: 8-bit DN only when said so
     assert got.dtype == torch.float32 and torch.equal(got, want)
+
+
+@pytest.mark.parametrize("dtype", ["uint16", "int16", "int32", "int64", "torch.int64", "torch.uint16"])
+def test_integers_wider_than_8_bits_are_dn_only_when_said_so(dtype):
+    """A dark frame of a 12-bit camera in uint16 holds values ≤ 255 too: read as 8-bit DN its noise would be 16×
+    too large. Integers wider than 8 bits are refused with the default ``input_range='auto'`` (naming the dtype, the
+    values and the ways out) and read as DN with ``input_range='dn'``; uint8 stays DN by itself."""
+    import numpy as np
+
+    from camhealth._inputs import _to_patches
+
+    dn = np.round(np.random.default_rng(0).random((2, 32, 32)) * 200.0)
+    arr = torch.from_numpy(dn).to(getattr(torch, dtype[6:])) if dtype.startswith("torch.") else dn.astype(dtype)
+    name = dtype[6:] if dtype.startswith("torch.") else dtype
+    with pytest.raises(ValueError, match=rf"dtype {name} may hold more than 8 bits .*min 0, max 200.*input_range='dn'"):
+        _to_patches(arr, 32, "auto")
+    want = _to_patches(dn.astype(np.uint8), 32, "auto")
+    assert torch.equal(_to_patches(arr, 32, "dn"), want)
+    assert torch.allclose(want[:, 0] * 255, torch.from_numpy(dn).float(), atol=1e-4)
 
 
 def test_long_double_values_beyond_float64_are_named():
