@@ -395,7 +395,7 @@ class StateSeries:
     times: list[int]
     values: list[float]
     out_of_order: int = 0
-    dropped: int = 0  # messages without a finite value
+    dropped: int = 0  # messages that could not be decoded or carry no time (NaN and ±inf readings are kept)
     unstamped: int = 0  # messages with a header whose stamp is zero (unset): their log time stands in
     notes: list[str] = field(default_factory=list)
 
@@ -800,9 +800,11 @@ class Recording:
                         f"{who}: {exc.args[0]}; numeric fields of {conn.msgtype}: {', '.join(_numeric_fields(msg)) or 'none'}"
                     ) from None
                 t = _header_ns(msg) if clock == "header" else int(log_ns)
-                if t is None or not math.isfinite(value):
+                if t is None:
                     dropped += 1
                     continue
+                # a non-finite reading (NaN, ±inf) is kept: the frames it governs are refused as out of range, rather
+                # than scored with the previous reading or the metadata's value
                 stamped.append(clock == "header" and t != 0)
                 if clock == "header" and t == 0:  # an unset stamp: the log time stands in, as for images
                     t = int(log_ns)

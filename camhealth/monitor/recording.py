@@ -139,13 +139,16 @@ class RecordingSource:
         for key, raw in state.items():
             series = next(s for s in self.state if s.spec.key == key)
             where = f"{series.spec.label} {series.spec.describe()}"
+            lo, hi = METADATA_RANGES[key]
             try:
-                value = self.options.to_physical(key, raw)
+                value = self.options.to_physical(key, raw) if math.isfinite(raw) else raw
             except ValueError as exc:
                 return None, f"camera state from {where}: {exc}"
-            lo, hi = METADATA_RANGES[key]
             slack = 1e-6 * max(abs(lo), abs(hi))  # float rounding of the range ends, as CameraMetadata.validate
-            if not (math.isfinite(value) and lo - slack <= value <= hi + slack):
+            if not math.isfinite(value):
+                return None, (f"camera state {key} = {raw:g} {self._unit_name(key)} from {where} (frame {index}) is not a "
+                              f"finite number; allowed: [{lo:g}, {hi:g}] {UNITS[key]}")
+            if not lo - slack <= value <= hi + slack:
                 unit = UNITS[key]
                 shown = f"{raw:g} {self._unit_name(key)}" + (f" = {value:g} {unit}" if self._unit_name(key) != unit else "")
                 return None, (f"camera state {key} = {shown} from {where} (frame {index}) is out of the allowed range "
@@ -224,6 +227,8 @@ class RecordingSource:
                 line += f"; {st['frames_before_first']} frame(s) before its first value used the metadata's {key}"
             if st["messages"] == 0:
                 line += "; the topic has no usable value: the metadata's value is used throughout"
+            if st["dropped"]:
+                line += f"; {st['dropped']} message(s) undecodable or without a time were skipped"
             lines.append(line)
         if s["out_of_order"]:
             lines.append(f"  warning: {s['out_of_order']} frame(s) with a header stamp earlier than the frame before "

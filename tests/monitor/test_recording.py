@@ -160,6 +160,26 @@ def test_state_units_and_out_of_range_values(fakes, street_frames, tmp_path, cap
     assert "1 with camera state out of range" in err
 
 
+def test_a_non_finite_state_reading_refuses_the_frames_it_governs(fakes, street_frames, tmp_path, capsys):
+    """A NaN gain reading is no reading to skip: the frames it governs are not assessable and say why, whether it
+    comes before the first finite value (not the metadata's gain) or after one (not the previous reading)."""
+    rec = tmp_path / "run.mcap"
+    with RecordingWriter(rec) as w:
+        for i, gain in enumerate([float("nan"), 12.0, float("nan"), float("inf")]):
+            t = T0 + i * PERIOD
+            w.add_number("/cam/gain", gain, t - 1)
+            w.add_image(TOPIC, _noisy(street_frames[i], i), t)
+    code, out, err = _run([str(rec), "--topic", TOPIC, "--sensor", "ICX285", "--noise-model", "fake_noise",
+                           "--mtf-model", "fake_mtf", "--gain-topic", "/cam/gain"], capsys)
+    assert code == 0, err
+    a, b, c, d = _lines(out)
+    assert b["metadata"]["gain_db"] == 12.0 and "frame_error" not in b
+    for line, shown in ((a, "nan"), (c, "nan"), (d, "inf")):
+        assert f"camera state gain_db = {shown} dB from --gain-topic /cam/gain" in line["frame_error"]
+        assert "is not a finite number; allowed: [0, 24] dB" in line["frame_error"]
+    assert "3 with camera state out of range" in err and "before its first value" not in err
+
+
 def test_unknown_or_missing_topic_lists_the_image_topics(fakes, street_frames, tmp_path, capsys):
     rec = write_street_recording(tmp_path / "run.bag", street_frames, corrupt_last=False)
     for extra, what in (([], "choose the camera with --topic"), (["--topic", "/camera/image"], "'/camera/image' is not in recording")):
