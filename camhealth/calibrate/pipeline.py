@@ -59,6 +59,10 @@ ASSUMED: dict[str, float] = {
     "reset_factor": 0.0,
 }
 
+#: What each operating-point field defaults to when the manifest does not give it.
+DEFAULT_WHAT = {"gain_db": "lowest flat gain", "exposure_s": "median flat exposure",
+                "temperature_c": "median dark-set temperature"}
+
 
 def _camera_values(camera: Mapping[str, Any]) -> dict[str, float]:
     cam = dict(camera)
@@ -433,17 +437,22 @@ def calibrate(
     flat_gains = sorted(p.gain_db for p in ptc.used)
     flat_exps = sorted(p.exposure_s for p in ptc.used)
     dark_temps = sorted(fs.temperature_c for fs, _ in dark_stats)
-    op_values = {
-        "gain_db": op.get("gain_db", flat_gains[0]),
-        "exposure_s": op.get("exposure_s", float(np.clip(flat_exps[len(flat_exps) // 2], *METADATA_RANGES["exposure_s"]))),
-        "temperature_c": op.get("temperature_c", float(np.clip(dark_temps[len(dark_temps) // 2], *METADATA_RANGES["temperature_c"]))),
-    }
+    defaults = {"gain_db": flat_gains[0], "exposure_s": flat_exps[len(flat_exps) // 2],
+                "temperature_c": dark_temps[len(dark_temps) // 2]}
+    op_values, clamped = {}, {}
+    for k, v in defaults.items():
+        lo, hi = METADATA_RANGES[k]
+        op_values[k] = op[k] if k in op else float(np.clip(v, lo, hi))
+        if k not in op and op_values[k] != v:  # the measured default lies outside the metadata's range: say so
+            clamped[k] = f"clamped from {v:g} to the range [{lo:g}, {hi:g}] {UNITS[k]}"
+            warnings.append(f"operating point {k}: the default ({DEFAULT_WHAT[k]}) is {v:g} {UNITS[k]}, outside camhealth's "
+                            f"range [{lo:g}, {hi:g}]; {op_values[k]:g} {UNITS[k]} is written — give --operating-point "
+                            f"{k}=VALUE within the range")
     fields: dict[str, FieldEstimate] = {}
     for k in OPERATING_POINT_FIELDS:
         fields[k] = FieldEstimate(float(op_values[k]), 0.0, UNITS[k], "operating point",
-                                  "from the manifest" if k in op else "default: " + {
-                                      "gain_db": "lowest flat gain", "exposure_s": "median flat exposure",
-                                      "temperature_c": "median dark-set temperature"}[k])
+                                  "from the manifest" if k in op else "default: " + DEFAULT_WHAT[k]
+                                  + (f", {clamped[k]}" if k in clamped else ""))
     fields["dark_fom_na_per_cm2"] = FieldEstimate(dfm, dfm_err, UNITS["dark_fom_na_per_cm2"], "fitted",
                                                   "Eq. 3.14 law through the dark sets' temporal variance")
     fields["full_well_e"] = FieldEstimate(full_well, full_well_err, UNITS["full_well_e"], "fitted", "photon transfer, 255 DN at 0 dB")

@@ -461,6 +461,15 @@ def set_statistics(
             + "), so there is no temporal noise to measure; "
             "record separate frames of the sensor (not one buffer or still image repeated)"
         )
+    spread = vals.std(axis=1)  # each frame's spatial σ [DN]
+    blank = np.flatnonzero(spread == 0.0)
+    if blank.size and float(np.median(spread)) > max(step, 0.0):  # one value throughout while the others vary
+        raise ValueError(
+            f"{name}: frame {int(blank[0])} of its {n} (0-based, in the set's order) holds one value throughout "
+            f"({float(vals[blank[0], 0]):.6g} DN) while the others vary (median spatial σ {float(np.median(spread)):.3g} DN)"
+            + (f"; so do {blank.size - 1} more" if blank.size > 1 else "")
+            + ": a blank or dropped frame, whose step from the others would read as temporal noise; remove it from the set"
+        )
     mir_mu, mir_sigma = mirrored_histogram_fit(vals, step, upper)
     raw, limited = float("nan"), False
     if clipped <= CENSORED_ABOVE:

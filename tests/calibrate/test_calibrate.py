@@ -385,6 +385,19 @@ def test_a_repeated_bias_frame_is_refused_naming_the_set():
         calibrate(sets)
 
 
+@pytest.mark.parametrize("value", [0.0, 0.3])
+def test_a_blank_frame_in_a_set_is_refused_naming_the_set_and_the_frame(value):
+    """One constant frame (a dropped frame filled with zeros, a stuck buffer) in a dark set: its step from the
+    other frames read as temporal noise (read noise 0 e⁻, W at its floor, D_FM ±100 %)."""
+    sets = _sets()
+    dark = next(s for s in sets if s.kind == "dark")
+    dark.frames = dark.frames.copy()
+    dark.frames[2] = value
+    with pytest.raises(ValueError, match=rf"dark set '{dark.name}' .*frame 2 of its 4 .* holds one value throughout "
+                                         rf"\({value * 255:g} DN\) while the others vary .*remove it from the set"):
+        calibrate(sets)
+
+
 @pytest.mark.parametrize("offset", [10.0, 10.5])
 def test_darks_below_half_a_code_step_are_refused(offset):
     """ICX285's darks at 0 dB in 8 bits: σ ≈ 0.23 DN, on 1–2 codes. σ² − 1/12 DN² gave a read noise of 0 e⁻ (offset 10)
@@ -737,3 +750,20 @@ def test_an_out_of_range_temperature_is_refused_naming_the_range(temperature, tm
     with pytest.raises(SystemExit) as info:
         main([str(tmp_path / "dark_200ms"), "--out", str(tmp_path / "c.yaml"), f"--temperature-c={temperature:g}"])
     assert info.value.code == 2 and f"argument --temperature-c: must lie in the sensor temperature range -60 … 150 °C, got {temperature:g}" in capsys.readouterr().err
+
+
+def test_a_default_operating_point_outside_the_range_is_clamped_and_said_so():
+    """Dark sets recorded hotter than camhealth's 0 … 80 °C: the default operating point (the median dark-set
+    temperature, 100 °C) is written as 80 °C — and the field's note and a warning say that it was clamped, rather
+    than calling 80 °C the median."""
+    sets = _sets()
+    for s in sets:
+        if s.kind in ("bias", "dark"):
+            s.temperature_c += 25.0  # 40 / 75 °C → 65 / 100 °C
+    res = calibrate(sets)
+    field = res.fields["temperature_c"]
+    assert field.value == 80.0 and float(res.metadata.temperature_c) == 80.0
+    assert "median dark-set temperature, clamped from 100 to the range [0, 80] °C" in field.method
+    assert any("operating point temperature_c: the default (median dark-set temperature) is 100 °C, outside" in w
+               and "--operating-point temperature_c=VALUE" in w for w in res.warnings)
+    assert not any("operating point exposure_s" in w or "operating point gain_db" in w for w in res.warnings)
