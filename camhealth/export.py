@@ -156,6 +156,9 @@ def _description_and_state(obj: Mapping[str, Any], path: Path) -> tuple[dict, di
             desc = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ValueError(f"{path}: the weights file's description is not valid JSON ({exc.msg} at character {exc.pos})") from None
+        except RecursionError:
+            raise ValueError(f"{path}: the weights file's description nests JSON deeper than Python's recursion limit "
+                             f"({sys.getrecursionlimit()}); a camhealth description is a flat object") from None
         state = obj.get("state_dict")
         if not isinstance(state, Mapping):
             raise ValueError(f"{path}: the weights file has no 'state_dict' of tensors")
@@ -214,6 +217,11 @@ def network_metadata_set(kind: str, init_args: Mapping[str, Any]) -> Any:
     return init_args.get("metadata_set", default)
 
 
+#: dtypes a weights file's tensors may have: floats for weights, integers and bool for buffers (batch-norm counts).
+_STATE_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.int8, torch.uint8, torch.int16,
+                 torch.int32, torch.int64, torch.bool)
+
+
 def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
     """Path, checked description, init_args (retired options at their only value dropped) and state dict of a file."""
     path = Path(source)
@@ -235,6 +243,10 @@ def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
     if bad:
         raise ValueError(f"{path}: state_dict entries {bad[:4]} are not tensors")
     for key, value in state.items():
+        if value.layout != torch.strided or value.device.type != "cpu" or value.dtype not in _STATE_DTYPES:
+            raise ValueError(f"{path}: state_dict entry {key!r} is a {value.layout} tensor of dtype {value.dtype} on "
+                             f"{value.device.type!r}; weights must be dense CPU tensors of dtype "
+                             f"{', '.join(str(d).replace('torch.', '') for d in _STATE_DTYPES)}")
         if (value.is_floating_point() or value.is_complex()) and not bool(torch.isfinite(value).all()):
             n = int((~torch.isfinite(value)).sum())
             raise ValueError(f"{path}: state_dict entry {key!r} holds {n} NaN or infinite value(s) of {value.numel()}; "

@@ -110,6 +110,13 @@ def test_check_patch_size_names_the_value(bad):
         nets.NETWORKS["mtf"].build({"patch_size": bad})
 
 
+@pytest.mark.parametrize("bad", [1040, 10**9])
+def test_check_patch_size_bounds_the_side(bad):
+    with pytest.raises(ValueError, match=rf"patch_size = {bad} must be a multiple of 16 px in \[16, 1024\]"):
+        nets.check_patch_size(bad)
+    assert nets.check_patch_size(1024) == 1024
+
+
 def test_check_patch_size_accepts_multiples_of_16():
     assert nets.check_patch_size(16) == 16 and nets.check_patch_size(192.0) == 192
     assert nets.check_patch_size(np.int64(128)) == 128 and type(nets.check_patch_size(np.int64(128))) is int

@@ -78,6 +78,12 @@ def test_pickled_code_in_a_weights_file_never_runs_and_the_refusal_gives_no_unsa
     assert "weights_only" not in str(info.value) and not marker.exists()
 
 
+def _first_entry(payload, change):
+    """Replace the weights file's first floating state-dict entry by ``change(entry)`` (another layout, dtype or device)."""
+    key = next(k for k, v in payload["state_dict"].items() if v.is_floating_point())
+    payload["state_dict"][key] = change(payload["state_dict"][key])
+
+
 def _tampered(tmp_path, edit_description=None, edit_payload=None):
     torch.manual_seed(0)
     path = export_weights(NoiseLevelEstimator(patch_size=32), tmp_path / "w.pt")
@@ -108,6 +114,11 @@ def _tampered(tmp_path, edit_description=None, edit_payload=None):
         (lambda d: d.__setitem__("metadata_set", "most"), None, "metadata_set = 'most' must be"),
         (lambda d: d.__setitem__("kind", "mtf"), None, "kind = 'mtf' must be 'drne'"),
         (None, lambda p: p["state_dict"].__setitem__(next(iter(p["state_dict"])), torch.zeros(3)), "weights do not fit"),
+        (None, lambda p: p.__setitem__("description", "[" * 100_000 + "]" * 100_000), "nests JSON deeper than"),
+        (lambda d: d.__setitem__("patch_size", 16 * 10**8), None, r"patch_size = 1600000000 must be a multiple of 16 px in \[16, 1024\]"),
+        *[(None, (lambda p, f=f: _first_entry(p, f)), r"entry '.*' is a .* weights must be dense CPU tensors")
+          for f in (lambda t: t.to_sparse(), lambda t: t.reshape(t.shape[0], -1).to_sparse_csr(),
+                    lambda t: t.to(torch.float8_e4m3fn), lambda t: t.to(torch.complex64), lambda t: t.to("meta"))],
     ],
 )
 def test_tampered_weights_file_gets_one_clear_error_at_load(tmp_path, description, payload, match):

@@ -31,7 +31,7 @@ from camhealth.nets.noise_source import NoiseSourceNet, NoiseTrunk
 __all__ = [
     "NoiseSourceNet", "NoiseTrunk", "NoiseLevelNet", "ThesisNoiseNet", "MTFNet", "MTFPreprocess", "ConvAct",
     "ResidualBlock", "GlobalStatsPool", "FullyConnectedBlock", "count_flops", "count_parameters", "NetworkSpec",
-    "NETWORKS", "COMMON_TRAINING_ARGS", "LOSS_TERMS", "check_patch_size", "network_for",
+    "NETWORKS", "COMMON_TRAINING_ARGS", "LOSS_TERMS", "MAX_PATCH_SIZE", "check_patch_size", "network_for",
 ]
 
 #: Arguments every estimator LightningModule takes that do not change its network (``channels_last`` is the memory
@@ -93,12 +93,20 @@ _TRAINING_CHECKS = {
 }
 
 
+#: Largest patch side [px] a network is built or loaded for: a camera frame is tiled into patches, and a file that
+#: claims a larger one (10⁹ px) would load and then find no patch in any frame.
+MAX_PATCH_SIZE = 1024
+
+
 def check_patch_size(patch_size: Any) -> int:
     """The estimators' patch side [px]: a positive multiple of 16 (the strided stages and space-to-depth folds of
-    every network divide it by up to 16); ``ValueError`` naming the value otherwise."""
+    every network divide it by up to 16) of at most :data:`MAX_PATCH_SIZE`; ``ValueError`` naming the value
+    otherwise."""
     if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Real) or not math.isfinite(patch_size) \
             or int(patch_size) != patch_size or patch_size < 16 or patch_size % 16:
         raise ValueError(f"patch_size = {patch_size!r} must be a positive multiple of 16 px")
+    if patch_size > MAX_PATCH_SIZE:
+        raise ValueError(f"patch_size = {patch_size!r} must be a multiple of 16 px in [16, {MAX_PATCH_SIZE}]")
     return int(patch_size)
 
 
