@@ -75,6 +75,7 @@ from __future__ import annotations
 
 import copy
 import json
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -190,8 +191,9 @@ class Estimator:
         :data:`~camhealth.export.MAX_EXPORT_BATCH` = 4096, runs chunks of at most that many)."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
-        if batch_size < 1:
-            raise ValueError(f"batch_size = {batch_size} must be ≥ 1")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral) or batch_size < 1:
+            raise ValueError(f"batch_size = {batch_size!r} must be an integer ≥ 1")
+        batch_size = int(batch_size)
         if views not in (1, 2, 4):
             raise ValueError(f"views = {views!r} must be 1, 2 or 4")
         if views > 1 and self.kind != "mtf":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 
 import numpy as np
 import pytest
@@ -224,6 +225,17 @@ def test_views_are_checked(noise_est, tmp_path):
         mtf.predict(torch.rand(1, 1, 32, 32), views=3)
     with pytest.raises(ValueError, match="views = 2 averages flipped copies of MTF patches"):
         noise_est.predict(_patches(1), "ICX285", views=2)
+
+
+@pytest.mark.parametrize("bad", [0, 2.5, "4", True, None])
+def test_batch_size_is_checked(noise_est, bad):
+    """A float or string batch size failed inside the chunking with a message that did not name the argument."""
+    from camhealth.estimators.physics_noise import PhysicsNoiseEstimator
+
+    for est in (noise_est, PhysicsNoiseEstimator()):
+        with pytest.raises(ValueError, match=rf"batch_size = {re.escape(repr(bad))} must be an integer ≥ 1"):
+            est.predict(_patches(1), "ICX285", batch_size=bad)
+    assert noise_est.predict(_patches(2), "ICX285", batch_size=np.int64(1))["sigma"].shape == (2, 3)
 
 
 @pytest.mark.parametrize("fill,reason", [(0.0, "black"), (1.0, "saturated"), (0.5, "featureless")])

@@ -241,10 +241,14 @@ def _normalise(arr: np.ndarray, path: Path, scaling: ImageScaling | None = None)
         return arr.astype(np.float32) / np.float32(divisor)
     if np.issubdtype(arr.dtype, np.floating):
         arr = arr.astype(np.promote_types(arr.dtype, np.float32), copy=False)
-        if not np.isfinite(arr).all() or arr.min() < 0.0 or arr.max() > 1.0:
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        if bad:
+            raise ValueError(f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got "
+                             f"{bad} NaN or infinite value(s) of {arr.size}")
+        if arr.min() < 0.0 or arr.max() > 1.0:
             raise ValueError(
                 f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got range "
-                f"[{np.nanmin(arr):g}, {np.nanmax(arr):g}]"
+                f"[{arr.min():g}, {arr.max():g}]"
             )
         return arr
     raise ValueError(

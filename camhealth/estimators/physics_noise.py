@@ -172,6 +172,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -1305,8 +1306,9 @@ class PhysicsNoiseEstimator:
         arguments ask for; its arguments are checked as a full batch's are."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
-        if batch_size < 1:
-            raise ValueError(f"batch_size = {batch_size} must be ≥ 1")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral) or batch_size < 1:
+            raise ValueError(f"batch_size = {batch_size!r} must be an integer ≥ 1")
+        batch_size = int(batch_size)
         if views != 1:
             raise ValueError(f"views = {views!r}: flipped views are for MTF estimators; {self.name!r} is a noise estimator")
         patches = _to_patches(images, self.patch_size, input_range)

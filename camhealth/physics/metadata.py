@@ -135,6 +135,10 @@ class SensorConstants:
 
 def _as_vector(name: str, value: Any) -> torch.Tensor:
     if isinstance(value, bool):
+        if name != "is_cmos":  # a flag is the one field a bool may give; True as 1 dB or 1 s is a slip, not a value
+            raise TypeError(f"camera metadata {name} must be a number in {UNITS.get(name, '')}, got bool {value!r}")
+        value = float(value)
+    if isinstance(value, int):  # a Python int of any size (10**30 overflows torch's int64): its float, range-checked later
         value = float(value)
     if not isinstance(value, torch.Tensor):
         unit = UNITS.get(name, "")

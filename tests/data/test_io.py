@@ -305,3 +305,17 @@ def test_pixel_limit_holds_for_pillow_formats(tmp_path, monkeypatch, pixels, ext
     assert str(pixels) in str(caught.value)
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", pixels)
     assert read_image(p).shape == (1, side, side)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (float("nan"), r"got 1 NaN or infinite value\(s\) of 64"),
+    (float("inf"), r"got 1 NaN or infinite value\(s\) of 64"),
+    (1.5, r"must be finite and in \[0, 1\], got range \[0.1, 1.5\]"),
+])
+def test_float_tiff_outside_0_1_names_what_is_wrong(tmp_path, bad, match):
+    """A float TIFF with one NaN reported the range of its finite values, which looked valid."""
+    arr = np.full((8, 8), 0.1, np.float32)
+    arr[3, 4] = bad
+    tifffile.imwrite(tmp_path / "f.tif", arr)
+    with pytest.raises(ValueError, match=match):
+        read_image(tmp_path / "f.tif")

@@ -45,7 +45,8 @@ def test_unknown_preset_lists_known():
 @pytest.mark.parametrize(
     "field,value",
     [("temperature_c", 90.0), ("temperature_c", -1.0), ("gain_db", 24.5), ("full_well_e", 1999.0), ("exposure_s", 0.0),
-     ("is_cmos", 0.5), ("gain_db", float("nan")), ("pixel_clock_hz", float("inf"))],
+     ("is_cmos", 0.5), ("gain_db", float("nan")), ("pixel_clock_hz", float("inf")), ("full_well_e", 10**30),
+     ("exposure_s", -(10**25))],
 )
 def test_out_of_range_names_field_value_and_range(field, value):
     lo, hi = METADATA_RANGES[field]
@@ -53,6 +54,14 @@ def test_out_of_range_names_field_value_and_range(field, value):
         CameraMetadata.preset("ICX285", **{field: value})
     msg = str(err.value)
     assert field in msg and f"{lo:g}" in msg and f"{hi:g}" in msg
+
+
+@pytest.mark.parametrize("field", ["gain_db", "exposure_s", "temperature_c"])
+def test_a_bool_is_no_physical_value(field):
+    """``gain_db=True`` read as 1 dB; only the flag ``is_cmos`` takes a bool."""
+    with pytest.raises(TypeError, match=rf"camera metadata {field} must be a number in .*, got bool True"):
+        CameraMetadata.preset("ICX285", **{field: True})
+    assert float(CameraMetadata.preset("ICX285", is_cmos=True).is_cmos) == 1.0
 
 
 def test_extremes_are_valid():
