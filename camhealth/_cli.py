@@ -139,6 +139,8 @@ def one_line(exc: BaseException) -> str:
     text = lines[0] if lines else ""
     if isinstance(exc, KeyError) and len(exc.args) == 1:
         text = f"missing key {exc.args[0]!r}"
+    if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename:  # a folder was to be made or used there
+        return f"{exc.filename} is a file, where a folder was to be made or written into: name a folder, or move the file"
     if not text:
         return type(exc).__name__
     return text if isinstance(exc, _PLAIN) else f"{type(exc).__name__}: {text}"

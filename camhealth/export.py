@@ -133,14 +133,18 @@ def _load_refusal(exc: BaseException) -> str:
 
 
 def _safe_load(path: Path) -> dict:
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; name a checkpoint (.ckpt) or weights file (.pt) in it")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # pickle with code, not a torch file, truncated file, ...
-        raise ValueError(
-            f"{path} is not a camhealth checkpoint or weights file that loads as plain tensors ({_load_refusal(exc)})"
-        ) from None
+        with path.open("rb") as f:
+            head = f.read(8)
+        why = (_load_refusal(exc) if head.startswith((b"PK\x03\x04", b"\x80")) or not head
+               else f"it is no torch file: neither a zip archive nor a pickle, it begins with {head!r}")
+        raise ValueError(f"{path} is not a camhealth checkpoint or weights file that loads as plain tensors ({why})") from None
     if not isinstance(obj, dict):
         raise ValueError(f"{path} is not a camhealth checkpoint: it holds a {type(obj).__name__}, not a dict")
     return obj

@@ -239,3 +239,24 @@ def test_a_cli_run_as_a_module_prints_one_line(tmp_path):
     debug = subprocess.run([sys.executable, "-m", "camhealth.export", str(tmp_path / "missing.ckpt"), "--debug"],
                            cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert debug.returncode != 0 and "Traceback (most recent call last)" in debug.stderr
+
+
+def test_a_file_where_a_folder_belongs_and_files_that_are_no_torch_files_are_named():
+    """A file where an output folder is to be made gave a bare "[Errno 17] File exists"; a folder as a checkpoint
+    "no such file"; a text file renamed .ckpt "the tensors-only reader stopped: 101"."""
+    from camhealth._cli import one_line
+
+    exc = FileExistsError(17, "File exists", "/tmp/run/out")
+    assert one_line(exc) == "/tmp/run/out is a file, where a folder was to be made or written into: name a folder, or move the file"
+    assert one_line(NotADirectoryError(20, "Not a directory", "/tmp/x")).startswith("/tmp/x is a file, where a folder")
+
+
+def test_a_folder_or_a_text_file_as_a_checkpoint_is_named(tmp_path):
+    from camhealth.export import _safe_load
+
+    with pytest.raises(ValueError, match=rf"{tmp_path} is a folder; name a checkpoint \(.ckpt\) or weights file \(.pt\) in it"):
+        _safe_load(tmp_path)
+    text = tmp_path / "notes.ckpt"
+    text.write_text("hello\n")
+    with pytest.raises(ValueError, match=r"it is no torch file: neither a zip archive nor a pickle, it begins with b'hello\\n'"):
+        _safe_load(text)
