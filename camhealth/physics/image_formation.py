@@ -13,7 +13,9 @@ Labels. For every sample the result carries, per source (PN, DCSN, RN):
   clipping [DN]. Clipping is attributed to the sources in proportion to their realised noise at each
   clipped pixel (at unclipped pixels each source keeps its own noise exactly).
 * ``sigma_expected_dn`` — the analytic expectation before clipping [DN]: PN from the mean clean
-  intensity (times √Σh² of the motion PSF, which averages PN), DCSN = √(DC·t_exp), RN from Eq. 3.17.
+  intensity (times √Σh² of the motion PSF, which averages PN — with the taps that the border padding folds onto
+  one pixel counted together, :func:`psf_noise_gain_sq`: a 41-px blur of a 32-px patch reads its photon noise
+  several times near the borders, 1.28× √Σh²), DCSN = √(DC·t_exp), RN from Eq. 3.17.
 
 Gradients. The output is differentiable w.r.t. the clean image through the blurs (and the identity of
 the additive noise); noise draws are treated as constants (Gaussian parts are reparameterised,
@@ -287,6 +289,34 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = T
             out = res.new_empty(image.shape)
         out = out.index_copy(0, idx, res) if res.requires_grad else out.index_copy_(0, idx, res)
     return out
+
+
+@functools.lru_cache(maxsize=64)
+def _fold_overlap(n: int, k: int, border: str) -> torch.Tensor:
+    """(k, k) float64: for the taps a, b of a k-wide kernel run over an n-px axis with ``border`` padding (as
+    :func:`apply_psf` pads), the share of the n output positions at which both taps read the same input pixel —
+    1 on the diagonal, and off it where the padding folds two taps onto one pixel near a border."""
+    front = (k - 1) // 2
+    idx = torch.arange(n, dtype=torch.float64).view(1, 1, n)
+    padded = torch.nn.functional.pad(idx, (front, k - 1 - front), mode=border)[0, 0]
+    win = padded.unfold(0, k, 1)  # (n, k): the input pixel each tap reads, per output position
+    return (win[:, :, None] == win[:, None, :]).double().mean(0)
+
+
+def psf_noise_gain_sq(psf: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(B,) the factor by which :func:`apply_psf` scales the variance of white noise on a ``height``×``width`` image,
+    averaged over its pixels: Σ_a Σ_b h_a h_b · P(taps a and b read the same pixel) with the border padding that
+    :func:`apply_psf` uses. Away from the borders it is Σ h²; near them the padding lets several taps read one noise
+    sample, which raises it (by up to 2× per axis with reflect padding, more with replicate padding of a kernel
+    larger than the image)."""
+    psf = psf.double()
+    k = psf.shape[-1]
+    if k == 1:
+        return psf.flatten(1).square().sum(1)
+    border = "reflect" if k // 2 < min(height, width) else "replicate"
+    kern = psf.flip(-1, -2).to("cpu")  # the correlation kernel filter2d runs
+    my, mx = _fold_overlap(int(height), k, border), _fold_overlap(int(width), k, border)
+    return (kern * (my @ kern @ mx.T)).sum((-1, -2)).to(psf.device)
 
 
 def _take_samples(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -914,7 +944,7 @@ def form_image(
             x, n_pn = both[:, :c], both[:, c:].detach()
             if both.requires_grad:  # n_pn is scaled in place below: do not touch a tensor autograd may hold
                 n_pn = n_pn.clone()
-            exp_pn = exp_pn * motion_psf.to(device=dev, dtype=wd).pow(2).flatten(1).sum(1).sqrt().expand(b)
+            exp_pn = exp_pn * psf_noise_gain_sq(motion_psf, *x.shape[-2:]).to(device=dev, dtype=wd).sqrt().expand(b)
         else:
             x = apply_psf(x, motion_psf)
     signal = x

@@ -472,3 +472,41 @@ def test_apply_psf_refuses_a_kernel_with_nan():
     psf[0, 1, 1] = float("nan")
     with pytest.raises(ValueError, match="psf must be finite"):
         apply_psf(torch.rand(1, 1, 8, 8), psf)
+
+
+@pytest.mark.parametrize("k, size", [(1, 8), (5, 8), (7, (6, 9)), (17, 8), (15, (5, 12))])
+def test_psf_noise_gain_is_the_mean_squared_row_of_the_blur_operator(k, size):
+    """apply_psf is linear: A (N×N) maps a white-noise field to the blurred one, whose variance at pixel p is
+    σ²·Σ_i A[p, i]². The padding lets several taps read one pixel near the borders (reflect, or replicate where the
+    kernel outgrows the image), so the mean over p exceeds Σ h². psf_noise_gain_sq against A built from impulses."""
+    from camhealth.physics.image_formation import psf_noise_gain_sq
+
+    h, w = (size, size) if isinstance(size, int) else size
+    g = torch.Generator().manual_seed(k)
+    psf = torch.rand(3, k, k, generator=g, dtype=torch.float64)
+    psf = psf / psf.sum((-1, -2), keepdim=True)
+    impulses = torch.eye(h * w, dtype=torch.float64).view(h * w, 1, h, w)
+    for i in range(3):
+        a = apply_psf(impulses, psf[i : i + 1]).view(h * w, h * w)  # column j: the response to impulse j
+        want = a.square().sum(1).mean()  # Σ_j over impulses = Σ over A's columns; mean over output pixels
+        assert psf_noise_gain_sq(psf[i : i + 1], h, w).item() == pytest.approx(want.item(), rel=1e-12)
+    if k > 1:
+        assert (psf_noise_gain_sq(psf, h, w) > psf.square().sum((-1, -2))).all()  # the folded taps add
+
+
+def test_expected_photon_sigma_after_a_motion_blur_as_long_as_the_patch():
+    """A 41-px motion blur of a 32-px flat patch: the padding reads the photon noise several times near the borders,
+    and the analytic σ_PN label (Σ h² alone: 1.22 DN against the image's 1.56) now counts it (within 2 %)."""
+    from camhealth.physics.motion_psf import linear_motion_psf
+
+    meta = CameraMetadata.preset("EV76C661", gain_db=24.0)
+    b, k = 256, 41
+    psf = linear_motion_psf(torch.full((1,), 41.0), torch.zeros(1), k).expand(b, k, k)
+    f = form_image(torch.full((b, 1, 32, 32), 0.5), meta, motion_psf=psf, sources=("photon",),
+                   generator=torch.Generator().manual_seed(1))
+    rms = ((f.image - f.blurred) * 255).square().mean().sqrt()  # the noise as drawn, about its zero mean
+    assert float(f.sigma_expected_dn[0, 0]) == pytest.approx(float(rms), rel=0.02)
+    from camhealth.physics.photon_shot_noise import photon_shot_sigma_patch_dn
+
+    independent_taps = photon_shot_sigma_patch_dn(torch.full((1, 1, 32, 32), 0.5), meta) * psf[0].square().sum().sqrt()
+    assert float(f.sigma_expected_dn[0, 0]) > 1.2 * float(independent_taps)  # what the label read before
