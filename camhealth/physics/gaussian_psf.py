@@ -31,7 +31,8 @@ def gaussian_psf(sigma_px: torch.Tensor, kernel_size: int, shift_px: torch.Tenso
 
     Args:
         sigma_px: (B,) standard deviation σ of the Gaussian in px, in [0, 64]; σ = 0 is the point (delta kernel,
-            moved by no shift: a point inside one pixel square lands in that pixel).
+            moved by no shift: a point inside one pixel square lands in that pixel; a point on the pixels' common
+            edge or corner, shift ±0.5, is shared by them — (0.5, 0.5) gives four taps of 0.25).
         kernel_size: odd kernel side k in px (1..255).
         shift_px: optional (B, 2) or (2,) sub-pixel shift (dx right, dy down) in px, each in [−0.5, 0.5].
 

@@ -40,6 +40,7 @@ from camhealth.physics.defocus_psf import _batch_vector, _out_dtype, _work_dtype
 __all__ = [
     "HEADING_SPREAD_RAD",
     "SPEED_LOG_STD",
+    "MAX_SHAKE_NOISE",
     "linear_motion_psf",
     "sample_shake_noise",
     "nonlinear_motion_psf",
@@ -49,6 +50,9 @@ __all__ = [
 HEADING_SPREAD_RAD = 2.5
 #: Standard deviation of the log-speed at intensity 1 (speed factor e^{±1} at one sigma).
 SPEED_LOG_STD = 1.0
+#: Largest |shake_noise| entry :func:`nonlinear_motion_psf` takes: standard-normal draws beyond 8 have probability
+#: 1e-15; far beyond, exp of the smoothed speed noise overflows into NaN steps (float32 beyond ≈ 88 / Σ|weights|).
+MAX_SHAKE_NOISE = 8.0
 #: Width (std) of the Gaussian smoothing of the shake noise, as a fraction of the number of steps.
 _SMOOTH_FRACTION = 1.0 / 32.0
 
@@ -198,7 +202,8 @@ def nonlinear_motion_psf(
             with y down).
         intensity: (B,) shake intensity in [0, 1]: 0 → exactly :func:`linear_motion_psf` (straight line,
             uniform speed), 1 → strongly curved path with strongly varying speed.
-        shake_noise: (B, N, 2) standard-normal noise, N >= 2 steps (channel 0: heading, 1: speed).
+        shake_noise: (B, N, 2) standard-normal noise, N >= 2 steps (channel 0: heading, 1: speed); entries beyond
+            ±:data:`MAX_SHAKE_NOISE` are refused.
         kernel_size: odd kernel side k in px.
 
     Returns:
@@ -214,6 +219,9 @@ def nonlinear_motion_psf(
     if noise.ndim != 3 or noise.shape[-1] != 2 or noise.shape[1] < 2 or noise.shape[0] < 1:
         raise ValueError(f"shake_noise must have shape (B, N >= 2, 2), got {tuple(noise.shape)}")
     check_finite(noise, "shake_noise")
+    if noise.numel() and float(noise.abs().max()) > MAX_SHAKE_NOISE:  # exp(speed) would overflow into NaN steps
+        raise ValueError(f"shake_noise must hold standard-normal draws, |value| ≤ {MAX_SHAKE_NOISE:g}; got "
+                         f"{float(noise.abs().max()):g} (draw it with sample_shake_noise)")
     b = _broadcast_batch(length, angle, inten, noise)
     _check_length(length, k)
     check_finite(angle, "angle_deg")

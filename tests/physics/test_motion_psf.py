@@ -170,3 +170,7 @@ def test_bad_inputs():
         linear_motion_psf(None, torch.tensor([0.0]), 9)
     with pytest.raises(TypeError, match="shake_noise"):
         nonlinear_motion_psf(torch.tensor([3.0]), torch.tensor([0.0]), torch.tensor([0.5]), noise.long(), 9)
+    big = noise.clone()
+    big[0, 3, 1] = 1e4  # exp of the speed overflowed into NaN steps: "index -9223372036854775808 is out of bounds"
+    with pytest.raises(ValueError, match=r"shake_noise must hold standard-normal draws, \|value\| ≤ 8; got 10000"):
+        nonlinear_motion_psf(torch.tensor([3.0]), torch.tensor([0.0]), torch.tensor([0.5]), big, 9)
