@@ -838,6 +838,12 @@ def physics_noise_posterior(
                                  f"{tuple(other_evidence.shape) if isinstance(other_evidence, torch.Tensor) else type(other_evidence).__name__}")
             if not bool(torch.isfinite(other_evidence).all()):
                 raise ValueError("other_evidence contains NaN or inf")
+            ev = other_evidence.detach().double()
+            # Σr²/D, Σ1/D and the frame counts are sums of non-negative terms, and (Σr/D)² ≤ Σr²/D · Σ1/D
+            if bool((ev[[0, 2, 4]] < 0).any()) or bool((ev[1].square() > ev[0] * ev[2] * (1 + 1e-9) + 1e-300).any()):
+                raise ValueError("other_evidence is no sum of noise_evidence: its Σr²/D, Σ1/D and frame counts (rows 0, 2, 4) "
+                                 "must be ≥ 0 and (Σr/D)² ≤ Σr²/D · Σ1/D per hypothesis; pass noise_evidence's output "
+                                 "(or predict's \"evidence\"), summed over frames")
             other = other_evidence.to(device=dev, dtype=f64)
         if b == 0:  # an empty batch: a table of 0 rows (and, pooled, a frame without evidence)
             empty = torch.zeros(0, len(PHYSICS_NOISE_COLUMNS), device=dev)

@@ -797,6 +797,12 @@ def test_other_exposures_bad_input_is_refused():
     bad[0, 0] = float("inf")
     with pytest.raises(ValueError, match="other_evidence contains NaN or inf"):
         physics_noise_posterior(x, long, pool=True, other_evidence=bad)
+    ev = noise_evidence(y, short)
+    assert (ev[[0, 2, 4]] >= 0).all() and (ev[1].square() <= ev[0] * ev[2] * (1 + 1e-9)).all() and ev[2].sum() > 0
+    for scaled in (-100 * ev, ev * torch.tensor([[1.0], [5.0], [1.0], [1.0], [1.0]], dtype=ev.dtype)):
+        # a negative or impossible sum: it read σ_RN 89.7 DN on 5-DN patches
+        with pytest.raises(ValueError, match=r"other_evidence is no sum of noise_evidence: .*rows 0, 2, 4"):
+            physics_noise_posterior(x, long, pool=True, other_evidence=scaled)
     with pytest.raises(ValueError, match="other_evidence belongs to one camera"):
         physics_noise_posterior(x[:2], CameraMetadata.preset("EV76C661", batch_size=2), other_evidence=torch.zeros(5, 385))
     with pytest.raises(ValueError, match="noise_evidence reads one camera state"):
