@@ -39,6 +39,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(_usage())
         return 0
     tool, rest = args[0], args[1:]
+    tool = tool.replace("_", "-") if tool.replace("_", "-") in TOOLS else tool  # model_card, as its module is named
     if tool not in TOOLS:
         print(f"camhealth: error: unknown tool {tool!r}; choose from {', '.join(TOOLS)}", file=sys.stderr)
         return 2

@@ -125,3 +125,25 @@ def test_benchmark_prose_states_the_numbers_of_its_generated_tables():
     assert claim, "the recording-read prose states a range"
     assert (float(claim.group(1)), float(claim.group(2))) == (min(ms), max(ms))
     assert (float(claim.group(3)), float(claim.group(4))) == (min(pct), max(pct))
+
+
+def test_the_readme_start_runs_and_says_what_it_returns():
+    """The README's 2-minute start, as a user copies it (its GPU line left out): every patch is read, ξ is the gain
+    mismatch it shows (−1.0 … −2.1 DN, the cause the gain), the σ per source are near the comment's, and with the right
+    metadata the answer is the closed form."""
+    import torch
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    block = re.search(r"## A 2-minute start.*?```python\n(.*?)```", text, flags=re.S).group(1)
+    code = "\n".join(line for line in block.splitlines() if 'device="cuda"' not in line)
+    env: dict = {}
+    exec(compile(code, "README.md", "exec"), env)  # noqa: S102 - the project's own README
+    out, noise = env["out"], env["noise"]
+    assert out["assessable"].all() and set(out["reason"]) == {""}
+    assert (out["xi"] > -2.2).all() and (out["xi"] < -0.95).all() and (out["cause"].argmax(1) == 0).all()
+    assert torch.allclose(out["sigma"][0], torch.tensor([3.1, 0.11, 1.0]), atol=0.06)
+    assert (out["p_match"] < 0.01).all() and out["sigma"].shape == (16, 3) and out["cause"].shape == (16, 4)
+    right = noise.predict(env["patches_128"], env["camera"], pool=True)
+    assert (right["xi"] == 0).all() and (right["p_match"] > 0.99).all()
+    mtf = env["blur"].predict(env["patches_192"])
+    assert mtf["mtf"].shape == (2, 16) and mtf["assessable"].all()

@@ -57,6 +57,8 @@ def test_console_script_dispatches_to_the_tools(tmp_path, monkeypatch, capsys):
     assert "class_path: lightning_modules.NoiseSourceEstimator" in capsys.readouterr().out
     assert camhealth_main(["--help"]) == 0 and "monitor" in capsys.readouterr().out
     assert camhealth_main(["fitt"]) == 2 and "unknown tool 'fitt'" in capsys.readouterr().err
+    for name in ("model-card", "model_card"):  # the tool's name, and its module's (python -m camhealth.model_card)
+        assert camhealth_main([name, "--help"]) == 0 and "usage: python -m camhealth.model_card" in capsys.readouterr().out
 
 
 def test_a_users_datamodules_folder_is_named_in_one_line(tmp_path):

@@ -75,6 +75,7 @@ Examples:
   python -m camhealth.monitor street --sensor ICX285 --max-frames 10 --out runs/monitor
   python -m camhealth.monitor clip.mp4 --metadata meta.yaml --overlay --out runs/clip
   python -m camhealth.monitor frame.png --sensor EV76C661 --set gain_db=18 --iopc runs/iopc/iopc.json
+      (the IOPC from python -m camhealth.iopc --config configs/iopc.yaml, run once)
   python -m camhealth.monitor run.mcap --topic /camera/image_raw --sensor ICX285 \
       --gain-topic /camera/gain_db --exposure-topic /camera/exposure_us --exposure-unit us \
       --diagnostics-out runs/run_diagnostics.mcap --out runs/run
