@@ -361,20 +361,20 @@ class FrameDepth:
         return f"{self.file_bits}-bit with {self.bits} significant bits ({why})"
 
 
-def _read_frame(p: Path, bit_depth: int | None) -> tuple[np.ndarray, FrameDepth, float | None]:
+def _read_frame(p: Path, bit_depth: int | None) -> tuple[np.ndarray, FrameDepth, float | None, int]:
     """One image file as H×W float32 in [0, 1] at the depth it declares (module docstring), its :class:`FrameDepth`,
-    and its largest value in codes when it is a 16-bit file read at 16 bits with neither sBIT nor ``bit_depth``
-    (else None)."""
+    its largest value in codes when it is a 16-bit file read at 16 bits with neither sBIT nor ``bit_depth``
+    (else None), and its samples per pixel (1 gray … 4 colour + alpha; read as gray either way)."""
     from camhealth.data.io import read_image_scaled
 
     image, sc = read_image_scaled(p)
     frame = image[0].numpy()
     if sc.file_bits is None:
-        return frame, FrameDepth(None, None, "float"), None
+        return frame, FrameDepth(None, None, "float"), None, sc.channels
     if sc.file_bits == 8:
-        return frame, FrameDepth(8, 8, "file"), None
+        return frame, FrameDepth(8, 8, "file"), None, sc.channels
     if sc.source == "sBIT":
-        return frame, FrameDepth(16, int(sc.bits), "sBIT"), None
+        return frame, FrameDepth(16, int(sc.bits), "sBIT"), None, sc.channels
     want, source = (bit_depth, "given") if bit_depth is not None else (16, "file")
     if sc.max_value > 2**want - 1:
         raise ValueError(f"cannot read image {p} as {want}-bit data (the set's bit_depth): it holds values up to "
@@ -386,7 +386,7 @@ def _read_frame(p: Path, bit_depth: int | None) -> tuple[np.ndarray, FrameDepth,
             frame = rounded.astype(np.float32) / np.float32(2**want - 1)
         else:  # colour turned gray: read it again at that depth
             frame = read_image_scaled(p, want)[0][0].numpy()
-    return frame, FrameDepth(16, want, source), (float(sc.max_value) if source == "file" else None)
+    return frame, FrameDepth(16, want, source), (float(sc.max_value) if source == "file" else None), sc.channels
 
 
 @dataclass
@@ -409,8 +409,8 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
     """The frames of a set as float32 ``N×H×W`` in [0, 1] (at most ``max_frames``: None or ≥ :data:`MIN_FRAMES`), and
     how they were scaled (:class:`LoadedDepth`).
 
-    Raises ``ValueError`` naming the set for mixed frame sizes, mixed bit depths or scalings (naming the files of
-    each), values outside [0, 1] or unreadable files, a video whose codec is not lossless
+    Raises ``ValueError`` naming the set for mixed frame sizes, colour and gray files mixed, mixed bit depths or
+    scalings (naming the files of each), values outside [0, 1] or unreadable files, a video whose codec is not lossless
     (:func:`check_video_codec`), a file with values above its set's ``bit_depth``, and for a ``max_frames`` that is
     neither None nor ≥ :data:`MIN_FRAMES`.
     """
@@ -443,10 +443,13 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
     depths: list[FrameDepth] = []
     loaded = LoadedDepth()
 
-    def add(frame: np.ndarray, depth: FrameDepth, undeclared: float | None, source: str) -> None:
+    channels: list[int] = []
+
+    def add(frame: np.ndarray, depth: FrameDepth, undeclared: float | None, n_channels: int, source: str) -> None:
         frames.append(frame)
         sources.append(source)
         depths.append(depth)
+        channels.append(n_channels)
         if undeclared is not None and (loaded.undeclared_max is None or undeclared > loaded.undeclared_max):
             loaded.undeclared_max, loaded.undeclared_file = undeclared, source
 
@@ -460,7 +463,7 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
         elif _is_video(p):
             check_video_codec(p)
             for frame, idx in FrameSequence(p, max_frames=max_frames):
-                add(frame[0].numpy(), FrameDepth(8, 8, "video"), None, f"{p}#{idx}")
+                add(frame[0].numpy(), FrameDepth(8, 8, "video"), None, 1, f"{p}#{idx}")
                 if max_frames and len(frames) >= max_frames:
                     break
         else:
@@ -474,6 +477,11 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
             by_shape.setdefault(f.shape, []).append(s)
         detail = "; ".join(f"{h}×{w}: {len(v)} frame(s), e.g. {v[0]}" for (h, w), v in by_shape.items())
         raise ValueError(f"{fs.describe()} mixes frame sizes ({detail}); every frame of a calibration must have one size")
+    colour = [s for s, c in zip(sources, channels) if c >= 3]
+    if colour and len(colour) < len(sources):  # BT.601 luma averages three channels' noise: not one sensor's pixels
+        gray = [s for s, c in zip(sources, channels) if c < 3]
+        raise ValueError(f"{fs.describe()} mixes colour frames ({len(colour)}, e.g. {colour[0]}) and gray ones ({len(gray)}, "
+                         f"e.g. {gray[0]}); every frame of a set must come from one output of the camera")
     by_depth: dict[FrameDepth, list[str]] = {}
     for d, s in zip(depths, sources):
         by_depth.setdefault(d, []).append(s)

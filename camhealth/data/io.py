@@ -22,6 +22,7 @@ bits). An alpha channel is dropped (not composited); a palette image is expanded
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import struct
 import warnings
@@ -114,6 +115,8 @@ class ImageScaling:
         shift: bits the file's samples were shifted right before the division (16 − ``bits`` for a PNG whose
             ``sBIT`` samples are scaled up to 16 bits as the PNG specification says, else 0): the value read is
             (sample >> shift) / (2^bits − 1), an integer code over 2^bits − 1 either way.
+        channels: samples per pixel in the file (1 gray, 2 gray + alpha, 3 colour, 4 colour + alpha); the image
+            read is gray either way (:func:`to_gray`).
     """
 
     file_bits: int | None
@@ -121,6 +124,7 @@ class ImageScaling:
     source: str
     max_value: float
     shift: int = 0
+    channels: int = 1
 
     @property
     def divisor(self) -> float | None:
@@ -399,7 +403,7 @@ def read_sequence_frame(path: PathLike, bit_depth: int | str, first_bits: int | 
     if (bit_depth == "auto" and first_bits is not None and scaling.source == "largest value" and scaling.bits is not None
             and scaling.bits < first_bits):
         frame = frame * ((2.0**scaling.bits - 1.0) / (2.0**first_bits - 1.0))
-        scaling = ImageScaling(scaling.file_bits, int(first_bits), "sequence", scaling.max_value)
+        scaling = ImageScaling(scaling.file_bits, int(first_bits), "sequence", scaling.max_value, channels=scaling.channels)
     return frame, scaling
 
 
@@ -463,4 +467,4 @@ def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[to
         scaling = ImageScaling(None, None, "file", float(np.nanmax(arr)) if arr.size else 0.0)
     gray = to_gray(_normalise(arr, p, scaling))
     out = torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32)).clamp_(0.0, 1.0)
-    return out.unsqueeze(0), scaling
+    return out.unsqueeze(0), dataclasses.replace(scaling, channels=int(arr.shape[-1]) if arr.ndim == 3 else 1)

@@ -767,3 +767,23 @@ def test_a_default_operating_point_outside_the_range_is_clamped_and_said_so():
     assert any("operating point temperature_c: the default (median dark-set temperature) is 100 °C, outside" in w
                and "--operating-point temperature_c=VALUE" in w for w in res.warnings)
     assert not any("operating point exposure_s" in w or "operating point gain_db" in w for w in res.warnings)
+
+
+def test_a_set_mixing_colour_and_gray_files_is_refused_naming_them(tmp_path):
+    """Two of six dark frames saved in colour: their BT.601 luma averages three channels' noise, so they were read as
+    a quieter sensor than the gray frames beside them, without a word."""
+    from PIL import Image
+
+    from camhealth.calibrate.frames import load_frames
+
+    rng = np.random.default_rng(2)
+    files = []
+    for i in range(6):
+        g = np.clip(rng.normal(80, 3, (16, 16)), 0, 255).astype(np.uint8)
+        p = tmp_path / f"dark_100ms_0dB_25C_{i:04d}.png"
+        Image.fromarray(np.stack([g] * 3, -1) if i in (1, 4) else g).save(p)
+        files.append(p)
+    with pytest.raises(ValueError, match=r"dark set .* mixes colour frames \(2, e\.g\. .*_0001\.png\) and gray ones "
+                                         r"\(4, e\.g\. .*_0000\.png\); every frame of a set must come from one output"):
+        load_frames(FrameSet("dark", 0.1, paths=files))
+    assert load_frames(FrameSet("dark", 0.1, paths=[files[1], files[4]])).shape == (2, 16, 16)  # all colour: read
