@@ -1907,7 +1907,8 @@ class Monitor:
                 "frames": self._banding[0].count,
                 **{f"{name}_dn": {k: v for k, v in stat.stats(3).items() if k != "mean"}
                    for name, stat in (("row", self._banding[0]), ("col", self._banding[1]))}},
-            "causes": None if not self._causes else {"frames": sum(self._causes.values()), **dict(self._causes)},
+            "causes": None if not self._causes else {"frames": sum(self._causes.values()),
+                                                     **{k: self._causes.get(k, 0) for k in CAUSE_GROUPS}},
             "defects": None if not self._defect_frames.count else {
                 "frames": self._defect_frames.count,
                 "ppm": {k: v for k, v in self._defect_frames.stats(1).items() if k != "mean"},

@@ -963,6 +963,7 @@ def test_the_report_names_the_cause_of_a_mismatch(mode):
             assert diag["noise_cause"] == "" and diag["noise_cause_p"] == "nan" and causes is None
             continue
         assert causes[cause] >= 2 and causes["frames"] == sum(v for k, v in causes.items() if k != "frames")
+        assert set(causes) == {"frames", "gain", "dark_current", "readout"}  # every cause, 0 where none named it
         assert diag["noise_cause"] == cause and float(diag["noise_cause_p"]) > 0.9
         assert set(got) == {"gain", "dark_current", "readout", "patches"} and got["patches"] > 0
         assert abs(got["gain"] + got["dark_current"] + got["readout"] - 1.0) < 1e-2
