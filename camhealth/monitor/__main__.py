@@ -378,7 +378,7 @@ def _human_summary(summary: dict, out: TextIO) -> None:
         print("  ξ alarm states: " + ", ".join(f"{k} {v}" for k, v in summary["alarms"].items()), file=out)
     causes = summary.get("causes")
     if causes:
-        named = ", ".join(f"{k} {v}" for k, v in causes.items() if k != "frames")
+        named = ", ".join(f"{k} {v}" for k, v in causes.items() if k != "frames" and v)
         print(f"  noise departs from the metadata in {causes['frames']} frame(s); most probable cause: {named}", file=out)
     advice = last.get("advice")
     if advice and advice.get("available"):

@@ -243,7 +243,7 @@ def test_the_run_summary_counts_the_frames_that_named_a_cause(tmp_path, capsys):
     assert len(lines) == 2 and all(d["alarm"]["state"] == "noisier" and d["noise"]["cause"]["readout"] > 0.9 for d in lines)
     assert "noise departs from the metadata in 2 frame(s); most probable cause: readout 2" in out
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    assert summary["causes"] == {"frames": 2, "readout": 2}
+    assert summary["causes"] == {"frames": 2, "gain": 0, "dark_current": 0, "readout": 2}
 
 
 def test_static_pairs_warn_on_lossy_frames(tmp_path, capsys):
