@@ -46,6 +46,7 @@ import inspect
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
@@ -146,7 +147,14 @@ def _integer_scale(dtype: str, bit_depth: int | None) -> float:
 
 
 def _check_bits(hi: float, bit_depth: int | None) -> None:
-    """A uint16 frame's largest value ``hi`` must fit ``bit_depth`` bits (:func:`as_frame`)."""
+    """A uint16 frame's largest value ``hi`` must fit ``bit_depth`` bits (:func:`as_frame`); without ``bit_depth``, a
+    frame whose values fit 14 bits or fewer gets a ``UserWarning`` (once per place it is read from, Python's default):
+    a 10-, 12- or 14-bit camera's frame read as 16-bit data is 4–64× too dark, and its noise reads as texture."""
+    if bit_depth is None and 0 < hi <= 2**14 - 1:
+        bits = next(b for b in (10, 12, 14) if hi <= 2**b - 1)
+        warnings.warn(f"uint16 frame read as 16-bit data (÷65535), but its largest value {hi:g} fits {bits} bits: if "
+                      f"the camera delivers {bits} bits, pass bit_depth={bits} (read as 16-bit data the frame is "
+                      f"{2 ** (16 - bits)}× too dark to judge its noise and blur)", UserWarning, stacklevel=4)
     if bit_depth is not None and bit_depth < 16 and hi > 2**bit_depth - 1:
         raise ValueError(f"uint16 frame value {hi:g} exceeds the {bit_depth}-bit range 0…{2**bit_depth - 1} "
                          f"(bit_depth = {bit_depth}); give the camera's real bit depth (None or 16 if it fills the "

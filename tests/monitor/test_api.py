@@ -2,6 +2,7 @@
 
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -1070,10 +1071,16 @@ def test_a_uint16_frame_of_fewer_bits_is_read_with_its_bit_depth(bits, tmp_path)
     assert cv2.imwrite(str(tmp_path / "f.png"), arr)
     cli = read_image(tmp_path / "f.png", bit_depth=bits)
     for x in (arr, torch.from_numpy(arr.astype(np.int32)).to(torch.uint16)):
-        f = as_frame(x, bit_depth=bits)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a frame read with its bit depth, or as 16-bit data told so: no warning
+            f = as_frame(x, bit_depth=bits)
+            sixteen = as_frame(x, bit_depth=16)
         assert torch.allclose(f[0, 0], cli.reshape(f.shape[-2:]), atol=1e-6) and float(f.max()) == 1.0
-        assert torch.equal(as_frame(x), as_frame(x, bit_depth=16))
-        assert float(as_frame(x).max()) == pytest.approx(top / 65535)  # the default: DN/65535
+        # without bit_depth, DN/65535 as before, and a warning that names the bits the values fit
+        with pytest.warns(UserWarning, match=rf"largest value {top} fits {bits} bits: .* pass bit_depth={bits} "
+                                             rf"\(read as 16-bit data the frame is {2 ** (16 - bits)}× too dark"):
+            default = as_frame(x)
+        assert torch.equal(default, sixteen) and float(default.max()) == pytest.approx(top / 65535)
     mon = Monitor(FakeNoise(), None, sensor="ICX285", mode="map")
     assert mon.process(arr, bit_depth=bits).noise.value("total") == pytest.approx(
         mon.process((cli[0] * 255).round().to(torch.uint8).numpy()).noise.value("total"), rel=0.1)
@@ -1136,8 +1143,8 @@ def test_a_frame_far_quieter_than_its_metadata_says_so():
 def test_as_frame_reads_big_endian_uint16_as_uint16():
     """A big-endian uint16 array (``>u2``: ``np.frombuffer`` of a ROS Image with ``is_bigendian``, a 16-bit PGM or FITS
     reader) is uint16: DN/65535, or DN/(2^bit_depth − 1) — not 8-bit DN (200 would read 257× too bright)."""
-    native = as_frame(np.full((8, 8), 200, "<u2"))
-    big = as_frame(np.full((8, 8), 200, ">u2"))
+    native = as_frame(np.full((8, 8), 200, "<u2"), bit_depth=16)
+    big = as_frame(np.full((8, 8), 200, ">u2"), bit_depth=16)
     assert torch.equal(big, native) and float(big[0, 0, 0, 0]) == pytest.approx(200 / 65535)
     assert float(as_frame(np.full((8, 8), 4000, ">u2"), bit_depth=12).mean()) == pytest.approx(4000 / 4095)
     with pytest.raises(ValueError, match="5000 exceeds the 12-bit range"):
