@@ -7,6 +7,7 @@ type/dtype and ``ValueError`` for a wrong shape or value.
 
 from __future__ import annotations
 
+import numbers
 from typing import Sequence
 
 import torch
@@ -122,6 +123,13 @@ def check_odd_kernel_size(k: int, name: str = "kernel_size", low: int = 1, high:
     if k < low or k > high or k % 2 == 0:
         raise ValueError(f"{name} = {k} must be an odd integer in [{low}, {high}]")
     return k
+
+
+def check_batch_size(batch_size: object, name: str = "batch_size") -> int:
+    """``batch_size`` as an int, or ``ValueError`` unless it is an integer (not a bool) ≥ 1."""
+    if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral) or batch_size < 1:
+        raise ValueError(f"{name} = {batch_size!r} must be an integer ≥ 1")
+    return int(batch_size)
 
 
 def check_choice(value: str, name: str, choices: Sequence[str]) -> str:

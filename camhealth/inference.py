@@ -75,7 +75,6 @@ from __future__ import annotations
 
 import copy
 import json
-import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -85,6 +84,7 @@ import torch
 
 from camhealth.estimators.defective_pixels import repair_defective_pixels
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadata, _to_patches, assess_patches, haar_noise_dn  # noqa: F401
+from camhealth._validation import check_batch_size
 from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
 from camhealth.export import (BY_PHYSICS, FORMAT_TAG, MAX_EXPORT_BATCH, ONNX_NOISE_OUTPUTS, _check_description,
                               check_retired, load_net, network_metadata_set)
@@ -191,9 +191,7 @@ class Estimator:
         :data:`~camhealth.export.MAX_EXPORT_BATCH` = 4096, runs chunks of at most that many)."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
-        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral) or batch_size < 1:
-            raise ValueError(f"batch_size = {batch_size!r} must be an integer ≥ 1")
-        batch_size = int(batch_size)
+        batch_size = check_batch_size(batch_size)
         if views not in (1, 2, 4):
             raise ValueError(f"views = {views!r} must be 1, 2 or 4")
         if views > 1 and self.kind != "mtf":

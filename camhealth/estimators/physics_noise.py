@@ -172,7 +172,6 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -182,6 +181,7 @@ import torch.nn.functional as F
 
 from camhealth._order import sorted_values
 from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, haar_noise_dn
+from camhealth._validation import check_batch_size
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
     plane_free_details,
@@ -1312,9 +1312,7 @@ class PhysicsNoiseEstimator:
         arguments ask for; its arguments are checked as a full batch's are."""
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
-        if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral) or batch_size < 1:
-            raise ValueError(f"batch_size = {batch_size!r} must be an integer ≥ 1")
-        batch_size = int(batch_size)
+        batch_size = check_batch_size(batch_size)
         if views != 1:
             raise ValueError(f"views = {views!r}: flipped views are for MTF estimators; {self.name!r} is a noise estimator")
         patches = _to_patches(images, self.patch_size, input_range)
