@@ -142,6 +142,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "camhealth.bench.monitor_exposure)")
     parser.add_argument("--exposure-ratio", type=float, default=8.0,
                         help="--exposure-step: long / short exposure time (default 8)")
+    parser.add_argument("--pool-sizes", action="store_true",
+                        help="the pooled noise estimator reading a frame's patches in groups of 1…12 and whole, on "
+                             "photographs of the independent sensor model, as told and --pool-step-db louder (see "
+                             "camhealth.bench.monitor_pool: the measurement behind NOISE_MIN_POOL)")
+    parser.add_argument("--pool-step-db", type=float, default=12.0,
+                        help="--pool-sizes: how much louder than told the second camera's gain is, dB (default 12)")
+    parser.add_argument("--pool-draws", type=int, default=4,
+                        help="--pool-sizes: noise realisations per photograph and camera (default 4)")
     parser.add_argument("--true-gain-db", type=float, default=None,
                         help="the sensor's real gain in dB when it differs from the metadata's --gain-db (a metadata "
                              "mismatch: ξ ≠ 0; the summary compares each monitor's ξ with the closed form of the metadata "
@@ -211,6 +219,10 @@ def run(args: argparse.Namespace) -> BenchResult:
         from camhealth.bench.monitor_motion import run_motion
 
         return run_motion(args)
+    if getattr(args, "pool_sizes", False):
+        from camhealth.bench.monitor_pool import run_pool_sizes
+
+        return run_pool_sizes(args)
     if getattr(args, "exposure_step", False):
         from camhealth.bench.monitor_exposure import run_exposure_step
 

@@ -593,11 +593,13 @@ class FrameReport:
 
 
 def xi_alarm(xi_dn: float, spread_dn: float, count: int, threshold_dn: float = 1.0, k: float = 3.0,
-             total_dn: float | None = None) -> dict[str, Any]:
+             total_dn: float | None = None, model_dn: float | None = None) -> dict[str, Any]:
     """ξ alarm for a frame value ξ̃ [DN] (Eq. 4.3: ξ = σ_Model(M) − σ_Image(M')).
 
     ``limit = max(threshold_dn, k·1.2533·spread/√count)``; ξ̃ < −limit → ``"noisier"`` (the image is
     noisier than the metadata allow), ξ̃ > limit → ``"cleaner"``, else ``"ok"``; NaN → ``"not_assessable"``.
+    ``total_dn`` (the frame's σ_Total in the image [DN]) and ``model_dn`` (its σ_Total from the metadata [DN]; by default
+    ``total_dn`` + ξ̃, which holds where every patch shares one ξ) are quoted in the message.
     """
     if not math.isfinite(xi_dn) or count < 1:
         return {"state": "not_assessable", "xi_dn": None, "limit_dn": None,
@@ -606,7 +608,8 @@ def xi_alarm(xi_dn: float, spread_dn: float, count: int, threshold_dn: float = 1
     limit = max(threshold_dn, k * se)
     model = ""
     if total_dn is not None and math.isfinite(total_dn):
-        model = f" (σ from the metadata ≈ {total_dn + xi_dn:.2f} DN, in the image ≈ {total_dn:.2f} DN)"
+        meta_dn = total_dn + xi_dn if model_dn is None or not math.isfinite(model_dn) else model_dn
+        model = f" (σ from the metadata ≈ {meta_dn:.2f} DN, in the image ≈ {total_dn:.2f} DN)"
     if xi_dn < -limit:
         state = "noisier"
         msg = (f"image is noisier than the metadata allow: ξ̃ = {xi_dn:+.2f} DN < −{limit:.2f} DN{model}; "
@@ -618,6 +621,19 @@ def xi_alarm(xi_dn: float, spread_dn: float, count: int, threshold_dn: float = 1
     else:
         state, msg = "ok", f"noise agrees with the metadata: |ξ̃| = {abs(xi_dn):.2f} DN ≤ {limit:.2f} DN"
     return {"state": state, "xi_dn": _num(xi_dn), "limit_dn": _num(limit), "message": msg}
+
+
+def _metadata_total(noise: TaskReport) -> float | None:
+    """The frame's σ_Total from the metadata [DN]: the median over this frame's patches with a value of σ_Total + ξ (per
+    patch the metadata's closed form: ξ = σ_Model − σ_Image, and σ_Total is the closed form itself where ξ = 0). In a
+    frame whose patches do not share one ξ (some follow the image, some keep the closed form) the frame's medians of
+    σ_Total and ξ do not add up to it. ``None`` where no patch has both."""
+    values = noise.values
+    if values is None or values.ndim != 2 or values.shape[1] != len(NOISE_FIELDS):
+        return None
+    both = values[:, NOISE_FIELDS.index("total")] + values[:, NOISE_FIELDS.index("xi")]
+    both = both[torch.isfinite(both)]
+    return float(torch.quantile(both.double(), 0.5)) if both.numel() else None
 
 
 def beyond_range_alarm(xi_dn: float, beyond: int, refused: int, threshold_dn: float = 1.0) -> dict[str, Any]:
@@ -682,6 +698,16 @@ EXPOSURE_MEMORY_FRAMES = 300
 DEFECT_POSITIONS = 100_000
 #: Recurring defect positions the summary lists (most frames first).
 DEFECT_LIST = 100
+#: The fewest patches a pooled noise estimator (``pool_noise``) reads in one call. Its answer is the posterior of the
+#: patches read together, and a patch read alone has only its own flat details: of the patches that are assessable
+#: read with their whole frame (scikit-image's photographs, the independent sensor model, ICX285 as told and 12 dB
+#: louder), 58–62 % are assessable read alone, 75–78 % in pairs, 86–90 % in fours, 97–100 % in sixes and 98–100 % in
+#: eights, and of the louder camera's assessable ones 86 % see the mismatch alone, 100 % in eights
+#: (``python -m camhealth.bench monitor --pool-sizes --gain-db 0 --exposure-s 0.02 --temperature-c 45``). Where fewer
+#: patches need a fresh estimate (a static patch's periodic refresh, a patch that changed, a new sample, the second
+#: call of coarse → refine), other informative patches of the frame are read with them, for their evidence only:
+#: their own values stay as they were.
+NOISE_MIN_POOL = 8
 
 
 def new_defect_ppm(defects: Mapping[str, Any] | None) -> float:
@@ -772,6 +798,9 @@ class _TaskState:
     # map mode: frames since the last reset that gave a value (estimated, interpolated or reused) — the frames behind
     # the answer, up to the window; a frame with no value (black, saturated, every patch refused) adds none
     frames_valued: int = 0
+    # the frame counter at which each patch was last read by the estimator (for its value or as a pooled noise
+    # reading's partner, NOISE_MIN_POOL), −1: never
+    read_at: torch.Tensor = field(init=False)
 
     def __post_init__(self) -> None:
         n = self.grid.n
@@ -801,6 +830,7 @@ class _TaskState:
         self.cause_p = None
         self.defect_n = torch.zeros(n, 3, dtype=torch.long)
         self.defect_at = {}
+        self.read_at = torch.full((n,), -1, dtype=torch.long)
 
     def clear_evidence(self, index: torch.Tensor) -> None:
         """Forget the noise evidence of the patches ``index`` (re-estimated, or given an interpolated value)."""
@@ -858,6 +888,19 @@ class _TaskState:
             return
         self.history[self.ptr[index], index] = vals
         self.ptr[index] = (self.ptr[index] + 1) % self.window
+
+
+def _first_rows(out: Mapping[str, Any], n: int, total: int) -> dict[str, Any]:
+    """An estimator's output for ``total`` patches cut to its first ``n`` (per-patch tensors, arrays and lists; the
+    frame's ``evidence`` and scalars as they are)."""
+    cut: dict[str, Any] = {}
+    for key, value in out.items():
+        if key != "evidence" and isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim and value.shape[0] == total:
+            value = value[:n]
+        elif isinstance(value, (list, tuple)) and len(value) == total:
+            value = type(value)(value[:n])
+        cut[key] = value
+    return cut
 
 
 def _uncertainty(spread: torch.Tensor, n: int, temporal_spread: torch.Tensor, frames: int,
@@ -1044,7 +1087,10 @@ class Monitor:
         noise_samples, mtf_samples: patches per frame in sampled mode (>= 1; default 8 and 6).
         adaptive: reuse static patches and interpolate on the coarse lattice (``False``: estimate every
             informative patch of every frame).
-        reuse_static, coarse_refine: the two parts of ``adaptive`` separately.
+        reuse_static, coarse_refine: the two parts of ``adaptive`` separately. A reused value enters its patch's
+            temporal window as this frame's value, so the window spans the last ``window`` frames either way; a pooled
+            noise reading of fewer than :data:`NOISE_MIN_POOL` patches is made up with other informative patches of
+            the frame, read for their evidence only.
         skip_uninformative: ``False`` also estimates black/saturated/featureless/no-edge patches (for benchmarks;
             their results are then discarded by the estimator's own ``assessable``).
         selection: thresholds (:class:`~camhealth.monitor.tiling.SelectionConfig`).
@@ -1372,13 +1418,19 @@ class Monitor:
         return task == "noise" and bool(self.pool_noise) and "pool" in self.estimators[task].kwargs
 
     def _estimate(
-        self, task: str, patches: torch.Tensor, index: torch.Tensor, meta: CameraMetadata | None
+        self, task: str, patches: torch.Tensor, index: torch.Tensor, meta: CameraMetadata | None,
+        partners: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Run the estimator on ``patches[index]`` → (values (n, K), ok (n,) bool, the estimator's per-value spread
         (n, K): MTF ``mtf_std``, noise ``sigma_std`` and ``xi_std`` (ξ and the total) where the estimator returns them,
         else NaN). The reasons the estimator gave for the
         patches it refused are counted into this frame's ``refused`` of the task state, and the ξ [DN] it still
-        reports for those refused as ``"noise beyond validated range"`` kept in ``beyond_xi`` (the alarm's bound)."""
+        reports for those refused as ``"noise beyond validated range"`` kept in ``beyond_xi`` (the alarm's bound).
+
+        ``partners``: the frame's informative patches. A pooled noise reading of fewer than :data:`NOISE_MIN_POOL`
+        patches reads as many of them with ``index`` as make it up — those not read this frame first (so that no
+        patch's evidence is kept twice for other exposure times), the longest unread first — and returns the rows of
+        ``index`` alone."""
         handle = self.estimators[task]
         st = self._states[task]
         k = 5 if task == "noise" else 16
@@ -1396,14 +1448,31 @@ class Monitor:
             kwargs["pool"] = True  # one camera state per frame: the frame's evidence for every patch
         if task == "noise" and st.reference is not None and "reference" in handle.kwargs:
             kwargs["reference"] = st.reference[index]  # the same patches of the previous frame (static pairs)
+        call, read_twice = index, False
+        if task == "noise" and kwargs.get("pool") and partners is not None and n < NOISE_MIN_POOL:
+            # one pooled reading: a few patches alone have few flat details of their own, so the frame's other
+            # informative patches join them for their evidence
+            own = set(index.tolist())
+            others = [i for i in partners.tolist() if i not in own]
+            others.sort(key=lambda i: (int(st.read_at[i]) == self._counter, int(st.read_at[i]), i))
+            extra = others[: NOISE_MIN_POOL - n]
+            if extra:
+                call = torch.cat([index, torch.tensor(extra, dtype=torch.long)])
+                read_twice = any(int(st.read_at[i]) == self._counter for i in extra)
+        if kwargs.get("reference") is not None:
+            kwargs["reference"] = st.reference[call]
+        st.read_at[call] = self._counter
         exposures = task == "noise" and self.exposure_evidence and kwargs.get("pool") and "other_evidence" in handle.kwargs
         if exposures:  # this camera's evidence at other exposure times joins; this frame's is kept for them
             kwargs["other_evidence"], st.exposures = self._exposure_evidence(meta)
             kwargs["return_evidence"] = True
         use_meta = meta if getattr(handle.est, "metadata_set", "none") != "none" else None
-        out = handle.est.predict(patches[index], metadata=use_meta, **kwargs)
-        if exposures and out.get("evidence") is not None and bool(torch.as_tensor(out["evidence"]).any()):
+        out = handle.est.predict(patches[call], metadata=use_meta, **kwargs)
+        if (exposures and not read_twice and out.get("evidence") is not None
+                and bool(torch.as_tensor(out["evidence"]).any())):
             self._keep_evidence(meta, torch.as_tensor(out["evidence"]))
+        if call is not index:
+            out = _first_rows(out, n, int(call.numel()))
         if kwargs.get("reference") is not None and "static" in out:
             st.pairs += int(torch.as_tensor(out["static"]).sum())
         if task == "noise":
@@ -1512,7 +1581,8 @@ class Monitor:
                 reuse = (torch.isfinite(st.memory[idx, -1]) & ~st.static.changed(stats)[idx]
                          & ~st.static.due(self._counter)[idx])
             new = idx[~reuse]
-            new_vals, new_ok, new_std = self._estimate(task, patches, new, meta)
+            pool_with = informative if quiet is None or not bool((informative & ~quiet).any()) else informative & ~quiet
+            new_vals, new_ok, new_std = self._estimate(task, patches, new, meta, pool_with.nonzero()[:, 0])
             st.memory[new] = new_vals
             st.memory_std[new] = new_std
             st.memory_id[new] = torch.arange(st.next_id, st.next_id + new.numel())  # a new estimate each
@@ -1545,7 +1615,8 @@ class Monitor:
         first = coarse_lattice(grid, candidates, informative) if self.coarse_refine else candidates
         fresh = torch.zeros(grid.n, dtype=torch.bool)
         idx = first.nonzero()[:, 0]
-        vals, ok, vstd = self._estimate(task, patches, idx, meta)
+        partners = informative.nonzero()[:, 0]  # a pooled noise reading's partners (NOISE_MIN_POOL)
+        vals, ok, vstd = self._estimate(task, patches, idx, meta, partners)
         estimated = [idx]  # the patches estimated this frame (assessable or not)
         values[idx] = vals
         std[idx] = vstd
@@ -1574,7 +1645,7 @@ class Monitor:
             if task == "noise":  # an interpolated value has no evidence of its own (nor does it, when reused later)
                 st.clear_evidence(interpolated.nonzero()[:, 0])
             idx2 = (remaining & ~interpolated).nonzero()[:, 0]
-            vals2, ok2, vstd2 = self._estimate(task, patches, idx2, meta)
+            vals2, ok2, vstd2 = self._estimate(task, patches, idx2, meta, partners)
             estimated.append(idx2)
             values[idx2] = vals2
             std[idx2] = vstd2
@@ -1583,7 +1654,12 @@ class Monitor:
         new_idx = (fresh | interpolated).nonzero()[:, 0]  # values computed this frame (not reused)
         if self.reuse_static:
             st.static.update(new_idx, stats, self._counter)
-        st.push(new_idx, values[new_idx])
+        # every patch with a value this frame enters its temporal window, a reused one standing for this frame (as a
+        # reused sample does in sampled mode): the window spans the last `window` frames whether or not a patch was
+        # re-estimated, so a still camera's change shows as soon as with every patch estimated every frame
+        framed = (new_idx if not self.reuse_static
+                  else (fresh | interpolated | ((code == REUSED) & torch.isfinite(values).any(1))).nonzero()[:, 0])
+        st.push(framed, values[framed])
         st.values, st.code, st.std = values, code, std
         st.gather(torch.cat([*estimated, (code == REUSED).nonzero()[:, 0]]))  # a reused patch keeps its evidence
         fresh_n = int(fresh.sum())
@@ -1802,7 +1878,7 @@ class Monitor:
         i = NOISE_FIELDS.index("xi")
         count = noise.n_values
         out = xi_alarm(float(noise.median[i]), float(noise.spread[i]), count, self.xi_threshold_dn, self.xi_sigmas,
-                       total_dn=noise.value("total"))
+                       total_dn=noise.value("total"), model_dn=_metadata_total(noise))
         if out["state"] == "noisier" and noise.banding:
             out["message"] += "; " + banding_text(noise.banding)
         elif noise.cause and out["state"] in ("noisier", "cleaner"):

@@ -36,7 +36,8 @@ mean moved by more than max(``block_tol_dn``, k·√2·σ̂/8) (k = ``block_sigm
 deviation of the difference of two noisy block means), or its noise level σ̂ or edge energy e changed by
 more than an absolute-plus-relative tolerance (a gain/temperature or focus change of a static scene). A
 static patch is still re-estimated every ``max_age`` frames, staggered over the grid so that the work is
-spread evenly: patch i is due when (frame + i) mod ``max_age`` = 0.
+spread evenly: patch i is due when (frame + i) mod ``max_age`` = 0. A reused estimate stands for the frame it is
+reused in (the monitor's temporal window takes it as that frame's value).
 
 **Coarse → refine** (:func:`coarse_lattice`, :func:`refine_plan`): the patches that need a fresh estimate
 are first estimated on the coarse lattice (even row and even column: a quarter of the grid) and where a

@@ -1264,3 +1264,107 @@ def test_fields_given_without_a_preset_are_reported_as_given_not_completed_from_
     # a named preset or a full set still gives the whole camera state
     full = mon.process(frame, metadata={"sensor": "ICX285", "gain_db": 6.0}).metadata
     assert set(full) == {"gain_db", "exposure_s", "temperature_c"}
+
+
+class PooledFakeNoise(FakeNoise):
+    """A pooled noise estimator stand-in: records the size of every call and refuses a call of fewer than
+    ``min_pool`` patches as ``"no flat area"`` (a few patches have few flat details of their own)."""
+
+    def __init__(self, min_pool: int = 4) -> None:
+        super().__init__()
+        self.min_pool = min_pool
+        self.sizes: list[int] = []
+
+    def predict(self, patches, metadata=None, precision="fp32", batch_size=256, pool=False):
+        out = super().predict(patches, metadata, precision, batch_size)
+        b = patches.shape[0]
+        self.sizes.append(b)
+        out["tag"] = torch.arange(b)  # which row of the call a patch's output came from
+        if pool and b < self.min_pool:
+            out["assessable"] = torch.zeros(b, dtype=torch.bool)
+            out["reason"] = ["no flat area"] * b
+        return out
+
+
+@pytest.mark.parametrize("mode", ["map", "sampled"])
+def test_a_pooled_noise_reading_of_few_patches_is_made_up_with_the_frames_others(mode, street_frames):
+    from camhealth.monitor.api import NOISE_MIN_POOL
+
+    fn = PooledFakeNoise(min_pool=NOISE_MIN_POOL)
+    mon = _monitor(fn, None, mode=mode, window=3)
+    scene = street_frames[0]
+    few = 0
+    for i in range(20):  # a still camera: each frame re-estimates only the patches due for their refresh
+        calls = len(fn.sizes)
+        r = mon.process(noisy(scene, 3.0, seed=i))
+        assert r.noise.refused == {} and r.noise.counts["not_assessable"] == 0, (i, r.noise.refused)
+        few += 0 < r.noise.coverage["estimated"] < NOISE_MIN_POOL and len(fn.sizes) > calls
+    # every call read at least NOISE_MIN_POOL patches (the frame has more informative ones), though frames re-estimated
+    # fewer: the others joined for their evidence only
+    assert few > 0 and min(fn.sizes) >= NOISE_MIN_POOL
+
+
+def test_a_pooled_reading_made_up_with_partners_keeps_the_partners_values(street_frames):
+    from camhealth.monitor.api import REUSED, _first_rows
+
+    fn = PooledFakeNoise(min_pool=1)
+    mon = _monitor(fn, None, window=3)
+    scene = street_frames[0]
+    mon.process(noisy(scene, 3.0, seed=0))
+    before = mon._states["noise"].values.clone()
+    r = mon.process(noisy(scene, 3.0, seed=1))  # the same scene: most patches reused, a few due
+    reused = mon._states["noise"].code == REUSED
+    assert int(reused.sum()) > 0 and r.noise.counts["estimated"] < 8
+    assert torch.equal(mon._states["noise"].values[reused], before[reused])
+    # the helper cuts every per-patch output to the patches asked for, and leaves the frame's evidence and scalars
+    out = {"sigma": torch.zeros(5, 3), "reason": ["", "a", "", "", ""], "evidence": torch.ones(5, 7), "n": 3,
+           "mask": np.zeros((5, 1, 4, 4))}
+    cut = _first_rows(out, 2, 5)
+    assert cut["sigma"].shape == (2, 3) and cut["reason"] == ["", "a"] and cut["evidence"].shape == (5, 7)
+    assert cut["n"] == 3 and cut["mask"].shape == (2, 1, 4, 4)
+
+
+def test_a_still_cameras_gain_step_shows_with_reused_patches_as_without():
+    """Map mode on a still camera: reused values enter the temporal window as the frame's values, so a gain step the
+    metadata do not know (ICX285 at 12 dB, told 0 dB) raises the alarm, and its return clears it, in the same frames as
+    when every patch is estimated every frame."""
+    from camhealth.data import build_source
+    from camhealth.physics import form_image
+
+    photo, _ = build_source("skimage")[0]
+    clean = photo[None, :, :384, :384]
+    told = CameraMetadata.preset("ICX285", gain_db=0.0, exposure_s=0.02, temperature_c=45.0)
+    states = {}
+    for reuse in (True, False):
+        mon = Monitor(noise_model="noise_source_full", mtf_model=None, metadata=told, window=3, mode="map",
+                      reuse_static=reuse)
+        g = torch.Generator().manual_seed(0)
+        seq = []
+        for t in range(12):
+            cam = told.replace(gain_db=12.0 if 4 <= t < 8 else 0.0)
+            shot = (form_image(clean, cam, generator=g).image[0, 0] * 255).round().to(torch.uint8)
+            r = mon.process(shot)
+            assert "no flat area" not in r.noise.refused, (reuse, t, r.noise.refused)
+            seq.append(r.alarm["state"])
+        states[reuse] = seq
+    assert states[True] == states[False]
+    assert states[True][:4] == ["ok"] * 4 and "noisier" in states[True][4:8] and states[True][-1] == "ok"
+
+
+def test_the_alarm_quotes_the_metadatas_sigma_from_each_patch():
+    """σ from the metadata in the alarm's message is the median over the patches of σ_Total + ξ (each patch's closed
+    form), not the frame's median σ_Total plus its median ξ, which differ where the patches do not share one ξ."""
+    from types import SimpleNamespace
+
+    from camhealth.monitor.api import NOISE_FIELDS, _metadata_total
+
+    # three patches: closed forms 2, 5 and 8 DN, read 3, 11 and 10 DN (ξ −1, −6, −2)
+    values = torch.full((4, len(NOISE_FIELDS)), float("nan"))
+    values[:3, NOISE_FIELDS.index("total")] = torch.tensor([3.0, 11.0, 10.0])
+    values[:3, NOISE_FIELDS.index("xi")] = torch.tensor([-1.0, -6.0, -2.0])
+    model = _metadata_total(SimpleNamespace(values=values))
+    assert model == pytest.approx(5.0)  # the frame's medians would say 10 − 2 = 8
+    msg = xi_alarm(-2.0, 0.1, 3, total_dn=10.0, model_dn=model)["message"]
+    assert "σ from the metadata ≈ 5.00 DN, in the image ≈ 10.00 DN" in msg
+    assert "≈ 8.00 DN" in xi_alarm(-2.0, 0.1, 3, total_dn=10.0)["message"]  # one shared ξ: total + ξ
+    assert _metadata_total(SimpleNamespace(values=torch.full((2, 5), float("nan")))) is None

@@ -168,3 +168,26 @@ def test_exposure_step_splits_a_readout_excess_only_with_the_other_exposure_time
 def test_exposure_step_refuses_bad_settings(extra, message):
     with pytest.raises(ValueError, match=message):
         main(EXPOSURE + extra)
+
+
+def test_pool_sizes_reads_few_patches_worse_than_eight(capsys):
+    """``--pool-sizes``: every group size has its timing row and its line; read alone, fewer of the patches that their
+    whole frame reads are assessable than read in eights (the measurement behind NOISE_MIN_POOL)."""
+    import re
+
+    out = _printed(["monitor", "--pool-sizes", "--pool-draws", "1", "--gain-db", "0", "--exposure-s", "0.02",
+                    "--temperature-c", "45", "--threads", "2", "--markdown"], capsys)
+    for k in ("1 patch", "2 patches", "8 patches", "12 patches", "the whole frame"):
+        assert f"| pooled reading of {k} |" in out
+    share = {int(m.group(1)): int(m.group(2)) for m in re.finditer(r"^\| (\d+) \| (\d+) % \(", out, re.M)}
+    assert set(share) == {1, 2, 4, 6, 8, 12}
+    assert share[1] < share[8] and share[8] >= 90
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--pool-draws", "0"], r"--pool-draws must be an integer >= 1"),
+    (["--pool-step-db", "-3"], r"--pool-step-db must be a finite gain step >= 0 dB"),
+])
+def test_pool_sizes_refuses_bad_settings(extra, message):
+    with pytest.raises(ValueError, match=message):
+        main(["monitor", "--pool-sizes", *extra])
