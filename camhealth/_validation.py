@@ -118,8 +118,9 @@ def check_batch_vector(x: object, name: str, batch: int | None = None) -> torch.
 
 def check_odd_kernel_size(k: int, name: str = "kernel_size", low: int = 1, high: int = 255) -> int:
     """Raise unless ``k`` is an odd integer in ``[low, high]``."""
-    if isinstance(k, bool) or not isinstance(k, int):
+    if isinstance(k, bool) or not isinstance(k, numbers.Integral):  # (NumPy integers are Integral; np.bool_ is not)
         raise TypeError(f"{name} must be an int, got {type(k).__name__}")
+    k = int(k)
     if k < low or k > high or k % 2 == 0:
         raise ValueError(f"{name} = {k} must be an odd integer in [{low}, {high}]")
     return k

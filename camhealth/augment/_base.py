@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from typing import Any, Dict, Optional, Sequence
 
 import torch
@@ -37,8 +38,11 @@ class CorruptionBase(IntensityAugmentationBase2D):
     _rng: str = "torch"
 
     def __init__(self, p: float, same_on_batch: bool, keepdim: bool) -> None:
-        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= float(p) <= 1.0:
-            raise ValueError(f"p = {p!r} must be a probability in [0, 1]")
+        if isinstance(p, torch.Tensor) and p.ndim == 0 and not p.dtype.is_complex and p.dtype != torch.bool:
+            p = p.item()  # a 0-d tensor holding a number
+        # (NumPy's floats and ints are Real; a bool is no probability)
+        if isinstance(p, bool) or not isinstance(p, numbers.Real) or not 0.0 <= float(p) <= 1.0:
+            raise ValueError(f"p = {p!r} must be a probability in [0, 1] (a number), got {type(p).__name__} {p!r}")
         super().__init__(p=float(p), same_on_batch=same_on_batch, p_batch=1.0, keepdim=keepdim)
         self._formation: ImageFormation | None = None
         self._formation_params: Dict[str, torch.Tensor] | None = None  # the params the formation was made with
@@ -54,29 +58,43 @@ class CorruptionBase(IntensityAugmentationBase2D):
             raise ValueError(f"input must have shape B×C×H×W (or C×H×W / H×W), got {tuple(input.shape)}")
 
     @staticmethod
-    def _check_image(input: torch.Tensor) -> None:
+    def _check_image(input: torch.Tensor) -> torch.Tensor:
+        """``input`` checked: floating point, finite and in [0, 1] — within :func:`range_tolerance` of it, the
+        rounding a preceding filter leaves (Kornia's blurs return 1.0000001 on white), which is clamped away."""
         check_float(input, "input")
         if input.numel() == 0:
-            return
+            return input
         lo, hi = (float(v) for v in torch.aminmax(input.detach()))  # one pass; NaN propagates into lo/hi
         if not (math.isfinite(lo) and math.isfinite(hi)):
             check_finite(input, "input")
         if lo < 0 or hi > 1:
-            raise ValueError(f"input must lie in [0, 1] (DN/255), got values in [{lo:g}, {hi:g}]")
+            tol = range_tolerance(input.dtype)
+            if lo < -tol or hi > 1 + tol:
+                raise ValueError(f"input must lie in [0, 1] (DN/255; {tol:.1e} of rounding beyond it is clamped), got "
+                                 f"values in [{lo!r}, {hi!r}]")
+            input = input.clamp(0, 1)
+        return input
 
     def transform_inputs(self, input: torch.Tensor, params: Dict[str, torch.Tensor], flags: Dict[str, Any],
                          transform: Optional[torch.Tensor] = None, **kwargs: Any) -> torch.Tensor:  # noqa: D102
-        self._check_image(input)
+        input = self._check_image(input)
         return super().transform_inputs(input, params, flags, transform=transform, **kwargs)
 
-    @staticmethod
-    def _component_gate(params: Dict[str, torch.Tensor], name: str, b: int, device: torch.device) -> torch.Tensor:
+    def _component_gate(self, params: Dict[str, torch.Tensor], name: str, b: int, device: torch.device) -> torch.Tensor:
+        """(b,) bool: the samples whose component ``name`` is applied — its gate in ``params`` and, where Kornia blends
+        by it (p < 1), ``batch_prob``; at p = 1 Kornia applies the transform to every sample whatever ``batch_prob``
+        says (replayed params of a p < 1 module), and so do the labels."""
         g = torch.ones(b, dtype=torch.bool, device=device)
         if f"{name}_gate" in params:
             g = g & (params[f"{name}_gate"].to(device) > 0.5)
-        if "batch_prob" in params:
+        if "batch_prob" in params and self._blends():
             g = g & (params["batch_prob"].to(device).reshape(-1).expand(b) > 0.5)
         return g
+
+    def _blends(self) -> bool:
+        """Whether Kornia blends the output by ``batch_prob`` (p < 1 or p_batch < 1), rather than transforming every
+        sample."""
+        return not (float(self.p) == 1.0 and float(self.p_batch) == 1.0)
 
     def defocus_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None,
                     dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -118,6 +136,10 @@ class CorruptionBase(IntensityAugmentationBase2D):
         """The samples of each noise seed: ``[(seed, indices)]`` (int64 indices on the CPU), or ``[(seed, None)]``
         when the whole batch shares one seed (one scalar, or the same value in every row)."""
         seeds = torch.as_tensor(params["noise_seed"]).detach().reshape(-1).cpu()
+        if seeds.dtype == torch.bool or seeds.is_floating_point() or seeds.is_complex():
+            raise TypeError(f"noise_seed must hold integers (a torch.int64 tensor, one seed or one per sample), got "
+                            f"{seeds.dtype} {seeds.tolist()[:4]}: a fractional seed would be truncated, and samples with "
+                            "different seeds would share their noise")
         if seeds.numel() not in (1, b):
             raise ValueError(f"noise_seed has {seeds.numel()} values for a batch of {b}: give one seed, or one per sample")
         if seeds.numel() == 1 or bool((seeds == seeds[0]).all()):
@@ -177,8 +199,8 @@ class CorruptionBase(IntensityAugmentationBase2D):
                 # a sample whose noise is gated off gets the blurred image, with the blur's gradient; one that Kornia
                 # leaves untouched (batch_prob 0) gets its input: their clipped fraction is that of what they get
                 out = torch.where(on.view(-1, 1, 1, 1), out, result.blurred.clamp(0, 1).to(out.dtype))
-                applied = (params["batch_prob"].to(dev).reshape(-1).expand(input.shape[0]) > 0.5 if "batch_prob" in params
-                           else torch.ones_like(on)).view(-1, 1, 1, 1)
+                applied = (params["batch_prob"].to(dev).reshape(-1).expand(input.shape[0]) > 0.5
+                           if "batch_prob" in params and self._blends() else torch.ones_like(on)).view(-1, 1, 1, 1)
                 got = torch.where(applied, result.blurred.detach(), input.detach().to(result.blurred.dtype))
                 self._untouched_clipped = ((got <= 0) | (got >= 1)).flatten(1).to(result.clipped_fraction.dtype).mean(1)
         self._formation = dataclasses.replace(result, blurred=result.blurred.detach())
@@ -253,6 +275,12 @@ class CorruptionBase(IntensityAugmentationBase2D):
             out.update(sigma_dn=f.sigma_dn, sigma_total_dn=f.sigma_total_dn, sigma_expected_dn=f.sigma_expected_dn,
                        sigma_total_expected_dn=f.sigma_total_expected_dn, clipped_fraction=f.clipped_fraction)
         return out
+
+
+def range_tolerance(dtype: torch.dtype) -> float:
+    """How far beyond [0, 1] an image of ``dtype`` may lie and be clamped into it: two units in the last place at 1
+    (bfloat16 0.016, float16 0.002), at least 1e-5 (a few float32 roundings of a filter)."""
+    return max(1e-5, 2.0 * torch.finfo(dtype).eps)
 
 
 def _snapshot(params: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:

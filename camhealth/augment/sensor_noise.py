@@ -93,7 +93,9 @@ class RandomSensorNoise(CorruptionBase):
         self._sources = check_sources(sources)
         if not self._sources:
             raise ValueError(f"RandomSensorNoise needs at least one source from {list(NOISE_SOURCES)}")
-        self._quantize = bool(quantize)
+        if not isinstance(quantize, bool):  # ("no" would read as True)
+            raise TypeError(f"quantize = {quantize!r} must be True or False")
+        self._quantize = quantize
         self._rng = check_rng(rng)
         self._param_generator = SensorNoiseGenerator(metadata, ranges, gain_uniform_in)
 

@@ -170,3 +170,61 @@ def test_blur_labels_of_earlier_params_are_theirs():
     p1, first = mod._params, mod.labels()["mtf"]
     mod(x)
     assert torch.equal(mod.labels(params=p1)["mtf"], first)
+
+
+@pytest.mark.parametrize("make", [RandomSensorNoise, RandomDefocusBlur, CameraCorruption])
+def test_a_kornia_blurs_rounding_above_white_is_clamped_not_refused(make):
+    """Kornia's blurs return 1.0000001 on white areas: a camhealth corruption after one in AugmentationSequential takes
+    it (clamped into [0, 1]); a value clearly out of range is still refused, named in full."""
+    x = torch.ones(8, 1, 32, 32)
+    x[:, :, :8] = 0.0
+    blur = K.RandomGaussianBlur((7, 7), (0.5, 3.0), p=1.0)
+    torch.manual_seed(0)
+    seq = K.AugmentationSequential(blur, make())
+    for _ in range(6):
+        y = seq(x)
+        assert bool(torch.isfinite(y).all()) and float(y.min()) >= 0 and float(y.max()) <= 1
+    over = torch.full((1, 1, 8, 8), 0.5)
+    over[..., 0, 0] = 1.01
+    with pytest.raises(ValueError, match=r"got values in \[0.5, 1.0099999904632568\]"):
+        make()(over)
+
+
+@pytest.mark.parametrize("make", [lambda: RandomDefocusBlur((3.0, 9.0)), RandomSensorNoise, CameraCorruption])
+def test_params_replayed_at_p_1_agree_with_their_labels_whatever_batch_prob_says(make):
+    """At p = 1 Kornia transforms every sample, whatever the replayed params' batch_prob (from a p < 1 module) says;
+    the labels follow the image."""
+    x = torch.rand(8, 1, 32, 32)
+    mod = make()
+    mod(x)
+    params = dict(mod._params)
+    params["batch_prob"] = torch.zeros(8)
+    y = mod(x, params=params)
+    labels = mod.labels()
+    assert not torch.equal(y, x)
+    if "mtf" in labels:
+        assert bool((labels["mtf"][:, -1] < 1).all())
+    if "sigma_total_dn" in labels:
+        assert bool((labels["sigma_total_dn"] > 0).all())
+
+
+def test_a_fractional_or_bool_noise_seed_is_refused():
+    x = torch.full((2, 1, 16, 16), 0.5)
+    noise = RandomSensorNoise(metadata="ICX285")
+    noise(x)
+    for seeds in (torch.tensor([1.2, 1.7]), torch.tensor([True, False])):
+        params = dict(noise._params)
+        params["noise_seed"] = seeds
+        with pytest.raises(TypeError, match="noise_seed must hold integers"):
+            noise(x, params=params)
+
+
+def test_numpy_and_tensor_scalars_are_numbers_and_flags_are_bools():
+    import numpy as np
+
+    assert RandomDefocusBlur(p=np.float32(0.5)).p == 0.5 and RandomDefocusBlur(p=torch.tensor(0.25)).p == 0.25
+    assert RandomMotionBlur(kernel_size=np.int64(7), length=(1.0, 5.0))(torch.rand(1, 1, 16, 16)).shape == (1, 1, 16, 16)
+    with pytest.raises(ValueError, match=r"p = '0.5' must be a probability"):
+        RandomDefocusBlur(p="0.5")
+    with pytest.raises(TypeError, match="quantize = 'no' must be True or False"):
+        RandomSensorNoise(quantize="no")
