@@ -27,6 +27,8 @@ _HELP = "on an error, show the Python traceback instead of one line"
 
 #: Errors whose message says everything (the type name adds nothing for a user).
 _PLAIN = (ValueError, TypeError, OSError, ImportError, KeyError, IndexError)
+#: How jsonargparse begins the error of a value that none of an argument's types accepts.
+_UNION_ERROR = "Does not validate against any of the Union subtypes"
 
 
 class BadValue(argparse.ArgumentTypeError, ValueError):
@@ -137,6 +139,15 @@ def one_line(exc: BaseException) -> str:
     """The first line of ``exc``'s message (with its type where the message alone would be unclear)."""
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
     text = lines[0] if lines else ""
+    if text.startswith(_UNION_ERROR):
+        # jsonargparse wraps what a class named in a config raised (`model:`/`data:` are Optional[Class] arguments):
+        # the class's own message names the option and its range; "Expected a <class 'NoneType'>" is the other subtype
+        cause = exc.__cause__
+        if cause is not None and str(cause).strip() and not str(cause).strip().startswith(_UNION_ERROR):
+            return one_line(cause)
+        errors = [ln[2:].strip() for ln in lines if ln.startswith("- ") and "Expected a <class 'NoneType'>" not in ln]
+        if errors:
+            return errors[0]
     if isinstance(exc, KeyError) and len(exc.args) == 1:
         text = f"missing key {exc.args[0]!r}"
     if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename:  # a folder was to be made or used there

@@ -48,6 +48,10 @@ from camhealth.runtime import keep_freed_memory
 __all__ = ["FitCLI", "main"]
 
 
+#: The steps at which a run of this process was interrupted (Ctrl-C/SIGINT), set by :class:`_LastCheckpointOnException`.
+_INTERRUPTED: list[int] = []
+
+
 class _LastCheckpointOnException(Callback):
     """``last.ckpt`` in the ``ModelCheckpoint`` folder when training stops on an exception (Ctrl-C/SIGINT included),
     at the step reached — what Lightning's ``OnExceptionCheckpoint`` does, without two of its side effects that would
@@ -59,6 +63,8 @@ class _LastCheckpointOnException(Callback):
         self.saved: str | None = None
 
     def on_exception(self, trainer, pl_module, exception: BaseException) -> None:  # noqa: D102
+        if isinstance(exception, KeyboardInterrupt):  # Lightning then exits with status 1: main says interrupted (130)
+            _INTERRUPTED.append(trainer.global_step)
         ckpt = _model_checkpoint(trainer)
         if ckpt is None or not ckpt.dirpath or trainer.global_step == 0 or trainer.sanity_checking:
             return
@@ -458,16 +464,24 @@ def main(args: Sequence[str] | None = None) -> FitCLI:
         argv = None
     else:
         argv = with_subcommand(args)
-    return FitCLI(
-        EstimatorModule,
-        PatchDataModule,
-        subclass_mode_model=True,
-        subclass_mode_data=True,
-        args=argv,
-        seed_everything_default=0,
-        save_config_kwargs={"overwrite": True},
-        parser_kwargs={"prog": "python -m camhealth.fit", "description": __doc__},
-    )
+    _INTERRUPTED.clear()
+    try:
+        return FitCLI(
+            EstimatorModule,
+            PatchDataModule,
+            subclass_mode_model=True,
+            subclass_mode_data=True,
+            args=argv,
+            seed_everything_default=0,
+            save_config_kwargs={"overwrite": True},
+            parser_kwargs={"prog": "python -m camhealth.fit", "description": __doc__},
+        )
+    except SystemExit as exc:
+        # Lightning ends a run stopped by Ctrl-C with sys.exit(1) after its graceful shutdown: an interruption, which
+        # the command reports as such (run_cli: "interrupted", exit status 130)
+        if _INTERRUPTED and exc.code == 1:
+            raise KeyboardInterrupt(f"interrupted at step {_INTERRUPTED[-1]}") from None
+        raise
 
 
 if __name__ == "__main__":  # pragma: no cover

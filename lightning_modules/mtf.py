@@ -52,6 +52,9 @@ class MTFEstimator(EstimatorModule):
         self._check_training_args()
         self._set_patch_size(patch_size)
         self.net = MTFNet(tuple(widths), tuple(hidden), downsample)
+        if self.patch_size % self.net.pre.downsample:  # the space-to-depth stem takes whole s×s cells
+            raise ValueError(f"patch_size = {self.patch_size} px must be a multiple of downsample = "
+                             f"{self.net.pre.downsample} (the network's space-to-depth factor)")
         self.val_amae = AMAEPerFamily(FAMILIES)
         self.test_amae = AMAEPerFamily(FAMILIES)
 

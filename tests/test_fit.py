@@ -307,7 +307,7 @@ def test_sigint_writes_last_ckpt_at_that_step_and_ckpt_path_resumes_everything(t
     import torch
 
     run = ["--trainer.max_steps", "6", "--trainer.val_check_interval", "4", "--test_after_fit", "false"]
-    with pytest.raises(SystemExit):  # Lightning ends an interrupted fit with exit status 1
+    with pytest.raises(KeyboardInterrupt):  # (Lightning ends it with sys.exit(1); run_cli then says "interrupted", 130)
         main(tiny_args("noise_source.yaml", tmp_path, *run, _sigint_at(3)))
     (last,) = list(tmp_path.rglob("last.ckpt"))
     assert f"resume with --ckpt_path {last}" in capsys.readouterr().err
@@ -329,7 +329,7 @@ def test_sigint_writes_last_ckpt_at_that_step_and_ckpt_path_resumes_everything(t
 def test_ckpt_path_last_takes_the_newest_last_ckpt(tmp_path, sigint_raises):
     run = ["--trainer.max_steps", "4", "--test_after_fit", "false"]
     main(tiny_args("noise_source.yaml", tmp_path, *run))  # a finished run: its last.ckpt is at step 4
-    with pytest.raises(SystemExit):
+    with pytest.raises(KeyboardInterrupt):
         main(tiny_args("noise_source.yaml", tmp_path, *run, _sigint_at(3)))  # the newest: step 3
     newest = max(tmp_path.rglob("last.ckpt"), key=lambda p: p.stat().st_mtime)
     assert "version_1" in str(newest)
@@ -510,3 +510,29 @@ def test_every_config_names_itself_in_its_usage_line():
         usage = [ln for ln in header if "--config configs/" in ln]
         if usage:
             assert any(f"--config configs/{config.name}" in ln for ln in usage), (config.name, usage)
+
+
+def test_an_interrupted_fit_says_so_and_exits_130(tmp_path, sigint_raises, capsys):
+    from camhealth._cli import run_cli
+
+    run = ["--trainer.max_steps", "6", "--test_after_fit", "false", _sigint_at(2)]
+    assert run_cli(main, "python -m camhealth.fit", tiny_args("noise_source.yaml", tmp_path, *run)) == 130
+    err = capsys.readouterr().err
+    assert "resume with --ckpt_path" in err and "python -m camhealth.fit: interrupted" in err
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--data.init_args.batch_size", "-4", "batch_size = -4 must be a positive int"),
+    ("--model.init_args.lr", "-1", "lr = -1.0 must be > 0"),
+    ("--data.init_args.xi_probability", "1.5", "xi_probability = 1.5 must be a finite number in [0, 1]"),
+    ("--model.init_args.width", "0", "width = 0 must be an integer >= 1"),
+    ("--model.init_args.hidden", "[0]", "hidden = (0,) must be integers >= 1"),
+])
+def test_an_out_of_range_config_value_is_named_in_one_line(tmp_path, capsys, option, value, message):
+    """jsonargparse wraps what a DataModule or LightningModule raises in "Does not validate against any of the Union
+    subtypes"; the one line is the class's own message, which names the option and its range."""
+    from camhealth._cli import run_cli
+
+    code = run_cli(main, "python -m camhealth.fit", tiny_args("noise_source.yaml", tmp_path, option, value))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0] and "Union" not in err[0], err

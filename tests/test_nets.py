@@ -15,6 +15,9 @@ import lightning_modules
 from camhealth import nets
 from camhealth.export import ALLOWED_CLASSES, export_weights, load_module, load_net
 from camhealth.inference import WEIGHTS_DIR, shipped_models
+from camhealth.nets.drne import NoiseLevelNet, ThesisNoiseNet
+from camhealth.nets.mtf import MTFNet
+from camhealth.nets.noise_source import NoiseSourceNet
 
 
 def _plain(value):
@@ -345,3 +348,25 @@ def test_thesis_noise_net_size_is_the_documented_one():
     net = nets.ThesisNoiseNet()
     assert nets.count_parameters(net) == 518_209
     assert round(nets.count_flops(net, torch.rand(1, 1, 128, 128)) / 1e9, 1) == 16.9
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: MTFNet(widths=(32, 64)), r"widths = \(32, 64\) must be 3 integers >= 1"),
+    (lambda: MTFNet(downsample=0), r"downsample = 0 must be an integer >= 1"),
+    (lambda: MTFNet(hidden=(128, 0)), r"hidden = \(128, 0\) must be integers >= 1"),
+    (lambda: NoiseSourceNet(width=0), r"width = 0 must be an integer >= 1"),
+    (lambda: NoiseSourceNet(hidden=[64, True]), r"hidden = \(64, True\) must be integers >= 1, got True"),
+    (lambda: NoiseLevelNet(width=-3), r"width = -3 must be an integer >= 1"),
+    (lambda: ThesisNoiseNet(layers=1), r"layers = 1 must be an integer >= 2"),
+])
+def test_layer_sizes_are_positive_integers(make, message):
+    """A layer of 0 units makes an output that ignores the image; a wrong count a traceback: both are refused, named."""
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
+def test_an_mtf_patch_size_must_hold_whole_space_to_depth_cells():
+    from lightning_modules.mtf import MTFEstimator
+
+    with pytest.raises(ValueError, match=r"patch_size = 192 px must be a multiple of downsample = 5"):
+        MTFEstimator(downsample=5)

@@ -8,13 +8,28 @@ with :class:`torch.utils.flop_counter.FlopCounterMode` (one multiply-add = 2 FLO
 
 from __future__ import annotations
 
+import numbers
 from typing import Sequence
 
 import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-__all__ = ["ConvAct", "ResidualBlock", "FullyConnectedBlock", "count_flops", "count_parameters", "GlobalStatsPool", "autocast_on", "working_dtype"]
+__all__ = ["ConvAct", "ResidualBlock", "FullyConnectedBlock", "count_flops", "count_parameters", "GlobalStatsPool", "autocast_on",
+           "working_dtype", "check_sizes"]
+
+
+def check_sizes(value: object, name: str, count: int | None = None, low: int = 1) -> tuple[int, ...]:
+    """A network's layer sizes (an integer, or a sequence of them: channels, neurons, factors) as a tuple of ints, or
+    ``ValueError`` naming ``name`` unless each is an integer ≥ ``low`` (not a bool) and, with ``count``, there are that
+    many. A layer of 0 units would make an output that ignores its input."""
+    items = (value,) if isinstance(value, numbers.Integral) or not isinstance(value, Sequence) else tuple(value)
+    bad = [v for v in items if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < low]
+    if bad or (count is not None and len(items) != count) or not items:
+        what = f"{count} integers" if count is not None and count > 1 else ("an integer" if count == 1 else "integers")
+        raise ValueError(f"{name} = {value!r} must be {what} >= {low}"
+                         + (f", got {bad[0]!r}" if bad else f", got {len(items)} value(s)"))
+    return tuple(int(v) for v in items)
 
 
 class ConvAct(nn.Sequential):
@@ -70,6 +85,8 @@ class FullyConnectedBlock(nn.Sequential):
     final linear layer to ``n_out`` outputs."""
 
     def __init__(self, n_in: int, hidden: Sequence[int] = (32, 16, 8), n_out: int = 1) -> None:
+        if len(tuple(hidden)):
+            check_sizes(hidden, "hidden")
         layers: list[nn.Module] = []
         for h in hidden:
             layers += [nn.Linear(n_in, h), nn.ReLU(inplace=True)]

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from camhealth.nets.blocks import ConvAct, ResidualBlock, autocast_on, working_dtype
+from camhealth.nets.blocks import ConvAct, ResidualBlock, autocast_on, check_sizes, working_dtype
 
 __all__ = ["NoiseLevelNet", "ThesisNoiseNet"]
 
@@ -34,6 +34,7 @@ class NoiseLevelNet(nn.Module):
         bad = [d for d in dilations if isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 1]
         if bad:
             raise ValueError(f"dilations = {tuple(dilations)!r}: each must be an integer >= 1, got {bad[0]!r}")
+        (width,) = check_sizes(width, "width", 1)
         self.highpass_gain = float(highpass_gain)
         self.unshuffle = nn.PixelUnshuffle(2)
         self.stem = ConvAct(8, width)
@@ -56,6 +57,7 @@ class ThesisNoiseNet(nn.Module):
 
     def __init__(self, width: int = 64, layers: int = 16) -> None:
         super().__init__()
+        (width,), (layers,) = check_sizes(width, "width", 1), check_sizes(layers, "layers", 1, low=2)
         mods: list[nn.Module] = [ConvAct(1, width)]
         mods += [ConvAct(width, width) for _ in range(layers - 2)]
         mods.append(nn.Conv2d(width, 1, 3, padding=1))

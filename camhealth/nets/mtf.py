@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, working_dtype
+from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, check_sizes, working_dtype
 
 __all__ = ["MTFPreprocess", "MTFNet", "sobel"]
 
@@ -39,7 +39,7 @@ class MTFPreprocess(nn.Module):
 
     def __init__(self, downsample: int = 4, contrast_floor: float = 0.02) -> None:
         super().__init__()
-        self.downsample = int(downsample)
+        (self.downsample,) = check_sizes(downsample, "downsample", 1)
         self.contrast_floor = float(contrast_floor)
         self.unshuffle = nn.PixelUnshuffle(self.downsample)
 
@@ -86,7 +86,8 @@ class MTFNet(nn.Module):
         self, widths: tuple[int, int, int] = (32, 64, 96), hidden: tuple[int, ...] = (128, 64), downsample: int = 4,
     ) -> None:
         super().__init__()
-        w1, w2, w3 = widths
+        w1, w2, w3 = check_sizes(widths, "widths", 3)
+        check_sizes(hidden, "hidden")
         self.pre = MTFPreprocess(downsample)
         self.stem = ConvAct(3 * downsample * downsample, w1)
         self.body = nn.Sequential(

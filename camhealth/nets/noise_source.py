@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from camhealth.estimators.noise_features import box_mean3, image_statistics
-from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, autocast_on, working_dtype
+from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, autocast_on, check_sizes, working_dtype
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS
 
 __all__ = ["NoiseTrunk", "NoiseSourceNet", "BRANCH_FIELDS", "OUTPUTS", "NETWORK_METADATA_SETS"]
@@ -63,6 +63,7 @@ class NoiseTrunk(nn.Module):
 
     def __init__(self, width: int = 32, highpass_gain: float = 32.0) -> None:
         super().__init__()
+        (width,) = check_sizes(width, "width", 1)
         self.highpass_gain = float(highpass_gain)
         self.unshuffle = nn.PixelUnshuffle(2)
         self.stem = ConvAct(8, width)
