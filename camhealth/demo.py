@@ -228,9 +228,15 @@ def _exposure_limits(args: argparse.Namespace) -> tuple[float, float]:
 
 
 def _check_limits(option: str, low: float, high: float, unit: str) -> None:
-    """A ``MIN MAX`` pair of finite numbers with MIN <= MAX, else ``SystemExit`` naming the option and both values."""
+    """A ``MIN MAX`` pair of finite numbers with MIN <= MAX inside the simulated camera's range of the field
+    (``METADATA_RANGES``: exposure 1–200 ms, gain 0–24 dB), else ``SystemExit`` naming the option and both values."""
+    from camhealth.physics.metadata import METADATA_RANGES
+
     if not (math.isfinite(low) and math.isfinite(high)) or low > high:
         raise SystemExit(f"{option} {low:g} {high:g}: MIN must be <= MAX (both finite, in {unit})")
+    lo, hi = METADATA_RANGES["exposure_s" if unit == "s" else "gain_db"]
+    if low < lo or high > hi:
+        raise SystemExit(f"{option} {low:g} {high:g}: must lie within the camera's range [{lo:g}, {hi:g}] {unit}")
 
 
 def _reference_intensity(iopc: Any) -> float:

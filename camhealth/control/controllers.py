@@ -29,7 +29,12 @@ from camhealth.control.policy import CameraLimits, Decision, ExposurePolicy
 from camhealth.detection.protocol import Detection
 from camhealth.iopc.estimation import PHYSICS, estimate_regions, median_estimates, resolve_estimator
 
-__all__ = ["Observation", "Controller", "FixedController", "AutoExposureController", "IOPCController"]
+__all__ = ["Observation", "Controller", "FixedController", "AutoExposureController", "IOPCController", "MAX_CLIPPED_FRACTION"]
+
+#: The share of a frame's pixels at 0 or 255 DN above which :class:`IOPCController` keeps the parameters: more than
+#: half clipped, as the estimators call a patch black or saturated (its noise and blur clipped away). With the
+#: simulator's labels σ̂ and MTF̂ would still come back, read off a frame that shows neither.
+MAX_CLIPPED_FRACTION = 0.5
 
 
 @dataclass
@@ -153,10 +158,13 @@ class IOPCController:
             raise ValueError(f"reference_intensity = {reference_intensity!r} must lie in (0, 1]")
         self.reference_intensity = reference_intensity
         self.decisions: list[tuple[int, Decision, dict[str, Any]]] = []
+        # frames on which nothing was decided, and why (the frame is clipped, or the policy cannot tell)
+        self.refusals: list[tuple[int, str]] = []
         self._n_updates = 0
 
     def reset(self, exposure_s: float, gain_db: float) -> tuple[float, float]:
         self.decisions = []
+        self.refusals = []
         self._n_updates = 0
         return self.policy.limits.clamp(exposure_s, gain_db)
 
@@ -182,6 +190,11 @@ class IOPCController:
     def update(self, obs: Observation) -> tuple[float, float]:
         if not self._due():
             return obs.exposure_s, obs.gain_db
+        clipped = float(obs.capture.clipped_fraction[0])
+        if clipped > MAX_CLIPPED_FRACTION:  # a black or saturated frame: its noise and blur are clipped away
+            self.refusals.append((obs.frame, f"{clipped:.0%} of the frame's pixels are clipped (more than "
+                                             f"{MAX_CLIPPED_FRACTION:.0%}): parameters kept"))
+            return obs.exposure_s, obs.gain_db
         med = self.estimate(obs)
         if not (math.isfinite(med["sigma_tilde"]) and math.isfinite(med["mtf_tilde"])):
             return obs.exposure_s, obs.gain_db  # nothing assessable: keep
@@ -193,6 +206,10 @@ class IOPCController:
             sigma = sigma * scale
             sources = [v * scale for v in sources] if sources is not None else None
         mtf = min(max(med["mtf_tilde"], 0.0), 1.0)  # an MTF lies in [0, 1]; an estimator may overshoot either side
-        d = self.policy.decide(sigma, mtf, obs.exposure_s, obs.gain_db, sigma_sources=sources)
+        try:
+            d = self.policy.decide(sigma, mtf, obs.exposure_s, obs.gain_db, sigma_sources=sources)
+        except ValueError as exc:  # e.g. more blur than the IOPC's MTF → length relation measured: it cannot tell
+            self.refusals.append((obs.frame, f"{exc}: parameters kept"))
+            return obs.exposure_s, obs.gain_db
         self.decisions.append((obs.frame, d, med))
         return d.exposure_s, d.gain_db

@@ -194,6 +194,11 @@ class ExposurePolicy:
         min_gain: float = 0.0,
     ) -> None:
         self.apps = _as_applications(applications)
+        for app in self.apps:
+            m = np.asarray(app.iopc.blur_mtf, dtype=np.float64)
+            if m.size < 2 or not m[-1] < m[0]:
+                raise ValueError(f"IOPC {app.name!r}: its MTF → motion-length relation {m.tolist()} does not fall with the "
+                                 "motion length, so it cannot tell one blur from another (sweep lengths that blur the frames)")
         self.limits = limits or CameraLimits()
         a0, a1 = (float(v) for v in alpha_range)
         if not (0 < a0 < 1 < a1 and math.isfinite(a1)):
@@ -245,10 +250,15 @@ class ExposurePolicy:
         return app.iopc.interpolate(sigma_new, mtf_new), sigma_new, mtf_new
 
     def objective(self, sigma: float, mtf: float, alpha: np.ndarray | float, rho: float = 1.0) -> np.ndarray:
-        """Σ_i λ_i AP_i(σ_new(α), MTF_new,i(α)) evaluated directly (no table); vectorised over α."""
+        """Σ_i λ_i AP_i(σ_new(α), MTF_new,i(α)) evaluated directly (no table); vectorised over α. −∞ where α ≠ 1 raises
+        σ_new beyond what an IOPC measured (as in the table: no candidate)."""
         a = np.asarray(alpha, dtype=np.float64)
-        return sum(app.weight * self._app_terms(app, np.float64(sigma), np.float64(mtf), a, np.float64(rho))[0]
-                   for app in self.apps)
+        total, beyond = np.float64(0.0), np.zeros(a.shape, dtype=bool)
+        for app in self.apps:
+            ap, sigma_new, _ = self._app_terms(app, np.float64(sigma), np.float64(mtf), a, np.float64(rho))
+            total = total + app.weight * ap
+            beyond |= (sigma_new > _sigma_top(app.iopc)) & (sigma_new > sigma) & (a != 1.0)
+        return np.where(beyond, -np.inf, total)
 
     def _build_table(self) -> np.ndarray:
         s = self.sigma_grid[:, None, None, None]
@@ -256,11 +266,17 @@ class ExposurePolicy:
         r = self.rho_grid[None, None, :, None]
         a = self.alphas[None, None, None, :]
         total = np.zeros((s.shape[0], m.shape[1], r.shape[2], a.shape[3]), dtype=np.float64)
+        beyond = np.zeros(total.shape, dtype=bool)
         for app in self.apps:
             length = app.iopc.length_from_mtf(m)
             mtf_new = app.iopc.mtf_from_length(length / a)  # (1, M, 1, A)
             sigma_new = s * noise_scale(a, r)  # (S, 1, R, A)
             total += app.weight * app.iopc.interpolate(sigma_new, mtf_new)
+            # a change whose predicted σ leaves what the sweep measured (beyond the last σ bin's half width) and rises
+            # would read the AP there as flat: it is not a candidate (the current parameters, α = 1, always are)
+            beyond |= (sigma_new > _sigma_top(app.iopc)) & (sigma_new > s)
+        beyond[..., self.i_one] = False
+        total[beyond] = -np.inf
         return total.astype(np.float32)
 
     @property
@@ -292,7 +308,12 @@ class ExposurePolicy:
         p = (math.log(alpha) - self._log_a0) / self._dlog_a
         i = min(max(int(p), 0), self.alphas.size - 2)
         f = p - i
-        return float(row[i]) * (1.0 - f) + float(row[i + 1]) * f
+        lo, hi = float(row[i]), float(row[i + 1])
+        if f <= 0.0 or f >= 1.0:
+            return lo if f <= 0.0 else hi
+        if not (math.isfinite(lo) and math.isfinite(hi)):  # a neighbour beyond the measured σ: so is this α
+            return -math.inf
+        return lo * (1.0 - f) + hi * f
 
     def decide(
         self,
@@ -318,10 +339,20 @@ class ExposurePolicy:
             sigma_sources: optional (σ_PN, σ_DCSN, σ_RN) [DN] → ρ = σ_RN²/Σσ².
             rho: explicit gain-linear noise share in [0, 1] (default 1: σ ∝ α, Eq. 4.7).
         """
+        for name, value in (("sigma_hat", sigma_hat), ("mtf_hat", mtf_hat), ("exposure_s", exposure_s), ("gain_db", gain_db)):
+            if not _is_real(value):
+                raise ValueError(f"{name} = {value!r} must be a number, got {type(value).__name__}")
         if not (math.isfinite(sigma_hat) and sigma_hat >= 0):
             raise ValueError(f"sigma_hat = {sigma_hat!r} DN must be a finite number >= 0")
         if not (math.isfinite(mtf_hat) and 0.0 <= mtf_hat <= 1.0 + 1e-6):
             raise ValueError(f"mtf_hat = {mtf_hat!r} must lie in [0, 1]")
+        for app in self.apps:  # more blur than the sweep measured: no length, so no prediction of a shorter exposure
+            least = float(app.iopc.blur_mtf[-1])
+            if mtf_hat < least - 0.5 * self.mtf_step:
+                raise ValueError(
+                    f"mtf_hat = {mtf_hat:.3f} is blurrier than the MTF → motion-length relation of IOPC {app.name!r} "
+                    f"reaches (MTF̃ {least:.3f} at {float(app.iopc.blur_length_px[-1]):g} px): how a shorter exposure "
+                    "would change it cannot be told from this IOPC (sweep longer motion blurs)")
         if not (math.isfinite(exposure_s) and exposure_s > 0):
             raise ValueError(f"exposure_s = {exposure_s!r} s must be a finite number > 0")
         if not math.isfinite(gain_db):
@@ -348,6 +379,9 @@ class ExposurePolicy:
                 cand_a.append(e)
                 cand_v.append(self._row_at(row, e))
         best = max(cand_v)
+        if not math.isfinite(best):
+            raise ValueError(f"every α the limits allow predicts σ beyond what the IOPC measured (σ̂ = {sigma_hat:g} DN): "
+                             "the effect of a change cannot be told")
         alpha = min((a for a, v in zip(cand_a, cand_v) if v >= best - 1e-6), key=lambda a: abs(math.log(a)))
         cur_ok = lo <= 1.0 <= hi
         current = float(row[self.i_one]) if cur_ok else float("nan")
@@ -442,6 +476,12 @@ class ExposurePolicy:
             "" if ins_s and ins_m else ", beyond the curve (clamped)")
         return {"sigma_bin": float(iopc.sigma_bins[i]), "mtf_bin": float(iopc.mtf_bins[j]), "measured": measured,
                 "status": status, "count": int(iopc.count_2d[i, j])}
+
+
+def _sigma_top(iopc: IOPC) -> float:
+    """The largest σ [DN] an IOPC measured: its last σ bin's centre plus half the spacing to the one before."""
+    bins = np.asarray(iopc.sigma_bins, dtype=np.float64)
+    return float(bins[-1] + 0.5 * (bins[-1] - bins[-2])) if bins.size > 1 else float(bins[-1])
 
 
 def _is_real(v: Any) -> bool:

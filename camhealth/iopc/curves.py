@@ -498,8 +498,19 @@ class IOPC:
         if version > FORMAT_VERSION:
             raise ValueError(f"IOPC file version {version} is newer than this camhealth ({FORMAT_VERSION})")
         rel = data.get("blur_relation", {"length_px": [], "mtf": []})
+        if not isinstance(rel, Mapping) or not {"length_px", "mtf"} <= set(rel):
+            raise ValueError(f"blur_relation must be an object with length_px and mtf, got {_typed(rel)}")
+        raw_records = data.get("records", [])
+        if not isinstance(raw_records, list) or not all(isinstance(r, Mapping) for r in raw_records):
+            raise ValueError(f"records must be a list of objects (one per sweep cell), got {_typed(raw_records)}")
+        provenance = data.get("provenance", {})
+        if not isinstance(provenance, Mapping):
+            raise ValueError(f"provenance must be an object, got {_typed(provenance)}")
+        for key in ("estimator_specs", "frames", "config"):
+            if key in provenance and provenance[key] is not None and not isinstance(provenance[key], Mapping):
+                raise ValueError(f"provenance.{key} must be an object, got {_typed(provenance[key])}")
         records = [{k: (float("nan") if v is None and k in ("sigma_tilde", "mtf_tilde", "ap") else v) for k, v in r.items()}
-                   for r in data.get("records", [])]
+                   for r in raw_records]
         # the arrays go to the constructor as read: it checks their types and ranges before any conversion
         return cls(
             sigma_bins=data["sigma_bins_dn"],
@@ -513,7 +524,7 @@ class IOPC:
             blur_length_px=rel["length_px"],
             blur_mtf=rel["mtf"],
             records=records,
-            provenance=dict(data.get("provenance", {})),
+            provenance=dict(provenance),
             name=str(data.get("name", "AP")),
             blur_noise_level_dn=rel.get("noise_level_dn"),
         )
@@ -651,6 +662,12 @@ class IOPC:
         fig.suptitle((title or self.name) + (f"  ({n_marked} marked cell(s) not in the curves)" if n_marked else ""))
         fig.tight_layout()
         return fig
+
+
+def _typed(value: Any) -> str:
+    """A value as a file holds it, shortened for a message: its type and the start of its repr."""
+    text = repr(value)
+    return f"{type(value).__name__} {text[:60] + '…' if len(text) > 60 else text}"
 
 
 def _bilinear(surf: np.ndarray, xs: np.ndarray, ys: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -138,12 +138,33 @@ def test_iopc_controller_resolves_estimator_specs_when_built(noise, mtf):
 
 @pytest.mark.parametrize("value, used", [(-0.01, 0.0), (1.02, 1.0)])
 def test_iopc_controller_clips_the_mtf_estimate_to_0_1(value, used):
-    """An MTF̂ of 1.02 was clipped, -0.01 (a regression undershoot under heavy blur) stopped the loop: mtf_hat must
-    lie in [0, 1]."""
+    """An MTF̂ of 1.02 is clipped to 1; -0.01 (a regression undershoot under heavy blur) clipped to 0 lies beyond the
+    blur the IOPC measured, so the loop goes on with the parameters kept (it used to stop: mtf_hat must lie in [0, 1])."""
     from tests.iopc.fakes import FakeMTFEstimator
 
     ctrl = IOPCController(ExposurePolicy(BLUR_HATER, **FAST), "physics", FakeMTFEstimator(value, 48))
     cam = SimulatedCamera(smooth_frames(1, 192, 192), illumination_per_s=60.0, motion_px_per_s=1200.0, temperature_c=25.0)
-    ctrl.update(_obs(cam, 0.01, 0.0))
+    t, g = ctrl.update(_obs(cam, 0.01, 0.0))
+    if used == 0.0:  # blurrier than the IOPC's MTF → length relation reaches: no prediction, the parameters kept
+        assert ctrl.decisions == [] and (t, g) == (0.01, 0.0)
+        (_, why), = ctrl.refusals
+        assert "blurrier than the MTF → motion-length relation" in why and "parameters kept" in why
+        return
     (_, d, med), = ctrl.decisions
     assert med["mtf_tilde"] == pytest.approx(value) and d.details["mtf_hat"] == used
+
+
+@pytest.mark.parametrize("illumination", [1e5, 1e-4])
+def test_a_clipped_frame_keeps_the_parameters_with_the_simulators_labels(illumination):
+    """The simulator's labels read σ̂ and MTF̂ off a saturated or black frame as if it were readable: the controller
+    raised the gain on them (1 ms / 18 dB on a saturated frame). More than half clipped: kept, and said why."""
+    from camhealth.control.controllers import MAX_CLIPPED_FRACTION
+
+    ctrl = IOPCController(ExposurePolicy(BLUR_HATER, **FAST))
+    cam = SimulatedCamera(smooth_frames(1, 192, 192), illumination_per_s=illumination, motion_px_per_s=1200.0,
+                          temperature_c=25.0)
+    obs = _obs(cam, 0.01, 0.0)
+    assert float(obs.capture.clipped_fraction[0]) > MAX_CLIPPED_FRACTION
+    assert ctrl.update(obs) == (0.01, 0.0) and ctrl.decisions == []
+    (_, why), = ctrl.refusals
+    assert "of the frame's pixels are clipped" in why

@@ -117,7 +117,10 @@ def test_exposure_limits_min_above_max_is_named_as_such(tmp_path):
     from camhealth.demo import _exposure_limits
 
     for argv, match in ((["--limits-exposure", "0.2", "0.001"], r"--limits-exposure 0.2 0.001: MIN must be <= MAX"),
-                        (["--limits-gain", "24", "0"], r"--limits-gain 24 0: MIN must be <= MAX")):
+                        (["--limits-gain", "24", "0"], r"--limits-gain 24 0: MIN must be <= MAX"),
+                        (["--limits-gain", "0", "40"], r"--limits-gain 0 40: must lie within the camera's range \[0, 24\] dB"),
+                        (["--limits-exposure", "0.0005", "0.1"],
+                         r"--limits-exposure 0.0005 0.1: must lie within the camera's range \[0.001, 0.2\] s")):
         with pytest.raises(SystemExit, match=match):  # before the IOPC file is looked for
             main(["closed-loop", "--iopc", str(tmp_path / "none.json"), *argv])
     with pytest.raises(SystemExit, match=r"--limits-exposure 0.2 0.001: MIN must be <= MAX"):

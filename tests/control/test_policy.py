@@ -86,7 +86,7 @@ def test_table_agrees_with_direct_argmax():
     rng = np.random.default_rng(0)
     for _ in range(25):
         s = float(rng.choice(pol.sigma_grid[:50]))  # on the table grid: no rounding of the inputs
-        m = float(rng.choice(pol.mtf_grid[40:]))
+        m = float(rng.choice(pol.mtf_grid[pol.mtf_grid >= 0.53]))  # within the MTF → length relation
         t, g = float(rng.uniform(0.002, 0.05)), float(rng.uniform(0, 20))
         rho = float(rng.choice(pol.rho_grid))
         d = pol.decide(s, m, t, g, rho=rho)
@@ -180,7 +180,7 @@ def test_decisions_on_a_limit_are_exactly_on_it():
         pol = ExposurePolicy(iopc, CameraLimits((0.0005, 0.05), (3.0, 9.0)), **FAST)
         for _ in range(40):
             t, g = float(rng.uniform(0.0006, 0.04)), float(rng.uniform(3.0, 9.0))
-            d = pol.decide(float(rng.uniform(0, 20)), float(rng.uniform(0.5, 1.0)), t, g)
+            d = pol.decide(float(rng.uniform(0, 20)), float(rng.uniform(0.53, 1.0)), t, g)  # (the relation's range)
             assert 0.0005 <= d.exposure_s <= 0.05 and 3.0 <= d.gain_db <= 9.0
 
 
@@ -194,3 +194,30 @@ def test_a_tuple_of_two_iopcs_is_two_applications_and_a_pair_needs_a_number():
         ExposurePolicy([(BLUR_HATER, "0.5")], **FAST)
     with pytest.raises(TypeError, match=r"applications must be an IOPC, .*; got str"):
         ExposurePolicy("curves.json", **FAST)
+
+
+def test_more_blur_than_the_relation_measured_is_refused_not_clamped():
+    """MTF̂ below the relation's end (0.524 at 21 px) was read as 21 px: under the heaviest blur the policy kept the
+    exposure (it expected the AP of 21 px). It cannot tell how a shorter exposure would change an unmeasured blur."""
+    pol = ExposurePolicy(BLUR_HATER, **FAST)
+    with pytest.raises(ValueError, match=r"mtf_hat = 0.300 is blurrier than the MTF → motion-length relation of IOPC "
+                                         r"'blur-sensitive' reaches \(MTF̃ 0.524 at 21 px\)"):
+        pol.decide(2.0, 0.3, 0.008, 0.0)
+    assert pol.decide(2.0, 0.53, 0.008, 0.0).alpha > 1  # just inside it: shorten
+    flat = synthetic_iopc(lambda s, m: 0.5, "flat")
+    flat.blur_mtf[:] = 1.0
+    with pytest.raises(ValueError, match="does not fall with the motion length"):
+        ExposurePolicy(flat, **FAST)
+
+
+def test_a_change_never_predicts_a_sigma_beyond_what_the_iopc_measured():
+    """Beyond the last σ bin (30 DN, measured up to 32.5) the AP was read as flat, so the policy raised σ into
+    unmeasured territory (29 DN → 63 DN); such α are no candidates, and the direct objective says so too."""
+    pol = ExposurePolicy(BLUR_HATER, **FAST)
+    d = pol.decide(29.0, _mtf_of_length(21.0), 0.02, 0.0)
+    assert d.details["sigma_new_dn"] <= 32.5 + 1e-9
+    assert not np.isfinite(pol.objective(29.0, _mtf_of_length(21.0), [2.0], 1.0)[0])
+    d = pol.decide(40.0, _mtf_of_length(15.0), 0.02, 0.0)  # already beyond: never noisier
+    assert d.alpha <= 1.0
+    with pytest.raises(ValueError, match="must be a number, got bool"):
+        pol.decide(True, 0.9, 0.02, 0.0)

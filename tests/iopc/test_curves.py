@@ -248,3 +248,17 @@ def test_deeply_nested_files_are_a_value_error_naming_the_file(tmp_path):
         IOPC.load(deep)
     with pytest.raises(ValueError, match=r"IOPC.ap_2d\[0, 0\] is nested deeper"):
         IOPC.from_dict(d)
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("records", "abc", r"records must be a list of objects \(one per sweep cell\), got str 'abc'"),
+    ("records", [1, 2], r"records must be a list of objects"),
+    ("provenance", [1, 2], r"provenance must be an object, got list \[1, 2\]"),
+    ("provenance", {"estimator_specs": "physics"}, r"provenance.estimator_specs must be an object, got str 'physics'"),
+    ("blur_relation", [0, 1], r"blur_relation must be an object with length_px and mtf"),
+])
+def test_a_malformed_section_of_an_iopc_file_is_named(field, value, match):
+    d = IOPC.from_records(_records()).to_dict()
+    d[field] = value
+    with pytest.raises(ValueError, match=match):
+        IOPC.from_dict(d)
