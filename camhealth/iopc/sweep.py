@@ -41,6 +41,7 @@ import hashlib
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -621,6 +622,12 @@ class IOPCSweepModule(L.LightningModule):
         return self.sweep.run_cell(cell, self.device)
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
+        # Lightning's SIGTERM handler only notes the signal (its fit loop stops on it, its predict loop does not): stop
+        # before the next cell, exit status 143 (128 + SIGTERM); cells already done stay in the sweep's cache_dir
+        connector = getattr(self._trainer, "_signal_connector", None) if self._trainer is not None else None
+        if getattr(connector, "received_sigterm", False):
+            print(f"camhealth.iopc: terminated (SIGTERM) before cell {batch_idx}", file=sys.stderr)
+            raise SystemExit(143)
         return self.sweep.run_cell(batch, self.device)
 
 

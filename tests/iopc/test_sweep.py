@@ -282,3 +282,19 @@ def test_frames_too_small_for_an_estimator_patch_are_refused_before_any_detector
         IOPCSweep(smooth_frames(1, 96, 128), gt, det, FakeNoiseEstimator(128), FakeMTFEstimator(0.8, 48), config)
     assert det.n_calls == 0
     IOPCSweep(smooth_frames(1, 192, 256), gt, det, "physics", "physics", config)  # fits
+
+
+def test_a_sigterm_stops_the_sweep_before_the_next_cell(tmp_path, capsys):
+    """Lightning's SIGTERM handler only notes the signal, and its predict loop went on computing cells until SIGKILL:
+    the sweep module now stops before the next cell with exit status 143."""
+    from types import SimpleNamespace
+
+    from camhealth.iopc.sweep import IOPCSweepModule
+
+    sw, det = _sweep(tmp_path)
+    module = IOPCSweepModule(sw)
+    module._trainer = SimpleNamespace(_signal_connector=SimpleNamespace(received_sigterm=True))
+    with pytest.raises(SystemExit) as info:
+        module.predict_step(sw.cells[0], 3)
+    assert info.value.code == 143 and det.n_calls == 0
+    assert "terminated (SIGTERM) before cell 3" in capsys.readouterr().err
