@@ -22,6 +22,9 @@ class _CameraGenerator(RandomGeneratorBase):
         super().__init__()
         self.components = {k: v for k, v in components.items() if v is not None}
 
+    def __repr__(self) -> str:
+        return ", ".join(f"{k}={v!r}" for k, v in self.components.items())
+
     def make_samplers(self, device: torch.device, dtype: torch.dtype) -> None:
         for comp in self.components.values():
             comp._param_generator.set_rng_device_and_dtype(device, dtype)

@@ -99,6 +99,10 @@ class RandomSensorNoise(CorruptionBase):
         self._rng = check_rng(rng)
         self._param_generator = SensorNoiseGenerator(metadata, ranges, gain_uniform_in)
 
+    def __repr__(self) -> str:
+        base = super().__repr__()
+        return f"{base[:-1]}, sources={list(self._sources)}, quantize={self._quantize}, rng={self._rng!r})"
+
     @staticmethod
     def params_from_metadata(
         meta: CameraMetadata, seed: int | Sequence[int] | torch.Tensor | None = None,

@@ -228,3 +228,11 @@ def test_numpy_and_tensor_scalars_are_numbers_and_flags_are_bools():
         RandomDefocusBlur(p="0.5")
     with pytest.raises(TypeError, match="quantize = 'no' must be True or False"):
         RandomSensorNoise(quantize="no")
+
+
+def test_the_repr_names_every_setting_and_component():
+    noise = RandomSensorNoise(sources=("photon",), quantize=True, rng="counter")
+    assert "sources=['photon'], quantize=True, rng='counter'" in repr(noise)
+    cam = repr(CameraCorruption(RandomDefocusBlur((1.0, 3.0)), None, noise))
+    assert cam.startswith("CameraCorruption(defocus=RandomDefocusBlur(diameter=(1.0, 3.0)") and "noise=RandomSensorNoise(" in cam
+    assert "motion=" not in cam
