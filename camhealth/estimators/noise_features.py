@@ -197,6 +197,15 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
     of the σ an independent implementation of the sensor model realised, on photographs and street frames of every
     simulator variant (``python -m camhealth.bench robustness``, row ``closed_form``, matched).
 
+    At a bound it reads high. The clean level recovered from a 3×3 mean is a point estimate clamped to [0, 255] DN,
+    so the noise of the means pushes a level at a bound off it, and less clipping is predicted than happens.
+    Measured on flat 128-px patches with their own metadata (ICX285 at 12 and 24 dB, EV76C661 at 18 dB, against the
+    σ ``form_image`` realised), σ_Total reads:
+
+    - 8.5–9.3 % high at 0 or 255 DN, which the estimators refuse as black or saturated;
+    - 2.0–5.6 % high at 254 DN;
+    - 2.5–3.3 % high on a patch half at 255 DN.
+
     A patch whose every pixel lies more than 6 σ(x) from both bounds (σ² = slope·x + σ_DCSN² + σ_RN², the test
     of :func:`~camhealth.physics.clipping.estimate_clean_dn`; its 3×3 means, which lie between the patch's extremes,
     then pass it too) has nothing clipped: its σ are the unclipped model's at the patch's mean intensity (the 3×3
