@@ -35,6 +35,7 @@ from typing import Any, Mapping, Sequence
 import torch
 
 from camhealth._validation import check_image
+from camhealth.estimators._common import check_patches
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.mtf import mtf_indicator
 
@@ -80,6 +81,8 @@ class ImmerkaerNoiseEstimator:
     patch_size = 128
     metadata_set = "none"
     name = "immerkaer1996"
+    #: Smallest patch side [px] read: 36 coefficients of I∗N (σ̂ within about 10 % on white noise).
+    MIN_SIZE = 8
 
     def __init__(self, patch_size: int = 128) -> None:
         if int(patch_size) != patch_size or patch_size < 3:
@@ -90,7 +93,9 @@ class ImmerkaerNoiseEstimator:
         """σ̂_total [DN] (B,) and ``assessable`` (B,) of patches B×1×P×P in [0, 1] (or uint8 DN)."""
         if isinstance(patches, torch.Tensor) and patches.dtype == torch.uint8:
             patches = patches.float() / 255.0
-        check_image(patches, "patches")
+        # [0, 1] (a float image in DN would read 255× too noisy) and at least MIN_SIZE px (a 3×3 patch has one
+        # coefficient of I∗N; a 2×2 one none)
+        check_patches(patches, "patches", min_size=(self.MIN_SIZE, self.MIN_SIZE))
         x = patches.detach().float().cpu() * 255.0
         k = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]]).view(1, 1, 3, 3)
         r = torch.nn.functional.conv2d(x, k)  # valid: (H−2)×(W−2)

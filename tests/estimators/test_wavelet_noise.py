@@ -65,3 +65,16 @@ def test_backend_errors(flat):
     if not skimage_available():
         with pytest.raises(ImportError, match="PyWavelets"):
             wavelet_noise_sigma(flat, backend="skimage")
+
+
+def test_an_odd_side_is_cropped_and_small_images_are_refused():
+    """Symmetric extension biases the MAD of small and odd-sized images low (33 px: −11 %): an odd side is cropped by
+    one pixel, and images under MIN_SIZE px are refused naming the size."""
+    from camhealth.estimators.wavelet_noise import MIN_SIZE
+
+    g = torch.Generator().manual_seed(0)
+    x = (0.5 + 10.0 / 255.0 * torch.randn(64, 1, 33, 33, generator=g)).clamp(0, 1)
+    assert torch.equal(wavelet_noise_sigma(x, backend="torch"), wavelet_noise_sigma(x[..., :32, :32], backend="torch"))
+    assert float(wavelet_noise_sigma(x, backend="torch").mean()) == pytest.approx(10.0, rel=0.06)
+    with pytest.raises(ValueError, match=rf"images must be at least {MIN_SIZE}×{MIN_SIZE} px, got 15×15"):
+        wavelet_noise_sigma(x[..., :15, :15])

@@ -158,3 +158,19 @@ def test_estimator_fingerprint_of_a_network_in_memory_follows_its_weights():
     with torch.no_grad():
         a.w.add_(1.0)
     assert estimator_fingerprint(a) != before
+
+
+def test_immerkaer_refuses_dn_scaled_floats_and_patches_too_small_to_read():
+    """A float patch in DN (0…255) read 255× too noisy (σ̂ 2544 DN for 10); a 2×2 patch crashed inside torch and a
+    3×3 one was read from one coefficient: refused, named."""
+    from camhealth.iopc.estimation import ImmerkaerNoiseEstimator
+
+    est = ImmerkaerNoiseEstimator()
+    g = torch.Generator().manual_seed(0)
+    x = (128.0 + 10.0 * torch.randn(2, 1, 64, 64, generator=g)).clamp(0, 255)
+    with pytest.raises(ValueError, match=r"patches must lie in \[0, 1\] \(DN/255\)"):
+        est.predict(x)
+    for side in (2, 3, 7):
+        with pytest.raises(ValueError, match=rf"patches must be at least 8×8 px, got {side}×{side}"):
+            est.predict(x[..., :side, :side] / 255.0)
+    assert est.predict(x / 255.0)["sigma_total"] == pytest.approx([10.0, 10.0], rel=0.1)
