@@ -30,6 +30,7 @@ BENCHMARKS: dict[str, str] = {
     "estimators": "camhealth.bench.estimators",
     "monitor": "camhealth.bench.monitor",
     "mtf_error": "camhealth.bench.mtf_error",
+    "policy": "camhealth.bench.policy",
     "robustness": "camhealth.bench.robustness",
 }
 

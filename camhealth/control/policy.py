@@ -25,8 +25,10 @@ at least ``min_gain`` (hysteresis).
 
 Look-up table. All of this is precomputed on a grid of σ̂ (0.5 DN steps, finer for finer σ bins), MTF̂ (0.01 steps,
 from 0 to exactly 1), ρ (5 levels) and α (65 log-spaced values in [1/16, 16], step 2^(1/8) ≈ 9 %): ``table[s, m, r, a]``
-is the weighted AP. A decision is an index lookup, a feasibility mask over the 65 α and an argmax — a few
-microseconds (``docs/control.md``). :meth:`ExposurePolicy.objective` evaluates the same function
+is the weighted AP. A decision interpolates the table trilinearly between the eight nodes around (σ̂, MTF̂, ρ) —
+the objective is continuous in all three, and rounding to the nearest node moved σ̂ by up to a quarter of a σ bin and
+ρ by up to 0.125 — then takes a feasibility mask over the 65 α and an argmax: tens of microseconds
+(``docs/control.md``). :meth:`ExposurePolicy.objective` evaluates the same function
 directly (no table) for checks.
 """
 
@@ -41,7 +43,11 @@ import numpy as np
 
 from camhealth.iopc.curves import IOPC, bin_index
 
-__all__ = ["CameraLimits", "Application", "Decision", "ExposurePolicy", "noise_scale"]
+__all__ = ["CameraLimits", "Application", "Decision", "ExposurePolicy", "noise_scale", "MAX_TABLE_ENTRIES"]
+
+#: Largest look-up table a policy builds, in entries: 200 MB as float32, a few GB of float64 while it is built. The
+#: default tables hold 0.8 million (closed-loop IOPC) and 2.3 million (thesis grid).
+MAX_TABLE_ENTRIES = 50_000_000
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,9 @@ class CameraLimits:
     gain_db: tuple[float, float] = (0.0, 24.0)
 
     def __post_init__(self) -> None:
+        for nm, pair, unit in (("exposure", self.exposure_s, "s"), ("gain", self.gain_db, "dB")):
+            if not (isinstance(pair, (tuple, list)) and len(pair) == 2 and all(_is_real(v) for v in pair)):
+                raise ValueError(f"{nm} limits {pair!r} must be a pair of numbers (low, high) [{unit}]")
         t0, t1 = (float(v) for v in self.exposure_s)
         g0, g1 = (float(v) for v in self.gain_db)
         if not (math.isfinite(t0) and math.isfinite(t1) and 0 < t0 <= t1):
@@ -81,8 +90,9 @@ class Application:
     def __post_init__(self) -> None:
         if not isinstance(self.iopc, IOPC):
             raise TypeError(f"Application.iopc must be an IOPC, got {type(self.iopc).__name__}")
-        if not (math.isfinite(self.weight) and self.weight >= 0):
-            raise ValueError(f"application weight λ = {self.weight!r} must be finite and >= 0")
+        if not (_is_real(self.weight) and math.isfinite(self.weight) and self.weight >= 0):
+            raise ValueError(f"application weight λ = {self.weight!r} must be a finite number >= 0")
+        self.weight = float(self.weight)
         self.name = self.name or self.iopc.name
         if self.iopc.blur_length_px.size < 2:
             raise ValueError(f"IOPC {self.name!r} has no MTF → motion-length relation (sweep needs ≥ 2 lengths)")
@@ -199,11 +209,15 @@ class ExposurePolicy:
             if m.size < 2 or not m[-1] < m[0]:
                 raise ValueError(f"IOPC {app.name!r}: its MTF → motion-length relation {m.tolist()} does not fall with the "
                                  "motion length, so it cannot tell one blur from another (sweep lengths that blur the frames)")
+        if limits is not None and not isinstance(limits, CameraLimits):
+            raise TypeError(f"limits must be a CameraLimits, got {type(limits).__name__}")
         self.limits = limits or CameraLimits()
+        if not (isinstance(alpha_range, (tuple, list)) and len(alpha_range) == 2 and all(_is_real(v) for v in alpha_range)):
+            raise ValueError(f"alpha_range {alpha_range!r} must be a pair of numbers (low, high)")
         a0, a1 = (float(v) for v in alpha_range)
         if not (0 < a0 < 1 < a1 and math.isfinite(a1)):
             raise ValueError(f"alpha_range {alpha_range!r} must satisfy 0 < low < 1 < high")
-        if int(n_alpha) != n_alpha or n_alpha < 3 or n_alpha % 2 == 0:
+        if not _is_real(n_alpha) or int(n_alpha) != n_alpha or n_alpha < 3 or n_alpha % 2 == 0:
             raise ValueError(f"n_alpha = {n_alpha!r} must be an odd integer >= 3 (α = 1 on the grid)")
         if sigma_step_dn is None:  # half the finest σ-bin spacing, at most 0.5 DN
             sigma_step_dn = min(0.5, min(float(np.diff(a.iopc.sigma_bins).min()) for a in self.apps) / 2)
@@ -213,22 +227,32 @@ class ExposurePolicy:
             raise ValueError(f"mtf_step = {mtf_step!r} is out of the allowed range (0, 0.5]")
         if not (_is_real(rho_levels) and int(rho_levels) == rho_levels and rho_levels >= 2):
             raise ValueError(f"rho_levels = {rho_levels!r} is out of the allowed range: an integer >= 2")
-        if not (math.isfinite(min_gain) and min_gain >= 0):
-            raise ValueError(f"min_gain = {min_gain!r} must be >= 0")
+        if not (_is_real(min_gain) and math.isfinite(min_gain) and min_gain >= 0):
+            raise ValueError(f"min_gain = {min_gain!r} is out of the allowed range: a finite number >= 0 (AP)")
         self.min_gain = float(min_gain)
         # symmetric in log α around 1 where possible
         la = np.linspace(math.log(a0), math.log(a1), int(n_alpha))
         la[int(np.argmin(np.abs(la)))] = 0.0
         self.alphas = np.exp(la)
         self.i_one = int(np.argmin(np.abs(la)))
+        last_bin = max(float(a.iopc.sigma_bins[-1]) for a in self.apps)
         if sigma_max_dn is None:
             smax = max(float(a.iopc.sigma_bins[-1] + np.diff(a.iopc.sigma_bins)[-1]) for a in self.apps)
         else:
+            # a table that ends before the IOPCs' last σ bin would read every σ̂ beyond its end at its end: a wrong AP
+            if not (_is_real(sigma_max_dn) and math.isfinite(sigma_max_dn) and sigma_max_dn >= last_bin):
+                raise ValueError(f"sigma_max_dn = {sigma_max_dn!r} DN is out of the allowed range: a finite number >= the "
+                                 f"IOPCs' last σ bin, {last_bin:g} DN (σ̂ beyond the table is read at its end)")
             smax = float(sigma_max_dn)
-        if not (math.isfinite(smax) and smax > 0):
-            raise ValueError(f"sigma_max_dn = {sigma_max_dn!r} must be > 0")
         self.sigma_step = float(sigma_step_dn)
-        self.sigma_grid = np.arange(0.0, smax + 0.5 * self.sigma_step, self.sigma_step)
+        n_table = (math.floor(max(smax, self.sigma_step) / self.sigma_step) + 2) * (math.ceil(1.0 / float(mtf_step) - 1e-9) + 1) \
+            * int(rho_levels) * int(n_alpha)
+        if n_table > MAX_TABLE_ENTRIES:
+            raise ValueError(f"the table would hold {n_table:.3g} entries (σ̂ up to {smax:g} DN in {self.sigma_step:g}-DN steps, MTF̂ "
+                             f"in {float(mtf_step):g} steps, {rho_levels} ρ levels, {n_alpha} α): more than the allowed "
+                             f"{MAX_TABLE_ENTRIES:.3g} ({MAX_TABLE_ENTRIES * 4 / 1e9:g} GB as float32); coarsen sigma_step_dn or mtf_step")
+        # at least two nodes (0 and one step), so there is always a cell to interpolate in
+        self.sigma_grid = np.arange(0.0, max(smax, self.sigma_step) + 0.5 * self.sigma_step, self.sigma_step)
         # 0 … 1 exactly, in n equal intervals (the step used is 1/n <= mtf_step): an arange with a step that does not
         # divide 1 (0.03, 0.3) would end short of 1 and look a sharp frame (MTF̂ = 1) up as a blurred one
         n_mtf = max(1, math.ceil(1.0 / float(mtf_step) - 1e-9))
@@ -236,6 +260,7 @@ class ExposurePolicy:
         self.mtf_grid = np.linspace(0.0, 1.0, n_mtf + 1)
         self.rho_grid = np.linspace(0.0, 1.0, int(rho_levels))
         self.table = self._build_table()
+        self._sigma_top = min(_sigma_top(a.iopc) for a in self.apps)
         # plain-Python copies for the per-decision fast path
         self._alpha_list = self.alphas.tolist()
         self._n_sigma, self._n_mtf, self._n_rho_1 = self.sigma_grid.size, self.mtf_grid.size, self.rho_grid.size - 1
@@ -251,14 +276,13 @@ class ExposurePolicy:
 
     def objective(self, sigma: float, mtf: float, alpha: np.ndarray | float, rho: float = 1.0) -> np.ndarray:
         """Σ_i λ_i AP_i(σ_new(α), MTF_new,i(α)) evaluated directly (no table); vectorised over α. −∞ where α ≠ 1 raises
-        σ_new beyond what an IOPC measured (as in the table: no candidate)."""
+        σ_new beyond what an IOPC measured (as in :meth:`decide`: no candidate)."""
         a = np.asarray(alpha, dtype=np.float64)
-        total, beyond = np.float64(0.0), np.zeros(a.shape, dtype=bool)
+        total = np.float64(0.0)
         for app in self.apps:
-            ap, sigma_new, _ = self._app_terms(app, np.float64(sigma), np.float64(mtf), a, np.float64(rho))
+            ap, _, _ = self._app_terms(app, np.float64(sigma), np.float64(mtf), a, np.float64(rho))
             total = total + app.weight * ap
-            beyond |= (sigma_new > _sigma_top(app.iopc)) & (sigma_new > sigma) & (a != 1.0)
-        return np.where(beyond, -np.inf, total)
+        return np.where(self._beyond(float(sigma), a, float(rho)), -np.inf, total)
 
     def _build_table(self) -> np.ndarray:
         s = self.sigma_grid[:, None, None, None]
@@ -266,17 +290,13 @@ class ExposurePolicy:
         r = self.rho_grid[None, None, :, None]
         a = self.alphas[None, None, None, :]
         total = np.zeros((s.shape[0], m.shape[1], r.shape[2], a.shape[3]), dtype=np.float64)
-        beyond = np.zeros(total.shape, dtype=bool)
         for app in self.apps:
             length = app.iopc.length_from_mtf(m)
             mtf_new = app.iopc.mtf_from_length(length / a)  # (1, M, 1, A)
             sigma_new = s * noise_scale(a, r)  # (S, 1, R, A)
             total += app.weight * app.iopc.interpolate(sigma_new, mtf_new)
-            # a change whose predicted σ leaves what the sweep measured (beyond the last σ bin's half width) and rises
-            # would read the AP there as flat: it is not a candidate (the current parameters, α = 1, always are)
-            beyond |= (sigma_new > _sigma_top(app.iopc)) & (sigma_new > s)
-        beyond[..., self.i_one] = False
-        total[beyond] = -np.inf
+        # finite everywhere: which α predict a σ beyond what the sweep measured is decided per decision, exactly
+        # (:meth:`_beyond`), so a node beyond does not spill into its neighbours' interpolation
         return total.astype(np.float32)
 
     @property
@@ -311,9 +331,31 @@ class ExposurePolicy:
         lo, hi = float(row[i]), float(row[i + 1])
         if f <= 0.0 or f >= 1.0:
             return lo if f <= 0.0 else hi
-        if not (math.isfinite(lo) and math.isfinite(hi)):  # a neighbour beyond the measured σ: so is this α
-            return -math.inf
         return lo * (1.0 - f) + hi * f
+
+    def _row(self, sigma: float, mtf: float, rho: float) -> np.ndarray:
+        """(A,) weighted AP over the α grid at (σ̂ [DN], MTF̂, ρ): trilinear between the table's eight neighbouring
+        nodes (σ̂ beyond the table is read at its last node)."""
+        idx, frac = [], []
+        for p, n in ((sigma / self.sigma_step, self._n_sigma), (mtf / self.mtf_step, self._n_mtf),
+                     (rho * self._n_rho_1, self._n_rho_1 + 1)):
+            p = min(max(p, 0.0), n - 1.0)
+            i = min(int(p), n - 2)
+            idx.append(i)
+            frac.append(p - i)
+        (i, j, k), (fs, fm, fr) = idx, frac
+        gs, gm, gr = 1.0 - fs, 1.0 - fm, 1.0 - fr
+        w = np.array([gs * gm * gr, gs * gm * fr, gs * fm * gr, gs * fm * fr,
+                      fs * gm * gr, fs * gm * fr, fs * fm * gr, fs * fm * fr])
+        return w @ self.table[i:i + 2, j:j + 2, k:k + 2].reshape(8, -1).astype(np.float64)
+
+    def _beyond(self, sigma: float, alpha: np.ndarray | float, rho: float) -> np.ndarray:
+        """α ≠ 1 whose predicted σ [DN] rises beyond what an IOPC measured (its last σ bin's centre plus half the
+        spacing): the AP there would be read as flat, so such an α is no candidate (the current parameters, α = 1,
+        always are)."""
+        a = np.asarray(alpha, dtype=np.float64)
+        sigma_new = sigma * noise_scale(a, rho)
+        return (sigma_new > self._sigma_top) & (sigma_new > sigma) & (a != 1.0)
 
     def decide(
         self,
@@ -358,9 +400,6 @@ class ExposurePolicy:
         if not math.isfinite(gain_db):
             raise ValueError(f"gain_db = {gain_db!r} dB must be finite")
         rho_v = self._rho(sigma_sources, rho)
-        s = min(int(sigma_hat / self.sigma_step + 0.5), self._n_sigma - 1)
-        m = min(int(mtf_hat / self.mtf_step + 0.5), self._n_mtf - 1)
-        r = int(rho_v * self._n_rho_1 + 0.5)
         lo_x, hi_x = self._alpha_limits(exposure_s, gain_db)
         lo, hi = lo_x * (1 - 1e-9), hi_x * (1 + 1e-9)  # = _alpha_interval: feasibility with a float tolerance
         lo_c, hi_c = max(lo, self._alpha_list[0]), min(hi, self._alpha_list[-1])
@@ -369,15 +408,18 @@ class ExposurePolicy:
                 f"no α in [{self.alphas[0]:.3g}, {self.alphas[-1]:.3g}] keeps exposure {exposure_s:g} s / α within "
                 f"{self.limits.exposure_s} s and gain {gain_db:g} dB + 20·log10 α within {self.limits.gain_db} dB"
             )
-        row = self.table[s, m, r]
+        row = self._row(sigma_hat, mtf_hat, rho_v)
         a0, a1 = bisect.bisect_left(self._alpha_list, lo_c), bisect.bisect_right(self._alpha_list, hi_c)
         cand_a: list[float] = self._alpha_list[a0:a1]
         cand_v: list[float] = row[a0:a1].tolist()
+        # σ_new grows with α, so only the largest candidate can tell whether any predicts σ beyond the IOPCs
+        if sigma_hat * math.sqrt(rho_v * hi_c * hi_c + (1.0 - rho_v) * hi_c) > self._sigma_top:
+            cand_v = np.where(self._beyond(sigma_hat, self.alphas[a0:a1], rho_v), -np.inf, row[a0:a1]).tolist()
         # the limits themselves (exact, not widened), if they fall between grid points
         for e in (min(max(lo_x, self._alpha_list[0]), hi_c), max(min(hi_x, self._alpha_list[-1]), lo_c)):
             if not cand_a or (e < cand_a[0] * (1 - 1e-12) or e > cand_a[-1] * (1 + 1e-12)):
                 cand_a.append(e)
-                cand_v.append(self._row_at(row, e))
+                cand_v.append(-math.inf if self._beyond(sigma_hat, e, rho_v) else self._row_at(row, e))
         best = max(cand_v)
         if not math.isfinite(best):
             raise ValueError(f"every α the limits allow predicts σ beyond what the IOPC measured (σ̂ = {sigma_hat:g} DN): "
@@ -399,6 +441,8 @@ class ExposurePolicy:
         if rho is not None and sigma_sources is not None:
             raise ValueError("give either sigma_sources or rho, not both")
         if sigma_sources is not None:  # plain floats: this is on the per-decision path
+            if isinstance(sigma_sources, (str, bytes)) or not all(_is_real(v) for v in sigma_sources):
+                raise ValueError(f"sigma_sources = {sigma_sources!r} must be three numbers σ >= 0 [DN] (PN, DCSN, RN)")
             src = [float(v) for v in sigma_sources]
             if len(src) != 3 or not all(math.isfinite(v) and v >= 0 for v in src):
                 raise ValueError(f"sigma_sources must be three σ >= 0 [DN] (PN, DCSN, RN), got {src}")
@@ -406,7 +450,7 @@ class ExposurePolicy:
             return src[2] * src[2] / tot if tot > 0 else 1.0
         if rho is None:
             return 1.0
-        if not (math.isfinite(rho) and 0 <= rho <= 1):
+        if not (_is_real(rho) and math.isfinite(rho) and 0 <= rho <= 1):
             raise ValueError(f"rho = {rho!r} must lie in [0, 1]")
         return float(rho)
 

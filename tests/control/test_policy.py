@@ -98,6 +98,27 @@ def test_table_agrees_with_direct_argmax():
         assert d.expected_ap == pytest.approx(float(pol.objective(s, m, d.alpha, rho)), abs=tol)
 
 
+def test_off_grid_inputs_read_the_table_between_its_nodes():
+    """σ̂, MTF̂ and ρ between the table's nodes: the decision is within a small loss of the direct objective's best α
+    (rounding to the nearest node lost up to 0.07 AP here, and chose α the direct objective rules out), and its
+    expected AP is the direct objective's at that α."""
+    pol = ExposurePolicy([BLUR_HATER, (NOISE_HATER, 0.7)])
+    rng = np.random.default_rng(1)
+    losses, errors = [], []
+    for _ in range(200):
+        s, m, rho = float(rng.uniform(0, 25)), float(rng.uniform(0.53, 1.0)), float(rng.uniform(0, 1))
+        t, g = float(rng.uniform(0.002, 0.05)), float(rng.uniform(0, 20))
+        d = pol.decide(s, m, t, g, rho=rho)
+        direct = pol.objective(s, m, pol.alphas, rho)
+        at_choice = float(pol.objective(s, m, d.alpha, rho))
+        assert np.isfinite(at_choice)  # never an α predicting σ beyond what the IOPC measured
+        losses.append(float(direct[pol.feasible(t, g)].max()) - at_choice)
+        if np.isclose(pol.alphas, d.alpha, rtol=1e-12, atol=0).any():
+            errors.append(abs(d.expected_ap - at_choice))
+    assert max(losses) < 0.02 and float(np.mean(losses)) < 0.002
+    assert max(errors) < 0.03 and float(np.mean(errors)) < 0.003
+
+
 def test_multi_application_weights():
     args = (8.0, _mtf_of_length(11.0), 0.02, 6.0)
     blur_first = ExposurePolicy([Application(BLUR_HATER, 1.0), Application(NOISE_HATER, 0.0)], **FAST).decide(*args)
@@ -221,3 +242,46 @@ def test_a_change_never_predicts_a_sigma_beyond_what_the_iopc_measured():
     assert d.alpha <= 1.0
     with pytest.raises(ValueError, match="must be a number, got bool"):
         pol.decide(True, 0.9, 0.02, 0.0)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: ExposurePolicy(NOISE_HATER, min_gain=True, **FAST), r"min_gain = True is out of the allowed range"),
+    (lambda: ExposurePolicy(NOISE_HATER, alpha_range=("0.5", "2"), **FAST), r"alpha_range .* must be a pair of numbers"),
+    (lambda: ExposurePolicy(NOISE_HATER, sigma_max_dn="40", **FAST), r"sigma_max_dn = '40' DN is out of the allowed range"),
+    (lambda: ExposurePolicy(NOISE_HATER, sigma_max_dn=True, **FAST), r"sigma_max_dn = True DN is out of the allowed range"),
+    (lambda: ExposurePolicy(NOISE_HATER, limits={"exposure_s": (0.001, 0.1)}, **FAST), r"limits must be a CameraLimits"),
+    (lambda: CameraLimits((True, 5.0)), r"exposure limits \(True, 5.0\) must be a pair of numbers"),
+    (lambda: CameraLimits(("0.001", "0.2")), r"exposure limits .* must be a pair of numbers"),
+    (lambda: CameraLimits((0.001, 0.2), (0.0,)), r"gain limits \(0.0,\) must be a pair of numbers"),
+    (lambda: Application(NOISE_HATER, weight=True), r"application weight λ = True must be a finite number"),
+])
+def test_booleans_and_text_are_no_numbers_of_the_policy(make, match):
+    """min_gain=True read as 1 AP (the policy never changed anything), limits of (True, 5) s as 1–5 s."""
+    with pytest.raises((ValueError, TypeError), match=match):
+        make()
+
+
+def test_decide_refuses_booleans_and_text_for_rho_and_the_sources():
+    pol = ExposurePolicy(NOISE_HATER, **FAST)
+    with pytest.raises(ValueError, match=r"rho = True must lie in \[0, 1\]"):
+        pol.decide(10.0, 0.9, 0.01, 12.0, rho=True)
+    for src in (["1", "1", "1"], [True, False, True], "abc"):
+        with pytest.raises(ValueError, match="sigma_sources = .* must be three numbers"):
+            pol.decide(10.0, 0.9, 0.01, 12.0, sigma_sources=src)
+
+
+def test_a_table_shorter_than_the_iopc_is_refused():
+    """σ̂ beyond the table is read at its end: a table to 5 DN on an IOPC to 30 DN read σ̂ = 20 DN as 5 DN (expected AP
+    0.958 where the direct objective gives 0.333)."""
+    with pytest.raises(ValueError, match=r"sigma_max_dn = 5.0 DN is out of the allowed range: .* last σ bin, 30 DN"):
+        ExposurePolicy(NOISE_HATER, sigma_max_dn=5.0, **FAST)
+    pol = ExposurePolicy(NOISE_HATER, sigma_max_dn=30.0, **FAST)
+    d = pol.decide(20.0, 0.9, 0.02, 12.0)
+    assert d.current_ap == pytest.approx(float(pol.objective(20.0, 0.9, 1.0)), abs=0.01)
+
+
+def test_a_table_too_large_to_build_is_refused_before_it_is_built():
+    with pytest.raises(ValueError, match=r"the table would hold .* entries .* more than the allowed"):
+        ExposurePolicy(NOISE_HATER, sigma_step_dn=1e-4)
+    with pytest.raises(ValueError, match=r"the table would hold"):
+        ExposurePolicy(NOISE_HATER, sigma_max_dn=1e12)
