@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -145,13 +146,18 @@ class SimulatedCamera:
         lo, hi = torch.aminmax(frames)
         if lo < 0 or hi > 1:
             raise ValueError(f"frames must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
-        for nm, v, low in (("illumination_per_s", illumination_per_s, 0.0), ("motion_px_per_s", motion_px_per_s, 0.0)):
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= low):
-                raise ValueError(f"{nm} = {v!r} must be a finite number >= {low:g}")
-        if illumination_per_s <= 0:
+        for nm, v, low in (("illumination_per_s", illumination_per_s, 0.0), ("motion_px_per_s", motion_px_per_s, 0.0),
+                           ("motion_angle_deg", motion_angle_deg, -math.inf), ("temperature_c", temperature_c, -math.inf)):
+            if isinstance(v, torch.Tensor) and v.numel() == 1 and not v.dtype == torch.bool:
+                v = v.item()
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (math.isfinite(v) and v >= low):
+                raise ValueError(f"{nm} = {v!r} must be a finite number" + (f" >= {low:g}" if math.isfinite(low) else ""))
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+            raise ValueError(f"seed = {seed!r} must be an integer")
+        if not isinstance(quantize, bool):
+            raise ValueError(f"quantize = {quantize!r} must be True or False")
+        if float(illumination_per_s) <= 0:
             raise ValueError(f"illumination_per_s = {illumination_per_s!r} must be > 0")
-        if not math.isfinite(motion_angle_deg):
-            raise ValueError(f"motion_angle_deg = {motion_angle_deg!r} must be finite")
         for s in sources:
             check_choice(s, "noise source", NOISE_SOURCES)
         self.frames = frames.detach()
@@ -187,6 +193,9 @@ class SimulatedCamera:
         if raw.is_floating_point() and not bool((raw == raw.round()).all()) or raw.dtype == torch.bool:
             raise ValueError(f"frame_index = {frame_index!r} must be whole frame numbers")
         idx = raw.to(torch.long)
+        for nm, v in (("exposure_s", exposure_s), ("gain_db", gain_db)):
+            if isinstance(v, (str, bytes, bool)) or v is None or (isinstance(v, torch.Tensor) and v.dtype == torch.bool):
+                raise ValueError(f"{nm} = {v!r} must be a number or a sequence/tensor of numbers")
         t = torch.as_tensor(exposure_s, dtype=torch.float64).reshape(-1)
         g = torch.as_tensor(gain_db, dtype=torch.float64).reshape(-1)
         b = max(idx.numel(), t.numel(), g.numel())

@@ -20,6 +20,7 @@ the detector's output) and returns the (exposure [s], gain [dB]) for the next fr
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -149,8 +150,20 @@ class IOPCController:
     def __init__(self, policy: ExposurePolicy, noise_estimator: Any = PHYSICS, mtf_estimator: Any = PHYSICS,
                  decide_every: int | None = None, score_threshold: float = 0.5, use_sources: bool = True,
                  reference_intensity: float | None = None, name: str = "IOPC policy") -> None:
-        if decide_every is not None and (int(decide_every) != decide_every or decide_every < 1):
+        if decide_every is not None and (isinstance(decide_every, bool) or not isinstance(decide_every, numbers.Integral)
+                                         or decide_every < 1):
             raise ValueError(f"decide_every = {decide_every!r} must be a positive integer or None")
+        if not isinstance(policy, ExposurePolicy):
+            raise TypeError(f"policy must be an ExposurePolicy, got {type(policy).__name__}")
+        # a threshold outside [0, 1] (or NaN) keeps no detection, and the estimates silently fall back to the whole frame
+        if isinstance(score_threshold, bool) or not isinstance(score_threshold, numbers.Real) or not 0 <= score_threshold <= 1:
+            raise ValueError(f"score_threshold = {score_threshold!r} is out of the allowed range: a number in [0, 1] "
+                             "(detector score)")
+        if not isinstance(use_sources, bool):
+            raise ValueError(f"use_sources = {use_sources!r} must be True or False")
+        if reference_intensity is not None and (isinstance(reference_intensity, bool)
+                                                or not isinstance(reference_intensity, numbers.Real)):
+            raise ValueError(f"reference_intensity = {reference_intensity!r} must be a number in (0, 1] or None")
         self.policy = policy
         self.noise, self.mtf = resolve_estimator(noise_estimator, "noise"), resolve_estimator(mtf_estimator, "mtf")
         self.decide_every, self.score_threshold, self.use_sources, self.name = decide_every, score_threshold, use_sources, name

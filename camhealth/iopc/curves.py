@@ -172,6 +172,30 @@ def _check_bins(bins: Sequence[float], name: str) -> np.ndarray:
     return b
 
 
+def _query(x: Any, what: str, high: float = math.inf) -> np.ndarray:
+    """A query of :meth:`IOPC.interpolate`, :meth:`IOPC.length_from_mtf` or :meth:`IOPC.mtf_from_length` as a float64
+    array: numbers (a scalar, a sequence, a numpy array or a tensor) in [0, ``high``], or NaN (which stays NaN).
+    Text, booleans and None are refused (numpy would read ``"0.7"`` as 0.7 and ``True`` as 1), and so are values out
+    of range, which the curves would otherwise clamp to their outermost bin — a confident number for an impossible
+    input. ``what`` names the query and its unit."""
+    allowed = f"numbers in [0, {high:g}]" + (" (MTF values)" if math.isfinite(high) else "") + ", or NaN"
+    if isinstance(x, (str, bytes, bool, np.bool_)) or x is None:
+        raise TypeError(f"{what} = {x!r} is not a number; allowed: {allowed}")
+    try:
+        q = np.asarray(x)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{what} of type {type(x).__name__} cannot be read as numbers ({exc}); allowed: {allowed}") from None
+    if q.dtype.kind not in "iuf":
+        raise TypeError(f"{what} must hold numbers ({allowed}), got an array of {q.dtype}")
+    q = q.astype(np.float64, copy=False)
+    with np.errstate(invalid="ignore"):
+        bad = (q < 0.0) | (q > high + (1e-6 if math.isfinite(high) else 0.0)) | np.isinf(q)
+    if bool(bad.any()):
+        v = q[bad].reshape(-1)[0]
+        raise ValueError(f"{what} = {float(v):g} is out of the allowed range: {allowed}")
+    return q
+
+
 def bin_index(values: np.ndarray | Sequence[float] | float, bins: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
     """Nearest-bin index of each value and whether it lies within the bins.
 
@@ -201,7 +225,38 @@ def blur_relation(records: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, np.
     rows = [r for r in rows if float(r["noise_level_dn"]) == low]
     lengths = sorted({float(r["length_px"]) for r in rows})
     mtf = np.array([np.median([float(r["mtf_tilde"]) for r in rows if float(r["length_px"]) == L]) for L in lengths])
-    return np.asarray(lengths, dtype=np.float64), np.minimum.accumulate(mtf)
+    # an estimate may read slightly above 1 on sharp frames; the relation holds MTF values
+    return np.asarray(lengths, dtype=np.float64), np.minimum.accumulate(np.clip(mtf, 0.0, 1.0))
+
+
+#: A sweep record's numeric fields: (lowest, highest, whether None/NaN is allowed — an undefined AP or a cell
+#: without an estimate, which gets marked — and what is allowed, for the error).
+_RECORD_FIELDS: dict[str, tuple[float, float, bool, str]] = {
+    "sigma_tilde": (0.0, math.inf, True, "a number >= 0 DN, or null/NaN (no estimate: the cell is marked)"),
+    # an estimated MTF̃ may read slightly above 1 on a sharp frame: the bins decide whether it is inside
+    "mtf_tilde": (0.0, math.inf, True, "a number >= 0, or null/NaN (no estimate: the cell is marked)"),
+    "ap": (0.0, 1.0, True, "a number in [0, 1], or null/NaN (no ground truth: the cell is marked)"),
+    "length_px": (0.0, math.inf, False, "a finite number >= 0 px (the swept motion length)"),
+    "noise_level_dn": (0.0, math.inf, False, "a finite number >= 0 DN (the swept noise level)"),
+}
+
+
+def _check_record(k: int, r: Mapping[str, Any]) -> None:
+    """Refuse a record field that is not what a sweep writes (text, booleans, out-of-range numbers), naming the record,
+    the field, the value and what is allowed. ``marked`` must be a boolean (the text "false" would read as True)."""
+    for key, (low, high, null_ok, allowed) in _RECORD_FIELDS.items():
+        v = r[key]
+        if v is None and null_ok:
+            continue
+        if not _is_number(v) or not _fits_float(v):
+            raise ValueError(f"record {k}: {key} = {_short(v)} is not allowed: {allowed}")
+        f = float(v)
+        if math.isnan(f) and null_ok:
+            continue
+        if not (math.isfinite(f) and low <= f <= high):
+            raise ValueError(f"record {k}: {key} = {f:g} is out of the allowed range: {allowed}")
+    if "marked" in r and not isinstance(r["marked"], (bool, np.bool_)):
+        raise ValueError(f"record {k}: marked = {r['marked']!r} is not allowed: true or false")
 
 
 def _blur_rows(records: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
@@ -362,11 +417,18 @@ class IOPC:
         ``records`` are copies with the bin indices (``sigma_bin``, ``mtf_bin``) filled in.
         """
         sb, mb = _bin_centres(sigma_bins, "sigma_bins", "sigma"), _bin_centres(mtf_bins, "mtf_bins", "mtf")
-        recs = [dict(r) for r in records]
+        if isinstance(records, (str, bytes, Mapping)) or not isinstance(records, Sequence):
+            raise TypeError(f"records must be a list of sweep records (mappings), got {type(records).__name__}")
+        recs = []
+        for k, r in enumerate(records):
+            if not isinstance(r, Mapping):
+                raise TypeError(f"record {k} must be a mapping of its fields, got {type(r).__name__}: {_short(r)}")
+            recs.append(dict(r))
         for k, r in enumerate(recs):
             for key in ("sigma_tilde", "mtf_tilde", "ap", "length_px", "noise_level_dn"):
                 if key not in r:
                     raise ValueError(f"record {k} is missing {key!r}; it has {sorted(r)}")
+            _check_record(k, r)
             r.setdefault("marked", False)
             r.setdefault("reason", "")
             r["sigma_bin"], r["mtf_bin"] = None, None
@@ -431,19 +493,24 @@ class IOPC:
 
     def interpolate(self, sigma: np.ndarray | float, mtf: np.ndarray | float) -> np.ndarray:
         """AP at continuous (σ [DN], MTF̃): bilinear between bin centres of :meth:`surface`, clamped to
-        the outermost bins. Vectorised over any broadcastable shapes."""
+        the outermost bins. Vectorised over any broadcastable shapes. σ must be finite and >= 0, MTF̃ in [0, 1]
+        (``TypeError``/``ValueError`` naming the value otherwise); NaN gives NaN."""
         surf, _ = self.surface()
-        return _bilinear(surf, self.sigma_bins, self.mtf_bins, np.asarray(sigma, float), np.asarray(mtf, float))
+        return _bilinear(surf, self.sigma_bins, self.mtf_bins, _query(sigma, "sigma [DN]"), _query(mtf, "mtf", 1.0))
 
     def length_from_mtf(self, mtf: np.ndarray | float) -> np.ndarray:
         """MB_L(MTF̃): motion length [px] of a blur indicator value, by inverting the relation (linear
         interpolation; clamped to the swept lengths), so that ``mtf_from_length(length_from_mtf(v)) = v`` within the
         relation's range. A value the relation holds over a flat stretch maps to the stretch's smallest length (the
-        least blur that reads it); a value below the stretch interpolates from its largest length. NaN stays NaN."""
+        least blur that reads it); a value below the stretch interpolates from its largest length. NaN stays NaN.
+        Values outside [0, 1], and a relation that does not fall at all, are refused (``ValueError``)."""
         if self.blur_length_px.size < 2:
             raise ValueError(f"IOPC {self.name!r} has no MTF → motion-length relation (needs ≥ 2 swept lengths)")
         L, m = self.blur_length_px, self.blur_mtf  # L increasing, m non-increasing (checked on construction)
-        q = np.asarray(mtf, float)
+        if not m[-1] < m[0]:
+            raise ValueError(f"IOPC {self.name!r}: its MTF → motion-length relation {m.tolist()} does not fall with the "
+                             "motion length, so no MTF value tells a length (sweep lengths that blur the frames)")
+        q = _query(mtf, "mtf", 1.0)
         out = np.full(q.shape, L[0])  # at or above the first value: the shortest swept length
         # segments from the far end to the near one, so that where values repeat the smallest length is written last
         for i in range(L.size - 2, -1, -1):
@@ -458,10 +525,11 @@ class IOPC:
         return np.where(np.isnan(q), np.nan, out)
 
     def mtf_from_length(self, length_px: np.ndarray | float) -> np.ndarray:
-        """The relation's MTF̃ at a motion length [px] (linear interpolation, clamped)."""
+        """The relation's MTF̃ at a motion length [px] (linear interpolation, clamped to the swept lengths); lengths
+        must be finite and >= 0 px (NaN gives NaN)."""
         if self.blur_length_px.size < 2:
             raise ValueError(f"IOPC {self.name!r} has no MTF → motion-length relation (needs ≥ 2 swept lengths)")
-        return np.interp(np.asarray(length_px, float), self.blur_length_px, self.blur_mtf)
+        return np.interp(_query(length_px, "length_px [px]"), self.blur_length_px, self.blur_mtf)
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict[str, Any]:

@@ -152,6 +152,11 @@ class SweepConfig:
 
     def validate(self) -> "SweepConfig":
         g = self.grid
+        if not isinstance(g, SweepGrid):
+            raise ValueError(f"grid = {g!r} is not allowed: a grid with lengths_px, angles_deg and noise_levels_dn")
+        if not isinstance(self.sensor, SensorSetting):
+            raise ValueError(f"sensor = {self.sensor!r} is not allowed: a sensor setting (preset, temperature_c, exposure_s, "
+                             "sources)")
         for name, vals, lo, hi in (
             ("grid.lengths_px", g.lengths_px, 0.0, 63.0),
             ("grid.angles_deg", g.angles_deg, -360.0, 360.0),
@@ -162,6 +167,10 @@ class SweepConfig:
             for v in vals:
                 if not (_is_real(v) and math.isfinite(v) and lo <= v <= hi):  # a bool is no length/angle/level
                     raise ValueError(f"{name} value {v!r} is out of the allowed range [{lo:g}, {hi:g}]")
+            # a repeated value makes cells with the same key and seed: computed twice and counted twice in the bins
+            dup = sorted({float(v) for v in vals if sum(float(u) == float(v) for u in vals) > 1})
+            if dup:
+                raise ValueError(f"{name} = {list(vals)!r} repeats {dup}: each value must appear once")
         bad = [s for s in self.sensor.sources if s not in NOISE_SOURCES]
         if bad:
             raise ValueError(f"sensor.sources {bad} are not noise sources; choose from {list(NOISE_SOURCES)}")
@@ -170,9 +179,11 @@ class SweepConfig:
         CameraMetadata.preset(self.sensor.preset, temperature_c=self.sensor.temperature_c,
                               exposure_s=self.sensor.exposure_s)  # validates the operating point
         for name, rng in (("valid_sigma_dn", self.valid_sigma_dn), ("valid_length_px", self.valid_length_px)):
+            # the cells outside are marked only after every cell is computed: a range that no value can reach is refused now
             if not (isinstance(rng, (list, tuple)) and len(rng) == 2 and all(_is_real(v) and not math.isnan(v) for v in rng)
-                    and rng[0] <= rng[1]):
-                raise ValueError(f"{name} = {rng!r} is out of the allowed range: [low, high], two numbers with low <= high")
+                    and 0 <= rng[0] <= rng[1] and math.isfinite(rng[0])):
+                raise ValueError(f"{name} = {rng!r} is out of the allowed range: [low, high], two numbers with "
+                                 "0 <= low <= high, low finite")
         if not (_is_real(self.intensity) and math.isfinite(self.intensity) and 0 < self.intensity <= 4):
             raise ValueError(f"intensity = {self.intensity!r} is out of the allowed range (0, 4]")
         if not isinstance(self.quantize, (bool, np.bool_)):

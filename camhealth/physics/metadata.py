@@ -474,6 +474,8 @@ class CameraMetadata:
         ``temperature_c`` (defaults 0 dB, 0.01 s, 25 °C). The fixed constants are :class:`SensorConstants`' defaults
         (conventions.md's fixed metadata), the same for every preset, so presets concatenate into one batch.
         """
+        if not isinstance(name, str):
+            raise ValueError(f"sensor preset {name!r} is not a name; known presets: {sorted(PRESETS)}")
         key = name.upper()
         if key not in PRESETS:
             raise ValueError(f"unknown sensor preset {name!r}; known presets: {sorted(PRESETS)}")

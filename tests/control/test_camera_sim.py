@@ -113,3 +113,25 @@ def test_motion_beyond_the_largest_kernel_names_speed_and_exposure(frames):
                                          r"out of the allowed range \[0, 253\] px"):
         cam.capture(0, 0.2, 0.0)
     assert cam.capture(0, 0.1265, 0.0).blur_length_px.item() == pytest.approx(253.0)
+
+
+def test_numbers_of_any_real_type_are_taken_and_booleans_and_text_refused(frames):
+    """np.float32(40) and a 0-d tensor are numbers; True, 1.7 as a seed and "no" as quantize were taken as 1 / 1 / True."""
+    import numpy as np
+
+    for v in (np.float32(40.0), torch.tensor(40.0), 40):
+        assert SimulatedCamera(frames, illumination_per_s=v).illumination == 40.0
+    for kwargs, match in [
+        ({"illumination_per_s": True}, r"illumination_per_s = True must be a finite number >= 0"),
+        ({"motion_px_per_s": "5"}, r"motion_px_per_s = '5' must be a finite number"),
+        ({"motion_angle_deg": float("nan")}, r"motion_angle_deg = nan must be a finite number"),
+        ({"seed": 1.7}, r"seed = 1.7 must be an integer"),
+        ({"seed": True}, r"seed = True must be an integer"),
+        ({"quantize": "no"}, r"quantize = 'no' must be True or False"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            SimulatedCamera(frames, **kwargs)
+    cam = SimulatedCamera(frames, sources=())
+    for t, g in (("0.01", 0.0), (0.01, True), (None, 0.0)):
+        with pytest.raises(ValueError, match="must be a number or a sequence/tensor of numbers"):
+            cam.capture(0, t, g)

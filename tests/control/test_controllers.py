@@ -168,3 +168,22 @@ def test_a_clipped_frame_keeps_the_parameters_with_the_simulators_labels(illumin
     assert ctrl.update(obs) == (0.01, 0.0) and ctrl.decisions == []
     (_, why), = ctrl.refusals
     assert "of the frame's pixels are clipped" in why
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"score_threshold": float("nan")}, r"score_threshold = nan is out of the allowed range: a number in \[0, 1\]"),
+    ({"score_threshold": 5.0}, r"score_threshold = 5.0 is out of the allowed range"),
+    ({"score_threshold": "0.5"}, r"score_threshold = '0.5' is out of the allowed range"),
+    ({"use_sources": "no"}, r"use_sources = 'no' must be True or False"),
+    ({"reference_intensity": True}, r"reference_intensity = True must be a number in \(0, 1\]"),
+    ({"decide_every": float("nan")}, r"decide_every = nan must be a positive integer"),
+    ({"decide_every": float("inf")}, r"decide_every = inf must be a positive integer"),
+    ({"decide_every": True}, r"decide_every = True must be a positive integer"),
+])
+def test_iopc_controller_refuses_what_would_silently_change_its_estimates(kwargs, match):
+    """A NaN or 5.0 score threshold kept no detection, and the estimates fell back to the whole frame unsaid."""
+    pol = ExposurePolicy(BLUR_HATER, **FAST)
+    with pytest.raises(ValueError, match=match):
+        IOPCController(pol, **kwargs)
+    with pytest.raises(TypeError, match="policy must be an ExposurePolicy, got NoneType"):
+        IOPCController(None)

@@ -6,6 +6,7 @@ import re
 
 import numpy as np
 import pytest
+import torch
 
 from camhealth.iopc import IOPC, MTF_BINS, SIGMA_BINS_DN, bin_index
 
@@ -174,7 +175,7 @@ def test_length_from_mtf_inverts_the_relation_across_a_flat_stretch():
     assert float(iopc.length_from_mtf(0.6)) == pytest.approx(10.0 + 5.0 * 2.0 / 3.0)
     for v in (1.0, 0.9, 0.8, 0.7, 0.6, 0.5):
         assert float(iopc.mtf_from_length(iopc.length_from_mtf(v))) == pytest.approx(v)
-    assert float(iopc.length_from_mtf(0.8)) == 5.0 and float(iopc.length_from_mtf(1.2)) == 0.0
+    assert float(iopc.length_from_mtf(0.8)) == 5.0 and float(iopc.length_from_mtf(1.0)) == 0.0
     assert float(iopc.length_from_mtf(0.3)) == 15.0 and math.isnan(float(iopc.length_from_mtf(float("nan"))))
     assert iopc.length_from_mtf(np.array([[0.9, 0.6]])).shape == (1, 2)
 
@@ -262,3 +263,77 @@ def test_a_malformed_section_of_an_iopc_file_is_named(field, value, match):
     d[field] = value
     with pytest.raises(ValueError, match=match):
         IOPC.from_dict(d)
+
+
+def test_queries_refuse_what_is_not_a_value_of_their_axis():
+    """σ < 0, an MTF outside [0, 1], a negative length, text and booleans were clamped or converted into a confident
+    AP or length (σ −5 read as the 0-DN bin, MTF 7 as sharp, "0.7" as 0.7, a length of −5 px as MTF 1)."""
+    iopc = IOPC.from_records(_records())
+    for call, match in [
+        (lambda: iopc.interpolate(-5.0, 0.5), r"sigma \[DN\] = -5 is out of the allowed range: numbers in \[0, inf\]"),
+        (lambda: iopc.interpolate(float("inf"), 0.5), r"sigma \[DN\] = inf is out of the allowed range"),
+        (lambda: iopc.interpolate(5.0, 7.0), r"mtf = 7 is out of the allowed range: numbers in \[0, 1\] \(MTF values\)"),
+        (lambda: iopc.interpolate(np.array([1.0, -0.1]), 0.5), r"sigma \[DN\] = -0.1 is out"),
+        (lambda: iopc.length_from_mtf(-1.0), r"mtf = -1 is out of the allowed range"),
+        (lambda: iopc.length_from_mtf(2.0), r"mtf = 2 is out of the allowed range"),
+        (lambda: iopc.mtf_from_length(-5.0), r"length_px \[px\] = -5 is out of the allowed range"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            call()
+    for bad in ("0.7", True, None, ["0.7"], np.array([True])):
+        with pytest.raises(TypeError, match="number"):
+            iopc.length_from_mtf(bad)
+        with pytest.raises(TypeError, match="number"):
+            iopc.interpolate(bad, 0.5)
+        with pytest.raises(TypeError, match="number"):
+            iopc.mtf_from_length(bad)
+    # what stays allowed: NaN gives NaN, 1 + float rounding is MTF 1, tensors and integer arrays read as numbers
+    assert math.isnan(float(iopc.interpolate(float("nan"), 0.5)))
+    assert float(iopc.length_from_mtf(1.0 + 1e-9)) == float(iopc.length_from_mtf(1.0))
+    assert float(iopc.mtf_from_length(torch.tensor(3.0))) == float(iopc.mtf_from_length(3))
+
+
+def test_a_relation_that_does_not_fall_tells_no_length():
+    """A flat relation (MTF̃ 1 at every swept length) is a valid IOPC file, but it read MTF 0.5 as 0 px of blur."""
+    iopc = _with(IOPC.from_records(_records()), length_px=[0.0, 1.0], mtf=[1.0, 1.0])
+    with pytest.raises(ValueError, match="does not fall with the motion length"):
+        iopc.length_from_mtf(0.5)
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("ap", True, r"record 2: ap = True is not allowed: a number in \[0, 1\]"),
+    ("ap", "0.3", r"record 2: ap = '0.3' is not allowed"),
+    ("ap", 1.5, r"record 2: ap = 1.5 is out of the allowed range: a number in \[0, 1\]"),
+    ("sigma_tilde", -2.0, r"record 2: sigma_tilde = -2 is out of the allowed range: a number >= 0 DN"),
+    ("mtf_tilde", -0.1, r"record 2: mtf_tilde = -0.1 is out of the allowed range"),
+    ("length_px", True, r"record 2: length_px = True is not allowed: a finite number >= 0 px"),
+    ("length_px", None, r"record 2: length_px = None is not allowed"),
+    ("noise_level_dn", float("nan"), r"record 2: noise_level_dn = nan is out of the allowed range: a finite number >= 0 DN"),
+    ("noise_level_dn", 10**400, r"record 2: noise_level_dn = an integer of 401 digits is not allowed"),
+    ("marked", "false", r"record 2: marked = 'false' is not allowed: true or false"),
+])
+def test_from_records_refuses_a_field_no_sweep_writes(key, value, match):
+    """Booleans and text were binned as numbers (ap True as AP 1), "false" marked a cell, and a NaN noise level in
+    the first record emptied the blur relation."""
+    recs = _records()
+    recs[2] = {**recs[2], key: value}
+    with pytest.raises(ValueError, match=match):
+        IOPC.from_records(recs)
+
+
+def test_from_records_refuses_what_is_not_a_list_of_records():
+    with pytest.raises(TypeError, match="record 1 must be a mapping"):
+        IOPC.from_records([_records()[0], 2])
+    with pytest.raises(TypeError, match="records must be a list"):
+        IOPC.from_records({"a": 1})
+
+
+def test_an_estimate_slightly_above_1_stays_in_the_relation_as_1():
+    """A sharp frame's MTF̃ of 1.02 falls inside the 1.0 bin, and the IOPC failed to build, naming neither record nor
+    cause; the relation now holds it as 1."""
+    recs = [dict(r) for r in _records()]
+    for r in recs:
+        if float(r["length_px"]) == 0.0:
+            r["mtf_tilde"] = 1.02
+    iopc = IOPC.from_records(recs)
+    assert float(iopc.blur_mtf[0]) == 1.0

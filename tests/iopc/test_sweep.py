@@ -298,3 +298,19 @@ def test_a_sigterm_stops_the_sweep_before_the_next_cell(tmp_path, capsys):
         module.predict_step(sw.cells[0], 3)
     assert info.value.code == 143 and det.n_calls == 0
     assert "terminated (SIGTERM) before cell 3" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"grid": SweepGrid(lengths_px=[0.0, 3.0, 3.0])}, r"grid.lengths_px = \[0.0, 3.0, 3.0\] repeats \[3.0\]"),
+    ({"grid": SweepGrid(noise_levels_dn=[0.0, 5.0, 5])}, r"grid.noise_levels_dn = .* repeats \[5.0\]"),
+    ({"valid_sigma_dn": [-50.0, -10.0]}, r"valid_sigma_dn = \[-50.0, -10.0\] is out of the allowed range: .* 0 <= low"),
+    ({"valid_length_px": [math.inf, math.inf]}, r"valid_length_px = \[inf, inf\] is out of the allowed range"),
+    ({"grid": None}, r"grid = None is not allowed"),
+    ({"sensor": {"preset": "ICX285"}}, r"sensor = \{'preset': 'ICX285'\} is not allowed"),
+    ({"sensor": SensorSetting(preset=None)}, r"sensor preset None is not a name"),
+])
+def test_a_grid_that_would_double_count_or_mark_every_cell_is_refused_up_front(kwargs, match):
+    """Repeated grid values made cells with the same key and seed, computed and counted twice in the bins; a valid
+    range no value reaches marked every cell only after the whole sweep."""
+    with pytest.raises(ValueError, match=match):
+        SweepConfig(**kwargs).validate()
