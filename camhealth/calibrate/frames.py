@@ -8,8 +8,11 @@ A set is N frames of one kind taken at one operating point:
   exposure or light level: photon transfer.
 
 Frames come from a folder of images (natural file order), a video file, a list of image files, or an
-in-memory array/tensor ``N×H×W`` / ``N×1×H×W`` in [0, 1]. Colour input is converted to gray by
-camhealth's BT.601 rule (:func:`camhealth.data.io.to_gray`), exactly as everywhere else in camhealth.
+in-memory array/tensor ``N×H×W`` / ``N×1×H×W`` in [0, 1]. They must be the sensor's own (raw or mono) samples:
+a colour image file or video frame — one whose red, green and blue samples differ — is refused, since the gray
+camhealth's BT.601 rule (:func:`camhealth.data.io.to_gray`) makes of it averages three channels' noise, which is
+not one pixel's (its photon transfer gives a full well 2–3× too large). A gray image saved as RGB (its three
+samples equal) is read as gray.
 
 File-name convention (when no manifest is given): ``<kind>_<token>_<token>…``, the kind first, then in any
 order ``<t>s`` / ``<t>ms`` / ``<t>us`` (exposure), ``<g>dB`` (gain, ``+6dB`` too), ``<T>C`` / ``<T>°C`` /
@@ -29,7 +32,9 @@ lossless codec (:data:`LOSSLESS_CODECS`): lossy ones remove the noise being meas
 from __future__ import annotations
 
 import math
+import os
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -86,11 +91,13 @@ class FrameSet:
 
     Attributes:
         kind: ``"bias"``, ``"dark"`` or ``"flat"``.
-        exposure_s: exposure time [s] (any positive value; calibration frames may be longer than 0.2 s).
+        exposure_s: exposure time [s] (any positive value; calibration frames may be longer than 0.2 s). It, the
+            gain and the temperature are numbers: a bool (``True`` read as 1 s) is refused.
         gain_db: camera gain [dB] (the model's "digital gain": DN per electron scales with 10^(dB/20)), within
             camhealth's gain range ``METADATA_RANGES['gain_db']`` (0 … 24 dB).
         temperature_c: sensor temperature [°C].
-        paths: image files, one folder of frames, or one video file; or empty when ``frames`` is given.
+        paths: image files, one folder of frames, or one video file (str or :class:`~pathlib.Path`; a single one
+            may be given on its own); or empty when ``frames`` is given.
         frames: in-memory frames ``N×H×W`` or ``N×1×H×W`` in [0, 1] (numpy or torch).
         name: label in reports and errors (default: the path or the parameters).
         bit_depth: significant bits of its 16-bit image files that have no ``sBIT`` chunk (values 0 … 2^bits − 1
@@ -109,34 +116,40 @@ class FrameSet:
     bit_depth: int | None = None
 
     def __post_init__(self) -> None:
+        self.paths = _path_list(self.paths, f"set {self.name or self.kind!s}")
+        where = f"set {self.name or self.paths or self.kind!s}"
         if self.kind not in KINDS:
-            raise ValueError(f"set {self.name or self.paths!s}: kind {self.kind!r} must be one of {list(KINDS)}")
+            raise ValueError(f"{where}: kind {self.kind!r} must be one of {list(KINDS)}")
+        allowed = {"exposure_s": "of seconds > 0", "gain_db": "of dB in [{:g}, {:g}]".format(*METADATA_RANGES["gain_db"]),
+                   "temperature_c": "of °C in [{:g}, {:g}]".format(*TEMPERATURE_RANGE_C)}
         for attr in ("exposure_s", "gain_db", "temperature_c"):
             v = getattr(self, attr)
+            if isinstance(v, (bool, np.bool_)):  # True as 1 s or 1 dB is a slip, not a value
+                raise ValueError(f"{where}: {attr} = {v!r} must be a number {allowed[attr]}, not a bool")
             try:
                 v = float(v)
-            except (TypeError, ValueError):
-                raise ValueError(f"set {self.name or self.paths!s}: {attr} = {v!r} must be a number") from None
+            except (TypeError, ValueError, OverflowError) as exc:
+                finite = " finite" if isinstance(exc, OverflowError) else ""
+                raise ValueError(f"{where}: {attr} = {_brief(v)} must be a{finite} number {allowed[attr]}") from None
             if not math.isfinite(v):
-                raise ValueError(f"set {self.name or self.paths!s}: {attr} = {v!r} must be finite")
+                raise ValueError(f"{where}: {attr} = {v!r} must be finite")
             setattr(self, attr, v)
         if self.exposure_s <= 0:
-            raise ValueError(f"set {self.name or self.paths!s}: exposure_s = {self.exposure_s:g} s must be > 0")
+            raise ValueError(f"{where}: exposure_s = {self.exposure_s:g} s must be > 0")
         g_lo, g_hi = METADATA_RANGES["gain_db"]
         if not g_lo <= self.gain_db <= g_hi:
             raise ValueError(
-                f"set {self.name or self.paths!s}: gain_db = {self.gain_db:g} dB is outside camhealth's gain range [{g_lo:g}, {g_hi:g}] dB"
+                f"{where}: gain_db = {self.gain_db:g} dB is outside camhealth's gain range [{g_lo:g}, {g_hi:g}] dB"
             )
         t_lo, t_hi = TEMPERATURE_RANGE_C
         if not t_lo <= self.temperature_c <= t_hi:
             m_lo, m_hi = METADATA_RANGES["temperature_c"]
             raise ValueError(
-                f"set {self.name or self.paths!s}: temperature_c = {self.temperature_c:g} °C is not a sensor temperature: it "
+                f"{where}: temperature_c = {self.temperature_c:g} °C is not a sensor temperature: it "
                 f"must lie in [{t_lo:g}, {t_hi:g}] °C (the operating point written to the metadata is clipped to camhealth's "
                 f"{m_lo:g} … {m_hi:g} °C)"
             )
-        self.bit_depth = check_bit_depth(self.bit_depth, f"set {self.name or self.paths!s}")
-        self.paths = [Path(p) for p in self.paths]
+        self.bit_depth = check_bit_depth(self.bit_depth, where)
         if not self.paths and self.frames is None:
             raise ValueError(f"set {self.name!r} ({self.kind}) has neither paths nor frames")
         if not self.name:
@@ -157,6 +170,33 @@ class FrameSet:
 
     def describe(self) -> str:
         return f"{self.kind} set {self.name!r} ({self.exposure_s:g} s, {self.gain_db:g} dB, {self.temperature_c:g} °C)"
+
+
+def _brief(value: object, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters for a message; an int too long for ``repr`` (more digits than
+    ``sys.get_int_max_str_digits()``) is described instead of raising."""
+    try:
+        text = repr(value)
+    except ValueError:
+        return f"<an integer of more than {sys.get_int_max_str_digits()} digits>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _path_list(paths: object, where: str) -> list[Path]:
+    """A set's ``paths`` as a list of :class:`~pathlib.Path`: one str or path-like is one path (not its characters),
+    else an iterable of them; anything else raises ``ValueError`` naming ``where`` and the value."""
+    if isinstance(paths, (str, os.PathLike)):
+        return [Path(paths)]
+    try:
+        items = list(paths) if not isinstance(paths, (bytes, bytearray)) else None
+    except TypeError:
+        items = None
+    if items is None:
+        raise ValueError(f"{where}: paths = {_brief(paths, 80)} must be a path (str or Path) or a list of them")
+    bad = [p for p in items if not isinstance(p, (str, os.PathLike))]
+    if bad:
+        raise ValueError(f"{where}: paths must be str or Path, got {type(bad[0]).__name__} {_brief(bad[0])}")
+    return [Path(p) for p in items]
 
 
 def parse_set_name(stem: str) -> dict:
@@ -291,9 +331,10 @@ def check_bit_depth(bit_depth: int | None, where: str = "bit_depth") -> int | No
     if bit_depth is None:
         return None
     lo, hi = BIT_DEPTH_RANGE
-    ok = not isinstance(bit_depth, bool) and isinstance(bit_depth, (int, np.integer, float)) and float(bit_depth).is_integer()
+    ok = not isinstance(bit_depth, (bool, np.bool_)) and (  # (an int is not made a float: 10**400 would overflow)
+        isinstance(bit_depth, (int, np.integer)) or (isinstance(bit_depth, (float, np.floating)) and float(bit_depth).is_integer()))
     if not ok or not lo <= int(bit_depth) <= hi:
-        raise ValueError(f"{where}: bit_depth = {bit_depth!r} must be None (16-bit files use their whole range) or a whole "
+        raise ValueError(f"{where}: bit_depth = {_brief(bit_depth)} must be None (16-bit files use their whole range) or a whole "
                          f"number of significant bits in [{lo}, {hi}]")
     return int(bit_depth)
 
@@ -361,20 +402,38 @@ class FrameDepth:
         return f"{self.file_bits}-bit with {self.bits} significant bits ({why})"
 
 
-def _read_frame(p: Path, bit_depth: int | None) -> tuple[np.ndarray, FrameDepth, float | None, int]:
+def _is_colour(samples: np.ndarray) -> bool:
+    """Whether H×W×C samples (C ≥ 3: RGB, RGBA or BGR(A)) hold colour: the three colour samples of some pixel differ
+    (alpha is not compared). A gray image saved in an RGB format has them equal."""
+    return samples.ndim == 3 and samples.shape[-1] >= 3 and bool(
+        (samples[..., 0] != samples[..., 1]).any() or (samples[..., 1] != samples[..., 2]).any())
+
+
+def _colour_error(fs: "FrameSet", source: str) -> ValueError:
+    return ValueError(
+        f"{fs.describe()}: {source} is a colour image (its red, green and blue samples differ); the gray camhealth's BT.601 "
+        "rule makes of it averages three channels' noise, which is not one pixel's (its photon transfer gives a full well "
+        "2–3× too large); give the camera's raw or mono frames (one sample per pixel: its Mono8/Mono16 or raw Bayer "
+        "output, saved as gray images or a gray video), not a demosaiced colour image"
+    )
+
+
+def _read_frame(p: Path, bit_depth: int | None) -> tuple[np.ndarray, FrameDepth, float | None, bool]:
     """One image file as H×W float32 in [0, 1] at the depth it declares (module docstring), its :class:`FrameDepth`,
     its largest value in codes when it is a 16-bit file read at 16 bits with neither sBIT nor ``bit_depth``
-    (else None), and its samples per pixel (1 gray … 4 colour + alpha; read as gray either way)."""
-    from camhealth.data.io import read_image_scaled
+    (else None), and whether it is a colour image (:func:`_is_colour`; a file with 3 or 4 samples per pixel whose
+    colour samples are all equal is a gray image and read as one)."""
+    from camhealth.data.io import read_image_scaled, read_samples
 
     image, sc = read_image_scaled(p)
+    colour = sc.channels >= 3 and _is_colour(read_samples(p))
     frame = image[0].numpy()
     if sc.file_bits is None:
-        return frame, FrameDepth(None, None, "float"), None, sc.channels
+        return frame, FrameDepth(None, None, "float"), None, colour
     if sc.file_bits == 8:
-        return frame, FrameDepth(8, 8, "file"), None, sc.channels
+        return frame, FrameDepth(8, 8, "file"), None, colour
     if sc.source == "sBIT":
-        return frame, FrameDepth(16, int(sc.bits), "sBIT"), None, sc.channels
+        return frame, FrameDepth(16, int(sc.bits), "sBIT"), None, colour
     want, source = (bit_depth, "given") if bit_depth is not None else (16, "file")
     if sc.max_value > 2**want - 1:
         raise ValueError(f"cannot read image {p} as {want}-bit data (the set's bit_depth): it holds values up to "
@@ -386,7 +445,25 @@ def _read_frame(p: Path, bit_depth: int | None) -> tuple[np.ndarray, FrameDepth,
             frame = rounded.astype(np.float32) / np.float32(2**want - 1)
         else:  # colour turned gray: read it again at that depth
             frame = read_image_scaled(p, want)[0][0].numpy()
-    return frame, FrameDepth(16, want, source), (float(sc.max_value) if source == "file" else None), sc.channels
+    return frame, FrameDepth(16, want, source), (float(sc.max_value) if source == "file" else None), colour
+
+
+def _video_colour_frame(p: Path, n: int) -> int | None:
+    """The index of the first of a video's first ``n`` frames that is colour (:func:`_is_colour` on the BGR frame
+    OpenCV decodes), or None: a gray video (or gray frames in an RGB pixel format) decodes to equal samples."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(p))
+    try:
+        for k in range(n):
+            ok, frame = cap.read()
+            if not ok or frame is None:
+                return None
+            if _is_colour(frame):
+                return k
+    finally:
+        cap.release()
+    return None
 
 
 @dataclass
@@ -409,10 +486,10 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
     """The frames of a set as float32 ``N×H×W`` in [0, 1] (at most ``max_frames``: None or ≥ :data:`MIN_FRAMES`), and
     how they were scaled (:class:`LoadedDepth`).
 
-    Raises ``ValueError`` naming the set for mixed frame sizes, colour and gray files mixed, mixed bit depths or
-    scalings (naming the files of each), values outside [0, 1] or unreadable files, a video whose codec is not lossless
-    (:func:`check_video_codec`), a file with values above its set's ``bit_depth``, and for a ``max_frames`` that is
-    neither None nor ≥ :data:`MIN_FRAMES`.
+    Raises ``ValueError`` naming the set for mixed frame sizes, a colour image file or video frame (naming it; module
+    docstring), mixed bit depths or scalings (naming the files of each), values outside [0, 1] or unreadable files, a
+    video whose codec is not lossless (:func:`check_video_codec`), a file with values above its set's ``bit_depth``,
+    and for a ``max_frames`` that is neither None nor ≥ :data:`MIN_FRAMES`.
     """
     check_max_frames(max_frames)
     if fs.frames is not None:
@@ -443,13 +520,12 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
     depths: list[FrameDepth] = []
     loaded = LoadedDepth()
 
-    channels: list[int] = []
-
-    def add(frame: np.ndarray, depth: FrameDepth, undeclared: float | None, n_channels: int, source: str) -> None:
+    def add(frame: np.ndarray, depth: FrameDepth, undeclared: float | None, colour: bool, source: str) -> None:
+        if colour:  # BT.601 luma averages three channels' noise: not one sensor pixel's
+            raise _colour_error(fs, source)
         frames.append(frame)
         sources.append(source)
         depths.append(depth)
-        channels.append(n_channels)
         if undeclared is not None and (loaded.undeclared_max is None or undeclared > loaded.undeclared_max):
             loaded.undeclared_max, loaded.undeclared_file = undeclared, source
 
@@ -462,10 +538,14 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
                     break
         elif _is_video(p):
             check_video_codec(p)
+            first = len(frames)
             for frame, idx in FrameSequence(p, max_frames=max_frames):
-                add(frame[0].numpy(), FrameDepth(8, 8, "video"), None, 1, f"{p}#{idx}")
+                add(frame[0].numpy(), FrameDepth(8, 8, "video"), None, False, f"{p}#{idx}")
                 if max_frames and len(frames) >= max_frames:
                     break
+            colour = _video_colour_frame(p, len(frames) - first)
+            if colour is not None:
+                raise _colour_error(fs, f"frame {colour} of video {p}")
         else:
             add(*_read_frame(p, fs.bit_depth), str(p))
         if max_frames and len(frames) >= max_frames:
@@ -477,11 +557,6 @@ def load_frames_with_depth(fs: FrameSet, max_frames: int | None = None) -> tuple
             by_shape.setdefault(f.shape, []).append(s)
         detail = "; ".join(f"{h}×{w}: {len(v)} frame(s), e.g. {v[0]}" for (h, w), v in by_shape.items())
         raise ValueError(f"{fs.describe()} mixes frame sizes ({detail}); every frame of a calibration must have one size")
-    colour = [s for s, c in zip(sources, channels) if c >= 3]
-    if colour and len(colour) < len(sources):  # BT.601 luma averages three channels' noise: not one sensor's pixels
-        gray = [s for s, c in zip(sources, channels) if c < 3]
-        raise ValueError(f"{fs.describe()} mixes colour frames ({len(colour)}, e.g. {colour[0]}) and gray ones ({len(gray)}, "
-                         f"e.g. {gray[0]}); every frame of a set must come from one output of the camera")
     by_depth: dict[FrameDepth, list[str]] = {}
     for d, s in zip(depths, sources):
         by_depth.setdefault(d, []).append(s)

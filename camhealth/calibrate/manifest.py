@@ -113,12 +113,19 @@ def _expand(entry: Any, base: Path, where: str) -> tuple[list[Path], list[str]]:
 
 
 def _number(value: Any, key: str, where: str) -> float:
+    """A manifest value as a finite float (a number, or a string that spells one); else ``ValueError`` naming
+    ``where`` (the manifest, the set), the key and the value (bounded: a 400-digit number is not echoed whole)."""
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
         raise ValueError(f"{where}: {key} = {_shown(value)} must be a number")
     try:
-        return float(value)
+        v = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{where}: {key} = {_shown(value)} must be a number") from None
+    except OverflowError:  # an integer beyond a float's range (10**400)
+        v = math.inf
+    if not math.isfinite(v):
+        raise ValueError(f"{where}: {key} = {_shown(value)} must be a finite number")
+    return v
 
 
 def _name_conflicts(kind: str, values: dict[str, float], paths: list[Path], where: str) -> None:
@@ -233,8 +240,9 @@ def read_manifest(path: str | Path) -> Manifest:
     Raises:
         FileNotFoundError: the manifest, or files/folders it names, do not exist (all missing ones listed).
         ValueError: unknown keys, a missing exposure/gain/temperature, a bad kind, a section that is not a mapping,
-            text that is not UTF-8, unparsable content, a YAML alias, a ``path`` that is not a string or a list of
-            strings, a set whose values contradict its path's name (the message names the manifest).
+            a value that is not a finite number where one is needed (``gain_db: 999…9`` too), text that is not UTF-8,
+            unparsable content, values nested too deeply to parse, a YAML alias, a ``path`` that is not a string or a
+            list of strings, a set whose values contradict its path's name (the message names the manifest).
     """
     p = Path(path)
     if not p.is_file():
@@ -249,11 +257,16 @@ def read_manifest(path: str | Path) -> Manifest:
             data = yaml.load(p.read_text(encoding="utf-8"), Loader=_manifest_loader())
         except _AliasRefused as exc:
             raise ValueError(f"{origin}: {exc}") from None
+        except RecursionError:  # the YAML composer recurses once per level of nesting
+            raise ValueError(f"cannot parse {origin}: its values are nested too deeply (more levels than Python's recursion "
+                             "limit allows); a manifest needs a few levels: sections, a list of sets, a set's mapping") from None
         except yaml.YAMLError as exc:
             raise ValueError(f"cannot parse {origin}: {str(exc).splitlines()[0]}") from None
         except UnicodeDecodeError as exc:
             raise ValueError(f"cannot read {origin}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it as "
                              "UTF-8") from None
+        except ValueError as exc:  # a value YAML's constructor cannot convert (an integer of more than 4300 digits)
+            raise ValueError(f"cannot parse {origin}: {str(exc)[:200]}") from None
         if not isinstance(data, dict) or "sets" not in data:
             raise ValueError(f"{origin} must be a mapping with a 'sets' list (and optional camera, operating_point, defaults)")
         unknown = sorted(set(data) - {"sets", "camera", "operating_point", "defaults"})
@@ -276,7 +289,7 @@ def read_manifest(path: str | Path) -> Manifest:
         if bad:
             raise ValueError(f"{origin}: unknown default(s) {_shown(bad)}; known: {', '.join(_DEFAULT_KEYS)}")
         for k, v in camera.items():
-            if k != "sensor_type":
+            if k != "sensor_type" and not (k == "is_cmos" and isinstance(v, bool)):  # is_cmos: true is a flag
                 camera[k] = _number(v, k, f"{origin}, camera")
         return Manifest(_sets(rows, base, defaults, origin), camera, op, p)
     if suffix == ".csv":

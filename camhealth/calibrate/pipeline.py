@@ -18,6 +18,7 @@ Order of the analysis (each step's physics in its module):
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -28,7 +29,8 @@ from camhealth.calibrate.dark_signal import (
     DarkPoint, arrhenius_factor, dfm_from_c, doubling_temperature, fit_dark, fit_read_noise_law, model_doubling_temperature,
 )
 from camhealth.calibrate.frames import (
-    MIN_FRAMES, FrameSet, check_bit_depth, check_max_frames, check_video_codec, load_frames_with_depth, sets_from_paths,
+    MIN_FRAMES, FrameSet, _brief, check_bit_depth, check_max_frames, check_video_codec, load_frames_with_depth,
+    sets_from_paths,
 )
 from camhealth.calibrate.manifest import CAMERA_FIELDS, OPERATING_POINT_FIELDS, read_manifest
 from camhealth.calibrate.photon_transfer import MAX_CHI2_DOF, FlatPoint, fit_photon_transfer
@@ -64,25 +66,66 @@ DEFAULT_WHAT = {"gain_db": "lowest flat gain", "exposure_s": "median flat exposu
                 "temperature_c": "median dark-set temperature"}
 
 
+def _in_range(value: Any, what: str, key: str) -> float:
+    """``value`` of the metadata field ``key`` as a float within ``METADATA_RANGES[key]``: a real number (or a string
+    that spells one, as a manifest may give it), not a bool; else ``ValueError`` naming ``what``, the value and the
+    range."""
+    lo, hi = METADATA_RANGES[key]
+    unit = f" {UNITS[key]}" if UNITS.get(key) else ""
+    need = f"must be a number in camhealth's range [{lo:g}, {hi:g}]{unit}"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Real, str)):
+        raise ValueError(f"{what} = {_brief(value)} {need}" + (", not a bool" if isinstance(value, (bool, np.bool_)) else ""))
+    try:
+        v = float(value)
+    except (ValueError, OverflowError):
+        raise ValueError(f"{what} = {_brief(value)} {need}") from None
+    if not lo <= v <= hi:
+        raise ValueError(f"{what} = {v:g}{unit} is outside camhealth's range [{lo:g}, {hi:g}]{unit}")
+    return v
+
+
 def _camera_values(camera: Mapping[str, Any]) -> dict[str, float]:
+    """Datasheet fields as floats in their ``METADATA_RANGES``; ``sensor_type`` CCD|CMOS becomes ``is_cmos``, which
+    is a bool or 0 (CCD) / 1 (CMOS); None is "not given". ``ValueError`` names the field, the value and the range."""
     cam = dict(camera)
     unknown = sorted(set(cam) - set(CAMERA_FIELDS))
     if unknown:
         raise ValueError(f"unknown camera field(s) {unknown}; known: {list(CAMERA_FIELDS)}")
     if "sensor_type" in cam:
-        st = str(cam.pop("sensor_type")).strip().upper()
+        raw = cam.pop("sensor_type")
+        st = raw.strip().upper() if isinstance(raw, str) else None
         if st not in ("CCD", "CMOS"):
-            raise ValueError(f"sensor_type {st!r} must be CCD or CMOS")
+            raise ValueError(f"camera field sensor_type = {_brief(raw)} must be CCD or CMOS")
         cam["is_cmos"] = 1.0 if st == "CMOS" else 0.0
     out = {}
     for k, v in cam.items():
         if v is None:
             continue
-        v = float(v)
-        lo, hi = METADATA_RANGES[k]
-        if not lo <= v <= hi:
-            raise ValueError(f"camera field {k} = {v:g} {UNITS.get(k, '')} is outside camhealth's range [{lo:g}, {hi:g}]")
+        if k == "is_cmos":  # a flag: a bool, or 0/1 (as camhealth's metadata stores it)
+            v = float(v) if isinstance(v, (bool, np.bool_)) else _in_range(v, "camera field is_cmos", k)
+            if v not in (0.0, 1.0):
+                raise ValueError(f"camera field is_cmos = {v:g} must be 0 (CCD) or 1 (CMOS), or a bool (or give sensor_type: "
+                                 "CCD|CMOS)")
+        else:
+            v = _in_range(v, f"camera field {k}", k)
         out[k] = v
+    return out
+
+
+def _operating_point_values(op: Mapping[str, Any]) -> dict[str, float]:
+    """The operating point written to the metadata (``gain_db``, ``exposure_s``, ``temperature_c``), each a number in
+    its ``METADATA_RANGES``, checked before any frame is read; ``ValueError`` names the field, the value and the range
+    (an unknown field: the known ones)."""
+    unknown = sorted(map(str, set(op) - set(OPERATING_POINT_FIELDS)))
+    if unknown:
+        raise ValueError(f"unknown operating-point field(s) {unknown}; known: {list(OPERATING_POINT_FIELDS)}")
+    out = {}
+    for k, v in op.items():
+        if v is None:
+            raise ValueError(f"operating point {k} = None must be a number in camhealth's range "
+                             f"[{METADATA_RANGES[k][0]:g}, {METADATA_RANGES[k][1]:g}] {UNITS[k]}; leave it out for the default "
+                             f"({DEFAULT_WHAT[k]})")
+        out[k] = _in_range(v, f"operating point {k}", k)
     return out
 
 
@@ -217,17 +260,16 @@ def calibrate(
         ValueError: too few frames in a set (or a ``max_frames`` below ``MIN_FRAMES``), a set whose frames are all
             identical, a bias/dark set whose noise is below about half a code step (quantisation-limited), too few
             sets of a kind, exposures or flat levels that do not span a range, saturated flats, flats whose per-gain
-            K0 contradict K = g·K0, mixed frame sizes, mixed bit depths within a set, a video whose codec is not
-            lossless, 16-bit files that look like 12-bit data in their low bits (:data:`LOW_BITS_CODES`), a result
-            outside camhealth's parameter ranges — each message names the set or value and what is needed.
+            K0 contradict K = g·K0, mixed frame sizes, frames smaller than 5×5 px, a colour image file or video frame,
+            mixed bit depths within a set, a video whose codec is not lossless, a camera field or operating point
+            that is not a number in its range (checked before any frame is read), 16-bit files that look like 12-bit
+            data in their low bits (:data:`LOW_BITS_CODES`), a result outside camhealth's parameter ranges — each
+            message names the set or value and what is needed.
     """
     check_max_frames(max_frames)
     sets, cam_manifest, op_manifest = resolve_sets(frames, gain_db=gain_db, temperature_c=temperature_c, bit_depth=bit_depth)
     cam = _camera_values({**cam_manifest, **dict(camera or {})})
-    op = {**op_manifest, **dict(operating_point or {})}
-    unknown = sorted(set(op) - set(OPERATING_POINT_FIELDS))
-    if unknown:
-        raise ValueError(f"unknown operating-point field(s) {unknown}; known: {list(OPERATING_POINT_FIELDS)}")
+    op = _operating_point_values({**op_manifest, **dict(operating_point or {})})
     darks = [s for s in sets if s.kind in ("bias", "dark")]
     flats = [s for s in sets if s.kind == "flat"]
     counts = {k: sum(s.kind == k for s in sets) for k in ("bias", "dark", "flat")}

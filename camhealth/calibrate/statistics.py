@@ -59,6 +59,7 @@ __all__ = [
     "detect_hot_pixels",
     "detect_dead_pixels",
     "DEAD_PIXEL_SIGMAS",
+    "MIN_FRAME_SIDE",
     "set_statistics",
     "stuck_at_zero",
     "binned_normal_nll",
@@ -84,6 +85,12 @@ HOT_PIXEL_SIGMAS = 6.0
 DEAD_PIXEL_SIGMAS = 6.0
 #: Side [px] of the neighbourhood whose median a pixel's flat-field signal is compared with.
 DEAD_PIXEL_WINDOW = 5
+#: Smallest frame side [px] a set may have: the dead-pixel test's :data:`DEAD_PIXEL_WINDOW` × DEAD_PIXEL_WINDOW
+#: neighbourhood must fit in a frame (in a smaller one the "neighbourhood" is mostly the edge pixels repeated), and the
+#: spatial statistics — the median and MAD of the hot-pixel test, the variance of the fixed pattern (DSNU, PRNU: one
+#: pixel has none, ``var(ddof=1)`` of it is NaN), each frame's mean removed from the temporal variance — need pixels to
+#: pool. 5×5 = 25 px is a floor for validity, not for accuracy (``docs/calibration.md`` asks for ≥ 512×512 px).
+MIN_FRAME_SIDE = DEAD_PIXEL_WINDOW
 #: Frames are rounded to this many codes over [0, 1] to test for integer coding (16-bit resolution).
 _CODES = 65535
 #: Full-scale codes of b-bit data (b = 8 … 16) stored MSB-aligned in a 16-bit word: 65536 − 2^(16−b).
@@ -421,21 +428,29 @@ def set_statistics(
     labels the set in errors. ``flat``: a lit set, whose values all at one code above 0 DN are saturated (a full
     well below the ADC's range; method ``"clipped"`` with every value at the top code), not a frozen image.
 
-    Raises ``ValueError`` for fewer than 2 frames, an empty set, or frames that are all identical (no pixel
-    changes from frame to frame: no temporal noise to measure) unless (almost) every value is clipped.
+    Raises ``ValueError`` naming the set for fewer than 2 frames, frames smaller than :data:`MIN_FRAME_SIDE` ×
+    MIN_FRAME_SIDE px (0×0 included), fewer than 2 pixels left after ``exclude``, or frames that are all identical (no
+    pixel changes from frame to frame: no temporal noise to measure) unless (almost) every value is clipped.
     """
     x = np.asarray(frames, dtype=np.float32)
     if x.ndim != 3:
         raise ValueError(f"frames must be N×H×W, got shape {x.shape}")
     n, h, w = x.shape
     if n < 2:
-        raise ValueError(f"a set needs at least 2 frames for its temporal noise, got {n}")
+        raise ValueError(f"{name}: a set needs at least 2 frames for its temporal noise, got {n}")
+    if h < MIN_FRAME_SIDE or w < MIN_FRAME_SIDE:
+        raise ValueError(
+            f"{name}: its frames are {h}×{w} px; a set needs frames of at least {MIN_FRAME_SIDE}×{MIN_FRAME_SIDE} px (the "
+            f"dead-pixel test's {DEAD_PIXEL_WINDOW}×{DEAD_PIXEL_WINDOW} neighbourhood, and pixels to pool for the hot-pixel "
+            "test and the fixed pattern, DSNU and PRNU); record the whole sensor or a crop of at least 512×512 px"
+        )
     step = quantisation_step(x) if step_dn is None else float(step_dn)
     dn = x.astype(np.float64) * 255.0
     master = dn.mean(axis=0)
     keep = np.ones((h, w), dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
-    if not keep.any():
-        raise ValueError("every pixel of the set is excluded (hot)")
+    if int(keep.sum()) < 2:
+        raise ValueError(f"{name}: {h * w - int(keep.sum())} of its {h}×{w} pixels are excluded (hot or dead), leaving "
+                         f"{int(keep.sum())}; its statistics need at least 2")
     vals = dn[:, keep]  # N × P
     n_pix = int(keep.sum())
     upper = top_clip_level(vals, step)

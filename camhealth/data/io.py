@@ -33,7 +33,7 @@ from typing import Union
 import numpy as np
 import torch
 
-__all__ = ["BT601_WEIGHTS", "IMAGE_EXTENSIONS", "ImageScaling", "to_gray", "read_image", "read_image_scaled"]
+__all__ = ["BT601_WEIGHTS", "IMAGE_EXTENSIONS", "ImageScaling", "to_gray", "read_image", "read_image_scaled", "read_samples"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -391,6 +391,20 @@ def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
     if scaling.source == "largest value":
         warnings.warn(f"{path}: {scaling.describe()}; pass bit_depth=16 to scale by 65535", UserWarning, stacklevel=2)
     return image
+
+
+def read_samples(path: PathLike) -> np.ndarray:
+    """An image file's samples as decoded, before any gray conversion or scaling: ``H×W`` or ``H×W×C`` (RGB(A)
+    order; C = 2 for gray + alpha), uint8 or uint16, by the decoder :func:`read_image_scaled` uses for the file. For
+    callers that must tell a colour image from a gray one saved as RGB (equal samples), e.g. the calibration.
+    Errors as :func:`read_image`."""
+    p = Path(path)
+    if p.suffix.lower() in (".tif", ".tiff"):
+        return _read_tiff(p)[0]
+    header = _png_header(p) if p.suffix.lower() == ".png" else None
+    if header is not None and header[0] == 16 and header[1] in (2, 4, 6):
+        return _read_16bit_colour_png(p, header[2], header[3])
+    return _read_pillow(p)
 
 
 def read_sequence_frame(path: PathLike, bit_depth: int | str, first_bits: int | None) -> tuple[torch.Tensor, ImageScaling]:

@@ -769,21 +769,152 @@ def test_a_default_operating_point_outside_the_range_is_clamped_and_said_so():
     assert not any("operating point exposure_s" in w or "operating point gain_db" in w for w in res.warnings)
 
 
-def test_a_set_mixing_colour_and_gray_files_is_refused_naming_them(tmp_path):
-    """Two of six dark frames saved in colour: their BT.601 luma averages three channels' noise, so they were read as
-    a quieter sensor than the gray frames beside them, without a word."""
+def test_colour_image_files_and_videos_are_refused_naming_the_file(tmp_path):
+    """Flats saved as 8-bit RGB PNGs with each channel's own noise were read as their BT.601 luma, which averages three
+    channels' noise: the ICX285's full well came out 34 091 e⁻ instead of 13 882 e⁻, without a word (only a set mixing
+    colour and gray files was refused). Colour files (channels that differ) and colour video frames are refused naming
+    the file; a gray image saved as RGB (three equal channels) is read as gray, beside gray files too."""
+    import cv2
     from PIL import Image
 
     from camhealth.calibrate.frames import load_frames
 
     rng = np.random.default_rng(2)
-    files = []
+    gray, rgb = [], []
     for i in range(6):
-        g = np.clip(rng.normal(80, 3, (16, 16)), 0, 255).astype(np.uint8)
+        g = np.clip(np.rint(rng.normal(80, 3, (16, 16))), 0, 255).astype(np.uint8)
         p = tmp_path / f"dark_100ms_0dB_25C_{i:04d}.png"
-        Image.fromarray(np.stack([g] * 3, -1) if i in (1, 4) else g).save(p)
-        files.append(p)
-    with pytest.raises(ValueError, match=r"dark set .* mixes colour frames \(2, e\.g\. .*_0001\.png\) and gray ones "
-                                         r"\(4, e\.g\. .*_0000\.png\); every frame of a set must come from one output"):
-        load_frames(FrameSet("dark", 0.1, paths=files))
-    assert load_frames(FrameSet("dark", 0.1, paths=[files[1], files[4]])).shape == (2, 16, 16)  # all colour: read
+        Image.fromarray(np.stack([g] * 3, -1) if i in (1, 4) else g).save(p)  # 1 and 4: gray saved as RGB
+        gray.append((p, g))
+        c = np.clip(np.rint(rng.normal(80, 3, (16, 16, 3))), 0, 255).astype(np.uint8)
+        q = tmp_path / f"flat_10ms_0dB_25C_{i:04d}.png"
+        Image.fromarray(c).save(q)
+        rgb.append(q)
+    x = load_frames(FrameSet("dark", 0.1, paths=[p for p, _ in gray]))
+    assert np.array_equal(np.rint(x * 255), np.stack([g for _, g in gray]))
+    advice = r"is a colour image \(its red, green and blue samples differ\).*give the camera's raw or mono frames"
+    with pytest.raises(ValueError, match=rf"flat set .*: {re.escape(str(rgb[0]))} {advice}"):
+        load_frames(FrameSet("flat", 0.01, paths=rgb))
+    with pytest.raises(ValueError, match=rf"dark set .*: {re.escape(str(rgb[3]))} {advice}"):  # one colour file among gray
+        load_frames(FrameSet("dark", 0.1, paths=[p for p, _ in gray[:3]] + [rgb[3]]))
+    c16 = tmp_path / "flat16.png"  # a 16-bit colour PNG (read by OpenCV, not Pillow)
+    cv2.imwrite(str(c16), (np.clip(rng.normal(0.3, 0.01, (16, 16, 3)), 0, 1) * 65535).astype(np.uint16))
+    with pytest.raises(ValueError, match=rf"{re.escape(str(c16))} {advice}"):
+        load_frames(FrameSet("flat", 0.01, paths=[c16] * 4))
+    video = tmp_path / "flat_10ms_0dB_25C_L1.mkv"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 10, (16, 16), isColor=True)
+    for _ in range(4):
+        w.write(np.clip(np.rint(rng.normal(80, 3, (16, 16, 3))), 0, 255).astype(np.uint8))
+    w.release()
+    with pytest.raises(ValueError, match=rf"frame 0 of video {re.escape(str(video))} {advice}"):
+        load_frames(FrameSet("flat", 0.01, paths=[video]))
+
+
+@pytest.mark.parametrize("camera, message", [
+    ({"is_cmos": 0.5}, r"camera field is_cmos = 0\.5 must be 0 \(CCD\) or 1 \(CMOS\), or a bool"),
+    ({"pixel_size_um": True}, r"camera field pixel_size_um = True must be a number in camhealth's range \[0\.9, 10\] µm, not a bool"),
+    ({"pixel_size_um": "abc"}, r"camera field pixel_size_um = 'abc' must be a number in camhealth's range \[0\.9, 10\] µm$"),
+    ({"pixel_clock_hz": 10**400}, r"camera field pixel_clock_hz = 1000.* must be a number in camhealth's range \[8e\+06, 1\.5e\+08\] Hz"),
+    ({"sensor_type": None}, r"camera field sensor_type = None must be CCD or CMOS"),
+])
+def test_camera_fields_are_not_coerced(camera, message, monkeypatch):
+    """is_cmos 0.5 was read as CMOS, pixel_size_um True as 1 µm, 'abc' failed without the field's name."""
+    import camhealth.calibrate.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "load_frames_with_depth", lambda *a: pytest.fail("frames read before the camera was checked"))
+    with pytest.raises(ValueError, match=message):
+        calibrate(_sets(), camera=camera)
+
+
+def test_is_cmos_is_a_bool_or_0_or_1(tmp_path):
+    res = calibrate(_sets(), camera={"is_cmos": True})
+    assert res.fields["is_cmos"].value == 1.0 and res.fields["is_cmos"].source == "given"
+    (tmp_path / "b").mkdir()
+    p = tmp_path / "m.yaml"
+    p.write_text("camera: {is_cmos: false}\nsets:\n  - {kind: bias, path: b, exposure_s: 0.001, gain_db: 0, temperature_c: 25}\n")
+    assert read_manifest(p).camera == {"is_cmos": False}  # a YAML bool: a flag, as camhealth's metadata takes it
+    from camhealth.calibrate.pipeline import _camera_values
+
+    assert _camera_values({"is_cmos": 0}) == {"is_cmos": 0.0} and _camera_values({"is_cmos": np.True_}) == {"is_cmos": 1.0}
+
+
+@pytest.mark.parametrize("op, message", [
+    ({"gain_db": None}, r"operating point gain_db = None must be a number in camhealth's range \[0, 24\] dB; leave it out for "
+                        r"the default \(lowest flat gain\)"),
+    ({"gain_db": 99}, r"operating point gain_db = 99 dB is outside camhealth's range \[0, 24\] dB"),
+    ({"exposure_s": "abc"}, r"operating point exposure_s = 'abc' must be a number in camhealth's range \[0\.001, 0\.2\] s$"),
+    ({"temperature_c": True}, r"operating point temperature_c = True must be a number in camhealth's range \[0, 80\] °C, not a bool"),
+    ({"gain": 6}, r"unknown operating-point field\(s\) \['gain'\]"),
+])
+def test_the_operating_point_is_checked_before_any_frame_is_read(op, message, monkeypatch):
+    """It was checked only after every frame had been processed (minutes for real stacks), and gain_db None gave a bare
+    TypeError from float()."""
+    import camhealth.calibrate.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "load_frames_with_depth", lambda *a: pytest.fail("frames read before the operating point was checked"))
+    with pytest.raises(ValueError, match=message):
+        calibrate(_sets(), operating_point=op)
+
+
+def test_frame_set_values_are_not_coerced():
+    """FrameSet('dark', True) was a 1 s exposure; paths='abc' three paths a, b, c."""
+    from pathlib import Path
+
+    frames = np.zeros((4, 8, 8), np.float32)
+    with pytest.raises(ValueError, match=r"set dark: exposure_s = True must be a number of seconds > 0, not a bool"):
+        FrameSet("dark", True, frames=frames)
+    with pytest.raises(ValueError, match=r"set d: gain_db = np.True_ must be a number of dB in \[0, 24\], not a bool"):
+        FrameSet("dark", 0.1, gain_db=np.True_, frames=frames, name="d")
+    with pytest.raises(ValueError, match=r"set d: temperature_c = 1000.* must be a finite number of °C in \[-60, 150\]"):
+        FrameSet("dark", 0.1, temperature_c=10**400, frames=frames, name="d")
+    assert FrameSet("dark", 0.1, paths="abc").paths == [Path("abc")]
+    assert FrameSet("dark", 0.1, paths=Path("a/b")).paths == [Path("a/b")]
+    with pytest.raises(ValueError, match=r"set dark: paths = 5 must be a path \(str or Path\) or a list of them"):
+        FrameSet("dark", 0.1, paths=5)
+    with pytest.raises(ValueError, match=r"set dark: paths must be str or Path, got int 1"):
+        FrameSet("dark", 0.1, paths=["a", 1])
+
+
+@pytest.mark.parametrize("size", [0, 1, 4])
+def test_frames_smaller_than_5x5_px_are_refused_naming_the_set_and_the_size(size):
+    """1×1 px frames calibrated "successfully" with NaN DSNU and PRNU (the variance of one pixel); 0×0 px frames failed
+    with "every pixel of the set is excluded (hot)"."""
+    sets = _sets()
+    for s in sets:
+        s.frames = np.clip(s.frames[:, :size, :size] + 0.1, 0, 1)  # an offset: the darks' temporal estimator
+    with pytest.raises(ValueError, match=rf"bias set 'bias_1ms_12dB_40C' \(0\.001 s, 12 dB, 40 °C\): its frames are {size}×{size} px; "
+                                         r"a set needs frames of at least 5×5 px \(the dead-pixel test's 5×5 neighbourhood"):
+        calibrate(sets)
+
+
+def test_a_set_with_fewer_than_2_pixels_left_is_refused_naming_it():
+    from camhealth.calibrate.statistics import set_statistics
+
+    x = np.random.default_rng(0).uniform(0.2, 0.3, (4, 8, 8)).astype(np.float32)
+    exclude = np.ones((8, 8), dtype=bool)
+    exclude[3, 3] = False
+    with pytest.raises(ValueError, match=r"^the dark: 63 of its 8×8 pixels are excluded \(hot or dead\), leaving 1; its statistics "
+                                         r"need at least 2$"):
+        set_statistics(x, exclude, name="the dark")
+
+
+def test_a_manifest_nested_too_deeply_or_with_a_huge_number_is_refused_naming_it(tmp_path):
+    """5000 levels of nesting raised a bare RecursionError, a 400-digit gain_db a bare OverflowError."""
+    p = tmp_path / "m.yaml"
+    p.write_text("sets: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(ValueError, match=rf"^cannot parse manifest {re.escape(str(p))}: its values are nested too deeply"):
+        read_manifest(p)
+    (tmp_path / "b").mkdir()
+    bias = "sets:\n  - {kind: bias, path: b, exposure_s: 0.001, gain_db: 0, temperature_c: 25%s}\n"
+    for text, where, key in (("operating_point: {gain_db: %s}\n" % ("9" * 400) + bias % "", "operating_point", "gain_db"),
+                             ("camera: {pixel_size_um: %s}\n" % ("9" * 400) + bias % "", "camera", "pixel_size_um"),
+                             (bias.replace("0.001", "9" * 400) % "", "set 1", "exposure_s")):
+        p.write_text(text)
+        with pytest.raises(ValueError, match=rf"^manifest {re.escape(str(p))}, {where}: {key} = 9+\.\.\.9+ must be a finite number$"):
+            read_manifest(p)
+    p.write_text(bias % (", bit_depth: " + "9" * 400))
+    with pytest.raises(ValueError, match=rf"^manifest {re.escape(str(p))}, set 1: bit_depth = 9{{57}}\.\.\. must be None"):
+        read_manifest(p)
+    p.write_text("operating_point: {gain_db: %s}\n" % ("9" * 5000) + bias % "")  # beyond int()'s 4300 digits
+    with pytest.raises(ValueError, match=rf"^cannot parse manifest {re.escape(str(p))}: Exceeds the limit \(4300 digits\)"):
+        read_manifest(p)
