@@ -931,7 +931,9 @@ def _markdown(report: dict) -> str:
     cfgs, lvs = cfg["bun_sizes"], cfg["bun_levels"]
     lines += ["## Blur under noise: AMAE [%] (like Tab. 5.2, Sec. 5.5)", "",
               "Rows σ [DN], columns d [px]. `+ b₂ (7 px)`: extra defocus pre-filter, MTF(b₂) divided out where the "
-              "preconditions hold (ε = 0.05). Slanted-edge rows are scored against the exact MTF in the measured direction.", ""]  # fmt: skip
+              "preconditions hold (ε = 0.05). Slanted-edge rows are scored against the exact MTF in the measured direction. "
+              "– : the method called the chart not assessable (a Siemens star whose corner noise exceeds "
+              "`MAX_NOISE_CONTRAST` of its contrast I_w − I_b).", ""]  # fmt: skip
     for ci, case in enumerate(BUN_CASES):
         for name, cells in bun["blur"].items():
             lines += [f"**{BUN_LABELS[case]} — {name}**", ""]

@@ -32,6 +32,7 @@ BENCHMARKS: dict[str, str] = {
     "mtf_error": "camhealth.bench.mtf_error",
     "policy": "camhealth.bench.policy",
     "robustness": "camhealth.bench.robustness",
+    "siemens_star": "camhealth.bench.siemens_star",
 }
 
 

@@ -38,6 +38,17 @@ stripe's, and clipped reference corners hide the chart's contrast. Pixels within
 whose measured reference level (a median) is clipped, or with a ring (H and V sectors) of which more than 10 % of the
 pixels sit on clipped plateaus (clipped, with a 4-neighbour clipped at the same bound — noise alone rarely clips two
 neighbours), raises a ``ValueError`` naming the image, the rings and the clipped share.
+**Noise.** I_max − I_min of a ring picks up the noise's extremes. The noise σ is measured in the uniform reference
+corners (1.4826·MAD, the rms of the dark and bright corners; with ``levels=`` no corner is read and nothing is
+corrected), with its lag-1 correlation ρ along rows and columns (a blur after the noise correlates it), and a ring
+and sector of n pixels counts n·(1 − ρ) independent ones. Of a fully blurred ring the range is that of the noise
+alone, 2·E[max of n]·σ: the noise-only CTF. A ring whose CTF exceeds :data:`NOISE_KEEP` times that has the
+extremes' excess where the stripes are resolved, 2·E[max of n/4]·σ (a crest's pixels compete for the maximum),
+subtracted; below it, the noise-only CTF is subtracted in quadrature (a ring with no stripes left reads 0 and stays
+in the fit). A star whose corner noise exceeds :data:`MAX_NOISE_CONTRAST` of its contrast I_w − I_b, or with fewer
+than :data:`MIN_RINGS` rings above the noise in H or V, is not assessable: its MTF is NaN, with the reason. The
+Gaussian fit keeps μ within the sampled frequencies and s within 4× them, so that a fit on the few low-frequency
+rings a noisy, strongly blurred star keeps stays a falling CTF.
 The Gaussian model is smooth and cannot follow the zeros and contrast reversals of large defocus
 (|jinc| side lobes), which bounds the accuracy for large blur; see ``docs/estimators_classical.md``.
 """
@@ -56,6 +67,9 @@ from camhealth.estimators.charts import siemens_star_geometry
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
 __all__ = [
+    "MAX_NOISE_CONTRAST",
+    "MIN_RINGS",
+    "NOISE_KEEP",
     "SiemensStarResult",
     "coltman_coefficients",
     "ctf_from_mtf",
@@ -66,6 +80,16 @@ __all__ = [
 ]
 
 _K_MAX = 99
+
+#: A ring is read where its CTF exceeds this multiple of the CTF its noise alone would give (module docstring).
+NOISE_KEEP = 2.0
+#: Largest noise σ, as a share of the chart's contrast I_w − I_b, whose star is read (beyond: not assessable).
+MAX_NOISE_CONTRAST = 0.12
+#: Fewest rings per direction (H, V) that the Gaussian fit needs above the noise.
+MIN_RINGS = 10
+#: Share of a ring and sector's pixels that compete for its maximum (and for its minimum) where the stripes are
+#: resolved: n/4, the pixels of a stripe's crest (two bright stripes per sector, each half its pixels near the top).
+_EXCESS_SHARE = 0.25
 
 
 @functools.lru_cache(maxsize=4)
@@ -149,8 +173,13 @@ def gaussian_ctf_fit(
     s0 = torch.sqrt(-0.5 / c2)
     mu0 = (-coef[..., 1] / (2 * c2)).clamp(-3.0 * s0, 3.0 * s0)
     fmax = torch.where(valid, f, torch.zeros_like(f)).amax(dim=-1)
-    mu = torch.where(torch.isfinite(mu0), mu0, torch.zeros_like(mu0))
-    log_s = torch.log(torch.where(torch.isfinite(s0), s0, fmax).clamp(1e-3, 1e3))
+    # the CTF falls from 1 at f = 0 within the sampled frequencies or beyond them: a plateau (μ) ends inside the
+    # samples, and a width (s) far beyond them is a flat line. Bounding both keeps a fit on a narrow band of rings (a
+    # noisy, strongly blurred star keeps only its low frequencies) from wandering off to μ, s ≫ 1 (a flat MTF)
+    lo_mu, hi_mu = -4.0 * fmax, fmax
+    hi_ls = torch.log((4.0 * fmax).clamp_min(1e-3))
+    mu = torch.maximum(torch.minimum(torch.where(torch.isfinite(mu0), mu0, torch.zeros_like(mu0)), hi_mu), lo_mu)
+    log_s = torch.minimum(torch.log(torch.where(torch.isfinite(s0), s0, fmax).clamp(1e-3, 1e3)), hi_ls)
     lam = torch.full_like(mu, 1e-2)
 
     def loss(m: torch.Tensor, ls: torch.Tensor) -> torch.Tensor:
@@ -169,7 +198,8 @@ def gaussian_ctf_fit(
         jtr = ((jac * w[..., None]) * r[..., None]).sum(dim=-2)
         damp = jtj + lam[..., None, None] * torch.diag_embed(torch.diagonal(jtj, dim1=-2, dim2=-1) + 1e-12)
         step = torch.linalg.solve(damp, jtr)
-        mu_new, ls_new = mu - step[..., 0], (log_s - step[..., 1]).clamp(-8.0, 8.0)
+        mu_new = torch.maximum(torch.minimum(mu - step[..., 0], hi_mu), lo_mu)
+        ls_new = torch.minimum((log_s - step[..., 1]).clamp(-8.0, 8.0), hi_ls)
         new = loss(mu_new, ls_new)
         better = new < cur
         mu = torch.where(better, mu_new, mu)
@@ -236,8 +266,13 @@ class SiemensStarResult:
     Attributes:
         mtf: (B, 2F) ``[H×F, V×F]`` MTF at the requested normalised frequencies, in [0, 1].
         frequencies: (R,) normalised frequency of every ring (f_n = f_s / (π r)).
-        ctf_d: (B, 2, R) discrete CTF (Eq. 3.23) per ring, H and V (NaN where a ring was not used).
+        ctf_d: (B, 2, R) discrete CTF (Eq. 3.23) per ring, H and V, with the noise's expected excess removed (NaN where
+            a ring was not used: no pixels, or its CTF within :data:`NOISE_KEEP` × the noise-only CTF).
         mu, s: (B, 2) Gaussian parameters (in f_n) of the fitted CTF, H and V.
+        noise_dn: (B,) noise σ [DN] of the reference corners (None when ``levels=`` was given: no corners read).
+        rings_used: (B, 2) rings the fit used, H and V.
+        assessable: (B,) False where the noise hides the stripes (``reasons``); ``mtf`` is NaN there.
+        reasons: per image, "" or why it is not assessable.
     """
 
     mtf: torch.Tensor
@@ -245,6 +280,10 @@ class SiemensStarResult:
     ctf_d: torch.Tensor
     mu: torch.Tensor
     s: torch.Tensor
+    noise_dn: torch.Tensor | None = None
+    rings_used: torch.Tensor | None = None
+    assessable: torch.Tensor | None = None
+    reasons: list[str] | None = None
 
 
 def siemens_star_ctf(
@@ -256,7 +295,8 @@ def siemens_star_ctf(
     margin: float = 24.0,
     levels: tuple[float, float] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Discrete CTF (Eq. 3.23) per 1-px ring, H and V: returns (f_n (R,), ctf_d (B, 2, R), ring radius (R,)).
+    """Discrete CTF (Eq. 3.23) per 1-px ring, H and V: returns (f_n (R,), ctf_d (B, 2, R), ring radius (R,)). The
+    CTF is the one measured, the noise's extremes included (:func:`siemens_star_mtf` corrects for them).
 
     Args:
         images: ``B×1×S×S`` images of an unclipped Siemens star in [0, 1] (DN/255; default geometry: the star of
@@ -270,6 +310,32 @@ def siemens_star_ctf(
             for the reference levels, from the rim and the quadrant borders.
         levels: (dark, bright) chart levels; default: measured in the reference corners.
     """
+    c = _star_ctf(images, centre, radius, n_cycles, n_sectors, margin, levels)
+    return c.fn, c.ctf, c.r_mean
+
+
+@dataclass
+class _StarCTF:
+    fn: torch.Tensor  # (R,) normalised frequency per ring
+    ctf: torch.Tensor  # (B, 2, R) measured CTF_D, H and V
+    r_mean: torch.Tensor  # (R,) ring radius [px]
+    pixels: torch.Tensor  # (2, R) pixels per ring and sector, H and V (the mean of the two sectors)
+    sigma: torch.Tensor | None  # (B,) noise σ in the reference corners [image units]; None with ``levels=``
+    contrast: torch.Tensor  # (B,) I_w − I_b [image units]
+    rho: torch.Tensor | None = None  # (B, 2) lag-1 noise correlation along rows and columns; None with ``levels=``
+
+
+def _star_ctf(
+    images: torch.Tensor,
+    centre: tuple[float, float] | None = None,
+    radius: float | None = None,
+    n_cycles: int = 32,
+    n_sectors: int = 16,
+    margin: float = 24.0,
+    levels: tuple[float, float] | None = None,
+) -> _StarCTF:
+    """The measurement behind :func:`siemens_star_ctf` (same arguments): the CTF per ring, the pixels per ring and
+    sector, the reference corners' noise σ (robust: 1.4826·MAD, the rms of the dark and bright corners) and contrast."""
     x = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
     b, _, h, w = x.shape
     if centre is None or radius is None:
@@ -299,10 +365,30 @@ def siemens_star_ctf(
         dark_px = img[:, far & (dx * dy < 0)]
         i_w, i_b = bright_px.median(dim=1).values, dark_px.median(dim=1).values
         ref_px = ((i_w, bright_px, "bright"), (i_b, dark_px, "dark"))
+        # the noise of the uniform corners, robustly (1.4826 × MAD), as the rms of the two levels' (photon noise
+        # differs between them; a ring's extremes sit on both)
+        mad = [1.4826 * (px - lvl[:, None]).abs().median(dim=1).values for lvl, px in ((i_w, bright_px), (i_b, dark_px))]
+        sigma = torch.sqrt(0.5 * (mad[0].square() + mad[1].square()))
+        # lag-1 correlation of the corners' noise along rows and columns (a blur after the noise correlates it, and
+        # fewer independent pixels compete for a ring's extremes): pairs of neighbours both in one uniform corner
+        bright = (dx * dy > 0).reshape(h, w)
+        ref_mask = (far & (dx * dy != 0)).reshape(h, w)
+        flat = torch.arange(h * w, device=dev).reshape(h, w)
+        rho = []
+        for first, second in ((flat[:, :-1], flat[:, 1:]), (flat[:-1, :], flat[1:, :])):
+            pair = ref_mask.reshape(-1)[first] & ref_mask.reshape(-1)[second] & (bright.reshape(-1)[first] == bright.reshape(-1)[second])
+            i0, i1 = first[pair], second[pair]
+            lvl = torch.where(bright.reshape(-1)[i0][None], i_w[:, None], i_b[:, None])  # (B, pairs)
+            a, c_ = img[:, i0] - lvl, img[:, i1] - lvl
+            num = (a * c_).sum(dim=1)
+            den = (0.5 * (a.square() + c_.square())).sum(dim=1).clamp_min(1e-30)
+            rho.append((num / den).clamp(0.0, 0.99))
+        rho_xy = torch.stack(rho, dim=1)  # (B, 2): along rows (H sectors' cells), along columns (V sectors' cells)
     else:
         i_b = torch.full((b,), float(levels[0]), dtype=torch.float64, device=dev)
         i_w = torch.full((b,), float(levels[1]), dtype=torch.float64, device=dev)
         ref_px = ()
+        sigma, rho_xy = None, None
     m0 = (i_w - i_b) / (i_w + i_b)
     bad = ~(m0 > 0.05)  # NaN too: both reference levels 0 (a black image) give 0/0
     if bool(bad.any()):
@@ -345,7 +431,10 @@ def siemens_star_ctf(
     r_cnt = torch.zeros(n_rings, dtype=torch.float64, device=dev).scatter_add_(0, ring, torch.ones_like(r[use]))
     r_mean = r_sum / r_cnt.clamp_min(1)
     fn = n_cycles / (math.pi * r_mean)
-    return fn, torch.stack([ctf_h, ctf_v], dim=1), r_mean
+    count = torch.zeros(n_cells, dtype=torch.float64, device=dev).scatter_add_(0, cell, torch.ones_like(r[use]))
+    count = count.reshape(n_rings, n_sectors)
+    pixels = torch.stack([0.5 * (count[:, q] + count[:, 3 * q]), 0.5 * (count[:, 0] + count[:, 2 * q])])
+    return _StarCTF(fn, torch.stack([ctf_h, ctf_v], dim=1), r_mean, pixels, sigma, i_w - i_b, rho_xy)
 
 
 def siemens_star_mtf(
@@ -370,9 +459,16 @@ def siemens_star_mtf(
     out_dtype = torch.float64 if x.dtype == torch.float64 else torch.float32
     fq = torch.as_tensor(frequencies, dtype=torch.float64, device=x.device).reshape(-1)
     check_range(fq, "frequencies", 0.0, 1.0, "× Nyquist")
-    fn, ctf_d, r_mean = siemens_star_ctf(x, **kwargs)
+    c = _star_ctf(x, **kwargs)
+    fn, ctf_d = c.fn, c.ctf
+    b = ctf_d.shape[0]
+    noise_dn, used, ok, reasons = None, None, torch.ones(b, dtype=torch.bool, device=x.device), [""] * b
+    if c.sigma is not None:
+        ctf_d, used, ok, reasons = _noise_corrected(c)
+        noise_dn = 255.0 * c.sigma
     weight = fn.square()  # |df/dr| per 1-px ring ∝ f²: the sum approximates ∫ … df (Eq. 3.24)
-    mu, s = gaussian_ctf_fit(fn, ctf_d, weight)  # (B, 2)
+    fit_ctf = torch.where(ok[:, None, None], ctf_d, torch.ones_like(ctf_d))  # (refused images: a placeholder fit)
+    mu, s = gaussian_ctf_fit(fn, fit_ctf, weight)  # (B, 2)
 
     def ctf_fn(f: torch.Tensor) -> torch.Tensor:  # f (F, K) → (B, 2, F, K)
         return torch.exp(-0.5 * ((f - mu[..., None, None]) / s[..., None, None]).square())
@@ -382,8 +478,65 @@ def siemens_star_mtf(
     if aperture:
         mtf = mtf / torch.sinc(0.5 * fq).abs()
     mtf = mtf.clamp(0.0, 1.0)  # the aperture correction of a CTF that already reads 1 would exceed 1
-    b = mtf.shape[0]
+    mtf = torch.where(ok[:, None, None], mtf, torch.full_like(mtf, float("nan")))
+    nan2 = torch.full_like(mu, float("nan"))
+    mu, s = torch.where(ok[:, None], mu, nan2), torch.where(ok[:, None], s, nan2)
     return SiemensStarResult(
         mtf=mtf.reshape(b, -1).to(out_dtype), frequencies=fn.to(out_dtype), ctf_d=ctf_d.to(out_dtype),
-        mu=mu.to(out_dtype), s=s.to(out_dtype),
+        mu=mu.to(out_dtype), s=s.to(out_dtype), noise_dn=None if noise_dn is None else noise_dn.to(out_dtype),
+        rings_used=used, assessable=ok, reasons=reasons,
     )
+
+
+@functools.lru_cache(maxsize=1)
+def _expected_max_table() -> tuple[torch.Tensor, torch.Tensor]:
+    """(log n, E[max of n independent N(0, 1)]) on 400 log-spaced n in [1, 10^5] (numerical integration, float64)."""
+    z = torch.linspace(-9.0, 9.0, 3601, dtype=torch.float64)
+    cdf = 0.5 * (1.0 + torch.erf(z / math.sqrt(2.0)))
+    pdf = torch.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+    log_n = torch.linspace(0.0, math.log(1e5), 400, dtype=torch.float64)
+    k = log_n.exp()[:, None]
+    return log_n, torch.trapezoid(z * k * cdf.pow(k - 1.0) * pdf, z, dim=-1)
+
+
+def _expected_max(n: torch.Tensor) -> torch.Tensor:
+    """E[max of n independent N(0, 1) samples] (0 for n = 1, ≈ 1.54 for 10, ≈ 2.51 for 100), for real n ≥ 1: linear
+    in log n between the nodes of :func:`_expected_max_table` (within 1e-3 of the integral)."""
+    log_n, e = (t.to(n.device) for t in _expected_max_table())
+    x = n.double().clamp(1.0, 1e5).log()
+    step = float(log_n[1] - log_n[0])
+    i = (x / step).floor().long().clamp(0, log_n.numel() - 2)
+    t = (x - log_n[i]) / step
+    return e[i] * (1.0 - t) + e[i + 1] * t
+
+
+def _noise_corrected(c: "_StarCTF") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[str]]:
+    """CTF_D with the noise's extremes taken out, and which images can be read (module docstring, *Noise*): returns
+    (ctf (B, 2, R), rings above the noise (B, 2), assessable (B,), reasons)."""
+    # independent pixels of a cell: n·(1 − ρ) with ρ the noise's lag-1 correlation along the cell (H sectors' cells run
+    # along rows, V sectors' along columns): n for white noise, n/L for noise averaged along the cell over L px
+    n = c.pixels[None] * (1.0 - c.rho)[:, :, None]  # (B, 2, R)
+    n = n.clamp_min(1.0)
+    scale = (c.sigma / c.contrast)[:, None, None]  # (B, 1, 1): σ in CTF units
+    floor = 2.0 * _expected_max(n) * scale  # noise-only: the range of n samples, d_n = 2 E[max of n]
+    excess = 2.0 * _expected_max(_EXCESS_SHARE * n) * scale  # resolved stripes: an extreme on each stripe's n/2 pixels
+    keep = torch.isfinite(c.ctf) & (c.ctf > NOISE_KEEP * floor)
+    # above the noise: the extremes' excess comes off; near it, signal and noise add in quadrature (a ring whose stripes
+    # are gone reads its noise's range: 0 after the correction, kept in the fit — dropping it would leave the
+    # surviving noisy rings at high frequency to pull the fit up)
+    ctf = torch.where(keep, c.ctf - excess, torch.sqrt((c.ctf.square() - floor.square()).clamp_min(0.0)))
+    used = keep.sum(dim=-1)  # (B, 2)
+    ratio = (c.sigma / c.contrast)
+    ok = (ratio <= MAX_NOISE_CONTRAST) & (used.amin(dim=-1) >= MIN_RINGS)
+    reasons = []
+    for i in range(ratio.numel()):
+        if bool(ok[i]):
+            reasons.append("")
+        elif float(ratio[i]) > MAX_NOISE_CONTRAST:
+            reasons.append(f"noisy: σ = {255.0 * float(c.sigma[i]):.1f} DN in the reference corners is "
+                           f"{100.0 * float(ratio[i]):.0f} % of the chart's contrast ({255.0 * float(c.contrast[i]):.0f} DN); "
+                           f"at most {100.0 * MAX_NOISE_CONTRAST:.0f} % can be read")
+        else:
+            reasons.append(f"noisy: only {int(used[i].amin())} rings (H {int(used[i, 0])}, V {int(used[i, 1])}) rise above "
+                           f"{NOISE_KEEP:g}× the noise's own CTF; at least {MIN_RINGS} are needed")
+    return ctf, used, ok, reasons
