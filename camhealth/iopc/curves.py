@@ -577,6 +577,9 @@ class IOPC:
         for key in ("estimator_specs", "frames", "config"):
             if key in provenance and provenance[key] is not None and not isinstance(provenance[key], Mapping):
                 raise ValueError(f"provenance.{key} must be an object, got {_typed(provenance[key])}")
+        for what, value in (("provenance", provenance), ("records", raw_records)):
+            if _nested_deeper(value, MAX_NESTING):  # it would load, and then fail to save (or print) by recursion
+                raise ValueError(f"{what} is nested deeper than {MAX_NESTING} levels; a sweep writes a few")
         records = [{k: (float("nan") if v is None and k in ("sigma_tilde", "mtf_tilde", "ap") else v) for k, v in r.items()}
                    for r in raw_records]
         # the arrays go to the constructor as read: it checks their types and ranges before any conversion
@@ -658,6 +661,7 @@ class IOPC:
         """The :meth:`from_dict` mapping of an ``.npz`` file written by :meth:`save` (object arrays refused)."""
         if not zipfile.is_zipfile(path):
             raise ValueError("an .npz file is a zip archive; this one is not")
+        _check_npz_sizes(path)
         with np.load(path, allow_pickle=False) as z:
             if "meta_json" not in z.files:
                 raise KeyError("meta_json")
@@ -730,6 +734,57 @@ class IOPC:
         fig.suptitle((title or self.name) + (f"  ({n_marked} marked cell(s) not in the curves)" if n_marked else ""))
         fig.tight_layout()
         return fig
+
+
+#: Deepest nesting of objects and lists an IOPC file's ``provenance`` and ``records`` may have (a sweep writes 4).
+MAX_NESTING = 32
+
+
+def _nested_deeper(x: Any, limit: int) -> bool:
+    """Whether objects/lists in ``x`` nest deeper than ``limit`` levels (walked without recursion)."""
+    stack = [(x, 0)]
+    while stack:
+        v, depth = stack.pop()
+        if isinstance(v, Mapping):
+            children = list(v.values())
+        elif isinstance(v, (list, tuple)):
+            children = list(v)
+        else:
+            continue
+        if depth >= limit:
+            return True
+        stack.extend((c, depth + 1) for c in children)
+    return False
+
+
+#: Largest array an IOPC ``.npz`` may hold, in bytes (an IOPC of 1000 × 1000 bins holds 8 MB per array).
+MAX_NPZ_ARRAY_BYTES = 64 * 2**20
+
+
+def _check_npz_sizes(path: Path) -> None:
+    """Refuse an ``.npz`` whose members would be larger than :data:`MAX_NPZ_ARRAY_BYTES` once read — by the size the
+    archive declares (a compressed "zip bomb") or by the shape an array's header claims (numpy allocates that shape
+    before it reads) — before anything is decompressed or allocated (``ValueError``)."""
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            if info.file_size > MAX_NPZ_ARRAY_BYTES + 4096:
+                raise ValueError(f"member {info.filename!r} declares {info.file_size} bytes uncompressed, more than an "
+                                 f"IOPC holds (at most {MAX_NPZ_ARRAY_BYTES} bytes per array)")
+            if not info.filename.endswith(".npy"):
+                continue
+            with zf.open(info) as fh:
+                try:
+                    version = np.lib.format.read_magic(fh)
+                    shape, _, dtype = (np.lib.format.read_array_header_1_0(fh) if version == (1, 0)
+                                       else np.lib.format.read_array_header_2_0(fh))
+                except ValueError as exc:
+                    raise ValueError(f"member {info.filename!r} is not a numpy array file ({exc})") from None
+            n = 1
+            for d in shape:
+                n *= int(d)
+            if n * max(dtype.itemsize, 1) > MAX_NPZ_ARRAY_BYTES:
+                raise ValueError(f"member {info.filename!r} claims an array of shape {tuple(shape)} ({dtype}), more than "
+                                 f"an IOPC holds (at most {MAX_NPZ_ARRAY_BYTES} bytes per array)")
 
 
 def _typed(value: Any) -> str:

@@ -337,3 +337,38 @@ def test_an_estimate_slightly_above_1_stays_in_the_relation_as_1():
             r["mtf_tilde"] = 1.02
     iopc = IOPC.from_records(recs)
     assert float(iopc.blur_mtf[0]) == 1.0
+
+
+def test_an_npz_claiming_a_huge_array_is_refused_before_anything_is_allocated(tmp_path):
+    """A header claiming shape (10^13,) raised a bare MemoryError (72.8 TiB) without the file's name."""
+    import io
+    import zipfile
+
+    good = tmp_path / "good.npz"
+    IOPC.from_records(_records()).save(good)
+    bad = tmp_path / "bad.npz"
+    with zipfile.ZipFile(good) as zin, zipfile.ZipFile(bad, "w") as zout:
+        for info in zin.infolist():
+            data = zin.read(info)
+            if info.filename == "ap_2d.npy":
+                buf = io.BytesIO()
+                np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": (10**13,)})
+                data = buf.getvalue() + b"\0" * 64
+            zout.writestr(info.filename, data)
+    with pytest.raises(ValueError, match=r"bad.npz.*ap_2d.npy.*claims an array of shape \(10000000000000,\)"):
+        IOPC.load(bad)
+
+
+def test_a_provenance_nested_too_deeply_is_refused_on_load(tmp_path):
+    """It loaded, and then save() failed by recursion."""
+    d = IOPC.from_records(_records()).to_dict()
+    deep: dict = {}
+    cur = deep
+    for _ in range(900):
+        cur["x"] = {}
+        cur = cur["x"]
+    d["provenance"] = {"config": deep}
+    path = tmp_path / "deep.json"
+    path.write_text(json.dumps(d), encoding="utf-8")
+    with pytest.raises(ValueError, match="provenance is nested deeper than 32 levels"):
+        IOPC.load(path)
