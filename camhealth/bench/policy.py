@@ -68,19 +68,8 @@ def _direct(pol: Any, s: float, m: float, rho: float, t: float, g: float) -> tup
     return float(near[np.argmin(np.abs(np.log(near)))]), best
 
 
-def _time(fn: Any, repeats: int, warmup: int) -> list[float]:
-    for _ in range(warmup):
-        fn()
-    out = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        out.append(1e3 * (time.perf_counter() - t))
-    return out
-
-
 def run(args: argparse.Namespace) -> BenchResult:
-    from camhealth.bench.corruption import _load, machine_description
+    from camhealth.bench.corruption import _load, _time_round_robin, machine_description
     from camhealth.control import ExposurePolicy
     from camhealth.iopc import IOPC
 
@@ -105,6 +94,9 @@ def run(args: argparse.Namespace) -> BenchResult:
     reference = [_direct(default, s, m, r, t, g) for s, m, r, t, g in inputs]
     rows: list[Row] = []
     summary: list[str] = []
+    fns = {name: (lambda pol=pol: [pol.decide(s, m, t, g, rho=r) for s, m, r, t, g in inputs])
+           for name, (pol, _) in variants.items()}
+    times = _time_round_robin(fns, args.repeats, args.warmup)  # the table rows, round robin
     for name, (pol, built) in variants.items():
         decisions = [pol.decide(s, m, t, g, rho=r) for s, m, r, t, g in inputs]
         loss, other, err = [], 0, []
@@ -115,14 +107,13 @@ def run(args: argparse.Namespace) -> BenchResult:
             if math.isfinite(at):
                 err.append(abs(d.expected_ap - at))
         lv = np.asarray(loss)
-        times = _time(lambda pol=pol: [pol.decide(s, m, t, g, rho=r) for s, m, r, t, g in inputs], args.repeats, args.warmup)
-        rows.append(Row(name, times, note=(
+        rows.append(Row(name, times[name], note=(
             f"σ̂ step {pol.sigma_step:.3g} DN, MTF̂ step {pol.mtf_step:.3g}, {pol.rho_grid.size} ρ levels: "
             f"{pol.table_bytes / 1e6:.1f} MB, built in {built:.2f} s · loss max {lv.max():.4f} / p99 {np.quantile(lv, 0.99):.4f} / "
             f"mean {lv.mean():.5f} AP · other α {100.0 * other / len(inputs):.1f} % · |expected − direct| max {max(err):.4f} AP")))
-    times = _time(lambda: [_direct(default, s, m, r, t, g) for s, m, r, t, g in inputs],
-                  max(1, args.repeats // 4), min(args.warmup, 1))
-    rows.append(Row("direct objective (no table)", times, note="the reference: loss 0 by definition"))
+    direct = _time_round_robin({"direct": lambda: [_direct(default, s, m, r, t, g) for s, m, r, t, g in inputs]},
+                               max(1, args.repeats // 4), min(args.warmup, 1))["direct"]
+    rows.append(Row("direct objective (no table)", direct, note="the reference: loss 0 by definition"))
     result = BenchResult(
         title=f"Exposure/gain policy: look-up table against the direct objective, {args.decisions} random decisions, CPU",
         rows=rows, baseline=rows[0].name)
