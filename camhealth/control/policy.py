@@ -397,8 +397,8 @@ class ExposurePolicy:
                     "would change it cannot be told from this IOPC (sweep longer motion blurs)")
         if not (math.isfinite(exposure_s) and exposure_s > 0):
             raise ValueError(f"exposure_s = {exposure_s!r} s must be a finite number > 0")
-        if not math.isfinite(gain_db):
-            raise ValueError(f"gain_db = {gain_db!r} dB must be finite")
+        if not (math.isfinite(gain_db) and abs(gain_db) <= 200.0):  # (10^(gain/20) overflows a float near 6000 dB)
+            raise ValueError(f"gain_db = {gain_db!r} dB is out of the allowed range: a finite gain in [-200, 200] dB")
         rho_v = self._rho(sigma_sources, rho)
         lo_x, hi_x = self._alpha_limits(exposure_s, gain_db)
         lo, hi = lo_x * (1 - 1e-9), hi_x * (1 + 1e-9)  # = _alpha_interval: feasibility with a float tolerance

@@ -285,3 +285,10 @@ def test_a_table_too_large_to_build_is_refused_before_it_is_built():
         ExposurePolicy(NOISE_HATER, sigma_step_dn=1e-4)
     with pytest.raises(ValueError, match=r"the table would hold"):
         ExposurePolicy(NOISE_HATER, sigma_max_dn=1e12)
+
+
+def test_a_gain_no_camera_has_is_refused_not_overflowed():
+    pol = ExposurePolicy(BLUR_HATER, **FAST)
+    for g in (-1e308, 1e4):
+        with pytest.raises(ValueError, match=r"gain_db = .* is out of the allowed range: a finite gain in \[-200, 200\] dB"):
+            pol.decide(5.0, 0.8, 0.02, g)
