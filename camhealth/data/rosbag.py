@@ -95,7 +95,11 @@ SUPPORTED_ENCODINGS: tuple[str, ...] = (
 #: How a Bayer mosaic becomes gray (see the module docstring).
 BAYER_MODES = ("green", "luma")
 _FIELD_PATH = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\[\d+\])?(\.[A-Za-z_][A-Za-z0-9_]*(\[\d+\])?)*$")
-_NUMERIC = (int, float, np.integer, np.floating, np.bool_, bool)
+_NUMERIC = (int, float, np.integer, np.floating)  # (a bool is no camera reading: True would read as 1)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, _NUMERIC) and not isinstance(value, (bool, np.bool_))
 
 
 class RecordingError(ValueError):
@@ -317,7 +321,7 @@ def _numeric_fields(obj: Any, prefix: str = "", depth: int = 0) -> list[str]:
     out = []
     for name in _fields(obj):
         value = getattr(obj, name)
-        if isinstance(value, _NUMERIC):
+        if _is_number(value):
             out.append(prefix + name)
         elif dataclasses.is_dataclass(value) and depth < 3 and name != "header":
             out += _numeric_fields(value, f"{prefix}{name}.", depth + 1)
@@ -342,8 +346,9 @@ def _extract(msg: Any, path: str) -> float:
                 raise KeyError(f"field {name!r} has {size} element(s); index [{i}] is out of range") from None
     if isinstance(obj, np.ndarray) and obj.size == 1:
         obj = obj.reshape(()).item()
-    if not isinstance(obj, _NUMERIC):
-        raise TypeError(f"field {path!r} holds {type(obj).__name__}, not a number")
+    if not _is_number(obj):
+        what = "bool" if isinstance(obj, (bool, np.bool_)) else type(obj).__name__
+        raise TypeError(f"field {path!r} holds {what}, not a number")
     return float(obj)
 
 

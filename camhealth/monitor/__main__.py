@@ -5,7 +5,8 @@ Runs :class:`camhealth.monitor.Monitor` on every frame of SOURCE and writes one 
 end (``DIR/summary.json`` too). A robot recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2
 folder) is read with the camera state of its topics, and ``--diagnostics-out`` writes one
 ``diagnostic_msgs/DiagnosticArray`` per frame (:mod:`camhealth.monitor.diagnostics`). Exit status: 0 on
-success (unreadable frames in a folder or recording and partly decoded video frames are reported and skipped),
+success (unreadable frames in a folder or recording, partly decoded video frames and frames that do not fit
+``--defect-map`` are reported and skipped),
 2 on an error (missing/unreadable source, undecodable video, ``--start`` past the end, damaged recording, unknown
 topic, bad metadata, missing or refused model, no frame scored at all, a ``--defects-out`` that cannot be written —
 after ``summary.json`` —, …), with a one-line message (``--debug``: the traceback).
@@ -16,14 +17,17 @@ entries as ``FIELD=VALUE`` strings).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import re
 import sys
 import time
+import warnings
 from pathlib import Path
-from typing import Any, Sequence, TextIO
+from typing import Any, Iterator, Sequence, TextIO
 
 from camhealth._cli import BadValue, add_debug_flag, config_parser, run_cli
+from camhealth.monitor.api import MAX_SAMPLES, MAX_WINDOW
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS, UNITS
 
 __all__ = ["build_parser", "main"]
@@ -59,7 +63,7 @@ Metadata file (--metadata), JSON or YAML, physical units (thesis Table 4.1):
   A Full-Meta noise model needs all 11 (from the file or a preset); a missing or out-of-range field is an
   error that names the field and its range.
 
-Output, one JSON object per frame (keys): frame, index, source_id, size, assessable, metadata,
+Output, one JSON object per frame (keys): frame, index, source_id, size, input_scaling, assessable, metadata,
   noise {{estimator, patch_px, grid, assessable, sigma_dn {{pn, dcsn, rn, xi, total: {{median, spread,
   temporal_spread, current}}}}, patches {{estimated, interpolated, reused, black, saturated, featureless,
   no_edges, not_assessable, total}}, refused {{reason: patches}}, banding {{row_dn, col_dn, patches}} (row and
@@ -68,7 +72,10 @@ Output, one JSON object per frame (keys): frame, index, source_id, size, assessa
   patches}} (where the noise contradicts the metadata: what it most likely is; null without)}}, mtf {{…, h, v: {{median, …}} (8 values each), indicator}}, alarm {{state:
   ok|noisier|cleaner|not_assessable|unavailable, xi_dn, limit_dn, message}}, advice (with --iopc), timing_ms.
   Unreadable frames of a folder and partly decoded video frames give {{"frame_error": …}} lines, never scores.
-  16-bit frames are scaled by their significant bits (--bit-depth; the summary names the scaling used).
+  16-bit frames are scaled by their significant bits (--bit-depth; each line and the summary name the scaling
+  used); a frame at another scale than the one before (auto: a depth guessed from each frame's largest value)
+  restarts the aggregation with a warning — give the camera's bits with --bit-depth.
+  A frame whose size is not the --defect-map's gets a {{"frame_error": …}} line too.
   See docs/monitor.md.
 
 Examples:
@@ -82,8 +89,8 @@ Examples:
 """
 
 
-def _int_at_least(lo: int):
-    """Option type: an integer >= ``lo``, with a message naming the value and the bound."""
+def _int_at_least(lo: int, hi: int | None = None):
+    """Option type: an integer >= ``lo`` (and <= ``hi``), with a message naming the value and the bounds."""
 
     def parse(value: str | int) -> int:
         try:
@@ -92,6 +99,8 @@ def _int_at_least(lo: int):
             n = int(value)
         except ValueError:
             raise BadValue(f"must be an integer, got {value!r}") from None
+        if hi is not None and not lo <= n <= hi:
+            raise BadValue(f"must be an integer {lo}…{hi}, got {n}")
         if n < lo:
             raise BadValue(f"must be >= {lo}, got {n}")
         return n
@@ -101,23 +110,29 @@ def _int_at_least(lo: int):
 
 _positive = _int_at_least(1)
 _non_negative_int = _int_at_least(0)
+_window = _int_at_least(1, MAX_WINDOW)
+_samples = _int_at_least(1, MAX_SAMPLES)
+
+
+def _number(value: str | float) -> float:
+    """A number of an option (a config file's ``true`` is none: it would read as 1)."""
+    try:
+        if isinstance(value, bool):
+            raise ValueError
+        return float(value)
+    except (TypeError, ValueError):
+        raise BadValue(f"must be a number, got {value!r}") from None
 
 
 def _non_negative(value: str | float) -> float:
-    try:
-        x = float(value)
-    except ValueError:
-        raise BadValue(f"must be a number, got {value!r}") from None
+    x = _number(value)
     if not x >= 0 or x == float("inf"):
         raise BadValue(f"must be a finite number >= 0, got {value}")
     return x
 
 
 def _positive_number(value: str | float) -> float:
-    try:
-        x = float(value)
-    except ValueError:
-        raise BadValue(f"must be a number, got {value!r}") from None
+    x = _number(value)
     if not x > 0 or x == float("inf"):
         raise BadValue(f"must be a finite number > 0, got {value}")
     return x
@@ -209,10 +224,10 @@ def build_parser():
                         "with edges for blur, rotating over the frame; cost independent of camera motion); map: every "
                         "informative patch (per-patch maps, static reuse); auto (default): map with --per-patch or "
                         "--overlay, else sampled")
-    g.add_argument("--noise-samples", type=_positive, default=8, metavar="N",
-                   help="sampled mode: noise patches per frame (default 8)")
-    g.add_argument("--mtf-samples", type=_positive, default=6, metavar="N",
-                   help="sampled mode: MTF patches per frame (default 6)")
+    g.add_argument("--noise-samples", type=_samples, default=8, metavar="N",
+                   help=f"sampled mode: noise patches per frame, 1…{MAX_SAMPLES} (default 8)")
+    g.add_argument("--mtf-samples", type=_samples, default=6, metavar="N",
+                   help=f"sampled mode: MTF patches per frame, 1…{MAX_SAMPLES} (default 6)")
     g.add_argument("--no-adaptive", action="store_true",
                    help="estimate every informative patch of every frame (no static reuse, no coarse-to-fine)")
     g.add_argument("--no-reuse", action="store_true", help="do not reuse estimates of static regions across frames")
@@ -236,8 +251,8 @@ def build_parser():
     g.add_argument("--min-structure-dn", type=_non_negative, default=2.0, metavar="DN",
                    help="blur: skip a patch whose noise-corrected structure contrast is below this (default 2 DN)")
     g = p.add_argument_group("aggregation and alarm")
-    g.add_argument("--window", type=_positive, default=5, metavar="N",
-                   help="temporal median over the last N estimates of each patch (default 5)")
+    g.add_argument("--window", type=_window, default=5, metavar="N",
+                   help=f"temporal median over the last N estimates of each patch, 1…{MAX_WINDOW} (default 5)")
     g.add_argument("--xi-threshold-dn", type=_non_negative, default=1.0, metavar="DN",
                    help="alarm when |ξ| exceeds this (and 3 standard errors of the median; default 1 DN)")
     g.add_argument("--xi-sigmas", type=_non_negative, default=3.0, metavar="K",
@@ -261,7 +276,7 @@ def build_parser():
                    help="weights λ of the IOPCs (Eq. 4.8), one per --iopc")
     for name, key, what in (("exposure", "exposure_s", "exposure"), ("gain", "gain_db", "gain")):
         lo, hi = METADATA_RANGES[key]
-        g.add_argument(f"--{name}-limits", type=float, nargs=2, default=[lo, hi], metavar=("LO", "HI"),
+        g.add_argument(f"--{name}-limits", type=_number, nargs=2, default=[lo, hi], metavar=("LO", "HI"),
                        help=f"camera {what} limits in {UNITS[key]}, LO <= HI within the metadata range {lo:g} … {hi:g} "
                             f"(default {lo:g} {hi:g})")
     g = p.add_argument_group("frames")
@@ -344,6 +359,31 @@ class _Progress:
         if self.bar is not None:
             self.bar.close()
 
+    def write(self, text: str) -> None:
+        """One line on stderr, above the bar."""
+        if self.bar is not None:
+            self.bar.write(text, file=sys.stderr)
+        else:
+            print(text, file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _one_line_warnings(category: type[Warning], progress: _Progress) -> Iterator[None]:
+    """Within it, every warning of ``category`` is one ``warning: …`` line on stderr, each time it is raised (other
+    warnings are shown as before)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", category)
+        shown = warnings.showwarning
+
+        def show(message, cat, filename, lineno, file=None, line=None):  # noqa: ANN001 - warnings.showwarning's
+            if issubclass(cat, category):
+                progress.write(f"warning: {message}")
+            else:
+                shown(message, cat, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield
+
 
 def _fmt(x: Any, spec: str = ".2f") -> str:
     return "–" if x is None else format(x, spec)
@@ -417,13 +457,24 @@ def _source_files(source: Any) -> list[Path]:
     return [path]
 
 
+def _config_files(args: argparse.Namespace) -> list[str]:
+    """The ``--config`` files the options were read from (not inline YAML), as the parser resolved them."""
+    out = []
+    for given in getattr(args, "config", None) or ():
+        if given is not None:  # (None: inline YAML given to --config)
+            out.append(str(getattr(given, "absolute", given)))  # jsonargparse's Path: resolved where it was parsed
+    return out
+
+
 def _input_files(args: argparse.Namespace, members: Sequence[Path] = ()) -> dict[Any, str]:
-    """Every input of the run (``SOURCE`` and the files it reads, ``--defect-map``, ``--metadata``, ``--iopc``) by its
-    resolved path and by its file identity (device, inode: a hard link or a link to it) → ``"OPTION PATH"``."""
+    """Every input of the run (``SOURCE`` and the files it reads, ``--defect-map``, ``--metadata``, ``--iopc``,
+    ``--config``) by its resolved path and by its file identity (device, inode: a hard link or a link to it) →
+    ``"OPTION PATH"``."""
     import os
 
     inputs = [("SOURCE", args.source), *(("SOURCE", m) for m in members), ("--defect-map", args.defect_map),
-              ("--metadata", args.metadata), *(("--iopc", f) for f in args.iopc)]
+              ("--metadata", args.metadata), *(("--iopc", f) for f in args.iopc),
+              *(("--config", f) for f in _config_files(args))]
     out: dict[Any, str] = {}
     for option, given in inputs:
         if given is None:
@@ -556,7 +607,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_source(args: argparse.Namespace, source: Any) -> int:
-    from camhealth.monitor.api import Monitor, load_policy
+    from camhealth.monitor.api import FrameSizeError, InputScalingChanged, Monitor, load_policy
     from camhealth.physics.metadata import read_metadata_mapping
     from camhealth.monitor.overlay import save_overlay
     from camhealth.monitor.tiling import SelectionConfig
@@ -606,32 +657,42 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     frames = 0
     overlays = 0
     t0 = time.perf_counter()
+
+    def frame_error(item: Any, source_id: str, error: str, status: str) -> None:
+        """A frame that is not scored: a ``frame_error`` line (and diagnostics message), counted as unreadable."""
+        error = _printable(error)
+        unreadable.append(f"{source_id}: {error}")
+        line = {"frame_error": error, "index": item.index, "source_id": source_id}
+        sink.write(json.dumps(line, ensure_ascii=False) + "\n")
+        if diagnostics is not None:
+            diagnostics.write_error(error, item.index, source_id, item.stamp_ns, item.log_time_ns or 0, item.frame_id)
+        progress.update(status)
+
     try:
-        for item in source:
-            source_id = _printable(item.source_id)  # (a file name need not be UTF-8; the outputs are)
-            if item.error is not None:
-                error = _printable(item.error)
-                unreadable.append(f"{source_id}: {error}")
-                line = {"frame_error": error, "index": item.index, "source_id": source_id}
-                sink.write(json.dumps(line, ensure_ascii=False) + "\n")
+        with _one_line_warnings(InputScalingChanged, progress):
+            for item in source:
+                source_id = _printable(item.source_id)  # (a file name need not be UTF-8; the outputs are)
+                if item.error is not None:
+                    frame_error(item, source_id, item.error, "unreadable frame")
+                    continue
+                try:
+                    report = monitor.process(item.frame, metadata=item.metadata, index=item.index, source_id=source_id,
+                                             input_scaling=item.input_scaling())
+                except FrameSizeError as exc:  # a frame the --defect-map does not fit: that frame, not the run
+                    frame_error(item, source_id, str(exc), "frame refused")
+                    continue
+                frames += 1
+                if item.scaling is not None:
+                    scalings[item.scaling] = scalings.get(item.scaling, 0) + 1
                 if diagnostics is not None:
-                    diagnostics.write_error(error, item.index, source_id, item.stamp_ns, item.log_time_ns or 0,
-                                            item.frame_id)
-                progress.update("unreadable frame")
-                continue
-            frames += 1
-            if item.scaling is not None:
-                scalings[item.scaling] = scalings.get(item.scaling, 0) + 1
-            report = monitor.process(item.frame, metadata=item.metadata, index=item.index, source_id=source_id)
-            if diagnostics is not None:
-                diagnostics.write_report(report, item.stamp_ns, item.log_time_ns or 0, item.frame_id)
-            sink.write(report.to_json() + "\n")
-            sink.flush()
-            if args.overlay and report.frame % args.overlay_every == 0:
-                png = out_dir / "overlays" / f"frame_{item.index:06d}.png"
-                save_overlay(png, item.frame, report, sigma_max_dn=args.sigma_max_dn)
-                overlays += 1
-            progress.update(f"{report.timing_ms['total']:.0f} ms, ξ {report.alarm['state']}")
+                    diagnostics.write_report(report, item.stamp_ns, item.log_time_ns or 0, item.frame_id)
+                sink.write(report.to_json() + "\n")
+                sink.flush()
+                if args.overlay and report.frame % args.overlay_every == 0:
+                    png = out_dir / "overlays" / f"frame_{item.index:06d}.png"
+                    save_overlay(png, item.frame, report, sigma_max_dn=args.sigma_max_dn)
+                    overlays += 1
+                progress.update(f"{report.timing_ms['total']:.0f} ms, ξ {report.alarm['state']}")
     finally:
         progress.close()
         if out_dir is not None:

@@ -109,6 +109,10 @@ __all__ = [
     "group_causes",
     "top_cause",
     "MTF_BANDING_LIMIT_DN",
+    "MAX_WINDOW",
+    "MAX_SAMPLES",
+    "FrameSizeError",
+    "InputScalingChanged",
 ]
 
 #: Columns of the per-patch noise values (DN): σ per source, ξ, total.
@@ -121,6 +125,24 @@ _VALUE_STATUS = (ESTIMATED, INTERPOLATED, REUSED)
 #: Monitor modes: ``"sampled"`` (a few patches per frame, frame-level answer), ``"map"`` (every informative
 #: patch, per-patch maps) and ``"auto"`` (``"map"`` when per-patch output is asked for, else ``"sampled"``).
 MODES: tuple[str, ...] = ("auto", "sampled", "map")
+#: The largest ``window`` (frames of the temporal median): 200× the default 5, 100 s of a 10 frames/s stream. The
+#: aggregation keeps ``window`` values of every patch, allocated at once (``window`` × patches × 16 values): a larger
+#: window would take gigabytes, or fail to allocate, on a large frame, and a camera state rarely holds that long.
+MAX_WINDOW = 1000
+#: The largest ``noise_samples`` and ``mtf_samples`` (patches per frame in sampled mode): 32× the default 8, more than
+#: the 128-px patches of a 1920×1080 frame (120; a frame with fewer informative patches samples all of them). The window keeps
+#: ``window`` × samples × 16 values per task, allocated at once.
+MAX_SAMPLES = 256
+
+
+class FrameSizeError(ValueError):
+    """A frame whose size does not fit the monitor's defect map (:meth:`Monitor.process`): that frame is refused, the
+    monitor is unchanged and goes on with the next frame (the CLI writes a ``frame_error`` line for it)."""
+
+
+class InputScalingChanged(UserWarning):
+    """:meth:`Monitor.process` was given a frame scaled to [0, 1] differently from the frame before (``input_scaling``):
+    the temporal aggregation restarted."""
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -203,6 +225,8 @@ def as_frame(frame: Any, bit_depth: int | None = None) -> torch.Tensor:
             raise ValueError(f"bit_depth = {bit_depth} is for uint16 frames; this frame is {arr.dtype} in [0, 1]: give "
                              "bit_depth=None")
         gray = to_gray(arr) if arr.ndim == 3 else arr
+        if not from_integers:  # checked before float32, which would turn a float64 1e300 into inf
+            _check_float_values(torch.from_numpy(np.ascontiguousarray(gray)))
         x = torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32))
     elif isinstance(frame, torch.Tensor):
         if frame.dtype == torch.bool or frame.is_complex():
@@ -234,6 +258,8 @@ def as_frame(frame: Any, bit_depth: int | None = None) -> torch.Tensor:
             x = to_gray(x)[0]
         elif x.ndim != 2:
             raise ValueError(f"frame must be H×W, C×H×W or 1×C×H×W, got shape {tuple(frame.shape)}")
+        if not from_integers and x.numel():  # checked before float32, which would turn a float64 1e300 into inf
+            _check_float_values(x)
         x = x.float()
     else:
         raise TypeError(f"frame must be a torch.Tensor or numpy.ndarray, got {type(frame).__name__}")
@@ -241,13 +267,19 @@ def as_frame(frame: Any, bit_depth: int | None = None) -> torch.Tensor:
         raise ValueError(f"frame is empty (shape {tuple(x.shape)})")
     if from_integers:  # DN / max: finite and in [0, 1] by construction
         return x.contiguous()[None, None]
+    return x.clamp(0, 1).contiguous()[None, None]
+
+
+def _check_float_values(x: torch.Tensor) -> None:
+    """A float frame's values (in their own precision, before float32) must be finite and lie in [0, 1]."""
+    if x.numel() == 0:
+        return
     if not bool(torch.isfinite(x).all()):
         raise ValueError(f"frame holds {int((~torch.isfinite(x)).sum())} non-finite value(s) (NaN/inf)")
     lo, hi = float(x.min()), float(x.max())
     if lo < -1e-6 or hi > 1 + 1e-6:
         hint = " (looks like DN: pass a uint8 array or divide by 255)" if hi <= 255 and lo >= 0 else ""
         raise ValueError(f"float frame values must lie in [0, 1], got min {lo:g}, max {hi:g}{hint}")
-    return x.clamp(0, 1).contiguous()[None, None]
 
 
 def _one_number(key: str, value: Any) -> float:
@@ -255,18 +287,38 @@ def _one_number(key: str, value: Any) -> float:
     one-element array or tensor); a bool, a string or several values (a batch of camera states) are refused."""
     if key == "is_cmos" and isinstance(value, (bool, np.bool_)):
         return float(value)
-    if isinstance(value, bool) or isinstance(value, (np.bool_, str, bytes)):
+    if value is None or isinstance(value, bool) or isinstance(value, (np.bool_, str, bytes)):
         raise ValueError(f"per-frame metadata: field {key} = {value!r} must be a number in physical units")
     if isinstance(value, (int, float)):
         return float(value)
     try:
-        arr = np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value, dtype=np.float64)
+        arr = np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value)
+        if arr.dtype.kind == "b" and key != "is_cmos":  # a 0-d bool array or tensor is True/False, not a number
+            raise ValueError
+        if arr.dtype.kind in "cUS":  # (complex: its imaginary part would be dropped; text: as a plain string)
+            raise ValueError
+        arr = arr.astype(np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"per-frame metadata: field {key} = {value!r} must be a number in physical units") from None
     if arr.size != 1:
         raise ValueError(f"per-frame metadata: field {key} holds {arr.size} values; a frame has one camera state "
                          "(one number per field)")
     return float(arr.reshape(-1)[0])
+
+
+def _input_scaling(scaling: Any) -> tuple[Any, str | None, bool]:
+    """(what a change is judged by, the text the report carries, whether the scale was guessed from the frame's values)
+    of :meth:`Monitor.process`'s ``input_scaling``: ``None``; an :class:`~camhealth.data.io.ImageScaling` — judged by its
+    bits (the divisor 2^bits − 1: a frame read at another divisor is on another scale, however the file stored it),
+    reported as its ``describe()``; or a text, judged and reported as it is."""
+    if scaling is None:
+        return None, None, False
+    if isinstance(scaling, str):
+        return ("text", scaling), scaling, False
+    if hasattr(scaling, "describe") and hasattr(scaling, "bits") and hasattr(scaling, "source"):
+        return ("bits", scaling.bits), scaling.describe(), scaling.source in ("largest value", "sequence")
+    raise TypeError(f"input_scaling = {scaling!r} must be None, a text or a camhealth.data.io.ImageScaling, "
+                    f"got {type(scaling).__name__}")
 
 
 def load_metadata(
@@ -552,6 +604,8 @@ class FrameReport:
         alarm: ξ alarm (state, ξ̃, limit, message).
         advice: policy decision, or why there is none (``None`` without a policy).
         timing_ms: convert / noise / mtf / aggregate / total [ms].
+        input_scaling: how the frame's values were scaled to [0, 1] before it reached the monitor (``process``'s
+            ``input_scaling``: e.g. ``"16-bit file read as 12-bit data (÷4095, as given)"``), ``None`` where not told.
     """
 
     frame: int
@@ -566,6 +620,7 @@ class FrameReport:
     advice: dict[str, Any] | None
     timing_ms: dict[str, float]
     per_patch: bool = False
+    input_scaling: str | None = None
 
     @property
     def assessable(self) -> bool:
@@ -578,6 +633,7 @@ class FrameReport:
             "index": self.index,
             "source_id": self.source_id,
             "size": [self.width, self.height],
+            "input_scaling": self.input_scaling,
             "assessable": self.assessable,
             "metadata": None if self.metadata is None else {k: _num(v, 6) for k, v in self.metadata.items()},
             "noise": None if self.noise is None else self.noise.to_dict(self.per_patch),
@@ -1077,14 +1133,14 @@ class Monitor:
         metadata: camera metadata (see :func:`load_metadata`: CameraMetadata, mapping, .json/.yaml path);
             required when the noise estimator reads metadata.
         sensor: sensor preset that fills missing metadata fields (or is the metadata).
-        window: n of the temporal median (Eq. 5.4), frames (>= 1).
+        window: n of the temporal median (Eq. 5.4), frames (1…:data:`MAX_WINDOW`).
         mode: ``"sampled"`` — a frame-level answer from a few patches per frame (``noise_samples`` flat patches
             spread over the intensities, ``mtf_samples`` patches with edges spread over the frame, both rotating
             over the frame across frames; :func:`~camhealth.monitor.tiling.sample_patches`) pooled over the last
             ``window`` frames: cost independent of the scene and of camera motion; ``"map"`` — every informative
             patch (with ``adaptive`` reuse/interpolation), per-patch maps; ``"auto"`` (default) — ``"map"`` when
             ``per_patch`` output is asked for, else ``"sampled"``.
-        noise_samples, mtf_samples: patches per frame in sampled mode (>= 1; default 8 and 6).
+        noise_samples, mtf_samples: patches per frame in sampled mode (1…:data:`MAX_SAMPLES`; default 8 and 6).
         adaptive: reuse static patches and interpolate on the coarse lattice (``False``: estimate every
             informative patch of every frame).
         reuse_static, coarse_refine: the two parts of ``adaptive`` separately. A reused value enters its patch's
@@ -1162,13 +1218,13 @@ class Monitor:
         static_pairs: bool = False,
         exposure_evidence: bool = True,
     ) -> None:
-        if isinstance(window, bool) or not isinstance(window, int) or window < 1:
-            raise ValueError(f"window = {window!r} must be an integer >= 1 (frames)")
+        if isinstance(window, bool) or not isinstance(window, int) or not 1 <= window <= MAX_WINDOW:
+            raise ValueError(f"window = {window!r} must be an integer 1…{MAX_WINDOW} (frames)")
         if mode not in MODES:
             raise ValueError(f"mode = {mode!r} must be one of {list(MODES)}")
         for v, name in ((noise_samples, "noise_samples"), (mtf_samples, "mtf_samples")):
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} = {v!r} must be an integer >= 1 (patches per frame)")
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_SAMPLES:
+                raise ValueError(f"{name} = {v!r} must be an integer 1…{MAX_SAMPLES} (patches per frame)")
         if precision not in ("bf16", "fp32"):
             raise ValueError(f"precision = {precision!r} must be 'bf16' or 'fp32'")
         if mtf_views not in (1, 2, 4) or isinstance(mtf_views, bool):
@@ -1176,8 +1232,16 @@ class Monitor:
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size = {batch_size!r} must be an integer >= 1")
         for v, name in ((xi_threshold_dn, "xi_threshold_dn"), (xi_sigmas, "xi_sigmas")):
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            if isinstance(v, (bool, np.bool_)) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} = {v!r} must be a finite number >= 0")
+        for v, name in ((adaptive, "adaptive"), (reuse_static, "reuse_static"), (coarse_refine, "coarse_refine"),
+                        (skip_uninformative, "skip_uninformative"), (pool_noise, "pool_noise"), (per_patch, "per_patch"),
+                        (warmup, "warmup")):
+            if not isinstance(v, bool):  # (bool("false") is True)
+                raise TypeError(f"{name} = {v!r} must be True or False")
+        if selection is not None and not isinstance(selection, SelectionConfig):
+            raise TypeError(f"selection = {selection!r} must be a SelectionConfig (camhealth.monitor.SelectionConfig("
+                            f"max_clipped_fraction=…, min_structure_dn=…, max_age=…)) or None, got {type(selection).__name__}")
         self.window = window
         self.mode = ("map" if per_patch else "sampled") if mode == "auto" else mode
         self.n_samples = {"noise": int(noise_samples), "mtf": int(mtf_samples)}
@@ -1239,6 +1303,7 @@ class Monitor:
         self._states: dict[str, _TaskState] = {}
         self._shape: tuple[int, int] | None = None
         self._meta_key: tuple | None = None
+        self._scaling: tuple[Any, str, bool] | None = None  # the last input_scaling given: _input_scaling's answer
         self._prior_cache: tuple | None = None
         self._counter = 0
         self._times = _RunStat()  # ms per frame
@@ -1327,13 +1392,14 @@ class Monitor:
         for k in [k for k, (c, _) in self._exposure_cache.items() if self._counter - c > EXPOSURE_MEMORY_FRAMES]:
             del self._exposure_cache[k]
 
-    def _prepare(self, h: int, w: int) -> None:
+    def _prepare(self, h: int, w: int, source_id: str | None = None) -> None:
         if self._shape == (h, w):
             return
         if self.defect_map is not None and tuple(self.defect_map.shape) != (h, w):
             mh, mw = self.defect_map.shape
-            raise ValueError(f"the defect map is {mw}×{mh} px (W×H) but this frame is {w}×{h} px: the map must cover "
-                             "the whole frame, pixel for pixel")
+            which = "this frame" if source_id is None else f"frame {source_id}"
+            raise FrameSizeError(f"the defect map is {mw}×{mh} px (W×H) but {which} is {w}×{h} px: the map must cover "
+                                 "the whole frame, pixel for pixel; the frame is not scored")
         if self._shape is not None:  # another frame size: positions of the old one are not this one's pixels
             self._defect_seen.clear()
         self._shape = (h, w)
@@ -1370,6 +1436,10 @@ class Monitor:
         if isinstance(metadata, CameraMetadata):
             return load_metadata(metadata), None
         if isinstance(metadata, Mapping) and self.metadata is not None:
+            unknown = [k for k in metadata if k not in FULL_FIELDS and k not in ("sensor", "sensor_type")]
+            if unknown:
+                raise ValueError(f"per-frame metadata: unknown metadata field(s) {sorted(unknown, key=str)}; known "
+                                 f"fields: {list(FULL_FIELDS)}")
             changed = {k: _one_number(k, v) for k, v in metadata.items()}  # one camera state: a number per field
             try:
                 return self.metadata.replace(**changed), None
@@ -1773,20 +1843,35 @@ class Monitor:
 
     # ------------------------------------------------------------------ public
     def process(self, frame: Any, metadata: Any = None, index: int | None = None, source_id: str | None = None,
-                bit_depth: int | None = None) -> FrameReport:
+                bit_depth: int | None = None, input_scaling: Any = None) -> FrameReport:
         """Monitor one frame (see :func:`as_frame` for accepted inputs) → :class:`FrameReport`.
 
         ``metadata``: this frame's metadata if it differs from the monitor's (CameraMetadata, a mapping of
         changed fields such as ``{"gain_db": 12}``, or a file); a change restarts the aggregation.
         ``bit_depth``: the significant bits of a uint16 frame (:func:`as_frame`): ``None`` (default) or 16 reads it as
         DN/65535, 10, 12 or 14 as DN/(2^bit_depth − 1) — nothing is guessed from the values (the CLI's image files are
-        read by :func:`camhealth.data.read_image` with ``--bit-depth``, ``auto`` by default)."""
+        read by :func:`camhealth.data.read_image` with ``--bit-depth``, ``auto`` by default).
+        ``input_scaling``: how the frame was scaled to [0, 1] before it came here — the
+        :class:`~camhealth.data.io.ImageScaling` of :func:`camhealth.data.read_image_scaled` (a source item's
+        ``image_scaling``) or a text (``item.scaling``); the report carries it (``input_scaling``, the ImageScaling's
+        ``describe()``). A frame at another scale than the last one given (another divisor 2^bits − 1; another text)
+        restarts everything, as :meth:`reset` does — its values are not comparable with the window's — with an
+        :class:`InputScalingChanged` warning naming both; ``None`` (default) says nothing and changes nothing.
+
+        Raises :class:`FrameSizeError` (a ``ValueError``) for a frame that does not fit the defect map, leaving the
+        monitor as it was."""
         t0 = time.perf_counter()
+        scale_key, scale_text, guessed = _input_scaling(input_scaling)
         with torch.inference_mode():
             x = as_frame(frame, bit_depth)
             meta, given = self._frame_metadata(metadata)
             h, w = int(x.shape[-2]), int(x.shape[-1])
-            self._prepare(h, w)
+            self._prepare(h, w, source_id)
+            if scale_key is not None:
+                if self._scaling is not None and scale_key != self._scaling[0]:
+                    self.reset()  # (also the evidence kept per exposure time: it was read at the other scale)
+                    self._scaling_changed(self._scaling[1], scale_text, self._scaling[2] or guessed, index, source_id)
+                self._scaling = (scale_key, scale_text, guessed)
             key = None if meta is None else tuple(round(float(v[0]), 12) for v in meta.to_dict().values())
             if meta is None and given:  # fields given without a camera state (estimators that read none)
                 key = tuple(sorted((k, round(v, 12)) for k, v in given.items()))
@@ -1817,7 +1902,7 @@ class Monitor:
         timing["total"] = (time.perf_counter() - t0) * 1e3
         md = (given or None) if meta is None else {k: float(getattr(meta, k)[0]) for k in MINIMAL_FIELDS}
         report = FrameReport(self._counter, index, source_id, h, w, md, noise, reports.get("mtf"), alarm, advice,
-                             timing, self.per_patch)
+                             timing, self.per_patch, scale_text)
         self._counter += 1
         self._times.add(timing["total"])
         for task, r in reports.items():
@@ -1836,6 +1921,18 @@ class Monitor:
             self._causes[top] = self._causes.get(top, 0) + 1
         self._last = report
         return report
+
+    @staticmethod
+    def _scaling_changed(old: str, new: str, guessed: bool, index: int | None, source_id: str | None) -> None:
+        """The :class:`InputScalingChanged` warning of :meth:`process` (``guessed``: either scale was guessed)."""
+        where = source_id if source_id is not None else f"frame {index}" if index is not None else "this frame"
+        hint = ""
+        if guessed:
+            hint = ("; the scale of 16-bit frames without an sBIT chunk is guessed from their largest values, which "
+                    "change with the scene: pass --bit-depth N (bit_depth=N in Python), N the camera's significant "
+                    "bits, to read every frame at one scale")
+        warnings.warn(f"input scaling changed at {where} from {old!r} to {new!r}: the temporal aggregation restarts"
+                      + hint, InputScalingChanged, stacklevel=3)
 
     def _recurring(self, xy: list[tuple[int, int]]) -> int:
         """How many of this frame's defect positions were flagged in an earlier frame of the run; records them (at
@@ -1916,9 +2013,9 @@ class Monitor:
         """Monitor every frame of ``source`` (an image, a folder of frames, a video file, ``"street"`` or a
         recording with ``recording=RecordingOptions(topic=…)``, see :func:`camhealth.monitor.sources.open_source`)
         as the CLI does: yields ``(item, report)`` per frame, with ``report = None`` for a frame that could not
-        be read or a partly decoded video frame (``item.error`` says why). A recording's camera state
-        (``item.metadata``) is applied per frame. ``bit_depth``: significant bits of 16-bit frames (``item.scaling``
-        names it)."""
+        be read, a partly decoded video frame or a frame the defect map does not fit (``item.error`` says why). A
+        recording's camera state (``item.metadata``) is applied per frame. ``bit_depth``: significant bits of 16-bit
+        frames (``item.scaling`` names it; a change of it between frames restarts the aggregation, :meth:`process`)."""
         from camhealth.monitor.sources import open_source
 
         src = open_source(source, start, stride, max_frames, bit_depth=bit_depth, recording=recording)
@@ -1926,8 +2023,15 @@ class Monitor:
             for item in src:
                 if item.error is not None:
                     yield item, None
-                else:
-                    yield item, self.process(item.frame, metadata=item.metadata, index=item.index, source_id=item.source_id)
+                    continue
+                try:
+                    report = self.process(item.frame, metadata=item.metadata, index=item.index,
+                                          source_id=item.source_id, input_scaling=item.input_scaling())
+                except FrameSizeError as exc:  # a frame the defect map does not fit: that frame only
+                    item.error = str(exc)
+                    yield item, None
+                    continue
+                yield item, report
         finally:
             close = getattr(src, "close", None)
             if close is not None:

@@ -30,7 +30,7 @@ import torch
 
 from camhealth.data._common import check_frame_range
 from camhealth.data.image_folder import list_images
-from camhealth.data.io import IMAGE_EXTENSIONS, first_frame_bits, read_image_scaled, read_sequence_frame
+from camhealth.data.io import IMAGE_EXTENSIONS, ImageScaling, first_frame_bits, read_image_scaled, read_sequence_frame
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
 
 __all__ = ["SourceFrame", "FrameSource", "open_source", "STREET"]
@@ -42,8 +42,9 @@ STREET = "street"
 @dataclass
 class SourceFrame:
     """One item of a source: the frame (1×H×W in [0, 1]) or the error that kept it from being read, and how its
-    values were scaled to [0, 1] (:meth:`camhealth.data.io.ImageScaling.describe`; ``None`` for video frames,
-    8-bit DN/255).
+    values were scaled to [0, 1] (``scaling``: :meth:`camhealth.data.io.ImageScaling.describe`, or a recording's text;
+    ``None`` for video frames, 8-bit DN/255; ``image_scaling``: the :class:`~camhealth.data.io.ImageScaling` itself, for
+    image files). :meth:`input_scaling` is what :meth:`camhealth.monitor.Monitor.process` takes as ``input_scaling``.
 
     Items of a recording also carry ``metadata`` (the camera state of this frame: changed metadata fields,
     or ``None``), ``stamp_ns`` (image header stamp), ``log_time_ns`` and ``frame_id``."""
@@ -57,6 +58,13 @@ class SourceFrame:
     log_time_ns: int | None = None
     frame_id: str = ""
     scaling: str | None = None
+    image_scaling: ImageScaling | None = None
+
+    def input_scaling(self) -> ImageScaling | str | None:
+        """The frame's scaling as :meth:`camhealth.monitor.Monitor.process` takes it (``input_scaling``): the
+        ``ImageScaling`` of an image file (a change is judged by its divisor, not by the text that names its largest
+        value), else the text."""
+        return self.image_scaling if self.image_scaling is not None else self.scaling
 
 
 class FrameSource:
@@ -73,8 +81,7 @@ class FrameSource:
             _past_end(start, 1, path)
             self._files = [path]
             # a single unreadable image is a fatal, clear error
-            self._single, scaling = read_image_scaled(path, bit_depth)
-            self._single_scaling = scaling.describe()
+            self._single, self._single_scaling = read_image_scaled(path, bit_depth)
         elif kind == "folder":
             files = list_images(path, recursive=False)
             if not files:
@@ -98,7 +105,8 @@ class FrameSource:
     def __iter__(self) -> Iterator[SourceFrame]:
         if self.kind == "image":
             if self._files:
-                yield SourceFrame(0, str(self.path), self._single, scaling=self._single_scaling)
+                yield SourceFrame(0, str(self.path), self._single, scaling=self._single_scaling.describe(),
+                                  image_scaling=self._single_scaling)
             return
         if self.kind == "folder":
             # one scale for the folder where the depth is guessed: the first frame's, or more where a frame needs it
@@ -109,7 +117,7 @@ class FrameSource:
                 except (OSError, ValueError) as exc:
                     yield SourceFrame(idx, str(p), None, str(exc).splitlines()[0])
                     continue
-                yield SourceFrame(idx, str(p), frame, scaling=scaling.describe())
+                yield SourceFrame(idx, str(p), frame, scaling=scaling.describe(), image_scaling=scaling)
             return
         assert self._video is not None
         for frame, idx, error in self._video.frames():  # a damaged (partly decoded) frame comes with its error

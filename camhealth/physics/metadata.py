@@ -13,6 +13,7 @@ Units are in the field names: ``gain_db`` [dB], ``exposure_s`` [s], ``temperatur
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
@@ -161,10 +162,52 @@ def _as_vector(name: str, value: Any) -> torch.Tensor:
     return t
 
 
+class _DuplicateKey(ValueError):
+    """A key given twice in one mapping of a metadata file (the parsers would keep the last one silently)."""
+
+
+def _unique_json_object(pairs: list[tuple[str, Any]]) -> dict:
+    """``json.loads``' ``object_pairs_hook``: the object, or :class:`_DuplicateKey` naming a key given twice."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(f"field {key} is given twice ({out[key]!r} and {value!r})")
+        out[key] = value
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _unique_key_loader() -> Any:
+    """``yaml.SafeLoader`` (no Python objects) that refuses a key given twice in one mapping (:class:`_DuplicateKey`,
+    naming the key and its lines); keys a merge (``<<: *anchor``) brings in may be overridden, as YAML says."""
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen: dict[Any, int] = {}
+                for key_node, _ in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue
+                    key = self.construct_object(key_node, deep=False)
+                    line = key_node.start_mark.line + 1
+                    try:
+                        if key in seen:
+                            where = f"on line {line}" if seen[key] == line else f"lines {seen[key]} and {line}"
+                            raise _DuplicateKey(f"field {key} is given twice ({where})")
+                        seen[key] = line
+                    except TypeError:  # an unhashable key: the constructor reports it
+                        continue
+            return super().construct_mapping(node, deep=deep)
+
+    return UniqueKeyLoader
+
+
 def read_metadata_mapping(path: Any) -> dict:
     """The mapping of a ``.yaml``/``.yml``/``.json`` metadata file (``yaml.safe_load``/``json``: a file never executes
     code). Raises ``FileNotFoundError``, or ``ValueError`` naming the file: another suffix, text that is not UTF-8,
-    text that does not parse, or content that is not a mapping."""
+    text that does not parse, a field given twice (the parsers would keep the last one), or content that is not a
+    mapping."""
     from pathlib import Path
 
     p = Path(path)
@@ -182,11 +225,13 @@ def read_metadata_mapping(path: Any) -> dict:
         if suffix == ".json":
             import json
 
-            data = json.loads(text)
+            data = json.loads(text, object_pairs_hook=_unique_json_object)
         else:
             import yaml
 
-            data = yaml.safe_load(text)
+            data = yaml.load(text, Loader=_unique_key_loader())
+    except _DuplicateKey as exc:
+        raise ValueError(f"metadata file {p}: {exc}; give each field once") from None
     except Exception as exc:  # json.JSONDecodeError, yaml.YAMLError
         raise ValueError(f"cannot parse metadata file {p}: {str(exc).splitlines()[0]}") from None
     if not isinstance(data, dict):

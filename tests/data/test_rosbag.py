@@ -106,6 +106,22 @@ def test_field_paths_and_state_errors(tmp_path):
 
 
 @pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_a_bool_state_topic_or_field_is_refused_naming_topic_field_and_type(suffix, tmp_path):
+    """``std_msgs/Bool`` True was read as a gain of 1 dB (and an alarm stated on it): a bool is no camera reading,
+    whether the topic's ``data`` or a field reached with ``TOPIC:FIELD``; numeric fields no longer list bools."""
+    path = tmp_path / f"rec{suffix}"
+    with RecordingWriter(path) as w:
+        w.add_message("/gain", w.typestore.types["std_msgs/msg/Bool"](data=True), T0)
+        w.add_image("/cam/image", _ramp(), T0 + MS)
+    with Recording(path) as rec:
+        with pytest.raises(RecordingError, match=r"--gain-topic /gain: field 'data' holds bool, not a number; numeric "
+                                                 r"fields of std_msgs/msg/Bool: none"):
+            rec.read_state(StateTopic.parse("gain_db", "/gain", "--gain-topic"))
+        with pytest.raises(RecordingError, match=r"--gain-topic /gain:data: field 'data' holds bool, not a number"):
+            rec.read_state(StateTopic.parse("gain_db", "/gain:data", "--gain-topic"))
+
+
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
 def test_unknown_topic_lists_the_image_topics(suffix, tmp_path):
     path = tmp_path / f"rec{suffix}"
     with RecordingWriter(path) as w:

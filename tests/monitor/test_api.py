@@ -1368,3 +1368,99 @@ def test_the_alarm_quotes_the_metadatas_sigma_from_each_patch():
     assert "σ from the metadata ≈ 5.00 DN, in the image ≈ 10.00 DN" in msg
     assert "≈ 8.00 DN" in xi_alarm(-2.0, 0.1, 3, total_dn=10.0)["message"]  # one shared ξ: total + ξ
     assert _metadata_total(SimpleNamespace(values=torch.full((2, 5), float("nan")))) is None
+
+
+# ------------------------------------------------------------------ bad input (audit of camhealth.monitor)
+def _flat_frame(seed=0, size=(256, 384)):
+    g = np.random.default_rng(seed)
+    return np.clip(120 + g.normal(0, 3, size), 0, 255).astype(np.uint8)
+
+
+def test_a_change_of_input_scaling_restarts_the_aggregation_with_a_warning():
+    """A folder's 16-bit frames whose depth is guessed from their largest values (10 bits on dark frames, 12 on bright
+    ones) were pooled in one window at two scales (σ 4× off). A change of the divisor restarts the aggregation, as a
+    change of metadata does, with a warning naming both scalings; every JSON line names its frame's scaling."""
+    from camhealth.data.io import ImageScaling
+    from camhealth.monitor.api import InputScalingChanged
+
+    mon = _monitor(FakeNoise(), None, adaptive=False)
+    ten = [ImageScaling(16, 10, "largest value", v) for v in (811.0, 793.0)]
+    twelve = [ImageScaling(16, 12, "largest value", v) for v in (2712.0, 2720.0)]
+    frame = _flat_frame()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same divisor (another largest value) is no change: no warning
+        reports = [mon.process(frame, input_scaling=s) for s in ten]
+    assert [r.noise.coverage["frames"] for r in reports] == [1, 2]
+    line = _strict(reports[0].to_json())
+    assert line["input_scaling"] == "16-bit file read as 10-bit data (÷1023, guessed from the largest value 811)"
+    with pytest.warns(InputScalingChanged, match=r"from '16-bit file read as 10-bit data \(÷1023.*' to '16-bit file read "
+                                                 r"as 12-bit data \(÷4095.*': the temporal aggregation restarts.*--bit-depth"):
+        changed = mon.process(frame, index=2, source_id="f2.png", input_scaling=twelve[0])
+    assert changed.noise.coverage["frames"] == 1 and changed.input_scaling.startswith("16-bit file read as 12-bit")
+    assert mon.process(frame, input_scaling=twelve[1]).noise.coverage["frames"] == 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = mon.process(frame)  # no scaling given: nothing said, nothing restarted
+    assert r.noise.coverage["frames"] == 3 and r.input_scaling is None and _strict(r.to_json())["input_scaling"] is None
+    with pytest.warns(InputScalingChanged, match="mono8: 8-bit data"):  # a text (a recording's) is judged as it is
+        mon.process(frame, input_scaling="mono8: 8-bit data (÷255)")
+    with pytest.raises(TypeError, match="input_scaling = 12 must be None, a text or"):
+        mon.process(frame, input_scaling=12)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    ({"xi_sigmas": True}, ValueError, r"xi_sigmas = True must be a finite number >= 0"),
+    ({"xi_threshold_dn": np.True_}, ValueError, r"xi_threshold_dn = (np\.)?True_? must be a finite number >= 0"),
+    ({"per_patch": "false"}, TypeError, r"per_patch = 'false' must be True or False"),
+    ({"adaptive": "no"}, TypeError, r"adaptive = 'no' must be True or False"),
+    ({"pool_noise": 0}, TypeError, r"pool_noise = 0 must be True or False"),
+    ({"reuse_static": None}, TypeError, r"reuse_static = None must be True or False"),
+    ({"window": 1001}, ValueError, r"window = 1001 must be an integer 1…1000 \(frames\)"),
+    ({"window": 2**40}, ValueError, r"window = 1099511627776 must be an integer 1…1000"),
+    ({"noise_samples": 257}, ValueError, r"noise_samples = 257 must be an integer 1…256 \(patches per frame\)"),
+    ({"mtf_samples": 10**9}, ValueError, r"mtf_samples = 1000000000 must be an integer 1…256"),
+    ({"selection": {"max_age": 3}}, TypeError, r"selection = \{'max_age': 3\} must be a SelectionConfig.*got dict"),
+])
+def test_monitor_options_of_the_wrong_kind_or_beyond_their_range_are_refused(kwargs, error, match):
+    """``Monitor(xi_sigmas=True)`` was 1σ, ``per_patch="false"`` was True (``bool()``), ``window=2**40`` a torch
+    allocation error, ``selection={...}`` an AttributeError deep in the tiling: each is refused naming the value."""
+    with pytest.raises(error, match=match):
+        _monitor(FakeNoise(), FakeMTF(), **kwargs)
+
+
+def test_the_largest_window_and_samples_are_accepted():
+    from camhealth.monitor.api import MAX_SAMPLES, MAX_WINDOW
+
+    mon = _monitor(FakeNoise(), None, mode="sampled", window=MAX_WINDOW, noise_samples=MAX_SAMPLES, warmup=False)
+    assert mon.process(_flat_frame()).noise.assessable
+
+
+@pytest.mark.parametrize("value, match", [
+    (np.array(True), r"gain_db = array\(True\) must be a number"),
+    (torch.tensor(True), r"gain_db = tensor\(True\) must be a number"),
+    (None, r"gain_db = None must be a number"),
+])
+def test_per_frame_metadata_that_is_a_bool_array_or_none_is_refused(value, match):
+    """A 0-d bool array or tensor became gain 1 dB (and an alarm stated on it); None became "gain_db = nan"."""
+    mon = _monitor(FakeNoise(), None)
+    with pytest.raises(ValueError, match=match):
+        mon.process(_flat_frame(), {"gain_db": value})
+    assert mon.process(_flat_frame(), {"is_cmos": np.array(True)}).metadata is not None  # is_cmos is a bool field
+
+
+def test_per_frame_metadata_with_an_unknown_field_lists_the_known_ones():
+    mon = _monitor(FakeNoise(), None)
+    with pytest.raises(ValueError, match=r"per-frame metadata: unknown metadata field\(s\) \['bogus'\]; known fields: "
+                                         r"\['gain_db', 'exposure_s'"):
+        mon.process(_flat_frame(), {"bogus": 1, "gain_db": 3.0})
+
+
+@pytest.mark.parametrize("x", [np.full((8, 8), 1e300), torch.full((8, 8), 1e300, dtype=torch.float64),
+                               np.full((8, 8, 3), -1e300)])
+def test_a_huge_finite_float_frame_is_out_of_range_not_non_finite(x):
+    """A float64 frame of 1e300 overflowed to inf in float32 (a RuntimeWarning, then "non-finite"): it is finite and
+    outside [0, 1], and says so."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"float frame values must lie in \[0, 1\], got min -?1e\+300"):
+            as_frame(x)

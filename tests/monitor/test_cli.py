@@ -205,8 +205,31 @@ def test_defect_map_counts_known_defects_and_refuses_another_size(tmp_path, caps
     found = load_defect_map(out_map, shape=tuple(hit.shape))
     assert int(found.sum()) == d["hot"] + d["dark"] and bool(hit[found].all())
     np.savez_compressed(maps, hot_pixels=hit.numpy()[:, :-8])
-    code, _, err = _run(argv, capsys)
-    assert code == 2 and "defect map is 504×384 px (W×H) but this frame is 512×384 px" in err, err
+    code, _, err = _run(argv, capsys)  # the one frame refused: nothing scored, exit 2
+    assert code == 2 and "no frame of" in err and f"defect map is 504×384 px (W×H) but frame {png} is 512×384 px" in err, err
+
+
+def test_a_frame_of_another_size_than_the_defect_map_is_a_frame_error_and_the_run_goes_on(tmp_path, capsys):
+    """A folder whose second frame is not the --defect-map's size: that frame gets a ``frame_error`` line naming the file
+    and both sizes; the frames before and after it are scored and summary.json is written (the run used to stop there,
+    exit 2, with monitor.jsonl half written, no summary and no file named)."""
+    g = np.random.default_rng(0)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for name, (h, w) in (("a", (256, 320)), ("b", (200, 300)), ("c", (256, 320))):
+        _png(folder / f"{name}.png", np.clip(120 + g.normal(0, 3, (h, w)), 0, 255).astype(np.uint8))
+    dmap = tmp_path / "map.npy"
+    np.save(dmap, np.zeros((256, 320), bool))
+    code, out, err = _run([str(folder), "--sensor", "ICX285", "--no-mtf", "--noise-model", "noise_source_full",
+                           "--no-progress", "--threads", "1", "--defect-map", str(dmap), "--out", str(tmp_path / "o")],
+                          capsys)
+    assert code == 0, err
+    lines = _lines((tmp_path / "o" / "monitor.jsonl").read_text())
+    assert [("frame_error" in d, d["index"]) for d in lines] == [(False, 0), (True, 1), (False, 2)]
+    assert lines[1]["frame_error"].startswith(f"the defect map is 320×256 px (W×H) but frame {folder / 'b.png'} is "
+                                              "300×200 px")
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == 2 and summary["unreadable_frames"] == 1 and "1 unreadable" in out
 
 
 def test_static_pairs_on_a_folder_of_lossless_frames(tmp_path, capsys):
@@ -392,6 +415,52 @@ def test_overlays_may_not_overwrite_a_source_frame(models, tmp_path, capsys):
     code, _, err = _run([str(frame), "--sensor", "ICX285", "--no-mtf", "--out", str(tmp_path / "new"), "--overlay", *models],
                         capsys)
     assert code == 0 and (tmp_path / "new" / "overlays" / "frame_000000.png").is_file(), err
+
+
+def test_out_may_not_overwrite_the_config_file(models, tmp_path, capsys):
+    """--out DIR whose summary.json is the --config file the options came from: refused before the run, naming both
+    (it was overwritten by the run's summary)."""
+    cfg = tmp_path / "summary.json"
+    cfg.write_text('{"sensor": "ICX285", "no_mtf": true}')
+    png = _png(tmp_path / "frame.png", np.random.default_rng(0).integers(40, 200, (256, 256), dtype=np.uint8))
+    code, out, err = _run([str(png), "--config", str(cfg), "--out", str(tmp_path), *models], capsys)
+    assert code == 2 and out == "" and f"--out {tmp_path} would overwrite the input --config {cfg}" in err, err
+    assert cfg.read_text() == '{"sensor": "ICX285", "no_mtf": true}' and not (tmp_path / "monitor.jsonl").exists()
+    code, _, err = _run([str(png), "--config", str(cfg), "--out", str(tmp_path / "o"), *models], capsys)
+    assert code == 0, err  # another folder: the config file is read as before
+
+
+@pytest.mark.parametrize("content,key,shown", [
+    ("xi_sigmas: true", "xi_sigmas", "True"),
+    ("xi_threshold_dn: true", "xi_threshold_dn", "True"),
+    ("max_clipped: true", "max_clipped", "True"),
+    ("min_structure_dn: false", "min_structure_dn", "False"),
+    ("gain_limits: [true, 12]", "gain_limits", "True"),
+])
+def test_true_in_a_config_file_is_no_number(content, key, shown, tmp_path, capsys):
+    """A config file's ``xi_sigmas: true`` was read as 1.0 (k from 3σ to 1σ: false alarms) and ``max_clipped: true`` as
+    1.0 (clipped patches never skipped): refused, exit 2, naming the key and the value."""
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(f"sensor: ICX285\n{content}\n")
+    with pytest.raises(SystemExit) as info:
+        build_parser().parse_args(["street", "--config", str(cfg)])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f'"{key}"' in err and f"must be a number, got {shown}" in err, err
+
+
+@pytest.mark.parametrize("flag,value,allowed", [
+    ("--window", "1001", "1…1000"),
+    ("--window", "1099511627776", "1…1000"),
+    ("--noise-samples", "257", "1…256"),
+    ("--mtf-samples", "100000", "1…256"),
+    ("--noise-samples", "0", "1…256"),
+])
+def test_window_and_samples_have_a_documented_maximum(flag, value, allowed, capsys):
+    """--window 2**40 crashed with a torch allocation error (the window is allocated at once): now a range error."""
+    with pytest.raises(SystemExit) as info:
+        build_parser().parse_args(["street", flag, value])
+    assert info.value.code == 2 and f"argument {flag}: must be an integer {allowed}, got {value}" in capsys.readouterr().err
+    assert build_parser().parse_args(["street", flag, allowed.split("…")[1]]) is not None  # the maximum itself is fine
 
 
 def test_out_may_not_overwrite_an_input(models, tmp_path, capsys):

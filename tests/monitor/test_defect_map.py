@@ -246,6 +246,30 @@ def test_a_map_of_another_size_or_without_noise_is_refused():
         Monitor(None, "mtf", defect_map=hit)
 
 
+def test_a_frame_of_another_size_is_refused_alone_and_the_monitor_goes_on(tmp_path):
+    """A frame that does not fit the map raises ``FrameSizeError`` naming the frame and both sizes and leaves the
+    monitor as it was; ``Monitor.run`` reports it as that item's error and goes on with the next frame."""
+    from PIL import Image
+
+    from camhealth.monitor import Monitor
+    from camhealth.monitor.api import FrameSizeError
+
+    frame, hit = _defect_frame()
+    mon = Monitor("noise_source_full", None, sensor="ICX285", warmup=False, defect_map=hit)
+    mon.process(frame)
+    with pytest.raises(FrameSizeError, match=r"defect map is 512×384 px \(W×H\) but frame small.png is 500×384 px"):
+        mon.process(frame[:, :500], source_id="small.png")
+    assert mon.frames == 1 and mon.process(frame).noise.coverage["frames"] == 2  # the window went on
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    pixels = (frame.numpy() * 255).round().astype(np.uint8)
+    for name, arr in (("a", pixels), ("b", pixels[:, :500]), ("c", pixels)):
+        Image.fromarray(arr).save(folder / f"{name}.png")
+    out = list(Monitor("noise_source_full", None, sensor="ICX285", warmup=False, defect_map=hit).run(folder))
+    assert [r is None for _, r in out] == [False, True, False]
+    assert "but frame " + str(folder / "b.png") + " is 500×384 px" in out[1][0].error
+
+
 @pytest.mark.parametrize("suffix", [".npz", ".npy"])
 def test_a_file_that_declares_a_huge_array_is_refused_before_it_is_read(suffix, tmp_path):
     """A compressed archive can declare far more than it holds on disk: the header's shape is checked first."""

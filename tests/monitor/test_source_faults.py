@@ -152,3 +152,31 @@ def test_a_folder_of_16_bit_frames_is_read_with_one_scale(tmp_path):
     items = list(open_source(tmp_path / "b"))
     assert [i.error for i in items] == [None, None]
     assert [round(float(items[0].frame.max()) * 1023), round(float(items[1].frame.max()) * 4095)] == [800, 3000]
+
+
+def test_a_change_of_the_guessed_scale_restarts_the_aggregation_with_a_warning(tmp_path, capsys):
+    """A 12-bit camera's 16-bit PNGs without sBIT: dark frames are guessed 10-bit (÷1023), bright ones 12-bit (÷4095).
+    The two scales used to share one temporal window with no word said; now the change restarts it, a warning names
+    both scalings and --bit-depth, and every JSON line names its frame's scaling. With --bit-depth 12: one scale."""
+    g = np.random.default_rng(0)
+    folder = tmp_path / "f16"
+    folder.mkdir()
+    for k, mean in enumerate([600, 600, 2500, 2500]):
+        values = np.clip(np.round(mean + g.normal(0, 48, (256, 256))), 0, 4095).astype(np.uint16)
+        Image.fromarray(values).save(folder / f"f{k}.png")
+    argv = [str(folder), "--sensor", "ICX285", "--no-mtf", "--noise-model", "noise_source_full", "--no-progress",
+            "--threads", "1"]
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    lines = [json.loads(ln) for ln in out.splitlines() if ln.strip()]
+    assert [d["input_scaling"].split(" (")[0] for d in lines] == ["16-bit file read as 10-bit data"] * 2 + \
+        ["16-bit file read as 12-bit data"] * 2
+    assert [d["noise"]["coverage"]["frames"] for d in lines] == [1, 2, 1, 2]
+    warning = [ln for ln in err.splitlines() if ln.startswith("warning: input scaling changed")]
+    assert len(warning) == 1 and f"at {folder / 'f2.png'} from '16-bit file read as 10-bit data (÷1023" in warning[0]
+    assert "to '16-bit file read as 12-bit data (÷4095" in warning[0] and "pass --bit-depth N" in warning[0]
+    code, out, err = _run([*argv, "--bit-depth", "12"], capsys)
+    assert code == 0 and "warning" not in err, err
+    lines = [json.loads(ln) for ln in out.splitlines() if ln.strip()]
+    assert {d["input_scaling"] for d in lines} == {"16-bit file read as 12-bit data (÷4095, as given)"}
+    assert [d["noise"]["coverage"]["frames"] for d in lines] == [1, 2, 3, 4]

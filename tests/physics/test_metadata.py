@@ -260,3 +260,29 @@ def test_presets_share_one_set_of_constants_and_concatenate():
     other = ev.replace(constants=SensorConstants(reference_voltage_v=3.3))
     with pytest.raises(ValueError, match="different fixed SensorConstants: item 1 has reference_voltage_v = 3.3 vs 5.0"):
         CameraMetadata.cat([icx, other])
+
+
+@pytest.mark.parametrize("name,text,match", [
+    ("dup.yaml", "sensor: ICX285\ngain_db: 12\ntemperature_c: 40\ngain_db: 0\n",
+     r"dup\.yaml: field gain_db is given twice \(lines 2 and 4\); give each field once"),
+    ("flow.yaml", "{sensor: ICX285, gain_db: 12, gain_db: 0}\n", r"field gain_db is given twice \(on line 1\)"),
+    ("dup.json", '{"sensor": "ICX285", "gain_db": 12, "gain_db": 0}',
+     r"dup\.json: field gain_db is given twice \(12 and 0\); give each field once"),
+])
+def test_a_field_given_twice_in_a_metadata_file_is_refused(tmp_path, name, text, match):
+    """YAML and JSON parsers keep the last of two equal keys without a word: ``gain_db: 12 … gain_db: 0`` ran at 0 dB."""
+    from camhealth.physics.metadata import read_metadata_mapping
+
+    (tmp_path / name).write_text(text)
+    with pytest.raises(ValueError, match=match):
+        read_metadata_mapping(tmp_path / name)
+    with pytest.raises(ValueError, match="given twice"):
+        CameraMetadata.from_file(tmp_path / name)
+
+
+def test_a_yaml_merge_key_may_be_overridden(tmp_path):
+    """YAML's merge (``<<:``) brings in defaults that the mapping's own keys override: that is no duplicate."""
+    from camhealth.physics.metadata import read_metadata_mapping
+
+    (tmp_path / "m.yaml").write_text("<<: {sensor: ICX285, gain_db: 3}\ngain_db: 12\n")
+    assert read_metadata_mapping(tmp_path / "m.yaml") == {"sensor": "ICX285", "gain_db": 12}
