@@ -1106,6 +1106,12 @@ QUIET_HINT = ("every refused patch reads far less noise than any camera state in
 CODEC_HINT = ("the frame is a JPEG (its 8×8 block grid is there): the codec removes noise and adds its own quantisation "
               "error, so the metadata cannot be checked on it — give frames as the sensor delivers them or losslessly "
               "coded (raw, PNG, a ROS Image topic)")
+#: Appended to a "noisier" or "cleaner" alarm where the frame's scale was guessed from its largest value (a 16-bit
+#: frame without an sBIT chunk and no ``--bit-depth``): a camera of more significant bits whose frames stay below the
+#: guessed depth's top is read 4× (2 bits), 16× … too bright, and its noise with it.
+GUESSED_SCALE_HINT = ("the frame's scale was guessed — {scale}; a camera with more significant "
+                      "bits whose frames stay darker reads 4× per 2 bits too bright, and its noise with it: pass "
+                      "--bit-depth N (bit_depth=N in Python), N the camera's significant bits")
 TEXTURED_HINT = ("every refused patch looks textured: a scene of fine texture everywhere, or noise that is not white — "
                  "a demosaiced, denoised, sharpened or compressed frame, which camhealth's sensor noise model does not "
                  "describe (give frames as the sensor delivers them; a recording's bayer_* images: --bayer green, the default, "
@@ -1897,6 +1903,8 @@ class Monitor:
                     at = torch.tensor(xy, dtype=torch.int64).reshape(-1, 2)
                     noise.defects["known"] = int(self.defect_map[at[:, 1], at[:, 0]].sum())
             alarm = self._alarm(noise, meta)
+            if guessed and alarm["state"] in ("noisier", "cleaner"):
+                alarm["message"] += "; " + GUESSED_SCALE_HINT.format(scale=scale_text)
             advice = self._advice(noise, reports.get("mtf"), meta)
             timing["aggregate"] = (time.perf_counter() - t2) * 1e3
         timing["total"] = (time.perf_counter() - t0) * 1e3

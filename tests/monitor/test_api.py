@@ -250,6 +250,26 @@ def test_xi_alarm_states(street_frames, xi, state):
         assert ("noisier" if xi < 0 else "cleaner") in d["alarm"]["message"]
 
 
+@pytest.mark.parametrize("source,hinted", [("largest value", True), ("sequence", True), ("given", False), ("sBIT", False)])
+@pytest.mark.parametrize("xi", [-3.0, 3.0, 0.0])
+def test_a_mismatch_on_a_guessed_scale_names_the_bit_depth(street_frames, source, hinted, xi):
+    """A 12-bit camera whose frames stay below 1023 is read as 10-bit data (÷1023) when the depth is guessed: 4× too
+    bright, its noise too. A "noisier" or "cleaner" alarm on a guessed scale says so and names --bit-depth; a declared
+    scale (given, sBIT) or an "ok" frame says nothing of it."""
+    from camhealth.data.io import ImageScaling
+    from camhealth.monitor.api import GUESSED_SCALE_HINT
+
+    mon = _monitor(FakeNoise(xi_dn=xi), FakeMTF())
+    scaling = ImageScaling(16, 10, source, 811.0)
+    d = mon.process(noisy(street_frames[0], 3.0, seed=0), input_scaling=scaling).to_dict()
+    expected = "ok" if xi == 0 else "noisier" if xi < 0 else "cleaner"
+    assert d["alarm"]["state"] == expected
+    hint = GUESSED_SCALE_HINT.format(scale=scaling.describe())
+    assert (hint in d["alarm"]["message"]) == (hinted and xi != 0), d["alarm"]["message"]
+    if hinted and xi != 0:
+        assert "--bit-depth N" in d["alarm"]["message"] and "÷1023" in d["alarm"]["message"]
+
+
 def test_xi_alarm_function():
     assert xi_alarm(-2.0, 0.1, 20)["state"] == "noisier"
     assert xi_alarm(-2.0, 10.0, 20)["state"] == "ok"  # not significant: 3 standard errors ≈ 8.4 DN

@@ -180,3 +180,34 @@ def test_a_change_of_the_guessed_scale_restarts_the_aggregation_with_a_warning(t
     lines = [json.loads(ln) for ln in out.splitlines() if ln.strip()]
     assert {d["input_scaling"] for d in lines} == {"16-bit file read as 12-bit data (÷4095, as given)"}
     assert [d["noise"]["coverage"]["frames"] for d in lines] == [1, 2, 3, 4]
+
+
+def test_a_mismatch_on_a_guessed_scale_names_the_bit_depth(tmp_path, capsys):
+    """A 12-bit EV76C661 whose 16-bit PNGs (no sBIT) stay below 1023 is guessed 10-bit: read 4× too bright, noise too,
+    so its matched metadata read as "noisier" (the cause named: the gain). The alarm now says the scale was guessed and
+    names --bit-depth; with --bit-depth 12 the same frames read "ok"."""
+    import torch
+
+    from camhealth.augment import RandomSensorNoise
+
+    folder = tmp_path / "dark12"
+    folder.mkdir()
+    ramp = torch.linspace(0.02, 0.19, 256).expand(256, 256)
+    scene = (ramp + 0.03 * (torch.arange(256)[:, None] // 32 % 2)).reshape(1, 1, 256, 256)
+    torch.manual_seed(0)
+    frames = RandomSensorNoise(metadata="EV76C661")(scene.repeat(2, 1, 1, 1))
+    for k, y in enumerate(frames):
+        Image.fromarray(np.round(y[0].numpy() * 4095).astype(np.uint16)).save(folder / f"f{k}.png")
+    argv = [str(folder), "--sensor", "EV76C661", "--no-mtf", "--no-progress", "--threads", "1"]
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    lines = [json.loads(ln) for ln in out.splitlines() if ln.strip()]
+    assert all(d["input_scaling"].startswith("16-bit file read as 10-bit data (÷1023, guessed") for d in lines)
+    assert [d["alarm"]["state"] for d in lines] == ["noisier", "noisier"], [d["alarm"] for d in lines]
+    assert all("scale was guessed" in d["alarm"]["message"] and "--bit-depth N" in d["alarm"]["message"]
+               for d in lines)
+    code, out, err = _run([*argv, "--bit-depth", "12"], capsys)
+    assert code == 0, err
+    lines = [json.loads(ln) for ln in out.splitlines() if ln.strip()]
+    assert [d["alarm"]["state"] for d in lines] == ["ok", "ok"], [d["alarm"] for d in lines]
+    assert not any("guessed" in d["alarm"]["message"] for d in lines)
