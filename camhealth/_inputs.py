@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from camhealth._order import lower_median
-from camhealth.physics.metadata import CameraMetadata
+from camhealth.physics.metadata import PRESETS, CameraMetadata
 
 __all__ = [
     "CONTRAST_NOISE_SIGMAS", "MAX_CLIPPED_FRACTION", "MIN_CONTRAST_DN", "MIN_EDGE_KURTOSIS", "STRUCTURE_BLOCK", "assess_patches", "contrast_limit_dn", "edge_kurtosis",
@@ -272,6 +272,7 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         t = images.detach().cpu()
     else:
         raise TypeError(f"images must be a torch.Tensor or numpy.ndarray, got {type(images).__name__}")
+    half = t.dtype in (torch.float16, torch.bfloat16)
     t = _gray_patch_layout(t, patch_size)
     if tuple(t.shape[-2:]) != (patch_size, patch_size):
         raise ValueError(
@@ -300,7 +301,26 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         if lo < -1e-6 or hi > 1 + 1e-6:
             hint = " (looks like DN: pass input_range='dn')" if hi <= 255 and lo >= 0 else ""
             raise ValueError(f"float images must lie in [0, 1], got min {lo:g}, max {hi:g}{hint}")
+        if half:
+            t = _unround_8bit(t, images.dtype)
     return t.clamp(0, 1).float()
+
+
+def _unround_8bit(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """8-bit data (k/255) held in float16 or bfloat16, restored to k/255 exactly; other data as they are.
+
+    Half precision moves k/255 by up to 0.12 DN (float16) or 0.25 DN (bfloat16) — less than half a DN, so
+    round(255·x) recovers k — and the noise estimators then no longer see whole DN (their 8-bit quantisation term and
+    JPEG test). The values are restored only where every one of them is the half-precision rounding of some k/255: on
+    continuous data most of float16's values are not, nor half of bfloat16's below 0.5, so a patch of noise does not
+    pass by chance. A bfloat16 patch wholly in [0.5, 1] passes whatever it held: there bfloat16's grid is 1 DN
+    (2⁻⁸), one value per k/255 — the data are whole DN, and read as such. ``t``: float32 (B, 1, H, W) in [0, 1]
+    holding the half-precision values exactly."""
+    k = (t * 255.0).round()
+    snapped = k / 255.0
+    # per patch: an 8-bit patch passes, a continuous one keeps its values
+    exact = (snapped.to(dtype).to(t.dtype) == t).flatten(1).all(1).view(-1, *([1] * (t.dim() - 1)))
+    return torch.where(exact, snapped, t)
 
 
 _LAYOUTS = "B×1×H×W, B×H×W or H×W gray patches"
@@ -337,6 +357,9 @@ def _gray_patch_layout(t: torch.Tensor, patch_size: int) -> torch.Tensor:
 
 
 def _to_metadata(metadata: Any, batch: int, base_preset: str | None) -> CameraMetadata:
+    if base_preset is not None and not isinstance(base_preset, str):
+        raise TypeError(f"base_preset = {base_preset!r} must be a preset name ({', '.join(sorted(PRESETS))}) or None, "
+                        f"got {type(base_preset).__name__}")
     if isinstance(metadata, (str, Path)):  # a preset name or a metadata file (camera.yaml of camhealth.calibrate)
         meta = CameraMetadata.lookup(metadata)
     elif isinstance(metadata, CameraMetadata):

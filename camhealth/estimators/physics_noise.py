@@ -176,6 +176,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -788,6 +789,21 @@ def physics_noise_posterior(
         lo, hi = torch.aminmax(image.detach())
         if lo < 0 or hi > 1:
             raise ValueError(f"image must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
+    if not isinstance(meta, CameraMetadata):
+        raise TypeError(f"meta must be a CameraMetadata (CameraMetadata.preset, .from_dict, .cat), got "
+                        f"{type(meta).__name__}; PhysicsNoiseEstimator.predict also takes preset names, files and dicts")
+    for name, value in (("pool", pool), ("return_evidence", return_evidence)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise TypeError(f"{name} = {value!r} must be True or False, got {type(value).__name__}")
+    for name, value in (("grid", grid), ("bins", bins)):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise TypeError(f"{name} = {value!r} must be an integer, got {type(value).__name__}")
+    for name, value in (("eta", eta), ("eta_bin", eta_bin), ("scene_allowance_dn", scene_allowance_dn),
+                        ("scene_allowance_min_dn", scene_allowance_min_dn), ("mismatch_probability", mismatch_probability),
+                        ("beyond_probability", beyond_probability), ("bound_margin", bound_margin),
+                        ("fallback_margin", fallback_margin)):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise TypeError(f"{name} = {value!r} must be a real number, got {type(value).__name__}")
     for name, value, low, high in (("eta", eta, 0.0, 10.0), ("eta_bin", eta_bin, 0.0, 10.0),
                                    ("scene_allowance_dn", scene_allowance_dn, 0.0, 64.0),
                                    ("scene_allowance_min_dn", scene_allowance_min_dn, 0.0, 64.0),
@@ -1315,6 +1331,9 @@ class PhysicsNoiseEstimator:
         batch_size = check_batch_size(batch_size)
         if views != 1:
             raise ValueError(f"views = {views!r}: flipped views are for MTF estimators; {self.name!r} is a noise estimator")
+        for name, value in (("pool", pool), ("return_evidence", return_evidence)):
+            if not isinstance(value, (bool, np.bool_)):
+                raise TypeError(f"{name} = {value!r} must be True or False, got {type(value).__name__}")
         patches = _to_patches(images, self.patch_size, input_range)
         if metadata is None:
             raise ValueError(f"estimator {self.name!r} reads 'full' metadata: pass metadata= (CameraMetadata, a dict of "

@@ -39,8 +39,13 @@ the difference carries the scene's change, and two tests look for it:
   pair is not read (below 1: the change sits in fine texture whose block means are flat, and the NLF fit took up
   part of it). It cannot see a change on a texture that is everywhere alike (no flat blocks to compare with).
 
+A third test asks whether the two frames carry the same noise (:func:`pair_noise_balance`): a gain or a readout
+that changed between the exposures leaves the scene still but makes the difference read the mean of two noise
+levels (a 20 DN reference beside a 5 DN image read 14.6 DN); a patch whose variances differ by more than
+:data:`PAIR_NOISE_LIMIT` (relative) beyond 4 standard errors is not read as a pair.
+
 A change of the light between the exposures (I₂ = α·I₁ + β) moves the block means, not the details, and passes
-both. Structure that only the horizontal and vertical details carry (a row-wise change) does not enter the evidence
+the first two (the third while the shot noise's variance moves by less than the limit). Structure that only the horizontal and vertical details carry (a row-wise change) does not enter the evidence
 (the diagonal detail) and is left to the texture check.
 
 **Clipping.** The average A = (I₁ + I₂)/2 and the scaled difference D = (I₁ − I₂)/√2 of equal-variance Gaussian
@@ -65,7 +70,7 @@ from camhealth._order import sorted_values
 from camhealth._validation import check_finite
 
 __all__ = ["static_pair_image", "static_pair_blocks", "difference_limits_dn", "pair_fold", "PairFold", "scene_leak", "SCENE_LEAK_LIMIT", "pair_shift", "PAIR_SHIFT_LIMIT",
-           "pair_stillness"]
+           "pair_noise_balance", "PAIR_NOISE_LIMIT", "pair_stillness"]
 
 
 def _check_pair(image: Any, reference: Any, min_side: int = 3) -> None:
@@ -350,11 +355,56 @@ def _pair_shift(diff: torch.Tensor, avg: torch.Tensor, clip: torch.Tensor) -> tu
     return torch.stack([corr(gx), corr(gy)], 1), n
 
 
+#: Largest relative difference (v₁ − v₂)/(v₁ + v₂) of a pair's two noise variances (:func:`pair_noise_balance`) that
+#: passes where it is significant (|z| > 4): a variance ratio of 1.5 (σ 1.22×). A light change of 10 % between the
+#: exposures moves the shot noise's variance by 10 % (0.05); a gain change of 2 dB already by 0.23 of the total's.
+PAIR_NOISE_LIMIT = 0.2
+
+
+def pair_noise_balance(image: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Whether the two frames of a pair carry the same noise: the relative difference ρ = (v₁ − v₂)/(v₁ + v₂) of their
+    noise variances and its z score, (B,) float64 each (0 and 0 with fewer than 64 blocks).
+
+    The pair's fold assumes one noise variance v in both frames (module docstring); a gain or a readout that changed
+    between the exposures breaks it, and the difference then reads the mean of the two. On the diagonal Haar details of
+    the 2×2 blocks without a clipped pixel (within ½ DN of 0 or 255 DN in either frame), the average's d_A = s +
+    (d₁ + d₂)/2 and the scaled difference's d_D = (d₁ − d₂)/√2 (s the scene's, d_t frame t's noise of variance v_t)
+    have E[d_A·d_D] = (v₁ − v₂)/(2√2) and E[d_D²] = (v₁ + v₂)/2, whatever the scene: ρ̂ = √2·Σd_A·d_D / Σd_D², and
+    z = Σd_A·d_D / √Σ(d_A·d_D)² (mean 0 and variance 1 for equal noise; the scene widens both sums alike).
+
+    Args:
+        image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 3); B = 0 gives empty results.
+    """
+    diff, avg, clip = _pair_dn(image, reference)
+    return _pair_noise_balance(diff, avg, clip)
+
+
+def _pair_noise_balance(diff: torch.Tensor, avg: torch.Tensor, clip: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    h, w = diff.shape[-2] // 2 * 2, diff.shape[-1] // 2 * 2
+
+    def detail(t: torch.Tensor) -> torch.Tensor:
+        t = t[..., :h, :w].double()
+        return (t[..., 0::2, 0::2] - t[..., 0::2, 1::2] - t[..., 1::2, 0::2] + t[..., 1::2, 1::2]).flatten(1) * 0.5
+
+    c = clip[..., :h, :w]
+    ok = ~(c[..., 0::2, 0::2] | c[..., 0::2, 1::2] | c[..., 1::2, 0::2] | c[..., 1::2, 1::2]).flatten(1)
+    d_a, d_d = detail(avg), detail(diff)
+    prod = d_a * d_d * ok
+    n = ok.sum(1)
+    s_dd = (d_d.square() * ok).sum(1)
+    s_p, s_pp = prod.sum(1), prod.square().sum(1)
+    enough = (n >= 64) & (s_dd > 0) & (s_pp > 0)
+    rho = torch.where(enough, math.sqrt(2.0) * s_p / s_dd.clamp_min(1e-300), torch.zeros_like(s_p))
+    z = torch.where(enough, s_p / s_pp.clamp_min(1e-300).sqrt(), torch.zeros_like(s_p))
+    return rho, z
+
+
 def pair_stillness(image: torch.Tensor, reference: torch.Tensor, pool: bool = False) -> torch.Tensor:
-    """Whether each patch of a pair is shown to hold a still scene, (B,) bool: :func:`scene_leak` within
-    max(:data:`SCENE_LEAK_LIMIT`, 4 standard errors) of 1 and both :func:`pair_shift` correlations within
-    max(:data:`PAIR_SHIFT_LIMIT`, 4/√n) of 0 — the two tests on one pass over the pair. ``pool``: one camera state
-    (the scene-leak NLF over all patches; the tests stay per patch).
+    """Whether each patch of a pair is shown to hold a still scene of one noise level, (B,) bool: :func:`scene_leak`
+    within max(:data:`SCENE_LEAK_LIMIT`, 4 standard errors) of 1, both :func:`pair_shift` correlations within
+    max(:data:`PAIR_SHIFT_LIMIT`, 4/√n) of 0, and the frames' noise variances alike (:func:`pair_noise_balance`:
+    |ρ| ≤ :data:`PAIR_NOISE_LIMIT` or |z| ≤ 4; a reference at another gain is not this camera state) — the tests on
+    one pass over the pair. ``pool``: one camera state (the scene-leak NLF over all patches; the tests stay per patch).
 
     A patch without the evidence for both tests — fewer than 64 usable blocks for :func:`scene_leak` (its error is
     infinite) or fewer than 64 pixels for :func:`pair_shift`, e.g. a patch clipped (within ½ DN of 0 or 255 DN) in
@@ -366,6 +416,8 @@ def pair_stillness(image: torch.Tensor, reference: torch.Tensor, pool: bool = Fa
     diff, avg, clip = _pair_dn(image, reference)
     leak, leak_se = _scene_leak(diff, avg, clip, pool)
     shift, n = _pair_shift(diff, avg, clip)
+    rho, z = _pair_noise_balance(diff, avg, clip)
     evidence = torch.isfinite(leak_se) & (n >= 64)
     return (evidence & ((leak - 1.0).abs() <= torch.clamp_min(4.0 * leak_se, SCENE_LEAK_LIMIT))
-            & (shift.abs().amax(1) <= torch.clamp_min(4.0 / n.clamp_min(1.0).sqrt(), PAIR_SHIFT_LIMIT)))
+            & (shift.abs().amax(1) <= torch.clamp_min(4.0 / n.clamp_min(1.0).sqrt(), PAIR_SHIFT_LIMIT))
+            & ((rho.abs() <= PAIR_NOISE_LIMIT) | (z.abs() <= 4.0)))

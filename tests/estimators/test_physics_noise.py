@@ -1367,3 +1367,49 @@ def test_a_jpeg_pair_that_would_declare_a_mismatch_keeps_the_closed_form():
         out = PhysicsNoiseEstimator().predict(x, told, reference=y, pool=pool)
         assert out["static"].all() and (out["xi"] == 0).all() and out["reason"] == [LOSSY_CODEC] * 4, pool
         assert torch.allclose(out["sigma_total"], physics_prior_dn(x, told, clipping=True)[:, 7].float(), atol=1e-3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_a_jpeg_in_half_precision_is_read_as_the_same_8bit_frame(dtype):
+    """8-bit data held in float16/bfloat16 are off whole DN by up to 0.12/0.25 DN; they used to lose their 8-bit
+    quantisation term and skip the JPEG test (ξ −21 DN on a coded patch that float32 holds at the closed form). They
+    are restored to k/255 and read exactly as the float32 frame; continuous float16 data are left as they are."""
+    from camhealth.estimators.physics_noise import LOSSY_CODEC
+
+    meta = CameraMetadata.preset("EV76C661", gain_db=12.0, exposure_s=0.05, temperature_c=40.0)
+    noisy, _ = simulate_variant(_ramp(16), meta, ("round8",), torch.Generator().manual_seed(1))
+    coded = _jpeg(noisy, 90)
+    est = PhysicsNoiseEstimator()
+    ref = est.predict(coded, meta)
+    half = est.predict(coded.to(dtype), meta)
+    assert LOSSY_CODEC in ref["reason"] and half["reason"] == ref["reason"]
+    assert torch.equal(half["sigma_total"], ref["sigma_total"]) and torch.equal(half["xi"], ref["xi"])
+    from camhealth._inputs import _to_patches
+
+    assert torch.equal(_to_patches(coded.to(dtype), 128, "auto"), coded)  # whole DN again, exactly
+    smooth = torch.linspace(0.1, 0.45, 128 * 128).view(1, 1, 128, 128)  # continuous: not whole DN in float16
+    assert torch.equal(_to_patches(smooth.half(), 128, "auto"), smooth.half().float())
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    ({"pool": "False"}, "pool = 'False' must be True or False"),
+    ({"eta": "0.1"}, "eta = '0.1' must be a real number"),
+    ({"bound_margin": None}, "bound_margin = None must be a real number"),
+    ({"grid": 2.5}, "grid = 2.5 must be an integer"),
+    ({"bins": True}, "bins = True must be an integer"),
+])
+def test_posterior_settings_of_the_wrong_type_are_named(kwargs, match):
+    x = torch.rand(2, 1, 128, 128, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(TypeError, match=match):
+        physics_noise_posterior(x, CameraMetadata.preset("ICX285"), **kwargs)
+
+
+def test_posterior_needs_camera_metadata_and_predict_a_preset_name():
+    x = torch.rand(2, 1, 128, 128, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(TypeError, match="meta must be a CameraMetadata .* got str; PhysicsNoiseEstimator.predict also takes"):
+        physics_noise_posterior(x, "ICX285")
+    est = PhysicsNoiseEstimator()
+    with pytest.raises(TypeError, match="pool = 'no' must be True or False"):
+        est.predict(x, "ICX285", pool="no")
+    with pytest.raises(TypeError, match=r"base_preset = 5 must be a preset name \(EV76C661, ICX285\) or None, got int"):
+        est.predict(x, {"gain_db": 1.0}, base_preset=5)

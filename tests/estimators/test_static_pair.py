@@ -411,3 +411,25 @@ def test_a_pair_without_evidence_is_not_shown_still(case):
     _, n = pair_shift(a, b)
     assert not bool(torch.isfinite(se).all()) or int(n.min()) < 64  # no evidence
     assert not pair_stillness(a, b).any()
+
+
+@pytest.mark.parametrize("sigmas,balanced", [((5.0, 5.0), True), ((5.0, 20.0), False), ((20.0, 5.0), False), ((10.0, 11.0), True)])
+def test_a_reference_of_another_noise_level_is_not_read_as_a_pair(sigmas, balanced):
+    """The fold assumes one noise variance in both frames; a reference at 20 DN beside a 5 DN image read the pair's
+    mean, 14.6 DN, for the image. pair_noise_balance measures (v₁ − v₂)/(v₁ + v₂) from the details' cross product,
+    free of the scene; such a pair is not still, and the image is read alone."""
+    from camhealth.estimators.static_pair import PAIR_NOISE_LIMIT, pair_noise_balance, pair_stillness
+
+    g = torch.Generator().manual_seed(0)
+    scene = 0.3 + 0.4 * torch.rand(8, 1, 1, 128, generator=g).expand(8, 1, 128, 128)  # a stripe scene: texture
+    a = (scene + sigmas[0] / 255 * torch.randn(8, 1, 128, 128, generator=g)).clamp(0, 1)
+    b = (scene + sigmas[1] / 255 * torch.randn(8, 1, 128, 128, generator=g)).clamp(0, 1)
+    rho, z = pair_noise_balance(a, b)
+    truth = (sigmas[0] ** 2 - sigmas[1] ** 2) / (sigmas[0] ** 2 + sigmas[1] ** 2)
+    assert torch.allclose(rho, torch.full_like(rho, truth), atol=0.05)
+    assert ((rho.abs() <= PAIR_NOISE_LIMIT) | (z.abs() <= 4)).all() == balanced
+    out = PhysicsNoiseEstimator().predict(a, "ICX285", reference=b)
+    if not balanced:
+        assert not out["static"].any() and not pair_stillness(a, b).any()
+        alone = PhysicsNoiseEstimator().predict(a, "ICX285")
+        assert torch.equal(out["sigma_total"], alone["sigma_total"])
