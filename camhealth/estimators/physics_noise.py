@@ -29,7 +29,12 @@ that reads *more* than f_k·v_k(H) carries the extra log-variance ln(1 + τ²/v_
 Σ's diagonal, one that reads less carries none (a scene cannot remove noise): the
 image contradicts the metadata by more noise only where the excess is well beyond what a scene brings, and by less
 noise as before. That keeps the closed form on busy matched frames (and on compressed ones whose codec added a few
-DN); the price is that a mismatch adding less than a few τ in quadrature on a quiet camera goes unseen.
+DN); the price is that a mismatch adding less than a few τ in quadrature on a quiet camera goes unseen. The
+allowance enters each intensity bin's variance on its own, so in the common offset a patch whose details all fall in
+one bin carries it whole and one spread over k bins about 1/k of it: per patch, the verdict on a flat patch near that
+threshold depends on where its level falls among the bins (ICX285 at 0 dB, 1.4 DN: a flat patch of 5 DN white noise
+keeps the closed form at 104 DN, a bin's centre, P(match) 0.65, and is followed at 110 DN). Pooled, a frame spans
+many bins and its own τ is read (below).
 
 Per patch τ is ``scene_allowance_dn`` (2 DN, the 3× floor). Pooled, a frame reads its own: white noise puts as
 much energy into the horizontal and vertical Haar details as into the diagonal one, while a scene's fine content
