@@ -5,8 +5,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, Iterable, Optional, Sequence
 
+import numpy as np
 import torch
 from kornia.augmentation import IntensityAugmentationBase2D
 
@@ -43,6 +44,8 @@ class CorruptionBase(IntensityAugmentationBase2D):
         # (NumPy's floats and ints are Real; a bool is no probability)
         if isinstance(p, bool) or not isinstance(p, numbers.Real) or not 0.0 <= float(p) <= 1.0:
             raise ValueError(f"p = {p!r} must be a probability in [0, 1] (a number), got {type(p).__name__} {p!r}")
+        same_on_batch = check_flag(same_on_batch, "same_on_batch")
+        keepdim = check_flag(keepdim, "keepdim")
         super().__init__(p=float(p), same_on_batch=same_on_batch, p_batch=1.0, keepdim=keepdim)
         self._formation: ImageFormation | None = None
         self._formation_params: Dict[str, torch.Tensor] | None = None  # the params the formation was made with
@@ -57,11 +60,22 @@ class CorruptionBase(IntensityAugmentationBase2D):
         if input.ndim != 4:
             raise ValueError(f"input must have shape B×C×H×W (or C×H×W / H×W), got {tuple(input.shape)}")
 
+    def transform_tensor(self, input: torch.Tensor, **kwargs: Any) -> torch.Tensor:  # noqa: D102 (Kornia hook)
+        # Kornia refuses integer images here with its own message, before transform_inputs runs: give camhealth's
+        # (with its hint to divide DN by 255). Masks (shape given) keep Kornia's handling.
+        if kwargs.get("shape") is None:
+            check_float(input, "input")
+        return super().transform_tensor(input, **kwargs)
+
     @staticmethod
     def _check_image(input: torch.Tensor) -> torch.Tensor:
         """``input`` checked: floating point, finite and in [0, 1] — within :func:`range_tolerance` of it, the
-        rounding a preceding filter leaves (Kornia's blurs return 1.0000001 on white), which is clamped away."""
+        rounding a preceding filter leaves (Kornia's blurs return 1.0000001 on white), which is clamped away. An empty
+        batch passes (it comes back empty); an empty height or width is a ``ValueError``."""
         check_float(input, "input")
+        if input.ndim >= 2 and (input.shape[-1] == 0 or input.shape[-2] == 0):
+            raise ValueError(f"input must have a non-empty height and width (an empty batch is allowed), got shape "
+                             f"{tuple(input.shape)}")
         if input.numel() == 0:
             return input
         lo, hi = (float(v) for v in torch.aminmax(input.detach()))  # one pass; NaN propagates into lo/hi
@@ -78,15 +92,37 @@ class CorruptionBase(IntensityAugmentationBase2D):
     def transform_inputs(self, input: torch.Tensor, params: Dict[str, torch.Tensor], flags: Dict[str, Any],
                          transform: Optional[torch.Tensor] = None, **kwargs: Any) -> torch.Tensor:  # noqa: D102
         input = self._check_image(input)
+        if params is not None:
+            _check_param_rows(params, input.shape[0] if input.ndim == 4 else 1)
         return super().transform_inputs(input, params, flags, transform=transform, **kwargs)
+
+    @staticmethod
+    def _param_gate(params: Dict[str, torch.Tensor], name: str, device: torch.device | None = None) -> torch.Tensor | None:
+        """The gate ``<name>_gate`` of ``params`` as a bool tensor (1 or B values; ``None`` where params carry none),
+        or ``ValueError`` naming it unless every value is 0 (the component off) or 1 (on)."""
+        key = f"{name}_gate"
+        if key not in params:
+            return None
+        raw = params[key]
+        g = raw if isinstance(raw, torch.Tensor) else torch.as_tensor(raw)
+        if g.is_complex():
+            raise TypeError(f"params {key} must hold 0 or 1 per sample, got dtype {g.dtype}")
+        if g.dtype != torch.bool:
+            bad = (g != 0) & (g != 1)  # (NaN included)
+            if bool(bad.any()):
+                first = g[bad].flatten()[0].item()
+                raise ValueError(f"params {key} must hold 0 ({name} off) or 1 ({name} on) per sample, got {first!r} "
+                                 f"({int(bad.sum())} of {g.numel()} values are neither)")
+        return (g if device is None else g.to(device)) != 0
 
     def _component_gate(self, params: Dict[str, torch.Tensor], name: str, b: int, device: torch.device) -> torch.Tensor:
         """(b,) bool: the samples whose component ``name`` is applied — its gate in ``params`` and, where Kornia blends
         by it (p < 1), ``batch_prob``; at p = 1 Kornia applies the transform to every sample whatever ``batch_prob``
         says (replayed params of a p < 1 module), and so do the labels."""
         g = torch.ones(b, dtype=torch.bool, device=device)
-        if f"{name}_gate" in params:
-            g = g & (params[f"{name}_gate"].to(device) > 0.5)
+        gate = self._param_gate(params, name, device)
+        if gate is not None:
+            g = g & gate
         if "batch_prob" in params and self._blends():
             g = g & (params["batch_prob"].to(device).reshape(-1).expand(b) > 0.5)
         return g
@@ -100,22 +136,27 @@ class CorruptionBase(IntensityAugmentationBase2D):
                     dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """(B, k, k) defocus kernels of ``params`` (delta where the component is gated off), in ``dtype``
         (float32, or float64 for float64 images)."""
+        self._require(params, ("diameter",), "defocus")
         d = params["diameter"].to(device=device, dtype=dtype)
-        if "defocus_gate" in params:
-            d = torch.where(params["defocus_gate"].to(d.device) > 0.5, d, torch.zeros_like(d))
+        gate = self._param_gate(params, "defocus", d.device)
+        if gate is not None:
+            d = torch.where(gate, d, torch.zeros_like(d))
         return defocus_psf(d, self._defocus_ks)
 
     def motion_psf(self, params: Dict[str, torch.Tensor], device: torch.device | None = None,
                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """(B, k, k) motion kernels of ``params`` (delta where the component is gated off), in ``dtype``
         (float32, or float64 for float64 images)."""
+        self._require(params, ("length", "angle", "intensity"), "motion")
         length = params["length"].to(device=device, dtype=dtype)
-        if "motion_gate" in params:
-            length = torch.where(params["motion_gate"].to(length.device) > 0.5, length, torch.zeros_like(length))
+        gate = self._param_gate(params, "motion", length.device)
+        if gate is not None:
+            length = torch.where(gate, length, torch.zeros_like(length))
         angle = params["angle"].to(device=length.device, dtype=dtype)
         intensity = params["intensity"].to(device=length.device, dtype=dtype)
         if bool((intensity == 0).all()):
             return linear_motion_psf(length, angle, self._motion_ks)
+        self._require(params, ("shake_noise",), "non-linear motion (intensity > 0)")
         shake = params["shake_noise"].to(device=length.device, dtype=dtype)
         return nonlinear_motion_psf(length, angle, intensity, shake, self._motion_ks)
 
@@ -131,10 +172,23 @@ class CorruptionBase(IntensityAugmentationBase2D):
         self._sf_cache = (key, sf, meta.constants)
         return sf
 
+    def _require(self, params: Dict[str, torch.Tensor], keys: Sequence[str], what: str) -> None:
+        """``ValueError`` naming the keys of ``keys`` that ``params`` lack (``what`` needs them)."""
+        missing = [k for k in keys if k not in params]
+        if missing:
+            raise ValueError(
+                f"params lack {missing}: the {what} of {type(self).__name__} is made from {list(keys)}; pass the params "
+                "of a call (aug._params, aug.forward_parameters(shape)) or give every key"
+            )
+
     @staticmethod
     def _noise_seed_groups(params: Dict[str, torch.Tensor], b: int) -> list[tuple[int, torch.Tensor | None]]:
         """The samples of each noise seed: ``[(seed, indices)]`` (int64 indices on the CPU), or ``[(seed, None)]``
         when the whole batch shares one seed (one scalar, or the same value in every row)."""
+        if "noise_seed" not in params:
+            raise ValueError("params lack 'noise_seed': the noise is drawn from it (one int64 seed for the batch, or one "
+                             "per sample) together with the meta_<field> and const_<field> entries; pass the params of a "
+                             "call (aug._params, RandomSensorNoise.params_from_metadata(meta, seed=...))")
         seeds = torch.as_tensor(params["noise_seed"]).detach().reshape(-1).cpu()
         if seeds.dtype == torch.bool or seeds.is_floating_point() or seeds.is_complex():
             raise TypeError(f"noise_seed must hold integers (a torch.int64 tensor, one seed or one per sample), got "
@@ -228,6 +282,12 @@ class CorruptionBase(IntensityAugmentationBase2D):
         else:
             raise ValueError(f"params {sorted(params)} hold neither 'forward_input_shape' nor 'batch_prob': pass the params "
                              "of a call (aug._params, aug.forward_parameters(shape)), which hold the batch size")
+        f = self._formation
+        if f is not None and self._formation_params is not None and _same_params(params, self._formation_params):
+            # the params of the last call: their labels are of the batch they were applied to (params of one row, e.g.
+            # params_from_metadata of batch-1 metadata, apply to every sample; forward_input_shape then says 1)
+            b = int(f.image.shape[0])
+        _check_param_rows(params, b)
         if self._sources and not _same_params(params, self._formation_params):
             raise ValueError(
                 "labels(params=...): the noise labels depend on the image and are those of the last call, which used other "
@@ -245,13 +305,15 @@ class CorruptionBase(IntensityAugmentationBase2D):
                 m = mtf_hv(self.motion_psf(params))
                 m = torch.where(self._component_gate(params, "motion", b, m.device)[:, None], m, torch.ones_like(m))
                 mtf = m if mtf is None else mtf * m
-            out["mtf"] = mtf
+            out["mtf"] = mtf.expand(b, -1).contiguous() if mtf.shape[0] != b else mtf
         if self._sources:
             meta = params_to_metadata(params)
-            out["metadata"] = meta
-            f = self._formation
+            out["metadata"] = meta.expand(b) if meta.batch_size == 1 and b != 1 else meta
             if f is None or f.sigma_dn.shape[0] != b:
-                raise RuntimeError("noise labels need a forward call on this batch before labels()")
+                raise RuntimeError(
+                    f"noise labels need a forward call on this batch before labels(): the params are of a batch of {b}, "
+                    + ("no call was made yet" if f is None else f"the last call had {int(f.sigma_dn.shape[0])} samples")
+                )
             on = self._component_gate(params, "noise", b, f.sigma_dn.device)
             for name in ("sigma_dn", "sigma_total_dn", "sigma_expected_dn", "sigma_total_expected_dn", "clipped_fraction"):
                 v = getattr(f, name)
@@ -315,10 +377,32 @@ def _empty_formation(input: torch.Tensor) -> ImageFormation:
                           sigma_total_expected_dn=z, clipped_fraction=z, blurred=input.clone())
 
 
+def check_flag(value: Any, name: str) -> bool:
+    """``value`` if it is a bool (Python or NumPy), else ``TypeError`` naming ``name`` (``"no"`` would read as True)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} = {value!r:.40} must be True or False (a bool), got {type(value).__name__}")
+    return bool(value)
+
+
+def _check_param_rows(params: Dict[str, torch.Tensor], b: int) -> None:
+    """``ValueError`` naming the first per-sample entry of ``params`` whose rows are neither 1 (the whole batch) nor
+    ``b`` (one per sample)."""
+    for key, v in params.items():
+        if key == "forward_input_shape" or not isinstance(v, torch.Tensor) or v.ndim == 0:
+            continue
+        if v.shape[0] not in (1, b):
+            what = "values" if v.ndim == 1 else "rows"
+            raise ValueError(f"params {key} has {v.shape[0]} {what} for a batch of {b} (shape {tuple(v.shape)}): give one "
+                             f"per sample ({b}), or one for the whole batch")
+
+
 def check_sources(sources: Sequence[str]) -> tuple[str, ...]:
     """Validate a selection of noise sources (subset of ``("photon", "dark", "readout")``)."""
     if isinstance(sources, str):
         sources = (sources,)
+    if sources is None or not isinstance(sources, Iterable):
+        raise TypeError(f"sources must be a noise source name or a sequence of them (from {list(NOISE_SOURCES)}), got "
+                        f"{type(sources).__name__} {sources!r:.40}")
     sources = tuple(sources)
     bad = [s for s in sources if s not in NOISE_SOURCES]
     if bad:

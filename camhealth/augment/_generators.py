@@ -19,7 +19,7 @@ from kornia.augmentation.random_generator.base import RandomGeneratorBase
 from kornia.augmentation.utils import _adapted_rsampling
 from torch.distributions import Uniform
 
-from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata, SensorConstants
+from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata, SensorConstants, check_sensor_constant
 from camhealth.physics.motion_psf import sample_shake_noise
 
 __all__ = [
@@ -34,21 +34,40 @@ __all__ = [
 ]
 
 
+def _is_number(v: Any) -> bool:
+    """Whether ``v`` is one real number: a Python/NumPy int or float, or a 0-d real tensor/array (a bool, a string or a
+    bool tensor is none)."""
+    if isinstance(v, torch.Tensor):
+        return v.ndim == 0 and v.dtype != torch.bool and not v.is_complex()
+    if isinstance(v, np.ndarray):
+        return v.ndim == 0 and (np.issubdtype(v.dtype, np.integer) or np.issubdtype(v.dtype, np.floating))
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
 def as_range(value: float | tuple[float, float] | list[float], name: str, bounds: tuple[float, float]) -> tuple[float, float]:
-    """A scalar → (value, value); a pair is checked to lie ordered inside ``bounds``."""
-    if isinstance(value, bool):
-        raise TypeError(f"{name} must be a number or a (low, high) pair, got bool {value!r}")
-    if isinstance(value, numbers.Real) or (isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0):
+    """A scalar → (value, value); a pair is checked to lie ordered inside ``bounds``. A bool or a string (alone or in
+    the pair) is no number: ``TypeError``."""
+    if isinstance(value, bool) or isinstance(value, (str, bytes)):
+        raise TypeError(f"{name} must be a number or a (low, high) pair, got {type(value).__name__} {value!r:.60}")
+    if _is_number(value):
         lo = hi = float(value)
     else:
         try:
             if len(value) != 2:
                 raise ValueError
-            lo, hi = float(value[0]), float(value[1])
-        except (TypeError, ValueError):
+            pair = (value[0], value[1])
+        except (TypeError, ValueError, IndexError, KeyError):
             raise ValueError(f"{name} must be a number or a (low, high) pair, got {value!r:.60}") from None
+        for v in pair:
+            if not _is_number(v):
+                raise TypeError(f"{name} must be a number or a (low, high) pair, got {value!r:.60} "
+                                f"({type(v).__name__} {v!r:.20} is no number)")
+        lo, hi = float(pair[0]), float(pair[1])
     if not (bounds[0] <= lo <= hi <= bounds[1]):
-        raise ValueError(f"{name} = ({lo:g}, {hi:g}) must satisfy {bounds[0]:g} ≤ low ≤ high ≤ {bounds[1]:g}")
+        ok = lambda a, b: bounds[0] <= a <= b <= bounds[1]  # noqa: E731 (does the short form read as allowed?)
+        short = (f"{lo:g}", f"{hi:g}")
+        shown = short if not ok(float(short[0]), float(short[1])) else (repr(lo), repr(hi))
+        raise ValueError(f"{name} = ({shown[0]}, {shown[1]}) must satisfy {bounds[0]:g} ≤ low ≤ high ≤ {bounds[1]:g}")
     return lo, hi
 
 
@@ -126,6 +145,9 @@ class SensorNoiseGenerator(RandomGeneratorBase):
         gain_uniform_in: str = "factor",
     ) -> None:
         super().__init__()
+        if ranges is not None and not isinstance(ranges, Mapping):  # (dict("gain_db") fails with a riddle)
+            raise TypeError(f"ranges must be a mapping of field: (low, high), e.g. {{'gain_db': (0.0, 24.0)}}, got "
+                            f"{type(ranges).__name__} {ranges!r:.60}")
         if isinstance(metadata, CameraMetadata) and metadata.batch_size != 1:
             raise ValueError(
                 f"RandomSensorNoise takes metadata of batch size 1 (got {metadata.batch_size}); to corrupt with "
@@ -189,7 +211,10 @@ def params_to_constants(params: Mapping[str, torch.Tensor], prefix: str = "") ->
         j = int(bad.nonzero()[0, 0])
         raise ValueError(f"params {keys[j]} = {table[j].tolist()} must hold one finite value for the whole batch (the "
                          "fixed SensorConstants are shared by all samples)")
-    return SensorConstants(**{n: float(v) for n, v in zip(CONSTANT_FIELDS, table[:, 0].tolist())})
+    values = dict(zip(CONSTANT_FIELDS, table[:, 0].tolist()))
+    for n, k in zip(CONSTANT_FIELDS, keys):  # the checks of SensorConstants, naming the params entry
+        check_sensor_constant(n, values[n], where=f"params {k}")
+    return SensorConstants(**values)
 
 
 def params_to_metadata(params: Mapping[str, torch.Tensor], prefix: str = "") -> CameraMetadata:

@@ -63,6 +63,11 @@ class CameraCorruption(CorruptionBase):
     Labels (``aug.labels()``): ``mtf`` (B, 16) of the combined PSF (product of the components' MTFs),
     the noise labels of :class:`RandomSensorNoise`, and ``metadata``.
 
+    The components are fixed at construction (their kernel sizes, noise sources, quantisation and random-number
+    source are read then): assigning or deleting ``.defocus``, ``.motion`` or ``.noise`` afterwards raises
+    ``AttributeError`` — build a new ``CameraCorruption`` instead. (A component's own ``p`` and ranges may still be
+    changed in place; they are read at every call.)
+
     Shape:
         - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
           channel gets the same PSF and metadata, the noise is drawn per pixel and channel).
@@ -107,3 +112,23 @@ class CameraCorruption(CorruptionBase):
         self._quantize = noise._quantize if noise is not None else False
         self._rng = noise._rng if noise is not None else "torch"
         self._param_generator = _CameraGenerator({"defocus": defocus, "motion": motion, "noise": noise})
+        self.__dict__["_components_fixed"] = True
+
+    def _refuse_component_change(self, name: str, verb: str) -> None:
+        if name in _COMPONENTS and self.__dict__.get("_components_fixed", False):
+            raise AttributeError(
+                f"CameraCorruption.{name} is fixed at construction (its kernel size, noise sources and settings are read "
+                f"then): {verb} it would not change the corruption; build a new CameraCorruption({name}=...) instead"
+            )
+
+    def __setattr__(self, name: str, value: object) -> None:
+        self._refuse_component_change(name, "assigning")
+        super().__setattr__(name, value)
+
+    def __delattr__(self, name: str) -> None:
+        self._refuse_component_change(name, "deleting")
+        super().__delattr__(name)
+
+
+#: The components of :class:`CameraCorruption`, fixed at construction.
+_COMPONENTS = ("defocus", "motion", "noise")

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Mapping, Sequence
 
+import numpy as np
 import torch
 
 from camhealth.augment._base import CorruptionBase, check_sources
@@ -117,15 +119,15 @@ class RandomSensorNoise(CorruptionBase):
         A noise-only module's parameters; for :class:`~camhealth.augment.CameraCorruption` update the
         ``meta_<field>`` (and ``const_<field>``) entries of its ``forward_parameters`` output instead.
         """
+        if not isinstance(meta, CameraMetadata):
+            raise TypeError(f"meta must be a CameraMetadata (e.g. CameraMetadata.preset('ICX285'), "
+                            f"CameraMetadata.from_dict({{...}}, base='ICX285')), got {type(meta).__name__}")
         b = meta.batch_size
         params = metadata_to_params(meta, device=device)
         if seed is None:
             seeds = torch.full((b,), int(torch.randint(0, 2**62, (1,))), dtype=torch.int64)
         else:
-            raw = seed if isinstance(seed, torch.Tensor) else torch.as_tensor(seed)
-            if raw.is_floating_point() or raw.is_complex() or raw.dtype == torch.bool or raw.ndim > 1:
-                raise TypeError(f"seed must be an integer or a 1-D sequence of integers (one per sample), got {seed!r:.60}")
-            seeds = raw.detach().to("cpu", torch.int64).reshape(-1)
+            seeds = _seed_vector(seed)
             if seeds.numel() == 1:
                 seeds = seeds.expand(b)
             elif seeds.numel() != b:
@@ -135,3 +137,37 @@ class RandomSensorNoise(CorruptionBase):
         params["batch_prob"] = torch.ones(meta.batch_size, device=device)
         params["forward_input_shape"] = torch.tensor([meta.batch_size, 1, 0, 0])
         return params
+
+
+_SEED_LOW, _SEED_HIGH = -(2**63), 2**63 - 1  # noise seeds are stored as int64
+
+
+def _seed_vector(seed: Any) -> torch.Tensor:
+    """``seed`` (an integer, a 1-D sequence of integers or an integer tensor/array) as a 1-D int64 CPU tensor, else
+    ``TypeError`` (not integers: a float, bool or string) / ``ValueError`` (an integer beyond int64) naming it."""
+    what = "seed must be an integer or a 1-D sequence of integers (one per sample)"
+    if isinstance(seed, np.ndarray):
+        if not np.issubdtype(seed.dtype, np.integer):
+            raise TypeError(f"{what}, got an array of dtype {seed.dtype}")
+        if seed.size and seed.dtype == np.uint64 and int(seed.max()) > _SEED_HIGH:
+            raise ValueError(f"seed = {int(seed.max())} is out of the allowed range [-2**63, 2**63 - 1] (seeds are int64)")
+        seed = torch.as_tensor(seed.astype(np.int64))
+    if isinstance(seed, torch.Tensor):
+        raw = seed
+        if raw.is_floating_point() or raw.is_complex() or raw.dtype == torch.bool or raw.ndim > 1:
+            raise TypeError(f"{what}, got {seed!r:.60}")
+        if raw.dtype == torch.uint64 and raw.numel() and int(raw.max()) > _SEED_HIGH:
+            raise ValueError(f"seed = {int(raw.max())} is out of the allowed range [-2**63, 2**63 - 1] (seeds are int64)")
+        return raw.detach().to("cpu", torch.int64).reshape(-1)
+    items = list(seed) if isinstance(seed, (list, tuple, range)) else [seed]
+    values = []
+    for v in items:
+        if isinstance(v, torch.Tensor) and v.ndim == 0 and not v.is_floating_point() and not v.is_complex() \
+                and v.dtype != torch.bool:
+            v = int(v)
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+            raise TypeError(f"{what}, got {seed!r:.60} ({type(v).__name__} {v!r:.20} is no integer)")
+        if not _SEED_LOW <= int(v) <= _SEED_HIGH:
+            raise ValueError(f"seed = {int(v)} is out of the allowed range [-2**63, 2**63 - 1] (seeds are int64)")
+        values.append(int(v))
+    return torch.tensor(values, dtype=torch.int64)

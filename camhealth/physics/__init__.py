@@ -23,6 +23,7 @@ from camhealth.physics.metadata import (
     METADATA_RANGES,
     MINIMAL_FIELDS,
     PRESETS,
+    SENSOR_CONSTANT_RANGES,
     CameraMetadata,
     SensorConstants,
     celsius_to_kelvin,
@@ -51,7 +52,7 @@ from camhealth.physics.thin_lens import (
 __all__ = [
     "clipped_sigma_dn", "estimate_clean_dn",
     "NOISE_SOURCES", "NORMALIZED_FREQUENCIES", "FULL_FIELDS", "MINIMAL_FIELDS", "METADATA_RANGES", "PRESETS",
-    "CameraMetadata", "SensorConstants", "ImageFormation", "form_image", "apply_psf",
+    "SENSOR_CONSTANT_RANGES", "CameraMetadata", "SensorConstants", "ImageFormation", "form_image", "apply_psf",
     "defocus_psf", "default_kernel_size", "linear_motion_psf", "nonlinear_motion_psf", "sample_shake_noise",
     "gaussian_psf", "gaussian_mtf", "polygon_psf", "ring_psf", "ring_mtf", "spherical_psf", "sample_random_walk",
     "trajectory_psf", "sample_tiny_psf",

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 
-from camhealth._validation import check_finite, check_range
+from camhealth._validation import check_finite
+from camhealth.physics._format import check_range
 from camhealth.physics.defocus_psf import _batch_vector
 
 
@@ -24,12 +27,29 @@ def shift_vector(shift_px: object, work: torch.dtype, device: torch.device) -> t
         shift_px = torch.as_tensor(shift_px, dtype=torch.float64)
     if not isinstance(shift_px, torch.Tensor) or shift_px.dtype == torch.bool or shift_px.is_complex():
         raise TypeError(f"shift_px must be a real (B, 2) tensor of (dx, dy) in px, got {type(shift_px).__name__}")
-    s = shift_px.reshape(1, 2) if shift_px.ndim == 1 else shift_px
+    s = shift_px.reshape(1, 2) if shift_px.ndim == 1 and shift_px.numel() == 2 else shift_px
     if s.ndim != 2 or s.shape[1] != 2:
         raise ValueError(f"shift_px must have shape (B, 2) or (2,) of (dx, dy) in px, got {tuple(shift_px.shape)}")
     check_finite(s, "shift_px")
     check_range(s, "shift_px", -0.5, 0.5, "px")
     return s.to(device=device, dtype=work)
+
+
+def check_generator(generator: object, name: str = "generator") -> None:
+    """``TypeError`` unless ``generator`` is ``None`` or a ``torch.Generator``."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"{name} must be a torch.Generator or None, got {type(generator).__name__} {generator!r:.40}")
+
+
+def check_count(value: object, name: str, low: int, high: int) -> int:
+    """``value`` as an int if it is an integer (Python or NumPy; a bool is none) in ``[low, high]``, else
+    ``TypeError``/``ValueError`` naming it."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+    value = int(value)
+    if not low <= value <= high:
+        raise ValueError(f"{name} = {value} is out of the allowed range [{low}, {high}]")
+    return value
 
 
 def normalise(psf: torch.Tensor) -> torch.Tensor:

@@ -44,7 +44,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from camhealth._validation import check_finite, check_range, check_tensor
+from camhealth._validation import check_finite, check_tensor
+from camhealth.physics._format import check_range
 
 __all__ = ["censored_noise_moments", "clipped_sigma_dn", "censored_mean_dn", "estimate_clean_dn", "FULL_SCALE_DN"]
 

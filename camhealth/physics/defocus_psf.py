@@ -19,7 +19,8 @@ from typing import Sequence, Union
 
 import torch
 
-from camhealth._validation import check_batch_vector, check_odd_kernel_size, check_range
+from camhealth._validation import check_batch_vector, check_odd_kernel_size
+from camhealth.physics._format import check_range
 
 __all__ = ["defocus_psf", "default_kernel_size"]
 

@@ -30,12 +30,16 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Iterable, Sequence
 
+import numpy as np
 import torch
 
-from camhealth._validation import check_finite, check_image, check_tensor
+from camhealth._validation import check_finite, check_float, check_image, check_tensor
+from camhealth.physics._format import show_outside
+from camhealth.physics._psf_common import check_generator
 from camhealth.physics.counter_rng import (
     LazyCompiled, check_counter_size, counter_keys, counter_normal, counter_normal_at, counter_normal_expr,
 )
@@ -255,16 +259,22 @@ def apply_psf(image: torch.Tensor, psf: torch.Tensor, group_by_support: bool = T
             the batch's largest blur needs. Same result up to float summation order (the dropped taps
             are exact zeros; the padding is chosen from the full kernel size either way).
 
-    The kernels must be finite (else ``ValueError``); they are applied as given (any sum, any sign): the checks
-    that a blur kernel is non-negative and sums to 1 are :func:`form_image`'s.
+    The image must be a floating B×C×H×W tensor (else ``TypeError``/``ValueError``: an integer image would be
+    convolved with the kernel cast to its dtype, i.e. truncated to 0). The kernels must be finite and of odd size k
+    (a centre pixel: an even kernel would shift the image by half a pixel), else ``ValueError``; they are applied as
+    given (any sum, any sign): the checks that a blur kernel is non-negative and sums to 1 are :func:`form_image`'s.
 
     Odd kernels of size >= ``FFT_MIN_KERNEL`` are applied in the Fourier domain (same padding, same
     result up to float rounding; faster than the direct convolution for the 45 px kernels of non-linear
     motion, while oneDNN's direct convolution wins up to ~31 px on CPU).
     """
+    check_float(image, "image")
+    if image.ndim != 4:
+        raise ValueError(f"image must have shape B×C×H×W (4 dims), got {tuple(image.shape)}")
     check_tensor(psf, "psf")
     if psf.ndim != 3 or psf.shape[-1] != psf.shape[-2]:
         raise ValueError(f"psf must have shape (B, k, k), got {tuple(psf.shape)}")
+    _check_odd_psf(psf, "psf")
     if psf.shape[0] not in (1, image.shape[0]):
         raise ValueError(f"psf batch {psf.shape[0]} does not match image batch {image.shape[0]}")
     check_finite(psf, "psf")  # a NaN tap would turn every image it touches into NaN
@@ -426,6 +436,8 @@ def sample_poisson(
     runs a scalar sampler per element on CPU, ~2–3× slower here). Rates below 10 use ``torch.poisson``
     (a vectorised sequential inversion was tried and is slower on CPU).
     """
+    exact_below = _check_exact_below(exact_below, "exact_below")
+    check_generator(generator)
     if rate.numel() == 0:
         return rate.clone()
     work = (rate if rate.dtype in (torch.float32, torch.float64) else rate.float()).reshape(-1)
@@ -575,6 +587,7 @@ def poisson_z_table(rate: torch.Tensor, exact_below: float = 1e3, cells: int = _
     float64 rounding of t) for every z of the range. Rows with λ ≥ ``exact_below`` (the normal
     approximation) get an unused table of λ = 0.
     """
+    exact_below = _check_exact_below(exact_below, "exact_below")
     lam = torch.as_tensor(rate).detach().to(torch.float64)
     if lam.ndim != 1:
         raise ValueError(f"rate must have shape (B,), got {tuple(lam.shape)}")
@@ -699,6 +712,8 @@ def sample_poisson_per_sample(
     for λ < ``exact_below`` and λ + √λ·z above, in one compiled pass with a single table lookup per element.
     """
     check_rng(rng)
+    exact_below = _check_exact_below(exact_below, "exact_below")
+    check_generator(generator)
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(
             f"dtype must be torch.float32 or torch.float64 for Poisson counts (float16 overflows above 65 504 e⁻ and "
@@ -821,6 +836,29 @@ def _per_sample(v: torch.Tensor, dtype: torch.dtype, device: torch.device) -> to
 _PSF_SUM_TOLERANCE = 1e-3
 
 
+def _check_odd_psf(psf: torch.Tensor, name: str) -> None:
+    """``ValueError`` naming ``name`` unless the (B, k, k) kernels have an odd size k."""
+    k = psf.shape[-1]
+    if k % 2 == 0:
+        raise ValueError(f"{name} must have an odd size k (shape (B, k, k)), got k = {k}: a kernel needs a centre pixel "
+                         "to keep the image in place, an even one shifts it by half a pixel; sample the PSF on an odd grid")
+
+
+def _check_exact_below(value: object, name: str = "poisson_exact_below") -> float:
+    """``value`` as a float if it is a number in [10, inf] (electrons), else ``TypeError``/``ValueError`` naming it:
+    below 10 e⁻ the normal approximation N(λ, λ) it switches to is skewed and reaches below 0 (inf: every count exact)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a number of electrons, got {type(value).__name__} {value!r:.40}")
+    v = float(value)
+    if not v >= _EXPANSION_MIN_RATE:  # (NaN fails it)
+        raise ValueError(
+            f"{name} = {show_outside(v, _EXPANSION_MIN_RATE, math.inf)} e⁻ is out of the allowed range "
+            f"[{_EXPANSION_MIN_RATE:g}, inf] e⁻ (counts below it are drawn exactly, above it from the normal approximation "
+            "N(λ, λ), which is skewed and reaches below 0 for λ < 10; inf draws every count exactly)"
+        )
+    return v
+
+
 def _check_blur_psf(psf: object, name: str = "psf") -> torch.Tensor:
     """``psf`` if it is a (B, k, k) floating tensor (k ≥ 1) of finite, non-negative kernels that each sum to 1
     (within ``_PSF_SUM_TOLERANCE``; values down to −10⁻⁶ of a kernel's largest magnitude count as rounding of 0),
@@ -831,6 +869,7 @@ def _check_blur_psf(psf: object, name: str = "psf") -> torch.Tensor:
         raise TypeError(f"{name} must be a floating tensor (float16, bfloat16, float32 or float64), got dtype {psf.dtype}")
     if psf.ndim != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] < 1:
         raise ValueError(f"{name} must have shape (B, k, k) with k >= 1, got {tuple(psf.shape)}")
+    _check_odd_psf(psf, name)
     if psf.shape[0] == 0:
         return psf
     check_finite(psf, name)
@@ -851,6 +890,19 @@ def _check_blur_psf(psf: object, name: str = "psf") -> torch.Tensor:
         raise ValueError(f"{name} kernel {i} sums to {float(total[i]):g}; a blur kernel must sum to 1 (±{tol:g}) so that it "
                          "keeps the image's mean (normalise it: psf / psf.sum((-2, -1), keepdim=True))")
     return psf
+
+
+def _check_source_follower(sf: object, b: int) -> None:
+    """``TypeError``/``ValueError`` naming ``source_follower_e`` unless it is a floating tensor of 1 or ``b`` finite values
+    ≥ 0 (σ_SF in e⁻: a NaN would turn every image into NaN, a wrong length fail deep inside)."""
+    check_float(check_tensor(sf, "source_follower_e"), "source_follower_e")
+    if sf.ndim > 1 or sf.numel() not in (1, b):
+        raise ValueError(f"source_follower_e must have shape (1,) or (B,) = ({b},) (σ_SF [e⁻] of every sample), got shape "
+                         f"{tuple(sf.shape)}")
+    check_finite(sf, "source_follower_e")
+    if sf.numel() and bool((sf < 0).any()):
+        raise ValueError(f"source_follower_e = {float(sf.min()):g} e⁻ is out of the allowed range [0, inf) e⁻ "
+                         "(a standard deviation)")
 
 
 def form_image(
@@ -876,11 +928,12 @@ def form_image(
             sum to 1 per kernel (:func:`_check_blur_psf`; else ``TypeError``/``ValueError`` naming the argument).
         sources: which noise sources to realise, a subset of ``("photon", "dark", "readout")`` (a single name such
             as ``"photon"`` stands for that one source).
-        generator: torch generator on the image's device for reproducible noise.
-        quantize: round the output to whole DN (straight-through gradient).
-        source_follower_e: optional cached :func:`~camhealth.physics.readout_noise.source_follower_sigma_e`.
+        generator: torch generator on the image's device for reproducible noise (a ``torch.Generator`` or ``None``).
+        quantize: round the output to whole DN (straight-through gradient); a bool.
+        source_follower_e: optional cached :func:`~camhealth.physics.readout_noise.source_follower_sigma_e` [e⁻]:
+            finite, ≥ 0, of shape (1,) or (B,).
         poisson_exact_below: electron counts below this are Poisson-sampled exactly, above it with the
-            normal approximation.
+            normal approximation; in [10, inf] e⁻ (inf: every count exact).
         rng: random numbers of the noise fields: ``"torch"`` (default; torch's generator streams) or
             ``"counter"`` (:mod:`~camhealth.physics.counter_rng`: compiled counter-based draws keyed from
             ``generator``, one compiled pass per source: same distributions, about half the time of the
@@ -894,6 +947,14 @@ def form_image(
     if lo < 0 or hi > 1:
         raise ValueError(f"clean images must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
     check_rng(rng)
+    if not isinstance(quantize, (bool, np.bool_)):  # ("no" would read as True)
+        raise TypeError(f"quantize = {quantize!r:.40} must be True or False (a bool), got {type(quantize).__name__}")
+    quantize = bool(quantize)
+    poisson_exact_below = _check_exact_below(poisson_exact_below)
+    check_generator(generator)
+    if sources is None or not isinstance(sources, Iterable):
+        raise TypeError(f"sources must be a noise source name or a sequence of them (from {list(NOISE_SOURCES)}), got "
+                        f"{type(sources).__name__} {sources!r:.40}")
     sources = (sources,) if isinstance(sources, str) else tuple(sources)
     unknown = [s for s in sources if s not in NOISE_SOURCES]
     if unknown:
@@ -902,6 +963,8 @@ def form_image(
         if psf is not None:
             _check_blur_psf(psf, psf_name)
     b = clean.shape[0]
+    if source_follower_e is not None:
+        _check_source_follower(source_follower_e, b)
     out_dtype = clean.dtype
     wd = _work_dtype(out_dtype)
     dev = clean.device

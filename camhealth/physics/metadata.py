@@ -14,16 +14,21 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
+import numpy as np
 import torch
 
 from camhealth._validation import check_choice
+from camhealth.physics._format import show, show_outside
 
 __all__ = [
     "CameraMetadata",
     "SensorConstants",
+    "SENSOR_CONSTANT_RANGES",
     "METADATA_RANGES",
     "MINIMAL_FIELDS",
     "FULL_FIELDS",
@@ -94,20 +99,62 @@ def kelvin_to_celsius(t_k: torch.Tensor | float) -> torch.Tensor:
     return torch.as_tensor(t_k) - 273.15
 
 
+#: Allowed range (inclusive) and unit of every fixed sensor constant (:class:`SensorConstants`). Generous: the
+#: defaults (conventions.md) lie well inside; the ends keep every formula finite and meaningful (a time or gain of 0
+#: divides by 0 in Eq. 3.17, a negative corner frequency makes the 1/f noise power negative and σ NaN, an RTN
+#: current of 1 mA a read noise of 10⁶ DN).
+SENSOR_CONSTANT_RANGES: dict[str, tuple[float, float, str]] = {
+    "offset_dn": (0.0, 255.0, "DN"),
+    "cds_gain": (0.01, 10.0, ""),
+    "cds_sample_time_s": (1e-9, 1e-4, "s"),
+    "cds_time_factor": (0.01, 100.0, ""),
+    "flicker_corner_hz": (0.0, 1e9, "Hz"),
+    "rtn_current_a": (0.0, 1e-6, "A"),
+    "rtn_time_factor": (1e-3, 1e3, ""),
+    "source_follower_gain": (0.01, 10.0, "V/V"),
+    "reference_voltage_v": (0.1, 100.0, "V"),
+}
+
+
+def check_sensor_constant(name: str, value: Any, where: str | None = None) -> float:
+    """``value`` of the sensor constant ``name`` as a float, or ``TypeError`` (not a real number, or a bool) /
+    ``ValueError`` (NaN, ±inf or outside :data:`SENSOR_CONSTANT_RANGES`) naming ``where`` (default
+    ``SensorConstants.<name>``), the value and the allowed range."""
+    low, high, unit = SENSOR_CONSTANT_RANGES[name]
+    where = f"SensorConstants.{name}" if where is None else where
+    u = f" {unit}" if unit else ""
+    if isinstance(value, torch.Tensor) and value.ndim == 0 and value.dtype != torch.bool and not value.is_complex():
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{where} must be a real number{f' in {unit}' if unit else ''}, got {type(value).__name__} "
+                        f"{value!r:.60}")
+    try:
+        v = float(value)
+    except OverflowError:  # a Python int beyond float's range
+        raise ValueError(f"{where} = {str(value)[:24]}… is out of the allowed range [{low:g}, {high:g}]{u}") from None
+    if not (low <= v <= high):  # (NaN fails both comparisons)
+        raise ValueError(f"{where} = {show_outside(v, low, high)}{u} is out of the allowed range [{low:g}, {high:g}]{u}")
+    return v
+
+
 @dataclass(frozen=True)
 class SensorConstants:
     """Fixed metadata of the noise model (thesis Table B.1, conventions.md).
 
+    Every field is checked on construction (:data:`SENSOR_CONSTANT_RANGES`): a real number (not a bool), finite and
+    inside its range, else ``TypeError``/``ValueError`` naming the field, the value and the range. Values are stored
+    as Python floats.
+
     Attributes:
-        offset_dn: camera offset [DN].
-        cds_gain: gain left over from correlated double sampling [–].
-        cds_sample_time_s: CDS sample-to-sample time t_s [s].
-        cds_time_factor: τ_D = cds_time_factor · t_s, the CDS dominant time constant [–].
-        flicker_corner_hz: flicker (1/f) noise corner frequency f_c [Hz].
-        rtn_current_a: random-telegraph source-follower current modulation ΔI [A] (CMOS only).
-        rtn_time_factor: τ_RTN = rtn_time_factor · τ_D [–].
-        source_follower_gain: A_SF [V/V].
-        reference_voltage_v: sense-node reference voltage [V]: the conventions' fixed 5 V for every preset
+        offset_dn: camera offset [DN], 0…255.
+        cds_gain: gain left over from correlated double sampling [–], 0.01…10.
+        cds_sample_time_s: CDS sample-to-sample time t_s [s], 1e-9…1e-4.
+        cds_time_factor: τ_D = cds_time_factor · t_s, the CDS dominant time constant [–], 0.01…100.
+        flicker_corner_hz: flicker (1/f) noise corner frequency f_c [Hz], 0…1e9.
+        rtn_current_a: random-telegraph source-follower current modulation ΔI [A] (CMOS only), 0…1e-6.
+        rtn_time_factor: τ_RTN = rtn_time_factor · τ_D [–], 1e-3…1e3.
+        source_follower_gain: A_SF [V/V], 0.01…10.
+        reference_voltage_v: sense-node reference voltage [V], 0.1…100: the conventions' fixed 5 V for every preset
             (informative: no camhealth.physics function reads it, the ADC maps the full well to 255 DN; the
             EV76C661's own 3.3 V would change nothing here, and one set of constants keeps presets
             concatenable into one batch — give ``SensorConstants(reference_voltage_v=3.3)`` to carry it).
@@ -122,6 +169,10 @@ class SensorConstants:
     rtn_time_factor: float = 0.1
     source_follower_gain: float = 1.0
     reference_voltage_v: float = 5.0
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            object.__setattr__(self, f.name, check_sensor_constant(f.name, getattr(self, f.name)))
 
     @property
     def cds_time_constant_s(self) -> float:
@@ -140,7 +191,14 @@ def _as_vector(name: str, value: Any) -> torch.Tensor:
             raise TypeError(f"camera metadata {name} must be a number in {UNITS.get(name, '')}, got bool {value!r}")
         value = float(value)
     if isinstance(value, int):  # a Python int of any size (10**30 overflows torch's int64): its float, range-checked later
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:  # beyond float's range (10**400): out of every field's range
+            low, high = METADATA_RANGES.get(name, (-math.inf, math.inf))
+            unit = UNITS.get(name, "")
+            u = f" {unit}" if unit else ""
+            raise ValueError(f"camera metadata {name} = {str(value)[:24]}… is out of the allowed range "
+                             f"[{low:g}, {high:g}]{u}") from None
     if not isinstance(value, torch.Tensor):
         unit = UNITS.get(name, "")
         expected = f"a number{f' in {unit}' if unit else ''} or a 1-D sequence/tensor of per-sample numbers"
@@ -153,6 +211,8 @@ def _as_vector(name: str, value: Any) -> torch.Tensor:
     t = value
     if t.is_complex():
         raise TypeError(f"camera metadata {name} must hold real numbers, got dtype {t.dtype}")
+    if t.dtype == torch.bool and name != "is_cmos":  # (as for a Python bool: True as 1 dB or 1 s is a slip)
+        raise TypeError(f"camera metadata {name} must hold numbers in {UNITS.get(name, '')}, got a bool tensor")
     if not t.is_floating_point():
         t = t.to(torch.float32)
     if t.ndim == 0:
@@ -335,15 +395,17 @@ class CameraMetadata:
             # A relative slack of 1e-6 of each range end absorbs float32 rounding of that end (0.2 s stored in
             # float32 is 0.2000000030 in float64) without admitting physically different values. An end at 0 is
             # exact in every dtype and gets none: a negative D_FM or reset factor is refused (σ would be NaN).
-            bad = ~torch.isfinite(v) | (v < low - 1e-6 * abs(low)) | (v > high + 1e-6 * abs(high))
+            lo_ok, hi_ok = low - 1e-6 * abs(low), high + 1e-6 * abs(high)
+            bad = ~torch.isfinite(v) | (v < lo_ok) | (v > hi_ok)
             if name == "is_cmos":
                 bad = bad | ((v != 0) & (v != 1))
             if bool(bad.any()):
                 i = int(torch.nonzero(bad)[0, 0])
                 unit = UNITS[name]
                 u = f" {unit}" if unit else ""
+                allowed = (lambda x: x in (0.0, 1.0)) if name == "is_cmos" else (lambda x: lo_ok <= x <= hi_ok)
                 raise ValueError(
-                    f"camera metadata {name}[{i}] = {v[i].item():g}{u} is out of the allowed range "
+                    f"camera metadata {name}[{i}] = {show(v[i].item(), allowed, v.dtype)}{u} is out of the allowed range "
                     f"[{low:g}, {high:g}]{u}" + (" (0 = CCD, 1 = CMOS)" if name == "is_cmos" else "")
                 )
         return self
@@ -398,7 +460,8 @@ class CameraMetadata:
         return CameraMetadata(**kw, constants=self.constants)
 
     def expand(self, batch_size: int) -> "CameraMetadata":
-        """Repeat a single-sample metadata to ``batch_size`` samples."""
+        """Repeat a single-sample metadata to ``batch_size`` samples (an integer ≥ 0; 0 gives an empty batch)."""
+        batch_size = _check_batch_size(batch_size, "batch_size", low=0)
         if self.batch_size == batch_size:
             return self
         if self.batch_size != 1:
@@ -521,6 +584,7 @@ class CameraMetadata:
         """
         if not isinstance(name, str):
             raise ValueError(f"sensor preset {name!r} is not a name; known presets: {sorted(PRESETS)}")
+        batch_size = _check_batch_size(batch_size, low=0)
         key = name.upper()
         if key not in PRESETS:
             raise ValueError(f"unknown sensor preset {name!r}; known presets: {sorted(PRESETS)}")
@@ -557,15 +621,20 @@ class CameraMetadata:
                 or ``"db"``.
         """
         check_choice(gain_uniform_in, "gain_uniform_in", ("factor", "db"))
-        if batch_size < 1:
-            raise ValueError(f"batch_size = {batch_size} must be ≥ 1")
+        batch_size = _check_batch_size(batch_size)
+        if ranges is not None and not isinstance(ranges, Mapping):
+            raise TypeError(f"ranges must be a mapping of field: (low, high), e.g. {{'gain_db': (0.0, 24.0)}}, got "
+                            f"{type(ranges).__name__} {ranges!r:.60}")
         rng = dict(METADATA_RANGES)
-        for n, (lo, hi) in (ranges or {}).items():
+        for n, value in (ranges or {}).items():
             if n not in METADATA_RANGES:
                 raise ValueError(f"unknown metadata field {n!r} in ranges; known fields: {list(FULL_FIELDS)}")
+            lo, hi = _range_pair(value, n)
             glo, ghi = METADATA_RANGES[n]
             if not (glo <= lo <= hi <= ghi):
-                raise ValueError(f"range for {n} = ({lo:g}, {hi:g}) must satisfy {glo:g} ≤ low ≤ high ≤ {ghi:g}")
+                ok = lambda x, y: glo <= x <= y <= ghi  # noqa: E731
+                shown = (f"{lo:g}", f"{hi:g}") if not ok(float(f"{lo:g}"), float(f"{hi:g}")) else (repr(lo), repr(hi))
+                raise ValueError(f"range for {n} = ({shown[0]}, {shown[1]}) must satisfy {glo:g} ≤ low ≤ high ≤ {ghi:g}")
             if n == "is_cmos" and (float(lo), float(hi)) not in ((0.0, 0.0), (1.0, 1.0), (0.0, 1.0)):
                 raise ValueError(f"range for is_cmos = ({lo:g}, {hi:g}) must be (0, 0) (CCD only), (1, 1) (CMOS only) "
                                  "or (0, 1) (either, a fair coin)")
@@ -601,6 +670,49 @@ class CameraMetadata:
         data.update(fixed_values)
         meta = cls(**data, constants=constants)
         return meta.to(device=device) if device is not None else meta
+
+
+def _check_batch_size(batch_size: Any, name: str = "batch_size", low: int = 1) -> int:
+    """``batch_size`` as an int: ``TypeError`` unless it is an integer (a bool is none), ``ValueError`` below ``low``."""
+    if isinstance(batch_size, torch.Tensor) and batch_size.ndim == 0 and not batch_size.is_floating_point() \
+            and not batch_size.is_complex() and batch_size.dtype != torch.bool:
+        batch_size = int(batch_size)
+    if isinstance(batch_size, bool) or not isinstance(batch_size, numbers.Integral):
+        raise TypeError(f"{name} must be an integer ≥ {low}, got {type(batch_size).__name__} {batch_size!r:.40}")
+    if batch_size < low:
+        raise ValueError(f"{name} = {batch_size} must be an integer ≥ {low}")
+    return int(batch_size)
+
+
+def _range_pair(value: Any, name: str) -> tuple[float, float]:
+    """A sampling range of ``ranges``: a (low, high) pair of real numbers (or one number: (v, v)) as floats, else
+    ``TypeError``/``ValueError`` naming the field (a bool or a string is no number)."""
+    def number(v: Any) -> float:
+        if isinstance(v, torch.Tensor) and v.ndim == 0 and v.dtype != torch.bool and not v.is_complex():
+            v = v.item()
+        if isinstance(v, bool) or not isinstance(v, numbers.Real):
+            raise TypeError(f"range for {name} must be a (low, high) pair of numbers, got {value!r:.60} "
+                            f"({type(v).__name__} {v!r:.20} is no number)")
+        try:
+            f = float(v)
+        except OverflowError:
+            f = math.inf if v > 0 else -math.inf
+        if math.isnan(f):
+            raise ValueError(f"range for {name} = {value!r:.60} must hold finite numbers")
+        return f
+
+    if isinstance(value, np.ndarray):
+        value = value.tolist()  # (a 0-d array gives its number)
+    if isinstance(value, torch.Tensor):
+        value = value.item() if value.ndim == 0 and value.dtype != torch.bool else list(value) if value.ndim == 1 else value
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        v = number(value)
+        return v, v
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        raise TypeError(f"range for {name} must be a (low, high) pair of numbers, got {type(value).__name__} {value!r:.60}")
+    if len(value) != 2:
+        raise ValueError(f"range for {name} must be a (low, high) pair, got {len(value)} values {value!r:.60}")
+    return number(value[0]), number(value[1])
 
 
 def _field_names(fields: str | Sequence[str]) -> tuple[str, ...]:

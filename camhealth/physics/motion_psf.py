@@ -34,7 +34,8 @@ from __future__ import annotations
 
 import torch
 
-from camhealth._validation import check_finite, check_float, check_odd_kernel_size, check_range, check_tensor
+from camhealth._validation import check_finite, check_float, check_odd_kernel_size, check_tensor
+from camhealth.physics._format import check_range, show_outside
 from camhealth.physics.defocus_psf import _batch_vector, _out_dtype, _work_dtype
 
 __all__ = [
@@ -111,7 +112,8 @@ def _check_length(length: torch.Tensor, k: int) -> None:
     bad = length > k
     if bool(bad.any()):
         raise ValueError(
-            f"length_px = {length[bad].flatten()[0].item():g} px is out of the allowed range [0, {k}] px for "
+            f"length_px = {show_outside(length[bad].flatten()[0].item(), 0.0, k, length.dtype)} px is out of the allowed "
+            f"range [0, {k}] px for "
             f"kernel_size = {k}: a longer path could leave the kernel; use a larger kernel_size"
         )
     check_range(length, "length_px", 0.0, float(k), "px")

@@ -34,7 +34,8 @@ from typing import Sequence, Union
 
 import torch
 
-from camhealth._validation import check_finite, check_float, check_range, check_tensor
+from camhealth._validation import check_finite, check_float, check_tensor
+from camhealth.physics._format import check_range
 from camhealth.physics.thin_lens import _as_tensors, _finish
 
 __all__ = [

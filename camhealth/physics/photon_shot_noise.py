@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import torch
 
-from camhealth._validation import check_finite, check_range
+from camhealth._validation import check_finite
+from camhealth.physics._format import check_range, show_outside
 from camhealth.physics.metadata import CameraMetadata
 
 __all__ = ["photo_electrons", "photon_shot_sigma_dn", "photon_shot_sigma_patch_dn"]
@@ -30,6 +31,12 @@ def _work(t: torch.Tensor) -> torch.Tensor:
 
 
 def _per_sample(v: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Per-sample values (B,) of the metadata shaped to broadcast over ``ref`` (B×…), or ``ValueError`` naming both
+    batch sizes unless the metadata has 1 or B samples."""
+    b = ref.shape[0] if ref.ndim else 1
+    if v.shape[0] not in (1, b):
+        raise ValueError(f"metadata batch {v.shape[0]} does not match the intensity batch {b} (shape {tuple(ref.shape)}): "
+                         "give metadata of batch 1 or one per sample")
     return v.to(device=ref.device, dtype=ref.dtype).view(-1, *([1] * (ref.ndim - 1)))
 
 
@@ -56,11 +63,15 @@ def photon_shot_sigma_patch_dn(intensity: torch.Tensor, meta: CameraMetadata) ->
     blur and count as 0. Returned in the intensity's dtype."""
     out_dtype = intensity.dtype
     intensity = _work(intensity)
+    if intensity.ndim < 1 or meta.batch_size not in (1, intensity.shape[0]):
+        raise ValueError(f"metadata batch {meta.batch_size} does not match the intensity batch (shape "
+                         f"{tuple(intensity.shape)}): give metadata of batch 1 or one per sample")
     raw = intensity.detach().flatten(1).mean(1)
     check_finite(raw, "mean intensity")  # (B,): a NaN anywhere in a sample shows here
     bad = (raw < -1e-6) | (raw > 1.0 + 1e-6)
     if bool(bad.any()):
         i = int(bad.nonzero()[0, 0])
-        raise ValueError(f"mean intensity[{i}] = {float(raw[i]):g} is out of the allowed range [0, 1] (DN/255)")
+        raise ValueError(f"mean intensity[{i}] = {show_outside(float(raw[i]), -1e-6, 1.0 + 1e-6, raw.dtype)} is out of the "
+                         "allowed range [0, 1] (DN/255)")
     mean_i = intensity.clamp_min(0).flatten(1).mean(1)
     return (255.0 * (mean_i * (meta.gain_factor / meta.full_well_e).to(mean_i)).sqrt()).to(out_dtype)

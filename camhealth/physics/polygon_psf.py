@@ -19,7 +19,7 @@ import math
 import torch
 
 from camhealth._validation import check_odd_kernel_size
-from camhealth.physics._psf_common import batch_of, normalise, positive_vector, shift_vector
+from camhealth.physics._psf_common import batch_of, check_count, normalise, positive_vector, shift_vector
 from camhealth.physics.defocus_psf import _batch_vector, _out_dtype, _work_dtype
 
 __all__ = ["polygon_psf", "polygon_area_px2"]
@@ -54,11 +54,8 @@ def polygon_psf(
         float64 if an input is float64, else float32.
     """
     k = check_odd_kernel_size(kernel_size)
-    for name, v, lo, hi in (("n_blades", n_blades, 3, 16), ("supersample", supersample, 2, 32)):
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise TypeError(f"{name} must be an int, got {type(v).__name__}")
-        if not lo <= v <= hi:
-            raise ValueError(f"{name} = {v} is out of the allowed range [{lo}, {hi}]")
+    n_blades = check_count(n_blades, "n_blades", 3, 16)  # (NumPy integers too, as kernel_size)
+    supersample = check_count(supersample, "supersample", 2, 32)
     d = positive_vector(diameter_px, "diameter_px", 0.0, float(k - 1), "px")
     dev = d.device
     rot = _batch_vector(rotation_deg, "rotation_deg").to(dev)

@@ -20,11 +20,12 @@ on the kernel centre and rasterises it with the exact line/pixel-square coverage
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
 from camhealth._validation import check_finite, check_float, check_odd_kernel_size, check_tensor
-from camhealth.physics._psf_common import batch_of, positive_vector
+from camhealth.physics._psf_common import batch_of, check_generator, positive_vector
 from camhealth.physics.defocus_psf import _out_dtype, _work_dtype
 from camhealth.physics.motion_psf import _check_length, _rasterise_polyline
 
@@ -50,10 +51,12 @@ def sample_random_walk(
         dtype: floating dtype of the result.
     """
     for name, v, low in (("batch_size", batch_size, 1), ("n_steps", n_steps, 2)):
-        if isinstance(v, bool) or not isinstance(v, int):
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral):  # (NumPy integers too, as kernel_size)
             raise TypeError(f"{name} must be an int, got {type(v).__name__}")
         if v < low:
             raise ValueError(f"{name} = {v} is out of the allowed range [{low}, inf)")
+    batch_size, n_steps = int(batch_size), int(n_steps)
+    check_generator(generator)
     for name, v, hi in (("anxiety", anxiety, 2.0), ("centripetal", centripetal, 1.0), ("p_jerk", p_jerk, 1.0)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0.0 <= v <= hi:
             raise ValueError(f"{name} = {v!r} is out of the allowed range [0, {hi}]")
@@ -83,7 +86,8 @@ def trajectory_psf(trajectory: torch.Tensor, length_px: torch.Tensor, kernel_siz
     """Kernels of polyline trajectories moved at uniform speed along their arc, scaled to arc length L.
 
     Args:
-        trajectory: (B, M + 1, 2) vertices (x right, y down) in any unit, M ≥ 1 segments, a non-zero arc length.
+        trajectory: (B, M + 1, 2) vertices (x right, y down) in any unit, M ≥ 1 segments, a non-zero arc length
+            (more than 1e-12 of the largest vertex coordinate: not vertices that differ by rounding alone).
         length_px: (B,) arc length L in px, in [0, kernel_size].
         kernel_size: odd kernel side k in px.
 
@@ -104,8 +108,10 @@ def trajectory_psf(trajectory: torch.Tensor, length_px: torch.Tensor, kernel_siz
     tr = tr.to(work).expand(b, *tr.shape[1:])
     seg = (tr[:, 1:] - tr[:, :-1]).norm(dim=-1)  # (B, M)
     arc = seg.sum(1)
-    if bool((arc <= 1e-12).any()):
-        raise ValueError("trajectory must have a non-zero arc length (all its vertices coincide)")
+    # relative to the coordinates' magnitude ("any unit": a path of 1e-20 m is a path), 0 where all vertices are 0
+    if bool((arc <= 1e-12 * tr.abs().flatten(1).amax(1)).any()):
+        raise ValueError("trajectory must have a non-zero arc length (all its vertices coincide, to within 1e-12 of "
+                         "their coordinates)")
     scaled = tr * (length.to(work).expand(b) / arc)[:, None, None].to(tr.device)
     centre = 0.5 * (scaled.amax(dim=1, keepdim=True) + scaled.amin(dim=1, keepdim=True))
     weights = seg / arc[:, None]  # uniform speed along the arc: each segment's share of the exposure

@@ -16,7 +16,8 @@ import math
 
 import torch
 
-from camhealth._validation import check_odd_kernel_size, check_range
+from camhealth._validation import check_odd_kernel_size
+from camhealth.physics._format import check_range
 from camhealth.physics._psf_common import batch_of, normalise, positive_vector
 from camhealth.physics.defocus_psf import _disk_coverage, _out_dtype, _work_dtype
 from camhealth.physics.thin_lens import _as_tensors, _finish

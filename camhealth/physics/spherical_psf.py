@@ -23,7 +23,7 @@ import math
 import torch
 
 from camhealth._validation import check_odd_kernel_size
-from camhealth.physics._psf_common import batch_of, bin_points, normalise, positive_vector
+from camhealth.physics._psf_common import batch_of, bin_points, check_count, normalise, positive_vector
 from camhealth.physics.defocus_psf import _out_dtype, _work_dtype
 
 __all__ = ["spherical_psf", "MAX_REACH"]
@@ -45,10 +45,7 @@ def spherical_psf(diameter_px: torch.Tensor, spherical: torch.Tensor, kernel_siz
         (B, k, k) kernels summing to 1; float64 if an input is float64, else float32.
     """
     k = check_odd_kernel_size(kernel_size)
-    if isinstance(n_rings, bool) or not isinstance(n_rings, int):
-        raise TypeError(f"n_rings must be an int, got {type(n_rings).__name__}")
-    if not 8 <= n_rings <= 512:
-        raise ValueError(f"n_rings = {n_rings} is out of the allowed range [8, 512]")
+    n_rings = check_count(n_rings, "n_rings", 8, 512)  # (NumPy integers too, as kernel_size)
     d = positive_vector(diameter_px, "diameter_px", 0.0, k / 1.09, "px")
     s = positive_vector(spherical, "spherical", -1.0, 1.0).to(d.device)
     b = batch_of(d, s)

@@ -29,7 +29,8 @@ from typing import Union
 
 import torch
 
-from camhealth._validation import check_finite, check_range, check_tensor
+from camhealth._validation import check_finite, check_tensor
+from camhealth.physics._format import check_range
 
 __all__ = [
     "circle_of_confusion_mm",

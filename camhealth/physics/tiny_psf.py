@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 
 from camhealth._validation import check_odd_kernel_size
+from camhealth.physics._psf_common import check_count, check_generator
 
 __all__ = ["sample_tiny_psf"]
 
@@ -22,11 +23,9 @@ def sample_tiny_psf(batch_size: int, support_px: int, kernel_size: int, generato
                     dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """B random kernels on an s×s support (s in 1..5) inside a k×k kernel (k ≥ s, odd) → (B, k, k) summing to 1."""
     k = check_odd_kernel_size(kernel_size)
-    for name, v, lo, hi in (("batch_size", batch_size, 1, 1 << 30), ("support_px", support_px, 1, 5)):
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise TypeError(f"{name} must be an int, got {type(v).__name__}")
-        if not lo <= v <= hi:
-            raise ValueError(f"{name} = {v} is out of the allowed range [{lo}, {hi}]")
+    batch_size = check_count(batch_size, "batch_size", 1, 1 << 30)  # (NumPy integers too, as kernel_size)
+    support_px = check_count(support_px, "support_px", 1, 5)
+    check_generator(generator)
     if support_px > k:
         raise ValueError(f"support_px = {support_px} must be ≤ kernel_size = {k}")
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:

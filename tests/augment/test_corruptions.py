@@ -253,7 +253,7 @@ def test_numpy_and_tensor_scalars_are_ranges(value):
     assert RandomDefocusBlur(v)._param_generator.ranges["diameter"] == (5.0, 5.0)
 
 
-@pytest.mark.parametrize("bad,err,shown", [("ab", ValueError, "'ab'"), ([1, 2, 3], ValueError, r"\[1, 2, 3\]"),
+@pytest.mark.parametrize("bad,err,shown", [("ab", TypeError, "str 'ab'"), ([1, 2, 3], ValueError, r"\[1, 2, 3\]"),
                                            (True, TypeError, "bool True"), (None, ValueError, "None")])
 def test_bad_ranges_name_the_argument(bad, err, shown):
     with pytest.raises(err, match=rf"diameter must be a number or a \(low, high\) pair, got {shown}"):
