@@ -26,7 +26,7 @@ are pure and batched.
 from __future__ import annotations
 
 import math
-
+import numbers
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -71,6 +71,26 @@ def _check_estimates(x: object, name: str) -> torch.Tensor:
     return x
 
 
+def _check_dim(dim: object, ndim: int, name: str = "dim") -> int:
+    """``dim`` as an axis index in [0, ndim): an int (NumPy integers too, not a bool) in [−ndim, ndim)."""
+    if isinstance(dim, bool) or not isinstance(dim, numbers.Integral):
+        raise TypeError(f"{name} must be an int (an axis), got {dim!r} ({type(dim).__name__})")
+    d = int(dim)
+    if not -ndim <= d < ndim:
+        raise ValueError(f"{name} = {d} is out of range for a {ndim}-D tensor (allowed [{-ndim}, {ndim - 1}])")
+    return d % ndim
+
+
+def _check_count(v: object, name: str, low: int, high: int | None, what: str) -> int:
+    """``v`` as an int (NumPy integers too, not a bool) in [low, high] (high None: no upper limit)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+        raise TypeError(f"{name} must be an int, got {v!r} ({type(v).__name__})")
+    v = int(v)
+    if v < low or (high is not None and v > high):
+        raise ValueError(f"{name} = {v} is out of the allowed range [{low}, {high if high is not None else 'inf'}] ({what})")
+    return v
+
+
 def _reduce_last(w: torch.Tensor) -> Aggregate:
     """Median, spread, min, max and count over the last dim, ignoring NaN (NaN and count 0 where nothing is left,
     an empty last dim included). Half-precision estimates are reduced in float32 (torch.nanquantile needs it) and the
@@ -109,7 +129,8 @@ def temporal_median(estimates: torch.Tensor, window: int, stride: int = 1, dim: 
         window: n >= 1 frames per window (at most the number of frames T).
         stride: step between window starts: 1 = a sliding (moving) median with one value per frame from
             frame n − 1 on, ``window`` = non-overlapping windows.
-        dim: the frame axis.
+        dim: the frame axis, in [−ndim, ndim) (an int; out of range: ``ValueError``). An empty frame axis (no
+            frames) raises ``ValueError``.
 
     Returns:
         :class:`Aggregate` whose frame axis has ``(T − n) // stride + 1`` entries (window k covers frames
@@ -118,13 +139,14 @@ def temporal_median(estimates: torch.Tensor, window: int, stride: int = 1, dim: 
     x = _check_estimates(estimates, "estimates")
     if x.ndim == 0:
         raise ValueError("estimates must have a frame axis, got a scalar")
-    dim = dim % x.ndim
+    dim = _check_dim(dim, x.ndim)
     t = x.shape[dim]
-    for v, name, hi in ((window, "window", t), (stride, "stride", None)):
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise TypeError(f"{name} must be an int, got {type(v).__name__}")
-        if v < 1 or (hi is not None and v > hi):
-            raise ValueError(f"{name} = {v} is out of the allowed range [1, {hi if hi is not None else 'inf'}] (frames: {t})")
+    if t == 0:
+        if isinstance(window, bool) or not isinstance(window, numbers.Integral):
+            raise TypeError(f"window must be an int, got {window!r} ({type(window).__name__})")
+        raise ValueError(f"estimates have no frames along dim {dim} (shape {tuple(x.shape)}): nothing to aggregate")
+    window = _check_count(window, "window", 1, t, f"frames: {t}")
+    stride = _check_count(stride, "stride", 1, None, f"frames: {t}")
     windows = x.unfold(dim, window, stride)  # frame axis → number of windows, window contents last
     agg = _reduce_last(windows)
     return agg
@@ -135,11 +157,15 @@ def spatial_median(estimates: torch.Tensor, dim: int | Sequence[int] = -1) -> Ag
 
     The spatial counterpart of Eq. 5.4 (Sec. 5.7): for a corruption that is constant over the image,
     the median over the patches of one frame, with the same spread/min/max/count as :func:`temporal_median`.
+    ``dim``: an int or a sequence of ints, each in [−ndim, ndim) (``TypeError`` for another type, ``ValueError`` out of
+    range or for an axis named twice).
     """
     x = _check_estimates(estimates, "estimates")
     if x.ndim == 0:
         raise ValueError("estimates must have at least one axis to aggregate, got a scalar")
-    dims = [d % x.ndim for d in ([dim] if isinstance(dim, int) else list(dim))]
+    if isinstance(dim, (str, bytes)) or not (isinstance(dim, numbers.Integral) or hasattr(dim, "__iter__")):
+        raise TypeError(f"dim must be an int or a sequence of ints (axes), got {dim!r} ({type(dim).__name__})")
+    dims = [_check_dim(d, x.ndim) for d in ([dim] if isinstance(dim, numbers.Integral) else list(dim))]
     if len(set(dims)) != len(dims):
         raise ValueError(f"dim = {dim} names an axis twice")
     keep = [d for d in range(x.ndim) if d not in dims]
@@ -167,10 +193,11 @@ def uncertainty_by_window(
     if x.ndim == 0:
         raise ValueError("estimates must have a frame axis, got a scalar")
     for n in windows:
-        if isinstance(n, bool) or not isinstance(n, int):
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral):
             raise TypeError(f"every window must be an int (frames), got {n!r} ({type(n).__name__})")
-    t = x.shape[dim % x.ndim]
-    sizes = sorted({n for n in windows if 1 <= n <= t} | {1})
+    dim = _check_dim(dim, x.ndim)
+    t = x.shape[dim]
+    sizes = sorted({int(n) for n in windows if 1 <= n <= t} | {1})
     out: dict[int, dict[str, float]] = {}
     for n in sizes:  # a handful of window sizes, each one vectorised
         agg = temporal_median(x, n, stride=1 if stride == "sliding" else n, dim=dim)

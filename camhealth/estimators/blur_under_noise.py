@@ -23,6 +23,7 @@ or a chart-based measurement such as :func:`~camhealth.estimators.slanted_edge.s
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from typing import Callable
 
@@ -59,9 +60,19 @@ class BlurUnderNoiseResult:
 
 
 def _check_diameter(d2: float) -> float:
-    if isinstance(d2, bool) or not isinstance(d2, (int, float)) or not (0.0 <= float(d2) <= 63.0):
-        raise ValueError(f"prefilter diameter d2 = {d2!r} px is out of the allowed range [0, 63] px")
+    if isinstance(d2, bool) or not isinstance(d2, numbers.Real):  # NumPy floats and ints are Real; bool is not a number
+        raise TypeError(f"prefilter diameter d2 must be a real number (px), got {d2!r} ({type(d2).__name__})")
+    if not (0.0 <= float(d2) <= 63.0):
+        raise ValueError(f"prefilter diameter d2 = {float(d2):g} px is out of the allowed range [0, 63] px")
     return float(d2)
+
+
+def _check_epsilon(epsilon: float) -> float:
+    if isinstance(epsilon, bool) or not isinstance(epsilon, numbers.Real):
+        raise TypeError(f"epsilon must be a real number in [0, 1), got {epsilon!r} ({type(epsilon).__name__})")
+    if not (0.0 <= float(epsilon) < 1.0):
+        raise ValueError(f"epsilon = {float(epsilon):g} is out of the allowed range [0, 1)")
+    return float(epsilon)
 
 
 def _kernel(d2: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -94,16 +105,23 @@ def divide_out_prefilter(
     """MTF^(b₁) = MTF^(b₁, b₂) / MTF(b₂) where the preconditions of Sec. 5.5 hold, NaN elsewhere.
 
     Args:
-        overall: (…, 16) estimated overall MTF; b2_mtf: (16,) or broadcastable MTF of b₂.
-        epsilon: threshold ε of preconditions (ii) and (iii), in [0, 1).
+        overall: (…, 16) estimated overall MTF; b2_mtf: (16,) or another shape that broadcasts to ``overall``'s
+            (``ValueError`` otherwise, naming both shapes).
+        epsilon: threshold ε of preconditions (ii) and (iii), a real number in [0, 1) (``TypeError`` for another type).
 
     Returns:
         (mtf, valid): the quotient (NaN where omitted) and the bool mask of kept frequencies.
     """
     o = check_float(check_tensor(overall, "overall"), "overall")
     m2 = check_float(check_tensor(b2_mtf, "b2_mtf"), "b2_mtf").to(device=o.device, dtype=o.dtype)
-    if not (0.0 <= float(epsilon) < 1.0):
-        raise ValueError(f"epsilon = {epsilon!r} is out of the allowed range [0, 1)")
+    try:
+        fits = torch.broadcast_shapes(o.shape, m2.shape) == o.shape
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"b2_mtf {tuple(m2.shape)} must broadcast to the shape of overall {tuple(o.shape)} (one MTF "
+                         f"value per frequency of overall's last dimension)")
+    epsilon = _check_epsilon(epsilon)
     valid = (o <= m2) & (m2 > epsilon) & (o > epsilon) & torch.isfinite(o)
     q = o / torch.where(m2 > 0, m2, torch.ones_like(m2))
     return torch.where(valid, q, torch.full_like(q, float("nan"))), valid
@@ -124,6 +142,7 @@ def estimate_blur_under_noise(
         epsilon: precondition threshold ε.
     """
     images = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
+    _check_epsilon(epsilon)  # before the estimator runs
     filtered = prefilter(images, d2)
     overall = mtf_estimator(filtered)
     overall = check_float(check_tensor(overall, "mtf_estimator output"), "mtf_estimator output")

@@ -234,7 +234,8 @@ def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None
     """Hot, stuck and dead pixels of B×1×H×W patches in [0, 1] (DN/255; H, W ≥ 3; module docstring). Any float dtype;
     computed in float32 (float64 input in float64). The window's fit is made only at the candidates, the pixels whose
     step over all 8 neighbours exceeds k·σ_n and :data:`MIN_DEFECT_DN` (few in most patches). ``noise_dn``: the patches'
-    σ̂ [DN] (B,) of :func:`camhealth._inputs.haar_noise_dn` where the caller has it already (computed here otherwise).
+    σ̂ [DN] (B,) of :func:`camhealth._inputs.haar_noise_dn` where the caller has it already (computed here otherwise); a
+    real tensor (or sequence) of one finite σ ≥ 0 per patch (``TypeError`` for a string, a bool or a non-numeric type).
     An empty batch (B = 0) gives empty counts. Returns :class:`DefectivePixels`.
 
     Raises ``TypeError`` for a non-tensor or a non-float dtype, ``ValueError`` for a wrong shape, NaN/inf or values
@@ -254,7 +255,17 @@ def defective_pixels(patches: torch.Tensor, noise_dn: torch.Tensor | None = None
     if noise_dn is None:
         sigma = haar_noise_dn(patches.detach())
     else:
-        sigma = torch.as_tensor(noise_dn, device=q.device)
+        if isinstance(noise_dn, (bool, str, bytes)) or (isinstance(noise_dn, torch.Tensor)
+                                                        and (noise_dn.dtype == torch.bool or noise_dn.is_complex())):
+            raise TypeError(f"defective_pixels: noise_dn must be a real tensor of σ [DN] per patch, got {noise_dn!r} "
+                            f"({type(noise_dn).__name__})")
+        try:
+            sigma = torch.as_tensor(noise_dn, device=q.device)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"defective_pixels: noise_dn must be a real tensor of σ [DN] per patch, got "
+                            f"{type(noise_dn).__name__}") from None
+        if sigma.dtype == torch.bool or sigma.is_complex():
+            raise TypeError(f"defective_pixels: noise_dn must be a real tensor of σ [DN] per patch, got dtype {sigma.dtype}")
         if sigma.numel() != b or not bool(torch.isfinite(sigma).all()) or bool((sigma < 0).any()):
             raise ValueError(f"defective_pixels: noise_dn must hold one finite σ ≥ 0 [DN] per patch ({b}), got shape "
                              f"{tuple(sigma.shape)} with values {sigma.flatten()[:4].tolist()}")

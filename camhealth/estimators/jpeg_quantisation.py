@@ -43,6 +43,7 @@ steps are below the noise and whose codec removed little of it, is often not cod
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -90,8 +91,17 @@ class JpegGrid:
 
 def noise_jitter_ratio(sigma_dn: float | torch.Tensor) -> torch.Tensor:
     """The largest jitter ratio that coefficients of noise σ [DN] (8-bit rounding included: σ_t² = σ² + 1/12) reach:
-    erf(a)/(erf(2a) − erf(a)), a = 0.5/(σ_t·√2), the share within ±0.5 DN over that within 0.5–1 DN of N(0, σ_t²)."""
-    s = torch.as_tensor(sigma_dn, dtype=torch.float64)
+    erf(a)/(erf(2a) − erf(a)), a = 0.5/(σ_t·√2), the share within ±0.5 DN over that within 0.5–1 DN of N(0, σ_t²).
+
+    ``sigma_dn``: a real number, or a real tensor or sequence of them (``TypeError`` for a string, a bool or another
+    type), finite and ≥ 0."""
+    if isinstance(sigma_dn, (bool, str, bytes)) or (isinstance(sigma_dn, torch.Tensor)
+                                                    and (sigma_dn.dtype == torch.bool or sigma_dn.is_complex())):
+        raise TypeError(f"sigma_dn must be a real number or a real tensor [DN], got {sigma_dn!r} ({type(sigma_dn).__name__})")
+    try:
+        s = torch.as_tensor(sigma_dn, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"sigma_dn must be a real number or a real tensor [DN], got {type(sigma_dn).__name__}") from None
     if bool((s < 0).any()) or not bool(torch.isfinite(s).all()):
         raise ValueError(f"sigma_dn must be finite and ≥ 0, got {sigma_dn!r}")
     a = 0.5 / ((s.square() + 1.0 / 12.0).sqrt() * math.sqrt(2.0))
@@ -185,9 +195,12 @@ def coded_frame(patches: torch.Tensor, sample: int = FRAME_SAMPLE) -> bool:
     ``sample`` of them evenly spaced (all, if fewer), coded where at least half of those that hold
     :data:`MIN_COEFFICIENTS` coefficients are (a frame whose sampled patches hold none — clipped nearly everywhere, or
     under 96 px — is not). One codec codes a whole frame, so a few patches tell at a fraction of the cost (0.4 ms per
-    128-px patch)."""
+    128-px patch). ``sample``: an int ≥ 1 (``TypeError`` for another type, a bool included)."""
+    if isinstance(sample, bool) or not isinstance(sample, numbers.Integral):
+        raise TypeError(f"sample must be an int (patches to read), got {sample!r} ({type(sample).__name__})")
+    sample = int(sample)
     if sample < 1:
-        raise ValueError(f"sample = {sample} must be ≥ 1")
+        raise ValueError(f"sample = {sample} is out of the allowed range [1, inf) (patches to read)")
     b = patches.shape[0] if isinstance(patches, torch.Tensor) and patches.ndim == 4 else None
     if b is None:
         jpeg_grid(patches)  # raises, naming what was given

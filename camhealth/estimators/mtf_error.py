@@ -84,10 +84,11 @@ class MTFErrorTable:
             raise ValueError(f"mtf_error: knots {list(k)} must increase strictly from 0 to 1")
         if any(not 0.0 <= v <= 1.0 for v in r):
             raise ValueError(f"mtf_error: rms {list(r)} must lie in the allowed range [0, 1]")
-        if isinstance(self.values, bool) or not isinstance(self.values, int) or self.values < 1:
+        if isinstance(self.values, bool) or not isinstance(self.values, numbers.Integral) or self.values < 1:
             raise ValueError(f"mtf_error: values = {self.values!r} must be a positive integer")
-        if isinstance(self.shared, bool) or not isinstance(self.shared, (int, float)) or not 0.0 <= self.shared <= 1.0:
+        if isinstance(self.shared, bool) or not isinstance(self.shared, numbers.Real) or not 0.0 <= self.shared <= 1.0:
             raise ValueError(f"mtf_error: shared = {self.shared!r} must be a number in the allowed range [0, 1]")
+        object.__setattr__(self, "values", int(self.values))
         object.__setattr__(self, "shared", float(self.shared))
 
     def __call__(self, mtf: torch.Tensor) -> torch.Tensor:
@@ -110,29 +111,46 @@ class MTFErrorTable:
             raise ValueError(f"{where}: mtf_error has unknown fields {unknown}; allowed: data, knots, rms, shared, values")
         for name in ("knots", "rms"):
             v = d.get(name)
-            if not isinstance(v, (list, tuple)) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            if not isinstance(v, (list, tuple)) or not all(isinstance(x, numbers.Real) and not isinstance(x, bool) for x in v):
                 raise ValueError(f"{where}: mtf_error {name} = {v!r} must be a list of numbers")
         if not isinstance(d.get("data", ""), str):
             raise ValueError(f"{where}: mtf_error data must be a string")
         try:
             return cls(tuple(d["knots"]), tuple(d["rms"]), d.get("values", 0), d.get("data", ""), d.get("shared", 0.0))
-        except ValueError as exc:
-            raise ValueError(f"{where}: {exc}") from None
+        except ValueError as exc:  # its message starts "mtf_error: …": prefixed by ``where`` unless that says the same
+            raise ValueError(str(exc) if where == "mtf_error" else f"{where}: {exc}") from None
 
 
 def mtf_uncertainty(mtf: torch.Tensor, table: MTFErrorTable | None, spread: torch.Tensor | None = None) -> torch.Tensor:
     """Per-value uncertainty u = √(r(Ĥ)² + s²) of MTF estimates (module docstring).
 
     Args:
-        mtf: (…) estimates Ĥ [0–1].
+        mtf: (…) estimates Ĥ [0–1] (NaN: an omitted value, whose u is NaN).
         table: the estimator's :class:`MTFErrorTable`; None: no calibration — u is the spread alone (NaN without one).
-        spread: (…) standard deviation of the flipped views' estimates, or None (one view: s = 0).
+        spread: (…) standard deviation of the flipped views' estimates, ≥ 0 or NaN (not known), of ``mtf``'s shape or
+            broadcastable to it; or None (one view: s = 0).
 
     Returns:
         (…) float32 uncertainty [MTF units], on ``mtf``'s device.
+
+    Raises:
+        TypeError: ``table`` is neither an :class:`MTFErrorTable` nor None.
+        ValueError: ``spread`` of another shape, negative or infinite.
     """
+    if table is not None and not isinstance(table, MTFErrorTable):
+        raise TypeError(f"table must be an MTFErrorTable or None, got {type(table).__name__}")
     m = torch.as_tensor(mtf).float()
     s = None if spread is None else torch.as_tensor(spread).float()
+    if s is not None:
+        try:
+            fits = torch.broadcast_shapes(m.shape, s.shape) == m.shape
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(f"spread {tuple(s.shape)} must have the shape of mtf {tuple(m.shape)} (or broadcast to it)")
+        if s.device.type != "meta" and bool((s < 0).any() | torch.isinf(s).any()):
+            bad = s[(s < 0) | torch.isinf(s)].flatten()[0].item()
+            raise ValueError(f"spread must be a standard deviation (≥ 0, or NaN where not known), got {bad:g}")
     if table is None:
         return s.clone() if s is not None else torch.full_like(m, float("nan"))
     r = table(m)
@@ -148,9 +166,9 @@ def fit_error_table(estimate: torch.Tensor, truth: torch.Tensor, valid: torch.Te
 
     Args:
         estimate, truth: (B, 16) MTF values [0–1] (any matching shape).
-        valid: (B,) bool, the patches to use (e.g. the assessable ones); None: all.
+        valid: (B,) bool, the patches to use (e.g. the assessable ones); None: all. Another dtype: ``TypeError``.
         knots: strictly increasing from 0 to 1.
-        min_values: values a knot needs for its own RMS (≥ 1).
+        min_values: values a knot needs for its own RMS, an int ≥ 1 (another type: ``TypeError``).
         data: description of the calibration set.
     """
     est, tru = torch.as_tensor(estimate).double(), torch.as_tensor(truth).double()
@@ -158,10 +176,16 @@ def fit_error_table(estimate: torch.Tensor, truth: torch.Tensor, valid: torch.Te
         raise ValueError(f"estimate {tuple(est.shape)} and truth {tuple(tru.shape)} must have the same non-empty shape")
     if not (torch.isfinite(est).all() and torch.isfinite(tru).all()):
         raise ValueError("estimate and truth must be finite")
+    if isinstance(min_values, bool) or not isinstance(min_values, numbers.Integral):
+        raise TypeError(f"min_values must be an int (values per knot), got {min_values!r} ({type(min_values).__name__})")
     if min_values < 1:
         raise ValueError(f"min_values = {min_values} must be ≥ 1")
+    min_values = int(min_values)
     if valid is not None:
-        valid = torch.as_tensor(valid, dtype=torch.bool)
+        valid = torch.as_tensor(valid)
+        if valid.dtype != torch.bool:
+            raise TypeError(f"valid must be a bool tensor (one flag per patch), got dtype {valid.dtype}; a float or "
+                            f"integer mask is not cast (use mask > 0 if that is what is meant)")
         if valid.shape != est.shape[:1]:
             raise ValueError(f"valid {tuple(valid.shape)} must be ({est.shape[0]},), one flag per patch")
         est, tru = est[valid], tru[valid]
@@ -190,12 +214,20 @@ def shared_error_fraction(frames: Sequence[tuple[torch.Tensor, torch.Tensor]], t
     Returns:
         Σ over frames of Σ_{i≠j} z_i·z_j over Σ over the same frames of (n − 1)·Σ_i z_i² (per value, pooled over the
         16), clamped to [0, 1]; z = (Ĥ − H)/r(Ĥ). 0 without a frame of two patches.
+
+    Raises:
+        TypeError: ``table`` is not an :class:`MTFErrorTable`.
+        ValueError: a frame whose estimate and truth differ in shape or hold NaN/inf (naming the frame).
     """
+    if not isinstance(table, MTFErrorTable):
+        raise TypeError(f"table must be an MTFErrorTable, got {type(table).__name__}")
     cross = norm = 0.0
-    for est, tru in frames:
+    for k, (est, tru) in enumerate(frames):
         est, tru = torch.as_tensor(est).double(), torch.as_tensor(tru).double()
         if est.shape != tru.shape or est.ndim != 2:
             raise ValueError(f"estimate {tuple(est.shape)} and truth {tuple(tru.shape)} must be the same (n, K) shape")
+        if not (bool(torch.isfinite(est).all()) and bool(torch.isfinite(tru).all())):
+            raise ValueError(f"frames[{k}]: estimate and truth must be finite, got NaN/inf")
         n = est.shape[0]
         if n < 2:
             continue
@@ -222,8 +254,16 @@ def frame_uncertainty(estimator_std: torch.Tensor, n: int, shared: float) -> tor
     √ρ·u·z₀ + √(1 − ρ)·u·median(z_i); (π/2)/n is the large-n variance of the median of n standard normals, the same
     form the monitor's other standard errors of a median use. It overstates the exact variance for few values (by
     25 % in the standard error at n = 1 and 2, about 10 % at n = 6), so the stated uncertainty errs on the safe side.
+
+    ``estimator_std`` must be ≥ 0 (NaN: not known, and the result NaN there); ``shared`` a number (not a bool) in [0, 1].
     """
     n = _count(n)
+    if isinstance(shared, bool) or not isinstance(shared, numbers.Real):
+        raise TypeError(f"shared must be a number in [0, 1], got {shared!r} ({type(shared).__name__})")
     if not 0.0 <= shared <= 1.0:
         raise ValueError(f"shared = {shared} must lie in the allowed range [0, 1]")
-    return torch.as_tensor(estimator_std).float() * math.sqrt(shared + (math.pi / 2.0) * (1.0 - shared) / n)
+    u = torch.as_tensor(estimator_std).float()
+    if u.device.type != "meta" and bool(((u < 0) | torch.isinf(u)).any()):
+        bad = u[(u < 0) | torch.isinf(u)].flatten()[0].item()
+        raise ValueError(f"estimator_std must be an uncertainty (≥ 0, or NaN where not known), got {bad:g}")
+    return u * math.sqrt(float(shared) + (math.pi / 2.0) * (1.0 - float(shared)) / n)

@@ -38,6 +38,16 @@ aperture along that direction, ``sinc(f cos φ)·sinc(f sin φ)``, is divided ou
 rendered by pixel-area integration (:mod:`camhealth.estimators.charts`), so the result is the MTF of the
 blur applied to the chart, comparable to :func:`camhealth.physics.mtf_hv` labels.
 
+**Noise** adds its own spectrum to the LSF's: it scatters the MTF of each ROI and biases it high. Each result carries
+the ROI's SNR (edge step over the noise's robust standard deviation about the ESF, :attr:`SlantedEdgeResult.snr`)
+and flags it below :data:`MIN_SNR` (10; :attr:`SlantedEdgeResult.low_snr`); the MTF is returned all the same.
+Measured (edge 0.2/0.8, 5°, Gaussian blur σ = 1 px, 64 ROIs of 64×40 px, white noise; mean |MTF − noiseless MTF|
+over the 8 frequencies, its 90th percentile): SNR 40: 0.007 (0.009), 20: 0.013 (0.019), 14: 0.017 (0.023),
+10: 0.026 (0.036), 7: 0.036 (0.046), 5: 0.045 (0.066), 4: 0.060 (0.091). It scales as 1/√rows (SNR 10: 0.043 at 32
+rows, 0.015 at 128) and grows with the blur (σ = 2 px: 0.032 at SNR 10, 0.065 at 5); the mean over the 64 ROIs
+reads high by 0.004 (σ = 2 px: 0.022) at SNR 10 and 0.017 (0.049) at SNR 5. Below SNR ≈ 4 most ROIs are refused
+(no edge found in some rows, or noise clipped into a plateau).
+
 Frequencies are normalised to Nyquist (f_n ∈ [0, 1], f = f_n/2 cycles/px). Vertical MTF: transpose the
 ROI (a near-horizontal edge); :func:`slanted_edge_mtf_hv` does that for the four edges of the
 :func:`~camhealth.estimators.charts.slanted_edge_chart` and returns the (B, 16) H/V layout of the labels.
@@ -55,7 +65,7 @@ from camhealth._validation import check_choice, check_image, check_range
 from camhealth.estimators.charts import slanted_edge_rois
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
-__all__ = ["MAX_CORRECTION", "SlantedEdgeResult", "slanted_edge_mtf", "slanted_edge_mtf_hv"]
+__all__ = ["MAX_CORRECTION", "MIN_SNR", "SlantedEdgeResult", "slanted_edge_mtf", "slanted_edge_mtf_hv"]
 
 #: The derivative and binning corrections divide the MTF by at most this factor (a frequency that needs more is refused).
 MAX_CORRECTION = 10.0
@@ -73,6 +83,9 @@ CLIP_MARGIN = 0.5 / 255.0
 #: A clipped plateau (ESF bins with at least half their pixels clipped) may begin only where the LSF (mean over 1 px)
 #: has fallen below this share of its peak; closer to the edge the clipping cuts the transition and the MTF reads high.
 MAX_CLIPPED_LSF = 0.1
+#: Edge step over the noise (:attr:`SlantedEdgeResult.snr`) below which :attr:`SlantedEdgeResult.low_snr` flags an
+#: ROI: its noise moves the MTF by more than ≈ 0.025 (mean |ΔMTF| over the frequencies, 64 rows; module docstring).
+MIN_SNR = 10.0
 _MIN_SLOPE = math.tan(math.radians(1.0))
 _MAX_SLOPE = math.tan(math.radians(30.0))
 
@@ -91,6 +104,10 @@ class SlantedEdgeResult:
             holds the value of the ROI's end bin.
         lsf: (B, N) line spread function (derivative of the ESF, edge made positive, before the window); 0 at an
             ROI's end bins and beyond its reach.
+        snr: (B,) edge step over the noise: the ESF's outer 10 % of bins on either side apart, over the robust
+            standard deviation (1.4826·MAD) of the pixels about the ESF (inf without noise).
+        low_snr: (B,) bool, ``snr`` below :data:`MIN_SNR`: the noise moves this ROI's MTF by more than ≈ 0.025 (and
+            biases it high; module docstring). The MTF is returned all the same.
     """
 
     mtf: torch.Tensor
@@ -98,6 +115,8 @@ class SlantedEdgeResult:
     positions: torch.Tensor
     esf: torch.Tensor
     lsf: torch.Tensor
+    snr: torch.Tensor | None = None
+    low_snr: torch.Tensor | None = None
 
 
 def _hamming(dist: torch.Tensor, half_width: torch.Tensor | float) -> torch.Tensor:
@@ -111,10 +130,12 @@ def _centroids(d: torch.Tensor, xd: torch.Tensor, weight: torch.Tensor) -> torch
     wd = d * weight
     mass = wd.sum(dim=-1)
     scale = wd.abs().sum(dim=-1)
-    if bool((mass <= 0.05 * scale.clamp_min(1e-30)).any()) or bool((scale <= 0).any()):
+    bad = (mass <= 0.05 * scale.clamp_min(1e-30)) | (scale <= 0)  # (B, H)
+    if bool(bad.any()):
+        i = int(bad.any(dim=-1).nonzero()[0, 0])
         raise ValueError(
-            "no edge found in some rows of the ROI (the row derivative has no clear positive peak); the ROI must "
-            "hold one straight edge that crosses every row, with contrast well above the noise"
+            f"roi[{i}]: no edge found in {int(bad[i].sum())} of its {bad.shape[-1]} rows (the row derivative has no clear "
+            f"positive peak); the ROI must hold one straight edge that crosses every row, with contrast well above the noise"
         )
     return (wd * xd).sum(dim=-1) / mass
 
@@ -226,6 +247,33 @@ def _check_settled(img: torch.Tensor, u_px: torch.Tensor, ok: torch.Tensor, flat
             f"{100 * MAX_UNSETTLED:g} % allowed); the LSF window would cut its tails and read the MTF too high. Use an ROI "
             f"with more room on both sides of the edge (about {max(2.0 * rise + 1.0, 5.0):.0f} px or more for this blur)"
         )
+
+
+def _edge_snr(img: torch.Tensor, u_px: torch.Tensor, ok: torch.Tensor, esf: torch.Tensor, pol: torch.Tensor,
+              kb: torch.Tensor, half_nb: torch.Tensor, oversample: int) -> torch.Tensor:
+    """(B,) edge step over the noise: the mean ESF over the outer 10 % of each side's own bins (at least one) apart,
+    over 1.4826·MAD of the used pixels' residuals from the ESF (linear between bin centres, as in
+    :func:`_check_settled`); inf where the residuals are all alike (no noise)."""
+    b = img.shape[0]
+    n = esf.shape[1]
+    delta = 1.0 / oversample
+    t = (u_px / delta - 0.5 + n // 2).clamp(0.0, n - 1.0).reshape(b, -1)
+    i0 = torch.floor(t).long().clamp(max=n - 2)
+    wt = t - i0.to(esf.dtype)
+    e_px = esf.gather(1, i0) * (1.0 - wt) + esf.gather(1, i0 + 1) * wt
+    res = torch.where(ok.reshape(b, -1), img.reshape(b, -1) - e_px, torch.full_like(e_px, math.nan))
+    med = res.nanmedian(dim=1, keepdim=True).values
+    noise = 1.4826 * (res - med).abs().nanmedian(dim=1).values
+    e = esf * pol[:, None]  # rising
+    j = torch.where(kb >= 0, kb, -kb - 1)[None, :]
+    hn = half_nb[:, None]
+    n_out = torch.clamp(torch.round(0.1 * half_nb.double()).long(), min=1)[:, None]
+    outer = (j < hn) & (j >= hn - n_out)
+    right = (kb >= 0)[None, :]
+    hi = (e * (outer & right)).sum(1) / (outer & right).sum(1).clamp_min(1)
+    lo = (e * (outer & ~right)).sum(1) / (outer & ~right).sum(1).clamp_min(1)
+    step = hi - lo
+    return torch.where(noise > 0, step / noise.clamp_min(1e-300), torch.full_like(step, math.inf))
 
 
 def _check_clipping(img: torch.Tensor, ok: torch.Tensor, flat: torch.Tensor, counts: torch.Tensor, e: torch.Tensor,
@@ -411,12 +459,15 @@ def slanted_edge_mtf(
     if aperture:
         ap = torch.sinc(f[None, :] * torch.cos(theta)[:, None]) * torch.sinc(f[None, :] * torch.sin(theta)[:, None])
         mtf = mtf / ap.abs()
+    snr = _edge_snr(img, u, ok, esf, pol, kb, half_nb, oversample)
     return SlantedEdgeResult(
         mtf=mtf.to(out_dtype),
         angle_deg=torch.rad2deg(theta).to(out_dtype),
         positions=pos.to(out_dtype),
         esf=esf.to(out_dtype),
         lsf=lsf.to(out_dtype),
+        snr=snr.to(out_dtype),
+        low_snr=snr < MIN_SNR,
     )
 
 

@@ -1,5 +1,5 @@
 """Bad input to the corruption modules fails early with a message naming the argument or params entry, its value
-and what is allowed (the audit of adversarial inputs, sections A–C): never a silently switched-off component, a
+and what is allowed: never a silently switched-off component, a
 coerced flag, or a bare KeyError / torch RuntimeError."""
 
 import numpy as np
@@ -23,7 +23,7 @@ def _params(mod, x=X):
     return {k: v.clone() for k, v in mod._params.items()}
 
 
-# ---------------------------------------------------------------------------------------------- A1 constants on replay
+# ---------------------------------------------------------------------------------------------- constants on replay
 @pytest.mark.parametrize("field, value", [("flicker_corner_hz", -1e9), ("source_follower_gain", 0.0),
                                           ("cds_sample_time_s", 0.0), ("cds_time_factor", 0.0), ("rtn_current_a", 1e3)])
 @pytest.mark.parametrize("name", ["noise", "camera"])
@@ -36,7 +36,7 @@ def test_replayed_sensor_constants_are_checked(name, field, value):
         mod(X, params=params)
 
 
-# ---------------------------------------------------------------------------------------------- A6 flags
+# ---------------------------------------------------------------------------------------------- flags
 @pytest.mark.parametrize("flag", ["same_on_batch", "keepdim"])
 @pytest.mark.parametrize("value", ["no", 1, 0, None])
 @pytest.mark.parametrize("name", sorted(MODULES))
@@ -52,7 +52,7 @@ def test_numpy_bool_flags_are_bools():
     assert aug.same_on_batch is True and aug.keepdim is False and len(set(aug._params["diameter"].tolist())) == 1
 
 
-# ---------------------------------------------------------------------------------------------- A7 CameraCorruption
+# ---------------------------------------------------------------------------------------------- CameraCorruption
 @pytest.mark.parametrize("component", ["defocus", "motion", "noise"])
 def test_camera_components_are_fixed_at_construction(component):
     """A new component assigned later was silently ignored (the kernel size and generator were the old ones)."""
@@ -70,7 +70,7 @@ def test_camera_components_are_fixed_at_construction(component):
     assert cam.p == 0.5 and isinstance(getattr(cam, component), type(new))
 
 
-# ---------------------------------------------------------------------------------------------- A9 gates
+# ---------------------------------------------------------------------------------------------- gates
 @pytest.mark.parametrize("gate", ["defocus_gate", "motion_gate", "noise_gate"])
 @pytest.mark.parametrize("value", [float("nan"), 7.0, 0.5, -1.0])
 def test_replayed_gates_must_be_0_or_1(gate, value):
@@ -92,7 +92,7 @@ def test_bool_gates_equal_float_gates():
     assert torch.equal(cam(x, params=as_bool), y)
 
 
-# ---------------------------------------------------------------------------------------------- A10, B4 ranges
+# ---------------------------------------------------------------------------------------------- ranges
 @pytest.mark.parametrize("make, match", [
     (lambda: RandomDefocusBlur(("1", "3")), r"diameter must be a number or a \(low, high\) pair.*str"),
     (lambda: RandomDefocusBlur((True, 3)), r"diameter must be a number or a \(low, high\) pair.*bool"),
@@ -126,7 +126,7 @@ def test_ranges_of_numbers_still_work():
     assert aug._params["meta_gain_db"].tolist() == [6.0] * 4
 
 
-# ---------------------------------------------------------------------------------------------- B1 missing keys
+# ---------------------------------------------------------------------------------------------- missing keys
 @pytest.mark.parametrize("name, key", [("defocus", "diameter"), ("motion", "length"), ("motion", "angle"),
                                        ("motion", "intensity"), ("motion", "shake_noise"), ("noise", "noise_seed"),
                                        ("camera", "diameter"), ("camera", "length"), ("camera", "noise_seed"),
@@ -140,7 +140,7 @@ def test_replay_without_a_key_names_it(name, key):
         mod(X, params=params)
 
 
-# ---------------------------------------------------------------------------------------------- B2 rows
+# ---------------------------------------------------------------------------------------------- rows
 @pytest.mark.parametrize("key", ["defocus_gate", "motion_gate", "noise_gate", "diameter", "length", "shake_noise",
                                  "meta_gain_db", "const_cds_gain", "noise_seed", "batch_prob"])
 def test_params_of_another_batch_size_name_both_sizes(key):
@@ -161,7 +161,7 @@ def test_params_of_one_row_apply_to_the_whole_batch():
     assert torch.equal(y, aug(X, params={k: (v if k == "forward_input_shape" else v[:1].expand(4)) for k, v in one.items()}))
 
 
-# ---------------------------------------------------------------------------------------------- B3 labels of broadcast params
+# ---------------------------------------------------------------------------------------------- labels of broadcast params
 def test_labels_after_params_of_batch_one_on_a_larger_batch():
     """params_from_metadata of batch-1 metadata on a batch of 4: the call worked, labels() claimed no call was made."""
     aug = RandomSensorNoise()
@@ -186,7 +186,7 @@ def test_blur_labels_after_params_of_batch_one():
     assert mtf.shape == (4, 16) and torch.equal(mtf, mtf[:1].expand(4, -1))
 
 
-# ---------------------------------------------------------------------------------------------- B5, B6
+# ---------------------------------------------------------------------------------------------- sources and seeds
 @pytest.mark.parametrize("sources", [None, 3])
 def test_sources_must_be_names(sources):
     with pytest.raises(TypeError, match=r"^sources must be a noise source name or a sequence of them"):
@@ -222,7 +222,7 @@ def test_params_from_metadata_needs_metadata(meta):
         RandomSensorNoise.params_from_metadata(meta)
 
 
-# ---------------------------------------------------------------------------------------------- C2, C3 input
+# ---------------------------------------------------------------------------------------------- input
 @pytest.mark.parametrize("shape", [(2, 1, 0, 16), (2, 1, 16, 0), (1, 0, 8)])
 @pytest.mark.parametrize("name", sorted(MODULES))
 def test_an_empty_height_or_width_names_the_input(name, shape):

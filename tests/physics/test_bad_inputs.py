@@ -1,6 +1,5 @@
-"""Bad input to camhealth.physics fails early with a message naming the argument, its value and what is allowed
-(the audit of adversarial inputs, sections A–C): never a NaN image, a silently shifted or truncated kernel, or a crash
-deep inside torch."""
+"""Bad input to camhealth.physics fails early with a message naming the argument, its value and what is allowed:
+never a NaN image, a silently shifted or truncated kernel, or a crash deep inside torch."""
 
 import dataclasses
 import math
@@ -38,7 +37,7 @@ def _with_constants(meta: CameraMetadata, constants: SensorConstants) -> CameraM
     return CameraMetadata(**{n: getattr(meta, n) for n in meta.to_dict()}, constants=constants)
 
 
-# ---------------------------------------------------------------------------------------------- A1 SensorConstants
+# ---------------------------------------------------------------------------------------------- SensorConstants
 @pytest.mark.parametrize("field, value", [
     ("flicker_corner_hz", -1e9),  # was: NaN image and labels
     ("source_follower_gain", 0.0),  # was: salt and pepper, σ inf/NaN
@@ -99,7 +98,7 @@ def test_replaced_constants_go_through_the_same_checks():
         dataclasses.replace(meta, constants=dataclasses.replace(meta.constants, flicker_corner_hz=-1e9))
 
 
-# ---------------------------------------------------------------------------------------------- A2 source_follower_e
+# ---------------------------------------------------------------------------------------------- source_follower_e
 @pytest.mark.parametrize("sf, exc, match", [
     (torch.tensor([math.nan]), ValueError, r"source_follower_e must be finite"),
     (torch.tensor([-1.0]), ValueError, r"source_follower_e = -1 e⁻ is out of the allowed range \[0, inf\)"),
@@ -121,7 +120,7 @@ def test_form_image_accepts_a_valid_source_follower_e_unchanged():
     assert torch.equal(a, b)
 
 
-# ---------------------------------------------------------------------------------------------- A3 apply_psf image dtype
+# ---------------------------------------------------------------------------------------------- apply_psf image dtype
 @pytest.mark.parametrize("dtype", [torch.int64, torch.uint8, torch.bool, torch.int32])
 def test_apply_psf_refuses_non_floating_images(dtype):
     """An integer image was convolved with the kernel cast to its dtype (every tap 0): all zeros came back."""
@@ -137,7 +136,7 @@ def test_apply_psf_refuses_images_that_are_not_4d():
         apply_psf(np.ones((1, 1, 8, 8)), defocus_psf(torch.tensor([3.0]), 5))
 
 
-# ---------------------------------------------------------------------------------------------- A4 even kernels
+# ---------------------------------------------------------------------------------------------- even kernels
 @pytest.mark.parametrize("k", [2, 4, 40])
 @pytest.mark.parametrize("arg", ["defocus_psf", "motion_psf", "apply_psf"])
 def test_even_kernels_are_refused(k, arg):
@@ -161,7 +160,7 @@ def test_odd_kernels_still_keep_an_impulse_in_place():
     assert float((r * ys).sum()) == pytest.approx(4.0) and float((r * xs).sum()) == pytest.approx(4.0)
 
 
-# ---------------------------------------------------------------------------------------------- A5 gaussian
+# ---------------------------------------------------------------------------------------------- gaussian
 @pytest.mark.parametrize("sigma, k, need", [(64.0, 3, "a σ of at most 63.5 px"), (2.0, 7, "kernel_size ≥ 9"),
                                             (2.01, 9, "kernel_size ≥ 11"), (7.6, 31, "kernel_size ≥ 33"),
                                             (1.0, 3, "kernel_size ≥ 5")])
@@ -188,7 +187,7 @@ def test_gaussian_mtf_of_valid_sigma_unchanged():
     assert gaussian_mtf(0.0, 0.3) == 1.0
 
 
-# ---------------------------------------------------------------------------------------------- A6 quantize flag
+# ---------------------------------------------------------------------------------------------- quantize flag
 @pytest.mark.parametrize("flag", ["no", 1, 0, None, torch.tensor(True)])
 def test_form_image_quantize_must_be_a_bool(flag):
     with pytest.raises(TypeError, match=r"^quantize = .* must be True or False"):
@@ -202,7 +201,7 @@ def test_form_image_quantize_accepts_numpy_bools():
     assert torch.equal(a, b)
 
 
-# ---------------------------------------------------------------------------------------------- A8 poisson_exact_below
+# ---------------------------------------------------------------------------------------------- poisson_exact_below
 @pytest.mark.parametrize("value, exc", [(-1.0, ValueError), (math.nan, ValueError), (0.0, ValueError), (9.99, ValueError),
                                         ("1e3", TypeError), (True, TypeError), (None, TypeError)])
 def test_poisson_exact_below_is_checked(value, exc):
@@ -227,7 +226,7 @@ def test_poisson_exact_below_accepts_ten_electrons_and_more(value):
     assert bool(((e - e.round()).abs() < 1e-2).all())
 
 
-# ---------------------------------------------------------------------------------------------- A10, B7, B11 metadata
+# ---------------------------------------------------------------------------------------------- metadata
 @pytest.mark.parametrize("field", ["gain_db", "exposure_s", "temperature_c"])
 def test_bool_tensors_are_no_metadata_numbers(field):
     with pytest.raises(TypeError, match=rf"camera metadata {field} must hold numbers .*got a bool tensor"):
@@ -261,7 +260,7 @@ def test_metadata_batch_sizes_of_integer_types_work():
     assert CameraMetadata.preset("ICX285").expand(0).batch_size == 0
 
 
-# ---------------------------------------------------------------------------------------------- B4 sampling ranges
+# ---------------------------------------------------------------------------------------------- sampling ranges
 @pytest.mark.parametrize("ranges, exc, match", [
     ({"gain_db": ("a", "b")}, TypeError, r"range for gain_db must be a \(low, high\) pair of numbers"),
     ({"gain_db": (True, True)}, TypeError, r"range for gain_db must be a \(low, high\) pair of numbers.*bool"),
@@ -283,7 +282,7 @@ def test_sample_takes_ranges_of_numbers_arrays_and_a_single_value():
     assert m.gain_db.tolist() == [6.0] * 3 and bool(((m.temperature_c >= 10) & (m.temperature_c <= 20)).all())
 
 
-# ---------------------------------------------------------------------------------------------- B8 photon shot noise
+# ---------------------------------------------------------------------------------------------- photon shot noise
 @pytest.mark.parametrize("fn", [photon_shot_sigma_dn, photo_electrons, photon_shot_sigma_patch_dn])
 def test_photon_shot_noise_names_both_batch_sizes(fn):
     with pytest.raises(ValueError, match=r"metadata batch 2 does not match the intensity batch"):
@@ -291,7 +290,7 @@ def test_photon_shot_noise_names_both_batch_sizes(fn):
     assert fn(torch.full((3, 1, 2, 2), 0.5), CameraMetadata.preset("ICX285")).shape[0] == 3  # batch 1 broadcasts
 
 
-# ---------------------------------------------------------------------------------------------- B9, B10 PSF helpers
+# ---------------------------------------------------------------------------------------------- PSF helpers
 @pytest.mark.parametrize("shift", [torch.zeros(3), torch.zeros(1), torch.zeros(2, 3)])
 def test_gaussian_shift_of_a_wrong_shape_is_named(shift):
     with pytest.raises(ValueError, match=r"shift_px must have shape \(B, 2\) or \(2,\)"):
@@ -310,7 +309,7 @@ def test_generators_must_be_torch_generators(call, generator):
         call(generator)
 
 
-# ---------------------------------------------------------------------------------------------- C1 messages
+# ---------------------------------------------------------------------------------------------- messages
 @pytest.mark.parametrize("call, shown", [
     (lambda: defocus_psf(torch.tensor([5.000001]), 5), "diameter_px = 5.000001 px"),
     (lambda: defocus_psf(torch.tensor([5.000001], dtype=torch.float64), 5), "diameter_px = 5.000001 px"),
@@ -326,7 +325,7 @@ def test_out_of_range_values_are_not_printed_as_the_bound(call, shown):
     assert shown in str(info.value)
 
 
-# ---------------------------------------------------------------------------------------------- C4, C5
+# ---------------------------------------------------------------------------------------------- counts and tiny paths
 def test_numpy_integers_count_as_ints():
     d = torch.tensor([5.0])
     assert torch.equal(polygon_psf(d, np.int64(6), 7, supersample=np.int32(8)), polygon_psf(d, 6, 7))
