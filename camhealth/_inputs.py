@@ -20,7 +20,8 @@ __all__ = [
     "edge_kurtosis_from_moments", "has_edges", "structure_contrast_dn",
 ]
 
-#: Fraction of clipped pixels above which a patch is "black"/"saturated" (not assessable).
+#: Fraction of clipped pixels above which a patch is not assessable: "black" (within 0.5 DN of 0) or "saturated"
+#: (of 255) where one of the two shares exceeds it, "clipped" where neither does but both together do.
 MAX_CLIPPED_FRACTION = 0.5
 #: Noise-corrected structure contrast (DN, :func:`structure_contrast_dn`) below which a patch carries no blur
 #: information ("featureless"; MTF only).
@@ -204,8 +205,13 @@ def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | No
     """Which B×1×P×P patches (in [0, 1]) an estimator of ``kind`` can assess, and why not.
 
     black / saturated: more than half of the pixels within 0.5 DN of 0 / 255 (noise is clipped away,
-    blur invisible); featureless (MTF only): noise-corrected structure contrast (:func:`structure_contrast_dn`)
-    below :data:`MIN_CONTRAST_DN` = 2 DN, raised by three sampling standard deviations of the noise's share
+    blur invisible); clipped: neither alone, but the pixels within 0.5 DN of 0 and of 255 together more than half
+    (a patch crushed at one end and blown out at the other reads as little noise and as sharp edges) — for the noise
+    kinds, where the patch's finest-scale fluctuations exceed the validated σ beyond doubt
+    (:func:`~camhealth.estimators.physics_noise.beyond_validated_range`), the noise itself clipped it, and the reason
+    is that one, ``"noise beyond validated range"``;
+    featureless (MTF only): noise-corrected structure contrast (:func:`structure_contrast_dn`) below
+    :data:`MIN_CONTRAST_DN` = 2 DN, raised by three sampling standard deviations of the noise's share
     (:func:`contrast_limit_dn`: 2.07 DN at 10 DN of noise, 3.9 DN at 64 DN) — no structure to measure blur on,
     however strong the noise (a flat patch with 20 DN of noise has the contrast of its noise, not of a scene), nor
     row and column noise (a flat patch with
@@ -218,8 +224,10 @@ def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | No
     tol = 0.5 / 255.0
     n = x.shape[1]
     # clipped counts only where a patch reaches 0/255
-    low = (x <= tol).sum(1, dtype=torch.int32) / n if bool((x.amin(1) <= tol).any()) else torch.zeros(x.shape[0])
-    high = (x >= 1 - tol).sum(1, dtype=torch.int32) / n if bool((x.amax(1) >= 1 - tol).any()) else torch.zeros(x.shape[0])
+    none = torch.zeros(x.shape[0], dtype=torch.int32, device=x.device)
+    n_low = (x <= tol).sum(1, dtype=torch.int32) if bool((x.amin(1) <= tol).any()) else none
+    n_high = (x >= 1 - tol).sum(1, dtype=torch.int32) if bool((x.amax(1) >= 1 - tol).any()) else none
+    low, high, both = n_low / n, n_high / n, (n_low + n_high) / n
     if kind == "mtf":
         p = patches.float() if patches.dtype not in (torch.float32, torch.float64) else patches
         std_dn, noise_dn, means = _structure_stats(p, noise_dn)
@@ -231,12 +239,23 @@ def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | No
         std_dn = torch.full((x.shape[0],), float("inf"))
         edges = torch.ones(x.shape[0], dtype=torch.bool)
         limit = torch.full((x.shape[0],), MIN_CONTRAST_DN)
+    low_l, high_l, both_l = low.tolist(), high.tolist(), both.tolist()
+    noise_clipped: dict[int, str] = {}
+    cand = [i for i, (lo, hi, lh) in enumerate(zip(low_l, high_l, both_l))
+            if lo <= MAX_CLIPPED_FRACTION and hi <= MAX_CLIPPED_FRACTION and lh > MAX_CLIPPED_FRACTION]
+    if cand and kind != "mtf":  # clipped by noise beyond the validated range: that is what is known (few patches)
+        sel = torch.tensor(cand, device=patches.device)
+        for i, far in zip(cand, beyond_validated_range(patches[sel]).tolist()):
+            if far:
+                noise_clipped[i] = BEYOND_VALIDATED
     reason = []
-    for lo, hi, s, k, c in zip(low.tolist(), high.tolist(), std_dn.tolist(), edges.tolist(), limit.tolist()):
+    for i, (lo, hi, lh, s, k, c) in enumerate(zip(low_l, high_l, both_l, std_dn.tolist(), edges.tolist(), limit.tolist())):
         if lo > MAX_CLIPPED_FRACTION:
             reason.append("black")
         elif hi > MAX_CLIPPED_FRACTION:
             reason.append("saturated")
+        elif lh > MAX_CLIPPED_FRACTION:
+            reason.append(noise_clipped.get(i, "clipped"))
         elif kind == "mtf" and s < c:
             reason.append("featureless")
         elif kind == "mtf" and not k:
@@ -254,6 +273,7 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
             raise TypeError(f"images must be a numeric array, got dtype {images.dtype}")
         is_int = images.dtype.kind in "ui"
         wide_int, dtype_name = is_int and images.dtype.itemsize > 1, images.dtype.name
+        _check_integer_range(is_int, dtype_name, input_range)
         if not images.dtype.isnative:  # big-endian data (FITS, some TIFF readers): the same values in native order
             images = images.astype(images.dtype.newbyteorder("="))
         if images.dtype.kind == "f" and images.dtype.itemsize > 8:  # long double: torch has no such dtype
@@ -267,8 +287,12 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
     elif isinstance(images, torch.Tensor):
         if images.dtype == torch.bool or images.is_complex():
             raise TypeError(f"images must be a real numeric tensor, got dtype {images.dtype}")
+        if images.device.type == "meta":
+            raise ValueError(f"images are a tensor on the meta device (shape {_shape_text(images)}, no values); pass a "
+                             f"tensor that holds data (CPU or CUDA) or a NumPy array")
         is_int = not images.is_floating_point()
         wide_int, dtype_name = is_int and images.element_size() > 1, str(images.dtype).replace("torch.", "")
+        _check_integer_range(is_int, dtype_name, input_range)
         t = images.detach().cpu()
     else:
         raise TypeError(f"images must be a torch.Tensor or numpy.ndarray, got {type(images).__name__}")
@@ -287,7 +311,7 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
     if not (np.isfinite(lo) and np.isfinite(hi)):
         bad = int((~torch.isfinite(t)).sum())
         raise ValueError(f"images contain {bad} non-finite value(s) (NaN/Inf); allowed: finite DN 0…255 or [0, 1]")
-    if is_int and input_range == "auto" and wide_int:
+    if is_int and input_range != "dn" and wide_int:  # ("unit" with integers is refused above)
         raise ValueError(
             f"images of dtype {dtype_name} may hold more than 8 bits (a 10-, 12- or 16-bit camera), which would be read "
             f"as 8-bit DN (min {lo:g}, max {hi:g}); scale them to 8-bit DN (× 255 / (2**bits − 1)) or to floats in "
@@ -304,6 +328,22 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         if half:
             t = _unround_8bit(t, images.dtype)
     return t.clamp(0, 1).float()
+
+
+def _check_integer_range(is_int: bool, dtype_name: str, input_range: str) -> None:
+    """Refuse integer images with ``input_range="unit"``: integers are DN, which that setting says they are not (a
+    12-bit frame in uint16 would be read as 8-bit DN, a 0/1 mask as 1 DN rather than white)."""
+    if is_int and input_range == "unit":
+        raise ValueError(
+            f"images of dtype {dtype_name} are integers, i.e. DN, but input_range='unit' says they are values in [0, 1]; "
+            f"pass input_range='dn' for 8-bit DN (0…255; uint8 is DN by default), or convert to floats in [0, 1] "
+            f"(x / 255, or x / (2**bits − 1) for a 10-, 12- or 16-bit camera)"
+        )
+
+
+def _shape_text(t: Any) -> str:
+    """A shape as ``B×1×H×W`` text; a 0-d scalar named as such."""
+    return "×".join(map(str, t.shape)) if t.ndim else "() (a 0-d scalar)"
 
 
 def _unround_8bit(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -329,7 +369,7 @@ _LAYOUTS = "B×1×H×W, B×H×W or H×W gray patches"
 def _gray_patch_layout(t: torch.Tensor, patch_size: int) -> torch.Tensor:
     """``t`` as B×1×H×W, or a ``ValueError`` that names the layout it looks like: colour with channels last
     (H×W×C, B×H×W×C) or first (B×C×H×W), or C×H×W colour that could as well be a few gray patches."""
-    shape = "×".join(map(str, t.shape))
+    shape = _shape_text(t)
     colour = "convert colour to gray first (camhealth.data.to_gray, BT.601 luma)"
     if t.ndim in (3, 4) and t.shape[-1] in (3, 4) and min(t.shape[-3:-1]) > 4:
         layout = "an H×W×C" if t.ndim == 3 else "a B×H×W×C"
@@ -373,3 +413,30 @@ def _to_metadata(metadata: Any, batch: int, base_preset: str | None) -> CameraMe
     if meta.batch_size not in (1, batch):
         raise ValueError(f"metadata has batch size {meta.batch_size}; it must be 1 or the number of patches {batch}")
     return meta  # batch 1 stays batch 1 (broadcast over the patches)
+
+
+#: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
+VALIDATED_SIGMA_DN = 64.0
+#: The ``reason`` of a patch whose σ_Total (before clipping) is above :data:`VALIDATED_SIGMA_DN`.
+BEYOND_VALIDATED = "noise beyond validated range"
+#: Relative standard error × √n of Donoho's MAD estimate σ̂ = median|d|/0.6745 over n Gaussian details:
+#: 1/(2·f(0.6745)·0.6745) with f = 2φ(0.6745) the density of |d|/σ at its median.
+_MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * _MAD_NORMAL**2) / math.sqrt(2.0 * math.pi) * _MAD_NORMAL)
+
+
+def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> torch.Tensor:
+    """Whether the finest-scale fluctuations of B×1×H×W patches in [0, 1] exceed :data:`VALIDATED_SIGMA_DN` beyond
+    doubt → (B,) bool.
+
+    σ̂ = median|d|/0.6745 of the diagonal Haar details d over the patch's blocks, every one of them
+    (:func:`camhealth._inputs.haar_noise_dn`, or ``noise_dn`` where the caller has it: sparse edges do not move a
+    median), must exceed the limit by three
+    of its standard errors (1.166·σ/√n for n Gaussian details). Clipping only lowers σ̂, so clipped Gaussian noise
+    within the limit never trips it. Uniform noise of σ 73 DN does: the clipped-Gaussian model, which reads only
+    the blocks away from the bounds, sees it as about 52 DN. Texture that fine and that strong trips it too, and
+    no noise estimate can be vouched for under it either."""
+    mad = haar_noise_dn(patches) if noise_dn is None else noise_dn
+    h2, w2 = (s - s % 2 for s in patches.shape[-2:])
+    step = 4 if h2 >= 8 else 2  # structure_contrast_dn reads the details of every other row of 2×2 blocks
+    n = max(-(-h2 // step) * (w2 // 2), 1)
+    return mad > VALIDATED_SIGMA_DN * (1.0 + 3.0 * _MAD_RELATIVE_SE / math.sqrt(n))

@@ -12,7 +12,11 @@ it unless every entry is one that :func:`camhealth.export.export_pt2` writes:
 - sample inputs that load with ``torch.load(weights_only=True)`` (so torch never falls back to a full unpickle);
 - graphs whose call targets are PyTorch operators (``torch.ops.<namespace>.<op>[.<overload>]``, not the
   library loaders of ``torch.ops``) or the arithmetic builtins torch's verifier allows, whose guard code only compares input sizes, and whose symbolic shapes are sympy expressions of numbers, quoted symbol names
-  and the arithmetic functions torch serialises (no attribute access, no other names).
+  and the arithmetic functions torch serialises (no attribute access, no other names);
+- entries whose declared uncompressed sizes (the zip directory's, read before anything is inflated) stay within
+  :data:`MAX_ZIP_ENTRY_BYTES` each, :data:`MAX_JSON_ENTRY_BYTES` for the JSON entries and :data:`MAX_ZIP_TOTAL_BYTES`
+  together (:func:`zip_size_problem`; a few MB of deflated zeros would otherwise inflate to gigabytes). Only the
+  entries it inspects are read (graphs, payload configs, sample inputs); tensor payloads and ``extra/`` files are not.
 
 What stays is torch's own deserialiser running on plain data. It is not designed for hostile input: prefer
 weights files (``.pt``) for files from others (``docs/reliability.md``).
@@ -28,7 +32,17 @@ import zipfile
 from pathlib import Path
 from typing import Any, Iterator
 
-__all__ = ["check_pt2_archive"]
+__all__ = ["check_pt2_archive", "zip_size_problem", "MAX_ZIP_ENTRY_BYTES", "MAX_ZIP_TOTAL_BYTES", "MAX_JSON_ENTRY_BYTES"]
+
+#: Largest declared uncompressed size of one entry of a zip archive camhealth opens (``.pt``, ``.ckpt``, ``.pt2``)
+#: [bytes]. The largest shipped network holds 2.2 MB of weights; a network this size (64 M float32 values) is far
+#: beyond anything camhealth trains, so a larger entry is a decompression bomb or not a camhealth file.
+MAX_ZIP_ENTRY_BYTES = 256 * 2**20
+#: Largest declared uncompressed size of all entries of such an archive together [bytes].
+MAX_ZIP_TOTAL_BYTES = 512 * 2**20
+#: Largest declared uncompressed size of a JSON entry of a ``.pt2`` archive (graph, payload config, description)
+#: [bytes]; camhealth's graphs are 0.1–0.5 MB.
+MAX_JSON_ENTRY_BYTES = 16 * 2**20
 
 _FIXED = {"archive_format", "archive_version", "byteorder", ".data/version", ".data/serialization_id"}
 _ALLOWED = [
@@ -71,6 +85,40 @@ _SYMBOL_NAME = re.compile(r"[a-z]+[0-9]+")
 def _refuse(path: Path, why: str) -> ValueError:
     return ValueError(f"{path}: refused to load this .pt2 archive: {why} (camhealth loads only the plain tensors and "
                       f"operator graphs that camhealth.export writes; a weights file, .pt, is the safe format)")
+
+
+def zip_size_problem(infos: list[zipfile.ZipInfo], json_entries: frozenset[str] | set[str] = frozenset()) -> str | None:
+    """Why the entries ``infos`` of a zip archive are too large to read, from the sizes its directory declares (nothing
+    is inflated), or ``None``: an entry above :data:`MAX_ZIP_ENTRY_BYTES` (one named in ``json_entries`` above
+    :data:`MAX_JSON_ENTRY_BYTES`), or all of them together above :data:`MAX_ZIP_TOTAL_BYTES`. The message names the
+    entry, its declared size and the limit."""
+    total = 0
+    for info in infos:
+        limit, name = ((MAX_JSON_ENTRY_BYTES, "MAX_JSON_ENTRY_BYTES") if info.filename in json_entries
+                       else (MAX_ZIP_ENTRY_BYTES, "MAX_ZIP_ENTRY_BYTES"))
+        if info.file_size > limit:
+            return (f"entry {info.filename[:80]!r} declares {info.file_size:,} bytes uncompressed ({info.compress_size:,} "
+                    f"stored), more than the limit of {limit:,} bytes ({name}); a camhealth network's file holds a few MB")
+        total += info.file_size
+    if total > MAX_ZIP_TOTAL_BYTES:
+        return (f"its {len(infos)} entries declare {total:,} bytes uncompressed together, more than the limit of "
+                f"{MAX_ZIP_TOTAL_BYTES:,} bytes (MAX_ZIP_TOTAL_BYTES); a camhealth network's file holds a few MB")
+    return None
+
+
+def _json(path: Path, name: str, text: bytes) -> Any:
+    """``text`` parsed as JSON, or the archive refused naming the entry (not JSON, nested deeper than Python's recursion
+    limit, an integer of more digits than Python converts)."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise _refuse(path, f"{name} is not JSON ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise _refuse(path, f"{name} is not JSON text ({exc.reason} at byte {exc.start})") from None
+    except RecursionError:
+        raise _refuse(path, f"{name} nests JSON deeper than Python's recursion limit") from None
+    except ValueError as exc:  # an integer beyond sys.get_int_max_str_digits
+        raise _refuse(path, f"{name} is not JSON that can be read ({str(exc).splitlines()[0][:120]})") from None
 
 
 def _walk(obj: Any, key: str = "") -> Iterator[tuple[str, Any]]:
@@ -124,10 +172,7 @@ def _check_expression(expr: str) -> str | None:
 
 
 def _check_graph(path: Path, name: str, text: bytes) -> None:
-    try:
-        program = json.loads(text)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _refuse(path, f"{name} is not JSON ({exc})") from None
+    program = _json(path, name, text)
     if not isinstance(program, dict):
         raise _refuse(path, f"{name} is not an exported program")
     guards = program.get("guards_code") or []
@@ -137,6 +182,16 @@ def _check_graph(path: Path, name: str, text: bytes) -> None:
         if not isinstance(guard, str) or not _GUARD.fullmatch(guard):
             raise _refuse(path, f"{name} has guard code {str(guard)[:80]!r} (Python that torch would run) beyond input-size "
                                 f"comparisons")
+    try:
+        _check_walk(path, name, program)
+    except RecursionError:  # (json.loads nests no deeper than this walk recurses, but a walk frame is larger)
+        raise _refuse(path, f"{name} nests JSON deeper than Python's recursion limit") from None
+    graph = program.get("graph_module", {}).get("graph", {}) if isinstance(program.get("graph_module"), dict) else {}
+    if isinstance(graph, dict) and graph.get("custom_obj_values"):
+        raise _refuse(path, f"{name} holds custom objects")
+
+
+def _check_walk(path: Path, name: str, program: Any) -> None:
     for key, value in _walk(program):
         if key in ("target", "as_operator") and isinstance(value, str) and not _check_target(value):
             raise _refuse(path, f"{name} calls {value[:80]!r}, which is not a PyTorch operator")
@@ -144,16 +199,10 @@ def _check_graph(path: Path, name: str, text: bytes) -> None:
             bad = _check_expression(value)
             if bad is not None:
                 raise _refuse(path, f"{name} has a symbolic shape {value[:80]!r} with {bad!r}, which is not plain arithmetic")
-    graph = program.get("graph_module", {}).get("graph", {}) if isinstance(program.get("graph_module"), dict) else {}
-    if isinstance(graph, dict) and graph.get("custom_obj_values"):
-        raise _refuse(path, f"{name} holds custom objects")
 
 
 def _check_payload_config(path: Path, name: str, text: bytes) -> None:
-    try:
-        config = json.loads(text)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _refuse(path, f"{name} is not JSON ({exc})") from None
+    config = _json(path, name, text)
     entries = config.get("config") if isinstance(config, dict) else None
     if not isinstance(entries, dict):
         raise _refuse(path, f"{name} is not a payload config")
@@ -183,19 +232,23 @@ def check_pt2_archive(path: str | Path) -> None:
                     raise _refuse(path, f"entry {name[:80]!r} leaves the archive")
                 if name not in _FIXED and not any(p.fullmatch(name) for p in _ALLOWED):
                     raise _refuse(path, f"entry {name[:80]!r} is none that camhealth.export writes")
+            # sizes from the zip directory, before anything is inflated (torch.export.load reads every payload)
+            json_entries = {root + n for n in names if n.endswith(".json") or n.startswith("extra/")}
+            too_large = zip_size_problem(infos, json_entries)
+            if too_large is not None:
+                raise _refuse(path, too_large)
             if "archive_format" not in names or archive.read(root + "archive_format").strip() != b"pt2":
                 raise _refuse(path, "no archive_format 'pt2' entry")
             import torch
 
-            for name in names:
-                data = archive.read(root + name)
+            for name in names:  # only what is inspected is read: not the tensor payloads, not extra/
                 if name.startswith("models/"):
-                    _check_graph(path, name, data)
+                    _check_graph(path, name, archive.read(root + name))
                 elif name.endswith("_config.json"):
-                    _check_payload_config(path, name, data)
+                    _check_payload_config(path, name, archive.read(root + name))
                 elif name.startswith("data/sample_inputs/"):
                     try:
-                        torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+                        torch.load(io.BytesIO(archive.read(root + name)), map_location="cpu", weights_only=True)
                     except Exception:
                         raise _refuse(path, f"{name} holds more than tensors") from None
     except zipfile.BadZipFile as exc:

@@ -26,7 +26,9 @@ arguments, params, FLOPs, metrics and, for an MTF model, its error table ``mtf_e
   out ``assessable``        (B,)        bool
   out ``reason_code``       (B,)        int64: 0 assessable, 1 black, 2 saturated, 3 metadata outside
                                         ``METADATA_RANGES`` (or not finite), 4 noise beyond the validated range,
-                                        5 less noise than any camera state in the metadata's ranges makes
+                                        5 less noise than any camera state in the metadata's ranges makes,
+                                        6 clipped (black and saturated pixels together more than half,
+                                        neither alone; 4 where the noise beyond the range clipped them)
   ========================  ==========  ========================================================================
 
   The metadata normalisation (``CameraMetadata.normalize``), the clamp of σ at 0, the total and the flags of
@@ -46,14 +48,22 @@ LightningModule that trained it (exporting to pt2/ONNX, fine-tuning). Both check
 
 Noise-source files written with options that are retired (a Full-Meta hybrid network, a posterior blend, …) are
 refused at load with a message that names the option and what replaced it (:func:`check_retired`).
+
+Every file's description is checked field by field at load (:func:`_check_description`): its format ``version`` must
+be :data:`FORMAT_VERSION` (a file without one is read as that version), ``metrics`` a JSON object of numbers or null,
+``params`` and ``flops_per_patch`` non-negative integers. A weights file or checkpoint is a zip archive whose entries'
+declared sizes are checked before ``torch.load`` inflates anything (:func:`camhealth._pt2_check.zip_size_problem`), and
+weights that are not finite in the network's float32 (a float64 value beyond its range) are refused at load.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -66,6 +76,8 @@ __all__ = ["CARRIED", "FORMAT_TAG", "set_description_entries", "SelfContainedNoi
            "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES", "check_retired", "network_metadata_set"]
 
 FORMAT_TAG = "camhealth-estimator"
+#: The format version of the files camhealth writes and the only one it reads (description ``version``, and the weights
+#: file's top-level ``version``).
 FORMAT_VERSION = 1
 
 #: Classes a camhealth file may name → their kind (nothing else is ever instantiated from a file): the LightningModules
@@ -128,8 +140,21 @@ def _load_refusal(exc: BaseException) -> str:
         return f"it holds pickled Python objects other than tensors, {blocked.group(1)}; camhealth never unpickles those"
     detail = re.search(r"(Unsupported operand [^\s]+)", text)
     lines = [ln.strip() for ln in text.splitlines() if ln.strip() and "weights_only" not in ln and "PyTorch 2.6" not in ln]
-    why = detail.group(1) if detail else (lines[0][:200] if lines else type(exc).__name__)
+    why = detail.group(1) if detail else (_first_sentence(lines[0]) if lines else type(exc).__name__)
     return f"torch's tensors-only reader stopped: {why}"
+
+
+def _first_sentence(text: str, limit: int = 200) -> str:
+    """The first sentence of an error message (torch's run on with advice), at most ``limit`` characters, cut at a word."""
+    head = re.split(r"(?<=[.!?])\s", text, maxsplit=1)[0].rstrip(".")
+    return head if len(head) <= limit else head[:limit].rsplit(" ", 1)[0] + " …"
+
+
+#: Suffixes of files that :func:`_safe_load` refuses by name, and why.
+_NOT_WEIGHTS = {
+    ".pt2": "an exported program (python -m camhealth.export --format pt2)",
+    ".onnx": "an ONNX export (python -m camhealth.export --format onnx)",
+}
 
 
 def _safe_load(path: Path) -> dict:
@@ -137,11 +162,23 @@ def _safe_load(path: Path) -> dict:
         raise ValueError(f"{path} is a folder; name a checkpoint (.ckpt) or weights file (.pt) in it")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
+    suffix = path.suffix.lower()
+    if suffix in _NOT_WEIGHTS:
+        raise ValueError(f"{path} is {_NOT_WEIGHTS[suffix]}, not a weights file or checkpoint: exports cannot be exported "
+                         f"or rewritten again; give the weights file (.pt) or checkpoint (.ckpt) it was exported from "
+                         f"(camhealth.load_estimator reads the {suffix} file itself)")
+    if suffix == ".safetensors":
+        raise ValueError(f"{path}: camhealth does not read .safetensors files; its estimators are weights files (.pt, "
+                         f"python -m camhealth.export --format weights), checkpoints (.ckpt), .pt2 or .onnx exports")
+    with path.open("rb") as f:
+        head = f.read(8)
+    if head.startswith(b"PK"):  # torch.save's zip archive: its directory checked before torch inflates anything
+        _check_zip(path)
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # (torch's note on a pickle protocol precedes the refusal that follows)
+            warnings.filterwarnings("ignore", message=r".*pickle protocol", category=UserWarning)
+            obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # pickle with code, not a torch file, truncated file, ...
-        with path.open("rb") as f:
-            head = f.read(8)
         why = (_load_refusal(exc) if head.startswith((b"PK\x03\x04", b"\x80")) or not head
                else f"it is no torch file: neither a zip archive nor a pickle, it begins with {head!r}")
         raise ValueError(f"{path} is not a camhealth checkpoint or weights file that loads as plain tensors ({why})") from None
@@ -150,23 +187,58 @@ def _safe_load(path: Path) -> dict:
     return obj
 
 
+def _check_zip(path: Path) -> None:
+    """Refuse a zip archive that is truncated or corrupt, that declares more uncompressed data than a camhealth network
+    needs (:func:`camhealth._pt2_check.zip_size_problem`: a decompression bomb is refused before it is inflated), or
+    that is a ``torch.export`` archive (``.pt2``) under another name."""
+    import zipfile
+
+    from camhealth._pt2_check import zip_size_problem
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            infos = archive.infolist()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError, NotImplementedError) as exc:
+        raise ValueError(f"{path} is truncated or corrupt: it begins as a zip archive, as torch.save writes, but its zip "
+                         f"directory cannot be read ({exc}); copy or save the file again") from None
+    too_large = zip_size_problem(infos)
+    if too_large is not None:
+        raise ValueError(f"{path}: refused to load this file: {too_large}")
+    names = {i.filename.split("/", 1)[-1] for i in infos}
+    if "archive_format" in names and "data.pkl" not in names:
+        raise ValueError(f"{path} is a torch.export archive (.pt2), not a weights file or checkpoint: give the weights "
+                         f"file (.pt) or checkpoint (.ckpt) it was exported from, or load it under its .pt2 name")
+
+
+def parse_description(text: str, path: Path, label: str) -> Any:
+    """The JSON ``text`` of a file's description (``label``: what it is, e.g. "the weights file's description"), or one
+    ``ValueError`` naming the file: not JSON, nested deeper than Python's recursion limit, or holding a number Python
+    does not read (an integer beyond ``sys.get_int_max_str_digits()`` digits)."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: {label} is not valid JSON ({exc.msg} at character {exc.pos})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: {label} nests JSON deeper than Python's recursion limit "
+                         f"({sys.getrecursionlimit()}); a camhealth description is a flat object") from None
+    except ValueError as exc:  # e.g. "Exceeds the limit (4300 digits) for integer string conversion"
+        raise ValueError(f"{path}: {label} cannot be read: {_first_sentence(str(exc).split(':')[0], 120)}; a camhealth "
+                         f"description holds no such value") from None
+
+
 def _description_and_state(obj: Mapping[str, Any], path: Path) -> tuple[dict, dict]:
     """Description + state dict of the network from a camhealth weights file or a Lightning checkpoint."""
     if obj.get("format") == FORMAT_TAG:  # weights file
         text = obj.get("description")
         if not isinstance(text, str):
             raise ValueError(f"{path}: the weights file's 'description' must be a JSON string, got {type(text).__name__}")
-        try:
-            desc = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: the weights file's description is not valid JSON ({exc.msg} at character {exc.pos})") from None
-        except RecursionError:
-            raise ValueError(f"{path}: the weights file's description nests JSON deeper than Python's recursion limit "
-                             f"({sys.getrecursionlimit()}); a camhealth description is a flat object") from None
+        desc = _check_description(parse_description(text, path, "the weights file's description"), path)
+        if "version" in obj and _version_problem(obj["version"]):
+            raise ValueError(f"{path}: the weights file's version = {obj['version']!r} {_version_problem(obj['version'])}")
         state = obj.get("state_dict")
         if not isinstance(state, Mapping):
             raise ValueError(f"{path}: the weights file has no 'state_dict' of tensors")
-        return _check_description(desc, path), dict(state)
+        return desc, dict(state)
     info = obj.get("camhealth")
     if isinstance(info, Mapping) and info.get("format") == FORMAT_TAG and "state_dict" in obj:
         if not isinstance(obj["state_dict"], Mapping):
@@ -179,10 +251,24 @@ def _description_and_state(obj: Mapping[str, Any], path: Path) -> tuple[dict, di
     )
 
 
+def _version_problem(version: Any) -> str:
+    """Why ``version`` is not one this camhealth reads, or ``""``."""
+    if isinstance(version, bool) or not isinstance(version, int) or version != FORMAT_VERSION:
+        return (f"is not a format version this camhealth reads (only {FORMAT_VERSION}); export the network again with "
+                f"this camhealth, or load it with the camhealth that wrote it")
+    return ""
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _check_description(desc: Any, path: Path) -> dict:
     """The description of a file, checked field by field (one ``ValueError`` naming the field and what it must be)."""
     if not isinstance(desc, dict):
         raise ValueError(f"{path}: the description must be a JSON object, got {type(desc).__name__}")
+    if "version" in desc and _version_problem(desc["version"]):
+        raise ValueError(f"{path}: description version = {desc['version']!r} {_version_problem(desc['version'])}")
     class_path = desc.get("class_path")
     if class_path not in ALLOWED_CLASSES:
         raise ValueError(f"{path}: description class_path = {class_path!r} is not a camhealth estimator; allowed: {sorted(ALLOWED_CLASSES)}")
@@ -207,6 +293,19 @@ def _check_description(desc: Any, path: Path) -> dict:
     if "metadata_set" in desc and desc["metadata_set"] != network_set:
         raise ValueError(f"{path}: description metadata_set = {desc['metadata_set']!r} differs from the network's "
                          f"init_args metadata_set = {network_set!r}")
+    metrics = desc.get("metrics")
+    if metrics is not None:
+        if not isinstance(metrics, dict):
+            raise ValueError(f"{path}: description metrics must be a JSON object of numbers or null (a metric without "
+                             f"data), got {type(metrics).__name__}")
+        for key, value in metrics.items():  # NaN: an older file's metric without data, read as null
+            if value is not None and not (_is_number(value) and (math.isfinite(value) or value != value)):
+                raise ValueError(f"{path}: description metrics[{str(key)[:60]!r}] = {repr(value)[:60]} must be a finite "
+                                 f"number or null (a metric without data)")
+    for key in ("params", "flops_per_patch"):
+        value = desc.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
+            raise ValueError(f"{path}: description {key} = {repr(value)[:60]} must be a non-negative integer")
     return desc
 
 
@@ -302,12 +401,21 @@ def _checked_network(path: Path, desc: Mapping[str, Any], init_args: Mapping[str
 
 def _load_state(net: torch.nn.Module, state: Mapping[str, torch.Tensor], path: Path, class_path: str) -> None:
     """Load ``state`` into ``net`` (checked by :func:`_check_state` first; the values are copied into the network's
-    tensors, in their dtype)."""
+    tensors, in their dtype). A value finite in the file but not in the network's dtype (float64 beyond float32's
+    range becomes ±inf) is a ``ValueError`` naming the entry: the network would answer every input with NaN."""
     _check_state(net.state_dict(), state, path, class_path)
     try:
         net.load_state_dict(state)
     except RuntimeError as exc:
         raise ValueError(f"{path}: weights do not fit {class_path}: {str(exc).splitlines()[-1].strip()[:200]}") from None
+    for key, value in net.state_dict().items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            n = int((~torch.isfinite(value)).sum())
+            stored = str(state[key].dtype).replace("torch.", "") if key in state else "?"
+            dtype = str(value.dtype).replace("torch.", "")
+            raise ValueError(f"{path}: state_dict entry {key!r} holds {n} non-finite value(s) of {value.numel()} after "
+                             f"conversion to {dtype} (the file's {stored} values lie beyond {dtype}'s range); weights "
+                             f"must be finite in the network's dtype")
 
 
 def load_net(source: str | Path) -> tuple[torch.nn.Module, dict]:
@@ -429,7 +537,7 @@ ONNX_NOISE_OUTPUTS: tuple[str, ...] = ("sigma", "xi", "sigma_total", "assessable
 #: ``reason_code`` of a self-contained noise-source ONNX graph → the ``reason`` of :meth:`Estimator.predict`
 #: (3: metadata that ``predict`` would refuse with an error).
 ONNX_REASONS: tuple[str, ...] = ("", "black", "saturated", "metadata out of range", "noise beyond validated range",
-                                 "less noise than the metadata allow")
+                                 "less noise than the metadata allow", "clipped")
 
 
 class SelfContainedNoiseSource(torch.nn.Module):
@@ -439,8 +547,9 @@ class SelfContainedNoiseSource(torch.nn.Module):
     docstring for shapes and units): metadata in physical units (the ``metadata_fields`` columns) are normalised
     with ``METADATA_RANGES`` into the (B, 11) vector the network reads (zeros where the metadata set has no field),
     σ is clamped at 0, σ_total = √(Σ σ_s²), and a patch is not assessable where more than
-    ``MAX_CLIPPED_FRACTION`` of its pixels lie within 0.5 DN of 0 (black, code 1) or of 255 (saturated, 2), its
-    metadata lie outside their range or are not finite (3), its finest-scale fluctuations exceed the validated σ
+    ``MAX_CLIPPED_FRACTION`` of its pixels lie within 0.5 DN of 0 (black, code 1) or of 255 (saturated, 2) or, neither
+    alone, of either together (clipped, 6, unless the noise is beyond the validated range, 4, which clipped it:
+    :func:`camhealth._inputs.assess_patches`), its metadata lie outside their range or are not finite (3), its finest-scale fluctuations exceed the validated σ
     beyond doubt (4, :func:`~camhealth.estimators.physics_noise.beyond_validated_range`) or it holds far less noise
     than any camera state makes (5, :func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`).
 
@@ -488,15 +597,18 @@ class SelfContainedNoiseSource(torch.nn.Module):
         total = sigma.pow(2).sum(1).sqrt()
         flat = x.flatten(1)
         tol = 0.5 / 255.0
-        black = (flat <= tol).float().mean(1) > MAX_CLIPPED_FRACTION
-        saturated = (flat >= 1.0 - tol).float().mean(1) > MAX_CLIPPED_FRACTION
+        at_low, at_high = flat <= tol, flat >= 1.0 - tol
+        black = at_low.float().mean(1) > MAX_CLIPPED_FRACTION
+        saturated = at_high.float().mean(1) > MAX_CLIPPED_FRACTION
+        clipped = (at_low | at_high).float().mean(1) > MAX_CLIPPED_FRACTION
         zero = torch.zeros_like(black, dtype=torch.int64)
         from camhealth.estimators.physics_noise import beyond_validated_range, quieter_than_any_camera
 
         beyond = beyond_validated_range(x).to(black.device)  # the refusals predict adds for the networks
         quiet = quieter_than_any_camera(x).to(black.device)
-        reason = torch.where(black, zero + 1, torch.where(saturated, zero + 2, torch.where(
-            ~meta_ok, zero + 3, torch.where(beyond, zero + 4, torch.where(quiet, zero + 5, zero)))))
+        clipped = clipped & ~beyond  # clipped by noise beyond the validated range: that reason (assess_patches)
+        reason = torch.where(black, zero + 1, torch.where(saturated, zero + 2, torch.where(clipped, zero + 6, torch.where(
+            ~meta_ok, zero + 3, torch.where(beyond, zero + 4, torch.where(quiet, zero + 5, zero))))))
         return sigma, xi, total, reason == 0, reason
 
 

@@ -2,7 +2,7 @@
 
 ``load_estimator(path_or_name, device="cpu")`` accepts
 
-- a **shipped model name** (no network access): ``"mtf"``, ``"drne"``, ``"noise_source_full"`` (physics-first, no
+- a **shipped model name** (a ``str``; no network access): ``"mtf"``, ``"drne"``, ``"noise_source_full"`` (physics-first, no
   weights), ``"noise_source_min"``, ``"noise_source_none"`` (see :func:`shipped_models`; files in
   ``camhealth/weights/`` with model cards);
 - a **weights file** (``.pt``, :func:`camhealth.export.export_weights`) or a **Lightning checkpoint**
@@ -24,7 +24,10 @@
   ``input_range="auto"`` is refused with a hint, never silently rescaled. Integers wider than 8 bits (uint16,
   int32 …) are 8-bit DN only with ``input_range="dn"``: by default they are refused, as a 10–16-bit camera's dark
   frame holds values ≤ 255 too and would be read as 8-bit DN (scale such data to 8 bits or to [0, 1] first).
-- ``metadata``: required when ``metadata_set`` is ``"minimal"`` or ``"full"``:
+  Integers of any width with ``input_range="unit"`` are refused: integers are DN, not values in [0, 1].
+- ``metadata``: required when ``metadata_set`` is ``"minimal"`` or ``"full"``, and checked alike where it is given to
+  an estimator that reads none (``mtf``, ``drne``, ``noise_source_none``: a dict's missing fields from ``base_preset``
+  or ICX285; the values are not used), so a bad preset name, file or value is an error everywhere:
   a :class:`~camhealth.physics.CameraMetadata` (batch 1 or B), a dict of fields in physical units
   (missing fields from ``base_preset``, e.g. ``{"gain_db": 12, "exposure_s": 0.01, "temperature_c": 40}``
   with ``base_preset="ICX285"``; without ``base_preset`` the dict must hold every field the network reads —
@@ -34,9 +37,11 @@
 - returns a dict of float32 CPU tensors: ``mtf`` (B, 16) H then V, ``mtf_std`` and ``mtf_spread`` (B, 16) [kind ``mtf``]; ``sigma_total`` (B,) DN
   [noise kinds; for noise-source networks √(Σ σ_s²)]; ``sigma`` (B, 3) σ of PN, DCSN, RN in DN and ``xi`` (B,) DN [``noise_source``];
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
-  ``"black"``, ``"saturated"``, ``"featureless"``, ``"no edges"`` [MTF: Gaussian-like texture, :func:`camhealth._inputs.has_edges`];
-  noise-source networks also ``"noise beyond validated range"`` (the patch's finest-scale fluctuations above 64 DN
-  beyond doubt, :func:`~camhealth.estimators.physics_noise.beyond_validated_range`) and ``"less noise than the
+  ``"black"``, ``"saturated"``, ``"clipped"`` [neither more than half, but both together],
+  ``"featureless"``, ``"no edges"`` [MTF: Gaussian-like texture, :func:`camhealth._inputs.has_edges`];
+  DRNE and the noise-source networks also ``"noise beyond validated range"`` (the patch's finest-scale fluctuations
+  above 64 DN beyond doubt, :func:`~camhealth.estimators.physics_noise.beyond_validated_range`: the rule of every
+  noise estimator), the noise-source networks ``"less noise than the
   metadata allow"`` (far less noise than photon noise alone makes for any camera in the metadata's ranges, from
   98 DN up, :func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`)). Not-assessable patches still get
   finite numbers; do not trust them.
@@ -45,7 +50,7 @@
   stayed near 0 on every mismatch tried (``noise_source_min`` on an ICX285 ramp told 6 dB: at 24 dB ξ −0.08 DN
   against a true −4.8 DN, with 10–60 DN of extra noise −0.10…−0.15 DN against −8…−53 DN); read a ξ alarm from
   ``noise_source_full`` where the full metadata are known.
-- ``views`` (MTF models): 1 (default), 2 or 4 — also run the patch flipped (2: rotated by 180°; 4: flipped
+- ``views`` (MTF models): 1 (default), 2 or 4 (an integer) — also run the patch flipped (2: rotated by 180°; 4: flipped
   left–right, up–down and both) and average the estimates. A flip leaves the MTF along H and V unchanged
   (|OTF(−u, v)| = |OTF(u, v)| for a real PSF), so the views are estimates of the same 16 values with partly
   independent errors: AMAE 4–6 % lower for 2–4× the time (``docs/estimators.md``). ``mtf_spread`` (B, 16) is the
@@ -74,7 +79,8 @@ the device. ``predict`` takes CPU or device tensors alike and returns CPU tensor
 from __future__ import annotations
 
 import copy
-import json
+import numbers
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,7 +93,7 @@ from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, _to_metadat
 from camhealth._validation import check_batch_size
 from camhealth.estimators.mtf_error import MTFErrorTable, mtf_uncertainty
 from camhealth.export import (BY_PHYSICS, FORMAT_TAG, MAX_EXPORT_BATCH, ONNX_NOISE_OUTPUTS, _check_description,
-                              check_retired, load_net, network_metadata_set)
+                              check_retired, load_net, network_metadata_set, parse_description)
 from camhealth.nets import NetworkSpec
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS, CameraMetadata
 
@@ -192,13 +198,16 @@ class Estimator:
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision = {precision!r} must be 'fp32' or 'bf16'")
         batch_size = check_batch_size(batch_size)
-        if views not in (1, 2, 4):
-            raise ValueError(f"views = {views!r} must be 1, 2 or 4")
+        if isinstance(views, bool) or not isinstance(views, numbers.Integral) or int(views) not in (1, 2, 4):
+            raise ValueError(f"views = {views!r} must be 1, 2 or 4 (an integer)")
+        views = int(views)
         if views > 1 and self.kind != "mtf":
             raise ValueError(f"views = {views} averages flipped copies of MTF patches; estimator {self.name!r} is {self.kind!r}")
         patches = _to_patches(images, self.patch_size, input_range)
         if patches.shape[0] == 0:
             return self._empty_result(metadata, base_preset)
+        if self.metadata_set == "none" and metadata is not None:
+            self._unread_metadata(metadata, patches.shape[0], base_preset)
         defects = noise_dn = None
         if self.kind == "mtf":  # isolated impulses read as sparse edges and fine detail: the neighbours' mean instead
             noise_dn = haar_noise_dn(patches, torch.float64)  # σ̂ for the defect check and assess_patches alike
@@ -240,7 +249,13 @@ class Estimator:
                 outs.append(self._run(*inputs)[:n].float().cpu())
         raw = torch.cat(outs)
         if not bool(torch.isfinite(raw).all()):
-            raise FloatingPointError(f"estimator {self.name!r} produced non-finite outputs; please report this input")
+            bad = int((~torch.isfinite(raw)).sum())
+            raise FloatingPointError(
+                f"estimator {self.name!r} produced {bad} non-finite output value(s) of {raw.numel()} from finite input: "
+                f"the network's arithmetic left float32's range. Its weights ({self.source}) were finite when loaded; "
+                f"weights far larger than a trained network's would do this on any input — if they are the shipped or "
+                f"your trained ones, please report this input"
+            )
         spread = None
         if views > 1:
             per_view = raw.view(views, -1, *raw.shape[1:])
@@ -249,6 +264,8 @@ class Estimator:
         assessable, reason = assess_patches(patches, self.kind, noise_dn)
         if self.kind == "noise_source":  # what the network cannot vouch for: noise beyond the range, or none at all
             assessable, reason = _noise_source_limits(patches, reason)
+        elif self.kind == "drne":  # the validated range of every noise estimator (drne was validated to 60 DN)
+            assessable, reason = _noise_source_limits(patches, reason, quiet=False)
         result: dict[str, Any] = {"assessable": assessable, "reason": reason}
         if self.kind == "mtf":
             result["mtf"] = raw.clamp(0, 1)
@@ -282,6 +299,12 @@ class Estimator:
         base = base_preset or ("ICX285" if self.metadata_set == "minimal" else None)
         return _to_metadata(metadata, batch, base)
 
+    def _unread_metadata(self, metadata: Any, batch: int, base_preset: str | None) -> None:
+        """Check ``metadata`` given to an estimator that reads none, as for one that reads it (type, preset name, file,
+        ranges, unknown fields, batch size), and drop it: a typo or an impossible value is an error everywhere. A
+        dict's missing fields come from ``base_preset`` or ICX285 (the network reads none of them)."""
+        _to_metadata(metadata, batch, base_preset or "ICX285")
+
     def _empty_result(self, metadata: Any, base_preset: str | None = None) -> dict[str, Any]:
         """The outputs of :meth:`predict` for an empty batch: every entry with 0 rows (the metadata checked as for
         a full batch: a field out of range is an error whatever the number of patches)."""
@@ -289,6 +312,8 @@ class Estimator:
             if metadata is None:
                 raise ValueError(f"estimator {self.name!r} reads {self.metadata_set!r} metadata: pass metadata=")
             self._metadata(metadata, 0, base_preset)
+        elif metadata is not None:
+            self._unread_metadata(metadata, 0, base_preset)
         z = torch.zeros(0)
         result: dict[str, Any] = {"assessable": torch.zeros(0, dtype=torch.bool), "reason": []}
         if self.kind == "mtf":
@@ -303,21 +328,22 @@ class Estimator:
         return result
 
 
-def _noise_source_limits(patches: torch.Tensor, reason: list[str]) -> tuple[torch.Tensor, list[str]]:
+def _noise_source_limits(patches: torch.Tensor, reason: list[str], quiet: bool = True) -> tuple[torch.Tensor, list[str]]:
     """The assessability of a noise-source network's patches (B×1×P×P in [0, 1]) given the ``reason`` of
     :func:`assess_patches`: also refused, with the physics-first estimator's reasons, are patches whose finest-scale
     fluctuations exceed the validated σ beyond doubt (:func:`~camhealth.estimators.physics_noise.beyond_validated_range`:
     ``"noise beyond validated range"``) and patches far quieter than any camera state in the metadata's ranges makes
     (:func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`: ``"less noise than the metadata allow"``) —
-    the network was trained on neither and answers them with a number near its training range."""
+    the network was trained on neither and answers them with a number near its training range. ``quiet=False``
+    (DRNE, which estimates the total noise of any source, camera or not): the range alone."""
     from camhealth.estimators.physics_noise import BEYOND_VALIDATED, LESS_NOISE, beyond_validated_range, quieter_than_any_camera
 
     beyond = beyond_validated_range(patches).tolist()
-    quiet = quieter_than_any_camera(patches).tolist()
+    too_quiet = quieter_than_any_camera(patches).tolist() if quiet else [False] * len(beyond)
     out = list(reason)
     for i, r in enumerate(out):
         if not r:
-            out[i] = BEYOND_VALIDATED if beyond[i] else LESS_NOISE if quiet[i] else ""
+            out[i] = BEYOND_VALIDATED if beyond[i] else LESS_NOISE if too_quiet[i] else ""
     return torch.tensor([r == "" for r in out], dtype=torch.bool), out
 
 
@@ -367,13 +393,9 @@ def _torch_runner(net: torch.nn.Module, channels_last: bool, device: torch.devic
 
 def _exported_description(text: str, path: Path) -> dict:
     """The ``camhealth.json`` description of a ``.pt2`` or ``.onnx`` file, checked as a weights file's is
-    (:func:`camhealth.export._check_description`); a ``ValueError`` naming the file and the field otherwise."""
-    try:
-        desc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: the camhealth.json description is not valid JSON ({exc.msg} at character "
-                         f"{exc.pos})") from None
-    desc = _check_description(desc, path)
+    (:func:`camhealth.export._check_description`); a ``ValueError`` naming the file and the field otherwise (also
+    for JSON nested deeper than Python's recursion limit or an integer of more digits than Python reads)."""
+    desc = _check_description(parse_description(text, path, "the camhealth.json description"), path)
     graph = desc.get("onnx_graph")
     if graph is not None and not isinstance(graph, dict):
         raise ValueError(f"{path}: description onnx_graph must be a JSON object, got {type(graph).__name__}")
@@ -471,8 +493,61 @@ def _read_pt2(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
         raise ValueError(f"{path} is an exported program but not a camhealth estimator (no camhealth.json inside)")
     desc = _exported_description(extra["camhealth.json"], path)
     _check_signature(path, desc, *_pt2_signature(ep, path), onnx=False)
+    for what, tensors in (("weight", ep.state_dict), ("constant", ep.constants)):
+        for key, value in tensors.items():
+            _check_finite(path, f"the exported program's {what} {key!r}", value)
     module = ep.module()
     return desc, lambda *x: module(*x)
+
+
+def _check_finite(path: Path, what: str, value: Any) -> None:
+    """Refuse a floating-point tensor or array of a file that holds NaN or ±inf (the network would answer NaN)."""
+    import numpy as np
+
+    if isinstance(value, torch.Tensor):
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            n, total = int((~torch.isfinite(value)).sum()), value.numel()
+        else:
+            return
+    elif isinstance(value, np.ndarray) and value.dtype.kind in "fc":
+        if bool(np.isfinite(value).all()):
+            return
+        n, total = int((~np.isfinite(value)).sum()), value.size
+    else:
+        return
+    raise ValueError(f"{path}: {what} holds {n} NaN or infinite value(s) of {total}; weights must be finite")
+
+
+def _onnx_weights_finite(path: Path) -> None:
+    """Refuse an ONNX file whose initializers or ``Constant`` nodes hold NaN or ±inf (read after ONNX Runtime accepted
+    the file, so external data lie inside its folder)."""
+    import onnx
+    from onnx import numpy_helper
+
+    try:
+        model = onnx.load(str(path))
+    except Exception as exc:
+        raise ValueError(f"{path} is not a readable ONNX model: {str(exc).splitlines()[0][:200]}") from None
+
+    def graphs(g):
+        yield g
+        for node in g.node:
+            for attr in node.attribute:
+                if attr.type == onnx.AttributeProto.GRAPH:
+                    yield from graphs(attr.g)
+                elif attr.type == onnx.AttributeProto.GRAPHS:
+                    for sub in attr.graphs:
+                        yield from graphs(sub)
+
+    for g in graphs(model.graph):
+        for init in g.initializer:
+            _check_finite(path, f"the ONNX initializer {init.name!r}", numpy_helper.to_array(init))
+        for node in g.node:
+            if node.op_type == "Constant":
+                for attr in node.attribute:
+                    if attr.type == onnx.AttributeProto.TENSOR:
+                        _check_finite(path, f"the ONNX constant {node.name or node.output[0]!r}",
+                                      numpy_helper.to_array(attr.t))
 
 
 def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
@@ -489,6 +564,7 @@ def _read_onnx(path: Path) -> tuple[dict, Callable[..., torch.Tensor]]:
     desc = _exported_description(meta["camhealth.json"], path)
     _check_signature(path, desc, [(i.name, _dims(i.shape)) for i in session.get_inputs()],
                      [(o.name, _dims(o.shape)) for o in session.get_outputs()], onnx=True)
+    _onnx_weights_finite(path)
     self_contained = bool((desc.get("onnx_graph") or {}).get("self_contained"))
 
     def run(*inputs: torch.Tensor) -> torch.Tensor:
@@ -529,6 +605,12 @@ def check_device(device: torch.device | str | None) -> torch.device:
 def load_estimator(path_or_name: str | Path, device: torch.device | str | None = "cpu") -> Estimator:
     """Load a shipped model by name, or a weights/checkpoint/pt2/onnx file, with its network on ``device``
     (see the module docstring)."""
+    if isinstance(path_or_name, bytes) or not isinstance(path_or_name, (str, os.PathLike)):
+        names = sorted([*shipped_models(), PHYSICS_NOISE_MODEL])
+        raise TypeError(f"path_or_name = {path_or_name!r} must be a shipped model's name (a str: {names}) or the path of a "
+                        f".pt/.ckpt/.pt2/.onnx file (str or pathlib.Path), got {type(path_or_name).__name__}")
+    if not isinstance(path_or_name, str):
+        path_or_name = Path(path_or_name)
     if isinstance(path_or_name, (str, Path)) and Path(path_or_name).suffix.lower() in (".pt2", ".onnx") \
             and device is not None and str(device).split(":")[0] != "cpu":
         raise ValueError(f"device = {str(device)!r}: {Path(path_or_name).name} is a {Path(path_or_name).suffix} file, "

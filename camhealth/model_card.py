@@ -141,8 +141,8 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
         f"- **Architecture arguments**: `{json.dumps(d.get('init_args', {}))}`",
         f"- **Size**: {d.get('params', 0):,} parameters, {d.get('flops_per_patch', 0) / 1e9:.2f} GFLOP per patch.",
         *_trunk_line(est),
-        "- **Format**: camhealth weights (`torch.load(weights_only=True)`: tensors and a JSON description, no code).",
-        f"- **Load**: `camhealth.load_estimator({est.name!r})` (no network access).",
+        _format_line(est),
+        _load_line(est),
         "",
         "## Intended use",
         "",
@@ -181,6 +181,38 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
     if notes:
         lines += ["", "## Training procedure", "", notes]
     return "\n".join(lines) + "\n"
+
+
+#: The card's "Format" line per backend of :class:`camhealth.inference.Estimator`.
+_FORMATS = {
+    "torch": "camhealth weights (`torch.load(weights_only=True)`: tensors and a JSON description, no code).",
+    "pt2": "exported program (`torch.export`, `.pt2`: the bare network's graph, checked before it is loaded, and a "
+           "JSON description; runs on the CPU).",
+    "onnx": "ONNX (ONNX Runtime alone runs it; the JSON description in the model's metadata; runs on the CPU).",
+}
+
+
+def _format_line(est) -> str:
+    source = str(est.source)
+    text = _FORMATS.get(est.backend, _FORMATS["torch"])
+    if est.backend == "torch" and source.lower().endswith(".ckpt"):
+        text = ("Lightning checkpoint (`torch.load(weights_only=True)`: tensors and a JSON description, no code; "
+                "`python -m camhealth.export --format weights` makes the weights file).")
+    return f"- **Format**: {text}"
+
+
+def _load_line(est) -> str:
+    """The card's "Load" line: the shipped name where the estimator was loaded from a shipped file, else its path."""
+    from camhealth.inference import shipped_models
+
+    shipped = shipped_models().get(est.name)
+    try:
+        is_shipped = shipped is not None and Path(est.source).resolve() == shipped.resolve()
+    except OSError:
+        is_shipped = False
+    if is_shipped:
+        return f"- **Load**: `camhealth.load_estimator({est.name!r})` (no network access)."
+    return f"- **Load**: `camhealth.load_estimator({str(est.source)!r})`."
 
 
 def _metric_cell(value) -> str:

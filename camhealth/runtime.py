@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import numbers
 import sys
 
 __all__ = ["keep_freed_memory", "freed_memory_kept"]
@@ -39,10 +40,18 @@ def keep_freed_memory(mmap_threshold_bytes: int = _MMAP_THRESHOLD_MAX, trim_thre
             (glibc allows at most 32 MiB on 64-bit systems; larger values are clipped to it).
         trim_threshold_bytes: free memory at the top of the heap beyond this is returned to the kernel.
 
+    Both are integers ≥ 0 (bytes; not bool): anything else is a ``TypeError``/``ValueError`` naming the argument,
+    raised before anything is changed, so a later valid call still applies the settings.
+
     Returns:
         True if the settings were applied (glibc), False otherwise.
     """
     global _applied
+    for name, value in (("mmap_threshold_bytes", mmap_threshold_bytes), ("trim_threshold_bytes", trim_threshold_bytes)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise TypeError(f"{name} = {value!r} must be an integer number of bytes, got {type(value).__name__}")
+        if value < 0:
+            raise ValueError(f"{name} = {value!r} is out of the allowed range: an integer number of bytes >= 0")
     if _applied is not None:
         return _applied
     _applied = False

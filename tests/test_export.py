@@ -4,6 +4,7 @@ are refused with a clear error, and nothing but tensors is ever unpickled."""
 from __future__ import annotations
 
 import pickle
+import re
 
 import pytest
 import torch
@@ -211,22 +212,28 @@ def test_self_contained_noise_onnx_matches_predict(kind, tmp_path):
 
 
 def test_self_contained_noise_onnx_refuses_what_predict_refuses(tmp_path):
-    """The graph holds predict's two refusals of a noise-source network: noise beyond the validated range (uniform
-    noise of σ 97.5 DN: pixels at 30 or 225 DN at random, code 4) and a patch quieter than any camera state makes (a
-    constant 128 DN patch, code 5)."""
+    """The graph holds predict's refusals of a noise-source network: noise beyond the validated range (uniform
+    noise of σ 97.5 DN: pixels at 30 or 225 DN at random, code 4), a patch quieter than any camera state makes (a
+    constant 128 DN patch, code 5), a patch 40 % crushed black and 40 % blown out (code 6, "clipped"), and one that
+    noise of 200 DN clipped at both ends (code 4: the noise is what is known)."""
     from camhealth.export import ONNX_REASONS
 
     m = _perturbed("noise_source_none")
     ref = load_estimator(export_weights(m, tmp_path / "w.pt"))
     session = _ort_session(export_onnx(m, tmp_path / "m.onnx"))
     g = torch.Generator().manual_seed(5)
+    clipped = (128 + 5 * torch.randn(1, 32, 32, generator=g)).round().clamp(0, 255) / 255
+    clipped[..., :13] = 0.0
+    clipped[..., 13:26] = 1.0
     x = torch.stack([(30.0 + 195.0 * (torch.rand(1, 32, 32, generator=g) < 0.5)) / 255, torch.full((1, 32, 32), 128 / 255),
-                     ((128 + 5 * torch.randn(1, 32, 32, generator=g)).round().clamp(0, 255)) / 255])
+                     ((128 + 5 * torch.randn(1, 32, 32, generator=g)).round().clamp(0, 255)) / 255, clipped,
+                     ((128 + 200 * torch.randn(1, 32, 32, generator=g)).round().clamp(0, 255)) / 255])
     assessable, code = (torch.from_numpy(a) for a in session.run(None, {"patch": x.numpy()})[3:])
     want = ref.predict(x)
     assert [ONNX_REASONS[int(c)] for c in code] == want["reason"] == ["noise beyond validated range",
-                                                                         "less noise than the metadata allow", ""]
-    assert assessable.tolist() == [False, False, True]
+                                                                         "less noise than the metadata allow", "",
+                                                                         "clipped", "noise beyond validated range"]
+    assert assessable.tolist() == [False, False, True, False, False] and code.tolist()[3] == 6
 
 
 def test_self_contained_noise_onnx_flags_metadata_out_of_range(tmp_path):
@@ -270,3 +277,171 @@ def test_a_metric_without_data_is_null_in_the_description(tmp_path):
     assert again["metrics"] == desc["metrics"]
     assert json.loads(torch.load(export_weights(path, tmp_path / "again.pt"), weights_only=True)["description"],
                       parse_constant=no_nan)["metrics"] == desc["metrics"]  # exported again: still null
+
+
+# ------------------------------------------------------------------ audit fixes: what a file may hold
+def _edited_weights(tmp_path, name="edited.pt", top=None, **desc_changes):
+    """A weights file of a small DRNE whose description (and top-level entries ``top``) are changed."""
+    import json
+
+    path = export_weights(_perturbed("drne"), tmp_path / "w.pt")
+    obj = torch.load(path, weights_only=True)
+    desc = json.loads(obj["description"])
+    desc.update(desc_changes)
+    obj.update(top or {}, description=json.dumps(desc))
+    torch.save(obj, tmp_path / name)
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("top,desc,match", [
+    ({"version": 99}, {"version": 99}, r"description version = 99 is not a format version this camhealth reads \(only 1\)"),
+    ({}, {"version": "1"}, r"description version = '1' is not a format version"),
+    ({"version": 2}, {}, r"the weights file's version = 2 is not a format version this camhealth reads \(only 1\)"),
+])
+def test_a_file_of_another_format_version_is_refused_and_not_re_exported_as_version_1(tmp_path, top, desc, match):
+    path = _edited_weights(tmp_path, top=top, **desc)
+    for load in (load_estimator, load_module):
+        with pytest.raises(ValueError, match=rf"edited\.pt: {match}"):
+            load(path)
+    with pytest.raises(ValueError, match=match):
+        export_weights(path, tmp_path / "again.pt")
+    assert not (tmp_path / "again.pt").exists()
+
+
+@pytest.mark.parametrize("changes,match", [
+    ({"metrics": {"test/rms_total": "abc"}}, r"description metrics\['test/rms_total'\] = 'abc' must be a finite number or null"),
+    ({"metrics": {"test/rms_total": float("inf")}}, r"description metrics\['test/rms_total'\] = inf must be a finite number"),
+    ({"metrics": [1, 2]}, r"description metrics must be a JSON object of numbers or null .*got list"),
+    ({"params": "many"}, r"description params = 'many' must be a non-negative integer"),
+    ({"params": -1}, r"description params = -1 must be a non-negative integer"),
+    ({"flops_per_patch": "x"}, r"description flops_per_patch = 'x' must be a non-negative integer"),
+    ({"flops_per_patch": True}, r"description flops_per_patch = True must be a non-negative integer"),
+])
+def test_description_metrics_params_and_flops_are_checked(tmp_path, capsys, changes, match):
+    """A string metric made the model card fail with "Unknown format code 'f'" and export with "could not convert
+    string to float"; a list "'list' object has no attribute 'items'"; params "many" "Cannot specify ',' with 's'".
+    Each is one ValueError naming the file and the field, at load and in the export CLI."""
+    path = _edited_weights(tmp_path, **changes)
+    for load in (load_estimator, load_module):
+        with pytest.raises(ValueError, match=rf"edited\.pt: {match}"):
+            load(path)
+    with pytest.raises(SystemExit):
+        main([str(path), "--format", "weights", "--out", str(tmp_path / "out.pt")])
+    assert re.search(match, capsys.readouterr().err)
+
+
+def test_metrics_without_data_still_load(tmp_path):
+    """null and NaN (an older file's metric without data) are what a metric without data may be."""
+    path = _edited_weights(tmp_path, metrics={"a": None, "b": float("nan"), "c": 1, "d": 0.5})
+    assert load_estimator(path).description["metrics"]["c"] == 1
+
+
+def test_a_huge_integer_in_a_weights_file_description_is_named(tmp_path, capsys):
+    path = export_weights(_perturbed("drne"), tmp_path / "w.pt")
+    obj = torch.load(path, weights_only=True)
+    obj["description"] = obj["description"].replace('"patch_size": 32', '"patch_size": ' + "9" * 5000)
+    torch.save(obj, tmp_path / "bigint.pt")
+    match = r"bigint\.pt: the weights file's description cannot be read: Exceeds the limit \(4300 digits\)"
+    with pytest.raises(ValueError, match=match):
+        load_estimator(tmp_path / "bigint.pt")
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "bigint.pt"), "--format", "weights", "--out", str(tmp_path / "out.pt")])
+    assert re.search(match, capsys.readouterr().err)
+
+
+def _deflated(src, out, extra=None):
+    """``src`` re-zipped with deflate (what torch.load inflates), plus ``extra`` entries {name: bytes}."""
+    import zipfile
+
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zout:
+        root = zin.namelist()[0].split("/", 1)[0]
+        for n in zin.namelist():
+            zout.writestr(n, zin.read(n))
+        for name, data in (extra or {}).items():
+            zout.writestr(f"{root}/{name}", data)
+    return out
+
+
+def test_decompression_bombs_are_refused_before_they_are_inflated(tmp_path, monkeypatch):
+    """A 3.6 MB .pt2 with a 3 GiB deflated entry loaded after 56 s at 6.6 GB of memory, a 1.3 MB .pt with a 1 GiB
+    tensor used 3.1 GB before its refusal. The zip directory's declared sizes are checked first (here against limits
+    lowered to 1 MiB, which an entry of 2 MiB of zeros exceeds), naming the entry, its size and the limit; torch.load
+    is never called on such a file."""
+    import camhealth._pt2_check as check
+
+    monkeypatch.setattr(check, "MAX_ZIP_ENTRY_BYTES", 2**20)
+    monkeypatch.setattr(check, "MAX_JSON_ENTRY_BYTES", 2**20)
+    m = _perturbed("drne")
+    pt2 = export_pt2(m, tmp_path / "m.pt2")
+    bomb = _deflated(pt2, tmp_path / "bomb.pt2", {"extra/pad.bin": bytes(2 * 2**20)})
+    with pytest.raises(ValueError, match=r"bomb\.pt2: refused to load this \.pt2 archive: entry '\w+/extra/pad\.bin' "
+                                         r"declares 2,097,152 bytes uncompressed \(\d[\d,]* stored\), more than the limit "
+                                         r"of 1,048,576 bytes \(MAX_JSON_ENTRY_BYTES\)"):
+        load_estimator(bomb)
+    state = {k: v for k, v in m.net.state_dict().items()}
+    torch.save({"format": "camhealth-estimator", "version": 1, "description": "{}",
+                "state_dict": {**state, "pad": torch.zeros(2**19)}}, tmp_path / "raw.pt")
+    bomb = _deflated(tmp_path / "raw.pt", tmp_path / "bomb.pt")
+    real_load = torch.load
+    monkeypatch.setattr(torch, "load", lambda *a, **k: pytest.fail("torch.load ran on a bomb"))
+    with pytest.raises(ValueError, match=r"bomb\.pt: refused to load this file: entry 'raw/data/\d+' declares 2,097,152 "
+                                         r"bytes uncompressed .* more than the limit of 1,048,576 bytes "
+                                         r"\(MAX_ZIP_ENTRY_BYTES\)"):
+        load_estimator(bomb)
+    monkeypatch.setattr(torch, "load", real_load)
+    monkeypatch.setattr(check, "MAX_ZIP_ENTRY_BYTES", 2**30)
+    monkeypatch.setattr(check, "MAX_ZIP_TOTAL_BYTES", 2**20)
+    with pytest.raises(ValueError, match=r"entries declare [\d,]+ bytes uncompressed together, more than the limit of "
+                                         r"1,048,576 bytes \(MAX_ZIP_TOTAL_BYTES\)"):
+        load_estimator(bomb)
+    # the files camhealth writes are well within the real limits
+    monkeypatch.undo()
+    assert load_estimator(pt2).kind == "drne" and load_estimator(export_weights(m, tmp_path / "w.pt")).kind == "drne"
+
+
+def test_the_pt2_check_reads_no_tensor_payload_and_no_extra_file(tmp_path, monkeypatch):
+    """check_pt2_archive inflated every entry; it reads only the graphs, payload configs, sample inputs and the format."""
+    import zipfile
+
+    from camhealth._pt2_check import check_pt2_archive
+
+    pt2 = export_pt2(_perturbed("drne"), tmp_path / "m.pt2")
+    read = []
+    real = zipfile.ZipFile.read
+    monkeypatch.setattr(zipfile.ZipFile, "read", lambda self, name, pwd=None: (read.append(str(name)), real(self, name, pwd))[1])
+    check_pt2_archive(pt2)
+    assert read and not [n for n in read if "/data/weights/weight_" in n or "/data/constants/tensor_" in n or "/extra/" in n]
+
+
+def test_files_that_are_no_weights_file_are_named_for_what_they_are(tmp_path, capsys):
+    """A truncated .pt passed on miniz's wording cut at 200 characters; a .safetensors file was told to install
+    safetensors; exporting a .pt2 again said "failed locating file data.pkl … likely corrupted"; a raw pickle printed
+    torch's pickle-protocol warning before its refusal."""
+    import pickle
+    import warnings
+
+    src = export_weights(_perturbed("drne"), tmp_path / "w.pt")
+    (tmp_path / "trunc.pt").write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+    with pytest.raises(ValueError, match=r"trunc\.pt is truncated or corrupt: it begins as a zip archive, as torch\.save "
+                                         r"writes, but its zip directory cannot be read"):
+        load_estimator(tmp_path / "trunc.pt")
+    (tmp_path / "w.safetensors").write_bytes(b"\x10" + bytes(7) + b'{"a": 1}')
+    with pytest.raises(ValueError, match=r"w\.safetensors: camhealth does not read \.safetensors files") as info:
+        load_estimator(tmp_path / "w.safetensors")
+    assert "pip" not in str(info.value)
+    pt2 = export_pt2(_perturbed("drne"), tmp_path / "m.pt2")
+    with pytest.raises(SystemExit):
+        main([str(pt2), "--format", "weights", "--out", str(tmp_path / "x.pt")])
+    err = capsys.readouterr().err
+    assert "m.pt2 is an exported program" in err and "give the weights file (.pt) or checkpoint (.ckpt)" in err
+    import shutil
+
+    shutil.copy(pt2, tmp_path / "renamed.pt")
+    with pytest.raises(ValueError, match=r"renamed\.pt is a torch\.export archive \(\.pt2\), not a weights file"):
+        load_estimator(tmp_path / "renamed.pt")
+    (tmp_path / "raw.pt").write_bytes(pickle.dumps({"a": 1}, protocol=4))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(ValueError, match="loads as plain tensors"):
+            load_estimator(tmp_path / "raw.pt")
+    assert not [w for w in caught if "pickle protocol" in str(w.message)]

@@ -719,3 +719,215 @@ def test_noise_source_networks_refuse_what_they_cannot_vouch_for_and_state_no_un
     flat = torch.tensor([20.0, 60.0, 97.0]).view(-1, 1, 1, 1).expand(-1, 1, 128, 128) / 255
     assert net.predict(flat.contiguous(), md if net.metadata_set != "none" else None, base_preset="ICX285")["reason"] == [""] * 3
 
+
+
+# ------------------------------------------------------------------ audit fixes: refusals and checks
+def test_mostly_clipped_patches_are_not_assessable_for_any_shipped_network():
+    """45 % crushed black + 45 % blown out, 10 DN of noise: DRNE and the noise-source networks read 0.8 DN and called
+    it assessable; the MTF read an 84 %-clipped blur (Gaussian σ 3 px) as sharp, "assessable" at 3.7 of its mtf_std
+    off. Now "clipped" — the outputs themselves unchanged."""
+    g = torch.Generator().manual_seed(1)
+    mean = torch.full((3, 1, 128, 128), 127.5)
+    mean[..., :57] = -60.0
+    mean[..., 57:114] = 320.0
+    x = ((mean + 10 * torch.randn(3, 1, 128, 128, generator=g)) / 255).clamp(0, 1)
+    for name, meta in (("drne", None), ("noise_source_none", None), ("noise_source_min", "ICX285")):
+        out = load_estimator(name).predict(x, meta)
+        assert out["reason"] == ["clipped"] * 3 and not out["assessable"].any(), name
+    import torch.nn.functional as F
+
+    yy, xx = torch.meshgrid(torch.arange(192), torch.arange(192), indexing="ij")
+    sq = ((((xx + 0.37 * yy) % 64) < 32) ^ (((yy + 0.21 * xx) % 64) < 32)).float()[None, None].repeat(2, 1, 1, 1)
+    k = torch.exp(-torch.arange(-12, 13).float() ** 2 / 18)
+    k = k / k.sum()
+    b = F.conv2d(F.conv2d(F.pad(sq, (12,) * 4, mode="reflect"), k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1))
+    nz = 2 / 255 * torch.randn(b.shape, generator=g)
+    mtf = load_estimator("mtf")
+    assert mtf.predict((0.3 + 0.4 * b + nz).clamp(0, 1))["reason"] == ["", ""]
+    assert mtf.predict((-1 + 3 * b + nz).clamp(0, 1))["reason"] == ["clipped", "clipped"]
+
+
+def test_drne_refuses_noise_beyond_the_validated_range_as_every_noise_estimator_does():
+    """DRNE read 120 DN of noise as 92 DN and 200 DN as 107 DN, assessable; the noise-source networks and the
+    physics-first estimator refuse them (beyond_validated_range). DRNE now does too; 30 DN is read as before."""
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED
+
+    g = torch.Generator().manual_seed(1)
+    drne, other = load_estimator("drne"), load_estimator("noise_source_none")
+    for sigma, want in ((30.0, ""), (120.0, BEYOND_VALIDATED), (200.0, BEYOND_VALIDATED)):
+        x = (0.5 + sigma / 255 * torch.randn(2, 1, 128, 128, generator=g)).clamp(0, 1)
+        out = drne.predict(x)
+        assert out["reason"] == [want] * 2 and out["assessable"].tolist() == [not want] * 2, sigma
+        assert other.predict(x)["reason"] == out["reason"]
+        assert torch.isfinite(out["sigma_total"]).all()
+
+
+@pytest.mark.parametrize("name", ["drne", "mtf", "noise_source_none"])
+def test_metadata_given_to_an_estimator_that_reads_none_is_checked(name):
+    """``metadata=`` given to an estimator that reads none was dropped unchecked: a −5 s exposure, a mistyped preset, a
+    missing file or a number passed. It is checked as for the networks that read it (full and empty batches), and
+    valid metadata change nothing."""
+    est = load_estimator(name)
+    p = est.patch_size
+    x = (0.5 + 5 / 255 * torch.randn(2, 1, p, p, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
+    for patches in (x, x[:0]):
+        with pytest.raises(ValueError, match=r"gain_db.*= 1000 dB is out of the allowed range"):
+            est.predict(patches, {"gain_db": 1000, "exposure_s": -5})
+        with pytest.raises(ValueError, match="unknown sensor preset 'NOPE'"):
+            est.predict(patches, "NOPE")
+        with pytest.raises(FileNotFoundError, match="nonexistent.yaml"):
+            est.predict(patches, "/nonexistent.yaml")
+        with pytest.raises(TypeError, match="metadata must be"):
+            est.predict(patches, 12345)
+    with pytest.raises(ValueError, match="batch size 3"):
+        est.predict(x, CameraMetadata.preset("ICX285", batch_size=3))
+    ref = est.predict(x)
+    for meta in ("ICX285", {"gain_db": 12.0}, CameraMetadata.preset("EV76C661", batch_size=2)):
+        out = est.predict(x, meta)
+        for key, value in ref.items():
+            if isinstance(value, list):
+                assert out[key] == value, key
+            else:  # bit for bit (NaN where the estimator states no uncertainty)
+                torch.testing.assert_close(out[key], value, rtol=0, atol=0, equal_nan=True)
+
+
+@pytest.mark.parametrize("bad", [True, 1.0, 2.0, "2", np.bool_(True)])
+def test_views_must_be_an_integer(tmp_path, bad):
+    """``views=True`` (and 1.0) were accepted as 1 (``True in (1, 2, 4)``)."""
+    mtf = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
+    with pytest.raises(ValueError, match=rf"views = {re.escape(repr(bad))} must be 1, 2 or 4 \(an integer\)"):
+        mtf.predict(torch.rand(1, 1, 32, 32), views=bad)
+    y = torch.rand(2, 1, 32, 32)
+    assert torch.equal(mtf.predict(y, views=np.int64(2))["mtf"], mtf.predict(y, views=2)["mtf"])
+
+
+@pytest.mark.parametrize("bad", [None, 5, b"mtf", ["mtf"]])
+def test_load_estimator_names_the_shipped_models_for_what_is_no_name_or_path(bad):
+    with pytest.raises(TypeError, match=r"must be a shipped model's name \(a str: \['drne', 'mtf', 'noise_source_full'"):
+        load_estimator(bad)
+
+
+def test_load_estimator_takes_any_path_like(tmp_path):
+    import os
+
+    class P(os.PathLike):
+        def __init__(self, p):
+            self.p = p
+
+        def __fspath__(self):
+            return str(self.p)
+
+    path = export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt")
+    assert load_estimator(P(path)).kind == "mtf"
+
+
+def test_weights_finite_in_the_file_but_not_in_float32_are_refused_at_load(tmp_path):
+    """float64 weights × 1e300 are finite in the file and ±inf in the float32 network: the file loaded and predict then
+    blamed the input ("please report this input"). Refused at load, naming the file, the entry and the conversion."""
+    from camhealth.export import load_module
+
+    path = export_weights(MTFEstimator(patch_size=32), tmp_path / "w.pt")
+    obj = torch.load(path, weights_only=True)
+    obj["state_dict"] = {k: v.double() * 1e300 if v.is_floating_point() else v for k, v in obj["state_dict"].items()}
+    torch.save(obj, tmp_path / "big.pt")
+    for load in (load_estimator, load_module):
+        with pytest.raises(ValueError, match=r"big\.pt: state_dict entry '[\w.]+' holds \d+ non-finite value\(s\) of \d+ "
+                                             r"after conversion to float32 \(the file's float64 values"):
+            load(tmp_path / "big.pt")
+    # float64 weights within float32's range load and answer as the float32 file does
+    obj["state_dict"] = {k: v / 1e300 for k, v in obj["state_dict"].items()}
+    torch.save(obj, tmp_path / "f64.pt")
+    y = torch.rand(2, 1, 32, 32)
+    torch.testing.assert_close(load_estimator(tmp_path / "f64.pt").predict(y)["mtf"], load_estimator(path).predict(y)["mtf"])
+
+
+def test_a_non_finite_weight_in_an_exported_program_is_refused_at_load(exported_pt2, tmp_path):
+    """A NaN weight payload in a .pt2 loaded, and predict said "produced non-finite outputs; please report this input"."""
+    import zipfile
+
+    import numpy as np
+
+    out = tmp_path / "nan.pt2"
+    with zipfile.ZipFile(exported_pt2[0]) as zin, zipfile.ZipFile(out, "w") as zout:
+        for n in zin.namelist():
+            data = zin.read(n)
+            zout.writestr(n, np.full(len(data) // 4, np.nan, np.float32).tobytes() if n.endswith("weights/weight_0") else data)
+    with pytest.raises(ValueError, match=r"nan\.pt2: the exported program's weight '[\w.]+' holds \d+ NaN or infinite"):
+        load_estimator(out)
+
+
+def _small_onnx(out, text, scale):
+    """An .onnx graph with an MTF network's signature whose output is scaled by the initializer ``scale``."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    x = helper.make_tensor_value_info("patch", TensorProto.FLOAT, ["b", 1, 32, 32])
+    y = helper.make_tensor_value_info("mtf", TensorProto.FLOAT, ["b", 16])
+    nodes = [helper.make_node("AveragePool", ["patch"], ["pooled"], kernel_shape=[8, 8], strides=[8, 8]),
+             helper.make_node("Flatten", ["pooled"], ["flat"], axis=1),
+             helper.make_node("Mul", ["flat", "scale"], ["mtf"])]
+    init = numpy_helper.from_array(np.full((1, 16), scale, np.float32), "scale")
+    model = helper.make_model(helper.make_graph(nodes, "g", [x], [y], [init]), opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "camhealth.json", text
+    onnx.save(model, out)
+    return out
+
+
+def test_a_non_finite_onnx_initializer_is_refused_at_load(exported_pt2, tmp_path):
+    import json
+
+    text = json.dumps(exported_pt2[1])
+    assert load_estimator(_small_onnx(tmp_path / "ok.onnx", text, 0.5)).kind == "mtf"
+    with pytest.raises(ValueError, match=r"nan\.onnx: the ONNX initializer 'scale' holds 16 NaN or infinite value\(s\) of 16"):
+        load_estimator(_small_onnx(tmp_path / "nan.onnx", text, float("nan")))
+
+
+@pytest.mark.parametrize("fmt", ["pt2", "onnx"])
+def test_exported_descriptions_of_another_version_deep_or_with_huge_numbers_are_refused(fmt, exported_pt2, tmp_path):
+    """A description of format version 42 loaded; one nested 50 000 deep raised a bare RecursionError, one with a
+    5 000-digit patch size "Exceeds the limit (4300 digits)" without the file's name; metrics and params were never
+    checked. Each is one ValueError naming the file."""
+    import json
+
+    good = exported_pt2[1]
+    assert good["version"] == 1
+    cases = [
+        (json.dumps({**good, "version": 42}), r"description version = 42 is not a format version this camhealth reads "
+                                              r"\(only 1\)"),
+        ("[" * 50000 + "]" * 50000, "the camhealth.json description nests JSON deeper than Python's recursion limit"),
+        (json.dumps(good).replace('"patch_size": 32', '"patch_size": ' + "9" * 5000),
+         r"the camhealth.json description cannot be read: Exceeds the limit \(4300 digits\)"),
+        (json.dumps({**good, "metrics": [1, 2]}), "description metrics must be a JSON object of numbers or null"),
+        (json.dumps({**good, "params": "many"}), "description params = 'many' must be a non-negative integer"),
+    ]
+    for text, match in cases:
+        path = _with_description(fmt, exported_pt2, text, tmp_path / f"bad.{fmt}")
+        with pytest.raises(ValueError, match=rf"bad\.{fmt}: {match}"):
+            load_estimator(path)
+
+
+def test_a_deep_graph_in_an_exported_program_is_refused_naming_the_entry(exported_pt2, tmp_path):
+    import zipfile
+
+    out = tmp_path / "deep.pt2"
+    with zipfile.ZipFile(exported_pt2[0]) as zin, zipfile.ZipFile(out, "w") as zout:
+        for n in zin.namelist():
+            data = zin.read(n)
+            if n.endswith("models/model.json"):
+                data = data[:-1] + b',"x":' + b"[" * 50000 + b"]" * 50000 + b"}"
+            zout.writestr(n, data)
+    with pytest.raises(ValueError, match=r"deep\.pt2: refused to load this \.pt2 archive: models/model\.json nests JSON "
+                                         r"deeper than Python's recursion limit"):
+        load_estimator(out)
+
+
+def test_predict_says_the_weights_may_be_at_fault_when_outputs_are_not_finite(tmp_path, monkeypatch):
+    """Non-finite outputs from finite input are the network's arithmetic: the message names the weights file as a
+    possible cause instead of asking only for the input."""
+    est = load_estimator(export_weights(MTFEstimator(patch_size=32), tmp_path / "mtf.pt"))
+    monkeypatch.setattr(est, "_run", lambda *x, **kw: torch.full((x[0].shape[0], 16), float("inf")))
+    with pytest.raises(FloatingPointError, match=r"produced 32 non-finite output value\(s\) of 32 from finite input.*"
+                                                 r"mtf\.pt\) were finite when loaded"):
+        est.predict(torch.rand(2, 1, 32, 32))

@@ -260,3 +260,79 @@ def test_a_gray_image_with_its_channel_last_is_named_as_such(shape, layout):
 
     with pytest.raises(ValueError, match=rf"look like {layout} gray image \(channels last\).*drop the channel axis"):
         _to_patches(torch.full(shape, 0.5), 32, "auto")
+
+
+def _clipped_patches(black: float, saturated: float, noise_dn: float = 10.0, size: int = 128, n: int = 2, seed: int = 1):
+    """Patches whose first ``black`` share of columns lies far below 0 DN and next ``saturated`` share far above 255 DN
+    (crushed and blown out), the rest at 128 DN, with ``noise_dn`` of white noise everywhere ([0, 1])."""
+    g = torch.Generator().manual_seed(seed)
+    mean = torch.full((n, 1, size, size), 127.5)
+    wb, ws = int(size * black), int(size * saturated)
+    mean[..., :wb] = -60.0
+    mean[..., wb:wb + ws] = 320.0
+    return ((mean + noise_dn * torch.randn(n, 1, size, size, generator=g)) / 255.0).clamp(0, 1)
+
+
+@pytest.mark.parametrize("kind", ["noise_source", "drne", "mtf"])
+def test_a_patch_mostly_clipped_at_both_ends_is_not_assessable(kind):
+    """45 % crushed black and 45 % blown out (each share under half): the noise networks read 10 DN of noise as 0.8 DN
+    and the MTF an 84 %-clipped blur as sharp, all "assessable". Both shares together over half: "clipped". A patch
+    mostly one of them keeps its own reason, and one under half clipped in all stays assessable (noise)."""
+    from camhealth.estimators.physics_noise import BEYOND_VALIDATED
+
+    size = 192 if kind == "mtf" else 128
+    ok, reason = assess_patches(_clipped_patches(0.45, 0.45, size=size), kind)
+    assert not ok.any() and reason == ["clipped", "clipped"]
+    assert assess_patches(_clipped_patches(0.6, 0.3, size=size), kind)[1] == ["black", "black"]
+    assert assess_patches(_clipped_patches(0.3, 0.6, size=size), kind)[1] == ["saturated", "saturated"]
+    if kind != "mtf":
+        assert assess_patches(_clipped_patches(0.3, 0.15, size=size), kind)[1] == ["", ""]
+        # noise so strong that it clips half the patch at both ends (200 DN at 128 DN): what is known is the noise
+        loud = _clipped_patches(0.0, 0.0, noise_dn=200.0, size=size)
+        assert assess_patches(loud, kind)[1] == [BEYOND_VALIDATED] * 2
+    else:
+        loud = _clipped_patches(0.0, 0.0, noise_dn=200.0, size=size)
+        assert assess_patches(loud, kind)[1] == ["clipped"] * 2
+
+
+def test_the_clipped_share_is_exact_at_one_half():
+    """Exactly half the pixels at 0 or 255 DN (a quarter each) is not more than half: the flag starts one pixel later."""
+    x = torch.full((2, 1, 192, 192), 0.5)
+    flat = x.view(2, -1)
+    half = flat.shape[1] // 2
+    flat[:, : half // 2] = 0.0
+    flat[:, half // 2: half] = 1.0
+    assert assess_patches(x, "noise_source")[1] == ["", ""]
+    flat[1, half] = 1.0
+    assert assess_patches(x, "noise_source")[1] == ["", "clipped"]
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "uint16", "int64", "torch.uint8", "torch.int32"])
+def test_integers_with_input_range_unit_are_refused(dtype):
+    """``input_range='unit'`` says the values lie in [0, 1]; integers are DN. A 12-bit frame in uint16 was read as 8-bit
+    DN (16× the noise) and a 0/1 int64 mask as 1 DN rather than white, without a word. Refused, naming the dtype and
+    what to pass; empty batches alike. Floats with 'unit' and integers with 'dn' are read as before."""
+    import numpy as np
+
+    from camhealth._inputs import _to_patches
+
+    ones = np.ones((2, 32, 32))
+    arr = torch.from_numpy(ones).to(getattr(torch, dtype[6:])) if dtype.startswith("torch.") else ones.astype(dtype)
+    name = dtype[6:] if dtype.startswith("torch.") else dtype
+    for x in (arr, arr[:0]):
+        with pytest.raises(ValueError, match=rf"dtype {name} are integers, i\.e\. DN, but input_range='unit'.*"
+                                             rf"input_range='dn'"):
+            _to_patches(x, 32, "unit")
+    assert torch.equal(_to_patches(arr, 32, "dn"), torch.full((2, 1, 32, 32), 1 / 255))
+    assert torch.equal(_to_patches(ones / 2, 32, "unit"), torch.full((2, 1, 32, 32), 0.5))
+
+
+def test_a_scalar_and_a_meta_tensor_are_named_as_such():
+    """A 0-d tensor said "got shape " (empty text) and a meta-device tensor raised torch's "Cannot copy out of meta
+    tensor"."""
+    from camhealth._inputs import _to_patches
+
+    with pytest.raises(ValueError, match=r"got shape \(\) \(a 0-d scalar\)"):
+        _to_patches(torch.tensor(0.5), 32, "auto")
+    with pytest.raises(ValueError, match=r"meta device \(shape 1×1×32×32, no values\)"):
+        _to_patches(torch.empty(1, 1, 32, 32, device="meta"), 32, "auto")

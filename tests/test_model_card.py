@@ -177,3 +177,21 @@ def test_mtf_card_states_the_noise_order_its_config_uses():
     assert "configs/mtf_full.yaml" in command
     for text in (notes, _DATA["mtf"]):
         assert "after the blur" not in text and "Fig. 3.7 order" in text and "photon noise" in text
+
+
+def test_card_says_how_a_file_that_is_not_shipped_loads_and_in_which_format(tmp_path):
+    """A card of an .onnx file said "Format: camhealth weights (torch.load(weights_only=True) …)" and "Load:
+    camhealth.load_estimator('ns')" — wrong for ONNX, and the Load line wrong for any file that is not shipped."""
+    from types import SimpleNamespace
+
+    from camhealth.model_card import _format_line
+
+    path = export_weights(NoiseSourceEstimator(patch_size=32), tmp_path / "m.pt")
+    text = card_text(path, "python -m camhealth.fit", timing={"fp32": 1.0, "bf16": 0.5})
+    assert f"- **Load**: `camhealth.load_estimator({str(path)!r})`." in text
+    assert "- **Format**: camhealth weights (`torch.load(weights_only=True)`" in text
+    shipped = card_text("drne", "python -m camhealth.fit", timing={"fp32": 1.0, "bf16": 0.5})
+    assert "- **Load**: `camhealth.load_estimator('drne')` (no network access)." in shipped
+    assert _format_line(SimpleNamespace(backend="onnx", source="x.onnx")).startswith("- **Format**: ONNX (ONNX Runtime")
+    assert _format_line(SimpleNamespace(backend="pt2", source="x.pt2")).startswith("- **Format**: exported program")
+    assert "Lightning checkpoint" in _format_line(SimpleNamespace(backend="torch", source="run/best.ckpt"))

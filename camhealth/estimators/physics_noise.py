@@ -186,7 +186,8 @@ import torch
 import torch.nn.functional as F
 
 from camhealth._order import sorted_values
-from camhealth._inputs import _MAD_NORMAL, _to_metadata, _to_patches, assess_patches, haar_noise_dn
+from camhealth._inputs import (_MAD_NORMAL, _MAD_RELATIVE_SE, BEYOND_VALIDATED, VALIDATED_SIGMA_DN, _to_metadata, _to_patches,
+                               assess_patches, beyond_validated_range, haar_noise_dn)
 from camhealth._validation import check_batch_size
 from camhealth.estimators.noise_features import (
     _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
@@ -210,10 +211,6 @@ __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES"
 #: τ [DN] of a static pair (:meth:`PhysicsNoiseEstimator.predict` with ``reference``): the difference of two exposures
 #: holds nothing of a static scene, so no allowance is made for its fine content.
 PAIR_SCENE_ALLOWANCE_DN = 0.0
-#: Largest σ_Total [DN] the robustness benchmark validates (``python -m camhealth.bench robustness``).
-VALIDATED_SIGMA_DN = 64.0
-#: The ``reason`` of a patch whose σ_Total (before clipping) is above :data:`VALIDATED_SIGMA_DN`.
-BEYOND_VALIDATED = "noise beyond validated range"
 #: The ``reason`` of a patch that reads far less noise than any camera state in the metadata's ranges makes
 #: (``quiet_z`` below −:data:`QUIET_Z_LIMIT`): a denoiser, a codec that removed the noise, a rendered or rescaled
 #: image. No hypothesis explains it, so the posterior cannot tell; the closed form is returned, not assessable.
@@ -241,9 +238,6 @@ LOSSY_CODEC = "a lossy codec changed the noise"
 #: standard errors above it) is far noisier than its frame — amp glow, a hot or a pasted region — and is read alone;
 #: so is a noise-like patch above a gap of this ratio between the frame's noise-like patches (two noise levels).
 LOUD_RATIO = 2.0
-#: Relative standard error × √n of Donoho's MAD estimate σ̂ = median|d|/0.6745 over n Gaussian details:
-#: 1/(2·f(0.6745)·0.6745) with f = 2φ(0.6745) the density of |d|/σ at its median.
-_MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * _MAD_NORMAL**2) / math.sqrt(2.0 * math.pi) * _MAD_NORMAL)
 #: τ [DN] of :func:`physics_noise_posterior`: what a scene may add to the finest-scale statistic by itself. The lower
 #: quartile of the 8×8-px windows' diagonal detail on clean frames (``camhealth.bench.robustness.scene_floor_dn``) is
 #: 2.0 DN at the median over the street clip and the photographs, area-downsampled 3× (≈ 2 DN on the street frames,
@@ -1200,22 +1194,6 @@ def noise_evidence(image: torch.Tensor, meta: CameraMetadata, reference: torch.T
     return physics_noise_posterior(image, meta, pool=True, reference=reference, return_evidence=True, **settings)[1]
 
 
-def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> torch.Tensor:
-    """Whether the finest-scale fluctuations of B×1×H×W patches in [0, 1] exceed :data:`VALIDATED_SIGMA_DN` beyond
-    doubt → (B,) bool.
-
-    σ̂ = median|d|/0.6745 of the diagonal Haar details d over the patch's blocks, every one of them
-    (:func:`camhealth._inputs.haar_noise_dn`, or ``noise_dn`` where the caller has it: sparse edges do not move a
-    median), must exceed the limit by three
-    of its standard errors (1.166·σ/√n for n Gaussian details). Clipping only lowers σ̂, so clipped Gaussian noise
-    within the limit never trips it. Uniform noise of σ 73 DN does: the clipped-Gaussian model, which reads only
-    the blocks away from the bounds, sees it as about 52 DN. Texture that fine and that strong trips it too, and
-    no noise estimate can be vouched for under it either."""
-    mad = haar_noise_dn(patches) if noise_dn is None else noise_dn
-    h2, w2 = (s - s % 2 for s in patches.shape[-2:])
-    step = 4 if h2 >= 8 else 2  # structure_contrast_dn reads the details of every other row of 2×2 blocks
-    n = max(-(-h2 // step) * (w2 // 2), 1)
-    return mad > VALIDATED_SIGMA_DN * (1.0 + 3.0 * _MAD_RELATIVE_SE / math.sqrt(n))
 
 
 def quieter_than_any_camera(patches: torch.Tensor, eta: float = 0.12) -> torch.Tensor:
