@@ -14,18 +14,29 @@ best checkpoint is evaluated on the held-out test split (``--test_after_fit fals
 ``--export_weights PATH``, written as a camhealth weights file (tensors + JSON description, loadable by
 :func:`camhealth.load_estimator`); in a multi-process run only rank zero writes files.
 
+**Patch size and metadata set.** The model's ``patch_size`` is the data's (``data.init_args.patch_size``); a
+model ``patch_size`` given as well (on the command line or in a config file) that differs from it is refused, naming
+both. The data's ``metadata_set`` follows the model's (``--print_config`` shows the value the run uses).
+
 **Resuming.** ``last.ckpt`` (next to the best checkpoint) is written after every validation
 (``ModelCheckpoint(save_last=True)``) and also when training stops on an exception or Ctrl-C/SIGINT, at the step
 reached (as Lightning's ``OnExceptionCheckpoint``; a plain run never resumes by itself). ``--ckpt_path PATH`` (LightningCLI's ``fit --ckpt_path``)
-continues from it: weights, optimiser, learning-rate schedule, step/epoch and the ``max_time`` clock are restored;
-``--ckpt_path last`` takes the newest ``last.ckpt`` under the logger's folder. The file must load with
-``torch.load(weights_only=True)`` (plain data, as camhealth's own checkpoints do) before Lightning opens it.
+continues from it: weights, optimiser, learning-rate schedule, step/epoch and the ``max_time`` clock are restored,
+and so is the training data stream (torch's CPU generator, which draws the crops, augmentation and corruption, and
+the epoch's order of the patches): with ``num_workers: 0`` on one process (the configs' setting) the resumed run
+trains on the batches the uninterrupted run would have seen and ends with its weights. With DataLoader workers,
+several processes or gradient accumulation the stream is not saved, and a resumed run draws its batches afresh (a
+warning says so when it starts). ``--ckpt_path last`` takes the newest ``last.ckpt`` under the logger's folder. The
+file must load with ``torch.load(weights_only=True)`` (plain data, as camhealth's own checkpoints do) before
+Lightning opens it.
 
 **Checks before training.** The ``--monitor`` metric must be one the model logs: a validation metric is looked for
 in the metrics of Lightning's sanity-check validation (before the first step; with ``num_sanity_val_steps: 0`` at
 the first validation), a ``train/`` metric after the first step — a typo is refused there, naming the metrics
 that are logged, not when the first checkpoint would be written; an empty validation split (no validation batches)
-is named as such. ``--export_weights``, ``--test_after_fit`` and ``--init_from`` are options of ``fit``: on the
+is named as such. With ``--test_after_fit`` (the default) the test split's images are read and checked before the
+first step too, so an unreadable or too small test image stops the run there, not after the training.
+``--export_weights``, ``--test_after_fit`` and ``--init_from`` are options of ``fit``: on the
 command line of ``validate``, ``test`` or ``predict`` they are refused; a run's saved ``config.yaml``, which holds the
 fit's values of them, configures those subcommands as it is (they ignore the three).
 """
@@ -34,12 +45,13 @@ from __future__ import annotations
 
 import json
 import sys
+import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
 
 import torch
 from lightning.pytorch.callbacks import Callback, OnExceptionCheckpoint
-from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from camhealth._cli import add_debug_flag, run_cli
 from camhealth._packaging import check_top_level_packages, resolve_config_args
@@ -137,9 +149,29 @@ class _MonitoredMetricCheck(Callback):
 #: LightningCLI's subcommands; a command line that starts with none of them is a ``fit``.
 SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
+#: Lightning's warning on resuming mid-epoch from a loader that is not itself resumable; camhealth's DataModule
+#: continues the stream instead (its ``state_dict``), so the warning is not shown where the checkpoint holds it.
+_NOT_RESUMABLE_WARNING = "You're resuming from a checkpoint that ended before the epoch ended"
+
+
+class _FitArgumentParser(LightningArgumentParser):
+    """The parser of each subcommand: before jsonargparse prints (``--print_config``) or applies the link of the
+    patch size, a model ``patch_size`` given besides the data's is checked against it (:func:`_check_patch_size`), and
+    the data's ``metadata_set`` follows the model's (:func:`_sync_metadata_set`), so the printed configuration is the
+    one that runs."""
+
+    def _parse_common(self, cfg, *args, **kwargs):  # noqa: D102 (jsonargparse's last step of every parse)
+        _check_patch_size(cfg)
+        _sync_metadata_set(cfg)
+        return super()._parse_common(cfg, *args, **kwargs)
+
 
 class FitCLI(LightningCLI):
     """LightningCLI with camhealth's defaults (see module docstring)."""
+
+    def __init__(self, *args, parser_class=_FitArgumentParser, **kwargs) -> None:
+        self._stream_in_checkpoint = False
+        super().__init__(*args, parser_class=parser_class, **kwargs)
 
     def _cfg(self):
         """The parsed configuration of the running subcommand."""
@@ -170,7 +202,7 @@ class FitCLI(LightningCLI):
     def before_instantiate_classes(self) -> None:
         self._refuse_fit_options()
         cfg = self._cfg()
-        _sync_metadata_set(cfg)
+        _sync_metadata_set(cfg)  # (done at parsing already: _FitArgumentParser)
         threads = cfg["threads"]
         if threads is not None:  # (0 would silently keep torch's default)
             if threads < 1:
@@ -216,7 +248,23 @@ class FitCLI(LightningCLI):
         data. The model is the config's (the checkpoint gives the weights, not the hyperparameters)."""
         sub = self.config.get("subcommand")
         if sub and self.config[sub].get("ckpt_path"):
-            self.config[sub]["ckpt_path"] = _checked_ckpt_path(self.config[sub], sub)
+            self.config[sub]["ckpt_path"], self._stream_in_checkpoint = _checked_ckpt_path(self.config[sub], sub,
+                                                                                           with_stream=True)
+
+    def before_fit(self) -> None:
+        """With ``--test_after_fit``: read (and check) the test split's images now, before the first step — an
+        unreadable or too small test image would otherwise stop the run only after the training, without its
+        results or exported weights. (The images are kept for the test; nothing is drawn from torch's generator.)"""
+        from datamodules.patches import PatchDataModule
+
+        if self._cfg()["test_after_fit"] and isinstance(self.datamodule, PatchDataModule):
+            self.datamodule.setup("test")
+
+    def _run_subcommand(self, subcommand: str) -> None:
+        with warnings.catch_warnings():
+            if self._stream_in_checkpoint:  # the DataModule continues the data stream (see _NOT_RESUMABLE_WARNING)
+                warnings.filterwarnings("ignore", message=_NOT_RESUMABLE_WARNING)
+            super()._run_subcommand(subcommand)
 
     def add_arguments_to_parser(self, parser) -> None:  # noqa: D401
         from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
@@ -292,6 +340,22 @@ def _sync_metadata_set(config) -> None:
     data_args = (config.get("data") or {}).get("init_args") or {}
     if "metadata_set" in model_args and "metadata_set" in data_args:
         data_args["metadata_set"] = model_args["metadata_set"]
+
+
+def _check_patch_size(config) -> None:
+    """The model's patch size is the data's (``parser.link_arguments``, applied after this check): a model
+    ``patch_size`` given as well (command line, config file, ``--model`` mapping) that differs from the data's is a
+    ``ValueError`` naming both — the link would drop it silently."""
+    model_args = (config.get("model") or {}).get("init_args") or {}
+    data_args = (config.get("data") or {}).get("init_args") or {}
+    if "patch_size" not in model_args or "patch_size" not in data_args:
+        return
+    model, data = model_args["patch_size"], data_args["patch_size"]
+    if model is not None and model != data:
+        raise ValueError(
+            f"model.init_args.patch_size = {model!r} differs from data.init_args.patch_size = {data!r}: the model's patch "
+            f"size is the data's; set --data.init_args.patch_size {model} instead (and leave the model's out)"
+        )
 
 
 def _init_from(model, path: str) -> None:
@@ -401,10 +465,12 @@ def _logger_root(cfg) -> Path:
     return Path(trainer.get("default_root_dir") or ".")
 
 
-def _checked_ckpt_path(cfg, subcommand: str) -> str:
+def _checked_ckpt_path(cfg, subcommand: str, with_stream: bool = False) -> str | tuple[str, bool]:
     """The checkpoint ``--ckpt_path`` names (``last``: the newest ``last.ckpt`` under the logger's folder), checked
     to hold plain data only and a network with the configuration's arguments (:func:`_check_ckpt_network`), and for
-    ``fit`` to end its learning-rate schedule after ``trainer.max_steps``."""
+    ``fit`` to end its learning-rate schedule after ``trainer.max_steps``. For ``fit`` a checkpoint without the state
+    of the training data stream (:meth:`datamodules.PatchDataModule.state_dict`) is named in a warning: the resumed
+    run draws its batches afresh. ``with_stream``: also return whether the checkpoint holds that state."""
     value = str(cfg["ckpt_path"])
     if value == "last":
         root = _logger_root(cfg)
@@ -426,8 +492,13 @@ def _checked_ckpt_path(cfg, subcommand: str) -> str:
         raise ValueError(f"--ckpt_path {path}: not a Lightning checkpoint (a weights file, e.g. from --export_weights or "
                          "camhealth.export, has no trainer state to resume); start from its weights with --init_from")
     _check_ckpt_network(saved, cfg, path)
+    stream = any(isinstance(v, dict) and isinstance(v.get("train_stream"), dict) for v in saved.values())
+
+    def result(p):
+        return (str(p), stream) if with_stream else str(p)
+
     if subcommand != "fit":
-        return str(path)
+        return result(path)
     # the learning-rate schedule is restored with the step: it cannot run past the steps it was made for
     schedules = saved.get("lr_schedulers")
     total = schedules[0].get("total_steps") if schedules and isinstance(schedules[0], dict) else None
@@ -440,7 +511,15 @@ def _checked_ckpt_path(cfg, subcommand: str) -> str:
             f"{beyond}; resume with max_steps ≤ {total - 1}, or fine-tune from the weights with --init_from (a new "
             f"schedule)"
         )
-    return str(path)
+    if not stream:
+        warnings.warn(
+            f"--ckpt_path {path}: the checkpoint holds no state of the training data stream (it was written by a run "
+            "with DataLoader workers, several processes or gradient accumulation, or by an older camhealth): the "
+            "resumed run draws its batches afresh, so it will not end with the weights of an uninterrupted run",
+            UserWarning,
+            stacklevel=2,
+        )
+    return result(path)
 
 
 def with_subcommand(args: Sequence[str]) -> list[str]:

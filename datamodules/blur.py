@@ -184,10 +184,16 @@ class BlurDataModule(PatchDataModule):
             train_rng=train_rng,
         )
         self.save_hyperparameters()
+        if families is not None and not isinstance(families, Mapping):
+            raise TypeError(f"families = {families!r} must be a mapping of blur family to weight, e.g. "
+                            "{defocus: 2.0, linear: 1.0, nonlinear: 1.0} (families: " + ", ".join(FAMILIES) + ")")
         weights = {"defocus": 1.0, "linear": 1.0, "nonlinear": 1.0} if families is None else dict(families)
         unknown = set(weights) - set(FAMILIES)
         if unknown:
-            raise ValueError(f"unknown blur famil(ies) {sorted(unknown)}; choose from {list(FAMILIES)}")
+            raise ValueError(f"unknown blur famil(ies) {sorted(map(str, unknown))}; choose from {list(FAMILIES)}")
+        for f, v in weights.items():
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise TypeError(f"families[{f!r}] = {v!r} must be a number (the family's weight, >= 0)")
         w = torch.tensor([float(weights.get(f, 0.0)) for f in FAMILIES], dtype=torch.float64)
         if bool((w < 0).any()) or not bool(torch.isfinite(w).all()) or float(w.sum()) <= 0:
             raise ValueError(f"families weights {weights} must be finite, >= 0 and not all 0")

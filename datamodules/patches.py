@@ -14,12 +14,15 @@
 Hard patches: a crop is *near-uniform* when its standard deviation is below ``min_std_dn`` DN and
 *clipped* when more than ``max_clipped_fraction`` of its pixels are at 0 or 255 DN (after the brightness
 offset). Unless ``keep_hard_patches`` is set, such crops are redrawn up to ``max_tries`` times; when an
-image yields no acceptable crop in ``max_tries`` draws, the last draw is kept (and counted in
-``n_fallback``), so an epoch always has its full length.
+image yields no acceptable crop in ``max_tries`` draws, the last draw is kept (counted in ``n_fallback`` and
+marked ``fallback`` in its sample), so an epoch always has its full length. An image that gives no acceptable crop
+at all (a flat, lens-cap or saturated frame: all its fixed val/test crops, or ``max_tries`` probe crops of a
+training image, fail) is named in a ``UserWarning`` when the split is built.
 
 :class:`PatchDataModule` is the shared machinery of :class:`~datamodules.NoiseDataModule` and
 :class:`~datamodules.BlurDataModule`: source, leak-free split, image cache, loaders, the
-``on_after_batch_transfer`` corruption hook and throughput measurement.
+``on_after_batch_transfer`` corruption hook and throughput measurement, and the state of the training data
+stream that a checkpoint saves so that a resumed run continues it (:meth:`PatchDataModule.state_dict`).
 """
 
 from __future__ import annotations
@@ -33,19 +36,35 @@ from typing import Any, Callable, Mapping, Sequence
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from camhealth.physics.image_formation import check_rng
 from camhealth.data import build_source, group_key, split_ids
+from camhealth.data.sources import check_source_options
 
 __all__ = ["PatchDataset", "PatchDataModule", "check_flag", "check_patch_options", "is_hard_patch", "STAGES", "rank_seed",
-           "sample_seed"]
+           "sample_seed", "MAX_SEED"]
 
 #: Dataset stages. ``"predict"`` uses the test split.
 STAGES = ("train", "val", "test")
 
 _LOW = 0.5 / 255.0  # a pixel at 0 DN (after rounding to 8 bits)
 _HIGH = 254.5 / 255.0  # a pixel at 255 DN
+
+#: Largest ``seed`` of a DataModule: its validation and test crops are drawn by ``torch.Generator``s seeded with
+#: ``seed + 1`` and ``seed + 2``, and a generator takes seeds below 2**64.
+MAX_SEED = 2**64 - 3
+
+
+def _check_seed(seed: Any, name: str = "seed", high: int = MAX_SEED) -> int:
+    """``seed`` as an int in [0, ``high``]: ``TypeError`` for another type, ``ValueError`` naming the range otherwise."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise TypeError(f"{name} = {seed!r} must be an integer in [0, {high}], got {type(seed).__name__}")
+    if not 0 <= seed <= high:
+        raise ValueError(f"{name} = {seed} must be >= 0 and <= {high}, an integer in [0, {high}]"
+                         + (" (2**64 − 3: the validation and test crops are seeded with seed + 1 and seed + 2)"
+                            if high == MAX_SEED else ""))
+    return int(seed)
 
 
 def is_hard_patch(patch: torch.Tensor, min_std_dn: float = 2.0, max_clipped_fraction: float = 0.05) -> bool:
@@ -84,7 +103,8 @@ class PatchDataset(Dataset):
         patch_size: side P of the square patches [px].
         stage: ``"train"`` (random crops + augmentation) or ``"val"``/``"test"`` (fixed crops).
         patches_per_image: patches per image and epoch (train) / fixed crops per image (val, test).
-        seed: seed of the fixed val/test crops (unused for training, which uses torch's global RNG).
+        seed: seed of the fixed val/test crops, an integer in [0, 2**64 − 1] (for training only the seed of the probe
+            crops that find featureless images; the training crops use torch's global RNG).
         flips: random horizontal/vertical flips (train only).
         rot90: random rotations by multiples of 90° (train only).
         brightness_dn: uniform brightness offset in [−b, b] DN, then clipped to [0, 255] DN (train only).
@@ -93,7 +113,12 @@ class PatchDataset(Dataset):
         keep_hard_patches: keep near-uniform and clipped crops (robustness tests) instead of redrawing.
         max_tries: redraws per patch before the last draw is kept.
 
-    Each sample is a dict ``{"clean": 1×P×P float32, "index": int, "image_id": str, "stage": str}``.
+    Each sample is a dict ``{"clean": 1×P×P float32, "index": int, "image_id": str, "stage": str, "fallback": bool}``
+    (``fallback``: the crop is a near-uniform or clipped one, kept after ``max_tries`` draws).
+
+    :attr:`featureless` lists the ids of the images that give no acceptable crop: for val/test those whose fixed
+    crops all fell back, for training those of which ``max_tries`` probe crops (drawn at construction with a generator
+    seeded by ``seed``, not torch's global one) all fail. Empty with ``keep_hard_patches``.
     """
 
     def __init__(
@@ -120,6 +145,7 @@ class PatchDataset(Dataset):
             raise ValueError(f"the {stage} split has no images")
         _check_positive_int(patch_size, "patch_size")
         _check_positive_int(patches_per_image, "patches_per_image")
+        _check_seed(seed, "seed", 2**64 - 1)
         check_patch_options(flips=flips, rot90=rot90, brightness_dn=brightness_dn, min_std_dn=min_std_dn,
                             max_clipped_fraction=max_clipped_fraction, keep_hard_patches=keep_hard_patches,
                             max_tries=max_tries)
@@ -147,8 +173,17 @@ class PatchDataset(Dataset):
         self.generator: torch.Generator | None = None
         #: fixed crops (N, 3): image, top, left (val/test only)
         self.crops: torch.Tensor | None = None
+        #: whether each fixed crop is a fallback (val/test only)
+        self.crop_fallback: list[bool] = []
+        #: ids of the images that give no acceptable crop (see the class docstring)
+        self.featureless: list[str] = []
         if stage != "train":
             self.crops = self._fixed_crops()
+            per_image = [self.crop_fallback[i * self.patches_per_image:(i + 1) * self.patches_per_image]
+                         for i in range(len(self.images))]
+            self.featureless = [self.ids[i] for i, flags in enumerate(per_image) if all(flags)]
+        elif not self.keep_hard_patches:
+            self.featureless = self._probe_featureless()
 
     # ------------------------------------------------------------------ helpers
     def __len__(self) -> int:
@@ -175,11 +210,23 @@ class PatchDataset(Dataset):
                 for _ in range(self.max_tries):
                     top, left = self._random_corner(i, g)
                     if not self._hard(self._crop(i, top, left)):
+                        self.crop_fallback.append(False)
                         break
                 else:
                     self.n_fallback += 1
+                    self.crop_fallback.append(True)
                 rows.append((i, top, left))
         return torch.tensor(rows, dtype=torch.int64)
+
+    def _probe_featureless(self) -> list[str]:
+        """Ids of the training images of which ``max_tries`` crops (a generator of their own, seeded by ``seed``:
+        torch's global one, which draws the training crops, is left alone) are all near-uniform or clipped."""
+        g = torch.Generator().manual_seed(self.seed)
+        out = []
+        for i in range(len(self.images)):
+            if all(self._hard(self._crop(i, *self._random_corner(i, g))) for _ in range(self.max_tries)):
+                out.append(self.ids[i])
+        return out
 
     def _augment(self, patch: torch.Tensor) -> torch.Tensor:
         if self.flips:
@@ -205,8 +252,10 @@ class PatchDataset(Dataset):
         if self.crops is not None:
             i, top, left = (int(v) for v in self.crops[index])
             patch = self._crop(i, top, left)
+            fallback = self.crop_fallback[index]
         else:
             i = index % len(self.images)
+            fallback = False
             for _ in range(self.max_tries):
                 top, left = self._random_corner(i, self.generator)
                 patch = self._augment(self._crop(i, top, left))
@@ -214,11 +263,13 @@ class PatchDataset(Dataset):
                     break
             else:
                 self.n_fallback += 1
+                fallback = True
         return {
             "clean": patch.contiguous().clone(),
             "index": index,
             "image_id": self.ids[i],
             "stage": self.stage,
+            "fallback": fallback,
         }
 
     def __repr__(self) -> str:
@@ -277,6 +328,120 @@ def _folder_group(image_id: str) -> str:
 GROUP_KEYS: dict[str, Callable[[str], str]] = {"id": group_key, "folder": _folder_group}
 
 
+class _TrainStream:
+    """Where the training data stream of a single-process run without workers stands (see
+    :meth:`PatchDataModule.state_dict`). Each training batch is fetched, then corrupted, then trained on; nothing else
+    draws from torch's global generator but the validation loader (one number when a validation begins)."""
+
+    VERSION = 1
+
+    def __init__(self) -> None:
+        #: at the start of the last batch fetched: ``step`` (global step), ``batch`` (its place in the epoch),
+        #: ``seed`` (the epoch's order; None for the first batch, which draws it), ``rng`` (the generator before it)
+        self.last: dict[str, Any] | None = None
+        self.epoch_seed: int | None = None
+        self.patches = self.batch_size = 0
+        #: the global step at which a validation (not the sanity check) last showed a batch
+        self.val_step: int | None = None
+        #: a checkpoint's stream, applied at the first training batch of the resumed run
+        self.resume: Mapping[str, Any] | None = None
+
+    def mark(self, step: int, batch: int, seed: int | None) -> None:
+        self.last = {"step": step, "batch": batch, "seed": seed, "rng": torch.get_rng_state()}
+
+    def state(self, trainer) -> dict[str, Any] | None:
+        last = self.last
+        if trainer is None or last is None or trainer.world_size > 1 or trainer.accumulate_grad_batches != 1:
+            return None
+        n_batches = trainer.num_training_batches
+        if not isinstance(n_batches, int) or n_batches < 1:
+            return None
+        step = trainer.global_step
+        common = {"version": self.VERSION, "step": step, "patches": self.patches, "batch_size": self.batch_size}
+        if last["step"] == step:  # stopped within this step, after its batch was begun: fetch that batch again
+            return {**common, "batch": last["batch"], "seed": last["seed"], "rng": last["rng"].clone(), "draws": 0}
+        if last["step"] != step - 1:
+            return None
+        # between two steps: the next batch is not begun; the generator stands where the next fetch finds it, less
+        # the number a validation due after the last step draws when it begins, if it has not begun yet
+        draws = int(self._validation_pending(trainer, step))
+        nxt = last["batch"] + 1
+        if nxt >= n_batches:  # the epoch is over: the next one begins (its loader draws a number, then its order)
+            return {**common, "batch": 0, "seed": None, "rng": torch.get_rng_state(), "draws": draws + 1}
+        seed = last["seed"] if last["seed"] is not None else self.epoch_seed
+        return {**common, "batch": nxt, "seed": seed, "rng": torch.get_rng_state(), "draws": draws}
+
+    def _validation_pending(self, trainer, step: int) -> bool:
+        """A validation is due after the last step and has not begun (the resumed run skips it: its draw is made for
+        it)."""
+        if trainer.validating or trainer.sanity_checking or self.val_step == step:
+            return False
+        dm = trainer.datamodule
+        if dm is None or getattr(dm, "datasets", {}).get("val") is None:
+            return False
+        try:  # Lightning's own decision, as the resumed run makes it
+            loop = trainer.fit_loop.epoch_loop
+            return bool(loop._should_check_val_fx(trainer.fit_loop._data_fetcher))
+        except Exception:  # pragma: no cover - another Lightning
+            return False
+
+    def take_resume(self, trainer, patches: int, batch_size: int) -> Mapping[str, Any] | None:
+        """The checkpoint's stream if it continues here (same patches and batch size, at this step), else ``None`` —
+        with a warning naming what differs."""
+        resume, self.resume = self.resume, None
+        if resume is None:
+            return None
+        where = (resume.get("version"), resume.get("patches"), resume.get("batch_size"), resume.get("step"))
+        here = (self.VERSION, patches, batch_size, None if trainer is None else trainer.global_step)
+        if where != here:
+            warnings.warn(
+                "the checkpoint's training data stream (version, patches per epoch, batch size, step "
+                f"{where}) does not continue here {here}: the resumed run draws its batches afresh",
+                UserWarning,
+                stacklevel=3,
+            )
+            return None
+        return resume
+
+
+class _TrainSampler(RandomSampler):
+    """The training sampler of a single-process run without DataLoader workers: what ``RandomSampler`` draws (one
+    number from torch's global generator when an epoch begins, then the order of the patches from a generator seeded
+    with it), recording where the stream stands when each batch is begun, and continuing a checkpoint's stream at the
+    first batch of a resumed run (:meth:`PatchDataModule.state_dict`)."""
+
+    def __init__(self, data_source: Dataset, batch_size: int, drop_last: bool, module: "PatchDataModule") -> None:
+        super().__init__(data_source)
+        self.batch_size = int(batch_size)
+        self.n_batches = len(data_source) // self.batch_size if drop_last else -(-len(data_source) // self.batch_size)
+        self.module = module
+
+    def __iter__(self):
+        n = len(self.data_source)
+        stream = self.module._stream
+        trainer = self.module.trainer
+        stream.patches, stream.batch_size = n, self.batch_size
+        resume = stream.take_resume(trainer, n, self.batch_size)
+        first, seed = 0, None
+        if resume is not None:
+            torch.set_rng_state(resume["rng"])
+            for _ in range(int(resume["draws"])):  # (a DataLoader's draw when it begins: torch's _BaseDataLoaderIter)
+                torch.empty((), dtype=torch.int64).random_()
+            first, seed = int(resume["batch"]), resume["seed"]
+        step = trainer.global_step if trainer is not None else None
+        if step is not None:
+            stream.mark(step, first, seed)
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())  # as RandomSampler
+        stream.epoch_seed = seed
+        order = torch.randperm(n, generator=torch.Generator().manual_seed(seed)).tolist()
+        for k in range(first * self.batch_size, n):
+            j = k // self.batch_size
+            if k % self.batch_size == 0 and j > first and j < self.n_batches and trainer is not None:
+                stream.mark(trainer.global_step, j, seed)  # batch j is begun
+            yield order[k]
+
+
 class PatchDataModule(L.LightningDataModule):
     """Shared base of the corruption DataModules (see the subclasses for the options).
 
@@ -297,6 +462,13 @@ class PatchDataModule(L.LightningDataModule):
     Which split a batch belongs to is read from its ``stage`` entry (set by :class:`PatchDataset`), so the
     hook also works without a Trainer (tests, notebooks); a batch without it counts as training when a
     Trainer is training, else as validation.
+
+    **Resuming.** In a single-process run without DataLoader workers (``num_workers: 0``, the configs' setting) a
+    checkpoint holds the state of the training data stream (:meth:`state_dict`: torch's CPU generator, which draws the
+    crops, augmentation and corruption, and the epoch's order of the patches at the step reached), and a run resumed
+    from it continues that stream: it trains on the batches the uninterrupted run would have seen, and ends with the
+    same weights (one gradient-accumulation step per batch). With workers or several processes the stream is not
+    saved (the workers' and ranks' generators live in other processes): a resumed run then draws its batches afresh.
     """
 
     #: default patch size of the subclass
@@ -329,6 +501,8 @@ class PatchDataModule(L.LightningDataModule):
         if group_by not in GROUP_KEYS:
             raise ValueError(f"group_by = {group_by!r} must be one of {list(GROUP_KEYS)}")
         self.source_spec = source
+        # a key the source does not take is refused now (naming it and those it takes), not dropped silently
+        check_source_options(source, {} if source_kwargs is None else source_kwargs, "source_kwargs")
         self.source_kwargs = dict(source_kwargs or {})
         self.patch_size = _check_positive_int(self.default_patch_size if patch_size is None else patch_size, "patch_size")
         self.batch_size = _check_positive_int(batch_size, "batch_size")
@@ -337,10 +511,11 @@ class PatchDataModule(L.LightningDataModule):
         self.num_workers = num_workers
         self.patches_per_image = _check_positive_int(patches_per_image, "patches_per_image")
         self.val_patches_per_image = _check_positive_int(val_patches_per_image, "val_patches_per_image")
-        # the split's own checks (fractions in [0, 1] summing to <= 1, seed an int >= 0), now rather than at setup
-        split_ids([], val_fraction, test_fraction, seed)
+        # the split's own checks (fractions in [0, 1] summing to <= 1), now rather than at setup; the seed also seeds
+        # the val/test crops (seed + 1, seed + 2): at most MAX_SEED
+        self.seed = _check_seed(seed)
+        split_ids([], val_fraction, test_fraction, self.seed)
         self.val_fraction, self.test_fraction = val_fraction, test_fraction
-        self.seed = int(seed)
         self.group_by = group_by
         self.pin_memory = check_flag(pin_memory, "pin_memory")
         self.train_rng = check_rng(train_rng)
@@ -361,6 +536,7 @@ class PatchDataModule(L.LightningDataModule):
         self._cache: dict[int, torch.Tensor] = {}
         self.datasets: dict[str, PatchDataset | None] = {}
         self.stats = {"batches": 0, "patches": 0, "corruption_s": 0.0}
+        self._stream = _TrainStream()
 
     # ------------------------------------------------------------------ data
     @property
@@ -429,7 +605,23 @@ class PatchDataModule(L.LightningDataModule):
             return None
         ppi = self.patches_per_image if stage == "train" else self.val_patches_per_image
         seed = self.seed + (1 if stage == "val" else 2 if stage == "test" else 0)
-        return PatchDataset(images, ids, self.patch_size, stage, ppi, seed, **self._patch_kwargs)
+        ds = PatchDataset(images, ids, self.patch_size, stage, ppi, seed, **self._patch_kwargs)
+        if ds.featureless:
+            names = ", ".join(ds.featureless[:5]) + (" …" if len(ds.featureless) > 5 else "")
+            crops = (f"{ds.n_fallback} of its {len(ds)} fixed crops are such crops" if stage != "train"
+                     else f"its training patches from them are such crops")
+            kw = self._patch_kwargs
+            warnings.warn(
+                f"{type(self).__name__}: {len(ds.featureless)} of {len(ids)} {stage} image(s) of source "
+                f"{str(self.source_spec)!r} give no crop that passes the hard-patch check in max_tries = "
+                f"{kw['max_tries']} draws (every crop near-uniform, std below min_std_dn = {kw['min_std_dn']:g} DN, or "
+                f"clipped, more than max_clipped_fraction = {kw['max_clipped_fraction']:g} of its pixels at 0 or 255 DN): "
+                f"{names}; {crops} (flat, lens-cap or saturated frames?). Use images with texture, or set "
+                "keep_hard_patches: true to train on such patches on purpose",
+                UserWarning,
+                stacklevel=3,
+            )
+        return ds
 
     def setup(self, stage: str | None = None) -> None:
         """Split the source and load (once) the images of the splits ``stage`` needs."""
@@ -449,6 +641,9 @@ class PatchDataModule(L.LightningDataModule):
         train = stage == "train"
         sampler = None
         trainer = self.trainer
+        if train and trainer is not None and trainer.world_size <= 1 and self.num_workers == 0:
+            # what shuffle=True samples, drawn the same way, and where the stream stands recorded (state_dict)
+            sampler = _TrainSampler(ds, self.batch_size, len(ds) >= self.batch_size, self)
         if train and trainer is not None and trainer.world_size > 1 and self.num_workers == 0:
             # crops and flips in this process: a generator of this rank's own (DataLoader workers are seeded per
             # rank and worker by seed_everything(workers=True) already)
@@ -461,7 +656,7 @@ class PatchDataModule(L.LightningDataModule):
         return DataLoader(
             ds,
             batch_size=self.batch_size,
-            shuffle=train,
+            shuffle=train and sampler is None,
             sampler=sampler,
             drop_last=train and len(ds) >= self.batch_size,
             num_workers=self.num_workers,
@@ -480,6 +675,33 @@ class PatchDataModule(L.LightningDataModule):
 
     def predict_dataloader(self):
         return self._loader("test")
+
+    # ------------------------------------------------------------------ resuming
+    def state_dict(self) -> dict[str, Any]:
+        """What a checkpoint keeps of this DataModule: the state of the training data stream at the step reached, so
+        that a run resumed from the checkpoint continues it (``{}`` where it cannot: before the first step, with
+        DataLoader workers, several processes, gradient accumulation or an endless epoch). Plain data
+        (``torch.load(weights_only=True)``)."""
+        state = self._stream.state(self.trainer)
+        return {"train_stream": state} if state is not None else {}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Continue the training data stream of a checkpoint (:meth:`state_dict`) at the first training batch of the
+        resumed run: torch's CPU generator and the epoch's order of the patches are set to where the interrupted run
+        stood (a stream it cannot continue, of other data or another batch size, is named in a warning and starts
+        afresh)."""
+        stream = state_dict.get("train_stream") if isinstance(state_dict, Mapping) else None
+        self._stream.resume = stream if isinstance(stream, Mapping) else None
+        trainer = self.trainer
+        if self._stream.resume is not None and (self.num_workers > 0 or (trainer is not None and trainer.world_size > 1)):
+            self._stream.resume = None
+            warnings.warn(
+                f"the checkpoint's training data stream is not continued with num_workers = {self.num_workers} / "
+                f"{1 if trainer is None else trainer.world_size} process(es) (only with num_workers 0 on one process): "
+                "the resumed run draws its batches afresh",
+                UserWarning,
+                stacklevel=2,
+            )
 
     # ------------------------------------------------------------------ corruption
     def _stage_of(self, batch: Mapping[str, Any]) -> str:
@@ -527,6 +749,9 @@ class PatchDataModule(L.LightningDataModule):
         t0 = time.perf_counter()
         clean = batch["clean"]
         stage = self._stage_of(batch)
+        trainer = self.trainer
+        if stage == "val" and trainer is not None and not trainer.sanity_checking:
+            self._stream.val_step = trainer.global_step  # the validation after this step has begun (state_dict)
         if stage == "train":
             out = self.corrupt(clean, self.train_generator(), rng=self.train_rng)
         else:
@@ -537,7 +762,7 @@ class PatchDataModule(L.LightningDataModule):
         self.stats["patches"] += int(clean.shape[0])
         self.stats["corruption_s"] += time.perf_counter() - t0
         result = {"image": out.pop("image"), "clean": clean, **out}
-        for k in ("index", "image_id", "stage"):
+        for k in ("index", "image_id", "stage", "fallback"):
             if k in batch:
                 result[k] = batch[k]
         return result

@@ -7,7 +7,7 @@ shape training, so inference rebuilds the network from a file without this modul
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Mapping
 
 import lightning as L
 import torch
@@ -67,6 +67,15 @@ class EstimatorModule(L.LightningModule):
             opt, max_lr=self.lr, total_steps=int(total) + 1, pct_start=0.15, div_factor=10.0, final_div_factor=100.0
         )
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        """Log ``train/fallback_fraction``, the share of the training patches (mean over the epoch) that are near-uniform
+        or clipped crops kept after ``max_tries`` draws (their ``fallback`` entry, :class:`datamodules.PatchDataset`):
+        near 1, the images have too little texture for the hard-patch check."""
+        fallback = batch.get("fallback") if isinstance(batch, Mapping) else None
+        if isinstance(fallback, torch.Tensor) and fallback.numel():
+            self.log("train/fallback_fraction", fallback.float().mean(), on_step=False, on_epoch=True,
+                     batch_size=fallback.numel(), sync_dist=True)
 
     def _check_training_args(self) -> None:
         """The training arguments' values, checked as the loaders check a file's

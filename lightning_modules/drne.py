@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from camhealth.estimators.noise_features import metadata_from_matrix
-from camhealth.nets.drne import NoiseLevelNet, ThesisNoiseNet
+from camhealth.nets.drne import NoiseLevelNet, ThesisNoiseNet, check_dilations
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
 from camhealth.physics.readout_noise import readout_sigma_e
 from lightning_modules.base import EstimatorModule
@@ -61,7 +61,8 @@ class NoiseLevelEstimator(EstimatorModule):
     Args:
         patch_size: side [px] of the training patches (thesis: 128); the estimator's input size.
         width: channels of the network.
-        dilations: dilation of each residual block.
+        dilations: dilation of each residual block, each an integer in [1, patch_size // 2 − 1] (the blocks run at
+            half resolution; a larger dilation would reach only the zero padding: ``ValueError``).
         map_weight: weight of the per-pixel map loss against the patch-σ loss.
         huber_beta_dn: smooth-L1 transition [DN].
         lr, weight_decay, channels_last, log_figures, max_figure_samples: see :class:`EstimatorModule`.
@@ -87,7 +88,7 @@ class NoiseLevelEstimator(EstimatorModule):
         self.save_hyperparameters()
         self._check_training_args()
         self._set_patch_size(patch_size)
-        self.net = NoiseLevelNet(width, tuple(dilations))
+        self.net = NoiseLevelNet(width, check_dilations(dilations, self.patch_size))
         self.map_weight = float(map_weight)
         self.huber_beta_dn = float(huber_beta_dn)
         self.val_stats = NoiseErrorStats(self.metric_names)

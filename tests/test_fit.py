@@ -4,9 +4,12 @@ test after fit, exported weights that load."""
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import pytest
+import torch
+from lightning.pytorch.callbacks import Callback
 
 from camhealth.fit import main
 
@@ -536,3 +539,121 @@ def test_an_out_of_range_config_value_is_named_in_one_line(tmp_path, capsys, opt
     code = run_cli(main, "python -m camhealth.fit", tiny_args("noise_source.yaml", tmp_path, option, value))
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and message in err[0] and "Union" not in err[0], err
+
+
+# ------------------------------------------------------------------ patch size, metadata set, test split, resuming
+def test_a_model_patch_size_that_differs_from_the_datas_is_refused_naming_both(tmp_path, capsys):
+    """``--model.init_args.patch_size 64`` (or ``model: {init_args: {patch_size: 64}}`` in a config file) was dropped
+    by the link from the data's patch size without a word: the run trained at 128 px."""
+    match = (r"model.init_args.patch_size = 64 differs from data.init_args.patch_size = 128: the model's patch size is "
+             r"the data's; set --data.init_args.patch_size 64 instead")
+    with pytest.raises(ValueError, match=match):
+        main(["--config", "configs/noise_source.yaml", "--model.init_args.patch_size", "64", "--print_config"])
+    extra = tmp_path / "model_patch.yaml"
+    extra.write_text("model:\n  init_args:\n    patch_size: 64\n")
+    with pytest.raises(ValueError, match=match):
+        main(["--config", "configs/noise_source.yaml", "--config", str(extra), "--print_config"])
+    with pytest.raises(ValueError, match=match):
+        main(["--config", "configs/noise_source.yaml", "--model",
+              '{"class_path": "lightning_modules.NoiseSourceEstimator", "init_args": {"patch_size": 64}}'])
+    capsys.readouterr()
+    with pytest.raises(SystemExit):  # the same value as the data's: nothing is lost
+        main(["--config", "configs/noise_source.yaml", "--model.init_args.patch_size", "128", "--print_config"])
+    assert capsys.readouterr().out.count("patch_size: 128") == 1
+
+
+def test_print_config_shows_the_metadata_set_the_run_uses(capsys):
+    """``--config noise_source.yaml --config data_noise.yaml --print_config`` showed the data's ``metadata_set: full``
+    while the run used the model's ``minimal``."""
+    import yaml
+
+    with pytest.raises(SystemExit):
+        main(["--config", "configs/noise_source.yaml", "--config", "configs/data_noise.yaml", "--print_config"])
+    cfg = yaml.safe_load(capsys.readouterr().out)
+    assert cfg["model"]["init_args"]["metadata_set"] == cfg["data"]["init_args"]["metadata_set"] == "minimal"
+
+
+def _test_split_name(prefix: str) -> str:
+    """A file name that tiny_args' split (seed 0, 25 % test) puts in the test split."""
+    from camhealth.data.sources import _unit_hash
+
+    return next(f"{prefix}{k}.png" for k in range(1000) if _unit_hash(0, f"{prefix}{k}.png") < 0.25)
+
+
+def test_a_bad_test_image_stops_the_fit_before_the_first_step(tmp_path):
+    """An unreadable image in the test split was found only by the test after the whole training, and the run wrote
+    neither fit_results.json nor its --export_weights file."""
+    from tests.datamodules.conftest import save_png, textured
+
+    folder = tmp_path / "images"
+    for i in range(12):
+        save_png(folder / f"img{i:02d}.png", textured(80, i))
+    bad = _test_split_name("bad")
+    (folder / bad).write_bytes(b"not an image")
+    args = ["--data.init_args.source", str(folder), "--data.init_args.source_kwargs", "null"]
+    with pytest.raises(ValueError, match=f"cannot load image '{bad}'"):
+        main(tiny_args("noise_source.yaml", tmp_path, *args, "--export_weights", str(tmp_path / "w.pt")))
+    assert not list(tmp_path.rglob("*.ckpt"))  # before the first step
+    cli = main(tiny_args("noise_source.yaml", tmp_path, *args, "--test_after_fit", "false"))  # no test: not read
+    assert cli.trainer.global_step == 2
+
+
+class CopyLastAt(Callback):
+    """Copies the run's last.ckpt (ModelCheckpoint's, written at the end of a validation) when step ``step`` begins."""
+
+    def __init__(self, step: int, dest: str) -> None:
+        self.step, self.dest = step, dest
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if trainer.global_step == self.step:
+            import shutil
+
+            (last,) = list(Path(trainer.log_dir).rglob("last.ckpt"))
+            shutil.copy(last, self.dest)
+
+
+def _resume_args(steps: int = 20) -> list[str]:
+    # 4 training images × 5 patches: 5 batches of 4 per epoch; validations after steps 5, 10, 15, 20
+    return ["--trainer.max_steps", str(steps), "--trainer.val_check_interval", "5", "--test_after_fit", "false",
+            "--data.init_args.patches_per_image", "5", "--trainer.enable_model_summary", "false",
+            "--model.init_args.log_figures", "false"]
+
+
+def _same_weights(a, b) -> bool:
+    a, b = a.model.state_dict(), b.model.state_dict()
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("stop", [10, 7])
+def test_an_interrupted_and_resumed_fit_ends_with_the_weights_of_an_uninterrupted_one(tmp_path, sigint_raises, stop):
+    """The checkpoint held no state of the data stream: the resumed run restarted torch's generator from the seed and
+    repeated the crops and corruption of the first steps (max |Δw| 0.14 after 400 steps). Stopped at step 10 (an epoch's
+    end, a validation due) and at step 7 (within an epoch), the resumed run ends with the uninterrupted run's weights."""
+    full = main(tiny_args("noise_source.yaml", tmp_path / "full", *_resume_args()))
+    with pytest.raises(KeyboardInterrupt):
+        main(tiny_args("noise_source.yaml", tmp_path / "cut", *_resume_args(), _sigint_at(stop)))
+    (last,) = list((tmp_path / "cut").rglob("last.ckpt"))
+    saved = torch.load(last, weights_only=True)
+    assert saved["global_step"] == stop and saved["NoiseDataModule"]["train_stream"]["step"] == stop
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        resumed = main(tiny_args("noise_source.yaml", tmp_path / "cut", *_resume_args(), "--ckpt_path", str(last)))
+    assert resumed.trainer.global_step == 20 and _same_weights(resumed, full)
+    # neither camhealth's warning of a stream drawn afresh nor Lightning's of a loader that is not resumable
+    assert not [str(w.message) for w in caught if "afresh" in str(w.message) or "not resumable" in str(w.message)]
+    if stop == 7:  # a checkpoint without the stream (an older camhealth, workers): resumed afresh, with a warning
+        del saved["NoiseDataModule"]
+        torch.save(saved, tmp_path / "old.ckpt")
+        with pytest.warns(UserWarning, match="holds no state of the training data stream .* draws its batches afresh"):
+            afresh = main(tiny_args("noise_source.yaml", tmp_path / "old", *_resume_args(), "--ckpt_path",
+                                    str(tmp_path / "old.ckpt")))
+        assert afresh.trainer.global_step == 20 and not _same_weights(afresh, full)
+
+
+def test_a_run_resumed_from_the_last_checkpoint_of_a_validation_ends_with_the_uninterrupted_runs_weights(tmp_path):
+    copy = tmp_path / "at10.ckpt"
+    callback = '--trainer.callbacks+={"class_path": "tests.test_fit.CopyLastAt", "init_args": {"step": 11, "dest": "%s"}}'
+    full = main(tiny_args("noise_source.yaml", tmp_path / "full", *_resume_args(), callback % copy))
+    assert torch.load(copy, weights_only=True)["global_step"] == 10  # written after the validation of step 10
+    resumed = main(tiny_args("noise_source.yaml", tmp_path / "resumed", *_resume_args(), "--ckpt_path", str(copy)))
+    assert resumed.trainer.global_step == 20 and _same_weights(resumed, full)

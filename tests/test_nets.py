@@ -370,3 +370,24 @@ def test_an_mtf_patch_size_must_hold_whole_space_to_depth_cells():
 
     with pytest.raises(ValueError, match=r"patch_size = 192 px must be a multiple of downsample = 5"):
         MTFEstimator(downsample=5)
+
+
+def test_check_dilations_names_the_value_and_the_range():
+    from camhealth.nets.drne import check_dilations
+
+    assert check_dilations([1, 2, 4], 128) == (1, 2, 4) and check_dilations((63,), 128) == (63,)
+    with pytest.raises(ValueError, match=r"dilations = \(1, 64\): 64 is too large for patch_size = 128.*\[1, 63\]"):
+        check_dilations([1, 64], 128)
+    with pytest.raises(TypeError, match=r"dilations = 4 must be a list of integers"):
+        check_dilations(4)
+    with pytest.raises(ValueError, match=r"each must be an integer >= 1, got 0"):
+        NoiseLevelNet(8, (1, 0))
+    assert check_dilations([200]) == (200,)  # without a patch size: the network alone (inference builds it so)
+
+
+def test_a_file_whose_drne_dilations_reach_only_the_padding_is_refused_by_both_loaders(tmp_path):
+    """load_module refuses what the LightningModule refuses; load_net (no LightningModule) refuses it too."""
+    spec = nets.NETWORKS["drne"]
+    with pytest.raises(ValueError, match=r"dilations = \(1, 2, 64\): 64 is too large for patch_size = 128"):
+        spec.build({"patch_size": 128, "dilations": [1, 2, 64]})
+    assert spec.build({"patch_size": 128, "dilations": [1, 2, 63]}) is not None

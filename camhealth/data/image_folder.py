@@ -39,24 +39,136 @@ def _normalise_extensions(extensions: Iterable[str]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(exts))
 
 
+class _Listing:
+    """The image files under a folder and what the listing left out (:func:`_scan`)."""
+
+    def __init__(self) -> None:
+        #: (relative POSIX path, path, real path, the file is a link, a folder on its path is a link)
+        self.files: list[tuple[str, Path, str, bool, bool]] = []
+        self.outside: list[str] = []  # links whose target lies outside the root (followed)
+        self.repeated: list[str] = []  # second paths to a file or folder already listed (skipped)
+        self.loops: list[str] = []  # links to the folder itself or a folder that holds it (skipped)
+        self.broken: list[str] = []  # links to nothing (skipped)
+        self.unreadable: list[str] = []  # folders that cannot be listed (skipped)
+
+    def notes(self) -> str:
+        """The links and folders named for the user, or ``""``."""
+        def some(names: list[str]) -> str:
+            return ", ".join(names[:5]) + (f" … ({len(names)} in all)" if len(names) > 5 else "")
+
+        parts = []
+        if self.outside:
+            parts.append(f"followed {len(self.outside)} link(s) that lead outside the folder: {some(self.outside)}")
+        if self.loops:
+            parts.append(f"skipped {len(self.loops)} link(s) to this folder or a folder that holds it (a loop): "
+                         f"{some(self.loops)}")
+        if self.repeated:
+            parts.append(f"skipped {len(self.repeated)} second path(s) to a file or folder already listed: "
+                         f"{some(self.repeated)}")
+        if self.broken:
+            parts.append(f"skipped {len(self.broken)} broken link(s): {some(self.broken)}")
+        if self.unreadable:
+            parts.append(f"skipped {len(self.unreadable)} folder(s) that cannot be listed: {some(self.unreadable)}")
+        return "; ".join(parts)
+
+
+def _scan(root: Path, recursive: bool, exts: tuple[str, ...]) -> _Listing:
+    """Walk ``root`` (see :func:`list_images` for the rules): the folders themselves first, then the folders that links
+    lead to, each real folder once, so a file keeps its path without links where it has one."""
+    out = _Listing()
+    root_real = os.path.realpath(root)
+    walked = {root_real}
+    pending: list[tuple[Path, str, bool]] = [(root, "", False)]  # (folder, its relative path + "/", via a link)
+    links: list[tuple[Path, str]] = []  # links to folders, walked after every plain folder
+
+    def outside(real: str) -> bool:
+        return not (real == root_real or real.startswith(root_real.rstrip(os.sep) + os.sep))
+
+    while pending or links:
+        if pending:
+            folder, prefix, via_link = pending.pop()
+        else:
+            link, rel = links.pop(0)
+            real = os.path.realpath(link)
+            if real == root_real or root_real.startswith(real.rstrip(os.sep) + os.sep):
+                out.loops.append(rel + "/")
+                continue
+            if real in walked:
+                out.repeated.append(rel + "/")
+                continue
+            walked.add(real)
+            if outside(real):
+                out.outside.append(rel + "/")
+            folder, prefix, via_link = link, rel + "/", True
+        try:
+            entries = sorted(os.scandir(folder), key=lambda e: natural_sort_key(e.name))
+        except OSError:
+            out.unreadable.append(prefix or ".")
+            continue
+        subfolders = []
+        for entry in entries:
+            if entry.name.startswith("."):
+                continue
+            rel = prefix + entry.name
+            path = folder / entry.name
+            try:
+                is_link = entry.is_symlink()
+                is_dir, is_file = entry.is_dir(), entry.is_file()  # (both follow links)
+            except OSError:
+                is_link, is_dir, is_file = False, False, False
+            if is_dir:
+                if not recursive:
+                    continue
+                if is_link:
+                    links.append((path, rel))
+                else:
+                    real = os.path.realpath(path)
+                    if real in walked:  # (reached again inside a linked folder)
+                        out.repeated.append(rel + "/")
+                    else:
+                        walked.add(real)
+                        subfolders.append((path, rel + "/", via_link))
+            elif is_file:
+                if os.path.splitext(entry.name)[1].lower() not in exts:
+                    continue
+                real = os.path.realpath(path)
+                if is_link and outside(real):
+                    out.outside.append(rel)
+                out.files.append((rel, path, real, is_link, via_link))
+            elif is_link and os.path.splitext(entry.name)[1].lower() in (*exts, ""):  # (a file or a folder's link)
+                out.broken.append(rel)
+        pending.extend(reversed(subfolders))
+    # each file once: where several paths lead to one file, a path that is not itself a link wins, then one through no
+    # linked folder, then the first in natural order
+    best: dict[str, tuple[str, Path, str, bool, bool]] = {}
+    for item in sorted(out.files, key=lambda f: (f[3], f[4], natural_sort_key(f[0]))):
+        if item[2] in best:
+            out.repeated.append(item[0])
+        else:
+            best[item[2]] = item
+    out.files = sorted(best.values(), key=lambda f: natural_sort_key(f[0]))
+    return out
+
+
 def list_images(root: PathLike, recursive: bool = True, extensions: Sequence[str] = IMAGE_EXTENSIONS) -> list[Path]:
-    """Image files under ``root`` (hidden files skipped), in natural order of their relative path."""
+    """Image files under ``root`` (hidden files and folders skipped), in natural order of their relative path.
+
+    Symbolic links are followed, to files and (with ``recursive``) to folders, also where they lead outside ``root``;
+    each file and folder is listed once: a second path to one already listed (a link to it, or to a folder holding
+    it) is skipped, keeping a path that is not itself a link, then one through no linked folder. A link to ``root``
+    or to a folder that holds it (a loop) and a link to nothing are skipped. Links that lead outside ``root`` and
+    everything skipped but hidden files are named in one ``UserWarning``.
+    """
     root = Path(root)
     if not root.exists():
         raise FileNotFoundError(f"image folder not found: {root}")
     if not root.is_dir():
         raise NotADirectoryError(f"not a folder: {root}")
-    exts = _normalise_extensions(extensions)
-    it = root.rglob("*") if recursive else root.iterdir()
-    files = [
-        p
-        for p in it
-        if p.suffix.lower() in exts
-        and not any(part.startswith(".") for part in p.relative_to(root).parts)
-        and p.is_file()
-    ]
-    files.sort(key=lambda p: natural_sort_key(p.relative_to(root).as_posix()))
-    return files
+    listing = _scan(root, bool(recursive), _normalise_extensions(extensions))
+    notes = listing.notes()
+    if notes:
+        warnings.warn(f"image folder {root}: {notes}", UserWarning, stacklevel=2)
+    return [item[1] for item in listing.files]
 
 
 class ImageFolderSource(torch.utils.data.Dataset):
@@ -75,15 +187,16 @@ class ImageFolderSource(torch.utils.data.Dataset):
             bright one of the same camera.
 
     The file list is fixed at construction and sorted in natural order of the path relative to ``root``
-    (deterministic on every OS). The id of an image is that relative path in POSIX form
+    (deterministic on every OS); symbolic links to files and folders are followed, each file listed once
+    (:func:`list_images`). The id of an image is that relative path in POSIX form
     (``"sub/img_0002.png"``), so every image is its own group for :func:`camhealth.data.split_ids`; if the
     folder holds frames of one video, pass a ``group_key`` to the split (see ``docs/data.md``) or use
     :class:`camhealth.data.FrameSequence`.
 
     Raises:
         FileNotFoundError: ``root`` does not exist.
-        ValueError: no image with one of ``extensions`` was found (the message names the folder and the
-            extensions); ``bit_depth`` is neither ``"auto"`` nor an integer in [1, 16].
+        ValueError: no image with one of ``extensions`` was found (the message names the folder, the
+            extensions and any links skipped); ``bit_depth`` is neither ``"auto"`` nor an integer in [1, 16].
     """
 
     def __init__(
@@ -97,13 +210,22 @@ class ImageFolderSource(torch.utils.data.Dataset):
         self.root = Path(root)
         self.recursive = bool(recursive)
         self.extensions = _normalise_extensions(extensions)
-        self.paths = list_images(self.root, self.recursive, self.extensions)
-        if not self.paths:
+        if not self.root.exists():
+            raise FileNotFoundError(f"image folder not found: {self.root}")
+        if not self.root.is_dir():
+            raise NotADirectoryError(f"not a folder: {self.root}")
+        listing = _scan(self.root, self.recursive, self.extensions)
+        notes = listing.notes()
+        if not listing.files:
             where = "or its sub-folders " if self.recursive else ""
             raise ValueError(
                 f"no images found in folder {self.root} {where}(looked for extensions: {', '.join(self.extensions)})"
+                + (f"; {notes}" if notes else "")
             )
-        self.ids = [p.relative_to(self.root).as_posix() for p in self.paths]
+        if notes:
+            warnings.warn(f"image folder {self.root}: {notes}", UserWarning, stacklevel=2)
+        self.paths = [item[1] for item in listing.files]
+        self.ids = [item[0] for item in listing.files]
 
     def __len__(self) -> int:
         return len(self.paths)

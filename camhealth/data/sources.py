@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import bisect
 import hashlib
+import inspect
 import math
 import re
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 
@@ -30,7 +31,8 @@ from camhealth.data.skimage_photos import SkimagePhotosSource
 from camhealth.data.street_sample import StreetSampleSource
 from camhealth.data.video import VIDEO_EXTENSIONS, FrameSequence
 
-__all__ = ["AreaDownsampledSource", "ConcatSource", "DefaultSource", "build_source", "group_key", "split_ids", "SPLITS"]
+__all__ = ["AreaDownsampledSource", "ConcatSource", "DefaultSource", "DEADLEAVES_OPTIONS", "build_source",
+           "check_source_options", "group_key", "source_options", "split_ids", "SPLITS"]
 
 #: Split names returned by :func:`split_ids`, in order.
 SPLITS = ("train", "val", "test")
@@ -114,6 +116,38 @@ class AreaDownsampledSource(torch.utils.data.Dataset):
         return f"{type(self).__name__}({self.source!r}, factor={self.factor})"
 
 
+def _arguments(fn: Callable, skip: Sequence[str] = ()) -> tuple[str, ...]:
+    """The named keyword arguments of ``fn`` (no ``self``, ``*args``, ``**kwargs`` or those in ``skip``)."""
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return tuple(p.name for p in inspect.signature(fn).parameters.values()
+                 if p.kind in kinds and p.name != "self" and p.name not in skip)
+
+
+#: The options of :class:`DefaultSource` that shape its dead-leaves images, handed on to :class:`DeadLeavesSource`:
+#: every argument of it but those :class:`DefaultSource` sets itself (``n_images`` = ``deadleaves``, ``size`` =
+#: ``deadleaves_size``, ``seed``).
+DEADLEAVES_OPTIONS: tuple[str, ...] = _arguments(DeadLeavesSource.__init__, ("n_images", "size", "seed"))
+
+
+def _check_options(given: Mapping[str, Any], allowed: Sequence[str], name: str, what: str) -> None:
+    """``ValueError`` naming the keys of ``given`` that are not in ``allowed``, and listing ``allowed``."""
+    unknown = sorted(str(k) for k in given if k not in allowed)
+    if unknown:
+        raise ValueError(f"{name}: unknown option(s) {unknown} for {what}; allowed: {sorted(allowed)}")
+
+
+def _check_default_options(options: Mapping[str, Any], name: str) -> None:
+    """The options of :class:`DefaultSource` (``options``: all of them, as ``source_kwargs`` gives them): each one
+    known, and the options that shape the dead-leaves images (``deadleaves_size``, ``seed`` and
+    :data:`DEADLEAVES_OPTIONS`) only together with such images (``deadleaves`` > 0)."""
+    _check_options(options, _DEFAULT_OPTIONS, name, "the built-in source 'default' (DefaultSource)")
+    shaping = sorted(k for k in options if k in DEADLEAVES_OPTIONS or k in ("deadleaves_size", "seed"))
+    deadleaves = options.get("deadleaves", 0)
+    if shaping and isinstance(deadleaves, int) and not isinstance(deadleaves, bool) and deadleaves == 0:
+        raise ValueError(f"{name}: dead-leaves option(s) {shaping} given with deadleaves = 0 (no dead-leaves images "
+                         f"to shape): set deadleaves > 0 or leave them out")
+
+
 class DefaultSource(ConcatSource):
     """The offline default training images: scikit-image photos + street frames (+ dead-leaves images).
 
@@ -137,7 +171,13 @@ class DefaultSource(ConcatSource):
             ``docs/data.md``); images that end up smaller than the patch size are skipped by the DataModule. Dead
             leaves are not downsampled: render them with ``supersample`` (4 or 8: a pixel is the mean of s×s point
             samples, within 1 % / 0.3 % of the exact pixel-area integral at f_n = 0.6).
-        deadleaves_kwargs: further :class:`DeadLeavesSource` arguments (``r_min``, ``r_max``, ``supersample``, ...).
+        deadleaves_kwargs: further :class:`DeadLeavesSource` arguments (:data:`DEADLEAVES_OPTIONS`: ``r_min``,
+            ``r_max``, ``contrast``, ``supersample``, ``shading``, ``thin``, ``coverage``).
+
+    Raises:
+        ValueError: an option that is none of the above (naming it and listing the allowed ones; a misspelt
+            ``dead_leaves: 60`` would otherwise train without the dead-leaves images), or dead-leaves options
+            (``deadleaves_size`` or :data:`DEADLEAVES_OPTIONS`) with ``deadleaves`` = 0; a value out of range.
     """
 
     def __init__(
@@ -153,7 +193,10 @@ class DefaultSource(ConcatSource):
         area_downsample: int = 1,
         **deadleaves_kwargs,
     ) -> None:
+        _check_options(deadleaves_kwargs, _DEFAULT_OPTIONS, "DefaultSource", "the built-in source 'default'")
         deadleaves = check_int(deadleaves, "deadleaves", 0)
+        if deadleaves == 0 and deadleaves_kwargs:
+            _check_default_options({**deadleaves_kwargs, "deadleaves": 0}, "DefaultSource")
         n_aa = check_int(deadleaves_antialiased, "deadleaves_antialiased", 0)
         repeat = check_int(photo_repeat, "photo_repeat", 1)
         k = check_int(area_downsample, "area_downsample", 1)
@@ -188,6 +231,92 @@ class DefaultSource(ConcatSource):
         super().__init__(parts)
 
 
+#: Every option of :class:`DefaultSource` (its arguments and :data:`DEADLEAVES_OPTIONS`).
+_DEFAULT_OPTIONS: tuple[str, ...] = (*_arguments(DefaultSource.__init__), *DEADLEAVES_OPTIONS)
+
+#: The built-in sources by name.
+_BUILT_IN = ("default", "deadleaves", "skimage", "street")
+
+
+def _source_kind(spec: str | Path, must_exist: bool = True) -> tuple[str, Path | None]:
+    """What ``spec`` names: ``("default" | "deadleaves" | "skimage" | "street", None)``, ``("frames", folder)``,
+    ``("folder", path)`` or ``("video", path)``; ``("missing", path)`` for a path that does not exist when not
+    ``must_exist``. The errors of :func:`build_source` for a spec that names nothing it can read."""
+    if isinstance(spec, str):
+        key = spec.strip().lower()
+        if key in _BUILT_IN:
+            return key, None
+        if spec.startswith("frames:"):
+            return "frames", Path(spec[len("frames:"):])
+    elif not isinstance(spec, Path):
+        raise TypeError(f"spec must be a str or a Path, got {type(spec).__name__}")
+    path = Path(spec)
+    if not path.exists():
+        if not must_exist:
+            return "missing", path
+        raise FileNotFoundError(
+            f"image source {str(spec)!r} is neither a built-in source ('default', 'deadleaves', 'skimage', "
+            "'street') nor an existing folder or video file"
+        )
+    if path.is_dir():
+        return "folder", path
+    if path.suffix.lower() in VIDEO_EXTENSIONS:
+        return "video", path
+    raise ValueError(
+        f"cannot use {path} as an image source: expected a folder of images or a video file "
+        f"({', '.join(VIDEO_EXTENSIONS)}); for a single image use camhealth.data.read_image"
+    )
+
+
+#: For each kind of source: the class it builds (named in messages) and the options it takes besides
+#: ``area_downsample`` and ``bit_depth``.
+_KIND_OPTIONS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "deadleaves": ("DeadLeavesSource", _arguments(DeadLeavesSource.__init__)),
+    "skimage": ("SkimagePhotosSource", _arguments(SkimagePhotosSource.__init__)),
+    "street": ("StreetSampleSource", _arguments(StreetSampleSource.__init__)),
+    "frames": ("FrameSequence", _arguments(FrameSequence.__init__, ("path", "bit_depth"))),
+    "folder": ("ImageFolderSource", _arguments(ImageFolderSource.__init__, ("root", "bit_depth"))),
+    # (a video file has no file extensions to choose)
+    "video": ("FrameSequence", _arguments(FrameSequence.__init__, ("path", "bit_depth", "extensions"))),
+}
+
+
+def source_options(spec: str | Path) -> tuple[str, ...]:
+    """The keyword arguments :func:`build_source` takes for ``spec`` (sorted): ``"default"``: :class:`DefaultSource`'s
+    and :data:`DEADLEAVES_OPTIONS`; ``"deadleaves"``: :class:`DeadLeavesSource`'s; a folder: ``recursive``,
+    ``extensions``; a video file or ``"frames:<folder>"``: the frame range (``stride``, ``max_frames``, ``start``;
+    a frames folder also ``extensions``); ``"skimage"``: ``names``; ``"street"``: ``stride``, ``max_frames``. Each
+    also takes ``bit_depth`` and all but ``"deadleaves"`` ``area_downsample``."""
+    kind, _ = _source_kind(spec)
+    if kind == "default":
+        return tuple(sorted({*_DEFAULT_OPTIONS, "bit_depth"}))
+    extra = ("bit_depth",) if kind == "deadleaves" else ("area_downsample", "bit_depth")
+    return tuple(sorted({*_KIND_OPTIONS[kind][1], *extra}))
+
+
+def _describe(spec: str | Path, kind: str) -> str:
+    if kind in _BUILT_IN:
+        return f"the built-in source {kind!r} ({'DefaultSource' if kind == 'default' else _KIND_OPTIONS[kind][0]})"
+    noun = {"frames": "frame folder", "folder": "image folder", "video": "video file"}[kind]
+    return f"the {noun} {str(spec)!r} ({_KIND_OPTIONS[kind][0]})"
+
+
+def check_source_options(spec: str | Path, options: Mapping[str, Any], name: str = "source_kwargs") -> None:
+    """Refuse an option :func:`build_source` would not use for ``spec``: a ``ValueError`` naming the unknown key(s),
+    the kind of source and the allowed keys (:func:`source_options`), or, for ``"default"``, dead-leaves options
+    with ``deadleaves`` = 0. Only the keys are checked (the values when the source is built); a path that does not
+    exist (yet) is not checked here (:func:`build_source` names it). ``name`` starts the message."""
+    if not isinstance(options, Mapping):
+        raise TypeError(f"{name} = {options!r} must be a mapping of source options (e.g. {{deadleaves: 60}}) or null")
+    kind, _ = _source_kind(spec, must_exist=False)
+    if kind == "missing":
+        return
+    if kind == "default":
+        _check_default_options({k: v for k, v in options.items() if k != "bit_depth"}, name)
+        return
+    _check_options(options, source_options(spec), name, _describe(spec, kind))
+
+
 def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
     """Build an image source from a spec.
 
@@ -203,8 +332,16 @@ def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
       ``"frames:<folder>"`` (:class:`ImageFolderSource`, :class:`FrameSequence`); any other depth than ``"auto"``
       for a built-in source or a video file is a ``ValueError`` (their scaling is fixed).
 
+    A keyword the source does not take is a ``ValueError`` naming it and listing those it takes
+    (:func:`source_options`; :func:`check_source_options`), never silently dropped.
+
     Every result has ``len()``, ``source[i] -> (image 1×H×W float32 in [0, 1], id)`` and ``.ids``.
     """
+    kind, path = _source_kind(spec)
+    if kind == "default":
+        _check_default_options({k: v for k, v in kwargs.items() if k != "bit_depth"}, "build_source")
+    elif not (kind == "deadleaves" and "area_downsample" in kwargs):  # (that one has its own message below)
+        check_source_options(spec, kwargs, "build_source")
     bit_depth = _check_bit_depth(kwargs.pop("bit_depth", "auto"))
 
     def fixed_scaling(what: str) -> None:
@@ -212,44 +349,31 @@ def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
             raise ValueError(f"bit_depth = {bit_depth!r} applies to a folder of image files; {what} {str(spec)!r} has its own "
                              "scaling (leave bit_depth 'auto')")
 
-    if isinstance(spec, str) and spec.strip().lower() == "default":
+    if kind == "default":
         fixed_scaling("the built-in source")
         return DefaultSource(**kwargs)
     k = kwargs.pop("area_downsample", 1)
     if k != 1:
-        if isinstance(spec, str) and spec.strip().lower() == "deadleaves":
+        if kind == "deadleaves":
             raise ValueError(f"area_downsample = {k!r}: dead leaves are rendered, not downsampled; pass supersample= instead")
         return AreaDownsampledSource(build_source(spec, bit_depth=bit_depth, **kwargs), k)
-    if isinstance(spec, str):
-        key = spec.strip().lower()
-        if key in ("deadleaves", "skimage", "street"):
-            fixed_scaling("the built-in source")
-        if key == "deadleaves":
-            kwargs.setdefault("n_images", 1000)
-            return DeadLeavesSource(**kwargs)
-        if key == "skimage":
-            return SkimagePhotosSource(**kwargs)
-        if key == "street":
-            return StreetSampleSource(**kwargs)
-        if spec.startswith("frames:"):
-            return FrameSequence(spec[len("frames:"):], bit_depth=bit_depth, **kwargs).as_source()
-    elif not isinstance(spec, Path):
-        raise TypeError(f"spec must be a str or a Path, got {type(spec).__name__}")
-    path = Path(spec)
-    if not path.exists():
-        raise FileNotFoundError(
-            f"image source {str(spec)!r} is neither a built-in source ('default', 'deadleaves', 'skimage', "
-            "'street') nor an existing folder or video file"
-        )
-    if path.is_dir():
+    if kind == "deadleaves":
+        check_source_options(spec, kwargs, "build_source")
+    if kind in ("deadleaves", "skimage", "street"):
+        fixed_scaling("the built-in source")
+    if kind == "deadleaves":
+        kwargs.setdefault("n_images", 1000)
+        return DeadLeavesSource(**kwargs)
+    if kind == "skimage":
+        return SkimagePhotosSource(**kwargs)
+    if kind == "street":
+        return StreetSampleSource(**kwargs)
+    if kind == "frames":
+        return FrameSequence(path, bit_depth=bit_depth, **kwargs).as_source()
+    if kind == "folder":
         return ImageFolderSource(path, bit_depth=bit_depth, **kwargs)
-    if path.suffix.lower() in VIDEO_EXTENSIONS:
-        fixed_scaling("the video file")
-        return FrameSequence(path, **kwargs).as_source()
-    raise ValueError(
-        f"cannot use {path} as an image source: expected a folder of images or a video file "
-        f"({', '.join(VIDEO_EXTENSIONS)}); for a single image use camhealth.data.read_image"
-    )
+    fixed_scaling("the video file")
+    return FrameSequence(path, **kwargs).as_source()
 
 
 def group_key(image_id: str) -> str:

@@ -19,12 +19,12 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from torch import nn
 
 from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, count_flops, count_parameters
-from camhealth.nets.drne import NoiseLevelNet, ThesisNoiseNet
+from camhealth.nets.drne import NoiseLevelNet, ThesisNoiseNet, check_dilations
 from camhealth.nets.mtf import MTFNet, MTFPreprocess
 from camhealth.nets.noise_source import NoiseSourceNet, NoiseTrunk
 
@@ -120,6 +120,8 @@ class NetworkSpec:
         network: the ``nn.Module`` class.
         network_args: arguments of the LightningModule handed on to ``network`` under the same name.
         training_args: its other arguments besides ``patch_size`` (loss, optimiser, logging): accepted, not used here.
+        check: a further check of a file's ``init_args`` that the LightningModule makes too (the network alone cannot:
+            it does not know the patch size), or None.
     """
 
     kind: str
@@ -127,6 +129,7 @@ class NetworkSpec:
     network: type[nn.Module]
     network_args: tuple[str, ...]
     training_args: tuple[str, ...]
+    check: Callable[[Mapping[str, Any]], None] | None = None
 
     @property
     def init_args(self) -> tuple[str, ...]:
@@ -152,6 +155,8 @@ class NetworkSpec:
             raise ValueError(f"init_args {unknown} are not arguments of {self.class_path}")
         if "patch_size" in init_args:
             check_patch_size(init_args["patch_size"])
+        if self.check is not None:
+            self.check(init_args)
         kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in init_args.items() if k in self.network_args}
         return self.network(**kwargs).eval()
 
@@ -161,6 +166,13 @@ class NetworkSpec:
         return bool(init_args.get("channels_last", True))
 
 
+def _check_drne_args(init_args: Mapping[str, Any]) -> None:
+    """The DRNE's dilations against its patch size (:func:`camhealth.nets.drne.check_dilations`), as
+    :class:`lightning_modules.NoiseLevelEstimator` checks them."""
+    if "dilations" in init_args and "patch_size" in init_args:
+        check_dilations(init_args["dilations"], init_args["patch_size"])
+
+
 #: The estimator kinds and their networks.
 NETWORKS: dict[str, NetworkSpec] = {
     spec.kind: spec
@@ -168,7 +180,7 @@ NETWORKS: dict[str, NetworkSpec] = {
         NetworkSpec("noise_source", "lightning_modules.noise_source.NoiseSourceEstimator", NoiseSourceNet,
                     ("metadata_set", "width", "hidden"), ("loss_weights", "huber_beta_dn")),
         NetworkSpec("drne", "lightning_modules.drne.NoiseLevelEstimator", NoiseLevelNet,
-                    ("width", "dilations"), ("map_weight", "huber_beta_dn")),
+                    ("width", "dilations"), ("map_weight", "huber_beta_dn"), _check_drne_args),
         NetworkSpec("mtf", "lightning_modules.mtf.MTFEstimator", MTFNet,
                     ("widths", "hidden", "downsample"), ()),
     )

@@ -23,7 +23,30 @@ from torch import nn
 
 from camhealth.nets.blocks import ConvAct, ResidualBlock, autocast_on, check_sizes, working_dtype
 
-__all__ = ["NoiseLevelNet", "ThesisNoiseNet"]
+__all__ = ["NoiseLevelNet", "ThesisNoiseNet", "check_dilations"]
+
+
+def check_dilations(dilations, patch_size: int | None = None) -> tuple[int, ...]:
+    """The dilations of :class:`NoiseLevelNet`'s residual blocks as a tuple: each an integer >= 1 and, for patches of
+    ``patch_size`` px, at most ``patch_size // 2 − 1``. The blocks run at half resolution (``patch_size / 2`` px): a 3×3
+    convolution dilated by that much or more reaches only the zero padding with its eight outer taps, for every pixel,
+    so only its centre tap would ever see the image. ``TypeError`` for a value that is not a list of integers,
+    ``ValueError`` naming the value and the allowed range otherwise."""
+    if isinstance(dilations, (str, bytes)) or not isinstance(dilations, (list, tuple)):
+        raise TypeError(f"dilations = {dilations!r} must be a list of integers, one per residual block")
+    bad = [d for d in dilations if isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 1]
+    if bad:
+        raise ValueError(f"dilations = {tuple(dilations)!r}: each must be an integer >= 1, got {bad[0]!r}")
+    if patch_size is not None:
+        half = int(patch_size) // 2
+        large = [d for d in dilations if d >= half]
+        if large:
+            raise ValueError(
+                f"dilations = {tuple(int(d) for d in dilations)!r}: {int(large[0])} is too large for patch_size = "
+                f"{int(patch_size)}: the residual blocks run at half resolution ({half}×{half} px), where a dilation of "
+                f"{half} or more reaches only the zero padding; each dilation must be an integer in [1, {half - 1}]"
+            )
+    return tuple(int(d) for d in dilations)
 
 
 class NoiseLevelNet(nn.Module):
@@ -31,9 +54,7 @@ class NoiseLevelNet(nn.Module):
 
     def __init__(self, width: int = 32, dilations: tuple[int, ...] = (1, 2, 4), highpass_gain: float = 32.0) -> None:
         super().__init__()
-        bad = [d for d in dilations if isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 1]
-        if bad:
-            raise ValueError(f"dilations = {tuple(dilations)!r}: each must be an integer >= 1, got {bad[0]!r}")
+        dilations = check_dilations(dilations)
         (width,) = check_sizes(width, "width", 1)
         self.highpass_gain = float(highpass_gain)
         self.unshuffle = nn.PixelUnshuffle(2)

@@ -86,3 +86,58 @@ def test_bit_depth_reads_every_file_at_one_scale(tmp_path):
         ImageFolderSource(tmp_path, bit_depth=10)[src.ids.index("bright.png")]
     with pytest.raises(ValueError, match="bit_depth = 20 must be 'auto' or an integer"):
         ImageFolderSource(tmp_path, bit_depth=20)
+
+
+# ------------------------------------------------------------------ symbolic links
+def _symlink(target, link):
+    import os
+
+    try:
+        os.symlink(target, link)
+    except (OSError, NotImplementedError):
+        pytest.skip("this file system does not take symbolic links")
+
+
+def test_symbolic_links_are_followed_each_file_once_and_what_is_skipped_is_named(tmp_path):
+    """A file link that left the folder was read without a word and a linked sub-folder was dropped without a
+    word. Links are followed (to files and folders, inside or outside the root); every file is listed once, a loop
+    and a broken link are skipped, and one warning names the links that lead outside and everything skipped."""
+    root, elsewhere = tmp_path / "root", tmp_path / "elsewhere"
+    _save(root / "real" / "a.png", 1)
+    _save(root / "real" / "b.png", 2)
+    _save(elsewhere / "set" / "c.png", 3)
+    _save(elsewhere / "d.png", 4)
+    _symlink(elsewhere / "set", root / "setB")  # a linked sub-folder outside the root
+    _symlink(elsewhere / "d.png", root / "outside.png")  # a file outside the root
+    _symlink(root / "real", root / "alias")  # a second path to real/
+    _symlink(root / "real" / "a.png", root / "latest.png")  # a second path to real/a.png
+    _symlink(root, root / "real" / "up")  # a loop
+    _symlink(tmp_path / "nowhere.png", root / "broken.png")
+    with pytest.warns(UserWarning) as caught:
+        src = ImageFolderSource(root)
+    assert src.ids == ["outside.png", "real/a.png", "real/b.png", "setB/c.png"]
+    assert src[3][0][0, 0, 0].item() == pytest.approx(3 / 255)
+    (message,) = [str(w.message) for w in caught]
+    assert f"image folder {root}: followed 2 link(s) that lead outside the folder: outside.png, setB/" in message
+    assert "skipped 1 link(s) to this folder or a folder that holds it (a loop): real/up/" in message
+    assert "skipped 2 second path(s) to a file or folder already listed: alias/, latest.png" in message
+    assert "skipped 1 broken link(s): broken.png" in message
+    from camhealth.data import list_images
+
+    with pytest.warns(UserWarning, match="outside.png"):
+        assert [p.name for p in list_images(root, recursive=False)] == ["latest.png", "outside.png"]
+
+
+def test_a_folder_of_only_a_linked_sub_folder_is_read_and_only_broken_links_are_named(tmp_path):
+    """A folder holding only a symlinked sub-folder failed with 'no images found', not mentioning the link."""
+    _save(tmp_path / "data" / "x.png", 7)
+    root = tmp_path / "root"
+    root.mkdir()
+    _symlink(tmp_path / "data", root / "set")
+    with pytest.warns(UserWarning, match="followed 1 link"):
+        assert ImageFolderSource(root).ids == ["set/x.png"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    _symlink(tmp_path / "gone", empty / "frames")
+    with pytest.raises(ValueError, match=r"no images found in folder .*empty.*; skipped 1 broken link\(s\): frames"):
+        ImageFolderSource(empty)

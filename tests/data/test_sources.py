@@ -340,3 +340,54 @@ def test_split_ids_of_a_folder_with_a_file_name_that_is_not_utf8(tmp_path):
     assert _unit_hash(7, "street#000001") == int.from_bytes(
         hashlib.blake2b("7\x1fstreet#000001".encode(), digest_size=8).digest(), "big") / 2.0**64
     assert 0.0 <= _unit_hash(0, "lone \ud800 surrogate") < 1.0  # any other lone surrogate: still a fixed number
+
+
+# ------------------------------------------------------------------ options a source does not take
+@pytest.mark.parametrize("kwargs, unknown", [
+    ({"dead_leaves": 60}, "dead_leaves"),  # misspelt: trained without its 60 dead-leaves scenes
+    ({"deadleaf": 60}, "deadleaf"),
+    ({"deadleaves": 2, "supersampling": 4}, "supersampling"),
+    ({"bogus": 1}, "bogus"),
+])
+def test_default_source_refuses_an_unknown_option_naming_it_and_the_allowed_ones(kwargs, unknown):
+    """``build_source('default', dead_leaves=60)`` built the source without its dead-leaves images, without a word."""
+    allowed = r"allowed: \[.*'deadleaves', 'deadleaves_antialiased', 'deadleaves_size'.*'supersample'.*\]"
+    with pytest.raises(ValueError, match=rf"unknown option\(s\) \['{unknown}'\] for the built-in source 'default'.*{allowed}"):
+        build_source("default", **kwargs)
+    with pytest.raises(ValueError, match=rf"DefaultSource: unknown option\(s\) \['{unknown}'\].*{allowed}"):
+        DefaultSource(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs", [{"supersample": 4}, {"r_min": [1, 10]}, {"deadleaves_size": 64}, {"seed": 3}])
+def test_dead_leaves_options_without_dead_leaves_images_are_refused(kwargs):
+    key = next(iter(kwargs))
+    with pytest.raises(ValueError, match=rf"dead-leaves option\(s\) \['{key}'\] given with deadleaves = 0"):
+        build_source("default", **kwargs)
+    assert len(build_source("default", deadleaves=1, **{"deadleaves_size": 32, **kwargs})) == len(DefaultSource()) + 1
+
+
+def test_build_source_names_the_options_each_kind_of_source_takes(tmp_path):
+    """``source_kwargs: {deadleaves: 5}`` with a folder gave a raw ``TypeError: ImageFolderSource.__init__() got an
+    unexpected keyword argument``."""
+    from camhealth.data.sources import check_source_options, source_options
+
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(tmp_path / "a.png")
+    with pytest.raises(ValueError, match=r"build_source: unknown option\(s\) \['deadleaves'\] for the image folder "
+                                         rf"'{tmp_path}' \(ImageFolderSource\); allowed: \['area_downsample', 'bit_depth', "
+                                         r"'extensions', 'recursive'\]"):
+        build_source(tmp_path, deadleaves=5)
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['strid'\] for the built-in source 'street' "
+                                         r"\(StreetSampleSource\); allowed: \['area_downsample', 'bit_depth', 'max_frames', "
+                                         r"'stride'\]"):
+        build_source("street", strid=5)
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['bogus'\] for the built-in source 'deadleaves'"):
+        build_source("deadleaves", n_images=1, bogus=1)
+    with pytest.raises(ValueError, match=r"supersample"):  # (its own message: dead leaves are rendered)
+        build_source("deadleaves", area_downsample=2)
+    assert "extensions" in source_options(f"frames:{tmp_path}") and "names" in source_options("skimage")
+    assert len(build_source(tmp_path, recursive=False, area_downsample=1)) == 1
+    with pytest.raises(ValueError, match=r"source_kwargs: unknown option\(s\) \['n_images'\] for the image folder"):
+        check_source_options(str(tmp_path), {"n_images": 3})
+    check_source_options(str(tmp_path / "not_yet"), {"anything": 1})  # a path that does not exist: named when built
+    with pytest.raises(TypeError, match=r"source_kwargs = \[1\] must be a mapping"):
+        check_source_options("default", [1])

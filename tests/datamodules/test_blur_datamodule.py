@@ -253,3 +253,15 @@ def test_size_range_and_probabilities_name_the_option():
         BlurDataModule(source="unused", noise=True, noise_probability=True)
     with pytest.raises(ValueError, match=r"gain_uniform_in = 'linear' is not one of"):
         BlurDataModule(source="unused", gain_uniform_in="linear")  # also with noise off
+
+
+@pytest.mark.parametrize("families, error, match", [
+    ([1, 1, 1], TypeError, r"families = \[1, 1, 1\] must be a mapping of blur family to weight, e.g. \{defocus: 2.0"),
+    ({"defocus": "a"}, TypeError, r"families\['defocus'\] = 'a' must be a number"),
+    ({"defocus": True}, TypeError, r"families\['defocus'\] = True must be a number"),
+])
+def test_families_of_another_type_are_named(families, error, match):
+    """``BlurDataModule(families=[1, 1, 1])`` raised 'cannot convert dictionary update sequence element #0 to a
+    sequence', naming no option."""
+    with pytest.raises(error, match=match):
+        BlurDataModule(source="unused", families=families)

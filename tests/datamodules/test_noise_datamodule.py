@@ -343,3 +343,30 @@ def test_patch_and_split_options_are_checked_at_construction(kwargs, match):
     """These were stored unchecked and refused only at ``setup``, after the CLI had built the model and Trainer."""
     with pytest.raises(ValueError, match=match):
         NoiseDataModule(source="unused", **kwargs)
+
+
+@pytest.mark.parametrize("source_kwargs, match", [
+    ({"dead_leaves": 60}, r"source_kwargs: unknown option\(s\) \['dead_leaves'\] for the built-in source 'default' "
+                          r"\(DefaultSource\); allowed: \[.*'deadleaves'.*\]"),
+    ({"supersample": 4}, r"source_kwargs: dead-leaves option\(s\) \['supersample'\] given with deadleaves = 0"),
+    ([("deadleaves", 60)], r"source_kwargs = \[\('deadleaves', 60\)\] must be a mapping"),
+])
+def test_source_kwargs_the_source_does_not_take_are_refused_at_construction(source_kwargs, match):
+    """``source_kwargs={'dead_leaves': 60}`` trained on the default source without its 60 dead-leaves images."""
+    error = TypeError if isinstance(source_kwargs, list) else ValueError
+    with pytest.raises(error, match=match):
+        NoiseDataModule(source="default", source_kwargs=source_kwargs)
+    assert len(NoiseDataModule(source="default", source_kwargs={"deadleaves": 2, "deadleaves_size": 64}).source.ids) \
+        == len(NoiseDataModule(source="default").source.ids) + 2
+
+
+def test_seed_out_of_the_range_of_the_crop_generators_is_refused_at_construction():
+    """``seed: 18446744073709551615`` failed at setup with an unnamed 'Overflow when unpacking long long' (the
+    val/test crops are seeded with seed + 1 and seed + 2)."""
+    for seed in (2**64 - 1, 2**64 - 2, 99999999999999999999):
+        with pytest.raises(ValueError, match=rf"seed = {seed} must be >= 0 and <= 18446744073709551613, an integer in "
+                                             r"\[0, 18446744073709551613\]"):
+            NoiseDataModule(source="unused", seed=seed)
+    with pytest.raises(TypeError, match=r"seed = '3' must be an integer in \[0, 18446744073709551613\], got str"):
+        NoiseDataModule(source="unused", seed="3")
+    assert NoiseDataModule(source="unused", seed=2**64 - 3).seed == 2**64 - 3

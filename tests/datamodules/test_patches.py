@@ -163,3 +163,50 @@ def test_training_crops_differ_per_rank_of_a_multi_process_run_without_workers(i
     a = dm.datasets["train"][0]["clean"]
     torch.manual_seed(0)
     assert torch.equal(a, dm.datasets["train"][0]["clean"])
+
+
+def test_featureless_images_are_named_and_their_fallback_patches_marked(tmp_path):
+    """A folder of uniform frames (a lens cap, a saturated or flat scene) trained on featureless patches without a
+    word: ``n_fallback`` was counted and never reported."""
+    import warnings
+
+    from tests.datamodules.conftest import save_png
+
+    for i in range(10):
+        save_png(tmp_path / f"flat{i}.png", np.full((64, 64), 0.5))
+    dm = NoiseDataModule(source=str(tmp_path), **SMALL)
+    with pytest.warns(UserWarning) as caught:
+        dm.setup("fit")
+    messages = [str(w.message) for w in caught if "hard-patch check" in str(w.message)]
+    assert len(messages) == 2  # train and val
+    train = next(m for m in messages if " train image(s)" in m)
+    assert train.startswith(f"NoiseDataModule: {len(dm.datasets['train'].ids)} of {len(dm.datasets['train'].ids)} "
+                            "train image(s) of source")
+    assert "max_tries = 20 draws" in train and "min_std_dn = 2 DN" in train and "keep_hard_patches: true" in train
+    assert dm.datasets["train"].ids[0] in train
+    val = next(m for m in messages if " val image(s)" in m)
+    assert f"{dm.datasets['val'].n_fallback} of its {len(dm.datasets['val'])} fixed crops" in val
+    batch = dm.on_after_batch_transfer(next(iter(dm.train_dataloader())), 0)
+    assert batch["fallback"].dtype == torch.bool and bool(batch["fallback"].all())
+    assert bool(dm.on_after_batch_transfer(next(iter(dm.val_dataloader())), 0)["fallback"].all())
+    # textured images: no warning, no fallback; kept on purpose: no warning either
+    for i in range(10):
+        save_png(tmp_path / f"flat{i}.png", textured(64, i))
+    textured_dm = NoiseDataModule(source=str(tmp_path), **SMALL)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        textured_dm.setup("fit")
+    assert not textured_dm.datasets["train"].featureless and not bool(textured_dm.datasets["val"][0]["fallback"])
+    for i in range(10):
+        save_png(tmp_path / f"flat{i}.png", np.full((64, 64), 0.5))
+    kept = NoiseDataModule(source=str(tmp_path), **SMALL, keep_hard_patches=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        kept.setup("fit")
+
+
+def test_the_featureless_probe_leaves_torchs_generator_alone():
+    torch.manual_seed(3)
+    before = torch.get_rng_state()
+    ds = PatchDataset([_img(np.full((64, 64), 0.5)), _img(textured(64, 1))], ["flat", "tex"], 32, "train")
+    assert ds.featureless == ["flat"] and torch.equal(torch.get_rng_state(), before)

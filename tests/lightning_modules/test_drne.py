@@ -85,3 +85,32 @@ def test_step_map_target_follows_the_batch_noise_sources(monkeypatch):
     NoiseLevelEstimator(patch_size=32)._step(batch)
     rms = seen[0].flatten(1).pow(2).mean(1).sqrt()
     assert torch.allclose(rms, batch["sigma_expected"].pow(2).sum(1).sqrt(), rtol=0.01)
+
+
+@pytest.mark.parametrize("patch_size, dilations, large", [(128, [64, 64, 64], 64), (128, [1, 2, 200], 200),
+                                                          (16, [64], 64), (32, [1, 16], 16)])
+def test_dilations_that_reach_only_the_padding_are_refused(patch_size, dilations, large):
+    """``dilations: [64, 64, 64]`` at 128 px was accepted: the blocks run at 64×64 px, so the eight outer taps of every
+    dilated convolution saw only zero padding (the output was that of the centre taps alone)."""
+    half = patch_size // 2
+    with pytest.raises(ValueError, match=rf"dilations = \({', '.join(map(str, dilations))},?\): {large} is too large for "
+                                         rf"patch_size = {patch_size}: the residual blocks run at half resolution "
+                                         rf"\({half}×{half} px\).*each dilation must be an integer in \[1, {half - 1}\]"):
+        NoiseLevelEstimator(patch_size=patch_size, dilations=dilations)
+    assert NoiseLevelEstimator(patch_size=patch_size, dilations=[half - 1]).net.body[0] is not None
+
+
+def test_the_largest_allowed_dilation_reaches_the_image_with_its_outer_taps():
+    m = NoiseLevelEstimator(patch_size=32, dilations=[15]).eval()
+    x = torch.rand(1, 1, 32, 32)
+    with torch.no_grad():
+        before = m(x)["sigma_map"]
+    convs = [c for c in m.net.body.modules() if isinstance(c, torch.nn.Conv2d) and c.dilation == (15, 15)]
+    assert convs
+    with torch.no_grad():
+        for c in convs:
+            centre = c.weight[..., 1, 1].clone()
+            c.weight.zero_()
+            c.weight[..., 1, 1] = centre
+        after = m(x)["sigma_map"]
+    assert not torch.equal(before, after)  # the outer taps matter at dilation 15 < 16
