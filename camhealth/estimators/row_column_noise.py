@@ -36,17 +36,6 @@ smooth), which :attr:`RowColumnNoise.serial` tests; what passes — random strip
 banding (2.8 % of the benchmark's full-resolution patches without banding, 0.4 % at 3×) — rarely moves σ_Total
 visibly, and a patch whose banding came from its scene is mostly still textured once the band is taken out and is
 refused. :func:`debanded_details` removes the detected offsets from the details the noise fits use.
-
-**Clipped blocks** (all four pixels within ½ DN of 0 or 255: :data:`CLIP_MARGIN_DN`) are left out: a saturated or
-black area has lost the offsets and the noise together, its details are 0 and pulled every row's midmean towards 0
-(5 DN of row noise over 2 DN of pixel noise read 4.65 DN with a fifth of the patch at 255 DN, 2.84 DN with 40 %; with
-them left out 5.21 and 5.05 DN, 5.36 unclipped). A block row's midmean is then the middle half of its n unclipped
-details (k_n and c_n for that n), a row with fewer than :data:`MIN_ROW_BLOCKS` of them is left out with the
-differences it enters, and the counts behind the detection (differences, rows) are those left. A block with only
-some pixels clipped is kept: leaving out every block that holds a clipped pixel selects, under noise clipped at
-scattered pixels, the blocks whose noise and offsets stayed away from the bound, and cancels the offsets (2 DN of row
-noise over 5 DN of pixel noise at a mean of 3 DN, 31 % of the pixels at 0: detected on 6 % of the patches instead of
-99 %). A patch without a fully clipped block is read exactly as before.
 """
 
 from __future__ import annotations
@@ -55,7 +44,6 @@ import functools
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from camhealth._order import lower_median, sorted_values
@@ -63,7 +51,7 @@ from camhealth._validation import check_finite, check_float, check_tensor
 from camhealth.estimators.noise_features import _block_pixels
 
 __all__ = ["RowColumnNoise", "row_column_noise", "debanded_details", "T_LIMIT", "MIN_BANDING_DN", "MIN_DIFFERENCES",
-           "SERIAL_LIMIT", "CLIP_MARGIN_DN", "MIN_ROW_BLOCKS"]
+           "SERIAL_LIMIT"]
 
 #: Significance T above which row or column noise counts as detected. Pixel noise alone: T ≈ 1, 99th percentile
 #: 2.0–2.2 over 128-px patches of white noise (float or 8-bit), the largest of 512 2.7. Clean scenes with their right
@@ -79,11 +67,6 @@ MIN_DIFFERENCES = 16
 #: Largest Σ ρ_k² (lags 1…4) of the block rows' values that still counts as offsets drawn independently per row (an
 #: RMS correlation of 0.16 per lag): a scene's stripes, periodic or smooth, are correlated from row to row.
 SERIAL_LIMIT = 0.1
-#: A pixel within this many DN of 0 or 255 is clipped; a 2×2 block of four clipped pixels is left out (module
-#: docstring).
-CLIP_MARGIN_DN = 0.5
-#: Fewest unclipped blocks (all of them on narrower patches) a block row (column) needs to enter the estimate.
-MIN_ROW_BLOCKS = 8
 _LAGS = 4
 _SERIAL_CHI2 = 18.47  # χ²₄ at 99.9 %
 # 1.4826 = 1/Φ⁻¹(¾): the MAD of a normal sample times it is its standard deviation
@@ -151,56 +134,6 @@ def _midmean(h: torch.Tensor, w: int) -> tuple[torch.Tensor, torch.Tensor]:
     return m.double(), (mid.square().mean(-1) - m.square()).clamp_min(0.0).double()
 
 
-@functools.lru_cache(maxsize=None)
-def _midmean_constants_fast(n: int) -> tuple[float, float]:
-    """(k_n, c_n) as :func:`_midmean_constants` for rows of ``n`` values, from 2¹⁴ seeded rows in NumPy (a few ms; the
-    rows of a clipped patch have many different n): within about 1 % of the 2¹⁶-row values."""
-    rng = np.random.default_rng(n)
-    lo = n // 4
-    mid = np.sort(rng.standard_normal((1 << 14, n)), axis=1)[:, lo:n - lo]
-    return float(mid.var(axis=1).mean()), float(mid.mean(axis=1).var() * n)
-
-
-def _block_clipped(x: torch.Tensor) -> torch.Tensor:
-    """(B, ⌊H/2⌋, ⌊W/2⌋) bool: the 2×2 blocks of B×1×H×W patches whose four pixels all lie within
-    :data:`CLIP_MARGIN_DN` of 0 or 255 DN (module docstring)."""
-    out = None
-    for q in _block_pixels(x.float()):
-        c = (q.abs() <= CLIP_MARGIN_DN) | ((q - 255.0).abs() <= CLIP_MARGIN_DN)
-        out = c if out is None else out & c
-    return out[:, 0]
-
-
-def _masked_midmean(h: torch.Tensor, keep: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`_midmean` over the values ``keep`` marks, per row (…, W): the midmean and the variance of the middle half
-    of the n kept values (float64; sorted in float32), and n (int64). Rows with nothing kept give 0."""
-    w = h.shape[-1]
-    n = keep.sum(-1)
-    hs = sorted_values(torch.where(keep, h.float(), torch.full_like(h, math.inf, dtype=torch.float32)))
-    lo = torch.div(n, 4, rounding_mode="floor").unsqueeze(-1)
-    idx = torch.arange(w, device=h.device)
-    sel = (idx >= lo) & (idx < n.unsqueeze(-1) - lo)
-    cnt = sel.sum(-1).clamp_min(1).float()
-    mid = torch.where(sel, hs, torch.zeros_like(hs))
-    m = mid.sum(-1) / cnt
-    var = (mid.square().sum(-1) / cnt - m.square()).clamp_min(0.0)
-    return m.double(), var.double(), n
-
-
-def _masked_lower_median(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """The lower median of the values ``valid`` marks along the last dimension (0 where none is)."""
-    n = valid.sum(-1, keepdim=True)
-    xs = sorted_values(torch.where(valid, x, torch.full_like(x, math.inf)))
-    k = (torch.div(n + 1, 2, rounding_mode="floor") - 1).clamp_min(0)
-    return torch.where(n[..., 0] > 0, xs.gather(-1, k)[..., 0], torch.zeros_like(xs[..., 0]))
-
-
-def _masked_mad_var(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """:func:`_mad_var` over the values ``valid`` marks (0 where none is)."""
-    med = _masked_lower_median(x, valid).unsqueeze(-1)
-    return (_masked_lower_median((x - med).abs(), valid) * _MAD_TO_SD).square()
-
-
 def _directions(h: torch.Tensor, pool: bool) -> tuple[torch.Tensor, ...]:
     """σ̂² [DN²], its standard error, T and the serial correlation, each (D, B), for details h (D, B, J, W) whose
     rows j carry the offsets (module docstring); D directions at once (rows, and columns transposed)."""
@@ -240,63 +173,6 @@ def _serial_correlation(mid: torch.Tensor, pool: bool) -> torch.Tensor:
     return rho.square().sum(-1)
 
 
-def _masked_serial_correlation(mid: torch.Tensor, row_ok: torch.Tensor, pool: bool) -> torch.Tensor:
-    """:func:`_serial_correlation` over the block rows ``row_ok`` marks (…, B, J): the line, the clip and the mean over
-    those rows, ρ_k over the pairs of them k rows apart; pooled, the mean ρ_k of the patches with two rows or more."""
-    j = mid.shape[-1]
-    m = row_ok.to(mid.dtype)
-    cnt = m.sum(-1, keepdim=True)
-    t = torch.arange(j, dtype=mid.dtype, device=mid.device)
-    tm = (m * t).sum(-1, keepdim=True) / cnt.clamp_min(1.0)
-    mm = (m * mid).sum(-1, keepdim=True) / cnt.clamp_min(1.0)
-    tc = (t - tm) * m
-    slope = (tc * (mid - mm)).sum(-1, keepdim=True) / tc.square().sum(-1, keepdim=True).clamp_min(1e-12)
-    res = (mid - mm - slope * (t - tm)) * m
-    lim = 3.0 * _masked_mad_var(res, row_ok).sqrt().unsqueeze(-1)
-    res = torch.maximum(torch.minimum(res, lim), -lim) * m
-    res = (res - res.sum(-1, keepdim=True) / cnt.clamp_min(1.0)) * m
-    var = res.square().sum(-1).clamp_min(1e-12)
-    rho = torch.stack([(res[..., k:] * res[..., :-k]).sum(-1) / var for k in range(1, _LAGS + 1)], -1)  # (…, B, LAGS)
-    if pool:
-        used = (cnt >= 2).to(mid.dtype)  # (…, B, 1)
-        rho = (rho * used).sum(-2, keepdim=True) / used.sum(-2, keepdim=True).clamp_min(1.0)
-    return rho.square().sum(-1)
-
-
-def _masked_directions(h: torch.Tensor, keep: torch.Tensor, pool: bool) -> tuple[torch.Tensor, ...]:
-    """:func:`_directions` over the blocks ``keep`` marks (D, B, J, W): each row's midmean over its kept details with
-    the constants of their number, rows with fewer than :data:`MIN_ROW_BLOCKS` (all W where W is smaller) left out
-    with their differences. Returns σ̂², its standard error, T, the serial correlation, the differences and the block
-    rows behind them, each (D, B); 0 where no difference is left."""
-    d, b, w = h.shape[0], h.shape[1], h.shape[-1]
-    mid, mid_var, n = _masked_midmean(h, keep)  # (D, B, J)
-    row_ok = n >= min(MIN_ROW_BLOCKS, w)
-    k_tab = torch.ones(w + 1, dtype=torch.float64, device=h.device)
-    c_tab = torch.ones(w + 1, dtype=torch.float64, device=h.device)
-    for v in torch.unique(n[row_ok]).tolist():
-        k_tab[v], c_tab[v] = _midmean_constants(w) if v == w else _midmean_constants_fast(int(v))
-    k_n, c_n = k_tab[n], c_tab[n]
-    per_value = c_n * (mid_var / k_n) / n.clamp_min(1).double()  # c_n·s²/n: the variance of each midmean
-    delta = mid[..., 1:] - mid[..., :-1]
-    nu = per_value[..., 1:] + per_value[..., :-1]
-    valid = row_ok[..., 1:] & row_ok[..., :-1]
-    t = torch.where(valid, delta / nu.clamp_min(1e-12).sqrt(), torch.zeros_like(delta))
-    if pool:
-        delta, nu, t, valid = (v.reshape(d, 1, -1) for v in (delta, nu, t, valid))
-    n_diff = valid.sum(-1)  # (D, B) or (D, 1)
-    var_delta = _masked_mad_var(delta, valid)
-    sig2 = ((var_delta - _masked_lower_median(nu, valid)) / 4.0).clamp_min(0.0)
-    se = 2.0 * 1.166 * var_delta / n_diff.clamp_min(1).double().sqrt() / 4.0
-    serial = _masked_serial_correlation(mid, row_ok, pool)
-    rows = row_ok.sum(-1)
-    if pool:
-        rows = rows.sum(-1, keepdim=True)
-    some = n_diff > 0
-    out = tuple(torch.where(some, v, torch.zeros_like(v)) for v in (sig2, se, _masked_mad_var(t, valid), serial))
-    out = out + (n_diff, rows)
-    return tuple(v.expand(d, b) for v in out) if pool else out
-
-
 def row_column_noise(patches: torch.Tensor, pool: bool = False) -> RowColumnNoise:
     """Row and column noise of B×1×H×W patches in [0, 1] (H, W ≥ 8; module docstring).
 
@@ -328,24 +204,10 @@ def row_column_noise(patches: torch.Tensor, pool: bool = False) -> RowColumnNois
         both = tuple(torch.cat(p) for p in zip(_directions(h.unsqueeze(0), pool), _directions(vt.unsqueeze(0), pool)))
     sig2, se, tt, serial = (q.t() for q in both)  # each (B, 2): rows, columns
     k = h.shape[0] if pool else 1
-    n_rows = torch.tensor([[h.shape[-2] * k, v.shape[-1] * k]], device=serial.device).expand(sig2.shape)
-    n_diff = torch.tensor([[(h.shape[-2] - 1) * k, (v.shape[-1] - 1) * k]], device=serial.device).expand(sig2.shape)
-    clip = _block_clipped(x.detach())
-    hit = clip.flatten(1).any(1)  # (B,) patches with a clipped block: read over their unclipped blocks
-    if bool(hit.any()):
-        sel = torch.ones_like(hit) if pool else hit  # pooled: one estimate for every patch
-        keep_h, keep_v = ~clip[sel], ~clip[sel].transpose(-1, -2)
-        hs, vts = h[sel], vt[sel]
-        if hs.shape == vts.shape:
-            m_both = _masked_directions(torch.stack([hs, vts]), torch.stack([keep_h, keep_v]), pool)
-        else:
-            m_both = tuple(torch.cat(p) for p in zip(_masked_directions(hs.unsqueeze(0), keep_h.unsqueeze(0), pool),
-                                                     _masked_directions(vts.unsqueeze(0), keep_v.unsqueeze(0), pool)))
-        sig2, se, tt, serial, n_rows, n_diff = (q.clone() for q in (sig2, se, tt, serial, n_rows, n_diff))
-        for full, part in zip((sig2, se, tt, serial, n_diff, n_rows), m_both):
-            full[sel] = part.t().to(full.dtype)
-    white = serial <= torch.clamp(_SERIAL_CHI2 / n_rows.clamp_min(1).to(serial.dtype), min=SERIAL_LIMIT)
-    enough = n_diff >= MIN_DIFFERENCES  # differences Δ_j behind the MAD, rows and columns
+    n = (h.shape[-2] * k, v.shape[-1] * k)
+    white = serial <= torch.tensor([max(_SERIAL_CHI2 / m, SERIAL_LIMIT) for m in n], dtype=serial.dtype, device=serial.device)
+    enough = torch.tensor([(h.shape[-2] - 1) * k >= MIN_DIFFERENCES, (v.shape[-1] - 1) * k >= MIN_DIFFERENCES],
+                          device=serial.device)  # differences Δ_j behind the MAD, rows and columns
     sigma = sig2.sqrt().contiguous()
     detected = (tt > T_LIMIT) & (sigma > MIN_BANDING_DN) & white & enough
     return RowColumnNoise(sigma, se.contiguous(), tt.contiguous(), serial.contiguous(), detected)
@@ -363,22 +225,13 @@ def debanded_details(x: torch.Tensor, m: torch.Tensor, d2: torch.Tensor, g2: tor
         return d2, g2
     d2, g2 = d2.clone(), g2.clone()
     hd, vd = _signed_details(x)
-    clip = _block_clipped(x)
     rows, cols = detected[:, 0], detected[:, 1]
-
-    def offsets(det: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:  # the midmean of each row (B', J, 1)
-        mid = _midmean(det, det.shape[-1])[0]
-        hit = ~keep.flatten(1).all(1)
-        if bool(hit.any()):  # a patch with clipped blocks: the midmean of its unclipped details (module docstring)
-            mid = torch.where(hit.view(-1, 1), _masked_midmean(det, keep)[0], mid)
-        return mid.unsqueeze(-1)
-
     if bool(rows.any()):
         hs = hd[rows]
-        d2[1, rows, 0] = (hs - offsets(hs, ~clip[rows])).square().float()
+        d2[1, rows, 0] = (hs - _midmean(hs, hs.shape[-1])[0].unsqueeze(-1)).square().float()
     if bool(cols.any()):
         vs = vd[cols].transpose(-1, -2)
-        d2[2, cols, 0] = (vs - offsets(vs, ~clip[cols].transpose(-1, -2))).square().transpose(-1, -2).float()
+        d2[2, cols, 0] = (vs - _midmean(vs, vs.shape[-1])[0].unsqueeze(-1)).square().transpose(-1, -2).float()
     mm = m[:, 0].float()
     gv = torch.zeros_like(mm)
     gh = torch.zeros_like(mm)
