@@ -83,7 +83,7 @@ def test_outputs_round_trip_into_predict_monitor_and_fit(icx_result, tmp_path):
         assert float(getattr(loaded, f)) == pytest.approx(float(getattr(res.metadata, f)), rel=1e-5)
     assert float(load_metadata(str(paths["metadata"])).full_well_e) == pytest.approx(float(loaded.full_well_e))  # monitor --metadata
     assert float(_to_metadata(str(paths["metadata"]), 4, None).white_noise_v_per_rthz) == pytest.approx(float(loaded.white_noise_v_per_rthz))  # predict
-    dm = NoiseDataModule(sensor=str(paths["metadata"]), source="deadleaves", source_kwargs={"n": 2, "size": 64})  # fit's sensor:
+    dm = NoiseDataModule(sensor=str(paths["metadata"]), source="deadleaves", source_kwargs={"n_images": 2, "size": 64})  # fit's sensor:
     meta, _, _ = dm.sample_metadata(8, torch.Generator().manual_seed(0))
     assert torch.allclose(meta.full_well_e, loaded.full_well_e.expand(8)) and meta.gain_db.unique().numel() > 1
     details = yaml.safe_load(paths["details"].read_text())
