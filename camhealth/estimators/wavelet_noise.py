@@ -110,7 +110,7 @@ def clipped_support_db2(images: torch.Tensor) -> torch.Tensor:
     """(B, (H+3)//2, (W+3)//2) bool: the coefficients of :func:`diagonal_detail_db2` with more than half of their
     4×4-px support (after the symmetric extension) within :data:`CLIP_MARGIN` of 0 or 1."""
     x = images[:, 0]
-    c = ((x <= CLIP_MARGIN) | (x >= 1.0 - CLIP_MARGIN)).double()
+    c = ((x <= CLIP_MARGIN) | (x >= 1.0 - CLIP_MARGIN)).float()  # counts of 16: exact in float32
     ones = (1.0, 1.0, 1.0, 1.0)
     s = _filter_along_last(c, ones)
     return _filter_along_last(s.transpose(-1, -2), ones).transpose(-1, -2) > 8.0  # clipped pixels of 16
@@ -184,9 +184,14 @@ def wavelet_noise_sigma(images: torch.Tensor, backend: str = "auto") -> torch.Te
             "backend='skimage' needs PyWavelets (pip install PyWavelets) for skimage.restoration.estimate_sigma; "
             "use backend='torch' or 'auto'"
         )
-    lo, hi = torch.aminmax(x.detach())
-    any_clipped = bool((lo <= CLIP_MARGIN) | (hi >= 1.0 - CLIP_MARGIN))
-    clipped = clipped_support_db2(x.detach()) if any_clipped else None  # nothing clipped (the common case): no mask
+    flat = x.detach().flatten(1)
+    has = (flat.amin(1) <= CLIP_MARGIN) | (flat.amax(1) >= 1.0 - CLIP_MARGIN)  # images that reach a bound
+    clipped = None  # nothing clipped (the common case): no mask
+    if bool(has.any()):  # the mask of the images that reach a bound only
+        sel = has.nonzero(as_tuple=True)[0]
+        part = clipped_support_db2(x.detach()[sel])
+        clipped = torch.zeros((x.shape[0], *part.shape[1:]), dtype=torch.bool, device=x.device)
+        clipped[sel] = part
     if use_skimage:
         return (DN * _pywt_sigma(x, clipped)).to(device=x.device, dtype=out)
     return (DN * _torch_sigma(x, clipped)).to(out)
