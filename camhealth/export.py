@@ -1,8 +1,10 @@
 """Export a trained estimator: ``python -m camhealth.export CKPT --format {weights,pt2,onnx} [--out PATH]``.
 
 Formats (every file carries the same JSON description: kind, patch size, metadata set, architecture
-arguments, params, FLOPs, metrics and, for an MTF model, its error table ``mtf_error`` — read back by
-:func:`camhealth.load_estimator`; exporting a file again keeps its metrics and error table):
+arguments, params, FLOPs, metrics, the test data they were measured on (``evaluation``: the datamodule and the
+precision of the fit's test, which ``python -m camhealth.model_card WEIGHTS --verify`` runs again) and, for an MTF
+model, its error table ``mtf_error`` — read back by :func:`camhealth.load_estimator`; exporting a file again keeps
+its metrics, evaluation and error table):
 
 - ``weights`` (``.pt``): the state dict plus the description, a file that :func:`torch.load` opens with
   ``weights_only=True`` (tensors and plain containers only, no pickled code). The shipped models are these.
@@ -51,7 +53,8 @@ refused at load with a message that names the option and what replaced it (:func
 
 Every file's description is checked field by field at load (:func:`_check_description`): its format ``version`` must
 be :data:`FORMAT_VERSION` (a file without one is read as that version), ``metrics`` a JSON object of numbers or null,
-``params`` and ``flops_per_patch`` non-negative integers. A weights file or checkpoint is a zip archive whose entries'
+``evaluation`` one of :data:`EVALUATION_DATAMODULES` with JSON arguments and a precision of
+:data:`EVALUATION_PRECISIONS` (:func:`check_evaluation`: a file names no other class to import), ``params`` and ``flops_per_patch`` non-negative integers. A weights file or checkpoint is a zip archive whose entries'
 declared sizes are checked before ``torch.load`` inflates anything (:func:`camhealth._pt2_check.zip_size_problem`), and
 weights that are not finite in the network's float32 (a float64 value beyond its range) are refused at load.
 """
@@ -72,7 +75,7 @@ import torch
 from camhealth._cli import add_debug_flag, config_parser, debugging, run_cli
 from camhealth.nets import NETWORKS, check_patch_size, network_for
 
-__all__ = ["CARRIED", "FORMAT_TAG", "set_description_entries", "SelfContainedNoiseSource", "ONNX_NOISE_OUTPUTS", "ONNX_REASONS", "export_weights", "export_pt2",
+__all__ = ["CARRIED", "EVALUATION_DATAMODULES", "EVALUATION_PRECISIONS", "FORMAT_TAG", "check_evaluation", "set_description_entries", "SelfContainedNoiseSource", "ONNX_NOISE_OUTPUTS", "ONNX_REASONS", "export_weights", "export_pt2",
            "export_onnx", "load_net", "load_module", "main", "ALLOWED_CLASSES", "check_retired", "network_metadata_set"]
 
 FORMAT_TAG = "camhealth-estimator"
@@ -338,6 +341,8 @@ def _read(source: str | Path) -> tuple[Path, dict, dict, dict]:
         network_for(desc["class_path"]).check_training_args(init_args)
     except ValueError as exc:
         raise ValueError(f"{path}: description init_args: {exc}") from None
+    if desc.get("evaluation") is not None:
+        check_evaluation(desc["evaluation"], f"{path}: description evaluation")
     if desc.get("kind") == "mtf" and desc.get("mtf_error") is not None:
         from camhealth.estimators.mtf_error import MTFErrorTable
 
@@ -456,8 +461,45 @@ def load_module(source: str | Path):
 
 
 #: Description entries a file carries over when it is exported again (measured on the trained network, not
-#: derived from the module): the MTF error table of :mod:`camhealth.estimators.mtf_error`.
-CARRIED = ("mtf_error",)
+#: derived from the module): the MTF error table of :mod:`camhealth.estimators.mtf_error` and the test data of its
+#: ``metrics`` (:func:`check_evaluation`).
+CARRIED = ("mtf_error", "evaluation")
+
+#: The datamodules a file's ``evaluation`` may name (``class_path``): the only classes built from a file's
+#: description, so a file cannot make the verifier import anything else.
+EVALUATION_DATAMODULES = ("datamodules.NoiseDataModule", "datamodules.BlurDataModule")
+#: Lightning precisions a file's ``evaluation`` may name.
+EVALUATION_PRECISIONS = ("32-true", "32", "bf16-mixed", "bf16-true", "bf16", "16-mixed", "16-true", "16", "64-true", "64")
+
+
+def check_evaluation(entry: Any, where: str = "evaluation") -> dict:
+    """Check a description's ``evaluation`` — ``{"data": {"class_path": one of EVALUATION_DATAMODULES,
+    "init_args": {...}}, "precision": one of EVALUATION_PRECISIONS}`` and, where the fit's test read part of the
+    split, ``"limit_test_batches"`` (Lightning's: batches ≥ 1 or a fraction in (0, 1]) — the test data the file's
+    ``metrics`` were measured on — and return it; a ``ValueError`` names the field, its value and what is allowed."""
+    if not isinstance(entry, Mapping):
+        raise ValueError(f"{where} must be a JSON object with 'data' and 'precision', got {type(entry).__name__}")
+    extra = sorted(set(map(str, entry)) - {"data", "precision", "limit_test_batches"})
+    if extra:
+        raise ValueError(f"{where} has unknown keys {extra[:4]}; allowed: ['data', 'precision', 'limit_test_batches']")
+    limit = entry.get("limit_test_batches", 1.0)
+    if isinstance(limit, bool) or not (isinstance(limit, int) and limit >= 1 or isinstance(limit, float) and 0 < limit <= 1):
+        raise ValueError(f"{where} limit_test_batches = {repr(limit)[:40]} must be a whole number of batches ≥ 1 or a "
+                         f"fraction in (0, 1]")
+    data = entry.get("data")
+    if not isinstance(data, Mapping) or set(map(str, data)) != {"class_path", "init_args"}:
+        raise ValueError(f"{where} data must be a JSON object with exactly 'class_path' and 'init_args', got "
+                         f"{repr(data)[:80]}")
+    if data["class_path"] not in EVALUATION_DATAMODULES:
+        raise ValueError(f"{where} data class_path = {repr(data['class_path'])[:80]} must be one of "
+                         f"{list(EVALUATION_DATAMODULES)}")
+    if not isinstance(data["init_args"], Mapping) or not all(isinstance(k, str) for k in data["init_args"]):
+        raise ValueError(f"{where} data init_args must be a JSON object with string keys, got "
+                         f"{repr(data['init_args'])[:80]}")
+    if entry.get("precision") not in EVALUATION_PRECISIONS:
+        raise ValueError(f"{where} precision = {repr(entry.get('precision'))[:40]} must be one of "
+                         f"{list(EVALUATION_PRECISIONS)}")
+    return dict(entry)
 
 
 def _description(module, metrics: Mapping[str, float] | None, carried: Mapping[str, Any] | None = None) -> dict:
@@ -479,9 +521,13 @@ def _module_and_metrics(source, metrics):
     return source.eval(), metrics, {}
 
 
-def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None) -> Path:
-    """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file."""
+def export_weights(source, out: str | Path, metrics: Mapping[str, float] | None = None,
+                   evaluation: Mapping[str, Any] | None = None) -> Path:
+    """Write ``source`` (an EstimatorModule, a checkpoint or weights path) as a camhealth weights file; ``evaluation``
+    (:func:`check_evaluation`) names the test data of ``metrics``."""
     module, metrics, carried = _module_and_metrics(source, metrics)
+    if evaluation is not None:
+        carried = {**carried, "evaluation": check_evaluation(json.loads(json.dumps(evaluation)))}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in module.net.state_dict().items()}
@@ -501,7 +547,10 @@ def set_description_entries(source: str | Path, entries: Mapping[str, Any], out:
     if obj.get("format") != FORMAT_TAG:
         raise ValueError(f"{path} is not a camhealth weights file (format {FORMAT_TAG!r}); export it first")
     desc, state = _description_and_state(obj, path)
-    desc.update(json.loads(json.dumps(dict(entries))))
+    entries = json.loads(json.dumps(dict(entries)))
+    if entries.get("evaluation") is not None:
+        check_evaluation(entries["evaluation"], "description evaluation")
+    desc.update(entries)
     payload = {"format": FORMAT_TAG, "version": obj.get("version", FORMAT_VERSION), "description": json.dumps(desc),
                "state_dict": state}
     out = Path(out) if out is not None else path

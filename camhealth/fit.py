@@ -319,13 +319,41 @@ class FitCLI(LightningCLI):
         if cfg["export_weights"] and trainer.is_global_zero:
             from camhealth.export import export_weights
 
-            path = export_weights(best or self.model, cfg["export_weights"], metrics=results.get("test"))
+            evaluation = _evaluation_entry(self.datamodule, trainer) if cfg["test_after_fit"] else None
+            path = export_weights(best or self.model, cfg["export_weights"], metrics=results.get("test"),
+                                  evaluation=evaluation)
             results["weights"] = str(path)
         if trainer.is_global_zero:
             log_dir.mkdir(parents=True, exist_ok=True)
             (log_dir / "fit_results.json").write_text(json.dumps(results, indent=2))
             print(json.dumps(results, indent=2))
         self.results = results
+
+
+def _evaluation_entry(datamodule, trainer) -> dict | None:
+    """The test data of the fit's metrics, for the weights file (:func:`camhealth.export.check_evaluation`): the
+    datamodule's class and arguments and the trainer's precision; None where they cannot be recorded (a datamodule
+    of another class, arguments that are not JSON), so that ``model_card --verify`` says the file records none."""
+    from camhealth.export import EVALUATION_DATAMODULES, EVALUATION_PRECISIONS
+
+    cls = type(datamodule)
+    class_path = f"datamodules.{cls.__name__}"
+    if class_path not in EVALUATION_DATAMODULES or cls.__module__.split(".")[0] != "datamodules":
+        return None
+    precision = str(trainer.precision)
+    if precision not in EVALUATION_PRECISIONS:
+        return None
+    try:
+        # (LightningCLI adds its own ``_class_path`` to the saved hyper-parameters: not an argument)
+        hparams = {k: v for k, v in dict(datamodule.hparams).items() if not str(k).startswith("_")}
+        init_args = json.loads(json.dumps(hparams, allow_nan=False))
+    except (TypeError, ValueError):
+        return None
+    entry = {"data": {"class_path": class_path, "init_args": init_args}, "precision": precision}
+    limit = trainer.limit_test_batches
+    if limit is not None and not (isinstance(limit, float) and limit == 1.0):
+        entry["limit_test_batches"] = limit
+    return entry
 
 
 def _metric_value(value) -> float | None:

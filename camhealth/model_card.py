@@ -6,6 +6,12 @@ reproduce, training procedure. It is written from what the weights file itself r
 arguments, params, FLOPs, held-out test metrics of the fit), the command that reproduces it, and a fresh timing of
 ``Estimator.predict`` on this machine (fp32 and bf16). ``--refresh`` rewrites a card in place, keeping its command
 and training procedure.
+
+``python -m camhealth.model_card WEIGHTS --verify`` measures the stored metrics again: it runs the test of the fit
+(:meth:`lightning.Trainer.test`, CPU) on the test split the file records (description ``evaluation``: the datamodule,
+its arguments, the precision and any ``limit_test_batches``; ``--data-config CONFIG`` for a file that records none — the ``data:`` and
+``trainer: precision`` of a fit config) and prints each metric stored and measured. It exits with 1 when one differs by
+more than ``--atol + --rtol·|stored|``: a card whose numbers no longer describe its weights (:func:`verify_metrics`).
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import torch
 
 from camhealth._cli import add_debug_flag, config_parser, run_cli
 
-__all__ = ["SECTIONS", "card_text", "main", "read_card", "write_card"]
+__all__ = ["SECTIONS", "card_text", "main", "read_card", "verify_metrics", "write_card"]
 
 _DATA = {
     "noise_source": "`datamodules.NoiseDataModule` — embedded scikit-image photos + 50 street frames + procedural "
@@ -154,8 +160,9 @@ def card_text(weights: Path, command: str, notes: str = "", timing: dict[str, fl
         "",
         "## Evaluation",
         "",
-        "Held-out test split of the training generator, measured after fit and stored in the file; the same "
-        "simulator made it, so it is not independent evidence (again on this machine: "
+        "Held-out test split of the training generator, measured after fit and stored in the file with the split "
+        f"it was measured on (`python -m camhealth.model_card {est.name} --verify` runs that test again and compares); "
+        "the same simulator made it, so it is not independent evidence (on the benchmark's own patches: "
         f"`python -m camhealth.bench estimators --models {est.name}`). " + _INDEPENDENT[est.kind],
         "",
         "| metric | value |",
@@ -268,6 +275,89 @@ def weights_path(weights: str | Path) -> Path:
     return shipped_models().get(weights, path)
 
 
+def _evaluation_from_config(config: str | Path) -> dict:
+    """The ``evaluation`` entry of a fit config (YAML: its ``data:`` section and ``trainer: precision``)."""
+    import yaml
+
+    from camhealth.export import check_evaluation
+
+    path = Path(config)
+    if not path.is_file():
+        raise FileNotFoundError(f"--data-config {str(path)!r}: no such file (a fit config, e.g. configs/drne.yaml)")
+    cfg = yaml.safe_load(path.read_text(encoding="utf-8"))
+    if not isinstance(cfg, dict) or not isinstance(cfg.get("data"), dict):
+        raise ValueError(f"--data-config {str(path)!r} has no 'data:' section with class_path and init_args")
+    data = {"class_path": cfg["data"].get("class_path"), "init_args": cfg["data"].get("init_args") or {}}
+    trainer = cfg.get("trainer") if isinstance(cfg.get("trainer"), dict) else {}
+    precision = str(trainer.get("precision", "32-true"))
+    return check_evaluation({"data": data, "precision": precision}, f"--data-config {str(path)!r}")
+
+
+def verify_metrics(weights: str | Path, data_config: str | Path | None = None, rtol: float = 0.02,
+                   atol: float = 0.01) -> list[dict]:
+    """Measure a weights file's stored test metrics again and compare.
+
+    The test split is the one the file records (description ``evaluation``) or, for a file without a record, the one
+    of ``data_config`` (a fit config). The run is :meth:`lightning.Trainer.test` of the file's LightningModule on
+    CPU in the recorded precision, the datamodule with ``num_workers = 0`` (the split and its corruption do not
+    depend on the workers). Returns one row per stored metric: ``metric``, ``stored``, ``measured`` (None where
+    the run logs none), ``ok`` (both null — a metric without data —, or ``|measured − stored| ≤ atol + rtol·|stored|``;
+    σ metrics in DN, AMAE in %)."""
+    import math
+
+    import datamodules
+    import lightning as L
+
+    from camhealth.export import check_evaluation, load_module
+
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} = {value!r} must be a finite number ≥ 0")
+    path = weights_path(weights)
+    module, desc = load_module(path)
+    stored = desc.get("metrics")
+    if not stored:
+        raise ValueError(f"{path} records no metrics to verify (a file exported without --test_after_fit)")
+    if data_config is not None:
+        evaluation = _evaluation_from_config(data_config)
+    elif desc.get("evaluation") is not None:
+        evaluation = check_evaluation(desc["evaluation"], f"{path}: description evaluation")
+    else:
+        raise ValueError(f"{path} records no evaluation (the test data of its metrics); give --data-config CONFIG, "
+                         f"the fit config that trained it (e.g. configs/drne.yaml)")
+    cls = getattr(datamodules, evaluation["data"]["class_path"].split(".", 1)[1])
+    init_args = {**evaluation["data"]["init_args"], "num_workers": 0}
+    datamodule = cls(**init_args)
+    if hasattr(module, "log_figures"):
+        module.log_figures = False
+    trainer = L.Trainer(accelerator="cpu", devices=1, precision=evaluation["precision"], logger=False,
+                        limit_test_batches=evaluation.get("limit_test_batches", 1.0),
+                        enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False)
+    measured = trainer.test(module, datamodule=datamodule, verbose=False)[0]
+    rows = []
+    for key, value in stored.items():
+        got = measured.get(key)
+        got = None if got is None or float(got) != float(got) else float(got)
+        if value is None or got is None:
+            ok = value is None and got is None
+        else:
+            ok = abs(got - value) <= atol + rtol * abs(value)
+        rows.append({"metric": key, "stored": value, "measured": got, "ok": ok})
+    return rows
+
+
+def _verify_table(rows: list[dict]) -> str:
+    def cell(v):
+        return "null" if v is None else f"{v:.4g}"
+
+    lines = ["| metric | stored | measured | difference | ok |", "|---|---:|---:|---:|---|"]
+    for r in rows:
+        diff = "" if r["stored"] is None or r["measured"] is None else f"{r['measured'] - r['stored']:+.3g}"
+        lines.append(f"| {r['metric']} | {cell(r['stored'])} | {cell(r['measured'])} | {diff} | "
+                     f"{'yes' if r['ok'] else '**NO**'} |")
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> Path:
     p = config_parser(prog="python -m camhealth.model_card", description=__doc__)
     p.add_argument("weights", help="camhealth weights file (.pt), or a shipped model's name (e.g. drne: "
@@ -276,8 +366,29 @@ def main(argv: Sequence[str] | None = None) -> Path:
     p.add_argument("--refresh", action="store_true",
                    help="keep the existing card's command and training procedure, measure and write the rest again")
     p.add_argument("--notes", default=None, help="the training procedure (free text); with --refresh: the card's")
+    p.add_argument("--verify", action="store_true",
+                   help="measure the stored test metrics again on the recorded test split and compare (exit 1 when "
+                        "one differs); writes nothing")
+    p.add_argument("--data-config", default=None,
+                   help="with --verify: the fit config whose data and precision to test on, for a file that records none")
+    p.add_argument("--rtol", type=float, default=0.02, help="with --verify: relative tolerance")
+    p.add_argument("--atol", type=float, default=0.01, help="with --verify: absolute tolerance (DN or %%)")
     add_debug_flag(p)
     args = p.parse_args(argv)
+    if args.verify:
+        if args.command is not None or args.refresh or args.notes is not None:
+            raise ValueError("--verify writes no card: give it without --command, --refresh and --notes")
+        weights = weights_path(args.weights)
+        rows = verify_metrics(weights, args.data_config, rtol=args.rtol, atol=args.atol)
+        print(_verify_table(rows))
+        bad = [r["metric"] for r in rows if not r["ok"]]
+        if bad:
+            print(f"{weights}: {len(bad)} of {len(rows)} stored metrics differ from a fresh test: {', '.join(bad)}")
+            raise SystemExit(1)
+        print(f"{weights}: all {len(rows)} stored metrics reproduced (atol {args.atol}, rtol {args.rtol})")
+        return weights
+    if args.data_config is not None:
+        raise ValueError("--data-config is an option of --verify")
     if (args.command is None) == (not args.refresh):
         raise ValueError("give either --command (the command that trained the weights) or --refresh (keep the card's)")
     weights = weights_path(args.weights)

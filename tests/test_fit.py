@@ -62,6 +62,14 @@ def test_tiny_fit_writes_checkpoint_results_and_weights(config, tmp_path):
     est = load_estimator(weights)
     assert est.patch_size == 32
     assert est.description["metrics"] == pytest.approx(results["test"])
+    # the file records the test data of its metrics, and a fresh test of the weights measures them again
+    evaluation = est.description["evaluation"]
+    assert evaluation["precision"] == "32-true" and evaluation.get("limit_test_batches", 1.0) == cli.trainer.limit_test_batches
+    assert evaluation["data"]["init_args"]["patch_size"] == 32
+    from camhealth.model_card import verify_metrics
+
+    rows = verify_metrics(weights)
+    assert rows and all(r["ok"] for r in rows), rows
     if config == "mtf.yaml":  # this tiny test split has no non-linear motion patch
         assert results["test"]["test/amae_nonlinear"] is None and results["test"]["test/amae"] is not None
     # TensorBoard event files were written

@@ -195,3 +195,143 @@ def test_card_says_how_a_file_that_is_not_shipped_loads_and_in_which_format(tmp_
     assert _format_line(SimpleNamespace(backend="onnx", source="x.onnx")).startswith("- **Format**: ONNX (ONNX Runtime")
     assert _format_line(SimpleNamespace(backend="pt2", source="x.pt2")).startswith("- **Format**: exported program")
     assert "Lightning checkpoint" in _format_line(SimpleNamespace(backend="torch", source="run/best.ckpt"))
+
+
+# ---- --verify: the stored metrics measured again -------------------------------------------------------------------
+
+_TINY_EVALUATION = {
+    "data": {"class_path": "datamodules.NoiseDataModule",
+             "init_args": {"source": "deadleaves", "source_kwargs": {"n_images": 8, "size": [80, 80]}, "patch_size": 32,
+                           "batch_size": 4, "patches_per_image": 1, "val_patches_per_image": 1, "val_fraction": 0.25,
+                           "test_fraction": 0.25, "seed": 0, "metadata_set": "none"}},
+    "precision": "32-true",
+}
+
+
+def _tiny_drne(tmp_path, metrics, evaluation=_TINY_EVALUATION):
+    from lightning_modules import NoiseLevelEstimator
+
+    torch.manual_seed(0)
+    return export_weights(NoiseLevelEstimator(patch_size=32, width=4, dilations=(1,)), tmp_path / "drne.pt",
+                          metrics=metrics, evaluation=evaluation)
+
+
+def test_verify_reproduces_the_measured_metrics_and_names_a_stale_one(tmp_path, capsys):
+    from camhealth.model_card import verify_metrics
+
+    first = verify_metrics(_tiny_drne(tmp_path, {"test/rms_total": 1.0, "test/bias_total": 0.0}))
+    measured = {r["metric"]: r["measured"] for r in first}
+    assert all(v is not None and v == v for v in measured.values())
+    # the measured values stored: every one reproduced, the CLI exits 0
+    path = _tiny_drne(tmp_path, measured)
+    assert all(r["ok"] for r in verify_metrics(path))
+    assert main([str(path), "--verify"]) == path
+    assert "all 2 stored metrics reproduced" in capsys.readouterr().out
+    # one number off by more than atol + rtol·|stored|: exit 1, the table and the line name it
+    stale = _tiny_drne(tmp_path, {**measured, "test/rms_total": measured["test/rms_total"] * 1.5 + 0.05})
+    with pytest.raises(SystemExit) as exc:
+        main([str(stale), "--verify"])
+    assert exc.value.code == 1
+    out = capsys.readouterr().out
+    assert "| test/rms_total |" in out and "**NO**" in out and "1 of 2 stored metrics differ" in out
+    assert "test/rms_total" in out.splitlines()[-1] and "test/bias_total" not in out.splitlines()[-1]
+    # within the tolerance given: reproduced
+    assert main([str(stale), "--verify", "--rtol", "0.6", "--atol", "0.1"]) == stale
+
+
+def test_verify_a_null_metric_must_stay_without_data(tmp_path):
+    from camhealth.model_card import verify_metrics
+
+    rows = verify_metrics(_tiny_drne(tmp_path, {"test/rms_total": None, "test/not_logged": None, "test/other": 1.0}))
+    by = {r["metric"]: r for r in rows}
+    assert not by["test/rms_total"]["ok"] and by["test/rms_total"]["measured"] is not None  # stored null, now data
+    assert by["test/not_logged"]["ok"] and by["test/not_logged"]["measured"] is None  # null and not logged: agree
+    assert not by["test/other"]["ok"]  # stored a number the run does not log
+
+
+def test_verify_needs_metrics_and_an_evaluation(tmp_path):
+    from camhealth.model_card import verify_metrics
+
+    no_metrics = _tiny_drne(tmp_path, None)
+    with pytest.raises(ValueError, match="records no metrics to verify"):
+        verify_metrics(no_metrics)
+    no_record = _tiny_drne(tmp_path, {"test/rms_total": 1.0}, evaluation=None)
+    with pytest.raises(ValueError, match="records no evaluation .*--data-config CONFIG"):
+        verify_metrics(no_record)
+    with pytest.raises(FileNotFoundError, match="--data-config .*missing.yaml.*no such file"):
+        verify_metrics(no_record, tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("trainer: {precision: 32-true}\n")
+    with pytest.raises(ValueError, match="has no 'data:' section"):
+        verify_metrics(no_record, bad)
+    with pytest.raises(ValueError, match="rtol = -0.1 must be a finite number"):
+        verify_metrics(no_record, rtol=-0.1)
+    with pytest.raises(ValueError, match="--data-config is an option of --verify"):
+        main([str(no_record), "--refresh", "--data-config", str(bad)])
+    with pytest.raises(ValueError, match="--verify writes no card"):
+        main([str(no_record), "--verify", "--refresh"])
+
+
+def test_verify_with_a_fit_config_for_a_file_that_records_none(tmp_path):
+    """``--data-config``: the data and precision of a fit config (the tiny split written as one)."""
+    from camhealth.model_card import verify_metrics
+
+    config = tmp_path / "tiny.yaml"
+    config.write_text(yaml.safe_dump({"data": _TINY_EVALUATION["data"], "trainer": {"precision": "32-true"}}))
+    measured = {r["metric"]: r["measured"] for r in verify_metrics(_tiny_drne(tmp_path, {"test/rms_total": 1.0}))}
+    path = _tiny_drne(tmp_path, measured, evaluation=None)
+    assert all(r["ok"] for r in verify_metrics(path, config))
+
+
+@pytest.mark.parametrize("entry, match", [
+    ({"data": {"class_path": "os.system", "init_args": {}}, "precision": "32-true"}, "class_path = 'os.system' must be one of"),
+    ({"data": {"class_path": "datamodules.PatchDataModule", "init_args": {}}, "precision": "32-true"}, "must be one of"),
+    ({"data": {"class_path": "datamodules.NoiseDataModule", "init_args": []}, "precision": "32-true"}, "init_args must be a JSON object"),
+    ({"data": {"class_path": "datamodules.NoiseDataModule"}, "precision": "32-true"}, "exactly 'class_path' and 'init_args'"),
+    ({"data": {"class_path": "datamodules.NoiseDataModule", "init_args": {}}, "precision": "fp32"}, "precision = 'fp32' must be one of"),
+    ({"data": {"class_path": "datamodules.NoiseDataModule", "init_args": {}}, "precision": "32-true", "callback": "x"}, "unknown keys \\['callback'\\]"),
+    ({"data": {"class_path": "datamodules.NoiseDataModule", "init_args": {}}, "precision": "32-true", "limit_test_batches": 0}, "limit_test_batches = 0 must be"),
+    ({"data": {"class_path": "datamodules.NoiseDataModule", "init_args": {}}, "precision": "32-true", "limit_test_batches": 1.5}, "limit_test_batches = 1.5 must be"),
+    (["datamodules.NoiseDataModule"], "must be a JSON object with 'data' and 'precision'"),
+])
+def test_a_file_names_no_other_evaluation_class_and_no_bad_field(tmp_path, entry, match):
+    """The evaluation is checked at export and at every load: a file cannot make the verifier import another class."""
+    import json
+
+    from camhealth.export import set_description_entries
+    from camhealth.inference import load_estimator
+
+    with pytest.raises(ValueError, match=match):
+        _tiny_drne(tmp_path, {"test/rms_total": 1.0}, evaluation=entry)
+    with pytest.raises(ValueError, match=match):
+        set_description_entries(_tiny_drne(tmp_path, None, evaluation=None), {"evaluation": entry})
+    path = _tiny_drne(tmp_path, {"test/rms_total": 1.0}, evaluation=None)
+    obj = torch.load(path, weights_only=True)
+    desc = json.loads(obj["description"])
+    desc["evaluation"] = entry
+    obj["description"] = json.dumps(desc)
+    torch.save(obj, path)
+    with pytest.raises(ValueError, match="description evaluation .*" + match):
+        load_estimator(path)
+
+
+@pytest.mark.parametrize("weights", SHIPPED, ids=lambda p: p.stem)
+def test_every_shipped_file_records_the_test_data_of_its_metrics(weights):
+    from camhealth.export import check_evaluation
+
+    desc = torch.load(weights, weights_only=True)["description"]
+    import json
+
+    desc = json.loads(desc)
+    assert desc["metrics"] and check_evaluation(desc["evaluation"])["precision"] == "bf16-mixed"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("weights", SHIPPED, ids=lambda p: p.stem)
+def test_every_shipped_card_metric_is_reproduced(weights):
+    """The numbers a shipped file stores (and its card prints) are what a fresh test of its weights measures
+    (``python -m camhealth.model_card NAME --verify``; 10–50 s each on 2 cores)."""
+    from camhealth.model_card import verify_metrics
+
+    rows = verify_metrics(weights)
+    assert all(r["ok"] for r in rows), [r for r in rows if not r["ok"]]
