@@ -24,6 +24,7 @@ import numbers
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
 
 from camhealth.control.camera_sim import Capture
 from camhealth.control.policy import CameraLimits, Decision, ExposurePolicy
@@ -60,14 +61,62 @@ class Controller(Protocol):
     def update(self, obs: Observation) -> tuple[float, float]: ...
 
 
-class FixedController:
-    """Constant exposure [s] and gain [dB]."""
+def _is_real(v: Any) -> bool:
+    """A real number (Python or NumPy), not a bool and not text."""
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
 
-    def __init__(self, exposure_s: float, gain_db: float = 0.0, name: str = "fixed") -> None:
+
+def _check_capture_matches(obs: Observation, who: str) -> None:
+    """Refuse an observation whose capture is not a batch of one, or whose ``exposure_s``/``gain_db`` contradict the
+    parameters the capture was taken with (``ValueError`` naming both)."""
+    cap = obs.capture
+    n = int(cap.image.shape[0])
+    if n != 1:
+        raise ValueError(f"{who}: an observation's capture must be a batch of one (index it, capture[i]); got a batch "
+                         f"of {n}")
+    t_cap, g_cap = float(cap.exposure_s[0]), float(cap.gain_db[0])
+    for nm, v, unit in (("exposure_s", obs.exposure_s, "s"), ("gain_db", obs.gain_db, "dB")):
+        if not (_is_real(v) and math.isfinite(v)):
+            raise ValueError(f"{who}: observation {nm} = {v!r} {unit} must be a finite number")
+    # the capture stores its parameters as float32: equal within its rounding
+    if not math.isclose(obs.exposure_s, t_cap, rel_tol=1e-6):
+        raise ValueError(f"{who}: observation exposure_s = {obs.exposure_s!r} s contradicts the capture's exposure "
+                         f"{t_cap:.9g} s; they must be equal (relative tolerance 1e-6)")
+    if not math.isclose(obs.gain_db, g_cap, rel_tol=1e-6, abs_tol=1e-6):
+        raise ValueError(f"{who}: observation gain_db = {obs.gain_db!r} dB contradicts the capture's gain {g_cap:.9g} dB; "
+                         "they must be equal (within 1e-6)")
+
+
+class FixedController:
+    """Constant exposure [s] and gain [dB], inside the camera's limits.
+
+    Args:
+        exposure_s: exposure time [s], a number within ``limits.exposure_s``.
+        gain_db: gain [dB], a number within ``limits.gain_db``.
+        name: the controller's name.
+        limits: :class:`~camhealth.control.policy.CameraLimits` (default: 0.001–0.2 s, 0–24 dB, Table 4.1).
+    """
+
+    def __init__(self, exposure_s: float, gain_db: float = 0.0, name: str = "fixed",
+                 limits: CameraLimits | None = None) -> None:
+        if limits is not None and not isinstance(limits, CameraLimits):
+            raise TypeError(f"FixedController: limits must be a CameraLimits, got {type(limits).__name__} {limits!r:.60}")
+        self.limits = limits or CameraLimits()
+        for nm, v, unit in (("exposure_s", exposure_s, "s"), ("gain_db", gain_db, "dB")):
+            if not _is_real(v):
+                raise ValueError(f"FixedController: {nm} = {v!r:.60} is not allowed: a number [{unit}], got "
+                                 f"{type(v).__name__}")
         self.exposure_s, self.gain_db, self.name = float(exposure_s), float(gain_db), name
         if not (math.isfinite(self.exposure_s) and self.exposure_s > 0 and math.isfinite(self.gain_db)):
             raise ValueError(f"FixedController: exposure_s = {exposure_s!r} s must be a finite number > 0 and gain_db = "
                              f"{gain_db!r} dB finite")
+        (t0, t1), (g0, g1) = self.limits.exposure_s, self.limits.gain_db
+        if not t0 <= self.exposure_s <= t1:
+            raise ValueError(f"FixedController: exposure_s = {exposure_s!r} s is out of the allowed range [{t0:g}, {t1:g}] s "
+                             "(the camera limits)")
+        if not g0 <= self.gain_db <= g1:
+            raise ValueError(f"FixedController: gain_db = {gain_db!r} dB is out of the allowed range [{g0:g}, {g1:g}] dB "
+                             "(the camera limits)")
 
     def reset(self, exposure_s: float | None = None, gain_db: float | None = None) -> tuple[float, float]:
         return self.exposure_s, self.gain_db
@@ -89,12 +138,19 @@ class AutoExposureController:
 
     def __init__(self, target_mean: float = 0.5, limits: CameraLimits | None = None, damping: float = 0.7,
                  deadband: float = 0.05, max_step: float = 4.0, name: str = "auto-exposure") -> None:
+        for nm, v in (("target_mean", target_mean), ("damping", damping), ("deadband", deadband), ("max_step", max_step)):
+            if not _is_real(v):
+                raise ValueError(f"{nm} = {v!r:.60} is not allowed: a number, got {type(v).__name__}")
+        if limits is not None and not isinstance(limits, CameraLimits):
+            raise TypeError(f"limits must be a CameraLimits, got {type(limits).__name__} {limits!r:.60}")
         if not 0 < target_mean < 1:
             raise ValueError(f"target_mean = {target_mean!r} must lie in (0, 1)")
         if not 0 < damping <= 1:
             raise ValueError(f"damping = {damping!r} must lie in (0, 1]")
-        if not (deadband >= 0 and max_step > 1):
-            raise ValueError("deadband must be >= 0 and max_step > 1")
+        if not deadband >= 0:
+            raise ValueError(f"deadband = {deadband!r} is out of the allowed range: a number >= 0")
+        if not max_step > 1:
+            raise ValueError(f"max_step = {max_step!r} is out of the allowed range: a number > 1")
         self.target, self.limits, self.damping = float(target_mean), limits or CameraLimits(), float(damping)
         self.deadband, self.max_step, self.name = float(deadband), float(max_step), name
 
@@ -102,7 +158,11 @@ class AutoExposureController:
         return self.limits.clamp(exposure_s, gain_db)
 
     def allocate(self, total: float) -> tuple[float, float]:
-        """Split a total exposure E = t·g [s] into (t [s], gain [dB]), exposure first."""
+        """Split a total exposure E = t·g [s] (a finite number > 0) into (t [s], gain [dB]), exposure first, within the
+        limits."""
+        if not (_is_real(total) and math.isfinite(total) and total > 0):
+            raise ValueError(f"{self.name}: total exposure = {total!r} s is out of the allowed range: a finite number > 0 "
+                             "(exposure × gain factor)")
         (t0, t1), (g0, g1) = self.limits.exposure_s, self.limits.gain_db
         gmin = 10 ** (g0 / 20)
         t = min(max(total / gmin, t0), t1)
@@ -189,8 +249,11 @@ class IOPCController:
         return not self.decisions if self.decide_every is None else n % self.decide_every == 0
 
     def estimate(self, obs: Observation) -> dict[str, Any]:
-        """Eq. 4.4 medians of σ̂ and MTF̂ over the tiles overlapping the current detections."""
+        """Eq. 4.4 medians of σ̂ and MTF̂ over the tiles overlapping the current detections (a capture of one frame)."""
         cap = obs.capture
+        if int(cap.image.shape[0]) != 1:
+            raise ValueError(f"{self.name}: an observation's capture must be a batch of one (index it, capture[i]); got a "
+                             f"batch of {int(cap.image.shape[0])}")
         keep = obs.detections["scores"] >= self.score_threshold
         regions = [obs.detections["boxes"][keep]]
         physics = {"blurred": cap.blurred, "mtf": cap.mtf, "sigma_dn": cap.sigma_dn}
@@ -201,6 +264,9 @@ class IOPCController:
         return med
 
     def update(self, obs: Observation) -> tuple[float, float]:
+        """The parameters for the next frame. ``obs.capture`` must be a batch of one whose exposure and gain are
+        ``obs.exposure_s`` and ``obs.gain_db`` (``ValueError`` naming both otherwise)."""
+        _check_capture_matches(obs, self.name)
         if not self._due():
             return obs.exposure_s, obs.gain_db
         clipped = float(obs.capture.clipped_fraction[0])

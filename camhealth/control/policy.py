@@ -29,7 +29,7 @@ is the weighted AP. A decision interpolates the table trilinearly between the ei
 the objective is continuous in all three, and rounding to the nearest node moved σ̂ by up to a quarter of a σ bin and
 ρ by up to 0.125 — then takes a feasibility mask over the 65 α and an argmax: tens of microseconds
 (``docs/control.md``). :meth:`ExposurePolicy.objective` evaluates the same function
-directly (no table) for checks.
+directly (no table) for checks; a σ̂ beyond the table's last node (``sigma_max_dn``) is decided with it, exactly.
 """
 
 from __future__ import annotations
@@ -178,8 +178,9 @@ class ExposurePolicy:
         limits: :class:`CameraLimits`.
         alpha_range: (min, max) α considered.
         n_alpha: number of log-spaced α (odd, so that α = 1 is on the grid).
-        sigma_max_dn: largest σ̂ in the table [DN] (default: last σ bin + one bin spacing); larger σ̂
-            use the last row (noted in the explanation).
+        sigma_max_dn: largest σ̂ in the table [DN] (default: last σ bin + one bin spacing); for a larger σ̂
+            :meth:`decide` evaluates the objective directly (as :meth:`objective`, no table; noted in the
+            explanation), so its α and expected AP are exact there too.
         sigma_step_dn, mtf_step: table resolution (σ [DN], default: half the finest σ-bin spacing, <= 0.5 DN;
             MTF̂, dimensionless, in (0, 0.5]). The MTF̂ axis runs from 0 to exactly 1 in ceil(1/mtf_step) equal
             intervals, so the step used (``self.mtf_step``) is 1/ceil(1/mtf_step): ``mtf_step`` itself where it
@@ -239,10 +240,10 @@ class ExposurePolicy:
         if sigma_max_dn is None:
             smax = max(float(a.iopc.sigma_bins[-1] + np.diff(a.iopc.sigma_bins)[-1]) for a in self.apps)
         else:
-            # a table that ends before the IOPCs' last σ bin would read every σ̂ beyond its end at its end: a wrong AP
+            # the table covers at least the σ the IOPCs measured (σ̂ beyond its end takes the direct, slower path)
             if not (_is_real(sigma_max_dn) and math.isfinite(sigma_max_dn) and sigma_max_dn >= last_bin):
                 raise ValueError(f"sigma_max_dn = {sigma_max_dn!r} DN is out of the allowed range: a finite number >= the "
-                                 f"IOPCs' last σ bin, {last_bin:g} DN (σ̂ beyond the table is read at its end)")
+                                 f"IOPCs' last σ bin, {last_bin:g} DN")
             smax = float(sigma_max_dn)
         self.sigma_step = float(sigma_step_dn)
         n_table = (math.floor(max(smax, self.sigma_step) / self.sigma_step) + 2) * (math.ceil(1.0 / float(mtf_step) - 1e-9) + 1) \
@@ -265,6 +266,7 @@ class ExposurePolicy:
         self._alpha_list = self.alphas.tolist()
         self._n_sigma, self._n_mtf, self._n_rho_1 = self.sigma_grid.size, self.mtf_grid.size, self.rho_grid.size - 1
         self._log_a0, self._dlog_a = float(la[0]), float(la[1] - la[0])
+        self._sigma_grid_end = float(self.sigma_grid[-1])
 
     # ------------------------------------------------------------------ the objective
     def _app_terms(self, app: Application, sigma: np.ndarray, mtf: np.ndarray, alpha: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -335,7 +337,7 @@ class ExposurePolicy:
 
     def _row(self, sigma: float, mtf: float, rho: float) -> np.ndarray:
         """(A,) weighted AP over the α grid at (σ̂ [DN], MTF̂, ρ): trilinear between the table's eight neighbouring
-        nodes (σ̂ beyond the table is read at its last node)."""
+        nodes. Only for σ̂ within the table: :meth:`decide` evaluates σ̂ beyond it with :meth:`objective`."""
         idx, frac = [], []
         for p, n in ((sigma / self.sigma_step, self._n_sigma), (mtf / self.mtf_step, self._n_mtf),
                      (rho * self._n_rho_1, self._n_rho_1 + 1)):
@@ -375,7 +377,8 @@ class ExposurePolicy:
         rounding never puts them outside.
 
         Args:
-            sigma_hat: total noise estimate σ̂ [DN] (Eq. 4.4 median), >= 0.
+            sigma_hat: total noise estimate σ̂ [DN] (Eq. 4.4 median), >= 0. Beyond the table's last node
+                (``sigma_grid[-1]``) the objective is evaluated directly (:meth:`objective`) instead of the table.
             mtf_hat: blur indicator MTF̂ in [0, 1].
             exposure_s, gain_db: the parameters the image was taken with.
             sigma_sources: optional (σ_PN, σ_DCSN, σ_RN) [DN] → ρ = σ_RN²/Σσ².
@@ -408,7 +411,10 @@ class ExposurePolicy:
                 f"no α in [{self.alphas[0]:.3g}, {self.alphas[-1]:.3g}] keeps exposure {exposure_s:g} s / α within "
                 f"{self.limits.exposure_s} s and gain {gain_db:g} dB + 20·log10 α within {self.limits.gain_db} dB"
             )
-        row = self._row(sigma_hat, mtf_hat, rho_v)
+        # σ̂ beyond the table's last node: the table cannot tell it from that node, so the objective is evaluated
+        # directly (exact, −∞ where α predicts σ beyond what the IOPCs measured) for the grid α and the limit α
+        exact = sigma_hat > self._sigma_grid_end
+        row = self.objective(sigma_hat, mtf_hat, self.alphas, rho_v) if exact else self._row(sigma_hat, mtf_hat, rho_v)
         a0, a1 = bisect.bisect_left(self._alpha_list, lo_c), bisect.bisect_right(self._alpha_list, hi_c)
         cand_a: list[float] = self._alpha_list[a0:a1]
         cand_v: list[float] = row[a0:a1].tolist()
@@ -419,7 +425,10 @@ class ExposurePolicy:
         for e in (min(max(lo_x, self._alpha_list[0]), hi_c), max(min(hi_x, self._alpha_list[-1]), lo_c)):
             if not cand_a or (e < cand_a[0] * (1 - 1e-12) or e > cand_a[-1] * (1 + 1e-12)):
                 cand_a.append(e)
-                cand_v.append(-math.inf if self._beyond(sigma_hat, e, rho_v) else self._row_at(row, e))
+                if exact:
+                    cand_v.append(float(self.objective(sigma_hat, mtf_hat, e, rho_v)))
+                else:
+                    cand_v.append(-math.inf if self._beyond(sigma_hat, e, rho_v) else self._row_at(row, e))
         best = max(cand_v)
         if not math.isfinite(best):
             raise ValueError(f"every α the limits allow predicts σ beyond what the IOPC measured (σ̂ = {sigma_hat:g} DN): "
@@ -480,7 +489,7 @@ class ExposurePolicy:
             "alpha": alpha, "rho": rho, "sigma_hat_dn": sigma_hat, "mtf_hat": mtf_hat,
             "sigma_new_dn": sigma_new, "applications": per_app, "limits_reached": at_limit,
             "alpha_interval": [lo, hi], "current_feasible": cur_ok, "expected_ap": expected, "current_ap": current,
-            "sigma_beyond_table": sigma_hat > self.sigma_grid[-1] + 0.5 * self.sigma_step,
+            "sigma_beyond_table": sigma_hat > self._sigma_grid_end,
             "held_by_min_gain": held,
         }
         gain = expected - current if cur_ok else float("nan")
@@ -508,7 +517,8 @@ class ExposurePolicy:
         if at_limit:
             lines.append("At the camera limit: " + ", ".join(at_limit) + " (α cannot go further that way).")
         if details["sigma_beyond_table"]:
-            lines.append(f"σ̂ is beyond the table ({self.sigma_grid[-1]:g} DN): treated as {self.sigma_grid[-1]:g} DN.")
+            lines.append(f"σ̂ is beyond the look-up table (which ends at {self._sigma_grid_end:g} DN): the objective was "
+                         "evaluated directly, without the table.")
         return " ".join(lines), details
 
     @staticmethod

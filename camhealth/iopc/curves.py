@@ -181,6 +181,10 @@ def _query(x: Any, what: str, high: float = math.inf) -> np.ndarray:
     allowed = f"numbers in [0, {high:g}]" + (" (MTF values)" if math.isfinite(high) else "") + ", or NaN"
     if isinstance(x, (str, bytes, bool, np.bool_)) or x is None:
         raise TypeError(f"{what} = {x!r} is not a number; allowed: {allowed}")
+    if _is_tensor(x):  # any floating dtype (numpy has no bfloat16); integer tensors as they are
+        if x.dtype.is_floating_point:
+            x = x.detach().cpu().double()
+        x = x.detach().cpu().numpy()
     try:
         q = np.asarray(x)
     except (TypeError, ValueError) as exc:
@@ -194,6 +198,14 @@ def _query(x: Any, what: str, high: float = math.inf) -> np.ndarray:
         v = q[bad].reshape(-1)[0]
         raise ValueError(f"{what} = {float(v):g} is out of the allowed range: {allowed}")
     return q
+
+
+def _is_tensor(x: Any) -> bool:
+    """A torch tensor (torch is imported only if the caller already has, so the curves stay importable without it)."""
+    import sys
+
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
 
 
 def bin_index(values: np.ndarray | Sequence[float] | float, bins: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
@@ -556,7 +568,10 @@ class IOPC:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "IOPC":
-        """Inverse of :meth:`to_dict`."""
+        """Inverse of :meth:`to_dict`. The records are checked as :meth:`from_records` checks them (every record has
+        ``sigma_tilde``, ``mtf_tilde``, ``ap``, ``length_px`` and ``noise_level_dn`` as numbers in their ranges, and
+        ``marked``, where present, is a boolean); a ``ValueError`` names the record, the field, the value and what is
+        allowed."""
         if data.get("format") != "camhealth-iopc":
             raise ValueError("not a camhealth IOPC file (missing format: camhealth-iopc)")
         version = data.get("version", 0)
@@ -582,6 +597,12 @@ class IOPC:
                 raise ValueError(f"{what} is nested deeper than {MAX_NESTING} levels; a sweep writes a few")
         records = [{k: (float("nan") if v is None and k in ("sigma_tilde", "mtf_tilde", "ap") else v) for k, v in r.items()}
                    for r in raw_records]
+        # the records as from_records checks them (a file edited by hand: "7" px, marked = 1 or "false")
+        for k, r in enumerate(records):
+            missing = [key for key in _RECORD_FIELDS if key not in r]
+            if missing:
+                raise ValueError(f"record {k} is missing {missing[0]!r}; it has {sorted(map(str, r))}")
+            _check_record(k, r)
         # the arrays go to the constructor as read: it checks their types and ranges before any conversion
         return cls(
             sigma_bins=data["sigma_bins_dn"],

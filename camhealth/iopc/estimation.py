@@ -29,12 +29,14 @@ one of two documented non-learned stand-ins:
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
+import numpy as np
 import torch
 
-from camhealth._validation import check_image
+from camhealth._validation import check_image, check_range
 from camhealth.estimators._common import check_patches
 from camhealth.physics.metadata import CameraMetadata
 from camhealth.physics.mtf import mtf_indicator
@@ -85,8 +87,11 @@ class ImmerkaerNoiseEstimator:
     MIN_SIZE = 8
 
     def __init__(self, patch_size: int = 128) -> None:
-        if int(patch_size) != patch_size or patch_size < 3:
-            raise ValueError(f"patch_size = {patch_size!r} must be an integer >= 3")
+        # predict refuses patches smaller than MIN_SIZE: a smaller tile size would make every tile unreadable
+        if isinstance(patch_size, (bool, np.bool_)) or not isinstance(patch_size, numbers.Integral) \
+                or patch_size < self.MIN_SIZE:
+            raise ValueError(f"patch_size = {patch_size!r} is out of the allowed range: an integer >= {self.MIN_SIZE} px "
+                             "(the smallest patch predict reads)")
         self.patch_size = int(patch_size)
 
     def predict(self, patches: torch.Tensor, metadata: CameraMetadata | None = None) -> dict[str, torch.Tensor]:
@@ -143,14 +148,29 @@ def resolve_estimator(spec: Any, role: str) -> Any:
                 f"the {role} estimator {type(spec).__name__} lacks {attr!r}; estimators need kind, patch_size, "
                 "metadata_set and predict(patches, metadata) (camhealth.inference contract)"
             )
+    if not callable(spec.predict):
+        raise TypeError(f"the {role} estimator's predict = {spec.predict!r:.60} is not callable; estimators need a method "
+                        "predict(patches, metadata) (camhealth.inference contract)")
     kinds = NOISE_KINDS if role == "noise" else ("mtf",)
     if spec.kind not in kinds:
         raise ValueError(f"the {role} estimator has kind {spec.kind!r}; expected one of {list(kinds)}")
     if spec.metadata_set not in ("none", "minimal", "full"):
         raise ValueError(f"estimator metadata_set = {spec.metadata_set!r} must be 'none', 'minimal' or 'full'")
-    if int(spec.patch_size) < 8:
-        raise ValueError(f"estimator patch_size = {spec.patch_size!r} is too small (>= 8 px)")
+    _patch_size(spec)
     return spec
+
+
+#: Smallest estimator patch side [px] (Immerkær's estimator reads no less, and the networks are trained on 128/192).
+MIN_PATCH_SIZE = 8
+
+
+def _patch_size(est: Any) -> int:
+    """An estimator's ``patch_size`` as an int: an integer (Python or NumPy, not a bool) >= 8 px, else ``ValueError``
+    naming the value (a fractional size would be truncated to another tile grid)."""
+    p = est.patch_size
+    if isinstance(p, (bool, np.bool_)) or not isinstance(p, numbers.Integral) or p < MIN_PATCH_SIZE:
+        raise ValueError(f"estimator patch_size = {p!r:.40} is out of the allowed range: an integer >= {MIN_PATCH_SIZE} px")
+    return int(p)
 
 
 def estimator_name(est: Any) -> str:
@@ -266,8 +286,22 @@ def _select(images: torch.Tensor, regions: Sequence[torch.Tensor], patch: int, f
     return torch.cat(img_idx), torch.cat(tile_idx)
 
 
-def _predict(est: Any, patches: torch.Tensor, meta: CameraMetadata | None, batch_size: int) -> dict[str, torch.Tensor]:
+#: The predict outputs :func:`estimate_regions` reads, per role, with their shape per patch (contract of
+#: :mod:`camhealth.inference`): σ_total [DN], σ of PN/DCSN/RN [DN], 16 MTF values, the assessable flag.
+_OUTPUTS: dict[str, dict[str, tuple[int, ...]]] = {
+    "noise": {"sigma_total": (), "sigma": (3,), "assessable": ()},
+    "MTF": {"mtf": (16,), "assessable": ()},
+}
+
+
+def _predict(est: Any, patches: torch.Tensor, meta: CameraMetadata | None, batch_size: int,
+             role: str) -> dict[str, torch.Tensor]:
+    """Run ``est`` on ``patches`` in batches; return the outputs of ``role`` (``"noise"`` or ``"MTF"``, see
+    ``_OUTPUTS``) concatenated. Each output must be a tensor of shape (P, ...) for the P patches of its call, and σ
+    values must be >= 0 DN (NaN: no estimate); otherwise ``ValueError``/``TypeError`` naming the output, its shape or
+    value and what is expected."""
     dev = getattr(est, "device", None)
+    wanted = _OUTPUTS[role]
     outs: list[dict[str, torch.Tensor]] = []
     for s in range(0, patches.shape[0], batch_size):
         p = patches[s : s + batch_size]
@@ -282,8 +316,91 @@ def _predict(est: Any, patches: torch.Tensor, meta: CameraMetadata | None, batch
         out = est.predict(p.float(), m)
         if not isinstance(out, Mapping):
             raise TypeError(f"estimator predict must return a dict of tensors, got {type(out).__name__}")
-        outs.append({k: v.detach().cpu() for k, v in out.items() if isinstance(v, torch.Tensor)})  # skip e.g. reason strings
+        n = int(p.shape[0])
+        required = "sigma_total" if role == "noise" else "mtf"
+        if required not in out:
+            raise ValueError(f"{role if role == 'MTF' else 'noise'} estimator output lacks {required!r}; it has "
+                             f"{sorted(map(str, out))}")
+        got = {}
+        for key, trailing in wanted.items():
+            if key not in out:
+                continue
+            v = out[key]
+            if not isinstance(v, torch.Tensor):
+                raise TypeError(f"{role} estimator returned {key} of type {type(v).__name__}; expected a tensor of shape "
+                                f"{(n, *trailing)}")
+            if tuple(v.shape) != (n, *trailing):
+                raise ValueError(f"{role} estimator returned {key} of shape {tuple(v.shape)} for {n} patches; expected "
+                                 f"{(n, *trailing)}")
+            if v.is_complex():
+                raise TypeError(f"{role} estimator returned {key} of dtype {v.dtype}; expected real numbers")
+            v = v.detach().cpu()
+            if key in ("sigma_total", "sigma") and v.numel():
+                neg = v < 0  # (NaN is no estimate: such a patch is dropped)
+                if bool(neg.any()):
+                    raise ValueError(f"{role} estimator returned {key} = {float(v[neg][0]):g} DN, out of the allowed "
+                                     "range: >= 0 DN (or NaN: no estimate)")
+            got[key] = v
+        outs.append(got)
     return {k: torch.cat([o[k] for o in outs]) for k in outs[0]} if outs else {}
+
+
+def _check_regions(regions: Any, n_images: int) -> None:
+    """``regions``: a list/tuple of B tensors of xyxy boxes [px], each (N, 4) (or empty), finite, x1 <= x2 and
+    y1 <= y2; else ``TypeError``/``ValueError`` naming the image, the shape or value and what is allowed."""
+    if isinstance(regions, torch.Tensor):
+        if regions.ndim != 3:
+            raise ValueError(f"regions as one tensor must have shape (B, N, 4) [xyxy px], got {tuple(regions.shape)}")
+    elif not isinstance(regions, (list, tuple)):
+        raise TypeError(f"regions must be a list of (N, 4) xyxy box tensors, one per image, got {type(regions).__name__}")
+    if len(regions) != n_images:
+        raise ValueError(f"{len(regions)} region lists for {n_images} images")
+    for i, boxes in enumerate(regions):
+        if not isinstance(boxes, torch.Tensor):
+            raise TypeError(f"regions[{i}] must be a tensor of shape (N, 4) (xyxy boxes [px]), got "
+                            f"{type(boxes).__name__} {boxes!r:.60}")
+        if boxes.numel() == 0 and boxes.ndim <= 2 and (boxes.ndim < 2 or boxes.shape[-1] in (0, 4)):
+            continue  # no boxes
+        if boxes.ndim != 2 or boxes.shape[1] != 4:
+            raise ValueError(f"regions[{i}] has shape {tuple(boxes.shape)}; allowed: (N, 4) xyxy boxes [px]")
+        if boxes.dtype == torch.bool or boxes.is_complex():
+            raise TypeError(f"regions[{i}] has dtype {boxes.dtype}; allowed: real numbers (xyxy boxes [px])")
+        b = boxes.detach().cpu().double()
+        if not bool(torch.isfinite(b).all()):
+            raise ValueError(f"regions[{i}] holds a non-finite box {b[~torch.isfinite(b).all(1)][0].tolist()}; allowed: "
+                             "finite xyxy boxes [px]")
+        bad = (b[:, 2] < b[:, 0]) | (b[:, 3] < b[:, 1])
+        if bool(bad.any()):
+            raise ValueError(f"regions[{i}] holds the box {b[bad][0].tolist()} with x2 < x1 or y2 < y1; allowed: xyxy "
+                             "boxes [px] (x1 <= x2, y1 <= y2)")
+
+
+def _check_physics(physics: Any, images: torch.Tensor, noise: bool, mtf: bool) -> None:
+    """The physics labels the ``"physics"`` oracle reads: ``blurred`` shaped like ``images`` (B×1×H×W, finite),
+    ``mtf`` (B, 16) in [0, 1], ``sigma_dn`` (B, 3) >= 0 DN; a ``ValueError`` names the entry, its shape or value and
+    what is allowed."""
+    if physics is None:
+        return
+    if not isinstance(physics, Mapping):
+        raise TypeError(f"physics must be a dict of tensors (blurred, mtf, sigma_dn), got {type(physics).__name__}")
+    b = int(images.shape[0])
+    if noise and "blurred" in physics:
+        bl = check_image(physics["blurred"], "physics['blurred']")
+        if tuple(bl.shape) != tuple(images.shape):
+            raise ValueError(f"physics['blurred'] has shape {tuple(bl.shape)}; allowed: the images' shape "
+                             f"{tuple(images.shape)} (B×1×H×W)")
+    for key, trailing, low, high, unit, use in (("mtf", 16, 0.0, 1.0 + 1e-6, "", mtf),
+                                                ("sigma_dn", 3, 0.0, math.inf, "DN", noise)):
+        if not use or key not in physics:
+            continue
+        v = physics[key]
+        if not isinstance(v, torch.Tensor):
+            raise TypeError(f"physics['{key}'] must be a tensor of shape ({b}, {trailing}), got {type(v).__name__}")
+        if tuple(v.shape) != (b, trailing):
+            raise ValueError(f"physics['{key}'] has shape {tuple(v.shape)} for {b} images; allowed: ({b}, {trailing})")
+        if v.dtype == torch.bool or v.is_complex():
+            raise TypeError(f"physics['{key}'] has dtype {v.dtype}; allowed: real numbers")
+        check_range(v.detach(), f"physics['{key}']", low, high, unit)
 
 
 def estimate_regions(
@@ -304,22 +421,34 @@ def estimate_regions(
         noise_estimator, mtf_estimator: resolved estimators (:func:`resolve_estimator`), ``"physics"``,
             or ``None`` to skip.
         metadata: camera metadata (batch 1 or B) in physical units, for estimators that need it.
-        physics: for ``"physics"``: ``blurred`` (B×1×H×W noise-free image after blur), ``mtf`` (B, 16)
-            of the applied PSF and optionally ``sigma_dn`` (B, 3) per-source σ of each image.
+        physics: for ``"physics"``: ``blurred`` (B×1×H×W noise-free image after blur, the images' shape), ``mtf``
+            (B, 16) of the applied PSF, in [0, 1], and optionally ``sigma_dn`` (B, 3) per-source σ of each image
+            [DN], >= 0.
         fallback_all: images without any region use all tiles (closed loop) instead of none (sweep).
         batch_size: tiles per estimator call.
+
+    Bad input is refused before any estimate, naming the argument, its shape or value and what is allowed: images
+    outside [0, 1] (e.g. DN), regions that are not B (N, 4) finite xyxy box tensors, metadata of another batch than
+    1 or B, physics labels of another shape or range. An estimator's outputs must have its patches' count and shape
+    (``sigma_total`` (P,), ``sigma`` (P, 3), ``mtf`` (P, 16), ``assessable`` (P,)) and σ >= 0 DN.
     """
-    check_image(images, "images")
-    if len(regions) != images.shape[0]:
-        raise ValueError(f"{len(regions)} region lists for {images.shape[0]} images")
-    if metadata is not None and metadata.batch_size == 1:
-        metadata = metadata.expand(images.shape[0])
+    check_image(images, "images", value_range=(0.0, 1.0))
+    b = int(images.shape[0])
+    _check_regions(regions, b)
+    if metadata is not None:
+        if not isinstance(metadata, CameraMetadata):
+            raise TypeError(f"metadata must be a CameraMetadata, got {type(metadata).__name__}")
+        if metadata.batch_size == 1:
+            metadata = metadata.expand(b)
+        if metadata.batch_size != b:
+            raise ValueError(f"metadata has batch {metadata.batch_size} for {b} images; allowed: 1 or {b}")
+    _check_physics(physics, images, _is_physics(noise_estimator), _is_physics(mtf_estimator))
     empty = torch.zeros(0)
     empty_i = torch.zeros(0, dtype=torch.long)
     sigma, sources, s_img, n_noise = empty, None, empty_i, 0
     mtf, m_img, n_mtf = empty, empty_i, 0
     if noise_estimator is not None:
-        patch = 128 if _is_physics(noise_estimator) else int(noise_estimator.patch_size)
+        patch = 128 if _is_physics(noise_estimator) else _patch_size(noise_estimator)
         ii, tt = _select(images, regions, patch, fallback_all)
         n_noise = int(ii.numel())
         if n_noise:
@@ -337,7 +466,7 @@ def estimate_regions(
             else:
                 tiles = extract_tiles(images, patch, ii, tt)
                 meta = metadata[ii.cpu()] if metadata is not None else None
-                out = _predict(noise_estimator, tiles, meta, batch_size)
+                out = _predict(noise_estimator, tiles, meta, batch_size, "noise")
                 if "sigma_total" not in out:
                     raise ValueError(f"noise estimator output lacks 'sigma_total'; it has {sorted(out)}")
                 sigma = out["sigma_total"].float().reshape(-1)
@@ -348,7 +477,7 @@ def estimate_regions(
             sigma, s_img = sigma[ok], ii.cpu()[ok]
             sources = sources[ok] if sources is not None else None
     if mtf_estimator is not None:
-        patch = 192 if _is_physics(mtf_estimator) else int(mtf_estimator.patch_size)
+        patch = 192 if _is_physics(mtf_estimator) else _patch_size(mtf_estimator)
         ii, tt = _select(images, regions, patch, fallback_all)
         n_mtf = int(ii.numel())
         if n_mtf:
@@ -360,7 +489,7 @@ def estimate_regions(
             else:
                 tiles = extract_tiles(images, patch, ii, tt)
                 meta = metadata[ii.cpu()] if metadata is not None else None
-                out = _predict(mtf_estimator, tiles, meta, batch_size)
+                out = _predict(mtf_estimator, tiles, meta, batch_size, "MTF")
                 if "mtf" not in out:
                     raise ValueError(f"MTF estimator output lacks 'mtf'; it has {sorted(out)}")
                 mtf = mtf_indicator(out["mtf"].float().reshape(-1, 16))

@@ -248,8 +248,26 @@ def noise_gain_db(level_dn: float, meta: CameraMetadata, sources: Sequence[str],
     0 dB (both scale with g). E = ``psf_energy`` = Σpsf² of the motion PSF (1 without blur): photon shot
     noise arises before the motion blur (physics chain: photon noise → blur → DCSN → readout), and blurring
     independent per-pixel noise with the PSF multiplies its variance by Σpsf² (0.14 at L = 7 px). Returns
-    ``nan`` if no positive gain reaches the level.
+    ``nan`` if no positive gain reaches the level (e.g. a level of 0 DN).
+
+    Inputs are checked first (``ValueError``/``TypeError`` naming the value and the allowed range): ``level_dn`` a
+    finite number >= 0 DN, ``meta`` a :class:`~camhealth.physics.CameraMetadata` of batch 1, ``sources`` a list or
+    tuple of names from ('photon', 'dark', 'readout'), ``mean_intensity`` a number in [0, 1] and ``psf_energy`` in
+    (0, 1].
     """
+    if not (_is_real(level_dn) and math.isfinite(level_dn) and level_dn >= 0):
+        raise ValueError(f"level_dn = {level_dn!r} is out of the allowed range: a finite number >= 0 DN (a noise σ)")
+    if not isinstance(meta, CameraMetadata):
+        raise TypeError(f"meta must be a CameraMetadata, got {type(meta).__name__}")
+    if meta.batch_size != 1:
+        raise ValueError(f"meta has batch {meta.batch_size}; allowed: 1 (one operating point; index the sample, meta[i])")
+    if not isinstance(sources, (list, tuple)) or not all(isinstance(x, str) for x in sources):
+        raise ValueError(f"sources = {sources!r:.80} is not allowed: a list of names from {list(NOISE_SOURCES)}")
+    bad = [x for x in sources if x not in NOISE_SOURCES]
+    if bad:
+        raise ValueError(f"sources {bad} are not noise sources; allowed: a subset of {list(NOISE_SOURCES)}")
+    if not (_is_real(mean_intensity) and 0.0 <= mean_intensity <= 1.0):
+        raise ValueError(f"mean_intensity = {mean_intensity!r} is out of the allowed range [0, 1] (intensity, DN/255)")
     if not (_is_real(psf_energy) and 0.0 < psf_energy <= 1.0):
         raise ValueError(f"psf_energy = {psf_energy!r} is out of the allowed range (0, 1] (Σpsf² of a normalised PSF)")
     m0 = meta.replace(gain_db=0.0)
@@ -339,7 +357,8 @@ class IOPCSweep:
         h.update(json.dumps(self._detector_config(), sort_keys=True, default=str).encode())
         h.update(estimator_fingerprint(self.noise_estimator).encode() + b"|" + estimator_fingerprint(self.mtf_estimator).encode())
         h.update("\x1f".join(self.frame_ids).encode())
-        h.update(hashlib.blake2b(self.frames.numpy().tobytes(), digest_size=8).digest())
+        # the frames' bytes as stored (numpy has no bfloat16: viewed as bytes, the same bytes for every dtype)
+        h.update(hashlib.blake2b(self.frames.contiguous().view(torch.uint8).numpy().tobytes(), digest_size=8).digest())
         for g in self.ground_truth:  # every field of it (boxes, labels, iscrowd, …): each can change the AP
             for key in sorted(g):
                 v = g[key]
@@ -399,14 +418,22 @@ class IOPCSweep:
         return self.cache_dir / f"cell_{cell['index']:05d}_{cell['key']}.json"
 
     def cached(self, cell: dict[str, Any]) -> dict[str, Any] | None:
-        """The cached record of ``cell`` or ``None``."""
+        """The cached record of ``cell``, or ``None`` when there is none to use.
+
+        A cache file that is not this cell's record counts as not cached, and the cell is computed again (and its
+        file rewritten): a file that cannot be read, is not UTF-8 text or not JSON (torn or corrupt), holds no JSON
+        object, or holds the record of another cell (its ``index`` or ``key`` differ from ``cell``'s, e.g. a file
+        copied or renamed by hand), or lacks a field every record has (``sigma_tilde``, ``mtf_tilde``, ``ap``, …)."""
         p = self._cache_path(cell)
         if p is None or not p.is_file():
             return None
         try:
-            rec = json.loads(p.read_text())
-        except (json.JSONDecodeError, OSError):
-            return None  # a torn file (crash while writing before the rename cannot happen; be safe anyway)
+            rec = json.loads(p.read_text(encoding="utf-8"))
+        except (ValueError, OSError, RecursionError):  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+            return None  # a torn or corrupt file (a crash while writing before the rename cannot happen; be safe anyway)
+        if not isinstance(rec, dict) or rec.get("key") != cell["key"] or not _is_int(rec.get("index")) \
+                or rec["index"] != cell["index"] or not all(k in rec for k in _RECORD_KEYS):
+            return None  # not this cell's (complete) record
         return {k: (float("nan") if v is None and k in _FLOAT_KEYS else v) for k, v in rec.items()}
 
     def _store(self, cell: dict[str, Any], record: dict[str, Any]) -> None:
@@ -586,6 +613,8 @@ class IOPCSweep:
 
 
 _FLOAT_KEYS = ("gain_db", "ap", "sigma_tilde", "mtf_tilde", "sigma_true_dn", "mtf_true", "seconds")
+#: Fields every cell record holds (what :meth:`IOPC.from_records` reads): a cached file without one is not a record.
+_RECORD_KEYS = ("index", "key", "length_px", "angle_deg", "noise_level_dn", "sigma_tilde", "mtf_tilde", "ap", "marked")
 
 
 def _json_record(rec: dict[str, Any]) -> dict[str, Any]:

@@ -69,7 +69,7 @@ class NoiseSensitiveDetector:
     def __call__(self, images):
         self.n_calls += 1
         self.last_images = images.detach().cpu()
-        est = ImmerkaerNoiseEstimator(3).predict(images.float().cpu())["sigma_total"]
+        est = ImmerkaerNoiseEstimator().predict(images.float().cpu())["sigma_total"]  # whole images: any size >= 8 px
         out = []
         for s in est.tolist():
             score = min(max(0.95 - s / 10.0, 0.01), 1.0)
