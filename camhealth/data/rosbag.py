@@ -204,6 +204,12 @@ def _raw_image(msg: Any, encoding: str, kind: str, nchan: int, dtype: np.dtype) 
         raise FrameDecodeError(
             f"image data holds {buf.size} bytes but {w}×{h} px {encoding} with step {step} needs {need} (truncated message)"
         )
+    if buf.size > step * h:  # ROS: len(data) = step · height; more data means height or step is wrong (a crop, else)
+        allowed = f"{step * h}" if need == step * h else f"{need} (last row unpadded) to {step * h}"
+        raise FrameDecodeError(
+            f"image data holds {buf.size} bytes but {w}×{h} px {encoding} with step {step} is {step * h} bytes "
+            f"(step × height; allowed: {allowed} bytes): height/step do not match the data"
+        )
     rows = np.lib.stride_tricks.as_strided(buf, shape=(h, row), strides=(step, 1), writeable=False)
     raw = np.ascontiguousarray(rows).view(dtype)
     if dtype.itemsize > 1 and bool(msg.is_bigendian) != (sys.byteorder == "big"):

@@ -16,8 +16,10 @@ it builds COCO-format dicts from the tensors and runs ``pycocotools.cocoeval.COC
 
 Degenerate cases, explicit: no ground-truth box in any image → AP is NaN (undefined; ``n_gt = 0``);
 ground truth but no detection with score >= 0.5 → AP 0. Boxes are xyxy pixels (COCO stores xywh; the
-conversion is done here). Image ids are 1…N in the order of the lists. A ground-truth box of zero width or height
-can never be matched (its IoU with every box is 0), so it is refused (:func:`validate_ground_truth`) unless marked
+conversion is done here); a detection or ground-truth box outside its image's W×H by more than 1 px is refused,
+naming the image and the box (xywh or normalised boxes, or the wrong image size, would otherwise score a plausible
+but wrong AP). Image ids are 1…N in the order of the lists. A ground-truth box of zero width or height can never be
+matched (its IoU with every box is 0), so it is refused (:func:`validate_ground_truth`) unless marked
 ``iscrowd`` (ignored). The score threshold is applied to the scores as given (float64 included), before their
 conversion to float32.
 """
@@ -27,13 +29,14 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence, TypedDict
 
 import numpy as np
 import torch
 
-from camhealth.detection.protocol import Detection, validate_detections
+from camhealth.detection.protocol import Detection, check_boxes_in_image, validate_detections
 
 __all__ = [
     "GroundTruth",
@@ -166,6 +169,24 @@ def _image_sizes(image_sizes: object, n: int) -> list[tuple[int, int]]:
     return out
 
 
+def _real(v: object) -> float | None:
+    """``v`` (a real number, NumPy scalar or 0-d tensor; not a bool) as a float, else ``None``."""
+    if isinstance(v, (torch.Tensor, np.ndarray)) and v.ndim == 0:
+        v = v.item()
+    elif isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        return None
+    return float(v)
+
+
+def _check_in_images(entries: Sequence[Mapping], sizes: Sequence[tuple[int, int]], name: str) -> None:
+    """Every box of ``entries[i]`` within the W×H of ``sizes[i] = (H, W)`` up to 1 px, else ``ValueError`` naming the
+    image, the box and the W×H (:func:`~camhealth.detection.protocol.check_boxes_in_image`)."""
+    for i, (e, size) in enumerate(zip(entries, sizes)):
+        check_boxes_in_image(e["boxes"], size, f"{name}[{i}]['boxes']")
+
+
 def coco_ground_truth(
     ground_truth: Sequence[GroundTruth],
     image_sizes: Sequence[int] | Sequence[Sequence[int]],
@@ -175,11 +196,13 @@ def coco_ground_truth(
 
     Args:
         ground_truth: one {boxes (N, 4) xyxy px, labels (N,)} per image; image ids are 1…N.
-        image_sizes: ``(H, W)`` for all images or one per image [px].
+        image_sizes: ``(H, W)`` for all images or one per image [px]; every box must lie within its image up to
+            1 px (``ValueError`` naming the image, the box and the W×H).
         categories: category ids to declare (default: the labels that occur, or [1] if none).
     """
     gts = validate_ground_truth(ground_truth)
     sizes = _image_sizes(image_sizes, len(gts))
+    _check_in_images(gts, sizes, "ground_truth")
     cats = sorted({int(c) for g in gts for c in g["labels"].tolist()}) if categories is None else sorted(set(categories))
     cats = cats or [1]
     images, anns = [], []
@@ -219,7 +242,10 @@ def evaluate_detections(
     Args:
         detections: one :class:`~camhealth.detection.protocol.Detection` per image (validated here).
         ground_truth: one {boxes, labels} per image, same order.
-        image_sizes: ``(H, W)`` of all images or one per image [px].
+        image_sizes: ``(H, W)`` of all images or one per image [px]. Every detection and ground-truth box must lie
+            within its image's ``[0, W] × [0, H]`` up to 1 px, else ``ValueError`` naming the image, the box and the
+            W×H (a box outside means xywh or normalised boxes, or the wrong image size, which would give a plausible
+            but wrong AP).
         iou_threshold: IoU a match needs (>=), default 0.5.
         score_threshold: minimum confidence, default 0.5 (compared on the scores as given, before their
             conversion to float32).
@@ -229,12 +255,17 @@ def evaluate_detections(
     from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
 
-    if not 0.0 < iou_threshold < 1.0:
+    iou = _real(iou_threshold)
+    if iou is None or not 0.0 < iou < 1.0:
         raise ValueError(f"iou_threshold = {iou_threshold!r} must lie in (0, 1)")
-    if not 0.0 <= score_threshold <= 1.0:
+    score = _real(score_threshold)
+    if score is None or not 0.0 <= score <= 1.0:
         raise ValueError(f"score_threshold = {score_threshold!r} must lie in [0, 1]")
-    if int(max_detections) != max_detections or max_detections < 1:
+    iou_threshold, score_threshold = iou, score
+    max_det = _real(max_detections)
+    if max_det is None or not math.isfinite(max_det) or max_det != int(max_det) or max_det < 1:
         raise ValueError(f"max_detections = {max_detections!r} must be an integer >= 1")
+    max_detections = int(max_det)
     detections = list(detections)
     dets = validate_detections(detections, name="detections")
     gts = validate_ground_truth(list(ground_truth))
@@ -242,8 +273,11 @@ def evaluate_detections(
         raise ValueError(f"{len(dets)} detection entries for {len(gts)} ground-truth entries; give one per image")
     if not gts:
         raise ValueError("evaluate_detections needs at least one image")
+    sizes = _image_sizes(image_sizes, len(gts))
+    _check_in_images(dets, sizes, "detections")  # a box outside its image: xywh or normalised boxes, or wrong sizes
+    _check_in_images(gts, sizes, "ground_truth")
     labels = {int(c) for g in gts for c in g["labels"].tolist()} | {int(c) for d in dets for c in d["labels"].tolist()}
-    gt_dict = coco_ground_truth(gts, image_sizes, categories=sorted(labels) or [1])
+    gt_dict = coco_ground_truth(gts, sizes, categories=sorted(labels) or [1])
     results = coco_results(detections, score_threshold)  # thresholded on the scores as given, not on dets' float32
     n_gt = sum(1 for a in gt_dict["annotations"] if not a["iscrowd"])
     per_cell: dict[tuple[int, int], int] = {}

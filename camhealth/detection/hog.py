@@ -29,6 +29,7 @@ over the batch; ≈ 0.1 s per 768×576 frame on one CPU core.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any
 
 import numpy as np
@@ -49,7 +50,11 @@ def margin_to_score(margin: np.ndarray | torch.Tensor | float) -> np.ndarray | t
         return torch.sigmoid(margin)
     if isinstance(margin, np.ndarray):
         return 1.0 / (1.0 + np.exp(-margin))
-    return 1.0 / (1.0 + math.exp(-float(margin)))
+    w = float(margin)
+    try:
+        return 1.0 / (1.0 + math.exp(-w))
+    except OverflowError:  # w < −709: exp(−w) is beyond float64, and the score is exp(w) / (1 + exp(w)) = exp(w)
+        return math.exp(w)
 
 
 def score_to_margin(score: float) -> float:
@@ -57,6 +62,18 @@ def score_to_margin(score: float) -> float:
     if not 0.0 < score < 1.0:
         raise ValueError(f"score = {score!r} must lie in the open interval (0, 1)")
     return math.log(score / (1.0 - score))
+
+
+def _real(v: object) -> bool:
+    """A real number (Python, NumPy or a 0-d tensor), not a bool."""
+    if isinstance(v, torch.Tensor):
+        return v.ndim == 0 and not v.dtype.is_complex and v.dtype != torch.bool
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
+def _whole(v: object) -> bool:
+    """A finite whole number (``int``, or an integer-valued float, NumPy scalar or 0-d tensor), not a bool."""
+    return _real(v) and math.isfinite(float(v)) and float(v) == int(v)
 
 
 class HOGPeopleDetector:
@@ -92,15 +109,16 @@ class HOGPeopleDetector:
         import cv2
 
         for nm, v in (("win_stride", win_stride), ("padding", padding)):
-            if len(tuple(v)) != 2 or any(int(c) != c or c < 0 for c in v):
+            pair = tuple(v) if isinstance(v, (tuple, list, np.ndarray, torch.Tensor)) else ()
+            if len(pair) != 2 or not all(_whole(c) and c >= 0 for c in pair):
                 raise ValueError(f"{nm} = {v!r} must be two non-negative integers (x, y) in px")
-        if any(c % 8 for c in win_stride) or 0 in tuple(win_stride):
+        if any(int(c) % 8 for c in win_stride) or 0 in tuple(int(c) for c in win_stride):
             raise ValueError(f"win_stride = {tuple(win_stride)!r} must be positive multiples of the 8 px HOG cell")
         if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 1.0):
             raise ValueError(f"scale = {scale!r} must be a pyramid step > 1")
-        if not math.isfinite(hit_threshold):
+        if not (_real(hit_threshold) and math.isfinite(hit_threshold)):
             raise ValueError(f"hit_threshold = {hit_threshold!r} must be finite (an SVM margin)")
-        if int(group_threshold) != group_threshold or group_threshold < 0:
+        if not _whole(group_threshold) or group_threshold < 0:
             raise ValueError(f"group_threshold = {group_threshold!r} must be an integer >= 0")
         if not (isinstance(upscale, (int, float)) and math.isfinite(upscale) and 0.1 <= upscale <= 8.0):
             raise ValueError(f"upscale = {upscale!r} must be a resize factor in [0.1, 8]")

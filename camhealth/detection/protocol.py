@@ -29,7 +29,10 @@ from typing import Any, Mapping, Protocol, Sequence, TypedDict, runtime_checkabl
 import numpy as np
 import torch
 
-__all__ = ["Detection", "Detector", "DETECTION_KEYS", "validate_detections", "empty_detection", "filter_by_score"]
+__all__ = [
+    "Detection", "Detector", "DETECTION_KEYS", "validate_detections", "check_boxes_in_image", "empty_detection",
+    "filter_by_score",
+]
 
 #: Keys every detection dict must carry.
 DETECTION_KEYS: tuple[str, ...] = ("boxes", "scores", "labels")
@@ -69,6 +72,30 @@ def _as_tensor(value: Any, where: str) -> torch.Tensor:
         except (TypeError, ValueError) as err:
             raise TypeError(f"{where} must hold numbers, got {value!r}") from err
     raise TypeError(f"{where} must be a torch.Tensor, numpy array or list, got {type(value).__name__}")
+
+
+#: Float labels must be smaller in magnitude than this (2^53): the largest range in which float64 holds every whole
+#: number exactly (a larger one would not convert to the int64 category id it seems to name).
+_MAX_FLOAT_LABEL = 2.0**53
+
+
+def check_boxes_in_image(boxes: torch.Tensor, image_size: tuple[int, int], where: str) -> None:
+    """Raise ``ValueError`` unless every xyxy box of (N, 4) ``boxes`` lies within ``[0, W] × [0, H]`` of an image of
+    ``image_size = (H, W)`` px, up to 1 px; the message names ``where`` (e.g. ``"detections[2]['boxes']"``), the
+    first box outside and the W×H. A box far outside the image means a wrong box format (xywh, normalised
+    coordinates) or the wrong image size."""
+    if boxes.numel() == 0:
+        return
+    h, w = image_size
+    b = boxes.reshape(-1, 4)
+    lo = b.min(dim=1).values
+    beyond = (lo < -1) | (b[:, 0] > w + 1) | (b[:, 2] > w + 1) | (b[:, 1] > h + 1) | (b[:, 3] > h + 1)
+    if bool(beyond.any()):
+        j = int(torch.nonzero(beyond)[0, 0])
+        raise ValueError(
+            f"{where}[{j}] = {b[j].tolist()} lies outside the {w}×{h} px image (W×H; allowed: x in [0, {w}], "
+            f"y in [0, {h}] up to 1 px); boxes must be [x1, y1, x2, y2] in pixels of the input image"
+        )
 
 
 def validate_detections(
@@ -145,15 +172,7 @@ def validate_detections(
                     "[x1, y1, x2, y2] in pixels (convert xywh with x2 = x + w, y2 = y + h)"
                 )
             if image_size is not None:
-                h, w = image_size
-                lo = boxes.min(dim=1).values
-                beyond = (lo < -1) | (boxes[:, 2] > w + 1) | (boxes[:, 3] > h + 1)
-                if bool(beyond.any()):
-                    j = int(torch.nonzero(beyond)[0, 0])
-                    raise ValueError(
-                        f"{where}['boxes'][{j}] = {boxes[j].tolist()} lies outside the {w}×{h} px image "
-                        "(W×H); boxes must be [x1, y1, x2, y2] in pixels of the input image"
-                    )
+                check_boxes_in_image(boxes, image_size, f"{where}['boxes']")
             if check_scores and bool(((scores < 0) | (scores > 1)).any()):
                 bad = scores[(scores < 0) | (scores > 1)][0].item()
                 raise ValueError(
@@ -161,8 +180,12 @@ def validate_detections(
                     "[0, 1], e.g. with a sigmoid)"
                 )
         if labels.dtype.is_floating_point:
-            if not bool(torch.isfinite(labels).all()) or bool((labels != labels.round()).any()):
-                raise ValueError(f"{where}['labels'] must be integer class ids, got {labels[:5].tolist()}")
+            bad = ~torch.isfinite(labels) | (labels != labels.round()) | (labels.abs() >= _MAX_FLOAT_LABEL)
+            if bool(bad.any()):  # (a float of magnitude >= 2^53 is not a whole number it can hold exactly)
+                raise ValueError(
+                    f"{where}['labels'] must be integer class ids (whole numbers of magnitude < 2^53), got "
+                    f"{labels[bad][0].item()!r} in {labels[:5].tolist()}"
+                )
         elif labels.dtype == torch.bool or labels.dtype.is_complex:
             raise TypeError(f"{where}['labels'] must be integer class ids, got dtype {labels.dtype}")
         labels = labels.to(torch.int64)

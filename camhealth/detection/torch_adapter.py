@@ -1,10 +1,11 @@
 """Wrap any PyTorch ``nn.Module`` detector (e.g. the user's own weights) as a frozen camhealth detector.
 
 The wrapped module is put in eval mode and every parameter gets ``requires_grad = False`` on wrapping;
-eval mode is re-asserted on every call and the forward pass runs under ``torch.inference_mode``, so the
-detector can never be trained through camhealth (thesis Sec. 4.4.1: pre-trained detectors with default
-settings). :class:`TorchDetector` is deliberately *not* an ``nn.Module``: stored on a LightningModule it
-is not a sub-module, so no optimizer sees it and no checkpoint stores it.
+eval mode is re-asserted on every call (on every sub-module: one switched back to train mode by other code is put in
+eval mode again) and the forward pass runs under ``torch.inference_mode``, so the detector can never be trained
+through camhealth (thesis Sec. 4.4.1: pre-trained detectors with default settings). :class:`TorchDetector` is
+deliberately *not* an ``nn.Module``: stored on a LightningModule it is not a sub-module, so no optimizer sees it and
+no checkpoint stores it.
 
 Input: camhealth images ``B×1×H×W`` float in [0, 1] (any float dtype). The module gets its own copy, in the dtype of
 its first floating parameter or buffer (float32 without one) on its device, so a ``forward`` that works in place
@@ -26,8 +27,11 @@ Output parsing (before :func:`~camhealth.detection.protocol.validate_detections`
 
 from __future__ import annotations
 
+import math
+import numbers
 from typing import Any, Callable, Mapping, Sequence
 
+import numpy as np
 import torch
 
 from camhealth._validation import check_choice, check_image
@@ -85,12 +89,17 @@ class TorchDetector:
         name: str | None = None,
     ) -> None:
         self.module = freeze(module)
-        if channels not in (1, 3):
+        if isinstance(channels, (bool, np.bool_)) or not isinstance(channels, numbers.Integral) or (
+                channels not in (1, 3)):
             raise ValueError(f"channels = {channels!r} must be 1 (gray) or 3 (gray repeated to RGB)")
-        self.channels = channels
-        self.input_scale = float(input_scale)
-        if not self.input_scale > 0:
-            raise ValueError(f"input_scale = {input_scale!r} must be > 0")
+        self.channels = int(channels)
+        scale = input_scale
+        if isinstance(scale, (torch.Tensor, np.ndarray)) and scale.ndim == 0:
+            scale = scale.item()
+        if isinstance(scale, (bool, np.bool_)) or not isinstance(scale, numbers.Real) or not (
+                math.isfinite(scale) and scale > 0):
+            raise ValueError(f"input_scale = {input_scale!r} must be a finite number > 0")
+        self.input_scale = float(scale)
         self.box_format = check_choice(box_format, "box_format", BOX_FORMATS)
         self.normalized_boxes = bool(normalized_boxes)
         if postprocess is not None and not callable(postprocess):
@@ -161,6 +170,13 @@ class TorchDetector:
                     f"{self.name} returned (boxes, scores, labels) with boxes of shape {tuple(boxes.shape)}; "
                     f"expected (B={b}, N, 4)"
                 )
+            n = boxes.shape[1]
+            for key, t in (("scores", scores), ("labels", labels)):
+                if t.ndim < 2 or tuple(t.shape[:2]) != (b, n):
+                    raise ValueError(
+                        f"{self.name} returned (boxes, scores, labels) with {key} of shape {tuple(t.shape)}; expected "
+                        f"(B={b}, N={n}) to match boxes of shape {tuple(boxes.shape)}"
+                    )
             return [{"boxes": boxes[i], "scores": scores[i], "labels": labels[i]} for i in range(b)]
         if isinstance(raw, (list, tuple)):
             return list(raw)
@@ -176,8 +192,7 @@ class TorchDetector:
         lo, hi = torch.aminmax(images.detach())
         if lo < 0 or hi > 1:
             raise ValueError(f"images must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
-        if self.module.training:
-            self.module.eval()
+        self.module.eval()  # every call, recursively: a sub-module switched to train mode is put back too
         b, _, h, w = images.shape
         x = images.detach().to(device=self.device, dtype=self.dtype, copy=True)  # the module may work in place
         if self.channels == 3:

@@ -21,9 +21,9 @@ Accepted forms (:func:`load_defect_map`):
   an image of more than :data:`MAX_MAP_PIXELS` pixels is refused before it is decoded;
 - an array (NumPy or torch) of H×W.
 
-Values must be boolean or whole numbers 0/1 (an image: zero and non-zero); the map may mark no pixel (a calibration
-that found no hot pixels: every defect the monitor flags is then new) but fewer than half of them (a map of mostly
-defects is an inverted mask or the wrong file).
+Values must be boolean or whole numbers 0/1 (an image: zero and non-zero; a float image must also be finite, NaN/inf
+refused); the map may mark no pixel (a calibration that found no hot pixels: every defect the monitor flags is then
+new) but fewer than half of them (a map of mostly defects is an inverted mask or the wrong file).
 """
 
 from __future__ import annotations
@@ -155,6 +155,11 @@ def _from_file(path: Path) -> tuple[np.ndarray, str]:
         if img.ndim == 3:
             raise ValueError(f"defect map {str(path)!r} has {img.shape[2]} channels: a mask image must have one "
                              "(non-zero at the defects)")
+        if img.dtype.kind == "f":  # a float image: NaN/inf is no answer about a pixel, not "non-zero"
+            bad = int(np.count_nonzero(~np.isfinite(img)))
+            if bad:
+                raise ValueError(f"defect map {str(path)!r} holds {bad} non-finite value(s) (NaN/inf) of {img.size}: a "
+                                 "mask image must be finite, zero or non-zero at the defects")
         return img != 0, path.name
     raise ValueError(f"defect map {str(path)!r}: suffix {suffix or '(none)'!r} is not one of "
                      f"{['.npz', '.npy', *IMAGE_SUFFIXES]}")
@@ -183,18 +188,30 @@ def load_defect_map(source: Any, shape: tuple[int, int] | None = None) -> torch.
 
     Args:
         source: a path (str or Path) or an array of H×W.
-        shape: (H, W) [px] the map must have, e.g. the frames' size; ``None``: any.
+        shape: (H, W) [px] the map must have, e.g. the frames' size (two whole numbers >= 1); ``None``: any.
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file cannot be read safely, or the map is not 2-D, holds values other than 0/1 (NaN
-            included), marks at least :data:`MAX_DEFECT_SHARE` of the pixels, or does not have ``shape`` —
-            each naming the value found and what is allowed.
+        ValueError: ``shape`` is not two whole numbers >= 1; the file cannot be read safely, or the map is not 2-D,
+            holds values other than 0/1 (NaN included; a mask image: NaN/inf), marks at least
+            :data:`MAX_DEFECT_SHARE` of the pixels, or does not have ``shape`` — each naming the value found and what
+            is allowed.
     """
+    if shape is not None:
+        dims = shape.tolist() if isinstance(shape, (np.ndarray, torch.Tensor)) else shape
+        dims = list(dims) if isinstance(dims, (tuple, list)) else None
+        if dims is None or len(dims) != 2 or not all(
+                isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                and np.isfinite(v) and v == int(v) and v >= 1 for v in dims):
+            raise ValueError(f"shape = {shape!r} must be (H, W): two whole numbers of pixels >= 1, or None")
+        shape = (int(dims[0]), int(dims[1]))
     if isinstance(source, (str, Path)):
         arr, name = _from_file(Path(source))
     elif isinstance(source, torch.Tensor):
-        arr, name = source.detach().cpu().numpy(), "defect map"
+        t = source.detach().cpu()
+        if t.dtype == torch.bfloat16:  # (NumPy has no bfloat16; float32 holds every bfloat16 value exactly)
+            t = t.float()
+        arr, name = t.numpy(), "defect map"
     elif isinstance(source, np.ndarray):
         arr, name = source, "defect map"
     else:
@@ -228,18 +245,30 @@ def defect_map_path(path: str | Path) -> Path:
 
 def save_defect_map(path: str | Path, defective: torch.Tensor, frames: torch.Tensor | None = None) -> Path:
     """Writes a defect map that :func:`load_defect_map` reads: ``defective_pixels`` (bool H×W) and, where given,
-    ``flagged_frames`` (int32 H×W, the frames each pixel was flagged in), compressed, no pickled objects. Returns the
-    path written (``.npz`` appended where missing; a folder is refused, see :func:`defect_map_path`); the file's
-    folder must exist."""
+    ``flagged_frames`` (int32 H×W, the frames each pixel was flagged in: whole numbers in [0, 2^31 − 1], else
+    ``ValueError`` naming the first bad value), compressed, no pickled objects. Returns the path written (``.npz``
+    appended where missing; a folder is refused, see :func:`defect_map_path`); the file's folder must exist."""
     arr = torch.as_tensor(defective).detach().cpu().numpy()
     if arr.ndim != 2 or arr.dtype != np.bool_:
         raise ValueError(f"defective must be a bool H×W array, got {arr.dtype} of shape {tuple(arr.shape)}")
     out = {"defective_pixels": arr}
     if frames is not None:
-        cnt = torch.as_tensor(frames).detach().cpu().numpy().astype(np.int32)
-        if cnt.shape != arr.shape:
-            raise ValueError(f"frames has shape {tuple(cnt.shape)}, the map {tuple(arr.shape)}")
-        out["flagged_frames"] = cnt
+        raw = torch.as_tensor(frames).detach().cpu()
+        if raw.dtype == torch.bfloat16:
+            raw = raw.float()
+        raw = raw.numpy()
+        if raw.shape != arr.shape:
+            raise ValueError(f"frames has shape {tuple(raw.shape)}, the map {tuple(arr.shape)}")
+        if raw.dtype.kind not in "biuf":
+            raise ValueError(f"frames has dtype {raw.dtype}: it must hold counts, whole numbers in [0, {2**31 - 1}]")
+        if raw.size and raw.dtype.kind != "b":
+            wide = raw.astype(np.float64)
+            bad = ~np.isfinite(wide) | (wide < 0) | (wide > 2**31 - 1) | (wide != np.round(wide))
+            if bad.any():
+                first = wide[bad][0]
+                raise ValueError(f"frames holds {int(bad.sum())} value(s) that are not counts (first: {first:g}): each "
+                                 f"must be a whole number in [0, {2**31 - 1}] (the frames the pixel was flagged in)")
+        out["flagged_frames"] = raw.astype(np.int32)
     path = defect_map_path(path)
     np.savez_compressed(path, **out)
     return path

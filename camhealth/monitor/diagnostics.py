@@ -28,11 +28,14 @@ Foxglove, rqt_runtime_monitor or PlotJuggler show them beside the recording. Eac
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from camhealth.monitor.api import DEFECT_ALARM_PPM, NOISE_FIELDS, FrameReport, defects_text, new_defect_ppm, top_cause
 
@@ -44,6 +47,14 @@ OK, WARN, ERROR = 0, 1, 2
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", 3: "STALE"}
 DIAGNOSTICS_TOPIC = "/diagnostics"
 DIAGNOSTICS_SUFFIXES = (".mcap", ".bag")
+#: Header stamps [s] the files can hold: ROS 2 ``builtin_interfaces/Time.sec`` is int32; ROS 1 time is uint32 seconds,
+#: which ``rosbags`` serialises as int32, so [0, 2^31 − 1] is what both ROS 1 and this writer read the same.
+_STAMP_SECONDS_ROS2 = (-(2**31), 2**31 - 1)
+_STAMP_SECONDS_ROS1 = (0, 2**31 - 1)
+#: Largest log time [ns]: a ROS 1 bag stores uint32 seconds + nanoseconds, MCAP a uint64 of ns. (A negative log time
+#: is written as the last one, or 0: log times of a file never decrease.)
+_LOG_NS_MAX_ROS1 = (2**32 - 1) * 1_000_000_000 + 999_999_999
+_LOG_NS_MAX_ROS2 = 2**64 - 1
 _MSGTYPE = "diagnostic_msgs/msg/DiagnosticArray"
 #: Keys of the ``values`` of every status, in order.
 KEYS: tuple[str, ...] = (
@@ -66,8 +77,18 @@ def _fmt(x: Any, spec: str = ".4g") -> str:
     return format(v, spec) if math.isfinite(v) else "nan"
 
 
+def _check_xi_threshold(v: object) -> float:
+    """``xi_threshold_dn`` as a float: a finite number >= 0 [DN] (as ``Monitor`` and the CLI require), else
+    ``ValueError`` naming it; NaN would silence every "uncertain" WARN, a negative value make every frame one."""
+    if isinstance(v, (bool, np.bool_)) or not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
+        raise ValueError(f"xi_threshold_dn = {v!r} must be a finite number >= 0 [DN]")
+    return float(v)
+
+
 def frame_level(report: FrameReport, xi_threshold_dn: float = 1.0) -> tuple[int, str]:
-    """(level, message) of one frame's report (see the module docstring for the rules)."""
+    """(level, message) of one frame's report (see the module docstring for the rules); ``xi_threshold_dn``: a finite
+    number >= 0 [DN] (``ValueError`` otherwise)."""
+    xi_threshold_dn = _check_xi_threshold(xi_threshold_dn)
     alarm = report.alarm or {}
     state = alarm.get("state")
     if state in ("noisier", "cleaner"):
@@ -165,7 +186,8 @@ class DiagnosticsWriter:
         from rosbags.typesys import Stores, get_typestore
 
         self.ros1 = suffix == ".bag"
-        self.status_name, self.hardware_id, self.xi_threshold_dn = status_name, hardware_id, float(xi_threshold_dn)
+        self.status_name, self.hardware_id = status_name, hardware_id
+        self.xi_threshold_dn = _check_xi_threshold(xi_threshold_dn)
         self.topic = topic  # hardware_id when neither hardware_id nor the image's frame_id is set
         self.typestore = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.LATEST)
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
@@ -192,6 +214,21 @@ class DiagnosticsWriter:
             raise
         self._last_log = 0
 
+    def _check_times(self, stamp_ns: int, log_time_ns: int) -> None:
+        """``ValueError`` naming the value and the allowed range unless the header stamp and the log time fit the
+        file's time fields (checked before anything is written, so the file stays readable)."""
+        lo, hi = _STAMP_SECONDS_ROS1 if self.ros1 else _STAMP_SECONDS_ROS2
+        sec = int(stamp_ns) // 1_000_000_000
+        fmt = "ROS 1 .bag" if self.ros1 else "ROS 2 .mcap"
+        if not lo <= sec <= hi:
+            kind = "uint32 seconds, written as int32" if self.ros1 else "int32 seconds"
+            raise ValueError(f"stamp_ns = {int(stamp_ns)} ({sec} s) is out of the range of a {fmt} header stamp: "
+                             f"[{lo}, {hi}] s ({kind})")
+        log_hi = _LOG_NS_MAX_ROS1 if self.ros1 else _LOG_NS_MAX_ROS2
+        if int(log_time_ns) > log_hi:
+            raise ValueError(f"log_time_ns = {int(log_time_ns)} is out of the range of a {fmt} log time: "
+                             f"[0, {log_hi}] ns")
+
     def _message(self, stamp_ns: int, frame_id: str, level: int, message: str, values: list[tuple[str, str]]) -> Any:
         t = self.typestore.types
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
@@ -211,8 +248,10 @@ class DiagnosticsWriter:
 
     def write_report(self, report: FrameReport, stamp_ns: int | None, log_time_ns: int, frame_id: str = "") -> int:
         """One frame's status; returns its level."""
+        stamp = log_time_ns if stamp_ns is None else stamp_ns
+        self._check_times(stamp, log_time_ns)
         level, message = frame_level(report, self.xi_threshold_dn)
-        msg = self._message(log_time_ns if stamp_ns is None else stamp_ns, frame_id, level, message, key_values(report, level))
+        msg = self._message(stamp, frame_id, level, message, key_values(report, level))
         self._write(msg, log_time_ns)
         self.counts[LEVEL_NAMES[level]] += 1
         return level
@@ -225,8 +264,9 @@ class DiagnosticsWriter:
                 "blur_patches_used": "0", "blur_patches_total": "0", "index": str(index), "source_id": source_id,
                 "frame": "nan"}
         values = [(k, fill.get(k, v)) for k, v in values]
-        msg = self._message(log_time_ns if stamp_ns is None else stamp_ns, frame_id, ERROR,
-                            f"frame not assessable: {error}", values)
+        stamp = log_time_ns if stamp_ns is None else stamp_ns
+        self._check_times(stamp, log_time_ns)
+        msg = self._message(stamp, frame_id, ERROR, f"frame not assessable: {error}", values)
         self._write(msg, log_time_ns)
         self.counts["ERROR"] += 1
         return ERROR

@@ -10,7 +10,8 @@ temporal aggregation. Fields no topic gives (and every field before its topic's 
 metadata file or sensor preset.
 
 A frame whose state is out of range, or whose message cannot be decoded, is an item with ``error`` set (the
-CLI writes a ``frame_error`` line, counts it and goes on).
+CLI writes a ``frame_error`` line, counts it and goes on). A ``start`` at or past the topic's message count is a
+``ValueError`` when the source is opened, as for the other sources.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from camhealth.data.rosbag import (
     StateTopic,
     format_stamp,
 )
-from camhealth.monitor.sources import SourceFrame
+from camhealth.monitor.sources import SourceFrame, _past_end
 from camhealth.physics.metadata import METADATA_RANGES, UNITS
 
 __all__ = ["RecordingOptions", "RecordingSource", "EXPOSURE_UNITS", "GAIN_UNITS", "TEMPERATURE_UNITS", "STATE_OPTIONS"]
@@ -121,6 +122,8 @@ class RecordingSource:
             self.state = [self.recording.read_state(spec) for spec in self.options.state_topics()]
             self.frames = self.recording.frames(topic, self.state, start, stride, max_frames,
                                                 self.options.bit_depth, self.options.bayer)
+            if start > 0:  # as for images, folders and videos: refused before the run, not after an empty one
+                _past_end(start, self.frames.messages, self.path)
         except BaseException:
             self.recording.close()
             raise

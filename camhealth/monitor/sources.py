@@ -12,8 +12,8 @@ recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2 folder: :mod:`camhe
   truncated last frame, a corrupt packet): the item carries ``error`` instead of a frame (the CLI writes a JSON
   line with the error, counts it and goes on; the frame is never scored);
 - a video whose stream ends early (truncated file): iteration stops there, as OpenCV reports the end;
-- a ``start`` past the last frame of an image, folder or video with a known frame count: ``ValueError`` at
-  :func:`open_source`.
+- a ``start`` past the last frame of an image, folder or video with a known frame count, or past the image
+  topic's message count of a recording: ``ValueError`` at :func:`open_source`.
 
 Integer frames are scaled by their significant bits (``bit_depth``: ``"auto"`` or 8…16, see
 :func:`camhealth.data.io.read_image`); each item says which scaling it used (``scaling``).

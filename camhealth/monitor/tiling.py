@@ -83,7 +83,7 @@ from typing import Sequence
 import torch
 
 from camhealth._order import lower_median
-from camhealth._validation import check_float, check_tensor
+from camhealth._validation import check_finite, check_float, check_tensor
 from camhealth._inputs import MAX_CLIPPED_FRACTION, MIN_CONTRAST_DN, MIN_EDGE_KURTOSIS, edge_kurtosis_from_moments
 
 __all__ = [
@@ -183,14 +183,36 @@ class PatchGrid:
 
     def extract(self, frame: torch.Tensor) -> torch.Tensor:
         """(N, 1, P, P) patches of a 1×1×H×W (or 1×H×W / H×W) frame — a strided view, no copy."""
-        check_tensor(frame, "frame")
-        x = frame.reshape(frame.shape[-2], frame.shape[-1])
-        if tuple(x.shape) != (self.height, self.width):
-            raise ValueError(f"frame is {x.shape[-1]}×{x.shape[-2]} px but the grid was made for {self.width}×{self.height} px")
+        x = _single_frame(frame, self)
         p = self.patch
         crop = x[self.y0 : self.y0 + self.rows * p, self.x0 : self.x0 + self.cols * p]
         tiles = crop.unfold(0, p, p).unfold(1, p, p)  # rows, cols, P, P
         return tiles.reshape(self.n, 1, p, p)
+
+
+def _single_frame(frame: object, grid: PatchGrid) -> torch.Tensor:
+    """``frame`` (1×1×H×W, 1×H×W or H×W) as an H×W view; ``ValueError`` naming its shape unless it is one frame of the
+    grid's size (a batch of frames is refused, not reshaped)."""
+    check_tensor(frame, "frame")
+    if frame.ndim < 2 or frame.shape[-2:].numel() != frame.numel():
+        raise ValueError(f"frame has shape {tuple(frame.shape)}: expected one frame (1×1×H×W, 1×H×W or H×W) of "
+                         f"{grid.width}×{grid.height} px (W×H), not a batch")
+    x = frame.reshape(frame.shape[-2], frame.shape[-1])
+    if tuple(x.shape) != (grid.height, grid.width):
+        raise ValueError(f"frame is {x.shape[1]}×{x.shape[0]} px but the grid was made for {grid.width}×{grid.height} px")
+    return x
+
+
+def _check_unit_range(x: torch.Tensor, name: str) -> None:
+    """``ValueError`` unless every value of ``x`` is finite and in [0, 1] (naming the count of NaN/inf, or the range
+    found): statistics of NaN or of DN values would call such patches informative or clipped."""
+    if x.numel() == 0:
+        return
+    lo, hi = torch.aminmax(x.detach())  # one pass, on any view (NaN propagates into both, ±inf lands in one)
+    if not bool(torch.isfinite(lo) & torch.isfinite(hi)):
+        check_finite(x, name)
+    if lo < 0 or hi > 1:
+        raise ValueError(f"{name} must lie in [0, 1] (DN/255), got values in [{lo.item():g}, {hi.item():g}]")
 
 
 @dataclass
@@ -276,7 +298,8 @@ def _statistics(v: torch.Tensor, patch: int) -> PatchStats:
 
 
 def patch_statistics(patches: torch.Tensor) -> PatchStats:
-    """Statistics of N×1×P×P patches in [0, 1] (P divisible by 8), one batched pass; see :class:`PatchStats`."""
+    """Statistics of N×1×P×P patches in [0, 1] (P divisible by 8), one batched pass; see :class:`PatchStats`.
+    ``ValueError`` for NaN/inf or values outside [0, 1] (e.g. DN), naming the count or the range found."""
     x = check_float(check_tensor(patches, "patches"), "patches")
     if x.ndim != 4 or x.shape[1] != 1 or x.shape[2] != x.shape[3] or x.shape[2] % BLOCK or x.shape[2] < BLOCK:
         raise ValueError(f"patches must be N×1×P×P with P a positive multiple of {BLOCK}, got {tuple(x.shape)}")
@@ -284,18 +307,23 @@ def patch_statistics(patches: torch.Tensor) -> PatchStats:
     if n == 0:
         z = torch.zeros(0)
         return PatchStats(z, z, z, z, z, z, z, z, torch.zeros(0, p // BLOCK, p // BLOCK))
+    _check_unit_range(x, "patches")
     v = x.float().reshape(n, p, 1, p)
     return _statistics(v, p)
 
 
 def grid_statistics(frame: torch.Tensor, grid: PatchGrid) -> PatchStats:
     """:func:`patch_statistics` of all patches of ``grid`` in a 1×1×H×W frame, computed on the frame's grid
-    region directly (no patch copies); identical results."""
+    region directly (no patch copies); identical results. The frame must be one float frame of the grid's size with
+    values in [0, 1] (NaN/inf refused), and the grid's patch a positive multiple of 8 px (``ValueError`` otherwise)."""
+    if grid.patch % BLOCK or grid.patch < BLOCK:
+        raise ValueError(f"grid.patch = {grid.patch} px: statistics need patches of P×P px with P a positive multiple "
+                         f"of {BLOCK}")
     if grid.empty:
         return patch_statistics(torch.zeros(0, 1, grid.patch, grid.patch))
-    x = check_float(check_tensor(frame, "frame"), "frame").reshape(frame.shape[-2], frame.shape[-1])
-    if tuple(x.shape) != (grid.height, grid.width):
-        raise ValueError(f"frame is {x.shape[1]}×{x.shape[0]} px but the grid was made for {grid.width}×{grid.height} px")
+    check_float(check_tensor(frame, "frame"), "frame")
+    x = _single_frame(frame, grid)
+    _check_unit_range(x, "frame")
     p = grid.patch
     crop = x[grid.y0 : grid.y0 + grid.rows * p, grid.x0 : grid.x0 + grid.cols * p].float()
     return _statistics(crop.reshape(grid.rows, p, grid.cols, p), p)
@@ -643,6 +671,14 @@ def sample_patches(
 
 
 def status_counts(code: torch.Tensor) -> dict[str, int]:
-    """Number of patches per status name (every name present, 0 if unused)."""
-    counts = torch.bincount(code.long().reshape(-1), minlength=len(STATUS_NAMES)).tolist()
+    """Number of patches per status name (every name present, 0 if unused); a code outside 0 … len(STATUS_NAMES) − 1
+    is a ``ValueError`` naming it."""
+    codes = check_tensor(code, "code").long().reshape(-1)
+    if codes.numel():
+        lo, hi = torch.aminmax(codes)
+        if lo < 0 or hi >= len(STATUS_NAMES):
+            bad = int(lo) if lo < 0 else int(hi)
+            raise ValueError(f"status code {bad} is out of the allowed range [0, {len(STATUS_NAMES) - 1}] "
+                             f"(STATUS_NAMES: {list(STATUS_NAMES)})")
+    counts = torch.bincount(codes, minlength=len(STATUS_NAMES)).tolist()
     return {name: int(c) for name, c in zip(STATUS_NAMES, counts)}

@@ -1390,7 +1390,7 @@ def test_the_alarm_quotes_the_metadatas_sigma_from_each_patch():
     assert _metadata_total(SimpleNamespace(values=torch.full((2, 5), float("nan")))) is None
 
 
-# ------------------------------------------------------------------ bad input (audit of camhealth.monitor)
+# ------------------------------------------------------------------ bad input (camhealth.monitor)
 def _flat_frame(seed=0, size=(256, 384)):
     g = np.random.default_rng(seed)
     return np.clip(120 + g.normal(0, 3, size), 0, 255).astype(np.uint8)
