@@ -35,9 +35,9 @@ Examples:
       flat_10ms_0dB_25C_L2.mkv --sensor-type CMOS --pixel-size-um 5.3 --out camera.yaml
   python -m camhealth.monitor clip.mp4 --metadata camera.yaml --set gain_db=12
 
-Videos must be lossless (FFV1, HuffYUV, PNG, uncompressed …); lossy codecs (MJPEG, H.264 …) are refused.
-16-bit files without an sBIT chunk whose values never exceed 4095 (1/16 of full scale) are refused as
-low-bit data unless --bit-depth gives their significant bits.
+Videos must be lossless (FFV1, HuffYUV, PNG, uncompressed …); lossy codecs (MJPEG, H.264 …) are refused,
+and so are JPEG image files. 16-bit files without an sBIT chunk whose values never exceed 16383 (1/4 of full
+scale) are refused as low-bit data unless --bit-depth gives their significant bits.
 """
 
 

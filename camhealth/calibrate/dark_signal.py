@@ -122,7 +122,7 @@ class DarkFit:
             a, a_err = float(self.intercept_dn2[j]), float(self.intercept_err_dn2[j])
         f = float(arrhenius_factor(temperature_k)) * exposure_s
         v = a + self.c_dn2 * f
-        err = math.sqrt(a_err**2 + (self.c_err_dn2 * f) ** 2)
+        err = math.hypot(a_err, self.c_err_dn2 * f)  # (no overflow of the squares at a huge exposure)
         return gain_factor**2 * v, gain_factor**2 * err
 
 

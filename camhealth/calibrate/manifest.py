@@ -28,14 +28,17 @@ CSV: a header line and one row per set (``;`` separates several files or globs i
     bias,bias,0.001,0,25,
     dark,dark_200ms.mkv,0.2,0,25,
 
-Relative paths are relative to the manifest's folder. Camera fields go on the command line with a CSV
-manifest (``--pixel-size-um`` …).
+Relative paths are relative to the manifest's folder; absolute paths, and relative ones that lead out of it, are
+read as given (a manifest names its user's own files; nothing in it is executed). Camera fields go on the command
+line with a CSV manifest (``--pixel-size-um`` …). A CSV file may start with a UTF-8 byte-order mark (as Excel saves
+it); a row with more fields than the header is refused, naming the row and the extra values.
 
 A set's path whose name follows the file-name convention (:mod:`camhealth.calibrate.frames`, e.g.
 ``dark_200ms_12dB_40C/``) must agree with the set's values: a kind (flat or not), exposure, gain or temperature in
 the name that differs from the manifest's is an error naming both. ``path`` is a string or a list of strings.
 YAML aliases (``*name``) are refused: a manifest spells its values out (``defaults`` gives values shared by sets),
-so that a few hundred bytes cannot expand into gigabytes.
+so that a few hundred bytes cannot expand into gigabytes. A key given twice in one mapping (``exposure_s: 0.2,
+exposure_s: 0.4``) is refused, naming the key, its lines and both values (YAML would keep the last one silently).
 """
 
 from __future__ import annotations
@@ -43,12 +46,13 @@ from __future__ import annotations
 import csv
 import glob
 import math
+import os
 import reprlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from camhealth.calibrate.frames import KINDS, FrameSet, check_bit_depth, convention_stem, parse_set_name
+from camhealth.calibrate.frames import KINDS, FrameSet, _short, check_bit_depth, convention_stem, parse_set_name
 
 __all__ = ["CAMERA_FIELDS", "OPERATING_POINT_FIELDS", "Manifest", "read_manifest"]
 
@@ -80,9 +84,16 @@ class Manifest:
     path: Path | None = None
 
 
+def _readable(p: Path) -> bool:
+    """Whether the process may read a file (and list a folder)."""
+    return os.access(p, os.R_OK | (os.X_OK if p.is_dir() else 0))
+
+
 def _expand(entry: Any, base: Path, where: str) -> tuple[list[Path], list[str]]:
     """Paths of one set's ``path`` entry (a string — ``;`` separates several — or a list of strings, globs), and the
-    ones that do not exist. Anything else (a number, a nested list, a mapping) is refused with a bounded message."""
+    ones that do not exist or cannot be read (each shortened when very long). Anything else (a number, a nested list,
+    a mapping) is refused with a bounded message, and so is a path the system cannot look up (too long, say), naming
+    ``where`` (the manifest and the set), the path (shortened) and the reason."""
     if entry is None:
         items = []
     elif isinstance(entry, str):
@@ -100,15 +111,22 @@ def _expand(entry: Any, base: Path, where: str) -> tuple[list[Path], list[str]]:
         raise ValueError(f"{where}: no path given")
     found, missing = [], []
     for item in items:
-        p = Path(item).expanduser()
-        p = p if p.is_absolute() else base / p
-        if any(ch in item for ch in "*?["):
-            hits = sorted(Path(h) for h in glob.glob(str(p)))
-            (found.extend(hits) if hits else missing.append(f"{p} (pattern matched nothing)"))
-        elif p.exists():
-            found.append(p)
-        else:
-            missing.append(str(p))
+        try:
+            p = Path(item).expanduser()
+            p = p if p.is_absolute() else base / p
+            if any(ch in item for ch in "*?["):
+                hits = sorted(Path(h) for h in glob.glob(str(p)))
+                (found.extend(hits) if hits else missing.append(f"{_short(p)} (pattern matched nothing)"))
+                missing.extend(f"{_short(h)} (not readable)" for h in hits if not _readable(h))
+            elif p.exists():
+                found.append(p)
+                if not _readable(p):
+                    missing.append(f"{_short(p)} (not readable)")
+            else:
+                missing.append(_short(p))
+        except (OSError, RuntimeError) as exc:  # a name too long, a symlink loop, no home for "~user"
+            why = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+            raise ValueError(f"{where}: path {_short(item)} cannot be used: {why}") from None
     return found, missing
 
 
@@ -203,24 +221,58 @@ def _sets(rows: list[dict], base: Path, defaults: dict, origin: str) -> list[Fra
             _name_conflicts(kind, values, paths, where)
             name = str(name or "").strip()
             label = row.get("path") if isinstance(row.get("path"), str) else f"{paths[0]}" + (f" (+{len(paths) - 1} files)" if len(paths) > 1 else "")
-            sets.append(FrameSet(kind, paths=paths, name=name or label, bit_depth=bits, **values))
+            sets.append(FrameSet(kind, paths=paths, name=name or label, bit_depth=bits, origin=where, **values))
     if missing:
-        raise FileNotFoundError(
-            f"{origin} names {len(missing)} missing file(s)/folder(s):\n  " + "\n  ".join(missing[:20])
-            + ("\n  …" if len(missing) > 20 else "")
-        )
+        unreadable = sum(m.endswith("(not readable)") for m in missing)
+        listed = "\n  ".join(missing[:20]) + ("\n  …" if len(missing) > 20 else "")
+        if unreadable == len(missing):
+            raise ValueError(f"{origin} names {len(missing)} file(s)/folder(s) it cannot read (permission):\n  {listed}")
+        raise FileNotFoundError(f"{origin} names {len(missing) - unreadable} missing file(s)/folder(s)"
+                                + (f" and {unreadable} it cannot read" if unreadable else "") + f":\n  {listed}")
     return sets
 
 
 class _AliasRefused(ValueError):
-    """A manifest that uses a YAML alias."""
+    """A manifest that uses a YAML alias, or gives a key twice in one mapping."""
+
+
+def _node_text(node: Any) -> str:
+    """A YAML node's value for a message: a scalar as written (bounded), else what kind of node it is."""
+    import yaml
+
+    if isinstance(node, yaml.ScalarNode):
+        return _shown(node.value)
+    return "a list" if isinstance(node, yaml.SequenceNode) else "a mapping"
 
 
 def _manifest_loader():
-    """``yaml.SafeLoader`` (no Python objects) that also refuses aliases (:class:`_AliasRefused`)."""
+    """``yaml.SafeLoader`` (no Python objects) that also refuses aliases and a key given twice in one mapping
+    (:class:`_AliasRefused`)."""
     import yaml
 
     class ManifestLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen: dict[Any, tuple[Any, Any]] = {}
+                for key_node, value_node in node.value:
+                    if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                        continue  # (an unhashable key is refused by the constructor; a merge key may be overridden)
+                    key = self.construct_object(key_node, deep=True)
+                    try:
+                        first = seen.get(key)
+                    except TypeError:
+                        continue
+                    if first is not None:
+                        (k1, v1) = first
+                        line1, line2 = k1.start_mark.line + 1, key_node.start_mark.line + 1
+                        lines = f"line {line1}" if line1 == line2 else f"lines {line1} and {line2}"
+                        raise _AliasRefused(
+                            f"{lines}: key {_shown(key)} is given twice in one mapping ({_node_text(v1)} and "
+                            f"{_node_text(value_node)}); YAML would keep the last one silently — give each key once"
+                        )
+                    seen[key] = (key_node, value_node)
+            return super().construct_mapping(node, deep=deep)
+
         def compose_node(self, parent, index):
             if self.check_event(yaml.events.AliasEvent):
                 event = self.peek_event()
@@ -238,15 +290,20 @@ def read_manifest(path: str | Path) -> Manifest:
     """Read a YAML (``.yaml``/``.yml``) or CSV (``.csv``) manifest (module docstring).
 
     Raises:
-        FileNotFoundError: the manifest, or files/folders it names, do not exist (all missing ones listed).
-        ValueError: unknown keys, a missing exposure/gain/temperature, a bad kind, a section that is not a mapping,
+        FileNotFoundError: the manifest, or files/folders it names, do not exist (all missing ones listed, and those it
+            cannot read).
+        ValueError: a manifest that is not a regular file (a folder, a FIFO), files/folders it names that all exist
+            but cannot be read, a path that cannot be looked up (too long), a key given twice in one YAML mapping, a
+            CSV row with more fields than its header, unknown keys, a missing exposure/gain/temperature, a bad kind, a section that is not a mapping,
             a value that is not a finite number where one is needed (``gain_db: 999…9`` too), text that is not UTF-8,
             unparsable content, values nested too deeply to parse, a YAML alias, a ``path`` that is not a string or a
             list of strings, a set whose values contradict its path's name (the message names the manifest).
     """
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise FileNotFoundError(f"manifest not found: {p}")
+    if not p.is_file():
+        raise ValueError(f"manifest {p} is not a regular file (a folder, FIFO or device); give a .yaml, .yml or .csv file")
     base = p.parent
     suffix = p.suffix.lower()
     origin = f"manifest {p}"
@@ -294,7 +351,7 @@ def read_manifest(path: str | Path) -> Manifest:
         return Manifest(_sets(rows, base, defaults, origin), camera, op, p)
     if suffix == ".csv":
         try:
-            with p.open(newline="", encoding="utf-8") as fh:
+            with p.open(newline="", encoding="utf-8-sig") as fh:  # (a byte-order mark, as Excel writes it, is skipped)
                 reader = csv.DictReader(fh)
                 if reader.fieldnames is None:
                     raise ValueError(f"{origin} is empty; expected a header line {','.join(_SET_KEYS)}")
@@ -302,7 +359,16 @@ def read_manifest(path: str | Path) -> Manifest:
                 unknown = sorted(set(header) - set(_SET_KEYS))
                 if unknown or "kind" not in header or "path" not in header:
                     raise ValueError(f"{origin}: header {header} must name columns from {list(_SET_KEYS)}, with kind and path")
-                rows = [{k.strip(): (v.strip() if isinstance(v, str) else v) for k, v in r.items() if k is not None and v not in (None, "")} for r in reader]
+                rows = []
+                for r in reader:
+                    extra = [v for v in (r.get(None) or []) if isinstance(v, str) and v.strip()]
+                    if extra:
+                        raise ValueError(
+                            f"{origin}, set {len(rows) + 1} (line {reader.line_num}): {len(extra)} value(s) beyond the header's "
+                            f"{len(header)} columns ({','.join(header)}): {_shown(extra)}; add their column to the header, or "
+                            "quote a value that holds a comma"
+                        )
+                    rows.append({k.strip(): (v.strip() if isinstance(v, str) else v) for k, v in r.items() if k is not None and v not in (None, "")})
         except UnicodeDecodeError as exc:
             raise ValueError(f"cannot read {origin}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it as "
                              "UTF-8") from None

@@ -5,10 +5,10 @@ Order of the analysis (each step's physics in its module):
 1. every bias/dark set: master frame, hot pixels (:func:`~camhealth.calibrate.statistics.detect_hot_pixels`),
    temporal noise (temporal or censored estimator, :mod:`~camhealth.calibrate.statistics`);
 2. every flat set: the same, hot pixels of the darks and its own pixels at 0 DN in every frame (dead:
-   :func:`~camhealth.calibrate.statistics.stuck_at_zero`) excluded; 16-bit files that look like low-bit data
-   without a declared bit depth are refused (:data:`LOW_BITS_CODES`);
+   :func:`~camhealth.calibrate.statistics.stuck_at_zero`) excluded; 16-bit files (and in-memory frames on the 16-bit
+   grid) that look like low-bit data without a declared bit depth are refused (:data:`LOW_BITS_CODES`);
 3. dark fit in DN² at unit gain (:mod:`~camhealth.calibrate.dark_signal`): read noise per temperature and the
-   dark current's Eq. 3.14 law;
+   dark current's Eq. 3.14 law (a χ²/dof above ``MAX_CHI2_DOF`` is warned about, naming the sets that deviate most);
 4. photon transfer (:mod:`~camhealth.calibrate.photon_transfer`): K0 [DN/e⁻] → full well FW = 255/K0;
 5. in electrons: σ_RN²(T) = intercept/K0² → the readout law (σ_SF, CMOS reset factor) → W by inverting Eq.
    3.17 (:mod:`~camhealth.calibrate.readout`); DC(T) = C/K0² → D_FM with the pixel pitch;
@@ -29,7 +29,7 @@ from camhealth.calibrate.dark_signal import (
     DarkPoint, arrhenius_factor, dfm_from_c, doubling_temperature, fit_dark, fit_read_noise_law, model_doubling_temperature,
 )
 from camhealth.calibrate.frames import (
-    MIN_FRAMES, FrameSet, _brief, check_bit_depth, check_max_frames, check_video_codec, load_frames_with_depth,
+    MIN_FRAMES, FrameSet, _brief, _short, check_bit_depth, check_max_frames, check_video_codec, load_frames_with_depth,
     sets_from_paths,
 )
 from camhealth.calibrate.manifest import CAMERA_FIELDS, OPERATING_POINT_FIELDS, read_manifest
@@ -44,10 +44,12 @@ from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, UNITS, Came
 
 __all__ = ["ASSUMED", "LOW_BITS_CODES", "calibrate", "resolve_sets", "video_problems"]
 
-#: 16-bit image files without an sBIT chunk or a ``bit_depth`` whose values, over every set of a calibration, stay at
-#: or below this code (of 65535: 1/16 of full scale) hold 12-bit (or 10/8-bit) data in their low bits, not 16-bit
-#: data: the calibration refuses them (read as value/65535 their full well comes out 16× and more too large).
-LOW_BITS_CODES = 4095
+#: 16-bit image files without an sBIT chunk or a ``bit_depth`` (and in-memory frames on the 16-bit grid, k/65535, with a
+#: step of one code) whose values, over every set of a calibration, stay at or below this code (of 65535: 1/4 of full
+#: scale) hold 14-bit (or 12/10/8-bit) data in their low bits, not 16-bit data: the calibration refuses them (read as
+#: value/65535 their full well comes out 4× and more too large). A photon-transfer series reaches 10 … 70 % of full
+#: scale, so 16-bit data do not stay this dark.
+LOW_BITS_CODES = 16383
 
 #: Values used for datasheet fields that are not given (each is marked "assumed" in the output). The noise
 #: model's σ_RN and dark current are reproduced whatever these are: W absorbs the sense-node gain and pixel
@@ -138,7 +140,8 @@ def resolve_sets(
 
     A ``.yaml``/``.yml``/``.csv`` path is read as a manifest; other paths are folders, videos or image files
     named by the convention of :mod:`camhealth.calibrate.frames`. ``bit_depth`` is the
-    :attr:`~camhealth.calibrate.frames.FrameSet.bit_depth` of every set that does not give one.
+    :attr:`~camhealth.calibrate.frames.FrameSet.bit_depth` of every set that does not give one. Sets that share a
+    name are refused, naming it.
     """
     bit_depth = check_bit_depth(bit_depth)
     items = [frames] if isinstance(frames, (str, Path)) else list(frames)
@@ -162,7 +165,26 @@ def resolve_sets(
         sets = [fs if fs.bit_depth is not None or fs.frames is not None else replace(fs, bit_depth=bit_depth) for fs in sets]
     if not sets:
         raise ValueError("no frame sets given: pass a manifest, or folders/videos/images of bias, dark and flat frames")
+    _refuse_duplicate_names(sets)
     return sets, camera, op
+
+
+def _refuse_duplicate_names(sets: Sequence[FrameSet]) -> None:
+    """Raises ``ValueError`` naming the first name that several sets share, and those sets: the results, the warnings
+    and the report tell the sets apart by their names."""
+    where: dict[str, list[int]] = {}
+    for i, fs in enumerate(sets):
+        where.setdefault(fs.name, []).append(i)
+    for name, idx in where.items():
+        if len(idx) > 1:
+            given = "; ".join(f"set {i + 1}: {sets[i].kind}, {sets[i].exposure_s:g} s, {sets[i].gain_db:g} dB, "
+                              f"{sets[i].temperature_c:g} °C" + (f" ({sets[i].origin})" if sets[i].origin else "")
+                              for i in idx[:4])
+            raise ValueError(
+                f"{len(idx)} sets are named {_brief(name, 120)} ({given}{'; …' if len(idx) > 4 else ''}); every set needs a "
+                "name of its own, by which the results, the warnings and the report tell it apart: give each a name "
+                "(FrameSet(name=...), or name in the manifest), or remove a set given twice (the same path twice)"
+            )
 
 
 def _clamp_near_range(name: str, value: float, err: float, warnings: list[str]) -> float:
@@ -188,14 +210,20 @@ def _record(fs: FrameSet, st: SetStatistics, used: bool = True, note: str = "") 
 
 
 def video_problems(sets: Sequence[FrameSet]) -> None:
-    """Raises ``ValueError`` (:func:`~camhealth.calibrate.frames.check_video_codec`) for the first video of ``sets``
-    whose codec is not lossless — before any frame is read."""
-    from camhealth.calibrate.frames import _is_video
+    """Raises ``ValueError`` for the first video of ``sets`` whose codec is not lossless
+    (:func:`~camhealth.calibrate.frames.check_video_codec`) and the first image file given by name that is lossily
+    compressed (JPEG: :func:`~camhealth.calibrate.frames.check_image_format`) — before any frame is read. (The
+    image files in a set's folder are checked as they are read.)"""
+    from camhealth.calibrate.frames import _is_video, check_image_format
 
     for fs in sets:
         for p in fs.paths:
-            if not p.is_dir() and _is_video(p):
+            if p.is_dir():
+                continue
+            if _is_video(p):
                 check_video_codec(p)
+            else:
+                check_image_format(p, fs.describe() + (f" ({fs.origin})" if fs.origin else ""))
 
 
 def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | None, size_from: str):
@@ -210,6 +238,11 @@ def _load_checked(fs: FrameSet, max_frames: int | None, size: tuple[int, int] | 
         )
     # the step of the scale the files were read with (b-bit data as value/(2^b − 1)), else found from the values
     step = quantisation_step(x, depth.depth.bits if depth.depth is not None else None)
+    if fs.frames is not None and fs.bit_depth != 16 and x.size:
+        # in-memory frames: their largest value, and whether they lie on the 16-bit grid one code apart (16-bit data,
+        # or low-bit codes divided by 65535: :func:`_refuse_low_bits`)
+        depth.undeclared_max, depth.undeclared_file = float(np.rint(float(x.max()) * 65535.0)), ""
+        depth.grid16 = depth.depth is None and math.isclose(step, 255.0 / 65535.0, rel_tol=1e-9)
     return x, step, depth
 
 
@@ -287,7 +320,8 @@ def calibrate(
     video_problems(sets)
     warnings: list[str] = []
     records: list[SetRecord] = []
-    undeclared: list[tuple[float, str, FrameSet]] = []  # 16-bit files read at 16 bits: (largest value, file, set)
+    # 16-bit files read at 16 bits and in-memory frames: (largest value, file or "", set, on the 16-bit grid)
+    undeclared: list[tuple[float, str, FrameSet, bool]] = []
     size: tuple[int, int] | None = None
     size_from = ""
     hot: np.ndarray | None = None
@@ -295,14 +329,18 @@ def calibrate(
     for fs in sorted(darks, key=lambda s: (s.temperature_c, s.gain_db, s.exposure_s)):
         x, step, depth = _load_checked(fs, max_frames, size, size_from)
         if depth.undeclared_max is not None:
-            undeclared.append((depth.undeclared_max, depth.undeclared_file, fs))
+            undeclared.append((depth.undeclared_max, depth.undeclared_file, fs, bool(depth.undeclared_file) or depth.grid16))
         if size is None:
             size, size_from = tuple(x.shape[1:]), fs.describe()
         st, hot = _stats_with_hot(x, hot, fs.describe(), step)
         if st.method == "clipped":
+            advice = ("its noise is below one code at 0 DN: record it at a higher gain or bit depth, or with a camera offset "
+                      "that lifts it off 0 DN" if st.clipped_low >= st.clipped_high else
+                      "it sits at the top code: record it at a lower gain (a dark set this bright has light reaching the sensor, "
+                      "or a far too high gain)")
             raise ValueError(
                 f"{fs.describe()} is clipped: {100 * st.clipped_low:.1f} % of its values at 0 DN and {100 * st.clipped_high:.1f} % at "
-                f"{st.upper_dn:.4g} DN leave nothing to fit; record it at a lower gain (or, at 0 DN, with a camera offset)"
+                f"{st.upper_dn:.4g} DN leave nothing to fit; {advice}"
             )
         if st.quantisation_limited:
             raise ValueError(
@@ -327,7 +365,7 @@ def calibrate(
     for fs in flats:
         x, step, depth = _load_checked(fs, max_frames, size, size_from)
         if depth.undeclared_max is not None:
-            undeclared.append((depth.undeclared_max, depth.undeclared_file, fs))
+            undeclared.append((depth.undeclared_max, depth.undeclared_file, fs, bool(depth.undeclared_file) or depth.grid16))
         dead0 = stuck_at_zero(x, hot)
         st = set_statistics(x, hot | dead0 if dead0.any() else hot, step_dn=step, name=fs.describe(), flat=True)
         if dead0.any():
@@ -397,6 +435,9 @@ def calibrate(
             f"its square root); largest normalised residuals: {', '.join(f'{p.name} {r:.1f}' for r, p in worst)} — saturation or "
             "non-linearity near the top, light that changes during a set, or a wrong gain_db"
         )
+    dark_fits_poorly = dark.chi2_dof > MAX_CHI2_DOF
+    if dark_fits_poorly:
+        warnings.append(_dark_fit_warning(dark, dark_stats))
     k0, k0_err = ptc.k0, ptc.k0_err
     full_well = 255.0 / k0
     full_well_err = full_well * k0_err / k0
@@ -449,14 +490,17 @@ def calibrate(
     # ---- dark current → D_FM
     c_e = dark.c_dn2 / k0**2
     c_e_err = abs(c_e) * math.sqrt((dark.c_err_dn2 / max(abs(dark.c_dn2), 1e-300)) ** 2 + (2 * k0_err / k0) ** 2) if dark.c_dn2 != 0 else dark.c_err_dn2 / k0**2
+    better = ("its uncertainty is inflated by the poor dark fit (above): correct the dark sets it names first" if dark_fits_poorly
+              else None)
     if c_e <= 0:
         warnings.append(
-            f"no dark current detected (fitted {c_e:.3g} ± {c_e_err:.2g} e⁻/s/K^1.5): D_FM = 0; longer or warmer dark "
-            "frames would measure it"
+            f"no dark current detected (fitted {c_e:.3g} ± {c_e_err:.2g} e⁻/s/K^1.5): D_FM = 0; "
+            + (better or "longer or warmer dark frames would measure it")
         )
         c_e = 0.0
     elif c_e < 2 * c_e_err:
-        warnings.append(f"the dark current is barely detected ({c_e:.3g} ± {c_e_err:.2g} e⁻/s/K^1.5, < 2σ): longer or warmer darks measure it better")
+        warnings.append(f"the dark current is barely detected ({c_e:.3g} ± {c_e_err:.2g} e⁻/s/K^1.5, < 2σ): "
+                        + (better or "longer or warmer darks measure it better"))
     pixel = cam.get("pixel_size_um")
     pixel_source = "given"
     if pixel is None:
@@ -525,7 +569,7 @@ def calibrate(
     for (fs, st), p in zip(flat_stats, fpoints):
         why = next((w for q, w in ptc.excluded if q is p), "")
         records.append(_record(fs, st, used=id(p) in used_names, note=why))
-    maps, nonuni = _maps(dark_stats, flat_stats, ptc, hot, stuck)
+    maps, nonuni = _maps(dark_stats, flat_stats, fpoints, ptc, hot, stuck)
     t_ref = op_values["temperature_c"] + 273.15
     rn_ref = math.sqrt(max(rn_law.var_e2(t_ref), 0.0))
     emva = _emva(dark, ptc, rn_law, k0, k0_err, c_e, c_e_err, full_well, rn_ref, nonuni, hot, t_ref)
@@ -553,6 +597,41 @@ def calibrate(
     return CalibrationResult(meta, fields, emva, records, fits, maps, warnings, ptc, dark, rn_law)
 
 
+#: A dark or bias set whose mean level lies more than this many of its group's shortest set's σ above that set's mean
+#: (same temperature and gain) is named in the poor-dark-fit warning as possibly lit.
+DARK_LEVEL_RISE_SIGMAS = 5.0
+
+
+def _dark_fit_warning(dark, dark_stats: list[tuple[FrameSet, SetStatistics]]) -> str:
+    """The warning for a dark fit whose χ²/dof exceeds :data:`MAX_CHI2_DOF`: the sets with the largest normalised
+    residuals (in the fit's order: ``dark.points`` are ``dark_stats``'s), and the likely causes — a set whose
+    exposure, gain or temperature is not the one given, light reaching a set given as bias/dark (its mean level far
+    above the bias level of its temperature and gain: :data:`DARK_LEVEL_RISE_SIGMAS`), a dark level that changes."""
+    resid = np.asarray(dark.residuals, dtype=np.float64)
+    order = np.argsort(-np.abs(np.nan_to_num(resid)))[:3]
+    worst = [(dark_stats[i][0], dark_stats[i][1], float(resid[i])) for i in order]
+    groups: dict[tuple[float, float], tuple[FrameSet, SetStatistics]] = {}
+    for fs, st in dark_stats:  # the shortest set of each temperature and gain: its level is the bias level
+        key = (round(fs.temperature_c, 6), round(fs.gain_db, 6))
+        if key not in groups or fs.exposure_s < groups[key][0].exposure_s:
+            groups[key] = (fs, st)
+    lit = []
+    for fs, st, _ in worst:
+        bfs, bst = groups[(round(fs.temperature_c, 6), round(fs.gain_db, 6))]
+        rise = st.mean_dn - bst.mean_dn
+        if bfs is not fs and math.isfinite(rise) and rise > DARK_LEVEL_RISE_SIGMAS * max(bst.sigma_dn, 1e-6):
+            lit.append(f"{fs.name!r} sits {rise:.3g} DN above the level of {bfs.name!r} ({bst.mean_dn:.3g} DN, σ "
+                       f"{bst.sigma_dn:.3g} DN) at its temperature and gain")
+    return (
+        f"the dark fit is poor: χ²/dof = {dark.chi2_dof:.3g} (above {MAX_CHI2_DOF:g}; the read noise's and dark current's "
+        f"uncertainties are inflated by its square root); largest normalised residuals: "
+        f"{', '.join(f'{fs.name!r} {r:+.1f}' for fs, _, r in worst)} — check these sets' exposure_s, gain_db and "
+        "temperature_c (one that is not the set's own contradicts the others), whether light reached them (a lit set "
+        "given as bias or dark, a light leak), and whether the dark level changed during a set"
+        + (f"; {'; '.join(lit)}: light reaching the sensor, or a lit set given as dark" if lit else "")
+    )
+
+
 #: Log-likelihood advantage of "charge clipped in the well" needed before the dark sets are analysed with it.
 WELL_CLIPPING_MIN_DELTA_NLL = 10.0
 #: A clipped (censored) dark set whose fixed-pattern variance exceeds this fraction of its fitted variance is warned
@@ -560,25 +639,41 @@ WELL_CLIPPING_MIN_DELTA_NLL = 10.0
 POOLED_PATTERN_WARN_FRACTION = 0.1
 
 
-def _refuse_low_bits(undeclared: list[tuple[float, str, FrameSet]]) -> None:
-    """Raises ``ValueError`` when 16-bit image files read at 16 bits (no sBIT chunk, no ``bit_depth``) hold, over every
-    such set, no value above :data:`LOW_BITS_CODES` (1/16 of full scale): 12-bit (or 10/8-bit) data stored in the low
-    bits, which read as value/65535 would give a full well 16× (or more) too large. A photon-transfer series reaches
-    10 … 70 % of full scale, so 16-bit data of a calibration do not stay below 1/16 of it."""
-    if not undeclared:
+def _refuse_low_bits(undeclared: list[tuple[float, str, FrameSet, bool]]) -> None:
+    """Raises ``ValueError`` when 16-bit image files read at 16 bits (no sBIT chunk, no ``bit_depth``) and in-memory
+    frames (file ``""``; those with ``bit_depth`` 16 are not listed), at least one set of them on the 16-bit grid
+    (k/65535, one code apart: the last element; always true for files), hold, over every such set, no value above
+    :data:`LOW_BITS_CODES` (1/4 of full scale): 14-bit (or 12/10/8-bit) data stored in the low bits, which read as
+    value/65535 would give a full well 4× (or more) too large. A photon-transfer series reaches 10 … 70 % of full
+    scale, so 16-bit data of a calibration do not stay below 1/4 of it. The message names the largest value, where it
+    is, the bit depth the values fit and how to declare it (``--bit-depth``, ``bit_depth``; for in-memory frames:
+    divide the codes by 2^bits − 1, or ``bit_depth=16`` for 16-bit data)."""
+    if not any(u[3] for u in undeclared):
         return
-    top, file, fs = max(undeclared, key=lambda u: u[0])
+    top, file, fs, _ = max(undeclared, key=lambda u: u[0])
     if top > LOW_BITS_CODES:
         return
     bits = max(8, int(math.ceil(math.log2(top + 1)))) if top > 0 else 8
-    bits = next(b for b in (8, 10, 12) if bits <= b)
+    bits = next(b for b in (8, 10, 12, 14) if bits <= b)
+    factor = 2 ** (16 - bits)
+    files = [u for u in undeclared if u[1]]
+    memory = [u for u in undeclared if not u[1] and u[3]]
+    what = " and ".join(
+        part for part in (f"the 16-bit image files of {len(files)} set(s) (no sBIT chunk)" if files else "",
+                          f"the in-memory frames of {len(memory)} set(s) on the 16-bit grid (k/65535)" if memory else "") if part)
+    remedies = []
+    if files:
+        remedies.append(f"for files, give the camera's bit depth (--bit-depth {bits}, calibrate(bit_depth={bits}), or bit_depth in "
+                        "the manifest), save them with an sBIT chunk, or give bit depth 16 if they really are 16-bit data")
+    if memory:
+        remedies.append(f"for in-memory frames, divide the camera's codes by 2^bits − 1 (x / {2**bits - 1} for {bits}-bit data), "
+                        "not by 65535, or give their sets bit_depth=16 if they really are 16-bit data")
+    shown = f"{_short(file)}, {fs.describe()}" if file else f"in-memory frames of {fs.describe()}"
     raise ValueError(
-        f"the 16-bit image files of {len(undeclared)} set(s) (no sBIT chunk) hold values up to {top:g} of 65535 only (largest: "
-        f"{file}, {fs.describe()}), at most {LOW_BITS_CODES} = 1/16 of full scale: these look like {bits}-bit data stored in the "
-        f"low bits of 16-bit words (as OpenCV and many camera SDKs write them), which read as 16-bit data would give a full "
-        f"well 16× or more too large; give the camera's bit depth (--bit-depth {bits}, calibrate(bit_depth={bits}), or "
-        f"bit_depth in the manifest), save the files with an sBIT chunk, or give bit depth 16 if they really are 16-bit data "
-        "this dark"
+        f"{what} hold values up to {top:g} of 65535 only (largest: {shown}), at most {LOW_BITS_CODES} = 1/4 of full scale: "
+        f"these look like {bits}-bit data stored in the low bits of 16-bit words (as OpenCV and many camera SDKs write them), "
+        f"which read as 16-bit data would give a full well {factor}× too large (a photon-transfer series reaches 10 … 70 % of "
+        f"full scale, so 16-bit data do not stay this dark); {'; '.join(remedies)}"
     )
 
 
@@ -674,20 +769,20 @@ def _refit_censored_darks(dark_stats: list[tuple[FrameSet, SetStatistics]], k0: 
     return {"model": model, "delta_nll": delta, "latent": latent, "warnings": warnings}
 
 
-def _maps(dark_stats, flat_stats, ptc, hot, stuck=None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """Hot pixels, dead pixels (:func:`~camhealth.calibrate.statistics.detect_dead_pixels` on the brightest unsaturated
-    flat's signal, and the pixels at 0 DN in every frame of a flat: ``stuck``, id(flat stats) → mask), DSNU map [DN]
-    (master bias minus its mean), PRNU map [–] (that flat's master over the dark level, relative to its mean), the
-    masters, and the spatial non-uniformities."""
+def _maps(dark_stats, flat_stats, fpoints, ptc, hot, stuck=None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Hot pixels, dead pixels (:func:`~camhealth.calibrate.statistics.detect_dead_pixels` on the signal of the brightest
+    flat the photon transfer used — ``fpoints`` are the flats' points, in the order of ``flat_stats``, matched to
+    ``ptc.used`` by identity, not by name — and the pixels at 0 DN in every frame of a flat: ``stuck``, id(flat stats)
+    → mask), DSNU map [DN] (master bias minus its mean), PRNU map [–] (that flat's master over the dark level, relative
+    to its mean), the masters, and the spatial non-uniformities."""
     stuck = stuck or {}
     bias_fs, bias_st = min(dark_stats, key=lambda d: (d[0].exposure_s, d[0].temperature_c, d[0].gain_db))
     long_fs, long_st = max(dark_stats, key=lambda d: (d[0].temperature_c, d[0].exposure_s, d[0].gain_db))
     keep = ~hot if hot is not None else np.ones_like(bias_st.master_dn, dtype=bool)
     dsnu = bias_st.master_dn - float(bias_st.master_dn[keep].mean())
-    used_names = {p.name for p in ptc.used}
-    cands = [(fs, st) for fs, st in flat_stats if fs.name in used_names]
-    flat_fs, flat_st = max(cands, key=lambda d: d[1].mean_dn / d[0].gain_factor)
-    flat_point = next(p for p in ptc.used if p.name == flat_fs.name)
+    used = {id(p) for p in ptc.used}
+    cands = [(fs, st, p) for (fs, st), p in zip(flat_stats, fpoints) if id(p) in used]
+    flat_fs, flat_st, flat_point = max(cands, key=lambda d: d[1].mean_dn / d[0].gain_factor)
     signal = flat_st.master_dn - flat_point.dark_mean_dn
     dead0 = np.logical_or.reduce(list(stuck.values())) if stuck else np.zeros_like(keep)
     mean_signal = float(signal[keep & ~dead0].mean())

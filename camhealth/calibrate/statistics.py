@@ -159,9 +159,13 @@ def quantisation_step(frames: np.ndarray, bits: int | None = None) -> float:
     it (or when the values are not on that grid), the 16-bit grid is tried, then the grids of b = 9 … 15 bits
     (every value within 0.02 codes of a code of one of them).
 
-    The step is the greatest common divisor of the distinct codes below the grid's top (0 included: it divides by
-    every step); it needs at least 2 of them — one code alone, e.g. a constant frame at 128 DN, would give its own
-    value as the step. With fewer, the step is one code of the grid (the finest the input can have)."""
+    The step is the spacing of the code lattice the values lie on: the greatest common divisor of the differences
+    between the distinct codes strictly between 0 and the grid's top (the codes at 0 and at the top may be clipping
+    levels, off the lattice), so that codes o + q·k with an offset o (a black-level pedestal added after a digital
+    gain of q) give q, whatever o is. It needs at least 3 such codes; with fewer (a set of a few sparse codes), the
+    greatest common divisor of the codes below the top, 0 included, is used, which needs at least 2 of them — one
+    code alone, e.g. a constant frame at 128 DN, would give its own value as the step. With fewer, the step is one
+    code of the grid (the finest the input can have)."""
     flat = np.asarray(frames).ravel()
     grids = [_CODES] + [2**b - 1 for b in range(9, 16)]
     if bits is not None and 2 <= int(bits) <= 16:
@@ -171,7 +175,15 @@ def quantisation_step(frames: np.ndarray, bits: int | None = None) -> float:
             continue
         unique = np.unique(np.rint(flat.astype(np.float64) * top).astype(np.int64))
         below = unique[unique < top]  # the clipped top says nothing about the step
-        step = int(np.gcd.reduce(below)) if below.size >= 2 else 1
+        inner = below[below > 0]  # nor does 0, where the values are clipped at it off an offset lattice
+        if inner.size >= 3:
+            step = int(np.gcd.reduce(np.diff(inner)))
+        elif below.size >= 2 and 0 in below:
+            step = int(np.gcd.reduce(below))
+        elif below.size >= 2:
+            step = int(np.gcd.reduce(np.diff(below)))
+        else:
+            step = 1
         return 255.0 * max(step, 1) / top
     return 0.0
 

@@ -62,14 +62,20 @@ def synthetic_sets(
     protocol's) recorded by ``protocol``: ``frames`` frames of ``size``×``size`` px per set, float32 in [0, 1].
 
     ``simulate(clean B×1×H×W, meta (batch B), generator) -> noisy`` defaults to :func:`form_image_simulator`.
+    Every set has a name of its own (a calibration refuses sets that share one): a set the protocol repeats (a flat
+    level given twice) is named with a suffix ``_2``, ``_3`` ….
     """
     if sensor.batch_size != 1:
         raise ValueError(f"synthetic_sets needs one sensor (metadata batch 1), got batch {sensor.batch_size}")
     simulate = simulate or form_image_simulator
     gen = torch.Generator().manual_seed(int(seed))
     out: list[FrameSet] = []
+    names: dict[str, int] = {}
 
     def record(kind: str, level: float, gain_db: float, exposure_s: float, temperature_c: float, name: str) -> None:
+        names[name] = names.get(name, 0) + 1
+        if names[name] > 1:
+            name = f"{name}_{names[name]}"
         meta = sensor.replace(gain_db=gain_db, exposure_s=exposure_s, temperature_c=temperature_c).expand(frames)
         clean = torch.full((frames, 1, size, size), float(level))
         noisy = simulate(clean, meta, gen)

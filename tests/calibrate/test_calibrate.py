@@ -216,9 +216,10 @@ def test_saturated_flats():
 def test_exposures_that_do_not_span_a_range():
     with pytest.raises(ValueError, match=r"span only 2\.00×.*at least 4×"):
         calibrate(_sets(bias_exposure_s=0.15))
-    with pytest.raises(ValueError, match="none of their 1 temperature"):
+    with pytest.raises(ValueError, match="none of their 1 temperature"):  # (the second 0.2 s dark named apart: names are unique)
         calibrate([s for s in _sets(dark_temperatures_c=(40.0,)) if s.kind == "flat" or s.exposure_s == 0.2]
-                  + [s for s in _sets(dark_temperatures_c=(40.0,)) if s.kind == "dark" and s.exposure_s == 0.2])
+                  + [FrameSet(s.kind, s.exposure_s, s.gain_db, s.temperature_c, frames=s.frames, name=s.name + " again")
+                     for s in _sets(dark_temperatures_c=(40.0,)) if s.kind == "dark" and s.exposure_s == 0.2])
 
 
 def test_flats_that_do_not_span_a_range_and_too_few_sets():
@@ -472,7 +473,7 @@ def test_max_frames_below_the_minimum_is_refused(max_frames):
         calibrate(_sets(), max_frames=max_frames)
 
 
-# ------------------------------------------------------------------------------------------------ audited inputs and physics
+# ------------------------------------------------------------------------------------------------ inputs and physics
 def test_clipped_darks_of_a_camera_with_an_offset_give_the_dark_current():
     """A 5000 e⁻ camera with an 8 DN offset: a few % of its dark values reach 0 DN (censored estimator), and the Poisson
     refit, started at o = 0 where every bin's likelihood is floored, converged to no dark current (−100 %, read noise
