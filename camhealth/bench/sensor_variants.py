@@ -61,22 +61,51 @@ _Q = 1.602176634e-19  # C
 _K_J = 1.380649e-23  # J/K
 _K_EV = 8.617343e-5  # eV/K
 
+#: Largest Poisson mean [e⁻] ``whole_electrons`` draws (NumPy's Poisson sampler refuses means above ≈ 9.2e18).
+_POISSON_MAX_E = 1e18
+#: Lowest frequency of the readout-noise quadrature [Hz]: a pixel clock must lie above it.
+_F_LOW_HZ = 1e-3
+#: Most periods of the CDS cosine, f_clock·t_s, the readout-noise quadrature integrates over (128 nodes each): 2e4
+#: (2.6e6 nodes; a camera in the metadata's ranges needs at most 1.5e4).
+_MAX_CDS_PERIODS = 2e4
+
+
+def _override_range(name: str, t_s: float) -> tuple[float, float, bool, str]:
+    """``(low, high, low_open, text)``: the values an override of ``name`` may take (beyond the metadata's ranges, but
+    where the model is defined and computable), with the range as the message writes it."""
+    if name == "gain_db":
+        return -np.inf, np.inf, False, "(-inf, inf) dB, finite (whole_electrons also bounds the full scale)"
+    if name == "temperature_c":
+        return -273.15, np.inf, True, "(-273.15, inf) °C (above absolute zero)"
+    if name in ("full_well_e", "sense_node_gain_v_per_e", "pixel_size_um"):
+        return 0.0, np.inf, True, "(0, inf), finite"
+    if name == "pixel_clock_hz":
+        high = _MAX_CDS_PERIODS / t_s
+        return _F_LOW_HZ, high, True, (f"({_F_LOW_HZ:g}, {high:g}] Hz (the readout-noise integral runs from {_F_LOW_HZ:g} Hz "
+                                      f"over at most {_MAX_CDS_PERIODS:g} periods of the CDS sample time t_s = {t_s:g} s)")
+    return 0.0, np.inf, False, "[0, inf), finite (≥ 0)"
+
 
 def metadata_arrays(meta: CameraMetadata, batch: int, overrides: dict | None = None) -> dict[str, np.ndarray]:
     """The metadata's fields as float64 NumPy arrays of length ``batch``; ``overrides`` replace fields by values
-    that need not lie in the metadata's ranges (an altered camera: white noise ×4, a gain beyond 24 dB)."""
+    that need not lie in the metadata's ranges (an altered camera: white noise ×4, a gain beyond 24 dB), but must lie
+    where the model is defined: finite; ``full_well_e``, ``sense_node_gain_v_per_e``, ``pixel_size_um`` > 0;
+    ``temperature_c`` > −273.15 °C; ``pixel_clock_hz`` in (1e-3 Hz, 2e4 / t_s] (the readout-noise quadrature); the
+    others ≥ 0. ``ValueError`` naming the field, the value and its allowed range otherwise."""
     if meta.batch_size not in (1, batch):
         raise ValueError(f"metadata batch {meta.batch_size} does not match the {batch} images")
     out = {n: np.broadcast_to(getattr(meta, n).detach().cpu().double().numpy(), (batch,)).copy() for n in FULL_FIELDS}
+    c = meta.constants
     for name, value in (overrides or {}).items():
         if name not in out:
             raise ValueError(f"override {name!r} is not a metadata field; fields: {list(FULL_FIELDS)}")
         v = np.broadcast_to(np.asarray(value, dtype=np.float64), (batch,)).copy()
-        if not np.isfinite(v).all() or (name not in ("gain_db", "temperature_c") and (v < 0).any()):
-            raise ValueError(f"override {name} must be finite" + ("" if name in ("gain_db", "temperature_c") else " and ≥ 0")
-                             + f", got {v.min():g} … {v.max():g}")
+        low, high, low_open, text = _override_range(name, float(c.cds_sample_time_s))
+        ok = np.isfinite(v) & (v <= high) & ((v > low) if low_open else (v >= low))
+        if not ok.all():
+            raise ValueError(f"override {name} = {v[~ok][0]:g} is out of the allowed range {text}"
+                             + (f" (values {v.min():g} … {v.max():g})" if batch > 1 else ""))
         out[name] = v
-    c = meta.constants
     out.update(
         t_s=np.full(batch, c.cds_sample_time_s), tau_d=np.full(batch, c.cds_time_factor * c.cds_sample_time_s),
         f_c=np.full(batch, c.flicker_corner_hz), d_i=np.full(batch, c.rtn_current_a),
@@ -138,6 +167,36 @@ def expected_sigma_e(m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {"dark": np.sqrt(s), "sf": sf, "ktc": ktc, "dark_signal": s}
 
 
+def _check_computable(m: dict[str, np.ndarray], sig: dict[str, np.ndarray], full: np.ndarray, dn_per_e: np.ndarray,
+                      whole: bool, overrides: dict | None) -> None:
+    """``ValueError`` where the camera (with ``overrides``) gives numbers the model cannot use: a full scale or noise
+    that is not finite, or, with whole electrons, a Poisson mean beyond what can be drawn (naming the fields)."""
+    given = f"; overrides: {overrides}" if overrides else ""
+    bad = [what for what, v in (("full scale full_well_e / 10^(gain_db/20) [e⁻]", full), ("DN per electron", dn_per_e),
+                                ("dark-current shot noise", sig["dark"]), ("source-follower noise", sig["sf"]),
+                                ("kTC noise", sig["ktc"])) if not np.isfinite(v).all()]
+    if bad:
+        raise ValueError(f"the camera gives a non-finite {', '.join(bad)} (gain_db = {m['gain_db'].max():g}, "
+                         f"full_well_e = {m['full_well_e'].min():g}, temperature_c = {m['temperature_c'].max():g}, "
+                         f"exposure_s = {m['exposure_s'].max():g}){given}")
+    if not whole:
+        return
+    if full.max() > _POISSON_MAX_E:
+        i = int(np.argmax(full))
+        g_min = 20.0 * np.log10(m["full_well_e"][i] / _POISSON_MAX_E)
+        raise ValueError(
+            f"whole_electrons draws Poisson counts of at most {_POISSON_MAX_E:g} e⁻, but gain_db = {m['gain_db'][i]:g} "
+            f"gives a full scale of {full[i]:g} e⁻ (full_well_e = {m['full_well_e'][i]:g} / 10^(gain_db/20)): gain_db "
+            f"must be ≥ {g_min:.4g} dB for this full well{given}")
+    dark = sig["dark_signal"]
+    if dark.max() > _POISSON_MAX_E:
+        i = int(np.argmax(dark))
+        raise ValueError(
+            f"whole_electrons draws Poisson counts of at most {_POISSON_MAX_E:g} e⁻, but the dark signal is {dark[i]:g} e⁻ "
+            f"(temperature_c = {m['temperature_c'][i]:g}, exposure_s = {m['exposure_s'][i]:g}, dark_fom_na_per_cm2 = "
+            f"{m['dark_fom_na_per_cm2'][i]:g}, pixel_size_um = {m['pixel_size_um'][i]:g}): lower them{given}")
+
+
 def simulate_variant(
     clean: torch.Tensor,
     meta: CameraMetadata,
@@ -153,7 +212,14 @@ def simulate_variant(
         meta: the camera the image is made with (batch 1 or B).
         variants: any of :data:`VARIANTS`, combined.
         generator: seeds NumPy's generator (one draw from it), for reproducible noise.
-        overrides: field → value(s) replacing ``meta``'s without range checks (a camera outside the ranges).
+        overrides: field → value(s) replacing ``meta``'s, also outside the metadata's ranges (a camera outside the
+            ranges), where the model is defined (:func:`metadata_arrays`).
+
+    Raises:
+        TypeError: ``variants`` is a single string.
+        ValueError: ``clean`` not B×1×H×W, empty, not finite or not in [0, 1]; an unknown variant; an override out of
+            its allowed range (naming the field, the value and the range); a camera whose full scale or noise is not
+            finite, or, with ``whole_electrons``, whose full scale or dark signal exceeds 1e18 e⁻ (naming the fields).
         extra_read_noise_dn: (B,) or scalar σ [DN] of extra white Gaussian noise added with the readout noise
             (a noise level no metadata in range explains), counted as readout noise.
 
@@ -162,6 +228,11 @@ def simulate_variant(
     """
     if not isinstance(clean, torch.Tensor) or clean.ndim != 4 or clean.shape[1] != 1:
         raise ValueError(f"clean must be a B×1×H×W tensor, got {tuple(clean.shape) if isinstance(clean, torch.Tensor) else type(clean).__name__}")
+    if clean.numel() == 0:
+        raise ValueError(f"clean must hold at least one pixel, got shape {tuple(clean.shape)}")
+    if isinstance(variants, (str, bytes)):
+        raise TypeError(f"variants = {variants!r} must be a sequence of variant names, not a single string "
+                        f"(e.g. ({variants!r},)); choose from {list(VARIANTS)}")
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise ValueError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
@@ -181,6 +252,7 @@ def simulate_variant(
     if (extra < 0).any() or not np.isfinite(extra).all():
         raise ValueError("extra_read_noise_dn must be finite and ≥ 0")
     whole = "whole_electrons" in variants
+    _check_computable(m, sig, full[:, 0, 0], dn_per_e[:, 0, 0], whole, overrides)
     shape = x.shape
 
     def photon(q: np.ndarray) -> np.ndarray:

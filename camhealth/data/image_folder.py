@@ -112,10 +112,13 @@ def _scan(root: Path, recursive: bool, exts: tuple[str, ...]) -> _Listing:
             rel = prefix + entry.name
             path = folder / entry.name
             try:
-                is_link = entry.is_symlink()
-                is_dir, is_file = entry.is_dir(), entry.is_file()  # (both follow links)
+                is_link = entry.is_symlink()  # (does not follow the link)
             except OSError:
-                is_link, is_dir, is_file = False, False, False
+                is_link = False
+            try:
+                is_dir, is_file = entry.is_dir(), entry.is_file()  # (both follow links)
+            except OSError:  # e.g. a link that leads to itself (ELOOP): a link to nothing, named as broken below
+                is_dir, is_file = False, False
             if is_dir:
                 if not recursive:
                     continue
@@ -156,7 +159,8 @@ def list_images(root: PathLike, recursive: bool = True, extensions: Sequence[str
     Symbolic links are followed, to files and (with ``recursive``) to folders, also where they lead outside ``root``;
     each file and folder is listed once: a second path to one already listed (a link to it, or to a folder holding
     it) is skipped, keeping a path that is not itself a link, then one through no linked folder. A link to ``root``
-    or to a folder that holds it (a loop) and a link to nothing are skipped. Links that lead outside ``root`` and
+    or to a folder that holds it (a loop) and a link to nothing (also one that leads back to itself, directly or
+    through other links) are skipped. Links that lead outside ``root`` and
     everything skipped but hidden files are named in one ``UserWarning``.
     """
     root = Path(root)

@@ -144,6 +144,15 @@ class ImageScaling:
 _BIT_DEPTHS = (8, 10, 12, 14, 16)
 
 
+def _is_tiff(path: Path) -> bool:
+    return path.suffix.lower() in (".tif", ".tiff")
+
+
+def _colour_samples(arr: np.ndarray) -> np.ndarray:
+    """``arr`` without its alpha channel (gray + alpha, RGBA): the samples the gray image is made of."""
+    return arr[..., :-1] if arr.ndim == 3 and arr.shape[-1] in (2, 4) else arr
+
+
 def _check_bit_depth(bit_depth: int | str) -> int | str:
     if isinstance(bit_depth, str) and bit_depth == "auto":
         return bit_depth
@@ -203,9 +212,11 @@ def _sbit_scaling(arr: np.ndarray, bits: int, top: int, source: str) -> ImageSca
 
 
 def _scaling(arr: np.ndarray, path: Path, bit_depth: int | str) -> ImageScaling:
+    """The scaling of integer samples ``arr``: the gray or colour samples only (alpha is dropped, so it sets neither
+    the largest value nor the check against ``bit_depth``; the caller passes them without the alpha channel)."""
     file_bits = 8 if arr.dtype == np.uint8 else 16
     top = int(arr.max()) if arr.size else 0
-    if bit_depth != "auto" and file_bits == 16 and bit_depth < 16 and path.suffix.lower() == ".png":
+    if bit_depth != "auto" and file_bits == 16 and bit_depth < 16 and not _is_tiff(path):
         # the depth the PNG's sBIT chunk declares, given as the bit depth: its spec-scaled samples are read as codes
         if _png_sbit(path) == bit_depth and _spec_scaled(arr, int(bit_depth)):
             return ImageScaling(16, int(bit_depth), "given", float(top), shift=16 - int(bit_depth))
@@ -220,7 +231,7 @@ def _scaling(arr: np.ndarray, path: Path, bit_depth: int | str) -> ImageScaling:
         return ImageScaling(file_bits, int(bit_depth), "given", float(top))
     if file_bits == 8:
         return ImageScaling(8, 8, "file", float(top))
-    sbit = _png_sbit(path) if path.suffix.lower() == ".png" else None
+    sbit = None if _is_tiff(path) else _png_sbit(path)  # (any name: the PNG signature decides)
     if sbit == 16:
         return ImageScaling(16, 16, "file", float(top))
     if sbit is not None and 1 <= sbit < 16:
@@ -229,6 +240,19 @@ def _scaling(arr: np.ndarray, path: Path, bit_depth: int | str) -> ImageScaling:
             return scaling
     bits = next(b for b in _BIT_DEPTHS if top <= 2**b - 1)
     return ImageScaling(16, bits, "file" if bits == 16 else "largest value", float(top))
+
+
+def _check_float_range(arr: np.ndarray, path: Path) -> None:
+    """Floating-point samples must be finite and in [0, 1]; ``ValueError`` naming the file and the values otherwise."""
+    bad = int(np.count_nonzero(~np.isfinite(arr)))
+    if bad:
+        raise ValueError(f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got "
+                         f"{bad} NaN or infinite value(s) of {arr.size}")
+    if arr.size and (arr.min() < 0.0 or arr.max() > 1.0):
+        raise ValueError(
+            f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got range "
+            f"[{arr.min():g}, {arr.max():g}]"
+        )
 
 
 def _normalise(arr: np.ndarray, path: Path, scaling: ImageScaling | None = None) -> np.ndarray:
@@ -245,15 +269,7 @@ def _normalise(arr: np.ndarray, path: Path, scaling: ImageScaling | None = None)
         return arr.astype(np.float32) / np.float32(divisor)
     if np.issubdtype(arr.dtype, np.floating):
         arr = arr.astype(np.promote_types(arr.dtype, np.float32), copy=False)
-        bad = int(np.count_nonzero(~np.isfinite(arr)))
-        if bad:
-            raise ValueError(f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got "
-                             f"{bad} NaN or infinite value(s) of {arr.size}")
-        if arr.min() < 0.0 or arr.max() > 1.0:
-            raise ValueError(
-                f"cannot read image {path}: floating-point pixel data must be finite and in [0, 1], got range "
-                f"[{arr.min():g}, {arr.max():g}]"
-            )
+        _check_float_range(arr, path)
         return arr
     raise ValueError(
         f"cannot read image {path}: unsupported pixel type {arr.dtype} (supported: 8-bit and 16-bit unsigned "
@@ -334,8 +350,19 @@ def _read_pillow(path: Path) -> np.ndarray:
     return arr
 
 
+#: TIFF photometric interpretations read by :func:`_read_tiff`, and the names of some others (for messages).
+_TIFF_PHOTOMETRIC = {0: "MINISWHITE", 1: "MINISBLACK", 2: "RGB", 3: "PALETTE"}
+_TIFF_PHOTOMETRIC_OTHER = {4: "MASK", 5: "SEPARATED (CMYK)", 6: "YCBCR", 8: "CIELAB", 9: "ICCLAB", 10: "ITULAB",
+                           32803: "CFA", 32844: "LOGL", 32845: "LOGLUV", 34892: "LINEAR_RAW"}
+
+
 def _read_tiff(path: Path) -> tuple[np.ndarray, bool]:
-    """The first page's samples, and whether they are palette colours (16-bit full scale by the TIFF standard)."""
+    """The first page's samples, and whether they are palette colours (16-bit full scale by the TIFF standard).
+
+    A colour map whose entries are all multiples of 256 holds 8-bit colours × 256 (as Pillow writes it; tifffile
+    and libtiff read such maps as 8-bit): its colours are returned as 8-bit samples (``False``: read like any 8-bit
+    data, as the same palette PNG). A MINISWHITE page is inverted: integers ``max − v``, 1-bit ``not v``, floats
+    (checked to lie in [0, 1] first) ``1 − v``."""
     import tifffile
 
     with tifffile.TiffFile(path) as tif:
@@ -353,13 +380,21 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, bool]:
         arr = np.moveaxis(arr, 0, -1)
     if photometric == 3 and colormap is not None:  # palette
         cmap = np.asarray(colormap)  # 3×N, 16-bit
+        if not np.any(cmap.astype(np.uint32) & 0xFF):  # 8-bit colours × 256
+            return np.moveaxis((cmap.astype(np.uint32) >> 8).astype(np.uint8)[:, arr], 0, -1), False
         return np.moveaxis(cmap[:, arr], 0, -1).astype(np.uint16), True
     if photometric == 0 and arr.dtype in (np.uint8, np.uint16):  # MINISWHITE
         arr = np.iinfo(arr.dtype).max - arr
     elif photometric == 0 and arr.dtype == np.bool_:  # 1-bit MINISWHITE: a set sample is black
         arr = ~arr
-    elif photometric not in (0, 1, 2, 3):
-        raise ValueError(f"cannot read image {path}: unsupported TIFF photometric interpretation {photometric}")
+    elif photometric == 0 and np.issubdtype(arr.dtype, np.floating):  # float MINISWHITE: 0 is white
+        _check_float_range(arr, path)
+        arr = 1.0 - arr
+    elif photometric not in _TIFF_PHOTOMETRIC:
+        name = _TIFF_PHOTOMETRIC_OTHER.get(photometric, "unknown")
+        supported = ", ".join(f"{k} ({v})" for k, v in _TIFF_PHOTOMETRIC.items())
+        raise ValueError(f"cannot read image {path}: unsupported TIFF photometric interpretation {photometric} ({name}); "
+                         f"supported: {supported}; convert the file to gray or RGB")
     return arr, False
 
 
@@ -375,15 +410,21 @@ def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
     (default): the PNG's ``sBIT`` chunk where there is one (samples scaled up to 16 bits as the PNG specification
     says, or held in the low bits: module docstring), else the fewest of 8, 10,
     12, 14 or 16 bits that hold the largest value — a guess, announced with a ``UserWarning`` that names the
-    scaling when it is not 16 bits (pass ``bit_depth=16`` for DN/65535). A palette TIFF's colours are 16-bit full
-    scale (÷65535 under ``"auto"``), so it reads like the same palette PNG. :func:`read_image_scaled` returns the
-    scaling with the image.
+    scaling when it is not 16 bits (pass ``bit_depth=16`` for DN/65535). Only the gray or colour samples count
+    toward the largest value and the check against ``bit_depth``: the alpha channel is dropped, so an image reads the
+    same with or without it. A palette TIFF's colours are 16-bit full scale (÷65535 under ``"auto"``); a colour map
+    whose entries are all multiples of 256 holds 8-bit colours × 256 (Pillow writes palette TIFFs so; tifffile and
+    libtiff read them as 8-bit) and is read as 8-bit colours (÷255) — either way it reads like the same palette PNG.
+    A floating-point MINISWHITE TIFF reads 1 − v. The file's type is taken from its name, except that a PNG is
+    recognised by its signature whatever its extension (a 16-bit PNG named ``.jpg`` is read at 16 bits, its
+    ``sBIT`` chunk included). :func:`read_image_scaled` returns the scaling with the image.
 
     Raises:
         FileNotFoundError: ``path`` does not exist (the message names it).
         ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), ``path`` is not a
             regular file (a directory, FIFO, ...), the file is corrupt/unreadable or has an unsupported pixel
-            type, holds values beyond ``bit_depth``, or has more pixels than ``PIL.Image.MAX_IMAGE_PIXELS``
+            type or TIFF photometric interpretation (CMYK; the message lists the supported ones), holds values beyond
+            ``bit_depth``, or has more pixels than ``PIL.Image.MAX_IMAGE_PIXELS``
             (read when the file is opened; checked from the header, before decoding, for every format — Pillow
             alone would only warn up to twice that limit) (the message names the file).
     """
@@ -399,9 +440,9 @@ def read_samples(path: PathLike) -> np.ndarray:
     callers that must tell a colour image from a gray one saved as RGB (equal samples), e.g. the calibration.
     Errors as :func:`read_image`."""
     p = Path(path)
-    if p.suffix.lower() in (".tif", ".tiff"):
+    if _is_tiff(p):
         return _read_tiff(p)[0]
-    header = _png_header(p) if p.suffix.lower() == ".png" else None
+    header = _png_header(p)  # (any name: the PNG signature decides)
     if header is not None and header[0] == 16 and header[1] in (2, 4, 6):
         return _read_16bit_colour_png(p, header[2], header[3])
     return _read_pillow(p)
@@ -453,7 +494,7 @@ def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[to
         if ext in (".tif", ".tiff"):
             arr, palette = _read_tiff(p)
         else:
-            header = _png_header(p) if ext == ".png" else None
+            header = _png_header(p)  # a PNG by its signature, whatever its name says
             if header is not None and header[0] == 16 and header[1] in (2, 4, 6):
                 arr = _read_16bit_colour_png(p, header[2], header[3])
             else:
@@ -473,10 +514,10 @@ def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[to
         raise ValueError(f"cannot read image {p}: unsupported array shape {arr.shape}")
     if arr.shape[0] == 0 or arr.shape[1] == 0:
         raise ValueError(f"cannot read image {p}: the image is empty (shape {arr.shape})")
-    if palette and bit_depth == "auto":  # palette colours are 16-bit full scale, as a palette PNG's 8-bit ones
+    if palette and bit_depth == "auto":  # 16-bit palette colours are full scale, as a palette PNG's 8-bit ones
         scaling = ImageScaling(16, 16, "file", float(arr.max()))
     elif arr.dtype in (np.uint8, np.uint16):
-        scaling = _scaling(arr, p, bit_depth)
+        scaling = _scaling(_colour_samples(arr), p, bit_depth)  # alpha (dropped) sets no depth
     else:
         scaling = ImageScaling(None, None, "file", float(np.nanmax(arr)) if arr.size else 0.0)
     gray = to_gray(_normalise(arr, p, scaling))

@@ -13,7 +13,9 @@ A clean source is only a valid blur-free input if its own MTF is close to 1 at t
   floor σ̂²·Σw² (σ̂: Haar-diagonal MAD of the image) is subtracted, a power law is fitted in log–log to the ring
   powers over ``fit_band`` (f_n 0.05–0.2, where the MTF is taken as 1), and the MTF is √(P(f) / (c·f^(−β))).
   It is an estimate: a scene whose spectrum falls faster than its power law at high frequencies reads as soft
-  (and the reverse), and blur inside the fit band is not seen. Its error on sources of known blur is measured in
+  (and the reverse), and blur inside the fit band is not seen. Images whose ring power in the fit band does not rise
+  above the noise floor (a flat image, pure noise, a texture drowned in noise) have no measurable texture: a
+  ``ValueError`` says so instead of returning a meaningless fit. Its error on sources of known blur is measured in
   ``tests/data/test_native_mtf.py``.
 
 Native MTF here is relative to an ideal camera whose pixel integrates the light over its area (an exact 1-px box
@@ -35,6 +37,7 @@ Frequencies are normalised to Nyquist (f_n; f = f_n/2 cycles/px), as everywhere 
 from __future__ import annotations
 
 import math
+import operator
 from typing import Sequence
 
 import torch
@@ -67,6 +70,20 @@ def _noise_sigma(x: torch.Tensor) -> float:
     return float(d.abs().median()) / _MAD_NORMAL
 
 
+def _check_whole(value: object, name: str, low: int, high: int) -> int:
+    """``value`` as an int in [low, high]: ``TypeError`` for a value that is not a whole number (a float such as 100.5,
+    a bool, a string), ``ValueError`` for one out of the range; both name ``name``, the value and the range."""
+    if isinstance(value, bool):
+        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got a bool")
+    try:
+        v = operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got {type(value).__name__}") from None
+    if not low <= v <= high:
+        raise ValueError(f"{name} = {v} is out of the allowed range [{low}, {high}]")
+    return v
+
+
 def spectral_native_mtf(
     images: torch.Tensor | Sequence[torch.Tensor],
     frequencies: Sequence[float] = NORMALIZED_FREQUENCIES,
@@ -79,27 +96,56 @@ def spectral_native_mtf(
         images: one or more 1×H×W (or B×1×H×W) gray images in [0, 1], each at least ``tile`` px on each side; the
             power of all their tiles is pooled (one MTF for the source).
         frequencies: normalised frequencies f_n in (0, 1].
-        fit_band: (low, high) f_n of the power-law fit, 0 < low < high ≤ 0.5.
-        tile: tile side in px (32..512).
+        fit_band: (low, high) f_n of the power-law fit, 0 < low < high ≤ 0.5, holding at least 3 rings of the tile's
+            spectrum (rings are 2 / ``tile`` apart).
+        tile: tile side in px, an integer in [32, 512].
+
+    Raises:
+        TypeError: ``tile`` is not an integer; an image is not a floating tensor.
+        ValueError: an argument out of its range (the message names it and the range); an image that is not
+            1×H×W or B×1×H×W, not finite or not in [0, 1], or smaller than ``tile``; images without measurable
+            texture: the ring power in ``fit_band``, less the white-noise floor, is not above that floor at every
+            ring (a flat image, pure noise, a texture drowned in noise), where the power-law fit, and so the MTF,
+            would be meaningless (values from 0 to 1e22).
     """
     if isinstance(images, torch.Tensor):
+        if images.ndim not in (3, 4):
+            raise ValueError(f"images must be a 1×H×W or B×1×H×W tensor (or a list of them), got shape {tuple(images.shape)}")
         images = [images] if images.ndim == 3 else list(images)
+    elif isinstance(images, (str, bytes)):
+        raise TypeError(f"images must be a tensor or a list of tensors, got {type(images).__name__}")
+    else:
+        try:
+            images = list(images)
+        except TypeError:
+            raise TypeError(f"images must be a tensor or a list of tensors, got {type(images).__name__}") from None
     if not images:
         raise ValueError("images must hold at least one image")
-    if not (32 <= int(tile) <= 512):
-        raise ValueError(f"tile = {tile} is out of the allowed range [32, 512]")
-    lo, hi = fit_band
+    for i, img in enumerate(images):
+        if not isinstance(img, torch.Tensor) or img.ndim not in (3, 4):
+            shape = tuple(img.shape) if isinstance(img, torch.Tensor) else type(img).__name__
+            raise ValueError(f"images[{i}] must be a 1×H×W or B×1×H×W tensor, got {shape}")
+    tile = _check_whole(tile, "tile", 32, 512)
+    try:
+        lo, hi = (float(v) for v in fit_band)
+    except (TypeError, ValueError):
+        raise ValueError(f"fit_band = {fit_band!r} must be a pair (low, high) of f_n with 0 < low < high ≤ 0.5") from None
     if not (0.0 < lo < hi <= 0.5):
         raise ValueError(f"fit_band = {fit_band} must satisfy 0 < low < high ≤ 0.5 (f_n)")
     fn_req = torch.as_tensor(frequencies, dtype=torch.float64).reshape(-1)
-    if bool(((fn_req <= 0) | (fn_req > 1)).any()):
+    if fn_req.numel() == 0 or bool((~((fn_req > 0) & (fn_req <= 1))).any()):  # (NaN fails both)
         raise ValueError(f"frequencies must lie in (0, 1] (× Nyquist), got {fn_req.tolist()}")
+    step = 2.0 / tile
+    band = torch.arange(lo, hi + 1e-9, step, dtype=torch.float64)
+    if band.numel() < 3:
+        raise ValueError(f"fit_band = {fit_band} holds {band.numel()} ring(s) of a {tile}-px tile (rings every "
+                         f"{step:.3g} f_n); the power-law fit needs at least 3: widen the band or use larger tiles")
     win1 = torch.hann_window(tile, periodic=False, dtype=torch.float64)
     win = win1[:, None] * win1[None, :]
     power = torch.zeros(tile, tile, dtype=torch.float64)
     noise_power = 0.0
     n_tiles = 0
-    grays = [x for img in images for x in check_image(img[None] if img.ndim == 3 else img, "images")[:, 0]]
+    grays = [x for img in images for x in check_image(img[None] if img.ndim == 3 else img, "images", 1, (0.0, 1.0))[:, 0]]
     for x in grays:  # every image of every element (a B×1×H×W element gives B images)
         x = x.double()
         h, w = x.shape
@@ -111,17 +157,24 @@ def spectral_native_mtf(
         power += torch.fft.fft2(t).abs().square().sum(0)
         noise_power += sigma**2 * float(win.square().sum()) * t.shape[0]
         n_tiles += t.shape[0]
+    floor = noise_power / n_tiles  # expected white-noise power per frequency of one tile
     power = (power - noise_power) / n_tiles
     f = torch.fft.fftfreq(tile, dtype=torch.float64)
     fn = 2.0 * torch.sqrt(f[:, None] ** 2 + f[None, :] ** 2)  # × Nyquist
-    step = 2.0 / tile
 
     def ring(centre: torch.Tensor) -> torch.Tensor:
         m = (fn[None] - centre[:, None, None]).abs() <= 0.75 * step
         return (power[None] * m).sum((1, 2)) / m.sum((1, 2)).clamp_min(1)
 
-    band = torch.arange(lo, hi + 1e-9, step, dtype=torch.float64)
-    pb = ring(band).clamp_min(1e-30)
+    pb = ring(band)
+    weakest = float(pb.min())
+    if not weakest > floor:  # (also a flat image: 0 power over a 0 floor; NaN fails too)
+        raise ValueError(
+            f"the {len(grays)} image(s) have no measurable texture above the noise floor in fit_band = ({lo:g}, {hi:g}) "
+            f"(f_n): their ring power there, less the white-noise floor, falls to {weakest:.3g}, not above the floor "
+            f"{floor:.3g} (mean power per frequency of the {n_tiles} {tile}-px tile(s)); a flat or noise-only image has "
+            "no MTF to estimate"
+        )
     a = torch.stack([torch.ones_like(band), torch.log(band)], 1)
     coef = torch.linalg.lstsq(a, torch.log(pb)[:, None]).solution[:, 0]
     fit = torch.exp(coef[0] + coef[1] * torch.log(fn_req))
@@ -193,9 +246,7 @@ def rendered_native_mtf(supersample: int, frequencies: Sequence[float] = NORMALI
     (mean of H and V)."""
     from camhealth.estimators.charts import slanted_edge_chart, slanted_edge_rois
 
-    s = int(supersample)
-    if not (1 <= s <= 8):
-        raise ValueError(f"supersample = {supersample!r} is out of the allowed range [1, 8]")
+    s = _check_whole(supersample, "supersample", 1, 8)
     chart = slanted_edge_chart(size, supersample=s).double()
     rois = slanted_edge_rois(size)
     out = []

@@ -10,9 +10,11 @@ a video is opened, with one decoder thread so that each frame comes out of the r
 the decoder reports damage in while reading (FFmpeg's error log on the process's stderr: a truncated last frame,
 a corrupt packet, concealed macroblocks) is only partly decoded: :meth:`FrameSequence.frames` yields it with the
 decoder's message instead of pixels, iteration skips it with a warning, ``seq[k]`` raises ``ValueError``. (FFmpeg
-must log errors — OpenCV's default; ``OPENCV_FFMPEG_LOGLEVEL`` below 16 hides them.) A video whose last frames are
-missing (a file cut short) has the length of the frames that decode, with a warning naming the file when it is
-opened (:class:`FrameSequence`).
+must log errors — OpenCV's default; ``OPENCV_FFMPEG_LOGLEVEL`` below 16 hides them.) A frame that does not decode at
+all is treated the same way where later frames decode (iteration goes on past it), and ``seq[k]`` raises
+``ValueError`` naming the file and the frame where such a frame lies before frame k on the way to it (its position is
+then not known). A video whose last frames are missing (a file cut short) has the length of the frames that decode,
+with a warning naming the file when it is opened (:class:`FrameSequence`).
 """
 
 from __future__ import annotations
@@ -103,6 +105,17 @@ def _damaged(idx: int, path: Path, message: str) -> str:
     return f"frame {idx} of video {path} was only partly decoded (decoder: {message[:160]}); not used"
 
 
+def _undecodable(idx: int, path: Path, message: str | None) -> str:
+    said = f" (decoder: {message[:160]})" if message else ""
+    return (f"frame {idx} of video {path} does not decode{said}; not used (the frames after it are numbered in the "
+            "order they decode, lower than written where the damage took more than one frame)")
+
+
+#: Reads or grabs in a row that return no frame before iteration takes the video to have ended (fewer: damaged
+#: frames, skipped with a warning once a later frame decodes).
+_MAX_FAILED_IN_A_ROW = 16
+
+
 def _bgr_to_tensor(frame: np.ndarray) -> torch.Tensor:
     """OpenCV frame (H×W or H×W×3 BGR / H×W×4 BGRA, 8 or 16 bit) → gray float32 1×H×W in [0, 1]."""
     if frame.ndim == 3 and frame.shape[-1] >= 3:
@@ -131,7 +144,10 @@ class FrameSequence:
     decoder still stop before the length, iteration ends with a ``UserWarning`` naming the file and the frame. If
     the container does not report a count, ``len()`` raises ``TypeError`` and :attr:`length` is ``None``.
     ``seq[k]`` returns the ``k``-th kept frame as ``(frame, index)`` (for a video by seeking, which is slower
-    than iterating).
+    than iterating), or raises ``ValueError`` naming the file and the frame where it cannot: the frame is damaged,
+    or a frame before it does not decode, so that its position is not known (a seek that does not land on it is
+    checked and redone by counting from the first frame). Iteration skips a damaged frame or one that does not
+    decode with a ``UserWarning`` naming it and goes on (:meth:`frames`).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
@@ -158,6 +174,9 @@ class FrameSequence:
         self._cap = None
         self._cap_pid = -1
         self._cap_next = -1
+        #: a damaged frame in a video that lost frames (its container declares more than decode): the frames after it
+        #: have no known position (``seq[k]`` refuses them); ``None`` where no such frame was found
+        self._unknown_after: int | None = None
         if not self.path.exists():
             raise FileNotFoundError(f"frame folder or video file not found: {self.path}")
         if self.path.is_dir():
@@ -211,13 +230,26 @@ class FrameSequence:
                 if not ok or frame is None:  # the last frame is missing: count the frames there are
                     cap.release()
                     cap = self._open()
-                    counted = 0
-                    while log.call(cap.grab)[0]:
-                        counted += 1
+                    counted = position = failed = 0  # (past a frame that does not decode, as iteration goes on)
+                    first_bad = None  # the first frame the decoder reports damage in or cannot decode
+                    while failed < _MAX_FAILED_IN_A_ROW:
+                        ok, message = log.call(cap.grab)
+                        if ok:
+                            counted, failed = position + 1, 0
+                        else:
+                            failed += 1
+                        if (not ok or message is not None) and first_bad is None:
+                            first_bad = position
+                        position += 1
                     if counted < n:
+                        lost = first_bad is not None and first_bad < counted - 1  # frames lost in the middle
+                        if lost:  # the frames after the damage may be numbered lower than written
+                            self._unknown_after = first_bad
                         warnings.warn(
                             f"video {self.path}: its container declares {n} frames, but only frames 0…{counted - 1} "
-                            f"({counted}) can be decoded (a truncated or damaged file?); its length is {counted}",
+                            f"({counted}) can be decoded (a truncated or damaged file?); its length is {counted}"
+                            + (f"; frame {first_bad} is damaged, so the frames after it may be numbered lower than "
+                               "written (random access refuses them)" if lost else ""),
                             UserWarning, stacklevel=3)
                         n = max(counted, 1)
             return n
@@ -280,7 +312,12 @@ class FrameSequence:
 
     def frames(self) -> Iterator[tuple[torch.Tensor | None, int, str | None]]:
         """``(frame, index, None)`` for every kept frame, or ``(None, index, message)`` for a video frame the
-        decoder reported damage in while reading it (partly decoded: concealed or missing blocks)."""
+        decoder reported damage in while reading it (partly decoded: concealed or missing blocks) or that does not
+        decode at all while later frames do. Iteration goes on after such a frame; only
+        ``_MAX_FAILED_IN_A_ROW`` (16) frames in a row that do not decode end it (with a ``UserWarning`` when that is
+        before the length). Frames are numbered in the order the decoder delivers them, a frame that does not decode
+        counting as one: where damage takes away more than one frame's data in one failed read, the frames after it
+        are numbered lower than they were written (``seq[k]`` refuses to count past such a frame)."""
         limit = self.length if self.length is not None else self.max_frames
         if self.kind == "folder":
             assert self.frame_paths is not None
@@ -296,29 +333,56 @@ class FrameSequence:
 
         cap = self._open()
         log = _DecoderLog()
+        # a read or grab that returns no frame is a damaged frame when a later one decodes (the kept ones among them
+        # are yielded with a message then); _MAX_FAILED_IN_A_ROW of them in a row end the video
+        failed = 0  # reads and grabs in a row that returned no frame
+        run_start: tuple[int, int] | None = None  # (kept frames before it, frame index) of the first of them
+        pending: list[tuple[int, str | None]] = []  # kept frames among them: (index, decoder message)
         try:
             for j in range(self.start):  # skip to start without converting
-                if not cap.grab():
-                    ended(0, j)
+                if cap.grab():
+                    failed, run_start = 0, None
+                    continue
+                failed += 1
+                run_start = run_start or (0, j)
+                if failed >= _MAX_FAILED_IN_A_ROW:
+                    ended(*run_start)
                     return
             k = 0
             while limit is None or k < limit:
                 ok, frame, message = log.read(cap)
                 idx = self.frame_index(k)
-                if message is not None and ok and frame is not None:
-                    yield None, idx, _damaged(idx, self.path, message)
-                elif not ok or frame is None:
-                    ended(k, idx)
-                    return
+                if not ok or frame is None:
+                    failed += 1
+                    run_start = run_start or (k, idx)
+                    pending.append((idx, message))
+                    if failed >= _MAX_FAILED_IN_A_ROW:
+                        break
                 else:
-                    yield _bgr_to_tensor(frame), idx, None
+                    for p_idx, p_message in pending:  # a later frame decodes: those were damaged, not the end
+                        yield None, p_idx, _undecodable(p_idx, self.path, p_message)
+                    failed, run_start, pending = 0, None, []
+                    if message is not None:
+                        yield None, idx, _damaged(idx, self.path, message)
+                    else:
+                        yield _bgr_to_tensor(frame), idx, None
                 k += 1
                 if limit is not None and k >= limit:
-                    return
+                    break
                 for j in range(self.stride - 1):
-                    if not cap.grab():
-                        ended(k, idx + 1 + j)
-                        return
+                    if cap.grab():
+                        for p_idx, p_message in pending:
+                            yield None, p_idx, _undecodable(p_idx, self.path, p_message)
+                        failed, run_start, pending = 0, None, []
+                        continue
+                    failed += 1
+                    run_start = run_start or (k, idx + 1 + j)
+                    if failed >= _MAX_FAILED_IN_A_ROW:
+                        break
+                if failed >= _MAX_FAILED_IN_A_ROW:
+                    break
+            if run_start is not None:  # the last frames did not decode: the video ended there
+                ended(*run_start)
         finally:
             cap.release()
             log.close()
@@ -340,6 +404,11 @@ class FrameSequence:
         if self.kind == "folder":
             assert self.frame_paths is not None
             return read_sequence_frame(self.frame_paths[idx], self.bit_depth, self._first_bits())[0], idx
+        bad = getattr(self, "_unknown_after", None)
+        if bad is not None and idx > bad:
+            raise ValueError(f"cannot tell which frame is frame {idx} of video {self.path}: frame {bad} is damaged and "
+                             f"the file lost frames (its container declares more than the {self.total_frames} that "
+                             "decode), so the frames after it may be numbered lower than written")
         cv2 = _import_cv2()
         if self._cap is not None and self._cap_pid != os.getpid():  # inherited through fork
             self.close()
@@ -347,17 +416,22 @@ class FrameSequence:
             self._cap = self._open()
             self._cap_pid = os.getpid()
             self._cap_next = 0
+        sought = False
         if idx != self._cap_next:
             if idx > self._cap_next and idx - self._cap_next <= 64:
-                for _ in range(idx - self._cap_next):
-                    self._cap.grab()
+                self._grab_to(idx)
             else:
                 self._cap.set(cv2.CAP_PROP_POS_FRAMES, idx)
-        log = _DecoderLog()
-        try:
-            ok, frame, message = log.read(self._cap)
-        finally:
-            log.close()
+                sought = True
+        ok, frame, message = self._read()
+        if sought and ok and frame is not None and int(round(self._cap.get(cv2.CAP_PROP_POS_FRAMES))) != idx + 1:
+            # the seek landed elsewhere (a damaged frame before idx confuses the decoder's count): count from the start
+            self.close()
+            self._cap = self._open()
+            self._cap_pid = os.getpid()
+            self._cap_next = 0
+            self._grab_to(idx)
+            ok, frame, message = self._read()
         if not ok or frame is None:
             self.close()
             raise ValueError(f"cannot decode frame {idx} of video {self.path}")
@@ -365,6 +439,23 @@ class FrameSequence:
         if message is not None:
             raise ValueError(_damaged(idx, self.path, message))
         return _bgr_to_tensor(frame), idx
+
+    def _read(self) -> tuple[bool, np.ndarray | None, str | None]:
+        log = _DecoderLog()
+        try:
+            return log.read(self._cap)
+        finally:
+            log.close()
+
+    def _grab_to(self, idx: int) -> None:
+        """Advance the random-access handle from ``_cap_next`` to frame ``idx`` by grabbing the frames between; a frame
+        on the way that does not decode leaves the position unknown: ``ValueError`` naming both frames and the file."""
+        for j in range(self._cap_next, idx):
+            if not self._cap.grab():
+                self.close()
+                raise ValueError(f"cannot reach frame {idx} of video {self.path}: frame {j} does not decode, so the "
+                                 "frames after it cannot be counted")
+            self._cap_next = j + 1
 
     def as_source(self, name: str | None = None) -> "FrameSequenceSource":
         """This sequence as an image source (``source[i] -> (frame, id)``) whose frames form one split group."""
