@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import numbers
+import os
 import re
 import sys
 from pathlib import Path
@@ -39,7 +41,13 @@ def random_patches(source, n: int, size: int, generator: torch.Generator) -> tup
 
     Images smaller than ``size`` on a side are skipped: each crop comes from an image drawn uniformly from those
     at least ``size``×``size`` px (a drawn image that is too small is set aside and another one drawn).
-    ValueError naming the patch size (``--size``) and the largest patch the images hold when none is large enough."""
+    ValueError naming the patch size (``--size``) and the largest patch the images hold when none is large enough.
+    ``n`` must be an integer >= 1 and ``size`` one >= :data:`MIN_SIZE` (the noise labels are standard deviations over a
+    patch's pixels): a ``ValueError`` naming the value otherwise."""
+    for name, value, low in (("n", n, 1), ("size", size, MIN_SIZE)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+            raise ValueError(f"{name} = {value!r} must be an integer >= {low}")
+    n, size = int(n), int(size)
     if len(source) == 0:
         raise ValueError("the image source is empty")
     candidates = list(range(len(source)))  # images not yet known to be too small
@@ -166,7 +174,8 @@ def _range_text(name: str, values) -> str:
 def _check_ranges(args: argparse.Namespace) -> None:
     """ValueError naming the option when a MIN MAX range is not two numbers with 0 ≤ MIN ≤ MAX ≤ its largest value
     (253 px defocus, 252 px motion, 1 shake), or when --shake asks for camera shake with motion blur off; a negative
-    range would otherwise switch the corruption off, and a shake without motion be dropped, without a word."""
+    range would otherwise switch the corruption off, and a shake without motion be dropped, without a word. Also
+    ValueError naming the three options when --no-noise, --defocus 0 0 and --motion 0 0 leave nothing to corrupt."""
     for name, (top, unit) in _RANGES.items():
         values = list(getattr(args, name))
         text = _range_text(name, values)
@@ -182,6 +191,68 @@ def _check_ranges(args: argparse.Namespace) -> None:
     if args.shake[1] > 0 and args.motion[1] == 0:
         raise ValueError(f"{_range_text('shake', args.shake)}: camera shake needs motion blur; "
                          f"{_range_text('motion', args.motion)} switches it off")
+    if args.no_noise and args.defocus[1] == 0 and args.motion[1] == 0:
+        raise ValueError(f"--no-noise with {_range_text('defocus', args.defocus)} and {_range_text('motion', args.motion)} "
+                         "corrupts nothing: keep the noise or give a defocus or motion range")
+
+
+#: Working memory [bytes] per pixel of the patches (--n · --size²) that a run takes: all patches are corrupted in one
+#: batch (one draw of the camera's random numbers), and the camera model keeps several float32 images of each (blurred,
+#: electrons, each noise source, clipped); measured ≈ 57 B/px.
+BYTES_PER_PIXEL = 64
+
+
+def _memory_limit() -> int | None:
+    """Bytes this process can use at most: the smaller of the machine's physical memory and the address-space limit
+    (``ulimit -v``); None where neither is known."""
+    limits = []
+    try:
+        limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        pass
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft not in (resource.RLIM_INFINITY, -1) and soft > 0:
+            limits.append(int(soft))
+    except (ImportError, AttributeError, ValueError, OSError):
+        pass
+    return min(limits) if limits else None
+
+
+def _check_memory(args: argparse.Namespace) -> None:
+    """ValueError naming --n and --size when their patches (one batch) need more memory than this process can have
+    (:func:`_memory_limit`), before the source is read: the run would otherwise stop in an allocation deep inside the
+    camera model (or be killed by the system) with a message that names neither."""
+    need = args.n * args.size * args.size * BYTES_PER_PIXEL
+    limit = _memory_limit()
+    if limit is not None and need > limit:
+        raise ValueError(f"--n {args.n} --size {args.size}: the {args.n} patches of {args.size}×{args.size} px are "
+                         f"corrupted in one batch, which needs about {need / 2**30:.1f} GiB of memory ({BYTES_PER_PIXEL} "
+                         f"bytes per pixel); this process can use {limit / 2**30:.1f} GiB. Give a smaller --n or --size "
+                         "(several runs with different --seed give more patches)")
+
+
+class _SeedOption:
+    """Option type of ``--seed``: an integer torch's generators take, -2⁶³ … 2⁶⁴ − 1, else :class:`BadValue` naming the
+    value and the range. Its ``repr`` is what ``--help`` shows."""
+
+    low, high = -(2**63), 2**64 - 1
+
+    def __call__(self, value) -> int:
+        try:
+            if isinstance(value, (bool, float)):
+                raise ValueError
+            seed = int(value)
+        except (TypeError, ValueError):
+            raise BadValue(f"must be an integer in [{self.low}, {self.high}], got {value!r}") from None
+        if not self.low <= seed <= self.high:
+            raise BadValue(f"must be an integer in [{self.low}, {self.high}] (the range of torch's random seeds), got {seed}")
+        return seed
+
+    def __repr__(self) -> str:
+        return f"int in [{self.low}, {self.high}]"
 
 
 #: Names of the files a run writes into --out (besides overview.png): the patch pairs and the labels.
@@ -197,20 +268,28 @@ def _earlier_outputs(out: Path) -> list[Path]:
     return sorted(f for f in out.iterdir() if (_PAIR.match(f.name) or f.name in (_LABELS, _OVERVIEW)) and not f.is_dir())
 
 
-def _check_out(args: argparse.Namespace) -> None:
-    """ValueError naming both paths when --out is the source folder, lies inside it or contains it (the run would
-    write over the input images, or into a folder a later run reads back as input); ValueError naming --out and
-    --overwrite when --out holds an earlier run's files and --overwrite is not given."""
-    spec = str(args.source)
+def _check_out_folder(source, out: Path, option: str = "--out") -> None:
+    """ValueError naming both paths when the output folder ``out`` (the command's ``option``) is the folder of the image
+    source ``source`` (a folder or ``frames:<folder>``), lies inside it or contains it: the run would write over the
+    input images, or into a folder that a later run reads back as input (folder sources take the images of every
+    sub-folder). Shared by ``python -m camhealth.corrupt`` and ``python -m camhealth.evaluate``."""
+    spec = str(source)
     folder = Path(spec[len("frames:"):] if spec.startswith("frames:") else spec)
     if spec.strip().lower() not in ("default", "street", "skimage", "deadleaves") and folder.is_dir():
-        src, out = folder.resolve(), args.out.resolve()
-        if out == src:
-            raise ValueError(f"--out {args.out} is the source folder {folder}; give another output folder")
-        if out.is_relative_to(src):
-            raise ValueError(f"--out {args.out} is inside the source folder {folder}; give a folder outside it")
-        if src.is_relative_to(out):
-            raise ValueError(f"--out {args.out} contains the source folder {folder}; give a folder outside it")
+        src, res = folder.resolve(), Path(out).resolve()
+        if res == src:
+            raise ValueError(f"{option} {out} is the source folder {folder}; give another output folder")
+        if res.is_relative_to(src):
+            raise ValueError(f"{option} {out} is inside the source folder {folder}; give a folder outside it")
+        if src.is_relative_to(res):
+            raise ValueError(f"{option} {out} contains the source folder {folder}; give a folder outside it")
+
+
+def _check_out(args: argparse.Namespace) -> None:
+    """ValueError naming both paths when --out is the source folder, lies inside it or contains it
+    (:func:`_check_out_folder`); ValueError naming --out and --overwrite when --out holds an earlier run's files and
+    --overwrite is not given."""
+    _check_out_folder(args.source, args.out)
     earlier = _earlier_outputs(args.out)
     if earlier and not args.overwrite:
         names = ", ".join(f.name for f in earlier[:3]) + (f" and {len(earlier) - 3} more" if len(earlier) > 3 else "")
@@ -253,7 +332,7 @@ def build_parser():
                    help="significant bits of the images of a folder source (or frames:<folder>): 'auto' (default: "
                    "each file's PNG sBIT chunk, else a guess from its largest value) or 1-16, e.g. 12 for a 12-bit "
                    "camera's frames in 16-bit files (DN/4095)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=_SeedOption(), default=0, help="random seed (default 0)")
     p.add_argument("--overview", action="store_true", help="also write overview.png (each corruption of the most textured patch)")
     add_debug_flag(p)
     return p
@@ -266,6 +345,7 @@ def main(argv: list[str] | None = None) -> int:
     from camhealth.data import build_source
 
     _check_ranges(args)  # (before the source is read)
+    _check_memory(args)
     _check_out(args)
     source = build_source(args.source, bit_depth=args.bit_depth)
     g = torch.Generator().manual_seed(args.seed)

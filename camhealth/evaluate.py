@@ -46,6 +46,7 @@ import datetime as _dt
 import hashlib
 import json
 import math
+import numbers
 import sys
 import time
 from dataclasses import dataclass
@@ -126,6 +127,35 @@ class EvalConfig:
         from camhealth.data.io import _check_bit_depth
 
         _check_bit_depth(self.bit_depth)
+
+        def integer(name: str, low: int, note: str = "") -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < low:
+                raise ValueError(f"{name} = {v!r} must be an integer >= {low}{note}")
+
+        integer("seed", 0)
+        for name in ("noise_patches", "combined_patches", "agg_patches", "batch"):
+            integer(name, 1)
+        for name in ("blur_patches", "bun_patches"):
+            integer(name, 0, " (0: no patches)")
+        integer("agg_frames", 2, " (the aggregation compares windows of consecutive frames)")
+        for name in ("deadleaves", "charts"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} = {getattr(self, name)!r} must be True or False")
+
+        def values(name: str, ok: Callable[[Any], bool], what: str) -> None:
+            v = getattr(self, name)
+            if isinstance(v, (str, bytes)) or not isinstance(v, Sequence) or not v or not all(ok(x) for x in v):
+                raise ValueError(f"{name} = {v!r} must be a non-empty list of {what}")
+
+        def real(x: Any) -> bool:
+            return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
+
+        values("agg_windows", lambda x: isinstance(x, numbers.Integral) and not isinstance(x, bool) and x >= 1,
+               "window sizes: integers >= 1 [frames]")
+        values("bun_levels", lambda x: real(x) and x >= 0, "noise levels σ >= 0 [DN] (0: blur alone)")
+        values("bun_sizes", lambda x: real(x) and 0 <= x <= KERNEL_SIZE,
+               f"blur sizes in [0, {KERNEL_SIZE}] px (the {KERNEL_SIZE}-px kernels hold no larger defocus or motion)")
 
     def key(self) -> str:
         """Hash of the configuration (cache entries are only reused for the same key; ``bit_depth`` enters it only when
@@ -562,8 +592,24 @@ def learned_methods(names: Sequence[str] = SHIPPED, checkpoints: Sequence[str | 
         except Exception as err:  # a shipped model that is not there (yet) is skipped, with the reason
             log(f"note: learned estimator {name!r} not available ({type(err).__name__}: {err}); its rows are left out")
     for path, label in zip(checkpoints, checkpoint_labels(checkpoints)):
-        out.append(_wrap_learned(label, load_estimator(str(path))))
+        method = _wrap_learned(label, load_estimator(str(path)))
+        _check_patch_fits(method, f"--checkpoint {path}")
+        out.append(method)
     return out
+
+
+def _check_patch_fits(m: Method, what: str | None = None) -> None:
+    """``ValueError`` naming the method (``what``: its file) and both sizes when a learned method reads larger patches
+    than the benchmark has for it: :data:`NOISE_PATCH` px for a noise estimator, :data:`BLUR_PATCH` px for an MTF
+    estimator (larger patches are centre-cropped to its size, smaller ones cannot be)."""
+    if not m.learned or m.patch_size is None:
+        return
+    limit = BLUR_PATCH if m.kind == "mtf" else NOISE_PATCH
+    if m.patch_size > limit:
+        kind = "MTF" if m.kind == "mtf" else "noise"
+        who, article = what if what else f"method {m.name!r}", "an" if kind == "MTF" else "a"
+        raise ValueError(f"{who}: {article} {kind} estimator of patch_size = {m.patch_size} px; the benchmark's {kind} "
+                         f"patches are {limit} px, so it can evaluate {kind} estimators of at most {limit} px")
 
 
 def checkpoint_labels(paths: Sequence[str | Path]) -> list[str]:
@@ -742,9 +788,30 @@ def _by_family_size(rows: torch.Tensor, per_row: torch.Tensor) -> dict[str, floa
     return out
 
 
-def _noise_tables(cases: dict, results: dict, methods: list[Method]) -> dict:
+def _finite_errors(est: torch.Tensor, truth: torch.Tensor, what: str,
+                   excluded_by: dict[str, list[int]] | None) -> dict[str, float]:
+    """:func:`camhealth.metrics.noise_errors` of the finite estimates: a method that cannot assess a patch (PCA on a flat
+    black one) answers NaN/inf there. Those samples are left out, counted in the result's ``excluded`` and in
+    ``excluded_by[what]`` ([left out, estimates]; ``what``: the method and the case, for the report's notes); with no
+    finite estimate Bias/Std/RMS are NaN (no data). With every estimate finite the result is ``noise_errors``'s alone."""
     from camhealth.metrics import noise_errors
 
+    est, truth = est.reshape(-1), truth.reshape(-1)
+    finite = torch.isfinite(est)
+    excluded = int((~finite).sum())
+    if excluded_by is not None:
+        count = excluded_by.setdefault(what, [0, 0])
+        count[0] += excluded
+        count[1] += est.numel()
+    if not excluded:
+        return noise_errors(est, truth)
+    if not bool(finite.any()):
+        nan = float("nan")
+        return {"bias": nan, "std": nan, "rms": nan, "n": 0, "excluded": excluded}
+    return {**noise_errors(est[finite], truth[finite]), "excluded": excluded}
+
+
+def _noise_tables(cases: dict, results: dict, methods: list[Method], excluded: dict[str, list[int]] | None = None) -> dict:
     out: dict[str, Any] = {"combined": {}, "isolated": {}, "isolated_median": {}}
     for ds in ("natural", "deadleaves"):
         case = f"noise_combined_{ds}"
@@ -755,10 +822,11 @@ def _noise_tables(cases: dict, results: dict, methods: list[Method]) -> dict:
             if m.kind != "noise":
                 continue
             r = results[(case, m.name, "")]
-            row = {"Total": noise_errors(r["total"], data["total"])}
+            row = {"Total": _finite_errors(r["total"], data["total"], f"{m.name} on {case} (total)", excluded)}
             if m.per_source and "sigma" in r:
                 for i, s in enumerate(SOURCES):
-                    row[SOURCE_LABELS[s]] = noise_errors(r["sigma"][:, i], data["sigma"][:, i])
+                    row[SOURCE_LABELS[s]] = _finite_errors(r["sigma"][:, i], data["sigma"][:, i],
+                                                           f"{m.name} on {case} ({SOURCE_LABELS[s]})", excluded)
             out["combined"].setdefault(ds, {})[m.name] = row
     data = cases["noise_isolated"]
     for m in methods:
@@ -770,16 +838,19 @@ def _noise_tables(cases: dict, results: dict, methods: list[Method]) -> dict:
             for lv in NOISE_LEVELS_DN:
                 sel = (data["source"] == si) & (data["level"] == lv)
                 key = f"{SOURCE_LABELS[s]} {lv:g}"
-                rms[key] = noise_errors(r["total"][sel], data["total"][sel])["rms"]
-                q = torch.quantile(r["total"][sel].double(), torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64))
+                est = r["total"][sel]
+                rms[key] = _finite_errors(est, data["total"][sel], f"{m.name} on noise_isolated", excluded)["rms"]
+                est = est[torch.isfinite(est)]
+                q = (torch.quantile(est.double(), torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64)) if est.numel()
+                     else torch.full((3,), float("nan"), dtype=torch.float64))
                 med[key] = {"min": float(q[0]), "median": float(q[1]), "max": float(q[2]), "truth": float(data["total"][sel].median())}
         out["isolated"][m.name] = rms
         out["isolated_median"][m.name] = med
     return out
 
 
-def _bun_tables(cases: dict, results: dict, methods: list[Method]) -> dict:
-    from camhealth.metrics import amae, noise_errors
+def _bun_tables(cases: dict, results: dict, methods: list[Method], excluded: dict[str, list[int]] | None = None) -> dict:
+    from camhealth.metrics import amae
 
     data = cases["blur_under_noise"]
     rows = data["rows"]
@@ -810,7 +881,8 @@ def _bun_tables(cases: dict, results: dict, methods: list[Method]) -> dict:
             for ci, case in enumerate(BUN_CASES):
                 sel = (case_of_patch == ci) & (lv_of_patch > 0)
                 if bool(sel.any()):
-                    noise[m.name][case] = noise_errors(est[sel], data["sigma"][sel])
+                    noise[m.name][case] = _finite_errors(est[sel], data["sigma"][sel], f"{m.name} on blur_under_noise "
+                                                         f"({BUN_LABELS[case]})", excluded)
     return {"blur": blur, "noise": noise}
 
 
@@ -982,19 +1054,35 @@ def _markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def _s(n: int) -> str:
+    return "" if n == 1 else "s"
+
+
 def _summary(report: dict) -> list[str]:
     out = []
     blur = report["blur"]["amae"]
     sle = blur.get("slanted edge")
     if sle:
+        # a kernel without a value (NaN: the method measured nothing) fails the target, wherever it is in the list
         small = [sle[f"defocus {d:g}"] for d in BLUR_SIZES_PX if d <= 11]
-        out.append(f"slanted edge vs labels, defocus d ≤ 11 px: max AMAE {max(small):.2f} % (target ≤ 2 %: "
-                   f"{'met' if max(small) <= 2.0 else 'NOT met'})")  # fmt: skip
+        values = [v for v in small if not math.isnan(v)]
+        missing = len(small) - len(values)
+        worst = max(values) if values else float("nan")
+        met = not missing and worst <= 2.0
+        gaps = f" ({missing} kernel{_s(missing)} without a value)" if missing else ""
+        out.append(f"slanted edge vs labels, defocus d ≤ 11 px: max AMAE {_f(worst)} % (target ≤ 2 %: "
+                   f"{'met' if met else 'NOT met'}{gaps})")  # fmt: skip
         ex = blur.get("slanted edge vs. exact MTF at 5°/95°", {})
         if ex:
             allv = [v for v in ex.values() if not math.isnan(v)]
-            out.append(f"slanted edge vs exact kernel MTF in the measured direction: max AMAE {max(allv):.2f} % over all "
-                       "kernels — the MTF labels of the data pipeline agree with the standard measurement")  # fmt: skip
+            missing = len(ex) - len(allv)
+            if allv:
+                out.append(f"slanted edge vs exact kernel MTF in the measured direction: max AMAE {max(allv):.2f} % over all "
+                           "kernels" + (f" with a value ({missing} without one)" if missing else "")
+                           + " — the MTF labels of the data pipeline agree with the standard measurement")  # fmt: skip
+            else:
+                out.append(f"slanted edge vs exact kernel MTF in the measured direction: no value for any of the {missing} "
+                           f"kernel{_s(missing)} (the slanted edge measured none)")
     comb = report["noise"]["combined"].get("deadleaves", {})
     speed = {r["method"]: r["ms_per_item"] for r in report["speed"]}
     learned = [n for n in comb if n.startswith(("learned", "checkpoint"))]
@@ -1153,8 +1241,13 @@ def run_evaluation(
         raise ValueError(f"method names must be unique, got {names}")
     if not cfg.charts and any(m.kind.startswith("chart") for m in methods):
         raise ValueError("chart methods (slanted edge, Siemens star) need cfg.charts = True")
-    t_start = time.perf_counter()
+    for m in methods:  # (before any data is built)
+        _check_patch_fits(m)
+    from camhealth.corrupt import _check_out_folder
+
     out = Path(out)
+    _check_out_folder(cfg.source, out, "out")  # a folder source would read the report's plots back as images
+    t_start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     cache = out / "cache"
     cases = build_cases(cfg, cache, resume, log)
@@ -1179,6 +1272,11 @@ def run_evaluation(
             bar.update(1)
     if bar is not None:
         bar.close()
+    excluded: dict[str, list[int]] = {}  # estimates left out of the noise tables (not finite), per method and case
+    noise_tables = _noise_tables(cases, results, methods, excluded)
+    bun_tables = _bun_tables(cases, results, methods, excluded)
+    table_notes = [f"{what}: {k} of {n} estimates are not finite (patches the method cannot assess) and are left out of "
+                   "its Bias/Std/RMS" for what, (k, n) in excluded.items() if k]
     report: dict[str, Any] = {
         "command": command,
         "machine": machine_description(),
@@ -1187,10 +1285,11 @@ def run_evaluation(
         "config": dataclasses.asdict(cfg),
         "config_key": cfg.key(),
         "methods": [{"name": m.name, "kind": m.kind, "learned": m.learned} for m in methods],
-        "notes": list(notes) + ([f"{runner.reused} of {len(units)} estimate sets were reused from the cache (--resume)"] if runner.reused else []),
+        "notes": list(notes) + ([f"{runner.reused} of {len(units)} estimate sets were reused from the cache (--resume)"]
+                                if runner.reused else []) + table_notes,
         "blur": {"amae": _blur_table(cases, results, methods)["amae"]},
-        "noise": _noise_tables(cases, results, methods),
-        "blur_under_noise": _bun_tables(cases, results, methods),
+        "noise": noise_tables,
+        "blur_under_noise": bun_tables,
         "aggregation": _agg_table(cases, results, methods, cfg.agg_windows),
         "speed": _speed_rows(runner.timing),
     }
@@ -1274,6 +1373,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.docs is not None:
         _check_docs_file(args.docs)  # (before anything runs)
+    from camhealth.corrupt import _check_out_folder
+
+    _check_out_folder(args.source, args.out, "--out")  # (the source is a folder: it would read the report back as images)
     if args.threads is not None:
         if args.threads < 1:
             raise SystemExit(f"--threads must be >= 1, got {args.threads}")

@@ -13,6 +13,8 @@ import lightning as L
 import torch
 from torch import nn
 
+from camhealth._order import _traced
+from camhealth.estimators._common import check_patches
 from camhealth.nets import NETWORKS, check_patch_size
 from camhealth.nets.blocks import count_flops, count_parameters
 
@@ -43,6 +45,10 @@ class EstimatorModule(L.LightningModule):
         max_figure_samples: int = 512,
     ) -> None:
         super().__init__()
+        if self.kind in NETWORKS:  # each value named (a str lr would fail the comparisons below unnamed)
+            NETWORKS[self.kind].check_training_args({
+                "lr": lr, "weight_decay": weight_decay, "channels_last": channels_last, "log_figures": log_figures,
+                "max_figure_samples": max_figure_samples})
         if not lr > 0:
             raise ValueError(f"lr = {lr!r} must be > 0")
         if weight_decay < 0:
@@ -87,6 +93,46 @@ class EstimatorModule(L.LightningModule):
 
     def _prepare(self, image: torch.Tensor) -> torch.Tensor:
         return image.contiguous(memory_format=torch.channels_last) if self.channels_last else image
+
+    def _check_image(self, image: Any, stack: bool = False, values: bool = True) -> None:
+        """The input of :meth:`forward`: ``B×1×P×P`` patches (``stack``: ``B×T×P×P``, T ≥ 1 patches of one location) of
+        this estimator's ``patch_size`` P, else a ``ValueError`` naming the shape; with ``values`` also a floating
+        tensor (``TypeError`` for integer DN images), finite and in [0, 1] (:func:`camhealth.estimators._common.check_patches`,
+        as the noise-source network's image statistics check it; two reductions of the batch, skipped while traced
+        or exported and for an empty batch, B = 0)."""
+        if not isinstance(image, torch.Tensor):
+            raise TypeError(f"image must be a torch.Tensor of B×1×P×P patches in [0, 1], got {type(image).__name__}")
+        p, shape = self.patch_size, tuple(image.shape)
+        if len(shape) != 4 or shape[2:] != (p, p) or (shape[1] < 1 if stack else shape[1] != 1):
+            form = f"B×T×{p}×{p} (T ≥ 1 patches of one location; one patch: T = 1)" if stack else f"B×1×{p}×{p}"
+            raise ValueError(f"image has shape {shape}; this {type(self).__name__} (patch_size = {p}) takes {form} "
+                             "patches in [0, 1]")
+        if values and shape[0] and not _traced():
+            check_patches(image if shape[1] == 1 else image.reshape(-1, 1, p, p), "image")
+
+    @staticmethod
+    def _label(batch: Mapping[str, Any], key: str, shape: tuple[int, ...]) -> torch.Tensor:
+        """``batch[key]``, a label of the batch, as a tensor of ``shape``; a ``ValueError`` naming the key, its shape and
+        the expected one otherwise (a (B, 1) label against (B,) estimates would broadcast to B×B pairs)."""
+        value = batch[key]
+        if not isinstance(value, torch.Tensor) or tuple(value.shape) != tuple(shape):
+            got = f"shape {tuple(value.shape)}" if isinstance(value, torch.Tensor) else f"type {type(value).__name__}"
+            raise ValueError(f"label batch[{key!r}] has {got}; it must be a tensor of shape {tuple(shape)}, one entry "
+                             f"per patch of the batch of {shape[0]}")
+        return value
+
+    @staticmethod
+    def _refuse_non_finite(labels: Mapping[str, torch.Tensor], batch_idx: int | None) -> None:
+        """``ValueError`` naming the first of ``labels`` (what to call it → tensor) that holds NaN/inf, how many and the
+        first bad value, and the batch; called once a single reduction found one (a non-finite label makes the loss
+        NaN/inf and the optimiser step useless)."""
+        where = f" (batch {batch_idx})" if batch_idx is not None else ""
+        for name, value in labels.items():
+            bad = ~torch.isfinite(value.detach())
+            if bool(bad.any()):
+                raise ValueError(f"label {name} must be finite, but {int(bad.sum())} of {value.numel()} values are "
+                                 f"NaN/inf (first: {value.detach()[bad].flatten()[0].item()}){where}")
+        raise ValueError(f"a label of the batch is not finite{where}")
 
     # ------------------------------------------------------------------ figures
     def _cache_for_figures(self, **tensors: torch.Tensor) -> None:

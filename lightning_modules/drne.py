@@ -35,7 +35,8 @@ def sigma_map_target_dn(
 
     ``sigma_expected`` (B, 3): the batch's analytic σ of (PN, DCSN, RN) [DN] (:class:`datamodules.NoiseDataModule`),
     0 for a source the data module does not realise (``noise_sources``). Each source whose entry is 0 is left out
-    of the map, so the map describes the noise that is in the image; without it all three sources are in."""
+    of the map, so the map describes the noise that is in the image; without it all three sources are in. An entry
+    that is NaN, ±inf or negative is a ``ValueError`` naming it (it would read as "not realised" and drop the source)."""
     meta = metadata_from_matrix(meta_image_raw.to(clean.device).double())
     dn = meta.dn_per_electron
     dcsn = (dark_current_shot_sigma_e(meta) * dn).pow(2)
@@ -46,6 +47,10 @@ def sigma_map_target_dn(
         if se.ndim != 2 or se.shape[1] != 3 or se.shape[0] != clean.shape[0]:
             raise ValueError(f"sigma_expected has shape {tuple(se.shape)}; it must be (B, 3) = ({clean.shape[0]}, 3): "
                              "σ of PN, DCSN, RN per patch")
+        ok = torch.isfinite(se) & (se >= 0)
+        if not bool(ok.all()):
+            raise ValueError(f"sigma_expected must hold finite σ >= 0 DN (0: a source not realised), but "
+                             f"{int((~ok).sum())} of {se.numel()} values are not (first: {se[~ok][0].item()})")
         realised = se > 0
         slope = torch.where(realised[:, 0], slope, torch.zeros_like(slope))
         dcsn = torch.where(realised[:, 1], dcsn, torch.zeros_like(dcsn))
@@ -95,7 +100,10 @@ class NoiseLevelEstimator(EstimatorModule):
         self.test_stats = NoiseErrorStats(self.metric_names)
 
     def forward(self, image: torch.Tensor, meta_raw: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """σ map [DN] (B×1×H×W) and its patch RMS (``sigma_total``), mean and median [DN]."""
+        """σ map [DN] (B×1×P×P) and its patch RMS (``sigma_total``), mean and median [DN] for B×1×P×P patches in
+        [0, 1] (P = ``patch_size``). Another shape, an integer dtype, NaN/inf or a value outside [0, 1] is an error
+        naming it (as :class:`~lightning_modules.NoiseSourceEstimator` refuses them); B = 0 gives empty outputs."""
+        self._check_image(image)
         sigma_map = self.net(self._prepare(image))
         flat = sigma_map.flatten(1)
         return {
@@ -109,23 +117,34 @@ class NoiseLevelEstimator(EstimatorModule):
         g = torch.Generator().manual_seed(0)
         return (torch.rand(batch_size, 1, self.patch_size, self.patch_size, generator=g),)
 
-    def _step(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _step(self, batch: Mapping[str, Any], batch_idx: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(loss, estimate (B, 1), truth (B, 1)). The labels are checked: ``sigma_total`` (B,) and ``clean`` (B×1×P×P,
+        the image's shape) or a ``ValueError`` naming the key and the shape; a NaN/inf in ``sigma_total`` or in the map
+        target (from ``clean`` and ``meta_image_raw``) is a ``ValueError`` naming the label and the batch (one check)."""
         out = self(batch["image"])
+        b = out["sigma_total"].shape[0]
+        sigma_total = self._label(batch, "sigma_total", (b,))
+        clean = self._label(batch, "clean", tuple(batch["image"].shape))
         # the sources the data realise (noise_sources): their analytic σ is 0 in sigma_expected for the others
-        target_map = sigma_map_target_dn(batch["clean"], batch["meta_image_raw"], batch.get("sigma_expected"))
+        target_map = sigma_map_target_dn(clean, batch["meta_image_raw"], batch.get("sigma_expected"))
+        if not bool(torch.isfinite(sigma_total).all() & torch.isfinite(target_map).all()):
+            self._refuse_non_finite({"batch['sigma_total']": sigma_total, "batch['clean']": clean,
+                                     "batch['meta_image_raw']": batch["meta_image_raw"],
+                                     "σ map target (from batch['clean'], batch['meta_image_raw'])": target_map}, batch_idx)
+        truth = sigma_total.to(out["sigma_total"])
         beta = self.huber_beta_dn
         map_loss = F.smooth_l1_loss(out["sigma_map"], target_map, beta=beta)
-        patch_loss = F.smooth_l1_loss(out["sigma_total"], batch["sigma_total"].to(out["sigma_total"]), beta=beta)
+        patch_loss = F.smooth_l1_loss(out["sigma_total"], truth, beta=beta)
         loss = self.map_weight * map_loss + (1.0 - self.map_weight) * patch_loss
-        return loss, out["sigma_total"][:, None], batch["sigma_total"][:, None].to(out["sigma_total"])
+        return loss, out["sigma_total"][:, None], truth[:, None]
 
     def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> torch.Tensor:
-        loss, _, _ = self._step(batch)
+        loss, _, _ = self._step(batch, batch_idx)
         self.log("train/loss", loss, prog_bar=True, batch_size=batch["image"].shape[0])
         return loss
 
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        loss, est, truth = self._step(batch)
+        loss, est, truth = self._step(batch, batch_idx)
         self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0], sync_dist=True)
         self.val_stats.update(est, truth)
         self._cache_for_figures(est=est, truth=truth)
@@ -143,7 +162,7 @@ class NoiseLevelEstimator(EstimatorModule):
             tb.add_figure("val/sigma_scatter", sigma_scatter_figure(cache["est"], cache["truth"], ["total"]), self.global_step)
 
     def test_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        _, est, truth = self._step(batch)
+        _, est, truth = self._step(batch, batch_idx)
         self.test_stats.update(est, truth)
 
     def on_test_epoch_end(self) -> None:

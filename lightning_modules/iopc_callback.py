@@ -28,6 +28,8 @@ Example::
 
 from __future__ import annotations
 
+import math
+import numbers
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +73,60 @@ def module_estimator(module: Any, export_dir: str | Path | None = None) -> Any |
     return None
 
 
+def _check_estimator_spec(spec: Any, role: str, name: str) -> None:
+    """An estimator spec of :class:`IOPCCallback` (``noise_estimator`` / ``mtf_estimator``) checked without loading
+    anything: ``None``, ``"physics"``, ``"immerkaer"`` (noise only), a shipped estimator's name or an existing file for
+    :func:`camhealth.inference.load_estimator`, or an object with the inference contract (checked as
+    :func:`~camhealth.iopc.estimation.resolve_estimator` checks it). Errors name the argument and its value."""
+    if spec is None:
+        return
+    if not isinstance(spec, str):
+        try:
+            resolve_estimator(spec, role)
+        except (TypeError, ValueError) as err:
+            raise type(err)(f"{name} = {spec!r:.80}: {err}") from None
+        return
+    key = spec.strip()
+    if key.lower() == "physics":
+        return
+    if key.lower() == "immerkaer":
+        if role != "noise":
+            raise ValueError(f"{name} = {spec!r}: 'immerkaer' is a noise estimator; it cannot estimate the MTF")
+        return
+    from camhealth.inference import PHYSICS_NOISE_MODEL, RETIRED, shipped_models
+
+    if key == PHYSICS_NOISE_MODEL:
+        if role != "noise":
+            raise ValueError(f"{name} = {spec!r} is a noise estimator; it cannot estimate the MTF")
+        return
+    if key in RETIRED:
+        raise ValueError(f"{name} = {spec!r}: the shipped model is retired: {RETIRED[key]}")
+    shipped = shipped_models()
+    if key in shipped:
+        return
+    path = Path(key)
+    if not path.is_file():
+        names = sorted([*shipped, PHYSICS_NOISE_MODEL])
+        stand_ins = "'physics' or 'immerkaer'" if role == "noise" else "'physics'"
+        raise FileNotFoundError(f"{name} = {spec!r} is neither a shipped estimator ({names}), {stand_ins}, nor an existing "
+                                "estimator file (.pt, .ckpt, .pt2, .onnx)")
+
+
+def _check_frame_slice(frame_slice: Any) -> tuple[int, int | None, int]:
+    """``(start, stop, stride)``: integers (``stop`` may be None), ``stride`` >= 1; ``ValueError`` naming the value."""
+    def integer(v: Any) -> bool:
+        return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+    try:
+        start, stop, stride = frame_slice
+    except (TypeError, ValueError):
+        raise ValueError(f"frame_slice = {frame_slice!r} must be (start, stop, stride): three values") from None
+    if not (integer(start) and (stop is None or integer(stop)) and integer(stride) and stride >= 1):
+        raise ValueError(f"frame_slice = {tuple(frame_slice)!r} must be (start, stop, stride): integers (stop may be None), "
+                         "stride >= 1")
+    return int(start), None if stop is None else int(stop), int(stride)
+
+
 class IOPCCallback(Callback):
     """Run the IOPC sweep at the end of ``fit`` (and optionally every n epochs) and log the curves.
 
@@ -89,6 +145,12 @@ class IOPCCallback(Callback):
         cache_dir: per-cell cache (default ``<out_dir>/cache``; must be shared by all ranks).
         every_n_epochs: also run after every n-th training epoch (``None``: only at the end of fit).
         progress: show a progress bar.
+
+    The arguments are checked when the callback is built, before any training step: a detector other than ``"hog"``,
+    an object or an ``nn.Module``; ``frames`` that are not N×1×H×W in [0, 1]; a ``source`` that names no image source
+    (when ``frames`` is None); a ``frame_slice`` that is not three integers with stride >= 1; ``pseudo_score`` outside
+    [0, 1]; an estimator name that is neither shipped nor an existing file (estimators are loaded at the sweep) — each
+    a ``ValueError``, ``TypeError`` or ``FileNotFoundError`` naming the argument and its value.
     """
 
     def __init__(
@@ -109,11 +171,36 @@ class IOPCCallback(Callback):
         progress: bool = True,
     ) -> None:
         super().__init__()
-        if every_n_epochs is not None and (int(every_n_epochs) != every_n_epochs or every_n_epochs < 1):
+        if every_n_epochs is not None and (isinstance(every_n_epochs, bool) or not isinstance(every_n_epochs, numbers.Real)
+                                           or not math.isfinite(every_n_epochs) or int(every_n_epochs) != every_n_epochs
+                                           or every_n_epochs < 1):
             raise ValueError(f"every_n_epochs = {every_n_epochs!r} must be a positive integer or None")
+        if isinstance(detector, str):
+            if detector != "hog":
+                raise ValueError(f"detector = {detector!r}: give 'hog', a detector object or an nn.Module")
+        elif not (isinstance(detector, torch.nn.Module) or callable(detector)):
+            raise TypeError(f"detector = {detector!r:.80}: give 'hog', a callable detector object or an nn.Module, got "
+                            f"{type(detector).__name__}")
+        if isinstance(pseudo_score, bool) or not isinstance(pseudo_score, numbers.Real) or not 0 <= pseudo_score <= 1:
+            raise ValueError(f"pseudo_score = {pseudo_score!r} must lie in [0, 1] (the score a clean detection needs to "
+                             "become pseudo ground truth)")
+        frame_slice = _check_frame_slice(frame_slice)
+        if frames is not None:
+            from camhealth.estimators._common import check_patches
+
+            check_patches(frames, "frames")
+        else:
+            from camhealth.data.sources import source_options
+
+            try:
+                source_options(source)  # what the source names (it is read at the sweep)
+            except (FileNotFoundError, ValueError, TypeError) as err:
+                raise type(err)(f"source = {source!r}: {err}") from None
+        _check_estimator_spec(noise_estimator, "noise", "noise_estimator")
+        _check_estimator_spec(mtf_estimator, "mtf", "mtf_estimator")
         self.detector_spec = detector
         self.frames = frames
-        self.source, self.frame_slice = source, tuple(frame_slice)
+        self.source, self.frame_slice = source, frame_slice
         self.ground_truth, self.pseudo_score = ground_truth, float(pseudo_score)
         self.noise_spec, self.mtf_spec = noise_estimator, mtf_estimator
         self.use_module_estimator = bool(use_module_estimator)

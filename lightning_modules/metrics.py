@@ -1,7 +1,8 @@
 """torchmetrics accumulators for the estimators' validation metrics.
 
 - :class:`NoiseErrorStats` — Bias = |E[σ − σ̂]|, Std = std(σ̂ − σ), RMS = √(Bias² + Std²) in DN per output
-  column (conventions.md, thesis Eq. 6.2), accumulated as running sums so it syncs across processes.
+  column (conventions.md, thesis Eq. 6.2), accumulated as running sums so it syncs across processes; NaN without
+  samples (no data, not a perfect score).
 - :class:`AMAEPerFamily` — AMAE (Eq. 5.1): mean over H and V of the mean absolute MTF error over the 8
   frequencies, in %, averaged per blur family (defocus, linear motion, non-linear motion) and overall; NaN for a
   family without samples (no data, not a perfect score).
@@ -55,7 +56,9 @@ class Float64States(Metric):
 
 
 class NoiseErrorStats(Float64States):
-    """Accumulates Bias/Std/RMS (DN) for ``names`` columns of (B, n) estimates against (B, n) truths."""
+    """Accumulates Bias/Std/RMS (DN) for ``names`` columns of (B, n) estimates against (B, n) truths. A truth that is
+    NaN/inf is a ``ValueError`` naming it (it would make every result NaN/inf); without samples every result is NaN
+    (no data, not a perfect score), as :class:`AMAEPerFamily` gives it."""
 
     full_state_update = False
 
@@ -72,6 +75,12 @@ class NoiseErrorStats(Float64States):
             raise ValueError(
                 f"estimate {tuple(estimate.shape)} and truth {tuple(truth.shape)} must both be (B, {len(self.names)})"
             )
+        if not bool(torch.isfinite(truth.detach()).all()):
+            t = truth.detach()
+            bad = ~torch.isfinite(t)
+            column = self.names[int(bad.nonzero()[0, 1])]
+            raise ValueError(f"truth must be finite for Bias/Std/RMS, but {int(bad.sum())} of {t.numel()} values are NaN/inf "
+                             f"(first: {t[bad][0].item()}, column {column!r})")
         e = (estimate.detach() - truth.detach()).double()
         self.sum_e += e.sum(0)
         self.sum_e2 += e.pow(2).sum(0)
@@ -82,6 +91,8 @@ class NoiseErrorStats(Float64States):
         mean = self.sum_e / n
         std = (self.sum_e2 / n - mean.pow(2)).clamp_min(0).sqrt()
         rms = (mean.pow(2) + std.pow(2)).sqrt()
+        if not bool(self.count > 0):  # no samples: no data, not a perfect 0
+            mean, std, rms = (torch.full_like(v, float("nan")) for v in (mean, std, rms))
         out: dict[str, torch.Tensor] = {}
         for i, name in enumerate(self.names):
             out[f"bias_{name}"] = mean[i].abs().float()

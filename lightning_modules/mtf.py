@@ -59,22 +59,33 @@ class MTFEstimator(EstimatorModule):
         self.test_amae = AMAEPerFamily(FAMILIES)
 
     def forward(self, image: torch.Tensor, meta_raw: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """MTF (B, 16), H at the 8 frequencies then V, for B×1×P×P patches (or B×T×P×P stacks)."""
+        """MTF (B, 16), H at the 8 frequencies then V, for B×1×P×P patches (or B×T×P×P stacks) in [0, 1]
+        (P = ``patch_size``). Another shape, an integer dtype, NaN/inf or a value outside [0, 1] is an error naming it
+        (as :class:`~lightning_modules.NoiseSourceEstimator` refuses them); B = 0 gives a (0, 16) output."""
+        self._check_image(image, stack=True)
         return {"mtf": self.net(self._prepare(image))}
 
     def export_inputs(self, batch_size: int = 2) -> tuple[torch.Tensor, ...]:
         g = torch.Generator().manual_seed(0)
         return (torch.rand(batch_size, 1, self.patch_size, self.patch_size, generator=g),)
 
-    def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> torch.Tensor:
+    def _estimate_and_truth(self, batch: Mapping[str, Any], batch_idx: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(estimate, label) (B, 16). The label ``batch["mtf"]`` must be (B, 16) (a (1, 16) one would be broadcast to
+        every patch) and finite: a ``ValueError`` naming it and the batch otherwise."""
         est = self(batch["image"])["mtf"]
-        loss = F.l1_loss(est, batch["mtf"].to(est))
+        truth = self._label(batch, "mtf", tuple(est.shape))
+        if not bool(torch.isfinite(truth).all()):
+            self._refuse_non_finite({"batch['mtf']": truth}, batch_idx)
+        return est, truth.to(est)
+
+    def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> torch.Tensor:
+        est, truth = self._estimate_and_truth(batch, batch_idx)
+        loss = F.l1_loss(est, truth)
         self.log("train/loss", loss, prog_bar=True, batch_size=est.shape[0])
         return loss
 
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        est = self(batch["image"])["mtf"]
-        truth = batch["mtf"].to(est)
+        est, truth = self._estimate_and_truth(batch, batch_idx)
         self.log("val/loss", F.l1_loss(est, truth), prog_bar=True, batch_size=est.shape[0], sync_dist=True)
         self.val_amae.update(est, truth, batch["family"])
         self._cache_for_figures(est=est, truth=truth, family=batch["family"].float(), size=batch["size"].float())
@@ -93,8 +104,8 @@ class MTFEstimator(EstimatorModule):
             tb.add_figure("val/mtf_curves", mtf_curves_figure(cache["est"], cache["truth"], captions), self.global_step)
 
     def test_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        est = self(batch["image"])["mtf"]
-        self.test_amae.update(est, batch["mtf"].to(est), batch["family"])
+        est, truth = self._estimate_and_truth(batch, batch_idx)
+        self.test_amae.update(est, truth, batch["family"])
 
     def on_test_epoch_end(self) -> None:
         self.log_dict({f"test/{k}": v for k, v in self.test_amae.compute().items()}, sync_dist=True)

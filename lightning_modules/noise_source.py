@@ -62,7 +62,7 @@ class NoiseSourceEstimator(EstimatorModule):
         self._check_training_args()
         self._set_patch_size(patch_size)
         self.metadata_set = metadata_set
-        self.net = NoiseSourceNet(metadata_set, width, tuple(hidden))
+        self.net = NoiseSourceNet(metadata_set, width, hidden)  # (which names a hidden that is not a list of sizes)
         weights = {"pn": 1.0, "dcsn": 1.0, "rn": 1.0, "total": 1.0, "xi": 1.0, **(loss_weights or {})}
         unknown = set(weights) - set(self.metric_names)
         if unknown:
@@ -88,7 +88,10 @@ class NoiseSourceEstimator(EstimatorModule):
         return image, meta.normalize("full").to(image.dtype)
 
     def forward(self, image: torch.Tensor, meta_raw: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """σ̂ per source, total and ξ̂ in DN for B×1×P×P patches in [0, 1] and (B, 11) raw metadata."""
+        """σ̂ per source, total and ξ̂ in DN for B×1×P×P patches in [0, 1] (P = ``patch_size``; another shape is a
+        ``ValueError`` naming it, and the network's image statistics refuse an integer dtype, NaN/inf and values
+        outside [0, 1]) and (B, 11) raw metadata."""
+        self._check_image(image, values=False)  # (the values: image_statistics checks them, once)
         img, norm = self.network_inputs(image, meta_raw)
         out = self.net(self._prepare(img), norm)
         sigma = out[:, :3]
@@ -108,10 +111,19 @@ class NoiseSourceEstimator(EstimatorModule):
         return (*super().example_input_array, torch.stack([getattr(meta, n).float() for n in FULL_FIELDS], 1))
 
     # ------------------------------------------------------------------ training
-    def _estimates_and_truth(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    def _estimates_and_truth(self, batch: Mapping[str, Any],
+                             batch_idx: int | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """(estimates, labels) (B, 5) in the order of :attr:`metric_names` and the outputs. The labels ``sigma`` (B, 3),
+        ``sigma_total`` (B,) and ``xi`` (B,) are checked: another shape, or a NaN/inf (one check of all of them), is a
+        ``ValueError`` naming the label (and the batch)."""
         out = self(batch["image"], batch.get("meta_raw"))
+        b = out["sigma"].shape[0]
+        labels = {"sigma": self._label(batch, "sigma", (b, 3)), "sigma_total": self._label(batch, "sigma_total", (b,)),
+                  "xi": self._label(batch, "xi", (b,))}
         est = torch.cat([out["sigma"], out["sigma_total"][:, None], out["xi"][:, None]], dim=1)
-        truth = torch.cat([batch["sigma"], batch["sigma_total"][:, None], batch["xi"][:, None]], dim=1).to(est)
+        truth = torch.cat([labels["sigma"], labels["sigma_total"][:, None], labels["xi"][:, None]], dim=1).to(est)
+        if not bool(torch.isfinite(truth).all()):
+            self._refuse_non_finite({f"batch[{k!r}]": v for k, v in labels.items()}, batch_idx)
         return est, truth, out
 
     def _loss(self, est: torch.Tensor, truth: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -121,14 +133,14 @@ class NoiseSourceEstimator(EstimatorModule):
         return loss, terms
 
     def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> torch.Tensor:
-        est, truth, _ = self._estimates_and_truth(batch)
+        est, truth, _ = self._estimates_and_truth(batch, batch_idx)
         loss, terms = self._loss(est, truth)
         self.log("train/loss", loss, prog_bar=True, batch_size=est.shape[0])
         self.log_dict({f"train/loss_{k}": v for k, v in terms.items()}, batch_size=est.shape[0])
         return loss
 
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        est, truth, _ = self._estimates_and_truth(batch)
+        est, truth, _ = self._estimates_and_truth(batch, batch_idx)
         loss, _ = self._loss(est, truth)
         self.log("val/loss", loss, prog_bar=True, batch_size=est.shape[0], sync_dist=True)
         self.val_stats.update(est, truth)
@@ -144,7 +156,7 @@ class NoiseSourceEstimator(EstimatorModule):
         self._log_figures("val")
 
     def test_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
-        est, truth, _ = self._estimates_and_truth(batch)
+        est, truth, _ = self._estimates_and_truth(batch, batch_idx)
         self.test_stats.update(est, truth)
 
     def on_test_epoch_end(self) -> None:

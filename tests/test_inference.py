@@ -359,7 +359,7 @@ def test_mtf_std_reads_the_files_error_table_and_export_keeps_it(tmp_path):
     again = load_estimator(export_weights(path, tmp_path / "again.pt"))
     assert again.description["mtf_error"] == table.to_dict()
     torch.testing.assert_close(again.predict(x)["mtf_std"], one["mtf_std"])
-    with pytest.raises(ValueError, match=r"cannot be set; allowed: \['mtf_error'\]"):
+    with pytest.raises(ValueError, match=r"cannot be set; allowed: \['mtf_error', 'evaluation'\]"):
         set_description_entries(path, {"metrics": {}})
     set_description_entries(path, {"mtf_error": {**table.to_dict(), "rms": [0.1, 0.1, 2.0]}}, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match=r"bad.pt: mtf_error: rms .* allowed range \[0, 1\]"):

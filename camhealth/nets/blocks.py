@@ -16,7 +16,7 @@ from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
 __all__ = ["ConvAct", "ResidualBlock", "FullyConnectedBlock", "count_flops", "count_parameters", "GlobalStatsPool", "autocast_on",
-           "working_dtype", "check_sizes"]
+           "working_dtype", "check_sizes", "check_input_shape"]
 
 
 def check_sizes(value: object, name: str, count: int | None = None, low: int = 1) -> tuple[int, ...]:
@@ -30,6 +30,27 @@ def check_sizes(value: object, name: str, count: int | None = None, low: int = 1
         raise ValueError(f"{name} = {value!r} must be {what} >= {low}"
                          + (f", got {bad[0]!r}" if bad else f", got {len(items)} value(s)"))
     return tuple(int(v) for v in items)
+
+
+def check_input_shape(image: object, net: str, multiple: int, min_side: int, stack: bool = False) -> torch.Tensor:
+    """The input of a network's ``forward``: ``TypeError`` unless ``image`` is a tensor, ``ValueError`` naming its shape
+    and the shape ``net`` takes unless it is B×1×H×W (with ``stack``: B×T×P×P, T ≥ 1 patches of one location, H = W = P)
+    with H and W multiples of ``multiple`` px and at least ``min_side`` px. B = 0 passes (the networks answer an empty
+    batch with empty outputs). Only the shape is read, never a value, so the check also holds while the network is
+    traced or exported."""
+    if not isinstance(image, torch.Tensor):
+        raise TypeError(f"{net} takes the image as a torch.Tensor, got {type(image).__name__}")
+    shape = tuple(image.shape)
+    ok = len(shape) == 4 and (shape[1] >= 1 if stack else shape[1] == 1)
+    if ok:
+        h, w = shape[2], shape[3]
+        ok = min(h, w) >= min_side and h % multiple == 0 and w % multiple == 0 and (h == w or not stack)
+    if not ok:
+        form = "B×T×P×P (T ≥ 1 patches of one location; a single patch: T = 1)" if stack else "B×1×H×W"
+        sides = "P" if stack else "H and W"
+        raise ValueError(f"image has shape {shape}; {net} takes {form} with {sides} a multiple of {multiple} px, at least "
+                         f"{min_side} px")
+    return image
 
 
 class ConvAct(nn.Sequential):
@@ -71,12 +92,18 @@ class GlobalStatsPool(nn.Module):
     """Global max, mean and standard deviation over H×W: (B, C, H, W) → (B, 3C).
 
     Max pooling is the thesis's choice (DRNE_cust); mean and std add the robust statistics a noise level
-    needs (a single max is dominated by the most textured position of the patch)."""
+    needs (a single max is dominated by the most textured position of the patch). For float16 features the std is
+    computed in float32 and cast back: float16 rounds its 1e-8 floor to 0, and a constant channel's std (a dead
+    ReLU's) would then have an infinite gradient."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         flat = x.flatten(2)
         mean = flat.mean(2)
-        std = (flat.pow(2).mean(2) - mean.pow(2)).clamp_min(0).add(1e-8).sqrt()
+        if flat.dtype == torch.float16:  # float16 cannot hold the 1e-8 (it rounds to 0): the std in float32
+            wide = flat.float()
+            std = (wide.pow(2).mean(2) - wide.mean(2).pow(2)).clamp_min(0).add(1e-8).sqrt().to(flat.dtype)
+        else:
+            std = (flat.pow(2).mean(2) - mean.pow(2)).clamp_min(0).add(1e-8).sqrt()
         return torch.cat([flat.amax(2), mean, std], dim=1)
 
 

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from camhealth.nets.blocks import ConvAct, ResidualBlock, autocast_on, check_sizes, working_dtype
+from camhealth.nets.blocks import ConvAct, ResidualBlock, autocast_on, check_input_shape, check_sizes, working_dtype
 
 __all__ = ["NoiseLevelNet", "ThesisNoiseNet", "check_dilations"]
 
@@ -50,7 +50,8 @@ def check_dilations(dilations, patch_size: int | None = None) -> tuple[int, ...]
 
 
 class NoiseLevelNet(nn.Module):
-    """B×1×H×W in [0, 1] (H, W even) → B×1×H×W σ map [DN] (≥ 0)."""
+    """B×1×H×W in [0, 1] (H, W even) → B×1×H×W σ map [DN] (≥ 0). Another shape is a ``ValueError`` naming it; an empty
+    batch (B = 0) gives an empty map."""
 
     def __init__(self, width: int = 32, dilations: tuple[int, ...] = (1, 2, 4), highpass_gain: float = 32.0) -> None:
         super().__init__()
@@ -64,6 +65,9 @@ class NoiseLevelNet(nn.Module):
         self.shuffle = nn.PixelShuffle(2)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        check_input_shape(image, "NoiseLevelNet", 2, 2)
+        if image.shape[0] == 0:
+            return image.new_zeros(image.shape, dtype=working_dtype(image, self.stem[0].weight))
         if not autocast_on(image):  # the input in the weights' dtype (autocast casts it itself)
             image = image.to(self.stem[0].weight.dtype)
         local_mean = F.avg_pool2d(F.pad(image, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
@@ -74,7 +78,8 @@ class NoiseLevelNet(nn.Module):
 
 class ThesisNoiseNet(nn.Module):
     """Thesis-size reference: 16 full-resolution 3×3 convolution layers, 64 channels (≈ 17 GFLOP per
-    128-px patch), output a σ map [DN]. Used to time the thesis's design on the same patches."""
+    128-px patch), output a σ map [DN] of B×1×H×W patches (another shape: ``ValueError`` naming it). Used to time the
+    thesis's design on the same patches."""
 
     def __init__(self, width: int = 64, layers: int = 16) -> None:
         super().__init__()
@@ -85,6 +90,7 @@ class ThesisNoiseNet(nn.Module):
         self.body = nn.Sequential(*mods)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        check_input_shape(image, "ThesisNoiseNet", 1, 1)
         weight = self.body[0][0].weight
         if not autocast_on(image):  # the input in the weights' dtype (autocast casts it itself)
             image = image.to(weight.dtype)

@@ -28,14 +28,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, check_sizes, working_dtype
+from camhealth.nets.blocks import (ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, check_input_shape, check_sizes,
+                                  working_dtype)
 
 __all__ = ["MTFPreprocess", "MTFNet", "sobel"]
 
 
 class MTFPreprocess(nn.Module):
     """B×T×P×P patches in [0, 1] → (2·B·T, 3·s², P/s, P/s): H-direction inputs of all patches, then those of
-    the patches rotated by 90° (whose H direction is the original V direction)."""
+    the patches rotated by 90° (whose H direction is the original V direction). Differentiable with respect to the
+    patches (no operation in place on a tensor autograd keeps)."""
 
     def __init__(self, downsample: int = 4, contrast_floor: float = 0.02) -> None:
         super().__init__()
@@ -50,7 +52,7 @@ class MTFPreprocess(nn.Module):
         mean = x.mean((2, 3), keepdim=True)
         centred = x - mean
         std = centred.pow(2).mean((2, 3), keepdim=True).sqrt()
-        x = centred.div_(std + self.contrast_floor)
+        x = centred / (std + self.contrast_floor)  # (not in place: pow keeps centred for its gradient)
         both = torch.cat([x, torch.rot90(x, 1, dims=(2, 3))], dim=0)
         gx, gy = sobel(both)
         s = self.downsample
@@ -80,7 +82,8 @@ def sobel(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class MTFNet(nn.Module):
-    """``forward(image) -> (B, 16)`` MTF (H then V) for B×T×P×P stacks in [0, 1] (T = 1: one patch)."""
+    """``forward(image) -> (B, 16)`` MTF (H then V) for B×T×P×P stacks in [0, 1] (T = 1: one patch; P a multiple of
+    ``downsample``). Another shape is a ``ValueError`` naming it; an empty batch (B = 0) gives a (0, 16) output."""
 
     def __init__(
         self, widths: tuple[int, int, int] = (32, 64, 96), hidden: tuple[int, ...] = (128, 64), downsample: int = 4,
@@ -101,8 +104,12 @@ class MTFNet(nn.Module):
         self.head = FullyConnectedBlock(6 * w3, hidden, 8)  # [own, other] direction's max/mean/std
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        s = self.pre.downsample
+        check_input_shape(image, "MTFNet", s, s, stack=True)
         b, t = image.shape[:2]
         dt = working_dtype(image, self.stem[0].weight)  # statistics, pooled features and outputs
+        if b == 0:
+            return image.new_zeros((0, 16), dtype=dt)
         x = self.pre(image).to(dt)
         if x.is_contiguous(memory_format=torch.channels_last) is False and image.is_contiguous(memory_format=torch.channels_last):
             x = x.contiguous(memory_format=torch.channels_last)

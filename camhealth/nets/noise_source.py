@@ -32,7 +32,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from camhealth.estimators.noise_features import box_mean3, image_statistics
-from camhealth.nets.blocks import ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, autocast_on, check_sizes, working_dtype
+from camhealth.nets.blocks import (ConvAct, FullyConnectedBlock, GlobalStatsPool, ResidualBlock, autocast_on, check_input_shape,
+                                  check_sizes, working_dtype)
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_SETS
 
 __all__ = ["NoiseTrunk", "NoiseSourceNet", "BRANCH_FIELDS", "OUTPUTS", "NETWORK_METADATA_SETS"]
@@ -86,9 +87,12 @@ class NoiseSourceNet(nn.Module):
     """Trunk + four branches. ``forward(image, meta) -> (B, 4)`` σ̂ of (PN, DCSN, RN) and ξ̂ in DN.
 
     Args of forward:
-        image: B×1×P×P in [0, 1].
+        image: B×1×P×P in [0, 1] (P even, at least 4 px).
         meta: (B, 11) metadata normalised to [0, 1] (``CameraMetadata.normalize("full")``; zeros for ``none``);
             only the columns of the configured ``metadata_set`` are read.
+
+    Another shape of either is a ``ValueError`` naming it; an empty batch (B = 0) gives a (0, 4) output. ``hidden``: the
+    neurons of each branch's hidden layers, a list of integers >= 1 (an empty list: no hidden layer).
     """
 
     def __init__(self, metadata_set: str = "minimal", width: int = 32, hidden: Sequence[int] = (64, 32, 16)) -> None:
@@ -97,6 +101,10 @@ class NoiseSourceNet(nn.Module):
             hint = (" (with all metadata camhealth answers in closed form: load_estimator('noise_source_full'), "
                     "camhealth.estimators.physics_noise)") if metadata_set == "full" else ""
             raise ValueError(f"metadata_set = {metadata_set!r} must be one of {list(NETWORK_METADATA_SETS)}{hint}")
+        if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence):
+            raise ValueError(f"hidden = {hidden!r} must be a list of integers >= 1 (the neurons of each branch's hidden "
+                             "layers)")
+        hidden = tuple(hidden)
         self.metadata_set = metadata_set
         self.trunk = NoiseTrunk(width)
         available = set(METADATA_SETS[metadata_set])
@@ -104,7 +112,7 @@ class NoiseSourceNet(nn.Module):
             [FULL_FIELDS.index(f) for f in BRANCH_FIELDS[name] if f in available] for name in OUTPUTS
         ]
         n_base = self.trunk.out_features + 7  # pooled features, 6 image statistics, log Haar-MAD σ
-        self.branches = nn.ModuleList(FullyConnectedBlock(n_base + len(cols), tuple(hidden), 1) for cols in self.branch_columns)
+        self.branches = nn.ModuleList(FullyConnectedBlock(n_base + len(cols), hidden, 1) for cols in self.branch_columns)
 
     @torch.no_grad()
     def trunk_activity(self, patch_size: int = 64, batch: int = 16, seed: int = 0) -> float:
@@ -126,7 +134,15 @@ class NoiseSourceNet(nn.Module):
         return float((feats.std(0) > 1e-6).float().mean())
 
     def forward(self, image: torch.Tensor, meta: torch.Tensor) -> torch.Tensor:
+        check_input_shape(image, "NoiseSourceNet", 2, 4)
+        b = image.shape[0]
+        if not isinstance(meta, torch.Tensor) or meta.ndim != 2 or meta.shape[0] != b or meta.shape[1] != len(FULL_FIELDS):
+            shape = tuple(meta.shape) if isinstance(meta, torch.Tensor) else type(meta).__name__
+            raise ValueError(f"meta has shape {shape}; NoiseSourceNet takes (B, {len(FULL_FIELDS)}) = ({b}, {len(FULL_FIELDS)}) "
+                             "normalised metadata, one row per patch of the B×1×P×P image")
         dt = working_dtype(image, next(self.branches.parameters()))  # features, image statistics and metadata join in it
+        if b == 0:
+            return image.new_zeros((0, len(OUTPUTS)), dtype=dt)
         # (under autocast the image goes in as it is, its ops cast it; else in the trunk's weights' dtype)
         feats = self.trunk(image if autocast_on(image) else image.to(next(self.trunk.parameters()).dtype)).to(dt)
         stats = image_statistics(image).to(dt)

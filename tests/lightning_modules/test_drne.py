@@ -13,7 +13,7 @@ from lightning_modules.drne import sigma_map_target_dn
 
 @pytest.mark.parametrize("batch", [1, 4])
 def test_map_shape_and_patch_statistics(batch):
-    m = NoiseLevelEstimator().eval()
+    m = NoiseLevelEstimator(patch_size=32).eval()
     x = torch.rand(batch, 1, 32, 32)
     with torch.no_grad():
         out = m(x)
@@ -36,7 +36,7 @@ def test_sigma_map_target_closed_form():
 
 
 def test_step_uses_map_and_patch_targets(noisy_batch):
-    m = NoiseLevelEstimator(map_weight=0.5)
+    m = NoiseLevelEstimator(patch_size=32, map_weight=0.5)
     loss, est, truth = m._step(noisy_batch)
     assert loss.ndim == 0 and torch.isfinite(loss)
     loss.backward()

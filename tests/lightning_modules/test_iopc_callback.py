@@ -88,9 +88,8 @@ def test_configured_estimators_when_the_module_is_not_one(tmp_path):
 def test_callback_argument_errors(tmp_path):
     with pytest.raises(ValueError, match="every_n_epochs"):
         IOPCCallback(every_n_epochs=0)
-    cb = IOPCCallback(detector="yolo")
-    with pytest.raises(ValueError, match="give 'hog'"):
-        cb._resolve_detector()
+    with pytest.raises(ValueError, match="give 'hog'"):  # refused when the callback is built, before training
+        IOPCCallback(detector="yolo")
 
 
 def test_camhealth_estimator_module_is_exported_and_reloaded(tmp_path):

@@ -13,7 +13,7 @@ from lightning_modules.blocks import count_flops
 @pytest.mark.parametrize("batch", [1, 3])
 def test_outputs_shape_finite(metadata_set, batch, meta_raw):
     torch.manual_seed(0)
-    m = NoiseSourceEstimator(metadata_set=metadata_set).eval()
+    m = NoiseSourceEstimator(patch_size=32, metadata_set=metadata_set).eval()
     x = torch.rand(batch, 1, 32, 32)
     with torch.no_grad():
         out = m(x, meta_raw[:1].expand(batch, -1))
@@ -30,7 +30,7 @@ def test_full_metadata_is_the_closed_form_and_metadata_is_required():
         NoiseSourceEstimator(metadata_set="some")
     with pytest.raises(TypeError):
         NoiseSourceEstimator(physics_prior=True)  # retired option: not an argument any more
-    m = NoiseSourceEstimator(metadata_set="minimal")
+    m = NoiseSourceEstimator(patch_size=32, metadata_set="minimal")
     with pytest.raises(ValueError, match="pass metadata"):
         m(torch.rand(1, 1, 32, 32), None)
 
@@ -44,7 +44,7 @@ def test_branches_read_only_their_metadata(meta_raw):
     gain = meta_raw.clone()
     gain[:, 0] = 3.0
     for ms in ("none", "minimal"):
-        m = NoiseSourceEstimator(metadata_set=ms).eval()
+        m = NoiseSourceEstimator(patch_size=32, metadata_set=ms).eval()
         with torch.no_grad():
             a, b, c = m(x, meta_raw), m(x, changed), m(x, gain)
         assert torch.equal(a["sigma"], b["sigma"]) and torch.equal(a["xi"], b["xi"])
@@ -53,7 +53,7 @@ def test_branches_read_only_their_metadata(meta_raw):
 
 @pytest.mark.parametrize("fill", [0.0, 1.0])
 def test_black_and_saturated_patches_are_finite(fill, meta_raw):
-    m = NoiseSourceEstimator().eval()
+    m = NoiseSourceEstimator(patch_size=32).eval()
     with torch.no_grad():
         out = m(torch.full((3, 1, 32, 32), fill), meta_raw)
     assert all(torch.isfinite(v).all() for v in out.values())
@@ -61,7 +61,7 @@ def test_black_and_saturated_patches_are_finite(fill, meta_raw):
 
 def test_bf16_autocast_agrees_with_fp32(meta_raw):
     torch.manual_seed(2)
-    m = NoiseSourceEstimator().eval()
+    m = NoiseSourceEstimator(patch_size=32).eval()
     x = torch.rand(3, 1, 32, 32)
     with torch.no_grad():
         ref = m(x, meta_raw)["sigma"]
@@ -80,7 +80,7 @@ def test_ten_times_fewer_flops_than_thesis_trunk():
 
 def test_training_steps_reduce_the_loss(noisy_batch):
     torch.manual_seed(0)
-    m = NoiseSourceEstimator(lr=3e-3)
+    m = NoiseSourceEstimator(patch_size=32, lr=3e-3)
     opt = torch.optim.Adam(m.parameters(), lr=3e-3)
     losses = []
     for _ in range(30):
