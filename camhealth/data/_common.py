@@ -5,7 +5,7 @@ from __future__ import annotations
 import operator
 import re
 
-__all__ = ["natural_sort_key", "check_index", "check_int", "check_frame_range"]
+__all__ = ["natural_sort_key", "check_index", "check_int", "check_whole", "check_frame_range"]
 
 _DIGITS = re.compile(r"(\d+)")
 
@@ -45,6 +45,20 @@ def check_int(value: object, name: str, low: int, allow_none: bool = False) -> i
         raise TypeError(f"{name} must be an int, got {type(value).__name__}") from None
     if v < low:
         raise ValueError(f"{name} = {v} must be >= {low}")
+    return v
+
+
+def check_whole(value: object, name: str, low: int, high: int) -> int:
+    """``value`` as an int in [low, high]: ``TypeError`` for one that is not a whole number (a bool, a float such as
+    100.5, a string), ``ValueError`` for one out of the range; both name ``name``, the value and the range."""
+    if isinstance(value, bool):
+        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got a bool")
+    try:
+        v = operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got {type(value).__name__}") from None
+    if not low <= v <= high:
+        raise ValueError(f"{name} = {v} is out of the allowed range [{low}, {high}]")
     return v
 
 

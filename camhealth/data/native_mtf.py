@@ -37,12 +37,12 @@ Frequencies are normalised to Nyquist (f_n; f = f_n/2 cycles/px), as everywhere 
 from __future__ import annotations
 
 import math
-import operator
 from typing import Sequence
 
 import torch
 
 from camhealth._validation import check_image
+from camhealth.data._common import check_whole
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
 __all__ = [
@@ -69,19 +69,6 @@ def _noise_sigma(x: torch.Tensor) -> float:
     d = 0.5 * (q[..., 0::2, 0::2] - q[..., 0::2, 1::2] - q[..., 1::2, 0::2] + q[..., 1::2, 1::2])
     return float(d.abs().median()) / _MAD_NORMAL
 
-
-def _check_whole(value: object, name: str, low: int, high: int) -> int:
-    """``value`` as an int in [low, high]: ``TypeError`` for a value that is not a whole number (a float such as 100.5,
-    a bool, a string), ``ValueError`` for one out of the range; both name ``name``, the value and the range."""
-    if isinstance(value, bool):
-        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got a bool")
-    try:
-        v = operator.index(value)  # type: ignore[arg-type]
-    except TypeError:
-        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got {type(value).__name__}") from None
-    if not low <= v <= high:
-        raise ValueError(f"{name} = {v} is out of the allowed range [{low}, {high}]")
-    return v
 
 
 def spectral_native_mtf(
@@ -125,7 +112,7 @@ def spectral_native_mtf(
         if not isinstance(img, torch.Tensor) or img.ndim not in (3, 4):
             shape = tuple(img.shape) if isinstance(img, torch.Tensor) else type(img).__name__
             raise ValueError(f"images[{i}] must be a 1×H×W or B×1×H×W tensor, got {shape}")
-    tile = _check_whole(tile, "tile", 32, 512)
+    tile = check_whole(tile, "tile", 32, 512)
     try:
         lo, hi = (float(v) for v in fit_band)
     except (TypeError, ValueError):
@@ -246,7 +233,7 @@ def rendered_native_mtf(supersample: int, frequencies: Sequence[float] = NORMALI
     (mean of H and V)."""
     from camhealth.estimators.charts import slanted_edge_chart, slanted_edge_rois
 
-    s = _check_whole(supersample, "supersample", 1, 8)
+    s = check_whole(supersample, "supersample", 1, 8)
     chart = slanted_edge_chart(size, supersample=s).double()
     rois = slanted_edge_rois(size)
     out = []

@@ -17,14 +17,13 @@ import bisect
 import hashlib
 import inspect
 import math
-import operator
 import re
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import torch
 
-from camhealth.data._common import check_index, check_int
+from camhealth.data._common import check_index, check_int, check_whole
 from camhealth.data.dead_leaves import DeadLeavesSource
 from camhealth.data.image_folder import ImageFolderSource
 from camhealth.data.io import _check_bit_depth
@@ -117,19 +116,6 @@ class AreaDownsampledSource(torch.utils.data.Dataset):
         return f"{type(self).__name__}({self.source!r}, factor={self.factor})"
 
 
-def _check_whole(value: object, name: str, low: int, high: int) -> int:
-    """``value`` as an int in [low, high]: ``TypeError`` for one that is not a whole number (a bool, a float, a string),
-    ``ValueError`` for one out of the range; both name ``name``, the value and the range."""
-    if isinstance(value, bool):
-        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got a bool")
-    try:
-        v = operator.index(value)  # type: ignore[arg-type]
-    except TypeError:
-        raise TypeError(f"{name} = {value!r} must be an integer in [{low}, {high}], got {type(value).__name__}") from None
-    if not low <= v <= high:
-        raise ValueError(f"{name} = {v} is out of the allowed range [{low}, {high}]")
-    return v
-
 
 def _arguments(fn: Callable, skip: Sequence[str] = ()) -> tuple[str, ...]:
     """The named keyword arguments of ``fn`` (no ``self``, ``*args``, ``**kwargs`` or those in ``skip``)."""
@@ -214,7 +200,7 @@ class DefaultSource(ConcatSource):
             _check_default_options({**deadleaves_kwargs, "deadleaves": 0}, "DefaultSource")
         n_aa = check_int(deadleaves_antialiased, "deadleaves_antialiased", 0)
         repeat = check_int(photo_repeat, "photo_repeat", 1)
-        k = _check_whole(area_downsample, "area_downsample", 1, 8)
+        k = check_whole(area_downsample, "area_downsample", 1, 8)
         if k > 1 and not (include_skimage or include_street):
             raise ValueError(f"area_downsample = {k} downsamples the photos and street frames; both are switched off")
         photo = (lambda src: AreaDownsampledSource(src, k)) if k > 1 else (lambda src: src)
@@ -222,7 +208,7 @@ class DefaultSource(ConcatSource):
             raise ValueError(f"photo_repeat = {repeat} repeats the scikit-image photos; they are switched off (include_skimage=False)")
         if n_aa > deadleaves:
             raise ValueError(f"deadleaves_antialiased = {n_aa} must be <= deadleaves = {deadleaves} (it re-renders those images)")
-        if n_aa and _check_whole(deadleaves_kwargs.get("supersample", 1), "supersample", 1, 8) != 1:
+        if n_aa and check_whole(deadleaves_kwargs.get("supersample", 1), "supersample", 1, 8) != 1:
             raise ValueError("deadleaves_antialiased re-renders the plain (supersample 1) images; do not pass supersample too")
         parts: list[torch.utils.data.Dataset] = []
         if include_skimage:
@@ -365,7 +351,7 @@ def build_source(spec: str | Path, **kwargs) -> torch.utils.data.Dataset:
     if kind == "default":
         fixed_scaling("the built-in source")
         return DefaultSource(**kwargs)
-    k = _check_whole(kwargs.pop("area_downsample", 1), "area_downsample", 1, 8)  # (a bool is no factor)
+    k = check_whole(kwargs.pop("area_downsample", 1), "area_downsample", 1, 8)  # (a bool is no factor)
     if k != 1:
         if kind == "deadleaves":
             raise ValueError(f"area_downsample = {k!r}: dead leaves are rendered, not downsampled; pass supersample= instead")
