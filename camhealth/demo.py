@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -376,6 +377,24 @@ def _edges(centres: np.ndarray) -> np.ndarray:
     return np.concatenate([[c[0] - (mids[0] - c[0])], mids, [c[-1] + (c[-1] - mids[-1])]])
 
 
+#: Largest ``--seed`` (torch and numpy seeds are below 2**32), ``--repeats`` and ``--threads`` of the demos.
+SEED_MAX = 2**32 - 1
+REPEATS_MAX = 1000
+THREADS_MAX = 4 * (os.cpu_count() or 1)
+
+
+def _bounded(lo: int, hi: int):
+    """Option type: an integer in [lo, hi], else :class:`BadValue` naming the value and the range."""
+
+    def parse(value: Any) -> int:
+        n = IntAtLeast(lo)(value)
+        if n > hi:
+            raise BadValue(f"must be ≤ {hi}, got {n} (allowed: {lo} … {hi})")
+        return n
+
+    return parse
+
+
 #: The demos: subcommand → the function that runs it on its options.
 DEMOS: dict[str, Any] = {}
 
@@ -404,20 +423,47 @@ def build_parser():
     c.add_argument("--noise-estimator", default=None,
                    help="noise estimator spec (default: the one the IOPC was made with, from its provenance)")
     c.add_argument("--mtf-estimator", default=None, help="MTF estimator spec (default: as the IOPC's)")
-    c.add_argument("--decide-every", type=int, default=None,
-                   help="IOPC policy re-decides every n frames (default: once, after the first frame)")
+    c.add_argument("--decide-every", type=IntAtLeast(1), default=None,
+                   help="IOPC policy re-decides every n ≥ 1 frames (default: once, after the first frame)")
     c.add_argument("--normalize-intensity", action="store_true",
                    help="rescale σ̂ to the IOPC frames' brightness before the look-up (extension, see IOPCController)")
     c.add_argument("--min-gain", type=float, default=0.01, help="smallest expected AP gain for a change")
     c.add_argument("--pseudo-score", type=float, default=0.6, help="pseudo ground-truth score threshold")
-    c.add_argument("--seed", type=int, default=0, help="noise seed of the first repeat")
-    c.add_argument("--repeats", type=IntAtLeast(1), default=1, help="runs with noise seeds seed, seed+1, … (AP mean ± std)")
-    c.add_argument("--threads", type=IntAtLeast(1), default=None, help="torch threads, ≥ 1 (default: torch's)")
+    c.add_argument("--seed", type=_bounded(0, SEED_MAX), default=0, help="noise seed of the first repeat, 0…2**32 − 1")
+    c.add_argument("--repeats", type=_bounded(1, REPEATS_MAX), default=1,
+                   help=f"runs with noise seeds seed, seed+1, … (AP mean ± std), 1…{REPEATS_MAX}")
+    c.add_argument("--threads", type=_bounded(1, THREADS_MAX), default=None,
+                   help="torch threads, 1…4 × the CPU count (default: torch's)")
     c.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     sub.add_subcommand("closed-loop", c, help="fixed vs auto-exposure vs IOPC policy on a simulated camera")
     DEMOS["closed-loop"] = run_closed_loop
     add_debug_flag(p)
     return p
+
+
+def _check_options(options) -> None:
+    """``ValueError`` naming the option, its value and its range, before any work (the IOPC, frames and detector
+    load slowly): ``--pseudo-score`` outside [0, 1], ``--seed`` + ``--repeats`` past 2**32 − 1, an ``--out`` that is a
+    file or lies under one, an ``--iopc`` that is a folder."""
+    import math
+
+    score = getattr(options, "pseudo_score", None)
+    if score is not None and not (math.isfinite(score) and 0.0 <= score <= 1.0):
+        raise ValueError(f"--pseudo-score must be in [0, 1], got {score}")
+    seed, repeats = getattr(options, "seed", None), getattr(options, "repeats", None)
+    if seed is not None and repeats is not None and seed + repeats - 1 > SEED_MAX:
+        raise ValueError(f"--seed {seed} + --repeats {repeats} − 1 must be ≤ {SEED_MAX} (the seeds of the repeats)")
+    out = getattr(options, "out", None)
+    if out is not None:
+        path = Path(out)
+        node = path
+        while not node.exists() and node != node.parent:
+            node = node.parent
+        if node.exists() and not node.is_dir():
+            raise ValueError(f"--out {out}: {node} is a file, where the output folder was to be made or written into")
+    iopc = getattr(options, "iopc", None)
+    if iopc is not None and Path(str(iopc)).is_dir():
+        raise ValueError(f"--iopc {iopc}: is a folder; give the IOPC file (.json)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -427,6 +473,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(options, option, None) is not None:
             low, high = (float(v) for v in getattr(options, option))
             _check_limits("--" + option.replace("_", "-"), low, high, "s" if option == "limits_exposure" else "dB")
+    _check_options(options)
     if getattr(options, "threads", None) is not None:
         torch.set_num_threads(options.threads)
     DEMOS[args.demo](options)

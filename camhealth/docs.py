@@ -37,6 +37,7 @@ __all__ = [
     "api_modules",
     "build_api",
     "cli_help",
+    "check_command",
     "cli_reference",
     "command_key",
     "generated_blocks",
@@ -45,7 +46,13 @@ __all__ = [
     "replace_generated",
 ]
 
-#: ``(module, arguments before --help)`` of every command line, in the order of the reference.
+#: The benchmarks of ``python -m camhealth.bench`` (as :data:`camhealth.bench.BENCHMARKS` lists them; a test checks
+#: that this is every one).
+_BENCHMARKS = ("calibrate", "classical", "coldstart", "corruption", "data", "estimators", "monitor", "mtf_error",
+               "policy", "robustness", "siemens_star")
+
+#: ``(module, arguments before --help)`` of every command line, in the order of the reference: each tool, each of
+#: its subcommands (demos, benchmarks, the docs' own), and the stand-alone benchmark modules.
 CLI_COMMANDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("camhealth.fit", ()),
     ("camhealth.export", ()),
@@ -56,16 +63,22 @@ CLI_COMMANDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("camhealth.evaluate", ()),
     ("camhealth.iopc", ()),
     ("camhealth.demo", ()),
+    ("camhealth.demo", ("closed-loop",)),
     ("camhealth.data.native_mtf", ()),
     ("camhealth.bench", ()),
-    *(("camhealth.bench", (b,)) for b in
-      ("robustness", "mtf_error", "estimators", "classical", "monitor", "corruption", "data", "calibrate")),
+    *(("camhealth.bench", (b,)) for b in _BENCHMARKS),
+    ("camhealth.bench.library_reuse", ()),
     ("camhealth.docs", ()),
+    *(("camhealth.docs", (w,)) for w in ("cli", "api", "tables")),
 )
 
 _TOP_LEVEL = ("camhealth", "datamodules", "lightning_modules")
-_BEGIN = re.compile(r"<!-- generated: (?P<command>[^>]*?) -->\n")
+#: A begin marker: a whole line (trailing blanks allowed), ``<!-- generated: COMMAND -->``.
+_BEGIN = re.compile(r"<!-- generated: (?P<command>[^>]*?) -->[ \t]*$")
+_BEGIN_START = "<!-- generated:"
 _END = "<!-- end generated -->"
+#: Suffixes of the Markdown files a generated block may be written into.
+MARKDOWN_SUFFIXES = (".md", ".markdown")
 _HELP_WIDTH = "100"
 
 
@@ -164,15 +177,60 @@ def _foreign(w: warnings.WarningMessage) -> bool:
     return "site-packages" in path and not any(f"{os.sep}{top}{os.sep}" in path for top in _TOP_LEVEL)
 
 
-def generated_blocks(text: str) -> list[tuple[str, int, int]]:
-    """``(command, start, end)`` of every generated block of a Markdown text (character offsets of its content)."""
-    blocks = []
-    for m in _BEGIN.finditer(text):
-        end = text.find(_END, m.end())
-        if end < 0:
-            raise ValueError(f"generated block `{m.group('command')}` has no end marker {_END!r}")
-        blocks.append((m.group("command"), m.end(), end))
+def generated_blocks(text: str, source: str | Path = "") -> list[tuple[str, int, int]]:
+    """``(command, start, end)`` of every generated block of a Markdown text (character offsets of its content).
+
+    Markers are whole lines (trailing blanks and ``\r\n`` allowed; a marker quoted inside a line of prose is text).
+    Begin and end markers must alternate: a begin marker before the previous block's end, an end marker without a
+    begin, a block without an end, a begin marker that is not ``<!-- generated: COMMAND -->``, a command that does
+    not parse as a command line, or two blocks of the same command (:func:`command_key`) raise ``ValueError`` naming
+    ``source`` (when given), the line and the marker, so nothing is written into a page whose blocks are ambiguous."""
+    where = f"{source}: " if str(source) else ""
+    blocks: list[tuple[str, int, int]] = []
+    seen: dict[tuple, int] = {}
+    open_block: tuple[str, int, int] | None = None  # (command, content start, line number)
+    pos = 0
+    for number, line in enumerate(text.splitlines(keepends=True), start=1):
+        stripped = line.rstrip("\r\n").rstrip(" \t")
+        if stripped.startswith(_BEGIN_START):
+            m = _BEGIN.fullmatch(stripped)
+            if m is None:
+                raise ValueError(f"{where}line {number}: malformed begin marker {stripped!r} "
+                                 f"(write it as '<!-- generated: COMMAND -->' on a line of its own)")
+            if open_block is not None:
+                raise ValueError(f"{where}line {open_block[2]}: generated block `{open_block[0]}` has no end marker "
+                                 f"{_END!r} before the next begin marker (line {number})")
+            command = m.group("command")
+            try:
+                key = command_key(command)
+            except ValueError as exc:
+                raise ValueError(f"{where}line {number}: the command of the begin marker `{command}` does not parse "
+                                 f"({exc})") from None
+            if key in seen:
+                raise ValueError(f"{where}line {number}: generated block `{command}` is a duplicate of the block on "
+                                 f"line {seen[key]} (same command); remove one of them")
+            seen[key] = number
+            open_block = (command, pos + len(line), number)
+        elif stripped == _END:
+            if open_block is None:
+                raise ValueError(f"{where}line {number}: end marker {_END!r} without a begin marker before it")
+            blocks.append((open_block[0], open_block[1], pos))
+            open_block = None
+        pos += len(line)
+    if open_block is not None:
+        raise ValueError(f"{where}line {open_block[2]}: generated block `{open_block[0]}` has no end marker {_END!r}")
     return blocks
+
+
+def check_command(command: str) -> None:
+    """``ValueError`` when ``command`` cannot name a generated block: it does not parse back as a command line (an
+    unbalanced quote), or it holds ``-->`` or a line break (it would end its marker early)."""
+    if "\n" in command or "\r" in command or ">" in command:
+        raise ValueError(f"the command line `{command}` cannot be written into a begin marker (it holds '>' or a line break)")
+    try:
+        command_key(command)
+    except ValueError as exc:
+        raise ValueError(f"the command line `{command}` does not parse back ({exc})") from None
 
 
 #: Options that do not change a generated table: the table is the same Markdown with or without them.
@@ -206,21 +264,38 @@ def command_key(command: str) -> tuple:
 
 def replace_generated(path: str | Path, command: str, content: str) -> bool:
     """Replace the content of the block of ``path`` whose begin marker names ``command`` by ``content`` and return
-    True; without such a block append a new one at the end and return False. The rest of the file is kept.
+    True; without such a block append a new one at the end and return False. The rest of the file is kept, byte for
+    byte: a file with ``\r\n`` line endings keeps them (the new content is written with them too).
 
     Commands are matched by :func:`command_key` (``--frames=16`` matches ``--frames 16``, option order and
-    ``--markdown`` do not matter); a block found so keeps its marker as written."""
+    ``--markdown`` do not matter); a block found so keeps its marker as written. A page whose blocks do not parse
+    (:func:`generated_blocks`), a file that is not Markdown (``.md``) or a ``command`` that cannot be read back
+    (:func:`check_command`) raise ``ValueError`` before anything is written."""
     path = Path(path)
-    text = path.read_text(encoding="utf-8") if path.exists() else ""
-    body = content.rstrip("\n") + "\n"
+    if path.suffix.lower() not in MARKDOWN_SUFFIXES:
+        raise ValueError(f"{path}: not a Markdown file (the suffix is not {' or '.join(MARKDOWN_SUFFIXES)})")
+    check_command(command)
+    if path.exists():
+        with open(path, encoding="utf-8", newline="") as fh:
+            text = fh.read()
+    else:
+        text = ""
+    blocks = generated_blocks(text, path)
+    eol = "\r\n" if "\r\n" in text else "\n"
+    body = content.replace("\r\n", "\n").rstrip("\n") + "\n"
+    if eol != "\n":
+        body = body.replace("\n", eol)
     key = command_key(command)
-    for cmd, start, end in generated_blocks(text):
-        if command_key(cmd) == key:
-            path.write_text(text[:start] + body + text[end:], encoding="utf-8")
-            return True
-    sep = "" if not text or text.endswith("\n\n") else ("\n" if text.endswith("\n") else "\n\n")
-    path.write_text(f"{text}{sep}<!-- generated: {command} -->\n{body}{_END}\n", encoding="utf-8")
-    return False
+    found = [(start, end) for cmd, start, end in blocks if command_key(cmd) == key]  # (at most one: no duplicates)
+    if found:
+        start, end = found[0]
+        new = text[:start] + body + text[end:]
+    else:
+        sep = "" if not text or text.endswith(eol + eol) else (eol if text.endswith("\n") else eol + eol)
+        new = f"{text}{sep}<!-- generated: {command} -->{eol}{body}{_END}{eol}"
+    with open(path, "w", encoding="utf-8", newline="") as fh:
+        fh.write(new)
+    return bool(found)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -246,7 +321,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.what == "api":
         print(build_api(args.out, strict=args.strict))
     else:
-        for command, start, end in generated_blocks(args.file.read_text(encoding="utf-8")):
+        if args.file.is_dir():
+            raise ValueError(f"{args.file}: is a folder; give a Markdown file")
+        for command, start, end in generated_blocks(args.file.read_text(encoding="utf-8"), args.file):
             print(command)
     return 0
 

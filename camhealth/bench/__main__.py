@@ -14,6 +14,8 @@ parse) is refused before the benchmark runs."""
 from __future__ import annotations
 
 import argparse
+import os
+import shlex
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -28,40 +30,85 @@ def _integer(value: str | int) -> int:
     return int(value)
 
 
-def _positive(value: str | int) -> int:
-    n = _integer(value)
-    if n < 1:
-        raise BadValue(f"must be ≥ 1, got {n}")
-    return n
+#: Largest ``--seed``: the benchmarks' generators take seeds (and seeds derived from them) below 2**32.
+SEED_MAX = 2**32 - 1
+#: Largest ``--threads``: more torch threads than this only oversubscribes the CPU (and a huge count crashed torch).
+THREADS_MAX = 4 * (os.cpu_count() or 1)
+#: Largest ``--batch``, ``--size``, ``--repeats`` and ``--warmup``: generous, far beyond any table of the docs, short
+#: of runs that would take days or all the memory.
+BATCH_MAX, SIZE_MAX, REPEATS_MAX, WARMUP_MAX = 4096, 4096, 100_000, 10_000
 
 
-def _non_negative(value: str | int) -> int:
-    n = _integer(value)
-    if n < 0:
-        raise BadValue(f"must be ≥ 0, got {n}")
-    return n
+def _bounded(lo: int, hi: int):
+    """Option type: an integer in [lo, hi], else :class:`BadValue` naming the value and the range."""
+
+    def parse(value: str | int) -> int:
+        try:
+            n = _integer(value)
+        except BadValue:
+            raise BadValue(f"must be an integer, got {value!r} (allowed: {lo} … {hi})") from None
+        except (TypeError, ValueError):
+            raise BadValue(f"must be an integer, got {value!r} (allowed: {lo} … {hi})") from None
+        if n < lo:
+            raise BadValue(f"must be ≥ {lo}, got {n} (allowed: {lo} … {hi})")
+        if n > hi:
+            raise BadValue(f"must be ≤ {hi}, got {n} (allowed: {lo} … {hi})")
+        return n
+
+    parse.__name__ = f"int in [{lo}, {hi}]"
+    return parse
 
 
-def check_docs_file(path: Path) -> None:
+def check_output_file(path: Path, option: str) -> None:
+    """Refuse an output file (``--out``, ``--json``) before the benchmark runs: a folder, a path under a file, a
+    folder that cannot be written (``BadValue`` naming the option and the path). A missing parent folder is made now."""
+    if path.is_dir():
+        raise BadValue(f"{option} {path}: is a folder; give a file name")
+    if path.exists() and not path.is_file():
+        raise BadValue(f"{option} {path}: not a regular file")
+    parent = path.parent
+    existing = parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise BadValue(f"{option} {path}: {existing} is a file, where a folder was expected")
+    if path.exists():
+        if not os.access(path, os.W_OK):
+            raise BadValue(f"{option} {path}: the file cannot be written (permissions)")
+    elif not os.access(existing, os.W_OK | os.X_OK):
+        raise BadValue(f"{option} {path}: the file cannot be created in {existing} (permissions)")
+    parent.mkdir(parents=True, exist_ok=True)
+
+
+def check_docs_file(path: Path, command: str | None = None) -> None:
     """Refuse a ``--docs`` target the table could not be written to, before the benchmark runs: a folder, a file in
-    a folder that does not exist, a file that cannot be written or whose generated blocks do not parse (``BadValue``
-    naming the path; exit status 2)."""
-    import os
-
-    from camhealth.docs import generated_blocks
+    a folder that does not exist, a file that is not Markdown (``.md``), cannot be written or whose generated blocks
+    do not parse (a block without its end marker, an end marker without a block, two blocks of one command: the line
+    and the marker are named), and a ``command`` that could not be read back from a marker (``BadValue`` naming the
+    path; exit status 2)."""
+    from camhealth.docs import MARKDOWN_SUFFIXES, check_command, generated_blocks
 
     if path.is_dir():
         raise BadValue(f"--docs {path}: is a folder; give a Markdown file (its generated block is written there)")
     parent = path.parent
     if not parent.is_dir():
         raise BadValue(f"--docs {path}: the folder {parent} does not exist (create it, or give another file)")
+    if path.suffix.lower() not in MARKDOWN_SUFFIXES:
+        raise BadValue(f"--docs {path}: not a Markdown file (the suffix is not {' or '.join(MARKDOWN_SUFFIXES)}); "
+                       "give a Markdown file")
+    if command is not None:
+        try:
+            check_command(command)
+        except ValueError as exc:
+            raise BadValue(f"--docs {path}: {exc}") from None
     if path.exists():
         if not path.is_file():
             raise BadValue(f"--docs {path}: not a regular file; give a Markdown file")
         if not os.access(path, os.R_OK | os.W_OK):
             raise BadValue(f"--docs {path}: the file cannot be read and written (permissions)")
         try:
-            generated_blocks(path.read_text(encoding="utf-8"))
+            with open(path, encoding="utf-8", newline="") as fh:
+                generated_blocks(fh.read())
         except UnicodeDecodeError as exc:
             raise BadValue(f"--docs {path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
         except ValueError as exc:
@@ -95,12 +142,17 @@ def build_parser():
         p = config_parser(prog=f"python -m camhealth.bench {name}", description=module.HELP,
                           formatter_class=argparse.HelpFormatter,  # (argparse's help, as the benchmarks' own texts expect)
                           allow_abbrev=False)
-        p.add_argument("--batch", type=_positive, default=32, help="batch size B (default 32)")
-        p.add_argument("--size", type=_positive, default=192, help="image side H = W in px (default 192)")
-        p.add_argument("--repeats", type=_positive, default=20, help="timed repeats per row (default 20)")
-        p.add_argument("--warmup", type=_non_negative, default=2, help="untimed warm-up calls per row (default 2)")
-        p.add_argument("--threads", type=_positive, default=None, help="torch intra-op threads (default: torch's)")
-        p.add_argument("--seed", type=int, default=0, help="seed of the batch and of the parameters (default 0)")
+        p.add_argument("--batch", type=_bounded(1, BATCH_MAX), default=32, help=f"batch size B, 1…{BATCH_MAX} (default 32)")
+        p.add_argument("--size", type=_bounded(1, SIZE_MAX), default=192,
+                       help=f"image side H = W in px, 1…{SIZE_MAX} (default 192)")
+        p.add_argument("--repeats", type=_bounded(1, REPEATS_MAX), default=20,
+                       help=f"timed repeats per row, 1…{REPEATS_MAX} (default 20)")
+        p.add_argument("--warmup", type=_bounded(0, WARMUP_MAX), default=2,
+                       help=f"untimed warm-up calls per row, 0…{WARMUP_MAX} (default 2)")
+        p.add_argument("--threads", type=_bounded(1, THREADS_MAX), default=None,
+                       help="torch intra-op threads, 1…4 × the CPU count (default: torch's)")
+        p.add_argument("--seed", type=_bounded(0, SEED_MAX), default=0,
+                       help="seed of the batch and of the parameters, 0…2**32 − 1 (default 0)")
         p.add_argument("--markdown", action="store_true", help="print a markdown table")
         p.add_argument("--out", type=Path, default=None, help="append the markdown table to FILE (created if missing)")
         p.add_argument("--docs", type=Path, default=None,
@@ -121,13 +173,19 @@ def parse(argv: Sequence[str] | None = None):
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse(argv)
+    # shlex.join: an argument with a blank or a quote is written so the command parses back as the same words
+    args.command_line = "python -m camhealth.bench " + shlex.join(_without_docs(sys.argv[1:] if argv is None else argv))
+    # every output is checked now, not after a benchmark of minutes
     if args.docs is not None:
-        check_docs_file(args.docs)  # now, not after a benchmark of minutes
+        check_docs_file(args.docs, args.command_line)
+    if args.out is not None:
+        check_output_file(args.out, "--out")
+    if getattr(args, "json", None) is not None:
+        check_output_file(args.json, "--json")
     import torch
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    args.command_line = "python -m camhealth.bench " + " ".join(_without_docs(sys.argv[1:] if argv is None else argv))
     result = load(args.benchmark).run(args)
     print(format_table(result, markdown=args.markdown), flush=True)
     if args.out is not None:

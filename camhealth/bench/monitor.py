@@ -211,10 +211,53 @@ def _has_value(report) -> torch.Tensor:
     return ((code == ESTIMATED) | (code == INTERPOLATED) | (code == REUSED)) & torch.isfinite(report.values[:, -1])
 
 
+#: The mode flags of ``monitor`` (each a different benchmark) and the options each mode reads (``None``: the default
+#: mode). An option a mode does not read is refused when given (the table's command line would claim it).
+_MODE_FLAGS = {"motion": "--motion", "pool_sizes": "--pool-sizes", "exposure_step": "--exposure-step"}
+_MODE_ONLY = {"noise_samples", "mtf_samples", "window", "backends", "exposure_ratio", "pool_step_db", "pool_draws"}
+_COMMON_MONITOR = {"sensor", "gain_db", "exposure_s", "temperature_c", "noise_model"}
+_READS = {
+    "motion": _COMMON_MONITOR | {"frames", "width", "height", "defocus_px", "precision", "mtf_model", "untrained",
+                                 "memory_probe", "slow_frames", "thesis_patches", "true_gain_db", "warmup",
+                                 "noise_samples", "mtf_samples", "window", "backends"},
+    "pool_sizes": _COMMON_MONITOR | {"pool_step_db", "pool_draws"},
+    "exposure_step": _COMMON_MONITOR | {"frames", "width", "height", "precision", "exposure_ratio"},
+}
+
+
+def check_mode_options(args: argparse.Namespace) -> None:
+    """``ValueError`` naming the options when two mode flags are given (``--motion``, ``--pool-sizes``,
+    ``--exposure-step`` are different benchmarks), when an option is given that the chosen mode does not read
+    (``--device`` with ``--motion``, ``--noise-samples`` without it, …: the table's header would record it), and, in
+    the default mode with the memory probe, when ``--warmup`` ≥ ``--frames`` (the headline row would have no frame)."""
+    modes = [flag for dest, flag in _MODE_FLAGS.items() if getattr(args, dest, False)]
+    if len(modes) > 1:
+        raise ValueError(f"{modes[0]} and {modes[1]} are different benchmarks: give one of them per run")
+    mode = next((dest for dest in _MODE_FLAGS if getattr(args, dest, False)), None)
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--warmup", type=int, default=2)
+    add_arguments(parser)
+    names = {a.dest: a.option_strings[0] for a in parser._actions if a.option_strings}
+    defaults = vars(parser.parse_args([]))
+    for dest, default in defaults.items():
+        if dest in _MODE_FLAGS or not hasattr(args, dest):
+            continue
+        reads = dest not in _MODE_ONLY if mode is None else dest in _READS[mode]
+        value = getattr(args, dest)
+        if not reads and value != default:
+            shown = names[dest] if isinstance(default, bool) else f"{names[dest]} {value}"
+            where = modes[0] if modes else "the default monitor benchmark (without --motion, --pool-sizes or --exposure-step)"
+            raise ValueError(f"{shown} is not used by {where}; leave it out")
+    if mode is None and getattr(args, "memory_probe", True) and 1 <= args.frames <= args.warmup:  # (--frames 0: its own check)
+        raise ValueError(f"--warmup {args.warmup} must be smaller than --frames {args.frames} (the row of the monitor alone "
+                         "in its process leaves out the warm-up frames), or pass --no-memory-probe")
+
+
 def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load
     from camhealth.physics import CameraMetadata
 
+    check_mode_options(args)
     if getattr(args, "motion", False):
         from camhealth.bench.monitor_motion import run_motion
 
@@ -572,7 +615,9 @@ def _run(args: argparse.Namespace, meta, frames: torch.Tensor, blurred: torch.Te
          f"(Python + torch + camhealth before the monitor: {probe['start_mb']:.0f} MB; target ≤ {TARGET_RSS_MB:.0f} MB: "
          f"{'met' if probe['peak_mb'] <= TARGET_RSS_MB else 'NOT met'}); " if probe else "")
         + f"this benchmark process: {rss_peak:.0f} MB after the three monitor rows (all three monitors, their models, all "
-        f"frames; {rss_start:.0f} MB at start), {rss_all:.0f} MB after the fp32 and thesis-size rows",
+        f"frames; {rss_start:.0f} MB at start), {rss_all:.0f} MB after the fp32 and thesis-size rows"
+        + ("" if alone_ms is not None or not args.memory_probe else
+           "; the run of the monitor alone in a fresh interpreter failed: no row and no verdict for it"),
         f"skipped as uninformative per frame: noise {skip_noise}, MTF {skip_mtf}; network patches per frame "
         f"{fresh(ALL, 'noise') + fresh(ALL, 'mtf'):.1f} (every) → "
         f"{fresh(INFORMATIVE, 'noise') + fresh(INFORMATIVE, 'mtf'):.1f} "
