@@ -201,6 +201,10 @@ def contrast_limit_dn(noise_dn: torch.Tensor, n_means: int, pixels_per_mean: int
     return (MIN_CONTRAST_DN**2 + CONTRAST_NOISE_SIGMAS * spread).sqrt().float()
 
 
+#: The estimator kinds :func:`assess_patches` knows (those of :class:`camhealth.inference.Estimator`).
+_KINDS: tuple[str, ...] = ("mtf", "drne", "noise_source")
+
+
 def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | None = None) -> tuple[torch.Tensor, list[str]]:
     """Which B×1×P×P patches (in [0, 1]) an estimator of ``kind`` can assess, and why not.
 
@@ -218,7 +222,10 @@ def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | No
     10 DN of it: :func:`_without_banding`); no edges (MTF only): the scene's gradients are
     not shown to be sparser than a random-phase texture's (:func:`has_edges`: :func:`edge_kurtosis` two standard
     errors above :data:`MIN_EDGE_KURTOSIS`), so a steep spectrum and blur cannot be told apart on the patch.
+    ``kind``: ``"mtf"``, or one of the noise kinds ``"drne"`` and ``"noise_source"`` (another raises a ``ValueError``).
     ``noise_dn``: the patches' σ̂ of :func:`haar_noise_dn` (B,) (``dtype=torch.float64``) where the caller has it."""
+    if kind not in _KINDS:
+        raise ValueError(f"kind = {kind!r} must be one of {', '.join(map(repr, _KINDS))} (the estimator's kind)")
     x = patches.flatten(1)
     x = x if x.dtype in (torch.float32, torch.float64) else x.float()
     tol = 0.5 / 255.0
@@ -266,6 +273,10 @@ def assess_patches(patches: torch.Tensor, kind: str, noise_dn: torch.Tensor | No
 
 
 def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
+    if isinstance(patch_size, (bool, np.bool_)) or not isinstance(patch_size, (int, np.integer)):
+        raise TypeError(f"patch_size = {patch_size!r} must be an integer number of px ≥ 1, got {type(patch_size).__name__}")
+    if patch_size < 1:
+        raise ValueError(f"patch_size = {patch_size!r} must be an integer number of px ≥ 1")
     if input_range not in ("auto", "unit", "dn"):
         raise ValueError(f"input_range = {input_range!r} must be 'auto', 'unit' or 'dn'")
     if isinstance(images, np.ndarray):
@@ -296,7 +307,8 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
         t = images.detach().cpu()
     else:
         raise TypeError(f"images must be a torch.Tensor or numpy.ndarray, got {type(images).__name__}")
-    half = t.dtype in (torch.float16, torch.bfloat16)
+    half_dtype = t.dtype  # torch's dtype of the data as given (a NumPy array's is a NumPy dtype, which torch cannot take)
+    half = half_dtype in (torch.float16, torch.bfloat16)
     t = _gray_patch_layout(t, patch_size)
     if tuple(t.shape[-2:]) != (patch_size, patch_size):
         raise ValueError(
@@ -326,7 +338,7 @@ def _to_patches(images: Any, patch_size: int, input_range: str) -> torch.Tensor:
             hint = " (looks like DN: pass input_range='dn')" if hi <= 255 and lo >= 0 else ""
             raise ValueError(f"float images must lie in [0, 1], got min {lo:g}, max {hi:g}{hint}")
         if half:
-            t = _unround_8bit(t, images.dtype)
+            t = _unround_8bit(t, half_dtype)
     return t.clamp(0, 1).float()
 
 
@@ -424,6 +436,22 @@ BEYOND_VALIDATED = "noise beyond validated range"
 _MAD_RELATIVE_SE = 1.0 / (2.0 * 2.0 * math.exp(-0.5 * _MAD_NORMAL**2) / math.sqrt(2.0 * math.pi) * _MAD_NORMAL)
 
 
+def _check_noise_patches(patches: Any, name: str = "patches") -> None:
+    """:func:`~camhealth.estimators._common.check_patches` of B×1×H×W patches (H, W ≥ 2) for the public patch tests
+    (:func:`beyond_validated_range`, :func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`); an empty
+    batch passes with its dtype and layout checked, and nothing is checked while the caller is traced or exported."""
+    from camhealth._order import _traced
+    from camhealth._validation import check_float
+    from camhealth.estimators._common import check_patches  # (a lower layer than camhealth.estimators: imported here)
+
+    if _traced():
+        return
+    if isinstance(patches, torch.Tensor) and patches.ndim == 4 and patches.shape[0] == 0 and patches.shape[1] == 1:
+        check_float(patches, name)
+        return
+    check_patches(patches, name, min_size=(2, 2))
+
+
 def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None = None) -> torch.Tensor:
     """Whether the finest-scale fluctuations of B×1×H×W patches in [0, 1] exceed :data:`VALIDATED_SIGMA_DN` beyond
     doubt → (B,) bool.
@@ -434,7 +462,13 @@ def beyond_validated_range(patches: torch.Tensor, noise_dn: torch.Tensor | None 
     of its standard errors (1.166·σ/√n for n Gaussian details). Clipping only lowers σ̂, so clipped Gaussian noise
     within the limit never trips it. Uniform noise of σ 73 DN does: the clipped-Gaussian model, which reads only
     the blocks away from the bounds, sees it as about 52 DN. Texture that fine and that strong trips it too, and
-    no noise estimate can be vouched for under it either."""
+    no noise estimate can be vouched for under it either.
+
+    The patches are checked as every estimator function checks them
+    (:func:`camhealth.estimators._common.check_patches`: a floating tensor, finite, in [0, 1], B×1×H×W with H, W ≥ 2;
+    else a ``TypeError`` or ``ValueError`` naming the value) — except while the caller is traced or exported (the
+    graph of an exported network, which cannot hold the data-dependent check); an empty batch gives an empty result."""
+    _check_noise_patches(patches)
     mad = haar_noise_dn(patches) if noise_dn is None else noise_dn
     h2, w2 = (s - s % 2 for s in patches.shape[-2:])
     step = 4 if h2 >= 8 else 2  # structure_contrast_dn reads the details of every other row of 2×2 blocks

@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -41,11 +43,12 @@ BRIGHT: float = 0.8
 
 
 def _check_size(size: object, low: int) -> int:
-    if isinstance(size, bool) or not isinstance(size, int):
+    """``size`` as an int ≥ ``low`` (Python's or NumPy's integers; a bool is none), else a ``TypeError``/``ValueError``."""
+    if isinstance(size, (bool, np.bool_)) or not isinstance(size, numbers.Integral):
         raise TypeError(f"size must be an int, got {type(size).__name__}")
     if size < low:
         raise ValueError(f"size = {size} px is out of the allowed range [{low}, inf)")
-    return size
+    return int(size)
 
 
 def _area_render(size: int, supersample: int, inside) -> torch.Tensor:
@@ -165,6 +168,11 @@ def siemens_star_chart(size: int = 512, n_cycles: int = 32, radius_frac: float =
 
 
 def siemens_star_geometry(size: int = 512, radius_frac: float = 0.47) -> tuple[float, float, float]:
-    """``(centre_row, centre_col, radius)`` in px of :func:`siemens_star_chart` (pixel-centre coordinates)."""
+    """``(centre_row, centre_col, radius)`` in px of :func:`siemens_star_chart` (pixel-centre coordinates). ``size``: an
+    int ≥ 1; ``radius_frac``: a finite real number in (0, 0.5] (else a ``TypeError``/``ValueError`` naming it)."""
+    size = _check_size(size, 1)
+    if (isinstance(radius_frac, (bool, np.bool_)) or not isinstance(radius_frac, numbers.Real) or not math.isfinite(radius_frac)
+            or not 0.0 < radius_frac <= 0.5):
+        raise ValueError(f"radius_frac = {radius_frac!r:.40} must be a finite real number in (0, 0.5] (star radius / size)")
     c = (size - 1) / 2.0
     return c, c, float(radius_frac) * size

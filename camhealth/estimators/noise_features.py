@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -29,7 +30,7 @@ from camhealth._order import _traced, lower_median
 from camhealth.estimators._common import check_patches
 from camhealth.physics.clipping import _NEAR_SIGMAS, clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
-from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata
+from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata, SensorConstants
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = [
@@ -46,12 +47,18 @@ IMAGE_STATISTICS: tuple[str, ...] = (
 CLIP_TOLERANCE = 0.5 / 255.0
 
 
-def metadata_from_matrix(meta_raw: torch.Tensor) -> CameraMetadata:
-    """(B, 11) raw metadata in ``FULL_FIELDS`` order → :class:`CameraMetadata` (validated)."""
+def metadata_from_matrix(meta_raw: torch.Tensor, constants: SensorConstants | None = None) -> CameraMetadata:
+    """(B, 11) raw metadata in ``FULL_FIELDS`` order → :class:`CameraMetadata` (validated).
+
+    The rows carry the 11 fields only: the fixed :class:`~camhealth.physics.metadata.SensorConstants` of the camera
+    are ``constants`` (None: the defaults, those of every preset)."""
     if not isinstance(meta_raw, torch.Tensor) or meta_raw.ndim != 2 or meta_raw.shape[1] != len(FULL_FIELDS):
         shape = tuple(meta_raw.shape) if isinstance(meta_raw, torch.Tensor) else type(meta_raw).__name__
         raise ValueError(f"raw metadata must be a (B, {len(FULL_FIELDS)}) tensor in FULL_FIELDS order, got {shape}")
-    return CameraMetadata(**{n: meta_raw[:, i] for i, n in enumerate(FULL_FIELDS)})
+    if constants is not None and not isinstance(constants, SensorConstants):
+        raise TypeError(f"constants must be SensorConstants or None, got {type(constants).__name__} {constants!r:.60}")
+    fields = {n: meta_raw[:, i] for i, n in enumerate(FULL_FIELDS)}
+    return CameraMetadata(**fields) if constants is None else CameraMetadata(**fields, constants=constants)
 
 
 def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | None = None, clipping: bool = False) -> torch.Tensor:
@@ -65,11 +72,16 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
         meta: metadata of batch 1 or B, physical units.
         cache: optional dict that keeps (σ_DCSN, σ_RN) [DN] per distinct metadata row between calls (an
             inference loop that sees the same camera state on every frame integrates the readout noise
-            once); at most 64 rows are kept.
+            once); at most 64 rows are kept. Another type raises a ``TypeError``.
         clipping: also return, as columns 4–7, the σ [DN] of (PN, DCSN, RN, total) that the metadata predict
-            *after* clipping to [0, 255] DN (:func:`clipped_prior_dn`), shape (B, 8).
+            *after* clipping to [0, 255] DN (:func:`clipped_prior_dn`), shape (B, 8). True or False (a string such
+            as ``"no"`` raises a ``TypeError``).
     """
     check_patches(image, "image")
+    if cache is not None and not isinstance(cache, dict):
+        raise TypeError(f"cache = {cache!r:.60} must be a dict or None, got {type(cache).__name__}")
+    if not isinstance(clipping, (bool, np.bool_)):
+        raise TypeError(f"clipping = {clipping!r:.60} must be True or False, got {type(clipping).__name__}")
     b = image.shape[0]
     if meta.batch_size not in (1, b):
         raise ValueError(f"metadata batch {meta.batch_size} does not match the {b} patches")
@@ -106,7 +118,7 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
     total = (pn.pow(2) + dc.pow(2) + rn.pow(2)).sqrt()
     prior = torch.stack([pn, dc, rn, total], dim=1)
     if clipping:
-        prior = torch.cat([prior, clipped_prior_dn(image, 255.0 * g_fw, dc, rn)], dim=1)
+        prior = torch.cat([prior, _clipped_prior_dn(image, 255.0 * g_fw, dc, rn)], dim=1)
     return prior.float()
 
 
@@ -213,12 +225,27 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
     within 1e-6 DN, tested). Only the patches of a batch that come nearer a bound take the per-pixel path.
 
     Args:
-        image: B×1×H×W noisy patches in [0, 1].
+        image: B×1×H×W noisy patches in [0, 1] (floating point; integer DN images: divide by 255 first). Anything
+            else raises a ``TypeError`` (not a floating tensor) or ``ValueError`` (shape, NaN/inf, values outside
+            [0, 1]) naming it.
         pn_slope: (B,) photon-noise variance per DN of signal, 255·g/FW [DN²/DN].
         dcsn_dn, rn_dn: (B,) dark-current and readout σ [DN] before clipping.
+        Each of the three holds 1 value (for every patch) or B; another count raises a ``ValueError`` naming it.
 
     Returns (B, 4) float64.
     """
+    check_patches(image, "image")
+    b = image.shape[0]
+    for name, value in (("pn_slope", pn_slope), ("dcsn_dn", dcsn_dn), ("rn_dn", rn_dn)):
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor of 1 or {b} values (one per patch), got {type(value).__name__}")
+        if value.numel() not in (1, b):
+            raise ValueError(f"{name} must hold 1 or {b} values (one per patch), got shape {tuple(value.shape)}")
+    return _clipped_prior_dn(image, pn_slope, dcsn_dn, rn_dn)
+
+
+def _clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch.Tensor, rn_dn: torch.Tensor) -> torch.Tensor:
+    """:func:`clipped_prior_dn` of arguments the caller has checked."""
     with torch.autocast(device_type=image.device.type, enabled=False):
         f32, f64 = torch.float32, torch.float64  # per-pixel arithmetic in float32 (sums in float64): within 1e-5 DN of float64, 2× faster
         flat = image.detach().flatten(1)

@@ -29,7 +29,9 @@ that reads *more* than f_k·v_k(H) carries the extra log-variance ln(1 + τ²/v_
 Σ's diagonal, one that reads less carries none (a scene cannot remove noise): the
 image contradicts the metadata by more noise only where the excess is well beyond what a scene brings, and by less
 noise as before. That keeps the closed form on busy matched frames (and on compressed ones whose codec added a few
-DN); the price is that a mismatch adding less than a few τ in quadrature on a quiet camera goes unseen. The
+DN); the price is that a mismatch adding less than a few τ in quadrature on a quiet camera goes unseen (on the
+quietest cameras, where ln(1 + τ²/v)² grows without bound as v → 0, several τ: the uncertainty then covers it,
+``excess_dn``). The
 allowance enters each intensity bin's variance on its own, so in the common offset a patch whose details all fall in
 one bin carries it whole and one spread over k bins about 1/k of it: per patch, the verdict on a flat patch near that
 threshold depends on where its level falls among the bins (ICX285 at 0 dB, 1.4 DN: a flat patch of 5 DN white noise
@@ -85,7 +87,8 @@ used, or the patch is textured (:func:`textured`: the texture check and the neig
 limit, add up in quadrature to 1 or more — each alone at its limit, or two marginal signs together): the closed form exactly (σ per source after clipping,
 ξ = 0). Elsewhere the posterior over the visible mismatch hypotheses: its σ per source after clipping (at the
 posterior-mean variances) and ξ = σ_Total(M) − σ_Total(image) (Eq. 4.3, both after clipping). ``xi_std`` is the
-posterior standard deviation of σ_Total (∞ without evidence). Inliers are chosen in two passes — against a
+posterior standard deviation of σ_Total (∞ without evidence), raised where the closed form is kept although a bin
+reads beyond the scene allowance above it (column ``excess_dn`` of :func:`physics_noise_posterior`). Inliers are chosen in two passes — against a
 metadata-free per-intensity median of the details, then against the first pass's posterior NLF — so a camera far
 noisier than its metadata keeps its details. Where the first pass found no flat block (a ramp steeper than about half
 the noise σ per pixel fails the flatness test on its slope), that posterior is the prior, whose wide NLF admits nearly
@@ -175,6 +178,7 @@ is not flat (its 3×3 means vary by σ/3), so there even the total may read abov
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -186,11 +190,11 @@ import torch
 import torch.nn.functional as F
 
 from camhealth._order import sorted_values
-from camhealth._inputs import (_MAD_NORMAL, _MAD_RELATIVE_SE, BEYOND_VALIDATED, VALIDATED_SIGMA_DN, _to_metadata, _to_patches,
-                               assess_patches, beyond_validated_range, haar_noise_dn)
+from camhealth._inputs import (_MAD_NORMAL, _MAD_RELATIVE_SE, BEYOND_VALIDATED, VALIDATED_SIGMA_DN, _check_noise_patches, _to_metadata,
+                               _to_patches, assess_patches, beyond_validated_range, haar_noise_dn)
 from camhealth._validation import check_batch_size
 from camhealth.estimators.noise_features import (
-    _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, block_details, clipped_prior_dn,
+    _INLIER_Z, _MIN_FIT_BLOCKS, _TEXTURE_CHI2, _TRUNCATED_CHI2, _block_pixels, _clipped_prior_dn, block_details,
     plane_free_details,
     metadata_from_matrix, truncated_second_moment,
 )
@@ -199,7 +203,7 @@ from camhealth.estimators.jpeg_quantisation import coded_frame, jpeg_grid
 from camhealth.estimators.row_column_noise import debanded_details, row_column_noise
 from camhealth.estimators.static_pair import pair_fold, pair_stillness
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
-from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata
+from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, CameraMetadata, SensorConstants
 from camhealth.physics.readout_noise import readout_sigma_e
 
 __all__ = ["physics_noise_posterior", "PhysicsNoiseEstimator", "MISMATCH_CAUSES", "VALIDATED_SIGMA_DN", "BEYOND_VALIDATED", "LESS_NOISE",
@@ -270,7 +274,7 @@ PHYSICS_NOISE_COLUMNS: tuple[str, ...] = (
     "total_unclipped_dn", "detail_corr_check", "scene_allowance_dn", "pn_std_dn", "dcsn_std_dn", "rn_std_dn",
     "row_dn", "col_dn", "patch_details", "patch_texture", "patch_detail_corr_check",
     "p_cause_gain", "p_cause_temperature", "p_cause_white_noise", "p_cause_beyond", "quiet_z",
-    "quietest_total_dn", "codec",
+    "quietest_total_dn", "codec", "excess_dn",
 )
 #: What a visible mismatch may be (the hypotheses' kinds, in the order of the ``cause`` output): one of
 #: :data:`MISMATCH_FIELDS` wrong, or noise beyond what any field in range explains.
@@ -532,9 +536,10 @@ def _median_variance(m: torch.Tensor, diag2: torch.Tensor, usable: torch.Tensor,
     return v_bin.gather(1, k).view_as(m).clamp_min(1e-6)
 
 
-def _noise_model(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(slope a [DN²/DN], signal-independent variance c [DN²]) of the raw metadata rows (N, 11), float64."""
-    meta = metadata_from_matrix(rows)
+def _noise_model(rows: torch.Tensor, constants: SensorConstants | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(slope a [DN²/DN], signal-independent variance c [DN²]) of the raw metadata rows (N, 11) of a camera with the
+    fixed sensor constants ``constants`` (None: the defaults), float64."""
+    meta = metadata_from_matrix(rows, constants)
     dn = meta.dn_per_electron
     dc = dark_current_shot_sigma_e(meta) * dn
     rn = readout_sigma_e(meta) * dn
@@ -572,7 +577,8 @@ def _hypotheses(
 
     Returns (a₀ (M,), var₀ (M, 2), a (M, 1 + 4·grid), var (…, 2), c (…), log prior (…)): the PN slope 255·g/FW
     [DN²/DN], the DCSN and RN variances [DN²] and their sum c of M and of every hypothesis, and the log prior. The noise
-    model of M and of every single-field candidate is evaluated in one call."""
+    model of M and of every single-field candidate is evaluated in one call, with M's fixed sensor constants
+    (``meta.constants``: a hypothesis changes one field, not the sensor)."""
     f64, nm = torch.float64, meta.batch_size
     rows = torch.stack([getattr(meta, n).to(device=dev, dtype=f64).expand(nm) for n in FULL_FIELDS], dim=1)
     cands = [rows]
@@ -581,7 +587,7 @@ def _hypotheses(
         cand = rows.repeat_interleave(grid, 0)
         cand[:, FULL_FIELDS.index(fname)] = _grid_values(fname, float(low), float(high), grid, "factor").to(dev).repeat(nm)
         cands.append(cand)
-    a_c, var_c = _noise_model(torch.cat(cands))
+    a_c, var_c = _noise_model(torch.cat(cands), meta.constants)
     a0, var0 = a_c[:nm], var_c[:nm]  # (M,), (M, 2) = σ_DCSN², σ_RN² [DN²]
     slopes, variances, logp = [a0.unsqueeze(1)], [var0.unsqueeze(1)], [torch.full((nm, 1), math.log1p(-mismatch_probability), dtype=f64, device=dev)]
     p_field = (mismatch_probability - beyond_probability) / len(MISMATCH_FIELDS)
@@ -601,10 +607,13 @@ def _hypotheses(
 @functools.lru_cache(maxsize=16)
 def _camera_hypotheses(
     fields: tuple[float, ...], grid: int, mismatch_probability: float, beyond_probability: float, device: str,
+    constants: SensorConstants | None = None,
 ) -> tuple[torch.Tensor, ...]:
-    """:func:`_hypotheses` of one camera state given by its :data:`FULL_FIELDS` values (physical units), cached: a
-    monitor asks for the same state frame after frame. The tensors are shared between calls and never written to."""
-    meta = CameraMetadata(**{n: torch.tensor([v], dtype=torch.float64) for n, v in zip(FULL_FIELDS, fields)})
+    """:func:`_hypotheses` of one camera state given by its :data:`FULL_FIELDS` values (physical units) and its fixed
+    sensor constants (None: the defaults; frozen, so part of the key), cached: a monitor asks for the same state frame
+    after frame. The tensors are shared between calls and never written to."""
+    meta = CameraMetadata(**{n: torch.tensor([v], dtype=torch.float64) for n, v in zip(FULL_FIELDS, fields)},
+                          constants=SensorConstants() if constants is None else constants)
     return _hypotheses(meta, grid, mismatch_probability, beyond_probability, torch.device(device))
 
 
@@ -689,7 +698,7 @@ def physics_noise_posterior(
     other_evidence: torch.Tensor | None = None,
     return_evidence: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Physics-first noise sources of each patch, (B, 28) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
+    """Physics-first noise sources of each patch, (B, 29) float32 in the order of :data:`PHYSICS_NOISE_COLUMNS`.
 
     Columns: σ of PN, DCSN, RN and the total after clipping [DN]; ξ [DN] (0 where the metadata hold); the posterior
     standard deviation of σ_Total [DN]; P(metadata right | patch); the number of diagonal details used; the texture
@@ -718,7 +727,15 @@ def physics_noise_posterior(
     (:func:`~camhealth.estimators.jpeg_quantisation.jpeg_grid`; pooled, on the frame:
     :func:`~camhealth.estimators.jpeg_quantisation.coded_frame`): the noise is the codec's as much as the camera's, so
     the closed form is kept with no verdict — uncertainties ∞, cause NaN — as below −:data:`QUIET_Z_LIMIT`; 0
-    elsewhere (the grid is tested only there).
+    elsewhere (the grid is tested only there); ``excess_dn``: where the closed form is kept on a patch that is read
+    (evidence, not textured, a verdict) although one of its intensity bins (pooled: the frame's) reads more than the
+    metadata's kept variance by over τ² and three of the bin's sampling standard errors (ŝ_k − f_k·v_k(M) >
+    τ² + 3·ŝ_k·√(2/N_k)), the larger of √ŝ_k − σ_Total(M) (the measured variance's σ over the closed form) and
+    √(σ_Total(M)² + ŝ_k − f_k·v_k(M)) − σ_Total(M) (the excess carried to the patch's level), the largest over such
+    bins [DN], and the uncertainty of σ_Total and of each source is raised to at least it (the answer, ξ and P(match)
+    stay the posterior's); 0 elsewhere. The scene allowance's log-variance ln(1 + τ²/v)² grows without
+    bound as v → 0, so on a quiet camera such an excess (ICX285 at 0 dB, 0.57 DN, with 7 DN of extra white noise at
+    15 DN) can keep the closed form: its error is then within the stated uncertainty, not hidden by it.
 
     Args:
         image: B×1×H×W noisy patches in [0, 1] (H, W ≥ 8).
@@ -842,7 +859,8 @@ def physics_noise_posterior(
         x = image.detach().float()
         if meta.batch_size == 1:  # one camera state: its hypotheses are reused from call to call (a monitor's frames)
             key = tuple(float(getattr(meta, n).reshape(-1)[0]) for n in FULL_FIELDS)
-            a0, var0, a_all, var_all, c_all, prior = _camera_hypotheses(key, grid, mismatch_probability, beyond_probability, str(dev))
+            a0, var0, a_all, var_all, c_all, prior = _camera_hypotheses(key, grid, mismatch_probability, beyond_probability, str(dev),
+                                                                        meta.constants)
         else:
             a0, var0, a_all, var_all, c_all, prior = _hypotheses(meta, grid, mismatch_probability, beyond_probability, dev)
         other = None
@@ -1050,6 +1068,17 @@ def physics_noise_posterior(
             # the patches read as far quieter alone (a noiseless overlay) keep their own goodness of fit; a frame
             # mostly of them reads as its median patch at most
             fit_z = torch.where(quiet_alone, own_z, fit_z if quiet_frame is None else fit_z.clamp_max(quiet_frame))
+        # the scene allowance's blind spot: its log-variance term ln(1 + τ²/v)² grows without bound as v → 0, so on a
+        # quiet camera a bin may read several τ² above the metadata's kept variance f_k·v_k(M) and H₀ still win. Where
+        # the closed form is kept (below), that excess — beyond τ² and three of the bin's sampling standard errors
+        # ŝ_k·√(2/N_k) — is what the answer may miss: over the patch's (pooled: the frame's) bins, the largest such
+        # excess and the largest such bin's measured variance
+        n_e = count[:h][pe, ke]
+        s_e = sq[:h][pe, ke] / _TRUNCATED_CHI2 / n_e
+        over_e = s_e - s_e.clamp_min(1e-9) * torch.exp(-r[:, 0])  # ŝ_k − f_k·v_k(M) [DN²] (r: ln ŝ_k − ln f_k·v_k)
+        beyond_e = over_e > tau2[:h][pe] + 3.0 * s_e * torch.sqrt(2.0 / n_e)
+        excess_var, excess_read = (torch.zeros(h, dtype=f64, device=dev).scatter_reduce(
+            0, pe, torch.where(beyond_e, t, torch.zeros_like(t)), reduce="amax", include_self=True).expand(b) for t in (over_e, s_e))
         # far quieter than every camera state (LESS_NOISE): no hypothesis explains the image, so the closed form is kept
         # with no stated uncertainty (∞, below) and no cause; P(match) stays the posterior's, which here only says
         # whether the camera states that fit least badly are visible mismatches — no verdict on the metadata
@@ -1092,7 +1121,7 @@ def physics_noise_posterior(
         # σ after clipping of the metadata's model, and of the image's (posterior-mean variances) on the patches that
         # follow it (the only ones that use it): one batched call
         sel = follows.nonzero(as_tuple=True)[0]
-        clipped = clipped_prior_dn(
+        clipped = _clipped_prior_dn(
             torch.cat([x, x[sel]]), torch.cat([a0, e_a[sel]]), torch.cat([var0[:, 0], e_var[sel, 0]]).sqrt(),
             torch.cat([var0[:, 1], e_var[sel, 1]]).sqrt(),
         )
@@ -1135,12 +1164,25 @@ def physics_noise_posterior(
         band_se = (band.var_se_dn2 * band.detected).sum(1) / (2.0 * banded_total.clamp_min(1e-6))
         xi_std = torch.where(banded, (xi_std.square() + band_se.square()).sqrt(), xi_std)
         unclipped_answer = torch.where(banded, (unclipped_answer.square() + band_var).sqrt(), unclipped_answer)
+        # where the closed form is kept on a patch whose details are noise (evidence, not textured, a verdict) but a bin
+        # reads beyond the scene allowance above it (excess_var, above): the posterior, the decision, σ and ξ stay, and
+        # the stated uncertainty covers the excess — xi_std, and each source's sigma_std (any of them could carry it),
+        # at least √(measured variance) − σ_Total(M) and √(σ_Total(M)² + excess) − σ_Total(M) (the excess carried to
+        # the patch's own level: pooled, or where the bin lies below the patch's mean)
+        kept_closed = evidence & ~follows & ~no_verdict & ~textured(texture, corr_check)
+        closed_total = out_sigma[:, 3].double()
+        excess_dn = torch.where(kept_closed & (excess_var > 0),
+                                torch.maximum(excess_read.sqrt(), (closed_total.square() + excess_var).sqrt()) - closed_total,
+                                torch.zeros_like(closed_total)).clamp_min(0.0)
+        xi_std = torch.maximum(xi_std, excess_dn)
+        sigma_std = torch.maximum(sigma_std, excess_dn.unsqueeze(1))
         out = torch.cat([out_sigma, xi.unsqueeze(1), xi_std.unsqueeze(1), p_match.unsqueeze(1), count.sum(1, keepdim=True),
                          texture.unsqueeze(1), follows.to(f64).unsqueeze(1), unclipped_answer.unsqueeze(1),
                          corr_check.unsqueeze(1), tau2.sqrt().unsqueeze(1), sigma_std, band_sigma,
                          own_count.unsqueeze(1), own_texture.unsqueeze(1), own_corr_check.unsqueeze(1),
                          torch.where((readable & ~no_verdict).unsqueeze(1), cause, torch.full_like(cause, float("nan"))),
-                         fit_z.unsqueeze(1), tot.amin(1, keepdim=True), codec.to(f64).unsqueeze(1)], dim=1)
+                         fit_z.unsqueeze(1), tot.amin(1, keepdim=True), codec.to(f64).unsqueeze(1), excess_dn.unsqueeze(1)],
+                        dim=1)
     out = out.float()
     if bool(loud_alone.any()):  # the patches far noisier than their frame, read alone
         sel = loud_alone.nonzero(as_tuple=True)[0]
@@ -1211,7 +1253,12 @@ def quieter_than_any_camera(patches: torch.Tensor, eta: float = 0.12) -> torch.T
     refused where ln(v̂/v_min) lies more than :data:`QUIET_Z_LIMIT` standard errors below 0 — its sampling √(2/n) and
     the model error ``eta`` of :func:`physics_noise_posterior` in quadrature, as ``quiet_z`` there — with at least
     32 such blocks. Below 98 DN a quiet camera's rounded 8-bit patch may hold no noise at all, and nothing is refused.
+
+    The patches are checked as every estimator function checks them
+    (:func:`camhealth.estimators._common.check_patches`: a floating tensor, finite, in [0, 1], B×1×H×W with H, W ≥ 2;
+    else a ``TypeError`` or ``ValueError`` naming the value), except while the caller is traced or exported.
     """
+    _check_noise_patches(patches)
     b = patches.shape[0]
     if b == 0:
         return torch.zeros(0, dtype=torch.bool)
@@ -1237,7 +1284,8 @@ class PhysicsNoiseEstimator:
     :class:`~camhealth.inference.Estimator` interface (``predict(images, metadata)``), no network, no weights.
 
     Attributes:
-        kind: ``"noise_source"``. patch_size: 128 (any size ≥ 8 works through :func:`physics_noise_posterior`).
+        kind: ``"noise_source"``. patch_size: 128 (any integer size ≥ 8 works through :func:`physics_noise_posterior`;
+            another is refused at construction, naming it).
         metadata_set: ``"full"`` (every field of :class:`~camhealth.physics.CameraMetadata` enters the closed form).
         settings: keyword arguments of :func:`physics_noise_posterior`.
         source: the name it was loaded by.
@@ -1255,6 +1303,14 @@ class PhysicsNoiseEstimator:
         "kind": "noise_source", "metadata_set": "full", "architecture": "physics_noise_posterior (no network)",
         "params": 0})
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+
+    def __post_init__(self) -> None:
+        if isinstance(self.patch_size, (bool, np.bool_)) or not isinstance(self.patch_size, (int, np.integer)):
+            raise TypeError(f"patch_size = {self.patch_size!r} must be an integer number of px ≥ 8, got "
+                            f"{type(self.patch_size).__name__}")
+        if self.patch_size < 8:
+            raise ValueError(f"patch_size = {self.patch_size!r} must be an integer number of px ≥ 8 (the noise fits read "
+                             f"2×2 blocks of patches of at least 8×8 px)")
 
     @property
     def name(self) -> str:
@@ -1398,7 +1454,7 @@ class PhysicsNoiseEstimator:
 
     def _read(self, patches: torch.Tensor, ref: torch.Tensor | None, meta: CameraMetadata, settings: dict[str, Any],
               batch_size: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """The posterior of the patches (CPU, (B, 28)) — read from their static pair where ``ref`` is given and the
+        """The posterior of the patches (CPU, (B, 29)) — read from their static pair where ``ref`` is given and the
         scene stood still, alone elsewhere (:meth:`predict`) — whether each was read from the pair ((B,) bool, None
         without ``ref``), and, pooled, the frame's own evidence summed over the readings (:func:`noise_evidence`)."""
         b = patches.shape[0]
@@ -1468,6 +1524,12 @@ class PhysicsNoiseEstimator:
                 if not math.isclose(mine, theirs, rel_tol=1e-6, abs_tol=1e-12):
                     raise ValueError(f"other_exposures[{k}]: {name} = {theirs:g} differs from this frame's {mine:g}; the frames "
                                      f"may differ only in exposure_s (their evidence is about one camera)")
+            if other.constants != meta.constants:  # the fixed sensor constants are the camera's too
+                diff = ", ".join(f"{f.name} = {getattr(other.constants, f.name)!r} (this frame's {getattr(meta.constants, f.name)!r})"
+                                 for f in dataclasses.fields(SensorConstants)
+                                 if getattr(other.constants, f.name) != getattr(meta.constants, f.name))
+                raise ValueError(f"other_exposures[{k}]: its SensorConstants differ from this frame's: {diff}; the frames may "
+                                 f"differ only in exposure_s (their evidence is about one camera)")
             # read as the frame itself is: from its static pair where the scene stood still, alone elsewhere
             _, _, evidence = self._read(patches, ref, other, {**self.settings, "pool": True}, patches.shape[0])
             read += int(bool(evidence.any()))
@@ -1478,7 +1540,7 @@ class PhysicsNoiseEstimator:
 
     def _posterior(self, patches: torch.Tensor, meta: CameraMetadata, settings: dict[str, Any], batch_size: int,
                    reference: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 28): pooled in one call (with the
+        """:func:`physics_noise_posterior` of a batch on the estimator's device, (B, 29): pooled in one call (with the
         patches of a textured frame that pass both checks on their own details read alone), else in chunks; and,
         pooled, the frame's own evidence of that call (:func:`noise_evidence`; None per patch)."""
         b = patches.shape[0]

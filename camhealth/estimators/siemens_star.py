@@ -57,9 +57,11 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from dataclasses import dataclass
-from typing import Sequence, Union
+from typing import Any, Sequence, Union
 
+import numpy as np
 import torch
 
 from camhealth._validation import check_image, check_range
@@ -115,17 +117,28 @@ def _coltman(k_max: int) -> tuple[tuple[int, ...], tuple[float, ...]]:
     return tuple(ks), tuple(bs)
 
 
+def _check_k_max(k_max: Any) -> int:
+    """``k_max`` as an int ≥ 1 (the series needs its first term), else a ``TypeError``/``ValueError`` naming it."""
+    if isinstance(k_max, (bool, np.bool_)) or not isinstance(k_max, numbers.Integral):
+        raise TypeError(f"k_max = {k_max!r} must be an int ≥ 1 (the largest odd harmonic), got {type(k_max).__name__}")
+    if k_max < 1:
+        raise ValueError(f"k_max = {k_max!r} must be an int ≥ 1 (the largest odd harmonic; below 1 the series has no term)")
+    return int(k_max)
+
+
 def coltman_coefficients(k_max: int = _K_MAX) -> tuple[torch.Tensor, torch.Tensor]:
-    """Odd harmonics k ≤ k_max and Coltman's coefficients B_k of ``MTF = π/4 Σ B_k CTF(k f)`` (float64)."""
-    ks, bs = _coltman(int(k_max))
+    """Odd harmonics k ≤ k_max and Coltman's coefficients B_k of ``MTF = π/4 Σ B_k CTF(k f)`` (float64); ``k_max``
+    an int ≥ 1."""
+    ks, bs = _coltman(_check_k_max(k_max))
     return torch.tensor(ks, dtype=torch.float64), torch.tensor(bs, dtype=torch.float64)
 
 
 def ctf_from_mtf(mtf_fn, f: torch.Tensor, k_max: int = _K_MAX) -> torch.Tensor:
     """Square-wave response of a system: ``CTF(f) = 4/π Σ_{k odd ≤ k_max} (−1)^{(k−1)/2} MTF(k f)/k``.
 
-    ``mtf_fn`` maps a tensor of frequencies to MTF values (any unit, used consistently with ``f``).
+    ``mtf_fn`` maps a tensor of frequencies to MTF values (any unit, used consistently with ``f``); ``k_max`` an int ≥ 1.
     """
+    k_max = _check_k_max(k_max)
     k = torch.arange(1, k_max + 1, 2, dtype=torch.float64, device=f.device)
     sign = torch.where(((k - 1) / 2) % 2 == 0, 1.0, -1.0)
     vals = mtf_fn(f.double()[..., None] * k)
@@ -150,11 +163,29 @@ def gaussian_ctf_fit(
 
     Args:
         f: (N,) or (…, N) frequencies; ctf: (…, N) samples (NaN = no sample); weight: like ``ctf`` or None.
+            Tensors whose shapes do not broadcast to ``ctf``'s, or ``ctf`` without samples (N = 0), raise a
+            ``TypeError``/``ValueError`` naming them.
         iterations: Levenberg–Marquardt iterations.
 
     Returns:
-        μ and s (each (…)), in the unit of ``f``.
+        μ and s (each (…)), in the unit of ``f``; NaN for a row without a sample (every value of ``ctf`` NaN or ±inf,
+        or of weight 0): there is nothing to fit.
     """
+    for name, value in (("f", f), ("ctf", ctf), ("weight", weight)):
+        if value is not None and not isinstance(value, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if ctf.ndim == 0 or ctf.shape[-1] == 0:
+        raise ValueError(f"ctf has no samples: shape {tuple(ctf.shape)} (… , N) with N ≥ 1 needed")
+    for name, value in (("f", f), ("weight", weight)):
+        if value is None:
+            continue
+        try:
+            fits = value.ndim <= ctf.ndim and torch.broadcast_shapes(value.shape, ctf.shape) == ctf.shape
+        except RuntimeError:  # shapes that do not broadcast at all
+            fits = False
+        if not fits:
+            raise ValueError(f"{name} of shape {tuple(value.shape)} and ctf of shape {tuple(ctf.shape)} do not match: {name} "
+                             f"must be (N,) or like ctf (… , N)")
     f = f.double().expand_as(ctf) if f.ndim == 1 else f.double()
     y = ctf.double()
     w = torch.ones_like(y) if weight is None else weight.double().expand_as(y).clone()
@@ -206,7 +237,9 @@ def gaussian_ctf_fit(
         log_s = torch.where(better, ls_new, log_s)
         cur = torch.where(better, new, cur)
         lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-9, 1e9)
-    return mu, torch.exp(log_s)
+    has = (valid & (w > 0)).any(dim=-1)  # a row without a sample has no fit
+    nan = torch.full_like(mu, float("nan"))
+    return torch.where(has, mu, nan), torch.where(has, torch.exp(log_s), nan)
 
 
 #: A pixel within half a DN (8-bit) of 0 or 1 is clipped.
@@ -308,7 +341,10 @@ def siemens_star_ctf(
         n_sectors: angular sectors (multiple of 4); H uses the two sectors centred at 90° and 270°.
         margin: px (finite, ≥ 0) kept away from the star's rim (where the blur mixes in the reference areas) and,
             for the reference levels, from the rim and the quadrant borders.
-        levels: (dark, bright) chart levels; default: measured in the reference corners.
+        levels: (dark, bright) chart levels, 0 ≤ dark < bright; default: measured in the reference corners (a star
+            without 16 pixels of each kind of corner beyond radius + margin is refused: pass levels=).
+        A ``centre`` or ``levels`` that is not two finite real numbers, or a ``radius`` that is not a finite number
+        > 0, raises a ``ValueError`` naming it.
     """
     c = _star_ctf(images, centre, radius, n_cycles, n_sectors, margin, levels)
     return c.fn, c.ctf, c.r_mean
@@ -325,6 +361,21 @@ class _StarCTF:
     rho: torch.Tensor | None = None  # (B, 2) lag-1 noise correlation along rows and columns; None with ``levels=``
 
 
+def _two_reals(value: Any, name: str, what: str) -> tuple[float, float]:
+    """``value`` as two finite real numbers (a sequence, 1-D array or tensor of two), else a ``ValueError`` naming it
+    and ``what`` is allowed."""
+    items = None
+    if isinstance(value, (torch.Tensor, np.ndarray)):
+        if value.ndim == 1 and value.shape[0] == 2:
+            items = value.tolist()
+    elif isinstance(value, Sequence) and not isinstance(value, (str, bytes)) and len(value) == 2:
+        items = list(value)
+    if items is None or not all(isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+                                for v in items):
+        raise ValueError(f"{name} = {value!r:.80} must be {what}")
+    return float(items[0]), float(items[1])
+
+
 def _star_ctf(
     images: torch.Tensor,
     centre: tuple[float, float] | None = None,
@@ -338,6 +389,17 @@ def _star_ctf(
     sector, the reference corners' noise σ (robust: 1.4826·MAD, the rms of the dark and bright corners) and contrast."""
     x = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
     b, _, h, w = x.shape
+    if centre is not None:
+        centre = _two_reals(centre, "centre", "(row, col): two finite real numbers [px]")
+    if radius is not None and (isinstance(radius, (bool, np.bool_)) or not isinstance(radius, numbers.Real)
+                               or not math.isfinite(radius) or radius <= 0):
+        raise ValueError(f"radius = {radius!r:.80} must be a finite real number > 0 [px] (the star's radius)")
+    if levels is not None:
+        levels = _two_reals(levels, "levels", "(dark, bright): two finite real numbers with 0 ≤ dark < bright (the "
+                                              "chart's levels in image units, DN/255)")
+        if not 0.0 <= levels[0] < levels[1]:
+            raise ValueError(f"levels = {levels!r} must be (dark, bright): two finite real numbers with 0 ≤ dark < bright "
+                             f"(the chart's levels in image units, DN/255)")
     if centre is None or radius is None:
         if h != w:
             raise ValueError(f"the default star geometry needs a square image, got {h}×{w}; pass centre= and radius=")
@@ -361,6 +423,12 @@ def _star_ctf(
         far = (r > radius + margin) & (dx.abs() > margin) & (dy.abs() > margin)
         if int(far.sum()) < 16:
             raise ValueError("the image has no reference corners beyond the star (radius + margin); pass levels=(dark, bright)")
+        for what, corner in (("bright", dx * dy > 0), ("dark", dx * dy < 0)):
+            n_px = int((far & corner).sum())
+            if n_px < 16:  # both levels are read (a median of each): a star placed so that one kind of corner is cut off
+                raise ValueError(f"no {what} reference corner beyond the star for centre = ({centre[0]!r}, {centre[1]!r}), "
+                                 f"radius = {radius:g} px: {n_px} px of the {what} quadrants lie beyond radius + margin "
+                                 f"({radius + margin:g} px), at least 16 needed; pass levels=(dark, bright)")
         bright_px = img[:, far & (dx * dy > 0)]
         dark_px = img[:, far & (dx * dy < 0)]
         i_w, i_b = bright_px.median(dim=1).values, dark_px.median(dim=1).values
@@ -449,12 +517,14 @@ def siemens_star_mtf(
         images: star images (see :func:`siemens_star_ctf` for the geometry keywords, passed via ``kwargs``).
         frequencies: F normalised frequencies in [0, 1].
         aperture: divide out the pixel aperture sinc(f) of an area-rendered chart (default True, for the
-            charts of :mod:`~camhealth.estimators.charts`).
+            charts of :mod:`~camhealth.estimators.charts`); True or False (a string raises a ``TypeError``).
 
     Returns:
         :class:`SiemensStarResult`; ``mtf`` in [0, 1] (clamped after the aperture correction), float32 (float64 for
         float64 input).
     """
+    if not isinstance(aperture, (bool, np.bool_)):
+        raise TypeError(f"aperture = {aperture!r:.40} must be True or False, got {type(aperture).__name__}")
     x = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
     out_dtype = torch.float64 if x.dtype == torch.float64 else torch.float32
     fq = torch.as_tensor(frequencies, dtype=torch.float64, device=x.device).reshape(-1)

@@ -64,6 +64,7 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 
 from camhealth._order import sorted_values
@@ -262,9 +263,17 @@ def scene_leak(image: torch.Tensor, reference: torch.Tensor, pool: bool = False)
 
     Args:
         image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8); B = 0 gives empty results.
+        pool: True or False (a string such as ``"yes"`` raises a ``TypeError``).
     """
+    _check_pool(pool)
     diff, avg, clip = _pair_dn(image, reference)
     return _scene_leak(diff, avg, clip, pool)
+
+
+def _check_pool(pool: Any) -> None:
+    """Refuse a ``pool`` flag that is not a bool (``"no"`` would read as True and pool)."""
+    if not isinstance(pool, (bool, np.bool_)):
+        raise TypeError(f"pool = {pool!r:.40} must be True or False, got {type(pool).__name__}")
 
 
 def _scene_leak(diff: torch.Tensor, avg: torch.Tensor, clip: torch.Tensor, pool: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -412,7 +421,9 @@ def pair_stillness(image: torch.Tensor, reference: torch.Tensor, pool: bool = Fa
 
     Args:
         image, reference: B×1×H×W exposures in [0, 1] (H, W ≥ 8); B = 0 gives an empty result.
+        pool: True or False (a string such as ``"yes"`` raises a ``TypeError``).
     """
+    _check_pool(pool)
     diff, avg, clip = _pair_dn(image, reference)
     leak, leak_se = _scene_leak(diff, avg, clip, pool)
     shift, n = _pair_shift(diff, avg, clip)

@@ -1,0 +1,83 @@
+"""The closed-form priors of camhealth.estimators.noise_features on arguments they used to read silently or crash
+on: DN-scaled or malformed images, per-patch metadata of the wrong length, flags given as strings, a cache that is
+no dict, and fixed sensor constants lost on the way to the noise model."""
+
+import re
+
+import pytest
+import torch
+
+from camhealth.estimators.noise_features import clipped_prior_dn, metadata_from_matrix, physics_prior_dn
+from camhealth.physics.metadata import FULL_FIELDS, CameraMetadata, SensorConstants
+
+_IMAGE = torch.full((2, 1, 32, 32), 0.4)
+_ONE = torch.tensor([1.0])
+
+
+@pytest.mark.parametrize("image, error, message", [
+    (_IMAGE * 255, ValueError, r"image must lie in \[0, 1\].*102"),
+    ((_IMAGE * 255).round().to(torch.uint8), TypeError, r"image must be a floating tensor.*uint8"),
+    (torch.full((2, 1, 32, 32), float("nan")), ValueError, r"image must be finite"),
+    (_IMAGE[:, 0], ValueError, r"image must have shape B×C×H×W.*\(2, 32, 32\)"),
+    (_IMAGE.tolist(), TypeError, r"image must be a torch.Tensor, got list"),
+], ids=["float DN", "uint8 DN", "NaN", "B×H×W", "list"])
+def test_clipped_prior_refuses_images_it_cannot_read(image, error, message):
+    """A DN-scaled image returned plausible numbers (treated as saturated); now it is refused like physics_prior_dn's."""
+    with pytest.raises(error, match=message):
+        clipped_prior_dn(image, _ONE, _ONE, _ONE)
+
+
+@pytest.mark.parametrize("name", ["pn_slope", "dcsn_dn", "rn_dn"])
+@pytest.mark.parametrize("values", [torch.ones(3), torch.ones(0), torch.ones(2, 2)], ids=["3 for 2", "none", "2×2"])
+def test_clipped_prior_refuses_per_patch_values_of_another_length(name, values):
+    """Each of pn_slope, dcsn_dn and rn_dn holds 1 or B values; 3 for 2 patches raised torch's "expanded size". One
+    value and one per patch still give the same σ, far from the bounds the unclipped model's."""
+    args = {"pn_slope": _ONE, "dcsn_dn": _ONE, "rn_dn": _ONE, name: values}
+    with pytest.raises(ValueError, match=rf"{name} must hold 1 or 2 values \(one per patch\), got shape {re.escape(str(tuple(values.shape)))}"):
+        clipped_prior_dn(_IMAGE, **args)
+    one = clipped_prior_dn(_IMAGE, torch.tensor([0.5]), torch.tensor([1.0]), torch.tensor([2.0]))
+    per = clipped_prior_dn(_IMAGE, torch.full((2,), 0.5), torch.ones(2), torch.full((2,), 2.0))
+    assert torch.equal(one, per)
+    assert torch.allclose(one[0], torch.tensor([(0.5 * 102.0) ** 0.5, 1.0, 2.0, (0.5 * 102.0 + 5.0) ** 0.5], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("name", ["pn_slope", "dcsn_dn", "rn_dn"])
+def test_clipped_prior_refuses_per_patch_values_that_are_not_tensors(name):
+    args = {"pn_slope": _ONE, "dcsn_dn": _ONE, "rn_dn": _ONE, name: [1.0, 1.0]}
+    with pytest.raises(TypeError, match=rf"{name} must be a torch.Tensor .*got list"):
+        clipped_prior_dn(_IMAGE, **args)
+
+
+@pytest.mark.parametrize("clipping", ["no", "False", 0, 1, None])
+def test_physics_prior_clipping_flag_must_be_a_bool(clipping):
+    """clipping="no" returned the 8 columns of clipping=True."""
+    with pytest.raises(TypeError, match=rf"clipping = {clipping!r} must be True or False"):
+        physics_prior_dn(_IMAGE, CameraMetadata.preset("ICX285"), clipping=clipping)
+
+
+@pytest.mark.parametrize("cache", [[], (), "cache", 0])
+def test_physics_prior_cache_must_be_a_dict(cache):
+    """cache=[] raised "'list' object has no attribute 'get'"."""
+    with pytest.raises(TypeError, match=rf"cache = {re.escape(repr(cache))} must be a dict or None"):
+        physics_prior_dn(_IMAGE, CameraMetadata.preset("ICX285"), cache=cache)
+
+
+@pytest.mark.parametrize("constants", [SensorConstants(source_follower_gain=0.8),
+                                       SensorConstants(flicker_corner_hz=1e8, cds_sample_time_s=1e-5)])
+def test_metadata_from_matrix_keeps_the_constants_it_is_given(constants):
+    """The raw rows carry the 11 fields only: the fixed constants are passed beside them, and the σ of the rebuilt
+    metadata are those of the original."""
+    meta = CameraMetadata.preset("EV76C661", gain_db=12.0)
+    meta = CameraMetadata(**{n: getattr(meta, n) for n in FULL_FIELDS}, constants=constants)
+    rows = torch.stack([getattr(meta, n).double() for n in FULL_FIELDS], 1)
+    rebuilt = metadata_from_matrix(rows, constants)
+    assert rebuilt.constants == constants
+    assert torch.allclose(physics_prior_dn(_IMAGE, rebuilt), physics_prior_dn(_IMAGE, meta))
+    assert metadata_from_matrix(rows).constants == SensorConstants()
+
+
+@pytest.mark.parametrize("constants", [{"source_follower_gain": 0.8}, "default", 1.0])
+def test_metadata_from_matrix_refuses_constants_that_are_not_sensor_constants(constants):
+    rows = torch.stack([getattr(CameraMetadata.preset("ICX285"), n).double() for n in FULL_FIELDS], 1)
+    with pytest.raises(TypeError, match=r"constants must be SensorConstants or None, got"):
+        metadata_from_matrix(rows, constants)
