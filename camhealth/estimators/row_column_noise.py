@@ -184,6 +184,8 @@ def row_column_noise(patches: torch.Tensor, pool: bool = False) -> RowColumnNois
     (:func:`~camhealth.estimators.static_pair.static_pair_image` with ``clamp=False``), whose scaled difference reaches
     1/√2 beyond either bound, is accepted as well: values outside [−1/√2, 1 + 1/√2] (DN-scale input) raise a
     ``ValueError`` naming the range found, as do NaN/inf."""
+    if not isinstance(pool, bool):  # (a string such as "no" would read as true)
+        raise TypeError(f"pool = {pool!r} must be a bool (True: the patches show one camera)")
     x = check_float(check_tensor(patches, "patches"), "patches")
     if x.ndim != 4 or x.shape[1] != 1 or min(x.shape[-2:]) < 8:
         raise ValueError(f"row_column_noise needs B×1×H×W patches with H, W ≥ 8, got {tuple(x.shape)}")
