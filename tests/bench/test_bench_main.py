@@ -12,22 +12,6 @@ from camhealth.bench import __main__ as bench_cli
 TINY = ["data", "--batch", "2", "--size", "32", "--repeats", "1", "--warmup", "0"]
 
 
-@pytest.fixture
-def no_run(monkeypatch):
-    """The benchmark's ``run`` fails the test: what is checked here must be refused before it."""
-    real = bench_cli.load
-
-    class Module:
-        def __init__(self, name):
-            self._m = real(name)
-            self.HELP, self.add_arguments = self._m.HELP, self._m.add_arguments
-
-        def run(self, args):
-            pytest.fail("the benchmark ran")
-
-    monkeypatch.setattr(bench_cli, "load", Module)
-
-
 @pytest.mark.parametrize("abbreviated", [["--doc", "page.md"], ["--mark"], ["--rep", "3"], ["--doc=page.md"]])
 def test_abbreviated_options_are_refused(abbreviated, no_run, capsys):
     """argparse took unambiguous prefixes: ``--doc FILE`` wrote a block named "… --doc FILE" and ``--mark`` one named

@@ -11,25 +11,6 @@ from camhealth.bench import __main__ as bench_cli
 TINY = ["data", "--batch", "2", "--size", "32", "--repeats", "1", "--warmup", "0"]
 
 
-@pytest.fixture
-def no_run(monkeypatch):
-    real = bench_cli.load
-
-    class Module:
-        def __init__(self, name):
-            self._m = real(name)
-            self.HELP, self.add_arguments = self._m.HELP, self._m.add_arguments
-
-        def run(self, args):
-            if args.benchmark == "monitor":  # its checks come first in run; the measurement must not start
-                from camhealth.bench.monitor import check_mode_options
-
-                check_mode_options(args)
-            pytest.fail("the benchmark ran")
-
-    monkeypatch.setattr(bench_cli, "load", Module)
-
-
 def _err(capsys) -> list[str]:
     return capsys.readouterr().err.strip().splitlines()
 
