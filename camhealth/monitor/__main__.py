@@ -5,8 +5,8 @@ Runs :class:`camhealth.monitor.Monitor` on every frame of SOURCE and writes one 
 end (``DIR/summary.json`` too). A robot recording (ROS 1 ``.bag``, ROS 2 ``.db3``/``.mcap``, rosbag2
 folder) is read with the camera state of its topics, and ``--diagnostics-out`` writes one
 ``diagnostic_msgs/DiagnosticArray`` per frame (:mod:`camhealth.monitor.diagnostics`). Exit status: 0 on
-success (unreadable frames in a folder or recording, partly decoded video frames and frames that do not fit
-``--defect-map`` are reported and skipped),
+success (unreadable frames in a folder or recording, partly decoded video frames, frames that do not fit
+``--defect-map`` and recording frames whose time ``--diagnostics-out`` cannot hold are reported and skipped),
 2 on an error (missing/unreadable source, undecodable video, ``--start`` past the end, damaged recording, unknown
 topic, bad metadata, missing or refused model, no frame scored at all, a ``--defects-out`` that cannot be written —
 after ``summary.json`` —, …), with a one-line message (``--debug``: the traceback).
@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import re
 import sys
 import time
@@ -75,7 +76,8 @@ Output, one JSON object per frame (keys): frame, index, source_id, size, input_s
   16-bit frames are scaled by their significant bits (--bit-depth; each line and the summary name the scaling
   used); a frame at another scale than the one before (auto: a depth guessed from each frame's largest value)
   restarts the aggregation with a warning — give the camera's bits with --bit-depth.
-  A frame whose size is not the --defect-map's gets a {{"frame_error": …}} line too.
+  A frame whose size is not the --defect-map's, or whose time stamp the --diagnostics-out file cannot hold,
+  gets a {{"frame_error": …}} line too.
   See docs/monitor.md.
 
 Examples:
@@ -110,6 +112,13 @@ def _int_at_least(lo: int, hi: int | None = None):
 
 _positive = _int_at_least(1)
 _non_negative_int = _int_at_least(0)
+#: Largest ``--threads``: more torch threads than this only oversubscribes the CPU (and from 2^31 torch refuses the count).
+THREADS_MAX = 4 * (os.cpu_count() or 1)
+_threads = _int_at_least(1, THREADS_MAX)
+#: Largest ``--max-age`` [frames]: 6.8 years of a 10 frames/s stream, "never" in practice (the refresh schedule counts
+#: frames in int64 tensors: from 2^63 an age wrapped, and no static patch was reused, or did not convert at all).
+MAX_AGE = 2**31 - 1
+_max_age = _int_at_least(1, MAX_AGE)
 _window = _int_at_least(1, MAX_WINDOW)
 _samples = _int_at_least(1, MAX_SAMPLES)
 
@@ -213,9 +222,9 @@ def build_parser():
     g.add_argument("--device", default="cpu", metavar="DEV",
                    help="where the networks (and noise_source_full's posterior) run: cpu (default), cuda or cuda:N; "
                         "frame statistics stay on the CPU")
-    g.add_argument("--threads", type=_positive, default=None, metavar="N",
-                   help="torch intra-op threads (default: 2, or 1 on a single-core machine — the 10 frames/s of a "
-                        "1280x1024 stream are measured with 2 threads on 2 cores; if other busy jobs share the cores, "
+    g.add_argument("--threads", type=_threads, default=None, metavar="N",
+                   help=f"torch intra-op threads, 1…{THREADS_MAX} (default: 2, or 1 on a single-core machine — the 10 "
+                        "frames/s of a 1280x1024 stream are measured with 2 threads on 2 cores; if other busy jobs share the cores, "
                         "set OMP_WAIT_POLICY=PASSIVE in the environment or use --threads 1: OpenMP threads that "
                         "spin-wait against other jobs can be 20x slower)")
     g = p.add_argument_group("scene-adaptive selection")
@@ -244,8 +253,9 @@ def build_parser():
                    help="estimate all changed patches at once, without the coarse lattice first")
     g.add_argument("--no-skip", action="store_true",
                    help="also estimate black, saturated, featureless and edge-free patches (not recommended)")
-    g.add_argument("--max-age", type=_positive, default=16, metavar="N",
-                   help="re-estimate a static patch at least every N frames (default 16; staggered over the grid)")
+    g.add_argument("--max-age", type=_max_age, default=16, metavar="N",
+                   help=f"re-estimate a static patch at least every N frames, 1…{MAX_AGE} (default 16; staggered over "
+                        "the grid)")
     g.add_argument("--max-clipped", type=_non_negative, default=0.5, metavar="F",
                    help="skip a patch with more than this fraction of pixels at 0 or 255 DN (default 0.5)")
     g.add_argument("--min-structure-dn", type=_non_negative, default=2.0, metavar="DN",
@@ -661,11 +671,13 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     def frame_error(item: Any, source_id: str, error: str, status: str) -> None:
         """A frame that is not scored: a ``frame_error`` line (and diagnostics message), counted as unreadable."""
         error = _printable(error)
+        if diagnostics is not None:
+            why = _diagnostics_error(diagnostics, item, source_id, error)
+            if why is not None:  # (the reason once: a frame refused for its time names it already)
+                error += "; no --diagnostics-out message for it" + ("" if why in error else f": {why}")
         unreadable.append(f"{source_id}: {error}")
         line = {"frame_error": error, "index": item.index, "source_id": source_id}
         sink.write(json.dumps(line, ensure_ascii=False) + "\n")
-        if diagnostics is not None:
-            diagnostics.write_error(error, item.index, source_id, item.stamp_ns, item.log_time_ns or 0, item.frame_id)
         progress.update(status)
 
     try:
@@ -675,6 +687,12 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
                 if item.error is not None:
                     frame_error(item, source_id, item.error, "unreadable frame")
                     continue
+                if diagnostics is not None:  # a time the file cannot hold: that frame, not the run (before it is scored)
+                    why = _diagnostics_time_error(diagnostics, item.stamp_ns, item.log_time_ns)
+                    if why is not None:
+                        frame_error(item, source_id, f"--diagnostics-out {args.diagnostics_out} cannot hold "
+                                                     f"the time of this frame: {why}", "frame refused")
+                        continue
                 try:
                     report = monitor.process(item.frame, metadata=item.metadata, index=item.index, source_id=source_id,
                                              input_scaling=item.input_scaling())
@@ -743,6 +761,33 @@ def _run_source(args: argparse.Namespace, source: Any) -> int:
     if defects_error is not None:
         raise OSError(defects_error + (f" (the run's results are in {out_dir})" if out_dir is not None else ""))
     return 0
+
+
+def _diagnostics_time_error(diagnostics: Any, stamp_ns: int | None, log_time_ns: int | None) -> str | None:
+    """Why ``diagnostics`` (a :class:`~camhealth.monitor.diagnostics.DiagnosticsWriter`) cannot write a message of
+    this header stamp and log time (as its ``write_report`` would stamp it: the log time where the stamp is unknown),
+    naming the value and the range, or ``None``."""
+    log = log_time_ns or 0
+    try:
+        diagnostics.check_times(log if stamp_ns is None else stamp_ns, log)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def _diagnostics_error(diagnostics: Any, item: Any, source_id: str, error: str) -> str | None:
+    """The ERROR status of a frame that is not scored: stamped with its header stamp, or, where the file cannot hold
+    that stamp, with its log time; ``None``, or why no message could be written (neither time fits the file: why its
+    own time does not)."""
+    log = item.log_time_ns or 0
+    whys = []
+    for stamp in dict.fromkeys((item.stamp_ns, None)):
+        why = _diagnostics_time_error(diagnostics, stamp, log)
+        if why is None:
+            diagnostics.write_error(error, item.index, source_id, stamp, log, item.frame_id)
+            return None
+        whys.append(why)
+    return whys[0]
 
 
 def default_threads() -> int:

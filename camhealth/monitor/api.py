@@ -45,6 +45,7 @@ import collections
 import inspect
 import json
 import math
+import os
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -229,6 +230,11 @@ def as_frame(frame: Any, bit_depth: int | None = None) -> torch.Tensor:
             _check_float_values(torch.from_numpy(np.ascontiguousarray(gray)))
         x = torch.from_numpy(np.ascontiguousarray(gray, dtype=np.float32))
     elif isinstance(frame, torch.Tensor):
+        if frame.is_nested or frame.layout != torch.strided or frame.is_meta or frame.is_quantized:
+            kind = ("a nested tensor: give one frame" if frame.is_nested else "a meta tensor, which holds no data"
+                    if frame.is_meta else "a quantized tensor: .dequantize() it first" if frame.is_quantized
+                    else f"a {frame.layout} tensor: .to_dense() it first")
+            raise TypeError(f"frame must be a dense tensor holding its pixel values, got {kind}")
         if frame.dtype == torch.bool or frame.is_complex():
             raise TypeError(f"frame must be a real numeric tensor, got dtype {frame.dtype}")
         x = frame.detach().cpu()
@@ -280,6 +286,26 @@ def _check_float_values(x: torch.Tensor) -> None:
     if lo < -1e-6 or hi > 1 + 1e-6:
         hint = " (looks like DN: pass a uint8 array or divide by 255)" if hi <= 255 and lo >= 0 else ""
         raise ValueError(f"float frame values must lie in [0, 1], got min {lo:g}, max {hi:g}{hint}")
+
+
+def _frame_label(index: Any, source_id: Any) -> tuple[int | None, str | None]:
+    """:meth:`Monitor.process`'s ``index`` (``None`` or an integer: a NumPy or 0-d torch integer becomes an ``int``) and
+    ``source_id`` (``None``, a text or a path, which becomes its text), checked before the frame is read: the JSON line
+    of the report holds them. ``TypeError`` naming the value otherwise."""
+    if isinstance(index, torch.Tensor) and index.numel() == 1 and not index.is_floating_point() and not index.is_complex() \
+            and index.dtype != torch.bool:
+        index = int(index.item())
+    if index is not None:
+        if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)):
+            raise TypeError(f"index = {index!r} must be None or an integer (the frame's index in its source), got "
+                            f"{type(index).__name__}")
+        index = int(index)
+    if isinstance(source_id, os.PathLike):
+        source_id = os.fspath(source_id)
+    if source_id is not None and not isinstance(source_id, str):
+        raise TypeError(f"source_id = {source_id!r} must be None, a text or a path (the frame's file or stream name), "
+                        f"got {type(source_id).__name__}")
+    return index, source_id
 
 
 def _one_number(key: str, value: Any) -> float:
@@ -1864,10 +1890,14 @@ class Monitor:
         restarts everything, as :meth:`reset` does — its values are not comparable with the window's — with an
         :class:`InputScalingChanged` warning naming both; ``None`` (default) says nothing and changes nothing.
 
+        ``index`` (``None`` or an integer, NumPy's and 0-d torch integers included) and ``source_id`` (``None``, a text or
+        a path) label the report; anything else is a ``TypeError``, before the frame is read.
+
         Raises :class:`FrameSizeError` (a ``ValueError``) for a frame that does not fit the defect map, leaving the
         monitor as it was."""
         t0 = time.perf_counter()
         scale_key, scale_text, guessed = _input_scaling(input_scaling)
+        index, source_id = _frame_label(index, source_id)
         with torch.inference_mode():
             x = as_frame(frame, bit_depth)
             meta, given = self._frame_metadata(metadata)
@@ -2066,6 +2096,8 @@ class Monitor:
         if self._defect_seen:
             xy = torch.tensor(list(self._defect_seen.keys()), dtype=torch.int64)
             counts[xy[:, 1], xy[:, 0]] = torch.tensor(list(self._defect_seen.values()), dtype=torch.int32)
+        if min_frames > torch.iinfo(torch.int32).max:  # no int32 count gets there (compared as int32 it would wrap)
+            return torch.zeros(h, w, dtype=torch.bool), counts
         return counts >= min_frames, counts
 
     def _map_summary(self) -> dict[str, Any]:

@@ -214,7 +214,7 @@ class DiagnosticsWriter:
             raise
         self._last_log = 0
 
-    def _check_times(self, stamp_ns: int, log_time_ns: int) -> None:
+    def check_times(self, stamp_ns: int, log_time_ns: int) -> None:
         """``ValueError`` naming the value and the allowed range unless the header stamp and the log time fit the
         file's time fields (checked before anything is written, so the file stays readable)."""
         lo, hi = _STAMP_SECONDS_ROS1 if self.ros1 else _STAMP_SECONDS_ROS2
@@ -249,7 +249,7 @@ class DiagnosticsWriter:
     def write_report(self, report: FrameReport, stamp_ns: int | None, log_time_ns: int, frame_id: str = "") -> int:
         """One frame's status; returns its level."""
         stamp = log_time_ns if stamp_ns is None else stamp_ns
-        self._check_times(stamp, log_time_ns)
+        self.check_times(stamp, log_time_ns)
         level, message = frame_level(report, self.xi_threshold_dn)
         msg = self._message(stamp, frame_id, level, message, key_values(report, level))
         self._write(msg, log_time_ns)
@@ -265,7 +265,7 @@ class DiagnosticsWriter:
                 "frame": "nan"}
         values = [(k, fill.get(k, v)) for k, v in values]
         stamp = log_time_ns if stamp_ns is None else stamp_ns
-        self._check_times(stamp, log_time_ns)
+        self.check_times(stamp, log_time_ns)
         msg = self._message(stamp, frame_id, ERROR, f"frame not assessable: {error}", values)
         self._write(msg, log_time_ns)
         self.counts["ERROR"] += 1

@@ -81,7 +81,8 @@ def _panel(gray: np.ndarray, report: TaskReport | None, quantity: str, vmax: flo
         g = report.grid_obj
         vals = _patch_values(report, quantity)
         code = report.code.numpy() if report.code is not None else np.zeros(g.n, dtype=np.int8)
-        norm = np.clip(np.nan_to_num(vals, nan=0.0) / vmax, 0, 1)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # a vmax beyond float32: 0 or inf there
+            norm = np.nan_to_num(np.clip(np.nan_to_num(vals, nan=0.0) / vmax, 0, 1), nan=0.0)
         colours = cv2.applyColorMap((norm * 255).astype(np.uint8).reshape(-1, 1), cv2.COLORMAP_VIRIDIS)[:, 0]
         overlay = img.copy()
         for i in range(g.n):  # drawing is per patch (a few dozen rectangles)
@@ -121,7 +122,8 @@ def _panel(gray: np.ndarray, report: TaskReport | None, quantity: str, vmax: flo
     return np.concatenate([band, img, ramp, legend], axis=0)
 
 
-def render_overlay(frame: Any, report: FrameReport, sigma_max_dn: float = 20.0, max_panel_width: int = 960) -> np.ndarray:
+def render_overlay(frame: Any, report: FrameReport, sigma_max_dn: float = 20.0, max_panel_width: int = 960,
+                   bit_depth: int | None = None) -> np.ndarray:
     """Noise and blur panels side by side over the frame → H'×W'×3 uint8 **BGR** image (OpenCV order).
 
     Args:
@@ -129,6 +131,8 @@ def render_overlay(frame: Any, report: FrameReport, sigma_max_dn: float = 20.0, 
         report: its :class:`FrameReport`.
         sigma_max_dn: top of the σ colour scale [DN] (default 20; the IOPC σ bins go to 30).
         max_panel_width: panels wider than this [px] are scaled down.
+        bit_depth: significant bits of a uint16 ``frame``, as given to :meth:`~camhealth.monitor.Monitor.process`
+            (:func:`~camhealth.monitor.as_frame`; ``None``: the full 16-bit word).
     """
     from camhealth.monitor.api import as_frame
 
@@ -139,7 +143,7 @@ def render_overlay(frame: Any, report: FrameReport, sigma_max_dn: float = 20.0, 
         raise ValueError(f"sigma_max_dn = {sigma_max_dn!r} must be a finite number > 0 [DN]")
     if isinstance(max_panel_width, bool) or not isinstance(max_panel_width, (int, np.integer)) or max_panel_width < 64:
         raise ValueError(f"max_panel_width = {max_panel_width!r} must be an integer ≥ 64 [px]")
-    x = as_frame(frame)[0, 0]
+    x = as_frame(frame, bit_depth)[0, 0]
     if (x.shape[0], x.shape[1]) != (report.height, report.width):
         raise ValueError(f"frame is {x.shape[1]}×{x.shape[0]} px but the report is for {report.width}×{report.height} px")
     gray = (x * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()

@@ -22,6 +22,7 @@ Integer frames are scaled by their significant bits (``bit_depth``: ``"auto"`` o
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -172,13 +173,20 @@ def open_source(source: str | Path, start: int = 0, stride: int = 1, max_frames:
     recording (``.bag``/``.db3``/``.mcap`` or a rosbag2 folder; ``recording`` is its
     :class:`~camhealth.monitor.recording.RecordingOptions`, required there for the topic, refused elsewhere).
 
-    Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an unsupported extension, an
-    unreadable image, an undecodable video or a ``start`` past the last frame (messages name the file and the
-    allowed kinds or frame indices). ``bit_depth``: significant bits of 16-bit frames (``"auto"`` or 8…16)."""
+    Raises ``FileNotFoundError`` for a missing path and ``ValueError`` for an empty ``source``, an unsupported
+    extension, an unreadable image, an undecodable video or a ``start`` past the last frame (messages name the file and
+    the allowed kinds or frame indices); ``TypeError`` for a ``source`` that is no path. ``bit_depth``: significant
+    bits of 16-bit frames (``"auto"`` or 8…16)."""
     check_frame_range(start, stride, max_frames)
     from camhealth.data.io import _check_bit_depth
 
     bit_depth = _check_bit_depth(bit_depth)
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"source = {source!r} must be a path (an image, a folder of frames, a video file, a recording) "
+                        f"or '{STREET}', got {type(source).__name__}")
+    if str(source) == "":  # (Path("") is the current folder: an unset shell variable would monitor it)
+        raise ValueError(f"source is empty: give an image, a folder of frames, a video file, a recording (.bag .db3 .mcap) "
+                         f"or '{STREET}'")
     path = Path(source)
     if not path.exists() and str(source) == STREET:
         from camhealth.data.street_sample import STREET_DIR, street_frame_paths
