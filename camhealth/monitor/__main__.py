@@ -29,6 +29,7 @@ from typing import Any, Iterator, Sequence, TextIO
 
 from camhealth._cli import BadValue, add_debug_flag, config_parser, run_cli
 from camhealth.monitor.api import MAX_SAMPLES, MAX_WINDOW
+from camhealth.monitor.tiling import MAX_AGE
 from camhealth.physics.metadata import FULL_FIELDS, METADATA_RANGES, PRESETS, UNITS
 
 __all__ = ["build_parser", "main"]
@@ -115,9 +116,6 @@ _non_negative_int = _int_at_least(0)
 #: Largest ``--threads``: more torch threads than this only oversubscribes the CPU (and from 2^31 torch refuses the count).
 THREADS_MAX = 4 * (os.cpu_count() or 1)
 _threads = _int_at_least(1, THREADS_MAX)
-#: Largest ``--max-age`` [frames]: 6.8 years of a 10 frames/s stream, "never" in practice (the refresh schedule counts
-#: frames in int64 tensors: from 2^63 an age wrapped, and no static patch was reused, or did not convert at all).
-MAX_AGE = 2**31 - 1
 _max_age = _int_at_least(1, MAX_AGE)
 _window = _int_at_least(1, MAX_WINDOW)
 _samples = _int_at_least(1, MAX_SAMPLES)

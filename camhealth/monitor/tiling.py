@@ -329,6 +329,11 @@ def grid_statistics(frame: torch.Tensor, grid: PatchGrid) -> PatchStats:
     return _statistics(crop.reshape(grid.rows, p, grid.cols, p), p)
 
 
+#: Largest ``SelectionConfig.max_age`` [frames]: 6.8 years of a 10 frames/s stream, "never" in practice (the refresh
+#: schedule counts frames in int64 tensors, where a larger age wraps).
+MAX_AGE = 2**31 - 1
+
+
 @dataclass(frozen=True)
 class SelectionConfig:
     """Thresholds of the scene-adaptive selection (defaults: module docstring).
@@ -344,7 +349,8 @@ class SelectionConfig:
         block_tol_dn: smallest block-mean change that counts as a change [DN].
         noise_tol: (absolute [DN], relative [–]) change of σ̂ that counts as a change.
         detail_tol: (absolute [DN], relative [–]) change of the edge energy that counts as a change.
-        max_age: a static patch is re-estimated at least every ``max_age`` frames (>= 1; 1 = never reuse).
+        max_age: a static patch is re-estimated at least every ``max_age`` frames (1 … :data:`MAX_AGE`; 1 = never
+            reuse).
         value_tol_noise_dn: coarse → refine: largest range of σ (each source, ξ, total) among the lattice
             neighbours that still allows interpolation [DN] (noise estimators without per-source σ or metadata).
         value_tol_noise_rel: the same for σ_s / σ_s,model and ξ / σ_model when the noise-source estimator has
@@ -392,8 +398,8 @@ class SelectionConfig:
                 raise ValueError(f"SelectionConfig.{name} must be a pair (absolute, relative), got {pair!r}")
             _check(f"{name}[0]", pair[0], 0.0)
             _check(f"{name}[1]", pair[1], 0.0)
-        if isinstance(self.max_age, bool) or not isinstance(self.max_age, int) or self.max_age < 1:
-            raise ValueError(f"SelectionConfig.max_age = {self.max_age!r} must be an integer >= 1 (frames)")
+        if isinstance(self.max_age, bool) or not isinstance(self.max_age, int) or not 1 <= self.max_age <= MAX_AGE:
+            raise ValueError(f"SelectionConfig.max_age = {self.max_age!r} must be an integer in [1, {MAX_AGE}] (frames)")
 
 
 def select_patches(stats: PatchStats, task: str, config: SelectionConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -7,8 +7,10 @@ import pytest
 import torch
 
 from camhealth.monitor.tiling import (
+    MAX_AGE,
     STATUS_NAMES,
     PatchGrid,
+    SelectionConfig,
     grid_statistics,
     patch_statistics,
     select_patches,
@@ -87,3 +89,11 @@ def test_status_counts_refuses_unknown_codes_naming_them(codes, bad):
     with pytest.raises(ValueError, match=rf"status code {bad} is out of the allowed range \[0, {top}\]"):
         status_counts(torch.tensor(codes))
     assert status_counts(torch.tensor([0, 0, 3]))["estimated"] == 2
+
+
+@pytest.mark.parametrize("age", [MAX_AGE + 1, 2**63, 10**20])
+def test_selection_config_bounds_max_age(age):
+    """From 2^63 frames the int64 refresh schedule wrapped (no static patch was ever reused) or did not convert."""
+    with pytest.raises(ValueError, match=rf"SelectionConfig.max_age = {age} must be an integer in \[1, {MAX_AGE}\]"):
+        SelectionConfig(max_age=age)
+    assert SelectionConfig(max_age=MAX_AGE).max_age == MAX_AGE
