@@ -5,13 +5,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-from typing import Any, Dict, Iterable, Optional, Sequence
+from typing import Any, Dict, Iterable, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
 from kornia.augmentation import IntensityAugmentationBase2D
 
-from camhealth._validation import check_finite, check_float
+from camhealth._validation import check_finite, check_float, check_tensor
 from camhealth.augment._generators import params_to_metadata
 from camhealth.physics.defocus_psf import defocus_psf
 from camhealth.physics.image_formation import NOISE_SOURCES, ImageFormation, form_image
@@ -52,7 +52,25 @@ class CorruptionBase(IntensityAugmentationBase2D):
         self._sf_cache: tuple[torch.Tensor, torch.Tensor, SensorConstants] | None = None
         self._untouched_clipped: torch.Tensor | None = None  # (B,) clipped fraction of the samples left without noise
 
+    def _repr_settings(self) -> Dict[str, Any]:
+        """The settings the repr names after Kornia's ``p, p_batch, same_on_batch`` (subclasses add theirs)."""
+        return {"keepdim": self.keepdim}
+
+    def __repr__(self) -> str:
+        base = super().__repr__()
+        return base[:-1] + "".join(f", {k}={v!r}" for k, v in self._repr_settings().items()) + ")"
+
     # ------------------------------------------------------------------ helpers
+    def forward(self, input: torch.Tensor, params: Optional[Dict[str, torch.Tensor]] = None,
+                **kwargs: Any) -> torch.Tensor:  # noqa: D102 (Kornia's)
+        # Kornia reads input.shape and params["batch_prob"] before any hook runs: a list as the image, or params that
+        # are no dict, would fail inside Kornia with an AttributeError or an indexing error
+        check_tensor(input, "input")
+        if params is not None and not isinstance(params, Mapping):
+            raise TypeError(f"params must be a dict of parameter tensors (aug._params, aug.forward_parameters(shape)), "
+                            f"got {type(params).__name__}")
+        return super().forward(input, params, **kwargs)
+
     def validate_tensor(self, input: torch.Tensor) -> None:  # noqa: D102 (Kornia hook)
         # Kornia calls this hook for images and for the masks of AugmentationSequential (which pass through an
         # intensity augmentation unchanged and may hold any labels): only the layout is checked here, the image's
@@ -65,16 +83,25 @@ class CorruptionBase(IntensityAugmentationBase2D):
         # (with its hint to divide DN by 255). Masks (shape given) keep Kornia's handling.
         if kwargs.get("shape") is None:
             check_float(input, "input")
+            if input.ndim not in (2, 3, 4):  # (Kornia's own message offers "(*, C, H, W)", then refuses 5-D)
+                raise ValueError(f"input must have shape B×C×H×W, C×H×W or H×W (2 to 4 dims), got shape "
+                                 f"{tuple(input.shape)}")
         return super().transform_tensor(input, **kwargs)
 
     @staticmethod
     def _check_image(input: torch.Tensor) -> torch.Tensor:
         """``input`` checked: floating point, finite and in [0, 1] — within :func:`range_tolerance` of it, the
         rounding a preceding filter leaves (Kornia's blurs return 1.0000001 on white), which is clamped away. An empty
-        batch passes (it comes back empty); an empty height or width is a ``ValueError``."""
+        batch passes (it comes back empty); an empty height or width, or no channel in a non-empty batch, is a
+        ``ValueError``, a sparse tensor a ``TypeError``."""
         check_float(input, "input")
+        if input.layout != torch.strided:
+            raise TypeError(f"input must be a dense tensor, got layout {input.layout}; convert it with x.to_dense()")
         if input.ndim >= 2 and (input.shape[-1] == 0 or input.shape[-2] == 0):
             raise ValueError(f"input must have a non-empty height and width (an empty batch is allowed), got shape "
+                             f"{tuple(input.shape)}")
+        if input.ndim == 4 and input.shape[0] > 0 and input.shape[1] == 0:
+            raise ValueError(f"input must have at least one channel (C ≥ 1; an empty batch is allowed), got shape "
                              f"{tuple(input.shape)}")
         if input.numel() == 0:
             return input
@@ -94,6 +121,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
         input = self._check_image(input)
         if params is not None:
             _check_param_rows(params, input.shape[0] if input.ndim == 4 else 1)
+            _check_batch_prob(params)
         return super().transform_inputs(input, params, flags, transform=transform, **kwargs)
 
     @staticmethod
@@ -137,7 +165,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
         """(B, k, k) defocus kernels of ``params`` (delta where the component is gated off), in ``dtype``
         (float32, or float64 for float64 images)."""
         self._require(params, ("diameter",), "defocus")
-        d = params["diameter"].to(device=device, dtype=dtype)
+        d = _real_param(params, "diameter").to(device=device, dtype=dtype)
         gate = self._param_gate(params, "defocus", d.device)
         if gate is not None:
             d = torch.where(gate, d, torch.zeros_like(d))
@@ -148,16 +176,16 @@ class CorruptionBase(IntensityAugmentationBase2D):
         """(B, k, k) motion kernels of ``params`` (delta where the component is gated off), in ``dtype``
         (float32, or float64 for float64 images)."""
         self._require(params, ("length", "angle", "intensity"), "motion")
-        length = params["length"].to(device=device, dtype=dtype)
+        length = _real_param(params, "length").to(device=device, dtype=dtype)
         gate = self._param_gate(params, "motion", length.device)
         if gate is not None:
             length = torch.where(gate, length, torch.zeros_like(length))
-        angle = params["angle"].to(device=length.device, dtype=dtype)
-        intensity = params["intensity"].to(device=length.device, dtype=dtype)
+        angle = _real_param(params, "angle").to(device=length.device, dtype=dtype)
+        intensity = _real_param(params, "intensity").to(device=length.device, dtype=dtype)
         if bool((intensity == 0).all()):
             return linear_motion_psf(length, angle, self._motion_ks)
         self._require(params, ("shake_noise",), "non-linear motion (intensity > 0)")
-        shake = params["shake_noise"].to(device=length.device, dtype=dtype)
+        shake = _real_param(params, "shake_noise").to(device=length.device, dtype=dtype)
         return nonlinear_motion_psf(length, angle, intensity, shake, self._motion_ks)
 
     def _source_follower(self, meta: CameraMetadata) -> torch.Tensor:
@@ -288,6 +316,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
             # params_from_metadata of batch-1 metadata, apply to every sample; forward_input_shape then says 1)
             b = int(f.image.shape[0])
         _check_param_rows(params, b)
+        _check_batch_prob(params)
         if self._sources and not _same_params(params, self._formation_params):
             raise ValueError(
                 "labels(params=...): the noise labels depend on the image and are those of the last call, which used other "
@@ -388,12 +417,51 @@ def _check_param_rows(params: Dict[str, torch.Tensor], b: int) -> None:
     """``ValueError`` naming the first per-sample entry of ``params`` whose rows are neither 1 (the whole batch) nor
     ``b`` (one per sample)."""
     for key, v in params.items():
-        if key == "forward_input_shape" or not isinstance(v, torch.Tensor) or v.ndim == 0:
+        if key == "forward_input_shape":
+            continue
+        if isinstance(v, (list, tuple, np.ndarray)):  # (per-sample values given as a list: their rows count too)
+            try:
+                v = torch.as_tensor(v)
+            except (TypeError, ValueError, RuntimeError):
+                continue  # (not numbers: the entry's own check names it)
+        if not isinstance(v, torch.Tensor) or v.ndim == 0:
             continue
         if v.shape[0] not in (1, b):
             what = "values" if v.ndim == 1 else "rows"
             raise ValueError(f"params {key} has {v.shape[0]} {what} for a batch of {b} (shape {tuple(v.shape)}): give one "
                              f"per sample ({b}), or one for the whole batch")
+
+
+def _check_batch_prob(params: Dict[str, torch.Tensor]) -> None:
+    """``ValueError`` unless the ``batch_prob`` of ``params`` (where present) holds 0 (sample left untouched) or 1
+    (transformed) per sample: Kornia applies a sample where it is above 0.5, so NaN would leave it untouched."""
+    if "batch_prob" not in params:
+        return
+    bp = params["batch_prob"]
+    if not isinstance(bp, torch.Tensor):  # (Kornia compares it with 0.5 as a tensor)
+        raise TypeError(f"params batch_prob must be a tensor of 0 or 1 per sample, got {type(bp).__name__} {bp!r:.40}")
+    if bp.is_complex():
+        raise TypeError(f"params batch_prob must hold 0 or 1 per sample, got dtype {bp.dtype}")
+    if bp.dtype != torch.bool:
+        bad = (bp != 0) & (bp != 1)  # (NaN included)
+        if bool(bad.any()):
+            first = bp[bad].flatten()[0].item()
+            raise ValueError(f"params batch_prob must hold 0 (sample left untouched) or 1 (transformed) per sample, got "
+                             f"{first!r} ({int(bad.sum())} of {bp.numel()} values are neither)")
+
+
+def _real_param(params: Dict[str, torch.Tensor], key: str) -> torch.Tensor:
+    """``params[key]`` as a tensor of real numbers (a number, list or array is converted), else ``TypeError`` naming
+    the key (a bool would read as 0 or 1 px)."""
+    raw = params[key]
+    try:
+        v = raw if isinstance(raw, torch.Tensor) else torch.as_tensor(raw)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"params {key} must be a tensor of real numbers (one per sample, or one for the batch), got "
+                        f"{type(raw).__name__} {raw!r:.40}") from None
+    if v.dtype == torch.bool or v.is_complex():
+        raise TypeError(f"params {key} must hold real numbers (one per sample, or one for the batch), got dtype {v.dtype}")
+    return v
 
 
 def check_sources(sources: Sequence[str]) -> tuple[str, ...]:

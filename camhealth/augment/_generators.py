@@ -160,7 +160,7 @@ class SensorNoiseGenerator(RandomGeneratorBase):
         CameraMetadata.sample(1, ranges=self.ranges, fixed=self.metadata, gain_uniform_in=gain_uniform_in)
 
     def __repr__(self) -> str:
-        return f"metadata={self.metadata!r}, ranges={self.ranges}"
+        return f"metadata={self.metadata!r}, ranges={self.ranges}, gain_uniform_in={self.gain_uniform_in!r}"
 
     def make_samplers(self, device: torch.device, dtype: torch.dtype) -> None:
         pass
@@ -199,6 +199,10 @@ def params_to_constants(params: Mapping[str, torch.Tensor], prefix: str = "") ->
     if len(present) != len(keys):
         missing = [k for k in keys if k not in params]
         raise ValueError(f"params carry some fixed sensor constants but lack {missing}; give all of {keys} or none")
+    for k in keys:  # (a bool would read as 0 or 1)
+        dtype = torch.as_tensor(params[k]).dtype
+        if dtype == torch.bool or dtype.is_complex:
+            raise TypeError(f"params {k} must hold real numbers (the fixed sensor constant of the batch), got dtype {dtype}")
     try:
         table = torch.stack([torch.as_tensor(params[k]).detach().reshape(-1) for k in keys]).to("cpu", torch.float64)
     except RuntimeError:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from camhealth._validation import check_odd_kernel_size
 from camhealth.augment._base import CorruptionBase
@@ -30,23 +31,30 @@ def motion_kernel_size(max_length_px: float, nonlinear: bool) -> int:
     return k if k % 2 == 1 else k + 1
 
 
+def _odd_at_least(size_px: float) -> int:
+    """The smallest odd integer ≥ ``size_px``."""
+    k = int(math.ceil(size_px))
+    return k if k % 2 == 1 else k + 1
+
+
 class RandomDefocusBlur(CorruptionBase):
     r"""Defocus blur with a uniform-disk PSF of random diameter (circle of confusion, thesis Eq. 3.6).
 
     Args:
         diameter: disk diameter [px], a number or (low, high) sampled uniformly per sample, in [0, 253] (the
             largest disk whose kernel fits 255 px); sub-pixel diameters are anti-aliased. Default (1, 21).
-        kernel_size: odd kernel size; default: smallest that holds the largest disk.
+        kernel_size: odd kernel size in [1, 255], at least the largest diameter; default: the smallest that holds the
+            largest disk with 1 px margin.
         p: probability to blur a sample. Default 1 (a camera always images through its optics).
-        same_on_batch: one diameter for the whole batch.
-        keepdim: keep the input's shape (C×H×W in → C×H×W out).
+        same_on_batch: one diameter for the whole batch. Default False.
+        keepdim: keep the input's shape (C×H×W in → C×H×W out). Default False.
 
     Parameters (``aug._params``): ``diameter`` (B,). Labels (``aug.labels()``): ``mtf`` (B, 16).
     The transform is differentiable w.r.t. the image (a convolution).
 
     Shape:
-        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
-          channel gets the same PSF).
+        - Input: :math:`(B, C, H, W)`, :math:`(C, H, W)` or :math:`(H, W)`, floating point in [0, 1] (gray or
+          colour; every channel gets the same PSF).
         - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
 
     Examples:
@@ -76,8 +84,14 @@ class RandomDefocusBlur(CorruptionBase):
         lo, hi = as_range(diameter, "diameter", (0.0, MAX_DIAMETER_PX))
         self._defocus_ks = check_odd_kernel_size(kernel_size) if kernel_size is not None else default_kernel_size(hi)
         if hi > self._defocus_ks:
-            raise ValueError(f"diameter up to {hi:g} px does not fit kernel_size = {self._defocus_ks}")
+            need = _odd_at_least(hi)
+            raise ValueError(f"diameter up to {hi:g} px does not fit kernel_size = {self._defocus_ks}, which holds diameters "
+                             f"up to {self._defocus_ks} px: pass an odd kernel_size ≥ {need}, or leave it unset (then "
+                             f"{default_kernel_size(hi)})")
         self._param_generator = DefocusGenerator((lo, hi))
+
+    def _repr_settings(self) -> dict[str, Any]:
+        return {**super()._repr_settings(), "kernel_size": self._defocus_ks}
 
 
 class RandomMotionBlur(CorruptionBase):
@@ -86,18 +100,20 @@ class RandomMotionBlur(CorruptionBase):
     Args:
         length: path length L = v·t_exp [px], number or (low, high), in [0, 252] (the longest path whose kernel
             fits 255 px). Default (1, 21).
-        angle: direction Φ [deg], number or (low, high); 0° horizontal, 90° vertical. Default (0, 180).
+        angle: direction Φ [deg], number or (low, high), in [-360, 360]; 0° horizontal, 90° vertical. Default (0, 180).
         intensity: shake intensity in [0, 1]: 0 → straight line, 1 → strongly curved, jerky path.
             Default 0 (linear motion).
-        kernel_size: odd kernel size; default from the largest length (see :func:`motion_kernel_size`).
-        p, same_on_batch, keepdim: as in Kornia.
+        kernel_size: odd kernel size in [1, 255], longer than the largest length by at least 1 px; default from the
+            largest length (see :func:`motion_kernel_size`).
+        p, same_on_batch, keepdim: as in Kornia. Default p = 1 (Kornia's is 0.5: every sample is blurred and
+            labelled), same_on_batch = False, keepdim = False.
 
     Parameters: ``length``, ``angle``, ``intensity`` (B,) and ``shake_noise`` (B, 64, 2).
     Labels: ``mtf`` (B, 16). Differentiable w.r.t. the image.
 
     Shape:
-        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
-          channel gets the same PSF).
+        - Input: :math:`(B, C, H, W)`, :math:`(C, H, W)` or :math:`(H, W)`, floating point in [0, 1] (gray or
+          colour; every channel gets the same PSF).
         - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
 
     Examples:
@@ -136,5 +152,11 @@ class RandomMotionBlur(CorruptionBase):
             check_odd_kernel_size(kernel_size) if kernel_size is not None else motion_kernel_size(length_r[1], nonlinear)
         )
         if length_r[1] > self._motion_ks - 1:
-            raise ValueError(f"length up to {length_r[1]:g} px does not fit kernel_size = {self._motion_ks}")
+            need = _odd_at_least(length_r[1] + 1.0)
+            raise ValueError(f"length up to {length_r[1]:g} px does not fit kernel_size = {self._motion_ks}, which holds "
+                             f"lengths up to {self._motion_ks - 1} px: pass an odd kernel_size ≥ {need}, or leave it unset "
+                             f"(then {motion_kernel_size(length_r[1], nonlinear)})")
         self._param_generator = MotionGenerator(length_r, angle_r, intensity_r)
+
+    def _repr_settings(self) -> dict[str, Any]:
+        return {**super()._repr_settings(), "kernel_size": self._motion_ks}

@@ -58,7 +58,8 @@ class CameraCorruption(CorruptionBase):
         noise: a :class:`RandomSensorNoise` or ``None``. Default: all sources, metadata sampled. Its
             ``quantize`` and ``rng`` settings apply to the chain.
         p, same_on_batch, keepdim: as in Kornia (``p`` gates the whole camera per sample); keyword-only
-            (only the three components are positional).
+            (only the three components are positional). Default p = 1 (Kornia's is 0.5), same_on_batch = False,
+            keepdim = False.
 
     Labels (``aug.labels()``): ``mtf`` (B, 16) of the combined PSF (product of the components' MTFs),
     the noise labels of :class:`RandomSensorNoise`, and ``metadata``.
@@ -69,8 +70,8 @@ class CameraCorruption(CorruptionBase):
     changed in place; they are read at every call.)
 
     Shape:
-        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
-          channel gets the same PSF and metadata, the noise is drawn per pixel and channel).
+        - Input: :math:`(B, C, H, W)`, :math:`(C, H, W)` or :math:`(H, W)`, floating point in [0, 1] (gray or
+          colour; every channel gets the same PSF and metadata, the noise is drawn per pixel and channel).
         - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
 
     Examples:

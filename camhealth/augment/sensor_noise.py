@@ -24,7 +24,7 @@ class RandomSensorNoise(CorruptionBase):
     kTC residue for CMOS), amplified by the gain and clipped to [0, 255] DN (conventions.md).
 
     Args:
-        sources: which sources to realise, subset of ``("photon", "dark", "readout")``.
+        sources: which sources to realise, subset of ``("photon", "dark", "readout")``. Default: all three.
         metadata: fixed camera metadata: a preset name (``"ICX285"``, ``"EV76C661"``), a
             :class:`CameraMetadata` of batch 1 (its :class:`~camhealth.physics.SensorConstants` are used), or a
             dict of fields read as :meth:`CameraMetadata.from_dict` reads one (``sensor_type: CCD|CMOS`` accepted,
@@ -33,13 +33,14 @@ class RandomSensorNoise(CorruptionBase):
         ranges: per-field (low, high) ranges to sample instead of the fixed value, e.g.
             ``{"gain_db": (0, 24), "temperature_c": (0, 80)}``.
         quantize: round to whole DN (straight-through gradient). Default False.
-        gain_uniform_in: sample the gain uniformly in ``"factor"`` (thesis) or ``"db"``.
+        gain_uniform_in: sample the gain uniformly in ``"factor"`` (thesis; default) or ``"db"``.
         rng: random numbers of the noise fields: ``"torch"`` (default; torch's generator) or ``"counter"``
             (compiled counter-based draws, :mod:`camhealth.physics.counter_rng`: the same distributions in
             about half the time on CPU; a different stream, so the same ``noise_seed`` gives other draws than
             ``"torch"``). The first call compiles its kernels (~10 s).
         p, same_on_batch, keepdim: as in Kornia; ``same_on_batch`` shares the metadata, the noise field
-            stays independent per sample (as two frames of one camera would be).
+            stays independent per sample (as two frames of one camera would be). Default p = 1 (Kornia's is 0.5:
+            every sample is corrupted and labelled), same_on_batch = False, keepdim = False.
 
     Parameters: ``meta_<field>`` (B,) for the 11 metadata fields, ``const_<field>`` (B,) for the fixed
     :class:`~camhealth.physics.SensorConstants` (one value repeated: a batch has one set) and ``noise_seed`` (B,).
@@ -62,8 +63,8 @@ class RandomSensorNoise(CorruptionBase):
     reparameterised, Poisson parts straight-through), zero on clipped pixels.
 
     Shape:
-        - Input: :math:`(B, C, H, W)` or :math:`(C, H, W)`, floating point in [0, 1] (gray or colour; every
-          channel gets the same camera metadata, the noise is drawn per pixel and channel).
+        - Input: :math:`(B, C, H, W)`, :math:`(C, H, W)` or :math:`(H, W)`, floating point in [0, 1] (gray or
+          colour; every channel gets the same camera metadata, the noise is drawn per pixel and channel).
         - Output: :math:`(B, C, H, W)`, or the input's shape with ``keepdim=True``.
 
     Examples:
@@ -101,9 +102,8 @@ class RandomSensorNoise(CorruptionBase):
         self._rng = check_rng(rng)
         self._param_generator = SensorNoiseGenerator(metadata, ranges, gain_uniform_in)
 
-    def __repr__(self) -> str:
-        base = super().__repr__()
-        return f"{base[:-1]}, sources={list(self._sources)}, quantize={self._quantize}, rng={self._rng!r})"
+    def _repr_settings(self) -> dict[str, Any]:
+        return {**super()._repr_settings(), "sources": list(self._sources), "quantize": self._quantize, "rng": self._rng}
 
     @staticmethod
     def params_from_metadata(

@@ -2,6 +2,9 @@
 and what is allowed: never a silently switched-off component, a
 coerced flag, or a bare KeyError / torch RuntimeError."""
 
+import inspect
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -235,3 +238,177 @@ def test_an_empty_height_or_width_names_the_input(name, shape):
 def test_integer_input_gets_the_dn_hint(name, dtype):
     with pytest.raises(TypeError, match=r"^input must be a floating tensor .*convert integer DN images with x.float\(\) / 255"):
         MODULES[name]()(torch.ones(2, 1, 8, 8, dtype=dtype))
+
+
+# ---------------------------------------------------------------------------------------------- input type and layout
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_an_image_that_is_no_tensor_is_named(name):
+    """A list image failed inside Kornia with AttributeError: 'list' object has no attribute 'shape'."""
+    with pytest.raises(TypeError, match=r"^input must be a torch.Tensor, got list"):
+        MODULES[name]()([[0.5, 0.5], [0.5, 0.5]])
+
+
+@pytest.mark.parametrize("params", [[1, 2], torch.ones(4)])
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_params_that_are_no_dict_are_named(name, params):
+    """A list failed inside Kornia with 'list indices must be integers', a tensor with Tensor.__contains__'s error."""
+    with pytest.raises(TypeError, match=r"^params must be a dict of parameter tensors .*got (list|Tensor)"):
+        MODULES[name]()(X, params=params)
+
+
+@pytest.mark.parametrize("shape", [(), (16,), (2, 2, 1, 16, 16), (1, 2, 2, 1, 16, 16)])
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_images_of_other_dims_name_the_allowed_layouts(name, shape):
+    """Kornia's message offered "(*, C, H, W)" and then refused a 5-D batch."""
+    with pytest.raises(ValueError, match=rf"^input must have shape B×C×H×W, C×H×W or H×W \(2 to 4 dims\), got shape "
+                                         rf"{re.escape(str(shape))}"):
+        MODULES[name]()(torch.rand(shape))
+
+
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_an_image_without_channels_is_named(name):
+    """B×0×H×W failed deep in the image formation (aminmax over an empty dimension)."""
+    with pytest.raises(ValueError, match=r"^input must have at least one channel \(C ≥ 1; an empty batch is allowed\), "
+                                         r"got shape \(2, 0, 8, 8\)"):
+        MODULES[name]()(torch.rand(2, 0, 8, 8))
+    assert MODULES[name]()(torch.rand(0, 0, 8, 8)).shape == (0, 0, 8, 8)  # an empty batch stays allowed
+
+
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_a_sparse_image_is_named(name):
+    """A sparse image failed with NotImplementedError: Could not run 'aten::aminmax' ... 'SparseCPU'."""
+    with pytest.raises(TypeError, match=r"^input must be a dense tensor, got layout torch.sparse_coo"):
+        MODULES[name]()(X.to_sparse())
+
+
+# ---------------------------------------------------------------------------------------------- values of replayed params
+@pytest.mark.parametrize("name, key", [("defocus", "diameter"), ("motion", "length"), ("motion", "angle"),
+                                       ("motion", "intensity"), ("camera", "diameter"), ("camera", "length")])
+@pytest.mark.parametrize("kind", ["float", "list", "ndarray"])
+def test_blur_params_as_numbers_lists_or_arrays_replay_as_tensors(name, key, kind):
+    """A number, list or array failed with AttributeError: 'float' object has no attribute 'to' (the gates, the
+    metadata and the seed took them)."""
+    mod = MODULES[name]()
+    params = _params(mod)
+    y = mod(X, params=params)
+    as_kind = {"float": lambda v: float(v[0]), "list": lambda v: v.tolist(), "ndarray": lambda v: v.numpy()}[kind]
+    given = dict(params, **{key: as_kind(params[key])})
+    want = y if kind != "float" else mod(X, params=dict(params, **{key: params[key][:1].expand(4)}))
+    assert torch.equal(mod(X, params=given), want)
+
+
+@pytest.mark.parametrize("name, key", [("defocus", "diameter"), ("motion", "length"), ("motion", "angle"),
+                                       ("motion", "intensity"), ("motion", "shake_noise"), ("camera", "diameter")])
+def test_bool_blur_params_are_refused(name, key):
+    """A bool diameter or length was read as 1 px (and a False one as no blur) without a word."""
+    mod = MODULES[name]()
+    params = _params(mod)
+    params[key] = params[key] > 0
+    with pytest.raises(TypeError, match=rf"^params {key} must hold real numbers .*got dtype torch.bool"):
+        mod(X, params=params)
+
+
+@pytest.mark.parametrize("key", ["defocus_gate", "noise_gate", "motion_gate"])
+def test_a_list_of_another_batch_size_names_the_key(key):
+    """A gate given as a list of 3 for a batch of 4 failed with torch's 'The size of tensor a (3) must match'."""
+    cam = CameraCorruption()
+    params = _params(cam)
+    params[key] = params[key][:3].tolist()
+    with pytest.raises(ValueError, match=rf"^params {key} has 3 values for a batch of 4"):
+        cam(X, params=params)
+
+
+@pytest.mark.parametrize("value", [float("nan"), 0.7, 2.0, -1.0])
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_replayed_batch_prob_must_be_0_or_1(name, value):
+    """Kornia applies a sample whose batch_prob is above 0.5: NaN left the sample untouched, 0.7 transformed it."""
+    mod = MODULES[name](p=0.5)
+    params = _params(mod)
+    params["batch_prob"] = torch.full((4,), value)
+    with pytest.raises(ValueError, match=r"^params batch_prob must hold 0 \(sample left untouched\) or 1 \(transformed\) "
+                                         r"per sample, got"):
+        mod(X, params=params)
+    with pytest.raises(ValueError, match=r"^params batch_prob must hold 0"):
+        mod.labels(params)
+
+
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_replayed_batch_prob_of_bools_or_0_and_1(name):
+    mod = MODULES[name](p=0.5)
+    params = _params(mod)
+    params["batch_prob"] = torch.tensor([1.0, 0.0, 1.0, 0.0])
+    y = mod(X, params=params)
+    assert torch.equal(y[1], X[1]) and torch.equal(y[3], X[3]) and not torch.equal(y[0], X[0])
+    assert torch.equal(mod(X, params=dict(params, batch_prob=params["batch_prob"] > 0.5)), y)
+    params["batch_prob"] = [1.0, 0.0, 1.0, 0.0]
+    with pytest.raises(TypeError, match=r"^params batch_prob must be a tensor of 0 or 1 per sample, got list"):
+        mod(X, params=params)
+
+
+@pytest.mark.parametrize("name", ["noise", "camera"])
+def test_bool_sensor_constants_are_refused(name):
+    """const_cds_gain = True was read as a CDS gain of 1."""
+    mod = MODULES[name]()
+    params = _params(mod)
+    params["const_cds_gain"] = torch.ones(4, dtype=torch.bool)
+    with pytest.raises(TypeError, match=r"^params const_cds_gain must hold real numbers .*got dtype torch.bool"):
+        mod(X, params=params)
+
+
+# ---------------------------------------------------------------------------------------------- kernel sizes
+@pytest.mark.parametrize("make, match, fits", [
+    (lambda ks: RandomDefocusBlur(3.0, kernel_size=ks), r"^diameter up to 3 px does not fit kernel_size = 1, which holds "
+     r"diameters up to 1 px: pass an odd kernel_size ≥ 3, or leave it unset \(then 5\)$", 3),
+    (lambda ks: RandomDefocusBlur((1.0, 40.5), kernel_size=ks), r"^diameter up to 40.5 px does not fit kernel_size = 1, "
+     r"which holds diameters up to 1 px: pass an odd kernel_size ≥ 41, or leave it unset \(then 43\)$", 41),
+    (lambda ks: RandomMotionBlur(0.5, kernel_size=ks), r"^length up to 0.5 px does not fit kernel_size = 1, which holds "
+     r"lengths up to 0 px: pass an odd kernel_size ≥ 3, or leave it unset \(then 5\)$", 3),
+    (lambda ks: RandomMotionBlur(41.0, intensity=1.0, kernel_size=ks), r"^length up to 41 px does not fit kernel_size = 1, "
+     r"which holds lengths up to 0 px: pass an odd kernel_size ≥ 43, or leave it unset \(then 45\)$", 43),
+])
+def test_a_kernel_too_small_names_the_sizes_that_fit(make, match, fits):
+    """The message named the kernel but not what fits."""
+    with pytest.raises(ValueError, match=match):
+        make(1)
+    with pytest.raises(ValueError, match="does not fit"):
+        make(fits - 2)
+    assert make(fits)(torch.rand(2, 1, 48, 48)).shape == (2, 1, 48, 48)
+
+
+# ---------------------------------------------------------------------------------------------- reprs and documented defaults
+@pytest.mark.parametrize("make, shown", [
+    (lambda: RandomDefocusBlur((2.0, 5.0), kernel_size=41, keepdim=True), ["diameter=(2.0, 5.0)", "keepdim=True",
+                                                                           "kernel_size=41"]),
+    (lambda: RandomDefocusBlur(), ["diameter=(1.0, 21.0)", "keepdim=False", "kernel_size=23"]),
+    (lambda: RandomMotionBlur(5.0, kernel_size=11), ["length=(5.0, 5.0)", "keepdim=False", "kernel_size=11"]),
+    (lambda: RandomSensorNoise(gain_uniform_in="db", keepdim=True), ["gain_uniform_in='db'", "keepdim=True"]),
+    (lambda: CameraCorruption(keepdim=True), ["kernel_size=23", "kernel_size=25", "gain_uniform_in='factor'",
+                                              "same_on_batch=False, keepdim=True)"]),
+])
+def test_the_repr_names_the_kernel_size_keepdim_and_gain_sampling(make, shown):
+    """kernel_size, keepdim and gain_uniform_in change the output but were missing from the repr."""
+    text = repr(make())
+    for part in shown:
+        assert part in text, (part, text)
+
+
+@pytest.mark.parametrize("cls, arg, documented", [
+    (RandomDefocusBlur, "p", "Default 1"), (RandomDefocusBlur, "same_on_batch", "Default False"),
+    (RandomDefocusBlur, "keepdim", "Default False"),
+    (RandomMotionBlur, "p", "Default p = 1"), (RandomSensorNoise, "p", "Default p = 1"),
+    (CameraCorruption, "p", "Default p = 1"), (RandomMotionBlur, "keepdim", "keepdim = False"),
+    (RandomSensorNoise, "gain_uniform_in", '``"factor"`` (thesis; default)'), (RandomSensorNoise, "sources", "Default: all three"),
+    (RandomMotionBlur, "angle", "in [-360, 360]"),
+])
+def test_the_docstrings_state_the_defaults_and_ranges_of_the_code(cls, arg, documented):
+    """Three modules documented p only as "as in Kornia", whose default is 0.5; the noise module left the defaults of
+    sources and gain_uniform_in unstated, the motion blur the range of angle."""
+    doc = " ".join(cls.__doc__.split())
+    assert " ".join(documented.split()) in doc, (cls.__name__, arg)
+    default = inspect.signature(cls).parameters[arg].default
+    expected = {"p": 1.0, "same_on_batch": False, "keepdim": False, "gain_uniform_in": "factor",
+                "sources": ("photon", "dark", "readout"), "angle": (0.0, 180.0)}[arg]
+    assert default == expected
+    if arg == "angle":
+        with pytest.raises(ValueError, match=r"-360 ≤ low ≤ high ≤ 360"):
+            cls(angle=(0.0, 361.0))
