@@ -39,12 +39,12 @@
   ``sigma_map`` (B, 1, P, P) [``drne``]; ``assessable`` (B,) bool and ``reason`` (list of str: ``""``,
   ``"black"``, ``"saturated"``, ``"clipped"`` [neither more than half, but both together],
   ``"featureless"``, ``"no edges"`` [MTF: Gaussian-like texture, :func:`camhealth._inputs.has_edges`];
-  DRNE and the noise-source networks also ``"noise beyond validated range"`` (the patch's finest-scale fluctuations
+  every kind also ``"noise beyond validated range"`` (the patch's finest-scale fluctuations
   above 64 DN beyond doubt, :func:`~camhealth.estimators.physics_noise.beyond_validated_range`: the rule of every
-  noise estimator), the noise-source networks ``"less noise than the
-  metadata allow"`` (far less noise than photon noise alone makes for any camera in the metadata's ranges, from
-  98 DN up, :func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`)). Not-assessable patches still get
-  finite numbers; do not trust them.
+  noise estimator, and of the MTF network, whose error outgrows its ``mtf_std`` there), the noise-source networks
+  ``"less noise than the metadata allow"`` (far less noise than photon noise alone makes for any camera in the
+  metadata's ranges, from 98 DN up, :func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`)).
+  Not-assessable patches still get finite numbers; do not trust them.
 - noise-source networks (``noise_source_min``, ``noise_source_none``) state **no uncertainty**: ``xi_std`` (B,) is NaN
   (the physics-first estimator's is a number, ∞ where it has no evidence). Their ξ is the network's regression, which
   stayed near 0 on every mismatch tried (``noise_source_min`` on an ICX285 ramp told 6 dB: at 24 dB ξ −0.08 DN
@@ -264,7 +264,8 @@ class Estimator:
         assessable, reason = assess_patches(patches, self.kind, noise_dn)
         if self.kind == "noise_source":  # what the network cannot vouch for: noise beyond the range, or none at all
             assessable, reason = _noise_source_limits(patches, reason)
-        elif self.kind == "drne":  # the validated range of every noise estimator (drne was validated to 60 DN)
+        else:  # the validated noise range of every estimator (drne was validated to 60 DN; the MTF network's error
+            # table, behind mtf_std, was measured with at most 10 DN of noise: beyond 64 DN the error outgrows mtf_std)
             assessable, reason = _noise_source_limits(patches, reason, quiet=False)
         result: dict[str, Any] = {"assessable": assessable, "reason": reason}
         if self.kind == "mtf":
@@ -335,7 +336,7 @@ def _noise_source_limits(patches: torch.Tensor, reason: list[str], quiet: bool =
     ``"noise beyond validated range"``) and patches far quieter than any camera state in the metadata's ranges makes
     (:func:`~camhealth.estimators.physics_noise.quieter_than_any_camera`: ``"less noise than the metadata allow"``) —
     the network was trained on neither and answers them with a number near its training range. ``quiet=False``
-    (DRNE, which estimates the total noise of any source, camera or not): the range alone."""
+    (DRNE, which estimates the total noise of any source, camera or not, and the MTF network): the range alone."""
     from camhealth.estimators.physics_noise import BEYOND_VALIDATED, LESS_NOISE, beyond_validated_range, quieter_than_any_camera
 
     beyond = beyond_validated_range(patches).tolist()

@@ -91,6 +91,24 @@ def _check_count(v: object, name: str, low: int, high: int | None, what: str) ->
     return v
 
 
+#: Longest row ``torch.nanquantile`` reduces (2²⁴ values; beyond it raises "input tensor is too large").
+_QUANTILE_LIMIT = 2**24
+
+
+def _nanmedian_last(w: torch.Tensor) -> torch.Tensor:
+    """``torch.nanquantile(w, 0.5, dim=-1)`` (the mean of the two middle values of an even count, NaN where a row holds
+    none), also for rows longer than :data:`_QUANTILE_LIMIT`, which torch refuses: those are sorted (NaN last) and
+    the middle values read by index."""
+    if w.shape[-1] <= _QUANTILE_LIMIT:
+        return torch.nanquantile(w, 0.5, dim=-1)
+    ordered = w.sort(dim=-1).values  # NaN sorts last
+    n = (~torch.isnan(w)).sum(dim=-1, keepdim=True)
+    lo, hi = ((n - 1) // 2).clamp_min(0), (n // 2).clamp_min(0)
+    a, b = ordered.gather(-1, lo), ordered.gather(-1, hi)
+    med = (a + 0.5 * (b - a)).squeeze(-1)
+    return torch.where(n.squeeze(-1) > 0, med, torch.full_like(med, float("nan")))
+
+
 def _reduce_last(w: torch.Tensor) -> Aggregate:
     """Median, spread, min, max and count over the last dim, ignoring NaN (NaN and count 0 where nothing is left,
     an empty last dim included). Half-precision estimates are reduced in float32 (torch.nanquantile needs it) and the
@@ -103,8 +121,8 @@ def _reduce_last(w: torch.Tensor) -> Aggregate:
         nan = torch.full(w.shape[:-1], float("nan"), dtype=w.dtype, device=w.device)
         return Aggregate(median=nan, spread=nan.clone(), low=nan.clone(), high=nan.clone(),
                          count=torch.zeros(w.shape[:-1], dtype=torch.int64, device=w.device))
-    med = torch.nanquantile(w, 0.5, dim=-1)
-    mad = torch.nanquantile((w - med[..., None]).abs(), 0.5, dim=-1)
+    med = _nanmedian_last(w)
+    mad = _nanmedian_last((w - med[..., None]).abs())
     finite = torch.isfinite(w)
     low = torch.where(finite, w, torch.full_like(w, float("inf"))).amin(dim=-1)
     high = torch.where(finite, w, torch.full_like(w, float("-inf"))).amax(dim=-1)

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from camhealth._order import _traced, lower_median
+from camhealth._validation import check_range
 from camhealth.estimators._common import check_patches
 from camhealth.physics.clipping import _NEAR_SIGMAS, clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
@@ -69,7 +70,8 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
         image: B×1×H×W noisy patches in [0, 1] (floating point; integer DN images: divide by 255 first); only their
             mean intensity is used (for σ_PN), and with ``clipping`` their 3×3 means. Anything else raises a
             ``TypeError`` (not a floating tensor) or ``ValueError`` (shape, NaN/inf, values outside [0, 1]) naming it.
-        meta: metadata of batch 1 or B, physical units.
+        meta: :class:`~camhealth.physics.CameraMetadata` of batch 1 or B, physical units (another type raises a
+            ``TypeError``).
         cache: optional dict that keeps (σ_DCSN, σ_RN) [DN] per distinct metadata row between calls (an
             inference loop that sees the same camera state on every frame integrates the readout noise
             once); at most 64 rows are kept. Another type raises a ``TypeError``.
@@ -78,6 +80,9 @@ def physics_prior_dn(image: torch.Tensor, meta: CameraMetadata, cache: dict | No
             as ``"no"`` raises a ``TypeError``).
     """
     check_patches(image, "image")
+    if not isinstance(meta, CameraMetadata):
+        raise TypeError(f"meta must be CameraMetadata (e.g. CameraMetadata.preset('ICX285') or "
+                        f"CameraMetadata.lookup(path)), got {type(meta).__name__} {meta!r:.60}")
     if cache is not None and not isinstance(cache, dict):
         raise TypeError(f"cache = {cache!r:.60} must be a dict or None, got {type(cache).__name__}")
     if not isinstance(clipping, (bool, np.bool_)):
@@ -126,6 +131,8 @@ def truncated_second_moment(u: torch.Tensor) -> torch.Tensor:
     """h(u) = E[z² | |z| < u] for z ~ N(0, 1): 1 − 2u·φ(u)/(2Φ(u) − 1), → u²/3 as u → 0 and 1 as u → ∞ (h(1) = 0.291,
     h(2) = 0.774, h(3) = 0.973; h(∞) = 1, h(u < 0) = h(0) = 0, NaN stays NaN). Elementwise, float64 inside, the input's
     dtype out (float64 for an integer input)."""
+    if not isinstance(u, torch.Tensor):
+        raise TypeError(f"u must be a torch.Tensor of real numbers, got {type(u).__name__} {u!r:.60}")
     # beyond u = 40 the tail 2u·φ(u) is below 1e-340, 0 in float64: h = 1 exactly (and ∞·e^−∞ gives no NaN)
     t = u.double().clamp(0.0, 40.0)
     tail = 2.0 * t * torch.exp(-0.5 * t * t) / math.sqrt(2.0 * math.pi) / torch.erf(t / math.sqrt(2.0)).clamp_min(1e-300)
@@ -230,7 +237,8 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
             [0, 1]) naming it.
         pn_slope: (B,) photon-noise variance per DN of signal, 255·g/FW [DN²/DN].
         dcsn_dn, rn_dn: (B,) dark-current and readout σ [DN] before clipping.
-        Each of the three holds 1 value (for every patch) or B; another count raises a ``ValueError`` naming it.
+        Each of the three holds 1 value (for every patch) or B, finite and ≥ 0; another count, NaN, ±inf or a negative
+        value raises a ``ValueError`` naming it.
 
     Returns (B, 4) float64.
     """
@@ -241,6 +249,9 @@ def clipped_prior_dn(image: torch.Tensor, pn_slope: torch.Tensor, dcsn_dn: torch
             raise TypeError(f"{name} must be a torch.Tensor of 1 or {b} values (one per patch), got {type(value).__name__}")
         if value.numel() not in (1, b):
             raise ValueError(f"{name} must hold 1 or {b} values (one per patch), got shape {tuple(value.shape)}")
+        if value.dtype == torch.bool or value.is_complex():
+            raise TypeError(f"{name} must hold real numbers, got dtype {value.dtype}")
+        check_range(value.detach(), name, 0.0, math.inf, "DN²/DN" if name == "pn_slope" else "DN")
     return _clipped_prior_dn(image, pn_slope, dcsn_dn, rn_dn)
 
 

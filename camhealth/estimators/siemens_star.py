@@ -64,7 +64,8 @@ from typing import Any, Sequence, Union
 import numpy as np
 import torch
 
-from camhealth._validation import check_image, check_range
+from camhealth._validation import check_image
+from camhealth.estimators._common import check_frequencies
 from camhealth.estimators.charts import siemens_star_geometry
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
@@ -304,7 +305,8 @@ class SiemensStarResult:
         mu, s: (B, 2) Gaussian parameters (in f_n) of the fitted CTF, H and V.
         noise_dn: (B,) noise σ [DN] of the reference corners (None when ``levels=`` was given: no corners read).
         rings_used: (B, 2) rings the fit used, H and V.
-        assessable: (B,) False where the noise hides the stripes (``reasons``); ``mtf`` is NaN there.
+        assessable: (B,) False where the noise hides the stripes, or where fewer than :data:`MIN_RINGS` rings lie in
+            the image in both sectors of H or V (``reasons``); ``mtf`` is NaN there.
         reasons: per image, "" or why it is not assessable.
     """
 
@@ -497,7 +499,10 @@ def _star_ctf(
     ctf_v = 0.5 * (ctf[..., 0] + ctf[..., 2 * q])  # sectors at 0° and 180°
     r_sum = torch.zeros(n_rings, dtype=torch.float64, device=dev).scatter_add_(0, ring, r[use])
     r_cnt = torch.zeros(n_rings, dtype=torch.float64, device=dev).scatter_add_(0, ring, torch.ones_like(r[use]))
-    r_mean = r_sum / r_cnt.clamp_min(1)
+    # a ring without a pixel (the star reaches beyond the image) keeps its nominal radius: its f_n stays finite, and
+    # the fit, which leaves its NaN CTF out, is not spoilt by an infinite frequency
+    nominal = r_lo + 0.5 + torch.arange(n_rings, dtype=torch.float64, device=dev)
+    r_mean = torch.where(r_cnt > 0, r_sum / r_cnt.clamp_min(1), nominal)
     fn = n_cycles / (math.pi * r_mean)
     count = torch.zeros(n_cells, dtype=torch.float64, device=dev).scatter_add_(0, cell, torch.ones_like(r[use]))
     count = count.reshape(n_rings, n_sectors)
@@ -527,8 +532,7 @@ def siemens_star_mtf(
         raise TypeError(f"aperture = {aperture!r:.40} must be True or False, got {type(aperture).__name__}")
     x = check_image(images, "images", channels=1, value_range=(0.0, 1.0))
     out_dtype = torch.float64 if x.dtype == torch.float64 else torch.float32
-    fq = torch.as_tensor(frequencies, dtype=torch.float64, device=x.device).reshape(-1)
-    check_range(fq, "frequencies", 0.0, 1.0, "× Nyquist")
+    fq = check_frequencies(frequencies, x.device)
     c = _star_ctf(x, **kwargs)
     fn, ctf_d = c.fn, c.ctf
     b = ctf_d.shape[0]
@@ -536,9 +540,20 @@ def siemens_star_mtf(
     if c.sigma is not None:
         ctf_d, used, ok, reasons = _noise_corrected(c)
         noise_dn = 255.0 * c.sigma
+    # rings measured in both sectors of a direction (the others lie beyond the image): too few leave nothing to fit
+    measured = torch.isfinite(c.ctf).sum(dim=-1)  # (B, 2)
+    for i in (measured.amin(dim=-1) < MIN_RINGS).nonzero()[:, 0].tolist():
+        ok[i] = False
+        reasons[i] = (f"only {int(measured[i].amin())} rings (H {int(measured[i, 0])}, V {int(measured[i, 1])}) lie in "
+                      f"the image in both sectors of their direction; at least {MIN_RINGS} are needed (check centre= "
+                      f"and radius=)")
     weight = fn.square()  # |df/dr| per 1-px ring ∝ f²: the sum approximates ∫ … df (Eq. 3.24)
     fit_ctf = torch.where(ok[:, None, None], ctf_d, torch.ones_like(ctf_d))  # (refused images: a placeholder fit)
     mu, s = gaussian_ctf_fit(fn, fit_ctf, weight)  # (B, 2)
+    unfit = ok & ~(torch.isfinite(mu) & torch.isfinite(s)).all(dim=-1)  # no NaN is ever returned as assessable
+    for i in unfit.nonzero()[:, 0].tolist():
+        ok[i] = False
+        reasons[i] = "the Gaussian fit of the CTF found no finite solution"
 
     def ctf_fn(f: torch.Tensor) -> torch.Tensor:  # f (F, K) → (B, 2, F, K)
         return torch.exp(-0.5 * ((f - mu[..., None, None]) / s[..., None, None]).square())

@@ -56,12 +56,16 @@ ROI (a near-horizontal edge); :func:`slanted_edge_mtf_hv` does that for the four
 from __future__ import annotations
 
 import math
+import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Sequence, Union
 
+import numpy as np
 import torch
 
-from camhealth._validation import check_choice, check_image, check_range
+from camhealth._validation import check_choice, check_image
+from camhealth.estimators._common import check_frequencies
 from camhealth.estimators.charts import slanted_edge_rois
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
@@ -354,12 +358,15 @@ def slanted_edge_mtf(
     """
     x = check_image(roi, "roi", channels=1, value_range=(0.0, 1.0))
     check_choice(window, "window", ("hamming", "tukey", "none"))
-    if isinstance(oversample, bool) or not isinstance(oversample, int) or not (1 <= oversample <= 16):
+    if (isinstance(oversample, (bool, np.bool_)) or not isinstance(oversample, numbers.Integral)
+            or not (1 <= oversample <= 16)):
         raise ValueError(f"oversample = {oversample!r} must be an int in [1, 16]")
+    oversample = int(oversample)
+    if not isinstance(aperture, (bool, np.bool_)):  # (a string such as "no" would read as true)
+        raise TypeError(f"aperture = {aperture!r:.40} must be True or False, got {type(aperture).__name__}")
     out_dtype = torch.float64 if x.dtype == torch.float64 else torch.float32
     dev = x.device
-    fn = torch.as_tensor(frequencies, dtype=torch.float64, device=dev).reshape(-1)
-    check_range(fn, "frequencies", 0.0, 1.0, "× Nyquist")
+    fn = check_frequencies(frequencies, dev)
     # the derivative and binning corrections (step 4) at Δ = 1/oversample: at 1× the derivative's sinc(2fΔ) reaches 0
     # at Nyquist; a frequency that needs more than MAX_CORRECTION (sfrmat's cap) is beyond what the ESF resolves
     f_cyc, delta_px = 0.5 * fn, 1.0 / oversample
@@ -491,19 +498,32 @@ def slanted_edge_mtf_hv(
         if x.shape[-1] != x.shape[-2]:
             raise ValueError(f"default ROIs need a square chart, got {x.shape[-2]}×{x.shape[-1]}; pass rois=")
         rois = slanted_edge_rois(x.shape[-1])
+    if not isinstance(rois, Mapping):
+        raise TypeError(f"rois must be a dict of the four edges left/right/top/bottom → (row0, row1, col0, col1), got "
+                        f"{type(rois).__name__}")
     missing = {"left", "right", "top", "bottom"} - set(rois)
     if missing:
         raise ValueError(f"rois must name the four edges left/right/top/bottom, missing {sorted(missing)}")
     b = x.shape[0]
 
     def crop(name: str) -> torch.Tensor:
-        r0, r1, c0, c1 = rois[name]
+        box = rois[name]
+        if (isinstance(box, (str, bytes)) or not isinstance(box, Sequence) or len(box) != 4
+                or not all(isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) for v in box)):
+            raise ValueError(f"roi {name} = {box!r:.60} must be four ints (row0, row1, col0, col1) [px]")
+        r0, r1, c0, c1 = (int(v) for v in box)
         if not (0 <= r0 < r1 <= x.shape[-2] and 0 <= c0 < c1 <= x.shape[-1]):
             raise ValueError(f"roi {name} = {rois[name]} lies outside the {x.shape[-2]}×{x.shape[-1]} chart")
         return x[:, :, r0:r1, c0:c1]
 
-    h_roi = torch.cat([crop("left"), crop("right")])
-    v_roi = torch.cat([crop("top"), crop("bottom")]).transpose(-1, -2)
-    mh = slanted_edge_mtf(h_roi, frequencies, aperture=aperture, **kwargs).mtf
-    mv = slanted_edge_mtf(v_roi, frequencies, aperture=aperture, **kwargs).mtf
-    return torch.cat([0.5 * (mh[:b] + mh[b:]), 0.5 * (mv[:b] + mv[b:])], dim=1)
+    def pair(first: torch.Tensor, second: torch.Tensor, transpose: bool) -> torch.Tensor:
+        """The mean MTF across two edges: ROIs of one size in one call, of two sizes in two."""
+        def mtf(r: torch.Tensor) -> torch.Tensor:
+            return slanted_edge_mtf(r.transpose(-1, -2) if transpose else r, frequencies, aperture=aperture, **kwargs).mtf
+
+        if first.shape == second.shape:
+            m = mtf(torch.cat([first, second]))
+            return 0.5 * (m[:b] + m[b:])
+        return 0.5 * (mtf(first) + mtf(second))
+
+    return torch.cat([pair(crop("left"), crop("right"), False), pair(crop("top"), crop("bottom"), True)], dim=1)

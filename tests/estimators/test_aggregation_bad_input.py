@@ -1,4 +1,5 @@
-"""Aggregation: out-of-range and mistyped ``dim``, NumPy integers, an empty frame axis."""
+"""Aggregation: out-of-range and mistyped ``dim``, NumPy integers, an empty frame axis, more estimates than
+``torch.nanquantile`` takes."""
 
 import numpy as np
 import pytest
@@ -58,3 +59,33 @@ def test_an_empty_frame_axis_says_no_frames(dtype):
         temporal_median(torch.zeros(0, 3, dtype=dtype), 1)
     with pytest.raises(ValueError, match="no frames"):
         uncertainty_by_window(torch.zeros(0, 3, dtype=dtype))
+
+
+def test_more_estimates_than_torch_quantile_takes_still_give_their_median():
+    """torch.nanquantile refuses a row of more than 2²⁴ values ("quantile() input tensor is too large"): the median of
+    a long recording's patches, pooled, raised that RuntimeError from deep inside torch."""
+    n = 2**24 + 3
+    x = torch.linspace(0.0, 1.0, n)
+    x[::4] = float("nan")
+    agg = spatial_median(x)
+    kept = x[~torch.isnan(x)].double()  # (ascending already)
+    m = kept.numel()
+    assert int(agg.count) == m
+    assert float(agg.median) == pytest.approx(0.5 * float(kept[(m - 1) // 2] + kept[m // 2]), abs=1e-7)
+    assert float(agg.low) == float(kept[0]) and float(agg.high) == float(kept[-1])
+    assert float(agg.spread) == pytest.approx(0.25 * 1.4826022185056018, rel=1e-4)  # MAD of a uniform: a quarter
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 11])
+def test_the_sorted_median_of_long_rows_is_torch_quantiles(monkeypatch, n):
+    """Rows longer than the limit are sorted instead: the same median (and NaN for a row without values)."""
+    import camhealth.estimators.aggregation as aggregation
+
+    w = torch.rand(4, n, generator=torch.Generator().manual_seed(n))
+    w[0] = float("nan")
+    w[1, 0] = float("nan")
+    ref = spatial_median(w)
+    monkeypatch.setattr(aggregation, "_QUANTILE_LIMIT", 0)
+    got = spatial_median(w)
+    for field in ("median", "spread", "low", "high", "count"):
+        torch.testing.assert_close(getattr(got, field), getattr(ref, field), equal_nan=True, atol=0, rtol=0)

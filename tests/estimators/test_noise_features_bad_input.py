@@ -1,6 +1,7 @@
 """The closed-form priors of camhealth.estimators.noise_features on arguments they used to read silently or crash
-on: DN-scaled or malformed images, per-patch metadata of the wrong length, flags given as strings, a cache that is
-no dict, and fixed sensor constants lost on the way to the noise model."""
+on: DN-scaled or malformed images, per-patch metadata of the wrong length, negative or non-finite, flags given as
+strings, a cache that is no dict, metadata that is no CameraMetadata, and fixed sensor constants lost on the way to the
+noise model."""
 
 import re
 
@@ -81,3 +82,30 @@ def test_metadata_from_matrix_refuses_constants_that_are_not_sensor_constants(co
     rows = torch.stack([getattr(CameraMetadata.preset("ICX285"), n).double() for n in FULL_FIELDS], 1)
     with pytest.raises(TypeError, match=r"constants must be SensorConstants or None, got"):
         metadata_from_matrix(rows, constants)
+
+
+@pytest.mark.parametrize("meta", ["ICX285", {"gain_db": 3.0}, None], ids=["preset name", "dict", "None"])
+def test_physics_prior_refuses_metadata_that_is_not_camera_metadata(meta):
+    """A preset name or a dict raised "'str' object has no attribute 'batch_size'"."""
+    with pytest.raises(TypeError, match=r"meta must be CameraMetadata .*got " + type(meta).__name__):
+        physics_prior_dn(_IMAGE, meta)
+
+
+@pytest.mark.parametrize("name", ["pn_slope", "dcsn_dn", "rn_dn"])
+@pytest.mark.parametrize("value, message", [(-1.0, r"= -1 .*out of the allowed range \[0, inf\]"),
+                                            (float("inf"), r"must be finite"), (float("nan"), r"must be finite")],
+                         ids=["negative", "inf", "NaN"])
+def test_clipped_prior_names_the_argument_that_is_not_a_finite_sigma(name, value, message):
+    """A negative σ was read as its absolute value, and NaN or ∞ was named "slope" or "offset" by the clipping model."""
+    args = {"pn_slope": _ONE, "dcsn_dn": _ONE, "rn_dn": _ONE, name: torch.tensor([value])}
+    with pytest.raises(ValueError, match=rf"{name} {message}"):
+        clipped_prior_dn(_IMAGE, **args)
+
+
+@pytest.mark.parametrize("u", [[1.0], 2.0, "1"])
+def test_truncated_second_moment_takes_tensors_only(u):
+    """A list or number raised "'list' object has no attribute 'double'"."""
+    from camhealth.estimators.noise_features import truncated_second_moment
+
+    with pytest.raises(TypeError, match=rf"u must be a torch.Tensor of real numbers, got {type(u).__name__}"):
+        truncated_second_moment(u)

@@ -1,8 +1,9 @@
 """The Siemens-star measurement and its charts on arguments they used to crash on or read silently: the star's
-geometry, the chart levels, the aperture flag, the Gaussian fit without samples, Coltman's series without terms and
-NumPy integer sizes."""
+geometry, the chart levels, the aperture flag, the Gaussian fit without samples, Coltman's series without terms,
+NumPy integer sizes, a star reaching beyond the image and frequencies that are no numbers."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -119,3 +120,32 @@ def test_star_geometry_checks_its_size(size, error, message):
 def test_star_geometry_checks_its_radius_fraction(radius_frac):
     with pytest.raises(ValueError, match=rf"radius_frac = {radius_frac!r} .*\(0, 0.5\]"):
         siemens_star_geometry(256, radius_frac)
+
+
+@pytest.mark.parametrize("levels", [None, (0.2, 0.8)], ids=["corners", "levels"])
+def test_a_star_whose_rings_lie_outside_the_image_is_not_assessable(levels):
+    """A star centred above the image (the lower part of a chart cropped off the frame): no ring lies in the image in
+    both of its H or V sectors. With the levels given its MTF was NaN and yet assessable, and its rings without a pixel
+    had f_n = ∞; without them the reason blamed the noise."""
+    chart = siemens_star_chart(512)[..., 300:, :]  # the centre, row 255.5, is 44.5 px above the crop
+    res = siemens_star_mtf(chart, centre=(-44.5, 255.5), radius=240.64, levels=levels)
+    assert not bool(res.assessable[0]) and torch.isnan(res.mtf).all()
+    assert re.fullmatch(r"only 0 rings \(H 0, V 0\) lie in the image in both sectors of their direction; at least 10 "
+                        r"are needed \(check centre= and radius=\)", res.reasons[0])
+    assert torch.isfinite(res.frequencies).all()
+
+
+def test_a_star_cut_by_the_image_border_is_read_from_the_rings_inside():
+    """The star's top cut off by the frame: the rings that lie in the image are read, as with the whole star."""
+    star = siemens_star_chart(512)
+    whole = siemens_star_mtf(star, levels=(0.2, 0.8))
+    cut = siemens_star_mtf(star[..., 100:, :], centre=(155.5, 255.5), radius=240.64, levels=(0.2, 0.8))
+    assert bool(cut.assessable[0]) and torch.isfinite(cut.mtf).all()
+    torch.testing.assert_close(cut.mtf, whole.mtf, atol=0.01, rtol=0)
+
+
+@pytest.mark.parametrize("frequencies", ["abc", [0.1, "x"], None, torch.tensor([True])])
+def test_frequencies_that_are_not_real_numbers_are_a_type_error(star, frequencies):
+    """A string raised torch's "new(): invalid data type 'str'"; a bool tensor was read as 0 and 1 × Nyquist."""
+    with pytest.raises(TypeError, match=r"frequencies must be real numbers in \[0, 1\] \(× Nyquist\), got"):
+        siemens_star_mtf(star, frequencies=frequencies)

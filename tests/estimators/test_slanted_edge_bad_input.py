@@ -1,7 +1,10 @@
-"""Slanted edge: the ROI named when no edge is found, and the SNR of each ROI."""
+"""Slanted edge: the ROI named when no edge is found, the SNR of each ROI, the aperture flag, a NumPy integer
+oversample, frequencies that are no numbers and the ROIs of slanted_edge_mtf_hv."""
 
 import math
+import re
 
+import numpy as np
 import pytest
 import torch
 
@@ -48,3 +51,74 @@ def test_the_snr_is_the_edge_step_over_the_noise(dtype, snr):
 def test_a_noiseless_edge_has_infinite_snr_and_is_not_flagged():
     r = slanted_edge_mtf(_edge(2))
     assert bool(torch.isinf(r.snr).all()) and not r.low_snr.any()
+
+
+@pytest.mark.parametrize("aperture", ["no", "False", 0, 1.0, None])
+def test_aperture_must_be_a_bool(aperture):
+    """A string such as "no" read as true and divided the pixel aperture out (as siemens_star_mtf refuses it)."""
+    from camhealth.estimators.charts import slanted_edge_chart
+    from camhealth.estimators.slanted_edge import slanted_edge_mtf_hv
+
+    with pytest.raises(TypeError, match=rf"aperture = {re.escape(repr(aperture))} must be True or False"):
+        slanted_edge_mtf(_edge(), aperture=aperture)
+    with pytest.raises(TypeError, match=r"aperture = .* must be True or False"):
+        slanted_edge_mtf_hv(slanted_edge_chart(128), aperture=aperture)
+
+
+def test_a_numpy_integer_oversample_is_an_int():
+    """np.int64(4) was refused as "oversample = 4 must be an int in [1, 16]"."""
+    roi = _edge(noise_dn=2.0)
+    torch.testing.assert_close(slanted_edge_mtf(roi, oversample=np.int64(4)).mtf, slanted_edge_mtf(roi, oversample=4).mtf,
+                               atol=0, rtol=0)
+    with pytest.raises(ValueError, match=r"oversample = .*17.* must be an int in \[1, 16\]"):
+        slanted_edge_mtf(roi, oversample=np.int64(17))
+
+
+@pytest.mark.parametrize("frequencies", ["abc", [0.1, "x"], None, torch.tensor([True])])
+def test_frequencies_that_are_not_real_numbers_are_a_type_error(frequencies):
+    with pytest.raises(TypeError, match=r"frequencies must be real numbers in \[0, 1\] \(× Nyquist\), got"):
+        slanted_edge_mtf(_edge(), frequencies=frequencies)
+
+
+def test_hv_rois_of_two_sizes_give_the_mean_of_each_edge():
+    """Left and right (or top and bottom) ROIs of different heights raised torch's "Sizes of tensors must match"."""
+    from camhealth.estimators.charts import slanted_edge_chart, slanted_edge_rois
+    from camhealth.estimators.slanted_edge import slanted_edge_mtf_hv
+
+    g = torch.Generator().manual_seed(3)
+    chart = (slanted_edge_chart(256) + 2.0 / 255 * torch.randn(2, 1, 256, 256, generator=g)).clamp(0, 1)
+    rois = slanted_edge_rois(256)
+    r0, r1, c0, c1 = rois["left"]
+    t0, t1, u0, u1 = rois["bottom"]
+    uneven = {**rois, "left": (r0 + 2, r1 - 1, c0, c1), "bottom": (t0, t1, u0 + 3, u1)}
+    got = slanted_edge_mtf_hv(chart, rois=uneven)
+
+    def mtf(box, transpose):
+        a, b, c, d = box
+        roi = chart[:, :, a:b, c:d]
+        return slanted_edge_mtf(roi.transpose(-1, -2) if transpose else roi, aperture=True).mtf
+
+    h = 0.5 * (mtf(uneven["left"], False) + mtf(uneven["right"], False))
+    v = 0.5 * (mtf(uneven["top"], True) + mtf(uneven["bottom"], True))
+    torch.testing.assert_close(got, torch.cat([h, v], dim=1), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("box, error, message", [
+    ((83.5, 173, 25, 103), ValueError, r"roi left = \(83\.5, 173, 25, 103\) must be four ints \(row0, row1, col0, col1\)"),
+    ((83, 173), ValueError, r"roi left = \(83, 173\) must be four ints"),
+    ("abcd", ValueError, r"roi left = 'abcd' must be four ints"),
+], ids=["float", "two", "str"])
+def test_hv_rois_that_are_not_four_ints_are_named(box, error, message):
+    from camhealth.estimators.charts import slanted_edge_chart, slanted_edge_rois
+    from camhealth.estimators.slanted_edge import slanted_edge_mtf_hv
+
+    with pytest.raises(error, match=message):
+        slanted_edge_mtf_hv(slanted_edge_chart(256), rois={**slanted_edge_rois(256), "left": box})
+
+
+def test_hv_rois_that_are_no_mapping_are_a_type_error():
+    from camhealth.estimators.charts import slanted_edge_chart
+    from camhealth.estimators.slanted_edge import slanted_edge_mtf_hv
+
+    with pytest.raises(TypeError, match=r"rois must be a dict of the four edges left/right/top/bottom .* got list"):
+        slanted_edge_mtf_hv(slanted_edge_chart(256), rois=["left", "right", "top", "bottom"])
