@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import sys
 import traceback
 from typing import Any, Callable, Sequence
 
 __all__ = [
-    "DEBUG_FLAG", "BadValue", "IntAtLeast", "add_debug_flag", "check_config_file", "config_action", "config_parser",
+    "DEBUG_FLAG", "BadValue", "FloatRange", "IntAtLeast", "IntRange", "add_debug_flag", "check_config_file", "config_action", "config_parser",
     "debugging", "one_line", "run_cli",
 ]
 
@@ -35,6 +36,62 @@ class BadValue(argparse.ArgumentTypeError, ValueError):
     """A value an option's ``type`` refuses, with a message naming it. On the command line argparse prints the message
     as it is (``argument --x: <message>``); from a ``--config`` file jsonargparse's check catches it as a
     ``ValueError`` (``Parser key "x": <message>``): either way one line and exit status 2, never a traceback."""
+
+
+class IntRange:
+    """Option type: an integer in [lo, hi] (a config file's ``true`` or ``2.5`` is none), else :class:`BadValue` naming
+    the value and the range, ``must be >= 1, got 0 (allowed: 1 … 64)``. Its ``repr`` (``int in [1, 64]``) is what
+    ``--help`` shows as the type."""
+
+    def __init__(self, lo: int, hi: int, hi_name: str | None = None) -> None:
+        self.lo, self.hi, self.hi_name = lo, hi, hi_name  # hi_name: how ``--help`` names hi (a machine's own bound)
+
+    def __call__(self, value: Any) -> int:
+        allowed = f"(allowed: {self.lo} … {self.hi})"
+        try:
+            if isinstance(value, (bool, float)):
+                raise ValueError
+            n = int(value)
+        except (TypeError, ValueError):
+            raise BadValue(f"must be an integer, got {value!r} {allowed}") from None
+        if n < self.lo:
+            raise BadValue(f"must be >= {self.lo}, got {n} {allowed}")
+        if n > self.hi:
+            raise BadValue(f"must be <= {self.hi}, got {n} {allowed}")
+        return n
+
+    def __repr__(self) -> str:
+        return f"int in [{self.lo}, {self.hi if self.hi_name is None else self.hi_name}]"
+
+
+class FloatRange:
+    """Option type: a finite number in (lo, hi] (``lo_open``, the default) or [lo, hi], else :class:`BadValue` naming
+    the value and the range. Its ``repr`` is what ``--help`` shows as the type."""
+
+    def __init__(self, lo: float, hi: float, lo_open: bool = True, unit: str = "") -> None:
+        self.lo, self.hi, self.lo_open, self.unit = lo, hi, lo_open, unit
+
+    def _allowed(self) -> str:
+        return f"(allowed: {'>' if self.lo_open else '>='} {self.lo:g} … {self.hi:g}{self.unit})"
+
+    def __call__(self, value: Any) -> float:
+        try:
+            if isinstance(value, bool):
+                raise ValueError
+            x = float(value)
+        except (TypeError, ValueError):
+            raise BadValue(f"must be a number, got {value!r} {self._allowed()}") from None
+        typed = value.strip() if isinstance(value, str) else f"{x:g}"  # (the value as it was written)
+        if not math.isfinite(x):
+            raise BadValue(f"must be a finite number, got {typed} {self._allowed()}")
+        if x < self.lo or (self.lo_open and x == self.lo):
+            raise BadValue(f"must be {'>' if self.lo_open else '>='} {self.lo:g}, got {typed} {self._allowed()}")
+        if x > self.hi:
+            raise BadValue(f"must be <= {self.hi:g}, got {typed} {self._allowed()}")
+        return x
+
+    def __repr__(self) -> str:
+        return f"float in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]"
 
 
 class IntAtLeast:

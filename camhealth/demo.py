@@ -38,7 +38,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from camhealth._cli import BadValue, IntAtLeast, add_debug_flag, config_parser, run_cli
+from camhealth._cli import BadValue, IntAtLeast, IntRange, add_debug_flag, config_parser, run_cli
 
 __all__ = ["main", "run_closed_loop", "parse_slice"]
 
@@ -383,18 +383,6 @@ REPEATS_MAX = 1000
 THREADS_MAX = 4 * (os.cpu_count() or 1)
 
 
-def _bounded(lo: int, hi: int):
-    """Option type: an integer in [lo, hi], else :class:`BadValue` naming the value and the range."""
-
-    def parse(value: Any) -> int:
-        n = IntAtLeast(lo)(value)
-        if n > hi:
-            raise BadValue(f"must be ≤ {hi}, got {n} (allowed: {lo} … {hi})")
-        return n
-
-    return parse
-
-
 #: The demos: subcommand → the function that runs it on its options.
 DEMOS: dict[str, Any] = {}
 
@@ -429,10 +417,10 @@ def build_parser():
                    help="rescale σ̂ to the IOPC frames' brightness before the look-up (extension, see IOPCController)")
     c.add_argument("--min-gain", type=float, default=0.01, help="smallest expected AP gain for a change")
     c.add_argument("--pseudo-score", type=float, default=0.6, help="pseudo ground-truth score threshold")
-    c.add_argument("--seed", type=_bounded(0, SEED_MAX), default=0, help="noise seed of the first repeat, 0…2**32 − 1")
-    c.add_argument("--repeats", type=_bounded(1, REPEATS_MAX), default=1,
+    c.add_argument("--seed", type=IntRange(0, SEED_MAX), default=0, help="noise seed of the first repeat, 0…2**32 − 1")
+    c.add_argument("--repeats", type=IntRange(1, REPEATS_MAX), default=1,
                    help=f"runs with noise seeds seed, seed+1, … (AP mean ± std), 1…{REPEATS_MAX}")
-    c.add_argument("--threads", type=_bounded(1, THREADS_MAX), default=None,
+    c.add_argument("--threads", type=IntRange(1, THREADS_MAX, "4 × the CPU count"), default=None,
                    help="torch threads, 1…4 × the CPU count (default: torch's)")
     c.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     sub.add_subcommand("closed-loop", c, help="fixed vs auto-exposure vs IOPC policy on a simulated camera")

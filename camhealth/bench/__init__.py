@@ -6,19 +6,42 @@ Each benchmark is a module registered in :data:`BENCHMARKS` (name → module pat
 * ``add_arguments(parser)`` — its own options (the common ones are added by the CLI);
 * ``run(args) -> BenchResult`` — the measurement.
 
+and optionally
+
+* ``check_options(args)`` — its checks of the options against each other (an option the chosen task or mode does not
+  read, a count too large for the other options), a ``ValueError`` naming the option, the value and what is allowed;
+  the CLI calls it before any output file is checked or the benchmark starts (:func:`check_options`).
+
 Add a benchmark (e.g. ``estimators``, ``data``) by writing such a module and adding one line here. The
-table formatting (plain text and markdown) is shared.
+table formatting (plain text and markdown) is shared, and so are the option types with a range (:class:`IntRange`,
+:class:`FloatRange`) and the refusal of options a task ignores (:func:`refuse_unread`).
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import math
+import os
 import statistics
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import Sequence
+from typing import Any, Callable, Iterable, Sequence
 
-__all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_table", "add_allocator_argument", "apply_allocator"]
+from camhealth._cli import BadValue, FloatRange, IntRange
+
+__all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_table", "add_allocator_argument", "apply_allocator",
+           "IntRange", "FloatRange", "check_count", "check_options", "refuse_unread", "shown", "option_defaults",
+           "option_message", "check_device_option", "SEED_MAX", "THREADS_MAX", "BATCH_MAX", "SIZE_MAX", "REPEATS_MAX",
+           "WARMUP_MAX"]
+
+#: Largest ``--seed``: the benchmarks' generators take seeds (and seeds derived from them) below 2**32.
+SEED_MAX = 2**32 - 1
+#: Largest ``--threads``: more torch threads than this only oversubscribes the CPU (and a huge count crashed torch).
+THREADS_MAX = 4 * (os.cpu_count() or 1)
+#: Largest ``--batch``, ``--size``, ``--repeats`` and ``--warmup``: generous, far beyond any table of the docs, short
+#: of runs that would take days or all the memory. ``SIZE_MAX`` also bounds the benchmarks' own patch sizes.
+BATCH_MAX, SIZE_MAX, REPEATS_MAX, WARMUP_MAX = 4096, 4096, 100_000, 10_000
 
 #: Registered benchmarks: CLI name → module implementing ``HELP``, ``add_arguments`` and ``run``.
 BENCHMARKS: dict[str, str] = {
@@ -41,6 +64,78 @@ def load(name: str) -> ModuleType:
     if name not in BENCHMARKS:
         raise ValueError(f"unknown benchmark {name!r}; known: {sorted(BENCHMARKS)}")
     return importlib.import_module(BENCHMARKS[name])
+
+
+def check_count(option: str, value: Any, lo: int, hi: int, why_lo: str = "") -> None:
+    """``ValueError`` naming ``option`` and ``value`` where it is no integer in [lo, hi] (``why_lo``: the reason for
+    ``lo``, written after it): ``--frames must be >= 1, got 0 (allowed: 1 … 1000)``."""
+    allowed = f"(allowed: {lo} … {hi})"
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{option} must be an integer, got {value!r} {allowed}")
+    if value < lo:
+        raise ValueError(f"{option} must be >= {lo}{why_lo}, got {value} {allowed}")
+    if value > hi:
+        raise ValueError(f"{option} must be <= {hi}, got {value} {allowed}")
+
+
+def check_options(args) -> None:
+    """Run ``check_options(args)`` of the module of benchmark ``args.benchmark``, where it has one (module docstring)."""
+    check = getattr(load(args.benchmark), "check_options", None)
+    if check is not None:
+        check(args)
+
+
+def shown(value: Any) -> str:
+    """An option's value as it is typed: list items separated by blanks, numbers without a trailing ``.0``."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(shown(v) for v in value)
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
+
+
+def option_defaults(add_arguments: Callable[[argparse.ArgumentParser], None]) -> dict[str, tuple[str, Any]]:
+    """``dest → (option, default)`` of every option that ``add_arguments`` adds (the defaults its parser gives)."""
+    parser = argparse.ArgumentParser(add_help=False)
+    add_arguments(parser)
+    defaults = vars(parser.parse_args([]))
+    return {a.dest: (a.option_strings[0], defaults[a.dest]) for a in parser._actions if a.option_strings}
+
+
+def refuse_unread(args, add_arguments: Callable[[argparse.ArgumentParser], None], reads: Iterable[str],
+                  where: str) -> None:
+    """``ValueError`` naming the first option of ``add_arguments`` that is set away from its default in ``args`` while
+    ``where`` (``--task jpeg``, …) does not read it (``reads``: the destinations it reads): the table's header would
+    record the option as if it had been used. An attribute ``args`` lacks counts as the default (``run`` called
+    directly with a namespace of the options it reads)."""
+    reads = set(reads)
+    for dest, (option, default) in option_defaults(add_arguments).items():
+        if dest in reads or not hasattr(args, dest):
+            continue
+        value = getattr(args, dest)
+        if value != default:
+            what = option if isinstance(default, bool) else f"{option} {shown(value)}".rstrip()
+            raise ValueError(f"{what} is not used by {where}; leave it out")
+
+
+def option_message(exc: BaseException, name: str, option: str, value: Any) -> str:
+    """``exc``'s message with the parameter ``name`` (``name = 'x'``, ``name='x'``, ``name='cpu'``) written as the
+    option is typed (``option x``): what a library function says about an argument, said of the command line's option."""
+    text = str(exc)
+    for v in dict.fromkeys((value, "cpu")):
+        text = text.replace(f"{name} = {v!r}", f"{option} {v}").replace(f"{name}={v!r}", f"{option} {v}")
+    return text
+
+
+def check_device_option(device: Any, option: str = "--device") -> None:
+    """``ValueError`` naming ``option`` and its value where ``device`` is no device of this machine
+    (:func:`camhealth.inference.check_device`), before any work."""
+    from camhealth.inference import check_device
+
+    try:
+        check_device(device)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(option_message(exc, "device", option, device)) from None
 
 
 def add_allocator_argument(parser) -> None:

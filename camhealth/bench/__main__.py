@@ -9,7 +9,9 @@ the whole command: the benchmark's options nested under its name, as LightningCL
 ``--opt value``, the options' order and ``--markdown`` do not matter), so a page's tables are regenerated in place
 by the commands they name (:mod:`camhealth.docs`). Options are written in full (``--doc`` for ``--docs`` is an
 error), and a ``--docs`` file that cannot be written (a folder, a missing folder, a page whose generated blocks do not
-parse) is refused before the benchmark runs."""
+parse) is refused before the benchmark runs. So is a value out of its option's range and an option the chosen
+benchmark, task or mode does not read (the table's header would record it as used): one line naming the option, the
+value and what is allowed (the benchmark's ``check_options``, :func:`camhealth.bench.check_options`)."""
 
 from __future__ import annotations
 
@@ -21,22 +23,15 @@ from pathlib import Path
 from typing import Sequence
 
 from camhealth._cli import BadValue, add_debug_flag, config_parser, run_cli
-from camhealth.bench import BENCHMARKS, format_table, load
+from camhealth.bench import (  # noqa: F401 - (the bounds of the common options, defined with the benchmarks' own)
+    BATCH_MAX, BENCHMARKS, REPEATS_MAX, SEED_MAX, SIZE_MAX, THREADS_MAX, WARMUP_MAX, check_options, format_table, load,
+)
 
 
 def _integer(value: str | int) -> int:
     if isinstance(value, (bool, float)):  # (a config file's true or 2.5 is no count)
         raise BadValue(f"must be an integer, got {value!r}")
     return int(value)
-
-
-#: Largest ``--seed``: the benchmarks' generators take seeds (and seeds derived from them) below 2**32.
-SEED_MAX = 2**32 - 1
-#: Largest ``--threads``: more torch threads than this only oversubscribes the CPU (and a huge count crashed torch).
-THREADS_MAX = 4 * (os.cpu_count() or 1)
-#: Largest ``--batch``, ``--size``, ``--repeats`` and ``--warmup``: generous, far beyond any table of the docs, short
-#: of runs that would take days or all the memory.
-BATCH_MAX, SIZE_MAX, REPEATS_MAX, WARMUP_MAX = 4096, 4096, 100_000, 10_000
 
 
 def _bounded(lo: int, hi: int):
@@ -173,6 +168,8 @@ def parse(argv: Sequence[str] | None = None):
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse(argv)
+    # the benchmark's checks of its options against each other (an option its task does not read, …), before anything
+    check_options(args)
     # shlex.join: an argument with a blank or a quote is written so the command parses back as the same words
     args.command_line = "python -m camhealth.bench " + shlex.join(_without_docs(sys.argv[1:] if argv is None else argv))
     # every output is checked now, not after a benchmark of minutes

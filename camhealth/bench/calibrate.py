@@ -35,21 +35,53 @@ import time
 
 import torch
 
-from camhealth.bench import BenchResult, Row
+from camhealth.bench import BenchResult, Row, check_count
 
 HELP = "recovery errors (full well, read noise, dark current) and time of camhealth.calibrate; noise RMS with calibrated vs true metadata"
 
 DATASHEET = ("pixel_size_um", "pixel_clock_hz", "sense_node_gain_v_per_e", "is_cmos")
 
 
+#: Largest ``--sensors``: 10× the default 10. The run takes ≈ 5 min on one thread for the default 12 cameras, so 102
+#: take ≈ 45 min.
+SENSORS_MAX = 100
+#: Largest ``--frames`` (per set): 5× the default 20. The 24 sets of a camera are made before its calibration, 24 ×
+#: frames × frame-size² float32: 100 frames of 512 px ≈ 2.3 GiB (and ≈ 5× the default's time).
+FRAMES_MAX = 100
+#: Largest ``--frame-size`` [px]: twice the default 512 (4× its pixels): 24 sets × 20 frames of 1024² float32
+#: ≈ 1.9 GiB a camera, ≈ 4× the default's time.
+FRAME_SIZE_MAX = 1024
+#: Largest ``--patches`` (128-px dead-leaves patches per camera): 32× the default 32.
+PATCHES_MAX = 1024
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sensors", type=int, default=10, help="random cameras besides the two presets (default 10)")
-    parser.add_argument("--frames", type=int, default=20, help="frames per set (default 20)")
+    parser.add_argument("--sensors", type=int, default=10,
+                        help=f"random cameras besides the two presets, 0…{SENSORS_MAX} (default 10)")
+    parser.add_argument("--frames", type=int, default=20, help=f"frames per set, 4…{FRAMES_MAX} (default 20)")
     parser.add_argument("--frame-size", type=int, default=512,
-                        help="frame side in px (default 512: smaller frames resolve a weak dark current to worse than 3 %%)")
+                        help=f"frame side in px, 16…{FRAME_SIZE_MAX} (default 512: smaller frames resolve a weak dark current "
+                             "to worse than 3 %%)")
     parser.add_argument("--variants", default="sequential_clip,whole_electrons",
                         help="sensor_variants of the second simulator, comma-separated ('' for none: skip it)")
-    parser.add_argument("--patches", type=int, default=32, help="noise patches per camera for the RMS comparison (default 32)")
+    parser.add_argument("--patches", type=int, default=32,
+                        help=f"noise patches per camera for the RMS comparison, 2…{PATCHES_MAX} (default 32)")
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """``ValueError`` naming the option and its value: a count out of its range (:data:`SENSORS_MAX`,
+    :data:`FRAMES_MAX`, :data:`FRAME_SIZE_MAX`, :data:`PATCHES_MAX`) and an unknown name in ``--variants``."""
+    check_count("--frames", args.frames, 4, FRAMES_MAX, " (the calibration's minimum per set)")
+    check_count("--frame-size", args.frame_size, 16, FRAME_SIZE_MAX)
+    check_count("--sensors", args.sensors, 0, SENSORS_MAX)
+    check_count("--patches", args.patches, 2, PATCHES_MAX)
+    variants = tuple(v for v in args.variants.split(",") if v.strip())
+    if variants:
+        from camhealth.bench.sensor_variants import VARIANTS
+
+        bad = [v for v in variants if v not in VARIANTS]
+        if bad:
+            raise ValueError(f"--variants {args.variants}: unknown variant(s) {bad}; choose from {list(VARIANTS)}")
 
 
 def _cameras(n: int, seed: int):
@@ -105,18 +137,12 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load, machine_description
     from camhealth.calibrate import Protocol, calibrate, synthetic_sets
 
-    if args.frames < 4:
-        raise ValueError(f"--frames must be >= 4 (the calibration's minimum per set), got {args.frames}")
-    if args.frame_size < 16 or args.sensors < 0 or args.patches < 2:
-        raise ValueError("--frame-size must be >= 16, --sensors >= 0 and --patches >= 2")
+    check_options(args)
     variants = tuple(v for v in args.variants.split(",") if v.strip())
     sims = {"form_image": None}
     if variants:
-        from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
+        from camhealth.bench.sensor_variants import simulate_variant
 
-        bad = [v for v in variants if v not in VARIANTS]
-        if bad:
-            raise ValueError(f"unknown variant(s) {bad}; choose from {list(VARIANTS)}")
         sims["+".join(variants)] = lambda clean, meta, g: simulate_variant(clean, meta, variants, generator=g)[0]
     load_before = _load()
     protocol = Protocol()

@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from camhealth.bench import BenchResult, Row, timing_stats
+from camhealth.bench import BenchResult, Row, check_count, timing_stats
 
 HELP = "cold start of the monitor: a fresh process to its first report (imports, model loading, kernel warm-up)"
 
@@ -78,6 +78,11 @@ def resolve_source(value: str) -> str:
     return str(path.resolve())
 
 
+#: Most ``--repeats`` here (the common bound is for calls of milliseconds): 40× the docs' 5. A repeat starts four fresh
+#: interpreters, ≈ 4 s on the docs' machine, so 200 take ≈ 13 min.
+REPEATS_MAX = 200
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", type=resolve_source, default="street",
                         help="an image file (relative to the current folder), or 'street' (default: the embedded "
@@ -88,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(repeats=DEFAULT_REPEATS)
     for action in parser._actions:
         if action.dest == "repeats":
-            action.help = f"fresh processes per row (default {DEFAULT_REPEATS})"
+            action.help = f"fresh processes per row, 1…{REPEATS_MAX} (default {DEFAULT_REPEATS})"
 
 
 def _env() -> dict[str, str]:
@@ -124,7 +129,13 @@ def _frame_expr(source: str) -> str:
     return f"__import__('camhealth.data.io', fromlist=['read_image']).read_image({source!r})"
 
 
+def check_options(args: argparse.Namespace) -> None:
+    """``ValueError`` naming ``--repeats`` and its value where it is more than :data:`REPEATS_MAX` fresh processes."""
+    check_count("--repeats", args.repeats, 1, REPEATS_MAX)
+
+
 def run(args: argparse.Namespace) -> BenchResult:
+    check_options(args)
     repeats = args.repeats
     try:
         source = resolve_source(args.source)  # (the parser did this already; run() may be called with a namespace)

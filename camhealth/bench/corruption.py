@@ -33,8 +33,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from camhealth._cli import IntAtLeast
-from camhealth.bench import BenchResult, Row, add_allocator_argument, apply_allocator
+from camhealth.bench import BATCH_MAX, BenchResult, IntRange, Row, add_allocator_argument, apply_allocator
 from camhealth.bench.reference_loop import N_FREQUENCIES, corrupt_batch, params_from_torch, source_follower_sigma_e_loop
 
 HELP = "ms per batch of the camhealth corruption modules vs Kornia and a per-image NumPy/SciPy loop"
@@ -53,15 +52,24 @@ TARGET_RATIO_TO_KORNIA = 2.0
 TARGET_SPEEDUP_VS_LOOP = 20.0
 
 
+#: Largest ``--loop-repeats``: 33× the default 3 (each repeat runs the pure-Python per-image loop on the loop images).
+LOOP_REPEATS_MAX = 100
+#: Largest ``--sf-frequencies``: ≈ 67× the default 15 000. The σ_SF loop is pure Python, ≈ 0.4 µs a frequency, run twice
+#: per loop image and repeat: 10**6 frequencies are ≈ 0.8 s per image and repeat.
+SF_FREQUENCIES_MAX = 1_000_000
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     # counts ≥ 1, refused when parsed (exit status 2): 0 frequencies divided by zero after the whole run, a negative
-    # count gave a σ_SF loop of no frequencies (σ_SF = 0) and 0 or negative loop images silently became 1
-    parser.add_argument("--loop-images", type=IntAtLeast(1), default=4,
-                        help="images the reference loop is timed on, ≥ 1 (default 4; at most --batch are used)")
-    parser.add_argument("--loop-repeats", type=IntAtLeast(1), default=3, help="timed repeats of the loop rows, ≥ 1 (default 3)")
+    # count gave a σ_SF loop of no frequencies (σ_SF = 0) and 0 or negative loop images silently became 1; each bounded
+    # (--loop-images by --batch's bound: at most --batch images are used)
+    parser.add_argument("--loop-images", type=IntRange(1, BATCH_MAX), default=4,
+                        help=f"images the reference loop is timed on, 1…{BATCH_MAX} (default 4; at most --batch are used)")
+    parser.add_argument("--loop-repeats", type=IntRange(1, LOOP_REPEATS_MAX), default=3,
+                        help=f"timed repeats of the loop rows, 1…{LOOP_REPEATS_MAX} (default 3)")
     parser.add_argument(
-        "--sf-frequencies", type=IntAtLeast(1), default=N_FREQUENCIES,
-        help=f"length of the σ_SF loop, ≥ 1 (default {N_FREQUENCIES})"
+        "--sf-frequencies", type=IntRange(1, SF_FREQUENCIES_MAX), default=N_FREQUENCIES,
+        help=f"length of the σ_SF loop, 1…{SF_FREQUENCIES_MAX} (default {N_FREQUENCIES})"
     )
     add_allocator_argument(parser)
 

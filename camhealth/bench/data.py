@@ -21,8 +21,7 @@ import time
 
 import torch
 
-from camhealth._cli import IntAtLeast
-from camhealth.bench import BenchResult, Row, add_allocator_argument, apply_allocator
+from camhealth.bench import SIZE_MAX, THREADS_MAX, BenchResult, IntRange, Row, add_allocator_argument, apply_allocator
 
 HELP = "patches/s delivered by NoiseDataModule and BlurDataModule (loading + on-the-fly corruption)"
 
@@ -31,10 +30,14 @@ NOISE_TRAIN = "NoiseDataModule train"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", default="default", help="image source spec (default: the embedded images)")
-    parser.add_argument("--workers", type=IntAtLeast(0), default=0, help="DataLoader workers, ≥ 0 (default 0)")
-    parser.add_argument("--noise-patch", type=IntAtLeast(1), default=128, help="noise patch size in px, ≥ 1 (default 128)")
-    parser.add_argument("--blur-patch", type=IntAtLeast(69), default=192,
-                        help="blur patch size in px, ≥ 69 (2 × the 35-px kernel − 1; default 192)")
+    # --workers: at most 4 × the CPU count, as --threads (each worker is a process with its own copy of the sources;
+    # more only oversubscribes the CPU); the patch sizes: at most the common --size's bound
+    parser.add_argument("--workers", type=IntRange(0, THREADS_MAX), default=0,
+                        help="DataLoader workers, 0…4 × the CPU count (default 0)")
+    parser.add_argument("--noise-patch", type=IntRange(1, SIZE_MAX), default=128,
+                        help=f"noise patch size in px, 1…{SIZE_MAX} (default 128)")
+    parser.add_argument("--blur-patch", type=IntRange(69, SIZE_MAX), default=192,
+                        help=f"blur patch size in px, 69…{SIZE_MAX} (69: 2 × the 35-px kernel − 1; default 192)")
     add_allocator_argument(parser)
 
 

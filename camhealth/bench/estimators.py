@@ -30,22 +30,40 @@ from typing import Any
 
 import torch
 
-from camhealth.bench import BenchResult, Row
+from camhealth.bench import BenchResult, IntRange, Row, check_device_option, option_defaults, option_message, refuse_unread
 
 HELP = "held-out accuracy and ms/patch of the learned estimators vs a thesis-size reference network"
 REFERENCE = "thesis-size noise net (16×64 full-res, fp32)"
 
 
+#: Largest ``--per-image``: 16× the default 16. The noise set's test split holds 11 images at the default --deadleaves
+#: (176 crops at 16): 256 crops each are ≈ 2800 patches of 128² float32 (≈ 0.2 GiB; the MTF set's are 192²), and
+#: every estimator reads all of them.
+PER_IMAGE_MAX = 256
+#: Largest ``--deadleaves``: ≈ 17× the configs' 60. Each is a 256² image rendered when the noise set is made, and ≈ 15 %
+#: of them are test images (``--per-image`` crops each: ≈ 150 × 256 crops ≈ 2.4 GiB at both bounds).
+DEADLEAVES_MAX = 1000
+#: The largest blur size of ``--sizes`` [px]: the largest of the MTF test set's DataModule (``BlurDataModule``).
+BLUR_SIZE_MAX = 63.0
+#: Options read only with a noise estimator (the noise set) and only with an MTF estimator (the MTF set).
+NOISE_ONLY = ("deadleaves", "xi_fields", "split_floor")
+MTF_ONLY = ("sizes", "mtf_views")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", nargs="*", default=None, help="shipped model names (default: all shipped)")
     parser.add_argument("--checkpoint", action="append", default=[], help="extra model file (.pt/.ckpt/.pt2/.onnx); repeatable")
-    parser.add_argument("--per-image", type=int, default=16, help="held-out crops per test image (default 16)")
+    parser.add_argument("--per-image", type=IntRange(1, PER_IMAGE_MAX), default=16,
+                        help=f"held-out crops per test image, 1…{PER_IMAGE_MAX} (default 16)")
     parser.add_argument(
         "--mtf-views", type=int, nargs="+", default=[1], choices=(1, 2, 4),
         help="for MTF models, also rows with the estimates of 2 or 4 flipped copies averaged (Estimator.predict views=); default 1",
     )
-    parser.add_argument("--sizes", type=float, nargs=2, default=[3.0, 21.0], help="blur size range of the MTF test set, px")
-    parser.add_argument("--deadleaves", type=int, default=60, help="dead-leaves images added to the default source of the noise set (as in the noise configs)")
+    parser.add_argument("--sizes", type=float, nargs=2, default=[3.0, 21.0], metavar=("LOW", "HIGH"),
+                        help=f"blur size range of the MTF test set, px, 0 ≤ LOW ≤ HIGH ≤ {BLUR_SIZE_MAX:g} (default 3 21)")
+    parser.add_argument("--deadleaves", type=IntRange(0, DEADLEAVES_MAX), default=60,
+                        help=f"dead-leaves images added to the default source of the noise set (as in the noise configs), "
+                             f"0…{DEADLEAVES_MAX} (default 60)")
     from camhealth.physics.metadata import FULL_FIELDS
 
     parser.add_argument(
@@ -248,15 +266,48 @@ def _time_round_robin(fns, repeats: int, warmup: int) -> list[list[float]]:
     return times
 
 
-def run(args: argparse.Namespace) -> BenchResult:
+def check_options(args: argparse.Namespace) -> None:
+    """``ValueError`` naming the option and its value: ``--sizes LOW HIGH`` outside 0 ≤ LOW ≤ HIGH ≤
+    :data:`BLUR_SIZE_MAX` px, and a ``--device`` that is no device of this machine (the DataModule and the loader
+    would name their own parameters, ``size_range`` and ``device``)."""
+    low, high = (float(v) for v in args.sizes)
+    if not 0.0 <= low <= high <= BLUR_SIZE_MAX:
+        raise ValueError(f"--sizes {low:g} {high:g} must satisfy 0 ≤ LOW ≤ HIGH ≤ {BLUR_SIZE_MAX:g} px (the blur size range "
+                         "of the MTF test set)")
+    check_device_option(getattr(args, "device", "cpu"))
+
+
+def _load_estimators(args: argparse.Namespace) -> list:
+    """The estimators of ``--models`` (default: every shipped one) and ``--checkpoint``; a name or file that cannot be
+    loaded is a ``ValueError`` naming the option."""
     from camhealth.inference import PHYSICS_NOISE_MODEL, load_estimator, shipped_models
+
+    models = list(args.models) if args.models is not None else sorted([*shipped_models(), PHYSICS_NOISE_MODEL])
+    names = [("--models", n) for n in models]
+    out = []
+    for option, name in names + [("--checkpoint", p) for p in args.checkpoint]:
+        try:
+            out.append(load_estimator(name, device=args.device))
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{option} {name}: {option_message(exc, 'device', '--device', args.device)}") from None
+    return out
+
+
+def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.nets import ThesisNoiseNet, count_flops
 
-    names = list(args.models) if args.models is not None else sorted([*shipped_models(), PHYSICS_NOISE_MODEL])
-    estimators = [load_estimator(n, device=args.device) for n in names] + [load_estimator(p, device=args.device)
-                                                                           for p in args.checkpoint]
+    check_options(args)
+    estimators = _load_estimators(args)
     if not estimators:
         raise SystemExit("no estimators: ship weights under camhealth/weights/ or pass --checkpoint")
+    # an option of the noise set without a noise estimator, or of the MTF set without an MTF one, is read by nothing
+    kinds = {"mtf" if e.kind == "mtf" else "noise" for e in estimators}
+    for kind, only in (("noise", NOISE_ONLY), ("MTF", MTF_ONLY)):
+        if kind.lower() not in kinds:
+            given = ([" ".join(["--models", *args.models])] if args.models is not None else []) + \
+                    [f"--checkpoint {p}" for p in args.checkpoint]
+            refuse_unread(args, add_arguments, set(option_defaults(add_arguments)) - set(only),
+                          f"{' '.join(given) or 'the shipped estimators'} (no {kind} estimator among them)")
     noise_data = held_out_noise(args) if any(e.kind != "mtf" for e in estimators) else None
     blur_data = held_out_blur(args) if any(e.kind == "mtf" for e in estimators) else None
     b = args.batch

@@ -126,15 +126,22 @@ def compare(rows: Sequence[str], threads: int = 1, min_run_time: float = 1.0) ->
     return out
 
 
+#: Largest ``--min-run-time`` [s]: 30× the default 1 s. Every case times two calls for at least this long (15 cases
+#: with every row), so 30 s is ≈ 15 min of timing.
+MIN_RUN_TIME_MAX = 30.0
+
+
 def main(argv: Sequence[str] | None = None) -> list[dict]:
+    from camhealth.bench import THREADS_MAX, FloatRange, IntRange
+
     p = config_parser(prog="python -m camhealth.bench.library_reuse", description=__doc__.split("\n\n")[0])
     p.add_argument("--rows", nargs="+", choices=sorted(ROWS), default=sorted(ROWS), help="which comparisons (default all)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads of the timed calls (default 1)")
-    p.add_argument("--min-run-time", type=float, default=1.0, help="seconds per Timer.blocked_autorange (default 1)")
+    p.add_argument("--threads", type=IntRange(1, THREADS_MAX, "4 × the CPU count"), default=1,
+                   help="torch threads of the timed calls, 1…4 × the CPU count (default 1)")
+    p.add_argument("--min-run-time", type=FloatRange(0.0, MIN_RUN_TIME_MAX, unit=" s"), default=1.0,
+                   help=f"seconds per Timer.blocked_autorange, > 0 … {MIN_RUN_TIME_MAX:g} (default 1)")
     add_debug_flag(p)
     args = p.parse_args(argv)
-    if args.threads < 1 or args.min_run_time <= 0:
-        p.error(f"--threads = {args.threads} must be ≥ 1 and --min-run-time = {args.min_run_time} > 0")
     results = compare(args.rows, args.threads, args.min_run_time)
     print(f"| case | camhealth [ms] | library [ms] | library / camhealth | max diff |\n|---|---|---|---|---|")
     for r in results:

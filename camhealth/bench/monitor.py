@@ -225,6 +225,60 @@ _READS = {
 }
 
 
+#: Largest ``--width`` and ``--height`` [px]: 8192 (an 8K sensor's 7680 fits), 6.4× the default 1280 × 1024 on a
+#: side. The frames are made before any row runs and kept: a pixel holds ≈ 9 bytes (the uint8 frame, the float32 clean
+#: scene and noise-free frame; --motion ≈ 15, three streams), 600 MB a frame at 8192 × 8192.
+FRAME_SIDE_MAX = 8192
+#: Most ``--frames``: 1000 (the street clip has 50; ``--scene deadleaves`` repeats one scene), ≈ 60× the docs' 16.
+FRAMES_MAX = 1000
+#: Most pixels of all the frames, ``--frames`` × ``--width`` × ``--height``: 2**28 (16 frames of 4096 × 4096, or 204 of
+#: the default 1280 × 1024; 12.8× the docs' 16 default frames): ≈ 2.4 GB of frames (≈ 4 GB with --motion).
+FRAME_PIXELS_MAX = 2**28
+#: Most ``--pool-draws``: 16× the default 4 (every photograph is read 2 × draws times, each in groups of 1…12 patches).
+POOL_DRAWS_MAX = 64
+
+
+def check_sizes(args: argparse.Namespace) -> None:
+    """``ValueError`` naming the option and its value where a size or count of the chosen mode is out of its range:
+    ``--width``/``--height`` (1…:data:`FRAME_SIDE_MAX`), ``--frames`` (…:data:`FRAMES_MAX`; the lower bound is the
+    mode's own check) and all the frames' pixels (:data:`FRAME_PIXELS_MAX`), ``--device`` a device of this machine,
+    ``--noise-samples``/``--mtf-samples`` and ``--window`` the monitor's ranges (``MAX_SAMPLES``, ``MAX_WINDOW`` of
+    :mod:`camhealth.monitor.api`), ``--pool-draws`` (1…:data:`POOL_DRAWS_MAX`)."""
+    from camhealth.bench import check_count, check_device_option
+
+    mode = next((dest for dest in _MODE_FLAGS if getattr(args, dest, False)), None)
+    if mode == "pool_sizes":  # (too few draws, a draw that is no integer: the mode's own check)
+        draws = args.pool_draws
+        if isinstance(draws, int) and draws > POOL_DRAWS_MAX:
+            raise ValueError(f"--pool-draws must be an integer <= {POOL_DRAWS_MAX}, got {draws} "
+                             f"(allowed: 1 … {POOL_DRAWS_MAX})")
+        return
+    check_count("--width", args.width, 1, FRAME_SIDE_MAX)
+    check_count("--height", args.height, 1, FRAME_SIDE_MAX)
+    if args.frames > FRAMES_MAX:  # (the fewest frames are the mode's own check)
+        fewest = {None: 1, "motion": 2, "exposure_step": 3}[mode]
+        raise ValueError(f"--frames must be <= {FRAMES_MAX}, got {args.frames} (allowed: {fewest} … {FRAMES_MAX})")
+    pixels = args.frames * args.width * args.height
+    if pixels > FRAME_PIXELS_MAX:
+        raise ValueError(f"--frames {args.frames} × --width {args.width} × --height {args.height} = {pixels} px of frames "
+                         f"must be <= {FRAME_PIXELS_MAX} (= 2**28; the frames are all kept in memory): use fewer or "
+                         "smaller frames")
+    if mode is None:
+        check_device_option(args.device)
+    if mode == "motion":
+        from camhealth.monitor.api import MAX_SAMPLES, MAX_WINDOW
+
+        check_count("--noise-samples", args.noise_samples, 1, MAX_SAMPLES)
+        check_count("--mtf-samples", args.mtf_samples, 1, MAX_SAMPLES)
+        check_count("--window", args.window, 1, MAX_WINDOW)
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """The options of ``args`` for its mode (:func:`check_mode_options`), then their sizes (:func:`check_sizes`)."""
+    check_mode_options(args)
+    check_sizes(args)
+
+
 def check_mode_options(args: argparse.Namespace) -> None:
     """``ValueError`` naming the options when two mode flags are given (``--motion``, ``--pool-sizes``,
     ``--exposure-step`` are different benchmarks), when an option is given that the chosen mode does not read
@@ -257,7 +311,7 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.bench.corruption import _load
     from camhealth.physics import CameraMetadata
 
-    check_mode_options(args)
+    check_options(args)
     if getattr(args, "motion", False):
         from camhealth.bench.monitor_motion import run_motion
 

@@ -28,22 +28,48 @@ from typing import Any
 
 import torch
 
-from camhealth.bench import BenchResult, Row
+from camhealth.bench import BenchResult, IntRange, Row, shown
 
 HELP = "calibrate the MTF estimator's per-value uncertainty (mtf_std) on training generators × rendered scenes"
 SIZES = (2.0, 4.0, 7.0, 11.0, 16.0, 21.0, 25.0)
 
 
+#: Largest ``--per-cell``: the calibration set's own bound (:func:`camhealth.bench.robustness_mtf.calibration_cells`),
+#: 16× the default 16. A unit of it is 12 patches of 192² float32 per size (3 generators × 4 conditions, ≈ 1.7 MiB):
+#: 256 at the 7 default sizes keep ≈ 3 GiB of patches, made in ≈ 16 min (59 s at 16).
+PER_CELL_MAX = 256
+#: Largest ``--frames``: 16× the default 4. A unit of it is 3 frames of 576² float32 per size (≈ 3.8 MiB): 64 at the 7
+#: default sizes keep ≈ 1.7 GiB of frames.
+FRAMES_MAX = 64
+#: Most ``--sizes``: twice the 7 default sizes (the patches and frames grow with the number of sizes).
+SIZES_MAX = 14
+#: The largest blur size of ``--sizes`` [px]: the kernels are 31 px (:data:`camhealth.bench.robustness_mtf.KERNEL`).
+BLUR_SIZE_MAX = 29.0
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", nargs="*", default=None, help="MTF estimators (shipped names or .pt files; default 'mtf')")
-    parser.add_argument("--per-cell", type=int, default=16, help="patches per generator × size × condition (default 16)")
+    parser.add_argument("--per-cell", type=IntRange(1, PER_CELL_MAX), default=16,
+                        help=f"patches per generator × size × condition, 1…{PER_CELL_MAX} (default 16)")
     parser.add_argument("--sizes", type=float, nargs="+", default=list(SIZES),
-                        help=f"blur sizes in px (default {' '.join(f'{s:g}' for s in SIZES)}; at most 29)")
-    parser.add_argument("--frames", type=int, default=4,
-                        help="frames per generator × size for the shared part of the error (default 4)")
+                        help=f"blur sizes in px, at most {SIZES_MAX} of them (default {' '.join(f'{s:g}' for s in SIZES)}; "
+                             f"each at most {BLUR_SIZE_MAX:g})")
+    parser.add_argument("--frames", type=IntRange(1, FRAMES_MAX), default=4,
+                        help=f"frames per generator × size for the shared part of the error, 1…{FRAMES_MAX} (default 4)")
     parser.add_argument("--write", action="store_true",
                         help="store the table in each model's weights file (description entry 'mtf_error')")
     parser.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """``ValueError`` naming ``--sizes`` and its values where more than :data:`SIZES_MAX` are given or one lies outside
+    [0, :data:`BLUR_SIZE_MAX`] px (``--per-cell`` and ``--frames`` are checked when parsed)."""
+    sizes = list(args.sizes)
+    if len(sizes) > SIZES_MAX:
+        raise ValueError(f"--sizes {shown(sizes)}: {len(sizes)} sizes, at most {SIZES_MAX} are allowed "
+                         f"(each in [0, {BLUR_SIZE_MAX:g}] px)")
+    if any(not 0.0 <= float(z) <= BLUR_SIZE_MAX for z in sizes):
+        raise ValueError(f"--sizes {shown(sizes)} must lie in [0, {BLUR_SIZE_MAX:g}] px (the kernels are 31 px)")
 
 
 def run(args: argparse.Namespace) -> BenchResult:
@@ -54,6 +80,7 @@ def run(args: argparse.Namespace) -> BenchResult:
     from camhealth.export import set_description_entries
     from camhealth.inference import load_estimator
 
+    check_options(args)
     t0 = time.perf_counter()
     cells = calibration_cells(args.per_cell, tuple(args.sizes), args.seed)
     frame_sets = calibration_frames(args.frames, tuple(args.sizes), args.seed)

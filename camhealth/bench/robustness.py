@@ -98,7 +98,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from camhealth.bench import BenchResult, Row
+from camhealth.bench import BenchResult, IntRange, Row, refuse_unread, shown
 from camhealth.bench.sensor_variants import VARIANTS, simulate_variant
 from camhealth.physics.metadata import CameraMetadata
 
@@ -150,22 +150,61 @@ SCENE_DOWNSAMPLE = SCENE_SCALES["3x"]
 PATCH = 128
 
 
+#: Largest ``--frames`` (per condition, ``--task noise`` and ``jpeg``): 4× the docs' 16. A frame per condition holds
+#: 15 conditions × 16 patches × 3 images (clean, noisy, second exposure) of 128² float32 ≈ 45 MiB, so 64 keep ≈ 3 GiB
+#: of frames, and making them takes ≈ 6 min (93 s for 16 on the docs' machine) before any estimator runs.
+FRAMES_MAX = 64
+#: Largest ``--per-cell`` (``--task mtf``): 8× the docs' 8. Each unit of it makes ≈ 54 patches of 192² float32 per blur
+#: size (≈ 8 MiB; 2144 patches at 8 and the 5 default sizes): 64 keep ≈ 2.5 GiB of patches, made in ≈ 8 min (60 s at 8).
+PER_CELL_MAX = 64
+#: Most ``--mtf-sizes`` (``--task mtf``): twice the 5 default sizes (the patches grow with the number of sizes).
+MTF_SIZES_MAX = 10
+#: The largest blur size of ``--mtf-sizes`` [px]: the kernels are 31 px (:data:`camhealth.bench.robustness_mtf.KERNEL`).
+MTF_SIZE_MAX = 29.0
+#: The options each ``--task`` reads (beside ``--task`` and the common ones): any other given is refused.
+TASK_READS = {"noise": {"frames", "paired", "models", "json"}, "mtf": {"per_cell", "mtf_sizes", "models", "json"},
+              "jpeg": {"frames", "json"}}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", choices=("noise", "mtf", "jpeg"), default="noise",
                         help="noise (default): noise-source estimators; mtf: MTF estimators (camhealth.bench.robustness_mtf); "
                              "jpeg: the noise estimator's JPEG grid test on the paired frames (camhealth.bench.robustness_jpeg)")
-    parser.add_argument("--per-cell", type=int, default=8,
-                        help="--task mtf: patches per generator × size × condition × scene group (default 8)")
+    parser.add_argument("--per-cell", type=IntRange(1, PER_CELL_MAX), default=8,
+                        help=f"--task mtf: patches per generator × size × condition × scene group, 1…{PER_CELL_MAX} "
+                             "(default 8)")
     parser.add_argument("--mtf-sizes", type=float, nargs="+", default=[3.0, 5.0, 9.0, 15.0, 21.0],
-                        help="--task mtf: blur sizes in px (default 3 5 9 15 21; at most 29)")
-    parser.add_argument("--frames", type=int, default=6, help="frames per condition (16 patches each; default 6)")
+                        help=f"--task mtf: blur sizes in px, at most {MTF_SIZES_MAX} of them (default 3 5 9 15 21; each at "
+                             f"most {MTF_SIZE_MAX:g})")
+    parser.add_argument("--frames", type=IntRange(2, FRAMES_MAX), default=6,
+                        help=f"--task noise and jpeg: frames per condition (16 patches each), 2…{FRAMES_MAX} (default 6)")
     parser.add_argument("--paired", action="store_true",
-                        help="one set of frames (scene, crops, camera, random numbers) under every condition, so that "
-                             "conditions differ only by what they name (default: each condition its own scenes)")
+                        help="--task noise: one set of frames (scene, crops, camera, random numbers) under every condition, "
+                             "so that conditions differ only by what they name (default: each condition its own scenes; "
+                             "--task jpeg always reads the paired frames)")
     parser.add_argument("--models", nargs="*", default=None,
-                        help=f"estimators (shipped names or files; default every shipped noise model beside '{CLOSED_FORM}'; "
-                             "--task mtf: default the shipped 'mtf')")
+                        help=f"--task noise and mtf: estimators (shipped names or files; default every shipped noise model "
+                             f"beside '{CLOSED_FORM}'; --task mtf: default the shipped 'mtf')")
     parser.add_argument("--json", type=Path, default=None, help="write every number to this JSON file")
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """``ValueError`` naming the option: one the chosen ``--task`` does not read (:data:`TASK_READS`; ``--task jpeg``
+    reads neither ``--models`` nor ``--paired``, ``--task mtf`` no ``--frames``, …), given away from its default — the
+    table's header would record it as used —, and with ``--task mtf`` more than :data:`MTF_SIZES_MAX` ``--mtf-sizes``
+    or one outside [0, :data:`MTF_SIZE_MAX`] px."""
+    task = getattr(args, "task", "noise")
+    where = f"--task {task}" + (" (the default task)" if task == "noise" else "")
+    refuse_unread(args, add_arguments, TASK_READS[task] | {"task"}, where)
+    if task == "mtf":
+        sizes = list(getattr(args, "mtf_sizes", None) or ())
+        if len(sizes) > MTF_SIZES_MAX:
+            raise ValueError(f"--mtf-sizes {shown(sizes)}: {len(sizes)} sizes, at most {MTF_SIZES_MAX} are allowed "
+                             f"(each in [0, {MTF_SIZE_MAX:g}] px)")
+        if any(not 0.0 <= s <= MTF_SIZE_MAX for s in sizes):
+            from camhealth.bench.robustness_mtf import KERNEL
+
+            raise ValueError(f"--mtf-sizes {shown(sizes)} must lie in [0, {MTF_SIZE_MAX:g}] px (kernels are {KERNEL} px)")
 
 
 @dataclass
@@ -874,13 +913,12 @@ def _xi(r: dict[str, Any], text: str, cells: int = 1) -> str:
 
 
 def run(args: argparse.Namespace) -> BenchResult:
+    check_options(args)
     if getattr(args, "task", "noise") == "mtf":
         from camhealth.bench import robustness_mtf
 
         if args.per_cell < 1:
             raise SystemExit(f"--per-cell {args.per_cell} must be ≥ 1")
-        if any(not 0.0 <= s <= 29.0 for s in args.mtf_sizes):
-            raise SystemExit(f"--mtf-sizes {args.mtf_sizes} must lie in [0, 29] px (kernels are {robustness_mtf.KERNEL} px)")
         return robustness_mtf.run(args)
     if args.frames < 2:
         raise SystemExit(f"--frames {args.frames} must be ≥ 2")

@@ -221,7 +221,7 @@ def build_parser():
                    help="where the networks (and noise_source_full's posterior) run: cpu (default), cuda or cuda:N; "
                         "frame statistics stay on the CPU")
     g.add_argument("--threads", type=_threads, default=None, metavar="N",
-                   help=f"torch intra-op threads, 1…{THREADS_MAX} (default: 2, or 1 on a single-core machine — the 10 "
+                   help="torch intra-op threads, 1…4 × the CPU count (default: 2, or 1 on a single-core machine — the 10 "
                         "frames/s of a 1280x1024 stream are measured with 2 threads on 2 cores; if other busy jobs share the cores, "
                         "set OMP_WAIT_POLICY=PASSIVE in the environment or use --threads 1: OpenMP threads that "
                         "spin-wait against other jobs can be 20x slower)")

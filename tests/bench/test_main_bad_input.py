@@ -60,3 +60,52 @@ def test_monitor_refuses_options_its_mode_does_not_read(extra, message, no_run, 
     assert run_cli(bench_cli.main, "python -m camhealth.bench", ["monitor", *extra]) == 2
     err = _err(capsys)
     assert len(err) == 1 and message in err[0], err
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["policy", "--decisions", "100001"], "--decisions = 100001 must be an integer <= 100000 (allowed: 10 … 100000)"),
+    (["policy", "--decisions", "3"], "--decisions = 3 must be an integer >= 10 (allowed: 10 … 100000)"),
+    (["monitor", "--width", "100000"], "--width must be <= 8192, got 100000 (allowed: 1 … 8192)"),
+    (["monitor", "--motion", "--height", "8193"], "--height must be <= 8192, got 8193 (allowed: 1 … 8192)"),
+    (["monitor", "--exposure-step", "--width", "0"], "--width must be >= 1, got 0 (allowed: 1 … 8192)"),
+    (["monitor", "--scene", "deadleaves", "--frames", "1001"], "--frames must be <= 1000, got 1001 (allowed: 1 … 1000)"),
+    (["monitor", "--scene", "deadleaves", "--frames", "300"],
+     "--frames 300 × --width 1280 × --height 1024 = 393216000 px of frames must be <= 268435456"),
+    (["monitor", "--device", "nosuch"], "--device nosuch is not a device name"),
+    (["monitor", "--motion", "--window", "1001"], "--window must be <= 1000, got 1001 (allowed: 1 … 1000)"),
+    (["monitor", "--motion", "--noise-samples", "257"], "--noise-samples must be <= 256, got 257 (allowed: 1 … 256)"),
+    (["monitor", "--motion", "--mtf-samples", "0"], "--mtf-samples must be >= 1, got 0 (allowed: 1 … 256)"),
+    (["monitor", "--pool-sizes", "--pool-draws", "65"], "--pool-draws must be an integer <= 64, got 65 (allowed: 1 … 64)"),
+    (["calibrate", "--frame-size", "1025"], "--frame-size must be <= 1024, got 1025 (allowed: 16 … 1024)"),
+    (["calibrate", "--frame-size", "8"], "--frame-size must be >= 16, got 8 (allowed: 16 … 1024)"),
+    (["calibrate", "--sensors", "101"], "--sensors must be <= 100, got 101 (allowed: 0 … 100)"),
+    (["calibrate", "--sensors", "-1"], "--sensors must be >= 0, got -1 (allowed: 0 … 100)"),
+    (["calibrate", "--frames", "101"], "--frames must be <= 100, got 101 (allowed: 4 … 100)"),
+    (["calibrate", "--patches", "1025"], "--patches must be <= 1024, got 1025 (allowed: 2 … 1024)"),
+    (["calibrate", "--variants", "nope"], "--variants nope: unknown variant(s) ['nope']"),
+    (["coldstart", "--repeats", "201"], "--repeats must be <= 200, got 201 (allowed: 1 … 200)"),
+])
+def test_counts_and_sizes_are_bounded_before_the_run(argv, message, no_run, capsys):
+    """``policy --decisions 10**11``, ``monitor --width 100000 --height 100000`` (10**10 px a frame) and
+    ``calibrate --sensors 100000`` started; now one line naming the option, its value and its range."""
+    assert run_cli(bench_cli.main, "python -m camhealth.bench", argv) == 2
+    err = _err(capsys)
+    assert len(err) == 1 and message in err[0], err
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["classical", "--charts", "257"], "argument --charts: must be <= 256, got 257 (allowed: 1 … 256)"),
+    (["classical", "--noise-size", "4097"], "argument --noise-size: must be <= 4096, got 4097 (allowed: 32 … 4096)"),
+    (["data", "--noise-patch", "4097"], "argument --noise-patch: must be <= 4096, got 4097 (allowed: 1 … 4096)"),
+    (["data", "--blur-patch", "100000"], "argument --blur-patch: must be <= 4096, got 100000 (allowed: 69 … 4096)"),
+    (["data", "--workers", "100000"], "argument --workers: must be <= "),
+    (["siemens_star", "--images", "65"], "argument --images: must be <= 64, got 65 (allowed: 1 … 64)"),
+    (["corruption", "--loop-repeats", "101"], "argument --loop-repeats: must be <= 100, got 101 (allowed: 1 … 100)"),
+    (["corruption", "--loop-images", "4097"], "argument --loop-images: must be <= 4096, got 4097"),
+    (["corruption", "--sf-frequencies", "1000001"], "argument --sf-frequencies: must be <= 1000000, got 1000001"),
+])
+def test_counts_and_sizes_are_bounded_when_parsed(argv, message, no_run, capsys):
+    with pytest.raises(SystemExit) as info:
+        bench_cli.main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and message in err, err
