@@ -84,10 +84,10 @@ def test_bench_docs_flag_writes_the_block_of_its_command(tmp_path, monkeypatch):
 
     page = tmp_path / "b.md"
     page.write_text("intro\n")
-    bench_main.main(["data", "--batch", "2", "--size", "32", "--repeats", "1", "--warmup", "0", "--docs", str(page)])
+    bench_main.main(["data", "--batch", "2", "--repeats", "1", "--warmup", "0", "--docs", str(page)])
     text = page.read_text()
     ((command, start, end),) = generated_blocks(text)
-    assert command == "python -m camhealth.bench data --batch 2 --size 32 --repeats 1 --warmup 0"
+    assert command == "python -m camhealth.bench data --batch 2 --repeats 1 --warmup 0"
     assert text.startswith("intro\n") and "| row |" in text[start:end]
 
 

@@ -12,7 +12,7 @@ from camhealth._cli import run_cli
 from camhealth.bench import __main__ as bench_cli
 from camhealth.docs import generated_blocks, replace_generated
 
-TINY = ["data", "--batch", "2", "--size", "32", "--repeats", "1", "--warmup", "0"]
+TINY = ["data", "--batch", "2", "--repeats", "1", "--warmup", "0"]
 A = "<!-- generated: python -m x --a 1 -->\n"
 B = "<!-- generated: python -m y -->\n"
 END = "<!-- end generated -->\n"

@@ -32,7 +32,7 @@ from camhealth._cli import BadValue, FloatRange, IntRange
 
 __all__ = ["BENCHMARKS", "Row", "BenchResult", "load", "timing_stats", "format_table", "add_allocator_argument", "apply_allocator",
            "IntRange", "FloatRange", "check_count", "check_options", "refuse_unread", "shown", "option_defaults",
-           "option_message", "check_device_option", "SEED_MAX", "THREADS_MAX", "BATCH_MAX", "SIZE_MAX", "REPEATS_MAX",
+           "option_message", "check_device_option", "COMMON_DEFAULTS", "SEED_MAX", "THREADS_MAX", "BATCH_MAX", "SIZE_MAX", "REPEATS_MAX",
            "WARMUP_MAX"]
 
 #: Largest ``--seed``: the benchmarks' generators take seeds (and seeds derived from them) below 2**32.
@@ -78,9 +78,24 @@ def check_count(option: str, value: Any, lo: int, hi: int, why_lo: str = "") -> 
         raise ValueError(f"{option} must be <= {hi}, got {value} {allowed}")
 
 
+#: The common options every benchmark's parser has that a benchmark may not read, and their defaults: a module lists
+#: those it reads in ``COMMON_READS`` (all of them where it has none); one set away from its default that the
+#: benchmark does not read is refused (:func:`check_options`), since the table's header would record it as used.
+COMMON_DEFAULTS: dict[str, Any] = {"batch": 32, "size": 192, "repeats": 20, "warmup": 2, "seed": 0}
+
+
 def check_options(args) -> None:
-    """Run ``check_options(args)`` of the module of benchmark ``args.benchmark``, where it has one (module docstring)."""
-    check = getattr(load(args.benchmark), "check_options", None)
+    """Refuse a common option (:data:`COMMON_DEFAULTS`) set away from its default that the module of benchmark
+    ``args.benchmark`` does not read (its ``COMMON_READS``), naming it; then run the module's own
+    ``check_options(args)``, where it has one (module docstring)."""
+    module = load(args.benchmark)
+    reads = getattr(module, "COMMON_READS", tuple(COMMON_DEFAULTS))
+    for dest, default in COMMON_DEFAULTS.items():
+        if dest not in reads and getattr(args, dest, default) != default:
+            read = ", ".join("--" + r for r in reads) or "none"
+            raise ValueError(f"--{dest} {shown(getattr(args, dest))} is not used by `python -m camhealth.bench "
+                             f"{args.benchmark}` (of the common options it reads {read}); leave it out")
+    check = getattr(module, "check_options", None)
     if check is not None:
         check(args)
 

@@ -24,7 +24,7 @@ closed-form prior :func:`camhealth.estimators.noise_features.physics_prior_dn` o
 patches of 128 px per camera (gain, exposure and temperature drawn at random, corrupted by ``form_image``),
 Bias/Std/RMS (Eq. 6.2) against the realised σ of PN, DCSN, RN and the total.
 
-``--batch``/``--size``/``--repeats``/``--warmup`` of the common options are not used.
+``--batch``/``--size``/``--repeats``/``--warmup`` of the common options are not used (set, they are refused).
 """
 
 from __future__ import annotations
@@ -38,6 +38,9 @@ import torch
 from camhealth.bench import BenchResult, Row, check_count
 
 HELP = "recovery errors (full well, read noise, dark current) and time of camhealth.calibrate; noise RMS with calibrated vs true metadata"
+
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('seed',)
 
 DATASHEET = ("pixel_size_um", "pixel_clock_hz", "sense_node_gain_v_per_e", "is_cmos")
 

@@ -30,6 +30,9 @@ from camhealth.bench import SIZE_MAX, BenchResult, IntRange, Row
 
 HELP = "error and ms/patch of the classical estimators (PCA, B+F, wavelet; slanted edge, Siemens star)"
 
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('batch', 'repeats', 'seed', 'warmup')
+
 PCA = "PCA noise (Chen et al. 2015)"
 SIGMAS_DN = (5.0, 10.0, 15.0, 20.0, 25.0)
 

@@ -15,8 +15,8 @@ Every repeat starts new interpreters (nothing is cached in-process; the OS file 
 
 The summary gives ``CLI → first report`` minus the median warm-up: the cold start excluding the warm-up of the
 kernels, with the warm-up reported beside it. Whether ``lightning`` was imported is checked in the API process.
-``--batch``/``--size``/``--warmup`` of the common options are not used; ``--repeats`` is the number of fresh
-processes per row (default 5 here; any value given, 20 included, is used). ``--source FILE`` is a path relative to
+``--batch``/``--size``/``--warmup``/``--seed`` of the common options are not used (set, they are refused);
+``--repeats`` is the number of fresh processes per row (default 5 here; any value given, 20 included, is used). ``--source FILE`` is a path relative to
 the folder the command runs in (the child processes run in the repository root, so it is made absolute first) and
 must be an existing image file.
 """
@@ -34,6 +34,9 @@ from pathlib import Path
 from camhealth.bench import BenchResult, Row, check_count, timing_stats
 
 HELP = "cold start of the monitor: a fresh process to its first report (imports, model loading, kernel warm-up)"
+
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('repeats',)
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -25,6 +25,9 @@ from camhealth.bench import SIZE_MAX, THREADS_MAX, BenchResult, IntRange, Row, a
 
 HELP = "patches/s delivered by NoiseDataModule and BlurDataModule (loading + on-the-fly corruption)"
 
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('batch', 'repeats', 'seed', 'warmup')
+
 NOISE_TRAIN = "NoiseDataModule train"
 
 

@@ -35,6 +35,9 @@ from camhealth.bench import BenchResult, IntRange, Row, check_device_option, opt
 HELP = "held-out accuracy and ms/patch of the learned estimators vs a thesis-size reference network"
 REFERENCE = "thesis-size noise net (16×64 full-res, fp32)"
 
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('batch', 'repeats', 'warmup')
+
 
 #: Largest ``--per-image``: 16× the default 16. The noise set's test split holds 11 images at the default --deadleaves
 #: (176 crops at 16): 256 crops each are ≈ 2800 patches of 128² float32 (≈ 0.2 GiB; the MTF set's are 192²), and

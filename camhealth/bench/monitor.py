@@ -59,7 +59,8 @@ after the three monitor rows and after the slow rows; the machine and its load a
 mismatch); the ξ line then gives the ξ of a right answer — the metadata's closed form after clipping
 (:func:`~camhealth.estimators.noise_features.physics_prior_dn`) less the realised σ, median over the informative
 patches — beside the median ξ of the informative and adaptive monitors (and the pairs' line, theirs).
-``--batch``/``--size``/``--repeats`` of the common options are not used (the frame count is ``--frames``).
+``--batch``/``--size``/``--repeats`` of the common options are not used (set, they are refused; the frame count is
+``--frames``).
 """
 
 from __future__ import annotations
@@ -79,6 +80,9 @@ from camhealth.bench import BenchResult, Row
 
 HELP = ("ms per 1280×1024 frame of the monitor (every / informative / adaptive patches), accuracy, thesis-size net, "
         "reading a recording")
+
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('seed', 'warmup')
 
 ALL = "every patch (no skipping)"
 INFORMATIVE = "informative patches (fully monitored)"

@@ -33,6 +33,9 @@ from camhealth.bench import BenchResult, IntRange, Row, shown
 HELP = "calibrate the MTF estimator's per-value uncertainty (mtf_std) on training generators × rendered scenes"
 SIZES = (2.0, 4.0, 7.0, 11.0, 16.0, 21.0, 25.0)
 
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('seed',)
+
 
 #: Largest ``--per-cell``: the calibration set's own bound (:func:`camhealth.bench.robustness_mtf.calibration_cells`),
 #: 16× the default 16. A unit of it is 12 patches of 192² float32 per size (3 generators × 4 conditions, ≈ 1.7 MiB):

@@ -34,6 +34,9 @@ from camhealth.bench import BenchResult, Row
 
 HELP = "exposure/gain policy: loss of the look-up table's decision against the direct objective, and µs per decision"
 
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('repeats', 'seed', 'warmup')
+
 DEFAULT_IOPC = "runs/iopc_closed_loop/iopc.json"
 #: Fewest ``--decisions`` (the loss statistics of each table, its p99 among them, are taken over them).
 DECISIONS_MIN = 10

@@ -106,6 +106,9 @@ HELP = ("noise estimators vs the closed form on an independent simulator, real s
         "row/column noise, defective pixels; "
         "--task mtf: MTF estimators on held-out PSF generators × held-out scenes")
 
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('seed',)
+
 MATCHED = ("reference", *VARIANTS, "all_variants", "jpeg")
 MISMATCH = ("gain", "temperature", "white_noise")
 STRONG = ("strong",)

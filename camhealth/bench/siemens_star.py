@@ -24,6 +24,9 @@ from camhealth.bench import BenchResult, IntRange, Row
 
 HELP = "Siemens star under white noise: AMAE and ms/chart with its noise correction and of the raw CTF"
 
+#: The common options this benchmark reads (the others are refused: camhealth.bench.check_options).
+COMMON_READS = ('repeats', 'seed', 'warmup')
+
 NOISE_DN = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)
 
 

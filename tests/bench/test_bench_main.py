@@ -9,7 +9,7 @@ import pytest
 from camhealth._cli import run_cli
 from camhealth.bench import __main__ as bench_cli
 
-TINY = ["data", "--batch", "2", "--size", "32", "--repeats", "1", "--warmup", "0"]
+TINY = ["data", "--batch", "2", "--repeats", "1", "--warmup", "0"]
 
 
 @pytest.mark.parametrize("abbreviated", [["--doc", "page.md"], ["--mark"], ["--rep", "3"], ["--doc=page.md"]])

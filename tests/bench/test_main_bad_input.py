@@ -8,7 +8,7 @@ import pytest
 from camhealth._cli import run_cli
 from camhealth.bench import __main__ as bench_cli
 
-TINY = ["data", "--batch", "2", "--size", "32", "--repeats", "1", "--warmup", "0"]
+TINY = ["data", "--batch", "2", "--repeats", "1", "--warmup", "0"]
 
 
 def _err(capsys) -> list[str]:
@@ -109,3 +109,46 @@ def test_counts_and_sizes_are_bounded_when_parsed(argv, message, no_run, capsys)
         bench_cli.main(argv)
     err = capsys.readouterr().err
     assert info.value.code == 2 and message in err, err
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["data", "--size", "32"], "--size 32"),
+    (["calibrate", "--batch", "4"], "--batch 4"),
+    (["calibrate", "--repeats", "3"], "--repeats 3"),
+    (["estimators", "--seed", "3"], "--seed 3"),
+    (["coldstart", "--warmup", "1"], "--warmup 1"),
+    (["robustness", "--size", "64"], "--size 64"),
+    (["monitor", "--batch", "8"], "--batch 8"),
+    (["mtf_error", "--warmup", "5"], "--warmup 5"),
+])
+def test_a_common_option_the_benchmark_does_not_read_is_refused(argv, option, no_run):
+    """Set, the option was ignored, and the table's header recorded it as if it had been used."""
+    name = argv[0]
+    with pytest.raises(ValueError, match=rf"^{option} is not used by `python -m camhealth.bench {name}` "
+                                         r"\(of the common options it reads .*\); leave it out$"):
+        bench_cli.main(argv)
+
+
+@pytest.mark.parametrize("argv", [
+    ["data", "--batch", "2", "--repeats", "1", "--warmup", "0", "--seed", "1"],
+    ["calibrate", "--seed", "3"],
+    ["coldstart", "--repeats", "3"],
+    ["monitor", "--warmup", "1", "--seed", "2"],
+    ["robustness", "--seed", "7", "--batch", "32"],  # a common option at its default is no choice: accepted
+])
+def test_the_common_options_a_benchmark_reads_are_accepted(argv, monkeypatch):
+    class Started(Exception):
+        pass
+
+    real = bench_cli.load
+
+    class Module:  # the checks pass and the benchmark would start
+        def __init__(self, name):
+            self.HELP, self.add_arguments = real(name).HELP, real(name).add_arguments
+
+        def run(self, args):
+            raise Started
+
+    monkeypatch.setattr(bench_cli, "load", Module)
+    with pytest.raises(Started):
+        bench_cli.main(argv)
