@@ -48,8 +48,10 @@ class _Listing:
         self.outside: list[str] = []  # links whose target lies outside the root (followed)
         self.repeated: list[str] = []  # second paths to a file or folder already listed (skipped)
         self.loops: list[str] = []  # links to the folder itself or a folder that holds it (skipped)
-        self.broken: list[str] = []  # links to nothing (skipped)
+        self.broken: list[str] = []  # links without an extension to nothing (skipped; perhaps a folder's)
         self.unreadable: list[str] = []  # folders that cannot be listed (skipped)
+        #: entries named as images that are no regular file (listed: reading them raises): (relative path, what it is)
+        self.not_files: list[tuple[str, str]] = []
 
     def notes(self) -> str:
         """The links and folders named for the user, or ``""``."""
@@ -57,6 +59,12 @@ class _Listing:
             return ", ".join(names[:5]) + (f" … ({len(names)} in all)" if len(names) > 5 else "")
 
         parts = []
+        if self.not_files:
+            one = len(self.not_files) == 1
+            parts.append(f"listed {len(self.not_files)} "
+                         + ("entry named as an image that is not a regular file (reading it fails): " if one else
+                            "entries named as images that are not regular files (reading them fails): ")
+                         + some([f"{rel} ({what})" for rel, what in self.not_files]))
         if self.outside:
             parts.append(f"followed {len(self.outside)} link(s) that lead outside the folder: {some(self.outside)}")
         if self.loops:
@@ -117,9 +125,13 @@ def _scan(root: Path, recursive: bool, exts: tuple[str, ...]) -> _Listing:
                 is_link = False
             try:
                 is_dir, is_file = entry.is_dir(), entry.is_file()  # (both follow links)
-            except OSError:  # e.g. a link that leads to itself (ELOOP): a link to nothing, named as broken below
+            except OSError:  # e.g. a link that leads to itself (ELOOP): a link to nothing, see below
                 is_dir, is_file = False, False
-            if is_dir:
+            image_name = os.path.splitext(entry.name)[1].lower() in exts
+            if is_dir and not recursive and image_name:  # e.g. a folder frame_0003.png among a sequence's frames
+                out.files.append((rel, path, os.path.realpath(path), is_link, via_link))
+                out.not_files.append((rel, "a folder"))
+            elif is_dir:
                 if not recursive:
                     continue
                 if is_link:
@@ -132,13 +144,25 @@ def _scan(root: Path, recursive: bool, exts: tuple[str, ...]) -> _Listing:
                         walked.add(real)
                         subfolders.append((path, rel + "/", via_link))
             elif is_file:
-                if os.path.splitext(entry.name)[1].lower() not in exts:
+                if not image_name:
                     continue
                 real = os.path.realpath(path)
                 if is_link and outside(real):
                     out.outside.append(rel)
                 out.files.append((rel, path, real, is_link, via_link))
-            elif is_link and os.path.splitext(entry.name)[1].lower() in (*exts, ""):  # (a file or a folder's link)
+            elif image_name:  # a link to nothing, a FIFO, a socket or a device (never opened here): listed, so that
+                # reading it names the entry and why instead of the frame vanishing from a sequence
+                if is_link and not os.path.exists(path):  # (a link that leads back to itself too)
+                    # one entry per link: its own folder's real path and its name (its target does not exist)
+                    out.files.append((rel, path, os.path.join(os.path.realpath(folder), entry.name), False, via_link))
+                    out.not_files.append((rel, "a broken symbolic link"))
+                else:
+                    real = os.path.realpath(path)
+                    if is_link and outside(real):
+                        out.outside.append(rel)
+                    out.files.append((rel, path, real, is_link, via_link))
+                    out.not_files.append((rel, "not a regular file: a FIFO, socket or device"))
+            elif is_link and not os.path.splitext(entry.name)[1]:  # (a folder's link, perhaps)
                 out.broken.append(rel)
         pending.extend(reversed(subfolders))
     # each file once: where several paths lead to one file, a path that is not itself a link wins, then one through no
@@ -150,6 +174,8 @@ def _scan(root: Path, recursive: bool, exts: tuple[str, ...]) -> _Listing:
         else:
             best[item[2]] = item
     out.files = sorted(best.values(), key=lambda f: natural_sort_key(f[0]))
+    listed = {item[0] for item in out.files}
+    out.not_files = sorted((n for n in out.not_files if n[0] in listed), key=lambda n: natural_sort_key(n[0]))
     return out
 
 
@@ -159,9 +185,12 @@ def list_images(root: PathLike, recursive: bool = True, extensions: Sequence[str
     Symbolic links are followed, to files and (with ``recursive``) to folders, also where they lead outside ``root``;
     each file and folder is listed once: a second path to one already listed (a link to it, or to a folder holding
     it) is skipped, keeping a path that is not itself a link, then one through no linked folder. A link to ``root``
-    or to a folder that holds it (a loop) and a link to nothing (also one that leads back to itself, directly or
-    through other links) are skipped. Links that lead outside ``root`` and
-    everything skipped but hidden files are named in one ``UserWarning``.
+    or to a folder that holds it (a loop) and a link without an extension to nothing (also one that leads back to
+    itself, directly or through other links) are skipped. An entry named with one of ``extensions`` that is no
+    regular file — a link to nothing (``frame_0003.png`` whose target is gone, or a loop of links), a FIFO, a socket,
+    a device or, without ``recursive``, a folder — is listed (never opened here): reading it raises an error naming
+    the path and why (:func:`camhealth.data.read_image`), so that a frame does not vanish from a sequence. Links that
+    lead outside ``root``, such entries and everything skipped but hidden files are named in one ``UserWarning``.
     """
     root = Path(root)
     if not root.exists():
@@ -192,7 +221,8 @@ class ImageFolderSource(torch.utils.data.Dataset):
 
     The file list is fixed at construction and sorted in natural order of the path relative to ``root``
     (deterministic on every OS); symbolic links to files and folders are followed, each file listed once
-    (:func:`list_images`). The id of an image is that relative path in POSIX form
+    (:func:`list_images`); an entry named as an image that is no regular file (a link to nothing, a FIFO, a device) is
+    listed too, and reading it raises an error naming it and why. The id of an image is that relative path in POSIX form
     (``"sub/img_0002.png"``), so every image is its own group for :func:`camhealth.data.split_ids`; if the
     folder holds frames of one video, pass a ``group_key`` to the split (see ``docs/data.md``) or use
     :class:`camhealth.data.FrameSequence`.

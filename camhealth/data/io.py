@@ -23,6 +23,7 @@ bits). An alpha channel is dropped (not composited); a palette image is expanded
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
 import struct
 import warnings
@@ -88,7 +89,11 @@ def to_gray(image):
         raise ValueError(f"to_gray expects a numpy array H×W or H×W×C (channels last), got shape {arr.shape}")
     c = arr.shape[-1]
     if c not in (1, 2, 3, 4):
-        raise ValueError(f"to_gray expects 1, 2, 3 or 4 channels (last axis), got C = {c} (shape {arr.shape})")
+        hint = ""
+        if arr.shape[0] in (1, 3, 4):  # C×H×W (gray, RGB, RGBA), as a tensor holds it
+            hint = (f"; this looks channels-first (C×H×W, C = {arr.shape[0]}): a NumPy image is H×W×C, channels last — "
+                    "transpose it with np.moveaxis(a, 0, -1)")
+        raise ValueError(f"to_gray expects 1, 2, 3 or 4 channels (last axis), got C = {c} (shape {arr.shape}){hint}")
     out_dtype = np.float64 if arr.dtype == np.float64 else np.float32
     if c in (1, 2):
         return arr[..., 0].astype(out_dtype, copy=True)
@@ -420,7 +425,8 @@ def read_image(path: PathLike, bit_depth: int | str = "auto") -> torch.Tensor:
     ``sBIT`` chunk included). :func:`read_image_scaled` returns the scaling with the image.
 
     Raises:
-        FileNotFoundError: ``path`` does not exist (the message names it).
+        FileNotFoundError: ``path`` does not exist or is a broken symbolic link (the message names it and, for a
+            link, where it leads or that it loops).
         ValueError: unsupported extension (the message lists :data:`IMAGE_EXTENSIONS`), ``path`` is not a
             regular file (a directory, FIFO, ...), the file is corrupt/unreadable or has an unsupported pixel
             type or TIFF photometric interpretation (CMYK; the message lists the supported ones), holds values beyond
@@ -474,11 +480,23 @@ def first_frame_bits(path: PathLike, bit_depth: int | str) -> int | None:
     return scaling.bits if scaling.source == "largest value" else None
 
 
+def _broken_link(p: Path) -> str:
+    """Why the symbolic link ``p`` leads to nothing: its target that does not exist, or a loop of links."""
+    try:
+        os.stat(p)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "it leads back to itself through a loop of links"
+    return f"it leads to {os.path.realpath(p)}, which does not exist"
+
+
 def read_image_scaled(path: PathLike, bit_depth: int | str = "auto") -> tuple[torch.Tensor, ImageScaling]:
     """:func:`read_image` without the warning, plus the :class:`ImageScaling` it used."""
     bit_depth = _check_bit_depth(bit_depth)
     p = Path(path)
     if not p.exists():
+        if p.is_symlink():  # (a link whose target is gone, or a loop of links: listed by list_images, not skipped)
+            raise FileNotFoundError(f"cannot read image {p}: broken symbolic link ({_broken_link(p)})")
         raise FileNotFoundError(f"image file not found: {p}")
     if p.is_dir():
         raise ValueError(f"cannot read image {p}: it is a directory, not an image file")

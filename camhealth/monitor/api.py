@@ -308,9 +308,33 @@ def _frame_label(index: Any, source_id: Any) -> tuple[int | None, str | None]:
     return index, source_id
 
 
+def _python_number(value: Any) -> Any:
+    """A NumPy integer or floating-point scalar as the Python ``int`` or ``float`` it holds, for the checks of a
+    numeric argument; anything else (a bool, NumPy's too, which stays refused where a number is asked) as given."""
+    if isinstance(value, (bool, np.bool_)):
+        return value
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating):
+        return float(value)
+    return value
+
+
 def _one_number(key: str, value: Any) -> float:
     """A per-frame metadata value as one number in physical units: an int or float, or a NumPy / torch scalar (a
-    one-element array or tensor); a bool, a string or several values (a batch of camera states) are refused."""
+    one-element array or tensor); a bool, a string or several values (a batch of camera states) are refused, and so are
+    ``sensor`` and ``sensor_type``, which name the camera, not a field of a frame's state."""
+    if key == "sensor":
+        raise ValueError(f"per-frame metadata: sensor = {value!r} is not a per-frame field (a frame's mapping changes "
+                         "fields of the monitor's camera state, a number each, e.g. gain_db, exposure_s); name the "
+                         "sensor preset for the run: Monitor(sensor=…) or its metadata (--sensor or the --metadata "
+                         "file on the command line), or give this frame's whole state as "
+                         f"CameraMetadata.preset({value!r}, gain_db=…, exposure_s=…)")
+    if key == "sensor_type":
+        raise ValueError(f"per-frame metadata: sensor_type = {value!r} is not a per-frame field (a frame's mapping "
+                         "changes fields of the monitor's camera state, a number each); give is_cmos (1 CMOS, 0 CCD) "
+                         "for a frame, or the sensor for the run: sensor_type in the monitor's metadata (the "
+                         "--metadata file on the command line) or a sensor preset, Monitor(sensor=…) (--sensor)")
     if key == "is_cmos" and isinstance(value, (bool, np.bool_)):
         return float(value)
     if value is None or isinstance(value, bool) or isinstance(value, (np.bool_, str, bytes)):
@@ -1219,6 +1243,10 @@ class Monitor:
             readout noise does not, so an auto-exposure's steps split an excess between them by the physics
             (:func:`camhealth.estimators.physics_noise.noise_evidence`). ``coverage["other_exposures"]`` counts the
             states that joined a frame. ``False``: each state on its own.
+
+    The numeric arguments (``window``, ``noise_samples``, ``mtf_samples``, ``mtf_views``, ``batch_size``,
+    ``xi_threshold_dn``, ``xi_sigmas``) take a Python or NumPy number (``np.int64(5)``, ``np.float32(1.0)``), kept as
+    the Python ``int`` or ``float``; a bool is refused.
     """
 
     def __init__(
@@ -1250,6 +1278,8 @@ class Monitor:
         static_pairs: bool = False,
         exposure_evidence: bool = True,
     ) -> None:
+        window, noise_samples, mtf_samples, mtf_views, batch_size, xi_threshold_dn, xi_sigmas = map(
+            _python_number, (window, noise_samples, mtf_samples, mtf_views, batch_size, xi_threshold_dn, xi_sigmas))
         if isinstance(window, bool) or not isinstance(window, int) or not 1 <= window <= MAX_WINDOW:
             raise ValueError(f"window = {window!r} must be an integer 1…{MAX_WINDOW} (frames)")
         if mode not in MODES:
@@ -2087,6 +2117,7 @@ class Monitor:
         scene's own points of light recur too. At most :data:`DEFECT_POSITIONS` positions are remembered, of the frames
         of the current size (a frame of another size starts them afresh).
         ``python -m camhealth.monitor --defects-out FILE`` writes them for ``--defect-map``."""
+        min_frames = _python_number(min_frames)
         if isinstance(min_frames, bool) or not isinstance(min_frames, int) or min_frames < 1:
             raise ValueError(f"min_frames = {min_frames!r} must be an integer >= 1")
         if self._shape is None:

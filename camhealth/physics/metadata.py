@@ -324,7 +324,12 @@ def _normalise_metadata_mapping(data: Mapping[str, Any]) -> dict[str, Any]:
         data["is_cmos"] = is_cmos
     unknown = set(data) - set(FULL_FIELDS)
     if unknown:
-        raise ValueError(f"unknown metadata field(s) {sorted(unknown, key=str)}; known fields: {list(FULL_FIELDS)}")
+        hint = ""
+        if "sensor" in unknown:  # a preset's name, as a metadata file's sensor: key gives it
+            hint = (f"; sensor = {data['sensor']!r} names a preset, not a field: start from it with "
+                    f"CameraMetadata.preset({data['sensor']!r}, …) or from_dict(…, base={data['sensor']!r})")
+        raise ValueError(f"unknown metadata field(s) {sorted(unknown, key=str)}; known fields: {list(FULL_FIELDS)}"
+                         + hint)
     return data
 
 

@@ -101,7 +101,8 @@ def _symlink(target, link):
 def test_symbolic_links_are_followed_each_file_once_and_what_is_skipped_is_named(tmp_path):
     """A file link that left the folder was read without a word and a linked sub-folder was dropped without a
     word. Links are followed (to files and folders, inside or outside the root); every file is listed once, a loop
-    and a broken link are skipped, and one warning names the links that lead outside and everything skipped."""
+    is skipped, a broken link named as an image is listed (reading it names it), and one warning names the links that
+    lead outside, the broken link and everything skipped."""
     root, elsewhere = tmp_path / "root", tmp_path / "elsewhere"
     _save(root / "real" / "a.png", 1)
     _save(root / "real" / "b.png", 2)
@@ -115,17 +116,21 @@ def test_symbolic_links_are_followed_each_file_once_and_what_is_skipped_is_named
     _symlink(tmp_path / "nowhere.png", root / "broken.png")
     with pytest.warns(UserWarning) as caught:
         src = ImageFolderSource(root)
-    assert src.ids == ["outside.png", "real/a.png", "real/b.png", "setB/c.png"]
-    assert src[3][0][0, 0, 0].item() == pytest.approx(3 / 255)
+    assert src.ids == ["broken.png", "outside.png", "real/a.png", "real/b.png", "setB/c.png"]
+    assert src[4][0][0, 0, 0].item() == pytest.approx(3 / 255)
+    with pytest.raises(FileNotFoundError, match=r"broken\.png: broken symbolic link \(it leads to .*nowhere\.png"):
+        src[0]
     (message,) = [str(w.message) for w in caught]
-    assert f"image folder {root}: followed 2 link(s) that lead outside the folder: outside.png, setB/" in message
+    assert (f"image folder {root}: listed 1 entry named as an image that is not a regular file (reading it fails): "
+            "broken.png (a broken symbolic link); ") in message
+    assert "followed 2 link(s) that lead outside the folder: outside.png, setB/" in message
     assert "skipped 1 link(s) to this folder or a folder that holds it (a loop): real/up/" in message
     assert "skipped 2 second path(s) to a file or folder already listed: alias/, latest.png" in message
-    assert "skipped 1 broken link(s): broken.png" in message
+    assert "broken link(s)" not in message
     from camhealth.data import list_images
 
     with pytest.warns(UserWarning, match="outside.png"):
-        assert [p.name for p in list_images(root, recursive=False)] == ["latest.png", "outside.png"]
+        assert [p.name for p in list_images(root, recursive=False)] == ["broken.png", "latest.png", "outside.png"]
 
 
 def test_a_folder_of_only_a_linked_sub_folder_is_read_and_only_broken_links_are_named(tmp_path):

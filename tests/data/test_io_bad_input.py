@@ -112,3 +112,30 @@ def test_cmyk_tiff_is_refused_naming_cmyk_and_the_supported_interpretations(tmp_
     with pytest.raises(ValueError, match=r"cmyk\.tif: unsupported TIFF photometric interpretation 5 \(SEPARATED \(CMYK\)\); "
                                          r"supported: 0 \(MINISWHITE\), 1 \(MINISBLACK\), 2 \(RGB\), 3 \(PALETTE\)"):
         read_image(p)
+
+
+# ------------------------------------------------------------------ a channels-first array
+@pytest.mark.parametrize("shape", [(3, 300, 400), (4, 30, 40), (1, 30, 40)])
+def test_a_channels_first_array_is_named_as_such_with_the_transpose(shape):
+    """A 3×H×W array (a tensor's layout) said only "got C = 400 (shape (3, 300, 400))"."""
+    from camhealth.data.io import to_gray
+    from camhealth.monitor.api import as_frame
+
+    a = np.random.default_rng(0).random(shape, dtype=np.float32)
+    hint = (rf"this looks channels-first \(C×H×W, C = {shape[0]}\): a NumPy image is H×W×C, channels last — "
+            r"transpose it with np\.moveaxis\(a, 0, -1\)")
+    with pytest.raises(ValueError, match=rf"got C = {shape[-1]} \(shape \({shape[0]}, .*\)\); {hint}"):
+        to_gray(a)
+    transposed = to_gray(np.moveaxis(a, 0, -1))  # the hint works: as the tensor reads
+    np.testing.assert_allclose(transposed, to_gray(torch.from_numpy(a)).numpy()[0], atol=1e-6)
+    if shape[0] != 1:  # (as_frame takes a 1×H×W array as H×W)
+        with pytest.raises(ValueError, match=hint):
+            as_frame(a)
+
+
+@pytest.mark.parametrize("shape", [(5, 30, 40), (2, 30, 40), (30, 40, 7)])
+def test_no_channels_first_hint_where_the_first_axis_is_no_channel_count(shape):
+    from camhealth.data.io import to_gray
+
+    with pytest.raises(ValueError, match=r"got C = \d+ \(shape \(\d+, \d+, \d+\)\)$"):
+        to_gray(np.zeros(shape, np.float32))

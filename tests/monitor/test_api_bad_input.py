@@ -1,6 +1,7 @@
 """Monitor / as_frame on bad input: a frame label the JSON line cannot hold is refused before the frame is read (a NumPy
 or torch integer index and a path as source_id are taken as their values), tensors without dense pixel data are refused
-naming their kind, and a defect map asked for pixels flagged in more frames than an int32 count holds is empty."""
+naming their kind, and a defect map asked for pixels flagged in more frames than an int32 count holds is empty. NumPy
+numbers are taken as constructor arguments; a sensor key in a frame's metadata is named as no per-frame field."""
 
 from __future__ import annotations
 
@@ -89,3 +90,60 @@ def test_a_defect_map_of_more_frames_than_an_int32_count_holds_is_empty(min_fram
     assert found.shape == found2.shape and found.dtype == torch.bool and not bool(found.any())
     assert torch.equal(counts_again, counts)
     assert int(mon.found_defects(2**31 - 1)[0].sum()) == 0  # the largest int32 count itself
+
+
+# ------------------------------------------------------------------ NumPy numbers as constructor arguments
+@pytest.mark.parametrize("name, value, kept", [
+    ("window", np.int64(5), 5), ("window", np.uint8(3), 3), ("noise_samples", np.int32(4), 4),
+    ("mtf_samples", np.int16(3), 3), ("mtf_views", np.int64(2), 2), ("batch_size", np.int64(64), 64),
+    ("xi_threshold_dn", np.float32(1.0), 1.0), ("xi_threshold_dn", np.int64(2), 2.0),
+    ("xi_sigmas", np.float32(2.5), 2.5), ("xi_sigmas", np.float16(3.0), 3.0),
+])
+def test_numpy_numbers_are_taken_as_the_python_numbers_they_hold(name, value, kept):
+    """Monitor(window=np.int64(5)) was refused ("window = np.int64(5) must be an integer 1…1000"), and so was
+    xi_threshold_dn=np.float32(1.0) ("must be a finite number >= 0"): a value read from a NumPy array or config."""
+    mon = Monitor(FakeNoise(), FakeMTF(), sensor="ICX285", warmup=False, **{name: value})
+    got = {"noise_samples": lambda: mon.n_samples["noise"], "mtf_samples": lambda: mon.n_samples["mtf"]}.get(
+        name, lambda: getattr(mon, name))()
+    assert got == kept and type(got) is type(kept)
+
+
+@pytest.mark.parametrize("name, value, shown", [
+    ("window", np.int64(0), r"window = 0 must be an integer 1…"),
+    ("window", np.float64(5.0), r"window = 5\.0 must be an integer 1…"),
+    ("window", np.bool_(True), r"window = (np\.)?True_? must be an integer 1…"),
+    ("noise_samples", np.int64(10**6), r"noise_samples = 1000000 must be an integer 1…"),
+    ("batch_size", np.int64(-1), r"batch_size = -1 must be an integer >= 1"),
+    ("mtf_views", np.int64(3), r"mtf_views = 3 must be 1, 2 or 4"),
+    ("xi_threshold_dn", np.float32(-1.0), r"xi_threshold_dn = -1\.0 must be a finite number >= 0"),
+    ("xi_sigmas", np.float64(np.nan), r"xi_sigmas = nan must be a finite number >= 0"),
+    ("xi_sigmas", np.bool_(True), r"xi_sigmas = (np\.)?True_? must be a finite number >= 0"),
+])
+def test_numpy_numbers_keep_the_range_checks_and_bools_stay_refused(name, value, shown):
+    with pytest.raises(ValueError, match=shown):
+        Monitor(FakeNoise(), FakeMTF(), sensor="ICX285", warmup=False, **{name: value})
+
+
+def test_found_defects_takes_a_numpy_integer(frame):
+    mon = _monitor()
+    mon.process(frame)
+    assert torch.equal(mon.found_defects(np.int64(1))[1], mon.found_defects(1)[1])
+
+
+# ------------------------------------------------------------------ sensor keys in a frame's metadata
+@pytest.mark.parametrize("metadata, key, instead", [
+    ({"sensor": "ICX285"}, "sensor", r"Monitor\(sensor=…\).*--sensor.*CameraMetadata\.preset\('ICX285'"),
+    ({"gain_db": 6.0, "sensor": "EV76C661"}, "sensor", r"CameraMetadata\.preset\('EV76C661'"),
+    ({"sensor_type": "CMOS"}, "sensor_type", r"give is_cmos \(1 CMOS, 0 CCD\) for a frame.*Monitor\(sensor=…\)"),
+])
+def test_a_sensor_key_in_a_frames_metadata_is_named_as_no_per_frame_field(frame, metadata, key, instead):
+    """process(frame, metadata={"sensor": "ICX285"}) said "field sensor = 'ICX285' must be a number in physical units"
+    — no number would do: the key names the camera, not a field of a frame's state."""
+    mon = _monitor()
+    shown = rf"per-frame metadata: {key} = '\w+' is not a per-frame field .*{instead}"
+    with pytest.raises(ValueError, match=shown) as err:
+        mon.process(frame, metadata=metadata)
+    assert "physical units" not in str(err.value)
+    assert mon.frames == 0
+    report = mon.process(frame, metadata={"gain_db": 6.0, "is_cmos": 1.0})  # what the message points to
+    assert report.metadata["gain_db"] == 6.0
