@@ -41,6 +41,7 @@ import numbers
 
 import torch
 
+from camhealth._validation import check_range
 from camhealth.estimators._common import DN, check_patches, work_dtype
 
 __all__ = ["BLOCK_SIZE", "MIN_BLOCK_AREA", "block_filter_noise_sigma", "adaptive_gaussian_width"]
@@ -56,7 +57,16 @@ _KAPPA = 1.5  # homogeneous: block std <= κ · σ₀
 
 
 def adaptive_gaussian_width(sigma0_dn: torch.Tensor) -> torch.Tensor:
-    """Gaussian filter standard deviation σ_g [px] from the initial noise estimate σ₀ [DN] (step 3)."""
+    """Gaussian filter standard deviation σ_g [px] from the initial noise estimate σ₀ [DN] (step 3).
+
+    ``sigma0_dn``: a tensor of real numbers (any shape), each finite and ≥ 0 [DN]; anything else (a list, a bool or
+    complex tensor) raises a ``TypeError``, NaN, ±inf or a negative σ₀ a ``ValueError``, naming it."""
+    if not isinstance(sigma0_dn, torch.Tensor):
+        raise TypeError(f"sigma0_dn must be a torch.Tensor of noise levels σ₀ [DN] (finite, ≥ 0), got "
+                        f"{type(sigma0_dn).__name__} {sigma0_dn!r:.60}")
+    if sigma0_dn.dtype == torch.bool or sigma0_dn.is_complex():
+        raise TypeError(f"sigma0_dn must hold real noise levels σ₀ [DN] (finite, ≥ 0), got dtype {sigma0_dn.dtype}")
+    check_range(sigma0_dn.detach(), "sigma0_dn", 0.0, math.inf, "DN")
     return (0.5 + sigma0_dn / 10.0).clamp(0.5, _MAX_WIDTH_PX)
 
 

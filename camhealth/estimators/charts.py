@@ -157,11 +157,16 @@ def _siemens_star(size: int, n_cycles: int, radius: float, supersample: int) -> 
 def siemens_star_chart(size: int = 512, n_cycles: int = 32, radius_frac: float = 0.47, supersample: int = 8) -> torch.Tensor:
     """ISO 15775 style Siemens star: ``n_cycles`` bright/dark pairs, radius ``radius_frac·size``, centred.
 
-    Returns a ``1×1×size×size`` float32 tensor with levels 0.2 and 0.8 (see the module doc for the corners).
+    Returns a ``1×1×size×size`` float32 tensor with levels 0.2 and 0.8 (see the module doc for the corners). A
+    ``radius_frac`` that is not a real number (a string, a bool) raises a ``TypeError``, one outside [0.2, 0.49] (NaN
+    too) a ``ValueError``, naming it.
     """
     size = _check_size(size, 64)
     if isinstance(n_cycles, bool) or not isinstance(n_cycles, int) or not (4 <= n_cycles <= 180):
         raise ValueError(f"n_cycles = {n_cycles!r} must be an int in [4, 180]")
+    if isinstance(radius_frac, (bool, np.bool_)) or not isinstance(radius_frac, numbers.Real):
+        raise TypeError(f"radius_frac = {radius_frac!r:.40} must be a real number in [0.2, 0.49] (star radius / size), "
+                        f"got {type(radius_frac).__name__}")
     if not (0.2 <= float(radius_frac) <= 0.49):
         raise ValueError(f"radius_frac = {radius_frac:g} is out of the allowed range [0.2, 0.49]")
     return _siemens_star(size, n_cycles, float(radius_frac) * size, supersample).clone()

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from camhealth._order import _traced, lower_median
-from camhealth._validation import check_range
+from camhealth._validation import check_image, check_range
 from camhealth.estimators._common import check_patches
 from camhealth.physics.clipping import _NEAR_SIGMAS, clipped_sigma_dn, estimate_clean_dn
 from camhealth.physics.dark_current import dark_current_shot_sigma_e
@@ -152,7 +152,17 @@ def block_details(image: torch.Tensor, caller: str = "block_details") -> tuple[t
     """The 2×2-block quantities the noise fits are made from, float32 (B×1×H×W patches in [0, 1], H, W ≥ 8):
     block means m [DN] (B, 1, h, w); squared Haar details d² [DN²] (diagonal, horizontal, vertical; (3, B, 1, h, w));
     the usable mask (no pixel within ½ DN of 0 or 255, not on the patch border); and g², the squared central
-    differences of the block means (the next coarser scale's gradient; noise variance v/2 each)."""
+    differences of the block means (the next coarser scale's gradient; noise variance v/2 each).
+
+    ``image`` must be a floating B×1×H×W tensor of finite intensities (DN/255; integer DN images: divide by 255 first)
+    within [−1, 2] — [0, 1] for an image, wider for the unclamped fold of a static pair
+    (:func:`~camhealth.estimators.static_pair.pair_fold`), which a DN-scaled image (up to 255) is not. Another type or
+    dtype raises a ``TypeError``, another shape, NaN/inf or a value outside [−1, 2] a ``ValueError``, naming it."""
+    check_image(image, "image", channels=1)
+    lo, hi = torch.aminmax(image.detach())
+    if lo < -1.0 or hi > 2.0:
+        raise ValueError(f"image must hold intensities in [0, 1] (DN/255; a static pair's unclamped fold within [-1, 2]), "
+                         f"got values in [{lo.item():g}, {hi.item():g}]; integer DN images: divide by 255 first")
     x = image.detach().float()
     if x.shape[-1] < 8 or x.shape[-2] < 8:
         raise ValueError(f"{caller} needs patches of at least 8×8 px, got {tuple(x.shape[-2:])}")
@@ -295,7 +305,17 @@ def laplace_difference(x: torch.Tensor) -> torch.Tensor:
 
 def box_mean3(x: torch.Tensor) -> torch.Tensor:
     """3×3 mean of B×C×H×W with replicate borders (= ``avg_pool2d(pad(x, 1, "replicate"), 3, stride=1)``),
-    separably from shifted slices (~5× faster on CPU than ``avg_pool2d``)."""
+    separably from shifted slices (~5× faster on CPU than ``avg_pool2d``).
+
+    ``x`` must be a floating tensor of 4 dimensions (else a ``TypeError`` or ``ValueError`` naming it; only its type and
+    shape are checked, so a network's forward that calls it stays traceable and exportable)."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"x must be a torch.Tensor (B×C×H×W), got {type(x).__name__}")
+    if not x.dtype.is_floating_point:
+        raise TypeError(f"x must be a floating tensor (B×C×H×W intensities), got dtype {x.dtype}"
+                        + ("; convert integer DN images with x.float() / 255" if not x.dtype.is_complex else ""))
+    if x.ndim != 4:
+        raise ValueError(f"x must have shape B×C×H×W (4 dims), got {tuple(x.shape)}")
     p = F.pad(x, (1, 1, 1, 1), mode="replicate")
     r = p[..., :, :-2] + p[..., :, 1:-1] + p[..., :, 2:]
     return (r[..., :-2, :] + r[..., 1:-1, :] + r[..., 2:, :]) / 9.0

@@ -49,12 +49,53 @@ in the fit). A star whose corner noise exceeds :data:`MAX_NOISE_CONTRAST` of its
 than :data:`MIN_RINGS` rings above the noise in H or V, is not assessable: its MTF is NaN, with the reason. The
 Gaussian fit keeps μ within the sampled frequencies and s within 4× them, so that a fit on the few low-frequency
 rings a noisy, strongly blurred star keeps stays a falling CTF.
+**Consistency.** A star of f_s = ``n_cycles`` cycles puts on every ring where its stripes survive the blur a component
+that repeats f_s times per turn, I(φ) ≈ m + a·cos(f_s φ) + b·sin(f_s φ) (I, m, a, b in image units, DN/255). Every
+1-px ring is fitted by least squares on its n pixels, with the neighbouring harmonics f_s ± 3 and f_s ± 5
+(:data:`_NEIGHBOURS`) and the sub-harmonics f_s/p (p a prime factor of f_s, f_s/p ≥ 4) as further columns. A ring
+*shows the star* where the component passes two tests, each at the false-alarm rate α = :data:`STAR_FALSE_ALARM` =
+10⁻³ per ring:
+
+- against the ring's residual: F = (ESS/2) / (RSS/(n − 3)) of the fit of m, a, b (ESS the sum of squares it explains
+  beyond the mean, RSS the rest, image units²) exceeds t = (n − 3)/2 · (α^(−2/(n−3)) − 1), the 1 − α quantile of
+  F(2, n − 3), its law for white Gaussian noise without the component (P(F > t) = (1 + 2t/(n − 3))^(−(n−3)/2)). A star
+  of another period is residual here;
+- against the neighbouring harmonics: the Wald statistic of (a, b) in the joint fit, β_Nᵀ V_N⁻¹ β_N / 2 (V_N its
+  block of (XᵀX)⁻¹; image units²), exceeds t = J·(α^(−1/J) − 1) (18.5 for J = 4 neighbours) times the neighbours'
+  β_Jᵀ V_J⁻¹ β_J / (2J): F(2, 2J) for white noise, and close to it for noise whose spectrum is smooth across ±5
+  harmonics — a blur after the noise colours it, and the residual test alone would take the colour's low-frequency
+  power for a star.
+
+Both read the noise variance as at least (1/255)²/12, the 8-bit quantisation's (:data:`_QUANTISATION_VAR`). Measured
+over 96 images of noise alone × 206 rings: white noise passes them on 1.1·10⁻³ and 0.8·10⁻³ of the rings, both on
+1·10⁻⁴; noise blurred by a Gaussian of 2 px after it is drawn passes the residual test on 22 % of them, the neighbours'
+on 1.1·10⁻³, both on 0.8·10⁻³. A star is assessable only where at least :data:`MIN_RINGS` rings show it: rings of noise
+alone pass with probability ≤ α each, so 10 of R with probability ≤ C(R, 10)·α¹⁰ (3·10⁻¹⁴ for the 206 rings of a
+512-px star). A strongly blurred star keeps its component on its outer, low-frequency rings only, and those suffice: no
+ring is asked to show contrast. On the rings that show the star:
+
+- **n_cycles**: a sub-harmonic f_s/p with more power than f_s (summed over those rings) means that f_s is a harmonic of
+  the star's own period (a 32-cycle star read with ``n_cycles=96``; a star of f_s cycles has no component at f_s/p);
+- **levels**: a blur keeps the star's mean, so the rings' mean must lie within :data:`MAX_MID_OFFSET` = 0.25 of the
+  contrast I_w − I_b from the mid level (I_b + I_w)/2 (``levels=(0, 0.001)`` on the 0.2/0.8 chart: 500); and the
+  component's amplitude, less 3 standard errors, must stay within :data:`MAX_FUNDAMENTAL` = 1.5 times an unblurred
+  chart's, (2/π)(I_w − I_b) (a square wave's fundamental; the sharp area-rendered charts read 0.96–0.98, a sharpening
+  camera may exceed 1): beyond, the levels lie closer together than the chart's.
+
+A star that fails is not assessable, with the reason ("no star: …", "n_cycles: …", "levels: …"). The 512-px charts of
+the tests, of ``python -m camhealth.bench siemens_star`` and of the evaluation (blur to 21 px, noise to 25 DN) show the
+star on at least 130 of their 206 rings, their mean within 0.003 of the contrast from the mid level and their amplitude
+at most 0.98 of the chart's: their outputs are those without the checks. A centre off by δ px moves J_k(f_s·δ/r) of the
+component to f_s ± k: the neighbours at ±3 and ±5 keep a 512-px star read about a centre up to ≈ 10 px off assessable
+(15 px off: not).
+
 The Gaussian model is smooth and cannot follow the zeros and contrast reversals of large defocus
 (|jinc| side lobes), which bounds the accuracy for large blur; see ``docs/estimators_classical.md``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import numbers
@@ -70,9 +111,12 @@ from camhealth.estimators.charts import siemens_star_geometry
 from camhealth.physics.mtf import NORMALIZED_FREQUENCIES
 
 __all__ = [
+    "MAX_FUNDAMENTAL",
+    "MAX_MID_OFFSET",
     "MAX_NOISE_CONTRAST",
     "MIN_RINGS",
     "NOISE_KEEP",
+    "STAR_FALSE_ALARM",
     "SiemensStarResult",
     "coltman_coefficients",
     "ctf_from_mtf",
@@ -90,6 +134,29 @@ NOISE_KEEP = 2.0
 MAX_NOISE_CONTRAST = 0.12
 #: Fewest rings per direction (H, V) that the Gaussian fit needs above the noise.
 MIN_RINGS = 10
+#: False-alarm rate per ring of each of the two tests that the star's n_cycles-periodic component shows on a ring
+#: (module docstring, *Consistency*): the chance that a ring of noise alone passes one of them.
+STAR_FALSE_ALARM = 1e-3
+#: Largest distance of the star's mean level from the mid level (I_b + I_w)/2 of the levels, as a share of their
+#: contrast I_w − I_b (module docstring, *Consistency*).
+MAX_MID_OFFSET = 0.25
+#: Largest amplitude of the star's n_cycles-periodic component on a ring, as a multiple of an unblurred chart's,
+#: (2/π)(I_w − I_b) (module docstring, *Consistency*).
+MAX_FUNDAMENTAL = 1.5
+#: Offsets from n_cycles of the neighbouring angular harmonics whose power estimates a ring's noise near the star's
+#: (those below 1 or at a sub-harmonic n_cycles/p are left out): odd, so that neither the pixel grid (sidebands at ±4,
+#: ±8, …) nor a point-symmetric blur or a tilted chart (±2, ±4, …) puts the star's own power into them, and beyond ±1,
+#: where a centre off by δ px puts J₁(n_cycles·δ/r) of it (a star read about a centre up to ≈ 10 px off keeps its
+#: outer rings).
+_NEIGHBOURS = (-5, -3, 3, 5)
+#: Least eigenvalue of a ring's XᵀX/n for its harmonics to be told apart (a ring cut short by the image border is not).
+_MIN_EIGEN = 0.01
+#: Variance [image units²] of 8-bit quantisation, (1/255)²/12: the least noise a ring is read with (a component below
+#: the rounding of one DN cannot be told from it; it also keeps the float32 sums' rounding out of the tests).
+_QUANTISATION_VAR = (1.0 / 255.0) ** 2 / 12.0
+#: Slots (ring pixels and padding) of the rings' sums computed at a time: bounds their memory (float32: 2C + 1
+#: values a slot per image and harmonic column).
+_SLOTS = 1 << 18
 #: Share of a ring and sector's pixels that compete for its maximum (and for its minimum) where the stripes are
 #: resolved: n/4, the pixels of a stripe's crest (two bright stripes per sector, each half its pixels near the top).
 _EXCESS_SHARE = 0.25
@@ -305,8 +372,11 @@ class SiemensStarResult:
         mu, s: (B, 2) Gaussian parameters (in f_n) of the fitted CTF, H and V.
         noise_dn: (B,) noise σ [DN] of the reference corners (None when ``levels=`` was given: no corners read).
         rings_used: (B, 2) rings the fit used, H and V.
-        assessable: (B,) False where the noise hides the stripes, or where fewer than :data:`MIN_RINGS` rings lie in
-            the image in both sectors of H or V (``reasons``); ``mtf`` is NaN there.
+        assessable: (B,) False where the noise hides the stripes, where fewer than :data:`MIN_RINGS` rings lie in
+            the image in both sectors of H or V, or where the image contradicts the star described (fewer than
+            :data:`MIN_RINGS` rings with an ``n_cycles``-periodic component above their noise, a sub-harmonic of it
+            stronger, or a mean or contrast that the levels cannot give; module docstring, *Consistency*) (``reasons``);
+            ``mtf`` is NaN there.
         reasons: per image, "" or why it is not assessable.
     """
 
@@ -361,6 +431,20 @@ class _StarCTF:
     sigma: torch.Tensor | None  # (B,) noise σ in the reference corners [image units]; None with ``levels=``
     contrast: torch.Tensor  # (B,) I_w − I_b [image units]
     rho: torch.Tensor | None = None  # (B, 2) lag-1 noise correlation along rows and columns; None with ``levels=``
+    img: torch.Tensor | None = None  # (B, H·W) the images, float32 [image units]
+    mid: torch.Tensor | None = None  # (B,) mid level (I_b + I_w)/2 [image units]
+    geometry: tuple | None = None  # (h, w, centre row, centre col, radius, n_cycles, margin, device): the rings
+    levels_given: bool = False  # the levels were passed (``levels=``), not read in the corners
+
+
+def _polar(h: int, w: int, centre: tuple[float, float], dev: torch.device | str) -> tuple[torch.Tensor, ...]:
+    """(dx, dy, r, φ) of every pixel centre of an h×w image about ``centre`` (row, col) [px], flattened; φ in [0, 2π),
+    counter-clockwise on screen (y down)."""
+    yy, xx = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float64), torch.arange(w, device=dev, dtype=torch.float64), indexing="ij")
+    dx, dy = (xx - centre[1]).reshape(-1), (yy - centre[0]).reshape(-1)
+    r = torch.sqrt(dx * dx + dy * dy)
+    phi = torch.atan2(-dy, dx) % (2 * math.pi)
+    return dx, dy, r, phi
 
 
 def _two_reals(value: Any, name: str, what: str) -> tuple[float, float]:
@@ -416,10 +500,7 @@ def _star_ctf(
         raise ValueError(f"margin = {margin!r} must be a finite number of px in [0, ∞)")
     dev = x.device
     img = x[:, 0].double().reshape(b, -1)
-    yy, xx = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float64), torch.arange(w, device=dev, dtype=torch.float64), indexing="ij")
-    dx, dy = (xx - centre[1]).reshape(-1), (yy - centre[0]).reshape(-1)
-    r = torch.sqrt(dx * dx + dy * dy)
-    phi = torch.atan2(-dy, dx) % (2 * math.pi)
+    dx, dy, r, phi = _polar(h, w, centre, dev)
     # reference levels from the uniform corners: bright where x·y > 0 (y down), beyond the rim + margin
     if levels is None:
         far = (r > radius + margin) & (dx.abs() > margin) & (dy.abs() > margin)
@@ -507,7 +588,10 @@ def _star_ctf(
     count = torch.zeros(n_cells, dtype=torch.float64, device=dev).scatter_add_(0, cell, torch.ones_like(r[use]))
     count = count.reshape(n_rings, n_sectors)
     pixels = torch.stack([0.5 * (count[:, q] + count[:, 3 * q]), 0.5 * (count[:, 0] + count[:, 2 * q])])
-    return _StarCTF(fn, torch.stack([ctf_h, ctf_v], dim=1), r_mean, pixels, sigma, i_w - i_b, rho_xy)
+    return _StarCTF(fn, torch.stack([ctf_h, ctf_v], dim=1), r_mean, pixels, sigma, i_w - i_b, rho_xy,
+                    img=x[:, 0].detach().reshape(b, -1).float(),
+                    mid=0.5 * (i_w + i_b), geometry=(h, w, float(centre[0]), float(centre[1]), float(radius), n_cycles,
+                                                   float(margin), str(dev)), levels_given=levels is not None)
 
 
 def siemens_star_mtf(
@@ -526,7 +610,11 @@ def siemens_star_mtf(
 
     Returns:
         :class:`SiemensStarResult`; ``mtf`` in [0, 1] (clamped after the aperture correction), float32 (float64 for
-        float64 input).
+        float64 input). An image is not assessable (``mtf`` NaN, ``reasons`` saying why) where the noise hides the
+        stripes, or where it contradicts the star that ``n_cycles``, ``centre``, ``radius`` and ``levels`` describe: no
+        ``n_cycles``-periodic component above the noise on :data:`MIN_RINGS` rings ("no star: …"), a sub-harmonic of it
+        stronger ("n_cycles: …"), or a mean or contrast the levels cannot give ("levels: …"; module docstring,
+        *Consistency*).
     """
     if not isinstance(aperture, (bool, np.bool_)):
         raise TypeError(f"aperture = {aperture!r:.40} must be True or False, got {type(aperture).__name__}")
@@ -547,6 +635,9 @@ def siemens_star_mtf(
         reasons[i] = (f"only {int(measured[i].amin())} rings (H {int(measured[i, 0])}, V {int(measured[i, 1])}) lie in "
                       f"the image in both sectors of their direction; at least {MIN_RINGS} are needed (check centre= "
                       f"and radius=)")
+    for i, why in _star_consistency(c, ok).items():  # a star the levels, n_cycles or the image itself contradict
+        ok[i] = False
+        reasons[i] = why
     weight = fn.square()  # |df/dr| per 1-px ring ∝ f²: the sum approximates ∫ … df (Eq. 3.24)
     fit_ctf = torch.where(ok[:, None, None], ctf_d, torch.ones_like(ctf_d))  # (refused images: a placeholder fit)
     mu, s = gaussian_ctf_fit(fn, fit_ctf, weight)  # (B, 2)
@@ -625,3 +716,212 @@ def _noise_corrected(c: "_StarCTF") -> tuple[torch.Tensor, torch.Tensor, torch.T
             reasons.append(f"noisy: only {int(used[i].amin())} rings (H {int(used[i, 0])}, V {int(used[i, 1])}) rise above "
                            f"{NOISE_KEEP:g}× the noise's own CTF; at least {MIN_RINGS} are needed")
     return ctf, used, ok, reasons
+
+
+def _primes(n: int) -> list[int]:
+    """The prime factors of n ≥ 1, ascending, each once."""
+    out, p = [], 2
+    while p * p <= n:
+        if n % p == 0:
+            out.append(p)
+            while n % p == 0:
+                n //= p
+        p += 1
+    return out + ([n] if n > 1 else [])
+
+
+@dataclass(frozen=True)
+class _RingDesign:
+    """The least-squares design of every ring's angular harmonics (geometry only, shared by a batch).
+
+    The R rings are packed two to a row, the i-th shortest with the i-th longest, so that the rows, padded to the
+    longest, hold about as many slots as the rings have pixels (a 1-px ring at radius r has ≈ 2πr). The columns
+    1, cos kφ, sin kφ of a slot are computed when they are used, :data:`_SLOTS` slots at a time."""
+
+    ks: tuple[int, ...]  # K harmonics: n_cycles, its J neighbours (_NEIGHBOURS), then n_cycles/p (p prime, ≥ 4)
+    n_nbr: int  # J
+    index: torch.Tensor  # (Q, L) flattened pixel index of each row's slots (padding: pixel 0)
+    phi: torch.Tensor  # (Q, L) angle φ of each slot's pixel (float64)
+    half: torch.Tensor  # (Q, L) 0: the row's first ring, 1: its second, -1: padding (int8)
+    rows: torch.Tensor  # (2Q,) ring of each half row (R where a half row holds none)
+    count: torch.Tensor  # (R,) pixels per ring, n (float64)
+    testable: torch.Tensor  # (R,) bool: n ≥ 3C and the harmonics told apart (_MIN_EIGEN)
+    inv3: torch.Tensor  # (R, 3, 3) (XᵀX)⁻¹ of the columns 1, cos Nφ, sin Nφ
+    inv: torch.Tensor  # (R, C, C) (XᵀX)⁻¹ of all C = 1 + 2K columns
+    wald_n: torch.Tensor  # (R, 2, 2) inverse of inv's block of cos Nφ, sin Nφ
+    wald_nbr: torch.Tensor  # (R, 2J, 2J) inverse of inv's block of the neighbours' columns
+
+    def basis(self, lo: int, hi: int, dtype: torch.dtype) -> torch.Tensor:
+        """(hi − lo, L, 2C) columns 1, cos kφ…, sin kφ… of rows lo…hi − 1: those of the row's first ring, then those of
+        its second (0 on the other ring's slots and on the padding)."""
+        arg = self.phi[lo:hi, :, None] * torch.tensor(self.ks, dtype=torch.float64, device=self.phi.device)
+        x = torch.cat([torch.ones_like(arg[..., :1]), torch.cos(arg), torch.sin(arg)], dim=-1).to(dtype)
+        half = self.half[lo:hi, :, None]
+        return torch.cat([x * (half == 0), x * (half == 1)], dim=-1)
+
+    def chunks(self) -> list[tuple[int, int]]:
+        """Row ranges of about :data:`_SLOTS` slots each."""
+        n_rows, length = self.index.shape
+        step = max(1, _SLOTS // max(length, 1))
+        return [(lo, min(lo + step, n_rows)) for lo in range(0, n_rows, step)]
+
+
+@functools.lru_cache(maxsize=4)
+def _ring_design(h: int, w: int, cy: float, cx: float, radius: float, n_cycles: int, margin: float, dev: str) -> _RingDesign:
+    """:class:`_RingDesign` of the 1-px rings :func:`siemens_star_ctf` measures (the same rings, r_lo ≤ r < r_hi)."""
+    _, _, r, phi = _polar(h, w, (cy, cx), dev)
+    r_lo, r_hi = n_cycles / math.pi, radius - margin
+    use = (r >= r_lo) & (r < r_hi)
+    n_rings = int(math.floor(r_hi - r_lo))
+    pix = use.nonzero()[:, 0]
+    ring = torch.floor(r[use] - r_lo).long().clamp(max=n_rings - 1)
+    subs = [n_cycles // p for p in _primes(n_cycles) if n_cycles // p >= 4]
+    nbrs = [n_cycles + j for j in _NEIGHBOURS if n_cycles + j >= 1 and n_cycles + j not in subs]
+    ks = (n_cycles, *nbrs, *subs)
+    n_col = 1 + 2 * len(ks)
+    count = torch.bincount(ring, minlength=n_rings)
+    # rows: the i-th shortest ring with the i-th longest (an odd ring out alone); half rows without a ring: index R
+    by_len = torch.argsort(count, stable=True).tolist()
+    n_rows = (n_rings + 1) // 2
+    first = by_len[:n_rows]
+    second = [by_len[n_rings - 1 - q] if n_rings - 1 - q >= n_rows else n_rings for q in range(n_rows)]
+    rows = torch.tensor(first + second, dtype=torch.long, device=dev)  # (2Q,)
+    row_of = torch.zeros(n_rings + 1, dtype=torch.long, device=dev)
+    row_of[rows] = torch.arange(2 * n_rows, device=dev) % n_rows
+    half_of = torch.zeros(n_rings + 1, dtype=torch.long, device=dev)
+    half_of[rows] = torch.arange(2 * n_rows, device=dev) // n_rows
+    count_ext = torch.cat([count, count.new_zeros(1)])
+    offset = torch.where(half_of == 1, count_ext[rows[:n_rows]][row_of], torch.zeros_like(row_of))  # after the first ring
+    length = max(int((count_ext[rows[:n_rows]] + count_ext[rows[n_rows:]]).max()) if n_rings else 0, 1)
+    order = torch.argsort(ring, stable=True)
+    start = torch.cumsum(count, 0) - count
+    ro = ring[order]
+    slot = row_of[ro] * length + offset[ro] + torch.arange(ring.numel(), device=dev) - start[ro]
+    index = torch.zeros(n_rows * length, dtype=torch.long, device=dev)
+    index[slot] = pix[order]
+    slot_phi = torch.zeros(n_rows * length, dtype=torch.float64, device=dev)
+    slot_phi[slot] = phi[pix[order]]
+    half = torch.full((n_rows * length,), -1, dtype=torch.int8, device=dev)
+    half[slot] = half_of[ro].to(torch.int8)
+    d = _RingDesign(ks, len(nbrs), index.reshape(n_rows, length), slot_phi.reshape(n_rows, length),
+                    half.reshape(n_rows, length), rows, count.double(), *([None] * 5))
+    # XᵀX of every ring, from its half row
+    gram = torch.zeros(n_rings + 1, n_col, n_col, dtype=torch.float64, device=dev)
+    for lo, hi in d.chunks():
+        x = d.basis(lo, hi, torch.float64)
+        for k in (0, 1):
+            xk = x[..., k * n_col:(k + 1) * n_col]
+            gram[rows[k * n_rows + lo:k * n_rows + hi]] = xk.transpose(1, 2) @ xk
+    gram = gram[:n_rings]
+    count = count.double()
+    least = torch.linalg.eigvalsh(gram / count.clamp_min(1.0)[:, None, None])[:, 0]
+    testable = (count >= 3 * n_col) & (least >= _MIN_EIGEN)
+    eye = torch.eye(n_col, dtype=torch.float64, device=dev)
+    gram = torch.where(testable[:, None, None], gram, eye)  # (a ring that is not tested: a placeholder)
+    inv = torch.linalg.inv(gram)
+    n_k = len(ks)
+    cols3, cols_n = [0, 1, 1 + n_k], [1, 1 + n_k]
+    cols_nbr = [1 + i for i in range(1, 1 + len(nbrs))] + [1 + n_k + i for i in range(1, 1 + len(nbrs))]
+    inv3 = torch.linalg.inv(gram[:, cols3][:, :, cols3])
+    wald_n = torch.linalg.inv(inv[:, cols_n][:, :, cols_n])
+    wald_nbr = torch.linalg.inv(inv[:, cols_nbr][:, :, cols_nbr])
+    return dataclasses.replace(d, testable=testable, inv3=inv3, inv=inv, wald_n=wald_n, wald_nbr=wald_nbr)
+
+
+def _ring_sums(img: torch.Tensor, level: torch.Tensor, d: _RingDesign) -> tuple[torch.Tensor, torch.Tensor]:
+    """Xᵀy (B, R, C) and Σ y² (B, R), float64, of every ring of y = ``img`` − ``level``: images (B, H·W) float32 less a
+    level (B,) near their mean [image units] (so that float32 sums keep the rings' variance: rounding stays ≪ the 8-bit
+    quantisation floor, :data:`_QUANTISATION_VAR`)."""
+    b, n_col = img.shape[0], 1 + 2 * len(d.ks)
+    n_rings, n_rows = d.count.numel(), d.index.shape[0]
+    xty = torch.zeros(b, 2 * n_rows, n_col, dtype=torch.float64, device=img.device)  # per half row
+    y2 = torch.zeros(b, 2 * n_rows, dtype=torch.float64, device=img.device)
+    level = level.to(img.dtype)[:, None, None]
+    for lo, hi in d.chunks():
+        g = img.index_select(1, d.index[lo:hi].reshape(-1)).reshape(b, hi - lo, -1)  # (B, q, L)
+        g -= level
+        x = d.basis(lo, hi, img.dtype)  # (q, L, 2C)
+        s = torch.einsum("bql,qlk->bqk", g, x).double()  # (B, q, 2C)
+        s2 = torch.einsum("bql,qlj->bqj", g * g, x[..., ::n_col]).double()  # the columns 1 of each half: (B, q, 2)
+        for k in (0, 1):
+            xty[:, k * n_rows + lo:k * n_rows + hi] = s[..., k * n_col:(k + 1) * n_col]
+            y2[:, k * n_rows + lo:k * n_rows + hi] = s2[..., k]
+    out_xty = torch.zeros(b, n_rings + 1, n_col, dtype=torch.float64, device=img.device)
+    out_y2 = torch.zeros(b, n_rings + 1, dtype=torch.float64, device=img.device)
+    out_xty[:, d.rows] = xty
+    out_y2[:, d.rows] = y2
+    return out_xty[:, :n_rings], out_y2[:, :n_rings]
+
+
+def _star_consistency(c: "_StarCTF", ok: torch.Tensor) -> dict[int, str]:
+    """Why each image of ``ok`` that the star's own statistics contradict is not assessable (module docstring,
+    *Consistency*): {image index: reason}; images not in ``ok`` are not examined."""
+    todo = ok.nonzero()[:, 0]
+    if todo.numel() == 0 or c.geometry is None:
+        return {}
+    d = _ring_design(*c.geometry)
+    n_cycles = c.geometry[5]
+    mid, contrast = c.mid[todo], c.contrast[todo]
+    xty, y2 = _ring_sums(c.img if todo.numel() == c.img.shape[0] else c.img[todo], mid, d)  # y − mid: (b, R, C), (b, R)
+    n = d.count
+    n_k = len(d.ks)
+    ysum = xty[..., 0]
+    # mean + fundamental (columns 1, cos Nφ, sin Nφ): F against the ring's residual, F(2, n − 3) for white noise
+    b3 = xty[..., [0, 1, 1 + n_k]]
+    beta3 = torch.einsum("rij,brj->bri", d.inv3, b3)
+    fitted = (beta3 * b3).sum(-1)  # bᵀ(XᵀX)⁻¹b = Σ ŷ²
+    dof = (n - 3.0).clamp_min(1.0)
+    rss = (y2 - fitted).clamp_min(0.0)
+    ess = (fitted - ysum.square() / n.clamp_min(1.0)).clamp_min(0.0)
+    noise = (rss / dof).clamp_min(_QUANTISATION_VAR)  # σ² per pixel, at least the 8-bit quantisation's
+    f_res = (ess / 2.0) / noise
+    t_res = dof / 2.0 * (STAR_FALSE_ALARM ** (-2.0 / dof) - 1.0)
+    # every harmonic jointly: the fundamental's Wald statistic against the neighbours', F(2, 2J)
+    beta = torch.einsum("rij,brj->bri", d.inv, xty)
+    b_n = beta[..., [1, 1 + n_k]]
+    j_nbr = d.n_nbr
+    b_nbr = beta[..., [1 + i for i in range(1, 1 + j_nbr)] + [1 + n_k + i for i in range(1, 1 + j_nbr)]]
+    w_n = torch.einsum("bri,rij,brj->br", b_n, d.wald_n, b_n) / 2.0
+    w_nbr = torch.einsum("bri,rij,brj->br", b_nbr, d.wald_nbr, b_nbr) / b_nbr.shape[-1]
+    w_nbr = w_nbr.clamp_min(_QUANTISATION_VAR)
+    f_nbr = w_n / w_nbr
+    t_nbr = j_nbr * (STAR_FALSE_ALARM ** (-1.0 / j_nbr) - 1.0)
+    shown = d.testable & (f_res > t_res) & (f_nbr > t_nbr)  # (b, R)
+    power = beta[..., 1:1 + n_k].square() + beta[..., 1 + n_k:].square()  # (b, R, K) squared amplitudes
+    tested = int(d.testable.sum())
+    # the levels, on the rings where the star shows: its mean, and its largest amplitude less 3 standard errors
+    w = shown.double()
+    shift = (ysum * w).sum(-1) / (n * w).sum(-1).clamp_min(1.0)  # the star's mean less the mid level
+    mean, offset = mid + shift, shift.abs() / contrast
+    amp = beta3[..., 1:].square().sum(-1).sqrt()
+    se = torch.sqrt(noise * 0.5 * (d.inv3[:, 1, 1] + d.inv3[:, 2, 2]))  # (b, R) standard error of each coefficient
+    reach = torch.where(shown, (amp - 3.0 * se) / (2.0 / math.pi * contrast[:, None]), torch.zeros_like(amp)).amax(-1)
+    source = "levels given" if c.levels_given else "levels read in the reference corners"
+    out = {}
+    for j, i in enumerate(todo.tolist()):  # j: row of the examined images, i: image of the batch
+        n_shown = int(shown[j].sum())
+        rings = shown[j] if n_shown >= MIN_RINGS else d.testable  # where the star shows (else: every ring tested)
+        sums = power[j][rings].sum(0)  # (K,) the harmonics' power summed over those rings
+        ratio, m_sub = max([(float(sums[q] / sums[0]), d.ks[q]) for q in range(1 + j_nbr, n_k)], default=(0.0, 0))
+        if n_shown < MIN_RINGS:
+            hint = (f"; their {m_sub}-periodic component carries {ratio:.3g}× the power of the {n_cycles}-periodic one"
+                    if ratio > 2.0 else "")
+            out[i] = (f"no star: {n_shown} of {tested} rings show a component repeating n_cycles = {n_cycles} times per "
+                      f"turn above their noise (false-alarm rate {STAR_FALSE_ALARM:g} per ring, against the ring's "
+                      f"residual and against its harmonics {', '.join(str(k) for k in d.ks[1:1 + j_nbr])}){hint}; "
+                      f"at least {MIN_RINGS} are needed: is this a Siemens star of {n_cycles} cycles at centre = "
+                      f"({c.geometry[2]:g}, {c.geometry[3]:g}), radius = {c.geometry[4]:g} px?")
+        elif ratio > 1.0:
+            out[i] = (f"n_cycles: the star repeats {m_sub} times per turn, not n_cycles = {n_cycles}: on the {n_shown} "
+                      f"rings where its {n_cycles}-periodic component shows, the {m_sub}-periodic one carries "
+                      f"{ratio:.3g}× its power (a star of n_cycles has none at n_cycles/{n_cycles // m_sub})")
+        elif float(offset[j]) > MAX_MID_OFFSET:
+            out[i] = (f"levels: the star's mean, {255.0 * float(mean[j]):.1f} DN, lies {float(offset[j]):.3g}× the "
+                      f"contrast I_w − I_b = {255.0 * float(contrast[j]):.1f} DN from the mid level (I_b + I_w)/2 = "
+                      f"{255.0 * float(mid[j]):.1f} DN of the {source}; at most {MAX_MID_OFFSET:g} (a blur keeps the "
+                      f"star's mean: the levels must be the chart's dark and bright level in image units, DN/255)")
+        elif float(reach[j]) > MAX_FUNDAMENTAL:
+            out[i] = (f"levels: the star's {n_cycles}-periodic component reaches {float(reach[j]):.3g}× that of an "
+                      f"unblurred chart of contrast I_w − I_b = {255.0 * float(contrast[j]):.1f} DN (the {source}); at "
+                      f"most {MAX_FUNDAMENTAL:g}: the star's contrast is larger than the levels say")
+    return out

@@ -43,3 +43,25 @@ def test_numpy_scalars_are_accepted_and_named_by_value():
 def test_a_fraction_that_is_not_a_number_is_a_type_error(fraction):
     with pytest.raises(TypeError, match=r"fraction must be a real number in \(0, 1\], got"):
         block_filter_noise_sigma(_noise(10.0, b=1), fraction=fraction)
+
+
+@pytest.mark.parametrize("sigma0, error, message", [
+    ([5.0], TypeError, r"sigma0_dn must be a torch.Tensor of noise levels σ₀ \[DN\] \(finite, ≥ 0\), got list \[5.0\]"),
+    (5.0, TypeError, r"sigma0_dn must be a torch.Tensor .*got float 5.0"),
+    (torch.tensor([True]), TypeError, r"sigma0_dn must hold real noise levels σ₀ \[DN\] .*got dtype torch.bool"),
+    (torch.tensor([1.0, float("nan")]), ValueError, r"sigma0_dn must be finite, but 1 of 2 values are NaN/inf"),
+    (torch.tensor([-2.0]), ValueError, r"sigma0_dn = -2 DN is out of the allowed range \[0, inf\] DN"),
+], ids=["list", "float", "bool", "NaN", "negative"])
+def test_adaptive_width_refuses_what_is_no_noise_level(sigma0, error, message):
+    """A list failed on `/` inside the formula; NaN came back as a NaN width and a negative σ₀ as the narrowest filter."""
+    from camhealth.estimators.block_filter_noise import adaptive_gaussian_width
+
+    with pytest.raises(error, match=message):
+        adaptive_gaussian_width(sigma0)
+
+
+def test_adaptive_width_of_valid_noise_levels_is_the_formula():
+    from camhealth.estimators.block_filter_noise import adaptive_gaussian_width
+
+    for s in (torch.tensor([0.0, 5.0, 20.0, 100.0]), torch.tensor([[3.0]], dtype=torch.float64), torch.tensor([7])):
+        assert torch.equal(adaptive_gaussian_width(s), (0.5 + s / 10.0).clamp(0.5, 3.0))

@@ -109,3 +109,63 @@ def test_truncated_second_moment_takes_tensors_only(u):
 
     with pytest.raises(TypeError, match=rf"u must be a torch.Tensor of real numbers, got {type(u).__name__}"):
         truncated_second_moment(u)
+
+
+_PATCH = torch.full((2, 1, 16, 16), 0.4)
+
+
+@pytest.mark.parametrize("image, error, message", [
+    (torch.full((2, 1, 16, 16), float("nan")), ValueError, r"image must be finite, but 512 of 512 values are NaN/inf"),
+    ((_PATCH * 255).round().to(torch.uint8), TypeError, r"image must be a floating tensor .*got dtype torch.uint8; "
+                                                        r"convert integer DN images with x.float\(\) / 255"),
+    (_PATCH[:, 0], ValueError, r"image must have shape B×C×H×W \(4 dims\), got \(2, 16, 16\)"),
+    (_PATCH.expand(2, 3, 16, 16), ValueError, r"image must have C = 1 channel\(s\), got C = 3"),
+    (_PATCH * 255, ValueError, r"image must hold intensities in \[0, 1\] \(DN/255; a static pair's unclamped fold within "
+                               r"\[-1, 2\]\), got values in \[102, 102\]"),
+    (_PATCH.tolist(), TypeError, r"image must be a torch.Tensor, got list"),
+], ids=["NaN", "uint8 DN", "B×H×W", "3 channels", "float DN", "list"])
+def test_block_details_refuses_images_it_cannot_read(image, error, message):
+    """NaN passed through into the details, a uint8 image was read as DN × 255 (every block "clipped") and a B×H×W
+    batch as one image of B rows of blocks."""
+    from camhealth.estimators.noise_features import block_details
+
+    with pytest.raises(error, match=message):
+        block_details(image)
+
+
+def test_block_details_reads_images_and_static_pair_folds_as_before():
+    """An image in [0, 1] and a static pair's unclamped fold (within [−1, 2]) are read as the formulas say."""
+    from camhealth.estimators.noise_features import block_details
+
+    g = torch.Generator().manual_seed(0)
+    for x in (torch.rand(2, 1, 16, 18, generator=g), torch.rand(1, 1, 8, 8, generator=g) * 2.0 - 0.5):
+        m, d2, usable, _ = block_details(x)
+        q = x * 255.0  # (even sides: every pixel in a 2×2 block)
+        p00, p01, p10, p11 = q[..., 0::2, 0::2], q[..., 0::2, 1::2], q[..., 1::2, 0::2], q[..., 1::2, 1::2]
+        assert torch.equal(m, (p00 + p01 + p10 + p11) / 4.0)
+        assert torch.equal(d2[0], ((p00 - p01 - p10 + p11) / 2.0).square())
+
+
+@pytest.mark.parametrize("x, error, message", [
+    (torch.rand(16, 16), ValueError, r"x must have shape B×C×H×W \(4 dims\), got \(16, 16\)"),
+    (torch.rand(1, 16, 16), ValueError, r"x must have shape B×C×H×W \(4 dims\), got \(1, 16, 16\)"),
+    (torch.zeros(1, 1, 8, 8, dtype=torch.uint8), TypeError, r"x must be a floating tensor .*got dtype torch.uint8; "
+                                                           r"convert integer DN images"),
+    ([[0.5]], TypeError, r"x must be a torch.Tensor \(B×C×H×W\), got list"),
+], ids=["2-D", "3-D", "uint8", "list"])
+def test_box_mean3_refuses_what_is_no_image_batch(x, error, message):
+    """A 2-D image failed in torch's replicate padding with a NotImplementedError about its dimensions."""
+    from camhealth.estimators.noise_features import box_mean3
+
+    with pytest.raises(error, match=message):
+        box_mean3(x)
+
+
+def test_box_mean3_of_an_image_batch_is_the_padded_3x3_mean():
+    import torch.nn.functional as F
+
+    from camhealth.estimators.noise_features import box_mean3
+
+    x = torch.rand(2, 3, 9, 7, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    torch.testing.assert_close(box_mean3(x), F.avg_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1),
+                               rtol=0, atol=1e-15)

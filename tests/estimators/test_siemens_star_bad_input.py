@@ -149,3 +149,163 @@ def test_frequencies_that_are_not_real_numbers_are_a_type_error(star, frequencie
     """A string raised torch's "new(): invalid data type 'str'"; a bool tensor was read as 0 and 1 × Nyquist."""
     with pytest.raises(TypeError, match=r"frequencies must be real numbers in \[0, 1\] \(× Nyquist\), got"):
         siemens_star_mtf(star, frequencies=frequencies)
+
+
+@pytest.mark.parametrize("radius_frac, error, message", [
+    ("0.4", TypeError, r"radius_frac = '0.4' must be a real number in \[0.2, 0.49\] \(star radius / size\), got str"),
+    (True, TypeError, r"radius_frac = True must be a real number in \[0.2, 0.49\] .*got bool"),
+    (None, TypeError, r"radius_frac = None must be a real number in \[0.2, 0.49\] .*got NoneType"),
+    (float("nan"), ValueError, r"radius_frac = nan is out of the allowed range \[0.2, 0.49\]"),
+    (0.6, ValueError, r"radius_frac = 0.6 is out of the allowed range \[0.2, 0.49\]"),
+], ids=["str", "bool", "None", "NaN", "0.6"])
+def test_star_chart_checks_its_radius_fraction(radius_frac, error, message):
+    """radius_frac="0.4" rendered the chart (float() of the string); True was read as 1 and refused as out of range."""
+    with pytest.raises(error, match=message):
+        siemens_star_chart(256, radius_frac=radius_frac)
+
+
+def test_star_chart_takes_real_radius_fractions_as_before():
+    ref = siemens_star_chart(256, radius_frac=0.4)
+    assert torch.equal(siemens_star_chart(256, radius_frac=np.float64(0.4)), ref)
+    assert torch.equal(siemens_star_chart(256, radius_frac=np.float32(0.25)), siemens_star_chart(256, radius_frac=float(np.float32(0.25))))
+
+
+# ---------------------------------------------------------------------------------- consistency of the star
+def _blurred_star(psf: torch.Tensor, noise_dn: float = 0.0, n: int = 1, seed: int = 0) -> torch.Tensor:
+    from camhealth.physics import apply_psf
+
+    g = torch.Generator().manual_seed(seed)
+    clean = apply_psf(siemens_star_chart(512), psf.float())
+    return (clean.expand(n, -1, -1, -1) + noise_dn / 255.0 * torch.randn(n, 1, 512, 512, generator=g)).clamp(0, 1)
+
+
+def _gaussian(sigma_px: float) -> torch.Tensor:
+    from camhealth.physics import gaussian_psf
+
+    return gaussian_psf(torch.tensor([sigma_px]), 25)
+
+
+def test_pure_noise_with_the_levels_given_is_no_star():
+    """White noise of 30 DN and no star, read with the chart's levels, came back assessable with an MTF of 0.66; no ring
+    holds a 32-periodic component above its noise."""
+    g = torch.Generator().manual_seed(0)
+    noise = (0.5 + 30 / 255 * torch.randn(3, 1, 512, 512, generator=g)).clamp(0, 1)
+    res = siemens_star_mtf(noise, levels=(0.2, 0.8))
+    assert not bool(res.assessable.any()) and bool(torch.isnan(res.mtf).all()) and bool(torch.isnan(res.mu).all())
+    for reason in res.reasons:
+        assert re.fullmatch(r"no star: [0-9] of 206 rings show a component repeating n_cycles = 32 times per turn above "
+                            r"their noise \(false-alarm rate 0.001 per ring, against the ring's residual and against its "
+                            r"harmonics 27, 29, 35, 37\); at least 10 are needed: is this a Siemens star of 32 cycles at "
+                            r"centre = \(255.5, 255.5\), radius = 240.64 px\?", reason)
+
+
+@pytest.mark.parametrize("image", ["flat", "gradient", "blurred noise", "checkerboard"])
+def test_images_without_a_star_are_not_read_as_one(image):
+    """Without a star, with the levels given (nothing else to refuse them): a flat image read MTF ≈ 0, assessable. Noise
+    blurred after it is drawn has most of its power at low frequencies: the neighbouring harmonics keep it from reading
+    as a star where the ring's residual alone would not (with noise of that colour it passes there on ≈ 20 % of the
+    rings)."""
+    from camhealth.physics import apply_psf
+
+    yy, xx = torch.meshgrid(torch.arange(512.0), torch.arange(512.0), indexing="ij")
+    g = torch.Generator().manual_seed(4)
+    x = {"flat": torch.full((1, 1, 512, 512), 0.45),
+         "gradient": (0.2 + 0.6 * xx / 511).expand(1, 1, -1, -1),
+         "blurred noise": apply_psf((0.5 + 60 / 255 * torch.randn(2, 1, 512, 512, generator=g)).clamp(0, 1),
+                                    _gaussian(2.0).float().expand(2, -1, -1)),
+         "checkerboard": (0.2 + 0.6 * ((yy // 16 + xx // 16) % 2)).expand(1, 1, -1, -1)}[image]
+    res = siemens_star_mtf(x.contiguous(), levels=(0.2, 0.8))
+    assert not bool(res.assessable.any()) and bool(torch.isnan(res.mtf).all())
+    assert all(r.startswith("no star: ") for r in res.reasons)
+
+
+@pytest.mark.parametrize("levels, match", [
+    ((0.0, 0.001), r"levels: the star's mean, 127.5 DN, lies 500× the contrast I_w − I_b = 0.3 DN from the mid level "
+                   r"\(I_b \+ I_w\)/2 = 0.1 DN of the levels given; at most 0.25"),
+    ((51.0, 204.0), r"levels: the star's mean, 127.5 DN, lies 0.83× the contrast"),
+    ((0.1, 0.4), r"levels: the star's mean, 127.5 DN, lies 0.834× the contrast I_w − I_b = 76.5 DN"),
+    ((0.45, 0.55), r"levels: the star's 32-periodic component reaches 5.\d\d× that of an unblurred chart of contrast "
+                   r"I_w − I_b = 25.5 DN \(the levels given\); at most 1.5: the star's contrast is larger"),
+], ids=["(0, 0.001)", "DN", "(0.1, 0.4)", "(0.45, 0.55)"])
+def test_levels_the_star_contradicts_are_refused(levels, match):
+    """levels=(0, 0.001) on the 0.2/0.8 chart read an MTF of 0.24 (0.64 unblurred) as assessable: a blur keeps the
+    star's mean, 127.5 DN here, which such levels cannot give; levels closer together than the chart's read its contrast
+    as more than an unblurred chart can have (and the MTF ≡ 1)."""
+    res = siemens_star_mtf(_blurred_star(_gaussian(2.0)), levels=levels)
+    assert not bool(res.assessable[0]) and bool(torch.isnan(res.mtf).all())
+    assert re.match(match, res.reasons[0]), res.reasons[0]
+
+
+@pytest.mark.parametrize("levels", [None, (0.2, 0.8)], ids=["corners", "levels"])
+@pytest.mark.parametrize("n_cycles, match", [
+    (96, r"n_cycles: the star repeats 32 times per turn, not n_cycles = 96: on the \d+ rings where its 96-periodic "
+         r"component shows, the 32-periodic one carries \d+\.?\d*× its power \(a star of n_cycles has none at "
+         r"n_cycles/3\)"),
+    (64, r"no star: 0 of \d+ rings show a component repeating n_cycles = 64 times .*; their 32-periodic component "
+         r"carries .*× the power of the 64-periodic one; at least 10 are needed"),
+    (40, r"no star: 0 of 203 rings show a component repeating n_cycles = 40 times"),
+    (16, r"no star: 0 of \d+ rings show a component repeating n_cycles = 16 times"),
+])
+def test_a_wrong_number_of_cycles_is_refused(n_cycles, match, levels):
+    """A 32-cycle star read with n_cycles = 96 (its third harmonic) read an MTF of 0.81 as assessable, 40 read 0.46:
+    the rings then repeat 32 times per turn, not n_cycles."""
+    res = siemens_star_mtf(_blurred_star(_gaussian(2.0)), n_cycles=n_cycles, levels=levels)
+    assert not bool(res.assessable[0]) and bool(torch.isnan(res.mtf).all())
+    assert re.match(match, res.reasons[0]), res.reasons[0]
+
+
+def _without_checks(monkeypatch, x, **kw):
+    import camhealth.estimators.siemens_star as ss
+
+    with monkeypatch.context() as m:
+        m.setattr(ss, "_star_consistency", lambda c, ok: {})
+        return siemens_star_mtf(x, **kw)
+
+
+@pytest.mark.parametrize("case", ["hexagon 15 px, 25 DN, levels", "shake 15 px, 25 DN, levels", "Gaussian 2 px, 15 DN",
+                                  "shake 21 px", "defocus 21 px, 15 DN", "centre 8 px off"])
+def test_stars_blurred_far_and_noisy_read_as_without_the_checks(monkeypatch, case):
+    """Strong blur leaves the star's component on the outer rings only, and noise hides it on some: those rings suffice.
+    Every output is what the measurement gives without the consistency checks, bit for bit."""
+    from camhealth.physics import defocus_psf
+    from camhealth.physics.motion_psf import nonlinear_motion_psf, sample_shake_noise
+    from camhealth.physics.polygon_psf import polygon_psf
+
+    shake = lambda d: nonlinear_motion_psf(torch.tensor([d]), torch.tensor([30.0]), torch.tensor([0.7]),  # noqa: E731
+                                           sample_shake_noise(1, 64, generator=torch.Generator().manual_seed(7)), 31)
+    hexagon = lambda d: polygon_psf(torch.tensor([d]), 6, 31, rotation_deg=15.0)  # noqa: E731
+    x, kw = {
+        "hexagon 15 px, 25 DN, levels": lambda: (_blurred_star(hexagon(15.0), 25.0, 2), {"levels": (0.2, 0.8)}),
+        "shake 15 px, 25 DN, levels": lambda: (_blurred_star(shake(15.0), 25.0, 2), {"levels": (0.2, 0.8)}),
+        "Gaussian 2 px, 15 DN": lambda: (_blurred_star(_gaussian(2.0), 15.0, 2), {}),
+        "shake 21 px": lambda: (_blurred_star(shake(21.0)), {}),
+        "defocus 21 px, 15 DN": lambda: (_blurred_star(defocus_psf(torch.tensor([21.0]), 23), 15.0, 2), {}),
+        "centre 8 px off": lambda: (_blurred_star(_gaussian(1.0)), {"centre": (263.5, 255.5), "radius": 240.64}),
+    }[case]()
+    res = siemens_star_mtf(x, **kw)
+    ref = _without_checks(monkeypatch, x, **kw)
+    assert bool(res.assessable.all()) and res.reasons == [""] * len(x)
+    for name in ("mtf", "frequencies", "ctf_d", "mu", "s", "noise_dn", "rings_used", "assessable"):
+        mine, theirs = getattr(res, name), getattr(ref, name)
+        assert (mine is None and theirs is None) or torch.equal(mine, theirs), name
+
+
+def test_a_refused_star_leaves_the_others_of_its_batch_as_they_are():
+    star = _blurred_star(_gaussian(2.0))
+    alone = siemens_star_mtf(star, levels=(0.2, 0.8))
+    batch = siemens_star_mtf(torch.cat([star, torch.full_like(star, 0.5), star]), levels=(0.2, 0.8))
+    assert batch.assessable.tolist() == [True, False, True] and batch.reasons[1].startswith("no star: ")
+    assert torch.equal(batch.mtf[0], alone.mtf[0]) and torch.equal(batch.mtf[2], alone.mtf[0])
+
+
+def test_noise_alone_seldom_shows_on_a_ring():
+    """Each of the two tests passes a ring of white noise with probability 10⁻³, and a ring shows the star only where
+    both pass: over 8 images × 206 rings of 5–60 DN noise no image comes near the 10 rings a star needs."""
+    import camhealth.estimators.siemens_star as ss
+
+    g = torch.Generator().manual_seed(11)
+    sigma = torch.tensor([5.0, 10, 20, 30, 40, 50, 60, 60]).view(-1, 1, 1, 1)
+    x = (0.5 + sigma / 255 * torch.randn(8, 1, 512, 512, generator=g)).clamp(0, 1)
+    reasons = ss._star_consistency(ss._star_ctf(x, levels=(0.2, 0.8)), torch.ones(8, dtype=torch.bool))
+    shown = [int(re.match(r"no star: (\d+) of 206", r).group(1)) for r in reasons.values()]
+    assert len(shown) == 8 and max(shown) <= 2
