@@ -157,6 +157,9 @@ _QUANTISATION_VAR = (1.0 / 255.0) ** 2 / 12.0
 #: Slots (ring pixels and padding) of the rings' sums computed at a time: bounds their memory (float32: 2C + 1
 #: values a slot per image and harmonic column).
 _SLOTS = 1 << 18
+#: Most basis values :class:`_RingDesign` keeps (float32: 32 MiB; a 512-px star has about 5 million, a 1024-px one
+#: 20 million, computed per call instead). With the design's cache of 4 geometries, at most 128 MiB.
+_CACHED_BASIS = 1 << 23
 #: Share of a ring and sector's pixels that compete for its maximum (and for its minimum) where the stripes are
 #: resolved: n/4, the pixels of a stripe's crest (two bright stripes per sector, each half its pixels near the top).
 _EXCESS_SHARE = 0.25
@@ -736,7 +739,9 @@ class _RingDesign:
 
     The R rings are packed two to a row, the i-th shortest with the i-th longest, so that the rows, padded to the
     longest, hold about as many slots as the rings have pixels (a 1-px ring at radius r has ≈ 2πr). The columns
-    1, cos kφ, sin kφ of a slot are computed when they are used, :data:`_SLOTS` slots at a time."""
+    1, cos kφ, sin kφ of a slot are computed when they are used, :data:`_SLOTS` slots at a time — and kept, in float32
+    (``basis32``, one tensor per chunk), where they hold at most :data:`_CACHED_BASIS` values: a star read one chart at a
+    time (the monitor's case) otherwise spent most of its check computing them."""
 
     ks: tuple[int, ...]  # K harmonics: n_cycles, its J neighbours (_NEIGHBOURS), then n_cycles/p (p prime, ≥ 4)
     n_nbr: int  # J
@@ -750,6 +755,7 @@ class _RingDesign:
     inv: torch.Tensor  # (R, C, C) (XᵀX)⁻¹ of all C = 1 + 2K columns
     wald_n: torch.Tensor  # (R, 2, 2) inverse of inv's block of cos Nφ, sin Nφ
     wald_nbr: torch.Tensor  # (R, 2J, 2J) inverse of inv's block of the neighbours' columns
+    basis32: tuple[torch.Tensor, ...] | None = None  # basis(lo, hi, float32) of each chunk, or None (too large to keep)
 
     def basis(self, lo: int, hi: int, dtype: torch.dtype) -> torch.Tensor:
         """(hi − lo, L, 2C) columns 1, cos kφ…, sin kφ… of rows lo…hi − 1: those of the row's first ring, then those of
@@ -825,7 +831,10 @@ def _ring_design(h: int, w: int, cy: float, cx: float, radius: float, n_cycles: 
     inv3 = torch.linalg.inv(gram[:, cols3][:, :, cols3])
     wald_n = torch.linalg.inv(inv[:, cols_n][:, :, cols_n])
     wald_nbr = torch.linalg.inv(inv[:, cols_nbr][:, :, cols_nbr])
-    return dataclasses.replace(d, testable=testable, inv3=inv3, inv=inv, wald_n=wald_n, wald_nbr=wald_nbr)
+    n_values = d.index.numel() * 2 * n_col
+    basis32 = tuple(d.basis(lo, hi, torch.float32) for lo, hi in d.chunks()) if n_values <= _CACHED_BASIS else None
+    return dataclasses.replace(d, testable=testable, inv3=inv3, inv=inv, wald_n=wald_n, wald_nbr=wald_nbr,
+                               basis32=basis32)
 
 
 def _ring_sums(img: torch.Tensor, level: torch.Tensor, d: _RingDesign) -> tuple[torch.Tensor, torch.Tensor]:
@@ -837,10 +846,11 @@ def _ring_sums(img: torch.Tensor, level: torch.Tensor, d: _RingDesign) -> tuple[
     xty = torch.zeros(b, 2 * n_rows, n_col, dtype=torch.float64, device=img.device)  # per half row
     y2 = torch.zeros(b, 2 * n_rows, dtype=torch.float64, device=img.device)
     level = level.to(img.dtype)[:, None, None]
-    for lo, hi in d.chunks():
+    for i, (lo, hi) in enumerate(d.chunks()):
         g = img.index_select(1, d.index[lo:hi].reshape(-1)).reshape(b, hi - lo, -1)  # (B, q, L)
         g -= level
-        x = d.basis(lo, hi, img.dtype)  # (q, L, 2C)
+        kept = d.basis32 is not None and img.dtype == torch.float32
+        x = d.basis32[i] if kept else d.basis(lo, hi, img.dtype)  # (q, L, 2C)
         s = torch.einsum("bql,qlk->bqk", g, x).double()  # (B, q, 2C)
         s2 = torch.einsum("bql,qlj->bqj", g * g, x[..., ::n_col]).double()  # the columns 1 of each half: (B, q, 2)
         for k in (0, 1):
