@@ -133,14 +133,7 @@ class CorruptionBase(IntensityAugmentationBase2D):
             return None
         raw = params[key]
         g = raw if isinstance(raw, torch.Tensor) else torch.as_tensor(raw)
-        if g.is_complex():
-            raise TypeError(f"params {key} must hold 0 or 1 per sample, got dtype {g.dtype}")
-        if g.dtype != torch.bool:
-            bad = (g != 0) & (g != 1)  # (NaN included)
-            if bool(bad.any()):
-                first = g[bad].flatten()[0].item()
-                raise ValueError(f"params {key} must hold 0 ({name} off) or 1 ({name} on) per sample, got {first!r} "
-                                 f"({int(bad.sum())} of {g.numel()} values are neither)")
+        _check_zero_one(g, key, f"0 ({name} off) or 1 ({name} on)")
         return (g if device is None else g.to(device)) != 0
 
     def _component_gate(self, params: Dict[str, torch.Tensor], name: str, b: int, device: torch.device) -> torch.Tensor:
@@ -440,14 +433,20 @@ def _check_batch_prob(params: Dict[str, torch.Tensor]) -> None:
     bp = params["batch_prob"]
     if not isinstance(bp, torch.Tensor):  # (Kornia compares it with 0.5 as a tensor)
         raise TypeError(f"params batch_prob must be a tensor of 0 or 1 per sample, got {type(bp).__name__} {bp!r:.40}")
-    if bp.is_complex():
-        raise TypeError(f"params batch_prob must hold 0 or 1 per sample, got dtype {bp.dtype}")
-    if bp.dtype != torch.bool:
-        bad = (bp != 0) & (bp != 1)  # (NaN included)
+    _check_zero_one(bp, "batch_prob", "0 (sample left untouched) or 1 (transformed)")
+
+
+def _check_zero_one(g: torch.Tensor, key: str, meaning: str) -> None:
+    """``TypeError`` for a complex ``g``, ``ValueError`` naming the first value of ``g`` (params entry ``key``) that is
+    neither 0 nor 1 (NaN included); ``meaning`` says what 0 and 1 stand for."""
+    if g.is_complex():
+        raise TypeError(f"params {key} must hold 0 or 1 per sample, got dtype {g.dtype}")
+    if g.dtype != torch.bool:
+        bad = (g != 0) & (g != 1)  # (NaN included)
         if bool(bad.any()):
-            first = bp[bad].flatten()[0].item()
-            raise ValueError(f"params batch_prob must hold 0 (sample left untouched) or 1 (transformed) per sample, got "
-                             f"{first!r} ({int(bad.sum())} of {bp.numel()} values are neither)")
+            first = g[bad].flatten()[0].item()
+            raise ValueError(f"params {key} must hold {meaning} per sample, got {first!r} "
+                             f"({int(bad.sum())} of {g.numel()} values are neither)")
 
 
 def _real_param(params: Dict[str, torch.Tensor], key: str) -> torch.Tensor:
